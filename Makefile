@@ -1,0 +1,41 @@
+# Developer entry points. `make test` is what CI runs (.ci/run).
+
+PY ?= python3
+VENV = .venv
+BIN = $(VENV)/bin
+STAMP = $(VENV)/.installed
+
+RUN_CMD = $(BIN)/temoto run examples/graphs/demo_patrol.graph.json --actions examples/actions --progress
+PYTEST_ARGS ?=
+
+.PHONY: install run lint test bench clean
+
+install: $(STAMP)
+
+# Reinstall (editable, rebuilding the Cython extensions) whenever the build inputs change.
+$(STAMP): pyproject.toml setup.py
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	$(BIN)/python -m pip install -e '.[dev]'
+	touch $@
+
+run: install
+	$(RUN_CMD)
+
+lint: install
+	$(BIN)/ruff check .
+	$(BIN)/ruff format --check .
+	$(BIN)/mypy
+
+test: install lint
+	$(BIN)/python -m pytest $(PYTEST_ARGS)
+
+bench: install
+	$(BIN)/python -m bench --quick --json bench-results.json
+
+clean:
+	rm -rf $(VENV) build dist *.egg-info .pytest_cache .mypy_cache .ruff_cache .hypothesis \
+		.coverage .coverage.* htmlcov
+	find . -path ./.git -prune -o -type d -name __pycache__ -prune -exec rm -rf {} +
+	find temoto -name '*.so' -delete 2>/dev/null || true
+	rm -f temoto/core/_fast/*.c

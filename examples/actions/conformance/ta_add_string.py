@@ -1,0 +1,9 @@
+"""TaAddString: ``result`` = ``str_a`` + " and " + ``str_b``."""
+
+from temoto import Action
+
+
+class TaAddString(Action):
+    def on_run(self) -> bool:
+        self.outputs["result"] = f"{self.inputs.get_string('str_a')} and {self.inputs.get_string('str_b')}"
+        return True

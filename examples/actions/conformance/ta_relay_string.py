@@ -1,0 +1,9 @@
+"""TaRelayString: ``string_out`` = ``string_in``."""
+
+from temoto import Action
+
+
+class TaRelayString(Action):
+    def on_run(self) -> bool:
+        self.outputs["string_out"] = self.inputs.get_string("string_in")
+        return True

@@ -1,0 +1,44 @@
+"""Build the optional Cython accelerators in ``temoto/core/_fast/``; metadata is in pyproject.toml.
+
+Each name ``x`` in ``FAST_MODULES`` compiles the canonical pure-Python source ``_x_py.py`` as the
+extension ``_x_c`` (``_x_c.pxd`` adds the C declarations), as described in STYLE.md 3.9.
+Extensions are skipped when ``TEMOTO_NO_EXTENSIONS`` is set, on non-CPython interpreters and when
+Cython cannot be imported (``--no-build-isolation`` installs). Each one is marked optional, so a
+machine without a C compiler still installs a working pure-Python TeMoto.
+"""
+
+from __future__ import annotations
+
+import os
+import platform
+
+from setuptools import Extension, setup
+
+FAST_DIR = "temoto/core/_fast"
+FAST_MODULES: list[str] = []  # e.g. "evolution" -> temoto.core._fast._evolution_c
+
+
+def _extensions() -> list[Extension]:
+    if not FAST_MODULES or os.environ.get("TEMOTO_NO_EXTENSIONS"):
+        return []
+    if platform.python_implementation() != "CPython":
+        return []
+    try:
+        from Cython.Build import cythonize
+    except ImportError:
+        return []
+    sources = [
+        Extension(f"temoto.core._fast._{name}_c", [f"{FAST_DIR}/_{name}_py.py"])
+        for name in FAST_MODULES
+    ]
+    extensions: list[Extension] = cythonize(
+        sources,
+        language_level=3,
+        compiler_directives={"annotation_typing": False, "embedsignature": True},
+    )
+    for ext in extensions:
+        ext.optional = True  # cythonize drops the flag; a failed compile must not fail the install
+    return extensions
+
+
+setup(ext_modules=_extensions())

@@ -1,0 +1,69 @@
+"""TeMoto for Python: a framework for dependable, adaptive, collaborative robots.
+
+The public API::
+
+    from temoto import ActionEngine, Action, load_graph
+
+    with ActionEngine("robot_1", actions=["examples/actions/conformance"]) as engine:
+        outcome = engine.run(load_graph("my.graph.json"))
+        print(outcome.result)
+"""
+
+from __future__ import annotations
+
+from temoto.clock import Clock, MonotonicClock, ScaledClock
+from temoto.core.action import Action
+from temoto.core.catalog import ActionCatalog, GraphIndex
+from temoto.core.engine import ActionEngine, GraphOutcome
+from temoto.core.graph import UmrfGraph, dump_graph, load_graph, parse_graph, parse_graph_text
+from temoto.core.instrument import Instrument
+from temoto.core.states import GraphState, NodeState, Response, Result
+from temoto.core.umrf import Umrf, load_umrf, parse_umrf
+from temoto.core.validation import ValidationReport, validate_graph
+from temoto.errors import (
+    ActionError,
+    ConfigError,
+    GraphDefinitionError,
+    GraphInputError,
+    PluginError,
+    StateError,
+    StopRequested,
+    TemotoError,
+)
+
+__version__ = "0.1.0"
+
+__all__ = [
+    "Action",
+    "ActionCatalog",
+    "ActionEngine",
+    "ActionError",
+    "Clock",
+    "ConfigError",
+    "GraphDefinitionError",
+    "GraphIndex",
+    "GraphInputError",
+    "GraphOutcome",
+    "GraphState",
+    "Instrument",
+    "MonotonicClock",
+    "NodeState",
+    "PluginError",
+    "Response",
+    "Result",
+    "ScaledClock",
+    "StateError",
+    "StopRequested",
+    "TemotoError",
+    "Umrf",
+    "UmrfGraph",
+    "ValidationReport",
+    "__version__",
+    "dump_graph",
+    "load_graph",
+    "load_umrf",
+    "parse_graph",
+    "parse_graph_text",
+    "parse_umrf",
+    "validate_graph",
+]

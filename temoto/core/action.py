@@ -1,0 +1,513 @@
+"""The Action base class: what an action author subclasses.
+
+An action is a class with hooks the engine calls (the template method)::
+
+    class TaAddString(Action):
+        def on_run(self) -> bool:
+            self.outputs["result"] = self.inputs.get_string("str_a") + " and " + ...
+            return True
+
+Beside its module lies ``ta_add_string.umrf.json`` describing the name, type and parameters.
+The engine makes **one instance per node and keeps it for the life of the graph run**, so an
+action may keep state between runs of a cycle.
+
+Hooks and where they run:
+
+* ``on_init()``: once, in a worker thread, before the first ``on_run``.
+* ``on_run() -> bool``: in a worker thread; ``True``/``False`` become the ``on_true``/
+  ``on_false`` results, an exception ``on_error``, anything but a bool is a ``TypeError``
+  (``on_error``). Long work must notice stops: use :meth:`Action.sleep`,
+  :meth:`Action.wait_for` or :meth:`Action.wait_until_stopped`, or check
+  :attr:`Action.stop_requested`. The engine waits ``stop_timeout`` seconds (default 5) for
+  ``on_run`` to return after a stop, then marks the node ERROR.
+* ``on_pause()``, ``on_resume()``, ``on_stop()``: in a worker thread, concurrently with
+  ``on_run``; keep them short and thread-safe.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from abc import ABC, abstractmethod
+from collections import deque
+from collections.abc import Callable, Iterator, Mapping
+from typing import TYPE_CHECKING, Any, TypeVar
+
+from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value
+from temoto.core.umrf import LogMessage
+from temoto.errors import StopRequested
+
+if TYPE_CHECKING:
+    from temoto.clock import Clock
+
+__all__ = ["LOG_LENGTH", "Action", "Inputs", "Outputs", "RunControl"]
+
+#: How many runtime log messages a node keeps (newest first), as upstream.
+LOG_LENGTH = 10
+
+T = TypeVar("T")
+
+
+class RunControl:
+    """Stop and pause signals of one node, shared by the engine and the action's helpers.
+
+    One condition variable carries every signal, so helpers wait without polling. Engine
+    internal: actions use the helpers on :class:`Action`.
+
+    Args:
+        clock: The engine's clock.
+    """
+
+    __slots__ = ("clock", "cond", "paused", "stop")
+
+    def __init__(self, clock: Clock) -> None:
+        self.clock = clock
+        self.cond = threading.Condition(threading.Lock())
+        self.stop = False
+        self.paused = False
+
+    def reset(self) -> None:
+        """Clear the stop and pause flags before a new run.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        with self.cond:
+            self.stop = False
+            self.paused = False
+
+    def request_stop(self) -> None:
+        """Ask the running action to stop; wakes every helper.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        with self.cond:
+            self.stop = True
+            self.cond.notify_all()
+
+    def set_paused(self, paused: bool) -> None:
+        """Pause or resume the helpers.
+
+        Args:
+            paused: The new pause flag.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        with self.cond:
+            self.paused = paused
+            self.cond.notify_all()
+
+
+class Inputs(Mapping[str, Any]):
+    """The input values of one run (read-only), with typed getters.
+
+    Args:
+        values: Values by full parameter name (``pose::position::x``).
+        params: The action's input parameter definitions.
+    """
+
+    __slots__ = ("_params", "_values")
+
+    def __init__(self, values: Mapping[str, Any], params: Mapping[str, Parameter]) -> None:
+        self._values = dict(values)
+        self._params = params
+
+    def __getitem__(self, name: str) -> Any:
+        try:
+            return self._values[name]
+        except KeyError:
+            if name in self._params:
+                raise KeyError(f"input '{name}' holds no value in this run") from None
+            known = ", ".join(self._params) or "none"
+            raise KeyError(f"unknown input '{name}' (inputs: {known})") from None
+
+    def __iter__(self) -> Iterator[str]:
+        return iter(self._values)
+
+    def __len__(self) -> int:
+        return len(self._values)
+
+    def __repr__(self) -> str:
+        return f"Inputs({self._values!r})"
+
+    def _typed(self, name: str, kind: type[T], label: str) -> T:
+        value = self[name]
+        if not isinstance(value, kind):
+            raise TypeError(f"input '{name}' is not a {label}: {type(value).__name__}")
+        return value
+
+    def get_string(self, name: str) -> str:
+        """The value of a ``string`` input.
+
+        Args:
+            name: Parameter name.
+
+        Returns:
+            The string.
+
+        Raises:
+            KeyError: If the input is unknown or holds no value.
+            TypeError: If it is not a string.
+        """
+        return self._typed(name, str, "string")
+
+    def get_number(self, name: str) -> float:
+        """The value of a ``number`` input.
+
+        Args:
+            name: Parameter name.
+
+        Returns:
+            The number.
+
+        Raises:
+            KeyError: If the input is unknown or holds no value.
+            TypeError: If it is not a number.
+        """
+        value = self[name]
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise TypeError(f"input '{name}' is not a number: {type(value).__name__}")
+        return float(value)
+
+    def get_bool(self, name: str) -> bool:
+        """The value of a ``bool`` input.
+
+        Args:
+            name: Parameter name.
+
+        Returns:
+            The boolean.
+
+        Raises:
+            KeyError: If the input is unknown or holds no value.
+            TypeError: If it is not a boolean.
+        """
+        return self._typed(name, bool, "bool")
+
+    def get_strings(self, name: str) -> list[str]:
+        """The value of a ``strings`` input (a copy).
+
+        Args:
+            name: Parameter name.
+
+        Returns:
+            The list.
+
+        Raises:
+            KeyError: If the input is unknown or holds no value.
+            TypeError: If it is not a list of strings.
+        """
+        return list(self._typed(name, list, "list"))
+
+    def get_numbers(self, name: str) -> list[float]:
+        """The value of a ``numbers`` input (a copy).
+
+        Args:
+            name: Parameter name.
+
+        Returns:
+            The list.
+
+        Raises:
+            KeyError: If the input is unknown or holds no value.
+            TypeError: If it is not a list.
+        """
+        return [float(v) for v in self._typed(name, list, "list")]
+
+    def get_bools(self, name: str) -> list[bool]:
+        """The value of a ``bools`` input (a copy).
+
+        Args:
+            name: Parameter name.
+
+        Returns:
+            The list.
+
+        Raises:
+            KeyError: If the input is unknown or holds no value.
+            TypeError: If it is not a list.
+        """
+        return list(self._typed(name, list, "list"))
+
+
+class Outputs:
+    """The output values an action sets during a run; checked against the description.
+
+    Args:
+        params: The action's output parameter definitions.
+    """
+
+    __slots__ = ("_params", "_values")
+
+    def __init__(self, params: Mapping[str, Parameter]) -> None:
+        self._params = params
+        self._values: dict[str, Any] = {}
+
+    def __setitem__(self, name: str, value: Any) -> None:
+        param = self._params.get(name)
+        if param is None:
+            known = ", ".join(self._params) or "none"
+            raise KeyError(f"unknown output '{name}' (outputs: {known})")
+        if param.type in NATIVE_TYPES:
+            try:
+                value = check_value(param.type, value)
+            except TypeError as err:
+                raise TypeError(f"output '{name}' ({param.type}): {err}") from None
+        self._values[name] = value
+
+    def __getitem__(self, name: str) -> Any:
+        return self._values[name]
+
+    def __contains__(self, name: object) -> bool:
+        return name in self._values
+
+    def __repr__(self) -> str:
+        return f"Outputs({self._values!r})"
+
+    def snapshot(self) -> dict[str, Any]:
+        """The values set so far.
+
+        Returns:
+            A copy, by name.
+
+        Raises:
+            Nothing.
+        """
+        return dict(self._values)
+
+
+class Action(ABC):
+    """Base class of every action plugin.
+
+    Subclasses implement :meth:`on_run` and optionally the other ``on_*`` hooks. They are
+    created by the engine with no arguments; configuration comes from the input parameters.
+    ``__init__`` may be overridden (call ``super().__init__()``) but must not block.
+    """
+
+    def __init__(self) -> None:
+        self._control: RunControl | None = None
+        self._log: deque[LogMessage] = deque(maxlen=LOG_LENGTH)
+        self._logger = logging.getLogger("temoto.action")
+        self._name = type(self).__name__
+        self._graph = ""
+        self._inputs = Inputs({}, {})
+        self._outputs = Outputs({})
+        self._input_params: Mapping[str, Parameter] = {}
+        self._output_params: Mapping[str, Parameter] = {}
+
+    # ---- hooks: override these -------------------------------------------------------------
+
+    def on_init(self) -> None:  # noqa: B027 - optional hook
+        """Once per node, in a worker thread, before the first run. Default: nothing."""
+
+    @abstractmethod
+    def on_run(self) -> bool:
+        """Do the action's work. Runs in a worker thread.
+
+        Returns:
+            True for the ``on_true`` result, False for ``on_false``.
+        """
+
+    def on_pause(self) -> None:  # noqa: B027 - optional hook
+        """The graph is being paused. The helpers already block while paused."""
+
+    def on_resume(self) -> None:  # noqa: B027 - optional hook
+        """The graph resumed after a pause."""
+
+    def on_stop(self) -> None:  # noqa: B027 - optional hook
+        """A stop was requested; make ``on_run`` return soon (helpers already raise)."""
+
+    # ---- engine binding (not for action authors) ---------------------------------------------
+
+    def _bind(
+        self,
+        *,
+        control: RunControl,
+        name: str,
+        graph: str,
+        inputs: Mapping[str, Parameter],
+        outputs: Mapping[str, Parameter],
+        logger: logging.Logger,
+    ) -> None:
+        self._control = control
+        self._name = name
+        self._graph = graph
+        self._input_params = inputs
+        self._output_params = outputs
+        self._logger = logger
+
+    def _begin(self, values: Mapping[str, Any]) -> None:
+        self._inputs = Inputs(values, self._input_params)
+        self._outputs = Outputs(self._output_params)
+
+    def _log_snapshot(self) -> tuple[LogMessage, ...]:
+        return tuple(self._log)
+
+    # ---- what actions call ------------------------------------------------------------------
+
+    @property
+    def name(self) -> str:
+        """The node's full name (``<Name>_<instance_id>``)."""
+        return self._name
+
+    @property
+    def graph_name(self) -> str:
+        """The name of the graph run this node belongs to."""
+        return self._graph
+
+    @property
+    def inputs(self) -> Inputs:
+        """The input values of the current run."""
+        return self._inputs
+
+    @property
+    def outputs(self) -> Outputs:
+        """Where the current run writes its outputs (children receive them)."""
+        return self._outputs
+
+    @property
+    def clock(self) -> Clock:
+        """The engine's clock; measure durations with ``self.clock.monotonic()``."""
+        return self._ctl.clock
+
+    @property
+    def logger(self) -> logging.Logger:
+        """This node's logger (``temoto.action.<graph>.<node>``)."""
+        return self._logger
+
+    @property
+    def _ctl(self) -> RunControl:
+        if self._control is None:
+            raise RuntimeError(f"{self._name} is not bound to an engine (create it through a graph)")
+        return self._control
+
+    @property
+    def stop_requested(self) -> bool:
+        """Whether the engine asked this run to stop."""
+        return self._ctl.stop
+
+    @property
+    def paused(self) -> bool:
+        """Whether the graph is paused."""
+        return self._ctl.paused
+
+    def log(self, message: str) -> None:
+        """Write to the action's runtime log (kept in feedback, newest first) and the logger.
+
+        Args:
+            message: The text.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        stamp = int(self._ctl.clock.time() * 1000) if self._control is not None else 0
+        self._log.appendleft(LogMessage(stamp, str(message)))
+        self._logger.info("%s", message)
+
+    def sleep(self, seconds: float) -> None:
+        """Sleep for ``seconds`` of clock time; while paused, wait for the resume too.
+
+        Args:
+            seconds: The duration.
+
+        Returns:
+            None.
+
+        Raises:
+            StopRequested: As soon as a stop is requested.
+        """
+        ctl = self._ctl
+        deadline = ctl.clock.monotonic() + seconds
+        with ctl.cond:
+            while True:
+                if ctl.stop:
+                    raise StopRequested(self._name)
+                remaining = deadline - ctl.clock.monotonic()
+                if not ctl.paused and remaining <= 0:
+                    return
+                ctl.clock.wait(ctl.cond, None if ctl.paused else remaining)
+
+    def wait_until_stopped(self, timeout: float | None = None) -> bool:
+        """Block until a stop is requested or the timeout passes (pauses do not end it).
+
+        Args:
+            timeout: Clock seconds, or None to wait for the stop.
+
+        Returns:
+            True if a stop was requested, False on timeout.
+
+        Raises:
+            Nothing.
+        """
+        ctl = self._ctl
+        deadline = None if timeout is None else ctl.clock.monotonic() + timeout
+        with ctl.cond:
+            while not ctl.stop:
+                if deadline is None:
+                    ctl.clock.wait(ctl.cond, None)
+                    continue
+                remaining = deadline - ctl.clock.monotonic()
+                if remaining <= 0:
+                    return False
+                ctl.clock.wait(ctl.cond, remaining)
+            return True
+
+    def wait_for(self, predicate: Callable[[], bool], timeout: float | None = None) -> bool:
+        """Block until ``predicate()`` is true; re-checked whenever :meth:`wake` is called.
+
+        Call :meth:`wake` from the thread that changes what the predicate reads (a
+        subscription callback, a driver thread). No polling is done.
+
+        Args:
+            predicate: A cheap, thread-safe check.
+            timeout: Clock seconds, or None to wait without limit.
+
+        Returns:
+            True when the predicate holds, False on timeout.
+
+        Raises:
+            StopRequested: As soon as a stop is requested.
+        """
+        ctl = self._ctl
+        deadline = None if timeout is None else ctl.clock.monotonic() + timeout
+        with ctl.cond:
+            while True:
+                if ctl.stop:
+                    raise StopRequested(self._name)
+                if not ctl.paused and predicate():
+                    return True
+                remaining = None if deadline is None else deadline - ctl.clock.monotonic()
+                if remaining is not None and remaining <= 0 and not ctl.paused:
+                    return False
+                ctl.clock.wait(ctl.cond, None if ctl.paused else remaining)
+
+    def wake(self) -> None:
+        """Make :meth:`wait_for` re-check its predicate. Safe from any thread.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        ctl = self._ctl
+        with ctl.cond:
+            ctl.cond.notify_all()
+
+
+#: Value of an input that holds no data (re-exported for action authors).
+NO_DATA = NO_VALUE

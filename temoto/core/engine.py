@@ -1,0 +1,1109 @@
+"""The Action Engine: runs UMRF graphs.
+
+One engine per actor (robot). It resolves each action of a graph to a local plugin, an indexed
+sub-graph (same name and signature) or a remote actor, validates the graph, and evolves it:
+when an action finishes, its result is propagated to its children through the condition
+table, data flows along the relations, and ready children are dispatched to the worker pool.
+
+Concurrency model (see ``docs/engine.md``):
+
+* One engine lock guards every graph run. Evolution is plain computation under that lock and
+  never waits on user code; user hooks (``on_run``, ``on_stop``, ...) run on the bounded
+  :class:`~temoto.core.executor.WorkerPool`.
+* A worker that finishes an action evolves the graph and then runs the first action that became
+  ready itself (no queue hand-off in a chain); further ready actions go to other workers.
+* Stops are cooperative with a deadline (``stop_timeout``, clock seconds) enforced by one
+  timer thread; a node that does not stop in time goes to ERROR.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import threading
+from collections import deque
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from temoto.clock import Clock, MonotonicClock
+from temoto.core._runtime import GraphRun, Node, NodeKind, Plan, ResolvedAction
+from temoto.core.action import RunControl
+from temoto.core.catalog import ActionCatalog, GraphIndex
+from temoto.core.executor import DeadlineTimer, WorkerPool
+from temoto.core.graph import UmrfGraph, graph_to_dict
+from temoto.core.instrument import Instrument
+from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value, dump_parameter_tree
+from temoto.core.states import NODE_TRANSITIONS, GraphState, NodeState, Response, Result
+from temoto.core.umrf import DEFAULT_CONDITIONS, Umrf, dump_umrf
+from temoto.core.validation import validate_graph
+from temoto.errors import (
+    ActionError,
+    ActionNotFoundError,
+    GraphDefinitionError,
+    GraphInputError,
+    GraphNotFoundError,
+    StateError,
+    StopRequested,
+)
+
+__all__ = ["ActionEngine", "GraphOutcome"]
+
+logger = logging.getLogger(__name__)
+
+_S = NodeState
+_ACTIVE = frozenset({_S.RUNNING, _S.PAUSE_REQUESTED, _S.PAUSED, _S.STOPPING})
+_BUSY_GRAPH = frozenset({GraphState.RUNNING, GraphState.PAUSED, GraphState.STOPPING, GraphState.CLEARING})
+_ENDED_GRAPH = frozenset({GraphState.FINISHED, GraphState.STOPPED, GraphState.ERROR, GraphState.HALTED})
+
+# effect kinds (tuples in an effect list, executed after the engine lock is released)
+_RUN = 0  # (_RUN, node, gen): run the action on a worker
+_HOOK = 1  # (_HOOK, node, gen, hook name): call on_stop / on_pause / on_resume on a worker
+_SPONT = 2  # (_SPONT, node, gen, result, outputs, error): finish a spontaneous run on a worker
+
+Effect = tuple[Any, ...]
+
+
+@dataclass(frozen=True, slots=True)
+class GraphOutcome:
+    """How a graph run ended (or where it is).
+
+    Attributes:
+        graph: The run's name.
+        state: Its state.
+        result: Its result, or None while it runs.
+        outputs: The graph's outputs (the exit actions' outputs), by name.
+        errors: Errors raised by its actions, in order.
+    """
+
+    graph: str
+    state: GraphState
+    result: Result | None
+    outputs: dict[str, Any]
+    errors: tuple[BaseException, ...]
+
+
+class ActionEngine:
+    """Runs UMRF graphs: start, wait, stop, pause, resume, modify; feedback.
+
+    Args:
+        actor: This engine's actor (robot) name. Actions whose ``actor`` is empty or equal run
+            here; others are remote.
+        actions: An action catalog, or directories to scan for actions.
+        graphs: A graph index, or directories to scan for graphs (sub-graphs, start by name).
+        clock: Where time is read (default: real time).
+        max_workers: Upper bound on worker threads running actions.
+        stop_timeout: Clock seconds an action has to return after a stop before its node goes
+            to ERROR (upstream: 5).
+        instruments: Observers of engine events.
+        feedback_size: Keep this many whole-graph snapshots (one per node state change) for
+            :meth:`read_feedback`; 0 (default) keeps none, because a snapshot costs time
+            proportional to the graph's size.
+
+    Raises:
+        ConfigError: If an action or graph directory does not exist.
+    """
+
+    def __init__(
+        self,
+        actor: str = "",
+        *,
+        actions: ActionCatalog | Iterable[str | Path] | None = None,
+        graphs: GraphIndex | Iterable[str | Path] | None = None,
+        clock: Clock | None = None,
+        max_workers: int = 64,
+        stop_timeout: float = 5.0,
+        instruments: Iterable[Instrument] = (),
+        feedback_size: int = 0,
+    ) -> None:
+        self.actor = actor
+        self.catalog = actions if isinstance(actions, ActionCatalog) else ActionCatalog(actions or ())
+        self.graphs = graphs if isinstance(graphs, GraphIndex) else GraphIndex(graphs or ())
+        self.clock: Clock = clock or MonotonicClock()
+        self.stop_timeout = stop_timeout
+        self._instruments = list(instruments)
+        self._lock = threading.Lock()
+        self._quiet = threading.Condition(self._lock)
+        self._quiet_waiters = 0
+        self._runs: dict[str, GraphRun] = {}
+        self._pool = WorkerPool(max_workers)
+        self._timer = DeadlineTimer()
+        self._feedback: deque[dict[str, Any]] = deque(maxlen=max(feedback_size, 1))
+        self._feedback_on = feedback_size > 0
+        self._closed = False
+
+    # ================================================================ public API
+
+    def __enter__(self) -> ActionEngine:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+    def start(
+        self,
+        graph: str | UmrfGraph,
+        params: Mapping[str, Any] | None = None,
+        *,
+        result: Result = Result.TRUE,
+        name: str | None = None,
+    ) -> str:
+        """Start a graph, by indexed name or as a graph object.
+
+        A graph of the same name that has ended (finished, halted, stopped, failed) is
+        replaced by a fresh run (new nodes, new action instances).
+
+        Args:
+            graph: An indexed graph's name, or a graph.
+            params: Values for the graph's external inputs, by name.
+            result: The result ``graph_entry`` hands to the entry actions (default on_true).
+            name: Run under this name instead of the graph's name.
+
+        Returns:
+            The run's name (for :meth:`wait`, :meth:`stop`, ...).
+
+        Raises:
+            GraphNotFoundError: No indexed graph has that name.
+            GraphDefinitionError: The graph cannot run (all problems listed).
+            GraphInputError: A required input is missing, unknown or of the wrong type.
+            ActionNotFoundError, PluginConflictError, PluginLoadError: An action cannot be loaded.
+            StateError: A run of that name is active, or the engine is shut down.
+        """
+        model = self.graphs.get(graph) if isinstance(graph, str) else graph
+        run_name = name or model.name
+        plan = self.plan(model)
+        values = _graph_inputs(plan.graph, params or {})
+        fx: list[Effect] = []
+        with self._lock:
+            if self._closed:
+                raise StateError("the engine is shut down")
+            old = self._runs.get(run_name)
+            if old is not None and old.state in _BUSY_GRAPH:
+                raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
+            run = GraphRun(run_name, plan)
+            self._runs[run_name] = run
+            self._start_run(run, values, result, fx)
+        self._dispatch(fx)
+        return run_name
+
+    def wait(self, name: str, timeout: float | None = None) -> Result:
+        """Block until a graph run ends (finished, halted, stopped or failed).
+
+        Args:
+            name: The run's name.
+            timeout: Real seconds, or None to wait without limit.
+
+        Returns:
+            The run's result.
+
+        Raises:
+            GraphNotFoundError: No run of that name.
+            TimeoutError: The run did not end in time.
+        """
+        run = self._get(name)
+        if not run.done.wait(timeout):
+            raise TimeoutError(f"graph '{name}' did not end within {timeout} s")
+        with self._lock:
+            assert run.result is not None
+            return run.result
+
+    def run(
+        self, graph: str | UmrfGraph, params: Mapping[str, Any] | None = None, timeout: float | None = None
+    ) -> GraphOutcome:
+        """Start a graph and wait for it; on timeout, stop it.
+
+        Args:
+            graph: An indexed graph's name, or a graph.
+            params: Values for the graph's external inputs.
+            timeout: Real seconds to wait before stopping it, or None.
+
+        Returns:
+            The outcome.
+
+        Raises:
+            Everything :meth:`start` raises.
+        """
+        name = self.start(graph, params)
+        try:
+            self.wait(name, timeout)
+        except TimeoutError:
+            logger.warning("graph %s did not end within %s s; stopping it", name, timeout)
+            self.stop(name)
+        return self.outcome(name)
+
+    def stop(self, name: str, timeout: float | None = None) -> Result:
+        """Stop a graph run and wait until its actions have stopped.
+
+        Args:
+            name: The run's name.
+            timeout: Real seconds to wait, or None (the stop itself is bounded by
+                ``stop_timeout`` per action).
+
+        Returns:
+            ``on_stopped``, or ``on_error`` if an action did not stop in time; for a run that
+            had already ended, its result.
+
+        Raises:
+            GraphNotFoundError: No run of that name.
+            TimeoutError: The stop did not complete in time.
+        """
+        run = self._get(name)
+        fx: list[Effect] = []
+        with self._lock:
+            self._stop_run(run, fx)
+        self._dispatch(fx)
+        return self.wait(name, timeout)
+
+    def pause(self, name: str) -> None:
+        """Pause a running graph: running actions are paused and no action starts.
+
+        An action that finishes while paused keeps its result until :meth:`resume`.
+
+        Args:
+            name: The run's name.
+
+        Returns:
+            None.
+
+        Raises:
+            GraphNotFoundError: No run of that name.
+            StateError: The run is not RUNNING.
+        """
+        run = self._get(name)
+        fx: list[Effect] = []
+        with self._lock:
+            if run.state is not GraphState.RUNNING:
+                raise StateError(f"graph '{name}' is {run.state.value}, not RUNNING")
+            self._pause_run(run, fx)
+        self._dispatch(fx)
+
+    def resume(self, name: str, continue_from: str | None = None) -> None:
+        """Resume a paused or halted graph, optionally running one node directly.
+
+        Args:
+            name: The run's name.
+            continue_from: A node's full name (``TaRelayString_1``) to run now, regardless of
+                its parents.
+
+        Returns:
+            None.
+
+        Raises:
+            GraphNotFoundError: No run of that name.
+            StateError: The run is neither PAUSED nor HALTED.
+            KeyError: ``continue_from`` names no node of the graph.
+        """
+        run = self._get(name)
+        fx: list[Effect] = []
+        with self._lock:
+            if run.state not in (GraphState.PAUSED, GraphState.HALTED):
+                raise StateError(f"graph '{name}' is {run.state.value}, not PAUSED or HALTED")
+            if continue_from is not None and continue_from not in run.nodes:
+                raise KeyError(f"graph '{name}' has no action '{continue_from}'")
+            self._resume_run(run, continue_from, fx)
+        self._dispatch(fx)
+
+    def modify(self, name: str, graph: UmrfGraph, continue_from: str | None = None) -> None:
+        """Replace the structure of a running, paused or halted graph.
+
+        Nodes absent from ``graph`` are removed (refused if one is active), new nodes are
+        added (resolved like at start), surviving nodes keep their state, action instance
+        and received data and take the new relations and updatable literals. The change is
+        applied atomically; a paused run stays paused unless ``continue_from`` is given, a
+        halted one resumes.
+
+        Args:
+            name: The run's name (``graph.name`` may differ).
+            graph: The new graph.
+            continue_from: A node to run right after the change.
+
+        Returns:
+            None.
+
+        Raises:
+            GraphNotFoundError: No run of that name.
+            GraphDefinitionError: The new graph cannot run.
+            StateError: The run has ended, or an active node would be removed.
+            KeyError: ``continue_from`` names no node of the new graph.
+        """
+        run = self._get(name)
+        plan = self.plan(graph)
+        fx: list[Effect] = []
+        with self._lock:
+            if run.state not in (GraphState.RUNNING, GraphState.PAUSED, GraphState.HALTED):
+                raise StateError(f"graph '{name}' is {run.state.value}; only running, paused or halted graphs change")
+            new_names = set(plan.actions)
+            busy = sorted(n.name for n in run.nodes.values() if n.name not in new_names and n.active)
+            if busy:
+                raise StateError(f"graph '{name}': cannot remove active actions {', '.join(busy)}")
+            if continue_from is not None and continue_from not in new_names:
+                raise KeyError(f"the new graph has no action '{continue_from}'")
+            run.wire(plan)
+            logger.info("graph %s modified (%d actions)", name, len(run.nodes))
+            if run.state is GraphState.HALTED or (continue_from and run.state is GraphState.PAUSED):
+                self._resume_run(run, continue_from, fx)
+            elif continue_from is not None:
+                self._run_node(run.nodes[continue_from], fx)
+                self._after_change(run, fx)
+            else:
+                self._after_change(run, fx)
+        self._dispatch(fx)
+
+    def outcome(self, name: str) -> GraphOutcome:
+        """Where a graph run is, or how it ended.
+
+        Args:
+            name: The run's name.
+
+        Returns:
+            The outcome.
+
+        Raises:
+            GraphNotFoundError: No run of that name.
+        """
+        run = self._get(name)
+        with self._lock:
+            return GraphOutcome(run.name, run.state, run.result, dict(run.outputs), tuple(run.errors))
+
+    def running_graphs(self) -> dict[str, GraphState]:
+        """Every graph run the engine knows (including ended ones and sub-graphs).
+
+        Returns:
+            States by run name.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            return {name: run.state for name, run in self._runs.items()}
+
+    def indexed_graphs(self) -> list[UmrfGraph]:
+        """Graphs found in the graph directories.
+
+        Returns:
+            The graphs.
+
+        Raises:
+            Nothing.
+        """
+        return self.graphs.all()
+
+    def graph_json(self, name: str) -> dict[str, Any]:
+        """A snapshot of a run as UMRF JSON, with node states, current inputs and logs.
+
+        Args:
+            name: The run's name.
+
+        Returns:
+            A JSON-ready dict in the canonical form.
+
+        Raises:
+            GraphNotFoundError: No run of that name.
+        """
+        run = self._get(name)
+        with self._lock:
+            return self._snapshot(run)
+
+    def read_feedback(self) -> list[dict[str, Any]]:
+        """Return and clear the buffered snapshots (needs ``feedback_size`` > 0).
+
+        Returns:
+            Snapshots, oldest first.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            out = list(self._feedback)
+            self._feedback.clear()
+            return out
+
+    def add_instrument(self, instrument: Instrument) -> None:
+        """Attach an observer.
+
+        Args:
+            instrument: The observer.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            self._instruments.append(instrument)
+
+    def shutdown(self, timeout: float = 10.0) -> None:
+        """Stop every graph, then join the engine's threads. Idempotent.
+
+        Args:
+            timeout: Real seconds to wait for actions to return.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        fx: list[Effect] = []
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            runs = [r for r in self._runs.values() if r.parent_node is None]
+            for run in runs:
+                self._stop_run(run, fx)
+            # a finished graph may still have actions winding down
+            for run in self._runs.values():
+                for node in run.nodes.values():
+                    if node.active:
+                        self._stop_node(node, fx)
+        self._dispatch(fx, closing=True)
+        for run in runs:
+            run.done.wait(timeout)
+        with self._lock:
+            self._quiet.notify_all()
+        stuck = self._pool.shutdown(timeout)
+        self._timer.shutdown()
+        if stuck:
+            logger.error("actions still running at shutdown (threads %s)", ", ".join(stuck))
+
+    # ================================================================ planning
+
+    def plan(self, graph: UmrfGraph) -> Plan:
+        """Resolve and validate a graph without running it.
+
+        Args:
+            graph: The graph.
+
+        Returns:
+            The plan: effective actions and how each runs.
+
+        Raises:
+            GraphDefinitionError, ActionNotFoundError, PluginConflictError, PluginLoadError:
+                As for :meth:`start`.
+        """
+        return self._plan(graph, (graph.name,))
+
+    def _plan(self, graph: UmrfGraph, stack: tuple[str, ...]) -> Plan:
+        actions: list[Umrf] = []
+        resolved: dict[str, ResolvedAction] = {}
+        remote: list[str] = []
+        for umrf in graph.actions:
+            if umrf.actor and umrf.actor != self.actor:
+                resolved[umrf.full_name] = ResolvedAction(NodeKind.REMOTE)
+                remote.append(f"{umrf.full_name} ({umrf.actor})")
+                actions.append(umrf)
+                continue
+            effective, how = self._resolve(graph, umrf, stack)
+            actions.append(effective)
+            resolved[umrf.full_name] = how
+        if remote:
+            raise GraphDefinitionError(
+                f"graph '{graph.name}' has actions for other actors: {', '.join(remote)}; this engine"
+                f" (actor '{self.actor}') has no fleet link to run them with",
+                file=graph.source,
+            )
+        effective_graph = dataclasses.replace(graph, actions=tuple(actions))
+        report = validate_graph(effective_graph)
+        report.raise_for_errors(graph.source)
+        for issue in report.warnings:
+            logger.warning("graph '%s': %s", graph.name, issue)
+        return Plan(effective_graph, resolved, tuple(str(w) for w in report.warnings))
+
+    def _resolve(self, graph: UmrfGraph, umrf: Umrf, stack: tuple[str, ...]) -> tuple[Umrf, ResolvedAction]:
+        description = self.catalog.find(umrf.name)
+        mismatch = ""
+        if description is not None:
+            mismatch = _param_mismatch(umrf, description)
+            if not mismatch:
+                cls = self.catalog.load_class(umrf.name)
+                return _merge(graph, umrf, description), ResolvedAction(NodeKind.LOCAL, cls=cls)
+        sub = self.graphs.find_subgraph(umrf)
+        if sub is not None:
+            if sub.name in stack:
+                chain = " -> ".join((*stack, sub.name))
+                raise GraphDefinitionError(f"graph uses itself as a sub-graph: {chain}", file=graph.source)
+            return umrf, ResolvedAction(NodeKind.GRAPH, plan=self._plan(sub, (*stack, sub.name)))
+        where = f"graph '{graph.name}': action '{umrf.full_name}'"
+        if mismatch:
+            raise GraphDefinitionError(f"{where}: {mismatch}", file=graph.source)
+        raise ActionNotFoundError(
+            f"{where}: no action description and no indexed graph named '{umrf.name}'"
+            " (add its folder with --actions, or its graph's folder with --graphs)"
+        )
+
+    # ================================================================ effects
+
+    def _dispatch(self, fx: list[Effect], *, closing: bool = False) -> None:
+        for effect in fx:
+            try:
+                if effect[0] == _RUN:
+                    self._pool.submit(self._execute, effect[1], effect[2])
+                elif effect[0] == _HOOK:
+                    self._pool.submit(self._call_hook, effect[1], effect[2], effect[3])
+                else:
+                    self._pool.submit(self._finish_spontaneous, *effect[1:])
+            except RuntimeError:
+                if not closing:
+                    raise
+
+    def _execute(self, node: Node, gen: int) -> None:
+        """Worker: run an action, evolve, then continue with the first newly ready action."""
+        while True:
+            fx = self._run_action(node, gen)
+            nxt = None
+            for i, effect in enumerate(fx):
+                if effect[0] == _RUN:
+                    nxt = effect
+                    del fx[i]
+                    break
+            if fx:
+                self._dispatch(fx, closing=self._closed)
+            if nxt is None:
+                return
+            node, gen = nxt[1], nxt[2]
+
+    def _run_action(self, node: Node, gen: int) -> list[Effect]:
+        run = node.run
+        fx: list[Effect] = []
+        with self._lock:
+            if gen != node.gen or node.state is not _S.RUNNING and node.state not in _ACTIVE:
+                return fx
+            instance = node.instance
+            values = dict(node.data)
+        error: BaseException | None = None
+        if instance is None:
+            try:
+                instance = self._instantiate(node)
+            except Exception as err:
+                error = ActionError(f"{node.name} could not be initialised: {err}", graph=run.name, node=node.name)
+                error.__cause__ = err
+        outputs: dict[str, Any] = {}
+        result = Result.ERROR
+        if instance is not None:
+            instance._begin(values)
+            try:
+                ok = instance.on_run()
+                if type(ok) is not bool:
+                    raise TypeError(f"on_run() must return True or False, not {type(ok).__name__}")
+                result = Result.TRUE if ok else Result.FALSE
+            except StopRequested:
+                result = Result.STOPPED
+            except BaseException as err:
+                error = ActionError(f"{node.name} failed: {err}", graph=run.name, node=node.name)
+                error.__cause__ = err
+            outputs = instance.outputs.snapshot()
+        with self._lock:
+            if instance is not None and gen == node.gen:
+                node.log = instance._log_snapshot()
+            if node.spontaneous and gen == node.gen and run.state is not GraphState.PAUSED and not node.restart:
+                fx.append((_SPONT, node, gen, result, outputs, error))
+            else:
+                self._on_finished(node, gen, result, outputs, error, fx)
+        return fx
+
+    def _instantiate(self, node: Node) -> Any:
+        assert node.cls is not None and node.control is not None
+        instance = node.cls()
+        instance._bind(
+            control=node.control,
+            name=node.name,
+            graph=node.run.name,
+            inputs=node.inputs,
+            outputs=node.outputs,
+            logger=logging.getLogger(f"temoto.action.{node.run.name}.{node.name}"),
+        )
+        instance.on_init()
+        with self._lock:
+            node.instance = instance
+        return instance
+
+    def _call_hook(self, node: Node, gen: int, hook: str) -> None:
+        instance = node.instance
+        if instance is not None:
+            try:
+                getattr(instance, hook)()
+            except Exception:
+                logger.exception("%s/%s: %s() raised", node.run.name, node.name, hook)
+        if hook == "on_pause":
+            fx: list[Effect] = []
+            with self._lock:
+                if node.gen == gen and node.state is _S.PAUSE_REQUESTED:
+                    self._set_state(node, _S.PAUSED)
+            self._dispatch(fx)
+
+    def _finish_spontaneous(
+        self, node: Node, gen: int, result: Result, outputs: dict[str, Any], error: BaseException | None
+    ) -> None:
+        """Worker: stop everything downstream of a spontaneous action, then propagate and re-run."""
+        fx: list[Effect] = []
+        with self._lock:
+            downstream = self._downstream(node)
+            for other in downstream:
+                if other.active:
+                    self._stop_node(other, fx)
+        self._dispatch(fx, closing=self._closed)
+        fx = []
+        with self._lock:
+            self._quiet_waiters += 1
+            try:
+                while any(n.active for n in downstream) and not self._closed and node.gen == gen:
+                    self._quiet.wait()
+            finally:
+                self._quiet_waiters -= 1
+            if node.gen != gen:
+                return
+            rerun = node.state is _S.RUNNING and node.run.state is GraphState.RUNNING and not self._closed
+            self._on_finished(node, gen, result, outputs, error, fx)
+            if rerun and node.state is _S.FINISHED and node.run.state is GraphState.RUNNING:
+                self._run_node(node, fx)
+                self._after_change(node.run, fx)
+        self._execute_first(fx)
+
+    def _execute_first(self, fx: list[Effect]) -> None:
+        self._dispatch(fx, closing=self._closed)
+
+    def _downstream(self, start: Node) -> list[Node]:
+        seen = {start.name}
+        out: list[Node] = []
+        todo = [start]
+        while todo:
+            node = todo.pop()
+            for child, _, _ in node.children:
+                if child.kind is NodeKind.EXIT or child.name in seen:
+                    continue
+                seen.add(child.name)
+                out.append(child)
+                todo.append(child)
+        return out
+
+    # ================================================================ evolution (lock held)
+
+    def _set_state(self, node: Node, new: NodeState) -> None:
+        old = node.state
+        if new not in NODE_TRANSITIONS[old]:
+            raise StateError(f"{node.run.name}/{node.name}: illegal state change {old.value} -> {new.value}")
+        node.state = new
+        was, now = old in _ACTIVE, new in _ACTIVE
+        if was != now:
+            node.run.active += 1 if now else -1
+            if not now and self._quiet_waiters:
+                self._quiet.notify_all()
+        if self._instruments:
+            t = self.clock.monotonic()
+            for inst in list(self._instruments):
+                try:
+                    inst.node_transition(node.run.name, node.name, old, new, t)
+                except Exception:
+                    self._drop_instrument(inst)
+        if self._feedback_on:
+            self._feedback.append(self._snapshot(node.run))
+
+    def _drop_instrument(self, inst: Instrument) -> None:
+        logger.exception("instrument %r raised; removing it", inst)
+        if inst in self._instruments:
+            self._instruments.remove(inst)
+
+    def _notify(self, hook: str, *args: Any) -> None:
+        for inst in list(self._instruments):
+            try:
+                getattr(inst, hook)(*args)
+            except Exception:
+                self._drop_instrument(inst)
+
+    def _start_run(self, run: GraphRun, values: dict[str, Any], result: Result, fx: list[Effect]) -> None:
+        run.state = GraphState.RUNNING
+        run.started_at = self.clock.monotonic()
+        if self._instruments:
+            self._notify("graph_started", run.name, run.started_at)
+        entry = run.entry
+        entry.data = dict(values)
+        self._propagate(entry, result, values, fx)
+        self._after_change(run, fx)
+
+    def _on_finished(
+        self,
+        node: Node,
+        gen: int,
+        result: Result,
+        outputs: dict[str, Any],
+        error: BaseException | None,
+        fx: list[Effect],
+    ) -> None:
+        """An action run ended (returned, raised, timed out, or its sub-graph ended)."""
+        if gen != node.gen:
+            return  # a run the engine already gave up on (stop timeout)
+        run = node.run
+        if node.state in (_S.PAUSE_REQUESTED, _S.PAUSED):
+            node.held = (result, outputs, error)  # delivered on resume
+            return
+        if node.state is _S.STOPPING:
+            result = Result.STOPPED
+        if node.stop_timer is not None:
+            node.stop_timer.cancel()
+            node.stop_timer = None
+        node.clear_data()
+        node.last_outputs = outputs
+        if node.restart:
+            node.restart = False
+            self._set_state(node, _S.FINISHED)
+            if run.state in (GraphState.RUNNING, GraphState.PAUSED):
+                self._run_node(node, fx)
+            self._after_change(run, fx)
+            return
+        if error is not None and result is Result.ERROR:
+            node.error = error
+            run.errors.append(error)
+            logger.warning("%s: %s", run.name, error)
+            if self._instruments:
+                self._notify("action_failed", run.name, node.name, error)
+        self._set_state(node, _S.ERROR if result is Result.ERROR else _S.FINISHED)
+        if run.state is GraphState.RUNNING:
+            self._propagate(node, result, outputs, fx)
+        self._after_change(run, fx)
+
+    def _propagate(self, node: Node, result: Result, outputs: Mapping[str, Any], fx: list[Effect]) -> None:
+        """Deliver a finished node's result and outputs to its children (REFERENCE §2.5)."""
+        run = node.run
+        work: deque[tuple[Node, Result, Mapping[str, Any]]] = deque([(node, result, outputs)])
+        bypassed: set[str] = set()
+        while work:
+            parent, res, outs = work.popleft()
+            for child, remap, relation in parent.children:
+                if run.state is not GraphState.RUNNING:
+                    return
+                child.received.add(parent.name)
+                response = relation.conditions.get(res) or DEFAULT_CONDITIONS[res]
+                if response is Response.BYPASS:
+                    if child.kind is NodeKind.EXIT:
+                        self._finish_run(run, res, fx)
+                        return
+                    if child.name in bypassed:
+                        logger.warning("%s: bypass loops back to %s; stopping it there", run.name, child.name)
+                        continue
+                    bypassed.add(child.name)
+                    if not child.active:
+                        self._set_state(child, _S.BYPASSED)
+                    work.append((child, res, {}))
+                    continue
+                if response is Response.IGNORE:
+                    continue
+                if outs:
+                    _transfer(parent, child, remap, outs)
+                if not child.ready():
+                    continue
+                if child.kind is NodeKind.EXIT:
+                    self._finish_run(run, res, fx)
+                    return
+                if response is Response.RUN:
+                    self._run_node(child, fx)
+                elif response is Response.STOP:
+                    self._stop_node(child, fx)
+                elif response is Response.PAUSE:
+                    self._pause_node(child, fx)
+                else:
+                    self._restart_node(child, fx)
+
+    def _run_node(self, node: Node, fx: list[Effect]) -> None:
+        if node.state in _ACTIVE or node.kind in (NodeKind.ENTRY, NodeKind.EXIT):
+            return
+        run = node.run
+        node.gen += 1
+        node.held = None
+        if node.kind is NodeKind.LOCAL:
+            if node.control is None:
+                node.control = RunControl(self.clock)
+            else:
+                node.control.reset()
+            if node.fresh_instance:
+                node.instance = None  # the old one is stuck in a run we gave up on
+                node.fresh_instance = False
+            self._set_state(node, _S.RUNNING)
+            fx.append((_RUN, node, node.gen))
+            return
+        assert node.plan is not None
+        self._set_state(node, _S.RUNNING)
+        child = GraphRun(f"{run.name}__{node.umrf.name}__{node.umrf.instance_id}", node.plan, parent_node=node)
+        node.child_run = child
+        old = self._runs.get(child.name)
+        if old is not None and old.state in _BUSY_GRAPH:
+            logger.warning("%s: replacing sub-graph run %s that was still %s", run.name, child.name, old.state.value)
+        self._runs[child.name] = child
+        values = {k: v for k, v in node.data.items() if k in child.entry.inputs}
+        node.clear_data()
+        self._start_run(child, values, Result.TRUE, fx)
+
+    def _stop_node(self, node: Node, fx: list[Effect]) -> None:
+        if node.state not in (_S.RUNNING, _S.PAUSE_REQUESTED, _S.PAUSED):
+            return
+        self._set_state(node, _S.STOPPING)
+        if node.kind is NodeKind.GRAPH:
+            if node.child_run is not None:
+                self._stop_run(node.child_run, fx)
+            return
+        assert node.control is not None
+        node.control.request_stop()
+        fx.append((_HOOK, node, node.gen, "on_stop"))
+        node.stop_timer = self._timer.call_later(
+            self.clock.real_seconds(self.stop_timeout), self._stop_expired, node, node.gen
+        )
+        if node.held is not None:  # it had already finished while paused
+            result, outputs, error = node.held
+            node.held = None
+            self._on_finished(node, node.gen, result, outputs, error, fx)
+
+    def _stop_expired(self, node: Node, gen: int) -> None:
+        """Timer thread: an action ignored its stop for ``stop_timeout``."""
+        fx: list[Effect] = []
+        with self._lock:
+            if node.gen != gen or node.state is not _S.STOPPING:
+                return
+            run = node.run
+            node.gen += 1  # its late return is ignored
+            node.fresh_instance = True
+            node.stop_timer = None
+            error = ActionError(
+                f"{node.name} did not stop within {self.stop_timeout} s; marked ERROR",
+                graph=run.name,
+                node=node.name,
+            )
+            node.error = error
+            run.errors.append(error)
+            run.stop_failed = True
+            logger.error("%s: %s", run.name, error)
+            self._set_state(node, _S.ERROR)
+            if node.restart:
+                node.restart = False
+                if run.state is GraphState.RUNNING:
+                    self._run_node(node, fx)
+            self._after_change(run, fx)
+        self._dispatch(fx, closing=self._closed)
+
+    def _pause_node(self, node: Node, fx: list[Effect]) -> None:
+        if node.state is not _S.RUNNING:
+            return
+        if node.kind is NodeKind.GRAPH:
+            self._set_state(node, _S.PAUSE_REQUESTED)
+            self._set_state(node, _S.PAUSED)
+            if node.child_run is not None and node.child_run.state is GraphState.RUNNING:
+                self._pause_run(node.child_run, fx)
+            return
+        assert node.control is not None
+        self._set_state(node, _S.PAUSE_REQUESTED)
+        node.control.set_paused(True)
+        fx.append((_HOOK, node, node.gen, "on_pause"))
+
+    def _resume_node(self, node: Node, fx: list[Effect]) -> None:
+        if node.state not in (_S.PAUSE_REQUESTED, _S.PAUSED):
+            return
+        self._set_state(node, _S.RUNNING)
+        if node.kind is NodeKind.GRAPH:
+            if node.child_run is not None and node.child_run.state is GraphState.PAUSED:
+                self._resume_run(node.child_run, None, fx)
+            return
+        assert node.control is not None
+        node.control.set_paused(False)
+        fx.append((_HOOK, node, node.gen, "on_resume"))
+        if node.held is not None:
+            result, outputs, error = node.held
+            node.held = None
+            if node.spontaneous:
+                fx.append((_SPONT, node, node.gen, result, outputs, error))
+            else:
+                self._on_finished(node, node.gen, result, outputs, error, fx)
+
+    def _restart_node(self, node: Node, fx: list[Effect]) -> None:
+        if node.active:
+            node.restart = True
+            self._stop_node(node, fx)
+        else:
+            self._run_node(node, fx)
+
+    def _pause_run(self, run: GraphRun, fx: list[Effect]) -> None:
+        run.state = GraphState.PAUSED
+        for node in list(run.nodes.values()):
+            self._pause_node(node, fx)
+
+    def _resume_run(self, run: GraphRun, continue_from: str | None, fx: list[Effect]) -> None:
+        # The graph is RUNNING before any node is released, so a node finishing at once is
+        # propagated (upstream releases nodes first and can drop that result).
+        if run.state is GraphState.HALTED:
+            run.done.clear()
+            run.result = None
+        run.state = GraphState.RUNNING
+        for node in list(run.nodes.values()):
+            if run.state is not GraphState.RUNNING:
+                break
+            self._resume_node(node, fx)
+        if continue_from is not None and run.state is GraphState.RUNNING:
+            self._run_node(run.nodes[continue_from], fx)
+        self._after_change(run, fx)
+
+    def _stop_run(self, run: GraphRun, fx: list[Effect]) -> None:
+        if run.state in (GraphState.FINISHED, GraphState.STOPPED, GraphState.ERROR, GraphState.STOPPING):
+            return
+        if run.state is GraphState.HALTED:
+            run.done.clear()
+        run.state = GraphState.STOPPING
+        for node in list(run.nodes.values()):
+            self._stop_node(node, fx)
+        self._after_change(run, fx)
+
+    def _after_change(self, run: GraphRun, fx: list[Effect]) -> None:
+        if run.active:
+            return
+        if run.state is GraphState.STOPPING:
+            failed = run.stop_failed
+            self._end_run(run, GraphState.ERROR if failed else GraphState.STOPPED,
+                          Result.ERROR if failed else Result.STOPPED, fx)
+        elif run.state is GraphState.RUNNING:
+            waiting = sorted(
+                n.name for n in run.nodes.values() if n.received and n.state is _S.UNINITIALIZED and not n.ready()
+            )
+            if waiting:
+                logger.warning(
+                    "graph %s halted: nothing runs, and %s still wait for parents or inputs",
+                    run.name,
+                    ", ".join(waiting),
+                )
+            else:
+                logger.info("graph %s halted: nothing runs and its exit was not reached", run.name)
+            self._end_run(run, GraphState.HALTED, Result.HALTED, fx)
+
+    def _finish_run(self, run: GraphRun, result: Result, fx: list[Effect]) -> None:
+        run.outputs = dict(run.exit.data)
+        self._end_run(run, GraphState.FINISHED, result, fx)
+        # Actions still running are no longer needed: stop them (their results are ignored).
+        for node in list(run.nodes.values()):
+            self._stop_node(node, fx)
+
+    def _end_run(self, run: GraphRun, state: GraphState, result: Result, fx: list[Effect]) -> None:
+        run.state = state
+        run.result = result
+        if self._instruments:
+            self._notify("graph_finished", run.name, result, self.clock.monotonic())
+        run.done.set()
+        parent = run.parent_node
+        if parent is not None and parent.child_run is run and parent.active:
+            error: BaseException | None = None
+            if result is Result.HALTED:
+                result = Result.ERROR
+                error = ActionError(
+                    f"sub-graph {run.name} halted without reaching its exit",
+                    graph=parent.run.name,
+                    node=parent.name,
+                )
+            elif result is Result.ERROR and run.errors:
+                error = run.errors[-1]
+            outputs = {k: v for k, v in run.outputs.items() if k in parent.outputs}
+            self._on_finished(parent, parent.gen, result, outputs, error, fx)
+
+    # ================================================================ helpers (lock held)
+
+    def _get(self, name: str) -> GraphRun:
+        with self._lock:
+            run = self._runs.get(name)
+        if run is None:
+            raise GraphNotFoundError(f"no graph run named '{name}'")
+        return run
+
+    def _snapshot(self, run: GraphRun) -> dict[str, Any]:
+        actions = []
+        for node in sorted(run.nodes.values(), key=lambda n: n.name):
+            umrf = dataclasses.replace(node.umrf, state=node.state, runtime_messages=node.log)
+            out = dump_umrf(umrf)
+            if node.inputs:
+                out["input_parameters"] = dump_parameter_tree(node.inputs, node.data)
+            actions.append(out)
+        graph = dataclasses.replace(run.plan.graph, name=run.name, state=run.state)
+        return graph_to_dict(graph, actions)
+
+
+def _transfer(parent: Node, child: Node, remap: Mapping[str, str], outputs: Mapping[str, Any]) -> None:
+    """Copy a parent's outputs into a child's inputs (REFERENCE §2.5, parameter transfer)."""
+    inputs = child.inputs
+    kinds = parent.outputs
+    for name, value in outputs.items():
+        target = remap.get(name, name)
+        param = inputs.get(target)
+        if param is None:
+            continue
+        source = kinds.get(name)
+        if source is not None and source.type != param.type:
+            continue
+        if not param.updatable and target in child.data:
+            continue
+        if param.allowed_values and not param.accepts(value):
+            continue
+        child.data[target] = value
+        child.native.discard(target)
+
+
+def _param_mismatch(umrf: Umrf, description: Umrf) -> str:
+    problems = []
+    for side, mine, theirs in (
+        ("inputs", umrf.input_parameters, description.input_parameters),
+        ("outputs", umrf.output_parameters, description.output_parameters),
+    ):
+        missing, extra = sorted(set(theirs) - set(mine)), sorted(set(mine) - set(theirs))
+        if missing:
+            problems.append(f"lacks {side} {', '.join(missing)}")
+        if extra:
+            problems.append(f"has {side} {', '.join(extra)} that the description does not")
+    if not problems:
+        return ""
+    return f"does not match the description of '{description.name}': it " + "; ".join(problems)
+
+
+def _merge(graph: UmrfGraph, umrf: Umrf, description: Umrf) -> Umrf:
+    """The description's parameters, with the graph's literals and allowed values."""
+
+    def side(mine: Mapping[str, Parameter], theirs: Mapping[str, Parameter], what: str) -> dict[str, Parameter]:
+        out = {}
+        for name, desc in theirs.items():
+            own = mine[name]
+            if own.type != desc.type:
+                raise GraphDefinitionError(
+                    f"action '{umrf.full_name}': {what} '{name}' is {own.type} in the graph but"
+                    f" {desc.type} in the description of '{description.name}'",
+                    file=graph.source,
+                )
+            out[name] = dataclasses.replace(
+                desc,
+                value=own.value if own.has_value else desc.value,
+                allowed_values=own.allowed_values or desc.allowed_values,
+            )
+        return out
+
+    return dataclasses.replace(
+        umrf,
+        input_parameters=side(umrf.input_parameters, description.input_parameters, "input"),
+        output_parameters=side(umrf.output_parameters, description.output_parameters, "output"),
+    )
+
+
+def _graph_inputs(graph: UmrfGraph, params: Mapping[str, Any]) -> dict[str, Any]:
+    """Check the values given for a graph's external inputs."""
+    inputs = graph.signature().inputs
+    values: dict[str, Any] = {}
+    for name, value in params.items():
+        param = inputs.get(name)
+        if param is None:
+            known = ", ".join(sorted(inputs)) or "none"
+            raise GraphInputError(f"graph '{graph.name}' has no input '{name}' (its inputs: {known})", file=graph.source)
+        if param.type in NATIVE_TYPES:
+            try:
+                value = check_value(param.type, value)
+            except TypeError as err:
+                raise GraphInputError(f"graph input '{name}' ({param.type}): {err}", file=graph.source) from None
+        values[name] = value
+    missing = sorted(n for n, p in inputs.items() if p.required and n not in values and p.value is NO_VALUE)
+    if missing:
+        raise GraphInputError(
+            f"graph '{graph.name}' needs input {', '.join(repr(m) for m in missing)}"
+            " (pass it as a parameter; upstream would silently never start)",
+            file=graph.source,
+        )
+    return values

@@ -1,0 +1,104 @@
+"""States of nodes and graphs, action results, condition responses, and legal transitions.
+
+Enum values are the exact strings of the UMRF JSON format, so ``NodeState("RUNNING")`` parses
+a document and ``state.value`` writes one; no hand-kept string maps exist.
+"""
+
+from __future__ import annotations
+
+from enum import Enum
+
+from temoto.errors import StateError
+
+__all__ = [
+    "NODE_TRANSITIONS",
+    "GraphState",
+    "NodeState",
+    "Response",
+    "Result",
+    "check_node_transition",
+]
+
+
+class NodeState(Enum):
+    """State of one action instance (a node) in a graph."""
+
+    UNINITIALIZED = "UNINITIALIZED"
+    INITIALIZED = "INITIALIZED"
+    RUNNING = "RUNNING"
+    PAUSE_REQUESTED = "PAUSE_REQUESTED"
+    PAUSED = "PAUSED"
+    STOPPING = "STOPPING"
+    FINISHED = "FINISHED"
+    BYPASSED = "BYPASSED"
+    ERROR = "ERROR"
+
+
+class GraphState(Enum):
+    """State of a graph."""
+
+    UNINITIALIZED = "UNINITIALIZED"
+    INITIALIZED = "INITIALIZED"
+    RUNNING = "RUNNING"
+    PAUSED = "PAUSED"
+    STOPPING = "STOPPING"
+    STOPPED = "STOPPED"
+    FINISHED = "FINISHED"
+    ERROR = "ERROR"
+    HALTED = "HALTED"
+    CLEARING = "CLEARING"
+
+
+class Result(Enum):
+    """The result of an action run (the first four) or of a whole graph (all five)."""
+
+    TRUE = "on_true"
+    FALSE = "on_false"
+    STOPPED = "on_stopped"
+    ERROR = "on_error"
+    HALTED = "on_halted"
+
+
+class Response(Enum):
+    """How a child reacts to a parent's result (the right side of ``"on_true -> run"``)."""
+
+    RUN = "run"
+    PAUSE = "pause"
+    RESTART = "restart"
+    STOP = "stop"
+    BYPASS = "bypass"
+    IGNORE = "ignore"
+
+
+_S = NodeState
+
+#: Legal node state changes, checked in one place (:func:`check_node_transition`).
+NODE_TRANSITIONS: dict[NodeState, frozenset[NodeState]] = {
+    _S.UNINITIALIZED: frozenset({_S.RUNNING, _S.BYPASSED, _S.ERROR}),
+    _S.INITIALIZED: frozenset({_S.RUNNING, _S.BYPASSED, _S.ERROR}),
+    _S.RUNNING: frozenset({_S.PAUSE_REQUESTED, _S.STOPPING, _S.FINISHED, _S.ERROR}),
+    _S.PAUSE_REQUESTED: frozenset({_S.PAUSED, _S.RUNNING, _S.STOPPING, _S.FINISHED, _S.ERROR}),
+    _S.PAUSED: frozenset({_S.RUNNING, _S.STOPPING, _S.ERROR}),
+    _S.STOPPING: frozenset({_S.FINISHED, _S.ERROR}),
+    _S.FINISHED: frozenset({_S.RUNNING, _S.BYPASSED, _S.ERROR}),
+    _S.BYPASSED: frozenset({_S.RUNNING, _S.BYPASSED, _S.ERROR}),
+    _S.ERROR: frozenset({_S.RUNNING, _S.BYPASSED, _S.ERROR}),
+}
+
+#: States in which a node occupies (or is about to occupy) an executor, or holds a result.
+ACTIVE_NODE_STATES = frozenset({_S.RUNNING, _S.PAUSE_REQUESTED, _S.PAUSED, _S.STOPPING})
+
+
+def check_node_transition(node: str, old: NodeState, new: NodeState) -> None:
+    """Raise if a node may not go from ``old`` to ``new``.
+
+    Args:
+        node: The node's full name, for the message.
+        old: The current state.
+        new: The requested state.
+
+    Raises:
+        StateError: If the transition is not in :data:`NODE_TRANSITIONS`.
+    """
+    if new not in NODE_TRANSITIONS[old]:
+        raise StateError(f"node {node}: illegal state change {old.value} -> {new.value}")

@@ -1,0 +1,310 @@
+"""The whole TeMoto exception hierarchy.
+
+Every error TeMoto raises on purpose derives from :class:`TemotoError`. Categories name the
+situation, and inherit the matching builtin so generic callers can catch what they expect::
+
+    Exception
+    └── TemotoError                         root; .origin, to_records()
+        ├── ConfigError (+ValueError)       a bad document (file + key path)
+        │   ├── UmrfError                   an action description (*.umrf.json) is invalid
+        │   ├── GraphDefinitionError        a graph is invalid (parse or validation)
+        │   │   └── GraphInputError         a required graph input was not supplied
+        │   └── ProfileError                a hardware profile is invalid
+        ├── PluginError                     discovery and loading of actions and drivers
+        │   ├── ActionNotFoundError (+LookupError)
+        │   ├── GraphNotFoundError (+LookupError)
+        │   ├── DriverNotFoundError (+LookupError)
+        │   ├── PluginConflictError         the same name offered by two sources
+        │   └── PluginLoadError             found, but importing it failed (cause chained)
+        ├── StateError (+RuntimeError)      an illegal transition or a command in the wrong state
+        ├── ActionError                     user action code failed; names graph and node
+        ├── ResourceError
+        │   ├── ResourceNotFoundError (+LookupError)
+        │   ├── ResourceBusyError
+        │   ├── ResourceClosedError
+        │   └── ResourceBrokenError
+        ├── DriverError
+        │   ├── DriverUnavailableError
+        │   ├── DriverInitError
+        │   ├── DriverOperationError
+        │   └── DriverTimeoutError (+TimeoutError)
+        ├── TransportError
+        │   └── TransportTimeoutError (+TimeoutError)
+        └── RemoteError                     an error reported by another robot
+
+    BaseException
+    └── StopRequested                       raised by action helpers when the node is stopped
+
+Errors cross process and robot boundaries as a list of :class:`ErrorRecord` (see
+:meth:`TemotoError.to_records`), which replaces upstream TeMoto's "error stack".
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+
+__all__ = [
+    "ActionError",
+    "ActionNotFoundError",
+    "ConfigError",
+    "DriverError",
+    "DriverInitError",
+    "DriverNotFoundError",
+    "DriverOperationError",
+    "DriverTimeoutError",
+    "DriverUnavailableError",
+    "ErrorRecord",
+    "GraphDefinitionError",
+    "GraphInputError",
+    "GraphNotFoundError",
+    "PluginConflictError",
+    "PluginError",
+    "PluginLoadError",
+    "ProfileError",
+    "RemoteError",
+    "ResourceBrokenError",
+    "ResourceBusyError",
+    "ResourceClosedError",
+    "ResourceError",
+    "ResourceNotFoundError",
+    "StateError",
+    "StopRequested",
+    "TemotoError",
+    "TransportError",
+    "TransportTimeoutError",
+    "UmrfError",
+]
+
+
+@dataclass(frozen=True, slots=True)
+class ErrorRecord:
+    """One link of an error chain in a serialisable form.
+
+    Attributes:
+        type: The exception class name.
+        message: ``str()`` of the exception.
+        origin: Where it was raised (a component or actor name), empty if unknown.
+        timestamp: Seconds since the epoch when the record was made.
+    """
+
+    type: str
+    message: str
+    origin: str = ""
+    timestamp: float = 0.0
+
+
+class TemotoError(Exception):
+    """Root of every error TeMoto raises on purpose.
+
+    Args:
+        message: What went wrong, for a person.
+        origin: The component (or actor) that raised it.
+    """
+
+    def __init__(self, message: str = "", *, origin: str = "") -> None:
+        super().__init__(message)
+        self.origin = origin
+
+    def to_records(self) -> list[ErrorRecord]:
+        """Flatten this error, its notes and its cause chain into records, newest first.
+
+        Returns:
+            One record per exception in the ``__cause__``/``__context__`` chain; notes added
+            with ``add_note`` become records of type ``"note"``.
+
+        Raises:
+            Nothing.
+        """
+        records: list[ErrorRecord] = []
+        now = time.time()
+        seen: set[int] = set()
+        exc: BaseException | None = self
+        while exc is not None and id(exc) not in seen:
+            seen.add(id(exc))
+            origin = getattr(exc, "origin", "")
+            records.append(ErrorRecord(type(exc).__name__, str(exc), str(origin), now))
+            records.extend(
+                ErrorRecord("note", note, str(origin), now)
+                for note in getattr(exc, "__notes__", ())
+            )
+            exc = exc.__cause__ or exc.__context__
+        return records
+
+    def __reduce__(self) -> tuple[object, ...]:
+        return (_rebuild, (type(self), self.args, self.__dict__))
+
+
+def _rebuild(
+    cls: type[TemotoError], args: tuple[object, ...], state: dict[str, object]
+) -> TemotoError:
+    err = cls.__new__(cls)
+    Exception.__init__(err, *args)
+    err.__dict__.update(state)
+    return err
+
+
+class ConfigError(TemotoError, ValueError):
+    """A document (graph, action description, settings, profile) is invalid.
+
+    The message starts with the file and the JSON/YAML key path of the problem, e.g.
+    ``graph.json: actions[2].parents[0].conditions[1]: unknown response 'runn' (...)``.
+
+    Args:
+        message: What is wrong at that place.
+        file: The file the document came from, if any.
+        path: The key path inside the document (``actions[2].name``), if any.
+    """
+
+    def __init__(self, message: str, *, file: str | None = None, path: str = "") -> None:
+        self.file = file
+        self.path = path
+        self.reason = message
+        prefix = "".join(f"{part}: " for part in (file, path) if part)
+        super().__init__(prefix + message)
+
+    def __reduce__(self) -> tuple[object, ...]:
+        return (_rebuild, (type(self), self.args, self.__dict__))
+
+
+class UmrfError(ConfigError):
+    """An action description (``*.umrf.json``) is invalid."""
+
+
+class GraphDefinitionError(ConfigError):
+    """A UMRF graph is invalid: it does not parse, or it cannot run as written."""
+
+
+class GraphInputError(GraphDefinitionError):
+    """A graph was started without a required external input."""
+
+
+class ProfileError(ConfigError):
+    """A hardware profile is invalid."""
+
+
+class PluginError(TemotoError):
+    """Finding or loading an action or driver plugin failed."""
+
+
+class ActionNotFoundError(PluginError, LookupError):
+    """No implementation is known for an action named in a graph."""
+
+
+class GraphNotFoundError(PluginError, LookupError):
+    """No indexed or running graph has the given name."""
+
+
+class DriverNotFoundError(PluginError, LookupError):
+    """No driver is registered under the given name."""
+
+
+class PluginConflictError(PluginError):
+    """Two sources offer a plugin of the same name."""
+
+
+class PluginLoadError(PluginError):
+    """A plugin was found but importing or instantiating it failed (the cause is chained)."""
+
+
+class StateError(TemotoError, RuntimeError):
+    """An operation is not allowed in the current state (of a node, graph, driver, resource)."""
+
+
+class ActionError(TemotoError):
+    """User action code failed.
+
+    Args:
+        message: What failed.
+        graph: The graph the action ran in.
+        node: The node's full name (``<Name>_<instance_id>``).
+    """
+
+    def __init__(self, message: str, *, graph: str = "", node: str = "") -> None:
+        super().__init__(message, origin=f"{graph}/{node}" if graph or node else "")
+        self.graph = graph
+        self.node = node
+
+
+class ResourceError(TemotoError):
+    """A resource could not be loaded, used or kept."""
+
+
+class ResourceNotFoundError(ResourceError, LookupError):
+    """No resource or server with that identity."""
+
+
+class ResourceBusyError(ResourceError):
+    """An exclusive resource is held by another consumer."""
+
+
+class ResourceClosedError(ResourceError):
+    """A resource was used after it was released by its owner."""
+
+
+class ResourceBrokenError(ResourceError):
+    """A resource failed from outside (a process died, a device stopped answering)."""
+
+
+class DriverError(TemotoError):
+    """A hardware driver failed."""
+
+
+class DriverUnavailableError(DriverError):
+    """An optional dependency, vendor library or port is missing."""
+
+
+class DriverInitError(DriverError):
+    """The device did not answer or rejected its settings while being configured."""
+
+
+class DriverOperationError(DriverError):
+    """A bad reply, checksum, negative acknowledgement or hardware error while running."""
+
+
+class DriverTimeoutError(DriverError, TimeoutError):
+    """The device did not answer in time."""
+
+
+class TransportError(TemotoError):
+    """Messaging between robots failed."""
+
+
+class TransportTimeoutError(TransportError, TimeoutError):
+    """A peer did not answer in time."""
+
+
+class RemoteError(TemotoError):
+    """An error reported by another robot, rebuilt from its records."""
+
+    @classmethod
+    def from_records(cls, records: list[ErrorRecord]) -> RemoteError:
+        """Rebuild an error chain from records made by :meth:`TemotoError.to_records`.
+
+        Args:
+            records: The records, newest first.
+
+        Returns:
+            A RemoteError whose message is the newest record and whose ``__cause__`` chain
+            holds the older ones.
+
+        Raises:
+            ValueError: If ``records`` is empty.
+        """
+        if not records:
+            raise ValueError("no error records")
+        head: RemoteError | None = None
+        for record in reversed(records):
+            err = cls(f"{record.type}: {record.message}", origin=record.origin)
+            err.__cause__ = head
+            head = err
+        assert head is not None
+        return head
+
+
+class StopRequested(BaseException):  # noqa: N818 - control flow, named like trio's Cancelled
+    """Raised inside an action by the engine's helpers when its node is being stopped.
+
+    It derives from ``BaseException`` so that ``except Exception`` in action code does not
+    swallow it. Let it propagate: the engine turns it into the ``on_stopped`` result.
+    """
