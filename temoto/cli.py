@@ -1,0 +1,246 @@
+"""The ``temoto`` command line (also ``python -m temoto``).
+
+Commands:
+
+* ``temoto run GRAPH.json [--actions DIR]... [--graphs DIR]... [--actor NAME]
+  [--param NAME=VALUE]... [--trace FILE] [--timeout SECONDS] [--progress]``: runs one graph
+  in this process and prints its result. Exit status 0 iff the result is ``on_true``, 1 for any
+  other result, 2 for invalid input (with a message naming the file and the key path).
+* ``temoto validate FILE... [--actions DIR]... [--graphs DIR]...``: checks graphs (and, given
+  action folders, that every action resolves); exit 2 on the first invalid file.
+* ``temoto graph dot FILE [-o OUT] [--format svg|png|pdf]``: Graphviz DOT of a graph, or an
+  image when ``-o`` is given and Graphviz's ``dot`` is installed.
+* ``temoto actions [--actions DIR]...``: lists the known actions and where they come from.
+
+This is the only module that configures logging or prints.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+from typing import IO, Any
+
+from temoto import __version__
+from temoto.clock import MonotonicClock, ScaledClock
+from temoto.core.catalog import ActionCatalog, GraphIndex
+from temoto.core.dot import graph_to_dot, render
+from temoto.core.engine import ActionEngine
+from temoto.core.graph import UmrfGraph, load_graph
+from temoto.core.instrument import Instrument, TraceInstrument
+from temoto.core.params import NATIVE_TYPES
+from temoto.core.states import NodeState, Result
+from temoto.core.validation import validate_graph
+from temoto.errors import ConfigError, GraphInputError, PluginError
+
+__all__ = ["main"]
+
+EXIT_TRUE = 0
+EXIT_OTHER_RESULT = 1
+EXIT_INVALID = 2
+
+
+class _Progress(Instrument):
+    """Prints node state changes for people (``--progress``)."""
+
+    def __init__(self, stream: IO[str], t0: float) -> None:
+        self.stream = stream
+        self.t0 = t0
+
+    def graph_started(self, graph: str, t: float) -> None:
+        self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: started\n")
+        self.stream.flush()
+
+    def node_transition(self, graph: str, node: str, old: NodeState, new: NodeState, t: float) -> None:
+        self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: {node} {new.value}\n")
+        self.stream.flush()
+
+    def graph_finished(self, graph: str, result: Result, t: float) -> None:
+        self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: ended with {result.value}\n")
+        self.stream.flush()
+
+
+def _parser() -> argparse.ArgumentParser:
+    top = argparse.ArgumentParser(prog="temoto", description="TeMoto for Python: run and check UMRF task graphs.")
+    top.add_argument("--version", action="version", version=f"temoto {__version__}")
+    top.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    sub = top.add_subparsers(dest="command", required=True, metavar="COMMAND")
+
+    def paths(p: argparse.ArgumentParser) -> None:
+        p.add_argument("--actions", action="append", default=[], metavar="DIR", help="folder of actions (repeatable)")
+        p.add_argument("--graphs", action="append", default=[], metavar="DIR", help="folder of graphs (repeatable)")
+
+    run = sub.add_parser("run", help="run one graph and print its result")
+    run.add_argument("graph", metavar="GRAPH.json", help="the graph file")
+    paths(run)
+    run.add_argument("--actor", default="", help="this engine's actor name")
+    run.add_argument(
+        "--param", action="append", default=[], metavar="NAME=VALUE", help="a graph input (repeatable)"
+    )
+    run.add_argument("--trace", metavar="FILE", help="write a JSON line per node state change")
+    run.add_argument("--timeout", type=float, metavar="SECONDS", help="stop the graph after this long")
+    run.add_argument("--progress", action="store_true", help="print state changes and action logs")
+    run.add_argument("--time-scale", type=float, default=1.0, metavar="F", help=argparse.SUPPRESS)
+    run.add_argument("--stop-timeout", type=float, default=5.0, metavar="SECONDS",
+                     help="how long an action may take to stop (default 5)")
+
+    val = sub.add_parser("validate", help="check graph files")
+    val.add_argument("files", nargs="+", metavar="FILE")
+    paths(val)
+
+    graph = sub.add_parser("graph", help="graph tools")
+    gsub = graph.add_subparsers(dest="graph_command", required=True, metavar="TOOL")
+    dot = gsub.add_parser("dot", help="Graphviz DOT of a graph (or an image with -o)")
+    dot.add_argument("file", metavar="FILE")
+    dot.add_argument("-o", "--output", metavar="OUT", help="render to this file with Graphviz")
+    dot.add_argument("--format", choices=("svg", "png", "pdf"), help="image format (default: from OUT)")
+
+    act = sub.add_parser("actions", help="list known actions")
+    paths(act)
+    return top
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the command line.
+
+    Args:
+        argv: Arguments without the program name (default ``sys.argv[1:]``).
+
+    Returns:
+        The exit status.
+
+    Raises:
+        SystemExit: On ``--help``/``--version`` and argument errors (status 2).
+    """
+    args = _parser().parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    if getattr(args, "progress", False):
+        level = min(level, logging.INFO)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    try:
+        if args.command == "run":
+            return _run(args)
+        if args.command == "validate":
+            return _validate(args)
+        if args.command == "graph":
+            return _dot(args)
+        return _actions(args)
+    except (ConfigError, PluginError) as err:
+        _error(err)
+        return EXIT_INVALID
+
+
+def _error(err: BaseException) -> None:
+    sys.stderr.write(f"temoto: error: {err}\n")
+
+
+def _convert_param(graph: UmrfGraph, text: str) -> tuple[str, Any]:
+    name, eq, raw = text.partition("=")
+    if not eq or not name:
+        raise GraphInputError(f"--param {text!r}: expected NAME=VALUE")
+    param = graph.signature().inputs.get(name)
+    if param is None or param.type == "string":
+        return name, raw
+    if param.type in NATIVE_TYPES:
+        try:
+            return name, json.loads(raw)
+        except json.JSONDecodeError:
+            raise GraphInputError(f"--param {name}: {raw!r} is not a JSON {param.type} value") from None
+    return name, raw
+
+
+def _run(args: argparse.Namespace) -> int:
+    graph = load_graph(args.graph)
+    for warning in graph.warnings:
+        logging.getLogger("temoto.cli").warning("%s: %s", args.graph, warning)
+    params = dict(_convert_param(graph, p) for p in args.param)
+    clock = ScaledClock(args.time_scale) if args.time_scale != 1.0 else MonotonicClock()
+    t0 = clock.monotonic()
+    instruments: list[Instrument] = []
+    if args.progress:
+        instruments.append(_Progress(sys.stderr, t0))
+    trace_file = open(args.trace, "w", encoding="utf-8") if args.trace else None  # noqa: SIM115
+    try:
+        if trace_file is not None:
+            instruments.append(TraceInstrument(trace_file, graph.name, t0))
+        engine = ActionEngine(
+            args.actor,
+            actions=ActionCatalog(args.actions),
+            graphs=GraphIndex(args.graphs),
+            clock=clock,
+            instruments=instruments,
+            stop_timeout=args.stop_timeout,
+        )
+        with engine:
+            outcome = engine.run(graph, params, timeout=args.timeout)
+    finally:
+        if trace_file is not None:
+            trace_file.close()
+    result = outcome.result.value if outcome.result else "none"
+    sys.stdout.write(f"{graph.name}: {result}\n")
+    for name, value in sorted(outcome.outputs.items()):
+        sys.stdout.write(f"  {name} = {json.dumps(value, ensure_ascii=False, default=repr)}\n")
+    for error in outcome.errors:
+        sys.stderr.write(f"  error: {error}\n")
+    return EXIT_TRUE if outcome.result is Result.TRUE else EXIT_OTHER_RESULT
+
+
+def _validate(args: argparse.Namespace) -> int:
+    engine = None
+    if args.actions or args.graphs:
+        engine = ActionEngine(actions=ActionCatalog(args.actions), graphs=GraphIndex(args.graphs))
+    try:
+        for file in args.files:
+            graph = load_graph(file)
+            report = validate_graph(graph)
+            report.raise_for_errors(file)
+            if engine is not None:
+                engine.plan(graph)
+            for issue in report.warnings:
+                sys.stdout.write(f"{file}: warning: {issue}\n")
+            sys.stdout.write(f"{file}: ok ({len(graph.actions)} actions)\n")
+    finally:
+        if engine is not None:
+            engine.shutdown()
+    return 0
+
+
+def _dot(args: argparse.Namespace) -> int:
+    graph = load_graph(args.file)
+    text = graph_to_dot(graph)
+    if not args.output:
+        sys.stdout.write(text)
+        return 0
+    out = Path(args.output)
+    fmt = args.format or out.suffix.lstrip(".") or "svg"
+    if fmt == "dot":
+        out.write_text(text, encoding="utf-8")
+        return 0
+    try:
+        render(text, out, fmt)
+    except (FileNotFoundError, RuntimeError) as err:
+        _error(err)
+        return EXIT_INVALID
+    sys.stdout.write(f"wrote {out}\n")
+    return 0
+
+
+def _actions(args: argparse.Namespace) -> int:
+    catalog = ActionCatalog(args.actions)
+    for name in catalog.names():
+        try:
+            entry = catalog.entry(name)
+        except PluginError as err:
+            sys.stdout.write(f"{name}: {err}\n")
+            continue
+        desc = entry.description
+        ins = ", ".join(f"{n}:{p.type}" for n, p in desc.input_parameters.items())
+        outs = ", ".join(f"{n}:{p.type}" for n, p in desc.output_parameters.items())
+        sys.stdout.write(f"{name} ({desc.type}) in [{ins}] out [{outs}]  {entry.origin}\n")
+    for file, problem in catalog.problems:
+        sys.stdout.write(f"problem: {file}: {problem}\n")
+    return 0
