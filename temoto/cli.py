@@ -55,7 +55,9 @@ class _Progress(Instrument):
         self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: started\n")
         self.stream.flush()
 
-    def node_transition(self, graph: str, node: str, old: NodeState, new: NodeState, t: float) -> None:
+    def node_transition(
+        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
+    ) -> None:
         self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: {node} {new.value}\n")
         self.stream.flush()
 
@@ -65,28 +67,55 @@ class _Progress(Instrument):
 
 
 def _parser() -> argparse.ArgumentParser:
-    top = argparse.ArgumentParser(prog="temoto", description="TeMoto for Python: run and check UMRF task graphs.")
+    top = argparse.ArgumentParser(
+        prog="temoto", description="TeMoto for Python: run and check UMRF task graphs."
+    )
     top.add_argument("--version", action="version", version=f"temoto {__version__}")
-    top.add_argument("-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)")
+    top.add_argument(
+        "-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)"
+    )
     sub = top.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     def paths(p: argparse.ArgumentParser) -> None:
-        p.add_argument("--actions", action="append", default=[], metavar="DIR", help="folder of actions (repeatable)")
-        p.add_argument("--graphs", action="append", default=[], metavar="DIR", help="folder of graphs (repeatable)")
+        p.add_argument(
+            "--actions",
+            action="append",
+            default=[],
+            metavar="DIR",
+            help="folder of actions (repeatable)",
+        )
+        p.add_argument(
+            "--graphs",
+            action="append",
+            default=[],
+            metavar="DIR",
+            help="folder of graphs (repeatable)",
+        )
 
     run = sub.add_parser("run", help="run one graph and print its result")
     run.add_argument("graph", metavar="GRAPH.json", help="the graph file")
     paths(run)
     run.add_argument("--actor", default="", help="this engine's actor name")
     run.add_argument(
-        "--param", action="append", default=[], metavar="NAME=VALUE", help="a graph input (repeatable)"
+        "--param",
+        action="append",
+        default=[],
+        metavar="NAME=VALUE",
+        help="a graph input (repeatable)",
     )
     run.add_argument("--trace", metavar="FILE", help="write a JSON line per node state change")
-    run.add_argument("--timeout", type=float, metavar="SECONDS", help="stop the graph after this long")
+    run.add_argument(
+        "--timeout", type=float, metavar="SECONDS", help="stop the graph after this long"
+    )
     run.add_argument("--progress", action="store_true", help="print state changes and action logs")
     run.add_argument("--time-scale", type=float, default=1.0, metavar="F", help=argparse.SUPPRESS)
-    run.add_argument("--stop-timeout", type=float, default=5.0, metavar="SECONDS",
-                     help="how long an action may take to stop (default 5)")
+    run.add_argument(
+        "--stop-timeout",
+        type=float,
+        default=5.0,
+        metavar="SECONDS",
+        help="how long an action may take to stop (default 5)",
+    )
 
     val = sub.add_parser("validate", help="check graph files")
     val.add_argument("files", nargs="+", metavar="FILE")
@@ -97,7 +126,9 @@ def _parser() -> argparse.ArgumentParser:
     dot = gsub.add_parser("dot", help="Graphviz DOT of a graph (or an image with -o)")
     dot.add_argument("file", metavar="FILE")
     dot.add_argument("-o", "--output", metavar="OUT", help="render to this file with Graphviz")
-    dot.add_argument("--format", choices=("svg", "png", "pdf"), help="image format (default: from OUT)")
+    dot.add_argument(
+        "--format", choices=("svg", "png", "pdf"), help="image format (default: from OUT)"
+    )
 
     act = sub.add_parser("actions", help="list known actions")
     paths(act)
@@ -120,7 +151,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     level = logging.WARNING - 10 * min(args.verbose, 2)
     if getattr(args, "progress", False):
         level = min(level, logging.INFO)
-    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr)
+    logging.basicConfig(
+        level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
+    )
     try:
         if args.command == "run":
             return _run(args)
@@ -149,7 +182,9 @@ def _convert_param(graph: UmrfGraph, text: str) -> tuple[str, Any]:
         try:
             return name, json.loads(raw)
         except json.JSONDecodeError:
-            raise GraphInputError(f"--param {name}: {raw!r} is not a JSON {param.type} value") from None
+            raise GraphInputError(
+                f"--param {name}: {raw!r} is not a JSON {param.type} value"
+            ) from None
     return name, raw
 
 

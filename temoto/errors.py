@@ -302,7 +302,7 @@ class RemoteError(TemotoError):
         return head
 
 
-class StopRequested(BaseException):  # noqa: N818 - control flow, named like trio's Cancelled
+class StopRequested(BaseException):
     """Raised inside an action by the engine's helpers when its node is being stopped.
 
     It derives from ``BaseException`` so that ``except Exception`` in action code does not

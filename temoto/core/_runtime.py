@@ -68,7 +68,9 @@ class Plan:
     warnings: tuple[str, ...] = field(default=())
 
 
-_ACTIVE = frozenset({NodeState.RUNNING, NodeState.PAUSE_REQUESTED, NodeState.PAUSED, NodeState.STOPPING})
+_ACTIVE = frozenset(
+    {NodeState.RUNNING, NodeState.PAUSE_REQUESTED, NodeState.PAUSED, NodeState.STOPPING}
+)
 
 
 class Node:
@@ -299,7 +301,9 @@ class GraphRun:
         for node in (*nodes.values(), exit_):
             node.required_parents = tuple(n for n, p in node.parents.items() if p.required)
 
-    def _edge(self, parent: Node, rel: ChildRelation) -> tuple[Node, dict[str, str], ParentRelation]:
+    def _edge(
+        self, parent: Node, rel: ChildRelation
+    ) -> tuple[Node, dict[str, str], ParentRelation]:
         child = self.nodes[rel.full_name]
         back = child.parents[parent.name]
         return child, {r.from_: r.to for r in rel.remap}, back

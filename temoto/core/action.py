@@ -389,7 +389,9 @@ class Action(ABC):
     @property
     def _ctl(self) -> RunControl:
         if self._control is None:
-            raise RuntimeError(f"{self._name} is not bound to an engine (create it through a graph)")
+            raise RuntimeError(
+                f"{self._name} is not bound to an engine (create it through a graph)"
+            )
         return self._control
 
     @property

@@ -23,6 +23,7 @@ from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
 from importlib.metadata import entry_points
 from pathlib import Path
+from types import ModuleType
 
 from temoto.core.action import Action
 from temoto.core.graph import UmrfGraph, load_graph
@@ -140,7 +141,10 @@ class ActionCatalog:
             self._paths.append(folder)
         self.refresh()
         count = sum(
-            1 for entries in self._entries.values() for e in entries if e.origin.startswith(str(folder))
+            1
+            for entries in self._entries.values()
+            for e in entries
+            if e.origin.startswith(str(folder))
         )
         if not count:
             logger.warning("no *umrf.json action descriptions under %s", folder)
@@ -161,7 +165,9 @@ class ActionCatalog:
         """
         if not (isinstance(cls, type) and issubclass(cls, Action)):
             raise TypeError(f"{cls!r} is not a subclass of temoto.Action")
-        entry = ActionEntry(description, f"registered in code ({cls.__module__}.{cls.__qualname__})", cls=cls)
+        entry = ActionEntry(
+            description, f"registered in code ({cls.__module__}.{cls.__qualname__})", cls=cls
+        )
         with self._lock:
             self._registered[description.name] = entry
             self._entries.setdefault(description.name, []).insert(0, entry)
@@ -348,7 +354,11 @@ def _module_beside(description: Path, name: str) -> Path | None:
     """The Python module that implements the action described by ``description``."""
     stem = description.name.split(".umrf.json")[0].split("umrf.json")[0].rstrip(".")
     folder = description.parent
-    for candidate in (folder / f"{stem}.py", folder / f"{snake_case(name)}.py", folder / "__init__.py"):
+    for candidate in (
+        folder / f"{stem}.py",
+        folder / f"{snake_case(name)}.py",
+        folder / "__init__.py",
+    ):
         if stem and candidate.is_file():
             return candidate
     return None
@@ -376,7 +386,7 @@ def _import_class(entry: ActionEntry) -> type[Action]:
     return cls
 
 
-def _import_file(file: Path) -> object:
+def _import_file(file: Path) -> ModuleType:
     digest = hashlib.sha1(str(file.parent).encode(), usedforsecurity=False).hexdigest()[:10]
     is_package = file.name == "__init__.py"
     stem = file.parent.name if is_package else file.stem

@@ -54,8 +54,12 @@ logger = logging.getLogger(__name__)
 
 _S = NodeState
 _ACTIVE = frozenset({_S.RUNNING, _S.PAUSE_REQUESTED, _S.PAUSED, _S.STOPPING})
-_BUSY_GRAPH = frozenset({GraphState.RUNNING, GraphState.PAUSED, GraphState.STOPPING, GraphState.CLEARING})
-_ENDED_GRAPH = frozenset({GraphState.FINISHED, GraphState.STOPPED, GraphState.ERROR, GraphState.HALTED})
+_BUSY_GRAPH = frozenset(
+    {GraphState.RUNNING, GraphState.PAUSED, GraphState.STOPPING, GraphState.CLEARING}
+)
+_ENDED_GRAPH = frozenset(
+    {GraphState.FINISHED, GraphState.STOPPED, GraphState.ERROR, GraphState.HALTED}
+)
 
 # effect kinds (tuples in an effect list, executed after the engine lock is released)
 _RUN = 0  # (_RUN, node, gen): run the action on a worker
@@ -118,7 +122,9 @@ class ActionEngine:
         feedback_size: int = 0,
     ) -> None:
         self.actor = actor
-        self.catalog = actions if isinstance(actions, ActionCatalog) else ActionCatalog(actions or ())
+        self.catalog = (
+            actions if isinstance(actions, ActionCatalog) else ActionCatalog(actions or ())
+        )
         self.graphs = graphs if isinstance(graphs, GraphIndex) else GraphIndex(graphs or ())
         self.clock: Clock = clock or MonotonicClock()
         self.stop_timeout = stop_timeout
@@ -209,7 +215,10 @@ class ActionEngine:
             return run.result
 
     def run(
-        self, graph: str | UmrfGraph, params: Mapping[str, Any] | None = None, timeout: float | None = None
+        self,
+        graph: str | UmrfGraph,
+        params: Mapping[str, Any] | None = None,
+        timeout: float | None = None,
     ) -> GraphOutcome:
         """Start a graph and wait for it; on timeout, stop it.
 
@@ -332,9 +341,14 @@ class ActionEngine:
         fx: list[Effect] = []
         with self._lock:
             if run.state not in (GraphState.RUNNING, GraphState.PAUSED, GraphState.HALTED):
-                raise StateError(f"graph '{name}' is {run.state.value}; only running, paused or halted graphs change")
+                raise StateError(
+                    f"graph '{name}' is {run.state.value};"
+                    " only running, paused or halted graphs can be modified"
+                )
             new_names = set(plan.actions)
-            busy = sorted(n.name for n in run.nodes.values() if n.name not in new_names and n.active)
+            busy = sorted(
+                n.name for n in run.nodes.values() if n.name not in new_names and n.active
+            )
             if busy:
                 raise StateError(f"graph '{name}': cannot remove active actions {', '.join(busy)}")
             if continue_from is not None and continue_from not in new_names:
@@ -364,7 +378,9 @@ class ActionEngine:
         """
         run = self._get(name)
         with self._lock:
-            return GraphOutcome(run.name, run.state, run.result, dict(run.outputs), tuple(run.errors))
+            return GraphOutcome(
+                run.name, run.state, run.result, dict(run.outputs), tuple(run.errors)
+            )
 
     def running_graphs(self) -> dict[str, GraphState]:
         """Every graph run the engine knows (including ended ones and sub-graphs).
@@ -501,7 +517,8 @@ class ActionEngine:
             resolved[umrf.full_name] = how
         if remote:
             raise GraphDefinitionError(
-                f"graph '{graph.name}' has actions for other actors: {', '.join(remote)}; this engine"
+                f"graph '{graph.name}' has actions for other actors: {', '.join(remote)};"
+                f" this engine"
                 f" (actor '{self.actor}') has no fleet link to run them with",
                 file=graph.source,
             )
@@ -512,7 +529,9 @@ class ActionEngine:
             logger.warning("graph '%s': %s", graph.name, issue)
         return Plan(effective_graph, resolved, tuple(str(w) for w in report.warnings))
 
-    def _resolve(self, graph: UmrfGraph, umrf: Umrf, stack: tuple[str, ...]) -> tuple[Umrf, ResolvedAction]:
+    def _resolve(
+        self, graph: UmrfGraph, umrf: Umrf, stack: tuple[str, ...]
+    ) -> tuple[Umrf, ResolvedAction]:
         description = self.catalog.find(umrf.name)
         mismatch = ""
         if description is not None:
@@ -524,7 +543,9 @@ class ActionEngine:
         if sub is not None:
             if sub.name in stack:
                 chain = " -> ".join((*stack, sub.name))
-                raise GraphDefinitionError(f"graph uses itself as a sub-graph: {chain}", file=graph.source)
+                raise GraphDefinitionError(
+                    f"graph uses itself as a sub-graph: {chain}", file=graph.source
+                )
             return umrf, ResolvedAction(NodeKind.GRAPH, plan=self._plan(sub, (*stack, sub.name)))
         where = f"graph '{graph.name}': action '{umrf.full_name}'"
         if mismatch:
@@ -569,7 +590,7 @@ class ActionEngine:
         run = node.run
         fx: list[Effect] = []
         with self._lock:
-            if gen != node.gen or node.state is not _S.RUNNING and node.state not in _ACTIVE:
+            if gen != node.gen or (node.state is not _S.RUNNING and node.state not in _ACTIVE):
                 return fx
             instance = node.instance
             values = dict(node.data)
@@ -578,7 +599,9 @@ class ActionEngine:
             try:
                 instance = self._instantiate(node)
             except Exception as err:
-                error = ActionError(f"{node.name} could not be initialised: {err}", graph=run.name, node=node.name)
+                error = ActionError(
+                    f"{node.name} could not be initialised: {err}", graph=run.name, node=node.name
+                )
                 error.__cause__ = err
         outputs: dict[str, Any] = {}
         result = Result.ERROR
@@ -598,14 +621,20 @@ class ActionEngine:
         with self._lock:
             if instance is not None and gen == node.gen:
                 node.log = instance._log_snapshot()
-            if node.spontaneous and gen == node.gen and run.state is not GraphState.PAUSED and not node.restart:
+            if (
+                node.spontaneous
+                and gen == node.gen
+                and run.state is not GraphState.PAUSED
+                and not node.restart
+            ):
                 fx.append((_SPONT, node, gen, result, outputs, error))
             else:
                 self._on_finished(node, gen, result, outputs, error, fx)
         return fx
 
     def _instantiate(self, node: Node) -> Any:
-        assert node.cls is not None and node.control is not None
+        assert node.cls is not None
+        assert node.control is not None
         instance = node.cls()
         instance._bind(
             control=node.control,
@@ -635,7 +664,12 @@ class ActionEngine:
             self._dispatch(fx)
 
     def _finish_spontaneous(
-        self, node: Node, gen: int, result: Result, outputs: dict[str, Any], error: BaseException | None
+        self,
+        node: Node,
+        gen: int,
+        result: Result,
+        outputs: dict[str, Any],
+        error: BaseException | None,
     ) -> None:
         """Worker: stop everything downstream of a spontaneous action, then propagate and re-run."""
         fx: list[Effect] = []
@@ -655,7 +689,11 @@ class ActionEngine:
                 self._quiet_waiters -= 1
             if node.gen != gen:
                 return
-            rerun = node.state is _S.RUNNING and node.run.state is GraphState.RUNNING and not self._closed
+            rerun = (
+                node.state is _S.RUNNING
+                and node.run.state is GraphState.RUNNING
+                and not self._closed
+            )
             self._on_finished(node, gen, result, outputs, error, fx)
             if rerun and node.state is _S.FINISHED and node.run.state is GraphState.RUNNING:
                 self._run_node(node, fx)
@@ -684,7 +722,9 @@ class ActionEngine:
     def _set_state(self, node: Node, new: NodeState) -> None:
         old = node.state
         if new not in NODE_TRANSITIONS[old]:
-            raise StateError(f"{node.run.name}/{node.name}: illegal state change {old.value} -> {new.value}")
+            raise StateError(
+                f"{node.run.name}/{node.name}: illegal state change {old.value} -> {new.value}"
+            )
         node.state = new
         was, now = old in _ACTIVE, new in _ACTIVE
         if was != now:
@@ -713,7 +753,9 @@ class ActionEngine:
             except Exception:
                 self._drop_instrument(inst)
 
-    def _start_run(self, run: GraphRun, values: dict[str, Any], result: Result, fx: list[Effect]) -> None:
+    def _start_run(
+        self, run: GraphRun, values: dict[str, Any], result: Result, fx: list[Effect]
+    ) -> None:
         run.state = GraphState.RUNNING
         run.started_at = self.clock.monotonic()
         if self._instruments:
@@ -764,7 +806,9 @@ class ActionEngine:
             self._propagate(node, result, outputs, fx)
         self._after_change(run, fx)
 
-    def _propagate(self, node: Node, result: Result, outputs: Mapping[str, Any], fx: list[Effect]) -> None:
+    def _propagate(
+        self, node: Node, result: Result, outputs: Mapping[str, Any], fx: list[Effect]
+    ) -> None:
         """Deliver a finished node's result and outputs to its children (REFERENCE §2.5)."""
         run = node.run
         work: deque[tuple[Node, Result, Mapping[str, Any]]] = deque([(node, result, outputs)])
@@ -781,7 +825,9 @@ class ActionEngine:
                         self._finish_run(run, res, fx)
                         return
                     if child.name in bypassed:
-                        logger.warning("%s: bypass loops back to %s; stopping it there", run.name, child.name)
+                        logger.warning(
+                            "%s: bypass loops back to %s; stopping it there", run.name, child.name
+                        )
                         continue
                     bypassed.add(child.name)
                     if not child.active:
@@ -825,11 +871,18 @@ class ActionEngine:
             return
         assert node.plan is not None
         self._set_state(node, _S.RUNNING)
-        child = GraphRun(f"{run.name}__{node.umrf.name}__{node.umrf.instance_id}", node.plan, parent_node=node)
+        child = GraphRun(
+            f"{run.name}__{node.umrf.name}__{node.umrf.instance_id}", node.plan, parent_node=node
+        )
         node.child_run = child
         old = self._runs.get(child.name)
         if old is not None and old.state in _BUSY_GRAPH:
-            logger.warning("%s: replacing sub-graph run %s that was still %s", run.name, child.name, old.state.value)
+            logger.warning(
+                "%s: replacing sub-graph run %s that was still %s",
+                run.name,
+                child.name,
+                old.state.value,
+            )
         self._runs[child.name] = child
         values = {k: v for k, v in node.data.items() if k in child.entry.inputs}
         node.clear_data()
@@ -942,7 +995,12 @@ class ActionEngine:
         self._after_change(run, fx)
 
     def _stop_run(self, run: GraphRun, fx: list[Effect]) -> None:
-        if run.state in (GraphState.FINISHED, GraphState.STOPPED, GraphState.ERROR, GraphState.STOPPING):
+        if run.state in (
+            GraphState.FINISHED,
+            GraphState.STOPPED,
+            GraphState.ERROR,
+            GraphState.STOPPING,
+        ):
             return
         if run.state is GraphState.HALTED:
             run.done.clear()
@@ -956,11 +1014,17 @@ class ActionEngine:
             return
         if run.state is GraphState.STOPPING:
             failed = run.stop_failed
-            self._end_run(run, GraphState.ERROR if failed else GraphState.STOPPED,
-                          Result.ERROR if failed else Result.STOPPED, fx)
+            self._end_run(
+                run,
+                GraphState.ERROR if failed else GraphState.STOPPED,
+                Result.ERROR if failed else Result.STOPPED,
+                fx,
+            )
         elif run.state is GraphState.RUNNING:
             waiting = sorted(
-                n.name for n in run.nodes.values() if n.received and n.state is _S.UNINITIALIZED and not n.ready()
+                n.name
+                for n in run.nodes.values()
+                if n.received and n.state is _S.UNINITIALIZED and not n.ready()
             )
             if waiting:
                 logger.warning(
@@ -1021,7 +1085,9 @@ class ActionEngine:
         return graph_to_dict(graph, actions)
 
 
-def _transfer(parent: Node, child: Node, remap: Mapping[str, str], outputs: Mapping[str, Any]) -> None:
+def _transfer(
+    parent: Node, child: Node, remap: Mapping[str, str], outputs: Mapping[str, Any]
+) -> None:
     """Copy a parent's outputs into a child's inputs (REFERENCE §2.5, parameter transfer)."""
     inputs = child.inputs
     kinds = parent.outputs
@@ -1060,7 +1126,9 @@ def _param_mismatch(umrf: Umrf, description: Umrf) -> str:
 def _merge(graph: UmrfGraph, umrf: Umrf, description: Umrf) -> Umrf:
     """The description's parameters, with the graph's literals and allowed values."""
 
-    def side(mine: Mapping[str, Parameter], theirs: Mapping[str, Parameter], what: str) -> dict[str, Parameter]:
+    def side(
+        mine: Mapping[str, Parameter], theirs: Mapping[str, Parameter], what: str
+    ) -> dict[str, Parameter]:
         out = {}
         for name, desc in theirs.items():
             own = mine[name]
@@ -1092,14 +1160,21 @@ def _graph_inputs(graph: UmrfGraph, params: Mapping[str, Any]) -> dict[str, Any]
         param = inputs.get(name)
         if param is None:
             known = ", ".join(sorted(inputs)) or "none"
-            raise GraphInputError(f"graph '{graph.name}' has no input '{name}' (its inputs: {known})", file=graph.source)
+            raise GraphInputError(
+                f"graph '{graph.name}' has no input '{name}' (its inputs: {known})",
+                file=graph.source,
+            )
         if param.type in NATIVE_TYPES:
             try:
                 value = check_value(param.type, value)
             except TypeError as err:
-                raise GraphInputError(f"graph input '{name}' ({param.type}): {err}", file=graph.source) from None
+                raise GraphInputError(
+                    f"graph input '{name}' ({param.type}): {err}", file=graph.source
+                ) from None
         values[name] = value
-    missing = sorted(n for n, p in inputs.items() if p.required and n not in values and p.value is NO_VALUE)
+    missing = sorted(
+        n for n, p in inputs.items() if p.required and n not in values and p.value is NO_VALUE
+    )
     if missing:
         raise GraphInputError(
             f"graph '{graph.name}' needs input {', '.join(repr(m) for m in missing)}"

@@ -39,7 +39,9 @@ class WorkerPool:
         ValueError: If ``max_workers`` < 1.
     """
 
-    def __init__(self, max_workers: int = 64, *, name: str = "temoto-worker", idle_timeout: float = 30.0) -> None:
+    def __init__(
+        self, max_workers: int = 64, *, name: str = "temoto-worker", idle_timeout: float = 30.0
+    ) -> None:
         if max_workers < 1:
             raise ValueError(f"max_workers must be at least 1, got {max_workers}")
         self.max_workers = max_workers

@@ -185,7 +185,9 @@ def parse_graph(raw: object, *, file: str | None = None) -> UmrfGraph:
     seen: dict[str, int] = {}
     for i, act in enumerate(actions):
         if act.name in (ENTRY_NAME, EXIT_NAME):
-            raise reader.fail(f"actions[{i}].name", f"'{act.name}' is reserved for the graph's own node")
+            raise reader.fail(
+                f"actions[{i}].name", f"'{act.name}' is reserved for the graph's own node"
+            )
         if act.full_name in seen:
             raise reader.fail(
                 f"actions[{i}]",
@@ -201,18 +203,32 @@ def parse_graph(raw: object, *, file: str | None = None) -> UmrfGraph:
     else:
         for key, present in (("graph_entry", has_entry), ("graph_exit", has_exit)):
             if not present:
-                why = "a graph of several actions" if len(actions) > 1 else "a graph that has the other one"
+                why = (
+                    "a graph of several actions"
+                    if len(actions) > 1
+                    else "a graph that has the other one"
+                )
                 raise reader.fail("", f"missing '{key}' (required in {why})")
-        entry = tuple(reader.child(r, f"graph_entry[{i}]") for i, r in enumerate(reader.array(doc, "graph_entry", "")))
-        exit_ = tuple(reader.parent(r, f"graph_exit[{i}]") for i, r in enumerate(reader.array(doc, "graph_exit", "")))
-        for key, rels in (("graph_entry", entry), ("graph_exit", exit_)):
+        entry = tuple(
+            reader.child(r, f"graph_entry[{i}]")
+            for i, r in enumerate(reader.array(doc, "graph_entry", ""))
+        )
+        exit_ = tuple(
+            reader.parent(r, f"graph_exit[{i}]")
+            for i, r in enumerate(reader.array(doc, "graph_exit", ""))
+        )
+        listed: tuple[tuple[str, list[str]], ...] = (
+            ("graph_entry", [r.full_name for r in entry]),
+            ("graph_exit", [r.full_name for r in exit_]),
+        )
+        for key, full_names in listed:
             names: set[str] = set()
-            for i, rel in enumerate(rels):
-                if rel.full_name not in seen:
-                    raise reader.fail(f"{key}[{i}]", f"unknown action '{rel.full_name}'")
-                if rel.full_name in names:
-                    raise reader.fail(f"{key}[{i}]", f"'{rel.full_name}' is listed twice")
-                names.add(rel.full_name)
+            for i, full_name in enumerate(full_names):
+                if full_name not in seen:
+                    raise reader.fail(f"{key}[{i}]", f"unknown action '{full_name}'")
+                if full_name in names:
+                    raise reader.fail(f"{key}[{i}]", f"'{full_name}' is listed twice")
+                names.add(full_name)
     state = GraphState.UNINITIALIZED
     if "graph_state" in doc:
         try:
@@ -220,7 +236,8 @@ def parse_graph(raw: object, *, file: str | None = None) -> UmrfGraph:
         except (ValueError, TypeError):
             choices = ", ".join(s.value for s in GraphState)
             raise reader.fail(
-                "graph_state", f"unknown graph state {kind_of(doc['graph_state'])} (expected one of {choices})"
+                "graph_state",
+                f"unknown graph state {kind_of(doc['graph_state'])} (expected one of {choices})",
             ) from None
     reader.unknown(doc, _GRAPH_KEYS, "")
     return UmrfGraph(
@@ -317,4 +334,3 @@ def dump_graph(graph: UmrfGraph, *, indent: int | None = 2) -> str:
         Nothing.
     """
     return json.dumps(graph_to_dict(graph), indent=indent, ensure_ascii=False)
-

@@ -25,7 +25,9 @@ class Instrument:
     def graph_started(self, graph: str, t: float) -> None:
         """A graph run started (``t``: clock seconds)."""
 
-    def node_transition(self, graph: str, node: str, old: NodeState, new: NodeState, t: float) -> None:
+    def node_transition(
+        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
+    ) -> None:
         """A node changed state (``node`` is ``<Name>_<instance_id>``)."""
 
     def graph_finished(self, graph: str, result: Result, t: float) -> None:
@@ -49,7 +51,9 @@ class LoggingInstrument(Instrument):
         """Log the start."""
         self.logger.info("graph %s started", graph)
 
-    def node_transition(self, graph: str, node: str, old: NodeState, new: NodeState, t: float) -> None:
+    def node_transition(
+        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
+    ) -> None:
         """Log a transition."""
         self.logger.debug("%s: %s %s -> %s", graph, node, old.value, new.value)
 
@@ -77,7 +81,9 @@ class RecordingInstrument(Instrument):
         self.finished: list[tuple[str, Result]] = []
         self.failures: list[tuple[str, str, BaseException]] = []
 
-    def node_transition(self, graph: str, node: str, old: NodeState, new: NodeState, t: float) -> None:
+    def node_transition(
+        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
+    ) -> None:
         """Record a transition."""
         with self._lock:
             self.transitions.append((graph, node, old, new))
@@ -134,7 +140,9 @@ class TraceInstrument(Instrument):
         self.stream.write(json.dumps(record, ensure_ascii=False) + "\n")
         self.stream.flush()
 
-    def node_transition(self, graph: str, node: str, old: NodeState, new: NodeState, t: float) -> None:
+    def node_transition(
+        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
+    ) -> None:
         """Write a state line."""
         self._write({"t": round(t - self.t0, 6), "graph": graph, "node": node, "state": new.value})
 

@@ -200,7 +200,9 @@ class _TreeParser:
     def fail(self, path: str, message: str) -> ConfigError:
         return self.make_error(message, file=self.file, path=path)
 
-    def tree(self, raw: object, path: str, prefix: str, depth: int, out: dict[str, Parameter]) -> None:
+    def tree(
+        self, raw: object, path: str, prefix: str, depth: int, out: dict[str, Parameter]
+    ) -> None:
         if not isinstance(raw, dict):
             raise self.fail(path, f"expected an object of parameters, got {_kind(raw)}")
         if depth > MAX_TREE_DEPTH:
@@ -220,7 +222,9 @@ class _TreeParser:
     def leaf(self, raw: dict[str, Any], path: str, name: str) -> Parameter:
         pvf_type = raw["pvf_type"]
         if not isinstance(pvf_type, str) or not pvf_type:
-            raise self.fail(f"{path}.pvf_type", f"expected a non-empty string, got {_kind(pvf_type)}")
+            raise self.fail(
+                f"{path}.pvf_type", f"expected a non-empty string, got {_kind(pvf_type)}"
+            )
         value: Any = NO_VALUE
         if "pvf_value" in raw:
             value = self.value(pvf_type, raw["pvf_value"], f"{path}.pvf_value")
@@ -238,7 +242,9 @@ class _TreeParser:
                     self.value(elem_type, item, f"{apath}[{i}]") for i, item in enumerate(items)
                 )
             elif items:
-                raise self.fail(apath, f"type '{pvf_type}' is not a JSON type and cannot list values")
+                raise self.fail(
+                    apath, f"type '{pvf_type}' is not a JSON type and cannot list values"
+                )
         for key in raw:
             if key not in _LEAF_KEYS:
                 self.warnings.append(f"{path}.{key}: unknown key ignored")
@@ -313,7 +319,9 @@ def parse_parameter_tree(
     return out
 
 
-def dump_parameter_tree(params: ParameterSet, values: Mapping[str, Any] | None = None) -> dict[str, Any]:
+def dump_parameter_tree(
+    params: ParameterSet, values: Mapping[str, Any] | None = None
+) -> dict[str, Any]:
     """Serialise flat parameters back into a nested JSON tree (canonical form).
 
     Args:

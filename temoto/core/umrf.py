@@ -74,7 +74,11 @@ def snake_case(name: str) -> str:
     """
     out: list[str] = []
     for i, ch in enumerate(name):
-        if ch.isupper() and i and (not name[i - 1].isupper() or (i + 1 < len(name) and name[i + 1].islower())):
+        if (
+            ch.isupper()
+            and i
+            and (not name[i - 1].isupper() or (i + 1 < len(name) and name[i + 1].islower()))
+        ):
             out.append("_")
         out.append(ch.lower())
     return "".join(out)
@@ -279,7 +283,15 @@ class UmrfReader:
             raise self.fail(_join(path, key), f"expected an array, got {kind_of(value)}")
         return value
 
-    def string(self, raw: dict[str, Any], key: str, path: str, *, required: bool = False, empty: bool = True) -> str:
+    def string(
+        self,
+        raw: dict[str, Any],
+        key: str,
+        path: str,
+        *,
+        required: bool = False,
+        empty: bool = True,
+    ) -> str:
         """Read a string member.
 
         Args:
@@ -323,9 +335,14 @@ class UmrfReader:
         value = raw.get(key, 0)
         if isinstance(value, float) and value.is_integer():
             value = int(value)
-        if isinstance(value, bool) or not isinstance(value, int) or not 0 <= value <= MAX_INSTANCE_ID:
+        if (
+            isinstance(value, bool)
+            or not isinstance(value, int)
+            or not 0 <= value <= MAX_INSTANCE_ID
+        ):
             raise self.fail(
-                _join(path, key), f"expected an integer from 0 to {MAX_INSTANCE_ID}, got {kind_of(value)}"
+                _join(path, key),
+                f"expected an integer from 0 to {MAX_INSTANCE_ID}, got {kind_of(value)}",
             )
         return value
 
@@ -350,7 +367,9 @@ class UmrfReader:
             return NodeState(value)
         except (ValueError, TypeError):
             names = ", ".join(s.value for s in NodeState)
-            raise self.fail(_join(path, key), f"unknown state {kind_of(value)} (expected one of {names})") from None
+            raise self.fail(
+                _join(path, key), f"unknown state {kind_of(value)} (expected one of {names})"
+            ) from None
 
     def parent(self, raw: object, path: str) -> ParentRelation:
         """Read a parent relation (also a ``graph_exit`` entry).
@@ -370,7 +389,9 @@ class UmrfReader:
         instance = self.instance_id(rel, path)
         required = rel.get("required", True)
         if not isinstance(required, bool):
-            raise self.fail(_join(path, "required"), f"expected true or false, got {kind_of(required)}")
+            raise self.fail(
+                _join(path, "required"), f"expected true or false, got {kind_of(required)}"
+            )
         conditions: dict[Result, Response] = {}
         for i, text in enumerate(self.array(rel, "conditions", path)):
             cpath = f"{path}.conditions[{i}]"
@@ -378,7 +399,8 @@ class UmrfReader:
             if result in conditions and conditions[result] is not response:
                 raise self.fail(
                     cpath,
-                    f"second condition for '{result.value}' ('{conditions[result].value}' already given)",
+                    f"second condition for '{result.value}'"
+                    f" ('{conditions[result].value}' already given)",
                 )
             conditions[result] = response
         self.unknown(rel, {"name", "instance_id", "required", "conditions"}, path)
@@ -398,7 +420,9 @@ class UmrfReader:
             ConfigError: If malformed or naming an unknown result or response.
         """
         if not isinstance(text, str):
-            raise self.fail(path, f"expected a string '<result> -> <response>', got {kind_of(text)}")
+            raise self.fail(
+                path, f"expected a string '<result> -> <response>', got {kind_of(text)}"
+            )
         left, arrow, right = text.replace(" ", "").partition("->")
         if not arrow or not left or not right:
             raise self.fail(path, f"expected '<result> -> <response>', got {text!r}")
@@ -411,7 +435,9 @@ class UmrfReader:
         try:
             response = Response(right)
         except ValueError:
-            raise self.fail(path, f"unknown response '{right}' (expected {_RESPONSE_NAMES})") from None
+            raise self.fail(
+                path, f"unknown response '{right}' (expected {_RESPONSE_NAMES})"
+            ) from None
         return result, response
 
     def child(self, raw: object, path: str) -> ChildRelation:
@@ -483,7 +509,11 @@ class UmrfReader:
             tree = obj.get(key, {})
             params.append(
                 parse_parameter_tree(
-                    tree, path=_join(path, key), file=self.file, error=self.error, warnings=self.warnings
+                    tree,
+                    path=_join(path, key),
+                    file=self.file,
+                    error=self.error,
+                    warnings=self.warnings,
                 )
             )
         runtime: tuple[LogMessage, ...] = ()
@@ -498,10 +528,12 @@ class UmrfReader:
             description=self.string(obj, "description", path),
             state=self.node_state(obj, "state", path),
             parents=tuple(
-                self.parent(r, f"{_join(path, 'parents')}[{i}]") for i, r in enumerate(self.array(obj, "parents", path))
+                self.parent(r, f"{_join(path, 'parents')}[{i}]")
+                for i, r in enumerate(self.array(obj, "parents", path))
             ),
             children=tuple(
-                self.child(r, f"{_join(path, 'children')}[{i}]") for i, r in enumerate(self.array(obj, "children", path))
+                self.child(r, f"{_join(path, 'children')}[{i}]")
+                for i, r in enumerate(self.array(obj, "children", path))
             ),
             input_parameters=params[0],
             output_parameters=params[1],
@@ -529,7 +561,10 @@ class UmrfReader:
             entry = self.obj(item, mpath)
             stamp = entry.get("timestamp", 0)
             if isinstance(stamp, bool) or not isinstance(stamp, int) or not 0 <= stamp < 2**63:
-                raise self.fail(f"{mpath}.timestamp", f"expected milliseconds since the epoch, got {kind_of(stamp)}")
+                raise self.fail(
+                    f"{mpath}.timestamp",
+                    f"expected milliseconds since the epoch, got {kind_of(stamp)}",
+                )
             out.append(LogMessage(stamp, self.string(entry, "message", mpath)))
         return tuple(out)
 
@@ -603,7 +638,9 @@ def decode_json(text: str, *, file: str | None = None, error: ErrorFactory = Con
     try:
         return json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as err:
-        raise error(f"invalid JSON at line {err.lineno} column {err.colno}: {err.msg}", file=file) from None
+        raise error(
+            f"invalid JSON at line {err.lineno} column {err.colno}: {err.msg}", file=file
+        ) from None
     except ValueError as err:
         raise error(f"invalid JSON: {err}", file=file) from None
     except RecursionError:
@@ -670,7 +707,9 @@ def dump_umrf(action: Umrf, *, with_relations: bool = True) -> dict[str, Any]:
         out["gui_attributes"] = action.gui_attributes
     if action.runtime_messages:
         out["runtime"] = {
-            "messages": [{"timestamp": m.timestamp_ms, "message": m.message} for m in action.runtime_messages]
+            "messages": [
+                {"timestamp": m.timestamp_ms, "message": m.message} for m in action.runtime_messages
+            ]
         }
     return out
 
@@ -688,7 +727,11 @@ def dump_parent(rel: ParentRelation, *, conditions: bool = True) -> dict[str, An
     Raises:
         Nothing.
     """
-    out: dict[str, Any] = {"name": rel.name, "instance_id": rel.instance_id, "required": rel.required}
+    out: dict[str, Any] = {
+        "name": rel.name,
+        "instance_id": rel.instance_id,
+        "required": rel.required,
+    }
     if conditions:
         out["conditions"] = [f"{r.value} -> {rel.response(r).value}" for r in _CONDITION_RESULTS]
     return out

@@ -407,9 +407,7 @@ class _Checker:
             # Entry actions' literal-less inputs are the graph's inputs; an action without
             # parents never runs at all (reported as unreachable).
             return
-        needed = [
-            p for p in act.input_parameters.values() if p.required and not p.has_value
-        ]
+        needed = [p for p in act.input_parameters.values() if p.required and not p.has_value]
         if not needed:
             return
         offered: dict[str, set[str]] = {}

@@ -5,5 +5,7 @@ from temoto import Action
 
 class TaAddString(Action):
     def on_run(self) -> bool:
-        self.outputs["result"] = f"{self.inputs.get_string('str_a')} and {self.inputs.get_string('str_b')}"
+        self.outputs["result"] = (
+            f"{self.inputs.get_string('str_a')} and {self.inputs.get_string('str_b')}"
+        )
         return True

@@ -1,4 +1,4 @@
-"""TaCompareNumber: compares ``num_a`` with ``num_b`` using ``operation``; unknown operators fail."""
+"""TaCompareNumber: compares ``num_a`` with ``num_b`` by ``operation``; unknown ones fail."""
 
 import operator
 
@@ -19,4 +19,6 @@ class TaCompareNumber(Action):
         op = self.inputs.get_string("operation")
         if op not in _OPERATORS:
             raise ValueError(f"unknown operation {op!r} (expected one of {', '.join(_OPERATORS)})")
-        return bool(_OPERATORS[op](self.inputs.get_number("num_a"), self.inputs.get_number("num_b")))
+        return bool(
+            _OPERATORS[op](self.inputs.get_number("num_a"), self.inputs.get_number("num_b"))
+        )
