@@ -19,7 +19,7 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
 from temoto.core.dot import graph_to_dot
@@ -46,7 +46,7 @@ LEGACY_UMRFS = [json.loads(p.read_text(encoding="utf-8")) for p in LEGACY_UMRF_F
 
 # The whole module runs in well under a minute on two cores.
 FUZZ = settings(
-    max_examples=250,
+    max_examples=1000,
     deadline=None,
     database=None,  # no .hypothesis/ directory in the work tree
     suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large],
@@ -148,18 +148,27 @@ LEAF = st.fixed_dictionaries(
     },
 )
 
-VALUES = st.one_of(
+WILD = st.one_of(
     st.recursive(
         SCALARS,
         lambda kids: st.lists(kids, max_size=4) | st.dictionaries(KEYS, kids, max_size=4),
         max_leaves=10,
     ),
     DEEP,
+)
+# Well-typed replacements: the document usually still parses and the validator sees odd
+# relations, parameters and names.
+GENTLE = st.one_of(
+    NAME,
+    SMALL_ID,
+    st.booleans(),
     RELATION,
     st.lists(RELATION, max_size=3),
     LEAF,
     st.dictionaries(NAME, LEAF, max_size=3),
+    st.lists(st.sampled_from(VOCAB), max_size=3),
 )
+VALUES = WILD | GENTLE
 
 
 # --- mutation ----------------------------------------------------------------------------------
@@ -295,6 +304,7 @@ def check_parsed_graph(data: st.DataObject, graph: UmrfGraph) -> None:
         label="supplied",
     )
     report = validate_graph(graph, supplied=supplied)  # never raises
+    event("validated: " + ("ok" if report.ok else "errors"))
     assert report.graph == graph.name
     for issue in report.errors + report.warnings:
         assert isinstance(issue.path, str)
@@ -341,6 +351,7 @@ def test_mutated_graphs_parse_validate_and_round_trip_or_raise_config_error(
     doc = mutate(data, seed)
     with hang_guard():
         graph = config_error_or(lambda: parse_graph(doc, file="fuzz.graph.json"))
+        event("parsed" if graph is not None else "rejected")
         if graph is not None:
             check_parsed_graph(data, graph)
         # The same document as text goes through the format detection (and, when the mutation
@@ -371,7 +382,7 @@ def scratch() -> Iterator[Path]:
 
 @pytest.mark.timeout(120)
 @FUZZ
-@given(st.data())
+@given(data=st.data())
 def test_mutated_action_descriptions_parse_or_raise_config_error(
     data: st.DataObject, scratch: Path
 ) -> None:
