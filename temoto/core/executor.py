@@ -2,8 +2,9 @@
 
 :class:`WorkerPool` runs action hooks. Threads are started on demand up to ``max_workers``,
 reused for later runs (no thread per action run) and retired after ``idle_timeout`` seconds
-without work. When every worker is busy, jobs queue and a warning says so: an action that
-never returns occupies its worker until it does.
+without work. When every worker is busy, jobs queue; a job that waited more than
+:data:`SLOW_START` seconds for a worker is reported once per busy period (raise ``max_workers``
+when actions block for long).
 
 :class:`DeadlineTimer` calls functions at deadlines (stop timeouts) from one thread that sleeps
 on a condition until the next deadline; nothing polls.
@@ -24,7 +25,10 @@ __all__ = ["DeadlineTimer", "TimerHandle", "WorkerPool"]
 
 logger = logging.getLogger(__name__)
 
-Job = tuple[Callable[..., Any], tuple[Any, ...]]
+Job = tuple[Callable[..., Any], tuple[Any, ...], float]
+
+#: A job that waited this long (real seconds) for a free worker is reported.
+SLOW_START = 1.0
 
 
 class WorkerPool:
@@ -54,7 +58,7 @@ class WorkerPool:
         self._threads: set[threading.Thread] = set()
         self._counter = itertools.count(1)
         self._closed = False
-        self._warned = False
+        self._warned = False  # reported a slow start in this busy period
 
     @property
     def size(self) -> int:
@@ -75,6 +79,7 @@ class WorkerPool:
         Raises:
             RuntimeError: After :meth:`shutdown`.
         """
+        queued = 0.0
         with self._mutex:
             if self._closed:
                 raise RuntimeError("worker pool is shut down")
@@ -88,14 +93,8 @@ class WorkerPool:
                 thread.start()
             else:
                 self._backlog += 1
-                if not self._warned:
-                    self._warned = True
-                    logger.warning(
-                        "all %d workers are busy; actions wait for a free worker"
-                        " (raise max_workers if actions block for long)",
-                        self.max_workers,
-                    )
-        self._jobs.put((fn, args))
+                queued = time.monotonic()
+        self._jobs.put((fn, args, queued))
 
     def _work(self) -> None:
         me = threading.current_thread()
@@ -113,7 +112,15 @@ class WorkerPool:
                 with self._mutex:
                     self._threads.discard(me)
                 return
-            fn, args = job
+            fn, args, queued = job
+            if queued and not self._warned and time.monotonic() - queued > SLOW_START:
+                self._warned = True
+                logger.warning(
+                    "an action waited %.1f s for a free worker: all %d workers are busy"
+                    " (raise max_workers if actions block for long)",
+                    time.monotonic() - queued,
+                    self.max_workers,
+                )
             try:
                 fn(*args)
             except BaseException:
@@ -124,7 +131,7 @@ class WorkerPool:
                     self._backlog -= 1
                 else:
                     self._idle += 1
-                    self._warned = False
+                    self._warned = False  # reported a slow start in this busy period
 
     def shutdown(self, timeout: float | None = 10.0) -> list[str]:
         """Stop accepting work, let queued jobs finish, and join the workers.
