@@ -190,8 +190,6 @@ def _convert_param(graph: UmrfGraph, text: str) -> tuple[str, Any]:
 
 def _run(args: argparse.Namespace) -> int:
     graph = load_graph(args.graph)
-    for warning in graph.warnings:
-        logging.getLogger("temoto.cli").warning("%s: %s", args.graph, warning)
     params = dict(_convert_param(graph, p) for p in args.param)
     clock = ScaledClock(args.time_scale) if args.time_scale != 1.0 else MonotonicClock()
     t0 = clock.monotonic()

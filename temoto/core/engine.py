@@ -32,7 +32,7 @@ from temoto.core._runtime import GraphRun, Node, NodeKind, Plan, ResolvedAction
 from temoto.core.action import RunControl
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.executor import DeadlineTimer, WorkerPool
-from temoto.core.graph import UmrfGraph, graph_to_dict
+from temoto.core.graph import UmrfGraph, graph_from_document, graph_to_dict
 from temoto.core.instrument import Instrument
 from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value, dump_parameter_tree
 from temoto.core.states import NODE_TRANSITIONS, GraphState, NodeState, Response, Result
@@ -149,7 +149,7 @@ class ActionEngine:
 
     def start(
         self,
-        graph: str | UmrfGraph,
+        graph: str | UmrfGraph | Mapping[str, Any],
         params: Mapping[str, Any] | None = None,
         *,
         result: Result = Result.TRUE,
@@ -161,7 +161,7 @@ class ActionEngine:
         replaced by a fresh run (new nodes, new action instances).
 
         Args:
-            graph: An indexed graph's name, or a graph.
+            graph: An indexed graph's name, a graph, or a decoded UMRF JSON document.
             params: Values for the graph's external inputs, by name.
             result: The result ``graph_entry`` hands to the entry actions (default on_true).
             name: Run under this name instead of the graph's name.
@@ -176,7 +176,12 @@ class ActionEngine:
             ActionNotFoundError, PluginConflictError, PluginLoadError: An action cannot be loaded.
             StateError: A run of that name is active, or the engine is shut down.
         """
-        model = self.graphs.get(graph) if isinstance(graph, str) else graph
+        if isinstance(graph, str):
+            model = self.graphs.get(graph)
+        elif isinstance(graph, UmrfGraph):
+            model = graph
+        else:
+            model = graph_from_document(graph)
         run_name = name or model.name
         plan = self.plan(model)
         values = _graph_inputs(plan.graph, params or {})
@@ -216,7 +221,7 @@ class ActionEngine:
 
     def run(
         self,
-        graph: str | UmrfGraph,
+        graph: str | UmrfGraph | Mapping[str, Any],
         params: Mapping[str, Any] | None = None,
         timeout: float | None = None,
     ) -> GraphOutcome:

@@ -35,6 +35,7 @@ __all__ = [
     "GraphSignature",
     "UmrfGraph",
     "dump_graph",
+    "graph_from_document",
     "graph_to_dict",
     "load_graph",
     "parse_graph",
@@ -265,7 +266,7 @@ def parse_graph_text(text: str, *, file: str | None = None) -> UmrfGraph:
     Raises:
         GraphDefinitionError: If the text is not JSON or not a valid graph.
     """
-    return _from_document(decode_json(text, file=file, error=GraphDefinitionError), file)
+    return graph_from_document(decode_json(text, file=file, error=GraphDefinitionError), file=file)
 
 
 def load_graph(path: str | Path) -> UmrfGraph:
@@ -280,10 +281,22 @@ def load_graph(path: str | Path) -> UmrfGraph:
     Raises:
         GraphDefinitionError: If the file cannot be read, is not JSON, or is not a valid graph.
     """
-    return _from_document(load_json(path, GraphDefinitionError), str(path))
+    return graph_from_document(load_json(path, GraphDefinitionError), file=str(path))
 
 
-def _from_document(raw: object, file: str | None) -> UmrfGraph:
+def graph_from_document(raw: object, *, file: str | None = None) -> UmrfGraph:
+    """Parse a decoded graph document of either format.
+
+    Args:
+        raw: The decoded JSON document.
+        file: Where it came from, for messages.
+
+    Returns:
+        The graph (legacy documents converted, with a warning).
+
+    Raises:
+        GraphDefinitionError: If it is not a valid graph.
+    """
     from temoto.core import legacy  # only needed for old documents
 
     if legacy.is_legacy_graph(raw):
