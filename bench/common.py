@@ -29,7 +29,14 @@ class Results:
     metrics: list[Metric] = field(default_factory=list)
     notes: list[str] = field(default_factory=list)
 
-    def add(self, name: str, value: float, unit: str, note: str = "", goal: tuple[str, float] | None = None) -> None:
+    def add(
+        self,
+        name: str,
+        value: float,
+        unit: str,
+        note: str = "",
+        goal: tuple[str, float] | None = None,
+    ) -> None:
         self.metrics.append(Metric(name, float(value), unit, note, goal))
 
 
@@ -49,7 +56,7 @@ def percentile(values: Sequence[float], q: float) -> float:
 
 
 def repeat(fn: Callable[[], Any], reps: int, warmup: int = 1) -> list[Any]:
-    """Call ``fn`` warmup + reps times (collecting garbage before each), keep the last reps results."""
+    """Call ``fn`` warmup + reps times, gc before each; keep the last reps."""
     out = []
     for i in range(warmup + reps):
         gc.collect()
@@ -92,7 +99,7 @@ def chain_graph(n: int, name: str = "bench_chain") -> dict[str, Any]:
 
 
 def fanout_graph(n: int, name: str = "bench_fanout") -> dict[str, Any]:
-    """graph_entry -> BenchNoop_0..n-1 in parallel -> BenchNoop_n (all n required parents) -> graph_exit."""
+    """graph_entry -> BenchNoop_0..n-1 in parallel -> BenchNoop_n (n required parents) -> exit."""
     join = n
     actions: list[dict[str, Any]] = [
         {"name": NOOP, "instance_id": i, "type": "sync", "children": [_ref(join)]} for i in range(n)

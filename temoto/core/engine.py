@@ -595,7 +595,10 @@ class ActionEngine:
         run = node.run
         fx: list[Effect] = []
         with self._lock:
-            if gen != node.gen or (node.state is not _S.RUNNING and node.state not in _ACTIVE):
+            if gen != node.gen or node.state not in _ACTIVE:
+                return fx
+            if node.state is _S.STOPPING:  # stopped before a worker got to it: do not start
+                self._on_finished(node, gen, Result.STOPPED, {}, None, fx)
                 return fx
             instance = node.instance
             values = dict(node.data)

@@ -77,7 +77,9 @@ def node_json(snapshot: dict[str, Any], full_name: str) -> dict[str, Any]:
     raise AssertionError(f"{full_name} not in snapshot: {[a['name'] for a in snapshot['actions']]}")
 
 
-def spy_runs(monkeypatch: pytest.MonkeyPatch, engine: ActionEngine, action: str) -> list[tuple[str, int]]:
+def spy_runs(
+    monkeypatch: pytest.MonkeyPatch, engine: ActionEngine, action: str
+) -> list[tuple[str, int]]:
     """Record (node name, id(instance)) for every on_run of an action class, for this test only."""
     cls = engine.catalog.load_class(action)
     original = cls.on_run
@@ -91,7 +93,7 @@ def spy_runs(monkeypatch: pytest.MonkeyPatch, engine: ActionEngine, action: str)
     return calls
 
 
-# ================================================================ semantics_test_1..9 (test_semantics.cpp)
+# ================ semantics_test_1..9 (test_semantics.cpp)
 
 
 def test_lifecycle_engine_constructs_and_shuts_down() -> None:
@@ -165,7 +167,11 @@ def test_semantics_7_simple_reactive_behavior(h: Harness, monkeypatch: pytest.Mo
     assert len(ingests) == 3
     assert len({ident for _, ident in ingests}) == 1
     log = node_json(h.engine.graph_json(run), "TaIngestResult_0")["runtime"]["messages"]
-    assert [m["message"] for m in log] == ["ingested result 3", "ingested result 2", "ingested result 1"]
+    assert [m["message"] for m in log] == [
+        "ingested result 3",
+        "ingested result 2",
+        "ingested result 1",
+    ]
 
 
 def test_semantics_8_messages(h: Harness) -> None:
@@ -231,7 +237,7 @@ def test_ta_generate_string_by_indexed_name(h: Harness) -> None:
     assert h.engine.outcome(run).outputs == {"result": "x and B and C"}
 
 
-# ================================================================ external_changes graphs, unattended
+# ================ external_changes graphs, unattended
 
 
 @pytest.mark.parametrize(
@@ -240,7 +246,11 @@ def test_ta_generate_string_by_indexed_name(h: Harness) -> None:
         ("test_external_changes_test_0", Result.TRUE, ["TaTimer_0"]),
         ("test_external_changes_test_1", Result.FALSE, ["TaTimer_0", "TaCompareNumber_0"]),
         ("test_external_changes_test_2_a", Result.FALSE, ["TaTimer_0", "TaCompareString_0"]),
-        ("test_external_changes_test_2_b", Result.TRUE, ["TaTimer_0", "TaRelayString_0", "TaCompareString_0"]),
+        (
+            "test_external_changes_test_2_b",
+            Result.TRUE,
+            ["TaTimer_0", "TaRelayString_0", "TaCompareString_0"],
+        ),
         ("test_external_changes_test_3_a", Result.HALTED, ["TaRelayString_0", "TaTriggerResult_0"]),
         ("test_external_changes_test_3_b", Result.TRUE, ["TaRelayString_0", "TaTriggerResult_0"]),
         ("test_external_changes_test_3_c", Result.HALTED, ["TaTriggerResult_0"]),
@@ -248,7 +258,9 @@ def test_ta_generate_string_by_indexed_name(h: Harness) -> None:
         ("test_external_changes_test_4_b", Result.TRUE, ["TaRelayString_0", "TaRelayString_1"]),
     ],
 )
-def test_external_changes_graph_alone(h: Harness, name: str, expected: Result, order: list[str]) -> None:
+def test_external_changes_graph_alone(
+    h: Harness, name: str, expected: Result, order: list[str]
+) -> None:
     run, result = h.run(name)
     assert result is expected
     assert h.order(run) == order
@@ -307,16 +319,33 @@ def test_unparseable_example_is_rejected() -> None:
 def test_every_current_format_graph_is_covered() -> None:
     """Guard: a new upstream graph file must get an expectation here."""
     covered = {
-        "semantics_test_1", "semantics_test_2", "semantics_test_3", "semantics_test_4",
-        "semantics_test_5", "semantics_test_6", "semantics_test_7", "semantics_test_8",
-        "semantics_test_9", "semantics_test_9_infinite_loop", "ta_generate_string",
-        "external_changes_test_0", "external_changes_test_1", "external_changes_test_2_a",
-        "external_changes_test_2_b", "external_changes_test_3_a", "external_changes_test_3_b",
-        "external_changes_test_3_c", "external_changes_test_4_a", "external_changes_test_4_b",
-        "format_test", "engine_test_multi_actor",
-    }  # fmt: skip
-    found = {p.name.removeprefix("actionengine_test_").removesuffix(".graph.json")
-             for p in UPSTREAM.glob("actionengine_test_*.graph.json")}  # fmt: skip
+        "semantics_test_1",
+        "semantics_test_2",
+        "semantics_test_3",
+        "semantics_test_4",
+        "semantics_test_5",
+        "semantics_test_6",
+        "semantics_test_7",
+        "semantics_test_8",
+        "semantics_test_9",
+        "semantics_test_9_infinite_loop",
+        "ta_generate_string",
+        "external_changes_test_0",
+        "external_changes_test_1",
+        "external_changes_test_2_a",
+        "external_changes_test_2_b",
+        "external_changes_test_3_a",
+        "external_changes_test_3_b",
+        "external_changes_test_3_c",
+        "external_changes_test_4_a",
+        "external_changes_test_4_b",
+        "format_test",
+        "engine_test_multi_actor",
+    }
+    found = {
+        p.name.removeprefix("actionengine_test_").removesuffix(".graph.json")
+        for p in UPSTREAM.glob("actionengine_test_*.graph.json")
+    }
     assert found == covered
 
 
@@ -364,9 +393,16 @@ def test_external_modify_graph_and_set(h: Harness, monkeypatch: pytest.MonkeyPat
     run = h.start("test_external_changes_test_3_a")
     assert run == "external_changes_test_3"
     assert h.engine.wait(run, timeout=WAIT) is Result.HALTED
-    h.engine.modify(run, graph_of("test_external_changes_test_3_b"), continue_from="TaRelayString_0")
+    h.engine.modify(
+        run, graph_of("test_external_changes_test_3_b"), continue_from="TaRelayString_0"
+    )
     assert h.engine.wait(run, timeout=WAIT) is Result.TRUE
-    assert h.order(run) == ["TaRelayString_0", "TaTriggerResult_0", "TaRelayString_0", "TaTriggerResult_0"]
+    assert h.order(run) == [
+        "TaRelayString_0",
+        "TaTriggerResult_0",
+        "TaRelayString_0",
+        "TaTriggerResult_0",
+    ]
     # the relay kept its instance across the modification
     assert [name for name, _ in relays] == ["TaRelayString_0", "TaRelayString_0"]
     assert relays[0][1] == relays[1][1]
@@ -382,7 +418,9 @@ def test_external_modify_graph_and_set_after(h: Harness) -> None:
     run = h.start("test_external_changes_test_4_a")
     assert run == "external_changes_test_4"
     assert h.engine.wait(run, timeout=WAIT) is Result.HALTED
-    h.engine.modify(run, graph_of("test_external_changes_test_4_b"), continue_from="TaRelayString_1")
+    h.engine.modify(
+        run, graph_of("test_external_changes_test_4_b"), continue_from="TaRelayString_1"
+    )
     assert h.engine.wait(run, timeout=WAIT) is Result.TRUE
     # only the new action ran: TaRelayString_0 did not run again
     assert h.order(run) == ["TaRelayString_0", "TaRelayString_1"]
