@@ -162,6 +162,11 @@ class Node:
         self.inputs = dict(umrf.input_parameters)
         self.outputs = dict(umrf.output_parameters)
         first = not self.native and not self.data
+        for name in list(self.native):
+            param = self.inputs.get(name)
+            if param is None or (not param.has_value and param.updatable):
+                self.native.discard(name)  # the new definition has no literal for it
+                self.data.pop(name, None)
         for name, param in self.inputs.items():
             if param.has_value and (first or param.updatable or name not in self.data):
                 self.data[name] = param.value

@@ -144,7 +144,7 @@ class ActionCatalog:
             1
             for entries in self._entries.values()
             for e in entries
-            if e.origin.startswith(str(folder))
+            if Path(e.origin).is_relative_to(folder)
         )
         if not count:
             logger.warning("no *umrf.json action descriptions under %s", folder)
@@ -352,14 +352,13 @@ def _check_dir(path: str | Path, what: str) -> Path:
 
 def _module_beside(description: Path, name: str) -> Path | None:
     """The Python module that implements the action described by ``description``."""
-    stem = description.name.split(".umrf.json")[0].split("umrf.json")[0].rstrip(".")
+    stem = description.name.split("umrf.json")[0].rstrip(".")
     folder = description.parent
-    for candidate in (
-        folder / f"{stem}.py",
-        folder / f"{snake_case(name)}.py",
-        folder / "__init__.py",
-    ):
-        if stem and candidate.is_file():
+    candidates = [folder / f"{snake_case(name)}.py", folder / "__init__.py"]
+    if stem:  # "<stem>.umrf.json"; a plain (legacy) "umrf.json" names no module
+        candidates.insert(0, folder / f"{stem}.py")
+    for candidate in candidates:
+        if candidate.is_file():
             return candidate
     return None
 

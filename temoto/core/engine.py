@@ -295,6 +295,8 @@ class ActionEngine:
     def resume(self, name: str, continue_from: str | None = None) -> None:
         """Resume a paused or halted graph, optionally running one node directly.
 
+        A RUNNING graph may be "resumed" too: actions that a ``pause`` response paused go on.
+
         Args:
             name: The run's name.
             continue_from: A node's full name (``TaRelayString_1``) to run now, regardless of
@@ -305,13 +307,13 @@ class ActionEngine:
 
         Raises:
             GraphNotFoundError: No run of that name.
-            StateError: The run is neither PAUSED nor HALTED.
+            StateError: The run is not PAUSED, HALTED or RUNNING.
             KeyError: ``continue_from`` names no node of the graph.
         """
         run = self._get(name)
         fx: list[Effect] = []
         with self._lock:
-            if run.state not in (GraphState.PAUSED, GraphState.HALTED):
+            if run.state not in (GraphState.PAUSED, GraphState.HALTED, GraphState.RUNNING):
                 raise StateError(f"graph '{name}' is {run.state.value}, not PAUSED or HALTED")
             if continue_from is not None and continue_from not in run.nodes:
                 raise KeyError(f"graph '{name}' has no action '{continue_from}'")
@@ -574,6 +576,20 @@ class ActionEngine:
             except RuntimeError:
                 if not closing:
                     raise
+                self._settle_closed(effect)
+
+    def _settle_closed(self, effect: Effect) -> None:
+        """The pool is shut down: settle an effect in this thread so no node stays active."""
+        if effect[0] == _RUN:
+            node, gen = effect[1], effect[2]
+            fx: list[Effect] = []
+            with self._lock:
+                if node.gen == gen and node.active:
+                    self._on_finished(node, gen, Result.STOPPED, {}, None, fx)
+        elif effect[0] == _HOOK:
+            self._call_hook(effect[1], effect[2], effect[3])
+        else:
+            self._finish_spontaneous(*effect[1:])
 
     def _execute(self, node: Node, gen: int) -> None:
         """Worker: run an action, evolve, then continue with the first newly ready action."""
@@ -658,7 +674,9 @@ class ActionEngine:
         return instance
 
     def _call_hook(self, node: Node, gen: int, hook: str) -> None:
-        instance = node.instance
+        with self._lock:
+            # a hook meant for an earlier run (e.g. on_stop before a restart) is dropped
+            instance = node.instance if node.gen == gen else None
         if instance is not None:
             try:
                 getattr(instance, hook)()
@@ -861,6 +879,9 @@ class ActionEngine:
                     self._restart_node(child, fx)
 
     def _run_node(self, node: Node, fx: list[Effect]) -> None:
+        if node.state in (_S.PAUSE_REQUESTED, _S.PAUSED) and node.run.state is GraphState.RUNNING:
+            self._resume_node(node, fx)  # paused by a `pause` response: `run` resumes it
+            return
         if node.state in _ACTIVE or node.kind in (NodeKind.ENTRY, NodeKind.EXIT):
             return
         run = node.run
@@ -1149,6 +1170,7 @@ def _merge(graph: UmrfGraph, umrf: Umrf, description: Umrf) -> Umrf:
             out[name] = dataclasses.replace(
                 desc,
                 value=own.value if own.has_value else desc.value,
+                updatable=desc.updatable and own.updatable,
                 allowed_values=own.allowed_values or desc.allowed_values,
             )
         return out

@@ -171,7 +171,13 @@ class _Checker:
     def run(self, supplied: Collection[str] | None) -> None:
         acts = self.graph.actions
         for i, act in enumerate(acts):
-            self.index.setdefault(act.full_name, i)
+            first = self.index.setdefault(act.full_name, i)
+            if first != i:  # parse_graph rejects this; graphs built in code may not
+                self.error(
+                    f"actions[{i}]",
+                    f"duplicate action '{act.full_name}' (also"
+                    f" actions[{first}]); give one of them another instance_id",
+                )
             self.instances.setdefault(act.name, []).append(act.instance_id)
         self.incoming = [{} for _ in acts]
         self.parser_warnings()
@@ -445,9 +451,11 @@ class _Checker:
         )
 
     def deadlocks(self) -> None:
-        # A cycle made of required relations only can never start: each member waits for
-        # another member to finish first. (Every cycle whose members all have a required parent
-        # inside the cycle contains such a cycle.)
+        # A cycle made of required parent relations can never start: each member waits for
+        # another member to have finished first. This is checked on the strongly connected
+        # components of the required relations only, which finds every cycle whose members all
+        # have a required parent inside it, and also such a cycle through an entry action (the
+        # entry action waits for its required parent in the cycle like any other action).
         acts = self.graph.actions
         succ: list[list[int]] = [[] for _ in acts]
         for i, edges in enumerate(self.incoming):

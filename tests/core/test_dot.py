@@ -99,8 +99,9 @@ def test_type_other_than_sync_is_shown() -> None:
 
 def test_long_literals_are_truncated_and_many_are_summarised() -> None:
     inputs = {f"p{k}": {"pvf_type": "string", "pvf_value": "x" * 100} for k in range(9)}
-    g = parse_graph({"graph_name": "g", "actions": [{"name": "A", "type": "sync",
-                                                      "input_parameters": inputs}]})
+    g = parse_graph(
+        {"graph_name": "g", "actions": [{"name": "A", "type": "sync", "input_parameters": inputs}]}
+    )
     text = graph_to_dot(g)
     assert "x" * 30 not in text
     assert "…" in text
@@ -110,8 +111,15 @@ def test_long_literals_are_truncated_and_many_are_summarised() -> None:
 
 def test_states_colour_nodes() -> None:
     g = load_graph(UPSTREAM / "actionengine_test_semantics_test_2.graph.json")
-    text = graph_to_dot(g, states={"TaAddString_0": "FINISHED", "TaCompareString_0": "ERROR",
-                                   "graph_entry": "RUNNING", "Nope_0": "RUNNING"})
+    text = graph_to_dot(
+        g,
+        states={
+            "TaAddString_0": "FINISHED",
+            "TaCompareString_0": "ERROR",
+            "graph_entry": "RUNNING",
+            "Nope_0": "RUNNING",
+        },
+    )
     line = next(s for s in text.splitlines() if s.startswith('  "TaAddString_0" ['))
     assert f'fillcolor="{STATE_COLORS["FINISHED"]}"' in line
     assert "[FINISHED]" in line
@@ -177,9 +185,7 @@ def test_output_is_deterministic() -> None:
 
 
 @needs_dot
-@pytest.mark.parametrize(
-    ("fmt", "magic"), [("png", b"\x89PNG\r\n\x1a\n"), ("svg", b"<?xml")]
-)
+@pytest.mark.parametrize(("fmt", "magic"), [("png", b"\x89PNG\r\n\x1a\n"), ("svg", b"<?xml")])
 def test_render_writes_image(tmp_path: Path, fmt: str, magic: bytes) -> None:
     out = tmp_path / f"g.{fmt}"
     render(upstream("format_test"), out, fmt)

@@ -85,6 +85,7 @@ for _doc in GRAPHS + UMRFS + LEGACY_GRAPHS + LEGACY_UMRFS:
     _harvest(_doc, _WORDS)
 
 #: Strings with a meaning somewhere in the format, plus every string of the seed documents.
+# fmt: off
 VOCAB = sorted(
     _WORDS
     | {
@@ -105,6 +106,7 @@ SPECIAL_NUMBERS = [
     1e308, -1e308, 1.7976931348623157e308, 5e-324, -0.0, 0.5, 1.0, 3.0, 1e15, 1e16,
     float("inf"), float("-inf"), float("nan"),
 ]
+# fmt: on
 
 SCALARS = st.one_of(
     st.none(),
@@ -146,8 +148,11 @@ RELATION = st.fixed_dictionaries(
     },
 )
 LEAF = st.fixed_dictionaries(
-    {"pvf_type": st.sampled_from(["string", "strings", "number", "numbers", "bool", "bools",
-                                  "cir_pointer", ""])},
+    {
+        "pvf_type": st.sampled_from(
+            ["string", "strings", "number", "numbers", "bool", "bools", "cir_pointer", ""]
+        )
+    },
     optional={
         "pvf_value": SCALARS | st.lists(SCALARS, max_size=3),
         "pvf_required": st.booleans(),
@@ -367,8 +372,9 @@ def check_parsed_graph(data: st.DataObject, graph: UmrfGraph) -> None:
     assert graph_key(again) == graph_key(graph)
     json.dumps(canonical, allow_nan=True)
 
-    states = {a.full_name: data.draw(st.sampled_from(VOCAB), label="state")
-              for a in graph.actions[:3]}
+    states = {
+        a.full_name: data.draw(st.sampled_from(VOCAB), label="state") for a in graph.actions[:3]
+    }
     text = graph_to_dot(graph, states=states)
     assert text.startswith("digraph ")
     assert text.endswith("}\n")

@@ -301,8 +301,8 @@ def test_unknown_numeric_states_are_dropped_with_a_note() -> None:
     doc = minimal(graph_state=42)
     doc["umrf_actions"][0]["state"] = 3
     g = legacy.convert_graph(doc)
-    assert g.state is None
-    assert g.action("TaA_0").state is None
+    assert g.state is GraphState.UNINITIALIZED
+    assert g.action("TaA_0").state is NodeState.UNINITIALIZED
     assert "graph_state 42 dropped" in g.warnings[0]
     assert "state 3 dropped" in g.warnings[0]
 

@@ -78,8 +78,11 @@ def graph(
 
 def chain(**over: Any) -> list[dict[str, Any]]:
     """A_0 -> B_0, A outputs `out` (string), B takes `inp` via a remap."""
-    a = action("A", children=[{"name": "B", "remap": [{"from": "out", "to": "inp"}]}],
-               outputs={"out": string()})
+    a = action(
+        "A",
+        children=[{"name": "B", "remap": [{"from": "out", "to": "inp"}]}],
+        outputs={"out": string()},
+    )
     b = action("B", parents=["A_0"], inputs={"inp": string()})
     for act, changes in ((a, over.get("a", {})), (b, over.get("b", {}))):
         for key, value in changes.items():
@@ -387,7 +390,9 @@ def test_entry_actions_inputs_are_graph_inputs_not_errors() -> None:
 def test_allowed_values_on_plural_type_warns() -> None:
     acts = chain()
     acts[1]["input_parameters"]["v"] = {
-        "pvf_type": "numbers", "pvf_value": [1], "pvf_allowed_values": [1, 2]
+        "pvf_type": "numbers",
+        "pvf_value": [1],
+        "pvf_allowed_values": [1, 2],
     }
     issue = only(warnings(graph(acts)))
     assert issue.path == "actions[1].input_parameters.v.pvf_allowed_values"
@@ -516,6 +521,23 @@ def test_cycle_of_required_relations_can_never_start() -> None:
     assert issue.path == "actions[0]"
     assert "'A_0', 'B_0' wait for each other" in issue.message
     assert '"required": false' in issue.message
+
+
+def test_entry_action_inside_a_required_cycle_still_waits() -> None:
+    acts = [
+        action("A", parents=["B_0"], children=["B_0"]),
+        action("B", parents=["A_0"], children=["A_0"]),
+    ]
+    issue = only(errors(graph(acts)))
+    assert "wait for each other" in issue.message
+
+
+def test_duplicate_actions_in_graphs_built_in_code() -> None:
+    g = graph(chain())
+    g = dataclasses.replace(g, actions=(*g.actions, g.actions[1]))
+    issue = find(errors(g), "duplicate action 'B_0'")
+    assert issue.path == "actions[2]"
+    assert "also actions[1]" in issue.message
 
 
 def test_required_cycle_outside_the_entry_is_found() -> None:
