@@ -317,7 +317,8 @@ def graph_to_dict(graph: UmrfGraph, actions: list[dict[str, Any]] | None = None)
             is the graph's own actions.
 
     Returns:
-        A JSON-ready dict that :func:`parse_graph` reads back to an equal graph.
+        A JSON-ready dict that :func:`parse_graph` reads back to a graph with the same
+        meaning (actions sorted by full name, every condition written out).
 
     Raises:
         Nothing.

@@ -280,6 +280,8 @@ def _kind(value: object) -> str:
         shown = value if len(value) <= 40 else value[:37] + "..."
         return f"string {shown!r}"
     if isinstance(value, int | float):
+        if value != value:
+            return "NaN"
         return f"number {value!r}" if abs(value) < 1e15 else "a huge number"
     if isinstance(value, list):
         return "an array"
@@ -331,8 +333,8 @@ def dump_parameter_tree(
 
     Returns:
         A JSON-ready dict. ``pvf_value`` only when data is present and the type native;
-        ``pvf_updatable`` only when false; ``pvf_allowed_values`` when non-empty;
-        ``pvf_required`` never (upstream's canonical form).
+        ``pvf_required`` and ``pvf_updatable`` only when false; ``pvf_allowed_values`` when
+        non-empty.
 
     Raises:
         Nothing.
@@ -347,6 +349,8 @@ def dump_parameter_tree(
         value = param.value if values is None else values.get(name, param.value)
         if value is not NO_VALUE and param.native:
             entry["pvf_value"] = list(value) if isinstance(value, list | tuple) else value
+        if not param.required:
+            entry["pvf_required"] = False  # upstream never writes it, and loses optional inputs
         if not param.updatable:
             entry["pvf_updatable"] = False
         if param.allowed_values:

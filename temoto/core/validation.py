@@ -8,9 +8,25 @@ a :class:`ValidationReport` of *errors* (the graph cannot run as written) and *w
 :meth:`ValidationReport.raise_for_errors` turns the errors into one
 :class:`~temoto.errors.GraphDefinitionError`.
 
+Errors: a relation naming an unknown action, a self-loop, a relation written on one side only
+(either side), a relation listed twice; a remap from an unknown output, to an unknown input, or
+between different types; a required input without a literal that no parent can fill (inputs of
+entry actions are the graph's inputs); an empty ``graph_entry``; a cycle of required relations
+(its actions wait for each other forever) and, more generally, actions that can never start
+because each waits for another of them (a required parent, the parent that fills a required
+input, or their only parents); with ``supplied``: a required graph input that is missing, or an
+unknown one.
+
+Warnings: no ``graph_exit``; actions or exits that cannot be reached from ``graph_entry``, and
+actions waiting for a parent that cannot; a same-name transfer between different types; a remap
+into an input that is not updatable; two remaps to one input; ``pvf_allowed_values`` that reject
+everything; type ``async`` or an unknown type; ``pause``/``stop``/``restart`` on ``graph_exit``;
+and the parser's own warnings (unknown keys, legacy conversion).
+
 Every check is linear in the number of actions plus relations (and their parameters), so
-graphs of tens of thousands of actions validate quickly; the cycle check is an iterative
-Tarjan, free of recursion limits.
+graphs of tens of thousands of actions validate quickly; the cycle checks use an iterative
+Tarjan, free of recursion limits. Action results are not predicted: a relation counts as able to
+start its child whatever its conditions say.
 
 Issue paths are key paths in the graph document: ``actions[i]`` is the i-th action in document
 order, then ``.parents[j]``, ``.children[j]``, ``.children[j].remap[k]``,
@@ -140,6 +156,7 @@ class _Edge:
         as_parent: The child's ``parents`` entry for the parent, if written.
         as_child: The parent's ``children`` entry for the child, if written.
         parent_pos: Position of ``as_parent`` in the child's ``parents``.
+        provides: The child's required inputs (without literal) this parent can fill.
     """
 
     parent: int
@@ -147,6 +164,7 @@ class _Edge:
     as_parent: ParentRelation | None = None
     as_child: ChildRelation | None = None
     parent_pos: int = -1
+    provides: list[str] = field(default_factory=list)
 
 
 @dataclass(slots=True)
@@ -161,6 +179,10 @@ class _Checker:
     entry: set[int] = field(default_factory=set)
     # Per child index: parent index -> edge (insertion order = first mention).
     incoming: list[dict[int, _Edge]] = field(default_factory=list)
+    reachable: list[bool] = field(default_factory=list)
+    # Per action: required literal-less input -> the parents that can fill it.
+    providers: dict[int, dict[str, list[int]]] = field(default_factory=dict)
+    unfillable: set[int] = field(default_factory=set)
 
     def error(self, path: str, message: str) -> None:
         self.errors.append(Issue(path, message))
@@ -190,8 +212,9 @@ class _Checker:
         for i, act in enumerate(acts):
             self.one_sided_parents(i, act)
             self.inputs(i, act)
-        self.deadlocks()
+        in_cycles = self.deadlocks()
         self.reachability()
+        self.stalls(in_cycles)
         if supplied is not None:
             self.graph_inputs(supplied)
 
@@ -413,18 +436,28 @@ class _Checker:
             # Entry actions' literal-less inputs are the graph's inputs; an action without
             # parents never runs at all (reported as unreachable).
             return
-        needed = [p for p in act.input_parameters.values() if p.required and not p.has_value]
-        if not needed:
-            return
+        needed = {
+            name: p
+            for name, p in act.input_parameters.items()
+            if p.required and not p.has_value and p.updatable
+        }
         offered: dict[str, set[str]] = {}
-        for edge in self.incoming[i].values():
+        providers: dict[str, list[int]] = {}
+        for p, edge in self.incoming[i].items():
             parent = self.graph.actions[edge.parent]
             renames = {r.from_: r.to for r in edge.as_child.remap} if edge.as_child else {}
             for name, out in parent.output_parameters.items():
-                offered.setdefault(renames.get(name, name), set()).add(out.type)
-        for param in needed:
-            if param.updatable and param.type in offered.get(param.name, ()):
+                target = renames.get(name, name)
+                offered.setdefault(target, set()).add(out.type)
+                param = needed.get(target)
+                if param is not None and param.type == out.type:
+                    providers.setdefault(target, []).append(p)
+                    edge.provides.append(target)
+        self.providers[i] = providers
+        for param in act.input_parameters.values():
+            if not param.required or param.has_value or param.name in providers:
                 continue
+            self.unfillable.add(i)
             self.error(
                 self.param_path(i, "input_parameters", param.name),
                 self.unfilled_message(i, act, param, offered),
@@ -450,7 +483,7 @@ class _Checker:
             " a pvf_value, or remap a parent output of the same type to it"
         )
 
-    def deadlocks(self) -> None:
+    def deadlocks(self) -> set[int]:
         # A cycle made of required parent relations can never start: each member waits for
         # another member to have finished first. This is checked on the strongly connected
         # components of the required relations only, which finds every cycle whose members all
@@ -462,10 +495,12 @@ class _Checker:
             for p, edge in edges.items():
                 if edge.as_parent is not None and edge.as_parent.required:
                     succ[p].append(i)
+        in_cycles: set[int] = set()
         for comp in _strongly_connected(succ):
             if len(comp) < 2:
                 continue
             comp.sort()
+            in_cycles.update(comp)
             members = self.names(acts[k].full_name for k in comp)
             self.error(
                 f"actions[{comp[0]}]",
@@ -474,10 +509,11 @@ class _Checker:
                 ' relations "required": false (as upstream\'s semantics_test_9_infinite_loop'
                 " does)",
             )
+        return in_cycles
 
     def reachability(self) -> None:
         acts = self.graph.actions
-        seen = [False] * len(acts)
+        seen = self.reachable = [False] * len(acts)
         todo = list(self.entry)
         for k in todo:
             seen[k] = True
@@ -504,6 +540,105 @@ class _Checker:
                     " graph never finishes through it",
                 )
 
+    def stalls(self, in_cycles: set[int]) -> None:
+        # Which actions can ever start, whatever results the actions produce: an action starts
+        # once some parent (or graph_entry) has finished, all its required parents have, and
+        # every required input without a literal has a finished parent that fills it. (Failed
+        # actions may still bypass theirs; that is not counted as starting.)
+        acts = self.graph.actions
+        n = len(acts)
+        outgoing: list[list[_Edge]] = [[] for _ in acts]
+        waiting = [len(self.providers.get(c, ())) for c in range(n)]
+        for c, edges in enumerate(self.incoming):
+            for p, edge in edges.items():
+                outgoing[p].append(edge)
+                if _required(edge):
+                    waiting[c] += 1
+        for c in self.unfillable:
+            waiting[c] += 1  # never satisfied
+        filled: list[set[str]] = [set() for _ in acts]
+        started = [False] * n
+        todo = [k for k in self.entry if not waiting[k]]
+        for k in todo:
+            started[k] = True
+        while todo:
+            p = todo.pop()
+            for edge in outgoing[p]:
+                c = edge.child
+                if started[c]:
+                    continue
+                if _required(edge):
+                    waiting[c] -= 1
+                for name in edge.provides:
+                    if name not in filled[c]:
+                        filled[c].add(name)
+                        waiting[c] -= 1
+                if not waiting[c]:
+                    started[c] = True
+                    todo.append(c)
+        # Reachable actions that never start, other than those already reported (members of
+        # required cycles, actions with an input nobody fills). Each waits for "blockers": its
+        # required parents that never start; else the parents that would fill its missing
+        # inputs; else all its parents, none of which ever starts. The root causes are the
+        # source components of the blocker graph; what is downstream of them is a consequence
+        # and not reported again.
+        explained = in_cycles | self.unfillable
+        stuck = [k for k in range(n) if self.reachable[k] and not started[k] and k not in explained]
+        if not stuck:
+            return
+        local = {k: j for j, k in enumerate(stuck)}
+        blockers: list[list[int]] = []
+        for c in stuck:
+            edges = self.incoming[c]
+            found = [p for p, e in edges.items() if _required(e) and not started[p]]
+            if not found:
+                providers = self.providers.get(c, {})
+                found = [
+                    p
+                    for name, parents in providers.items()
+                    if name not in filled[c]
+                    for p in parents
+                    if not started[p]
+                ]
+            blockers.append(found or [p for p in edges if not started[p]])
+        succ: list[list[int]] = [[] for _ in stuck]
+        for j, found in enumerate(blockers):
+            for b in found:
+                if b in local:
+                    succ[local[b]].append(j)
+        comps = _strongly_connected(succ)
+        comp_of = [0] * len(stuck)
+        for num, comp in enumerate(comps):
+            for j in comp:
+                comp_of[j] = num
+        fed = [False] * len(comps)
+        for j, targets in enumerate(succ):
+            for t in targets:
+                if comp_of[t] != comp_of[j]:
+                    fed[comp_of[t]] = True
+        for num, comp in enumerate(comps):
+            if fed[num]:
+                continue
+            members = sorted(stuck[j] for j in comp)
+            if len(comp) > 1:
+                self.error(
+                    f"actions[{members[0]}]",
+                    f"actions {self.names(acts[k].full_name for k in members)} can never start:"
+                    " each waits for another of them (a required parent, the parent that fills"
+                    ' a required input, or its only parents); make a relation "required":'
+                    " false, give the input a pvf_value, or start one of them from graph_entry",
+                )
+                continue
+            k = members[0]
+            lost = [b for b in blockers[comp[0]] if not self.reachable[b]]
+            if lost:
+                self.warn(
+                    f"actions[{k}]",
+                    f"'{acts[k].full_name}' never runs: it waits for"
+                    f" {self.names(acts[b].full_name for b in lost)}, which cannot be reached"
+                    " from graph_entry",
+                )
+
     def graph_inputs(self, supplied: Collection[str]) -> None:
         names = (supplied,) if isinstance(supplied, str) else supplied
         inputs = self.graph.signature().inputs
@@ -525,6 +660,10 @@ class _Checker:
             if pos is not None and name in self.graph.actions[pos].input_parameters:
                 return self.param_path(pos, "input_parameters", name)
         return ""
+
+
+def _required(edge: _Edge) -> bool:
+    return edge.as_parent is not None and edge.as_parent.required
 
 
 def _strongly_connected(succ: list[list[int]]) -> list[list[int]]:

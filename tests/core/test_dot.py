@@ -3,10 +3,13 @@ from __future__ import annotations
 import json
 import re
 import shutil
+import tempfile
 from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from temoto.core import dot as dot_module
 from temoto.core.dot import STATE_COLORS, graph_to_dot, quote, render
@@ -209,6 +212,41 @@ def test_dot_reads_odd_names_as_exactly_the_expected_nodes(tmp_path: Path) -> No
     names = sorted(obj["name"] for obj in data["objects"])
     assert names == sorted(['A"\\\\b_0', "B c_4", "graph_entry", "graph_exit"])
     assert len(data["edges"]) == 3
+
+
+NAMES = st.text(min_size=1, max_size=12) | st.sampled_from(['"', "\\", '\\"', "a\nb", "->", "{}"])
+
+
+@needs_dot
+@settings(max_examples=30, deadline=None, database=None)
+@given(st.text(max_size=20), st.lists(NAMES, min_size=1, max_size=4, unique=True), st.text())
+def test_dot_accepts_any_names_and_values(graph_name: str, names: list[str], value: str) -> None:
+    if not graph_name:
+        graph_name = "g"
+    actions = [
+        {
+            "name": name,
+            "type": name,
+            "actor": name,
+            "input_parameters": {"v": {"pvf_type": "string", "pvf_value": value}},
+            "parents": [{"name": names[k - 1], "conditions": ["on_true -> stop"]}] if k else [],
+            "children": [{"name": names[k + 1]}] if k + 1 < len(names) else [],
+        }
+        for k, name in enumerate(names)
+    ]
+    doc = {
+        "graph_name": graph_name,
+        "actions": actions,
+        "graph_entry": [{"name": names[0]}],
+        "graph_exit": [{"name": names[-1], "conditions": ["on_false -> ignore"]}],
+    }
+    text = graph_to_dot(parse_graph(doc), states={f"{names[0]}_0": "RUNNING"})
+    with tempfile.TemporaryDirectory() as tmp:
+        out = Path(tmp) / "g.json"
+        render(text, out, "json")
+        data = json.loads(out.read_text(encoding="utf-8"))
+    assert len(data["objects"]) == len(names) + 2
+    assert len(data["edges"]) == len(names) + 1
 
 
 @needs_dot

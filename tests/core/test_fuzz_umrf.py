@@ -309,9 +309,10 @@ def config_error_or(call: Callable[[], T]) -> T | None:
 
 
 def params_key(params: Mapping[str, Parameter]) -> list[Any]:
-    # KNOWN: the canonical form never writes pvf_required (as upstream's serialiser), so an
-    # optional input comes back required after a round trip; `required` is left out here.
-    return [(n, p.type, repr(p.value), p.updatable, p.allowed_values) for n, p in params.items()]
+    return [
+        (n, p.type, repr(p.value), p.required, p.updatable, p.allowed_values)
+        for n, p in params.items()
+    ]
 
 
 def action_key(act: Umrf) -> tuple[Any, ...]:

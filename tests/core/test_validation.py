@@ -3,11 +3,14 @@ from __future__ import annotations
 import copy
 import dataclasses
 import pickle
+import re
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
 
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from temoto.core.graph import UmrfGraph, load_graph, parse_graph
 from temoto.core.params import Parameter
@@ -173,6 +176,20 @@ def test_format_test_reports_its_one_sided_relation_exactly() -> None:
     with pytest.raises(GraphDefinitionError) as info:
         report.raise_for_errors(FORMAT_TEST)
     assert info.value.path == "actions[0].children[0]"
+
+
+LEGACY_GRAPHS = [
+    *sorted(UPSTREAM.glob("legacy_*.umrfg.json")),
+    UPSTREAM / "legacy_gptparser_prompt_example_move_1.json",
+]
+
+
+@pytest.mark.parametrize("path", LEGACY_GRAPHS, ids=lambda p: p.name)
+def test_converted_legacy_graphs_validate(path: Path) -> None:
+    report = validate_graph(load_graph(path))
+    assert report.errors == ()
+    # the conversion note has no path; it is kept as a whole
+    assert any(w.path == "" and "legacy" in w.message for w in report.warnings)
 
 
 def test_generate_string_requires_its_external_input() -> None:
@@ -568,6 +585,186 @@ def test_many_disjoint_required_cycles_each_reported_once() -> None:
         acts.append(action("X", k + 1, parents=[f"X_{k}"], children=[f"X_{k}"]))
     errs = errors(graph(acts, ["E_0"], ["E_0"]))
     assert sorted(i.path for i in errs) == ["actions[1]", "actions[3]", "actions[5]"]
+
+
+def test_action_started_only_by_the_action_it_waits_for_can_never_start() -> None:
+    # No cycle of required relations: A requires B, but B's only (non-required) parent is A.
+    acts = [
+        action("A", parents=["B_0"], children=["B_0"]),
+        action("B", parents=[{"name": "A", "required": False}], children=["A_0", "C_0"]),
+        action("C", parents=["B_0"]),
+    ]
+    report = validate_graph(graph(acts, ["A_0"], ["C_0"]))
+    issue = only(list(report.errors))  # C_0, stuck behind them, is not reported again
+    assert issue.path == "actions[0]"
+    assert "'A_0', 'B_0' can never start" in issue.message
+
+
+def test_input_only_filled_by_a_later_action_can_never_start() -> None:
+    # B's input x comes only from C, and C only runs after B: no relation cycle is required.
+    acts = [
+        action("A", children=["B_0"]),
+        action(
+            "B",
+            parents=["A_0", {"name": "C", "required": False}],
+            children=["C_0"],
+            inputs={"x": string()},
+        ),
+        action("C", parents=["B_0"], children=["B_0"], outputs={"x": string()}),
+    ]
+    issue = only(errors(graph(acts, ["A_0"], ["C_0"])))
+    assert issue.path == "actions[1]"
+    assert "'B_0', 'C_0' can never start" in issue.message
+
+
+def test_actions_behind_a_required_cycle_are_not_reported_again() -> None:
+    acts = [
+        action("A", parents=["B_0"], children=["B_0", "C_0"]),
+        action("B", parents=["A_0"], children=["A_0"]),
+        action("C", parents=["A_0"], children=["D_0"]),
+        action("D", parents=["C_0"]),
+    ]
+    issue = only(errors(graph(acts, ["A_0"], ["D_0"])))
+    assert "wait for each other" in issue.message
+
+
+def test_waiting_for_an_unreachable_required_parent_warns() -> None:
+    acts = chain()
+    acts.append(action("U", children=["B_0"]))
+    acts[1]["parents"].append(rel("U_0"))
+    report = validate_graph(graph(acts))
+    assert report.ok
+    issue = find(list(report.warnings), "never runs: it waits for 'U_0'")
+    assert issue.path == "actions[1]"
+    assert "cannot be reached" in issue.message
+    assert find(list(report.warnings), "'U_0' cannot be reached").path == "actions[2]"
+
+
+def test_a_non_required_unreachable_parent_is_harmless() -> None:
+    acts = chain()
+    acts.append(action("U", children=["B_0"]))
+    acts[1]["parents"].append({"name": "U", "required": False})
+    ws = warnings(graph(acts))
+    assert [w.path for w in ws] == ["actions[2]"]
+
+
+# --- agreement with a simulated run -----------------------------------------------------------
+
+PARAM_NAMES = ["a", "b", "c"]
+TYPES = ["string", "number"]
+
+
+@st.composite
+def random_graphs(draw: st.DrawFn) -> dict[str, Any]:
+    """Small graphs of actions N_0..N_n-1 with random two-sided relations and parameters."""
+    n = draw(st.integers(1, 7))
+    acts: list[dict[str, Any]] = []
+    for k in range(n):
+        outputs = {
+            name: {"pvf_type": draw(st.sampled_from(TYPES))}
+            for name in draw(st.lists(st.sampled_from(PARAM_NAMES), unique=True, max_size=2))
+        }
+        inputs: dict[str, Any] = {}
+        for name in draw(st.lists(st.sampled_from(PARAM_NAMES), unique=True, max_size=2)):
+            kind = draw(st.sampled_from(TYPES))
+            leaf: dict[str, Any] = {"pvf_type": kind}
+            if draw(st.integers(0, 3)) == 0:
+                leaf["pvf_value"] = "v" if kind == "string" else 1
+            if draw(st.integers(0, 4)) == 0:
+                leaf["pvf_required"] = False
+            if draw(st.integers(0, 5)) == 0:
+                leaf["pvf_updatable"] = False
+            inputs[name] = leaf
+        acts.append(
+            action("N", k, inputs=inputs, outputs=outputs) | {"parents": [], "children": []}
+        )
+    pairs = draw(
+        st.lists(
+            st.tuples(st.integers(0, n - 1), st.integers(0, n - 1)), unique=True, max_size=2 * n
+        )
+    )
+    for p, c in pairs:
+        if p == c:
+            continue
+        child: dict[str, Any] = {"name": "N", "instance_id": c}
+        outs, ins = list(acts[p]["output_parameters"]), list(acts[c]["input_parameters"])
+        if outs and ins and draw(st.booleans()):
+            child["remap"] = [
+                {"from": draw(st.sampled_from(outs)), "to": draw(st.sampled_from(ins))}
+            ]
+        acts[p]["children"].append(child)
+        acts[c]["parents"].append({"name": "N", "instance_id": p, "required": draw(st.booleans())})
+    entry = draw(st.lists(st.integers(0, n - 1), unique=True, min_size=1, max_size=n))
+    exit_ = draw(st.lists(st.integers(0, n - 1), unique=True, max_size=2))
+    return {
+        "graph_name": "random",
+        "actions": acts,
+        "graph_entry": [{"name": "N", "instance_id": k} for k in entry],
+        "graph_exit": [{"name": "N", "instance_id": k} for k in exit_],
+    }
+
+
+def simulate(g: UmrfGraph) -> set[int]:
+    """Upstream propagation with every action returning true (default conditions), all graph
+    inputs supplied; each action runs at most once. Returns the positions of actions that ran."""
+    pos = {a.full_name: k for k, a in enumerate(g.actions)}
+    acts = g.actions
+    graph_inputs = g.signature().inputs
+    entry = {pos[r.full_name] for r in g.entry}
+    data = [{n for n, p in a.input_parameters.items() if p.has_value} for a in acts]
+    received: list[set[str]] = [set() for _ in acts]
+    ran: set[int] = set()
+    queue: list[int] = []
+
+    def ready(k: int) -> bool:
+        a = acts[k]
+        if any(p.required and n not in data[k] for n, p in a.input_parameters.items()):
+            return False
+        needed = {p.full_name for p in a.parents if p.required}
+        if k in entry:
+            needed.add("graph_entry")
+        return needed <= received[k]
+
+    for k in sorted(entry):
+        received[k].add("graph_entry")
+        data[k] |= {n for n in acts[k].input_parameters if n in graph_inputs}
+        if ready(k):
+            ran.add(k)
+            queue.append(k)
+    while queue:
+        p = queue.pop(0)
+        for rel_ in acts[p].children:
+            c = pos[rel_.full_name]
+            received[c].add(acts[p].full_name)
+            renames = {r.from_: r.to for r in rel_.remap}
+            for name, out in acts[p].output_parameters.items():
+                inp = acts[c].input_parameters.get(renames.get(name, name))
+                if inp is not None and inp.type == out.type and inp.updatable:
+                    data[c].add(inp.name)
+            if c not in ran and ready(c):
+                ran.add(c)
+                queue.append(c)
+    return ran
+
+
+@settings(max_examples=400, deadline=None, database=None)
+@given(random_graphs())
+def test_validator_agrees_with_a_simulated_run(doc: dict[str, Any]) -> None:
+    g = parse_graph(doc)
+    report = validate_graph(g)
+    ran = simulate(g)
+    never: set[int] = set()
+    for issue in report.errors + report.warnings:
+        whole = re.fullmatch(r"actions\[(\d+)\]", issue.path)
+        if whole:
+            never.add(int(whole.group(1)))
+        elif issue.path.startswith("actions[") and "required input" in issue.message:
+            never.add(int(issue.path[8 : issue.path.index("]")]))
+    # What the validator says never runs does not run ...
+    assert not (never & ran), (report, ran)
+    # ... and when it has no complaint about an action, every action runs.
+    if not report.errors and not never:
+        assert ran == set(range(len(g.actions))), (report, ran)
 
 
 # --- size ------------------------------------------------------------------------------------
