@@ -91,6 +91,7 @@ class Node:
         "kind",
         "last_outputs",
         "log",
+        "missing",
         "name",
         "native",
         "outputs",
@@ -135,7 +136,8 @@ class Node:
         self.inputs: dict[str, Parameter] = {}
         self.outputs: dict[str, Parameter] = {}
         self.required_inputs: tuple[str, ...] = ()
-        self.required_parents: tuple[str, ...] = ()
+        self.required_parents: frozenset[str] = frozenset()
+        self.missing = 0  # required parents not received yet
         self.spontaneous = False
         self.define(umrf, resolved)
 
@@ -189,14 +191,29 @@ class Node:
         Raises:
             Nothing.
         """
-        received = self.received
-        for parent in self.required_parents:
-            if parent not in received:
-                return False
+        if self.missing:
+            return False
         if self.kind is NodeKind.EXIT:
             return True
         data = self.data
         return all(name in data for name in self.required_inputs)
+
+    def receive(self, parent: str) -> None:
+        """Mark a parent as received (it finished at least once); never reset during a run.
+
+        Args:
+            parent: The parent's full name.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        if parent not in self.received:
+            self.received.add(parent)
+            if parent in self.required_parents:
+                self.missing -= 1
 
     def clear_data(self) -> None:
         """Drop received (non-literal) data after a run; literals persist.
@@ -304,7 +321,8 @@ class GraphRun:
         for rel in graph.exit:
             nodes[rel.full_name].children.append((exit_, no_remap, rel))
         for node in (*nodes.values(), exit_):
-            node.required_parents = tuple(n for n, p in node.parents.items() if p.required)
+            node.required_parents = frozenset(n for n, p in node.parents.items() if p.required)
+            node.missing = len(node.required_parents - node.received)
 
     def _edge(
         self, parent: Node, rel: ChildRelation

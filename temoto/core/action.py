@@ -298,7 +298,8 @@ class Action(ABC):
     def __init__(self) -> None:
         self._control: RunControl | None = None
         self._log: deque[LogMessage] = deque(maxlen=LOG_LENGTH)
-        self._logger = logging.getLogger("temoto.action")
+        self._logger: logging.Logger | None = None
+        self._logger_name = "temoto.action"
         self._name = type(self).__name__
         self._graph = ""
         self._inputs = Inputs({}, {})
@@ -338,14 +339,14 @@ class Action(ABC):
         graph: str,
         inputs: Mapping[str, Parameter],
         outputs: Mapping[str, Parameter],
-        logger: logging.Logger,
+        logger_name: str,
     ) -> None:
         self._control = control
         self._name = name
         self._graph = graph
         self._input_params = inputs
         self._output_params = outputs
-        self._logger = logger
+        self._logger_name = logger_name
 
     def _begin(self, values: Mapping[str, Any]) -> None:
         self._inputs = Inputs(values, self._input_params)
@@ -383,7 +384,9 @@ class Action(ABC):
 
     @property
     def logger(self) -> logging.Logger:
-        """This node's logger (``temoto.action.<graph>.<node>``)."""
+        """This node's logger (``temoto.action.<graph>.<node>``), made on first use."""
+        if self._logger is None:
+            self._logger = logging.getLogger(self._logger_name)
         return self._logger
 
     @property
@@ -418,7 +421,7 @@ class Action(ABC):
         """
         stamp = int(self._ctl.clock.time() * 1000) if self._control is not None else 0
         self._log.appendleft(LogMessage(stamp, str(message)))
-        self._logger.info("%s", message)
+        self.logger.info("%s", message)
 
     def sleep(self, seconds: float) -> None:
         """Sleep for ``seconds`` of clock time; while paused, wait for the resume too.

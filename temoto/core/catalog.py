@@ -21,7 +21,6 @@ import sys
 import threading
 from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from importlib.metadata import entry_points
 from pathlib import Path
 from types import ModuleType
 
@@ -191,6 +190,8 @@ class ActionCatalog:
             for file in scan_files(folder, "umrf.json"):
                 self._index_file(file, None, folder, entries, problems)
         if self._use_entry_points:
+            from importlib.metadata import entry_points  # slow to import; only needed here
+
             for ep in entry_points(group=ACTION_PACKAGES_GROUP):
                 self._index_package(ep.value, f"entry point {ep.name}", entries, problems)
         with self._lock:

@@ -666,7 +666,7 @@ class ActionEngine:
             graph=node.run.name,
             inputs=node.inputs,
             outputs=node.outputs,
-            logger=logging.getLogger(f"temoto.action.{node.run.name}.{node.name}"),
+            logger_name=f"temoto.action.{node.run.name}.{node.name}",
         )
         instance.on_init()
         with self._lock:
@@ -844,7 +844,7 @@ class ActionEngine:
             for child, remap, relation in parent.children:
                 if run.state is not GraphState.RUNNING:
                     return
-                child.received.add(parent.name)
+                child.receive(parent.name)
                 response = relation.conditions.get(res) or DEFAULT_CONDITIONS[res]
                 if response is Response.BYPASS:
                     if child.kind is NodeKind.EXIT:

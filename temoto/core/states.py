@@ -23,6 +23,8 @@ __all__ = [
 class NodeState(Enum):
     """State of one action instance (a node) in a graph."""
 
+    __hash__ = object.__hash__  # members are singletons; Enum's own hash is slow Python code
+
     UNINITIALIZED = "UNINITIALIZED"
     INITIALIZED = "INITIALIZED"
     RUNNING = "RUNNING"
@@ -36,6 +38,8 @@ class NodeState(Enum):
 
 class GraphState(Enum):
     """State of a graph."""
+
+    __hash__ = object.__hash__
 
     UNINITIALIZED = "UNINITIALIZED"
     INITIALIZED = "INITIALIZED"
@@ -52,6 +56,8 @@ class GraphState(Enum):
 class Result(Enum):
     """The result of an action run (the first four) or of a whole graph (all five)."""
 
+    __hash__ = object.__hash__
+
     TRUE = "on_true"
     FALSE = "on_false"
     STOPPED = "on_stopped"
@@ -61,6 +67,8 @@ class Result(Enum):
 
 class Response(Enum):
     """How a child reacts to a parent's result (the right side of ``"on_true -> run"``)."""
+
+    __hash__ = object.__hash__
 
     RUN = "run"
     PAUSE = "pause"

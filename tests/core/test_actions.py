@@ -7,7 +7,6 @@ engine to check the same helpers end to end.
 
 from __future__ import annotations
 
-import logging
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -43,7 +42,7 @@ def bound(
         graph="g",
         inputs=inputs or {},
         outputs=outputs or {},
-        logger=logging.getLogger("test.probe"),
+        logger_name="test.probe",
     )
     return action, control
 
