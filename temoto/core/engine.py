@@ -683,11 +683,9 @@ class ActionEngine:
             except Exception:
                 logger.exception("%s/%s: %s() raised", node.run.name, node.name, hook)
         if hook == "on_pause":
-            fx: list[Effect] = []
             with self._lock:
                 if node.gen == gen and node.state is _S.PAUSE_REQUESTED:
                     self._set_state(node, _S.PAUSED)
-            self._dispatch(fx)
 
     def _finish_spontaneous(
         self,
@@ -724,10 +722,13 @@ class ActionEngine:
             if rerun and node.state is _S.FINISHED and node.run.state is GraphState.RUNNING:
                 self._run_node(node, fx)
                 self._after_change(node.run, fx)
-        self._execute_first(fx)
-
-    def _execute_first(self, fx: list[Effect]) -> None:
+        # the re-run (or the first action that became ready) continues on this worker
+        nxt = next((e for e in fx if e[0] == _RUN), None)
+        if nxt is not None:
+            fx.remove(nxt)
         self._dispatch(fx, closing=self._closed)
+        if nxt is not None:
+            self._execute(nxt[1], nxt[2])
 
     def _downstream(self, start: Node) -> list[Node]:
         seen = {start.name}
