@@ -12,6 +12,9 @@ Commands:
   image when ``-o`` is given and Graphviz's ``dot`` is installed.
 * ``temoto actions [--actions DIR]...``: lists the known actions and where they come from.
 
+Ctrl-C during ``temoto run`` stops the graph cleanly (its actions get their stop request) and
+reports the result (``on_stopped``, exit status 1).
+
 This is the only module that configures logging or prints.
 """
 
@@ -209,7 +212,12 @@ def _run(args: argparse.Namespace) -> int:
             stop_timeout=args.stop_timeout,
         )
         with engine:
-            outcome = engine.run(graph, params, timeout=args.timeout)
+            try:
+                outcome = engine.run(graph, params, timeout=args.timeout)
+            except KeyboardInterrupt:
+                sys.stderr.write("temoto: interrupted; stopping the graph\n")
+                engine.stop(graph.name)
+                outcome = engine.outcome(graph.name)
     finally:
         if trace_file is not None:
             trace_file.close()

@@ -1,0 +1,139 @@
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from temoto.cli import main
+
+ROOT = Path(__file__).resolve().parents[1]
+UPSTREAM = ROOT.parent / "shared" / "conformance" / "umrf" / "upstream"
+ACTIONS = ROOT / "examples" / "actions" / "conformance"
+
+pytestmark = pytest.mark.skipif(not UPSTREAM.is_dir(), reason=f"no conformance data at {UPSTREAM}")
+
+
+def upstream(name: str) -> str:
+    return str(UPSTREAM / f"actionengine_test_{name}.graph.json")
+
+
+def test_run_exits_0_on_true_and_prints_outputs(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", upstream("semantics_test_1"), "--actions", str(ACTIONS)]) == 0
+    out = capsys.readouterr().out
+    assert "semantics_test_1: on_true" in out
+    assert 'result = "Input A and Input B"' in out
+
+
+def test_run_exits_1_on_any_other_result(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", upstream("external_changes_test_3_c"), "--actions", str(ACTIONS)]) == 1
+    assert "on_halted" in capsys.readouterr().out
+
+
+def test_run_exits_2_with_a_clear_message_on_invalid_input(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    bad = str(UPSTREAM / "actionengine_test_example_a_unparseable.json")
+    assert main(["run", bad, "--actions", str(ACTIONS)]) == 2
+    err = capsys.readouterr().err
+    assert "actions[0].state" in err
+    assert "Traceback" not in err
+
+
+def test_run_exits_2_when_an_action_is_unknown(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["run", upstream("semantics_test_1")]) == 2
+    assert "TaAddString" in capsys.readouterr().err
+
+
+def test_run_exits_2_for_a_missing_graph_input(capsys: pytest.CaptureFixture[str]) -> None:
+    graph = upstream("ta_generate_string")
+    assert main(["run", graph, "--actions", str(ACTIONS)]) == 2
+    assert "str_a" in capsys.readouterr().err
+
+
+def test_param_fills_a_graph_input(capsys: pytest.CaptureFixture[str]) -> None:
+    graph = upstream("ta_generate_string")
+    assert main(["run", graph, "--actions", str(ACTIONS), "--param", "str_a=A"]) == 0
+    assert 'result = "A and B and C"' in capsys.readouterr().out
+
+
+def test_malformed_param_is_invalid_input(capsys: pytest.CaptureFixture[str]) -> None:
+    graph = upstream("ta_generate_string")
+    assert main(["run", graph, "--actions", str(ACTIONS), "--param", "novalue"]) == 2
+    assert "NAME=VALUE" in capsys.readouterr().err
+
+
+def test_trace_writes_one_json_line_per_state_change_and_the_result(tmp_path: Path) -> None:
+    trace = tmp_path / "trace.jsonl"
+    code = main(
+        ["run", upstream("semantics_test_2"), "--actions", str(ACTIONS), "--trace", str(trace)]
+    )
+    assert code == 0
+    lines = [json.loads(line) for line in trace.read_text().splitlines()]
+    states = [(r["node"], r["state"]) for r in lines[:-1]]
+    assert states == [
+        ("TaAddString_0", "RUNNING"),
+        ("TaAddString_0", "FINISHED"),
+        ("TaCompareString_0", "RUNNING"),
+        ("TaCompareString_0", "FINISHED"),
+    ]
+    assert all(r["graph"] == "semantics_test_2" and r["t"] >= 0 for r in lines[:-1])
+    assert lines[-1] == {"graph": "semantics_test_2", "result": "on_true"}
+
+
+def test_timeout_stops_the_graph(capsys: pytest.CaptureFixture[str]) -> None:
+    graph = upstream("semantics_test_9_infinite_loop")
+    code = main(["run", graph, "--actions", str(ACTIONS), "--timeout", "0.3"])
+    assert code == 1
+    assert "on_stopped" in capsys.readouterr().out
+
+
+def test_validate_accepts_good_files_and_rejects_bad_ones(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["validate", upstream("semantics_test_3"), upstream("semantics_test_4")]) == 0
+    assert capsys.readouterr().out.count(": ok") == 2
+    assert main(["validate", upstream("format_test")]) == 2
+    assert "does not list" in capsys.readouterr().err
+
+
+def test_validate_with_actions_resolves_every_action(capsys: pytest.CaptureFixture[str]) -> None:
+    nav = str(UPSTREAM / "actionengine_ros2_example_sequential_nav.umrf.graph.json")
+    assert main(["validate", nav]) == 0
+    capsys.readouterr()
+    assert main(["validate", nav, "--actions", str(ACTIONS)]) == 2
+    assert "ExampleNavigate" in capsys.readouterr().err
+
+
+def test_graph_dot_prints_graphviz(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["graph", "dot", upstream("semantics_test_4")]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("digraph")
+    assert '"TaTriggerResult_0" -> "TaRelayString_1"' in out
+
+
+def test_actions_lists_the_conformance_actions(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["actions", "--actions", str(ACTIONS)]) == 0
+    out = capsys.readouterr().out
+    assert out.count("\n") == 9
+    assert "TaTriggerResultMulti (spontaneous)" in out
+
+
+def test_python_dash_m_temoto_is_the_same_program() -> None:
+    done = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "temoto",
+            "run",
+            upstream("semantics_test_3"),
+            "--actions",
+            str(ACTIONS),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    assert "on_true" in done.stdout
