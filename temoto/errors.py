@@ -22,7 +22,9 @@ situation, and inherit the matching builtin so generic callers can catch what th
         │   ├── ResourceNotFoundError (+LookupError)
         │   ├── ResourceBusyError
         │   ├── ResourceClosedError
-        │   └── ResourceBrokenError
+        │   ├── ResourceBrokenError
+        │   ├── ResourceLoadError           a server failed to load (cause chained per hop)
+        │   └── CatalogCorruptError         the registrar's journal is damaged (file + offset)
         ├── DriverError
         │   ├── DriverUnavailableError
         │   ├── DriverInitError
@@ -47,6 +49,7 @@ from dataclasses import dataclass
 __all__ = [
     "ActionError",
     "ActionNotFoundError",
+    "CatalogCorruptError",
     "ConfigError",
     "DriverError",
     "DriverInitError",
@@ -67,6 +70,7 @@ __all__ = [
     "ResourceBusyError",
     "ResourceClosedError",
     "ResourceError",
+    "ResourceLoadError",
     "ResourceNotFoundError",
     "StateError",
     "StopRequested",
@@ -244,6 +248,33 @@ class ResourceClosedError(ResourceError):
 
 class ResourceBrokenError(ResourceError):
     """A resource failed from outside (a process died, a device stopped answering)."""
+
+
+class ResourceLoadError(ResourceError):
+    """A server failed to load a resource; the cause is chained, each registrar hop adds a link."""
+
+
+class CatalogCorruptError(ResourceError):
+    """The registrar's catalog (journal) file is damaged and was not loaded.
+
+    Raised for damage that is not a torn last record: a bad or missing header, an unsupported
+    format version, a bad record followed by good ones, a sequence-number gap or repeat, or a
+    record that is not a JSON object. The file is left untouched for inspection.
+
+    Args:
+        message: What is wrong.
+        file: The journal file.
+        offset: The byte offset in the file where the damage starts, if known.
+    """
+
+    def __init__(self, message: str, *, file: str = "", offset: int | None = None) -> None:
+        self.file = file
+        self.offset = offset
+        self.reason = message
+        where = f"{file}: " if file else ""
+        if offset is not None:
+            where += f"byte {offset}: "
+        super().__init__(where + message)
 
 
 class DriverError(TemotoError):

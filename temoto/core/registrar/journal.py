@@ -1,0 +1,587 @@
+"""The registrar's durable catalog: an append-only, checksummed record log.
+
+Every change the registrar makes is one record (a JSON object) appended with a single
+``os.write`` on an ``O_APPEND`` descriptor before :meth:`Journal.append` returns, so it has
+reached the operating system and survives SIGKILL of the process. Against power loss the file is
+fsynced per the ``fsync`` policy: ``"group"`` (a background thread, at most every
+``fsync_interval`` seconds while there are unsynced records), ``"always"`` (before every
+``append`` returns) or ``"never"`` (tests and benchmarks; no ``os.fsync`` at all, not even when
+creating or compacting the file — only an explicit :meth:`Journal.flush` syncs).
+
+File format (all integers little-endian)::
+
+    header  = b"TEMOTOJ1" version:u8                    9 bytes; version is 1
+    frame   = length:u32 crc:u32 seq:u64 payload        16 bytes + length
+    payload = UTF-8 JSON object, compact, sorted keys   length <= 64 MiB
+    crc     = zlib.crc32(seq bytes + payload)           the 12 bytes after the crc field
+
+Sequence numbers start at 1 in every file and grow by exactly 1 per frame.
+
+Reading (:meth:`Journal.open`) tells a *torn tail* from *corruption*:
+
+* A torn tail is damage that a crash can leave: the last frame is incomplete or fails its CRC
+  and no valid frame follows it anywhere in the rest of the file. It is cut off (the file is
+  truncated to the end of the last whole frame), logged as a warning and reported in
+  :attr:`Journal.recovered_tail_bytes`. A file shorter than the header whose bytes are a
+  prefix of the header — including an empty file — is a torn header (a crash while the journal
+  was being created): it is replaced by a fresh header, with a warning, and holds no records.
+* Everything else is corruption and raises :class:`~temoto.errors.CatalogCorruptError` naming
+  the file and the byte offset, leaving the file untouched: a wrong magic or version, a bad
+  frame followed by a valid one, a sequence-number gap or repeat, a frame whose length is over
+  64 MiB although the file holds that many bytes, and a payload with a valid CRC that is not a
+  JSON object.
+
+Compaction (:meth:`Journal.rewrite`) writes the live state to ``<path>.tmp``, fsyncs it,
+renames it over the journal (``os.replace``) and fsyncs the directory: a crash at any point leaves
+either the old or the new journal complete. A stale ``<path>.tmp`` from such a crash is removed
+by the next :meth:`Journal.open`.
+
+One process at a time: :meth:`Journal.open` takes an exclusive, non-blocking ``flock`` on the
+file (POSIX) and raises :class:`~temoto.errors.ResourceBusyError` if another journal holds it.
+The kernel drops the lock when the process dies, however it dies.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import struct
+import sys
+import threading
+import time
+import zlib
+from collections.abc import Iterable, Mapping
+from pathlib import Path
+from typing import Any, Literal
+
+from temoto.errors import CatalogCorruptError, ResourceBusyError
+
+if sys.platform != "win32":
+    import fcntl
+
+__all__ = ["FORMAT_VERSION", "MAGIC", "MAX_RECORD_BYTES", "FsyncPolicy", "Journal"]
+
+logger = logging.getLogger(__name__)
+
+FsyncPolicy = Literal["group", "always", "never"]
+
+#: The first eight bytes of every journal file.
+MAGIC = b"TEMOTOJ1"
+#: The format version byte that follows the magic.
+FORMAT_VERSION = 1
+#: The largest payload a frame may carry; longer ones are refused (append) or corrupt (open).
+MAX_RECORD_BYTES = 64 * 1024 * 1024
+
+_HEADER = MAGIC + bytes([FORMAT_VERSION])
+_FRAME = struct.Struct("<IIQ")  # length, crc, seq
+_LEN_CRC = struct.Struct("<II")
+_FRAME_HEAD = _FRAME.size
+_READ_CHUNK = 1 << 20
+_ENCODER = json.JSONEncoder(ensure_ascii=False, sort_keys=True, separators=(",", ":"))
+_POLICIES = ("group", "always", "never")
+
+
+class Journal:
+    """Append-only, checksummed record log; the registrar's durable catalog.
+
+    The file format and the recovery rules are described in the module docstring. A journal is
+    used once: construct, :meth:`open`, :meth:`append` (from any thread), :meth:`close`.
+
+    Args:
+        path: The journal file. Its directory is created if missing.
+        fsync: ``"group"`` (a background thread fsyncs at most every ``fsync_interval`` seconds
+            while records are unsynced), ``"always"`` (fsync before each append returns) or
+            ``"never"`` (no automatic fsync at all).
+        fsync_interval: Seconds between group fsyncs.
+
+    Attributes:
+        recovered_tail_bytes: How many bytes of a torn tail (or torn header) :meth:`open` cut
+            off; 0 if none.
+
+    Raises:
+        ValueError: If ``fsync`` is not a known policy or ``fsync_interval`` is negative.
+    """
+
+    def __init__(
+        self,
+        path: str | Path,
+        *,
+        fsync: FsyncPolicy = "group",
+        fsync_interval: float = 0.1,
+    ) -> None:
+        if fsync not in _POLICIES:
+            raise ValueError(f"fsync must be one of {', '.join(_POLICIES)}, not {fsync!r}")
+        if fsync_interval < 0:
+            raise ValueError(f"fsync_interval must not be negative, not {fsync_interval!r}")
+        self._path = Path(path)
+        self._policy: FsyncPolicy = fsync
+        self._interval = float(fsync_interval)
+        self.recovered_tail_bytes = 0
+        # _lock (the condition's lock) guards the descriptor's use for writing and every counter
+        # below. _sync_lock is held while fsyncing the current descriptor and while swapping or
+        # closing it; when both are needed, _lock is taken first.
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self._sync_lock = threading.Lock()
+        self._fd = -1
+        self._open = False
+        self._closing = False
+        self._failure: BaseException | None = None
+        self._seq = 0
+        self._count = 0
+        self._size = 0
+        self._written = 0  # appends made (monotonic across rewrites)
+        self._synced = 0  # the value of _written that the last fsync covered
+        self._flusher: threading.Thread | None = None
+        self._flusher_waiting = False
+
+    # -- properties ---------------------------------------------------------------------------
+
+    @property
+    def path(self) -> Path:
+        """The journal file."""
+        return self._path
+
+    @property
+    def record_count(self) -> int:
+        """Records in the file: those read by :meth:`open` (or :meth:`rewrite`) plus appended."""
+        return self._count
+
+    @property
+    def size(self) -> int:
+        """The file's size in bytes, header included."""
+        return self._size
+
+    # -- opening ------------------------------------------------------------------------------
+
+    def open(self) -> list[dict[str, Any]]:
+        """Open the journal, creating it if missing, and read back every record.
+
+        Returns:
+            The records in the order they were appended.
+
+        Raises:
+            CatalogCorruptError: If the file is damaged other than by a torn tail (the file is
+                left untouched).
+            ResourceBusyError: If another journal (in this or another process) has it open.
+            RuntimeError: If this journal was opened or closed before.
+            OSError: If the file cannot be created, read or written.
+        """
+        with self._lock:
+            if self._open or self._closing or self._fd >= 0:
+                raise RuntimeError(f"journal {self._path} was already opened")
+            self._path.parent.mkdir(parents=True, exist_ok=True)
+            fd, created = self._open_locked()
+            try:
+                self._remove_stale_tmp()
+                records = self._load(fd, created)
+            except BaseException:
+                os.close(fd)
+                raise
+            self._fd = fd
+            self._open = True
+            return records
+
+    def _open_locked(self) -> tuple[int, bool]:
+        """Open (or create) the file and lock it; retry if it was replaced meanwhile."""
+        for _ in range(100):
+            created = True
+            try:
+                fd = os.open(self._path, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_EXCL, 0o644)
+            except FileExistsError:
+                created = False
+                try:
+                    fd = os.open(self._path, os.O_RDWR | os.O_APPEND)
+                except FileNotFoundError:
+                    continue
+            try:
+                _lock_file(fd, self._path)
+                if _same_file(fd, self._path):
+                    return fd, created
+            except BaseException:
+                os.close(fd)
+                raise
+            os.close(fd)  # compacted by its previous owner between open and lock: try again
+        raise ResourceBusyError(f"{self._path}: the journal keeps being replaced by another owner")
+
+    def _remove_stale_tmp(self) -> None:
+        tmp = self._tmp_path()
+        try:
+            tmp.unlink()
+        except FileNotFoundError:
+            return
+        logger.warning("journal %s: removed %s left by an interrupted compaction", self._path, tmp)
+
+    def _load(self, fd: int, created: bool) -> list[dict[str, Any]]:
+        data = _read_all(fd)
+        n = len(data)
+        if n < len(_HEADER):
+            if not _HEADER.startswith(data):
+                raise self._corrupt(0, "not a TeMoto journal (bad magic)")
+            if created:
+                logger.debug("journal %s: created", self._path)
+            else:
+                logger.warning(
+                    "journal %s: torn header (%d of %d bytes); starting a fresh journal",
+                    self._path,
+                    n,
+                    len(_HEADER),
+                )
+            self.recovered_tail_bytes = n
+            if n:
+                os.ftruncate(fd, 0)
+            _write_all(fd, _HEADER)
+            if self._policy != "never":
+                os.fsync(fd)
+                _fsync_dir(self._path.parent)
+            self._size = len(_HEADER)
+            return []
+        if data[: len(MAGIC)] != MAGIC:
+            raise self._corrupt(0, "not a TeMoto journal (bad magic)")
+        version = data[len(MAGIC)]
+        if version != FORMAT_VERSION:
+            raise self._corrupt(len(MAGIC), f"unsupported journal format version {version}")
+        records, end = self._parse(data)
+        self.recovered_tail_bytes = n - end
+        if end < n:
+            logger.warning(
+                "journal %s: cut off a torn last record (%d bytes at byte %d)",
+                self._path,
+                n - end,
+                end,
+            )
+            os.ftruncate(fd, end)
+            if self._policy != "never":
+                os.fsync(fd)
+        self._seq = self._count = len(records)
+        self._size = end
+        return records
+
+    def _parse(self, data: bytes) -> tuple[list[dict[str, Any]], int]:
+        """Verify and decode the frames; return the records and the end of the last whole one."""
+        view = memoryview(data)
+        n = len(data)
+        unpack = _FRAME.unpack_from
+        crc32 = zlib.crc32
+        records: list[dict[str, Any]] = []
+        seq = 0
+        off = len(_HEADER)
+        while off < n:
+            if n - off < _FRAME_HEAD:
+                problem = "an incomplete frame header"
+            else:
+                length, crc, frame_seq = unpack(data, off)
+                end = off + _FRAME_HEAD + length
+                if length > MAX_RECORD_BYTES and end <= n:
+                    raise self._corrupt(off, f"frame length {length} is over the limit")
+                if end > n:
+                    problem = f"an incomplete frame ({n - off} of {end - off} bytes)"
+                elif crc32(view[off + 8 : end]) != crc:
+                    problem = "a frame that fails its CRC"
+                else:
+                    if frame_seq != seq + 1:
+                        raise self._corrupt(
+                            off, f"sequence number {frame_seq} where {seq + 1} was expected"
+                        )
+                    records.append(self._decode(data[off + _FRAME_HEAD : end], off, frame_seq))
+                    seq = frame_seq
+                    off = end
+                    continue
+            later = _find_valid_frame(data, off + 1)
+            if later is not None:
+                raise self._corrupt(
+                    off, f"{problem} (after record {seq}) followed by a valid frame at byte {later}"
+                )
+            return records, off
+        return records, off
+
+    def _decode(self, payload: bytes, off: int, seq: int) -> dict[str, Any]:
+        try:
+            value = json.loads(payload.decode("utf-8"))
+        except ValueError as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
+            raise self._corrupt(off, f"record {seq} is not valid UTF-8 JSON: {exc}") from exc
+        if not isinstance(value, dict):
+            raise self._corrupt(
+                off, f"record {seq} is a JSON {type(value).__name__}, not an object"
+            )
+        return value
+
+    def _corrupt(self, offset: int, message: str) -> CatalogCorruptError:
+        return CatalogCorruptError(message, file=str(self._path), offset=offset)
+
+    # -- writing ------------------------------------------------------------------------------
+
+    def append(self, record: Mapping[str, Any]) -> None:
+        """Append one record; it has reached the operating system when this returns.
+
+        Thread-safe. With ``fsync="always"`` it is also on disk; with ``"group"`` it will be
+        within about ``fsync_interval`` seconds.
+
+        Args:
+            record: A JSON-serialisable mapping with string keys.
+
+        Raises:
+            TypeError: If the record cannot be serialised as JSON (nothing is written).
+            ValueError: If its JSON is larger than :data:`MAX_RECORD_BYTES` (nothing written).
+            RuntimeError: If the journal is not open (never opened, closed, or broken by an
+                earlier write that failed and could not be undone).
+            OSError: If the write fails (the partial frame, if any, is removed again).
+        """
+        payload = _encode(record)
+        with self._lock:
+            if not self._open:
+                raise self._not_open()
+            seq = self._seq + 1
+            seq_bytes = seq.to_bytes(8, "little")
+            crc = zlib.crc32(payload, zlib.crc32(seq_bytes))
+            frame = _LEN_CRC.pack(len(payload), crc) + seq_bytes + payload
+            done = os.write(self._fd, frame)  # raises only if nothing was written
+            if done != len(frame):
+                self._write_rest(frame, done)
+            self._seq = seq
+            self._count += 1
+            self._size += len(frame)
+            self._written += 1
+            if self._policy == "group":
+                if self._flusher is None:
+                    self._start_flusher()
+                elif self._flusher_waiting:
+                    self._flusher_waiting = False
+                    self._cond.notify()
+                return
+        if self._policy == "always":
+            self._sync()
+
+    def _write_rest(self, frame: bytes, done: int) -> None:
+        """Finish a short write; if that fails, cut the partial frame off (caller holds _lock).
+
+        A partial frame left in place would turn the next append into corruption (a bad frame
+        followed by a valid one), so if it cannot be removed the journal refuses further
+        appends.
+        """
+        try:
+            _write_all(self._fd, frame, done)
+        except BaseException as exc:
+            try:
+                os.ftruncate(self._fd, self._size)
+            except OSError:
+                logger.exception("journal %s: could not remove a partial record", self._path)
+                self._failure = exc
+                self._open = False
+            raise
+
+    def _not_open(self) -> RuntimeError:
+        if self._failure is not None:
+            err = RuntimeError(f"journal {self._path} is broken by an earlier failed write")
+            err.__cause__ = self._failure
+            return err
+        state = "closed" if self._closing else "not open"
+        return RuntimeError(f"journal {self._path} is {state}")
+
+    def rewrite(self, records: Iterable[Mapping[str, Any]]) -> None:
+        """Replace the journal's content with ``records`` (compaction).
+
+        The new file gets a fresh header and sequence numbers from 1. It is written to
+        ``<path>.tmp``, fsynced, renamed over the journal and the directory fsynced; a crash at
+        any point leaves either the old or the new journal complete. Appends then continue in
+        the new file. Appends made by other threads while this runs land either in the old
+        file (and are dropped with it) or after the new records.
+
+        Args:
+            records: The whole live state, as records.
+
+        Raises:
+            TypeError: If a record cannot be serialised (the journal is unchanged).
+            ValueError: If a record is larger than :data:`MAX_RECORD_BYTES` (unchanged).
+            RuntimeError: If the journal is not open.
+            OSError: If writing or renaming the new file fails (the journal is unchanged).
+        """
+        parts = [_HEADER]
+        count = 0
+        for count, record in enumerate(records, 1):
+            payload = _encode(record)
+            seq_bytes = count.to_bytes(8, "little")
+            crc = zlib.crc32(payload, zlib.crc32(seq_bytes))
+            parts += (_LEN_CRC.pack(len(payload), crc), seq_bytes, payload)
+        data = b"".join(parts)
+        durable = self._policy != "never"
+        tmp = self._tmp_path()
+        with self._lock:
+            if not self._open:
+                raise self._not_open()
+            fd = os.open(tmp, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_TRUNC, 0o644)
+            try:
+                _lock_file(fd, tmp)
+                os.fchmod(fd, os.fstat(self._fd).st_mode & 0o7777)
+                _write_all(fd, data)
+                if durable:
+                    os.fsync(fd)
+                with self._sync_lock:
+                    os.replace(tmp, self._path)
+                    old, self._fd = self._fd, fd
+                    self._synced = self._written
+            except BaseException:
+                os.close(fd)
+                tmp.unlink(missing_ok=True)
+                raise
+            self._seq = self._count = count
+            self._size = len(data)
+            os.close(old)
+            if durable:
+                _fsync_dir(self._path.parent)
+        logger.info("journal %s: compacted to %d records, %d bytes", self._path, count, len(data))
+
+    def _tmp_path(self) -> Path:
+        return self._path.with_name(self._path.name + ".tmp")
+
+    # -- syncing ------------------------------------------------------------------------------
+
+    def flush(self) -> None:
+        """Fsync now if anything was appended since the last fsync (under any policy).
+
+        Raises:
+            OSError: If the fsync fails.
+        """
+        self._sync()
+
+    def _sync(self) -> None:
+        with self._sync_lock:
+            target = self._written  # every append counted here has finished its write
+            if target <= self._synced or self._fd < 0:
+                return
+            os.fsync(self._fd)
+            self._synced = target
+
+    def _start_flusher(self) -> None:
+        """Start the group-fsync thread (caller holds _lock)."""
+        self._flusher = threading.Thread(
+            target=self._flush_loop, name="temoto-journal-fsync", daemon=True
+        )
+        self._flusher.start()
+
+    def _flush_loop(self) -> None:
+        cond = self._cond
+        while True:
+            with cond:
+                while self._written <= self._synced and not self._closing:
+                    self._flusher_waiting = True
+                    cond.wait()
+                self._flusher_waiting = False
+                if self._closing:
+                    return  # close() does the final fsync
+            try:
+                self._sync()
+            except OSError:
+                logger.exception("journal %s: fsync failed", self._path)
+            with cond:  # rate limit: appends do not notify during this wait, close() does
+                deadline = time.monotonic() + self._interval
+                while not self._closing:
+                    remaining = deadline - time.monotonic()
+                    if remaining <= 0:
+                        break
+                    cond.wait(remaining)
+
+    def close(self) -> None:
+        """Fsync (unless ``fsync="never"``), stop the flusher thread and close the file.
+
+        Idempotent. Appending afterwards raises RuntimeError.
+
+        Raises:
+            OSError: If the final fsync fails (the file is closed anyway).
+        """
+        with self._cond:
+            if self._closing:
+                return
+            self._closing = True
+            self._open = False
+            self._cond.notify_all()
+            flusher = self._flusher
+        if flusher is not None:
+            flusher.join()
+        with self._sync_lock:
+            fd, self._fd = self._fd, -1
+            if fd < 0:
+                return
+            try:
+                if self._policy != "never" and self._written > self._synced:
+                    os.fsync(fd)
+                    self._synced = self._written
+            finally:
+                os.close(fd)
+
+    def __repr__(self) -> str:
+        return (
+            f"<Journal {str(self._path)!r} records={self._count} size={self._size} "
+            f"fsync={self._policy}>"
+        )
+
+
+def _encode(record: Mapping[str, Any]) -> bytes:
+    if type(record) is not dict:
+        if not isinstance(record, Mapping):
+            raise TypeError(f"a journal record must be a mapping, not {type(record).__name__}")
+        record = dict(record)
+    try:
+        payload = _ENCODER.encode(record).encode("utf-8")
+    except ValueError as exc:  # a circular reference, or a lone surrogate in a string
+        raise TypeError(f"journal record is not JSON-serialisable: {exc}") from exc
+    if len(payload) > MAX_RECORD_BYTES:
+        raise ValueError(f"journal record is {len(payload)} bytes, over {MAX_RECORD_BYTES}")
+    return payload
+
+
+def _find_valid_frame(data: bytes, start: int) -> int | None:
+    """The offset of the first frame at or after ``start`` whose CRC checks out, if any."""
+    view = memoryview(data)
+    n = len(data)
+    unpack = _FRAME.unpack_from
+    crc32 = zlib.crc32
+    for off in range(start, n - _FRAME_HEAD + 1):
+        length, crc, seq = unpack(data, off)
+        end = off + _FRAME_HEAD + length
+        if seq and end <= n and length <= MAX_RECORD_BYTES and crc32(view[off + 8 : end]) == crc:
+            return off
+    return None
+
+
+def _read_all(fd: int) -> bytes:
+    chunks = []
+    while chunk := os.read(fd, _READ_CHUNK):
+        chunks.append(chunk)
+    return b"".join(chunks)
+
+
+def _write_all(fd: int, data: bytes, done: int = 0) -> None:
+    """Write ``data[done:]``, looping on short writes."""
+    view = memoryview(data)
+    while done < len(data):
+        done += os.write(fd, view[done:])
+
+
+def _fsync_dir(directory: Path) -> None:
+    if sys.platform == "win32":
+        return
+    dfd = os.open(directory, os.O_RDONLY)
+    try:
+        os.fsync(dfd)
+    finally:
+        os.close(dfd)
+
+
+def _lock_file(fd: int, path: Path) -> None:
+    if sys.platform == "win32":
+        return
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        raise ResourceBusyError(f"{path}: the journal is open in another registrar") from None
+
+
+def _same_file(fd: int, path: Path) -> bool:
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        return False
+    mine = os.fstat(fd)
+    return (mine.st_dev, mine.st_ino) == (st.st_dev, st.st_ino)

@@ -1,0 +1,301 @@
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass, field
+from typing import Any
+
+import pytest
+
+from temoto.core.registrar import (
+    LoadContext,
+    Registrar,
+    ResourceInfo,
+    ResourceServer,
+    Status,
+    StatusUpdate,
+)
+from temoto.errors import (
+    ResourceBusyError,
+    ResourceClosedError,
+    ResourceLoadError,
+    ResourceNotFoundError,
+)
+
+
+@dataclass(frozen=True)
+class Req:
+    name: str
+    subs: tuple[str, ...] = ()
+    fail: bool = False
+
+
+@dataclass(frozen=True)
+class Resp:
+    value: str
+
+
+@dataclass
+class Counting(ResourceServer[Req, Resp]):
+    """A server that loads by requesting `subs` from `sub_server`, and counts its calls."""
+
+    registrar: Registrar
+    name: str = "m1"  # type: ignore[misc]
+    sub_server: str = ""
+    loads: list[str] = field(default_factory=list)
+    unloads: list[str] = field(default_factory=list)
+    statuses: list[tuple[str, Status, str]] = field(default_factory=list)
+
+    request_type = Req
+    response_type = Resp
+
+    def on_load(self, request: Req, ctx: LoadContext) -> Resp:
+        self.loads.append(request.name)
+        for sub in request.subs:
+            self.registrar.call(self.sub_server, Req(sub))
+        if request.fail:
+            raise RuntimeError(f"{request.name} refused")
+        return Resp(f"{self.name}:{request.name}")
+
+    def on_unload(self, request: Req, response: Resp) -> None:
+        self.unloads.append(request.name)
+
+    def on_status(self, resource: ResourceInfo, status: Status, message: str) -> None:
+        self.statuses.append((resource.request.name, status, message))
+
+
+def chain() -> tuple[Registrar, Counting, Counting]:
+    rr = Registrar("rr")
+    r1 = Counting(rr, name="m1", sub_server="m2")
+    r2 = Counting(rr, name="m2")
+    rr.register(r1)
+    rr.register(r2)
+    return rr, r1, r2
+
+
+def test_upstream_chain_of_three_loads_and_unloads_with_exact_counts() -> None:
+    rr, r1, r2 = chain()
+    first = rr.call("m1", Req("R1", ("R2a", "R2b")), client="m0")
+    assert (len(r1.loads), len(r2.loads)) == (1, 2)
+    second = rr.call("m1", Req("R1'", ("R2a", "R2b")), client="m0")
+    assert len(r1.loads) + len(r2.loads) == 4  # R2a and R2b are reused
+    extra = rr.call("m2", Req("R2a"), client="m0")
+    assert len(rr.info(extra.id).references) == 3
+    assert rr.release(extra.id) is False
+    assert rr.release(first.id) is True
+    assert rr.release(second.id) is True
+    assert (sorted(r1.unloads), sorted(r2.unloads)) == (["R1", "R1'"], ["R2a", "R2b"])
+    assert rr.resources() == []
+    rr.call("m1", Req("R1", ("R2a", "R2b")), client="m0")
+    assert len(r1.loads) + len(r2.loads) == 7
+
+
+def test_equal_requests_share_one_resource_with_one_reference_each() -> None:
+    rr, r1, _ = chain()
+    a = rr.call("m1", Req("x"), client="a")
+    b = rr.call("m1", Req("x"), client="b")
+    assert a.id != b.id
+    assert a.resource_id == b.resource_id
+    assert a.response == b.response
+    assert r1.loads == ["x"]
+    assert rr.info(a.resource_id).consumers == ["a", "b"]
+
+
+class Failing(Counting):
+    def on_load(self, request: Req, ctx: LoadContext) -> Resp:
+        raise RuntimeError("the origin")
+
+
+class Top(Counting):
+    def on_load(self, request: Req, ctx: LoadContext) -> Resp:
+        self.registrar.call("side", Req("dep-1"))  # acquired first, must be rolled back
+        self.registrar.call("m1", Req("mid", ("bottom",)))
+        return Resp("never")
+
+
+def test_nested_failure_rolls_back_and_forwards_the_error_chain() -> None:
+    rr = Registrar("rr")
+    side = Counting(rr, name="side")
+    for server in (side, Top(rr, name="m0"), Counting(rr, name="m1", sub_server="m2")):
+        rr.register(server)
+    rr.register(Failing(rr, name="m2"))
+    with pytest.raises(ResourceLoadError) as caught:
+        rr.call("m0", Req("top"), client="c")
+    records = caught.value.to_records()
+    # the origin, plus one forwarding link per server it passed (upstream's error stack)
+    assert [r.type for r in records] == ["ResourceLoadError"] * 3 + ["RuntimeError"]
+    assert "server 'm0'" in records[0].message
+    assert "server 'm2'" in records[2].message
+    assert records[-1].message == "the origin"
+    assert side.unloads == ["dep-1"]  # the first dependency was rolled back
+    assert rr.resources() == []  # nothing stored
+    assert rr.references() == []
+
+
+def test_dependencies_are_recorded_and_cascade_on_release() -> None:
+    rr, r1, r2 = chain()
+    top = rr.call("m1", Req("R1", ("a", "b")), client="c")
+    deps = rr.dependencies(top.resource_id)
+    assert sorted(d.request.name for d in deps) == ["a", "b"]
+    rr.release(top.id)
+    assert sorted(r2.unloads) == ["a", "b"]
+    assert r1.unloads == ["R1"]
+
+
+def test_status_reaches_every_consumer_and_travels_up_the_chain() -> None:
+    rr, r1, r2 = chain()
+    got: list[StatusUpdate] = []
+    top_a = rr.call("m1", Req("R1", ("a",)), client="c1", on_status=got.append)
+    top_b = rr.call("m1", Req("R1", ("a",)), client="c2", on_status=got.append)
+    direct = rr.call("m2", Req("a"), client="c3", on_status=got.append)
+    bottom = rr.info(direct.id)
+    reached = rr.send_status(bottom.id, Status.FATAL, "process died")
+    assert reached == 4  # R1's dependency reference, c3, then c1 and c2 one level up
+    assert {u.reference_id for u in got} == {top_a.id, top_b.id, direct.id}
+    up = next(u for u in got if u.reference_id == top_a.id)
+    assert up.status is Status.FATAL
+    assert up.hops == ("m2", "m1")
+    assert up.origin == bottom.id
+    assert r2.statuses == [("a", Status.FATAL, "process died")]
+    assert r1.statuses == [("R1", Status.FATAL, "process died")]
+
+
+def test_a_failed_resource_is_not_shared_with_new_requests() -> None:
+    rr, _, r2 = chain()
+    old = rr.call("m2", Req("p"), client="a")
+    rr.send_status(old.id, Status.FATAL, "died")
+    new = rr.call("m2", Req("p"), client="a")
+    assert new.resource_id != old.resource_id
+    assert r2.loads == ["p", "p"]
+    rr.release(old.id)
+    assert r2.unloads == ["p"]
+
+
+def test_release_client_releases_everything_it_holds() -> None:
+    rr, r1, _ = chain()
+    rr.call("m1", Req("x"), client="action")
+    rr.call("m1", Req("y"), client="action")
+    rr.call("m1", Req("y"), client="other")
+    assert rr.release_client("action") == 2
+    assert r1.unloads == ["x"]
+    assert [r.client for r in rr.references()] == ["other"]
+
+
+def test_bad_input_gives_typed_errors() -> None:
+    rr, _, _ = chain()
+    with pytest.raises(ResourceNotFoundError, match="no server named 'nope'"):
+        rr.call("nope", Req("x"))
+    with pytest.raises(TypeError, match="takes Req requests"):
+        rr.call("m1", {"name": "x"})
+    ref = rr.call("m1", Req("x"))
+    rr.release(ref.id)
+    with pytest.raises(ResourceClosedError, match="already released"):
+        rr.release(ref.id)
+    with pytest.raises(ResourceNotFoundError):
+        rr.release("no-such-id")
+
+    @dataclass(frozen=True)
+    class Odd(Req):
+        blob: Any = None
+
+    class OddServer(Counting):
+        request_type = Odd
+
+    rr.register(OddServer(rr, name="odd"))
+    with pytest.raises(TypeError, match="cannot be serialised"):
+        rr.call("odd", Odd("x", blob=object()))
+
+
+def test_exclusive_higher_priority_pre_empts_and_hands_back() -> None:
+    rr, r1, _ = chain()
+    low_updates: list[StatusUpdate] = []
+    low = rr.call(
+        "m1", Req("arm"), client="task", priority=1, exclusive=True, on_status=low_updates.append
+    )
+    with pytest.raises(ResourceBusyError, match="priority 1"):
+        rr.call("m1", Req("arm"), client="peer", priority=1, exclusive=True)
+    high = rr.call("m1", Req("arm"), client="safety", priority=5, exclusive=True)
+    assert [u.status for u in low_updates] == [Status.WARNING]
+    assert "pre-empted by 'safety'" in low_updates[0].message
+    assert {r.client: r.suspended for r in rr.references()} == {"task": True, "safety": False}
+    assert rr.release(high.id) is False  # the suspended consumer keeps it loaded
+    assert [u.status for u in low_updates] == [Status.WARNING, Status.OK]
+    assert low_updates[1].message == "resource returned"
+    assert r1.loads == ["arm"]
+    rr.release(low.id)
+    assert r1.unloads == ["arm"]
+
+
+def test_concurrent_equal_requests_load_once() -> None:
+    gate = threading.Event()
+
+    class Slow(Counting):
+        def on_load(self, request: Req, ctx: LoadContext) -> Resp:
+            gate.wait(5)
+            return super().on_load(request, ctx)
+
+    rr = Registrar("rr")
+    slow = Slow(rr, name="slow")
+    rr.register(slow)
+    results: list[Any] = []
+    threads = [
+        threading.Thread(target=lambda: results.append(rr.call("slow", Req("x")))) for _ in range(5)
+    ]
+    for t in threads:
+        t.start()
+    gate.set()
+    for t in threads:
+        t.join(5)
+    assert slow.loads == ["x"]
+    assert len({r.resource_id for r in results}) == 1
+    assert len({r.id for r in results}) == 5
+
+
+# ================ persistence
+
+
+def build(path: Any, restore: bool = False) -> tuple[Registrar, Counting, Counting]:
+    rr = Registrar("rr", catalog=path, restore=restore, fsync="never")
+    r1 = Counting(rr, name="m1", sub_server="m2")
+    r2 = Counting(rr, name="m2")
+    rr.register(r1)
+    rr.register(r2)
+    return rr, r1, r2
+
+
+def accounting(rr: Registrar) -> list[tuple[Any, ...]]:
+    return sorted(
+        (i.id, i.server, i.request.name, tuple(sorted(i.consumers)), len(i.dependencies), i.failed)
+        for i in rr.resources()
+    )
+
+
+def test_restore_gives_back_exactly_the_same_accounting(tmp_path: Any) -> None:
+    path = tmp_path / "rr.catalog"
+    rr, _, _ = build(path)
+    a = rr.call("m1", Req("R1", ("a", "b")), client="x")
+    rr.call("m1", Req("R1", ("a", "b")), client="y")
+    c = rr.call("m2", Req("c"), client="x")
+    rr.release(c.id)
+    rr.call("m2", Req("a"), client="z", exclusive=True, priority=3)
+    before = accounting(rr)
+    refs_before = sorted(rr.references(), key=lambda r: r.id)
+    rr.close()  # as if killed: nothing released
+    again, r1, r2 = build(path, restore=True)
+    assert accounting(again) == before
+    assert sorted(again.references(), key=lambda r: r.id) == refs_before
+    assert (r1.loads, r2.loads) == ([], [])  # nothing is loaded twice
+    # and it keeps working: releasing the restored references unloads in cascade
+    again.release(a.id)
+    again.release_client("y")
+    assert r1.unloads == ["R1"]
+    assert sorted(r2.unloads) == ["b"]  # 'a' is still held by z
+    again.close()
+
+
+def test_a_catalog_is_never_overwritten_without_restore(tmp_path: Any) -> None:
+    path = tmp_path / "rr.catalog"
+    rr, _, _ = build(path)
+    rr.call("m2", Req("a"))
+    rr.close()
+    with pytest.raises(Exception, match="restore=True"):
+        Registrar("rr", catalog=path)
