@@ -34,11 +34,13 @@ from collections.abc import Callable, Iterator, Mapping
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value
+from temoto.core.registrar.messages import Resource, Status, StatusUpdate
 from temoto.core.umrf import LogMessage
-from temoto.errors import StopRequested
+from temoto.errors import ResourceBrokenError, ResourceError, StopRequested
 
 if TYPE_CHECKING:
     from temoto.clock import Clock
+    from temoto.core.registrar.registry import Registrar
 
 __all__ = ["LOG_LENGTH", "Action", "Inputs", "Outputs", "RunControl"]
 
@@ -58,13 +60,46 @@ class RunControl:
         clock: The engine's clock.
     """
 
-    __slots__ = ("clock", "cond", "paused", "stop")
+    __slots__ = ("broken", "clock", "cond", "paused", "stop")
 
     def __init__(self, clock: Clock) -> None:
         self.clock = clock
         self.cond = threading.Condition(threading.Lock())
         self.stop = False
         self.paused = False
+        self.broken: list[StatusUpdate] = []  # failures of acquired resources, not yet raised
+
+    def report_broken(self, update: StatusUpdate) -> None:
+        """An acquired resource failed: the next helper call raises ResourceBrokenError.
+
+        Args:
+            update: The failure.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        with self.cond:
+            self.broken.append(update)
+            self.cond.notify_all()
+
+    def raise_broken(self) -> None:
+        """Raise for the oldest unreported failure (the lock must be held).
+
+        Returns:
+            None.
+
+        Raises:
+            ResourceBrokenError: If an acquired resource failed.
+        """
+        if self.broken:
+            update = self.broken.pop(0)
+            raise ResourceBrokenError(
+                f"resource {update.resource_id} reported {update.status.value}: {update.message}",
+                origin=update.origin,
+            )
 
     def reset(self) -> None:
         """Clear the stop and pause flags before a new run.
@@ -306,6 +341,9 @@ class Action(ABC):
         self._outputs = Outputs({})
         self._input_params: Mapping[str, Parameter] = {}
         self._output_params: Mapping[str, Parameter] = {}
+        self._registrar: Registrar | None = None
+        self._client = ""
+        self._resources: dict[str, Resource[Any]] = {}
 
     # ---- hooks: override these -------------------------------------------------------------
 
@@ -329,6 +367,13 @@ class Action(ABC):
     def on_stop(self) -> None:  # noqa: B027 - optional hook
         """A stop was requested; make ``on_run`` return soon (helpers already raise)."""
 
+    def on_resource_status(self, update: StatusUpdate) -> None:  # noqa: B027 - optional hook
+        """A resource this action acquired reported a status (runs in the reporter's thread).
+
+        ERROR and FATAL also make the next helper call (``sleep``, ``wait_for``,
+        ``wait_until_stopped``, ``check_resources``) raise ``ResourceBrokenError``.
+        """
+
     # ---- engine binding (not for action authors) ---------------------------------------------
 
     def _bind(
@@ -340,8 +385,11 @@ class Action(ABC):
         inputs: Mapping[str, Parameter],
         outputs: Mapping[str, Parameter],
         logger_name: str,
+        registrar: Registrar | None = None,
     ) -> None:
         self._control = control
+        self._registrar = registrar
+        self._client = f"{graph}/{name}"
         self._name = name
         self._graph = graph
         self._input_params = inputs
@@ -407,6 +455,93 @@ class Action(ABC):
         """Whether the graph is paused."""
         return self._ctl.paused
 
+    def acquire(
+        self, server: str, request: Any, *, priority: int = 0, exclusive: bool = False
+    ) -> Resource[Any]:
+        """Request a resource from the engine's registrar, held for this node.
+
+        Resources an action acquires are released automatically when its graph run ends or
+        its node is removed (release earlier with :meth:`release`). Their failures reach
+        :meth:`on_resource_status` and make the helpers raise ``ResourceBrokenError``.
+
+        Args:
+            server: The resource server (manager) name, e.g. ``"process"``.
+            request: Its request object.
+            priority: Higher pre-empts lower on exclusive resources.
+            exclusive: Want the resource alone.
+
+        Returns:
+            The reference (``.response`` holds what the server returned).
+
+        Raises:
+            RuntimeError: If the engine has no registrar.
+            ResourceError: If the resource cannot be had (see ``Registrar.call``).
+        """
+        if self._registrar is None:
+            raise RuntimeError(f"{self._name}: this engine has no resource registrar")
+        resource = self._registrar.call(
+            server,
+            request,
+            client=self._client,
+            priority=priority,
+            exclusive=exclusive,
+            on_status=self._resource_status,
+        )
+        self._resources[resource.id] = resource
+        return resource
+
+    def release(self, resource: Resource[Any]) -> None:
+        """Release a resource acquired with :meth:`acquire` before the graph ends.
+
+        Args:
+            resource: What :meth:`acquire` returned.
+
+        Returns:
+            None.
+
+        Raises:
+            ResourceError: If it was already released.
+        """
+        if self._registrar is None:
+            raise RuntimeError(f"{self._name}: this engine has no resource registrar")
+        self._resources.pop(resource.id, None)
+        self._registrar.release(resource.id)
+
+    def check_resources(self) -> None:
+        """Raise if an acquired resource failed since the last check.
+
+        Returns:
+            None.
+
+        Raises:
+            ResourceBrokenError: For the oldest unreported failure.
+        """
+        ctl = self._ctl
+        with ctl.cond:
+            ctl.raise_broken()
+
+    def _resource_status(self, update: StatusUpdate) -> None:
+        try:
+            self.on_resource_status(update)
+        except Exception:
+            self.logger.exception("on_resource_status raised")
+        if update.status in (Status.ERROR, Status.FATAL) and self._control is not None:
+            self._control.report_broken(update)
+
+    def _release_resources(self) -> int:
+        """Engine: release everything this node holds (graph ended or node removed)."""
+        held, self._resources = self._resources, {}
+        if self._registrar is None:
+            return 0
+        count = 0
+        for ref_id in reversed(list(held)):  # the reverse of acquisition order
+            try:
+                self._registrar.release(ref_id)
+                count += 1
+            except ResourceError:
+                pass  # already released by its owner or the registrar
+        return count
+
     def log(self, message: str) -> None:
         """Write to the action's runtime log (kept in feedback, newest first) and the logger.
 
@@ -434,6 +569,7 @@ class Action(ABC):
 
         Raises:
             StopRequested: As soon as a stop is requested.
+            ResourceBrokenError: If a resource this action acquired failed.
         """
         ctl = self._ctl
         deadline = ctl.clock.monotonic() + seconds
@@ -441,6 +577,7 @@ class Action(ABC):
             while True:
                 if ctl.stop:
                     raise StopRequested(self._name)
+                ctl.raise_broken()
                 remaining = deadline - ctl.clock.monotonic()
                 if not ctl.paused and remaining <= 0:
                     return
@@ -456,12 +593,13 @@ class Action(ABC):
             True if a stop was requested, False on timeout.
 
         Raises:
-            Nothing.
+            ResourceBrokenError: If a resource this action acquired failed.
         """
         ctl = self._ctl
         deadline = None if timeout is None else ctl.clock.monotonic() + timeout
         with ctl.cond:
             while not ctl.stop:
+                ctl.raise_broken()
                 if deadline is None:
                     ctl.clock.wait(ctl.cond, None)
                     continue
@@ -486,6 +624,7 @@ class Action(ABC):
 
         Raises:
             StopRequested: As soon as a stop is requested.
+            ResourceBrokenError: If a resource this action acquired failed.
         """
         ctl = self._ctl
         deadline = None if timeout is None else ctl.clock.monotonic() + timeout
@@ -493,6 +632,7 @@ class Action(ABC):
             while True:
                 if ctl.stop:
                     raise StopRequested(self._name)
+                ctl.raise_broken()
                 if not ctl.paused and predicate():
                     return True
                 remaining = None if deadline is None else deadline - ctl.clock.monotonic()

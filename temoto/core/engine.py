@@ -35,6 +35,7 @@ from temoto.core.executor import DeadlineTimer, WorkerPool
 from temoto.core.graph import UmrfGraph, graph_from_document, graph_to_dict
 from temoto.core.instrument import Instrument
 from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value, dump_parameter_tree
+from temoto.core.registrar.registry import Registrar
 from temoto.core.states import NODE_TRANSITIONS, GraphState, NodeState, Response, Result
 from temoto.core.umrf import DEFAULT_CONDITIONS, Umrf, dump_umrf
 from temoto.core.validation import validate_graph
@@ -65,6 +66,7 @@ _ENDED_GRAPH = frozenset(
 _RUN = 0  # (_RUN, node, gen): run the action on a worker
 _HOOK = 1  # (_HOOK, node, gen, hook name): call on_stop / on_pause / on_resume on a worker
 _SPONT = 2  # (_SPONT, node, gen, result, outputs, error): finish a spontaneous run on a worker
+_RELEASE = 3  # (_RELEASE, action instance): release the resources a node acquired
 
 Effect = tuple[Any, ...]
 
@@ -104,6 +106,8 @@ class ActionEngine:
         feedback_size: Keep this many whole-graph snapshots (one per node state change) for
             :meth:`read_feedback`; 0 (default) keeps none, because a snapshot costs time
             proportional to the graph's size.
+        registrar: Where actions acquire resources (``Action.acquire``); they are released
+            when the graph run ends or the node is removed.
 
     Raises:
         ConfigError: If an action or graph directory does not exist.
@@ -120,6 +124,7 @@ class ActionEngine:
         stop_timeout: float = 5.0,
         instruments: Iterable[Instrument] = (),
         feedback_size: int = 0,
+        registrar: Registrar | None = None,
     ) -> None:
         self.actor = actor
         self.catalog = (
@@ -128,6 +133,7 @@ class ActionEngine:
         self.graphs = graphs if isinstance(graphs, GraphIndex) else GraphIndex(graphs or ())
         self.clock: Clock = clock or MonotonicClock()
         self.stop_timeout = stop_timeout
+        self.registrar = registrar
         self._instruments = list(instruments)
         self._lock = threading.Lock()
         self._quiet = threading.Condition(self._lock)
@@ -138,6 +144,8 @@ class ActionEngine:
         self._feedback: deque[dict[str, Any]] = deque(maxlen=max(feedback_size, 1))
         self._feedback_on = feedback_size > 0
         self._closed = False
+        # releases found under the lock, handed to workers by the next _dispatch
+        self._releases: list[Effect] = []
 
     # ================================================================ public API
 
@@ -360,6 +368,9 @@ class ActionEngine:
                 raise StateError(f"graph '{name}': cannot remove active actions {', '.join(busy)}")
             if continue_from is not None and continue_from not in new_names:
                 raise KeyError(f"the new graph has no action '{continue_from}'")
+            for node in run.nodes.values():
+                if node.name not in new_names:
+                    self._release_node(node)
             run.wire(plan)
             logger.info("graph %s modified (%d actions)", name, len(run.nodes))
             if run.state is GraphState.HALTED or (continue_from and run.state is GraphState.PAUSED):
@@ -565,12 +576,18 @@ class ActionEngine:
     # ================================================================ effects
 
     def _dispatch(self, fx: list[Effect], *, closing: bool = False) -> None:
+        if self._releases:
+            with self._lock:
+                fx = [*fx, *self._releases]
+                self._releases.clear()
         for effect in fx:
             try:
                 if effect[0] == _RUN:
                     self._pool.submit(self._execute, effect[1], effect[2])
                 elif effect[0] == _HOOK:
                     self._pool.submit(self._call_hook, effect[1], effect[2], effect[3])
+                elif effect[0] == _RELEASE:
+                    self._pool.submit(_release_resources, effect[1])
                 else:
                     self._pool.submit(self._finish_spontaneous, *effect[1:])
             except RuntimeError:
@@ -588,6 +605,8 @@ class ActionEngine:
                     self._on_finished(node, gen, Result.STOPPED, {}, None, fx)
         elif effect[0] == _HOOK:
             self._call_hook(effect[1], effect[2], effect[3])
+        elif effect[0] == _RELEASE:
+            _release_resources(effect[1])
         else:
             self._finish_spontaneous(*effect[1:])
 
@@ -667,6 +686,7 @@ class ActionEngine:
             inputs=node.inputs,
             outputs=node.outputs,
             logger_name=f"temoto.action.{node.run.name}.{node.name}",
+            registrar=self.registrar,
         )
         instance.on_init()
         with self._lock:
@@ -756,8 +776,11 @@ class ActionEngine:
         was, now = old in _ACTIVE, new in _ACTIVE
         if was != now:
             node.run.active += 1 if now else -1
-            if not now and self._quiet_waiters:
-                self._quiet.notify_all()
+            if not now:
+                if self._quiet_waiters:
+                    self._quiet.notify_all()
+                if node.run.state in _ENDED_GRAPH:
+                    self._release_node(node)
         if self._instruments:
             t = self.clock.monotonic()
             for inst in list(self._instruments):
@@ -1073,9 +1096,18 @@ class ActionEngine:
         for node in list(run.nodes.values()):
             self._stop_node(node, fx)
 
+    def _release_node(self, node: Node) -> None:
+        """Release the resources a node's action holds (it is idle and its run has ended)."""
+        instance = node.instance
+        if instance is not None and instance._resources:
+            self._releases.append((_RELEASE, instance))
+
     def _end_run(self, run: GraphRun, state: GraphState, result: Result, fx: list[Effect]) -> None:
         run.state = state
         run.result = result
+        for node in run.nodes.values():
+            if not node.active:
+                self._release_node(node)
         if self._instruments:
             self._notify("graph_finished", run.name, result, self.clock.monotonic())
         run.done.set()
@@ -1213,3 +1245,14 @@ def _graph_inputs(graph: UmrfGraph, params: Mapping[str, Any]) -> dict[str, Any]
             file=graph.source,
         )
     return values
+
+
+def _release_resources(instance: Any) -> None:
+    """Worker: release what a node's action acquired (RAII at graph end / node removal)."""
+    try:
+        count = instance._release_resources()
+    except Exception:
+        logger.exception("releasing the resources of %s failed", instance.name)
+        return
+    if count:
+        logger.debug("released %d resources of %s", count, instance.name)

@@ -299,3 +299,42 @@ def test_a_catalog_is_never_overwritten_without_restore(tmp_path: Any) -> None:
     rr.close()
     with pytest.raises(Exception, match="restore=True"):
         Registrar("rr", catalog=path)
+
+
+# ================ resources held by actions (RAII)
+
+
+def test_actions_release_their_resources_when_the_graph_ends_and_notice_failures() -> None:
+    from temoto import Action, ActionCatalog, ActionEngine, parse_graph, parse_umrf
+    from temoto.core.states import Result
+    from temoto.errors import ResourceBrokenError
+
+    rr, _, r2 = chain()
+    seen: list[str] = []
+    acquired = threading.Event()
+
+    class Holder(Action):
+        def on_run(self) -> bool:
+            self.acquire("m2", Req("camera"))
+            acquired.set()
+            try:
+                self.wait_until_stopped(10)
+            except ResourceBrokenError as err:
+                seen.append(str(err))
+                return False
+            return True
+
+    catalog = ActionCatalog(use_entry_points=False)
+    catalog.register(Holder, parse_umrf({"name": "Holder", "type": "sync"}))
+    graph = parse_graph({"graph_name": "g", "actions": [{"name": "Holder", "type": "sync"}]})
+    with ActionEngine("me", actions=catalog, registrar=rr) as engine:
+        engine.start(graph)
+        assert acquired.wait(5)
+        (camera,) = rr.resources()
+        assert camera.consumers == ["g/Holder_0"]
+        rr.send_status(camera.id, Status.FATAL, "camera unplugged")
+        assert engine.wait("g", 5) is Result.FALSE
+        assert seen == [f"resource {camera.id} reported FATAL: camera unplugged"]
+    # the release runs on a worker right after the graph ends; shutdown joined the workers
+    assert rr.resources() == []
+    assert r2.unloads == ["camera"]
