@@ -181,13 +181,25 @@ def canonical_json(value: Any) -> str:
         TypeError: If the value cannot be serialised (with what could not).
     """
     try:
-        plain = (
-            dataclasses.asdict(value)
-            if dataclasses.is_dataclass(value) and not isinstance(value, type)
-            else value
-        )
-        return json.dumps(
-            plain, sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False
-        )
+        return _CANONICAL.encode(_shallow(value))
     except (TypeError, ValueError) as err:
         raise TypeError(f"cannot serialise {type(value).__name__}: {err}") from None
+
+
+def _shallow(value: Any) -> Any:
+    """A dataclass as a dict of its fields (nested ones are converted by the encoder)."""
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
+    return value
+
+
+def _nested(value: Any) -> Any:
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return _shallow(value)
+    raise TypeError(f"{type(value).__name__} is not JSON serialisable")
+
+
+# One encoder for every key: json.dumps with options builds a new encoder per call.
+_CANONICAL = json.JSONEncoder(
+    sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False, default=_nested
+)
