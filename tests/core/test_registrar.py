@@ -338,3 +338,24 @@ def test_actions_release_their_resources_when_the_graph_ends_and_notice_failures
     # the release runs on a worker right after the graph ends; shutdown joined the workers
     assert rr.resources() == []
     assert r2.unloads == ["camera"]
+
+
+def test_pre_emption_survives_a_restart(tmp_path: Any) -> None:
+    path = tmp_path / "rr.catalog"
+    rr, _, _ = build(path)
+    low = rr.call("m2", Req("arm"), client="task", priority=1, exclusive=True)
+    high = rr.call("m2", Req("arm"), client="safety", priority=5, exclusive=True)
+    rr.close()
+    again, _, r2 = build(path, restore=True)
+    states = {r.client: r.suspended for r in again.references()}
+    assert states == {"task": True, "safety": False}
+    back: list[StatusUpdate] = []
+    again.subscribe(low.id, back.append)
+    again.release(high.id)
+    assert [(u.status, u.message) for u in back] == [(Status.OK, "resource returned")]
+    again.release(low.id)
+    assert r2.unloads == ["arm"]
+    again.close()
+    third, _, _ = build(path, restore=True)
+    assert third.resources() == []
+    third.close()

@@ -103,6 +103,8 @@ def _apply(
     elif op == "progress":
         entries[str(rec["uid"])]["progress"] = dict(rec["data"])
     elif op == "ref":
+        for ref_id in rec.get("suspends", ()):
+            entries[owner[str(ref_id)]]["refs"][str(ref_id)]["suspended"] = True
         _add_ref(entries, owner, _ref_record(rec), link=True)
     elif op == "load":
         entry = entries[str(rec["uid"])]
@@ -124,13 +126,12 @@ def _apply(
         holder = entries.get(ref["holder"]) if ref["holder"] else None
         if holder is not None and ref_id in holder["deps"]:
             holder["deps"].remove(ref_id)
+        for other in rec.get("resumes", ()):
+            entries[owner[str(other)]]["refs"][str(other)]["suspended"] = False
     elif op in ("unload", "abandon"):
         _drop_entry(entries, owner, str(rec["uid"]))
     elif op == "failed":
         entries[str(rec["uid"])]["failed"] = True
-    elif op in ("suspend", "resume"):
-        for ref_id in rec["ids"]:
-            entries[owner[str(ref_id)]]["refs"][str(ref_id)]["suspended"] = op == "suspend"
     elif op == "response":
         entries[str(rec["uid"])]["response"] = rec["response"]
     else:

@@ -69,6 +69,7 @@ class _Ref:
     holder: str  # resource id that holds this reference as a dependency ("" for consumers)
     suspended: bool = False
     callbacks: list[StatusCallback] = field(default_factory=list)
+    suspends: list[str] = field(default_factory=list)
 
     def snapshot(self) -> Reference:
         return Reference(
@@ -299,7 +300,7 @@ class Registrar:
                     ref = self._add_ref(
                         entry, client, priority, exclusive, holder, on_status, notices
                     )
-                    self._write({"op": "ref", **ref.record()})
+                    self._write({"op": "ref", **ref.record(), "suspends": ref.suspends})
                     result = Resource(ref.id, entry.uid, server, entry.request, entry.response)
                     wait_for = None
             if wait_for is None:
@@ -391,10 +392,10 @@ class Registrar:
                 )
             for ref in conflicting:
                 ref.suspended = True
-            self._write({"op": "suspend", "ids": [r.id for r in conflicting]})
         ref = _Ref(
             f"{self._boot}-{next(self._counter)}", entry.uid, client, priority, exclusive, holder
         )
+        ref.suspends = [r.id for r in conflicting]  # journaled with the reference: one record
         if on_status is not None:
             ref.callbacks.append(on_status)
         entry.refs[ref.id] = ref
@@ -440,13 +441,13 @@ class Registrar:
             holder = self._entries.get(ref.holder) if ref.holder else None
             if holder is not None and reference_id in holder.deps:
                 holder.deps.remove(reference_id)
-            self._write({"op": "unref", "id": reference_id})
             last = not entry.refs
-            if not last and not entry.active():
-                resumed = list(entry.refs.values())
-                for other in resumed:
-                    other.suspended = False
-                self._write({"op": "resume", "ids": [r.id for r in resumed]})
+            resumed = [] if last or entry.active() else list(entry.refs.values())
+            for other in resumed:
+                other.suspended = False
+            # one record, so a crash cannot leave only suspended references behind
+            self._write({"op": "unref", "id": reference_id, "resumes": [r.id for r in resumed]})
+            if resumed:
                 for other in resumed:
                     update = self._update(other, Status.OK, "resource returned", entry)
                     notices.append((list(other.callbacks), update))
