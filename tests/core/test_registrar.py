@@ -28,6 +28,9 @@ class Req:
     subs: tuple[str, ...] = ()
     fail: bool = False
 
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "subs", tuple(self.subs))  # JSON gives lists back
+
 
 @dataclass(frozen=True)
 class Resp:
@@ -359,3 +362,122 @@ def test_pre_emption_survives_a_restart(tmp_path: Any) -> None:
     third, _, _ = build(path, restore=True)
     assert third.resources() == []
     third.close()
+
+
+@dataclass
+class Undoing(Counting):
+    """Records what the restore asked it to undo or check."""
+
+    abandoned: list[tuple[str, Any]] = field(default_factory=list)
+    verdicts: dict[str, tuple[Status, str]] = field(default_factory=dict)
+
+    def on_abandoned(self, request: Req, progress: Any) -> None:
+        self.abandoned.append((request.name, progress))
+
+    def on_restore(self, resource: ResourceInfo) -> tuple[Status, str] | None:
+        return self.verdicts.get(resource.request.name)
+
+
+def test_restore_undoes_a_load_the_crash_interrupted(tmp_path: Any) -> None:
+    from temoto.core.registrar.journal import Journal
+
+    path = tmp_path / "rr.catalog"
+    rr = Registrar("rr", catalog=path, fsync="never")
+    rr.register(Counting(rr, name="m1", sub_server="m2"))
+    rr.register(Counting(rr, name="m2"))
+    held = rr.call("m2", Req("dep"), client="x")
+    rr.close()
+    # what a crash in the middle of loading "top" (after it acquired "dep") leaves behind
+    journal = Journal(path, fsync="never")
+    journal.open()
+    journal.append(
+        {
+            "op": "begin",
+            "uid": "m1:old-1",
+            "server": "m1",
+            "request": {"name": "top", "subs": [], "fail": False},
+        }
+    )
+    journal.append({"op": "progress", "uid": "m1:old-1", "data": {"pid": 4242}})
+    journal.append(
+        {
+            "op": "ref",
+            "id": "old-2",
+            "uid": held.resource_id,
+            "client": "rr/m1:old-1",
+            "priority": 0,
+            "exclusive": False,
+            "holder": "m1:old-1",
+            "suspended": False,
+            "suspends": [],
+        }
+    )
+    journal.close()
+    again = Registrar("rr", catalog=path, restore=True, fsync="never")
+    top = Undoing(again, name="m1", sub_server="m2")
+    bottom = Undoing(again, name="m2")
+    again.register(top)
+    assert again.resources() == []  # nothing is visible until every server is back
+    again.register(bottom)
+    assert top.abandoned == [("top", {"pid": 4242})]
+    (dep,) = again.resources()
+    assert dep.consumers == ["x"]  # the interrupted load's reference was released
+    assert bottom.unloads == []
+    again.close()
+
+
+def test_restore_finishes_an_interrupted_release_and_reports_what_died(tmp_path: Any) -> None:
+    from temoto.core.registrar.journal import Journal
+
+    path = tmp_path / "rr.catalog"
+    rr = Registrar("rr", catalog=path, fsync="never")
+    rr.register(Counting(rr, name="m1", sub_server="m2"))
+    rr.register(Counting(rr, name="m2"))
+    going = rr.call("m2", Req("going"), client="x")
+    staying = rr.call("m2", Req("staying"), client="x")
+    rr.close()
+    journal = Journal(path, fsync="never")
+    journal.open()
+    journal.append({"op": "unref", "id": going.id, "resumes": []})  # crash before the unload
+    journal.close()
+    again = Registrar("rr", catalog=path, restore=True, fsync="never")
+    m2 = Undoing(again, name="m2")
+    m2.verdicts = {"staying": (Status.FATAL, "died while the manager was down")}
+    again.register(Counting(again, name="m1", sub_server="m2"))
+    got: list[StatusUpdate] = []
+    again.register(m2)
+    assert m2.unloads == ["going"]
+    again.subscribe(staying.id, got.append)
+    (info,) = again.resources()
+    assert info.failed
+    assert m2.statuses == [("staying", Status.FATAL, "died while the manager was down")]
+    again.close()
+
+
+def test_a_corrupt_catalog_is_refused_and_left_untouched(tmp_path: Any) -> None:
+    from temoto.errors import CatalogCorruptError
+
+    path = tmp_path / "rr.catalog"
+    rr, _, _ = build(path)
+    for name in "abcdef":
+        rr.call("m2", Req(name), client="x")
+    rr.close()
+    data = bytearray(path.read_bytes())
+    data[len(data) // 2] ^= 0xFF
+    path.write_bytes(bytes(data))
+    with pytest.raises(CatalogCorruptError):
+        Registrar("rr", catalog=path, restore=True)
+    assert path.read_bytes() == bytes(data)
+
+
+def test_a_catalog_whose_records_do_not_fit_is_corrupt(tmp_path: Any) -> None:
+    from temoto.core.registrar.journal import Journal
+    from temoto.errors import CatalogCorruptError
+
+    path = tmp_path / "rr.catalog"
+    journal = Journal(path, fsync="never")
+    journal.open()
+    journal.append({"op": "unref", "id": "never-taken"})
+    journal.close()
+    with pytest.raises(CatalogCorruptError, match="record 1"):
+        Registrar("rr", catalog=path, restore=True)
