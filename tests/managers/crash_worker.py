@@ -4,11 +4,13 @@ Usage: ``python crash_worker.py CATALOG WORKDIR SEED START END [--restore]``
 
 It builds a Registrar on CATALOG with a Process Manager and a "group" server whose resources
 depend on 1-3 process resources (nested dependencies), prints its accounting as one JSON line
-(``state {...}``), then runs operations START..END-1. Operation i is chosen from the registrar's
-own state with ``random.Random(f"{SEED}-{i}")``: release one of the consumers' references, or
-request a group or a process for one of three consumers. It prints ``begin i`` before and
-``done i <json>`` after each operation, so the test knows which ones completed before it
-SIGKILLs the process. After END it releases everything, prints ``finished`` and exits.
+(``state {...}``), waits for a line on stdin, then runs operations START..END-1. Operation i
+is chosen from the registrar's own state with ``random.Random(f"{SEED}-{i}")``: release one of
+the consumers' references, or request a group or a process for one of three consumers. It
+prints ``begin i`` before and ``done i <json>`` after each operation, so the test knows which
+ones completed before it SIGKILLs the process. After END it prints ``ops-done``, waits for a
+line on stdin (the test no longer kills it), releases everything, prints its final accounting
+and ``finished``, and exits.
 
 Every child process gets ``--touch WORKDIR/<name>.pid`` on its command line, so the test can
 find every process this worker ever started (orphans included) by WORKDIR.
@@ -113,9 +115,11 @@ def main() -> int:
     )
     restore = "--restore" in sys.argv
     registrar = Registrar("crash", catalog=catalog, restore=restore)
-    manager = ProcessManager(registrar, grace=0.5)
+    # children write to files, not to our stdout: the test reads it until end-of-file
+    manager = ProcessManager(registrar, grace=0.5, log_dir=workdir / "logs")
     registrar.register(GroupServer(registrar, workdir))
     say("state " + json.dumps(accounting(registrar)))
+    sys.stdin.readline()  # the test checks the processes before anything changes
     for i in range(start, end):
         rng = random.Random(f"{seed}-{i}")
         held = sorted(r.id for r in registrar.references() if not r.holder)
@@ -147,6 +151,8 @@ def main() -> int:
                 }
             )
         )
+    say("ops-done")
+    sys.stdin.readline()  # the test stops killing before the final release
     for client in CLIENTS:
         registrar.release_client(client)
     say("state " + json.dumps(accounting(registrar)))

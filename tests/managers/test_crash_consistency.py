@@ -30,8 +30,8 @@ MIN_KILLS = 50
 
 
 def token_processes(workdir: Path) -> set[int]:
-    """Pids of live processes whose command line mentions ``workdir`` (the worker's children)."""
-    token = str(workdir).encode()
+    """Pids of live processes started with ``--touch <workdir>/...`` (the worker's children)."""
+    token = b"--touch\x00" + str(workdir).encode() + b"/"
     found = set()
     for entry in os.listdir("/proc"):
         if not entry.isdigit():
@@ -114,20 +114,21 @@ def check_processes(state: dict[str, Any], workdir: Path, problems: list[str]) -
     accounted = {
         r["pid"] for r in state["resources"] if r["server"] == "process" and not r["failed"]
     }
+    # (an accounted process may have just exited: the manager reports that as FATAL; it is not
+    # an accounting error. A running process nobody accounts for is: an orphan.)
     running = token_processes(workdir)
-    if accounted - running:
-        problems.append(f"processes accounted for but not running: {sorted(accounted - running)}")
     if running - accounted:
         problems.append(f"orphaned processes: {sorted(running - accounted)}")
 
 
 @pytest.mark.timeout(170)
 def test_sigkill_at_random_instants_never_breaks_the_accounting(tmp_path: Path) -> None:
-    rng = random.Random(20261121)
+    # TEMOTO_CRASH_SEED=<n> replays another schedule (for soaking: run it with many seeds)
+    rng = random.Random(int(os.environ.get("TEMOTO_CRASH_SEED", "20261121")))
     catalog = tmp_path / "crash.catalog"
     workdir = tmp_path / "children"
     workdir.mkdir()
-    seed = "crash-consistency"
+    seed = f"crash-consistency-{rng.random()}"
     model = Model()
     problems: list[str] = []
     next_op, kills, restarts = 0, 0, 0
@@ -150,7 +151,12 @@ def test_sigkill_at_random_instants_never_breaks_the_accounting(tmp_path: Path) 
                 args.append("--restore")
             restarts += 1
             proc = subprocess.Popen(
-                args, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=env
+                args,
+                stdin=subprocess.PIPE,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+                env=env,
             )
             assert proc.stdout is not None
             early_kill = not final and rng.random() < 0.1
@@ -172,6 +178,10 @@ def test_sigkill_at_random_instants_never_breaks_the_accounting(tmp_path: Path) 
                         check_processes(state, workdir, problems)
                         if problems:
                             break
+                    with contextlib.suppress(BrokenPipeError):
+                        assert proc.stdin is not None
+                        proc.stdin.write("go\n")
+                        proc.stdin.flush()
                 elif word == "begin":
                     in_doubt = int(rest)
                 elif word == "done":
@@ -183,10 +193,21 @@ def test_sigkill_at_random_instants_never_breaks_the_accounting(tmp_path: Path) 
                     if not final and not early_kill and done >= target:
                         time.sleep(rng.uniform(0.0, 0.003))
                         proc.kill()
+                elif word == "ops-done":  # no more kills in this run: let it release everything
+                    with contextlib.suppress(BrokenPipeError):
+                        assert proc.stdin is not None
+                        proc.stdin.write("go\n")
+                        proc.stdin.flush()
                 elif word == "state":  # the final accounting, after releasing everything
                     assert json.loads(rest) == {"refs": [], "resources": []}
+            if problems:
+                proc.kill()
             code = proc.wait(30)
             stderr = proc.stderr.read() if proc.stderr else ""
+            for stream in (proc.stdin, proc.stdout, proc.stderr):
+                if stream is not None:
+                    with contextlib.suppress(BrokenPipeError):
+                        stream.close()
             if problems:
                 break
             if code == -signal.SIGKILL:
@@ -199,8 +220,9 @@ def test_sigkill_at_random_instants_never_breaks_the_accounting(tmp_path: Path) 
                 break
             in_doubt_before = None
         assert not problems, f"after {kills} kills: " + "; ".join(problems[:10])
-        assert kills >= MIN_KILLS
+        assert kills >= MIN_KILLS, f"only {kills} kills"
         assert next_op == OPS
+        print(f"{OPS} operations, {kills} SIGKILLs, {restarts} starts: consistent")
         assert token_processes(workdir) == set(), "processes left after the last release"
     finally:
         kill_all(token_processes(workdir))

@@ -1,0 +1,25 @@
+"""Resource managers: servers on the Resource Registrar for one kind of resource each.
+
+* :mod:`temoto.managers.process`: operating-system processes (:class:`ProcessManager`, the
+  ``"process"`` server, and :class:`ProcessManagerClient` for consumers).
+"""
+
+from __future__ import annotations
+
+from temoto.managers.process import (
+    FailurePolicy,
+    ProcessHandle,
+    ProcessManager,
+    ProcessManagerClient,
+    ProcessRequest,
+    ProcessResponse,
+)
+
+__all__ = [
+    "FailurePolicy",
+    "ProcessHandle",
+    "ProcessManager",
+    "ProcessManagerClient",
+    "ProcessRequest",
+    "ProcessResponse",
+]

@@ -1,0 +1,1149 @@
+"""The Process Manager: operating-system processes as registrar resources.
+
+:class:`ProcessManager` is the ``"process"`` server on a :class:`~temoto.core.registrar.Registrar`.
+A :class:`ProcessRequest` (executable, arguments, extra environment, working directory) loads
+one process; equal requests share it. The manager notices an exit within milliseconds (pidfds on
+one monitor thread, see :mod:`temoto.managers._procmon`) and reports it as ``FATAL`` to every
+consumer; releasing the last reference stops the process's whole process group (SIGTERM, then
+SIGKILL after a grace period). After a restart from the registrar's catalog it re-adopts the
+processes that still run.
+
+:class:`ProcessManagerClient` is the consumers' side: ``load`` / ``release`` by value, and a
+reaction to failures (by default: relaunch, as upstream's ``ProcessManagerInterface`` does).
+
+See ``docs/process-manager.md`` for the design.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import os
+import queue
+import selectors
+import shutil
+import signal
+import subprocess
+import threading
+import time
+import uuid
+from collections import deque
+from collections.abc import Callable, Iterable, Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, ClassVar, Literal, TypeAlias
+
+from temoto.core.registrar import (
+    LoadContext,
+    Registrar,
+    ResourceInfo,
+    ResourceServer,
+    Status,
+    StatusUpdate,
+)
+from temoto.errors import (
+    ResourceClosedError,
+    ResourceError,
+    ResourceNotFoundError,
+    StateError,
+)
+from temoto.managers._procmon import ProcessMonitor, process_start_time, process_state
+
+__all__ = [
+    "FailurePolicy",
+    "ProcessHandle",
+    "ProcessManager",
+    "ProcessManagerClient",
+    "ProcessRequest",
+    "ProcessResponse",
+]
+
+logger = logging.getLogger(__name__)
+
+#: States of /proc/<pid>/stat that mean "no longer running".
+_DEAD_STATES = frozenset({"Z", "X", "x"})
+
+#: Environment variable holding each started process's spawn token (inherited by whatever it
+#: starts): it finds the processes of a load interrupted by a crash, and left-overs of a process
+#: that died while the manager was down.
+TOKEN_VARIABLE = "TEMOTO_PROCESS_TOKEN"
+
+
+# ============================================================================ request / response
+
+
+def _check_text(value: object, what: str) -> str:
+    if not isinstance(value, str):
+        raise TypeError(f"{what} must be a str, not {type(value).__name__}")
+    if "\0" in value:
+        raise ValueError(f"{what} contains a NUL character: {value!r}")
+    return value
+
+
+@dataclass(frozen=True)
+class ProcessRequest:
+    """What process to run. Equal requests share one process.
+
+    Lists (what JSON gives back) are accepted for ``args`` and ``env`` and stored as tuples;
+    ``env`` may also be given as a mapping, and is stored sorted by name, so requests that differ
+    only in the order of their variables are equal.
+
+    Attributes:
+        executable: A program name looked up on ``PATH`` (``shutil.which``), or a path to an
+            executable file (absolute, or relative to ``cwd`` if it contains a ``/``).
+        args: The arguments (without the program name).
+        env: Extra environment variables as ``(name, value)`` pairs, added to the manager's
+            own environment.
+        cwd: The working directory, or None for the manager's.
+
+    Raises:
+        TypeError: A field has the wrong type (e.g. ``args`` given as one string).
+        ValueError: An empty executable, a NUL character, a bad or repeated variable name.
+    """
+
+    executable: str
+    args: tuple[str, ...] = ()
+    env: tuple[tuple[str, str], ...] = ()
+    cwd: str | None = None
+
+    def __post_init__(self) -> None:
+        if not _check_text(self.executable, "executable"):
+            raise ValueError("executable is empty")
+        args: object = self.args
+        if isinstance(args, str | bytes) or not isinstance(args, Iterable):
+            raise TypeError(f"args must be a sequence of str, not {type(args).__name__}")
+        object.__setattr__(
+            self, "args", tuple(_check_text(a, f"args[{i}]") for i, a in enumerate(args))
+        )
+        env: object = self.env
+        if isinstance(env, Mapping):
+            env = list(env.items())
+        if isinstance(env, str | bytes) or not isinstance(env, Iterable):
+            raise TypeError(f"env must be (name, value) pairs, not {type(env).__name__}")
+        pairs: dict[str, str] = {}
+        for i, pair in enumerate(env):
+            if isinstance(pair, str | bytes) or not isinstance(pair, Iterable):
+                raise TypeError(f"env[{i}] must be a (name, value) pair, not {pair!r}")
+            items = tuple(pair)
+            if len(items) != 2:
+                raise TypeError(f"env[{i}] must be a (name, value) pair, not {pair!r}")
+            name = _check_text(items[0], f"env[{i}] name")
+            value = _check_text(items[1], f"env[{i}] value ({name})")
+            if not name or "=" in name:
+                raise ValueError(f"env[{i}]: bad variable name {name!r}")
+            if name in pairs:
+                raise ValueError(f"env: variable {name!r} is given twice")
+            pairs[name] = value
+        object.__setattr__(self, "env", tuple(sorted(pairs.items())))
+        cwd: object = self.cwd
+        if cwd is not None:
+            if isinstance(cwd, os.PathLike):
+                cwd = os.fspath(cwd)
+            if not _check_text(cwd, "cwd"):
+                raise ValueError("cwd is empty (use None for the manager's directory)")
+            object.__setattr__(self, "cwd", cwd)
+
+    @property
+    def argv(self) -> list[str]:
+        """The command line as given (``[executable, *args]``), before the executable is found."""
+        return [self.executable, *self.args]
+
+
+def _check_int(value: object, what: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, int):
+        raise TypeError(f"{what} must be an int, not {type(value).__name__}")
+    return value
+
+
+@dataclass(frozen=True)
+class ProcessResponse:
+    """A running process, as the manager started it.
+
+    Attributes:
+        pid: Its process id.
+        pgid: Its process group id (it leads its own session and group, so equal to ``pid``).
+        start_time: The kernel's start time (clock ticks since boot, ``/proc/<pid>/stat``
+            field 22); with ``pid`` it identifies the process across a manager restart.
+        started_at: Wall-clock time it was started (seconds since the epoch).
+        token: Its spawn token, the value of ``TEMOTO_PROCESS_TOKEN`` in its environment
+            (and in that of everything it starts); "" if unknown.
+
+    Raises:
+        TypeError: A field has the wrong type.
+    """
+
+    pid: int
+    pgid: int
+    start_time: int
+    started_at: float
+    token: str = ""
+
+    def __post_init__(self) -> None:
+        for name in ("pid", "pgid", "start_time"):
+            _check_int(getattr(self, name), name)
+        if not isinstance(self.token, str):
+            raise TypeError(f"token must be a str, not {type(self.token).__name__}")
+        started: object = self.started_at
+        if isinstance(started, bool) or not isinstance(started, int | float):
+            raise TypeError(f"started_at must be a float, not {type(started).__name__}")
+        object.__setattr__(self, "started_at", float(started))
+
+
+# ============================================================================ the server
+
+
+@dataclass(eq=False)
+class _Proc:
+    """What the manager knows about one process it started or adopted."""
+
+    pid: int
+    pgid: int
+    start_time: int
+    executable: str
+    resource_id: str
+    child: bool
+    stopping: bool = False
+    exit: tuple[int | None, int | None] | None = None
+
+
+def _describe_exit(
+    pid: int, executable: str, returncode: int | None, sig: int | None, child: bool
+) -> str:
+    who = f"process {pid} ({executable})"
+    if returncode is not None:
+        return f"{who} exited with code {returncode}"
+    if sig is not None:
+        try:
+            name = signal.Signals(sig).name
+        except ValueError:
+            name = f"signal {sig}"
+        return f"{who} was killed by signal {name}"
+    if child:
+        return f"{who} exited (status unknown: it was reaped elsewhere)"
+    return f"{who} exited (status unknown: not a child of this manager)"
+
+
+def _wait_readable(fds: Iterable[int], timeout: float | None) -> set[int]:
+    """Block until every fd is readable or ``timeout`` passes; returns the readable ones."""
+    ready: set[int] = set()
+    deadline = None if timeout is None else time.monotonic() + timeout
+    with selectors.DefaultSelector() as sel:
+        for fd in fds:
+            sel.register(fd, selectors.EVENT_READ)
+        while sel.get_map():
+            left = None if deadline is None else max(0.0, deadline - time.monotonic())
+            events = sel.select(left)
+            if not events:
+                break
+            for key, _ in events:
+                ready.add(key.fd)
+                sel.unregister(key.fd)
+    return ready
+
+
+def _token_processes(token: str) -> list[tuple[int, int]]:
+    """Live processes (pid, start time) whose environment holds ``TEMOTO_PROCESS_TOKEN=token``."""
+    needle = f"{TOKEN_VARIABLE}={token}".encode()
+    found: list[tuple[int, int]] = []
+    me = os.getpid()
+    for name in os.listdir("/proc"):
+        if not name.isdigit() or int(name) == me:
+            continue
+        try:
+            with open(f"/proc/{name}/environ", "rb") as f:
+                environ = f.read()
+        except OSError:
+            continue
+        if needle in environ.split(b"\0"):
+            start = process_start_time(int(name))
+            if start is not None and process_state(int(name)) not in _DEAD_STATES:
+                found.append((int(name), start))
+    return found
+
+
+def _group_members(pgid: int) -> list[tuple[int, int]]:
+    """Live processes (pid, start time) whose process group is ``pgid``, from ``/proc``."""
+    members: list[tuple[int, int]] = []
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            with open(f"/proc/{name}/stat", "rb") as f:
+                data = f.read()
+        except OSError:
+            continue
+        fields = data.rpartition(b")")[2].split()
+        # fields[0] is field 3 (state), fields[2] field 5 (pgrp), fields[19] field 22.
+        if len(fields) < 20 or fields[0].decode() in _DEAD_STATES:
+            continue
+        if int(fields[2]) == pgid:
+            members.append((int(name), int(fields[19])))
+    return members
+
+
+class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
+    """The ``"process"`` resource server: starts, watches and stops processes.
+
+    Creating it registers it on the registrar (with a restored catalog, that is when the
+    processes of the previous run are re-adopted or reported dead).
+
+    * **Load** validates the request (``ValueError`` for a program that cannot be found or a
+      working directory that does not exist), starts the process in a new session (so it leads
+      its own process group), stdin from ``/dev/null``, and returns as soon as the process
+      exists; it does not wait for the program to be "ready". Its output (stdout and stderr
+      together) goes to ``<log_dir>/<pid>.log`` with ``log_dir``, to this process's stdout and
+      stderr with ``inherit_output=True``, else to ``/dev/null``. Inheriting is off by default
+      because processes outlive a crash of their manager: holding its stdout/stderr, they
+      would keep a pipe to a supervisor open (no EOF while they run), or die of SIGPIPE when
+      its reader is gone.
+    * **Exit**: when a process exits on its own, every consumer gets ``FATAL`` with the exit
+      code or signal, within milliseconds.
+    * **Unload** (last reference released) sends SIGTERM to the process group, waits up to
+      ``grace`` seconds, then sends SIGKILL to whatever is left of the group (grandchildren
+      included, also after the leader exited). It returns only when the leader is gone: the
+      catalog forgets the resource when ``on_unload`` returns, and it must never forget a live
+      process.
+    * **Restore**: a process that still runs with the recorded pid *and* start time is
+      re-adopted (watched, stoppable); anything else is reported ``FATAL`` "died while the
+      manager was down". A pid reused by another process is never adopted.
+
+    Args:
+        registrar: The registrar to serve on (``register`` is called here).
+        grace: Seconds between SIGTERM and SIGKILL when stopping.
+        kill_timeout: Seconds to wait for a SIGKILLed process to disappear before giving up
+            with an error (only a process stuck in the kernel takes that long).
+        log_dir: Directory for the processes' output files (created if missing).
+        inherit_output: Without ``log_dir``: let the processes write to this process's
+            stdout and stderr (instead of ``/dev/null``).
+
+    Raises:
+        ValueError: A negative ``grace``, both ``log_dir`` and ``inherit_output``, or a server
+            named ``"process"`` is registered.
+    """
+
+    name: ClassVar[str] = "process"
+    request_type: ClassVar[type[Any]] = ProcessRequest
+    response_type: ClassVar[type[Any]] = ProcessResponse
+
+    def __init__(
+        self,
+        registrar: Registrar,
+        *,
+        grace: float = 5.0,
+        kill_timeout: float = 5.0,
+        log_dir: str | os.PathLike[str] | None = None,
+        inherit_output: bool = False,
+    ) -> None:
+        if grace < 0 or kill_timeout < 0:
+            raise ValueError("grace and kill_timeout must be >= 0")
+        if log_dir is not None and inherit_output:
+            raise ValueError("give log_dir or inherit_output, not both")
+        self.registrar = registrar
+        self.grace = float(grace)
+        self.kill_timeout = float(kill_timeout)
+        self.log_dir = Path(log_dir) if log_dir is not None else None
+        self.inherit_output = bool(inherit_output)
+        self._lock = threading.Lock()
+        self._procs: dict[int, _Proc] = {}
+        self._closed = False
+        self._monitor = ProcessMonitor(name="temoto-procmon")
+        try:
+            registrar.register(self)
+        except BaseException:
+            self._monitor.close()
+            raise
+
+    # --------------------------------------------------------------------- hooks
+
+    def on_load(self, request: ProcessRequest, ctx: LoadContext) -> ProcessResponse:
+        """Start a process.
+
+        Args:
+            request: What to run.
+            ctx: The load context (the resource id is kept for status reports).
+
+        Returns:
+            The process's pid, process group, start time and start date.
+
+        Raises:
+            ValueError: The executable cannot be found or run, or ``cwd`` is not a directory.
+            OSError: Starting it failed otherwise.
+            StateError: The manager is shut down.
+        """
+        if self._closed:
+            raise StateError("the process manager is shut down")
+        argv, cwd = self._resolve(request)
+        token = uuid.uuid4().hex
+        env = {**os.environ, **dict(request.env), TOKEN_VARIABLE: token}
+        # Before the spawn: if this process dies while (or right after) starting the child, the
+        # restarted registrar hands the checkpoint to on_abandoned, which finds the child (and
+        # anything it started) by this token, pid or not.
+        ctx.checkpoint({"token": token})
+        log, log_tmp = self._open_log()
+        output: Any = log
+        if log is None and not self.inherit_output:
+            output = subprocess.DEVNULL
+        try:
+            proc = subprocess.Popen(
+                argv,
+                stdin=subprocess.DEVNULL,
+                stdout=output,
+                stderr=subprocess.STDOUT if output is not None else None,
+                close_fds=True,
+                start_new_session=True,
+                env=env,
+                cwd=cwd,
+            )
+        except BaseException:
+            if log is not None:
+                log.close()
+                os.unlink(log_tmp)
+            raise
+        # From here on the monitor waits for (reaps) this child through its pidfd. Marking the
+        # Popen object finished keeps subprocess from waiting for it behind the monitor's back
+        # (Popen.__del__ and subprocess's clean-up of dropped objects poll their children)
+        # and from warning that it "is still running".
+        proc.returncode = 0
+        pid = proc.pid
+        try:
+            if log is not None:
+                log.close()
+                assert self.log_dir is not None
+                os.replace(log_tmp, self.log_dir / f"{pid}.log")
+            start_time = process_start_time(pid)  # a child is not reaped before we watch it
+            if start_time is None:  # pragma: no cover - impossible for an unreaped child
+                raise OSError(f"process {pid} vanished right after it was started")
+            ctx.checkpoint({"token": token, "pid": pid, "pgid": pid, "start_time": start_time})
+            record = _Proc(pid, pid, start_time, request.executable, ctx.resource_id, True)
+            with self._lock:
+                self._procs[pid] = record
+            self._monitor.watch(pid, self._on_exit, child=True)
+        except BaseException:
+            with self._lock:
+                self._procs.pop(pid, None)
+            self._kill_at_once(pid)
+            raise
+        logger.info("started process %d: %s", pid, " ".join(argv))
+        return ProcessResponse(pid, pid, start_time, time.time(), token)
+
+    def on_unload(self, request: ProcessRequest, response: ProcessResponse) -> None:
+        """Stop a process and its whole process group; returns when the leader is gone.
+
+        SIGTERM goes to the group; after ``grace`` seconds SIGKILL goes to what is left. A
+        process that already exited is not signalled again, but group members it left behind
+        (grandchildren) are stopped the same way.
+
+        Args:
+            request: The request it was started for.
+            response: The process.
+
+        Raises:
+            ResourceError: The process survived SIGKILL for ``kill_timeout`` seconds.
+        """
+        with self._lock:
+            record = self._procs.get(response.pid)
+            if record is None or record.start_time != response.start_time:
+                record = None
+            else:
+                record.stopping = True
+        if record is None:
+            # Not ours in this run: it died while the manager was down (reported on restore).
+            # Its pid and group id may belong to others by now; what it started is found by
+            # its token.
+            self._stop_leftovers(response.token, f"left-overs of process {response.pid}")
+            return
+        try:
+            pidfd = self._monitor.detach(record.pid)  # None: its exit was already reported
+            self._stop(record, pidfd)
+        finally:
+            with self._lock:
+                self._procs.pop(record.pid, None)
+
+    def on_status(self, resource: ResourceInfo, status: Status, message: str) -> None:
+        """Log statuses of this server's resources.
+
+        Args:
+            resource: The resource.
+            status: Its status.
+            message: The message.
+        """
+        logger.debug("status of %s: %s %s", resource.id, status.name, message)
+
+    def on_restore(self, resource: ResourceInfo) -> tuple[Status, str] | None:
+        """Re-adopt a process recorded in the catalog, if it still runs.
+
+        It must still run with the recorded pid **and** start time (a later process that got
+        the same pid has another start time and is never adopted).
+
+        Args:
+            resource: A restored resource.
+
+        Returns:
+            None if it was re-adopted (or had already failed before the restart), else
+            ``(FATAL, "... died while the manager was down")``.
+        """
+        response = resource.response
+        if not isinstance(response, ProcessResponse):
+            response = ProcessResponse(**response)
+        request = resource.request
+        executable = getattr(request, "executable", "?")
+        if resource.failed:
+            return None  # its FATAL was reported before the restart
+        if self._adopt(response, resource.id, executable):
+            logger.info("re-adopted process %d (%s) for %s", response.pid, executable, resource.id)
+            return None
+        message = f"process {response.pid} ({executable}) died while the manager was down"
+        logger.warning("%s", message)
+        return Status.FATAL, message
+
+    def on_abandoned(self, request: ProcessRequest, progress: Mapping[str, Any] | None) -> None:
+        """After a restart: stop the process(es) of a load the crash interrupted.
+
+        Args:
+            request: The request being loaded.
+            progress: The checkpoint of ``on_load``: the spawn token (made before the spawn),
+                then pid, group and start time (right after it), or None.
+        """
+        if not progress:
+            return
+        token = progress.get("token")
+        if "pid" in progress:
+            try:
+                pid = int(progress["pid"])
+                pgid = int(progress["pgid"])
+                start = int(progress["start_time"])
+            except (KeyError, TypeError, ValueError):
+                logger.warning("abandoned load of %s: unusable checkpoint %r", request, progress)
+            else:
+                pidfd = self._open_if_same(pid, start)
+                if pidfd is not None:
+                    logger.warning(
+                        "stopping process %d (%s): its load was interrupted",
+                        pid,
+                        request.executable,
+                    )
+                    record = _Proc(pid, pgid, start, request.executable, "", False, True)
+                    self._stop(record, pidfd)
+        if isinstance(token, str) and token:
+            self._stop_leftovers(token, f"interrupted load of {request.executable}")
+
+    # --------------------------------------------------------------------- lifecycle
+
+    def shutdown(self) -> None:
+        """Stop the monitor thread. Processes are left running (consumers release them).
+
+        Idempotent. After it, loads fail with :class:`StateError`; processes left running can
+        be re-adopted by a new manager on a restored registrar.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            self._closed = True
+        self._monitor.close()
+
+    def __enter__(self) -> ProcessManager:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.shutdown()
+
+    def running(self) -> list[int]:
+        """The pids of the processes this manager watches (started or re-adopted).
+
+        Returns:
+            Pids, in the order they were started or adopted.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            return [p.pid for p in self._procs.values() if p.exit is None]
+
+    # --------------------------------------------------------------------- internals
+
+    def _resolve(self, request: ProcessRequest) -> tuple[list[str], str | None]:
+        cwd = request.cwd
+        if cwd is not None and not os.path.isdir(cwd):
+            raise ValueError(f"working directory {cwd!r} does not exist or is not a directory")
+        exe = request.executable
+        if "/" in exe:
+            path = exe if os.path.isabs(exe) or cwd is None else os.path.join(cwd, exe)
+            if not os.path.isfile(path):
+                raise ValueError(f"executable {exe!r} does not exist")
+            if not os.access(path, os.X_OK):
+                raise ValueError(f"executable {exe!r} is not executable")
+            found = os.path.abspath(path)
+        else:
+            extra = dict(request.env)
+            search = extra.get("PATH", os.environ.get("PATH", os.defpath))
+            which = shutil.which(exe, path=search)
+            if which is None:
+                raise ValueError(f"executable {exe!r} was not found on PATH")
+            found = which
+        return [found, *request.args], cwd
+
+    def _open_log(self) -> tuple[Any, str]:
+        if self.log_dir is None:
+            return None, ""
+        self.log_dir.mkdir(parents=True, exist_ok=True)
+        tmp = str(self.log_dir / f".starting-{uuid.uuid4().hex}.log")
+        return open(tmp, "ab"), tmp
+
+    def _on_exit(self, pid: int, returncode: int | None, sig: int | None) -> None:
+        """Monitor callback (monitor thread): a watched process exited."""
+        with self._lock:
+            record = self._procs.get(pid)
+            if record is None:
+                return
+            record.exit = (returncode, sig)
+            stopping = record.stopping
+        message = _describe_exit(pid, record.executable, returncode, sig, record.child)
+        if stopping:
+            logger.debug("%s while being stopped", message)
+            return
+        logger.warning("%s", message)
+        try:
+            self.registrar.send_status(record.resource_id, Status.FATAL, message)
+        except ResourceError as err:
+            logger.error("could not report the exit of process %d: %s", pid, err)
+
+    def _adopt(self, response: ProcessResponse, resource_id: str, executable: str) -> bool:
+        pid = response.pid
+        if process_start_time(pid) != response.start_time or process_state(pid) in _DEAD_STATES:
+            return False
+        record = _Proc(pid, response.pgid, response.start_time, executable, resource_id, False)
+        with self._lock:
+            self._procs[pid] = record
+        try:
+            self._monitor.watch(pid, self._on_exit, child=False)
+        except ProcessLookupError:
+            with self._lock:
+                self._procs.pop(pid, None)
+            return False
+        # The pidfd now pins the process: check again that it is the same one (the pid could
+        # have been reused between the first check and pidfd_open).
+        if process_start_time(pid) != response.start_time:
+            self._monitor.unwatch(pid)
+            with self._lock:
+                self._procs.pop(pid, None)
+            return False
+        return True
+
+    @staticmethod
+    def _open_if_same(pid: int, start_time: int) -> int | None:
+        """A pidfd for ``pid`` if it still runs with ``start_time``, else None."""
+        try:
+            fd = os.pidfd_open(pid)
+        except ProcessLookupError:
+            return None
+        if process_start_time(pid) != start_time or process_state(pid) in _DEAD_STATES:
+            os.close(fd)
+            return None
+        return fd
+
+    def _stop(self, record: _Proc, pidfd: int | None) -> None:
+        """SIGTERM the group, wait for the leader up to ``grace``, SIGKILL the rest; reap."""
+        deadline = time.monotonic() + self.grace
+        sent: int | None = None  # the last signal sent to the group
+        try:
+            if pidfd is not None and not _wait_readable([pidfd], 0):
+                self._signal_group(record.pgid, signal.SIGTERM)
+                sent = signal.SIGTERM
+                if not _wait_readable([pidfd], self.grace):
+                    logger.warning(
+                        "process %d (%s) ignored SIGTERM for %.3g s: sending SIGKILL",
+                        record.pid,
+                        record.executable,
+                        self.grace,
+                    )
+                    self._signal_group(record.pgid, signal.SIGKILL)
+                    sent = signal.SIGKILL
+                    if not _wait_readable([pidfd], self.kill_timeout):
+                        raise ResourceError(
+                            f"process {record.pid} ({record.executable}) survived SIGKILL for"
+                            f" {self.kill_timeout:g} s",
+                            origin=self.name,
+                        )
+            if pidfd is not None:
+                with contextlib.suppress(ChildProcessError):
+                    os.waitid(os.P_PIDFD, pidfd, os.WEXITED | os.WNOHANG)
+        finally:
+            if pidfd is not None:
+                os.close(pidfd)
+        if sent is None:
+            deadline = time.monotonic() + self.grace
+        self._stop_members(record, deadline, sent)
+        logger.info("stopped process %d (%s)", record.pid, record.executable)
+
+    def _stop_members(self, record: _Proc, deadline: float, sent: int | None) -> None:
+        """Stop what is left of the leader's process group (grandchildren).
+
+        ``sent`` is the signal the group already got (None, SIGTERM or SIGKILL); ``deadline``
+        ends the grace period of SIGTERM.
+        """
+        try:
+            os.killpg(record.pgid, 0)  # cheap: is anyone left in the group?
+        except ProcessLookupError:
+            return
+        except PermissionError:
+            pass
+        self._stop_processes(
+            _group_members(record.pgid), deadline, sent, f"process group {record.pgid}", record.pgid
+        )
+
+    def _stop_processes(
+        self,
+        members: list[tuple[int, int]],
+        deadline: float,
+        sent: int | None,
+        what: str,
+        pgid: int | None = None,
+    ) -> None:
+        """Stop processes given as (pid, start time): SIGTERM, wait until ``deadline``, SIGKILL.
+
+        ``sent`` is the signal they already got (None, SIGTERM or SIGKILL); ``pgid``, if given,
+        is their group, SIGKILLed as a whole too.
+        """
+        fds: dict[int, int] = {}
+        try:
+            for pid, start in members:
+                fd = self._open_if_same(pid, start)
+                if fd is not None:
+                    fds[fd] = pid
+            if not fds:
+                return
+            if sent is None:
+                for fd in fds:
+                    with contextlib.suppress(ProcessLookupError):
+                        signal.pidfd_send_signal(fd, signal.SIGTERM)
+            left = set(fds)
+            if sent != signal.SIGKILL:
+                left -= _wait_readable(fds, max(0.0, deadline - time.monotonic()))
+            if left:
+                if sent != signal.SIGKILL:
+                    logger.warning(
+                        "%s: %d process(es) still running after SIGTERM: SIGKILL", what, len(left)
+                    )
+                for fd in left:
+                    with contextlib.suppress(ProcessLookupError):
+                        signal.pidfd_send_signal(fd, signal.SIGKILL)
+                if pgid is not None:
+                    # Members forked after the scan are reached through the group id, which
+                    # their living siblings keep from being reused.
+                    self._signal_group(pgid, signal.SIGKILL)
+                stuck = left - _wait_readable(left, self.kill_timeout)
+                if stuck:
+                    raise ResourceError(
+                        f"{what}: {sorted(fds[f] for f in stuck)} survived SIGKILL for"
+                        f" {self.kill_timeout:g} s",
+                        origin=self.name,
+                    )
+        finally:
+            for fd in fds:
+                os.close(fd)
+
+    def _stop_leftovers(self, token: str, what: str) -> None:
+        """Stop every process that carries the spawn token (and is not dead yet)."""
+        if not token:
+            return
+        members = _token_processes(token)
+        if members:
+            logger.warning("%s: stopping %s", what, sorted(pid for pid, _ in members))
+            self._stop_processes(members, time.monotonic() + self.grace, None, what)
+
+    @staticmethod
+    def _signal_group(pgid: int, sig: int) -> None:
+        with contextlib.suppress(ProcessLookupError):
+            os.killpg(pgid, sig)
+
+    def _kill_at_once(self, pid: int) -> None:
+        """Undo a spawn whose load failed after the process started: SIGKILL and reap."""
+        self._signal_group(pid, signal.SIGKILL)
+        with contextlib.suppress(ChildProcessError):
+            os.waitpid(pid, 0)
+
+
+# ============================================================================ the client
+
+
+@dataclass(eq=False)
+class ProcessHandle:
+    """A consumer's process, kept up to date across relaunches.
+
+    The fields change in place when the client relaunches the process (a new reference, a new
+    pid); ``on_change`` (if set) is called after every change, on the client's worker thread.
+
+    Attributes:
+        request: The request (the same across relaunches).
+        reference_id: The current registrar reference ("" after release or a failed
+            relaunch).
+        resource_id: The current resource.
+        response: The current process.
+        relaunches: How many times it was relaunched.
+        failed: True while the current process is known dead and no relaunch is coming
+            (policy ``"report"``, a failed relaunch, or the relaunch budget used up).
+        released: True once released.
+        last_status: The last FATAL status received, if any.
+        on_change: Called with the handle after a relaunch, or when the handle gives up.
+    """
+
+    request: ProcessRequest
+    reference_id: str
+    resource_id: str
+    response: ProcessResponse
+    relaunches: int = 0
+    failed: bool = False
+    released: bool = False
+    last_status: StatusUpdate | None = None
+    on_change: Callable[[ProcessHandle], None] | None = None
+    _history: deque[float] = field(default_factory=deque, init=False, repr=False)
+
+    @property
+    def pid(self) -> int:
+        """The current process id."""
+        return self.response.pid
+
+
+FailurePolicy: TypeAlias = (
+    Literal["relaunch", "report"] | Callable[[ProcessHandle, StatusUpdate], None]
+)
+"""How a :class:`ProcessManagerClient` reacts to a FATAL status of one of its processes."""
+
+_STOP = object()
+
+
+class ProcessManagerClient:
+    """Loads and releases processes for one consumer, and reacts when they die.
+
+    Reactions (``on_failure``) to a ``FATAL`` status of one of its processes:
+
+    * ``"relaunch"`` (default, as upstream): release the failed reference and load the same
+      request again (the registrar gives a fresh resource for a request whose resource
+      failed); the handle is updated in place. At most ``max_relaunches`` relaunches within
+      ``relaunch_window`` seconds per handle; beyond that it gives up: logs an error, sets
+      ``handle.failed`` and calls ``handle.on_change``.
+    * ``"report"``: log it and set ``handle.failed``; the handle keeps its (failed) reference
+      until released.
+    * a callable ``f(handle, update)``: your own reaction.
+
+    Reactions run on a worker thread of the client (``temoto-process-client-<client>``,
+    started on the first failure, joined by :meth:`close`), never on the monitor thread that
+    reports the exit: a relaunch may wait for the failed process's group to stop.
+
+    Args:
+        registrar: The registrar with a ``"process"`` server.
+        client: The consumer name the references are taken for.
+        on_failure: The reaction, see above.
+        max_relaunches: Relaunch budget per handle within ``relaunch_window``; None for no
+            limit.
+        relaunch_window: Seconds.
+
+    Raises:
+        ValueError: An unknown policy or a negative budget.
+    """
+
+    def __init__(
+        self,
+        registrar: Registrar,
+        client: str,
+        *,
+        on_failure: FailurePolicy = "relaunch",
+        max_relaunches: int | None = 10,
+        relaunch_window: float = 60.0,
+    ) -> None:
+        if not callable(on_failure) and on_failure not in ("relaunch", "report"):
+            raise ValueError(
+                f"on_failure must be 'relaunch', 'report' or a callable, not {on_failure!r}"
+            )
+        if max_relaunches is not None and max_relaunches < 0:
+            raise ValueError("max_relaunches must be >= 0 or None")
+        self.registrar = registrar
+        self.client = client
+        self.on_failure = on_failure
+        self.max_relaunches = max_relaunches
+        self.relaunch_window = float(relaunch_window)
+        self._lock = threading.Lock()
+        self._handles: dict[str, ProcessHandle] = {}  # by reference id
+        self._all: list[ProcessHandle] = []
+        self._queue: queue.SimpleQueue[StatusUpdate | object] = queue.SimpleQueue()
+        # The worker thread and the closed flag have their own lock: status callbacks (on the
+        # monitor thread) must never wait for ``_lock``, which a release may hold for ``grace``.
+        self._thread_lock = threading.Lock()
+        self._thread: threading.Thread | None = None
+        self._closed = False
+
+    # --------------------------------------------------------------------- public API
+
+    def load(
+        self,
+        executable: str,
+        *args: str,
+        env: Mapping[str, str] | None = None,
+        cwd: str | os.PathLike[str] | None = None,
+    ) -> ProcessHandle:
+        """Start (or share) a process.
+
+        Args:
+            executable: The program (on ``PATH``, or a path).
+            *args: Its arguments.
+            env: Extra environment variables.
+            cwd: The working directory.
+
+        Returns:
+            The handle.
+
+        Raises:
+            TypeError: Bad argument types.
+            ValueError: A bad request (before it reaches the registrar).
+            ResourceLoadError: The manager could not start it (the cause is chained).
+            StateError: The client is closed.
+        """
+        request = ProcessRequest(
+            executable,
+            tuple(args),
+            tuple((env or {}).items()),
+            os.fspath(cwd) if cwd is not None else None,
+        )
+        with self._lock:
+            if self._closed:
+                raise StateError(f"process client '{self.client}' is closed")
+            resource = self.registrar.call(
+                ProcessManager.name, request, client=self.client, on_status=self._on_status
+            )
+            handle = ProcessHandle(request, resource.id, resource.resource_id, resource.response)
+            self._handles[resource.id] = handle
+            self._all.append(handle)
+        self._check_failed_at_load(handle, resource.id)
+        return handle
+
+    def release(self, handle: ProcessHandle) -> None:
+        """Release a process (it stops when no other consumer holds it). Idempotent.
+
+        Args:
+            handle: What :meth:`load` returned.
+
+        Raises:
+            Nothing for a handle already released.
+        """
+        with self._lock:
+            if handle.released:
+                return
+            handle.released = True
+            if handle in self._all:
+                self._all.remove(handle)
+            ref = handle.reference_id
+            handle.reference_id = ""
+            self._handles.pop(ref, None)
+            if ref:
+                with contextlib.suppress(ResourceClosedError, ResourceNotFoundError):
+                    self.registrar.release(ref)
+
+    def release_all(self) -> None:
+        """Release every process of this client.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            handles = list(self._all)
+        for handle in reversed(handles):
+            self.release(handle)
+
+    def handles(self) -> list[ProcessHandle]:
+        """The handles not yet released.
+
+        Returns:
+            Handles, in load order.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            return list(self._all)
+
+    def reattach(self) -> list[ProcessHandle]:
+        """After a restart from the catalog: take over this client's process references.
+
+        Builds a handle for each reference the registrar holds for ``client`` on the process
+        server, subscribes to its status, and applies the failure reaction to those that died
+        while the manager was down (their FATAL was sent before anyone could subscribe).
+
+        Returns:
+            The new handles.
+
+        Raises:
+            StateError: The client is closed.
+        """
+        attached: list[ProcessHandle] = []
+        with self._lock:
+            if self._closed:
+                raise StateError(f"process client '{self.client}' is closed")
+            for ref in self.registrar.references(self.client):
+                if ref.holder or ref.id in self._handles:
+                    continue
+                info = self.registrar.info(ref.id)
+                if info.server != ProcessManager.name:
+                    continue
+                handle = ProcessHandle(info.request, ref.id, info.id, info.response)
+                self._handles[ref.id] = handle
+                self._all.append(handle)
+                self.registrar.subscribe(ref.id, self._on_status)
+                attached.append(handle)
+        for handle in attached:
+            self._check_failed_at_load(
+                handle, handle.reference_id, "failed while the process manager was down"
+            )
+        return attached
+
+    def close(self) -> None:
+        """Release everything and stop the worker thread. Idempotent.
+
+        Raises:
+            Nothing.
+        """
+        self.release_all()
+        with self._thread_lock:
+            self._closed = True
+            thread = self._thread
+        if thread is not None:
+            self._queue.put(_STOP)
+            if thread is not threading.current_thread():
+                thread.join()
+
+    def __enter__(self) -> ProcessManagerClient:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+    # --------------------------------------------------------------------- internals
+
+    def _check_failed_at_load(
+        self,
+        handle: ProcessHandle,
+        reference_id: str,
+        message: str = "exited before its load completed",
+    ) -> None:
+        # A process that dies while its load is still being recorded is marked failed before
+        # this reference (and its callback) exists: its FATAL reached nobody. React here.
+        try:
+            info = self.registrar.info(reference_id)
+        except ResourceNotFoundError:
+            return
+        if info.failed:
+            pid = handle.response.pid
+            update = StatusUpdate(
+                reference_id,
+                info.id,
+                Status.FATAL,
+                f"process {pid} ({handle.request.executable}) {message}",
+                info.id,
+                (ProcessManager.name,),
+            )
+            self._on_status(update)
+
+    def _on_status(self, update: StatusUpdate) -> None:
+        """Registrar callback (runs in the reporting thread): hand FATALs to the worker."""
+        if update.status is not Status.FATAL:
+            logger.debug("%s: %s %s", update.reference_id, update.status.name, update.message)
+            return
+        with self._thread_lock:
+            if self._closed:
+                return
+            if self._thread is None:
+                self._thread = threading.Thread(
+                    target=self._work, name=f"temoto-process-client-{self.client}", daemon=True
+                )
+                self._thread.start()
+        self._queue.put(update)
+
+    def _work(self) -> None:
+        while True:
+            item = self._queue.get()
+            if item is _STOP:
+                return
+            assert isinstance(item, StatusUpdate)
+            try:
+                self._react(item)
+            except Exception:
+                logger.exception("reaction to %s failed", item)
+
+    def _react(self, update: StatusUpdate) -> None:
+        with self._lock:
+            handle = self._handles.get(update.reference_id)
+            if handle is None or handle.released or self._closed:
+                return  # released, or already relaunched (a duplicate report)
+            if handle.last_status is not None and handle.last_status.reference_id == (
+                update.reference_id
+            ):
+                return  # the same failure, reported twice
+            handle.last_status = update
+        policy = self.on_failure
+        if callable(policy):
+            policy(handle, update)
+            return
+        if policy == "report":
+            logger.error("client '%s': %s", self.client, update.message)
+            handle.failed = True
+            self._changed(handle)
+            return
+        self._relaunch(handle, update)
+
+    def _relaunch(self, handle: ProcessHandle, update: StatusUpdate) -> None:
+        now = time.monotonic()
+        history = handle._history
+        while history and now - history[0] > self.relaunch_window:
+            history.popleft()
+        if self.max_relaunches is not None and len(history) >= self.max_relaunches:
+            logger.error(
+                "client '%s': %s; not relaunching: %d relaunches within %g s",
+                self.client,
+                update.message,
+                len(history),
+                self.relaunch_window,
+            )
+            handle.failed = True
+            self._changed(handle)
+            return
+        logger.warning("client '%s': %s; relaunching", self.client, update.message)
+        with self._lock:
+            if handle.released or self._closed:
+                return
+            old = handle.reference_id
+            self._handles.pop(old, None)
+            with contextlib.suppress(ResourceClosedError, ResourceNotFoundError):
+                self.registrar.release(old)
+            history.append(now)
+            try:
+                resource = self.registrar.call(
+                    ProcessManager.name,
+                    handle.request,
+                    client=self.client,
+                    on_status=self._on_status,
+                )
+            except Exception as err:
+                logger.error("client '%s': relaunch of %s failed: %s", self.client, old, err)
+                handle.reference_id = ""
+                handle.failed = True
+                new_ref = ""
+            else:
+                handle.reference_id = resource.id
+                handle.resource_id = resource.resource_id
+                handle.response = resource.response
+                handle.relaunches += 1
+                handle.failed = False
+                self._handles[resource.id] = handle
+                new_ref = resource.id
+        self._changed(handle)
+        if new_ref:
+            self._check_failed_at_load(handle, new_ref)
+
+    @staticmethod
+    def _changed(handle: ProcessHandle) -> None:
+        hook = handle.on_change
+        if hook is not None:
+            try:
+                hook(handle)
+            except Exception:
+                logger.exception("on_change hook of process %d failed", handle.pid)
