@@ -28,22 +28,19 @@ from pathlib import Path
 from typing import Any
 
 from temoto.clock import Clock, MonotonicClock
-from temoto.core._runtime import GraphRun, Node, NodeKind, Plan, ResolvedAction
+from temoto.core._runtime import GraphRun, Node, NodeKind, Plan
 from temoto.core.action import RunControl
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.executor import DeadlineTimer, WorkerPool
 from temoto.core.graph import UmrfGraph, graph_from_document, graph_to_dict
 from temoto.core.instrument import Instrument
-from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value, dump_parameter_tree
+from temoto.core.params import dump_parameter_tree
+from temoto.core.planning import Planner, graph_inputs
 from temoto.core.registrar.registry import Registrar
 from temoto.core.states import NODE_TRANSITIONS, GraphState, NodeState, Response, Result
-from temoto.core.umrf import DEFAULT_CONDITIONS, Umrf, dump_umrf
-from temoto.core.validation import validate_graph
+from temoto.core.umrf import DEFAULT_CONDITIONS, dump_umrf
 from temoto.errors import (
     ActionError,
-    ActionNotFoundError,
-    GraphDefinitionError,
-    GraphInputError,
     GraphNotFoundError,
     StateError,
     StopRequested,
@@ -131,6 +128,7 @@ class ActionEngine:
             actions if isinstance(actions, ActionCatalog) else ActionCatalog(actions or ())
         )
         self.graphs = graphs if isinstance(graphs, GraphIndex) else GraphIndex(graphs or ())
+        self._planner = Planner(actor, self.catalog, self.graphs)
         self.clock: Clock = clock or MonotonicClock()
         self.stop_timeout = stop_timeout
         self.registrar = registrar
@@ -192,7 +190,7 @@ class ActionEngine:
             model = graph_from_document(graph)
         run_name = name or model.name
         plan = self.plan(model)
-        values = _graph_inputs(plan.graph, params or {})
+        values = graph_inputs(plan.graph, params or {})
         fx: list[Effect] = []
         with self._lock:
             if self._closed:
@@ -518,60 +516,7 @@ class ActionEngine:
             GraphDefinitionError, ActionNotFoundError, PluginConflictError, PluginLoadError:
                 As for :meth:`start`.
         """
-        return self._plan(graph, (graph.name,))
-
-    def _plan(self, graph: UmrfGraph, stack: tuple[str, ...]) -> Plan:
-        actions: list[Umrf] = []
-        resolved: dict[str, ResolvedAction] = {}
-        remote: list[str] = []
-        for umrf in graph.actions:
-            if umrf.actor and umrf.actor != self.actor:
-                resolved[umrf.full_name] = ResolvedAction(NodeKind.REMOTE)
-                remote.append(f"{umrf.full_name} ({umrf.actor})")
-                actions.append(umrf)
-                continue
-            effective, how = self._resolve(graph, umrf, stack)
-            actions.append(effective)
-            resolved[umrf.full_name] = how
-        if remote:
-            raise GraphDefinitionError(
-                f"graph '{graph.name}' has actions for other actors: {', '.join(remote)};"
-                f" this engine"
-                f" (actor '{self.actor}') has no fleet link to run them with",
-                file=graph.source,
-            )
-        effective_graph = dataclasses.replace(graph, actions=tuple(actions))
-        report = validate_graph(effective_graph)
-        report.raise_for_errors(graph.source)
-        for issue in report.warnings:
-            logger.warning("graph '%s': %s", graph.name, issue)
-        return Plan(effective_graph, resolved, tuple(str(w) for w in report.warnings))
-
-    def _resolve(
-        self, graph: UmrfGraph, umrf: Umrf, stack: tuple[str, ...]
-    ) -> tuple[Umrf, ResolvedAction]:
-        description = self.catalog.find(umrf.name)
-        mismatch = ""
-        if description is not None:
-            mismatch = _param_mismatch(umrf, description)
-            if not mismatch:
-                cls = self.catalog.load_class(umrf.name)
-                return _merge(graph, umrf, description), ResolvedAction(NodeKind.LOCAL, cls=cls)
-        sub = self.graphs.find_subgraph(umrf)
-        if sub is not None:
-            if sub.name in stack:
-                chain = " -> ".join((*stack, sub.name))
-                raise GraphDefinitionError(
-                    f"graph uses itself as a sub-graph: {chain}", file=graph.source
-                )
-            return umrf, ResolvedAction(NodeKind.GRAPH, plan=self._plan(sub, (*stack, sub.name)))
-        where = f"graph '{graph.name}': action '{umrf.full_name}'"
-        if mismatch:
-            raise GraphDefinitionError(f"{where}: {mismatch}", file=graph.source)
-        raise ActionNotFoundError(
-            f"{where}: no action description and no indexed graph named '{umrf.name}'"
-            " (add its folder with --actions, or its graph's folder with --graphs)"
-        )
+        return self._planner.plan(graph)
 
     # ================================================================ effects
 
@@ -1167,84 +1112,6 @@ def _transfer(
             continue
         child.data[target] = value
         child.native.discard(target)
-
-
-def _param_mismatch(umrf: Umrf, description: Umrf) -> str:
-    problems = []
-    for side, mine, theirs in (
-        ("inputs", umrf.input_parameters, description.input_parameters),
-        ("outputs", umrf.output_parameters, description.output_parameters),
-    ):
-        missing, extra = sorted(set(theirs) - set(mine)), sorted(set(mine) - set(theirs))
-        if missing:
-            problems.append(f"lacks {side} {', '.join(missing)}")
-        if extra:
-            problems.append(f"has {side} {', '.join(extra)} that the description does not")
-    if not problems:
-        return ""
-    return f"does not match the description of '{description.name}': it " + "; ".join(problems)
-
-
-def _merge(graph: UmrfGraph, umrf: Umrf, description: Umrf) -> Umrf:
-    """The description's parameters, with the graph's literals and allowed values."""
-
-    def side(
-        mine: Mapping[str, Parameter], theirs: Mapping[str, Parameter], what: str
-    ) -> dict[str, Parameter]:
-        out = {}
-        for name, desc in theirs.items():
-            own = mine[name]
-            if own.type != desc.type:
-                raise GraphDefinitionError(
-                    f"action '{umrf.full_name}': {what} '{name}' is {own.type} in the graph but"
-                    f" {desc.type} in the description of '{description.name}'",
-                    file=graph.source,
-                )
-            out[name] = dataclasses.replace(
-                desc,
-                value=own.value if own.has_value else desc.value,
-                updatable=desc.updatable and own.updatable,
-                allowed_values=own.allowed_values or desc.allowed_values,
-            )
-        return out
-
-    return dataclasses.replace(
-        umrf,
-        input_parameters=side(umrf.input_parameters, description.input_parameters, "input"),
-        output_parameters=side(umrf.output_parameters, description.output_parameters, "output"),
-    )
-
-
-def _graph_inputs(graph: UmrfGraph, params: Mapping[str, Any]) -> dict[str, Any]:
-    """Check the values given for a graph's external inputs."""
-    inputs = graph.signature().inputs
-    values: dict[str, Any] = {}
-    for name, value in params.items():
-        param = inputs.get(name)
-        if param is None:
-            known = ", ".join(sorted(inputs)) or "none"
-            raise GraphInputError(
-                f"graph '{graph.name}' has no input '{name}' (its inputs: {known})",
-                file=graph.source,
-            )
-        if param.type in NATIVE_TYPES:
-            try:
-                value = check_value(param.type, value)
-            except TypeError as err:
-                raise GraphInputError(
-                    f"graph input '{name}' ({param.type}): {err}", file=graph.source
-                ) from None
-        values[name] = value
-    missing = sorted(
-        n for n, p in inputs.items() if p.required and n not in values and p.value is NO_VALUE
-    )
-    if missing:
-        raise GraphInputError(
-            f"graph '{graph.name}' needs input {', '.join(repr(m) for m in missing)}"
-            " (pass it as a parameter; upstream would silently never start)",
-            file=graph.source,
-        )
-    return values
 
 
 def _release_resources(instance: Any) -> None:

@@ -1,0 +1,191 @@
+"""Planning: turn a UMRF graph into a :class:`~temoto.core._runtime.Plan` the engine can run.
+
+Every action is resolved — remote if its ``actor`` is another actor; local if an action
+description has the same name and the same input and output parameter names (its class is
+imported now, so a broken module fails this graph only, before anything runs); else a sub-graph
+if an indexed graph has that name and signature (planned recursively; a graph using itself is
+an error). Parameters are merged (the description's definitions with the graph's literals and
+allowed values; a type conflict is an error), and the effective graph is validated.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections.abc import Mapping
+from typing import Any
+
+from temoto.core._runtime import NodeKind, Plan, ResolvedAction
+from temoto.core.catalog import ActionCatalog, GraphIndex
+from temoto.core.graph import UmrfGraph
+from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value
+from temoto.core.umrf import Umrf
+from temoto.core.validation import validate_graph
+from temoto.errors import ActionNotFoundError, GraphDefinitionError, GraphInputError
+
+__all__ = ["Planner", "graph_inputs"]
+
+logger = logging.getLogger(__name__)
+
+
+class Planner:
+    """Resolves, merges and validates graphs against an action catalog and a graph index.
+
+    Args:
+        actor: The local actor's name (actions of other actors are remote).
+        catalog: Where action descriptions and classes come from.
+        graphs: Where sub-graphs come from.
+    """
+
+    def __init__(self, actor: str, catalog: ActionCatalog, graphs: GraphIndex) -> None:
+        self.actor = actor
+        self.catalog = catalog
+        self.graphs = graphs
+
+    def plan(self, graph: UmrfGraph) -> Plan:
+        """Resolve and validate a graph.
+
+        Args:
+            graph: The graph.
+
+        Returns:
+            The plan: effective actions and how each runs.
+
+        Raises:
+            GraphDefinitionError: The graph cannot run (all problems listed), names other actors,
+                or uses itself as a sub-graph.
+            ActionNotFoundError, PluginConflictError, PluginLoadError: An action cannot be
+                loaded.
+        """
+        return self._plan(graph, (graph.name,))
+
+    def _plan(self, graph: UmrfGraph, stack: tuple[str, ...]) -> Plan:
+        actions: list[Umrf] = []
+        resolved: dict[str, ResolvedAction] = {}
+        remote: list[str] = []
+        for umrf in graph.actions:
+            if umrf.actor and umrf.actor != self.actor:
+                resolved[umrf.full_name] = ResolvedAction(NodeKind.REMOTE)
+                remote.append(f"{umrf.full_name} ({umrf.actor})")
+                actions.append(umrf)
+                continue
+            effective, how = self._resolve(graph, umrf, stack)
+            actions.append(effective)
+            resolved[umrf.full_name] = how
+        if remote:
+            raise GraphDefinitionError(
+                f"graph '{graph.name}' has actions for other actors: {', '.join(remote)};"
+                f" this engine"
+                f" (actor '{self.actor}') has no fleet link to run them with",
+                file=graph.source,
+            )
+        effective_graph = dataclasses.replace(graph, actions=tuple(actions))
+        report = validate_graph(effective_graph)
+        report.raise_for_errors(graph.source)
+        for issue in report.warnings:
+            logger.warning("graph '%s': %s", graph.name, issue)
+        return Plan(effective_graph, resolved, tuple(str(w) for w in report.warnings))
+
+    def _resolve(
+        self, graph: UmrfGraph, umrf: Umrf, stack: tuple[str, ...]
+    ) -> tuple[Umrf, ResolvedAction]:
+        description = self.catalog.find(umrf.name)
+        mismatch = ""
+        if description is not None:
+            mismatch = _param_mismatch(umrf, description)
+            if not mismatch:
+                cls = self.catalog.load_class(umrf.name)
+                return _merge(graph, umrf, description), ResolvedAction(NodeKind.LOCAL, cls=cls)
+        sub = self.graphs.find_subgraph(umrf)
+        if sub is not None:
+            if sub.name in stack:
+                chain = " -> ".join((*stack, sub.name))
+                raise GraphDefinitionError(
+                    f"graph uses itself as a sub-graph: {chain}", file=graph.source
+                )
+            return umrf, ResolvedAction(NodeKind.GRAPH, plan=self._plan(sub, (*stack, sub.name)))
+        where = f"graph '{graph.name}': action '{umrf.full_name}'"
+        if mismatch:
+            raise GraphDefinitionError(f"{where}: {mismatch}", file=graph.source)
+        raise ActionNotFoundError(
+            f"{where}: no action description and no indexed graph named '{umrf.name}'"
+            " (add its folder with --actions, or its graph's folder with --graphs)"
+        )
+
+
+def _param_mismatch(umrf: Umrf, description: Umrf) -> str:
+    problems = []
+    for side, mine, theirs in (
+        ("inputs", umrf.input_parameters, description.input_parameters),
+        ("outputs", umrf.output_parameters, description.output_parameters),
+    ):
+        missing, extra = sorted(set(theirs) - set(mine)), sorted(set(mine) - set(theirs))
+        if missing:
+            problems.append(f"lacks {side} {', '.join(missing)}")
+        if extra:
+            problems.append(f"has {side} {', '.join(extra)} that the description does not")
+    if not problems:
+        return ""
+    return f"does not match the description of '{description.name}': it " + "; ".join(problems)
+
+
+def _merge(graph: UmrfGraph, umrf: Umrf, description: Umrf) -> Umrf:
+    """The description's parameters, with the graph's literals and allowed values."""
+
+    def side(
+        mine: Mapping[str, Parameter], theirs: Mapping[str, Parameter], what: str
+    ) -> dict[str, Parameter]:
+        out = {}
+        for name, desc in theirs.items():
+            own = mine[name]
+            if own.type != desc.type:
+                raise GraphDefinitionError(
+                    f"action '{umrf.full_name}': {what} '{name}' is {own.type} in the graph but"
+                    f" {desc.type} in the description of '{description.name}'",
+                    file=graph.source,
+                )
+            out[name] = dataclasses.replace(
+                desc,
+                value=own.value if own.has_value else desc.value,
+                updatable=desc.updatable and own.updatable,
+                allowed_values=own.allowed_values or desc.allowed_values,
+            )
+        return out
+
+    return dataclasses.replace(
+        umrf,
+        input_parameters=side(umrf.input_parameters, description.input_parameters, "input"),
+        output_parameters=side(umrf.output_parameters, description.output_parameters, "output"),
+    )
+
+
+def graph_inputs(graph: UmrfGraph, params: Mapping[str, Any]) -> dict[str, Any]:
+    """Check the values given for a graph's external inputs."""
+    inputs = graph.signature().inputs
+    values: dict[str, Any] = {}
+    for name, value in params.items():
+        param = inputs.get(name)
+        if param is None:
+            known = ", ".join(sorted(inputs)) or "none"
+            raise GraphInputError(
+                f"graph '{graph.name}' has no input '{name}' (its inputs: {known})",
+                file=graph.source,
+            )
+        if param.type in NATIVE_TYPES:
+            try:
+                value = check_value(param.type, value)
+            except TypeError as err:
+                raise GraphInputError(
+                    f"graph input '{name}' ({param.type}): {err}", file=graph.source
+                ) from None
+        values[name] = value
+    missing = sorted(
+        n for n, p in inputs.items() if p.required and n not in values and p.value is NO_VALUE
+    )
+    if missing:
+        raise GraphInputError(
+            f"graph '{graph.name}' needs input {', '.join(repr(m) for m in missing)}"
+            " (pass it as a parameter; upstream would silently never start)",
+            file=graph.source,
+        )
+    return values
