@@ -6,14 +6,8 @@
 
 from __future__ import annotations
 
-from temoto.managers.process import (
-    FailurePolicy,
-    ProcessHandle,
-    ProcessManager,
-    ProcessManagerClient,
-    ProcessRequest,
-    ProcessResponse,
-)
+from temoto.managers.process import ProcessManager, ProcessRequest, ProcessResponse
+from temoto.managers.process_client import FailurePolicy, ProcessHandle, ProcessManagerClient
 
 __all__ = [
     "FailurePolicy",
