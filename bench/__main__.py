@@ -25,7 +25,7 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from bench import engine, peers
+from bench import engine, peers, process, registrar
 from bench.common import Metric, Results
 
 GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
@@ -35,6 +35,14 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     "rss": ("engine: idle RSS and memory per action (subprocess)", engine.bench_rss),
     "import": ("import temoto (subprocesses)", engine.bench_import),
     "peers": ("peer: py_trees Sequence of 1,000 leaves", peers.bench_py_trees),
+    "registrar": (
+        "registrar: request+release pairs, status fan-out to 1,000 consumers",
+        registrar.bench_registrar,
+    ),
+    "process": (
+        "process manager: crash detection, relaunch; supervisord side by side",
+        process.bench_process,
+    ),
 }
 
 
@@ -42,9 +50,16 @@ def _goal_text(m: Metric) -> str:
     if m.goal is None:
         return ""
     op, bound = m.goal
-    met = m.value <= bound if op == "<=" else m.value < bound
+    met = {"<=": m.value <= bound, "<": m.value < bound, ">=": m.value >= bound}.get(op)
+    if met is None:
+        met = m.value > bound
     if met:
         return f"goal {op} {bound:g}: met"
+    if op in (">=", ">"):
+        return (
+            f"goal {op} {bound:g}: MISSED by {bound - m.value:.3g}"
+            f" ({100 * (1 - m.value / bound):.0f}% short)"
+        )
     return (
         f"goal {op} {bound:g}: MISSED by {m.value - bound:.3g} ({100 * (m.value / bound - 1):.0f}%)"
     )

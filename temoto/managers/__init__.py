@@ -1,7 +1,8 @@
 """Resource managers: servers on the Resource Registrar for one kind of resource each.
 
 * :mod:`temoto.managers.process`: operating-system processes (:class:`ProcessManager`, the
-  ``"process"`` server, and :class:`ProcessManagerClient` for consumers).
+  ``"process"`` server); :mod:`temoto.managers.process_client`: :class:`ProcessManagerClient`
+  for consumers.
 """
 
 from __future__ import annotations
