@@ -5,7 +5,9 @@ Commands:
 * ``temoto run GRAPH.json [--actions DIR]... [--graphs DIR]... [--actor NAME]
   [--param NAME=VALUE]... [--trace FILE] [--timeout SECONDS] [--progress]``: runs one graph
   in this process and prints its result. Exit status 0 iff the result is ``on_true``, 1 for any
-  other result, 2 for invalid input (with a message naming the file and the key path).
+  other result, 2 for invalid input (with a message naming the file and the key path). Its
+  actions can acquire processes (``self.acquire("process", ProcessRequest(...))``); they are
+  stopped when the graph ends.
 * ``temoto validate FILE... [--actions DIR]... [--graphs DIR]...``: checks graphs (and, given
   action folders, that every action resolves); exit 2 on the first invalid file.
 * ``temoto graph dot FILE [-o OUT] [--format svg|png|pdf]``: Graphviz DOT of a graph, or an
@@ -36,9 +38,11 @@ from temoto.core.engine import ActionEngine
 from temoto.core.graph import UmrfGraph, load_graph
 from temoto.core.instrument import Instrument, TraceInstrument
 from temoto.core.params import NATIVE_TYPES
+from temoto.core.registrar import Registrar
 from temoto.core.states import NodeState, Result
 from temoto.core.validation import validate_graph
 from temoto.errors import ConfigError, GraphInputError, PluginError
+from temoto.managers.process import ProcessManager
 
 __all__ = ["main"]
 
@@ -203,6 +207,10 @@ def _run(args: argparse.Namespace) -> int:
     try:
         if trace_file is not None:
             instruments.append(TraceInstrument(trace_file, graph.name, t0))
+        # Actions get resources (processes) from a registrar that lives as long as the run;
+        # the graph's end releases them, so nothing outlives the command.
+        registrar = Registrar("temoto-run")
+        processes = ProcessManager(registrar)
         engine = ActionEngine(
             args.actor,
             actions=ActionCatalog(args.actions),
@@ -210,14 +218,19 @@ def _run(args: argparse.Namespace) -> int:
             clock=clock,
             instruments=instruments,
             stop_timeout=args.stop_timeout,
+            registrar=registrar,
         )
-        with engine:
-            try:
-                outcome = engine.run(graph, params, timeout=args.timeout)
-            except KeyboardInterrupt:
-                sys.stderr.write("temoto: interrupted; stopping the graph\n")
-                engine.stop(graph.name)
-                outcome = engine.outcome(graph.name)
+        try:
+            with engine:
+                try:
+                    outcome = engine.run(graph, params, timeout=args.timeout)
+                except KeyboardInterrupt:
+                    sys.stderr.write("temoto: interrupted; stopping the graph\n")
+                    engine.stop(graph.name)
+                    outcome = engine.outcome(graph.name)
+        finally:
+            processes.shutdown()
+            registrar.close()
     finally:
         if trace_file is not None:
             trace_file.close()
