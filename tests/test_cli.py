@@ -137,3 +137,53 @@ def test_python_dash_m_temoto_is_the_same_program() -> None:
     )
     assert done.returncode == 0, done.stderr
     assert "on_true" in done.stdout
+
+
+def test_processes_acquired_by_actions_are_stopped_when_the_graph_ends(tmp_path: Path) -> None:
+    actions = tmp_path / "actions"
+    actions.mkdir()
+    (actions / "launch.umrf.json").write_text(
+        json.dumps(
+            {
+                "name": "Launch",
+                "type": "sync",
+                "input_parameters": {"pidfile": {"pvf_type": "string"}},
+            }
+        )
+    )
+    (actions / "launch.py").write_text(
+        "import os\n"
+        "from temoto import Action\n"
+        "from temoto.managers import ProcessRequest\n"
+        "from temoto.testing import child_command\n\n"
+        "class Launch(Action):\n"
+        "    def on_run(self) -> bool:\n"
+        "        argv = child_command(touch=self.inputs.get_string('pidfile'))\n"
+        "        ref = self.acquire('process', ProcessRequest(argv[0], tuple(argv[1:])))\n"
+        "        self.log(f'started {ref.response.pid}')\n"
+        "        while not os.path.exists(self.inputs.get_string('pidfile')):\n"
+        "            self.sleep(0.01)  # the child writes its pid file once it runs\n"
+        "        return True\n"
+    )
+    pidfile = tmp_path / "child.pid"
+    graph = tmp_path / "g.graph.json"
+    graph.write_text(
+        json.dumps(
+            {
+                "graph_name": "launch",
+                "actions": [
+                    {
+                        "name": "Launch",
+                        "type": "sync",
+                        "input_parameters": {
+                            "pidfile": {"pvf_type": "string", "pvf_value": str(pidfile)}
+                        },
+                    }
+                ],
+            }
+        )
+    )
+    assert main(["run", str(graph), "--actions", str(actions)]) == 0
+    pid = int(pidfile.read_text())
+    stat = Path(f"/proc/{pid}/stat")
+    assert not stat.exists() or stat.read_text().rsplit(")", 1)[1].split()[0] in "ZX"
