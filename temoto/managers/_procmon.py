@@ -336,3 +336,31 @@ class ProcessMonitor:
         for watch in leftovers:
             self._release(watch)
         self._selector.close()
+
+
+def processes_with_environ(entry: bytes) -> list[int]:
+    """Pids of processes (zombies included, this one excluded) whose environment has ``entry``.
+
+    Args:
+        entry: A whole ``NAME=value`` environment entry.
+
+    Returns:
+        The pids, sorted. Processes whose environment cannot be read (gone, not ours) are
+        skipped.
+
+    Raises:
+        Nothing.
+    """
+    me = os.getpid()
+    found: list[int] = []
+    for name in os.listdir("/proc"):
+        if not name.isdigit() or int(name) == me:
+            continue
+        try:
+            with open(f"/proc/{name}/environ", "rb") as f:
+                environ = f.read()
+        except OSError:
+            continue
+        if entry in environ.split(b"\0"):
+            found.append(int(name))
+    return sorted(found)

@@ -41,7 +41,12 @@ from temoto.errors import (
     ResourceError,
     StateError,
 )
-from temoto.managers._procmon import ProcessMonitor, process_start_time, process_state
+from temoto.managers._procmon import (
+    ProcessMonitor,
+    process_start_time,
+    process_state,
+    processes_with_environ,
+)
 
 __all__ = [
     "TOKEN_VARIABLE",
@@ -235,21 +240,11 @@ def _wait_readable(fds: Iterable[int], timeout: float | None) -> set[int]:
 
 def _token_processes(token: str) -> list[tuple[int, int]]:
     """Live processes (pid, start time) whose environment holds ``TEMOTO_PROCESS_TOKEN=token``."""
-    needle = f"{TOKEN_VARIABLE}={token}".encode()
     found: list[tuple[int, int]] = []
-    me = os.getpid()
-    for name in os.listdir("/proc"):
-        if not name.isdigit() or int(name) == me:
-            continue
-        try:
-            with open(f"/proc/{name}/environ", "rb") as f:
-                environ = f.read()
-        except OSError:
-            continue
-        if needle in environ.split(b"\0"):
-            start = process_start_time(int(name))
-            if start is not None and process_state(int(name)) not in _DEAD_STATES:
-                found.append((int(name), start))
+    for pid in processes_with_environ(f"{TOKEN_VARIABLE}={token}".encode()):
+        start = process_start_time(pid)
+        if start is not None and process_state(pid) not in _DEAD_STATES:
+            found.append((pid, start))
     return found
 
 

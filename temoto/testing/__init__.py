@@ -115,19 +115,16 @@ class ProcessLeakCheck:
         Returns:
             Their pids, sorted.
         """
-        me = os.getpid()
-        found: list[int] = []
-        for name in os.listdir("/proc"):
-            if not name.isdigit() or int(name) == me:
-                continue
-            try:
-                with open(f"/proc/{name}/environ", "rb") as f:
-                    environ = f.read()
-            except OSError:  # gone, or not ours to read
-                continue
-            if self._needle in environ.split(b"\0"):
-                found.append(int(name))
-        return sorted(found)
+        from temoto.managers._procmon import (  # here: keeps importing this module light
+            process_state,
+            processes_with_environ,
+        )
+
+        return [
+            pid
+            for pid in processes_with_environ(self._needle)
+            if process_state(pid) not in ("Z", "X", "x", None)
+        ]
 
     def kill_leftovers(self, timeout: float = 5.0) -> list[int]:
         """Kill every leftover process and wait until each has exited.
