@@ -30,22 +30,12 @@ from temoto.managers import (
 )
 from temoto.managers._procmon import process_start_time, process_state
 from temoto.managers.process import TOKEN_VARIABLE
-from temoto.testing import ProcessLeakCheck, child_command
+from temoto.testing import child_command
 
 GRACE = 0.3
 
 
 # --- fixtures and helpers ---------------------------------------------------------------------
-
-
-@pytest.fixture(autouse=True)
-def no_leaked_processes(monkeypatch: pytest.MonkeyPatch) -> Iterator[ProcessLeakCheck]:
-    check = ProcessLeakCheck()
-    monkeypatch.setenv(check.variable, check.mark)
-    yield check
-    leaked = check.kill_leftovers()
-    if leaked:
-        pytest.fail(f"test left processes running: {leaked}", pytrace=False)
 
 
 def release_everything(registrar: Registrar) -> None:

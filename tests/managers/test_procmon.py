@@ -17,19 +17,9 @@ import pytest
 
 from temoto.errors import StateError
 from temoto.managers._procmon import ProcessMonitor, process_start_time, process_state
-from temoto.testing import CHILD_MODULE, ProcessLeakCheck, child_command
+from temoto.testing import CHILD_MODULE, child_command
 
 Exit = tuple[int, "int | None", "int | None"]
-
-
-@pytest.fixture(autouse=True)
-def no_leaked_processes(monkeypatch: pytest.MonkeyPatch) -> Iterator[ProcessLeakCheck]:
-    check = ProcessLeakCheck()
-    monkeypatch.setenv(check.variable, check.mark)
-    yield check
-    leaked = check.kill_leftovers()
-    if leaked:
-        pytest.fail(f"test left processes running: {leaked}", pytrace=False)
 
 
 class Child:
