@@ -25,6 +25,8 @@ from temoto.errors import ActionNotFoundError, GraphDefinitionError, GraphInputE
 
 ROOT = Path(__file__).resolve().parents[2]
 UPSTREAM = ROOT.parent / "shared" / "conformance" / "umrf" / "upstream"
+if not UPSTREAM.is_dir():  # the executable specification is upstream's data
+    pytest.skip(f"upstream conformance data not found at {UPSTREAM}", allow_module_level=True)
 ACTIONS = ROOT / "examples" / "actions" / "conformance"
 
 ACTOR = "ae_instance_1"

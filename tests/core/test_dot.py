@@ -17,6 +17,9 @@ from temoto.core.graph import load_graph, parse_graph
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 UPSTREAM = SHARED / "conformance" / "umrf" / "upstream"
+needs_upstream = pytest.mark.skipif(
+    not UPSTREAM.is_dir(), reason=f"upstream conformance data not found at {UPSTREAM}"
+)
 HAVE_DOT = shutil.which("dot") is not None
 needs_dot = pytest.mark.skipif(not HAVE_DOT, reason="Graphviz 'dot' is not installed")
 
@@ -51,6 +54,7 @@ def odd_graph() -> Any:
 # --- content ---------------------------------------------------------------------------------
 
 
+@needs_upstream
 def test_semantics_test_4_nodes_edges_and_labels() -> None:
     text = upstream("semantics_test_4")
     assert text.startswith('digraph "semantics_test_4" {\n')
@@ -73,6 +77,7 @@ def test_semantics_test_4_nodes_edges_and_labels() -> None:
     ]
 
 
+@needs_upstream
 def test_exit_edges_carry_their_non_default_conditions() -> None:
     text = upstream("semantics_test_9_infinite_loop")
     assert '"TaTimer_1" -> "graph_exit" [label="on_true→ignore\\non_false→ignore"];' in text
@@ -80,6 +85,7 @@ def test_exit_edges_carry_their_non_default_conditions() -> None:
     assert '"TaTimer_1" -> "TaTimer_0" [style=dashed];' in text
 
 
+@needs_upstream
 def test_non_required_exit_is_dashed_and_actors_are_shown() -> None:
     text = upstream("format_test")
     assert '"action_5_0" -> "graph_exit" [style=dashed];' in text
@@ -87,6 +93,7 @@ def test_non_required_exit_is_dashed_and_actors_are_shown() -> None:
     assert "test_param_x→test_param_y" in text
 
 
+@needs_upstream
 def test_one_sided_relation_is_drawn_red() -> None:
     text = upstream("format_test")
     assert '"action_0_0" -> "action_3_0" [color=red' in text
@@ -94,6 +101,7 @@ def test_one_sided_relation_is_drawn_red() -> None:
     assert '"action_3_0" -> "action_0_0" [label="on_true→stop\\non_false→stop"];' in text
 
 
+@needs_upstream
 def test_type_other_than_sync_is_shown() -> None:
     text = upstream("semantics_test_7")
     assert "type: spontaneous" in text
@@ -112,6 +120,7 @@ def test_long_literals_are_truncated_and_many_are_summarised() -> None:
     assert "p6=" not in text
 
 
+@needs_upstream
 def test_states_colour_nodes() -> None:
     g = load_graph(UPSTREAM / "actionengine_test_semantics_test_2.graph.json")
     text = graph_to_dot(
@@ -134,6 +143,7 @@ def test_states_colour_nodes() -> None:
     assert "fillcolor" not in graph_to_dot(g)
 
 
+@needs_upstream
 def test_unknown_state_is_shown_without_colour() -> None:
     g = load_graph(UPSTREAM / "actionengine_test_semantics_test_1.graph.json")
     text = graph_to_dot(g, states={"TaAddString_0": "WEIRD"})
@@ -161,6 +171,7 @@ def test_quote(raw: str, quoted: str) -> None:
     assert quote(raw) == quoted
 
 
+@needs_upstream
 def test_format_test_graph_name_is_quoted() -> None:
     text = upstream("format_test")
     name = "robot go observe the valve [x=-93.6; y=11.0; yaw=-0.85]"
@@ -177,6 +188,7 @@ def test_odd_names_are_escaped() -> None:
     assert '"' not in re.sub(r'"(?:[^"\\]|\\.)*"', "", text)
 
 
+@needs_upstream
 def test_output_is_deterministic() -> None:
     path = UPSTREAM / "actionengine_test_format_test.graph.json"
     first = graph_to_dot(load_graph(path))
@@ -187,6 +199,7 @@ def test_output_is_deterministic() -> None:
 # --- rendering -------------------------------------------------------------------------------
 
 
+@needs_upstream
 @needs_dot
 @pytest.mark.parametrize(("fmt", "magic"), [("png", b"\x89PNG\r\n\x1a\n"), ("svg", b"<?xml")])
 def test_render_writes_image(tmp_path: Path, fmt: str, magic: bytes) -> None:
@@ -255,6 +268,7 @@ def test_render_reports_dot_errors(tmp_path: Path) -> None:
         render("digraph { a -> ", tmp_path / "bad.png", "png")
 
 
+@needs_upstream
 @needs_dot
 def test_render_reports_unknown_format(tmp_path: Path) -> None:
     with pytest.raises(RuntimeError, match="nosuchformat"):

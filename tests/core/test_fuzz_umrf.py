@@ -34,6 +34,8 @@ from temoto.errors import ConfigError, GraphDefinitionError
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 UPSTREAM = SHARED / "conformance" / "umrf" / "upstream"
+if not UPSTREAM.is_dir():  # the seeds are upstream's documents: nothing to mutate without them
+    pytest.skip(f"upstream conformance data not found at {UPSTREAM}", allow_module_level=True)
 
 GRAPH_FILES = sorted(UPSTREAM.glob("actionengine_*graph.json"))
 UMRF_FILES = sorted(UPSTREAM.glob("actionengine_*.umrf.json"))

@@ -4,7 +4,7 @@ Usage: ``python crash_worker.py CATALOG WORKDIR SEED START END [--restore]``
 
 It builds a Registrar on CATALOG with a Process Manager and a "group" server whose resources
 depend on 1-3 process resources (nested dependencies), prints its accounting as one JSON line
-(``state {...}``), waits for a line on stdin, then runs operations START..END-1. Operation i
+(``state {...}``), then runs operations START..END-1, each after a line on stdin. Operation i
 is chosen from the registrar's own state with ``random.Random(f"{SEED}-{i}")``: release one of
 the consumers' references, or request a group or a process for one of three consumers. It
 prints ``begin i`` before and ``done i <json>`` after each operation, so the test knows which
@@ -119,8 +119,10 @@ def main() -> int:
     manager = ProcessManager(registrar, grace=0.5, log_dir=workdir / "logs")
     registrar.register(GroupServer(registrar, workdir))
     say("state " + json.dumps(accounting(registrar)))
-    sys.stdin.readline()  # the test checks the processes before anything changes
     for i in range(start, end):
+        # Each operation waits for the test's go-ahead: the first while it checks the restored
+        # state, the others so that this process never runs ahead of what the test has read.
+        sys.stdin.readline()
         rng = random.Random(f"{seed}-{i}")
         held = sorted(r.id for r in registrar.references() if not r.holder)
         say(f"begin {i}")

@@ -52,6 +52,14 @@ def kill_all(pids: set[int]) -> None:
             os.kill(pid, signal.SIGKILL)
 
 
+def go_ahead(proc: subprocess.Popen[str]) -> None:
+    """Let the worker start its next step (it may be dead already)."""
+    with contextlib.suppress(BrokenPipeError, OSError):
+        assert proc.stdin is not None
+        proc.stdin.write("go\n")
+        proc.stdin.flush()
+
+
 class Model:
     """What the accounting must be: direct references by id."""
 
@@ -178,10 +186,7 @@ def test_sigkill_at_random_instants_never_breaks_the_accounting(tmp_path: Path) 
                         check_processes(state, workdir, problems)
                         if problems:
                             break
-                    with contextlib.suppress(BrokenPipeError):
-                        assert proc.stdin is not None
-                        proc.stdin.write("go\n")
-                        proc.stdin.flush()
+                    go_ahead(proc)
                 elif word == "begin":
                     in_doubt = int(rest)
                 elif word == "done":
@@ -190,14 +195,12 @@ def test_sigkill_at_random_instants_never_breaks_the_accounting(tmp_path: Path) 
                     in_doubt = None
                     next_op = int(index) + 1
                     done += 1
+                    go_ahead(proc)  # the next operation starts now; the kill lands in it
                     if not final and not early_kill and done >= target:
                         time.sleep(rng.uniform(0.0, 0.003))
                         proc.kill()
                 elif word == "ops-done":  # no more kills in this run: let it release everything
-                    with contextlib.suppress(BrokenPipeError):
-                        assert proc.stdin is not None
-                        proc.stdin.write("go\n")
-                        proc.stdin.flush()
+                    go_ahead(proc)
                 elif word == "state":  # the final accounting, after releasing everything
                     assert json.loads(rest) == {"refs": [], "resources": []}
             if problems:
