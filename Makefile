@@ -13,7 +13,7 @@ PYTEST_ARGS ?=
 install: $(STAMP)
 
 # Reinstall (editable, rebuilding the Cython extensions) whenever the build inputs change.
-$(STAMP): pyproject.toml setup.py
+$(STAMP): pyproject.toml setup.py $(wildcard temoto/core/_fast/*.py temoto/core/_fast/*.pxd)
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install -e '.[dev]'
@@ -27,8 +27,10 @@ lint: install
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
 
+# The whole suite twice: the compiled kernels (which must have been built), then pure Python.
 test: install lint
-	$(BIN)/python -m pytest $(PYTEST_ARGS)
+	TEMOTO_REQUIRE_EXTENSIONS=1 $(BIN)/python -m pytest $(PYTEST_ARGS)
+	TEMOTO_NO_EXTENSIONS=1 $(BIN)/python -m pytest $(PYTEST_ARGS)
 
 bench: install
 	$(BIN)/python -m bench --quick --json bench-results.json

@@ -15,11 +15,11 @@ import platform
 from setuptools import Extension, setup
 
 FAST_DIR = "temoto/core/_fast"
-FAST_MODULES: list[str] = []  # e.g. "evolution" -> temoto.core._fast._evolution_c
+FAST_MODULES: list[str] = ["evolution", "refbook"]  # -> temoto.core._fast._<name>_c
 
 
 def _extensions() -> list[Extension]:
-    if not FAST_MODULES or os.environ.get("TEMOTO_NO_EXTENSIONS"):
+    if not FAST_MODULES or os.environ.get("TEMOTO_NO_EXTENSIONS", "") not in ("", "0"):
         return []
     if platform.python_implementation() != "CPython":
         return []
@@ -34,7 +34,11 @@ def _extensions() -> list[Extension]:
     extensions: list[Extension] = cythonize(
         sources,
         language_level=3,
-        compiler_directives={"annotation_typing": False, "embedsignature": True},
+        compiler_directives={
+            "annotation_typing": False,
+            "embedsignature": True,
+            "wraparound": False,  # the kernels never index from the end
+        },
     )
     for ext in extensions:
         ext.optional = True  # cythonize drops the flag; a failed compile must not fail the install

@@ -25,16 +25,20 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from bench import engine, peers, process, registrar
+from bench import engine, evolution, peers, process, registrar
 from bench.common import Metric, Results
 
 GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
-    "chain": ("engine: chain of 1,000 no-op actions", engine.bench_chain),
+    "chain": ("engine: chain of 10,000 no-op actions", engine.bench_chain),
+    "round": ("engine: scheduling round in a 1,000-action chain", engine.bench_round),
     "fanout": ("engine: fan-out/fan-in of 1,000 no-op actions", engine.bench_fanout),
-    "load": ("engine: load a 10,000-action chain (parse + plan + start)", engine.bench_load),
-    "rss": ("engine: idle RSS and memory per action (subprocess)", engine.bench_rss),
+    "cyclic": ("engine: 100-action graph with cycles and a branch, 100 runs", engine.bench_cyclic),
+    "start": ("engine: start() -> first action's on_run, small indexed graph", engine.bench_start),
+    "load": ("engine: load a 10,000-action chain (parse + validate + start)", engine.bench_load),
+    "rss": ("engine: idle RSS with 100 indexed graphs (subprocess)", engine.bench_rss),
     "import": ("import temoto (subprocesses)", engine.bench_import),
-    "peers": ("peer: py_trees Sequence of 1,000 leaves", peers.bench_py_trees),
+    "evolution": ("evolution kernel alone: compiled vs pure", evolution.bench_evolution),
+    "peers": ("peer: py_trees, BehaviorTree.CPP (behaviortreepy), transitions", peers.bench_peers),
     "registrar": (
         "registrar: request+release pairs, status fan-out to 1,000 consumers",
         registrar.bench_registrar,
@@ -108,7 +112,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument(
         "--profile", choices=("chain", "fanout"), help="print cProfile hot spots and exit"
     )
+    parser.add_argument(
+        "--no-install", action="store_true", help="never pip install missing peers (bench extra)"
+    )
     args = parser.parse_args(argv)
+    if args.no_install:
+        os.environ[peers.NO_INSTALL_ENV] = "1"
 
     # The engine warns when every worker is busy (the fan-out does that on purpose).
     logging.getLogger("temoto").setLevel(logging.ERROR)

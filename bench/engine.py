@@ -1,27 +1,44 @@
-"""Action Engine benchmarks: chain, fan-out/fan-in, load, idle memory, import time.
+"""Action Engine benchmarks: chain, scheduling round, fan-out/fan-in, cyclic graph, start
+latency, load, idle memory, import time.
 
-Every run uses a fresh :class:`temoto.ActionEngine` (shut down afterwards) with the engine's
-default ``max_workers`` unless stated, one discarded warm-up run, and ``gc.collect()`` between
-runs (the collector stays enabled while timing). Only the public API is used; timestamps come
-from an :class:`temoto.Instrument` that records ``time.perf_counter()``.
+Unless a metric says otherwise, every run uses a fresh :class:`temoto.ActionEngine` (shut down
+afterwards) with the engine's default ``max_workers``, one discarded warm-up run, and
+``gc.collect()`` between runs (the collector stays enabled while timing). Only the public API
+is used; timestamps are ``time.perf_counter()``, taken by an :class:`temoto.Instrument` or
+inside the actions' ``on_run``.
 """
 
 from __future__ import annotations
 
+import gc
 import itertools
 import json
+import logging
 import os
 import subprocess
 import sys
 import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
-from bench.common import NOOP, Results, chain_graph, fanout_graph, median, now, percentile, repeat
+from bench.common import (
+    COUNTER,
+    NOOP,
+    Results,
+    chain_graph,
+    cyclic_graph,
+    fanout_graph,
+    median,
+    now,
+    percentile,
+    repeat,
+)
 from temoto import (
     Action,
     ActionCatalog,
     ActionEngine,
+    GraphIndex,
     Instrument,
     NodeState,
     Result,
@@ -32,13 +49,23 @@ from temoto import (
 )
 
 REPO = Path(__file__).resolve().parent.parent
-CHAIN_N = 1000
-FANOUT_N = 1000
+CHAIN_N = 10_000
+ROUND_N = 1_000
+FANOUT_N = 1_000
+WARMUP_N = 1_000  # the warm-up run of the 10,000-action benchmarks
 LOAD_N = 10_000
+START_N = 10  # actions in the graph whose start latency is measured
+RSS_GRAPHS = 100  # indexed graphs held by the engine whose idle RSS is measured ...
+RSS_GRAPH_N = 100  # ... each a chain of this many actions
 WAIT_TIMEOUT = 120.0  # seconds; a hang fails the benchmark instead of blocking forever
 
-GOAL_CHAIN_US = ("<=", 50.0)
-GOAL_FANOUT_MS = ("<", 250.0)
+GOAL_CHAIN_US = ("<=", 20.0)
+GOAL_CHAIN_PURE_US = ("<=", 50.0)
+GOAL_ROUND_US = ("<=", 20.0)
+GOAL_FANOUT_MS = ("<=", 20.0)
+GOAL_LOAD_MS = ("<=", 1000.0)
+GOAL_RSS_MB = ("<=", 40.0)
+GOAL_IMPORT_MS = ("<=", 150.0)
 
 
 class BenchNoop(Action):
@@ -48,9 +75,56 @@ class BenchNoop(Action):
         return True
 
 
-def make_catalog() -> ActionCatalog:
+#: perf_counter() at entry and just before return of every BenchStamp.on_run, in order.
+STAMPS: list[float] = []
+
+#: Counts the on_run calls of the cyclic graph's actions (next() is atomic in CPython).
+_CYCLIC_RUNS = itertools.count()
+
+
+class BenchStamp(Action):
+    """A no-op that appends perf_counter() to STAMPS on entry and just before it returns."""
+
+    def on_run(self) -> bool:
+        STAMPS.append(now())
+        STAMPS.append(now())
+        return True
+
+
+class CountingNoop(Action):
+    """A no-op that counts its runs (for the cyclic graph: how many actions ran)."""
+
+    def on_run(self) -> bool:
+        next(_CYCLIC_RUNS)
+        return True
+
+
+class BenchCounter(Action):
+    """Returns on_true on every ``limit``-th run of this instance, on_false otherwise."""
+
+    def on_init(self) -> None:
+        self.count = 0
+
+    def on_run(self) -> bool:
+        next(_CYCLIC_RUNS)
+        self.count += 1
+        return self.count % int(self.inputs.get_number("limit")) == 0
+
+
+def make_catalog(noop: type[Action] = BenchNoop) -> ActionCatalog:
+    """A catalog with ``noop`` registered as BenchNoop (and BenchCounter)."""
     catalog = ActionCatalog(use_entry_points=False)
-    catalog.register(BenchNoop, parse_umrf({"name": NOOP, "type": "sync"}))
+    catalog.register(noop, parse_umrf({"name": NOOP, "type": "sync"}))
+    catalog.register(
+        BenchCounter,
+        parse_umrf(
+            {
+                "name": COUNTER,
+                "type": "sync",
+                "input_parameters": {"limit": {"pvf_type": "number"}},
+            }
+        ),
+    )
     return catalog
 
 
@@ -103,7 +177,7 @@ def run_once(
     max_workers: int | None = None,
 ) -> Run:
     stamps = Stamps() if instrumented else None
-    kwargs = {} if max_workers is None else {"max_workers": max_workers}
+    kwargs: dict[str, Any] = {} if max_workers is None else {"max_workers": max_workers}
     engine = ActionEngine(
         "bench", actions=catalog, instruments=[stamps] if stamps else [], **kwargs
     )
@@ -119,42 +193,101 @@ def run_once(
     return Run(t_call, t_end, stamps)
 
 
+def warm_runs(
+    graph: UmrfGraph, catalog: ActionCatalog, reps: int, *, max_workers: int | None = None
+) -> list[Run]:
+    """``reps`` instrumented runs on one long-lived engine, after one untimed warm-up run.
+
+    A robot's engine lives for hours: its worker threads are started by the first graph and
+    reused (idle ones retire after 30 s), so thread creation is not part of a graph's cost.
+    """
+    stamps = Stamps()
+    kwargs: dict[str, Any] = {} if max_workers is None else {"max_workers": max_workers}
+    engine = ActionEngine("bench", actions=catalog, instruments=[stamps], **kwargs)
+    runs: list[Run] = []
+    try:
+        for i in range(reps + 1):
+            stamps.__init__()  # type: ignore[misc]  # reset the recorded stamps
+            t_call = now()
+            name = engine.start(graph, name=f"{graph.name}_{i}")
+            result = engine.wait(name, WAIT_TIMEOUT)
+            t_end = now()
+            if result is not Result.TRUE:
+                raise RuntimeError(f"graph {graph.name} ended with {result.value}")
+            if i:
+                copy = Stamps()
+                copy.started, copy.running, copy.finished = (
+                    stamps.started,
+                    list(stamps.running),
+                    list(stamps.finished),
+                )
+                runs.append(Run(t_call, t_end, copy))
+    finally:
+        engine.shutdown()
+    return runs
+
+
 def gaps_us(times: list[float]) -> list[float]:
     return [(b - a) * 1e6 for a, b in itertools.pairwise(times)]
+
+
+def _compiled_note() -> str:
+    from temoto.core import _fast
+
+    return f"{_fast.BUILD} build"
 
 
 # ------------------------------------------------------------------------------------ chain
 
 
-def bench_chain(quick: bool) -> Results:
-    out = Results()
-    n = CHAIN_N
-    reps = 5 if quick else 30
+def chain_runs(reps: int) -> list[Run]:
+    """``reps`` instrumented runs of the CHAIN_N chain, checked.
+
+    The warm-up run is a chain of WARMUP_N (the same code paths at a tenth of the cost: a
+    10,000-action start plans for ~0.5-1 s here).
+    """
     catalog = make_catalog()
-    graph = parse_graph(chain_graph(n))
-    runs = repeat(lambda: run_once(graph, catalog), reps)
-    per_action, gaps = [], []
+    run_once(parse_graph(chain_graph(WARMUP_N, "bench_warmup")), catalog)
+    graph = parse_graph(chain_graph(CHAIN_N))
+    runs = repeat(lambda: run_once(graph, catalog), reps, warmup=0)
     for run in runs:
         st = run.stamps
         assert st is not None
-        assert st.started is not None
-        if len(st.running) != n:
-            raise RuntimeError(f"chain: {len(st.running)} actions ran, expected {n}")
-        per_action.append((run.t_end - st.started) / n * 1e6)
-        gaps.extend(gaps_us(st.running))
+        if st.started is None or len(st.running) != CHAIN_N:
+            raise RuntimeError(f"chain: {len(st.running)} actions ran, expected {CHAIN_N}")
+    return runs
+
+
+def _per_action_us(run: Run) -> float:
+    assert run.stamps is not None
+    assert run.stamps.started is not None
+    return (run.t_end - run.stamps.started) / CHAIN_N * 1e6
+
+
+def bench_chain(quick: bool) -> Results:
+    out = Results()
+    n = CHAIN_N
+    reps = 3 if quick else 11
+    runs = chain_runs(reps)
+    per_action = [_per_action_us(run) for run in runs]
+    gaps = []
+    for run in runs:
+        assert run.stamps is not None
+        gaps.extend(gaps_us(run.stamps.running))
     value = median(per_action)
     out.add(
         "engine_chain_us_per_action",
         value,
         "us",
-        f"median of {reps} runs; (graph started -> wait() returned) / {n}; excludes planning",
+        f"median of {reps} runs of a {n:,}-action chain; (graph started -> wait() returned)"
+        f" / {n:,}; excludes planning; {_compiled_note()}",
         GOAL_CHAIN_US,
     )
     out.add(
         "engine_chain_us_per_action_p99",
         percentile(gaps, 99),
         "us",
-        f"p99 gap between consecutive action starts ({len(gaps)} gaps)",
+        f"p99 gap between consecutive action starts ({len(gaps):,} gaps)",
     )
     out.add(
         "engine_chain_us_per_action_p50",
@@ -162,17 +295,19 @@ def bench_chain(quick: bool) -> Results:
         "us",
         "median gap between consecutive action starts",
     )
+    out.add(
+        "engine_chain_max_gap_ms",
+        median([max(gaps_us(r.stamps.running)) / 1e3 for r in runs if r.stamps]),
+        "ms",
+        "largest gap between consecutive action starts in a run (median over runs);"
+        " a full garbage collection lands there",
+    )
     out.add("engine_chain_actions_per_s", 1e6 / value, "1/s", "1e6 / engine_chain_us_per_action")
-
-    # The same chain without any instrument, timed start() call -> wait() return: includes
-    # planning (resolve + validate) and shows what the instrument costs.
-    plain_reps = 3 if quick else 10
-    plain = repeat(lambda: run_once(graph, catalog, instrumented=False), plain_reps)
     out.add(
         "engine_chain_us_per_action_incl_plan",
-        median([(r.t_end - r.t_call) / n * 1e6 for r in plain]),
+        median([(r.t_end - r.t_call) / n * 1e6 for r in runs]),
         "us",
-        f"no instrument; (start() call -> wait() returned) / {n}; includes planning",
+        f"same runs, (start() call -> wait() returned) / {n:,}; includes planning",
     )
 
     from temoto.core import _fast
@@ -184,6 +319,7 @@ def bench_chain(quick: bool) -> Results:
             "us",
             "identical to engine_chain_us_per_action: no compiled extension in use"
             " (temoto.core._fast.COMPILED is False)",
+            GOAL_CHAIN_PURE_US,
         )
     elif os.environ.get("TEMOTO_NO_EXTENSIONS"):
         out.add(
@@ -191,27 +327,95 @@ def bench_chain(quick: bool) -> Results:
             value,
             "us",
             "this process runs with TEMOTO_NO_EXTENSIONS set",
+            GOAL_CHAIN_PURE_US,
         )
     else:
+        pure = _pure_chain(reps)
         out.add(
             "engine_chain_us_per_action_pure",
-            _pure_chain(quick),
+            pure,
             "us",
-            "subprocess with TEMOTO_NO_EXTENSIONS=1",
+            f"as engine_chain_us_per_action (median of {reps}) in a subprocess with"
+            " TEMOTO_NO_EXTENSIONS=1",
+            GOAL_CHAIN_PURE_US,
+        )
+        out.add(
+            "engine_chain_speedup",
+            pure / value,
+            "x",
+            "engine_chain_us_per_action_pure / engine_chain_us_per_action",
         )
     return out
 
 
-def _pure_chain(quick: bool) -> float:
-    """Re-run the chain benchmark in a subprocess with the compiled extensions disabled."""
-    with tempfile.TemporaryDirectory() as tmp:
-        target = Path(tmp) / "pure.json"
-        cmd = [sys.executable, "-m", "bench", "--only", "chain", "--json", str(target)]
-        if quick:
-            cmd.append("--quick")
-        env = _env(TEMOTO_NO_EXTENSIONS="1")
-        subprocess.run(cmd, env=env, cwd=REPO, check=True, stdout=subprocess.DEVNULL, timeout=600)
-        return float(json.loads(target.read_text())["engine_chain_us_per_action"]["value"])
+def _pure_chain(reps: int) -> float:
+    """The chain's median µs per action in a subprocess with the compiled extensions off."""
+    code = "import sys, bench.engine as e; e.pure_chain_main(int(sys.argv[1]))"
+    proc = subprocess.run(
+        [sys.executable, "-c", code, str(reps)],
+        env=_env(TEMOTO_NO_EXTENSIONS="1"),
+        cwd=REPO,
+        check=True,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
+    return float(json.loads(proc.stdout.strip().splitlines()[-1])["us_per_action"])
+
+
+def pure_chain_main(reps: int) -> None:
+    """Entry point of :func:`_pure_chain`'s subprocess: print the chain's median as JSON."""
+    from temoto.core import _fast
+
+    if _fast.COMPILED:
+        raise SystemExit("the compiled extensions are in use despite TEMOTO_NO_EXTENSIONS")
+    logging.getLogger("temoto").setLevel(logging.ERROR)
+    runs = chain_runs(reps)
+    print(json.dumps({"us_per_action": median([_per_action_us(r) for r in runs])}))
+
+
+# ------------------------------------------------------------------------------------ round
+
+
+def bench_round(quick: bool) -> Results:
+    """One scheduling round: on_run of action i returns -> on_run of action i+1 starts."""
+    out = Results()
+    n = ROUND_N
+    reps = 5 if quick else 20
+    catalog = make_catalog(BenchStamp)
+    graph = parse_graph(chain_graph(n, "bench_round"))
+
+    def once() -> list[float]:
+        STAMPS.clear()
+        run_once(graph, catalog, instrumented=False)
+        if len(STAMPS) != 2 * n:
+            raise RuntimeError(f"round: {len(STAMPS) // 2} actions ran, expected {n}")
+        # STAMPS = [entry_0, exit_0, entry_1, exit_1, ...]: gap i = entry_{i+1} - exit_i
+        return [(STAMPS[2 * i + 2] - STAMPS[2 * i + 1]) * 1e6 for i in range(n - 1)]
+
+    samples = repeat(once, reps)
+    gaps = [g for sample in samples for g in sample]
+    out.add(
+        "engine_round_1000_us",
+        median(gaps),
+        "us",
+        f"median over {len(gaps):,} gaps ({reps} runs of a {n:,}-action chain): on_run of"
+        f" action i returned -> on_run of action i+1 entered; {_compiled_note()}",
+        GOAL_ROUND_US,
+    )
+    out.add(
+        "engine_round_1000_us_p99",
+        percentile(gaps, 99),
+        "us",
+        "p99 of the same gaps",
+    )
+    out.add(
+        "engine_round_1000_us_run_median_max",
+        max(median(s) for s in samples),
+        "us",
+        "the largest of the per-run medians (spread between runs)",
+    )
+    return out
 
 
 # ----------------------------------------------------------------------------------- fanout
@@ -228,7 +432,7 @@ def bench_fanout(quick: bool) -> Results:
     def measure(
         max_workers: int | None, count: int
     ) -> tuple[list[float], list[float], list[float]]:
-        runs = repeat(lambda: run_once(graph, catalog, max_workers=max_workers), count)
+        runs = warm_runs(graph, catalog, count, max_workers=max_workers)
         wall, incl, gaps = [], [], []
         for run in runs:
             st = run.stamps
@@ -247,7 +451,9 @@ def bench_fanout(quick: bool) -> Results:
         "engine_fanout_1000_ms",
         median(wall),
         "ms",
-        f"median of {reps} runs; graph started -> wait() returned; excludes planning",
+        f"median of {reps} runs on one warm engine (workers started by an untimed first run);"
+        " graph started -> wait() returned; excludes planning;"
+        f" {_compiled_note()}",
         GOAL_FANOUT_MS,
     )
     out.add(
@@ -280,6 +486,115 @@ def bench_fanout(quick: bool) -> Results:
     return out
 
 
+# ----------------------------------------------------------------------------------- cyclic
+
+
+def bench_cyclic(quick: bool) -> Results:
+    """The 100-action graph with nested cycles and a conditional branch, run 100 times."""
+    out = Results()
+    reps = 100
+    doc, expected = cyclic_graph()
+    catalog = make_catalog(CountingNoop)
+    graph = parse_graph(doc)
+    times: list[float] = []
+    with ActionEngine("bench", actions=catalog) as engine:
+        plan_ms = []
+        for _ in range(11 if quick else 31):
+            t0 = now()
+            engine.plan(graph)
+            plan_ms.append((now() - t0) * 1e3)
+        gc.collect()
+        for i in range(reps + 2):  # two warm-up runs
+            before = next(_CYCLIC_RUNS)
+            t0 = now()
+            name = engine.start(graph)
+            result = engine.wait(name, WAIT_TIMEOUT)
+            t1 = now()
+            ran = next(_CYCLIC_RUNS) - before - 1
+            if result is not Result.TRUE or ran != expected:
+                raise RuntimeError(
+                    f"cyclic: run ended with {result.value} after {ran} action runs,"
+                    f" expected on_true after {expected}"
+                )
+            if i >= 2:
+                times.append((t1 - t0) * 1e3)
+    value = median(times)
+    out.add(
+        "engine_cyclic_100_ms",
+        value,
+        "ms",
+        f"median of {reps} runs on one engine: start() call -> wait() returned (includes"
+        f" planning); 100 actions, two nested cycles, a branch: {expected} action runs per run;"
+        f" {_compiled_note()}",
+    )
+    out.add("engine_cyclic_100_ms_p99", percentile(times, 99), "ms", f"p99 of the {reps} runs")
+    out.add(
+        "engine_cyclic_100_us_per_action_run",
+        value / expected * 1e3,
+        "us",
+        f"engine_cyclic_100_ms / {expected} action runs (planning included)",
+    )
+    out.add(
+        "engine_cyclic_100_plan_ms",
+        median(plan_ms),
+        "ms",
+        f"engine.plan(graph) alone (resolve + validate), median of {len(plan_ms)}",
+    )
+    return out
+
+
+# ------------------------------------------------------------------------------------ start
+
+
+def bench_start(quick: bool) -> Results:
+    """engine.start(name) of an indexed small graph -> first action's on_run entered."""
+    out = Results()
+    n = START_N
+    reps = 300 if quick else 2000
+    warmup = 20
+    index = GraphIndex()
+    index.add(parse_graph(chain_graph(n, "bench_start")))
+    lat: list[float] = []
+    with ActionEngine("bench", actions=make_catalog(BenchStamp), graphs=index) as engine:
+        gc.collect()
+        for i in range(warmup + reps):
+            STAMPS.clear()
+            t0 = now()
+            name = engine.start("bench_start")
+            result = engine.wait(name, WAIT_TIMEOUT)
+            if result is not Result.TRUE or len(STAMPS) != 2 * n:
+                raise RuntimeError(f"start: {result.value} after {len(STAMPS) // 2} actions")
+            if i >= warmup:
+                lat.append((STAMPS[0] - t0) * 1e6)
+        graph = index.get("bench_start")
+        plan_us = []
+        for _ in range(101):
+            t0 = now()
+            engine.plan(graph)
+            plan_us.append((now() - t0) * 1e6)
+    out.add(
+        "engine_start_latency_us",
+        median(lat),
+        "us",
+        f"median of {reps} starts on one engine: start('bench_start') called -> first action's"
+        f" on_run entered; indexed {n}-action chain, planned on every start;"
+        f" {_compiled_note()}",
+    )
+    out.add(
+        "engine_start_latency_us_p99",
+        percentile(lat, 99),
+        "us",
+        f"p99 of the same {reps} starts",
+    )
+    out.add(
+        "engine_start_plan_us",
+        median(plan_us),
+        "us",
+        f"of which engine.plan() of that graph (resolve + validate), median of {len(plan_us)}",
+    )
+    return out
+
+
 # ------------------------------------------------------------------------------------- load
 
 
@@ -290,7 +605,7 @@ def bench_load(quick: bool) -> Results:
     catalog = make_catalog()
     text = json.dumps(chain_graph(n, "bench_load"))
 
-    def once() -> tuple[float, float]:
+    def once() -> tuple[float, float, float]:
         first = FirstRunning()
         engine = ActionEngine("bench", actions=catalog, instruments=[first])
         try:
@@ -298,25 +613,38 @@ def bench_load(quick: bool) -> Results:
             graph = parse_graph_text(text)
             t_parsed = now()
             name = engine.start(graph)
+            t_started = now()
             assert first.first is not None, "start() returned before the first action ran"
             engine.stop(name, WAIT_TIMEOUT)
         finally:
             engine.shutdown()
-        return (first.first - t0) * 1e3, (t_parsed - t0) * 1e3
+        return (t_started - t0) * 1e3, (t_parsed - t0) * 1e3, (first.first - t0) * 1e3
 
-    samples = repeat(once, reps)
+    engine = ActionEngine("bench", actions=catalog)  # warm-up: the same steps, a smaller chain
+    try:
+        engine.stop(engine.start(parse_graph_text(json.dumps(chain_graph(WARMUP_N)))))
+    finally:
+        engine.shutdown()
+    samples = repeat(once, reps, warmup=0)
     out.add(
         "engine_load_10000_ms",
         median([s[0] for s in samples]),
         "ms",
-        f"median of {reps}; JSON text of a {n}-action chain -> first action RUNNING"
-        " (parse + plan + start)",
+        f"median of {reps}; JSON text of a {n:,}-action chain -> start() returned:"
+        " parse_graph_text() + start() (resolve, validate, wire, start)",
+        GOAL_LOAD_MS,
     )
     out.add(
         "engine_load_10000_parse_ms",
         median([s[1] for s in samples]),
         "ms",
         "of which parse_graph_text()",
+    )
+    out.add(
+        "engine_load_10000_first_running_ms",
+        median([s[2] for s in samples]),
+        "ms",
+        "JSON text -> first action RUNNING (inside start())",
     )
     return out
 
@@ -334,7 +662,7 @@ def rss_kb():
 
 bare = rss_kb()
 import gc, json, time
-from temoto import Action, ActionCatalog, ActionEngine, parse_graph, parse_umrf
+from temoto import Action, ActionCatalog, ActionEngine, GraphIndex, parse_graph, parse_umrf
 imported = rss_kb()
 
 class BenchNoop(Action):
@@ -354,18 +682,26 @@ def chain(n, name):
     return {"graph_name": name, "graph_entry": [ref(0)], "graph_exit": [ref(n - 1)],
             "actions": acts}
 
+def settle():
+    gc.collect(); time.sleep(0.3)
+    return rss_kb()
+
 catalog = ActionCatalog(use_entry_points=False)
 catalog.register(BenchNoop, parse_umrf({"name": "BenchNoop", "type": "sync"}))
-engine = ActionEngine("bench", actions=catalog)
+index = GraphIndex()
+engine = ActionEngine("bench", actions=catalog, graphs=index)
 assert engine.run(parse_graph(chain(10, "small")), timeout=60).result.value == "on_true"
-gc.collect(); time.sleep(0.3)
-idle = rss_kb()
+empty = settle()
+for g in range(N_GRAPHS):
+    index.add(parse_graph(chain(GRAPH_N, f"indexed_{g}")))
+assert len(engine.indexed_graphs()) == N_GRAPHS
+idle = settle()
 big = parse_graph(chain(N_BIG, "big"))
 assert engine.run(big, timeout=120).result.value == "on_true"
-gc.collect(); time.sleep(0.3)
-loaded = rss_kb()
+loaded = settle()
 engine.shutdown()
-print(json.dumps({"bare": bare, "imported": imported, "idle": idle, "loaded": loaded}))
+print(json.dumps({"bare": bare, "imported": imported, "empty": empty, "idle": idle,
+                  "loaded": loaded}))
 """
 
 
@@ -373,8 +709,12 @@ def bench_rss(quick: bool) -> Results:
     out = Results()
     reps = 1 if quick else 3
     samples = []
+    code = (
+        _RSS_CHILD.replace("N_BIG", str(LOAD_N))
+        .replace("N_GRAPHS", str(RSS_GRAPHS))
+        .replace("GRAPH_N", str(RSS_GRAPH_N))
+    )
     for _ in range(reps):
-        code = _RSS_CHILD.replace("N_BIG", str(LOAD_N))
         proc = subprocess.run(
             [sys.executable, "-c", code],
             env=_env(),
@@ -390,7 +730,21 @@ def bench_rss(quick: bool) -> Results:
         "engine_idle_rss_mb",
         idle,
         "MB",
-        "VmRSS of a process whose engine ran a 10-action chain and is idle",
+        f"VmRSS of a fresh process whose engine holds {RSS_GRAPHS} indexed graphs of"
+        f" {RSS_GRAPH_N} actions, has run a 10-action chain and is idle; median of {reps}",
+        GOAL_RSS_MB,
+    )
+    out.add(
+        "engine_idle_rss_mb_no_graphs",
+        median([s["empty"] for s in samples]) / 1024,
+        "MB",
+        "the same process before the graphs were indexed",
+    )
+    out.add(
+        "engine_index_kb_per_action",
+        median([(s["idle"] - s["empty"]) / (RSS_GRAPHS * RSS_GRAPH_N) for s in samples]),
+        "KB",
+        f"(engine_idle_rss_mb - ..._no_graphs) / {RSS_GRAPHS * RSS_GRAPH_N:,} indexed actions",
     )
     out.add(
         "python_bare_rss_mb",
@@ -403,8 +757,8 @@ def bench_rss(quick: bool) -> Results:
         "engine_mem_kb_per_action",
         per_action,
         "KB",
-        f"RSS growth after parsing and running a {LOAD_N}-action chain"
-        f" (kept as the engine's last run) / {LOAD_N}",
+        f"RSS growth after parsing and running a {LOAD_N:,}-action chain"
+        f" (kept as the engine's last run) / {LOAD_N:,}",
     )
     return out
 
@@ -447,6 +801,7 @@ def bench_import(quick: bool) -> Results:
         "ms",
         f"median of {reps} pairs: python -c 'import temoto' minus python -c 'pass'"
         " (bytecode cached)",
+        GOAL_IMPORT_MS,
     )
     out.add("python_startup_ms", median(times["pass"]), "ms", "python -c 'pass'")
     out.add(

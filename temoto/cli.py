@@ -32,6 +32,7 @@ from typing import IO, Any
 
 from temoto import __version__
 from temoto.clock import MonotonicClock, ScaledClock
+from temoto.core import _fast
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.dot import graph_to_dot, render
 from temoto.core.engine import ActionEngine
@@ -77,7 +78,11 @@ def _parser() -> argparse.ArgumentParser:
     top = argparse.ArgumentParser(
         prog="temoto", description="TeMoto for Python: run and check UMRF task graphs."
     )
-    top.add_argument("--version", action="version", version=f"temoto {__version__}")
+    top.add_argument(
+        "--version",
+        action="version",
+        version=f"temoto {__version__} ({_fast.BUILD} build, Python {sys.version.split()[0]})",
+    )
     top.add_argument(
         "-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)"
     )

@@ -187,3 +187,15 @@ def test_processes_acquired_by_actions_are_stopped_when_the_graph_ends(tmp_path:
     pid = int(pidfile.read_text())
     stat = Path(f"/proc/{pid}/stat")
     assert not stat.exists() or stat.read_text().rsplit(")", 1)[1].split()[0] in "ZX"
+
+
+def test_version_names_the_build(capsys: pytest.CaptureFixture[str]) -> None:
+    from temoto.core import _fast
+
+    with pytest.raises(SystemExit) as stop:
+        main(["--version"])
+    assert stop.value.code == 0
+    out = capsys.readouterr().out
+    assert out.startswith("temoto ")
+    assert f"({_fast.BUILD} build," in out
+    assert ("compiled" if _fast.COMPILED else "pure") == _fast.BUILD

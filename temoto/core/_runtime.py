@@ -15,9 +15,10 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import TYPE_CHECKING, Any
 
+from temoto.core._fast import Evolution
 from temoto.core.params import Parameter
-from temoto.core.states import GraphState, NodeState, Result
-from temoto.core.umrf import ENTRY_NAME, EXIT_NAME, ChildRelation, ParentRelation, Umrf
+from temoto.core.states import GraphState, NodeState, Response, Result
+from temoto.core.umrf import ENTRY_NAME, EXIT_NAME, ParentRelation, Umrf
 
 if TYPE_CHECKING:
     from temoto.core.action import Action, RunControl
@@ -25,7 +26,28 @@ if TYPE_CHECKING:
     from temoto.core.graph import UmrfGraph
     from temoto.core.umrf import LogMessage
 
-__all__ = ["GraphRun", "Node", "NodeKind", "Plan", "ResolvedAction"]
+__all__ = [
+    "RESPONSES",
+    "RESULT_CODES",
+    "Edge",
+    "GraphRun",
+    "Node",
+    "NodeKind",
+    "Plan",
+    "ResolvedAction",
+]
+
+#: Result -> code of the evolution kernel (the order of the enum).
+RESULT_CODES: dict[Result, int] = {
+    Result.TRUE: 0,
+    Result.FALSE: 1,
+    Result.STOPPED: 2,
+    Result.ERROR: 3,
+}
+#: Response code of the evolution kernel -> Response (the order of the enum).
+RESPONSES: tuple[Response, ...] = tuple(Response)
+_RESPONSE_CODES = {r: i for i, r in enumerate(RESPONSES)}
+_NO_CONDITIONS = (-1,) * len(RESULT_CODES)  # responses of a relation without written conditions
 
 
 class NodeKind(Enum):
@@ -86,20 +108,18 @@ class Node:
         "fresh_instance",
         "gen",
         "held",
+        "idx",
         "inputs",
         "instance",
         "kind",
         "last_outputs",
         "log",
-        "missing",
         "name",
         "native",
         "outputs",
         "parents",
         "plan",
-        "received",
         "required_inputs",
-        "required_parents",
         "restart",
         "run",
         "spontaneous",
@@ -115,10 +135,10 @@ class Node:
         self.cls = resolved.cls
         self.plan = resolved.plan
         self.state = NodeState.UNINITIALIZED
+        self.idx = 0  # number in the run's evolution kernel (set by GraphRun.wire)
         self.parents: dict[str, ParentRelation] = {}
-        #: (child node, remap from->to, the child's relation to this node)
-        self.children: list[tuple[Node, dict[str, str], ParentRelation]] = []
-        self.received: set[str] = set()
+        #: Outgoing edges, in the kernel's edge order.
+        self.children: list[Edge] = []
         self.data: dict[str, Any] = {}
         self.native: set[str] = set()
         self.gen = 0
@@ -136,8 +156,6 @@ class Node:
         self.inputs: dict[str, Parameter] = {}
         self.outputs: dict[str, Parameter] = {}
         self.required_inputs: tuple[str, ...] = ()
-        self.required_parents: frozenset[str] = frozenset()
-        self.missing = 0  # required parents not received yet
         self.spontaneous = False
         self.define(umrf, resolved)
 
@@ -180,40 +198,21 @@ class Node:
         """Whether the node is running, pausing, paused or stopping."""
         return self.state in _ACTIVE
 
-    def ready(self) -> bool:
-        """Readiness: all required inputs hold data and all required parents were received.
+    def inputs_ready(self) -> bool:
+        """Whether every required input holds data (parents are the kernel's business).
 
-        ``graph_exit`` checks parents only: a missing graph output must not hang the graph.
+        ``graph_exit`` needs no inputs: a missing graph output must not hang the graph.
 
         Returns:
-            True if the node may start.
+            True if the inputs allow the node to start.
 
         Raises:
             Nothing.
         """
-        if self.missing:
-            return False
         if self.kind is NodeKind.EXIT:
             return True
         data = self.data
         return all(name in data for name in self.required_inputs)
-
-    def receive(self, parent: str) -> None:
-        """Mark a parent as received (it finished at least once); never reset during a run.
-
-        Args:
-            parent: The parent's full name.
-
-        Returns:
-            None.
-
-        Raises:
-            Nothing.
-        """
-        if parent not in self.received:
-            self.received.add(parent)
-            if parent in self.required_parents:
-                self.missing -= 1
 
     def clear_data(self) -> None:
         """Drop received (non-literal) data after a run; literals persist.
@@ -232,21 +231,37 @@ class Node:
         return f"<Node {self.run.name}/{self.name} {self.state.value}>"
 
 
+class Edge:
+    """A parent -> child relation of a run, numbered as in the evolution kernel."""
+
+    __slots__ = ("child", "idx", "parent", "remap")
+
+    def __init__(self, idx: int, parent: Node, child: Node, remap: dict[str, str]) -> None:
+        self.idx = idx
+        self.parent = parent
+        self.child = child
+        self.remap = remap  # output name -> input name
+
+
 class GraphRun:
     """One execution of a plan."""
 
     __slots__ = (
         "active",
         "done",
+        "edges",
         "entry",
         "errors",
+        "evolution",
         "exit",
         "name",
         "nodes",
+        "order",
         "outputs",
         "parent_node",
         "plan",
         "result",
+        "slots",
         "started_at",
         "state",
         "stop_failed",
@@ -274,6 +289,10 @@ class GraphRun:
         self.exit.inputs = dict(signature.outputs)
         self.exit.outputs = dict(signature.outputs)
         self.nodes: dict[str, Node] = {}
+        self.order: list[Node] = []  # node by kernel number
+        self.edges: list[Edge] = []  # edge by kernel number
+        self.slots: list[tuple[str, str]] = []  # (child, parent) names by kernel slot number
+        self.evolution = Evolution(0, [0], [], [], [], [0], [])
         self.wire(plan)
 
     def wire(self, plan: Plan) -> None:
@@ -312,24 +331,97 @@ class GraphRun:
             node.parents = {p.full_name: p for p in node.umrf.parents}
             if node.name in entry_names:
                 node.parents[entry.name] = entry_parent
-            node.children = []
         exit_.parents = {rel.full_name: rel for rel in graph.exit}
-        entry.children = [self._edge(entry, rel) for rel in graph.entry]
-        for node in nodes.values():
-            node.children = [self._edge(node, rel) for rel in node.umrf.children]
-        no_remap: dict[str, str] = {}
-        for rel in graph.exit:
-            nodes[rel.full_name].children.append((exit_, no_remap, rel))
-        for node in (*nodes.values(), exit_):
-            node.required_parents = frozenset(n for n, p in node.parents.items() if p.required)
-            node.missing = len(node.required_parents - node.received)
+        self._number(graph)
 
-    def _edge(
-        self, parent: Node, rel: ChildRelation
-    ) -> tuple[Node, dict[str, str], ParentRelation]:
-        child = self.nodes[rel.full_name]
-        back = child.parents[parent.name]
-        return child, {r.from_: r.to for r in rel.remap}, back
+    def _number(self, graph: UmrfGraph) -> None:
+        """Number nodes, edges and slots, and build the evolution kernel for them.
+
+        Received parents survive a re-wiring: a slot whose (child, parent) pair existed before
+        keeps its flag.
+        """
+        old = dict(zip(self.slots, self.evolution.received_flags(), strict=True))
+        order = [self.entry, *self.nodes.values(), self.exit]
+        slot_start = [0]
+        slots: list[tuple[str, str]] = []
+        slot_of: dict[tuple[str, str], int] = {}
+        required: list[int] = []
+        for i, node in enumerate(order):
+            node.idx = i
+            for parent, relation in node.parents.items():
+                slot_of[node.name, parent] = len(slots)
+                slots.append((node.name, parent))
+                required.append(1 if relation.required else 0)
+            slot_start.append(len(slots))
+        no_remap: dict[str, str] = {}
+        exit_count: dict[str, int] = {}
+        for rel in graph.exit:
+            exit_count[rel.full_name] = exit_count.get(rel.full_name, 0) + 1
+        nodes = self.nodes
+        exit_ = self.exit
+        edges: list[Edge] = []
+        edge_start = [0]
+        edge_child: list[int] = []
+        edge_slot: list[int] = []
+        edge_response: list[int] = []
+        for node in order:
+            if node is self.entry:
+                targets = [(nodes[r.full_name], no_remap) for r in graph.entry]
+            elif node is exit_:
+                targets = []
+            else:
+                targets = [
+                    (nodes[rel.full_name], {r.from_: r.to for r in rel.remap} if rel.remap else {})
+                    for rel in node.umrf.children
+                ]
+                if node.name in exit_count:
+                    targets += [(exit_, no_remap)] * exit_count[node.name]
+            children: list[Edge] = []
+            name = node.name
+            for child, remap in targets:
+                relation = child.parents[name]
+                edge = Edge(len(edges), node, child, remap)
+                edges.append(edge)
+                children.append(edge)
+                edge_child.append(child.idx)
+                edge_slot.append(slot_of[child.name, name])
+                conditions = relation.conditions
+                if conditions:
+                    for result in RESULT_CODES:
+                        written = conditions.get(result)
+                        edge_response.append(-1 if written is None else _RESPONSE_CODES[written])
+                else:
+                    edge_response += _NO_CONDITIONS
+            node.children = children
+            edge_start.append(len(edges))
+        self.order = order
+        self.edges = edges
+        self.slots = slots
+        self.evolution = Evolution(
+            len(order),
+            edge_start,
+            edge_child,
+            edge_slot,
+            edge_response,
+            slot_start,
+            required,
+            self.exit.idx,
+            [old.get(key, 0) for key in slots],
+        )
+
+    def received_any(self, node: Node) -> bool:
+        """Whether any parent of ``node`` finished in this run.
+
+        Args:
+            node: A node of this run.
+
+        Returns:
+            True if one did.
+
+        Raises:
+            Nothing.
+        """
+        return self.evolution.received_any(node.idx)
 
     def all_nodes(self) -> list[Node]:
         """Action nodes followed by the entry and exit nodes.

@@ -50,6 +50,10 @@ LOG_LENGTH = 10
 T = TypeVar("T")
 
 
+#: Guards the lazy creation of RunControl condition variables (rare: once per waiting node).
+_COND_CREATION = threading.Lock()
+
+
 class RunControl:
     """Stop and pause signals of one node, shared by the engine and the action's helpers.
 
@@ -60,14 +64,25 @@ class RunControl:
         clock: The engine's clock.
     """
 
-    __slots__ = ("broken", "clock", "cond", "paused", "stop")
+    __slots__ = ("_cond", "broken", "clock", "paused", "stop")
 
     def __init__(self, clock: Clock) -> None:
         self.clock = clock
-        self.cond = threading.Condition(threading.Lock())
+        self._cond: threading.Condition | None = None  # made on first use (most runs never wait)
         self.stop = False
         self.paused = False
         self.broken: list[StatusUpdate] = []  # failures of acquired resources, not yet raised
+
+    @property
+    def cond(self) -> threading.Condition:
+        """The condition variable every helper waits on and every signal notifies."""
+        cond = self._cond
+        if cond is None:
+            with _COND_CREATION:
+                cond = self._cond
+                if cond is None:
+                    cond = self._cond = threading.Condition(threading.Lock())
+        return cond
 
     def report_broken(self, update: StatusUpdate) -> None:
         """An acquired resource failed: the next helper call raises ResourceBrokenError.
@@ -110,7 +125,11 @@ class RunControl:
         Raises:
             Nothing.
         """
-        with self.cond:
+        if self._cond is None:  # no helper ever waited: nobody to race with between runs
+            self.stop = False
+            self.paused = False
+            return
+        with self._cond:
             self.stop = False
             self.paused = False
 
@@ -321,6 +340,20 @@ class Outputs:
         """
         return dict(self._values)
 
+    def _taken(self) -> dict[str, Any]:
+        """Engine: a copy of the values for the engine, which never mutates it."""
+        return dict(self._values) if self._values else NO_VALUES
+
+
+#: The engine's empty value dict, shared; never mutated.
+NO_VALUES: dict[str, Any] = {}
+
+#: What an action sees before its first run: no values, no writable outputs.
+_NO_INPUTS = Inputs({}, {})
+_NO_OUTPUTS = Outputs({})
+#: Shared by every action that holds no resource (never written: acquire makes its own dict).
+_NOTHING_HELD: dict[str, Any] = {}
+
 
 class Action(ABC):
     """Base class of every action plugin.
@@ -332,18 +365,18 @@ class Action(ABC):
 
     def __init__(self) -> None:
         self._control: RunControl | None = None
-        self._log: deque[LogMessage] = deque(maxlen=LOG_LENGTH)
+        self._log: deque[LogMessage] | None = None  # made by the first log() call
         self._logger: logging.Logger | None = None
         self._logger_name = "temoto.action"
         self._name = type(self).__name__
         self._graph = ""
-        self._inputs = Inputs({}, {})
-        self._outputs = Outputs({})
+        self._inputs = _NO_INPUTS  # replaced by each run's own (_begin)
+        self._outputs = _NO_OUTPUTS
         self._input_params: Mapping[str, Parameter] = {}
         self._output_params: Mapping[str, Parameter] = {}
         self._registrar: Registrar | None = None
         self._client = ""
-        self._resources: dict[str, Resource[Any]] = {}
+        self._resources: dict[str, Resource[Any]] = _NOTHING_HELD  # own dict on first acquire
 
     # ---- hooks: override these -------------------------------------------------------------
 
@@ -396,12 +429,16 @@ class Action(ABC):
         self._output_params = outputs
         self._logger_name = logger_name
 
-    def _begin(self, values: Mapping[str, Any]) -> None:
-        self._inputs = Inputs(values, self._input_params)
+    def _begin(self, values: dict[str, Any]) -> None:
+        """Engine: a run starts with these input values (the dict is handed over, not copied)."""
+        inputs = Inputs.__new__(Inputs)
+        inputs._values = values
+        inputs._params = self._input_params
+        self._inputs = inputs
         self._outputs = Outputs(self._output_params)
 
     def _log_snapshot(self) -> tuple[LogMessage, ...]:
-        return tuple(self._log)
+        return tuple(self._log) if self._log is not None else ()
 
     # ---- what actions call ------------------------------------------------------------------
 
@@ -487,6 +524,8 @@ class Action(ABC):
             exclusive=exclusive,
             on_status=self._resource_status,
         )
+        if self._resources is _NOTHING_HELD:
+            self._resources = {}
         self._resources[resource.id] = resource
         return resource
 
@@ -504,7 +543,8 @@ class Action(ABC):
         """
         if self._registrar is None:
             raise RuntimeError(f"{self._name}: this engine has no resource registrar")
-        self._resources.pop(resource.id, None)
+        if self._resources is not _NOTHING_HELD:
+            self._resources.pop(resource.id, None)
         self._registrar.release(resource.id)
 
     def check_resources(self) -> None:
@@ -530,7 +570,7 @@ class Action(ABC):
 
     def _release_resources(self) -> int:
         """Engine: release everything this node holds (graph ended or node removed)."""
-        held, self._resources = self._resources, {}
+        held, self._resources = self._resources, _NOTHING_HELD
         if self._registrar is None:
             return 0
         count = 0
@@ -555,6 +595,8 @@ class Action(ABC):
             Nothing.
         """
         stamp = int(self._ctl.clock.time() * 1000) if self._control is not None else 0
+        if self._log is None:
+            self._log = deque(maxlen=LOG_LENGTH)
         self._log.appendleft(LogMessage(stamp, str(message)))
         self.logger.info("%s", message)
 

@@ -28,8 +28,10 @@ from pathlib import Path
 from typing import Any
 
 from temoto.clock import Clock, MonotonicClock
+from temoto.core._gc import collect_now, collector_paused
+from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import GraphRun, Node, NodeKind, Plan
-from temoto.core.action import RunControl
+from temoto.core.action import NO_VALUES, RunControl
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.executor import DeadlineTimer, WorkerPool
 from temoto.core.graph import UmrfGraph, graph_from_document, graph_to_dict
@@ -37,8 +39,8 @@ from temoto.core.instrument import Instrument
 from temoto.core.params import dump_parameter_tree
 from temoto.core.planning import Planner, graph_inputs
 from temoto.core.registrar.registry import Registrar
-from temoto.core.states import NODE_TRANSITIONS, GraphState, NodeState, Response, Result
-from temoto.core.umrf import DEFAULT_CONDITIONS, dump_umrf
+from temoto.core.states import NODE_TRANSITIONS, GraphState, NodeState, Result
+from temoto.core.umrf import dump_umrf
 from temoto.errors import (
     ActionError,
     GraphNotFoundError,
@@ -49,6 +51,10 @@ from temoto.errors import (
 __all__ = ["ActionEngine", "GraphOutcome"]
 
 logger = logging.getLogger(__name__)
+
+#: A run of at least this many actions gets a full garbage collection before its first action
+#: starts (see :mod:`temoto.core._gc`).
+COLLECT_AT_START = 2000
 
 _S = NodeState
 _ACTIVE = frozenset({_S.RUNNING, _S.PAUSE_REQUESTED, _S.PAUSED, _S.STOPPING})
@@ -66,6 +72,10 @@ _SPONT = 2  # (_SPONT, node, gen, result, outputs, error): finish a spontaneous 
 _RELEASE = 3  # (_RELEASE, action instance): release the resources a node acquired
 
 Effect = tuple[Any, ...]
+
+# response codes of the evolution kernel (temoto.core._fast._evolution_py)
+_SHIFT = 4
+_P_RUN, _P_PAUSE, _P_RESTART, _P_STOP, _P_BYPASS, _P_IGNORE, _P_LOOP = range(7)
 
 
 @dataclass(frozen=True, slots=True)
@@ -189,18 +199,21 @@ class ActionEngine:
         else:
             model = graph_from_document(graph)
         run_name = name or model.name
-        plan = self.plan(model)
-        values = graph_inputs(plan.graph, params or {})
         fx: list[Effect] = []
-        with self._lock:
-            if self._closed:
-                raise StateError("the engine is shut down")
-            old = self._runs.get(run_name)
-            if old is not None and old.state in _BUSY_GRAPH:
-                raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
-            run = GraphRun(run_name, plan)
-            self._runs[run_name] = run
-            self._start_run(run, values, result, fx)
+        with collector_paused():  # a big graph is a burst of long-lived objects
+            plan = self.plan(model)
+            values = graph_inputs(plan.graph, params or {})
+            with self._lock:
+                if self._closed:
+                    raise StateError("the engine is shut down")
+                old = self._runs.get(run_name)
+                if old is not None and old.state in _BUSY_GRAPH:
+                    raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
+                run = GraphRun(run_name, plan)
+                self._runs[run_name] = run
+                self._start_run(run, values, result, fx)
+        if len(run.nodes) >= COLLECT_AT_START:
+            collect_now()  # the collection these objects would cause mid-run, done before it
         self._dispatch(fx)
         return run_name
 
@@ -350,7 +363,8 @@ class ActionEngine:
             KeyError: ``continue_from`` names no node of the new graph.
         """
         run = self._get(name)
-        plan = self.plan(graph)
+        with collector_paused():
+            plan = self.plan(graph)
         fx: list[Effect] = []
         with self._lock:
             if run.state not in (GraphState.RUNNING, GraphState.PAUSED, GraphState.HALTED):
@@ -581,7 +595,7 @@ class ActionEngine:
                 self._on_finished(node, gen, Result.STOPPED, {}, None, fx)
                 return fx
             instance = node.instance
-            values = dict(node.data)
+            values = dict(node.data) if node.data else NO_VALUES
         error: BaseException | None = None
         if instance is None:
             try:
@@ -605,7 +619,7 @@ class ActionEngine:
             except BaseException as err:
                 error = ActionError(f"{node.name} failed: {err}", graph=run.name, node=node.name)
                 error.__cause__ = err
-            outputs = instance.outputs.snapshot()
+            outputs = instance._outputs._taken()
         with self._lock:
             if instance is not None and gen == node.gen:
                 node.log = instance._log_snapshot()
@@ -701,7 +715,8 @@ class ActionEngine:
         todo = [start]
         while todo:
             node = todo.pop()
-            for child, _, _ in node.children:
+            for edge in node.children:
+                child = edge.child
                 if child.kind is NodeKind.EXIT or child.name in seen:
                     continue
                 seen.add(child.name)
@@ -804,48 +819,48 @@ class ActionEngine:
     def _propagate(
         self, node: Node, result: Result, outputs: Mapping[str, Any], fx: list[Effect]
     ) -> None:
-        """Deliver a finished node's result and outputs to its children (REFERENCE §2.5)."""
+        """Deliver a finished node's result and outputs to its children (REFERENCE §2.5).
+
+        The evolution kernel computes the wave (responses, received parents, bypass chains);
+        this carries out its steps: parameter transfer, input readiness, state changes.
+        """
         run = node.run
-        work: deque[tuple[Node, Result, Mapping[str, Any]]] = deque([(node, result, outputs)])
-        bypassed: set[str] = set()
-        while work:
-            parent, res, outs = work.popleft()
-            for child, remap, relation in parent.children:
-                if run.state is not GraphState.RUNNING:
-                    return
-                child.receive(parent.name)
-                response = relation.conditions.get(res) or DEFAULT_CONDITIONS[res]
-                if response is Response.BYPASS:
-                    if child.kind is NodeKind.EXIT:
-                        self._finish_run(run, res, fx)
-                        return
-                    if child.name in bypassed:
-                        logger.warning(
-                            "%s: bypass loops back to %s; stopping it there", run.name, child.name
-                        )
-                        continue
-                    bypassed.add(child.name)
-                    if not child.active:
-                        self._set_state(child, _S.BYPASSED)
-                    work.append((child, res, {}))
-                    continue
-                if response is Response.IGNORE:
-                    continue
-                if outs:
-                    _transfer(parent, child, remap, outs)
-                if not child.ready():
-                    continue
+        edges = run.edges
+        for step in run.evolution.propagate(node.idx, _RESULT_CODES[result]):
+            edge = edges[step >> _SHIFT]
+            child = edge.child
+            code = (step >> 1) & 7
+            if code == _P_IGNORE:
+                continue
+            if code == _P_BYPASS:
                 if child.kind is NodeKind.EXIT:
-                    self._finish_run(run, res, fx)
+                    self._finish_run(run, result, fx)
                     return
-                if response is Response.RUN:
-                    self._run_node(child, fx)
-                elif response is Response.STOP:
-                    self._stop_node(child, fx)
-                elif response is Response.PAUSE:
-                    self._pause_node(child, fx)
-                else:
-                    self._restart_node(child, fx)
+                if not child.active:
+                    self._set_state(child, _S.BYPASSED)
+                continue
+            if code == _P_LOOP:
+                logger.warning(
+                    "%s: bypass loops back to %s; stopping it there", run.name, child.name
+                )
+                continue
+            if outputs and edge.parent is node:
+                _transfer(node, child, edge.remap, outputs)
+            if not step & 1 or not child.inputs_ready():
+                continue
+            if child.kind is NodeKind.EXIT:
+                self._finish_run(run, result, fx)
+                return
+            if code == _P_RUN:
+                self._run_node(child, fx)
+            elif code == _P_STOP:
+                self._stop_node(child, fx)
+            elif code == _P_PAUSE:
+                self._pause_node(child, fx)
+            else:
+                self._restart_node(child, fx)
+            if run.state is not GraphState.RUNNING:
+                return
 
     def _run_node(self, node: Node, fx: list[Effect]) -> None:
         if node.state in (_S.PAUSE_REQUESTED, _S.PAUSED) and node.run.state is GraphState.RUNNING:
@@ -1022,7 +1037,7 @@ class ActionEngine:
             waiting = sorted(
                 n.name
                 for n in run.nodes.values()
-                if n.received and n.state is _S.UNINITIALIZED and not n.ready()
+                if n.state is _S.UNINITIALIZED and run.received_any(n) and not _ready(n)
             )
             if waiting:
                 logger.warning(
@@ -1112,6 +1127,11 @@ def _transfer(
             continue
         child.data[target] = value
         child.native.discard(target)
+
+
+def _ready(node: Node) -> bool:
+    """Whether a node's required parents were received and its required inputs are set."""
+    return node.run.evolution.missing_parents(node.idx) == 0 and node.inputs_ready()
 
 
 def _release_resources(instance: Any) -> None:

@@ -14,6 +14,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from temoto.core._gc import collector_paused
 from temoto.core.params import Parameter
 from temoto.core.params import _kind as kind_of
 from temoto.core.states import GraphState
@@ -266,7 +267,9 @@ def parse_graph_text(text: str, *, file: str | None = None) -> UmrfGraph:
     Raises:
         GraphDefinitionError: If the text is not JSON or not a valid graph.
     """
-    return graph_from_document(decode_json(text, file=file, error=GraphDefinitionError), file=file)
+    with collector_paused():
+        raw = decode_json(text, file=file, error=GraphDefinitionError)
+        return graph_from_document(raw, file=file)
 
 
 def load_graph(path: str | Path) -> UmrfGraph:
@@ -281,7 +284,8 @@ def load_graph(path: str | Path) -> UmrfGraph:
     Raises:
         GraphDefinitionError: If the file cannot be read, is not JSON, or is not a valid graph.
     """
-    return graph_from_document(load_json(path, GraphDefinitionError), file=str(path))
+    with collector_paused():
+        return graph_from_document(load_json(path, GraphDefinitionError), file=str(path))
 
 
 def graph_from_document(raw: object, *, file: str | None = None) -> UmrfGraph:

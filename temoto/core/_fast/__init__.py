@@ -1,8 +1,99 @@
-"""Hot paths with an optional compiled twin (reserved; the Cython build comes later).
+"""Hot paths with a compiled twin: the one place the rest of TeMoto imports them from.
 
-``COMPILED`` tells whether the compiled modules are in use.
+Each kernel ``x`` is written once as typed, plain Python in ``_x_py.py``; ``setup.py`` compiles
+that same file with Cython as the extension ``_x_c`` (``_x_c.pxd`` adds the C declarations), see
+STYLE.md 3.9 and ``docs/fast.md``. This selector decides once, at import:
+
+- ``TEMOTO_NO_EXTENSIONS`` set (to anything but ``""`` or ``0``), or an interpreter other than
+  CPython: the pure-Python modules are used.
+- Otherwise the compiled modules are tried first; if any is missing (no compiler when TeMoto
+  was installed), all pure modules are used and a warning is logged once.
+- ``TEMOTO_REQUIRE_EXTENSIONS=1`` turns that fallback into an :class:`ImportError` (CI sets it,
+  so a broken build cannot silently pass as the pure one).
+
+Attributes:
+    COMPILED: True if the compiled kernels are in use.
+    BUILD: ``"compiled"`` or ``"pure"``, for ``temoto --version`` and start-up logs.
+    Evolution: The evolution kernel (:mod:`temoto.core._fast._evolution_py`).
+    RefBook: The registrar's reference-count and dependency book
+        (:mod:`temoto.core._fast._refbook_py`).
 """
 
 from __future__ import annotations
 
-COMPILED = False
+import logging
+import os
+import platform
+from typing import TYPE_CHECKING
+
+__all__ = ["BUILD", "COMPILED", "Evolution", "RefBook", "kernels"]
+
+logger = logging.getLogger(__name__)
+
+#: The kernels; each has a ``_<name>_py.py`` source and a ``_<name>_c`` extension.
+KERNELS = ("evolution", "refbook")
+
+
+def _flag(name: str) -> bool:
+    return os.environ.get(name, "") not in ("", "0")
+
+
+def _load_compiled() -> tuple[object, ...] | None:
+    """Import every compiled kernel, or None if extensions are off or any is missing."""
+    if _flag("TEMOTO_NO_EXTENSIONS") or platform.python_implementation() != "CPython":
+        return None
+    try:
+        from temoto.core._fast import _evolution_c, _refbook_c  # type: ignore[attr-defined]
+    except ImportError as err:
+        if _flag("TEMOTO_REQUIRE_EXTENSIONS"):
+            raise ImportError(
+                "TEMOTO_REQUIRE_EXTENSIONS is set but the compiled kernels cannot be imported"
+                f" ({err}); reinstall with a C compiler and Cython available"
+                " (pip install -e .), or unset TEMOTO_REQUIRE_EXTENSIONS"
+            ) from err
+        logger.warning(
+            "temoto: compiled kernels not available (%s); using the pure-Python build, which is"
+            " slower. Reinstall with a C compiler to build them.",
+            err,
+        )
+        return None
+    return (_evolution_c, _refbook_c)
+
+
+if TYPE_CHECKING:
+    from temoto.core._fast._evolution_py import Evolution
+    from temoto.core._fast._refbook_py import RefBook
+
+    COMPILED = False
+else:
+    _compiled = _load_compiled()
+    if _compiled is None:
+        from temoto.core._fast._evolution_py import Evolution
+        from temoto.core._fast._refbook_py import RefBook
+
+        COMPILED = False
+    else:
+        Evolution = _compiled[0].Evolution
+        RefBook = _compiled[1].RefBook
+        COMPILED = True
+    del _compiled
+
+BUILD = "compiled" if COMPILED else "pure"
+
+
+def kernels() -> dict[str, str]:
+    """Which file each kernel was loaded from (for diagnostics and tests).
+
+    Returns:
+        Kernel name -> module file path.
+
+    Raises:
+        Nothing.
+    """
+    import sys
+
+    out: dict[str, str] = {}
+    for name, cls in (("evolution", Evolution), ("refbook", RefBook)):
+        module = sys.modules[cls.__module__]
+        out[name] = str(getattr(module, "__file__", "?"))
+    return out

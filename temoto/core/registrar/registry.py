@@ -6,8 +6,14 @@ made while a resource loads become its dependencies; ``release`` of the last ref
 releases the dependencies, then unloads; ``send_status`` reaches every consumer, up the
 dependency chain. Every change is appended to the journal before the call returns.
 
-Locking: one lock guards the tables. Server hooks and status callbacks run outside it, in the
-calling thread, so they may call the registrar again.
+Reference counts and dependency lists live in a :class:`~temoto.core._fast.RefBook` (integer
+slots; compiled when the extension is built): each resource has a resource slot, each reference
+a reference slot, and the book decides when a release was the last one and which references a
+resource holds as dependencies, in acquisition order. Everything else (ids, clients,
+priorities, callbacks) stays in the ``_Entry``/``_Ref`` objects.
+
+Locking: one lock guards the tables and the book. Server hooks and status callbacks run outside
+it, in the calling thread, so they may call the registrar again.
 """
 
 from __future__ import annotations
@@ -22,6 +28,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal, TypeVar
 
+from temoto.core._fast import RefBook
 from temoto.core.registrar._replay import ReplayState, replay
 from temoto.core.registrar.messages import (
     Reference,
@@ -70,6 +77,7 @@ class _Ref:
     suspended: bool = False
     callbacks: list[StatusCallback] = field(default_factory=list)
     suspends: list[str] = field(default_factory=list)
+    slot: int = -1  # reference slot in the registrar's RefBook (-1: not in the book)
 
     def snapshot(self) -> Reference:
         return Reference(
@@ -101,25 +109,14 @@ class _Entry:
     key: str
     request: Any
     response: Any = None
-    refs: dict[str, _Ref] = field(default_factory=dict)
-    deps: list[str] = field(default_factory=list)
+    refs: dict[str, _Ref] = field(default_factory=dict)  # the count is the RefBook's
     failed: bool = False
     loading: bool = True
     loaded: threading.Event = field(default_factory=threading.Event)
     load_error: BaseException | None = None
     loader: int = 0  # thread id running on_load
     progress: dict[str, Any] | None = None
-
-    def snapshot(self) -> ResourceInfo:
-        return ResourceInfo(
-            self.uid,
-            self.server,
-            self.request,
-            self.response,
-            tuple(r.snapshot() for r in self.refs.values()),
-            tuple(self.deps),
-            self.failed,
-        )
+    slot: int = -1  # resource slot in the registrar's RefBook (-1: not, or no longer, in it)
 
     def active(self) -> list[_Ref]:
         return [r for r in self.refs.values() if not r.suspended]
@@ -156,6 +153,8 @@ class Registrar:
         self._entries: dict[str, _Entry] = {}
         self._live: dict[tuple[str, str], str] = {}
         self._refs: dict[str, _Ref] = {}
+        self._book = RefBook()  # reference counts and dependency lists, by slot
+        self._slot_refs: dict[int, _Ref] = {}  # reference slot -> reference
         self._released: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._tls = threading.local()
         self._boot = secrets.token_hex(3)
@@ -312,6 +311,7 @@ class Registrar:
     def _begin(self, server: str, key: str, request: Any) -> _Entry:
         uid = f"{server}:{self._boot}-{next(self._counter)}"
         entry = _Entry(uid, server, key, request, loader=threading.get_ident())
+        entry.slot = self._book.new_resource()
         self._entries[uid] = entry
         self._live[(server, key)] = uid
         self._write({"op": "begin", "uid": uid, "server": server, "request": to_plain(request)})
@@ -358,7 +358,9 @@ class Registrar:
         return Resource(ref.id, entry.uid, srv.name, entry.request, response)
 
     def _rollback(self, entry: _Entry, error: BaseException) -> None:
-        for dep in reversed(list(entry.deps)):
+        with self._lock:
+            deps = self._dep_ids(entry)
+        for dep in reversed(deps):
             try:
                 self.release(dep)
             except ResourceError:
@@ -400,8 +402,8 @@ class Registrar:
             ref.callbacks.append(on_status)
         entry.refs[ref.id] = ref
         self._refs[ref.id] = ref
-        if holder:
-            self._entries[holder].deps.append(ref.id)
+        ref.slot = self._book.add_ref(entry.slot, self._entries[holder].slot if holder else -1)
+        self._slot_refs[ref.slot] = ref
         if conflicting:
             message = f"pre-empted by '{client}' (priority {priority})"
             for old in conflicting:
@@ -438,10 +440,9 @@ class Registrar:
                 self._released.popitem(last=False)
             entry = self._entries[ref.uid]
             del entry.refs[reference_id]
-            holder = self._entries.get(ref.holder) if ref.holder else None
-            if holder is not None and reference_id in holder.deps:
-                holder.deps.remove(reference_id)
-            last = not entry.refs
+            del self._slot_refs[ref.slot]
+            last = self._book.release(ref.slot) == 0  # also unlinks it from its holder's list
+            ref.slot = -1
             resumed = [] if last or entry.active() else list(entry.refs.values())
             for other in resumed:
                 other.suspended = False
@@ -453,13 +454,21 @@ class Registrar:
                     notices.append((list(other.callbacks), update))
             if last and self._live.get((entry.server, entry.key)) == entry.uid:
                 del self._live[(entry.server, entry.key)]
+            deps = self._dep_ids(entry) if last else []
         self._deliver(notices)
         if last:
-            self._unload(entry)
+            self._unload(entry, deps)
         return last
 
-    def _unload(self, entry: _Entry) -> None:
-        for dep in reversed(list(entry.deps)):
+    def _unload(self, entry: _Entry, deps: list[str] | None = None) -> None:
+        """Release a resource's dependencies (newest first), unload it, forget it.
+
+        ``deps``: its dependency reference ids, if the caller read them under the lock.
+        """
+        if deps is None:
+            with self._lock:
+                deps = self._dep_ids(entry)
+        for dep in reversed(deps):
             try:
                 self.release(dep)
             except ResourceError:
@@ -476,9 +485,21 @@ class Registrar:
         self._maybe_compact()
 
     def _forget(self, entry: _Entry) -> None:
-        self._entries.pop(entry.uid, None)
+        """Drop a resource that has no references left (lock held)."""
+        if self._entries.get(entry.uid) is entry:
+            del self._entries[entry.uid]
         if self._live.get((entry.server, entry.key)) == entry.uid:
             del self._live[(entry.server, entry.key)]
+        if entry.slot >= 0:
+            try:
+                self._book.free_resource(entry.slot)
+            except ValueError:
+                # Dependencies whose release failed stay counted on their resources but are
+                # no longer anybody's: off the list, so the slot can be reused.
+                for slot in self._book.dependencies(entry.slot):
+                    self._book.detach(slot)
+                self._book.free_resource(entry.slot)
+            entry.slot = -1
 
     def release_client(self, client: str) -> int:
         """Release every reference a consumer holds.
@@ -538,7 +559,7 @@ class Registrar:
                 current, hops = todo.popleft()
                 server = self._servers.get(current.server)
                 if server is not None:
-                    hooks.append((server, current.snapshot()))
+                    hooks.append((server, self._info(current)))
                 for ref in list(current.refs.values()):
                     update = StatusUpdate(ref.id, current.uid, status, message, origin, hops)
                     notices.append((list(ref.callbacks), update))
@@ -599,7 +620,7 @@ class Registrar:
             ResourceNotFoundError: Unknown id.
         """
         with self._lock:
-            return self._resolve(resource_id).snapshot()
+            return self._info(self._resolve(resource_id))
 
     def served(self, server: str) -> list[ResourceInfo]:
         """What a server currently serves (loaded resources, including failed ones).
@@ -616,7 +637,9 @@ class Registrar:
         self._server(server)
         with self._lock:
             return [
-                e.snapshot() for e in self._entries.values() if e.server == server and not e.loading
+                self._info(e)
+                for e in self._entries.values()
+                if e.server == server and not e.loading
             ]
 
     def dependencies(self, resource_id: str) -> list[ResourceInfo]:
@@ -634,7 +657,8 @@ class Registrar:
         with self._lock:
             entry = self._resolve(resource_id)
             return [
-                self._entries[self._refs[d].uid].snapshot() for d in entry.deps if d in self._refs
+                self._info(self._entries[self._slot_refs[slot].uid])
+                for slot in self._book.dependencies(entry.slot)
             ]
 
     def references(self, client: str | None = None) -> list[Reference]:
@@ -664,7 +688,7 @@ class Registrar:
             Nothing.
         """
         with self._lock:
-            return [e.snapshot() for e in self._entries.values() if not e.loading]
+            return [self._info(e) for e in self._entries.values() if not e.loading]
 
     def update_response(self, resource_id: str, response: Any) -> None:
         """Replace a resource's stored response (e.g. data known only after loading).
@@ -731,7 +755,7 @@ class Registrar:
                 records.append({"op": "progress", "uid": entry.uid, "data": entry.progress})
         for entry in entries:
             if entry.loading:
-                records.append({"op": "deps", "uid": entry.uid, "deps": list(entry.deps)})
+                records.append({"op": "deps", "uid": entry.uid, "deps": self._dep_ids(entry)})
                 continue
             records.append(
                 {
@@ -740,7 +764,7 @@ class Registrar:
                     "response": to_plain(entry.response),
                     "ref": None,
                     "refs": [r.record() for r in entry.refs.values()],
-                    "deps": list(entry.deps),
+                    "deps": self._dep_ids(entry),
                     "failed": entry.failed,
                 }
             )
@@ -756,6 +780,7 @@ class Registrar:
             return
         self._restored = None
         name = self._journal_name()
+        refs: list[_Ref] = []
         with self._lock:
             for uid, raw in state.entries.items():
                 server = self._servers[raw["server"]]
@@ -773,7 +798,7 @@ class Registrar:
                 entry.loading = not raw["loaded"]
                 entry.failed = raw["failed"]
                 entry.progress = raw["progress"]
-                entry.deps = list(raw["deps"])
+                entry.slot = self._book.new_resource()
                 entry.loaded.set()
                 self._entries[uid] = entry
                 if not entry.failed and not entry.loading:
@@ -790,12 +815,26 @@ class Registrar:
                     )
                     entry.refs[ref.id] = ref
                     self._refs[ref.id] = ref
+                    refs.append(ref)
+            # Into the book: dependencies first, in each holder's recorded order (the book
+            # lists them in acquisition order), then every other reference.
+            for uid, raw in state.entries.items():
+                holder = self._entries[uid]
+                for dep in raw["deps"]:
+                    held = self._refs.get(dep)
+                    if held is not None and held.slot < 0:
+                        self._book_ref(held, self._entries[held.uid], holder.slot)
+            for ref in refs:
+                if ref.slot < 0:
+                    self._book_ref(ref, self._entries[ref.uid], -1)
             restored = list(self._entries.values())
         logger.info("restored %d resources from %s", len(restored), name)
         reports: list[tuple[str, Status, str]] = []
         for entry in restored:
             if not entry.loading:
-                verdict = self._servers[entry.server].on_restore(entry.snapshot())
+                with self._lock:
+                    info = self._info(entry)
+                verdict = self._servers[entry.server].on_restore(info)
                 if verdict is not None:
                     reports.append((entry.uid, verdict[0], verdict[1]))
         # Settle what the crash interrupted: a half-done load is undone (its dependencies
@@ -804,7 +843,9 @@ class Registrar:
         for entry in restored:
             if entry.loading and entry.uid in self._entries:
                 logger.warning("restore: the load of %s was interrupted; undoing it", entry.uid)
-                for dep in reversed(list(entry.deps)):
+                with self._lock:
+                    deps = self._dep_ids(entry)
+                for dep in reversed(deps):
                     if dep in self._refs:
                         self.release(dep)
                 try:
@@ -818,12 +859,13 @@ class Registrar:
             if uid in self._entries:
                 self.send_status(uid, status, message)
         for entry in restored:
-            if entry.uid in self._entries and not entry.loading and not entry.refs:
-                logger.warning("restore: %s had been released; unloading it", entry.uid)
-                with self._lock:
-                    if self._live.get((entry.server, entry.key)) == entry.uid:
-                        del self._live[(entry.server, entry.key)]
-                self._unload(entry)
+            with self._lock:
+                if entry.slot < 0 or entry.loading or self._book.count(entry.slot):
+                    continue
+                if self._live.get((entry.server, entry.key)) == entry.uid:
+                    del self._live[(entry.server, entry.key)]
+            logger.warning("restore: %s had been released; unloading it", entry.uid)
+            self._unload(entry)
 
     def _journal_name(self) -> str:
         return str(self._journal.path) if self._journal is not None else "catalog"
@@ -840,6 +882,29 @@ class Registrar:
                 origin=self.name,
             )
         return server
+
+    def _book_ref(self, ref: _Ref, entry: _Entry, holder: int) -> None:
+        """Enter a reference into the book (lock held); ``holder`` is a resource slot or -1."""
+        ref.slot = self._book.add_ref(entry.slot, holder)
+        self._slot_refs[ref.slot] = ref
+
+    def _dep_ids(self, entry: _Entry) -> list[str]:
+        """Ids of the references a resource holds as dependencies, oldest first (lock held)."""
+        if entry.slot < 0:
+            return []
+        return [self._slot_refs[slot].id for slot in self._book.dependencies(entry.slot)]
+
+    def _info(self, entry: _Entry) -> ResourceInfo:
+        """A snapshot of a resource (lock held)."""
+        return ResourceInfo(
+            entry.uid,
+            entry.server,
+            entry.request,
+            entry.response,
+            tuple(r.snapshot() for r in entry.refs.values()),
+            tuple(self._dep_ids(entry)),
+            entry.failed,
+        )
 
     def _resolve(self, ident: str) -> _Entry:
         entry = self._entries.get(ident)
