@@ -47,7 +47,8 @@ RESULT_CODES: dict[Result, int] = {
 #: Response code of the evolution kernel -> Response (the order of the enum).
 RESPONSES: tuple[Response, ...] = tuple(Response)
 _RESPONSE_CODES = {r: i for i, r in enumerate(RESPONSES)}
-_NO_CONDITIONS = (-1,) * len(RESULT_CODES)  # responses of a relation without written conditions
+_NO_CONDITIONS = (-1,) * len(RESULT_CODES)
+_NO_NAMES: frozenset[str] = frozenset()  # responses of a relation without written conditions
 
 
 class NodeKind(Enum):
@@ -140,7 +141,8 @@ class Node:
         #: Outgoing edges, in the kernel's edge order.
         self.children: list[Edge] = []
         self.data: dict[str, Any] = {}
-        self.native: set[str] = set()
+        #: inputs holding a literal of the definition (a set of its own once there is one)
+        self.native: set[str] | frozenset[str] = _NO_NAMES
         self.gen = 0
         self.control: RunControl | None = None
         self.instance: Action | None = None
@@ -185,12 +187,14 @@ class Node:
         for name in list(self.native):
             param = self.inputs.get(name)
             if param is None or (not param.has_value and param.updatable):
-                self.native.discard(name)  # the new definition has no literal for it
+                self.native.discard(name)  # type: ignore[union-attr]  # no literal for it now
                 self.data.pop(name, None)
         for name, param in self.inputs.items():
             if param.has_value and (first or param.updatable or name not in self.data):
                 self.data[name] = param.value
-                self.native.add(name)
+                if self.native is _NO_NAMES:
+                    self.native = set()
+                self.native.add(name)  # type: ignore[union-attr]  # a set by now
         self.required_inputs = tuple(n for n, p in self.inputs.items() if p.required)
 
     @property

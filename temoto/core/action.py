@@ -71,7 +71,8 @@ class RunControl:
         self._cond: threading.Condition | None = None  # made on first use (most runs never wait)
         self.stop = False
         self.paused = False
-        self.broken: list[StatusUpdate] = []  # failures of acquired resources, not yet raised
+        #: failures of acquired resources, not yet raised (a list from the first one on)
+        self.broken: list[StatusUpdate] | None = None
 
     @property
     def cond(self) -> threading.Condition:
@@ -97,6 +98,8 @@ class RunControl:
             Nothing.
         """
         with self.cond:
+            if self.broken is None:
+                self.broken = []
             self.broken.append(update)
             self.cond.notify_all()
 
@@ -431,11 +434,14 @@ class Action(ABC):
 
     def _begin(self, values: dict[str, Any]) -> None:
         """Engine: a run starts with these input values (the dict is handed over, not copied)."""
-        inputs = Inputs.__new__(Inputs)
-        inputs._values = values
-        inputs._params = self._input_params
-        self._inputs = inputs
-        self._outputs = Outputs(self._output_params)
+        if values or self._input_params:
+            inputs = Inputs.__new__(Inputs)
+            inputs._values = values
+            inputs._params = self._input_params
+            self._inputs = inputs
+        else:  # nothing to read: share the empty view (fewer objects for the collector)
+            self._inputs = _NO_INPUTS
+        self._outputs = Outputs(self._output_params) if self._output_params else _NO_OUTPUTS
 
     def _log_snapshot(self) -> tuple[LogMessage, ...]:
         return tuple(self._log) if self._log is not None else ()

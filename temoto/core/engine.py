@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from temoto.clock import Clock, MonotonicClock
-from temoto.core._gc import collect_now, collector_paused
+from temoto.core._gc import collector_paused
 from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import GraphRun, Node, NodeKind, Plan
 from temoto.core.action import NO_VALUES, RunControl
@@ -51,10 +51,6 @@ from temoto.errors import (
 __all__ = ["ActionEngine", "GraphOutcome"]
 
 logger = logging.getLogger(__name__)
-
-#: A run of at least this many actions gets a full garbage collection before its first action
-#: starts (see :mod:`temoto.core._gc`).
-COLLECT_AT_START = 2000
 
 _S = NodeState
 _ACTIVE = frozenset({_S.RUNNING, _S.PAUSE_REQUESTED, _S.PAUSED, _S.STOPPING})
@@ -212,8 +208,6 @@ class ActionEngine:
                 run = GraphRun(run_name, plan)
                 self._runs[run_name] = run
                 self._start_run(run, values, result, fx)
-        if len(run.nodes) >= COLLECT_AT_START:
-            collect_now()  # the collection these objects would cause mid-run, done before it
         self._dispatch(fx)
         return run_name
 
@@ -1126,7 +1120,8 @@ def _transfer(
         if param.allowed_values and not param.accepts(value):
             continue
         child.data[target] = value
-        child.native.discard(target)
+        if target in child.native:
+            child.native.discard(target)  # type: ignore[union-attr]  # non-empty: a set
 
 
 def _ready(node: Node) -> bool:

@@ -13,7 +13,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections.abc import Mapping
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 from temoto.core._runtime import NodeKind, Plan, ResolvedAction
 from temoto.core.catalog import ActionCatalog, GraphIndex
@@ -22,6 +22,9 @@ from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value
 from temoto.core.umrf import Umrf
 from temoto.core.validation import validate_graph
 from temoto.errors import ActionNotFoundError, GraphDefinitionError, GraphInputError
+
+if TYPE_CHECKING:
+    from temoto.core.action import Action
 
 __all__ = ["Planner", "graph_inputs"]
 
@@ -41,6 +44,7 @@ class Planner:
         self.actor = actor
         self.catalog = catalog
         self.graphs = graphs
+        self._local: dict[type[Action], ResolvedAction] = {}
 
     def plan(self, graph: UmrfGraph) -> Plan:
         """Resolve and validate a graph.
@@ -95,7 +99,10 @@ class Planner:
             mismatch = _param_mismatch(umrf, description)
             if not mismatch:
                 cls = self.catalog.load_class(umrf.name)
-                return _merge(graph, umrf, description), ResolvedAction(NodeKind.LOCAL, cls=cls)
+                how = self._local.get(cls)
+                if how is None:  # one per class: a big graph need not hold one per action
+                    how = self._local[cls] = ResolvedAction(NodeKind.LOCAL, cls=cls)
+                return _merge(graph, umrf, description), how
         sub = self.graphs.find_subgraph(umrf)
         if sub is not None:
             if sub.name in stack:
@@ -131,6 +138,8 @@ def _param_mismatch(umrf: Umrf, description: Umrf) -> str:
 
 def _merge(graph: UmrfGraph, umrf: Umrf, description: Umrf) -> Umrf:
     """The description's parameters, with the graph's literals and allowed values."""
+    if not description.input_parameters and not description.output_parameters:
+        return umrf  # nothing to merge (the parameter sets match, so the graph's are empty too)
 
     def side(
         mine: Mapping[str, Parameter], theirs: Mapping[str, Parameter], what: str
