@@ -11,7 +11,12 @@ meanwhile is collected by the next automatic run.
 Forcing that full collection right after construction instead (so it would not land in the
 middle of the graph's execution) was measured and rejected: on this VM it made the following
 execution slower, not faster (52 vs 18 us per action in a 10,000-action chain; the likely cause
-is that the memory it frees goes back to the system and is faulted in again).
+is that the memory it frees goes back to the system and is faulted in again). What the engine
+does instead for a large run is :func:`collect_young`: the scan of the new objects that the
+first automatic collection would make anyway, done before the first action, with the
+collector's counters starting from zero. Measured on a 10,000-action chain: no full collection
+during the run any more (without it, one of 150-400 ms in half the runs), and 1-2 us per action
+of collector time in the run.
 """
 
 from __future__ import annotations
@@ -20,7 +25,7 @@ import gc
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-__all__ = ["collector_paused"]
+__all__ = ["collect_young", "collector_paused"]
 
 
 @contextmanager
@@ -40,3 +45,21 @@ def collector_paused() -> Iterator[None]:
     finally:
         if was_enabled:
             gc.enable()
+
+
+def collect_young() -> None:
+    """Collect the young generations now (if automatic collection is on).
+
+    After a burst made with the collector paused, the first automatic collection would scan
+    every new object anyway, at whatever moment the next allocation comes. Doing it right
+    away puts that scan before the graph's first action, and starts the generation counters
+    from zero, so the next full collection is as far away as the collector allows.
+
+    Returns:
+        None.
+
+    Raises:
+        Nothing.
+    """
+    if gc.isenabled():
+        gc.collect(1)

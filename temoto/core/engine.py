@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from temoto.clock import Clock, MonotonicClock
-from temoto.core._gc import collector_paused
+from temoto.core._gc import collect_young, collector_paused
 from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import GraphRun, Node, NodeKind, Plan
 from temoto.core.action import NO_VALUES, RunControl
@@ -51,6 +51,10 @@ from temoto.errors import (
 __all__ = ["ActionEngine", "GraphOutcome"]
 
 logger = logging.getLogger(__name__)
+
+#: A run of at least this many actions has its new objects collected (young generations only)
+#: before its first action starts (see :mod:`temoto.core._gc`).
+YOUNG_COLLECT_AT_START = 1000
 
 _S = NodeState
 _ACTIVE = frozenset({_S.RUNNING, _S.PAUSE_REQUESTED, _S.PAUSED, _S.STOPPING})
@@ -208,6 +212,8 @@ class ActionEngine:
                 run = GraphRun(run_name, plan)
                 self._runs[run_name] = run
                 self._start_run(run, values, result, fx)
+        if len(run.nodes) >= YOUNG_COLLECT_AT_START:
+            collect_young()
         self._dispatch(fx)
         return run_name
 
