@@ -21,6 +21,7 @@ Attributes:
 
 from __future__ import annotations
 
+import importlib
 import logging
 import os
 import platform
@@ -43,7 +44,7 @@ def _load_compiled() -> tuple[object, ...] | None:
     if _flag("TEMOTO_NO_EXTENSIONS") or platform.python_implementation() != "CPython":
         return None
     try:
-        from temoto.core._fast import _evolution_c, _refbook_c  # type: ignore[attr-defined]
+        modules = tuple(importlib.import_module(f"{__name__}._{k}_c") for k in KERNELS)
     except ImportError as err:
         if _flag("TEMOTO_REQUIRE_EXTENSIONS"):
             raise ImportError(
@@ -57,7 +58,7 @@ def _load_compiled() -> tuple[object, ...] | None:
             err,
         )
         return None
-    return (_evolution_c, _refbook_c)
+    return modules
 
 
 if TYPE_CHECKING:
