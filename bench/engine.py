@@ -200,6 +200,8 @@ def warm_runs(
 
     A robot's engine lives for hours: its worker threads are started by the first graph and
     reused (idle ones retire after 30 s), so thread creation is not part of a graph's cost.
+    Every run has the graph's name, so each start replaces the previous, ended run (as a robot
+    that runs the same task again does).
     """
     stamps = Stamps()
     kwargs: dict[str, Any] = {} if max_workers is None else {"max_workers": max_workers}
@@ -209,7 +211,7 @@ def warm_runs(
         for i in range(reps + 1):
             stamps.__init__()  # type: ignore[misc]  # reset the recorded stamps
             t_call = now()
-            name = engine.start(graph, name=f"{graph.name}_{i}")
+            name = engine.start(graph)
             result = engine.wait(name, WAIT_TIMEOUT)
             t_end = now()
             if result is not Result.TRUE:
@@ -241,15 +243,10 @@ def _compiled_note() -> str:
 
 
 def chain_runs(reps: int) -> list[Run]:
-    """``reps`` instrumented runs of the CHAIN_N chain, checked.
-
-    The warm-up run is a chain of WARMUP_N (the same code paths at a tenth of the cost: a
-    10,000-action start plans for ~0.5-1 s here).
-    """
+    """``reps`` instrumented runs of the CHAIN_N chain on one warm engine, checked."""
     catalog = make_catalog()
-    run_once(parse_graph(chain_graph(WARMUP_N, "bench_warmup")), catalog)
     graph = parse_graph(chain_graph(CHAIN_N))
-    runs = repeat(lambda: run_once(graph, catalog), reps, warmup=0)
+    runs = warm_runs(graph, catalog, reps)
     for run in runs:
         st = run.stamps
         assert st is not None

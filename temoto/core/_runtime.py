@@ -413,6 +413,27 @@ class GraphRun:
             [old.get(key, 0) for key in slots],
         )
 
+    def dispose(self) -> None:
+        """Break the reference cycles between a forgotten run and its nodes.
+
+        Called when a new run of the same name replaces an ended one with no active node: its
+        nodes, edges and action instances are then freed at once by reference counting,
+        instead of waiting for a full garbage collection (which, with a big graph, is a pause
+        of tens of milliseconds in the middle of some later run).
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        for node in self.all_nodes():
+            node.children = []
+            node.child_run = None
+        self.nodes = {}
+        self.order = []
+        self.edges = []
+
     def received_any(self, node: Node) -> bool:
         """Whether any parent of ``node`` finished in this run.
 

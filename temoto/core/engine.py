@@ -211,6 +211,8 @@ class ActionEngine:
                     raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
                 run = GraphRun(run_name, plan)
                 self._runs[run_name] = run
+                if old is not None and not old.active:
+                    old.dispose()  # its memory comes back now, not at a later full collection
                 self._start_run(run, values, result, fx)
         if len(run.nodes) >= YOUNG_COLLECT_AT_START:
             collect_young()

@@ -1661,3 +1661,29 @@ def test_modify_removing_a_literal_does_not_keep_the_old_value() -> None:
         engine.resume(run, continue_from="Emit_0")
         engine.wait(run, timeout=WAIT)
         assert engine.outcome(run).outputs.get("out") != "old"
+
+
+def test_a_replaced_run_lets_go_of_its_nodes_and_the_new_one_runs() -> None:
+    g = graph(
+        "again",
+        [
+            act("Emit_0", inputs={"value": s("x")}, outputs={"out": s()}, children=["Emit_1"]),
+            act("Emit_1", inputs={"value": s("y")}, outputs={"out": s()}, parents=["Emit_0"]),
+        ],
+        ["Emit_0"],
+        ["Emit_1"],
+    )
+    with engine_with() as (engine, _):
+        assert engine.run(g, timeout=WAIT).result is Result.TRUE
+        old = engine._runs["again"]
+        assert len(old.nodes) == 2
+        assert engine.run(g, timeout=WAIT).result is Result.TRUE
+        new = engine._runs["again"]
+        assert new is not old
+        assert old.nodes == {}  # the cycles between the run and its nodes are broken
+        assert old.edges == []
+        assert old.order == []
+        assert old.entry.children == []
+        assert old.exit.children == []
+        assert len(new.nodes) == 2
+        assert engine.outcome("again").outputs == {"out": "y"}
