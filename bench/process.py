@@ -442,7 +442,7 @@ def temoto_series(quick: bool, ctx: _Ctx, out: Results) -> list[float]:
     """The TeMoto metrics; returns the plain-spawn samples (for the supervisord comparison)."""
     from temoto.managers import ProcessManager
 
-    kills = 20 if quick else 100
+    kills = 15 if quick else 100
     floors = 6 if quick else 100  # kills of the floor series (no TeMoto)
     extra = 6 if quick else 50  # two-level failures, sleep children
     relaunches = 8 if quick else 100

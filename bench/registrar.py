@@ -226,8 +226,8 @@ class _Fanout:
 def bench_registrar(quick: bool) -> Results:
     out = Results()
     reps = 5 if quick else 15
-    n_dedup = 20_000 if quick else 50_000
-    n_new = 5_000 if quick else 20_000
+    n_dedup = 10_000 if quick else 50_000
+    n_new = 2_500 if quick else 20_000
 
     dedup = repeat(lambda: dedup_pairs(n_dedup, True), reps)
     out.add(
