@@ -187,17 +187,21 @@ def _py_trees(out: Results, quick: bool) -> None:
     # up outside the timing), so the tick does not include resetting a previous run.
     seq_reps = 5 if quick else 20
 
-    def seq_once() -> float:
-        leaves = [py_trees.behaviours.Success(name=f"leaf_{i}") for i in range(SEQ_N)]
-        root = py_trees.composites.Sequence(name="bench_seq", memory=True, children=leaves)
+    def tick_fresh(root: Any, leaves: list[Any], what: str) -> float:
+        """Set a fresh tree up (untimed), then time the one tick that runs it to SUCCESS."""
         root.setup_with_descendants()
         gc.collect()
         t0 = now()
         root.tick_once()
         dt = now() - t0
         if root.status is not success or any(leaf.status is not success for leaf in leaves):
-            raise RuntimeError("py_trees Sequence did not tick every leaf to SUCCESS in one tick")
+            raise RuntimeError(f"py_trees {what} did not tick every leaf to SUCCESS in one tick")
         return dt
+
+    def seq_once() -> float:
+        leaves = [py_trees.behaviours.Success(name=f"leaf_{i}") for i in range(SEQ_N)]
+        root = py_trees.composites.Sequence(name="bench_seq", memory=True, children=leaves)
+        return tick_fresh(root, leaves, "Sequence")
 
     times = repeat(seq_once, seq_reps)
     out.add(
@@ -218,14 +222,7 @@ def _py_trees(out: Results, quick: bool) -> None:
             policy=py_trees.common.ParallelPolicy.SuccessOnAll(synchronise=False),
             children=leaves,
         )
-        root.setup_with_descendants()
-        gc.collect()
-        t0 = now()
-        root.tick_once()
-        dt = now() - t0
-        if root.status is not success or any(leaf.status is not success for leaf in leaves):
-            raise RuntimeError("py_trees Parallel did not tick every leaf to SUCCESS in one tick")
-        return dt
+        return tick_fresh(root, leaves, "Parallel")
 
     times = repeat(par_once, par_reps)
     out.add(
