@@ -1097,7 +1097,7 @@ def test_run_under_another_name_is_independent() -> None:
 
 
 def test_restarting_a_finished_graph_gives_fresh_instances() -> None:
-    instances: list[tuple[int, int]] = []
+    instances: list[tuple[Action, int]] = []  # the objects, not id()s: a freed one's is reused
 
     @describe("Counted")
     class Counted(Action):
@@ -1107,7 +1107,7 @@ def test_restarting_a_finished_graph_gives_fresh_instances() -> None:
 
         def on_run(self) -> bool:
             self.runs += 1
-            instances.append((id(self), self.runs))
+            instances.append((self, self.runs))
             return True
 
     g = graph("again", [act("Counted_0")], ["Counted_0"], ["Counted_0"])
@@ -1115,7 +1115,7 @@ def test_restarting_a_finished_graph_gives_fresh_instances() -> None:
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert [runs for _, runs in instances] == [1, 1]
-        assert instances[0][0] != instances[1][0]
+        assert instances[0][0] is not instances[1][0]
 
 
 def _input_graph() -> UmrfGraph:
