@@ -116,10 +116,16 @@ class ActionCatalog:
         self._entries: dict[str, list[ActionEntry]] = {}
         self._classes: dict[str, type[Action]] = {}
         self._lock = threading.Lock()
+        self._generation = 0
         self.problems: list[tuple[str, str]] = []
         for path in paths:
             self._paths.append(_check_dir(path, "action"))
         self.refresh()
+
+    @property
+    def generation(self) -> int:
+        """Grows whenever the catalog may have changed (``register``, ``refresh``)."""
+        return self._generation
 
     # ---- building ---------------------------------------------------------------------------
 
@@ -172,6 +178,7 @@ class ActionCatalog:
             self._entries.setdefault(description.name, []).insert(0, entry)
             self._entries[description.name] = _dedupe(self._entries[description.name])
             self._classes.pop(description.name, None)
+            self._generation += 1
 
     def refresh(self) -> None:
         """Re-read every description (new files appear, removed ones vanish).
@@ -198,6 +205,7 @@ class ActionCatalog:
             self._entries = entries
             self._classes = {k: v for k, v in self._classes.items() if k in entries}
             self.problems = problems
+            self._generation += 1
 
     def _index_package(
         self,
@@ -422,8 +430,14 @@ class GraphIndex:
         self._paths = [_check_dir(p, "graph") for p in paths]
         self._graphs: dict[str, list[UmrfGraph]] = {}
         self._lock = threading.Lock()
+        self._generation = 0
         self.problems: list[tuple[str, str]] = []
         self.refresh()
+
+    @property
+    def generation(self) -> int:
+        """Grows whenever the index may have changed (``add``, ``refresh``)."""
+        return self._generation
 
     def add_path(self, path: str | Path) -> None:
         """Add a directory of graphs and index it.
@@ -456,6 +470,7 @@ class GraphIndex:
         """
         with self._lock:
             self._graphs.setdefault(graph.name, []).append(graph)
+            self._generation += 1
 
     def refresh(self) -> None:
         """Re-read every graph file.
@@ -483,6 +498,7 @@ class GraphIndex:
                 graphs.setdefault(graph.name, []).append(graph)
             self._graphs = graphs
             self.problems = problems
+            self._generation += 1
 
     def names(self) -> list[str]:
         """Names of every indexed graph.

@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import threading
+from collections import OrderedDict
 from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
@@ -31,8 +33,16 @@ __all__ = ["Planner", "graph_inputs"]
 logger = logging.getLogger(__name__)
 
 
+#: How many plans a planner remembers (by graph object; see :meth:`Planner.plan`).
+PLAN_CACHE_SIZE = 64
+
+
 class Planner:
     """Resolves, merges and validates graphs against an action catalog and a graph index.
+
+    Plans are remembered per graph *object* (``UmrfGraph`` is immutable), so starting the same
+    indexed graph again skips resolution and validation; a change of the catalog or of the
+    index (their ``generation``) makes every remembered plan stale.
 
     Args:
         actor: The local actor's name (actions of other actors are remote).
@@ -45,6 +55,9 @@ class Planner:
         self.catalog = catalog
         self.graphs = graphs
         self._local: dict[type[Action], ResolvedAction] = {}
+        #: id(graph) -> (graph, catalog generation, index generation, plan), least recent first
+        self._cache: OrderedDict[int, tuple[UmrfGraph, int, int, Plan]] = OrderedDict()
+        self._cache_lock = threading.Lock()
 
     def plan(self, graph: UmrfGraph) -> Plan:
         """Resolve and validate a graph.
@@ -61,7 +74,20 @@ class Planner:
             ActionNotFoundError, PluginConflictError, PluginLoadError: An action cannot be
                 loaded.
         """
-        return self._plan(graph, (graph.name,))
+        generations = (self.catalog.generation, self.graphs.generation)
+        key = id(graph)
+        with self._cache_lock:
+            hit = self._cache.get(key)
+            if hit is not None and hit[0] is graph and (hit[1], hit[2]) == generations:
+                self._cache.move_to_end(key)
+                return hit[3]
+        plan = self._plan(graph, (graph.name,))
+        with self._cache_lock:
+            self._cache[key] = (graph, *generations, plan)  # holds graph: its id stays unique
+            self._cache.move_to_end(key)
+            while len(self._cache) > PLAN_CACHE_SIZE:
+                self._cache.popitem(last=False)
+        return plan
 
     def _plan(self, graph: UmrfGraph, stack: tuple[str, ...]) -> Plan:
         actions: list[Umrf] = []

@@ -1687,3 +1687,40 @@ def test_a_replaced_run_lets_go_of_its_nodes_and_the_new_one_runs() -> None:
         assert old.exit.children == []
         assert len(new.nodes) == 2
         assert engine.outcome("again").outputs == {"out": "y"}
+
+
+def test_a_graph_started_again_is_planned_once_until_the_catalog_changes(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from temoto.core import planning
+
+    validated: list[str] = []
+    real = planning.validate_graph
+
+    def counting(g: UmrfGraph) -> Any:
+        validated.append(g.name)
+        return real(g)
+
+    monkeypatch.setattr(planning, "validate_graph", counting)
+    g = graph("cached", [act("Emit_0", inputs={"value": s("x")}, outputs={"out": s()})],
+              ["Emit_0"], ["Emit_0"])  # fmt: skip
+    with engine_with() as (engine, _):
+        for _ in range(3):
+            assert engine.run(g, timeout=WAIT).result is Result.TRUE
+        assert validated == ["cached"]  # the same graph object: one plan
+        same_text = graph("cached", [act("Emit_0", inputs={"value": s("x")}, outputs={"out": s()})],
+                          ["Emit_0"], ["Emit_0"])  # fmt: skip
+        assert engine.run(same_text, timeout=WAIT).result is Result.TRUE
+        assert validated == ["cached", "cached"]  # another object is planned afresh
+
+        @describe("Later")
+        class Later(Action):
+            def on_run(self) -> bool:
+                return True
+
+        engine.catalog.register(Later, parse_umrf(Later.DESCRIPTION))  # type: ignore[attr-defined]
+        assert engine.run(g, timeout=WAIT).result is Result.TRUE
+        assert validated == ["cached", "cached", "cached"]  # the catalog changed: planned again
+        engine.graphs.add(graph("other", [act("Emit_0")], ["Emit_0"], ["Emit_0"]))
+        assert engine.run(g, timeout=WAIT).result is Result.TRUE
+        assert len(validated) == 4  # so did the index
