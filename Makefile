@@ -26,6 +26,7 @@ lint: install
 	$(BIN)/ruff check .
 	$(BIN)/ruff format --check .
 	$(BIN)/mypy
+	$(BIN)/python tools/gen_lcm_types.py --check
 
 # The whole suite twice: the compiled kernels (which must have been built), then pure Python.
 test: install lint

@@ -31,6 +31,7 @@ situation, and inherit the matching builtin so generic callers can catch what th
         │   ├── DriverOperationError
         │   └── DriverTimeoutError (+TimeoutError)
         ├── TransportError
+        │   ├── DecodeError                 a fleet message's payload cannot be decoded
         │   └── TransportTimeoutError (+TimeoutError)
         └── RemoteError                     an error reported by another robot
 
@@ -51,6 +52,7 @@ __all__ = [
     "ActionNotFoundError",
     "CatalogCorruptError",
     "ConfigError",
+    "DecodeError",
     "DriverError",
     "DriverInitError",
     "DriverNotFoundError",
@@ -299,6 +301,15 @@ class DriverTimeoutError(DriverError, TimeoutError):
 
 class TransportError(TemotoError):
     """Messaging between robots failed."""
+
+
+class DecodeError(TransportError):
+    """A fleet message's payload cannot be decoded into its inner type.
+
+    Raised by :func:`temoto.transport.codec.decode` for an unknown type name, an unknown
+    version, bytes of another type (an LCM fingerprint mismatch), or a truncated or overlong
+    payload. The receiver counts and drops such a message; handlers never see it.
+    """
 
 
 class TransportTimeoutError(TransportError, TimeoutError):

@@ -1,0 +1,69 @@
+"""Messaging between TeMoto instances: transports, and the authentication of fleet envelopes.
+
+Layering (docs/fleet.md): ``temoto.transport`` sits below ``temoto.fleet`` and imports only
+:mod:`temoto.errors` and the generated :mod:`temoto.lcm_types`; ``temoto.core`` never imports it.
+
+* :class:`Transport` moves bytes on named channels: :class:`LcmTransport` over LCM (multicast
+  UDP between robots), :class:`InProcessTransport` between instances in one process (tests).
+  :func:`open_transport` picks one from a URL.
+* :class:`FleetAuth` seals and checks the envelopes every fleet message travels in (HMAC-SHA256,
+  replay window, drop counters); :class:`FleetLink` runs it on a transport.
+* :mod:`temoto.transport.codec` encodes and decodes the inner messages.
+
+Importing this package opens nothing and does not import the ``lcm`` wheel.
+"""
+
+from __future__ import annotations
+
+from temoto.transport.auth import (
+    DROP_REASONS,
+    KEY_ENV,
+    FleetAuth,
+    FleetLink,
+    Opened,
+    key_from_env,
+    key_from_text,
+)
+from temoto.transport.base import Handler, Subscription, Transport, check_channel
+from temoto.transport.inprocess import InProcessTransport
+from temoto.transport.lcm import DEFAULT_LCM_URL, LcmTransport
+
+__all__ = [
+    "DEFAULT_LCM_URL",
+    "DROP_REASONS",
+    "KEY_ENV",
+    "FleetAuth",
+    "FleetLink",
+    "Handler",
+    "InProcessTransport",
+    "LcmTransport",
+    "Opened",
+    "Subscription",
+    "Transport",
+    "check_channel",
+    "key_from_env",
+    "key_from_text",
+    "open_transport",
+]
+
+#: URL scheme of :class:`InProcessTransport`: ``inproc://<bus>``.
+INPROC_SCHEME = "inproc://"
+
+
+def open_transport(url: str = DEFAULT_LCM_URL) -> Transport:
+    """Open a transport from a URL.
+
+    Args:
+        url: ``inproc://<bus>`` for an :class:`InProcessTransport` on that bus (``default``
+            when empty); anything else is an LCM provider URL for :class:`LcmTransport`
+            (``udpm://239.255.76.67:7667?ttl=1``, ``memq://``, ...).
+
+    Returns:
+        The open transport; close it when done.
+
+    Raises:
+        TransportError: If LCM cannot open the URL.
+    """
+    if url.startswith(INPROC_SCHEME):
+        return InProcessTransport(url[len(INPROC_SCHEME) :] or "default")
+    return LcmTransport(url)

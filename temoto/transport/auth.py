@@ -1,0 +1,529 @@
+r"""Fleet authentication: sealed envelopes, HMAC-SHA256 and a replay window (docs/fleet.md).
+
+Every fleet message travels in an ``envelope_t`` (:mod:`temoto.lcm_types`). :meth:`FleetAuth.seal`
+wraps an inner message into one; :meth:`FleetAuth.open` checks a received one and returns its
+content, or None after counting why it was dropped. The checks, in order:
+
+=================  ===============================================================================
+``garbage``        not a canonically encoded envelope (wrong fingerprint, truncated, trailing bytes)
+``version``        an envelope version this code does not know
+``fleet``          another fleet's message
+``self``           our own message, echoed back by multicast
+``unsigned``       no mac, but this fleet has a key
+``unexpected_mac`` a mac, but this fleet runs insecure (keyed and insecure fleets never mix)
+``forged``         the mac is wrong: another key, a changed byte, or another channel
+``stale``          the sender's stamp is more than ``window_s`` away from our clock
+``replayed``       a sequence number already seen, or too far below the highest seen
+=================  ===============================================================================
+
+The mac is ``HMAC-SHA256(key, channel + b"\0" + envelope encoded with an empty mac)``, so it
+covers the channel too: a captured message cannot be replayed on another channel. Replay
+protection follows IPsec (RFC 4303 §3.4.3): per sender, the highest sequence number seen and a
+bitmap of the 64 below it; reordering inside that window is accepted, a duplicate or anything
+older is not. A sender's numbers start at its boot time in microseconds and go up by one per
+message, so a restarted sender continues above its old numbers. The ``stamp_us`` check bounds
+how long a captured message stays usable against a receiver that lost its replay state
+(restarted, or forgot a sender not heard for ``10 * window_s``).
+
+:class:`FleetLink` wires a :class:`FleetAuth` to a :class:`~temoto.transport.base.Transport`.
+"""
+
+from __future__ import annotations
+
+import base64
+import binascii
+import hashlib
+import hmac
+import logging
+import math
+import os
+import string
+import struct
+import threading
+import time
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from typing import final
+
+from temoto.lcm_types import envelope_t
+from temoto.transport.base import Subscription, Transport, _LogLimiter
+
+__all__ = [
+    "DROP_REASONS",
+    "ENVELOPE_VERSION",
+    "KEY_ENV",
+    "MIN_KEY_BYTES",
+    "REPLAY_WINDOW",
+    "FleetAuth",
+    "FleetLink",
+    "Opened",
+    "key_from_env",
+    "key_from_text",
+]
+
+logger = logging.getLogger(__name__)
+
+#: The envelope format this code writes and accepts.
+ENVELOPE_VERSION = 1
+#: The environment variable holding the fleet key (hex or base64).
+KEY_ENV = "TEMOTO_FLEET_KEY"
+#: The shortest key accepted, in bytes (the HMAC-SHA256 output size).
+MIN_KEY_BYTES = 32
+#: How many sequence numbers below the highest seen are still accepted once (reordering).
+REPLAY_WINDOW = 64
+#: Why :meth:`FleetAuth.open` drops a message, in the order it checks; keys of ``stats``.
+DROP_REASONS = (
+    "garbage",
+    "version",
+    "fleet",
+    "self",
+    "unsigned",
+    "unexpected_mac",
+    "forged",
+    "stale",
+    "replayed",
+)
+
+_MAC_SIZE = hashlib.sha256().digest_size
+_MAC_SIZE_FIELD = struct.pack(">h", _MAC_SIZE)
+_NO_MAC_FIELD = struct.pack(">h", 0)
+_WINDOW_MASK = (1 << REPLAY_WINDOW) - 1
+# A sender not heard for this many windows is forgotten; its old messages are stale by then.
+_FORGET_AFTER_WINDOWS = 10
+_HEX_DIGITS = frozenset(string.hexdigits)
+
+_EXPLAIN = {
+    "garbage": "not an envelope",
+    "version": "unknown envelope version",
+    "fleet": "another fleet",
+    "self": "our own message",
+    "unsigned": "no mac, but this fleet has a key",
+    "unexpected_mac": "a mac, but this fleet runs insecure",
+    "forged": "wrong mac",
+    "stale": "stamp outside the time window",
+    "replayed": "sequence number already seen or too old",
+}
+
+
+def key_from_text(text: str) -> bytes:
+    """Decode a fleet key written as hex or base64 (whitespace is ignored; hex is tried first).
+
+    Args:
+        text: The key, e.g. the output of ``python -c "import secrets;
+            print(secrets.token_hex(32))"``.
+
+    Returns:
+        The key bytes, at least :data:`MIN_KEY_BYTES` of them.
+
+    Raises:
+        ValueError: If the text is empty, neither hex nor base64, or too short a key.
+    """
+    cleaned = "".join(text.split())
+    if not cleaned:
+        raise ValueError("the fleet key is empty")
+    key: bytes | None = None
+    if len(cleaned) % 2 == 0 and _HEX_DIGITS.issuperset(cleaned):
+        key = bytes.fromhex(cleaned)
+    else:
+        padded = cleaned + "=" * (-len(cleaned) % 4)
+        for altchars in (None, b"-_"):
+            try:
+                key = base64.b64decode(padded, altchars=altchars, validate=True)
+            except (binascii.Error, ValueError):
+                continue
+            break
+    if key is None:
+        raise ValueError(
+            "the fleet key is neither hex nor base64 (make one with: "
+            'python -c "import secrets; print(secrets.token_hex(32))")'
+        )
+    if len(key) < MIN_KEY_BYTES:
+        raise ValueError(
+            f"the fleet key is {len(key)} bytes long; at least {MIN_KEY_BYTES} are needed "
+            f"({2 * MIN_KEY_BYTES} hex digits)"
+        )
+    return key
+
+
+def key_from_env(environ: Mapping[str, str] | None = None) -> bytes | None:
+    """Read the fleet key from :data:`KEY_ENV` (``TEMOTO_FLEET_KEY``).
+
+    Args:
+        environ: The environment to read; ``os.environ`` when None.
+
+    Returns:
+        The key, or None when the variable is unset or blank.
+
+    Raises:
+        ValueError: If the variable is set but does not hold a valid key (the message names it).
+    """
+    text = (os.environ if environ is None else environ).get(KEY_ENV)
+    if text is None or not text.strip():
+        return None
+    try:
+        return key_from_text(text)
+    except ValueError as err:
+        raise ValueError(f"{KEY_ENV}: {err}") from None
+
+
+@dataclass(frozen=True, slots=True)
+class Opened:
+    """The content of an envelope that passed every check.
+
+    Attributes:
+        channel: The channel it came on.
+        sender: The sender's id.
+        type: The inner message's type name (e.g. ``"handshake_t"``).
+        payload: The inner message, LCM-encoded.
+        seq: The sender's sequence number.
+        stamp_us: The sender's wall clock when sealing, microseconds since the epoch.
+    """
+
+    channel: str
+    sender: str
+    type: str
+    payload: bytes
+    seq: int
+    stamp_us: int
+
+
+@dataclass(slots=True)
+class _Peer:
+    """Replay state of one sender."""
+
+    highest: int  # highest sequence number accepted
+    bitmap: int  # bit i set: highest - i was accepted (bit 0 is highest itself)
+    heard: float  # our clock at the last accepted message
+
+
+@final
+class FleetAuth:
+    """Seals outgoing and checks incoming envelopes of one fleet member.
+
+    Args:
+        fleet: The fleet name; envelopes of other fleets are dropped.
+        sender: This member's id, unique in the fleet.
+        key: The shared fleet key (at least 32 bytes; see :func:`key_from_text`), or None
+            together with ``insecure=True``.
+        insecure: Run without a key: seal without a mac and accept only envelopes without one.
+            Anyone on the network can then forge, alter or replay messages; logged as a warning.
+        window_s: Largest accepted difference between a sender's stamp and our clock.
+        clock: Wall clock in seconds since the epoch (injected by tests).
+
+    Raises:
+        ValueError: If a name is empty, the key is missing without ``insecure=True``, given
+            together with it, or too short, or ``window_s`` is not positive.
+        TypeError: If the key is not bytes.
+    """
+
+    def __init__(
+        self,
+        fleet: str,
+        sender: str,
+        key: bytes | None,
+        *,
+        insecure: bool = False,
+        window_s: float = 30.0,
+        clock: Callable[[], float] = time.time,
+    ) -> None:
+        for what, name in (("fleet", fleet), ("sender", sender)):
+            if not isinstance(name, str) or not name:
+                raise ValueError(f"the {what} name must be a non-empty string, got {name!r}")
+        if key is None and not insecure:
+            raise ValueError(
+                f"no fleet key for fleet {fleet!r}: set {KEY_ENV} (hex or base64, at least "
+                f"{MIN_KEY_BYTES} bytes) or run insecure explicitly (--insecure)"
+            )
+        if key is not None:
+            if insecure:
+                raise ValueError("a fleet key and insecure=True exclude each other")
+            if not isinstance(key, bytes | bytearray):
+                raise TypeError(f"the fleet key must be bytes, got {type(key).__name__}")
+            if len(key) < MIN_KEY_BYTES:
+                raise ValueError(
+                    f"the fleet key is {len(key)} bytes long; at least {MIN_KEY_BYTES} are needed"
+                )
+            key = bytes(key)
+        if not (window_s > 0 and math.isfinite(window_s)):
+            raise ValueError(f"window_s must be a positive number of seconds, got {window_s!r}")
+        self.fleet = fleet
+        self.sender = sender
+        self.window_s = float(window_s)
+        self._key = key
+        self._clock = clock
+        self._seq_lock = threading.Lock()
+        self._seq = round(clock() * 1e6) - 1  # the first message carries the boot time
+        self._lock = threading.Lock()  # guards _counts, _peers, _next_prune
+        self._counts = dict.fromkeys(("accepted", *DROP_REASONS), 0)
+        self._peers: dict[str, _Peer] = {}
+        self._next_prune = clock() + self.window_s
+        self._log = _LogLimiter()
+        if insecure:
+            logger.warning(
+                "fleet %r runs INSECURE (no key): anyone on the network can forge, alter or "
+                "replay its messages; set %s to authenticate them",
+                fleet,
+                KEY_ENV,
+            )
+
+    def __repr__(self) -> str:
+        mode = "insecure" if self.insecure else "keyed"
+        return f"<FleetAuth fleet={self.fleet!r} sender={self.sender!r} {mode}>"
+
+    @property
+    def insecure(self) -> bool:
+        """Whether this member runs without a key."""
+        return self._key is None
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """A copy of the counters: ``accepted`` and one per reason in :data:`DROP_REASONS`."""
+        with self._lock:
+            return dict(self._counts)
+
+    # --- sending ------------------------------------------------------------------------------
+
+    def seal(self, channel: str, type_name: str, payload: bytes) -> bytes:
+        """Wrap an inner message into an envelope for ``channel``; thread-safe.
+
+        Args:
+            channel: The channel it will be published on (covered by the mac).
+            type_name: The inner message's type name.
+            payload: The inner message, LCM-encoded.
+
+        Returns:
+            The encoded envelope, with a mac unless this member is insecure.
+
+        Raises:
+            TypeError: If ``payload`` is not bytes.
+        """
+        if not isinstance(payload, bytes | bytearray):
+            raise TypeError(f"payload must be bytes, got {type(payload).__name__}")
+        with self._seq_lock:
+            self._seq += 1
+            seq = self._seq
+        env = envelope_t()  # type: ignore[no-untyped-call]
+        env.version = ENVELOPE_VERSION
+        env.fleet = self.fleet
+        env.sender = self.sender
+        env.seq = seq
+        env.stamp_us = round(self._clock() * 1e6)
+        env.type = type_name
+        env.payload_size = len(payload)
+        env.payload = bytes(payload)
+        env.mac_size = 0
+        env.mac = b""
+        body: bytes = env.encode()  # type: ignore[no-untyped-call]
+        if self._key is None:
+            return body
+        # The mac is the last field: swap the empty one (its int16 size, 0) for the real one.
+        return body[: -len(_NO_MAC_FIELD)] + _MAC_SIZE_FIELD + self._mac(channel, body)
+
+    # --- receiving ----------------------------------------------------------------------------
+
+    def open(self, channel: str, data: bytes) -> Opened | None:
+        """Check a received envelope; thread-safe, never raises for any ``data``.
+
+        Args:
+            channel: The channel it came on.
+            data: The received bytes.
+
+        Returns:
+            Its content, or None if it was dropped (counted in :attr:`stats` by reason).
+
+        Raises:
+            Nothing.
+        """
+        result = self._check(channel, data)
+        if isinstance(result, Opened):
+            return result
+        reason, sender = result
+        with self._lock:
+            self._counts[reason] += 1
+        if logger.isEnabledFor(logging.DEBUG):
+            held = self._log.allow(reason)
+            if held is not None:
+                more = f" ({held} more since the last report)" if held else ""
+                logger.debug(
+                    "fleet %r: dropped a message on %r from %s: %s%s",
+                    self.fleet,
+                    channel,
+                    "an unknown sender" if sender is None else repr(sender),
+                    _EXPLAIN[reason],
+                    more,
+                )
+        return None
+
+    # --- internals ----------------------------------------------------------------------------
+
+    def _check(self, channel: str, data: bytes) -> Opened | tuple[str, str | None]:
+        """Run the checks of :meth:`open`: the content, or why and from whom it is dropped."""
+        try:
+            env = envelope_t.decode(data)
+            # Only the canonical encoding is accepted: LCM's decoder ignores trailing bytes,
+            # reads short arrays without complaint (and its encoder writes them as short) and
+            # replaces bad UTF-8, none of which must leave a second spelling of a message.
+            canonical = (
+                len(env.payload) == env.payload_size
+                and len(env.mac) == env.mac_size
+                and env.encode() == data
+            )
+        except Exception:
+            return "garbage", None
+        if not canonical:
+            return "garbage", None
+        sender: str = env.sender
+        if env.version != ENVELOPE_VERSION:
+            return "version", sender
+        if env.fleet != self.fleet:
+            return "fleet", sender
+        if sender == self.sender:
+            return "self", sender
+        mac_size: int = env.mac_size
+        if self._key is None:
+            if mac_size != 0:
+                return "unexpected_mac", sender
+        elif mac_size == 0:
+            return "unsigned", sender
+        else:
+            body = data[: len(data) - len(_MAC_SIZE_FIELD) - mac_size] + _NO_MAC_FIELD
+            if mac_size != _MAC_SIZE or not hmac.compare_digest(self._mac(channel, body), env.mac):
+                return "forged", sender
+        now = self._clock()
+        stamp_us: int = env.stamp_us
+        if abs(stamp_us / 1e6 - now) > self.window_s:
+            return "stale", sender
+        seq: int = env.seq
+        with self._lock:
+            if not self._admit(sender, seq, now):
+                return "replayed", sender
+            self._counts["accepted"] += 1
+            if now >= self._next_prune:
+                self._prune(now)
+        return Opened(channel, sender, env.type, env.payload, seq, stamp_us)
+
+    def _mac(self, channel: str, body: bytes) -> bytes:
+        assert self._key is not None
+        # surrogatepass: no str makes this raise, so open() cannot either.
+        prefix = channel.encode("utf-8", "surrogatepass") + b"\0"
+        return hmac.digest(self._key, prefix + body, "sha256")
+
+    def _admit(self, sender: str, seq: int, now: float) -> bool:
+        """Apply the replay window; called with ``_lock`` held. True if ``seq`` is new."""
+        peer = self._peers.get(sender)
+        if peer is None:
+            self._peers[sender] = _Peer(seq, 1, now)
+            return True
+        if seq > peer.highest:
+            shift = seq - peer.highest
+            peer.bitmap = (
+                ((peer.bitmap << shift) | 1) & _WINDOW_MASK if shift < REPLAY_WINDOW else 1
+            )
+            peer.highest = seq
+        else:
+            behind = peer.highest - seq
+            if behind >= REPLAY_WINDOW or peer.bitmap >> behind & 1:
+                return False
+            peer.bitmap |= 1 << behind
+        peer.heard = now
+        return True
+
+    def _prune(self, now: float) -> None:
+        """Forget senders not heard for a long time; called with ``_lock`` held."""
+        horizon = now - _FORGET_AFTER_WINDOWS * self.window_s
+        for sender in [s for s, peer in self._peers.items() if peer.heard < horizon]:
+            del self._peers[sender]
+        self._next_prune = now + self.window_s
+
+
+@final
+class FleetLink:
+    """Sends and receives authenticated fleet messages: a :class:`FleetAuth` on a transport.
+
+    The link owns neither: close the transport yourself.
+
+    Args:
+        transport: Where envelopes travel.
+        auth: Seals outgoing and checks incoming envelopes.
+    """
+
+    def __init__(self, transport: Transport, auth: FleetAuth) -> None:
+        self.transport = transport
+        self.auth = auth
+        self._handler_errors = 0
+        self._errors_lock = threading.Lock()
+        self._log = _LogLimiter()
+
+    def __repr__(self) -> str:
+        return f"<FleetLink {self.auth!r} on {self.transport!r}>"
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """The authentication counters (:attr:`FleetAuth.stats`) plus ``handler_error``."""
+        stats = self.auth.stats
+        stats["handler_error"] = self._handler_errors
+        return stats
+
+    def send(self, channel: str, type_name: str, payload: bytes) -> None:
+        """Seal an inner message and publish it.
+
+        Args:
+            channel: The channel.
+            type_name: The inner message's type name.
+            payload: The inner message, LCM-encoded.
+
+        Raises:
+            ValueError: If the channel name is invalid.
+            TypeError: If ``payload`` is not bytes.
+            TransportError: If the transport is closed or sending failed.
+        """
+        self.transport.publish(channel, self.auth.seal(channel, type_name, payload))
+
+    def listen(
+        self,
+        channel: str,
+        handler: Callable[[Opened], None],
+        *,
+        queue_capacity: int | None = None,
+    ) -> Subscription:
+        """Call ``handler`` on the receive thread with every envelope on ``channel`` that passes.
+
+        Dropped envelopes are only counted (:attr:`stats`); what the handler raises is logged
+        and counted as ``handler_error``.
+
+        Args:
+            channel: The channel.
+            handler: Called with the opened envelope.
+            queue_capacity: See :meth:`Transport.subscribe`.
+
+        Returns:
+            The transport subscription; unsubscribe it to stop listening.
+
+        Raises:
+            ValueError: If the channel name or the capacity is invalid.
+            TransportError: If the transport is closed.
+        """
+
+        def on_data(rx_channel: str, data: bytes) -> None:
+            opened = self.auth.open(rx_channel, data)
+            if opened is None:
+                return
+            try:
+                handler(opened)
+            except Exception:
+                with self._errors_lock:
+                    self._handler_errors += 1
+                held = self._log.allow(rx_channel)
+                if held is not None:
+                    more = f" ({held} more since the last report)" if held else ""
+                    logger.exception(
+                        "fleet %r: handler %r of channel %r raised on a %r from %r%s",
+                        self.auth.fleet,
+                        handler,
+                        rx_channel,
+                        opened.type,
+                        opened.sender,
+                        more,
+                    )
+
+        return self.transport.subscribe(channel, on_data, queue_capacity=queue_capacity)
