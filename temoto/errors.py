@@ -32,6 +32,7 @@ situation, and inherit the matching builtin so generic callers can catch what th
         │   └── DriverTimeoutError (+TimeoutError)
         ├── TransportError
         │   ├── DecodeError                 a fleet message's payload cannot be decoded
+        │   ├── FleetError                  another actor of a shared graph did not answer
         │   └── TransportTimeoutError (+TimeoutError)
         └── RemoteError                     an error reported by another robot
 
@@ -60,6 +61,7 @@ __all__ = [
     "DriverTimeoutError",
     "DriverUnavailableError",
     "ErrorRecord",
+    "FleetError",
     "GraphDefinitionError",
     "GraphInputError",
     "GraphNotFoundError",
@@ -301,6 +303,15 @@ class DriverTimeoutError(DriverError, TimeoutError):
 
 class TransportError(TemotoError):
     """Messaging between robots failed."""
+
+
+class FleetError(TransportError):
+    """Another actor of a shared graph did not take part.
+
+    Raised when the handshake before a multi-actor run does not complete in time, when an
+    actor does not acknowledge a notification, and given to the engine when an actor falls
+    silent during a run. The message names the actors concerned.
+    """
 
 
 class DecodeError(TransportError):

@@ -11,6 +11,7 @@ All mutable fields are guarded by the engine's lock.
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from enum import Enum
 from typing import TYPE_CHECKING, Any
@@ -120,6 +121,7 @@ class Node:
         "outputs",
         "parents",
         "plan",
+        "remote_cancel",
         "required_inputs",
         "restart",
         "run",
@@ -151,6 +153,7 @@ class Node:
         self.restart = False
         self.stop_timer: TimerHandle | None = None
         self.child_run: GraphRun | None = None
+        self.remote_cancel: Callable[[], None] | None = None  # stops waiting for a remote actor
         self.error: BaseException | None = None
         self.last_outputs: dict[str, Any] = {}
         self.log: tuple[LogMessage, ...] = ()
@@ -263,12 +266,14 @@ class GraphRun:
         "order",
         "outputs",
         "parent_node",
+        "peers",
         "plan",
         "result",
         "slots",
         "started_at",
         "state",
         "stop_failed",
+        "unwatch",
     )
 
     def __init__(self, name: str, plan: Plan, parent_node: Node | None = None) -> None:
@@ -283,6 +288,8 @@ class GraphRun:
         self.errors: list[BaseException] = []
         self.stop_failed = False
         self.started_at = 0.0
+        self.peers: tuple[str, ...] = ()  # the other actors of a shared graph
+        self.unwatch: Callable[[], None] | None = None  # stops watching them
         signature = plan.graph.signature()
         entry_umrf = Umrf(ENTRY_NAME, "sync")
         exit_umrf = Umrf(EXIT_NAME, "sync")

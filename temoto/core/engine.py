@@ -39,10 +39,12 @@ from temoto.core.instrument import Instrument
 from temoto.core.params import dump_parameter_tree
 from temoto.core.planning import Planner, graph_inputs
 from temoto.core.registrar.registry import Registrar
+from temoto.core.remote import ActorLink
 from temoto.core.states import NODE_TRANSITIONS, GraphState, NodeState, Result
 from temoto.core.umrf import dump_umrf
 from temoto.errors import (
     ActionError,
+    FleetError,
     GraphNotFoundError,
     StateError,
     StopRequested,
@@ -70,6 +72,7 @@ _RUN = 0  # (_RUN, node, gen): run the action on a worker
 _HOOK = 1  # (_HOOK, node, gen, hook name): call on_stop / on_pause / on_resume on a worker
 _SPONT = 2  # (_SPONT, node, gen, result, outputs, error): finish a spontaneous run on a worker
 _RELEASE = 3  # (_RELEASE, action instance): release the resources a node acquired
+_CALL = 4  # (_CALL, function, *args): a short call to the actor link, made outside the lock
 
 Effect = tuple[Any, ...]
 
@@ -115,6 +118,10 @@ class ActionEngine:
             proportional to the graph's size.
         registrar: Where actions acquire resources (``Action.acquire``); they are released
             when the graph run ends or the node is removed.
+        link: The other actors of shared graphs (``temoto.fleet``). Without one, a graph that
+            names another actor is refused at start.
+        handshake_timeout: Seconds the handshake before a shared graph may take.
+        notify_timeout: Seconds every other actor has to acknowledge a finished action.
 
     Raises:
         ConfigError: If an action or graph directory does not exist.
@@ -132,13 +139,21 @@ class ActionEngine:
         instruments: Iterable[Instrument] = (),
         feedback_size: int = 0,
         registrar: Registrar | None = None,
+        link: ActorLink | None = None,
+        handshake_timeout: float = 5.0,
+        notify_timeout: float = 5.0,
     ) -> None:
+        if link is not None and link.actor != actor:
+            raise ValueError(f"the link speaks for actor '{link.actor}', the engine is '{actor}'")
         self.actor = actor
+        self.link = link
+        self.handshake_timeout = handshake_timeout
+        self.notify_timeout = notify_timeout
         self.catalog = (
             actions if isinstance(actions, ActionCatalog) else ActionCatalog(actions or ())
         )
         self.graphs = graphs if isinstance(graphs, GraphIndex) else GraphIndex(graphs or ())
-        self._planner = Planner(actor, self.catalog, self.graphs)
+        self._planner = Planner(actor, self.catalog, self.graphs, remote=link is not None)
         self.clock: Clock = clock or MonotonicClock()
         self.stop_timeout = stop_timeout
         self.registrar = registrar
@@ -191,6 +206,8 @@ class ActionEngine:
             GraphInputError: A required input is missing, unknown or of the wrong type.
             ActionNotFoundError, PluginConflictError, PluginLoadError: An action cannot be loaded.
             StateError: A run of that name is active, or the engine is shut down.
+            FleetError: The graph is shared with other actors and the handshake with them did
+                not complete within ``handshake_timeout``.
         """
         if isinstance(graph, str):
             model = self.graphs.get(graph)
@@ -203,17 +220,26 @@ class ActionEngine:
         with collector_paused():  # a big graph is a burst of long-lived objects
             plan = self.plan(model)
             values = graph_inputs(plan.graph, params or {})
-            with self._lock:
-                if self._closed:
-                    raise StateError("the engine is shut down")
-                old = self._runs.get(run_name)
-                if old is not None and old.state in _BUSY_GRAPH:
-                    raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
-                run = GraphRun(run_name, plan)
-                self._runs[run_name] = run
-                if old is not None and not old.active:
-                    old.dispose()  # its memory comes back now, not at a later full collection
-                self._start_run(run, values, result, fx)
+        peers = self._peers(plan)
+        if peers:
+            assert self.link is not None  # the planner refuses remote actions without a link
+            self.link.handshake(
+                plan.graph.name, run_name, sorted({self.actor, *peers}), self.handshake_timeout
+            )
+        with collector_paused(), self._lock:
+            if self._closed:
+                raise StateError("the engine is shut down")
+            old = self._runs.get(run_name)
+            if old is not None and old.state in _BUSY_GRAPH:
+                raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
+            run = GraphRun(run_name, plan)
+            run.peers = peers
+            self._runs[run_name] = run
+            if old is not None and not old.active:
+                old.dispose()  # its memory comes back now, not at a later full collection
+            self._start_run(run, values, result, fx)
+        if peers:
+            self._watch_peers(run)
         if len(run.nodes) >= YOUNG_COLLECT_AT_START:
             collect_young()
         self._dispatch(fx)
@@ -542,6 +568,12 @@ class ActionEngine:
                 fx = [*fx, *self._releases]
                 self._releases.clear()
         for effect in fx:
+            if effect[0] == _CALL:
+                try:
+                    effect[1](*effect[2:])
+                except Exception:
+                    logger.exception("call to the actor link failed: %r", effect[1])
+                continue
             try:
                 if effect[0] == _RUN:
                     self._pool.submit(self._execute, effect[1], effect[2])
@@ -622,6 +654,8 @@ class ActionEngine:
                 error = ActionError(f"{node.name} failed: {err}", graph=run.name, node=node.name)
                 error.__cause__ = err
             outputs = instance._outputs._taken()
+        if run.peers and result is not Result.STOPPED and node.umrf.actor == self.actor:
+            result, error = self._notify_peers(node, result, outputs, error)
         with self._lock:
             if instance is not None and gen == node.gen:
                 node.log = instance._log_snapshot()
@@ -725,6 +759,112 @@ class ActionEngine:
                 out.append(child)
                 todo.append(child)
         return out
+
+    # ================================================================ shared graphs
+
+    def _peers(self, plan: Plan) -> tuple[str, ...]:
+        """The other actors a plan's graph is shared with (empty for a local graph)."""
+        actors = {a.actor for a in plan.graph.actions if a.actor and a.actor != self.actor}
+        return tuple(sorted(actors))
+
+    def _watch_peers(self, run: GraphRun) -> None:
+        """Have the link report a peer that falls silent (called outside the lock)."""
+        assert self.link is not None
+        cancel = self.link.watch(run.peers, lambda actor, why: self._actor_lost(run, actor, why))
+        with self._lock:
+            ended = run.state in _ENDED_GRAPH
+            if not ended:
+                run.unwatch = cancel
+        if ended:
+            cancel()
+
+    def _actor_lost(self, run: GraphRun, actor: str, reason: str) -> None:
+        """Link thread: a peer of a shared run is gone; the run ends in ERROR here too."""
+        fx: list[Effect] = []
+        with self._lock:
+            if run.state not in (GraphState.RUNNING, GraphState.PAUSED):
+                return
+            error = FleetError(f"graph {run.name}: actor '{actor}' was lost ({reason})")
+            run.errors.append(error)
+            run.stop_failed = True  # the stop ends the run in ERROR, not STOPPED
+            logger.error("%s", error)
+            self._stop_run(run, fx)
+        self._dispatch(fx, closing=self._closed)
+
+    def _end_shared(self, run: GraphRun) -> None:
+        """Outside the lock: stop watching the run's peers and let the link forget the run."""
+        assert self.link is not None
+        with self._lock:
+            unwatch, run.unwatch = run.unwatch, None
+        if unwatch is not None:
+            unwatch()
+        self.link.end(run.plan.graph.name, run.name)
+
+    def _expect_remote(self, node: Node, gen: int) -> None:
+        """Outside the lock: wait (through the link) for a remote action's notification."""
+        assert self.link is not None
+        run = node.run
+        cancel = self.link.expect(
+            run.plan.graph.name,
+            run.name,
+            node.name,
+            node.umrf.actor,
+            lambda result, outputs: self._remote_finished(node, gen, result, outputs),
+        )
+        with self._lock:
+            current = node.gen == gen and node.active
+            if current:
+                node.remote_cancel = cancel
+        if not current:
+            cancel()
+
+    def _remote_finished(
+        self, node: Node, gen: int, result: Result, outputs: Mapping[str, Any]
+    ) -> None:
+        """Link thread: another actor finished the action this node stands for."""
+        fx: list[Effect] = []
+        with self._lock:
+            if node.gen != gen or not node.active:
+                return  # stopped meanwhile, or a notification for an earlier run of the node
+            node.remote_cancel = None
+            error: BaseException | None = None
+            if result is Result.ERROR:
+                error = ActionError(
+                    f"{node.name} failed on actor '{node.umrf.actor}'",
+                    graph=node.run.name,
+                    node=node.name,
+                )
+            self._on_finished(node, gen, result, dict(outputs), error, fx)
+        self._dispatch(fx, closing=self._closed)
+
+    def _notify_peers(
+        self, node: Node, result: Result, outputs: dict[str, Any], error: BaseException | None
+    ) -> tuple[Result, BaseException | None]:
+        """Worker: tell the other actors that this actor's action finished (they acknowledge).
+
+        An actor that does not acknowledge in time turns the result into an error here.
+        """
+        assert self.link is not None
+        run = node.run
+        try:
+            self.link.notify(
+                run.plan.graph.name,
+                run.name,
+                node.name,
+                result,
+                outputs,
+                run.peers,
+                self.notify_timeout,
+            )
+        except FleetError as err:
+            failure = ActionError(
+                f"{node.name}: the other actors were not told ({err})",
+                graph=run.name,
+                node=node.name,
+            )
+            failure.__cause__ = err
+            return Result.ERROR, failure
+        return result, error
 
     # ================================================================ evolution (lock held)
 
@@ -884,6 +1024,10 @@ class ActionEngine:
             self._set_state(node, _S.RUNNING)
             fx.append((_RUN, node, node.gen))
             return
+        if node.kind is NodeKind.REMOTE:
+            self._set_state(node, _S.RUNNING)
+            fx.append((_CALL, self._expect_remote, node, node.gen))
+            return
         assert node.plan is not None
         self._set_state(node, _S.RUNNING)
         child = GraphRun(
@@ -910,6 +1054,12 @@ class ActionEngine:
         if node.kind is NodeKind.GRAPH:
             if node.child_run is not None:
                 self._stop_run(node.child_run, fx)
+            return
+        if node.kind is NodeKind.REMOTE:  # nothing runs here: stop waiting for its actor
+            if node.remote_cancel is not None:
+                fx.append((_CALL, node.remote_cancel))
+                node.remote_cancel = None
+            self._on_finished(node, node.gen, Result.STOPPED, {}, None, fx)
             return
         assert node.control is not None
         node.control.request_stop()
@@ -958,6 +1108,10 @@ class ActionEngine:
             if node.child_run is not None and node.child_run.state is GraphState.RUNNING:
                 self._pause_run(node.child_run, fx)
             return
+        if node.kind is NodeKind.REMOTE:  # its actor goes on; a result is held until resume
+            self._set_state(node, _S.PAUSE_REQUESTED)
+            self._set_state(node, _S.PAUSED)
+            return
         assert node.control is not None
         self._set_state(node, _S.PAUSE_REQUESTED)
         node.control.set_paused(True)
@@ -970,6 +1124,12 @@ class ActionEngine:
         if node.kind is NodeKind.GRAPH:
             if node.child_run is not None and node.child_run.state is GraphState.PAUSED:
                 self._resume_run(node.child_run, None, fx)
+            return
+        if node.kind is NodeKind.REMOTE:
+            if node.held is not None:
+                result, outputs, error = node.held
+                node.held = None
+                self._on_finished(node, node.gen, result, outputs, error, fx)
             return
         assert node.control is not None
         node.control.set_paused(False)
@@ -1067,6 +1227,8 @@ class ActionEngine:
     def _end_run(self, run: GraphRun, state: GraphState, result: Result, fx: list[Effect]) -> None:
         run.state = state
         run.result = result
+        if run.peers:
+            fx.append((_CALL, self._end_shared, run))
         for node in run.nodes.values():
             if not node.active:
                 self._release_node(node)

@@ -48,10 +48,15 @@ class Planner:
         actor: The local actor's name (actions of other actors are remote).
         catalog: Where action descriptions and classes come from.
         graphs: Where sub-graphs come from.
+        remote: Whether actions of other actors may be planned (the engine has a fleet link);
+            without, a graph naming another actor is refused.
     """
 
-    def __init__(self, actor: str, catalog: ActionCatalog, graphs: GraphIndex) -> None:
+    def __init__(
+        self, actor: str, catalog: ActionCatalog, graphs: GraphIndex, *, remote: bool = False
+    ) -> None:
         self.actor = actor
+        self.remote = remote  # actions of other actors are allowed (a fleet link exists)
         self.catalog = catalog
         self.graphs = graphs
         self._local: dict[type[Action], ResolvedAction] = {}
@@ -102,7 +107,7 @@ class Planner:
             effective, how = self._resolve(graph, umrf, stack)
             actions.append(effective)
             resolved[umrf.full_name] = how
-        if remote:
+        if remote and not self.remote:
             raise GraphDefinitionError(
                 f"graph '{graph.name}' has actions for other actors: {', '.join(remote)};"
                 f" this engine"
