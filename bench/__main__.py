@@ -25,7 +25,7 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from bench import engine, evolution, peers, process, registrar
+from bench import engine, evolution, fleet, peers, process, registrar
 from bench.common import Metric, Results
 
 GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
@@ -42,6 +42,10 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     "registrar": (
         "registrar: request+release pairs, status fan-out to 1,000 consumers",
         registrar.bench_registrar,
+    ),
+    "fleet": (
+        "fleet: handshake of 2/3/5 actor processes, notification latency, throughput",
+        fleet.bench_fleet,
     ),
     "process": (
         "process manager: crash detection, relaunch; supervisord side by side",

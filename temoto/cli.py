@@ -42,10 +42,13 @@ from temoto.core.params import NATIVE_TYPES
 from temoto.core.registrar import Registrar
 from temoto.core.states import NodeState, Result
 from temoto.core.validation import validate_graph
-from temoto.errors import ConfigError, GraphInputError, PluginError
+from temoto.errors import ConfigError, GraphInputError, PluginError, TransportError
 from temoto.managers.process import ProcessManager
 
 __all__ = ["main"]
+
+#: The fleet's LCM URL unless --fleet-url says otherwise (ttl=1: the robots' own network).
+DEFAULT_FLEET_URL = "udpm://239.255.76.67:7667?ttl=1"
 
 EXIT_TRUE = 0
 EXIT_OTHER_RESULT = 1
@@ -128,6 +131,33 @@ def _parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="how long an action may take to stop (default 5)",
     )
+    fleet = run.add_argument_group(
+        "fleet", "for a graph shared with other actors (docs/fleet.md); not used otherwise"
+    )
+    fleet.add_argument(
+        "--fleet-url",
+        default=DEFAULT_FLEET_URL,
+        metavar="URL",
+        help=f"LCM URL of the fleet (default {DEFAULT_FLEET_URL})",
+    )
+    fleet.add_argument("--fleet", default="temoto", metavar="NAME", help="fleet name")
+    fleet.add_argument(
+        "--fleet-key-file",
+        metavar="FILE",
+        help="file holding the fleet key (hex or base64); default: $TEMOTO_FLEET_KEY",
+    )
+    fleet.add_argument(
+        "--insecure",
+        action="store_true",
+        help="run without a fleet key: any host on the network could take part",
+    )
+    fleet.add_argument(
+        "--handshake-timeout",
+        type=float,
+        default=5.0,
+        metavar="SECONDS",
+        help="how long to wait for the other actors before the start (default 5)",
+    )
 
     val = sub.add_parser("validate", help="check graph files")
     val.add_argument("files", nargs="+", metavar="FILE")
@@ -177,6 +207,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     except (ConfigError, PluginError) as err:
         _error(err)
         return EXIT_INVALID
+    except TransportError as err:  # the fleet: no route, no handshake, a lost actor
+        _error(err)
+        return EXIT_OTHER_RESULT
 
 
 def _error(err: BaseException) -> None:
@@ -200,8 +233,51 @@ def _convert_param(graph: UmrfGraph, text: str) -> tuple[str, Any]:
     return name, raw
 
 
+def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
+    """A fleet link for a graph shared with other actors, or None for a local graph."""
+    others = sorted({a.actor for a in graph.actions if a.actor and a.actor != args.actor})
+    if not others:
+        return None
+    if not args.actor:
+        raise GraphInputError(
+            f"graph '{graph.name}' is shared by actors {', '.join(others)}: say which one this"
+            " is with --actor"
+        )
+    from temoto.fleet import FleetActorLink  # the fleet stack is imported only when needed
+    from temoto.transport import FleetAuth, FleetLink, key_from_env, key_from_text, open_transport
+
+    if args.fleet_key_file:
+        key: bytes | None = key_from_text(Path(args.fleet_key_file).read_text().strip())
+    else:
+        key = key_from_env()
+    if key is None and not args.insecure:
+        raise GraphInputError(
+            f"graph '{graph.name}' is shared with {', '.join(others)}: a fleet key is needed"
+            " (--fleet-key-file or $TEMOTO_FLEET_KEY), or --insecure to run without one"
+        )
+    transport = open_transport(args.fleet_url)
+    try:
+        auth = FleetAuth(args.fleet, args.actor, key, insecure=key is None)
+        return FleetActorLink(FleetLink(transport, auth), args.actor), transport
+    except BaseException:
+        transport.close()
+        raise
+
+
 def _run(args: argparse.Namespace) -> int:
     graph = load_graph(args.graph)
+    opened = _open_fleet(args, graph)
+    link, transport = opened if opened is not None else (None, None)
+    try:
+        return _run_graph(args, graph, link)
+    finally:
+        if link is not None:
+            link.close()
+        if transport is not None:
+            transport.close()
+
+
+def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any) -> int:
     params = dict(_convert_param(graph, p) for p in args.param)
     clock = ScaledClock(args.time_scale) if args.time_scale != 1.0 else MonotonicClock()
     t0 = clock.monotonic()
@@ -224,6 +300,8 @@ def _run(args: argparse.Namespace) -> int:
             instruments=instruments,
             stop_timeout=args.stop_timeout,
             registrar=registrar,
+            link=link,
+            handshake_timeout=args.handshake_timeout,
         )
         try:
             with engine:

@@ -796,9 +796,12 @@ class ActionEngine:
         assert self.link is not None
         with self._lock:
             unwatch, run.unwatch = run.unwatch, None
-        if unwatch is not None:
-            unwatch()
-        self.link.end(run.plan.graph.name, run.name)
+        try:
+            if unwatch is not None:
+                unwatch()
+            self.link.end(run.plan.graph.name, run.name)
+        finally:
+            run.done.set()  # only now: a caller may close the link as soon as wait() returns
 
     def _expect_remote(self, node: Node, gen: int) -> None:
         """Outside the lock: wait (through the link) for a remote action's notification."""
@@ -1234,7 +1237,8 @@ class ActionEngine:
                 self._release_node(node)
         if self._instruments:
             self._notify("graph_finished", run.name, result, self.clock.monotonic())
-        run.done.set()
+        if not run.peers:
+            run.done.set()  # a shared run is done once the link has forgotten it (_end_shared)
         parent = run.parent_node
         if parent is not None and parent.child_run is run and parent.active:
             error: BaseException | None = None

@@ -94,9 +94,9 @@ class MemoryFleet:
         with self._cond:
             self._joined.setdefault(key, set()).add(actor)
             self._cond.notify_all()
-            ok = self._cond.wait_for(lambda: set(actors) <= self._joined[key], timeout)
+            ok = self._cond.wait_for(lambda: set(actors) <= self._joined.get(key, set()), timeout)
             if not ok:
-                missing = sorted(set(actors) - self._joined[key])
+                missing = sorted(set(actors) - self._joined.get(key, set()))
                 raise FleetError(f"handshake for {graph}: no answer from {', '.join(missing)}")
 
     def _notify(

@@ -75,12 +75,15 @@ DESCRIPTION = {"name": "Step", "type": "sync", "input_parameters": {}, "output_p
 
 
 class Step(Action):
-    """Returns True; ``Step_1`` first waits for :attr:`block` when one is set."""
+    """Returns True; ``Step_1`` first sets :attr:`entered` and waits for :attr:`block` when one
+    is set."""
 
     block: threading.Event | None = None
+    entered = threading.Event()
 
     def on_run(self) -> bool:
         if Step.block is not None and self.name == "Step_1":
+            Step.entered.set()
             Step.block.wait(WAIT)
         return True
 
@@ -161,7 +164,8 @@ def test_an_actor_that_does_not_acknowledge_fails_the_action(fleet: MemoryFleet)
 
 
 def test_a_lost_actor_fails_the_graph_on_the_others(fleet: MemoryFleet) -> None:
-    Step.block = threading.Event()  # B's Step_1 blocks until released
+    Step.block = threading.Event()
+    Step.entered.clear()  # B's Step_1 blocks until released
     engines = [ActionEngine(n, actions=catalog(), link=fleet.link(n)) for n in ("A", "B")]
     try:
         # both must shake hands: B starts in a thread (start blocks in the handshake)
@@ -169,6 +173,7 @@ def test_a_lost_actor_fails_the_graph_on_the_others(fleet: MemoryFleet) -> None:
         started.start()
         name = engines[0].start(two_actor_graph())
         started.join(WAIT)
+        assert Step.entered.wait(WAIT)  # A's Step_0 reached B, whose Step_1 now runs
         fleet.lose("B", "silent for 3 s")
         assert engines[0].wait(name, WAIT) is Result.ERROR
         outcome = engines[0].outcome(name)

@@ -1,0 +1,222 @@
+"""Fleet link benchmarks: handshake, notification latency, authenticated throughput.
+
+Every actor is a separate process with its own LCM transport on ``udpm://`` (ttl 0), inside a
+private network namespace made by ``unshare -n`` (loopback up, multicast routed to it), so the
+host's interfaces are never touched. Needs root, ``unshare`` and ``ip``; otherwise the group is
+skipped with a note. All processes share the host's clock, so one-way times are differences of
+``time.time()`` taken in different processes.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+from bench.common import Results, median, percentile
+
+URL = "udpm://239.255.76.67:7667?ttl=0"
+KEY = "42" * 32
+
+# One actor process: build the link, say "ready", then per round wait for "go <t>", shake hands,
+# notify or expect one action, and report the times as one JSON line.
+WORKER = r"""
+import json, sys, time
+from temoto.core.states import Result
+from temoto.fleet import FleetActorLink
+from temoto.transport import FleetAuth, FleetLink, key_from_text, open_transport
+actor, actors, url, key = sys.argv[1], json.loads(sys.argv[2]), sys.argv[3], sys.argv[4]
+transport = open_transport(url)
+link = FleetActorLink(FleetLink(transport, FleetAuth("bench", actor, key_from_text(key))), actor)
+print("ready", flush=True)
+for line in sys.stdin:
+    words = line.split()
+    if words[0] == "quit":
+        break
+    session, t_go = words[1], float(words[2])
+    link.handshake("bench", session, actors, 10.0)
+    t_hand = time.time()
+    got = []
+    if actor == actors[0]:
+        t_send = time.time()
+        link.notify("bench", session, "Act_0", Result.TRUE, {"x": 1}, actors[1:], 10.0)
+        out = {"hand": t_hand - t_go, "send": t_send, "acked": time.time() - t_send}
+    else:
+        import threading
+        done = threading.Event()
+        link.expect("bench", session, "Act_0", actors[0],
+                    lambda r, o: (got.append(time.time()), done.set()))
+        done.wait(10.0)
+        out = {"hand": t_hand - t_go, "recv": got[0] if got else None}
+    link.end("bench", session)
+    print(json.dumps(out), flush=True)
+link.close()
+transport.close()
+"""
+
+# Throughput: "send" publishes N sealed messages as fast as it can; "recv" counts them.
+FLOOD = r"""
+import sys, threading, time
+from temoto.transport import FleetAuth, FleetLink, key_from_text, open_transport
+role, url, key, n = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
+transport = open_transport(url)
+link = FleetLink(transport, FleetAuth("bench", role, key_from_text(key)))
+if role == "recv":
+    count, first, last, done = [0], [0.0], [0.0], threading.Event()
+    def on(msg):
+        count[0] += 1
+        if count[0] == 1: first[0] = time.time()
+        last[0] = time.time()
+        if count[0] >= n: done.set()
+    link.listen("BENCH_FLOOD", on, queue_capacity=100000)
+    print("ready", flush=True)
+    seen = -1
+    while not done.wait(0.5) and count[0] != seen:  # ends when all came, or none for 0.5 s
+        seen = count[0]
+    print(count[0], first[0], last[0], link.stats.get("accepted", 0), flush=True)
+else:
+    payload = b"x" * 200
+    print("ready", flush=True)
+    sys.stdin.readline()
+    t0 = time.time()
+    for i in range(n):
+        link.send("BENCH_FLOOD", "bench_t", payload)
+    print(time.time() - t0, flush=True)
+transport.close()
+"""
+
+# Runs inside the namespace: routes multicast to loopback, then runs the spec's scenario.
+RUNNER = r"""
+import json, os, subprocess, sys, time
+subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
+subprocess.run(["ip", "route", "replace", "224.0.0.0/4", "dev", "lo"], check=True)
+spec = json.loads(sys.argv[1])
+def start(code, args):
+    return subprocess.Popen([sys.executable, "-c", code, *args], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+result = {}
+for n in spec["sizes"]:
+    actors = [f"actor_{i}" for i in range(n)]
+    procs = [start(spec["worker"], [a, json.dumps(actors), spec["url"], spec["key"]])
+             for a in actors]
+    for p in procs:
+        assert p.stdout.readline().strip() == "ready"
+    rounds = []
+    for r in range(spec["rounds"]):
+        t_go = time.time()
+        for p in procs:
+            p.stdin.write(f"go s{n}_{r} {t_go}\n"); p.stdin.flush()
+        rounds.append([json.loads(p.stdout.readline()) for p in procs])
+    for p in procs:
+        p.stdin.write("quit\n"); p.stdin.flush()
+    for p in procs:
+        p.wait(30)
+    result[str(n)] = rounds
+recv = start(spec["flood"], ["recv", spec["url"], spec["key"], str(spec["flood_n"])])
+send = start(spec["flood"], ["send", spec["url"], spec["key"], str(spec["flood_n"])])
+assert recv.stdout.readline().strip() == "ready"
+assert send.stdout.readline().strip() == "ready"
+send.stdin.write("go\n"); send.stdin.flush()
+send_s = float(send.stdout.readline())
+count, first, last, accepted = recv.stdout.readline().split()
+send.wait(30); recv.wait(30)
+result["flood"] = {"sent": spec["flood_n"], "send_s": send_s, "received": int(count),
+                   "first": float(first), "last": float(last), "accepted": int(accepted)}
+print(json.dumps(result))
+"""
+
+
+def _available() -> str:
+    if os.geteuid() != 0:
+        return "the fleet benchmarks need root (a private network namespace per run)"
+    for tool in ("unshare", "ip"):
+        if shutil.which(tool) is None:
+            return f"the fleet benchmarks need {tool}"
+    return ""
+
+
+def bench_fleet(quick: bool) -> Results:
+    out = Results()
+    why = _available()
+    if why:
+        out.notes.append(f"{why}: handshake_*/notify_* skipped")
+        return out
+    rounds = 10 if quick else 50
+    flood_n = 20_000 if quick else 100_000
+    spec = {
+        "sizes": [2, 3, 5],
+        "rounds": rounds,
+        "worker": WORKER,
+        "flood": FLOOD,
+        "flood_n": flood_n,
+        "url": URL,
+        "key": KEY,
+    }
+    env = {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parent.parent)}
+    env.pop("TEMOTO_FLEET_KEY", None)
+    proc = subprocess.run(
+        ["unshare", "-n", sys.executable, "-c", RUNNER, json.dumps(spec)],
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+        check=False,
+    )
+    if proc.returncode != 0:
+        raise RuntimeError(f"fleet benchmark failed: {proc.stderr[-3000:]}")
+    data = json.loads(proc.stdout)
+    for n in (2, 3, 5):
+        per_round = [max(w["hand"] for w in rnd) * 1e3 for rnd in data[str(n)]]
+        name = f"handshake_{n}_actors_ms"
+        out.add(
+            name,
+            median(per_round),
+            "ms",
+            f"{n} actor processes, LCM udpm:// on loopback in a private namespace, key on:"
+            f" 'go' written to all -> the last one's handshake() returned; median of {rounds}"
+            " rounds (new session each)",
+            ("<=", 5.0) if n == 3 else None,
+        )
+        out.add(f"{name}_p99", percentile(per_round, 99), "ms", f"p99 of the same {rounds}")
+    latencies = []
+    acked = []
+    for rnd in data["3"]:
+        sender = rnd[0]
+        acked.append(sender["acked"] * 1e3)
+        latencies += [(w["recv"] - sender["send"]) * 1e3 for w in rnd[1:] if w["recv"]]
+    out.add(
+        "notify_latency_ms",
+        median(latencies),
+        "ms",
+        f"3 actors: time.time() before notify() in one process -> the expect() callback in"
+        f" another; median of {len(latencies)} (2 receivers x {rounds} rounds)",
+        ("<=", 1.0),
+    )
+    out.add("notify_latency_ms_p99", percentile(latencies, 99), "ms", "p99 of the same")
+    out.add(
+        "notify_acked_ms",
+        median(acked),
+        "ms",
+        "3 actors: notify() call -> returned (both acknowledgements in); median",
+    )
+    flood = data["flood"]
+    span = max(flood["last"] - flood["first"], 1e-9)
+    out.add(
+        "fleet_msgs_per_s",
+        flood["received"] / span,
+        "1/s",
+        f"one process sends {flood['sent']:,} sealed 200-byte messages (HMAC-SHA256) as fast as"
+        f" it can, another opens (checks) them: received {flood['received']:,} (UDP drops the"
+        f" rest when the receiver falls behind), accepted {flood['accepted']:,}; received /"
+        f" (last - first arrival)",
+    )
+    out.add(
+        "fleet_send_msgs_per_s",
+        flood["sent"] / max(flood["send_s"], 1e-9),
+        "1/s",
+        "the sender's rate: seal + publish",
+    )
+    return out

@@ -1,0 +1,1077 @@
+"""The engine's link to the other actors of shared graphs, over the fleet transport.
+
+:class:`FleetActorLink` implements :class:`temoto.core.remote.ActorLink` (REFERENCE §2.14,
+thesis §6.3.2) with the messages of ``temoto/lcm_types/defs`` on two channels:
+
+``TEMOTO_HANDSHAKE`` (``handshake_t``)
+    *The N-to-N handshake* (thesis Algorithm 3). Each participant broadcasts a ``JOIN`` naming
+    the run (graph and session), the participants, and the peers it has heard in this run with
+    the stamp of their newest handshake. It does so every ``resend_s`` and at once when it hears
+    a peer for the first time, so a handshake takes about one network round trip. It is done
+    when every ordered pair ``(a, b)`` of participants is known to be heard: ``a`` heard ``b``
+    according to ``a``'s newest heard list (our own for ``a`` = this actor). A pair
+    ``(peer, this actor)`` needs a *fresh* stamp: the peer must echo a stamp of this call, so a
+    report left over from an earlier run of the same session never completes a new one. Once
+    done, the actor freezes its heard list, says ``READY``, and keeps answering the JOINs of
+    that run (a peer may complete later) until :meth:`~FleetActorLink.end`, and for
+    ``grace_s`` after it. A ``JOIN`` of a run this actor has not started yet is kept (a peer
+    may start earlier), for ``stray_s`` at most.
+
+    ``LEAVE`` means that the sender gave up the run: its handshake timed out, or its link was
+    closed while the run was active. A peer still in the handshake fails at once; a peer
+    already running reports the sender lost to its watchers (reason ``left``). An actor that
+    merely ended the run says nothing.
+
+``TEMOTO_NOTIFY`` (``action_notification_t``, ``action_ack_t``)
+    *Notifications*: the end of a local action, with its result and outputs (JSON), is
+    published and re-published every ``resend_s`` until every other participant acknowledged
+    it. A receiver acknowledges every copy of every notification of another actor, whether it
+    expects it or not, and takes each notification (by its id) once: the first copy goes to the
+    oldest :meth:`~FleetActorLink.expect` of that (graph, session, action, actor) or waits for
+    one. A node in a cycle finishes more than once per run; each time is a new notification.
+
+*Liveness*: while a run is active or something is watched, the link sends a ``READY``
+handshake every ``heartbeat_s`` (``5 * resend_s``, at most a third of ``silence_s``); a
+watched actor from which nothing at all was heard for ``silence_s`` is reported lost.
+
+Threads: receiving runs on the transport's thread; one thread (``temoto-fleet-actors``)
+sends heartbeats, checks silences and forgets expired state; another
+(``temoto-fleet-actors-calls``) runs the callbacks, so a slow callback never delays an
+acknowledgement or a heartbeat. Resending is done by the thread that waits in
+:meth:`~FleetActorLink.handshake` or :meth:`~FleetActorLink.notify`.
+"""
+
+from __future__ import annotations
+
+import collections
+import enum
+import itertools
+import json
+import logging
+import math
+import threading
+import time
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass, field
+from types import TracebackType
+from typing import Any, Final, Self, final
+
+from temoto.core.remote import Cancel, RemoteResult
+from temoto.core.states import Result
+from temoto.errors import DecodeError, FleetError, StateError, TransportError
+from temoto.lcm_types import action_ack_t, action_notification_t, handshake_t, heard_actor_t
+from temoto.transport import codec
+from temoto.transport.auth import FleetLink, Opened
+from temoto.transport.base import Subscription
+
+__all__ = ["HANDSHAKE_CHANNEL", "NOTIFY_CHANNEL", "STATS", "FleetActorLink"]
+
+logger = logging.getLogger(__name__)
+
+#: Channel of ``handshake_t``: handshakes, heartbeats, leaving.
+HANDSHAKE_CHANNEL: Final = "TEMOTO_HANDSHAKE"
+#: Channel of ``action_notification_t`` and ``action_ack_t``.
+NOTIFY_CHANNEL: Final = "TEMOTO_NOTIFY"
+
+#: The counters of :attr:`FleetActorLink.stats`.
+STATS: Final = (
+    "handshakes_sent",  # every handshake_t: JOIN, READY (heartbeats too), LEAVE
+    "handshakes_received",
+    "notifications_sent",  # resends included
+    "notifications_received",  # duplicates included
+    "duplicates",  # copies of a notification taken already
+    "acks_sent",
+    "acks_received",
+    "decode_errors",  # payloads that codec.decode refused
+    "unexpected",  # well-formed but meaningless here: wrong type for the channel, bad phase, ...
+    "send_errors",  # sends that failed on the link's own threads (logged)
+    "callback_errors",  # callbacks that raised (logged)
+    "lost",  # actors reported to on_lost
+)
+
+_JOIN: Final = 1  # handshake_t.JOIN (the generated constants are untyped)
+_READY: Final = 2
+_LEAVE: Final = 3
+_PHASES: Final = frozenset((_JOIN, _READY, _LEAVE))
+
+_SessionKey = tuple[str, str]  # graph, session
+_NodeKey = tuple[str, str]  # action, actor
+
+# Runs kept only because a peer spoke of them (not started here) beyond this are dropped,
+# the least recently heard first: a fleet busy with runs this actor is not part of.
+_MAX_STRAY_RUNS = 1024
+_WARN_INTERVAL_S = 1.0
+
+
+def _new(cls: type[Any]) -> Any:
+    """An empty message of a generated (untyped) class."""
+    return cls()
+
+
+def _check_name(what: str, value: object) -> str:
+    if not isinstance(value, str) or not value:
+        raise ValueError(f"{what} must be a non-empty string, got {value!r}")
+    return value
+
+
+def _check_seconds(what: str, value: float, *, zero: bool = False) -> float:
+    ok = isinstance(value, int | float) and math.isfinite(value)
+    if not ok or value < 0 or (value == 0 and not zero):
+        raise ValueError(f"{what} must be a {'' if zero else 'positive '}number of seconds")
+    return float(value)
+
+
+def _names(names: Sequence[str] | set[str]) -> str:
+    return ", ".join(f"'{n}'" for n in sorted(names))
+
+
+class _Phase(enum.Enum):
+    """Where this actor is in the handshake of one run."""
+
+    KEPT = "kept"  # not started here: what peers said of it is kept for a later handshake
+    JOINING = "joining"  # handshake() is gathering peers
+    READY = "ready"  # handshake done: the heard list is frozen; answering late peers
+
+
+@dataclass(slots=True)
+class _Peer:
+    """What one peer said in its newest handshake of a run."""
+
+    stamp: int
+    phase: int
+    actors: tuple[str, ...]
+    heard: dict[str, int]
+
+
+@dataclass(slots=True, eq=False)
+class _Notice:
+    """A received notification, taken once."""
+
+    id: str
+    result: Result
+    outputs: dict[str, Any]
+
+
+@dataclass(slots=True, eq=False)
+class _Run:
+    """Everything the link keeps for one run (graph, session)."""
+
+    graph: str
+    session: str
+    touched: float  # our clock when a peer last spoke of it (expiry of a kept run)
+    local: bool = False  # handshake, expect or notify was called for it here
+    phase: _Phase = _Phase.KEPT
+    actors: tuple[str, ...] = ()
+    first_stamp: int = 0  # the stamp of the first JOIN of the current handshake call
+    frozen: dict[str, int] = field(default_factory=dict)  # our heard list once READY
+    aborted: str | None = None  # why the running handshake must fail
+    peers: dict[str, _Peer] = field(default_factory=dict)
+    warned: set[str] = field(default_factory=set)  # peers whose actor list differs (logged)
+    pending: dict[_NodeKey, collections.deque[_Notice]] = field(default_factory=dict)
+    waiters: dict[_NodeKey, collections.deque[_Waiter]] = field(default_factory=dict)
+    seen: set[str] = field(default_factory=set)  # notification ids taken
+
+
+@dataclass(slots=True, eq=False)
+class _Waiter:
+    """One :meth:`FleetActorLink.expect`."""
+
+    run: _Run
+    key: _NodeKey
+    on_result: RemoteResult
+    active: bool = True
+
+
+@dataclass(slots=True)
+class _Ended:
+    """What is kept of an ended run for ``grace_s``."""
+
+    actors: tuple[str, ...]
+    heard: dict[str, int] | None  # the frozen heard list, if the handshake had completed
+    seen: set[str]  # notification ids taken: late resends stay duplicates
+    until: float
+
+
+@dataclass(slots=True, eq=False)
+class _Outgoing:
+    """A notification waiting for acknowledgements."""
+
+    key: _SessionKey
+    waiting: set[str]
+    aborted: str | None = None
+
+
+@dataclass(slots=True, eq=False)
+class _Watch:
+    """One :meth:`FleetActorLink.watch`."""
+
+    actors: frozenset[str]
+    on_lost: Callable[[str, str], None]
+    started: float
+    reported: set[str] = field(default_factory=set)
+    active: bool = True
+
+
+@final
+class FleetActorLink:
+    """The :class:`~temoto.core.remote.ActorLink` of one actor over a fleet link.
+
+    It subscribes to :data:`HANDSHAKE_CHANNEL` and :data:`NOTIFY_CHANNEL` of ``link`` and
+    starts its threads at once; :meth:`close` (or leaving the ``with`` block) stops them. The
+    fleet link and its transport stay the caller's to close, after this link.
+
+    Args:
+        link: Sends and receives authenticated fleet messages.
+        actor: This actor's name, as the graphs name it.
+        resend_s: Period of handshake and notification resends.
+        silence_s: A watched actor not heard for this long is lost.
+        grace_s: How long an ended run's handshake is still answered and its notification ids
+            remembered (so late resends are not taken again).
+        stray_s: How long a run that was never started here is kept since a peer last spoke
+            of it.
+        clock: Monotonic clock in seconds (deadlines, silences).
+        wall_clock: Seconds since the epoch (handshake stamps, notification ids).
+
+    Attributes:
+        resend_s: Period of handshake and notification resends.
+        silence_s: After this long without a message a watched actor is lost.
+        grace_s: How long an ended run is still answered for.
+        stray_s: How long a run never started here is kept.
+        heartbeat_s: Period of the READY heartbeats: ``5 * resend_s``, at most a third of
+            ``silence_s``.
+
+    Raises:
+        ValueError: If ``actor`` is empty or a duration is not a positive number.
+        TransportError: If the link's transport is closed.
+    """
+
+    def __init__(
+        self,
+        link: FleetLink,
+        actor: str,
+        *,
+        resend_s: float = 0.1,
+        silence_s: float = 3.0,
+        grace_s: float = 5.0,
+        stray_s: float = 60.0,
+        clock: Callable[[], float] = time.monotonic,
+        wall_clock: Callable[[], float] = time.time,
+    ) -> None:
+        self._link = link
+        self._actor = _check_name("actor", actor)
+        self.resend_s = _check_seconds("resend_s", resend_s)
+        self.silence_s = _check_seconds("silence_s", silence_s)
+        self.grace_s = _check_seconds("grace_s", grace_s, zero=True)
+        self.stray_s = _check_seconds("stray_s", stray_s)
+        self.heartbeat_s = min(5 * self.resend_s, self.silence_s / 3)
+        self._clock = clock
+        self._wall_clock = wall_clock
+        self._lock = threading.Lock()
+        self._changed = threading.Condition(self._lock)  # handshake() and notify() wait on it
+        self._timer_wake = threading.Condition(self._lock)
+        self._calls_ready = threading.Condition(self._lock)
+        # All below guarded by _lock.
+        self._closed = False
+        self._runs: dict[_SessionKey, _Run] = {}
+        self._ended: dict[_SessionKey, _Ended] = {}
+        self._outgoing: dict[str, _Outgoing] = {}
+        self._watches: list[_Watch] = []
+        self._heard_at: dict[str, float] = {}  # actor -> our clock when last heard (anything)
+        self._left: set[str] = set()  # actors that left the fleet and were not heard since
+        self._calls: collections.deque[Callable[[], None]] = collections.deque()
+        self._counts = dict.fromkeys(STATS, 0)
+        self._ids = itertools.count(1)
+        self._boot = f"{round(wall_clock() * 1000):x}"  # keeps ids unique across restarts
+        self._last_stamp = 0
+        self._next_heartbeat = 0.0
+        self._next_warning = 0.0
+        self._subs: list[Subscription] = []
+        try:
+            self._subs.append(link.listen(HANDSHAKE_CHANNEL, self._on_handshake))
+            self._subs.append(link.listen(NOTIFY_CHANNEL, self._on_notify))
+        except BaseException:
+            for sub in self._subs:
+                sub.unsubscribe()
+            raise
+        self._timer = threading.Thread(
+            target=self._run_timer, name="temoto-fleet-actors", daemon=True
+        )
+        self._caller = threading.Thread(
+            target=self._run_calls, name="temoto-fleet-actors-calls", daemon=True
+        )
+        self._timer.start()
+        self._caller.start()
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        return f"<FleetActorLink actor={self._actor!r} {state} on {self._link!r}>"
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    # --- ActorLink ----------------------------------------------------------------------------
+
+    @property
+    def actor(self) -> str:
+        """This engine's actor name."""
+        return self._actor
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """A copy of the counters, one per name in :data:`STATS`."""
+        with self._lock:
+            return dict(self._counts)
+
+    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> None:
+        """Block until every pair of ``actors`` has heard each other in this run.
+
+        Args:
+            graph: The graph's name (the handshake token).
+            session: Identifies this run of the graph, the same on every actor.
+            actors: Every participating actor, this one included.
+            timeout: Seconds to wait at most.
+
+        Raises:
+            FleetError: Not every pair heard each other in time (the message names who was
+                not heard by whom), a participant gave up, the run was ended meanwhile, or the
+                link is closed or cannot send. This actor then sends LEAVE for the run.
+            StateError: A handshake of this run is already running here.
+            ValueError: An argument is invalid, or ``actors`` lacks this actor.
+        """
+        _check_name("graph", graph)
+        _check_name("session", session)
+        timeout = _check_seconds("timeout", timeout, zero=True)
+        participants = tuple(sorted({_check_name("an actor", a) for a in actors}))
+        if self._actor not in participants:
+            raise ValueError(f"actors {list(participants)} do not include this actor")
+        if len(participants) == 1:
+            return
+        key = (graph, session)
+        with self._lock:
+            self._check_open()
+            now = self._clock()
+            run = self._runs.get(key)
+            if run is not None and run.phase is _Phase.JOINING:
+                raise StateError(f"a handshake of graph '{graph}' session '{session}' is running")
+            if run is None:
+                run = self._new_run(key, now)
+            ended = self._ended.pop(key, None)
+            if ended is not None:
+                run.seen |= ended.seen
+            run.local = True
+            run.actors = participants
+            run.phase = _Phase.JOINING
+            run.aborted = None
+            run.frozen = {}
+            msg = self._join_msg(run)
+            run.first_stamp = msg.stamp_us
+        deadline = now + timeout
+        ready: Any = None
+        try:
+            while ready is None:
+                self._send(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
+                next_send = self._clock() + self.resend_s
+                with self._lock:
+                    while True:
+                        self._check_joining(run)
+                        if not self._missing(run):
+                            run.phase = _Phase.READY
+                            run.frozen = {p: peer.stamp for p, peer in run.peers.items()}
+                            ready = self._ready_msg(run)
+                            # READY goes out now: the next heartbeat can wait a period
+                            self._next_heartbeat = self._clock() + self.heartbeat_s
+                            self._timer_wake.notify()
+                            break
+                        now = self._clock()
+                        if now >= deadline:
+                            raise FleetError(
+                                f"handshake of graph '{graph}' session '{session}' with "
+                                f"{_names(participants)} timed out after {timeout:g} s: "
+                                + self._status(run)
+                            )
+                        if now >= next_send:
+                            msg = self._join_msg(run)
+                            break
+                        self._changed.wait(min(next_send, deadline) - now)
+        except BaseException:
+            self._give_up(run)
+            raise
+        self._send_quietly(HANDSHAKE_CHANNEL, ready, "handshakes_sent")
+
+    def notify(
+        self,
+        graph: str,
+        session: str,
+        action: str,
+        result: Result,
+        outputs: Mapping[str, Any],
+        actors: Sequence[str],
+        timeout: float,
+    ) -> None:
+        """Tell ``actors`` that a local action finished; block until each acknowledged.
+
+        The notification is re-published every ``resend_s`` until then.
+
+        Args:
+            graph: The graph's name.
+            session: The run's session.
+            action: The action's full name (``Name_instance``).
+            result: Its result.
+            outputs: Its output values by name (JSON-ready).
+            actors: The other participants (this actor, if listed, is left out).
+            timeout: Seconds to wait for every acknowledgement.
+
+        Raises:
+            FleetError: Some actor did not acknowledge in time (the message names it), the
+                run was ended meanwhile, the link is closed or cannot send, or the outputs
+                are not JSON-ready.
+            ValueError: An argument is invalid.
+        """
+        _check_name("graph", graph)
+        _check_name("session", session)
+        _check_name("action", action)
+        timeout = _check_seconds("timeout", timeout, zero=True)
+        if not isinstance(result, Result):
+            raise ValueError(f"result must be a Result, got {result!r}")
+        others = {_check_name("an actor", a) for a in actors} - {self._actor}
+        try:
+            text = json.dumps(dict(outputs), sort_keys=True, separators=(",", ":"))
+        except (TypeError, ValueError, RecursionError) as err:
+            raise FleetError(f"the outputs of {action} are not JSON-ready: {err}") from err
+        if not outputs:
+            text = ""
+        if not others:
+            return
+        key = (graph, session)
+        msg = _new(action_notification_t)
+        msg.graph, msg.session, msg.action, msg.actor = graph, session, action, self._actor
+        msg.result, msg.outputs = result.value, text
+        with self._lock:
+            self._check_open()
+            serial = f"{self._boot}.{next(self._ids)}"
+            msg.notification_id = f"{self._actor}/{graph}/{session}/{action}/{serial}"
+            out = _Outgoing(key, set(others))
+            self._outgoing[msg.notification_id] = out
+        deadline = self._clock() + timeout
+        try:
+            while True:
+                self._send(NOTIFY_CHANNEL, msg, "notifications_sent")
+                next_send = self._clock() + self.resend_s
+                with self._lock:
+                    while out.waiting:
+                        if self._closed:
+                            raise FleetError("the fleet link is closed")
+                        if out.aborted is not None:
+                            raise FleetError(
+                                f"{action} ({result.value}) of graph '{graph}' session "
+                                f"'{session}': {out.aborted} before {_names(out.waiting)} "
+                                "acknowledged it"
+                            )
+                        now = self._clock()
+                        if now >= deadline:
+                            raise FleetError(
+                                f"{action} ({result.value}) of graph '{graph}' session "
+                                f"'{session}' was not acknowledged by {_names(out.waiting)} "
+                                f"within {timeout:g} s"
+                            )
+                        if now >= next_send:
+                            break
+                        self._changed.wait(min(next_send, deadline) - now)
+                    else:
+                        return
+        finally:
+            with self._lock:
+                self._outgoing.pop(msg.notification_id, None)
+
+    def expect(
+        self, graph: str, session: str, action: str, actor: str, on_result: RemoteResult
+    ) -> Cancel:
+        """Call ``on_result`` once when ``actor`` notifies the end of ``action``.
+
+        Notifications that arrived before are delivered at once, oldest first, one per call.
+        The callback runs on the link's callback thread and must not block.
+
+        Args:
+            graph: The graph's name.
+            session: The run's session.
+            action: The remote action's full name.
+            actor: The actor that runs it.
+            on_result: Called with the result and the outputs.
+
+        Returns:
+            A function that cancels the expectation (idempotent); a notification it would
+            have received is kept for the next one.
+
+        Raises:
+            FleetError: The link is closed.
+            ValueError: An argument is invalid.
+        """
+        key = (_check_name("graph", graph), _check_name("session", session))
+        node = (_check_name("action", action), _check_name("actor", actor))
+        with self._lock:
+            self._check_open()
+            run = self._runs.get(key)
+            if run is None:
+                run = self._new_run(key, self._clock())
+            run.local = True
+            waiter = _Waiter(run, node, on_result)
+            pending = run.pending.get(node)
+            if pending:
+                notice = pending.popleft()
+                if not pending:
+                    del run.pending[node]
+                self._schedule_delivery(waiter, notice)
+            else:
+                run.waiters.setdefault(node, collections.deque()).append(waiter)
+
+        def cancel() -> None:
+            with self._lock:
+                waiter.active = False
+                waiters = run.waiters.get(node)
+                if waiters is not None and waiter in waiters:
+                    waiters.remove(waiter)
+                    if not waiters:
+                        del run.waiters[node]
+
+        return cancel
+
+    def watch(self, actors: Sequence[str], on_lost: Callable[[str, str], None]) -> Cancel:
+        """Call ``on_lost(actor, reason)`` if one of ``actors`` falls silent or leaves.
+
+        An actor is lost when nothing was heard from it for ``silence_s`` (counted from this
+        call at the earliest), or when it gave up a run this actor takes part in (LEAVE). The
+        callback runs on the link's callback thread, at most once per actor.
+
+        Args:
+            actors: The actors to watch (this actor, if listed, is left out).
+            on_lost: The callback.
+
+        Returns:
+            A function that stops watching (idempotent).
+
+        Raises:
+            FleetError: The link is closed.
+            ValueError: An actor name is invalid.
+        """
+        names = frozenset(_check_name("an actor", a) for a in actors) - {self._actor}
+        with self._lock:
+            self._check_open()
+            watch = _Watch(names, on_lost, self._clock())
+            self._watches.append(watch)
+            for actor in sorted(names & self._left):
+                self._report_lost(watch, actor, "left")
+            self._timer_wake.notify()
+
+        def cancel() -> None:
+            with self._lock:
+                watch.active = False
+                if watch in self._watches:
+                    self._watches.remove(watch)
+                    self._timer_wake.notify()
+
+        return cancel
+
+    def end(self, graph: str, session: str) -> None:
+        """Forget a finished run: its notifications, waiters and handshake state.
+
+        A handshake or notify of that run still waiting fails. For ``grace_s`` the run's ids
+        stay known (late resends are acknowledged, not taken) and, if its handshake had
+        completed, peers still in it are answered and heartbeats go on.
+
+        Args:
+            graph: The graph's name.
+            session: The run's session.
+        """
+        key = (graph, session)
+        with self._lock:
+            now = self._clock()
+            run = self._runs.pop(key, None)
+            if run is not None:
+                for waiters in run.waiters.values():
+                    for waiter in waiters:
+                        waiter.active = False
+                run.aborted = "the run was ended"
+                done = run.phase is _Phase.READY
+                if done or run.seen:
+                    self._ended[key] = _Ended(
+                        run.actors, run.frozen if done else None, run.seen, now + self.grace_s
+                    )
+            for out in self._outgoing.values():
+                if out.key == key:
+                    out.aborted = "the run was ended"
+            self._changed.notify_all()
+            self._timer_wake.notify()
+
+    def close(self) -> None:
+        """Stop the link: LEAVE the active runs, unsubscribe, stop and join the threads.
+
+        Waiting calls fail with FleetError; callbacks not run yet are dropped. Idempotent.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            active = [r for r in self._runs.values() if r.local and r.phase is not _Phase.KEPT]
+            leaves = [self._leave_msg(r.graph, r.session, r.actors) for r in active]
+            self._calls.clear()
+            self._changed.notify_all()
+            self._timer_wake.notify()
+            self._calls_ready.notify()
+        for msg in leaves:
+            self._send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
+        for sub in self._subs:
+            sub.unsubscribe()
+        for thread in (self._timer, self._caller):
+            if thread is not threading.current_thread():
+                thread.join()
+
+    # --- receiving (the transport's thread) ---------------------------------------------------
+
+    def _decode(self, opened: Opened, types: tuple[str, ...]) -> Any:
+        """The inner message, or None (counted) if it cannot be decoded or is not expected."""
+        try:
+            msg = codec.decode(opened.type, opened.payload)
+        except DecodeError as err:
+            with self._lock:
+                self._counts["decode_errors"] += 1
+            logger.debug("dropped a message from %r on %r: %s", opened.sender, opened.channel, err)
+            return None
+        if opened.type not in types:
+            with self._lock:
+                self._counts["unexpected"] += 1
+            logger.debug("dropped a %s from %r on %r", opened.type, opened.sender, opened.channel)
+            return None
+        return msg
+
+    def _on_handshake(self, opened: Opened) -> None:
+        msg = self._decode(opened, ("handshake_t",))
+        if msg is None:
+            return
+        actor: str = msg.actor
+        with self._lock:
+            if self._closed:
+                return
+            if not actor or actor == self._actor or msg.phase not in _PHASES:
+                self._counts["unexpected"] += 1
+                return
+            self._counts["handshakes_received"] += 1
+            now = self._clock()
+            self._heard_at[actor] = now
+            if msg.phase == _LEAVE:
+                self._on_leave(actor, msg.graph, msg.session)
+                return
+            self._left.discard(actor)
+            reply = self._on_join_or_ready(msg, now) if msg.graph or msg.session else None
+        if reply is not None:
+            self._send_quietly(HANDSHAKE_CHANNEL, reply, "handshakes_sent")
+
+    def _on_join_or_ready(self, msg: Any, now: float) -> Any:
+        """Record a JOIN or READY of a run; the answer to send, if any. Lock held."""
+        key: _SessionKey = (msg.graph, msg.session)
+        actor: str = msg.actor
+        run = self._runs.get(key)
+        reply: Any = None
+        if run is None or not run.local:
+            ended = self._ended.get(key)
+            answer = msg.phase == _JOIN and ended is not None and actor in ended.actors
+            if answer and ended is not None and ended.heard is not None:
+                reply = self._handshake_msg(_READY, *key, ended.actors, ended.heard)
+            if msg.phase != _JOIN:
+                return reply  # a READY of a run not started here: liveness only
+            if run is None:
+                run = self._new_run(key, now)
+        run.touched = now
+        peer = run.peers.get(actor)
+        first = peer is None
+        rejoined = False
+        if peer is None or msg.stamp_us > peer.stamp:
+            rejoined = peer is not None and msg.phase == _JOIN and peer.phase != _JOIN
+            heard = {h.actor: h.stamp_us for h in msg.heard}
+            run.peers[actor] = _Peer(msg.stamp_us, msg.phase, tuple(msg.actors), heard)
+        if run.phase is _Phase.JOINING:
+            if actor in run.actors:
+                self._check_same_actors(run, actor)
+                if first or rejoined:
+                    reply = self._join_msg(run)
+            self._changed.notify_all()
+        elif run.phase is _Phase.READY and msg.phase == _JOIN and actor in run.actors:
+            reply = self._ready_msg(run)
+        return reply
+
+    def _on_leave(self, actor: str, graph: str, session: str) -> None:
+        """A peer gave up a run (or, with no graph and session, left the fleet). Lock held."""
+        fleet = not graph and not session
+        if fleet:
+            self._left.add(actor)
+            runs = list(self._runs.values())
+        else:
+            run = self._runs.get((graph, session))
+            runs = [] if run is None else [run]
+        lost = fleet
+        for run in runs:
+            if run.phase is not _Phase.JOINING:
+                run.peers.pop(actor, None)  # kept: its JOIN no longer stands
+            if not run.local or actor not in run.actors:
+                continue
+            if run.phase is _Phase.JOINING:
+                run.aborted = f"'{actor}' {'left the fleet' if fleet else 'gave up'}"
+                self._changed.notify_all()
+            elif run.phase is _Phase.READY:
+                lost = True
+        if lost:
+            for watch in self._watches:
+                self._report_lost(watch, actor, "left")
+
+    def _on_notify(self, opened: Opened) -> None:
+        msg = self._decode(opened, ("action_notification_t", "action_ack_t"))
+        if msg is None:
+            return
+        actor: str = msg.actor
+        if opened.type == "action_ack_t":
+            with self._lock:
+                if self._closed or not actor or actor == self._actor:
+                    return
+                self._counts["acks_received"] += 1
+                self._heard_at[actor] = self._clock()
+                out = self._outgoing.get(msg.notification_id)
+                if out is not None and actor in out.waiting:
+                    out.waiting.discard(actor)
+                    if not out.waiting:
+                        self._changed.notify_all()
+            return
+        with self._lock:
+            if self._closed:
+                return
+            if not actor or actor == self._actor or not msg.notification_id:
+                self._counts["unexpected"] += 1
+                return
+            self._counts["notifications_received"] += 1
+        # The acknowledgement leaves before the callback can run: an actor whose run ends
+        # with this notification may close its link at once.
+        ack = _new(action_ack_t)
+        ack.notification_id, ack.graph, ack.session = msg.notification_id, msg.graph, msg.session
+        ack.actor = self._actor
+        self._send_quietly(NOTIFY_CHANNEL, ack, "acks_sent")
+        with self._lock:
+            self._take(msg)
+
+    def _take(self, msg: Any) -> None:
+        """Store or deliver a notification unless it is a duplicate. Lock held."""
+        if self._closed:
+            return
+        now = self._clock()
+        self._heard_at[msg.actor] = now
+        key: _SessionKey = (msg.graph, msg.session)
+        nid: str = msg.notification_id
+        ended = self._ended.get(key)
+        run = self._runs.get(key)
+        if (run is not None and nid in run.seen) or (ended is not None and nid in ended.seen):
+            self._counts["duplicates"] += 1
+            return
+        if run is None:
+            run = self._new_run(key, now)
+        run.touched = now
+        run.seen.add(nid)
+        self._route(run, (msg.action, msg.actor), self._parse(msg))
+
+    def _parse(self, msg: Any) -> _Notice:
+        """Turn a notification into a notice; a bad result or outputs becomes an ERROR."""
+        where = f"notification {msg.notification_id!r}"
+        try:
+            result = Result(msg.result)
+        except ValueError:
+            logger.warning("%s: unknown result %r, taken as on_error", where, msg.result)
+            result = Result.ERROR
+        outputs: Any = {}
+        if msg.outputs:
+            try:
+                outputs = json.loads(msg.outputs)
+            except (ValueError, RecursionError) as err:
+                outputs = None
+                logger.warning("%s: the outputs are not JSON (%s), taken as on_error", where, err)
+            if not isinstance(outputs, dict):
+                if outputs is not None:
+                    logger.warning("%s: the outputs are not an object, taken as on_error", where)
+                result, outputs = Result.ERROR, {}
+        return _Notice(msg.notification_id, result, outputs)
+
+    # --- the link's threads -------------------------------------------------------------------
+
+    def _run_timer(self) -> None:
+        """Heartbeats, silence checks, expiry of kept state."""
+        while True:
+            with self._lock:
+                if self._closed:
+                    return
+                now = self._clock()
+                wake = math.inf
+                ready = [r for r in self._runs.values() if r.local and r.phase is _Phase.READY]
+                graced = any(e.heard is not None for e in self._ended.values())
+                msgs: list[Any] = []
+                if ready or graced or self._watches:
+                    if now >= self._next_heartbeat:
+                        msgs = [self._ready_msg(r) for r in ready]
+                        if not msgs:
+                            msgs.append(self._handshake_msg(_READY, "", "", (), {}))
+                        self._next_heartbeat = now + self.heartbeat_s
+                    wake = self._next_heartbeat
+                else:
+                    self._next_heartbeat = now
+                wake = min(wake, self._check_silences(now), self._expire(now))
+                if not msgs:
+                    self._timer_wake.wait(None if wake == math.inf else max(0.0, wake - now))
+                    continue
+            for msg in msgs:
+                self._send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
+
+    def _check_silences(self, now: float) -> float:
+        """Report silent watched actors; when the next may fall silent. Lock held."""
+        wake = math.inf
+        for watch in self._watches:
+            for actor in watch.actors - watch.reported:
+                due = max(self._heard_at.get(actor, -math.inf), watch.started) + self.silence_s
+                if now >= due:
+                    self._report_lost(watch, actor, f"not heard for {self.silence_s:g} s")
+                else:
+                    wake = min(wake, due)
+        return wake
+
+    def _expire(self, now: float) -> float:
+        """Drop ended runs after their grace and stray runs; when next to look. Lock held."""
+        wake = math.inf
+        for key, ended in list(self._ended.items()):
+            if now >= ended.until:
+                del self._ended[key]
+            else:
+                wake = min(wake, ended.until)
+        for key, run in list(self._runs.items()):
+            if not run.local:
+                due = run.touched + self.stray_s
+                if now >= due:
+                    del self._runs[key]
+                else:
+                    wake = min(wake, due)
+        return wake
+
+    def _run_calls(self) -> None:
+        """Run the callbacks, in order."""
+        while True:
+            with self._lock:
+                while not self._calls and not self._closed:
+                    self._calls_ready.wait()
+                if self._closed:
+                    return
+                call = self._calls.popleft()
+            try:
+                call()
+            except Exception:
+                with self._lock:
+                    self._counts["callback_errors"] += 1
+                logger.exception("actor %r: a fleet callback raised", self._actor)
+
+    # --- internals (lock held unless said otherwise) ------------------------------------------
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise FleetError("the fleet link is closed")
+
+    def _check_joining(self, run: _Run) -> None:
+        """Raise if the running handshake of ``run`` cannot go on."""
+        self._check_open()
+        if run.aborted is not None:
+            status = self._status(run)
+            raise FleetError(
+                f"handshake of graph '{run.graph}' session '{run.session}': {run.aborted}"
+                + (f"; {status}" if status else "")
+            )
+
+    def _new_run(self, key: _SessionKey, now: float) -> _Run:
+        stray = [r for r in self._runs.values() if not r.local]
+        if len(stray) >= _MAX_STRAY_RUNS:
+            oldest = min(stray, key=lambda r: r.touched)
+            del self._runs[(oldest.graph, oldest.session)]
+        run = _Run(key[0], key[1], now)
+        self._runs[key] = run
+        self._timer_wake.notify()  # it expires unless started here
+        return run
+
+    def _missing(self, run: _Run) -> dict[str, list[str]]:
+        """Who has not (yet, freshly) been heard by whom: heard actor -> hearers."""
+        me = self._actor
+        missing: dict[str, list[str]] = {}
+        for a in run.actors:
+            report = run.peers.get(a)
+            for b in run.actors:
+                if a == b:
+                    continue
+                if a == me:
+                    ok = b in run.peers
+                elif report is None:
+                    ok = False
+                elif b == me:
+                    ok = report.heard.get(me, -1) >= run.first_stamp
+                else:
+                    ok = b in report.heard
+                if not ok:
+                    missing.setdefault(b, []).append(a)
+        return missing
+
+    def _status(self, run: _Run) -> str:
+        """Why the handshake of ``run`` is not done yet, for an error message."""
+        silent = [a for a in run.actors if a != self._actor and a not in run.peers]
+        parts = []
+        if silent:
+            parts.append(f"no answer from {_names(silent)}")
+        unheard = []
+        for b, hearers in sorted(self._missing(run).items()):
+            shown = [h for h in hearers if h not in silent]
+            if shown:
+                unheard.append(f"'{b}' by {_names(shown)}")
+        if unheard:
+            parts.append("not heard: " + ", ".join(unheard))
+        for actor in sorted(run.warned):
+            peer = run.peers.get(actor)
+            if peer is not None:
+                parts.append(f"'{actor}' lists the actors {list(peer.actors)}")
+        return "; ".join(parts)
+
+    def _check_same_actors(self, run: _Run, actor: str) -> None:
+        peer = run.peers.get(actor)
+        if peer is None or actor in run.warned or set(peer.actors) == set(run.actors):
+            return
+        run.warned.add(actor)
+        logger.warning(
+            "handshake of graph '%s' session '%s': '%s' lists the actors %s, this actor %s",
+            run.graph,
+            run.session,
+            actor,
+            list(peer.actors),
+            list(run.actors),
+        )
+
+    def _give_up(self, run: _Run) -> None:
+        """Not locked: a handshake failed; forget the run's handshake and LEAVE it."""
+        key = (run.graph, run.session)
+        with self._lock:
+            if self._runs.get(key) is not run or run.phase is not _Phase.JOINING:
+                return
+            del self._runs[key]
+            if run.seen:
+                self._ended[key] = _Ended(run.actors, None, run.seen, self._clock() + self.grace_s)
+            leave = None if self._closed else self._leave_msg(run.graph, run.session, run.actors)
+        if leave is not None:
+            self._send_quietly(HANDSHAKE_CHANNEL, leave, "handshakes_sent")
+
+    def _route(self, run: _Run, node: _NodeKey, notice: _Notice, *, front: bool = False) -> None:
+        """Give a notice to the oldest waiter of ``node``, or keep it for the next one."""
+        waiters = run.waiters.get(node)
+        while waiters:
+            waiter = waiters.popleft()
+            if not waiters:
+                del run.waiters[node]
+            if waiter.active:
+                self._schedule_delivery(waiter, notice)
+                return
+        pending = run.pending.setdefault(node, collections.deque())
+        if front:
+            pending.appendleft(notice)
+        else:
+            pending.append(notice)
+
+    def _schedule_delivery(self, waiter: _Waiter, notice: _Notice) -> None:
+        def deliver() -> None:
+            with self._lock:
+                if not waiter.active:  # cancelled meanwhile: keep the notice for the next
+                    run = waiter.run
+                    if self._runs.get((run.graph, run.session)) is run:
+                        self._route(run, waiter.key, notice, front=True)
+                    return
+                waiter.active = False
+            waiter.on_result(notice.result, notice.outputs)
+
+        self._calls.append(deliver)
+        self._calls_ready.notify()
+
+    def _report_lost(self, watch: _Watch, actor: str, reason: str) -> None:
+        if not watch.active or actor not in watch.actors or actor in watch.reported:
+            return
+        watch.reported.add(actor)
+        self._counts["lost"] += 1
+
+        def call() -> None:
+            with self._lock:
+                if not watch.active:
+                    return
+            watch.on_lost(actor, reason)
+
+        self._calls.append(call)
+        self._calls_ready.notify()
+
+    def _stamp(self) -> int:
+        """A handshake stamp: the wall clock in microseconds, strictly increasing."""
+        self._last_stamp = max(self._last_stamp + 1, round(self._wall_clock() * 1e6))
+        return self._last_stamp
+
+    def _handshake_msg(
+        self,
+        phase: int,
+        graph: str,
+        session: str,
+        actors: Sequence[str],
+        heard: Mapping[str, int],
+    ) -> Any:
+        msg = _new(handshake_t)
+        msg.phase, msg.graph, msg.session, msg.actor = phase, graph, session, self._actor
+        msg.stamp_us = self._stamp()
+        msg.actors = list(actors)
+        msg.heard = []
+        for name, stamp in sorted(heard.items()):
+            entry = _new(heard_actor_t)
+            entry.actor, entry.stamp_us = name, stamp
+            msg.heard.append(entry)
+        return msg
+
+    def _join_msg(self, run: _Run) -> Any:
+        heard = {p: peer.stamp for p, peer in run.peers.items()}
+        return self._handshake_msg(_JOIN, run.graph, run.session, run.actors, heard)
+
+    def _ready_msg(self, run: _Run) -> Any:
+        return self._handshake_msg(_READY, run.graph, run.session, run.actors, run.frozen)
+
+    def _leave_msg(self, graph: str, session: str, actors: Sequence[str]) -> Any:
+        return self._handshake_msg(_LEAVE, graph, session, actors, {})
+
+    def _send(self, channel: str, msg: Any, counter: str) -> None:
+        """Not locked: encode and send; FleetError if it cannot be sent."""
+        try:
+            name, payload = codec.encode(msg)
+            self._link.send(channel, name, payload)
+        except (TransportError, ValueError) as err:
+            with self._lock:
+                self._counts["send_errors"] += 1
+            raise FleetError(f"cannot send on {channel}: {err}") from err
+        with self._lock:
+            self._counts[counter] += 1
+
+    def _send_quietly(self, channel: str, msg: Any, counter: str) -> None:
+        """Not locked: send from the link's threads; a failure is counted and logged."""
+        try:
+            self._send(channel, msg, counter)
+        except FleetError as err:
+            now = self._clock()
+            with self._lock:
+                warn = now >= self._next_warning and not self._closed
+                if warn:
+                    self._next_warning = now + _WARN_INTERVAL_S
+            if warn:
+                logger.warning("actor %r: %s", self._actor, err)
+            else:
+                logger.debug("actor %r: %s", self._actor, err)

@@ -1,0 +1,717 @@
+"""FleetActorLink: handshake, notifications and liveness between actors on an in-process bus."""
+
+from __future__ import annotations
+
+import itertools
+import json
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from contextlib import ExitStack
+from typing import Any
+
+import pytest
+
+from temoto.core.states import Result
+from temoto.errors import FleetError, StateError
+from temoto.fleet import HANDSHAKE_CHANNEL, NOTIFY_CHANNEL, STATS, FleetActorLink
+from temoto.lcm_types import action_ack_t, action_notification_t, handshake_t
+from temoto.transport import FleetAuth, FleetLink, InProcessTransport, Opened, codec
+from temoto.transport.inprocess import live_buses
+
+KEY = bytes(range(32))
+FLEET = "test-fleet"
+WAIT_S = 5.0
+CALLS_THREAD = "temoto-fleet-actors-calls"
+_buses = itertools.count()
+
+
+class Fleet:
+    """Makes links on one bus; everything made is closed when the test ends."""
+
+    def __init__(self, bus: str, stack: ExitStack) -> None:
+        self.bus = bus
+        self._stack = stack
+
+    def fleet_link(self, sender: str) -> FleetLink:
+        transport = self._stack.enter_context(InProcessTransport(self.bus))
+        return FleetLink(transport, FleetAuth(FLEET, sender, KEY))
+
+    def link(self, actor: str, **kwargs: Any) -> FleetActorLink:
+        return self._stack.enter_context(FleetActorLink(self.fleet_link(actor), actor, **kwargs))
+
+    def links(self, *actors: str, **kwargs: Any) -> list[FleetActorLink]:
+        return [self.link(a, **kwargs) for a in actors]
+
+
+@pytest.fixture
+def fleet(request: pytest.FixtureRequest) -> Iterator[Fleet]:
+    bus = f"fleet-{request.node.name}-{next(_buses)}"
+    with ExitStack() as stack:
+        yield Fleet(bus, stack)
+    assert bus not in live_buses()
+
+
+def concurrently(*calls: Callable[[], object], timeout: float = 20.0) -> list[BaseException | None]:
+    """Run the calls in threads at once; what each raised (None if it returned)."""
+    errors: list[BaseException | None] = [None] * len(calls)
+    start = threading.Barrier(len(calls))
+
+    def run(i: int, call: Callable[[], object]) -> None:
+        start.wait()
+        try:
+            call()
+        except BaseException as err:
+            errors[i] = err
+
+    threads = [
+        threading.Thread(target=run, args=(i, c), name=f"test-call-{i}")
+        for i, c in enumerate(calls)
+    ]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout)
+        assert not thread.is_alive(), "a call did not return"
+    return errors
+
+
+def handshaking(
+    link: FleetActorLink, actors: list[str], timeout: float = WAIT_S, session: str = "s1"
+) -> Callable[[], None]:
+    return lambda: link.handshake("g", session, actors, timeout)
+
+
+class Got:
+    """Records callback calls and waits for them (on a condition, no polling)."""
+
+    def __init__(self) -> None:
+        self.calls: list[tuple[Any, ...]] = []
+        self.threads: list[str] = []
+        self._cond = threading.Condition()
+
+    def __call__(self, *args: Any) -> None:
+        with self._cond:
+            self.calls.append(args)
+            self.threads.append(threading.current_thread().name)
+            self._cond.notify_all()
+
+    def wait_for(self, count: int, timeout: float = WAIT_S) -> list[tuple[Any, ...]]:
+        with self._cond:
+            ok = self._cond.wait_for(lambda: len(self.calls) >= count, timeout)
+            assert ok, f"got {len(self.calls)} of {count} calls: {self.calls}"
+            return list(self.calls)
+
+
+class Raw:
+    """A hand-driven fleet member: sends any message, records what comes back on a channel."""
+
+    def __init__(self, link: FleetLink, channel: str) -> None:
+        self.link = link
+        self.got = Got()
+        link.listen(channel, lambda opened: self.got(opened))
+
+    def send(self, channel: str, msg: Any) -> None:
+        self.link.send(channel, *codec.encode(msg))
+
+    def decoded(self) -> list[Any]:
+        return [codec.decode(o.type, o.payload) for (o,) in self.got.calls]
+
+    def acks(self) -> list[Any]:
+        return [
+            codec.decode(o.type, o.payload)
+            for (o,) in self.got.calls
+            if isinstance(o, Opened) and o.type == "action_ack_t"
+        ]
+
+
+def notification(nid: str, actor: str, action: str, result: str, outputs: str) -> Any:
+    msg = action_notification_t()
+    msg.notification_id, msg.graph, msg.session = nid, "g", "s1"
+    msg.action, msg.actor, msg.result, msg.outputs = action, actor, result, outputs
+    return msg
+
+
+def handshake(phase: int, actor: str, graph: str = "g", session: str = "s1") -> Any:
+    msg = handshake_t()
+    msg.phase, msg.graph, msg.session, msg.actor = phase, graph, session, actor
+    msg.stamp_us = round(time.time() * 1e6)
+    msg.actors, msg.heard = [], []
+    return msg
+
+
+# --- handshake --------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [2, 3, 5])
+def test_every_actor_completes_a_concurrent_handshake(fleet: Fleet, n: int) -> None:
+    names = [f"robot{i}" for i in range(n)]
+    links = fleet.links(*names)
+    errors = concurrently(*(handshaking(link, names) for link in links))
+    assert errors == [None] * n
+    for link in links:
+        stats = link.stats
+        assert stats["handshakes_sent"] >= 2  # a JOIN, then READY
+        assert stats["handshakes_received"] >= n - 1
+        assert stats["decode_errors"] == stats["unexpected"] == stats["send_errors"] == 0
+
+
+def test_a_missing_actor_fails_the_others_in_time_and_is_named(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    t0 = time.monotonic()
+    errors = concurrently(
+        handshaking(a, ["A", "B", "C"], 0.5), handshaking(b, ["A", "B", "C"], 0.5)
+    )
+    elapsed = time.monotonic() - t0
+    assert 0.5 <= elapsed < 2.0
+    for err in errors:
+        assert isinstance(err, FleetError)
+        assert "no answer from 'C'" in str(err)  # (or 'the other gave up; no answer ...')
+        assert "'B' by" not in str(err)  # A and B heard each other
+        assert "'A' by" not in str(err)
+
+
+def test_a_late_joiner_still_completes(fleet: Fleet) -> None:
+    a, b, c = fleet.links("A", "B", "C")
+    names = ["A", "B", "C"]
+
+    def late() -> None:
+        threading.Event().wait(0.2)  # C starts 0.2 s after the others
+        c.handshake("g", "s1", names, 3.0)
+
+    assert concurrently(handshaking(a, names, 3.0), handshaking(b, names, 3.0), late) == [None] * 3
+
+
+def test_a_join_heard_before_the_handshake_starts_is_kept(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    seen = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
+    errors: list[BaseException | None] = []
+    thread = threading.Thread(
+        target=lambda: errors.extend(concurrently(handshaking(a, ["A", "B"]))), name="test-early"
+    )
+    thread.start()
+    try:
+        seen.got.wait_for(2)  # A has resent its JOIN
+        deadline = time.monotonic() + WAIT_S
+        while b.stats["handshakes_received"] < 1 and time.monotonic() < deadline:
+            time.sleep(0.005)  # B's own transport thread delivers on its own schedule
+        b.handshake("g", "s1", ["A", "B"], WAIT_S)
+    finally:
+        thread.join(WAIT_S)
+    assert errors == [None]
+    first_of_b = next(m for m in seen.decoded() if m.actor == "B")
+    assert [h.actor for h in first_of_b.heard] == ["A"]  # B's very first JOIN names A
+
+
+def test_two_sessions_run_side_by_side(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    errors = concurrently(
+        handshaking(a, ["A", "B"], session="s1"),
+        handshaking(b, ["A", "B"], session="s1"),
+        handshaking(a, ["A", "B"], session="s2"),
+        handshaking(b, ["A", "B"], session="s2"),
+    )
+    assert errors == [None] * 4
+
+
+def test_handshakes_of_different_sessions_do_not_mix(fleet: Fleet) -> None:
+    a, b, c = fleet.links("A", "B", "C")
+    names = ["A", "B", "C"]
+    errors = concurrently(
+        handshaking(a, names, 0.5, session="s1"),
+        handshaking(b, names, 0.5, session="s1"),
+        handshaking(c, names, 0.5, session="s2"),
+    )
+    assert all(isinstance(err, FleetError) for err in errors)
+    assert "no answer from 'C'" in str(errors[0])
+    assert "no answer from 'C'" in str(errors[1])
+    assert "no answer from 'A', 'B'" in str(errors[2])
+
+
+def test_handshakes_of_other_graphs_do_not_mix(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    errors = concurrently(
+        lambda: a.handshake("g1", "s1", ["A", "B"], 0.4),
+        lambda: b.handshake("g2", "s1", ["A", "B"], 0.4),
+    )
+    assert all(isinstance(err, FleetError) for err in errors)
+
+
+def test_an_actor_that_gives_up_makes_the_others_fail_at_once(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    names = ["A", "B", "C"]
+    t0 = time.monotonic()
+    errors = concurrently(handshaking(a, names, 0.3), handshaking(b, names, 10.0))
+    assert time.monotonic() - t0 < 3.0  # B did not wait its 10 s
+    assert isinstance(errors[0], FleetError)
+    assert "timed out" in str(errors[0])
+    assert isinstance(errors[1], FleetError)
+    assert "'A' gave up" in str(errors[1])
+
+
+def test_a_run_can_handshake_again_after_end(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    for _ in range(3):
+        assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+        a.end("g", "s1")
+        b.end("g", "s1")
+
+
+def test_a_peer_still_in_the_previous_run_does_not_complete_a_new_one(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    a.end("g", "s1")  # B is still in the run: it answers, but its heard list is the old one
+    done = Got()
+    errors: list[BaseException] = []
+
+    def again() -> None:
+        try:
+            a.handshake("g", "s1", ["A", "B"], WAIT_S)
+        except BaseException as err:
+            errors.append(err)
+        done()
+
+    thread = threading.Thread(target=again, name="test-again")
+    thread.start()
+    try:
+        assert not threading.Event().wait(0.3)
+        assert done.calls == []  # stale answers do not complete it
+        b.end("g", "s1")
+        b.handshake("g", "s1", ["A", "B"], WAIT_S)
+        done.wait_for(1)
+    finally:
+        thread.join(WAIT_S)
+    assert errors == []
+
+
+def test_handshake_arguments(fleet: Fleet) -> None:
+    (a,) = fleet.links("A")
+    a.handshake("g", "s1", ["A"], 0.0)  # alone: nothing to wait for
+    with pytest.raises(ValueError, match="do not include this actor"):
+        a.handshake("g", "s1", ["B", "C"], 1.0)
+    with pytest.raises(ValueError, match="timeout"):
+        a.handshake("g", "s1", ["A", "B"], -1.0)
+    with pytest.raises(ValueError, match="graph"):
+        a.handshake("", "s1", ["A", "B"], 1.0)
+
+
+def test_a_second_handshake_of_the_same_run_is_refused(fleet: Fleet) -> None:
+    a, _ = fleet.links("A", "B")
+    errors = concurrently(handshaking(a, ["A", "C"], 0.5), handshaking(a, ["A", "C"], 0.5))
+    kinds = sorted(type(err).__name__ for err in errors)
+    assert kinds == ["FleetError", "StateError"]
+    assert any(isinstance(err, StateError) and "is running" in str(err) for err in errors)
+
+
+def test_end_fails_a_running_handshake(fleet: Fleet) -> None:
+    (a,) = fleet.links("A")
+    seen = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
+    got: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            a.handshake("g", "s1", ["A", "C"], WAIT_S)
+        except BaseException as err:
+            got.append(err)
+
+    thread = threading.Thread(target=run, name="test-hs")
+    thread.start()
+    seen.got.wait_for(1)  # the handshake has begun
+    a.end("g", "s1")
+    thread.join(WAIT_S)
+    assert len(got) == 1
+    assert isinstance(got[0], FleetError)
+    assert "ended" in str(got[0])
+
+
+# --- notifications ----------------------------------------------------------------------------
+
+
+def test_notify_returns_when_acknowledged_and_expect_before_gets_it(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    got = Got()
+    b.expect("g", "s1", "Move_1", "A", got)
+    a.notify("g", "s1", "Move_1", Result.TRUE, {"x": 1.5}, ["B"], WAIT_S)
+    assert got.wait_for(1) == [(Result.TRUE, {"x": 1.5})]
+    assert got.threads == [CALLS_THREAD]
+    assert a.stats["acks_received"] >= 1
+    assert b.stats["acks_sent"] >= 1
+
+
+def test_a_notification_that_arrived_first_is_delivered_on_expect(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    a.notify("g", "s1", "Move_1", Result.FALSE, {}, ["B"], WAIT_S)  # nobody expects it yet
+    got = Got()
+    b.expect("g", "s1", "Move_1", "A", got)
+    assert got.wait_for(1) == [(Result.FALSE, {})]
+    assert got.threads == [CALLS_THREAD]  # not on the caller's thread
+
+
+def test_outputs_round_trip(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    outputs: Mapping[str, Any] = {
+        "text": "hällo",
+        "count": 3,
+        "ratio": 0.25,
+        "ok": True,
+        "nothing": None,
+        "pose": {"frame": "map", "xyz": [1.0, 2.0, 3.0], "meta": {"deep": [False, {"k": "v"}]}},
+    }
+    got = Got()
+    b.expect("g", "s1", "Detect_2", "A", got)
+    a.notify("g", "s1", "Detect_2", Result.TRUE, outputs, ["B"], WAIT_S)
+    assert got.wait_for(1) == [(Result.TRUE, outputs)]
+
+
+def test_every_listed_actor_must_acknowledge(fleet: Fleet) -> None:
+    a, b, c = fleet.links("A", "B", "C")
+    got_b, got_c = Got(), Got()
+    b.expect("g", "s1", "Move_1", "A", got_b)
+    c.expect("g", "s1", "Move_1", "A", got_c)
+    a.notify("g", "s1", "Move_1", Result.STOPPED, {}, ["A", "B", "C"], WAIT_S)
+    assert got_b.wait_for(1) == got_c.wait_for(1) == [(Result.STOPPED, {})]
+
+
+def test_a_missing_actor_makes_notify_fail_naming_it(fleet: Fleet) -> None:
+    a, _ = fleet.links("A", "B")
+    t0 = time.monotonic()
+    with pytest.raises(FleetError, match=r"not acknowledged by 'C' within 0\.3 s") as info:
+        a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B", "C"], 0.3)
+    assert 0.3 <= time.monotonic() - t0 < 2.0
+    assert "'B'" not in str(info.value)
+    assert a.stats["notifications_sent"] >= 3  # resent meanwhile
+
+
+def test_resends_are_acknowledged_and_delivered_once(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    first, second, flush = Got(), Got(), Got()
+    b.expect("g", "s1", "Move_1", "A", first)
+    b.expect("g", "s1", "Move_1", "A", second)  # would take a second notification
+    with pytest.raises(FleetError, match="'C'"):  # C never answers, so A resends to all
+        a.notify("g", "s1", "Move_1", Result.TRUE, {"n": 1}, ["B", "C"], 0.35)
+    # B handles its channel in order: once this one is acknowledged, the copies are handled.
+    b.expect("g", "s1", "Flush_1", "A", flush)
+    a.notify("g", "s1", "Flush_1", Result.TRUE, {}, ["B"], WAIT_S)
+    flush.wait_for(1)
+    assert first.calls == [(Result.TRUE, {"n": 1})]
+    assert second.calls == []
+    stats = b.stats
+    assert stats["duplicates"] >= 2
+    assert stats["acks_sent"] == stats["notifications_received"]  # every copy acknowledged
+
+
+def test_an_action_that_runs_again_is_a_new_notification(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    got1, got2 = Got(), Got()
+    b.expect("g", "s1", "Loop_1", "A", got1)
+    a.notify("g", "s1", "Loop_1", Result.TRUE, {"i": 1}, ["B"], WAIT_S)
+    a.notify("g", "s1", "Loop_1", Result.FALSE, {"i": 2}, ["B"], WAIT_S)
+    b.expect("g", "s1", "Loop_1", "A", got2)
+    assert got1.wait_for(1) == [(Result.TRUE, {"i": 1})]
+    assert got2.wait_for(1) == [(Result.FALSE, {"i": 2})]
+
+
+def test_a_cancelled_expectation_leaves_the_notification_for_the_next(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    cancelled, later = Got(), Got()
+    cancel = b.expect("g", "s1", "Move_1", "A", cancelled)
+    cancel()
+    cancel()  # idempotent
+    a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B"], WAIT_S)
+    b.expect("g", "s1", "Move_1", "A", later)
+    assert later.wait_for(1) == [(Result.TRUE, {})]
+    assert cancelled.calls == []
+
+
+def test_notifications_of_other_runs_actions_and_actors_are_kept_apart(fleet: Fleet) -> None:
+    a, b, c = fleet.links("A", "B", "C")
+    got = {k: Got() for k in ("s1/A", "s2/A", "s1/C", "other")}
+    c.expect("g", "s1", "Move_1", "A", got["s1/A"])
+    c.expect("g", "s2", "Move_1", "A", got["s2/A"])
+    a.expect("g", "s1", "Move_1", "C", got["s1/C"])
+    c.expect("g", "s1", "Move_1", "B", got["other"])
+    a.notify("g", "s2", "Move_1", Result.FALSE, {"run": 2}, ["C"], WAIT_S)
+    a.notify("g", "s1", "Move_1", Result.TRUE, {"run": 1}, ["C"], WAIT_S)
+    c.notify("g", "s1", "Move_1", Result.ERROR, {}, ["A"], WAIT_S)
+    assert got["s1/A"].wait_for(1) == [(Result.TRUE, {"run": 1})]
+    assert got["s2/A"].wait_for(1) == [(Result.FALSE, {"run": 2})]
+    assert got["s1/C"].wait_for(1) == [(Result.ERROR, {})]
+    assert got["other"].calls == []
+    assert b.stats["acks_sent"] >= 2  # B acknowledges what it hears, expected or not
+
+
+def test_end_drops_what_was_kept_for_the_run(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B"], WAIT_S)
+    b.end("g", "s1")
+    dropped, flush = Got(), Got()
+    b.expect("g", "s1", "Move_1", "A", dropped)
+    b.expect("g", "s1", "Flush_1", "A", flush)
+    a.notify("g", "s1", "Flush_1", Result.TRUE, {}, ["B"], WAIT_S)
+    flush.wait_for(1)
+    assert dropped.calls == []
+
+
+def test_a_late_resend_after_end_is_acknowledged_but_not_taken_again(fleet: Fleet) -> None:
+    (b,) = fleet.links("B")
+    raw = Raw(fleet.fleet_link("X"), NOTIFY_CHANNEL)
+    first, again, flush = Got(), Got(), Got()
+    b.expect("g", "s1", "Move_1", "X", first)
+    raw.send(NOTIFY_CHANNEL, notification("n1", "X", "Move_1", "on_true", ""))
+    first.wait_for(1)
+    b.end("g", "s1")
+    b.expect("g", "s1", "Move_1", "X", again)
+    b.expect("g", "s1", "Flush_1", "X", flush)
+    raw.send(NOTIFY_CHANNEL, notification("n1", "X", "Move_1", "on_true", ""))  # the ack was lost
+    raw.send(NOTIFY_CHANNEL, notification("n2", "X", "Flush_1", "on_true", ""))
+    flush.wait_for(1)
+    assert again.calls == []
+    raw.got.wait_for(3)
+    assert [ack.notification_id for ack in raw.acks()] == ["n1", "n1", "n2"]
+    assert b.stats["duplicates"] == 1
+
+
+def test_what_was_never_started_here_is_forgotten_after_stray_s(fleet: Fleet) -> None:
+    a = fleet.link("A")
+    b = fleet.link("B", stray_s=0.2)
+    a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B"], WAIT_S)  # kept by B for a while
+    assert not threading.Event().wait(0.5)
+    forgotten, flush = Got(), Got()
+    b.expect("g", "s1", "Move_1", "A", forgotten)
+    b.expect("g", "s1", "Flush_1", "A", flush)
+    a.notify("g", "s1", "Flush_1", Result.TRUE, {}, ["B"], WAIT_S)
+    flush.wait_for(1)
+    assert forgotten.calls == []
+
+
+def test_end_fails_a_waiting_notify(fleet: Fleet) -> None:
+    (a,) = fleet.links("A")
+    seen = Raw(fleet.fleet_link("X"), NOTIFY_CHANNEL)
+    got: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["C"], WAIT_S)
+        except BaseException as err:
+            got.append(err)
+
+    thread = threading.Thread(target=run, name="test-notify")
+    thread.start()
+    seen.got.wait_for(1)  # the notification is out
+    a.end("g", "s1")
+    thread.join(WAIT_S)
+    assert len(got) == 1
+    assert isinstance(got[0], FleetError)
+    assert "the run was ended before 'C' acknowledged" in str(got[0])
+
+
+def test_outputs_that_are_not_json_are_refused(fleet: Fleet) -> None:
+    a, _ = fleet.links("A", "B")
+    with pytest.raises(FleetError, match="not JSON-ready"):
+        a.notify("g", "s1", "Move_1", Result.TRUE, {"x": object()}, ["B"], WAIT_S)
+    a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["A"], 0.0)  # nobody else: nothing to do
+
+
+def test_a_bad_result_or_outputs_become_an_error_and_are_still_acknowledged(
+    fleet: Fleet, caplog: pytest.LogCaptureFixture
+) -> None:
+    (b,) = fleet.links("B")
+    raw = Raw(fleet.fleet_link("X"), NOTIFY_CHANNEL)
+    got = {name: Got() for name in ("unknown", "garbled", "array", "fine")}
+    for name, got_it in got.items():
+        b.expect("g", "s1", name, "X", got_it)
+    raw.send(NOTIFY_CHANNEL, notification("n1", "X", "unknown", "on_maybe", '{"a": 1}'))
+    raw.send(NOTIFY_CHANNEL, notification("n2", "X", "garbled", "on_true", "{not json"))
+    raw.send(NOTIFY_CHANNEL, notification("n3", "X", "array", "on_true", "[1, 2]"))
+    raw.send(NOTIFY_CHANNEL, notification("n4", "X", "fine", "on_false", ""))
+    assert got["unknown"].wait_for(1) == [(Result.ERROR, {"a": 1})]
+    assert got["garbled"].wait_for(1) == [(Result.ERROR, {})]
+    assert got["array"].wait_for(1) == [(Result.ERROR, {})]
+    assert got["fine"].wait_for(1) == [(Result.FALSE, {})]
+    raw.got.wait_for(4)
+    acks = raw.acks()
+    assert sorted(ack.notification_id for ack in acks) == ["n1", "n2", "n3", "n4"]
+    assert {(ack.actor, ack.graph, ack.session) for ack in acks} == {("B", "g", "s1")}
+    assert "unknown result 'on_maybe'" in caplog.text
+    assert "not JSON" in caplog.text
+
+
+def test_undecodable_and_unexpected_messages_are_counted_not_raised(fleet: Fleet) -> None:
+    (b,) = fleet.links("B")
+    raw = Raw(fleet.fleet_link("X"), NOTIFY_CHANNEL)
+    raw.link.send(NOTIFY_CHANNEL, "action_notification_t", b"\x00garbage")
+    raw.link.send(HANDSHAKE_CHANNEL, "handshake_t", b"\x01garbage")
+    raw.link.send(HANDSHAKE_CHANNEL, "no_such_t", b"")
+    raw.send(HANDSHAKE_CHANNEL, notification("n0", "X", "Move_1", "on_true", ""))  # wrong channel
+    bad_phase = handshake(7, "X")
+    raw.send(HANDSHAKE_CHANNEL, bad_phase)
+    raw.send(NOTIFY_CHANNEL, notification("n1", "X", "Move_1", "on_true", ""))
+    raw.got.wait_for(1)  # its ack: everything before it was handled (one dispatch thread)
+    stats = b.stats
+    assert stats["decode_errors"] == 3
+    assert stats["unexpected"] == 2
+    assert stats["notifications_received"] == 1
+
+
+def test_a_raising_callback_is_counted_and_the_link_goes_on(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+
+    def boom(result: Result, outputs: Mapping[str, Any]) -> None:
+        raise RuntimeError("callback failed")
+
+    got = Got()
+    b.expect("g", "s1", "Move_1", "A", boom)
+    b.expect("g", "s1", "Move_2", "A", got)
+    a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B"], WAIT_S)
+    a.notify("g", "s1", "Move_2", Result.TRUE, {}, ["B"], WAIT_S)
+    got.wait_for(1)
+    assert b.stats["callback_errors"] == 1
+
+
+# --- liveness ---------------------------------------------------------------------------------
+
+
+def test_an_actor_whose_link_closes_during_a_run_is_lost_at_once(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B", silence_s=3.0)
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    lost = Got()
+    a.watch(["B"], lost)
+    t0 = time.monotonic()
+    b.close()
+    assert lost.wait_for(1) == [("B", "left")]
+    assert time.monotonic() - t0 < 2.0  # the LEAVE, not the 3 s of silence
+    assert lost.threads == [CALLS_THREAD]
+    assert a.stats["lost"] == 1
+
+
+def test_an_actor_that_falls_silent_is_lost_within_silence_s(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B", silence_s=0.3)
+    lost = Got()
+    a.watch(["B"], lost)
+    b.watch(["A"], Got())  # B is alive: it sends heartbeats while it watches
+    assert not threading.Event().wait(0.8)
+    assert lost.calls == []
+    t0 = time.monotonic()
+    b.close()  # no run is active: it just falls silent
+    assert lost.wait_for(1, timeout=2.0) == [("B", "not heard for 0.3 s")]
+    assert time.monotonic() - t0 < 1.5
+
+
+def test_heartbeats_go_on_while_a_run_is_active_and_stop_after_end(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B", silence_s=0.3, grace_s=0.0)
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    lost = Got()
+    a.watch(["B"], lost)  # B watches nothing: only its running run keeps it heard
+    assert not threading.Event().wait(0.8)
+    assert lost.calls == []
+    b.end("g", "s1")  # nothing active on B any more (no grace): its heartbeats stop
+    assert lost.wait_for(1, timeout=2.0) == [("B", "not heard for 0.3 s")]
+
+
+def test_an_actor_never_heard_is_lost_after_silence_s(fleet: Fleet) -> None:
+    (a,) = fleet.links("A", silence_s=0.2)
+    lost = Got()
+    t0 = time.monotonic()
+    a.watch(["A", "Ghost"], lost)  # this actor itself is never watched
+    assert lost.wait_for(1) == [("Ghost", "not heard for 0.2 s")]
+    assert time.monotonic() - t0 >= 0.2
+    assert not threading.Event().wait(0.3)
+    assert lost.calls == [("Ghost", "not heard for 0.2 s")]  # once
+
+
+def test_a_leave_of_the_fleet_is_lost_at_once(fleet: Fleet) -> None:
+    (a,) = fleet.links("A", silence_s=3.0)
+    raw = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
+    lost = Got()
+    a.watch(["X"], lost)
+    raw.send(HANDSHAKE_CHANNEL, handshake(3, "X", graph="", session=""))
+    assert lost.wait_for(1) == [("X", "left")]
+    late = Got()
+    a.watch(["X"], late)  # it left and was not heard since
+    assert late.wait_for(1) == [("X", "left")]
+
+
+def test_cancel_stops_reporting(fleet: Fleet) -> None:
+    (a,) = fleet.links("A", silence_s=0.2)
+    lost, other = Got(), Got()
+    cancel = a.watch(["Ghost"], lost)
+    a.watch(["Ghost"], other)
+    cancel()
+    cancel()  # idempotent
+    other.wait_for(1)
+    assert not threading.Event().wait(0.2)
+    assert lost.calls == []
+
+
+# --- lifecycle --------------------------------------------------------------------------------
+
+
+def test_close_fails_waiting_calls_and_later_ones(fleet: Fleet) -> None:
+    (a,) = fleet.links("A")
+    seen = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
+    got: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            a.handshake("g", "s1", ["A", "C"], WAIT_S)
+        except BaseException as err:
+            got.append(err)
+
+    thread = threading.Thread(target=run, name="test-hs")
+    thread.start()
+    seen.got.wait_for(1)  # the handshake has begun
+    a.close()
+    a.close()  # idempotent
+    thread.join(WAIT_S)
+    assert [str(e) for e in got] == ["the fleet link is closed"]
+    with pytest.raises(FleetError, match="closed"):
+        a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B"], 1.0)
+    with pytest.raises(FleetError, match="closed"):
+        a.expect("g", "s1", "Move_1", "B", Got())
+    with pytest.raises(FleetError, match="closed"):
+        a.watch(["B"], Got())
+    a.end("g", "s1")  # harmless
+    assert not [t for t in threading.enumerate() if t.name.startswith("temoto-fleet-actors")]
+
+
+def test_link_properties_and_arguments(fleet: Fleet) -> None:
+    link = fleet.fleet_link("A")
+    with pytest.raises(ValueError, match="actor"):
+        FleetActorLink(link, "")
+    with pytest.raises(ValueError, match="resend_s"):
+        FleetActorLink(link, "A", resend_s=0)
+    with pytest.raises(ValueError, match="silence_s"):
+        FleetActorLink(link, "A", silence_s=float("nan"))
+    with FleetActorLink(link, "A", resend_s=0.1, silence_s=0.6) as a:
+        assert a.actor == "A"
+        assert a.heartbeat_s == pytest.approx(0.2)
+        assert set(a.stats) == set(STATS)
+        assert "FleetActorLink actor='A' open" in repr(a)
+        names = {t.name for t in threading.enumerate()}
+        assert {"temoto-fleet-actors", CALLS_THREAD} <= names
+    assert "closed" in repr(a)
+
+
+def test_messages_are_what_the_lcm_definitions_say(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    raw_hs = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
+    raw_nt = Raw(fleet.fleet_link("Y"), NOTIFY_CHANNEL)
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    a.notify("g", "s1", "Move_1", Result.TRUE, {"b": 2, "a": 1}, ["B"], WAIT_S)
+    raw_nt.got.wait_for(2)
+    notes = [codec.decode(o.type, o.payload) for (o,) in raw_nt.got.calls]
+    note = next(n for n in notes if n.__class__.__name__ == "action_notification_t")
+    assert note.notification_id.startswith("A/g/s1/Move_1/")
+    assert (note.graph, note.session, note.action, note.actor) == ("g", "s1", "Move_1", "A")
+    assert note.result == "on_true"
+    assert json.loads(note.outputs) == {"a": 1, "b": 2}
+    assert note.outputs == '{"a":1,"b":2}'  # sorted keys
+    ack = next(n for n in notes if isinstance(n, action_ack_t))
+    assert (ack.notification_id, ack.actor) == (note.notification_id, "B")
+    hs = [codec.decode(o.type, o.payload) for (o,) in raw_hs.got.wait_for(4)]
+    joins = [m for m in hs if m.phase == handshake_t.JOIN and m.actor == "A"]
+    readies = [m for m in hs if m.phase == handshake_t.READY and m.actor == "A"]
+    assert joins
+    assert readies
+    assert all(list(m.actors) == ["A", "B"] for m in joins + readies)
+    assert [(h.actor) for h in readies[0].heard] == ["B"]
