@@ -102,6 +102,14 @@ class Got:
             assert ok, f"got {len(self.calls)} of {count} calls: {self.calls}"
             return list(self.calls)
 
+    def wait_until(
+        self, pred: Callable[[list[tuple[Any, ...]]], bool], timeout: float = WAIT_S
+    ) -> list[tuple[Any, ...]]:
+        with self._cond:
+            ok = self._cond.wait_for(lambda: pred(self.calls), timeout)
+            assert ok, f"condition not met by {len(self.calls)} calls: {self.calls}"
+            return list(self.calls)
+
 
 class Raw:
     """A hand-driven fleet member: sends any message, records what comes back on a channel."""
@@ -708,7 +716,14 @@ def test_messages_are_what_the_lcm_definitions_say(fleet: Fleet) -> None:
     assert note.outputs == '{"a":1,"b":2}'  # sorted keys
     ack = next(n for n in notes if isinstance(n, action_ack_t))
     assert (ack.notification_id, ack.actor) == (note.notification_id, "B")
-    hs = [codec.decode(o.type, o.payload) for (o,) in raw_hs.got.wait_for(4)]
+
+    def decoded(calls: list[tuple[Any, ...]]) -> list[Any]:
+        return [codec.decode(o.type, o.payload) for (o,) in calls]
+
+    def a_ready(calls: list[tuple[Any, ...]]) -> bool:  # heartbeats come on their own time
+        return any(m.phase == handshake_t.READY and m.actor == "A" for m in decoded(calls))
+
+    hs = decoded(raw_hs.got.wait_until(a_ready))
     joins = [m for m in hs if m.phase == handshake_t.JOIN and m.actor == "A"]
     readies = [m for m in hs if m.phase == handshake_t.READY and m.actor == "A"]
     assert joins
