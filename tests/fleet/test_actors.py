@@ -207,6 +207,9 @@ def test_a_join_heard_before_the_handshake_starts_is_kept(fleet: Fleet) -> None:
     finally:
         thread.join(WAIT_S)
     assert errors == [None]
+    seen.got.wait_until(  # X's transport thread delivers on its own schedule too
+        lambda calls: any(codec.decode(o.type, o.payload).actor == "B" for (o,) in calls)
+    )
     first_of_b = next(m for m in seen.decoded() if m.actor == "B")
     assert [h.actor for h in first_of_b.heard] == ["A"]  # B's very first JOIN names A
 

@@ -229,7 +229,8 @@ def test_two_processes_exchange_sealed_messages_over_multicast(netns: None, chil
     assert by_name["beta"]["received"] == [["alpha", "hello_t", "hello from alpha"]]
     for stats in (r["stats"] for r in results):
         assert stats["accepted"] >= 1
-        assert stats["self"] >= 1  # multicast loops our own messages back; they are dropped
+        # multicast loops our own messages back, dropped as "self"; whether one came back
+        # before the peer stopped depends on scheduling, so it is not asserted
         for reason in ("garbage", "forged", "unsigned", "replayed", "stale", "handler_error"):
             assert stats[reason] == 0, (reason, stats)
 
