@@ -799,7 +799,10 @@ class ActionEngine:
         try:
             if unwatch is not None:
                 unwatch()
-            self.link.end(run.plan.graph.name, run.name)
+            # a run that did not finish here is abandoned by this actor: the others are told
+            self.link.end(
+                run.plan.graph.name, run.name, gave_up=run.state is not GraphState.FINISHED
+            )
         finally:
             run.done.set()  # only now: a caller may close the link as soon as wait() returns
 

@@ -111,11 +111,13 @@ class ActorLink(Protocol):
         """
         ...
 
-    def end(self, graph: str, session: str) -> None:
-        """Forget what the link keeps for a finished run (received notifications, waiters).
+    def end(self, graph: str, session: str, *, gave_up: bool = False) -> None:
+        """Forget what the link keeps for an ended run (received notifications, waiters).
 
         Args:
             graph: The graph's name.
             session: The run's session.
+            gave_up: The run did not finish here (stopped, failed, halted): the other actors
+                are told, and report this actor lost for the run (reason "left").
         """
         ...

@@ -579,8 +579,8 @@ class FleetActorLink:
 
         return cancel
 
-    def end(self, graph: str, session: str) -> None:
-        """Forget a finished run: its notifications, waiters and handshake state.
+    def end(self, graph: str, session: str, *, gave_up: bool = False) -> None:
+        """Forget an ended run: its notifications, waiters and handshake state.
 
         A handshake or notify of that run still waiting fails. For ``grace_s`` the run's ids
         stay known (late resends are acknowledged, not taken) and, if its handshake had
@@ -589,11 +589,16 @@ class FleetActorLink:
         Args:
             graph: The graph's name.
             session: The run's session.
+            gave_up: The run did not finish here: LEAVE is sent for it, so the peers report
+                this actor lost ("left") at once instead of after ``silence_s``.
         """
         key = (graph, session)
+        leave = None
         with self._lock:
             now = self._clock()
             run = self._runs.pop(key, None)
+            if gave_up and run is not None and not self._closed:
+                leave = self._leave_msg(run.graph, run.session, run.actors)
             if run is not None:
                 for waiters in run.waiters.values():
                     for waiter in waiters:
@@ -609,6 +614,8 @@ class FleetActorLink:
                     out.aborted = "the run was ended"
             self._changed.notify_all()
             self._timer_wake.notify()
+        if leave is not None:
+            self._send_quietly(HANDSHAKE_CHANNEL, leave, "handshakes_sent")
 
     def close(self) -> None:
         """Stop the link: LEAVE the active runs, unsubscribe, stop and join the threads.

@@ -203,6 +203,8 @@ class MemoryActorLink:
         """See :meth:`temoto.core.remote.ActorLink.watch`."""
         return self._fleet._watch(actors, on_lost)
 
-    def end(self, graph: str, session: str) -> None:
+    def end(self, graph: str, session: str, *, gave_up: bool = False) -> None:
         """See :meth:`temoto.core.remote.ActorLink.end`."""
         self._fleet._end(graph, session)
+        if gave_up:
+            self._fleet.lose(self._actor, "left")

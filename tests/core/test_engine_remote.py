@@ -196,6 +196,11 @@ def test_stopping_a_shared_graph_stops_waiting_for_remote_actions(fleet: MemoryF
         t.join(WAIT)
         # A waits for B's Step_1 (remote here); stopping A ends its run at once
         assert engines[0].stop(name, timeout=WAIT) is Result.STOPPED
+        # ... and A gave the run up: B is told, and its run fails instead of waiting for A
+        Step.block.set()
+        assert engines[1].wait(name, WAIT) is Result.ERROR
+        errors = engines[1].outcome(name).errors
+        assert any("actor 'A' was lost (left)" in str(e) for e in errors), errors
     finally:
         Step.block.set()
         Step.block = None

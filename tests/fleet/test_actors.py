@@ -595,6 +595,27 @@ def test_an_actor_whose_link_closes_during_a_run_is_lost_at_once(fleet: Fleet) -
     assert a.stats["lost"] == 1
 
 
+def test_an_actor_that_gives_up_its_run_is_lost_at_once(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B", silence_s=3.0)
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    lost = Got()
+    a.watch(["B"], lost)
+    t0 = time.monotonic()
+    b.end("g", "s1", gave_up=True)  # stopped or failed there: LEAVE
+    assert lost.wait_for(1) == [("B", "left")]
+    assert time.monotonic() - t0 < 2.0
+
+
+def test_an_actor_that_ends_its_run_normally_is_not_lost(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B", silence_s=0.5)
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    lost = Got()
+    a.watch(["B"], lost)
+    b.end("g", "s1")  # finished: heartbeats go on for grace_s, no LEAVE
+    with pytest.raises(AssertionError):
+        lost.wait_for(1, timeout=1.0)
+
+
 def test_an_actor_that_falls_silent_is_lost_within_silence_s(fleet: Fleet) -> None:
     a, b = fleet.links("A", "B", silence_s=0.3)
     lost = Got()
