@@ -133,6 +133,27 @@ class Raw:
         ]
 
 
+def interrupted(
+    call: Callable[[], object], begun: Got, interrupt: Callable[[], object]
+) -> list[BaseException]:
+    """Run a blocking ``call`` in a thread; once ``begun`` got a message, ``interrupt``; what
+    the call raised."""
+    got: list[BaseException] = []
+
+    def run() -> None:
+        try:
+            call()
+        except BaseException as err:
+            got.append(err)
+
+    thread = threading.Thread(target=run, name="test-blocked")
+    thread.start()
+    begun.wait_for(1)  # the call's first message is out
+    interrupt()
+    thread.join(WAIT_S)
+    return got
+
+
 def notification(nid: str, actor: str, action: str, result: str, outputs: str) -> Any:
     msg = action_notification_t()
     msg.notification_id, msg.graph, msg.session = nid, "g", "s1"
@@ -317,19 +338,9 @@ def test_a_second_handshake_of_the_same_run_is_refused(fleet: Fleet) -> None:
 def test_end_fails_a_running_handshake(fleet: Fleet) -> None:
     (a,) = fleet.links("A")
     seen = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
-    got: list[BaseException] = []
-
-    def run() -> None:
-        try:
-            a.handshake("g", "s1", ["A", "C"], WAIT_S)
-        except BaseException as err:
-            got.append(err)
-
-    thread = threading.Thread(target=run, name="test-hs")
-    thread.start()
-    seen.got.wait_for(1)  # the handshake has begun
-    a.end("g", "s1")
-    thread.join(WAIT_S)
+    got = interrupted(
+        lambda: a.handshake("g", "s1", ["A", "C"], WAIT_S), seen.got, lambda: a.end("g", "s1")
+    )
     assert len(got) == 1
     assert isinstance(got[0], FleetError)
     assert "ended" in str(got[0])
@@ -498,19 +509,11 @@ def test_what_was_never_started_here_is_forgotten_after_stray_s(fleet: Fleet) ->
 def test_end_fails_a_waiting_notify(fleet: Fleet) -> None:
     (a,) = fleet.links("A")
     seen = Raw(fleet.fleet_link("X"), NOTIFY_CHANNEL)
-    got: list[BaseException] = []
-
-    def run() -> None:
-        try:
-            a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["C"], WAIT_S)
-        except BaseException as err:
-            got.append(err)
-
-    thread = threading.Thread(target=run, name="test-notify")
-    thread.start()
-    seen.got.wait_for(1)  # the notification is out
-    a.end("g", "s1")
-    thread.join(WAIT_S)
+    got = interrupted(
+        lambda: a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["C"], WAIT_S),
+        seen.got,
+        lambda: a.end("g", "s1"),
+    )
     assert len(got) == 1
     assert isinstance(got[0], FleetError)
     assert "the run was ended before 'C' acknowledged" in str(got[0])
@@ -681,20 +684,12 @@ def test_cancel_stops_reporting(fleet: Fleet) -> None:
 def test_close_fails_waiting_calls_and_later_ones(fleet: Fleet) -> None:
     (a,) = fleet.links("A")
     seen = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
-    got: list[BaseException] = []
 
-    def run() -> None:
-        try:
-            a.handshake("g", "s1", ["A", "C"], WAIT_S)
-        except BaseException as err:
-            got.append(err)
+    def close_twice() -> None:
+        a.close()
+        a.close()  # idempotent
 
-    thread = threading.Thread(target=run, name="test-hs")
-    thread.start()
-    seen.got.wait_for(1)  # the handshake has begun
-    a.close()
-    a.close()  # idempotent
-    thread.join(WAIT_S)
+    got = interrupted(lambda: a.handshake("g", "s1", ["A", "C"], WAIT_S), seen.got, close_twice)
     assert [str(e) for e in got] == ["the fleet link is closed"]
     with pytest.raises(FleetError, match="closed"):
         a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B"], 1.0)
