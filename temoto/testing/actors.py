@@ -30,7 +30,8 @@ class MemoryFleet:
 
     def __init__(self) -> None:
         self._cond = threading.Condition()
-        self._joined: dict[tuple[str, str], set[str]] = {}
+        #: (graph, session) -> actor -> how many handshakes it began for that session
+        self._joined: dict[tuple[str, str], dict[str, int]] = {}
         self._results: dict[_Key, tuple[Result, dict[str, Any]]] = {}
         self._waiters: dict[_Key, list[RemoteResult]] = {}
         self._watchers: list[tuple[frozenset[str], Callable[[str, str], None]]] = []
@@ -92,11 +93,12 @@ class MemoryFleet:
     ) -> None:
         key = (graph, session)
         with self._cond:
-            self._joined.setdefault(key, set()).add(actor)
+            rounds = self._joined.setdefault(key, {})
+            mine = rounds[actor] = rounds.get(actor, 0) + 1  # a re-run of a session: a new round
             self._cond.notify_all()
-            ok = self._cond.wait_for(lambda: set(actors) <= self._joined.get(key, set()), timeout)
+            ok = self._cond.wait_for(lambda: all(rounds.get(a, 0) >= mine for a in actors), timeout)
             if not ok:
-                missing = sorted(set(actors) - self._joined.get(key, set()))
+                missing = sorted(a for a in actors if rounds.get(a, 0) < mine)
                 raise FleetError(f"handshake for {graph}: no answer from {', '.join(missing)}")
 
     def _notify(
@@ -152,7 +154,6 @@ class MemoryFleet:
 
     def _end(self, graph: str, session: str) -> None:
         with self._cond:
-            self._joined.pop((graph, session), None)
             for key in [k for k in self._waiters if k[:2] == (graph, session)]:
                 del self._waiters[key]
 
