@@ -733,6 +733,11 @@ class FleetActorLink:
                 self._changed.notify_all()
             elif run.phase is _Phase.READY:
                 lost = True
+        why = "left the fleet" if fleet else "gave up the run"
+        for out in self._outgoing.values():  # it will not acknowledge: do not wait for it
+            if actor in out.waiting and (fleet or out.key == (graph, session)):
+                out.aborted = f"'{actor}' {why}"
+                self._changed.notify_all()
         if lost:
             for watch in self._watches:
                 self._report_lost(watch, actor, "left")

@@ -36,7 +36,7 @@ class MemoryFleet:
         self._waiters: dict[_Key, list[RemoteResult]] = {}
         self._watchers: list[tuple[frozenset[str], Callable[[str, str], None]]] = []
         self._deaf: set[str] = set()
-        self._lost: set[str] = set()
+        self._lost: dict[str, str] = {}  # actor -> why it was lost
         self._calls: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
         self._thread = threading.Thread(target=self._deliver, name="temoto-memfleet", daemon=True)
         self._thread.start()
@@ -69,7 +69,7 @@ class MemoryFleet:
             reason: Why.
         """
         with self._cond:
-            self._lost.add(actor)
+            self._lost.setdefault(actor, reason)
             watchers = [w for w in self._watchers if actor in w[0]]
         for _, on_lost in watchers:
             self._calls.put(functools.partial(on_lost, actor, reason))
@@ -113,7 +113,11 @@ class MemoryFleet:
     ) -> None:
         key = (graph, session, action, sender)
         with self._cond:
-            deaf = sorted(set(actors) & (self._deaf | self._lost))
+            lost = sorted(set(actors) & self._lost.keys())
+            if lost:  # the same words as the engine's report of the loss, whichever comes first
+                why = ", ".join(f"actor '{a}' was lost ({self._lost[a]})" for a in lost)
+                raise FleetError(f"{action}: {why}")
+            deaf = sorted(set(actors) & self._deaf)
             if deaf:
                 raise FleetError(f"{action}: no acknowledgement from {', '.join(deaf)}")
             self._results[key] = (result, dict(outputs))
@@ -141,7 +145,7 @@ class MemoryFleet:
         entry = (frozenset(actors), on_lost)
         with self._cond:
             self._watchers.append(entry)
-            already = sorted(set(actors) & self._lost)
+            already = sorted(set(actors) & self._lost.keys())
         for actor in already:
             self._calls.put(functools.partial(on_lost, actor, "lost before the run"))
 

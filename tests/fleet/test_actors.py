@@ -519,6 +519,38 @@ def test_end_fails_a_waiting_notify(fleet: Fleet) -> None:
     assert "the run was ended before 'C' acknowledged" in str(got[0])
 
 
+@pytest.mark.parametrize(
+    ("graph", "session", "why"), [("g", "s1", "gave up the run"), ("", "", "left the fleet")]
+)
+def test_a_peer_that_leaves_fails_a_waiting_notify_at_once(
+    fleet: Fleet, graph: str, session: str, why: str
+) -> None:
+    (a,) = fleet.links("A")
+    c = Raw(fleet.fleet_link("C"), NOTIFY_CHANNEL)
+    t0 = time.monotonic()
+    got = interrupted(
+        lambda: a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["C", "D"], WAIT_S),
+        c.got,
+        lambda: c.send(HANDSHAKE_CHANNEL, handshake(3, "C", graph=graph, session=session)),
+    )
+    assert len(got) == 1
+    assert isinstance(got[0], FleetError)
+    assert f"'C' {why} before 'C', 'D' acknowledged" in str(got[0])
+    assert time.monotonic() - t0 < WAIT_S / 2  # not the notify timeout
+
+
+def test_a_leave_of_another_run_does_not_fail_a_notify(fleet: Fleet) -> None:
+    (a,) = fleet.links("A")
+    c = Raw(fleet.fleet_link("C"), NOTIFY_CHANNEL)
+    got = interrupted(
+        lambda: a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["C"], 1.0),
+        c.got,
+        lambda: c.send(HANDSHAKE_CHANNEL, handshake(3, "C", graph="g", session="s2")),
+    )
+    assert len(got) == 1
+    assert "was not acknowledged by 'C' within 1 s" in str(got[0])
+
+
 def test_outputs_that_are_not_json_are_refused(fleet: Fleet) -> None:
     a, _ = fleet.links("A", "B")
     with pytest.raises(FleetError, match="not JSON-ready"):
