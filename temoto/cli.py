@@ -31,6 +31,15 @@ from pathlib import Path
 from typing import IO, Any
 
 from temoto import __version__
+from temoto._cli_fleet import (
+    add_fleet_options,
+    add_graph_commands,
+    add_serve,
+    fleet_key,
+    graph_command,
+    serve,
+    watch,
+)
 from temoto.clock import MonotonicClock, ScaledClock
 from temoto.core import _fast
 from temoto.core.catalog import ActionCatalog, GraphIndex
@@ -38,7 +47,7 @@ from temoto.core.dot import graph_to_dot, render
 from temoto.core.engine import ActionEngine
 from temoto.core.graph import UmrfGraph, load_graph
 from temoto.core.instrument import Instrument, TraceInstrument
-from temoto.core.params import NATIVE_TYPES
+from temoto.core.planning import graph_inputs_from_text
 from temoto.core.registrar import Registrar
 from temoto.core.states import NodeState, Result
 from temoto.core.validation import validate_graph
@@ -46,9 +55,6 @@ from temoto.errors import ConfigError, GraphInputError, PluginError, TransportEr
 from temoto.managers.process import ProcessManager
 
 __all__ = ["main"]
-
-#: The fleet's LCM URL unless --fleet-url says otherwise (ttl=1: the robots' own network).
-DEFAULT_FLEET_URL = "udpm://239.255.76.67:7667?ttl=1"
 
 EXIT_TRUE = 0
 EXIT_OTHER_RESULT = 1
@@ -131,26 +137,10 @@ def _parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="how long an action may take to stop (default 5)",
     )
-    fleet = run.add_argument_group(
-        "fleet", "for a graph shared with other actors (docs/fleet.md); not used otherwise"
+    add_fleet_options(
+        run, "for a graph shared with other actors (docs/fleet.md); not used otherwise"
     )
-    fleet.add_argument(
-        "--fleet-url",
-        default=DEFAULT_FLEET_URL,
-        metavar="URL",
-        help=f"LCM URL of the fleet (default {DEFAULT_FLEET_URL})",
-    )
-    fleet.add_argument("--fleet", default="temoto", metavar="NAME", help="fleet name")
-    fleet.add_argument(
-        "--fleet-key-file",
-        metavar="FILE",
-        help="file holding the fleet key (hex or base64); default: $TEMOTO_FLEET_KEY",
-    )
-    fleet.add_argument(
-        "--insecure",
-        action="store_true",
-        help="run without a fleet key: any host on the network could take part",
-    )
+    fleet = run.add_argument_group("shared graphs")
     fleet.add_argument(
         "--handshake-timeout",
         type=float,
@@ -158,6 +148,8 @@ def _parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="how long to wait for the other actors before the start (default 5)",
     )
+
+    add_serve(sub, paths)
 
     val = sub.add_parser("validate", help="check graph files")
     val.add_argument("files", nargs="+", metavar="FILE")
@@ -171,6 +163,8 @@ def _parser() -> argparse.ArgumentParser:
     dot.add_argument(
         "--format", choices=("svg", "png", "pdf"), help="image format (default: from OUT)"
     )
+
+    add_graph_commands(gsub)
 
     act = sub.add_parser("actions", help="list known actions")
     paths(act)
@@ -201,8 +195,14 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _run(args)
         if args.command == "validate":
             return _validate(args)
-        if args.command == "graph":
+        if args.command == "serve":
+            return serve(args)
+        if args.command == "graph" and args.graph_command == "dot":
             return _dot(args)
+        if args.command == "graph" and args.graph_command == "watch":
+            return watch(args)
+        if args.command == "graph":
+            return graph_command(args)
         return _actions(args)
     except (ConfigError, PluginError) as err:
         _error(err)
@@ -216,21 +216,15 @@ def _error(err: BaseException) -> None:
     sys.stderr.write(f"temoto: error: {err}\n")
 
 
-def _convert_param(graph: UmrfGraph, text: str) -> tuple[str, Any]:
-    name, eq, raw = text.partition("=")
-    if not eq or not name:
-        raise GraphInputError(f"--param {text!r}: expected NAME=VALUE")
-    param = graph.signature().inputs.get(name)
-    if param is None or param.type == "string":
-        return name, raw
-    if param.type in NATIVE_TYPES:
-        try:
-            return name, json.loads(raw)
-        except json.JSONDecodeError:
-            raise GraphInputError(
-                f"--param {name}: {raw!r} is not a JSON {param.type} value"
-            ) from None
-    return name, raw
+def _params(graph: UmrfGraph, texts: Sequence[str]) -> dict[str, Any]:
+    """``--param NAME=VALUE`` options as graph input values."""
+    pairs: dict[str, str] = {}
+    for text in texts:
+        name, eq, raw = text.partition("=")
+        if not eq or not name:
+            raise GraphInputError(f"--param {text!r}: expected NAME=VALUE")
+        pairs[name] = raw
+    return graph_inputs_from_text(graph, pairs)
 
 
 def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
@@ -244,17 +238,9 @@ def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
             " is with --actor"
         )
     from temoto.fleet import FleetActorLink  # the fleet stack is imported only when needed
-    from temoto.transport import FleetAuth, FleetLink, key_from_env, key_from_text, open_transport
+    from temoto.transport import FleetAuth, FleetLink, open_transport
 
-    if args.fleet_key_file:
-        key: bytes | None = key_from_text(Path(args.fleet_key_file).read_text().strip())
-    else:
-        key = key_from_env()
-    if key is None and not args.insecure:
-        raise GraphInputError(
-            f"graph '{graph.name}' is shared with {', '.join(others)}: a fleet key is needed"
-            " (--fleet-key-file or $TEMOTO_FLEET_KEY), or --insecure to run without one"
-        )
+    key = fleet_key(args, f"graph '{graph.name}' is shared with {', '.join(others)}")
     transport = open_transport(args.fleet_url)
     try:
         auth = FleetAuth(args.fleet, args.actor, key, insecure=key is None)
@@ -278,7 +264,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any) -> int:
-    params = dict(_convert_param(graph, p) for p in args.param)
+    params = _params(graph, args.param)
     clock = ScaledClock(args.time_scale) if args.time_scale != 1.0 else MonotonicClock()
     t0 = clock.monotonic()
     instruments: list[Instrument] = []

@@ -11,6 +11,7 @@ allowed values; a type conflict is an error), and the effective graph is validat
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 import threading
 from collections import OrderedDict
@@ -228,4 +229,38 @@ def graph_inputs(graph: UmrfGraph, params: Mapping[str, Any]) -> dict[str, Any]:
             " (pass it as a parameter; upstream would silently never start)",
             file=graph.source,
         )
+    return values
+
+
+def graph_inputs_from_text(graph: UmrfGraph, texts: Mapping[str, str]) -> dict[str, Any]:
+    """Turn ``NAME=VALUE`` texts (a command line, a remote command) into graph input values.
+
+    A string input takes the text as it is; a number, boolean or array input takes it as JSON.
+    An input the graph does not declare keeps the text (:func:`graph_inputs` refuses it later
+    with the list of the graph's inputs).
+
+    Args:
+        graph: The graph whose inputs these are.
+        texts: The values as text, by input name.
+
+    Returns:
+        The values, by name.
+
+    Raises:
+        GraphInputError: A value is not JSON of the input's type.
+    """
+    inputs = graph.signature().inputs
+    values: dict[str, Any] = {}
+    for name, raw in texts.items():
+        param = inputs.get(name)
+        if param is None or param.type == "string" or param.type not in NATIVE_TYPES:
+            values[name] = raw
+            continue
+        try:
+            values[name] = json.loads(raw)
+        except json.JSONDecodeError:
+            raise GraphInputError(
+                f"graph input {name}: {raw!r} is not a JSON {param.type} value",
+                file=graph.source,
+            ) from None
     return values

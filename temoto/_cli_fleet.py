@@ -1,0 +1,400 @@
+"""The fleet side of the command line: ``temoto serve`` and ``temoto graph start|...|watch``.
+
+Kept apart from :mod:`temoto.cli` (which owns the parser, logging and exit codes) so that a
+local ``temoto run`` imports none of the fleet stack. Like :mod:`temoto.cli`, this module
+prints; nothing else in the package does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import signal
+import sys
+import threading
+import time
+from collections.abc import Iterator
+from contextlib import contextmanager
+from pathlib import Path
+from typing import IO, Any
+
+from temoto.errors import ConfigError, GraphInputError
+
+__all__ = ["add_fleet_options", "add_graph_commands", "add_serve", "graph_command", "serve"]
+
+#: The fleet's LCM URL unless --fleet-url says otherwise (ttl=1: the robots' own network).
+DEFAULT_FLEET_URL = "udpm://239.255.76.67:7667?ttl=1"
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+
+
+def add_fleet_options(parser: argparse.ArgumentParser, description: str) -> None:
+    """The options that join a fleet: URL, name, key (or ``--insecure``)."""
+    fleet = parser.add_argument_group("fleet", description)
+    fleet.add_argument(
+        "--fleet-url",
+        default=DEFAULT_FLEET_URL,
+        metavar="URL",
+        help=f"LCM URL of the fleet (default {DEFAULT_FLEET_URL})",
+    )
+    fleet.add_argument("--fleet", default="temoto", metavar="NAME", help="fleet name")
+    fleet.add_argument(
+        "--fleet-key-file",
+        metavar="FILE",
+        help="file holding the fleet key (hex or base64); default: $TEMOTO_FLEET_KEY",
+    )
+    fleet.add_argument(
+        "--insecure",
+        action="store_true",
+        help="run without a fleet key: any host on the network could take part",
+    )
+
+
+def fleet_key(args: argparse.Namespace, why: str) -> bytes | None:
+    """The fleet key from ``--fleet-key-file`` or the environment; None only with --insecure.
+
+    Raises:
+        GraphInputError: No key and no ``--insecure`` (``why`` says what needs it).
+        ConfigError: The key file cannot be read or holds no valid key.
+    """
+    from temoto.transport import key_from_env, key_from_text
+
+    try:
+        if args.fleet_key_file:
+            text = Path(args.fleet_key_file).read_text().strip()
+            key: bytes | None = key_from_text(text)
+        else:
+            key = key_from_env()
+    except OSError as err:
+        raise ConfigError(f"--fleet-key-file: {err}") from None
+    except ValueError as err:
+        raise ConfigError(f"fleet key: {err}") from None
+    if key is None and not args.insecure:
+        raise GraphInputError(
+            f"{why}: a fleet key is needed (--fleet-key-file or $TEMOTO_FLEET_KEY),"
+            " or --insecure to run without one"
+        )
+    return key
+
+
+@contextmanager
+def fleet_link(args: argparse.Namespace, sender: str, why: str) -> Iterator[Any]:
+    """An authenticated link on the fleet transport, closed (with its transport) at the end."""
+    from temoto.transport import FleetAuth, FleetLink, open_transport
+
+    key = fleet_key(args, why)
+    transport = open_transport(args.fleet_url)
+    try:
+        yield FleetLink(transport, FleetAuth(args.fleet, sender, key, insecure=key is None))
+    finally:
+        transport.close()
+
+
+# ===================================================================================== serve
+
+
+def add_serve(sub: Any, paths: Any) -> None:
+    """``temoto serve``."""
+    serve_p = sub.add_parser(
+        "serve",
+        help="run an instance that takes graph commands from the fleet",
+        description="Run a TeMoto instance (engine, registrar, process manager, fleet link)"
+        " until SIGINT or SIGTERM; `temoto graph start|stop|... --target ACTOR` command it.",
+    )
+    serve_p.add_argument("--actor", required=True, help="this instance's actor (robot) name")
+    paths(serve_p)
+    serve_p.add_argument(
+        "--catalog", metavar="FILE", help="the registrar's journal (kept across restarts)"
+    )
+    serve_p.add_argument(
+        "--handshake-timeout",
+        type=float,
+        default=5.0,
+        metavar="SECONDS",
+        help="how long to wait for the other actors of a shared graph (default 5)",
+    )
+    serve_p.add_argument(
+        "--stop-timeout",
+        type=float,
+        default=5.0,
+        metavar="SECONDS",
+        help="how long an action may take to stop (default 5)",
+    )
+    serve_p.add_argument(
+        "--feedback-period",
+        type=float,
+        default=1.0,
+        metavar="SECONDS",
+        help="publish every run's state this often (default 1)",
+    )
+    add_fleet_options(serve_p, "the fleet this instance joins")
+
+
+def serve(args: argparse.Namespace) -> int:
+    """Run an instance until SIGINT/SIGTERM."""
+    from temoto.instance import Instance
+    from temoto.transport import open_transport
+
+    key = fleet_key(args, f"instance '{args.actor}'")
+    stop = threading.Event()
+
+    def on_signal(signum: int, frame: object) -> None:
+        stop.set()
+
+    previous = {s: signal.signal(s, on_signal) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        with Instance(
+            args.actor,
+            transport=open_transport(args.fleet_url),
+            key=key,
+            fleet=args.fleet,
+            insecure=key is None,
+            actions=args.actions,
+            graphs=args.graphs,
+            catalog=args.catalog,
+            handshake_timeout=args.handshake_timeout,
+            stop_timeout=args.stop_timeout,
+            feedback_period_s=args.feedback_period,
+        ) as instance:
+            graphs = len(instance.engine.indexed_graphs())
+            sys.stderr.write(
+                f"temoto: instance '{args.actor}' serving on {args.fleet_url} (fleet"
+                f" '{args.fleet}', {graphs} indexed graph(s)); Ctrl-C stops it\n"
+            )
+            sys.stdout.write("ready\n")
+            sys.stdout.flush()
+            stop.wait()
+            sys.stderr.write(f"temoto: instance '{args.actor}' stopping\n")
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    return EXIT_OK
+
+
+# ===================================================================================== graph
+
+
+def add_graph_commands(gsub: Any) -> None:
+    """``temoto graph start|stop|pause|resume|modify|watch``."""
+    helps = {
+        "start": "start a graph (a file, or an indexed graph's name) on target instances",
+        "stop": "stop a run on target instances",
+        "pause": "pause a run on target instances",
+        "resume": "resume a paused run on target instances",
+        "modify": "replace a running graph's structure (from a file) on target instances",
+    }
+    for name, text in helps.items():
+        p = gsub.add_parser(name, help=text, description=text)
+        what = "FILE-or-NAME" if name == "start" else ("FILE" if name == "modify" else "NAME")
+        p.add_argument("graph", metavar=what, help="a UMRF graph file, or a graph/run name")
+        _targets(p)
+        p.add_argument("--session", default="", help="the run's name (default: the graph's)")
+        if name == "start":
+            p.add_argument(
+                "--param",
+                action="append",
+                default=[],
+                metavar="NAME=VALUE",
+                help="a graph input (repeatable)",
+            )
+        if name in ("resume", "modify"):
+            p.add_argument("--continue-from", default="", metavar="ACTION", help="e.g. Move_1")
+        p.add_argument(
+            "--timeout",
+            type=float,
+            default=15.0,
+            metavar="SECONDS",
+            help="how long to wait for every target's answer (default 15)",
+        )
+        add_fleet_options(p, "the fleet of the target instances")
+    watch = gsub.add_parser(
+        "watch",
+        help="show the node states of running graphs, live",
+        description="Print the state of every run the instances publish, and every change.",
+    )
+    _targets(watch, required=False)
+    watch.add_argument("--graph", action="append", default=[], help="only this run (repeatable)")
+    watch.add_argument(
+        "--once", action="store_true", help="print what is heard within --duration, then exit"
+    )
+    watch.add_argument(
+        "--json", action="store_true", help="a JSON line per change of a run (for scripts)"
+    )
+    watch.add_argument(
+        "--duration",
+        type=float,
+        metavar="SECONDS",
+        help="stop after this long (default: until Ctrl-C; 2 with --once)",
+    )
+    add_fleet_options(watch, "the fleet to watch")
+
+
+def _targets(p: argparse.ArgumentParser, *, required: bool = True) -> None:
+    p.add_argument(
+        "--target",
+        action="append",
+        default=[],
+        required=required,
+        metavar="ACTOR",
+        help="an instance's actor name (repeatable)",
+    )
+
+
+def _sender() -> str:
+    import os
+    import socket
+
+    return f"cli-{socket.gethostname()}-{os.getpid()}"
+
+
+def graph_command(args: argparse.Namespace) -> int:
+    """``temoto graph start|stop|pause|resume|modify``: send, print each target's answer."""
+    from temoto.fleet.control import GraphCommander
+
+    command = args.graph_command
+    graph_json, name = _graph_arg(args.graph, file_only=command == "modify")
+    params: dict[str, str] = {}
+    for text in getattr(args, "param", []):
+        key, eq, raw = text.partition("=")
+        if not eq or not key:
+            raise GraphInputError(f"--param {text!r}: expected NAME=VALUE")
+        params[key] = raw
+    why = f"graph {command} on {', '.join(args.target)}"
+    with fleet_link(args, _sender(), why) as link, GraphCommander(link) as commander:
+        outcome = commander.command(
+            command,
+            args.target,
+            graph=name,
+            session=args.session,
+            graph_json=graph_json,
+            params=params,
+            continue_from=getattr(args, "continue_from", ""),
+            timeout=args.timeout,
+        )
+    for actor, reply in sorted(outcome.replies.items()):
+        if reply.ok:
+            result = f" ({reply.result})" if reply.result else ""
+            sys.stdout.write(f"{actor}: {reply.message}{result}\n")
+        else:
+            sys.stdout.write(f"{actor}: failed: {reply.message}\n")
+    for actor in outcome.missing:
+        sys.stdout.write(f"{actor}: no answer within {args.timeout:g} s\n")
+    return EXIT_OK if outcome.ok else EXIT_FAILED
+
+
+def _graph_arg(text: str, *, file_only: bool) -> tuple[dict[str, Any] | None, str]:
+    """A graph file's document (and name), or a name."""
+    path = Path(text)
+    if path.is_file():
+        from temoto.core.graph import graph_to_dict, load_graph
+
+        graph = load_graph(path)  # checked here: a bad file fails before anything is sent
+        return graph_to_dict(graph), graph.name
+    if file_only or text.endswith(".json"):
+        raise GraphInputError(f"{text}: no such graph file")
+    return None, text
+
+
+def watch(args: argparse.Namespace) -> int:
+    """``temoto graph watch``: print runs' states as instances publish them."""
+    from temoto.fleet.control import GraphCommander, GraphFeedback
+
+    duration = args.duration if args.duration is not None else (2.0 if args.once else None)
+    view = _WatchView(
+        sys.stdout, set(args.target), set(args.graph), live=not args.once, as_json=args.json
+    )
+    stop = threading.Event()
+    previous = signal.signal(signal.SIGINT, lambda s, f: stop.set())
+    try:
+        with fleet_link(args, _sender(), "graph watch") as link, GraphCommander(link) as cmd:
+
+            def on_feedback(feedback: GraphFeedback) -> None:
+                view.update(feedback)
+
+            cmd.watch(on_feedback)
+            stop.wait(duration)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+    if args.once:
+        view.print_table()
+    return EXIT_OK if view.heard else EXIT_FAILED
+
+
+class _WatchView:
+    """What ``temoto graph watch`` prints: a line per change, or a table at the end."""
+
+    def __init__(
+        self, out: IO[str], targets: set[str], graphs: set[str], *, live: bool, as_json: bool
+    ) -> None:
+        self.out = out
+        self.as_json = as_json
+        self.targets = targets
+        self.graphs = graphs
+        self.live = live
+        self.heard = False
+        self.t0 = time.monotonic()
+        self._lock = threading.Lock()
+        self._last: dict[tuple[str, str], Any] = {}
+
+    def update(self, feedback: Any) -> None:
+        if self.targets and feedback.actor not in self.targets:
+            return
+        if self.graphs and feedback.graph not in self.graphs:
+            return
+        key = (feedback.actor, feedback.graph)
+        with self._lock:
+            self.heard = True
+            old = self._last.get(key)
+            self._last[key] = feedback
+            if not self.live:
+                return
+            if self.as_json:
+                if old is None or (old.state, old.result, old.nodes) != (
+                    feedback.state,
+                    feedback.result,
+                    feedback.nodes,
+                ):
+                    self.out.write(feedback_json(feedback) + "\n")
+                    self.out.flush()
+                return
+            t = time.monotonic() - self.t0
+            head = f"[{t:8.3f}s] {feedback.actor} | {feedback.graph}"
+            if old is None or (old.state, old.result) != (feedback.state, feedback.result):
+                result = f" ({feedback.result})" if feedback.result else ""
+                self.out.write(f"{head}: {feedback.state}{result}\n")
+            before = dict(old.nodes) if old is not None else {}
+            for node, state in feedback.nodes:
+                if before.get(node) != state:
+                    self.out.write(f"{head}: {node} {state}\n")
+            self.out.flush()
+
+    def print_table(self) -> None:
+        with self._lock:
+            if self.as_json:
+                for _, fb in sorted(self._last.items()):
+                    self.out.write(feedback_json(fb) + "\n")
+                self.out.flush()
+                return
+            if not self._last:
+                self.out.write("no running graphs heard\n")
+            for (actor, graph), fb in sorted(self._last.items()):
+                result = f" ({fb.result})" if fb.result else ""
+                self.out.write(f"{actor} | {graph}: {fb.state}{result}\n")
+                width = max((len(n) for n, _ in fb.nodes), default=0)
+                for node, state in fb.nodes:
+                    self.out.write(f"    {node:<{width}}  {state}\n")
+            self.out.flush()
+
+
+def feedback_json(feedback: Any) -> str:
+    """One feedback as a JSON line (for scripts)."""
+    return json.dumps(
+        {
+            "actor": feedback.actor,
+            "graph": feedback.graph,
+            "state": feedback.state,
+            "result": feedback.result,
+            "nodes": dict(feedback.nodes),
+        }
+    )

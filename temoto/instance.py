@@ -1,0 +1,135 @@
+"""One TeMoto instance: what a robot (or an operator station) runs (ARCHITECTURE §2).
+
+An :class:`Instance` puts together an :class:`~temoto.core.engine.ActionEngine` whose actor is
+the robot's name, a :class:`~temoto.core.registrar.Registrar` with the Process Manager on it,
+and the fleet: an authenticated link on a transport, the actor link for shared graphs, and the
+:class:`~temoto.fleet.control.GraphControlServer` that takes ``temoto graph start|stop|...``
+commands. ``temoto serve`` runs one until SIGINT or SIGTERM; the Robot Manager builds on it.
+
+Closing stops the runs (their actions get their stop request, their resources are released),
+then the fleet services, the managers and the transport, in that order, so nothing started by
+the instance outlives it.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Iterable
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+from temoto.core.catalog import ActionCatalog, GraphIndex
+from temoto.core.engine import ActionEngine
+from temoto.core.registrar import Registrar
+from temoto.fleet.actors import FleetActorLink
+from temoto.fleet.control import GraphControlServer
+from temoto.managers.process import ProcessManager
+from temoto.transport.auth import FleetAuth, FleetLink
+from temoto.transport.base import Transport
+
+__all__ = ["Instance"]
+
+logger = logging.getLogger(__name__)
+
+
+class Instance:
+    """An engine, a registrar with its managers, and the fleet services, for one actor.
+
+    Args:
+        actor: The robot's (or station's) name: the engine's actor and the fleet sender id.
+        transport: The fleet transport; the instance closes it (also when it cannot start).
+        key: The fleet key, or None with ``insecure=True``.
+        fleet: The fleet's name (part of every message's authentication).
+        insecure: Run without a key (any host could command this instance; logged).
+        actions: Folders of actions.
+        graphs: Folders of graphs (what ``temoto graph start NAME`` can start).
+        catalog: The registrar's journal file (None: kept in memory only).
+        handshake_timeout: Seconds to wait for the other actors of a shared graph.
+        stop_timeout: Seconds an action may take to stop.
+        feedback_period_s: Every run's state is published this often.
+
+    Raises:
+        ValueError: ``actor`` is empty.
+        TransportError: The fleet link cannot listen.
+    """
+
+    def __init__(
+        self,
+        actor: str,
+        *,
+        transport: Transport,
+        key: bytes | None,
+        fleet: str = "temoto",
+        insecure: bool = False,
+        actions: Iterable[str | Path] = (),
+        graphs: Iterable[str | Path] = (),
+        catalog: str | Path | None = None,
+        handshake_timeout: float = 5.0,
+        stop_timeout: float = 5.0,
+        feedback_period_s: float = 1.0,
+    ) -> None:
+        if not actor:
+            transport.close()  # it was handed over: closed on every way out
+            raise ValueError("an instance needs an actor name")
+        self.actor = actor
+        self.transport = transport
+        self._closed = False
+        closing: list[object] = []
+        try:
+            self.registrar = Registrar(actor, catalog=catalog, restore=catalog is not None)
+            closing.append(self.registrar)
+            self.processes = ProcessManager(self.registrar)
+            closing.append(self.processes)
+            self.link = FleetLink(transport, FleetAuth(fleet, actor, key, insecure=insecure))
+            self.actors = FleetActorLink(self.link, actor)
+            closing.append(self.actors)
+            self.engine = ActionEngine(
+                actor,
+                actions=ActionCatalog(actions),
+                graphs=GraphIndex(graphs),
+                stop_timeout=stop_timeout,
+                registrar=self.registrar,
+                link=self.actors,
+                handshake_timeout=handshake_timeout,
+            )
+            closing.append(self.engine)
+            self.control = GraphControlServer(
+                self.engine,
+                self.link,
+                feedback_period_s=feedback_period_s,
+                stop_timeout=stop_timeout * 2,
+            )
+        except BaseException:
+            for part in reversed(closing):
+                _close(part)
+            transport.close()
+            raise
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Stop everything the instance runs, in dependency order (idempotent)."""
+        if self._closed:
+            return
+        self._closed = True
+        self.control.close()  # no new commands
+        for part in (self.engine, self.actors, self.processes, self.registrar, self.transport):
+            _close(part)
+
+
+def _close(part: object) -> None:
+    """Shut one part down; a failure is logged, and the others still close."""
+    try:
+        if isinstance(part, ActionEngine | ProcessManager):
+            part.shutdown()
+        else:
+            part.close()  # type: ignore[attr-defined]
+    except Exception:
+        logger.exception("closing %s failed", type(part).__name__)
