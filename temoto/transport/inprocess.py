@@ -91,6 +91,7 @@ class InProcessTransport(Transport):
         # oldest message and keeps its token count, so the tokens stay bounded too).
         self._subs: dict[str, list[InProcessSubscription]] = {}
         self._ready: collections.deque[InProcessSubscription] = collections.deque()
+        self._busy = False  # the dispatcher is running a handler
         self._stopping = False
         self._thread = threading.Thread(target=self._run, name=f"temoto-inproc-{bus}", daemon=True)
         with _registry_lock:
@@ -100,6 +101,27 @@ class InProcessTransport(Transport):
     def __repr__(self) -> str:
         state = "closed" if self.closed else "open"
         return f"<InProcessTransport bus={self.bus!r} {state}>"
+
+    def flush(self, timeout: float | None = None) -> bool:
+        """Wait until every message queued for this member so far has been handled.
+
+        Messages are queued when they are published, so after ``publish`` returns on any
+        member of the bus, ``flush`` on the receiver waits for their handlers (tests use it
+        instead of sleeping).
+
+        Args:
+            timeout: Seconds to wait at most, or None.
+
+        Returns:
+            True if everything was handled, False on timeout or when closed.
+        """
+        with self._cond:
+            return (
+                self._cond.wait_for(
+                    lambda: self._stopping or (not self._ready and not self._busy), timeout
+                )
+                and not self._stopping
+            )
 
     # --- Transport hooks ----------------------------------------------------------------------
 
@@ -149,7 +171,7 @@ class InProcessTransport(Transport):
                 else:
                     self._ready.append(sub)
                 sub._pending.append(data)
-            self._cond.notify()
+            self._cond.notify_all()  # the dispatcher, and flushes waiting
 
     def _remove(self, sub: InProcessSubscription) -> None:
         with self._cond:
@@ -170,6 +192,15 @@ class InProcessTransport(Transport):
                     return
                 sub = self._ready.popleft()
                 if not sub._pending:
+                    if not self._ready:
+                        self._cond.notify_all()  # a flush may be waiting
                     continue
                 data = sub._pending.popleft()
-            self._deliver(sub, sub.channel, data)
+                self._busy = True
+            try:
+                self._deliver(sub, sub.channel, data)
+            finally:
+                with self._cond:
+                    self._busy = False
+                    if not self._ready:
+                        self._cond.notify_all()

@@ -313,7 +313,7 @@ def test_garbage_and_meaningless_commands_are_counted_not_raised(net: Net) -> No
     stats = a.control.stats
     assert stats["decode_errors"] == 1
     assert stats["unexpected"] == 3
-    assert a.link.stats.get("handler_errors", 0) == 0
+    assert a.link.stats["handler_error"] == 0
 
 
 def _feedback_msg() -> Any:

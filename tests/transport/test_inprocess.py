@@ -14,13 +14,9 @@ from temoto.transport.inprocess import InProcessSubscription, live_buses
 WAIT_S = 5.0
 
 
-def flush(transport: InProcessTransport, channel: str = "FLUSH") -> None:
+def flush(transport: InProcessTransport) -> None:
     """Wait until the transport's dispatcher has handled what was queued before this call."""
-    inbox = Inbox()
-    sub = transport.subscribe(channel, inbox)
-    transport._enqueue(channel, b"")  # only this instance, unlike publish
-    inbox.wait_for(1)
-    sub.unsubscribe()
+    assert transport.flush(WAIT_S)
 
 
 @pytest.fixture
@@ -276,3 +272,22 @@ def test_open_transport_makes_an_in_process_transport_from_its_url(bus: str) -> 
     with open_transport("inproc://") as t:
         assert isinstance(t, InProcessTransport)
         assert t.bus == "default"
+
+
+def test_flush_waits_for_the_handlers_of_what_was_published_before(bus: str) -> None:
+    release = threading.Event()
+    handled: list[bytes] = []
+
+    def slow(channel: str, data: bytes) -> None:
+        release.wait(WAIT_S)
+        handled.append(data)
+
+    with InProcessTransport(bus) as rx, InProcessTransport(bus) as tx:
+        rx.subscribe("SLOW", slow)
+        tx.publish("SLOW", b"1")
+        tx.publish("SLOW", b"2")
+        assert not rx.flush(0.05)  # the first handler is still blocked
+        release.set()
+        assert rx.flush(WAIT_S)
+        assert handled == [b"1", b"2"]
+    assert not rx.flush(0.01)  # closed
