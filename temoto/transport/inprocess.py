@@ -102,6 +102,12 @@ class InProcessTransport(Transport):
         state = "closed" if self.closed else "open"
         return f"<InProcessTransport bus={self.bus!r} {state}>"
 
+    @property
+    def channels(self) -> frozenset[str]:
+        """The channels this member has active subscriptions on."""
+        with self._cond:
+            return frozenset(self._subs)
+
     def flush(self, timeout: float | None = None) -> bool:
         """Wait until every message queued for this member so far has been handled.
 

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import itertools
 import json
-from collections.abc import Callable, Iterator
+from collections.abc import Iterator
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
@@ -22,7 +22,6 @@ from hypothesis import strategies as st
 from temoto.fleet.control import GraphCommander
 from temoto.instance import Instance
 from temoto.transport.auth import DROP_REASONS, FleetAuth, FleetLink
-from temoto.transport.base import Subscription
 from temoto.transport.inprocess import InProcessTransport
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -33,32 +32,14 @@ WAIT = 10.0
 _buses = itertools.count()
 
 
-class RecordingTransport(InProcessTransport):
-    """An in-process transport that remembers the channels subscribed on it."""
-
-    def __init__(self, bus: str) -> None:
-        super().__init__(bus)
-        self.channels: set[str] = set()
-
-    def subscribe(
-        self,
-        channel: str,
-        handler: Callable[[str, bytes], None],
-        *,
-        queue_capacity: int | None = None,
-    ) -> Subscription:
-        self.channels.add(channel)
-        return super().subscribe(channel, handler, queue_capacity=queue_capacity)
-
-
 class Fleet:
     def __init__(self, stack: ExitStack) -> None:
         self.bus = f"security-{next(_buses)}"
-        self.instance_transport = RecordingTransport(self.bus)
+        self.instance_transport = InProcessTransport(self.bus)
         self.instance = stack.enter_context(
             Instance("A", transport=self.instance_transport, key=KEY, actions=[ACTIONS])
         )
-        self.cli_transport = stack.enter_context(RecordingTransport(self.bus))
+        self.cli_transport = stack.enter_context(InProcessTransport(self.bus))
         self.cli_link = FleetLink(self.cli_transport, FleetAuth("temoto", "cli", KEY))
         self.commander = stack.enter_context(GraphCommander(self.cli_link, resend_s=0.05))
         self.attacker = stack.enter_context(InProcessTransport(self.bus))
