@@ -11,7 +11,7 @@ The public API::
 
 from __future__ import annotations
 
-from temoto.clock import Clock, MonotonicClock, ScaledClock
+from temoto.clock import Clock, ManualClock, MonotonicClock, ScaledClock
 from temoto.core.action import Action
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.engine import ActionEngine, GraphOutcome
@@ -46,6 +46,7 @@ __all__ = [
     "GraphOutcome",
     "GraphState",
     "Instrument",
+    "ManualClock",
     "MonotonicClock",
     "NodeState",
     "PluginError",

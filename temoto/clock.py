@@ -7,11 +7,12 @@ semantics (:class:`ScaledClock`).
 
 from __future__ import annotations
 
+import math
 import threading
 import time
 from typing import Protocol, runtime_checkable
 
-__all__ = ["Clock", "MonotonicClock", "ScaledClock"]
+__all__ = ["Clock", "ManualClock", "MonotonicClock", "ScaledClock"]
 
 
 @runtime_checkable
@@ -168,3 +169,124 @@ class ScaledClock(MonotonicClock):
             RuntimeError: If the caller does not hold the lock.
         """
         return cond.wait(None if seconds is None else max(seconds / self.factor, 0.0))
+
+
+class ManualClock:
+    """Virtual time that moves only when :meth:`advance` (or :meth:`set`) is called.
+
+    For tests and simulators: a simulated motor's physics, a driver's poll period and a
+    timeout all read this clock, and the test moves it, so nothing sleeps and every run is the
+    same. :meth:`wait` blocks (in real time) until the clock reaches the deadline or the
+    condition is notified; :meth:`advance` wakes every waiter so it can check again.
+
+    Args:
+        start: The first reading of :meth:`monotonic`.
+        epoch: What :meth:`time` reads when :meth:`monotonic` reads ``start``.
+
+    Raises:
+        ValueError: If a reading is not finite.
+    """
+
+    def __init__(self, start: float = 0.0, epoch: float = 1_700_000_000.0) -> None:
+        if not (math.isfinite(start) and math.isfinite(epoch)):
+            raise ValueError("clock readings must be finite")
+        self._now = float(start)
+        self._epoch = float(epoch) - float(start)
+        self._lock = threading.Lock()
+        self._waiting: list[threading.Condition] = []  # one entry per waiting thread
+
+    def monotonic(self) -> float:
+        """The current virtual time.
+
+        Returns:
+            Seconds.
+        """
+        with self._lock:
+            return self._now
+
+    def time(self) -> float:
+        """The virtual wall-clock time (epoch seconds).
+
+        Returns:
+            Seconds since the epoch.
+        """
+        with self._lock:
+            return self._epoch + self._now
+
+    def real_seconds(self, seconds: float) -> float:
+        """Virtual time has no real-time rate: the duration is returned as it is.
+
+        Args:
+            seconds: A duration.
+
+        Returns:
+            The same duration (callers use it only as an upper bound of a real wait).
+        """
+        return seconds
+
+    def advance(self, seconds: float) -> float:
+        """Move time forward and wake every waiter.
+
+        Args:
+            seconds: How far (≥ 0).
+
+        Returns:
+            The new reading.
+
+        Raises:
+            ValueError: If ``seconds`` is negative or not finite.
+        """
+        if not (math.isfinite(seconds) and seconds >= 0):
+            raise ValueError(f"a clock advances by a finite, non-negative duration: {seconds!r}")
+        with self._lock:
+            self._now += seconds
+            now = self._now
+            waiting = list({id(c): c for c in self._waiting}.values())
+        for cond in waiting:
+            with cond:
+                cond.notify_all()
+        return now
+
+    def set(self, reading: float) -> float:
+        """Move time forward to ``reading`` (never back).
+
+        Args:
+            reading: The new reading.
+
+        Returns:
+            The new reading.
+
+        Raises:
+            ValueError: If ``reading`` is earlier than now.
+        """
+        with self._lock:
+            step = reading - self._now
+        if step < 0:
+            raise ValueError(f"a clock does not go back ({reading} < {reading - step})")
+        return self.advance(step)
+
+    def wait(self, cond: threading.Condition, seconds: float | None) -> bool:
+        """Wait on a held condition until notified or until virtual time passes ``seconds``.
+
+        Args:
+            cond: A condition whose lock the caller holds.
+            seconds: Virtual seconds, or None to wait until notified.
+
+        Returns:
+            False if the deadline passed (in virtual time).
+
+        Raises:
+            RuntimeError: If the caller does not hold the lock.
+        """
+        with self._lock:
+            deadline = None if seconds is None else self._now + max(seconds, 0.0)
+            if deadline is not None and self._now >= deadline:
+                return False
+            self._waiting.append(cond)
+        try:
+            cond.wait()
+        finally:
+            with self._lock:
+                self._waiting.remove(cond)
+        with self._lock:
+            return deadline is None or self._now < deadline

@@ -20,6 +20,7 @@ situation, and inherit the matching builtin so generic callers can catch what th
         ├── ActionError                     user action code failed; names graph and node
         ├── ResourceError
         │   ├── ResourceNotFoundError (+LookupError)
+        │   │   └── NoProviderError         no robot of the fleet offers the server (RIS)
         │   ├── ResourceBusyError
         │   ├── ResourceClosedError
         │   ├── ResourceBrokenError
@@ -29,6 +30,9 @@ situation, and inherit the matching builtin so generic callers can catch what th
         │   ├── DriverUnavailableError
         │   ├── DriverInitError
         │   ├── DriverOperationError
+        │   │   ├── DynamixelHardwareError  a servo's hardware-error bits (servo id, error byte)
+        │   │   ├── MavlinkCommandError     a vehicle refused a command (MAV_CMD, MAV_RESULT)
+        │   │   └── MotorFaultError         a CAN motor controller's error bits (node id)
         │   └── DriverTimeoutError (+TimeoutError)
         ├── TransportError
         │   ├── DecodeError                 a fleet message's payload cannot be decoded
@@ -60,11 +64,15 @@ __all__ = [
     "DriverOperationError",
     "DriverTimeoutError",
     "DriverUnavailableError",
+    "DynamixelHardwareError",
     "ErrorRecord",
     "FleetError",
     "GraphDefinitionError",
     "GraphInputError",
     "GraphNotFoundError",
+    "MavlinkCommandError",
+    "MotorFaultError",
+    "NoProviderError",
     "PluginConflictError",
     "PluginError",
     "PluginLoadError",
@@ -242,6 +250,27 @@ class ResourceNotFoundError(ResourceError, LookupError):
     """No resource or server with that identity."""
 
 
+class NoProviderError(ResourceNotFoundError):
+    """No robot of the fleet offers the server a resource was asked of.
+
+    Raised when a remote resource is requested and neither the local registrar nor any robot
+    heard by the Resource Info Synchronizer serves it, or the robot named does not.
+
+    Args:
+        message: What is missing, for a person.
+        server: The server asked for.
+        robot: The robot named in the request ("" if any robot would do).
+        origin: The component that raised it.
+    """
+
+    def __init__(
+        self, message: str = "", *, server: str = "", robot: str = "", origin: str = ""
+    ) -> None:
+        super().__init__(message, origin=origin)
+        self.server = server
+        self.robot = robot
+
+
 class ResourceBusyError(ResourceError):
     """An exclusive resource is held by another consumer."""
 
@@ -295,6 +324,54 @@ class DriverInitError(DriverError):
 
 class DriverOperationError(DriverError):
     """A bad reply, checksum, negative acknowledgement or hardware error while running."""
+
+
+class DynamixelHardwareError(DriverOperationError):
+    """A Dynamixel servo reported a hardware error (overheating, overload, input voltage, ...).
+
+    Args:
+        message: What happened.
+        servo_id: The servo's id on its chain.
+        error: The status packet's error byte, or the Hardware Error Status register's value.
+    """
+
+    def __init__(self, message: str, *, servo_id: int, error: int) -> None:
+        super().__init__(message)
+        self.servo_id = servo_id
+        self.error = error
+
+
+
+class MavlinkCommandError(DriverOperationError):
+    """A MAVLink vehicle refused or failed a command (its ``COMMAND_ACK`` result).
+
+    Args:
+        message: What happened.
+        command: The ``MAV_CMD`` id.
+        result: The ``MAV_RESULT`` value.
+    """
+
+    def __init__(self, message: str, *, command: int, result: int) -> None:
+        super().__init__(message)
+        self.command = command
+        self.result = result
+
+
+
+class MotorFaultError(DriverOperationError):
+    """A CAN motor controller reported an error (its error bits, decoded in the message).
+
+    Args:
+        message: What happened.
+        node_id: The controller's node id on the bus.
+        error: The raw error bits.
+    """
+
+    def __init__(self, message: str, *, node_id: int, error: int) -> None:
+        super().__init__(message)
+        self.node_id = node_id
+        self.error = error
+
 
 
 class DriverTimeoutError(DriverError, TimeoutError):

@@ -1,0 +1,43 @@
+"""Device drivers: the hardware layer under the Robot Manager (ARCHITECTURE §5, STYLE §3.7).
+
+Three layers per device: a link (a python-can Bus, a serial port or pseudo-terminal, UDP), a
+pure protocol module (frames and packets to typed values), and a :class:`Driver` with the
+shared lifecycle (:mod:`temoto.drivers.base`) and capability verbs in SI units
+(:mod:`temoto.drivers.capabilities`). Every driver has a simulator that speaks the device's
+side of the same wire protocol, so the production driver is what every test runs.
+
+Importing this package imports no device library; :func:`driver_class` imports a driver (and
+its library) on first use.
+"""
+
+from __future__ import annotations
+
+from temoto.drivers.base import Driver, DriverState, Health, HealthListener
+from temoto.drivers.capabilities import (
+    Actuator,
+    ControlMode,
+    GeoPoint,
+    JointCommand,
+    JointState,
+    JointStates,
+    Vehicle,
+    VehicleTelemetry,
+)
+from temoto.drivers.registry import driver_class, driver_names
+
+__all__ = [
+    "Actuator",
+    "ControlMode",
+    "Driver",
+    "DriverState",
+    "GeoPoint",
+    "Health",
+    "HealthListener",
+    "JointCommand",
+    "JointState",
+    "JointStates",
+    "Vehicle",
+    "VehicleTelemetry",
+    "driver_class",
+    "driver_names",
+]

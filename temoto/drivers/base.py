@@ -1,0 +1,356 @@
+"""The driver lifecycle every device driver shares (STYLE §3.5, §3.7).
+
+A :class:`Driver` moves through ``UNCONFIGURED → INACTIVE → ACTIVE → FINALIZED``, plus
+``FAULT``. The public transitions (:meth:`~Driver.configure`, :meth:`~Driver.activate`,
+:meth:`~Driver.deactivate`, :meth:`~Driver.shutdown`, :meth:`~Driver.recover`) live here: they
+check the transition table, call the subclass hook (``on_configure`` opens the link and pings
+the device, ``on_activate`` enables torque or readiness, ``on_deactivate`` holds or disables,
+``on_shutdown`` closes the link, ``on_recover`` reconnects), and turn failures into the right
+:class:`~temoto.errors.DriverError` category.
+
+A running driver that loses its device (no heartbeat, no reply, hardware-error bits) calls
+:meth:`Driver.report_fault`: the state becomes ``FAULT`` and every health listener is told. When
+the device answers again the driver calls :meth:`Driver.report_recovered` (or someone calls
+:meth:`Driver.recover`): it returns to the state it was in. The Robot Manager turns those
+reports into registrar statuses (FATAL, then OK) for every consumer of the robot.
+
+``__init__`` stores configuration only and never touches hardware.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+import threading
+import warnings
+from abc import ABC, abstractmethod
+from collections.abc import Callable, Mapping
+from dataclasses import dataclass
+from types import TracebackType
+from typing import Any, ClassVar, Final, Self
+
+from temoto.clock import Clock, MonotonicClock
+from temoto.errors import (
+    DriverError,
+    DriverInitError,
+    DriverOperationError,
+    StateError,
+)
+
+__all__ = ["Driver", "DriverState", "Health", "HealthListener"]
+
+logger = logging.getLogger(__name__)
+
+
+class DriverState(enum.Enum):
+    """Where a driver is in its lifecycle."""
+
+    UNCONFIGURED = "UNCONFIGURED"
+    INACTIVE = "INACTIVE"
+    ACTIVE = "ACTIVE"
+    FINALIZED = "FINALIZED"
+    FAULT = "FAULT"
+
+
+_S = DriverState
+
+#: (from, verb) → to. ``shutdown`` is allowed from everywhere (and is idempotent).
+_TRANSITIONS: Final[Mapping[tuple[DriverState, str], DriverState]] = {
+    (_S.UNCONFIGURED, "configure"): _S.INACTIVE,
+    (_S.INACTIVE, "activate"): _S.ACTIVE,
+    (_S.ACTIVE, "deactivate"): _S.INACTIVE,
+    (_S.FAULT, "recover"): _S.INACTIVE,
+}
+
+
+@dataclass(frozen=True, slots=True)
+class Health:
+    """A driver's health, stamped with its clock.
+
+    Attributes:
+        driver: The driver's name.
+        state: Its lifecycle state.
+        ok: False in ``FAULT`` (and before ``configure``).
+        message: Why it is not ok, or what it recovered from.
+        stamp: Clock seconds of this report.
+        error: The error behind a fault, if any.
+    """
+
+    driver: str
+    state: DriverState
+    ok: bool
+    message: str
+    stamp: float
+    error: DriverError | None = None
+
+
+#: Called with every new health report (on the thread that made it; keep it short).
+HealthListener = Callable[[Health], None]
+
+
+class Driver(ABC):
+    """Base of every device driver: lifecycle, health, listeners (see the module docstring).
+
+    Args:
+        name: The device's name in its profile.
+        clock: Where time is read (state stamps, poll periods, timeouts).
+
+    Raises:
+        ValueError: ``name`` is empty.
+    """
+
+    #: The profile's ``driver`` value that selects this class.
+    kind: ClassVar[str] = ""
+
+    def __init__(self, name: str, *, clock: Clock | None = None) -> None:
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"a driver needs a name, got {name!r}")
+        self.name = name
+        self.clock: Clock = clock or MonotonicClock()
+        self._lifecycle = threading.RLock()  # one transition at a time
+        self._lock = threading.Lock()
+        self._state = DriverState.UNCONFIGURED
+        self._before_fault = DriverState.INACTIVE
+        self._health = Health(name, self._state, False, "not configured", self.clock.monotonic())
+        self._listeners: list[HealthListener] = []
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} {self.name!r} {self.state.value}>"
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
+    ) -> None:
+        self.shutdown()
+
+    def __del__(self) -> None:
+        state = getattr(self, "_state", DriverState.FINALIZED)
+        if state not in (DriverState.FINALIZED, DriverState.UNCONFIGURED):
+            warnings.warn(
+                f"driver {getattr(self, 'name', '?')!r} was not shut down ({state.value})",
+                ResourceWarning,
+                stacklevel=1,
+            )
+
+    # ---- state -----------------------------------------------------------------------------
+
+    @property
+    def state(self) -> DriverState:
+        """The lifecycle state."""
+        with self._lock:
+            return self._state
+
+    def health(self) -> Health:
+        """The newest health report.
+
+        Returns:
+            The report.
+        """
+        with self._lock:
+            return self._health
+
+    def add_health_listener(self, listener: HealthListener) -> Callable[[], None]:
+        """Be told of every health change (faults, recoveries, transitions).
+
+        Args:
+            listener: Called with each new :class:`Health`, on the reporting thread.
+
+        Returns:
+            A function that removes the listener.
+        """
+        with self._lock:
+            self._listeners.append(listener)
+
+        def remove() -> None:
+            with self._lock:
+                if listener in self._listeners:
+                    self._listeners.remove(listener)
+
+        return remove
+
+    # ---- transitions -----------------------------------------------------------------------
+
+    def configure(self) -> None:
+        """Open the link and check the device (``UNCONFIGURED → INACTIVE``).
+
+        Raises:
+            StateError: Not ``UNCONFIGURED``.
+            DriverInitError: The device did not answer or refused its settings (the link is
+                closed again; the driver stays ``UNCONFIGURED``).
+            DriverUnavailableError: A library or port is missing.
+        """
+        with self._lifecycle:
+            self._check("configure")
+            try:
+                self.on_configure()
+            except BaseException as err:
+                self._quietly(self.on_shutdown)
+                raise _as_driver_error(err, DriverInitError, f"{self.name}: configure") from err
+            self._set(DriverState.INACTIVE, "configured")
+
+    def activate(self) -> None:
+        """Make the device ready to act (``INACTIVE → ACTIVE``).
+
+        Raises:
+            StateError: Not ``INACTIVE``.
+            DriverError: The device refused (the driver goes to ``FAULT``).
+        """
+        with self._lifecycle:
+            self._check("activate")
+            try:
+                self.on_activate()
+            except BaseException as err:
+                error = _as_driver_error(err, DriverOperationError, f"{self.name}: activate")
+                self.report_fault(error)
+                raise error from err
+            self._set(DriverState.ACTIVE, "active")
+
+    def deactivate(self) -> None:
+        """Stop acting, keep the link (``ACTIVE → INACTIVE``).
+
+        Raises:
+            StateError: Not ``ACTIVE``.
+            DriverError: The device refused (the driver goes to ``FAULT``).
+        """
+        with self._lifecycle:
+            self._check("deactivate")
+            try:
+                self.on_deactivate()
+            except BaseException as err:
+                error = _as_driver_error(err, DriverOperationError, f"{self.name}: deactivate")
+                self.report_fault(error)
+                raise error from err
+            self._set(DriverState.INACTIVE, "inactive")
+
+    def recover(self) -> None:
+        """Reconnect after a fault (``FAULT → INACTIVE``); activate again to act.
+
+        Raises:
+            StateError: Not in ``FAULT``.
+            DriverError: The device still does not answer (the driver stays in ``FAULT``).
+        """
+        with self._lifecycle:
+            self._check("recover")
+            try:
+                self.on_recover()
+            except BaseException as err:
+                raise _as_driver_error(err, DriverOperationError, f"{self.name}: recover") from err
+            self._set(DriverState.INACTIVE, "recovered")
+
+    def shutdown(self) -> None:
+        """Close the link and finish (any state → ``FINALIZED``).
+
+        Idempotent; never raises for the device (a failing close is logged).
+        """
+        with self._lifecycle:
+            if self.state is DriverState.FINALIZED:
+                return
+            if self.state is not DriverState.UNCONFIGURED:
+                self._quietly(self.on_shutdown)
+            self._set(DriverState.FINALIZED, "shut down")
+
+    # ---- reports from the driver's own threads ---------------------------------------------
+
+    def report_fault(self, error: DriverError) -> None:
+        """The device failed while configured: go to ``FAULT`` and tell the listeners.
+
+        Args:
+            error: What happened (a typed :class:`~temoto.errors.DriverError`).
+        """
+        with self._lock:
+            if self._state in (DriverState.FINALIZED, DriverState.UNCONFIGURED):
+                return
+            if self._state is DriverState.FAULT and self._health.error is not None:
+                if str(self._health.error) == str(error):
+                    return  # the same fault again: no new report
+            else:
+                self._before_fault = self._state
+        logger.warning("driver %s: fault: %s", self.name, error)
+        self._set(DriverState.FAULT, str(error), error)
+
+    def report_recovered(self, message: str = "the device answers again") -> None:
+        """The device came back by itself: return to the state before the fault.
+
+        Args:
+            message: What recovered.
+        """
+        with self._lock:
+            if self._state is not DriverState.FAULT:
+                return
+            back = self._before_fault
+        logger.info("driver %s: recovered: %s", self.name, message)
+        self._set(back, message)
+
+    # ---- hooks -----------------------------------------------------------------------------
+
+    @abstractmethod
+    def on_configure(self) -> None:
+        """Open the link and check that the device answers (raise if not)."""
+
+    def on_activate(self) -> None:  # noqa: B027  # optional hook: nothing to do by default
+        """Make the device act (enable torque, closed loop, arm-ready)."""
+
+    def on_deactivate(self) -> None:  # noqa: B027  # optional hook: nothing to do by default
+        """Stop acting but keep the link (hold or disable torque)."""
+
+    def on_recover(self) -> None:
+        """Reconnect after a fault (default: configure again from scratch)."""
+        self._quietly(self.on_shutdown)
+        self.on_configure()
+
+    @abstractmethod
+    def on_shutdown(self) -> None:
+        """Close the link and stop the driver's threads (must not raise for a dead device)."""
+
+    # ---- helpers ---------------------------------------------------------------------------
+
+    def require_active(self, verb: str) -> None:
+        """Raise unless ``ACTIVE`` (for capability verbs).
+
+        Args:
+            verb: What was asked, for the message.
+
+        Raises:
+            StateError: The driver is not active (the message says its state and last fault).
+        """
+        with self._lock:
+            state, health = self._state, self._health
+        if state is not DriverState.ACTIVE:
+            why = f": {health.message}" if state is DriverState.FAULT else ""
+            raise StateError(f"{self.name}: cannot {verb} while {state.value}{why}")
+
+    def _check(self, verb: str) -> None:
+        with self._lock:
+            state = self._state
+        if (state, verb) not in _TRANSITIONS:
+            raise StateError(f"{self.name}: cannot {verb} while {state.value}")
+
+    def _set(self, state: DriverState, message: str, error: DriverError | None = None) -> None:
+        ok = state in (DriverState.INACTIVE, DriverState.ACTIVE)
+        health = Health(self.name, state, ok, message, self.clock.monotonic(), error)
+        with self._lock:
+            self._state = state
+            self._health = health
+            listeners = list(self._listeners)
+        for listener in listeners:
+            try:
+                listener(health)
+            except Exception:
+                logger.exception("driver %s: a health listener raised", self.name)
+
+    def _quietly(self, hook: Callable[[], Any]) -> None:
+        try:
+            hook()
+        except Exception:
+            logger.exception("driver %s: %s failed", self.name, getattr(hook, "__name__", hook))
+
+
+def _as_driver_error(err: BaseException, category: type[DriverError], what: str) -> DriverError:
+    """``err`` if it is a DriverError already, else a ``category`` naming ``what``."""
+    if isinstance(err, DriverError):
+        return err
+    if isinstance(err, KeyboardInterrupt | SystemExit):
+        raise err
+    return category(f"{what}: {type(err).__name__}: {err}")
