@@ -173,6 +173,41 @@ def test_a_failed_resource_is_not_shared_with_new_requests() -> None:
     assert r2.unloads == ["p"]
 
 
+def test_ok_after_fatal_recovers_the_resource_for_new_requests() -> None:
+    rr, _, r2 = chain()
+    old = rr.call("m2", Req("p"), client="a")
+    rr.send_status(old.id, Status.FATAL, "device silent")
+    rr.send_status(old.id, Status.OK, "device answers again")
+    again = rr.call("m2", Req("p"), client="b")
+    assert again.resource_id == old.resource_id  # shared again, not loaded twice
+    assert r2.loads == ["p"]
+    assert not rr.info(old.id).failed
+
+
+def test_ok_does_not_recover_a_resource_replaced_by_a_fresh_one() -> None:
+    rr, _, r2 = chain()
+    old = rr.call("m2", Req("p"), client="a")
+    rr.send_status(old.id, Status.FATAL, "died")
+    new = rr.call("m2", Req("p"), client="a")
+    rr.send_status(old.id, Status.OK, "late")
+    assert rr.info(old.id).failed
+    assert rr.call("m2", Req("p"), client="c").resource_id == new.resource_id
+    assert r2.loads == ["p", "p"]
+
+
+def test_a_recovery_survives_a_restart(tmp_path: Any) -> None:
+    path = tmp_path / "rr.catalog"
+    rr, _, _ = build(path)
+    ref = rr.call("m2", Req("p"), client="a")
+    rr.send_status(ref.id, Status.FATAL, "silent")
+    rr.send_status(ref.id, Status.OK, "back")
+    rr.close()
+    again, _, r2 = build(path, restore=True)
+    assert again.call("m2", Req("p"), client="b").resource_id == ref.resource_id
+    assert r2.loads == []
+    again.close()
+
+
 def test_release_client_releases_everything_it_holds() -> None:
     rr, r1, _ = chain()
     rr.call("m1", Req("x"), client="action")

@@ -132,6 +132,8 @@ def _apply(
         _drop_entry(entries, owner, str(rec["uid"]))
     elif op == "failed":
         entries[str(rec["uid"])]["failed"] = True
+    elif op == "recovered":
+        entries[str(rec["uid"])]["failed"] = False
     elif op == "response":
         entries[str(rec["uid"])]["response"] = rec["response"]
     else:

@@ -532,7 +532,8 @@ class Registrar:
         Args:
             resource_id: A resource id (or any reference id to it).
             status: The status; FATAL also marks the resource failed (new equal requests
-                then load a fresh resource).
+                then load a fresh resource); OK on a failed resource marks it recovered
+                (shared again by new equal requests) unless a fresh one was loaded since.
             message: What happened.
 
         Returns:
@@ -550,6 +551,17 @@ class Registrar:
                 if self._live.get((entry.server, entry.key)) == entry.uid:
                     del self._live[(entry.server, entry.key)]
                 self._write({"op": "failed", "uid": entry.uid})
+            elif (
+                status is Status.OK
+                and entry.failed
+                and (entry.server, entry.key) not in self._live
+                and not entry.loading
+            ):
+                # recovered (a device answers again): equal requests share it once more,
+                # unless a fresh one was loaded meanwhile
+                entry.failed = False
+                self._live[(entry.server, entry.key)] = entry.uid
+                self._write({"op": "recovered", "uid": entry.uid})
             origin = entry.uid
             seen = {entry.uid}
             todo: collections.deque[tuple[_Entry, tuple[str, ...]]] = collections.deque(
