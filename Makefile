@@ -8,7 +8,7 @@ STAMP = $(VENV)/.installed
 RUN_CMD = $(BIN)/temoto run examples/graphs/demo_patrol.graph.json --actions examples/actions --progress
 PYTEST_ARGS ?=
 
-.PHONY: install run lint test bench clean
+.PHONY: install sysdeps run lint test bench clean
 
 install: $(STAMP)
 
@@ -18,6 +18,25 @@ $(STAMP): pyproject.toml setup.py $(wildcard temoto/core/_fast/*.py temoto/core/
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install -e '.[dev]'
 	touch $@
+
+# System tools of the network tests (tests/fleet/test_netns_fleet.py), as command:package.
+# Installed with apt-get only when running as root and one is missing; otherwise the missing
+# ones are just reported (the tests then skip, or fail under CI).
+SYSDEPS = ip:iproute2 nft:nftables
+
+sysdeps:
+	@missing=""; \
+	for dep in $(SYSDEPS); do \
+		PATH="$$PATH:/usr/sbin:/sbin" command -v $${dep%%:*} >/dev/null || missing="$$missing $${dep#*:}"; \
+	done; \
+	if [ -z "$$missing" ]; then exit 0; fi; \
+	if [ "$$(id -u)" -eq 0 ] && command -v apt-get >/dev/null; then \
+		echo "sysdeps: installing$$missing"; \
+		export DEBIAN_FRONTEND=noninteractive; \
+		apt-get install -y -q $$missing || { apt-get update -q && apt-get install -y -q $$missing; }; \
+	else \
+		echo "sysdeps: missing$$missing (as root: apt-get install$$missing); the network tests skip (fail under CI)"; \
+	fi
 
 run: install
 	$(RUN_CMD)
@@ -29,7 +48,7 @@ lint: install
 	$(BIN)/python tools/gen_lcm_types.py --check
 
 # The whole suite twice: the compiled kernels (which must have been built), then pure Python.
-test: install lint
+test: install lint sysdeps
 	TEMOTO_REQUIRE_EXTENSIONS=1 $(BIN)/python -m pytest $(PYTEST_ARGS)
 	TEMOTO_NO_EXTENSIONS=1 $(BIN)/python -m pytest $(PYTEST_ARGS)
 

@@ -25,7 +25,7 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from bench import engine, evolution, fleet, peers, process, registrar
+from bench import engine, evolution, fleet, peers, process, registrar, ris
 from bench.common import Metric, Results
 
 GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
@@ -50,6 +50,10 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     "process": (
         "process manager: crash detection, relaunch; supervisord side by side",
         process.bench_process,
+    ),
+    "ris": (
+        "RIS: a process crash on robot B -> A's consumer, remote loads (2 processes)",
+        ris.bench_ris,
     ),
 }
 

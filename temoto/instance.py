@@ -2,9 +2,12 @@
 
 An :class:`Instance` puts together an :class:`~temoto.core.engine.ActionEngine` whose actor is
 the robot's name, a :class:`~temoto.core.registrar.Registrar` with the Process Manager on it,
-and the fleet: an authenticated link on a transport, the actor link for shared graphs, and the
+and the fleet: an authenticated link on a transport, the actor link for shared graphs, the
 :class:`~temoto.fleet.control.GraphControlServer` that takes ``temoto graph start|stop|...``
-commands. ``temoto serve`` runs one until SIGINT or SIGTERM; the Robot Manager builds on it.
+commands, and resource sharing — the Resource Info Synchronizer advertising this robot's
+servers and :class:`~temoto.fleet.resources.RemoteResources` (the ``"remote"`` server for what
+only another robot serves, and the provider for the others' requests). ``temoto serve`` runs
+one until SIGINT or SIGTERM; the Robot Manager builds on it.
 
 Closing stops the runs (their actions get their stop request, their resources are released),
 then the fleet services, the managers and the transport, in that order, so nothing started by
@@ -24,6 +27,8 @@ from temoto.core.engine import ActionEngine
 from temoto.core.registrar import Registrar
 from temoto.fleet.actors import FleetActorLink
 from temoto.fleet.control import GraphControlServer
+from temoto.fleet.resources import RemoteResources
+from temoto.fleet.ris import ResourceInfoSync
 from temoto.managers.process import ProcessManager
 from temoto.transport.auth import FleetAuth, FleetLink
 from temoto.transport.base import Transport
@@ -48,6 +53,8 @@ class Instance:
         handshake_timeout: Seconds to wait for the other actors of a shared graph.
         stop_timeout: Seconds an action may take to stop.
         feedback_period_s: Every run's state is published this often.
+        advert_period_s: The RIS advertises this robot's servers this often; a robot not
+            heard for three periods is lost (its remote resources become FATAL here).
 
     Raises:
         ValueError: ``actor`` is empty.
@@ -68,6 +75,7 @@ class Instance:
         handshake_timeout: float = 5.0,
         stop_timeout: float = 5.0,
         feedback_period_s: float = 1.0,
+        advert_period_s: float = 1.0,
     ) -> None:
         if not actor:
             transport.close()  # it was handed over: closed on every way out
@@ -75,6 +83,7 @@ class Instance:
         self.actor = actor
         self.transport = transport
         self._closed = False
+        self._managers: list[object] = []
         closing: list[object] = []
         try:
             self.registrar = Registrar(actor, catalog=catalog, restore=catalog is not None)
@@ -84,6 +93,10 @@ class Instance:
             self.link = FleetLink(transport, FleetAuth(fleet, actor, key, insecure=insecure))
             self.actors = FleetActorLink(self.link, actor)
             closing.append(self.actors)
+            self.ris = ResourceInfoSync(self.link, self.registrar, actor, period_s=advert_period_s)
+            closing.append(self.ris)
+            self.resources = RemoteResources(self.link, self.registrar, self.ris)
+            closing.append(self.resources)
             self.engine = ActionEngine(
                 actor,
                 actions=ActionCatalog(actions),
@@ -120,16 +133,35 @@ class Instance:
             return
         self._closed = True
         self.control.close()  # no new commands
-        for part in (self.engine, self.actors, self.processes, self.registrar, self.transport):
+        parts = (
+            self.engine,  # runs stopped, their resources released
+            *reversed(self._managers),
+            self.resources,  # what others hold here is released, what we hold there too
+            self.ris,
+            self.actors,
+            self.processes,
+            self.registrar,
+            self.transport,
+        )
+        for part in parts:
             _close(part)
+
+    def add_manager(self, manager: object) -> None:
+        """Have :meth:`close` shut ``manager`` down after the engine (e.g. a Robot Manager).
+
+        Args:
+            manager: Anything with a ``shutdown()`` or ``close()`` method.
+        """
+        self._managers.append(manager)
 
 
 def _close(part: object) -> None:
-    """Shut one part down; a failure is logged, and the others still close."""
+    """Shut one part down (``shutdown()``, else ``close()``).
+
+    A failure is logged, and the others still close.
+    """
     try:
-        if isinstance(part, ActionEngine | ProcessManager):
-            part.shutdown()
-        else:
-            part.close()  # type: ignore[attr-defined]
+        stop = getattr(part, "shutdown", None) or getattr(part, "close")  # noqa: B009
+        stop()
     except Exception:
         logger.exception("closing %s failed", type(part).__name__)

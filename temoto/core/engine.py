@@ -786,7 +786,12 @@ class ActionEngine:
     def _watch_peers(self, run: GraphRun) -> None:
         """Have the link report a peer that falls silent (called outside the lock)."""
         assert self.link is not None
-        cancel = self.link.watch(run.peers, lambda actor, why: self._actor_lost(run, actor, why))
+        cancel = self.link.watch(
+            run.peers,
+            lambda actor, why: self._actor_lost(run, actor, why),
+            graph=run.plan.graph.name,
+            session=run.name,
+        )
         with self._lock:
             ended = run.state in _ENDED_GRAPH
             if not ended:

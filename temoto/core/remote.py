@@ -99,12 +99,24 @@ class ActorLink(Protocol):
         """
         ...
 
-    def watch(self, actors: Sequence[str], on_lost: Callable[[str, str], None]) -> Cancel:
+    def watch(
+        self,
+        actors: Sequence[str],
+        on_lost: Callable[[str, str], None],
+        *,
+        graph: str = "",
+        session: str = "",
+    ) -> Cancel:
         """Call ``on_lost(actor, reason)`` if one of ``actors`` falls silent or leaves.
+
+        An actor whose run (``graph``, ``session``) finished normally is no longer watched
+        for that run: it may go quiet once it has nothing more to do.
 
         Args:
             actors: The actors to watch (the other participants of a run).
             on_lost: The callback, at most once per actor.
+            graph: The run's graph.
+            session: The run's session.
 
         Returns:
             A function that stops watching.

@@ -92,7 +92,11 @@ STATS: Final = (
 _JOIN: Final = 1  # handshake_t.JOIN (the generated constants are untyped)
 _READY: Final = 2
 _LEAVE: Final = 3
-_PHASES: Final = frozenset((_JOIN, _READY, _LEAVE))
+_END: Final = 4
+_PHASES: Final = frozenset((_JOIN, _READY, _LEAVE, _END))
+# Deliveries a busy subscription keeps while the handlers catch up (LCM keeps 30 by default
+# and drops the rest silently: a burst of notifications and heartbeats must not be lost).
+_QUEUE_CAPACITY: Final = 1024
 
 _SessionKey = tuple[str, str]  # graph, session
 _NodeKey = tuple[str, str]  # action, actor
@@ -170,6 +174,8 @@ class _Run:
     pending: dict[_NodeKey, collections.deque[_Notice]] = field(default_factory=dict)
     waiters: dict[_NodeKey, collections.deque[_Waiter]] = field(default_factory=dict)
     seen: set[str] = field(default_factory=set)  # notification ids taken
+    ended_peers: set[str] = field(default_factory=set)  # peers whose run finished (END)
+    left_peers: set[str] = field(default_factory=set)  # peers that gave the run up (LEAVE)
 
 
 @dataclass(slots=True, eq=False)
@@ -190,6 +196,7 @@ class _Ended:
     heard: dict[str, int] | None  # the frozen heard list, if the handshake had completed
     seen: set[str]  # notification ids taken: late resends stay duplicates
     until: float
+    finished: bool = False  # ended normally here: END is said again when the link closes
 
 
 @dataclass(slots=True, eq=False)
@@ -198,6 +205,7 @@ class _Outgoing:
 
     key: _SessionKey
     waiting: set[str]
+    started: float
     aborted: str | None = None
 
 
@@ -205,9 +213,10 @@ class _Outgoing:
 class _Watch:
     """One :meth:`FleetActorLink.watch`."""
 
-    actors: frozenset[str]
+    actors: set[str]
     on_lost: Callable[[str, str], None]
     started: float
+    key: _SessionKey | None = None  # the run watched for (END of a peer takes it off)
     reported: set[str] = field(default_factory=set)
     active: bool = True
 
@@ -229,6 +238,8 @@ class FleetActorLink:
             remembered (so late resends are not taken again).
         stray_s: How long a run that was never started here is kept since a peer last spoke
             of it.
+        linger_s: On close, how long to keep answering (and repeating END) after runs that
+            just finished here (0: close at once).
         clock: Monotonic clock in seconds (deadlines, silences).
         wall_clock: Seconds since the epoch (handshake stamps, notification ids).
 
@@ -237,6 +248,7 @@ class FleetActorLink:
         silence_s: After this long without a message a watched actor is lost.
         grace_s: How long an ended run is still answered for.
         stray_s: How long a run never started here is kept.
+        linger_s: How long :meth:`close` keeps answering after runs that just finished.
         heartbeat_s: Period of the READY heartbeats: ``5 * resend_s``, at most a third of
             ``silence_s``.
 
@@ -254,6 +266,7 @@ class FleetActorLink:
         silence_s: float = 3.0,
         grace_s: float = 5.0,
         stray_s: float = 60.0,
+        linger_s: float = 0.3,
         clock: Callable[[], float] = time.monotonic,
         wall_clock: Callable[[], float] = time.time,
     ) -> None:
@@ -263,6 +276,7 @@ class FleetActorLink:
         self.silence_s = _check_seconds("silence_s", silence_s)
         self.grace_s = _check_seconds("grace_s", grace_s, zero=True)
         self.stray_s = _check_seconds("stray_s", stray_s)
+        self.linger_s = _check_seconds("linger_s", linger_s, zero=True)
         self.heartbeat_s = min(5 * self.resend_s, self.silence_s / 3)
         self._clock = clock
         self._wall_clock = wall_clock
@@ -287,8 +301,11 @@ class FleetActorLink:
         self._next_warning = 0.0
         self._subs: list[Subscription] = []
         try:
-            self._subs.append(link.listen(HANDSHAKE_CHANNEL, self._on_handshake))
-            self._subs.append(link.listen(NOTIFY_CHANNEL, self._on_notify))
+            for channel, handler in (
+                (HANDSHAKE_CHANNEL, self._on_handshake),
+                (NOTIFY_CHANNEL, self._on_notify),
+            ):
+                self._subs.append(link.listen(channel, handler, queue_capacity=_QUEUE_CAPACITY))
         except BaseException:
             for sub in self._subs:
                 sub.unsubscribe()
@@ -448,9 +465,21 @@ class FleetActorLink:
             raise FleetError(f"the outputs of {action} are not JSON-ready: {err}") from err
         if not outputs:
             text = ""
+        key = (graph, session)
+        with self._lock:
+            run = self._runs.get(key)
+            left: set[str] = set()
+            if run is not None:
+                others -= run.ended_peers  # finished there: they need nothing more
+                left = run.left_peers
+            gone = sorted(a for a in others if a in left or self._gone(a, self._clock()))
+        if gone:
+            raise FleetError(
+                f"{action} ({result.value}) of graph '{graph}' session '{session}': "
+                + ", ".join(f"actor '{a}' was lost ({self._why_gone(a)})" for a in gone)
+            )
         if not others:
             return
-        key = (graph, session)
         msg = _new(action_notification_t)
         msg.graph, msg.session, msg.action, msg.actor = graph, session, action, self._actor
         msg.result, msg.outputs = result.value, text
@@ -458,8 +487,9 @@ class FleetActorLink:
             self._check_open()
             serial = f"{self._boot}.{next(self._ids)}"
             msg.notification_id = f"{self._actor}/{graph}/{session}/{action}/{serial}"
-            out = _Outgoing(key, set(others))
+            out = _Outgoing(key, set(others), self._clock())
             self._outgoing[msg.notification_id] = out
+            self._timer_wake.notify()  # it watches the silence of the actors waited for
         deadline = self._clock() + timeout
         try:
             while True:
@@ -543,16 +573,27 @@ class FleetActorLink:
 
         return cancel
 
-    def watch(self, actors: Sequence[str], on_lost: Callable[[str, str], None]) -> Cancel:
+    def watch(
+        self,
+        actors: Sequence[str],
+        on_lost: Callable[[str, str], None],
+        *,
+        graph: str = "",
+        session: str = "",
+    ) -> Cancel:
         """Call ``on_lost(actor, reason)`` if one of ``actors`` falls silent or leaves.
 
         An actor is lost when nothing was heard from it for ``silence_s`` (counted from this
         call at the earliest), or when it gave up a run this actor takes part in (LEAVE). The
-        callback runs on the link's callback thread, at most once per actor.
+        callback runs on the link's callback thread, at most once per actor. Watching for a
+        run (``graph`` and ``session``), an actor whose run finished there (END) is no
+        longer watched: it may go quiet.
 
         Args:
             actors: The actors to watch (this actor, if listed, is left out).
             on_lost: The callback.
+            graph: The run's graph, if the watch is for a run.
+            session: The run's session.
 
         Returns:
             A function that stops watching (idempotent).
@@ -561,10 +602,14 @@ class FleetActorLink:
             FleetError: The link is closed.
             ValueError: An actor name is invalid.
         """
-        names = frozenset(_check_name("an actor", a) for a in actors) - {self._actor}
+        names = {_check_name("an actor", a) for a in actors} - {self._actor}
+        key = (graph, session) if graph or session else None
         with self._lock:
             self._check_open()
-            watch = _Watch(names, on_lost, self._clock())
+            run = self._runs.get(key) if key is not None else None
+            if run is not None:
+                names -= run.ended_peers
+            watch = _Watch(names, on_lost, self._clock(), key)
             self._watches.append(watch)
             for actor in sorted(names & self._left):
                 self._report_lost(watch, actor, "left")
@@ -597,8 +642,10 @@ class FleetActorLink:
         with self._lock:
             now = self._clock()
             run = self._runs.pop(key, None)
-            if gave_up and run is not None and not self._closed:
-                leave = self._leave_msg(run.graph, run.session, run.actors)
+            finished = run is not None and not gave_up and run.phase is _Phase.READY
+            if run is not None and not self._closed and (gave_up or finished):
+                phase = _LEAVE if gave_up else _END
+                leave = self._handshake_msg(phase, run.graph, run.session, run.actors, {})
             if run is not None:
                 for waiters in run.waiters.values():
                     for waiter in waiters:
@@ -607,7 +654,11 @@ class FleetActorLink:
                 done = run.phase is _Phase.READY
                 if done or run.seen:
                     self._ended[key] = _Ended(
-                        run.actors, run.frozen if done else None, run.seen, now + self.grace_s
+                        run.actors,
+                        run.frozen if done else None,
+                        run.seen,
+                        now + self.grace_s,
+                        finished,
                     )
             for out in self._outgoing.values():
                 if out.key == key:
@@ -622,6 +673,7 @@ class FleetActorLink:
 
         Waiting calls fail with FleetError; callbacks not run yet are dropped. Idempotent.
         """
+        self._linger()
         with self._lock:
             if self._closed:
                 return
@@ -639,6 +691,33 @@ class FleetActorLink:
         for thread in (self._timer, self._caller):
             if thread is not threading.current_thread():
                 thread.join()
+
+    def _linger(self) -> None:
+        """Before closing: repeat END for runs that just finished here, and keep answering.
+
+        For ``linger_s``, so a peer whose last notification we acknowledged (an
+        acknowledgement that may have been lost) is not left resending to nobody.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            now = self._clock()
+            ends = [
+                self._handshake_msg(_END, g, s, e.actors, {})
+                for (g, s), e in self._ended.items()
+                if e.finished and e.until > now
+            ]
+        if not ends or self.linger_s <= 0:
+            return
+        deadline = time.monotonic() + self.linger_s
+        while True:
+            for msg in ends:
+                self._send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
+            remaining = deadline - time.monotonic()
+            if remaining <= 0:
+                return
+            with self._lock:
+                self._changed.wait(min(self.resend_s, remaining))
 
     # --- receiving (the transport's thread) ---------------------------------------------------
 
@@ -674,6 +753,9 @@ class FleetActorLink:
             self._heard_at[actor] = now
             if msg.phase == _LEAVE:
                 self._on_leave(actor, msg.graph, msg.session)
+                return
+            if msg.phase == _END:
+                self._on_end(actor, (msg.graph, msg.session))
                 return
             self._left.discard(actor)
             reply = self._on_join_or_ready(msg, now) if msg.graph or msg.session else None
@@ -724,6 +806,7 @@ class FleetActorLink:
             runs = [] if run is None else [run]
         lost = fleet
         for run in runs:
+            run.left_peers.add(actor)
             if run.phase is not _Phase.JOINING:
                 run.peers.pop(actor, None)  # kept: its JOIN no longer stands
             if not run.local or actor not in run.actors:
@@ -741,6 +824,30 @@ class FleetActorLink:
         if lost:
             for watch in self._watches:
                 self._report_lost(watch, actor, "left")
+
+    def _on_end(self, actor: str, key: _SessionKey) -> None:
+        """A peer's run finished: stop waiting for it in that run. Lock held."""
+        run = self._runs.get(key)
+        if run is not None:
+            run.ended_peers.add(actor)
+        for out in self._outgoing.values():
+            if out.key == key and actor in out.waiting:
+                out.waiting.discard(actor)  # it needs nothing more of this run
+                self._changed.notify_all()
+        for watch in self._watches:
+            if watch.key == key:
+                watch.actors.discard(actor)
+
+    def _gone(self, actor: str, now: float) -> bool:
+        """Whether a peer is gone: it left, or was heard once but not for ``silence_s``.
+
+        Lock held.
+        """
+        heard = self._heard_at.get(actor)
+        return actor in self._left or (heard is not None and now - heard >= self.silence_s)
+
+    def _why_gone(self, actor: str) -> str:
+        return "left" if actor in self._left else f"not heard for {self.silence_s:g} s"
 
     def _on_notify(self, opened: Opened) -> None:
         msg = self._decode(opened, ("action_notification_t", "action_ack_t"))
@@ -845,8 +952,21 @@ class FleetActorLink:
                 self._send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
 
     def _check_silences(self, now: float) -> float:
-        """Report silent watched actors; when the next may fall silent. Lock held."""
+        """Report silent watched actors; fail notifications waiting for silent actors.
+
+        Returns when the next may fall silent. Lock held.
+        """
         wake = math.inf
+        for out in self._outgoing.values():
+            if out.aborted is not None:
+                continue
+            for actor in sorted(out.waiting):
+                due = max(self._heard_at.get(actor, -math.inf), out.started) + self.silence_s
+                if now >= due:
+                    out.aborted = f"'{actor}' was not heard for {self.silence_s:g} s"
+                    self._changed.notify_all()
+                    break
+                wake = min(wake, due)
         for watch in self._watches:
             for actor in watch.actors - watch.reported:
                 due = max(self._heard_at.get(actor, -math.inf), watch.started) + self.silence_s

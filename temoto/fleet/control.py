@@ -215,7 +215,7 @@ class GraphControlServer:
         self._feeder.start()
         self._subscription: Subscription | None = None
         try:
-            self._subscription = link.listen(COMMAND_CHANNEL, self._on_command)
+            self._subscription = link.listen(COMMAND_CHANNEL, self._on_command, queue_capacity=256)
         except BaseException:
             self.close()
             raise

@@ -27,9 +27,12 @@ class handshake_t(object):
     """
     JOIN: still gathering peers. READY: the sender has reached consensus and starts the
     graph. LEAVE: the sender gave up (timeout, stop); the others abort this run too.
+    END: the sender's run finished normally; it needs nothing more of this run, so the
+    others stop waiting for its acknowledgements and do not miss it when it goes quiet.
     """
     READY = 2
     LEAVE = 3
+    END = 4
 
     def __init__(self):
         self.version = 0
@@ -40,7 +43,7 @@ class handshake_t(object):
 
         self.phase = 0
         """
-        One of JOIN, READY, LEAVE.
+        One of JOIN, READY, LEAVE, END.
         LCM Type: int8_t
         """
 

@@ -204,8 +204,15 @@ class MemoryActorLink:
         """See :meth:`temoto.core.remote.ActorLink.expect`."""
         return self._fleet._expect((graph, session, action, actor), on_result)
 
-    def watch(self, actors: Sequence[str], on_lost: Callable[[str, str], None]) -> Cancel:
-        """See :meth:`temoto.core.remote.ActorLink.watch`."""
+    def watch(
+        self,
+        actors: Sequence[str],
+        on_lost: Callable[[str, str], None],
+        *,
+        graph: str = "",
+        session: str = "",
+    ) -> Cancel:
+        """See :meth:`temoto.core.remote.ActorLink.watch` (nobody falls silent here)."""
         return self._fleet._watch(actors, on_lost)
 
     def end(self, graph: str, session: str, *, gave_up: bool = False) -> None:

@@ -651,6 +651,71 @@ def test_an_actor_that_ends_its_run_normally_is_not_lost(fleet: Fleet) -> None:
         lost.wait_for(1, timeout=1.0)
 
 
+def test_a_peer_that_finished_the_run_may_go_quiet(fleet: Fleet) -> None:
+    a = fleet.link("A", silence_s=0.3)
+    with ExitStack() as b_stack:
+        b = b_stack.enter_context(FleetActorLink(fleet.fleet_link("B"), "B", linger_s=0))
+        assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+        lost = Got()
+        a.watch(["B"], lost, graph="g", session="s1")
+        other = Got()
+        a.watch(["B"], other)  # not for the run: B is still missed when it goes quiet
+        b.end("g", "s1")  # finished there: END
+    # B's link is closed now (silent); A does not miss it for the run it finished
+    assert other.wait_for(1) == [("B", "not heard for 0.3 s")]
+    assert lost.calls == []
+
+
+def test_end_of_a_peer_releases_a_notification_waiting_for_it(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    seen = Raw(fleet.fleet_link("X"), NOTIFY_CHANNEL)
+    got = interrupted(
+        lambda: a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B", "C"], WAIT_S),
+        seen.got,
+        lambda: (b.end("g", "s1"), seen.send(HANDSHAKE_CHANNEL, handshake(4, "C"))),
+    )
+    assert got == []  # returned: B acknowledged or finished, C finished
+    assert a.notify("g", "s1", "Move_2", Result.TRUE, {}, ["C"], WAIT_S) is None  # not waited
+
+
+def test_notify_fails_at_once_for_a_peer_known_to_be_silent(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B", silence_s=0.3)
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    lost = Got()
+    a.watch(["B"], lost)
+    b.close()  # LEAVE, then silent
+    lost.wait_for(1)
+    t0 = time.monotonic()
+    with pytest.raises(FleetError, match="actor 'B' was lost"):
+        a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B"], WAIT_S)
+    assert time.monotonic() - t0 < 0.2
+
+
+def test_a_notification_waiting_for_a_peer_that_falls_silent_fails_after_silence_s(
+    fleet: Fleet,
+) -> None:
+    a = fleet.link("A", silence_s=0.4)
+    c = Raw(fleet.fleet_link("C"), NOTIFY_CHANNEL)
+    c.send(HANDSHAKE_CHANNEL, handshake(2, "C"))  # heard once, then never again
+    t0 = time.monotonic()
+    with pytest.raises(FleetError, match=r"'C' was not heard for 0\.4 s"):
+        a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["C"], WAIT_S)
+    assert time.monotonic() - t0 < WAIT_S / 2
+
+
+def test_close_repeats_end_for_a_run_that_just_finished(fleet: Fleet) -> None:
+    a, b = fleet.links("A", "B")
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    watcher = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
+    b.end("g", "s1")
+    t0 = time.monotonic()
+    b.close()
+    assert 0.25 <= time.monotonic() - t0 < 2.0  # lingered for linger_s
+    ends = [m for m in watcher.decoded() if m.phase == 4 and m.actor == "B"]
+    assert len(ends) >= 2  # at end, and again while closing
+
+
 def test_an_actor_that_falls_silent_is_lost_within_silence_s(fleet: Fleet) -> None:
     a, b = fleet.links("A", "B", silence_s=0.3)
     lost = Got()

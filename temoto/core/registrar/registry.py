@@ -215,6 +215,20 @@ class Registrar:
         with self._lock:
             return sorted(self._servers)
 
+    def server(self, name: str) -> ResourceServer[Any, Any]:
+        """The server registered under ``name`` (for a manager's client to find its manager).
+
+        Args:
+            name: The server's name.
+
+        Returns:
+            The server object.
+
+        Raises:
+            ResourceNotFoundError: No server has that name.
+        """
+        return self._server(name)
+
     # ================================================================ call / release
 
     def call(
