@@ -158,7 +158,12 @@ def _param_mismatch(umrf: Umrf, description: Umrf) -> str:
         ("inputs", umrf.input_parameters, description.input_parameters),
         ("outputs", umrf.output_parameters, description.output_parameters),
     ):
-        missing, extra = sorted(set(theirs) - set(mine)), sorted(set(mine) - set(theirs))
+        # A graph may leave out what it does not use: optional inputs and outputs (upstream
+        # wants every parameter written out; the description supplies them here).
+        missing = sorted(
+            n for n in set(theirs) - set(mine) if side == "inputs" and theirs[n].required
+        )
+        extra = sorted(set(mine) - set(theirs))
         if missing:
             problems.append(f"lacks {side} {', '.join(missing)}")
         if extra:
@@ -178,7 +183,10 @@ def _merge(graph: UmrfGraph, umrf: Umrf, description: Umrf) -> Umrf:
     ) -> dict[str, Parameter]:
         out = {}
         for name, desc in theirs.items():
-            own = mine[name]
+            own = mine.get(name)
+            if own is None:  # left out of the graph (optional input, or an output)
+                out[name] = desc
+                continue
             if own.type != desc.type:
                 raise GraphDefinitionError(
                     f"action '{umrf.full_name}': {what} '{name}' is {own.type} in the graph but"
