@@ -341,7 +341,6 @@ class DynamixelHardwareError(DriverOperationError):
         self.error = error
 
 
-
 class MavlinkCommandError(DriverOperationError):
     """A MAVLink vehicle refused or failed a command (its ``COMMAND_ACK`` result).
 
@@ -357,7 +356,6 @@ class MavlinkCommandError(DriverOperationError):
         self.result = result
 
 
-
 class MotorFaultError(DriverOperationError):
     """A CAN motor controller reported an error (its error bits, decoded in the message).
 
@@ -371,7 +369,6 @@ class MotorFaultError(DriverOperationError):
         super().__init__(message)
         self.node_id = node_id
         self.error = error
-
 
 
 class DriverTimeoutError(DriverError, TimeoutError):

@@ -20,7 +20,7 @@ DESCRIPTION = {
     },
     "output_parameters": {"text": {"pvf_type": "string"}},
 }
-CODE = '''
+CODE = """
 from temoto import Action
 
 
@@ -29,7 +29,7 @@ class Greet(Action):
         end = self.inputs.get("punctuation", ".")
         self.outputs["text"] = "hello " + self.inputs.get_string("who") + end
         return True
-'''
+"""
 
 
 def graph(inputs: dict[str, Any]) -> dict[str, Any]:
@@ -58,14 +58,16 @@ def test_optional_inputs_and_outputs_may_be_left_out(actions: Path) -> None:
 
 
 def test_a_required_input_may_not(actions: Path) -> None:
-    with ActionEngine(actions=[actions]) as engine, pytest.raises(
-        GraphDefinitionError, match="lacks inputs who"
+    with (
+        ActionEngine(actions=[actions]) as engine,
+        pytest.raises(GraphDefinitionError, match="lacks inputs who"),
     ):
         engine.run(graph({"punctuation": {"pvf_type": "string", "pvf_value": "!"}}))
 
 
 def test_a_type_that_differs_from_the_description_is_refused(actions: Path) -> None:
-    with ActionEngine(actions=[actions]) as engine, pytest.raises(
-        GraphDefinitionError, match="'who' is number in the graph but string"
+    with (
+        ActionEngine(actions=[actions]) as engine,
+        pytest.raises(GraphDefinitionError, match="'who' is number in the graph but string"),
     ):
         engine.run(graph({"who": {"pvf_type": "number", "pvf_value": 1}}))
