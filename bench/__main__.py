@@ -25,7 +25,7 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from bench import engine, evolution, fleet, peers, process, registrar, ris
+from bench import dynamixel, engine, evolution, fleet, peers, process, registrar, ris
 from bench.common import Metric, Results
 
 GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
@@ -54,6 +54,10 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     "ris": (
         "RIS: a process crash on robot B -> A's consumer, remote loads (2 processes)",
         ris.bench_ris,
+    ),
+    "dynamixel": (
+        "dynamixel: SyncRead + SyncWrite of 6 servos over a pseudo-terminal",
+        dynamixel.bench_dynamixel,
     ),
 }
 

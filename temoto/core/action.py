@@ -498,6 +498,11 @@ class Action(ABC):
         """Whether the graph is paused."""
         return self._ctl.paused
 
+    @property
+    def registrar(self) -> Registrar | None:
+        """The engine's registrar (what manager clients use to find their manager), or None."""
+        return self._registrar
+
     def acquire(
         self, server: str, request: Any, *, priority: int = 0, exclusive: bool = False
     ) -> Resource[Any]:

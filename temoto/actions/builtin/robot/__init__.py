@@ -1,0 +1,1 @@
+"""The built-in robot actions (one ``<name>.py`` + ``<name>.umrf.json`` each)."""

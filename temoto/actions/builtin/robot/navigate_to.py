@@ -1,0 +1,22 @@
+"""NavigateTo: drive the robot's base to a position (odometry frame)."""
+
+from __future__ import annotations
+
+from temoto.actions.builtin.robot._common import RobotAction
+
+
+class NavigateTo(RobotAction):
+    """Inputs ``x``, ``y`` (m), optional ``yaw`` (rad), ``robot``, ``timeout``; outputs the pose."""
+
+    def on_run(self) -> bool:
+        """Do it; True when the goal was reached."""
+        robot = self.robot()
+        x, y = self.inputs.get_number("x"), self.inputs.get_number("y")
+        yaw = self.inputs.get_number("yaw") if "yaw" in self.inputs else None
+        self.log(f"{robot.name}: navigating to ({x:g}, {y:g})")
+        reached = self.run_motion(robot.navigate_to(x, y, yaw))
+        px, py, pyaw = robot.pose()
+        self.outputs["x"], self.outputs["y"], self.outputs["yaw"] = px, py, pyaw
+        if reached:
+            self.log(f"{robot.name}: at ({px:.2f}, {py:.2f})")
+        return reached

@@ -1,0 +1,381 @@
+"""Hardware profiles: which robot this is, its devices, and the features built from them.
+
+A profile is a YAML file (``hw_profiles/*.yaml``, schema in ``hw_profiles/README.md``)::
+
+    robot: sim_rover            # the robot's name: the engine's actor and the fleet sender
+    sim: true                   # start each device's simulator in-process (default false)
+    devices:                    # name -> the driver and its settings (validated by the driver)
+      base:
+        driver: odrive_can
+        ...
+    features:                   # what the robot can do, built from the devices' joints
+      navigation: {type: differential_drive, left_wheel: left, right_wheel: right,
+                   wheel_radius: 0.1, wheel_separation: 0.5}
+      manipulation: {type: arm, device: arm, poses: {home: {shoulder: 0.0}}}
+      flight: {type: vehicle, device: quad}
+
+:func:`load_profile` reads and checks everything without touching hardware (drivers are
+constructed, never configured); every problem is a :class:`~temoto.errors.ProfileError` whose
+message names the file and the key path (``sim_rover.yaml: features.navigation.left_wheel:
+no device has a joint 'left'``).
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from collections.abc import Mapping
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Final
+
+import yaml
+
+from temoto.clock import Clock, MonotonicClock
+from temoto.drivers import Actuator, Driver, Vehicle, driver_class
+from temoto.errors import PluginError, ProfileError
+
+__all__ = [
+    "ArmFeature",
+    "DeviceSpec",
+    "DriveFeature",
+    "FlightFeature",
+    "Profile",
+    "load_profile",
+    "parse_profile",
+]
+
+_NAME: Final = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,62}$")
+_TOP_KEYS: Final = frozenset({"robot", "description", "sim", "devices", "features"})
+
+
+@dataclass(frozen=True, slots=True)
+class DeviceSpec:
+    """One device of a profile.
+
+    Attributes:
+        name: The device's name.
+        driver: The driver's registry name.
+        config: The device's settings as written (the driver validated them).
+        joints: The joints it moves (empty for a vehicle).
+        vehicle: Whether it is a vehicle.
+    """
+
+    name: str
+    driver: str
+    config: Mapping[str, Any]
+    joints: tuple[str, ...]
+    vehicle: bool
+
+
+@dataclass(frozen=True, slots=True)
+class DriveFeature:
+    """A differential-drive base from two wheel joints.
+
+    Attributes:
+        left_wheel: The left wheel's joint.
+        right_wheel: The right wheel's joint.
+        wheel_radius: Metres.
+        wheel_separation: Metres between the wheels' contact points.
+        max_speed: m/s.
+        max_turn_rate: rad/s.
+        tolerance: Metres within which a goal counts as reached.
+    """
+
+    left_wheel: str
+    right_wheel: str
+    wheel_radius: float
+    wheel_separation: float
+    max_speed: float = 0.5
+    max_turn_rate: float = 1.5
+    tolerance: float = 0.05
+
+
+@dataclass(frozen=True, slots=True)
+class ArmFeature:
+    """An arm from the joints of one device.
+
+    Attributes:
+        device: The device.
+        joints: Its joints, in order.
+        poses: Named joint positions (rad).
+        tolerance: Radians within which a joint counts as arrived.
+    """
+
+    device: str
+    joints: tuple[str, ...]
+    poses: Mapping[str, Mapping[str, float]] = field(default_factory=dict)
+    tolerance: float = 0.02
+
+
+@dataclass(frozen=True, slots=True)
+class FlightFeature:
+    """A vehicle that flies.
+
+    Attributes:
+        device: The vehicle device.
+        tolerance: Metres within which a position counts as reached.
+    """
+
+    device: str
+    tolerance: float = 1.0
+
+
+@dataclass(frozen=True, slots=True)
+class Profile:
+    """A checked hardware profile.
+
+    Attributes:
+        robot: The robot's name.
+        description: Free text.
+        sim: Whether the simulators run in-process.
+        devices: The devices by name, in file order.
+        navigation: The drive feature, if any.
+        manipulation: The arm feature, if any.
+        flight: The flight feature, if any.
+        source: The file it came from.
+    """
+
+    robot: str
+    description: str
+    sim: bool
+    devices: Mapping[str, DeviceSpec]
+    navigation: DriveFeature | None = None
+    manipulation: ArmFeature | None = None
+    flight: FlightFeature | None = None
+    source: str = ""
+
+    @property
+    def features(self) -> tuple[str, ...]:
+        """The names of the features it has."""
+        named = (
+            ("navigation", self.navigation),
+            ("manipulation", self.manipulation),
+            ("flight", self.flight),
+        )
+        return tuple(n for n, f in named if f is not None)
+
+    def joint_device(self, joint: str) -> str:
+        """The device that moves ``joint``.
+
+        Raises:
+            KeyError: No device has it.
+        """
+        for spec in self.devices.values():
+            if joint in spec.joints:
+                return spec.name
+        raise KeyError(joint)
+
+
+def load_profile(path: str | Path, *, clock: Clock | None = None) -> Profile:
+    """Read and check a profile file.
+
+    Args:
+        path: The YAML file.
+        clock: Passed to the drivers that check their settings.
+
+    Returns:
+        The profile.
+
+    Raises:
+        ProfileError: The file cannot be read, is not YAML, or is not a valid profile.
+    """
+    file = str(path)
+    try:
+        text = Path(path).read_text(encoding="utf-8")
+    except OSError as err:
+        raise ProfileError(f"cannot read: {err.strerror or err}", file=file) from None
+    try:
+        raw = yaml.safe_load(text)
+    except yaml.YAMLError as err:
+        raise ProfileError(f"not valid YAML: {err}", file=file) from None
+    return parse_profile(raw, file=file, clock=clock)
+
+
+def parse_profile(raw: object, *, file: str = "", clock: Clock | None = None) -> Profile:
+    """Check a decoded profile document.
+
+    Args:
+        raw: The document (a mapping).
+        file: Where it came from (for messages).
+        clock: Passed to the drivers that check their settings.
+
+    Returns:
+        The profile.
+
+    Raises:
+        ProfileError: Anything is wrong (the message names the key path).
+    """
+    p = _Checker(file or None)
+    doc = p.mapping(raw, "")
+    p.no_unknown(doc, _TOP_KEYS, "")
+    robot = p.name(doc.get("robot"), "robot")
+    description = doc.get("description", "")
+    if not isinstance(description, str):
+        p.fail("description", "must be text")
+    sim = doc.get("sim", False)
+    if not isinstance(sim, bool):
+        p.fail("sim", "must be true or false")
+    devices = _devices(p, doc.get("devices", {}), clock or MonotonicClock())
+    features = p.mapping(doc.get("features", {}), "features")
+    p.no_unknown(features, frozenset({"navigation", "manipulation", "flight"}), "features")
+    nav = arm = flight = None
+    if "navigation" in features:
+        nav = _drive(p, features["navigation"], devices)
+    if "manipulation" in features:
+        arm = _arm(p, features["manipulation"], devices)
+    if "flight" in features:
+        flight = _flight(p, features["flight"], devices)
+    return Profile(robot, description, sim, devices, nav, arm, flight, file)
+
+
+class _Checker:
+    """Raises ProfileErrors that name the file and the key path."""
+
+    def __init__(self, file: str | None) -> None:
+        self.file = file
+
+    def fail(self, path: str, message: str) -> None:
+        raise ProfileError(message, file=self.file, path=path)
+
+    def mapping(self, value: object, path: str) -> dict[str, Any]:
+        if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
+            raise ProfileError(
+                "must be a mapping with text keys", file=self.file, path=path or "(top)"
+            )
+        return value
+
+    def no_unknown(self, value: Mapping[str, Any], known: frozenset[str], path: str) -> None:
+        unknown = sorted(set(value) - known)
+        if unknown:
+            where = f"{path}.{unknown[0]}" if path else unknown[0]
+            self.fail(where, f"unknown key (known: {', '.join(sorted(known))})")
+
+    def name(self, value: object, path: str) -> str:
+        if not isinstance(value, str) or not _NAME.match(value):
+            raise ProfileError(
+                f"must be a name (a letter, then letters, digits, _ . -; at most 63): {value!r}",
+                file=self.file,
+                path=path,
+            )
+        return value
+
+    def number(
+        self, value: object, path: str, *, default: float | None = None, positive: bool = True
+    ) -> float:
+        if value is None and default is not None:
+            return default
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ProfileError(f"must be a number, got {value!r}", file=self.file, path=path)
+        if not math.isfinite(value) or (positive and value <= 0):
+            kind = "a positive" if positive else "a finite"
+            raise ProfileError(f"must be {kind} number, got {value!r}", file=self.file, path=path)
+        return float(value)
+
+
+def _devices(p: _Checker, raw: object, clock: Clock) -> dict[str, DeviceSpec]:
+    devices = p.mapping(raw, "devices")
+    out: dict[str, DeviceSpec] = {}
+    owner: dict[str, str] = {}
+    for name, value in devices.items():
+        path = f"devices.{name}"
+        p.name(name, path)
+        config = p.mapping(value, path)
+        kind = config.get("driver")
+        if not isinstance(kind, str) or not kind:
+            p.fail(f"{path}.driver", "missing: name the driver (e.g. odrive_can, dynamixel)")
+        try:
+            cls = driver_class(str(kind))
+        except PluginError as err:
+            raise ProfileError(str(err), file=p.file, path=f"{path}.driver") from err
+        settings = {k: v for k, v in config.items() if k != "driver"}
+        where = f"{p.file}: {path}" if p.file else path
+        driver: Driver = cls.from_profile(name, settings, clock=clock, where=where)  # type: ignore[attr-defined]
+        try:
+            joints = tuple(driver.joint_names) if isinstance(driver, Actuator) else ()
+        finally:
+            driver.shutdown()  # never configured: nothing to close, but it is finished
+        for joint in joints:
+            if joint in owner:
+                p.fail(path, f"joint '{joint}' is also on device '{owner[joint]}'")
+            owner[joint] = name
+        vehicle = isinstance(driver, Vehicle)
+        out[name] = DeviceSpec(name, str(kind), settings, joints, vehicle)
+    return out
+
+
+def _joint(p: _Checker, value: object, path: str, devices: Mapping[str, DeviceSpec]) -> str:
+    if not isinstance(value, str) or not any(value in d.joints for d in devices.values()):
+        known = sorted(j for d in devices.values() for j in d.joints)
+        p.fail(path, f"no device has a joint {value!r} (joints: {', '.join(known) or 'none'})")
+    return str(value)
+
+
+def _device(p: _Checker, value: object, path: str, devices: Mapping[str, DeviceSpec]) -> DeviceSpec:
+    if not isinstance(value, str) or value not in devices:
+        p.fail(path, f"no device {value!r} (devices: {', '.join(devices) or 'none'})")
+    return devices[str(value)]
+
+
+def _drive(p: _Checker, raw: object, devices: Mapping[str, DeviceSpec]) -> DriveFeature:
+    path = "features.navigation"
+    cfg = p.mapping(raw, path)
+    keys = {"type", "left_wheel", "right_wheel", "wheel_radius", "wheel_separation"}
+    keys |= {"max_speed", "max_turn_rate", "tolerance"}
+    p.no_unknown(cfg, frozenset(keys), path)
+    if cfg.get("type") != "differential_drive":
+        p.fail(f"{path}.type", "must be differential_drive")
+    left = _joint(p, cfg.get("left_wheel"), f"{path}.left_wheel", devices)
+    right = _joint(p, cfg.get("right_wheel"), f"{path}.right_wheel", devices)
+    if left == right:
+        p.fail(f"{path}.right_wheel", "must differ from left_wheel")
+    return DriveFeature(
+        left,
+        right,
+        p.number(cfg.get("wheel_radius"), f"{path}.wheel_radius"),
+        p.number(cfg.get("wheel_separation"), f"{path}.wheel_separation"),
+        p.number(cfg.get("max_speed"), f"{path}.max_speed", default=0.5),
+        p.number(cfg.get("max_turn_rate"), f"{path}.max_turn_rate", default=1.5),
+        p.number(cfg.get("tolerance"), f"{path}.tolerance", default=0.05),
+    )
+
+
+def _arm(p: _Checker, raw: object, devices: Mapping[str, DeviceSpec]) -> ArmFeature:
+    path = "features.manipulation"
+    cfg = p.mapping(raw, path)
+    p.no_unknown(cfg, frozenset({"type", "device", "joints", "poses", "tolerance"}), path)
+    if cfg.get("type") != "arm":
+        p.fail(f"{path}.type", "must be arm")
+    device = _device(p, cfg.get("device"), f"{path}.device", devices)
+    joints = cfg.get("joints", list(device.joints))
+    if not isinstance(joints, list) or not joints:
+        p.fail(f"{path}.joints", "must be a non-empty list of the device's joints")
+    for i, joint in enumerate(joints):
+        if joint not in device.joints:
+            p.fail(f"{path}.joints[{i}]", f"device '{device.name}' has no joint {joint!r}")
+    poses: dict[str, dict[str, float]] = {}
+    for pose, values in p.mapping(cfg.get("poses", {}), f"{path}.poses").items():
+        where = f"{path}.poses.{pose}"
+        p.name(pose, where)
+        table = p.mapping(values, where)
+        for joint, value in table.items():
+            if joint not in joints:
+                p.fail(f"{where}.{joint}", f"not a joint of the arm ({', '.join(joints)})")
+            table[joint] = p.number(value, f"{where}.{joint}", positive=False)
+        poses[pose] = dict(table)
+    tolerance = p.number(cfg.get("tolerance"), f"{path}.tolerance", default=0.02)
+    return ArmFeature(device.name, tuple(joints), poses, tolerance)
+
+
+def _flight(p: _Checker, raw: object, devices: Mapping[str, DeviceSpec]) -> FlightFeature:
+    path = "features.flight"
+    cfg = p.mapping(raw, path)
+    p.no_unknown(cfg, frozenset({"type", "device", "tolerance"}), path)
+    if cfg.get("type") != "vehicle":
+        p.fail(f"{path}.type", "must be vehicle")
+    device = _device(p, cfg.get("device"), f"{path}.device", devices)
+    if not device.vehicle:
+        p.fail(f"{path}.device", f"device '{device.name}' ({device.driver}) is not a vehicle")
+    return FlightFeature(
+        device.name, p.number(cfg.get("tolerance"), f"{path}.tolerance", default=1.0)
+    )

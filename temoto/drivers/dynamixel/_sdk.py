@@ -1,0 +1,198 @@
+"""The one place that touches dynamixel-sdk (untyped): narrow, typed wrappers around it.
+
+dynamixel-sdk's ``PortHandler`` opens the serial port (pyserial) and times replies out in
+*real* milliseconds (twice its 16 ms latency timer plus 2 ms plus the bytes' transfer time);
+its ``PacketHandler`` (Protocol 2.0) builds, sends and parses packets; ``GroupSyncRead`` and
+``GroupSyncWrite`` pack one instruction for a whole chain. The SDK reports failures as result
+codes; pyserial raises ``SerialException`` (an ``OSError``) when the port breaks. Both come out
+of this module as a result code, so the driver has one place to turn them into typed errors.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Final, cast
+
+import dynamixel_sdk as _dxl  # type: ignore[import-untyped]  # no type hints: wrapped here
+
+__all__ = [
+    "COMM_RX_CORRUPT",
+    "COMM_RX_TIMEOUT",
+    "COMM_SUCCESS",
+    "COMM_TX_FAIL",
+    "SdkPort",
+    "SyncReader",
+    "SyncWriter",
+]
+
+COMM_SUCCESS: Final[int] = cast("int", _dxl.COMM_SUCCESS)
+COMM_TX_FAIL: Final[int] = cast("int", _dxl.COMM_TX_FAIL)
+COMM_RX_TIMEOUT: Final[int] = cast("int", _dxl.COMM_RX_TIMEOUT)
+COMM_RX_CORRUPT: Final[int] = cast("int", _dxl.COMM_RX_CORRUPT)
+
+
+class SdkPort:
+    """A serial port and a Protocol 2.0 packet handler (not thread-safe: callers lock).
+
+    Args:
+        path: The serial device (``/dev/ttyUSB0``, or a simulator's ``/dev/pts/N``).
+        baud: Bits per second.
+        reply_timeout: Real seconds a status packet may take beyond its transfer time
+            (dynamixel-sdk's own value is 0.034: twice a USB adapter's 16 ms latency timer
+            plus 2 ms).
+    """
+
+    def __init__(self, path: str, baud: int, reply_timeout: float = 0.034) -> None:
+        self.path = path
+        self.baud = baud
+        self.reply_timeout = reply_timeout
+        self._port: Any = _dxl.PortHandler(path)
+        self._port.setPacketTimeout = self._set_packet_timeout  # the SDK's, with our margin
+        self._ph: Any = _dxl.PacketHandler(2.0)
+
+    def _set_packet_timeout(self, packet_length: int) -> None:
+        port = self._port
+        port.packet_start_time = port.getCurrentTime()
+        port.packet_timeout = port.tx_time_per_byte * packet_length + self.reply_timeout * 1000.0
+
+    @property
+    def is_open(self) -> bool:
+        """Whether the port is open."""
+        return bool(self._port.is_open)
+
+    def open(self) -> None:
+        """Open the port at the baud rate.
+
+        Raises:
+            OSError: The port cannot be opened (pyserial's SerialException).
+            ValueError: The SDK refused the baud rate.
+        """
+        if not self._port.openPort():
+            raise OSError(f"cannot open {self.path}")
+        if not self._port.setBaudRate(self.baud):
+            self._port.closePort()
+            raise ValueError(f"baud rate {self.baud} refused")
+
+    def close(self) -> None:
+        """Close the port (idempotent)."""
+        if self._port.ser is not None and self._port.is_open:
+            self._port.closePort()
+
+    def result_text(self, result: int) -> str:
+        """The SDK's words for a result code."""
+        return str(self._ph.getTxRxResult(result)) or f"result {result}"
+
+    def _guard(self, call: Any, *args: Any) -> Any:
+        try:
+            return call(*args)
+        except OSError:
+            self._port.is_using = False  # the SDK leaves its busy flag set on an exception
+            return None
+
+    def ping(self, dxl_id: int) -> tuple[int, int, int]:
+        """PING: (model number, result, error byte)."""
+        out = self._guard(self._ph.ping, self._port, dxl_id)
+        if out is None:
+            return 0, COMM_TX_FAIL, 0
+        return int(out[0]), int(out[1]), int(out[2])
+
+    def read(self, dxl_id: int, address: int, size: int) -> tuple[int, int, int]:
+        """READ one register of 1, 2 or 4 bytes: (unsigned value, result, error byte)."""
+        call = {
+            1: self._ph.read1ByteTxRx,
+            2: self._ph.read2ByteTxRx,
+            4: self._ph.read4ByteTxRx,
+        }[size]
+        out = self._guard(call, self._port, dxl_id, address)
+        if out is None:
+            return 0, COMM_TX_FAIL, 0
+        return int(out[0]), int(out[1]), int(out[2])
+
+    def write(self, dxl_id: int, address: int, size: int, value: int) -> tuple[int, int]:
+        """WRITE one register (``value`` unsigned, two's complement): (result, error byte)."""
+        call = {
+            1: self._ph.write1ByteTxRx,
+            2: self._ph.write2ByteTxRx,
+            4: self._ph.write4ByteTxRx,
+        }[size]
+        out = self._guard(call, self._port, dxl_id, address, value & ((1 << (8 * size)) - 1))
+        if out is None:
+            return COMM_TX_FAIL, 0
+        return int(out[0]), int(out[1])
+
+    def reboot(self, dxl_id: int) -> tuple[int, int]:
+        """REBOOT: (result, error byte)."""
+        out = self._guard(self._ph.reboot, self._port, dxl_id)
+        if out is None:
+            return COMM_TX_FAIL, 0
+        return int(out[0]), int(out[1])
+
+    def sync_reader(self, address: int, length: int, ids: list[int]) -> SyncReader:
+        """A GroupSyncRead of ``length`` bytes at ``address`` from ``ids``."""
+        return SyncReader(self, address, length, ids)
+
+    def sync_writer(self, address: int, length: int) -> SyncWriter:
+        """A GroupSyncWrite of ``length`` bytes at ``address``."""
+        return SyncWriter(self, address, length)
+
+
+class SyncReader:
+    """A ``GroupSyncRead`` that also keeps each status packet's error byte (the alert bit).
+
+    The SDK's ``GroupSyncRead.rxPacket`` drops the error bytes, so the replies are read with
+    the packet handler's ``readRx`` (what ``rxPacket`` does inside) after the group sends.
+    """
+
+    def __init__(self, port: SdkPort, address: int, length: int, ids: list[int]) -> None:
+        self._port = port
+        self.length = length
+        self.ids = list(ids)
+        self._group: Any = _dxl.GroupSyncRead(port._port, port._ph, address, length)
+        for dxl_id in self.ids:
+            self._group.addParam(dxl_id)
+
+    def read(self) -> tuple[int, dict[int, bytes], dict[int, int]]:
+        """Send the SYNC_READ and collect every reply.
+
+        Returns:
+            (result, data by id, status error byte by id); the first failing reply's result.
+        """
+        result = self._port._guard(self._group.txPacket)
+        if result is None:
+            return COMM_TX_FAIL, {}, {}
+        if result != COMM_SUCCESS:
+            return int(result), {}, {}
+        data: dict[int, bytes] = {}
+        errors: dict[int, int] = {}
+        ph, raw = self._port._ph, self._port._port
+        for dxl_id in self.ids:
+            out = self._port._guard(ph.readRx, raw, dxl_id, self.length)
+            if out is None:
+                return COMM_TX_FAIL, data, errors
+            if int(out[1]) != COMM_SUCCESS:
+                return int(out[1]), data, errors
+            data[dxl_id] = bytes(out[0])
+            errors[dxl_id] = int(out[2])
+        return COMM_SUCCESS, data, errors
+
+
+class SyncWriter:
+    """A ``GroupSyncWrite``: one packet sets the same register of several servos."""
+
+    def __init__(self, port: SdkPort, address: int, length: int) -> None:
+        self._port = port
+        self._group: Any = _dxl.GroupSyncWrite(port._port, port._ph, address, length)
+
+    def write(self, data: dict[int, bytes]) -> int:
+        """Send one SYNC_WRITE (no replies).
+
+        Args:
+            data: The bytes for each servo id.
+
+        Returns:
+            The SDK's result code.
+        """
+        self._group.clearParam()
+        for dxl_id, value in data.items():
+            self._group.addParam(dxl_id, list(value))
+        result = self._port._guard(self._group.txPacket)
+        return COMM_TX_FAIL if result is None else int(result)

@@ -1,0 +1,962 @@
+"""DynamixelDriver: one chain of DYNAMIXEL X-series servos over dynamixel-sdk (Protocol 2.0).
+
+Lifecycle (STYLE §3.5):
+
+* ``configure`` opens the port at the baud rate, PINGs every servo, checks its model number
+  (a mismatch is a :class:`~temoto.errors.DriverInitError` naming the servo), reboots a servo
+  that reports a hardware error (logged), turns torque off, writes the operating mode when it
+  differs (EEPROM), reads the Velocity and Current Limit registers, reads the state once and
+  starts the poll thread;
+* ``activate`` holds where each servo is (goal position = present position, goal velocity and
+  goal current = 0) and turns torque on; ``deactivate`` turns torque off;
+* ``recover`` (from ``FAULT``) stops polling, REBOOTs every servo whose Hardware Error Status
+  is not 0 (a servo keeps such an error until rebooted), and configures again: the driver is
+  ``INACTIVE``; ``activate`` re-enables torque;
+* ``shutdown`` stops polling, turns torque off (best effort) and closes the port.
+
+The poll thread (``temoto-dxl-<name>``) SyncReads present current, velocity and position of
+the chain every ``1 / poll_rate`` seconds of the driver's clock, and every ``status_every``
+polls also Present Input Voltage, Present Temperature and Hardware Error Status. A poll that
+fails ``timeout_polls`` times in a row reports a fault (:class:`~temoto.errors.DriverTimeoutError`
+when nothing answered, :class:`~temoto.errors.DriverOperationError` for corrupt replies); the
+first good poll after that reports recovery (unless a servo lost torque meanwhile, which stays
+a fault until ``recover``). A status packet with the alert bit, or a Hardware Error Status
+other than 0, reports a :class:`~temoto.errors.DynamixelHardwareError` naming the servo and
+the bits (overheating, overload, input voltage, electrical shock, motor encoder); it stays until
+``recover``.
+
+Time: the poll period and the stamps come from the driver's clock, so on a
+:class:`~temoto.clock.ManualClock` a poll happens only when the test advances time. The serial
+timeouts stay *real*: dynamixel-sdk times a missing reply out after about 34 ms of wall time
+whatever the clock says, so a fault bound in clock seconds is ``timeout_polls`` x (period +
+34 ms) on a real clock and has no fixed value in virtual time.
+
+Units: position ``(ticks - 2048) x 2π/4096 / gear + offset`` rad; velocity
+``units x 0.229 rev/min / gear``; effort ``current x torque_constant x gear`` N·m, with the
+model's current unit and torque constant from :mod:`~temoto.drivers.dynamixel.control_table`
+(XL430 reports load in 0.1 % of its stall torque instead of current).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import Any, ClassVar, Final, Self
+
+from temoto.clock import Clock
+from temoto.drivers.base import Driver, DriverState
+from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
+from temoto.drivers.dynamixel import _sdk
+from temoto.drivers.dynamixel import control_table as ct
+from temoto.drivers.dynamixel import protocol as p
+from temoto.drivers.dynamixel.sim import SimDynamixelChain
+from temoto.drivers.sim import Simulator
+from temoto.errors import (
+    DriverError,
+    DriverInitError,
+    DriverOperationError,
+    DriverTimeoutError,
+    DriverUnavailableError,
+    DynamixelHardwareError,
+    ProfileError,
+    StateError,
+)
+
+__all__ = [
+    "BAUD_RATES",
+    "MODES",
+    "SIM_REPLY_TIMEOUT",
+    "DynamixelDriver",
+    "ServoConfig",
+    "ServoStatus",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Baud rates both the X series and dynamixel-sdk's port handler support.
+BAUD_RATES: Final = frozenset({9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000})
+#: The ``reply_timeout`` :meth:`DynamixelDriver.simulate` gives a driver on a simulated chain.
+SIM_REPLY_TIMEOUT: Final = 0.1
+#: Profile ``mode`` values → Operating Mode.
+MODES: Final[Mapping[str, ct.OperatingMode]] = {
+    "current": ct.OperatingMode.CURRENT,
+    "velocity": ct.OperatingMode.VELOCITY,
+    "position": ct.OperatingMode.POSITION,
+    "extended_position": ct.OperatingMode.EXTENDED_POSITION,
+    "current_based_position": ct.OperatingMode.CURRENT_BASED_POSITION,
+}
+_POSITION_MODES: Final = frozenset(
+    {
+        ct.OperatingMode.POSITION,
+        ct.OperatingMode.EXTENDED_POSITION,
+        ct.OperatingMode.CURRENT_BASED_POSITION,
+    }
+)
+_COMMAND_MODE: Final[Mapping[ct.OperatingMode, ControlMode]] = {
+    ct.OperatingMode.CURRENT: ControlMode.EFFORT,
+    ct.OperatingMode.VELOCITY: ControlMode.VELOCITY,
+    **dict.fromkeys(_POSITION_MODES, ControlMode.POSITION),
+}
+_PING_TRIES: Final = 3
+_TRIES: Final = 3  # attempts of a single READ or WRITE (they are idempotent)
+_REBOOT_WAIT_TRIES: Final = 20  # pings (each up to ~34 ms real) while a servo restarts
+_TOP_KEYS: Final = frozenset(
+    {
+        "driver",
+        "sim",
+        "link",
+        "baud",
+        "poll_rate",
+        "status_every",
+        "timeout_polls",
+        "reply_timeout",
+        "servos",
+    }
+)
+_SERVO_KEYS: Final = frozenset(
+    {
+        "id",
+        "joint",
+        "model",
+        "mode",
+        "min_position",
+        "max_position",
+        "velocity_limit",
+        "effort_limit",
+        "gear",
+        "offset",
+        "torque_constant",
+    }
+)
+
+
+class _FieldError(ValueError):
+    """A bad :class:`ServoConfig` value; ``key`` names the field (for profile key paths)."""
+
+    def __init__(self, key: str, message: str) -> None:
+        super().__init__(message)
+        self.key = key
+
+
+@dataclass(frozen=True, slots=True)
+class ServoConfig:
+    """One servo of a chain (joint side values in SI units).
+
+    Attributes:
+        id: Its id on the chain (0 to 252).
+        joint: The joint it moves.
+        model: Its model name (``XM430-W350``); PING must report this model.
+        mode: The operating mode (``position``, ``extended_position``,
+            ``current_based_position``, ``velocity``, ``current``).
+        min_position: The lowest joint position a command may ask for (rad).
+        max_position: The highest (rad).
+        velocity_limit: The largest joint speed a command may ask for (rad/s), or None.
+        effort_limit: The largest joint effort a command may ask for (N·m), or None.
+        gear: Motor turns per joint turn (negative reverses the direction).
+        offset: Joint position (rad) at the servo's middle position (tick 2048).
+        torque_constant: N·m per A of the motor, or None for the model's value.
+
+    Raises:
+        ValueError: A value out of range.
+    """
+
+    id: int
+    joint: str
+    model: str
+    mode: str = "position"
+    min_position: float = -math.pi
+    max_position: float = math.pi
+    velocity_limit: float | None = None
+    effort_limit: float | None = None
+    gear: float = 1.0
+    offset: float = 0.0
+    torque_constant: float | None = None
+
+    def __post_init__(self) -> None:
+        if not 0 <= self.id <= p.MAX_ID:
+            raise _FieldError("id", f"id must be 0..{p.MAX_ID}, got {self.id}")
+        if not self.joint:
+            raise _FieldError("joint", "joint must be a non-empty name")
+        if self.model not in ct.MODELS:
+            known = ", ".join(ct.MODELS)
+            raise _FieldError("model", f"unknown model {self.model!r} (known: {known})")
+        if self.mode not in MODES:
+            raise _FieldError("mode", f"unknown mode {self.mode!r} (known: {', '.join(MODES)})")
+        if MODES[self.mode] not in ct.MODELS[self.model].modes or (
+            self.mode == "current" and ct.MODELS[self.model].current_unit is None
+        ):
+            raise _FieldError("mode", f"{self.model} has no {self.mode} mode")
+        if not (math.isfinite(self.gear) and self.gear != 0):
+            raise _FieldError("gear", f"gear must be finite and non-zero, got {self.gear}")
+        if not math.isfinite(self.offset):
+            raise _FieldError("offset", f"offset must be finite, got {self.offset}")
+        lo, hi = self.min_position, self.max_position
+        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
+            raise _FieldError(
+                "max_position", f"need finite min_position < max_position, got {lo}, {hi}"
+            )
+        if MODES[self.mode] is ct.OperatingMode.POSITION:
+            for key, bound in (("min_position", lo), ("max_position", hi)):
+                if not 0 <= self.ticks(bound) <= 4095:
+                    raise _FieldError(
+                        key,
+                        f"{bound} rad is outside the servo's single turn in position mode"
+                        " (use extended_position)",
+                    )
+        for key in ("velocity_limit", "effort_limit", "torque_constant"):
+            value = getattr(self, key)
+            if value is not None and not (math.isfinite(value) and value > 0):
+                raise _FieldError(key, f"{key} must be positive, got {value}")
+
+    @property
+    def spec(self) -> ct.Model:
+        """The model's data."""
+        return ct.MODELS[self.model]
+
+    @property
+    def operating_mode(self) -> ct.OperatingMode:
+        """The Operating Mode register's value."""
+        return MODES[self.mode]
+
+    def ticks(self, position: float) -> int:
+        """Joint radians → Goal Position ticks."""
+        return round((position - self.offset) * self.gear / ct.RAD_PER_TICK) + ct.POSITION_CENTER
+
+    def position(self, ticks: int) -> float:
+        """Present Position ticks → joint radians."""
+        return (ticks - ct.POSITION_CENTER) * ct.RAD_PER_TICK / self.gear + self.offset
+
+    def velocity(self, units: int) -> float:
+        """Present Velocity units → joint rad/s."""
+        return units * ct.RAD_S_PER_UNIT / self.gear
+
+    def velocity_units(self, velocity: float) -> int:
+        """Joint rad/s → Goal/Profile Velocity units."""
+        return round(velocity * self.gear / ct.RAD_S_PER_UNIT)
+
+    def _newton_metres_per_unit(self) -> float:
+        spec = self.spec
+        if spec.current_unit is None:  # XL430: Present Load in 0.1 % of the stall torque
+            return 0.001 * spec.stall_torque * abs(self.gear)
+        kt = self.torque_constant or spec.torque_constant
+        return spec.current_unit * kt * abs(self.gear)
+
+    def effort(self, units: int) -> float:
+        """Present Current (or Load) units → joint N·m (the gear's sign included)."""
+        return units * self._newton_metres_per_unit() * (1 if self.gear > 0 else -1)
+
+    def current_units(self, effort: float) -> int:
+        """Joint N·m → Goal Current units."""
+        return round(effort / self._newton_metres_per_unit() * (1 if self.gear > 0 else -1))
+
+
+@dataclass(frozen=True, slots=True)
+class ServoStatus:
+    """The slow readings of one servo.
+
+    Attributes:
+        id: The servo.
+        joint: Its joint.
+        temperature: °C.
+        voltage: Input volts.
+        hardware_error: The Hardware Error Status register.
+        errors: Its bits by name (``overheating``, ...).
+        stamp: Clock seconds of the reading.
+    """
+
+    id: int
+    joint: str
+    temperature: float
+    voltage: float
+    hardware_error: int
+    errors: tuple[str, ...]
+    stamp: float
+
+
+class DynamixelDriver(Driver):
+    """One chain of DYNAMIXEL X-series servos (see the module docstring); an ``Actuator``.
+
+    Args:
+        name: The device's name in its profile.
+        port: The serial device (``/dev/ttyUSB0``).
+        servos: The servos of the chain.
+        baud: Bits per second (one of :data:`BAUD_RATES`).
+        poll_rate: State reads per second of the clock.
+        status_every: Read temperature, voltage and hardware errors every this many polls.
+        timeout_polls: Failed polls in a row that make a fault.
+        reply_timeout: Real seconds a status packet may take beyond its transfer time.
+        clock: Poll periods and stamps.
+
+    Raises:
+        ValueError: A bad argument (duplicate ids or joints, no servos, a bad rate).
+    """
+
+    kind: ClassVar[str] = "dynamixel"
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        port: str,
+        servos: Sequence[ServoConfig],
+        baud: int = 57600,
+        poll_rate: float = 50.0,
+        status_every: int = 10,
+        timeout_polls: int = 3,
+        reply_timeout: float = 0.034,
+        clock: Clock | None = None,
+    ) -> None:
+        super().__init__(name, clock=clock)
+        if not servos:
+            raise ValueError("a chain needs at least one servo")
+        if len({s.id for s in servos}) != len(servos):
+            raise ValueError("servo ids must be unique")
+        if len({s.joint for s in servos}) != len(servos):
+            raise ValueError("joint names must be unique")
+        if baud not in BAUD_RATES:
+            raise ValueError(f"baud must be one of {sorted(BAUD_RATES)}, got {baud}")
+        if not (math.isfinite(poll_rate) and 0 < poll_rate <= 1000):
+            raise ValueError(f"poll_rate must be in (0, 1000] Hz, got {poll_rate}")
+        if not (math.isfinite(reply_timeout) and 0 < reply_timeout <= 1):
+            raise ValueError(f"reply_timeout must be in (0, 1] s, got {reply_timeout}")
+        if status_every < 1 or timeout_polls < 1:
+            raise ValueError("status_every and timeout_polls must be at least 1")
+        self.port = port
+        self.baud = baud
+        self.servos: tuple[ServoConfig, ...] = tuple(servos)
+        self.period = 1.0 / poll_rate
+        self.status_every = status_every
+        self.timeout_polls = timeout_polls
+        self.reply_timeout = reply_timeout
+        self._by_joint = {s.joint: s for s in self.servos}
+        self._by_id = {s.id: s for s in self.servos}
+        self._ids = [s.id for s in self.servos]
+        self._bus = threading.RLock()  # one transaction on the wire at a time
+        self._sdk: _sdk.SdkPort | None = None
+        self._fast: _sdk.SyncReader | None = None
+        self._slow: _sdk.SyncReader | None = None
+        self._errors: _sdk.SyncReader | None = None
+        self._torques: _sdk.SyncReader | None = None
+        self._writers: dict[int, _sdk.SyncWriter] = {}
+        self._limits: dict[int, tuple[int, int]] = {}  # id → (velocity limit, current limit)
+        self._cache = threading.Lock()
+        self._states: JointStates | None = None
+        self._status: dict[int, ServoStatus] = {}
+        self._poller: threading.Thread | None = None
+        self._stop = threading.Event()
+        self._wake = threading.Condition()
+        self._failures = 0
+        self._comm_fault = False
+        self._hw_fault = False
+
+    # ---- profile ------------------------------------------------------------------------------
+
+    @classmethod
+    def from_profile(
+        cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
+    ) -> Self:
+        """A driver from a profile's device entry (see ``docs/driver-dynamixel.md``).
+
+        Args:
+            name: The device's name.
+            config: Its entry: ``link``, ``baud``, ``poll_rate``, ``status_every``,
+                ``timeout_polls``, ``servos`` (and ``driver``/``sim``, which are not read).
+            clock: The robot's clock.
+            where: The entry's key path, for messages.
+
+        Returns:
+            The driver (``UNCONFIGURED``).
+
+        Raises:
+            ProfileError: An invalid entry; the message starts with the key path.
+        """
+        kwargs = _parse_profile(config, where)
+        return cls(name, clock=clock, **kwargs)
+
+    @classmethod
+    def simulate(
+        cls, name: str, config: Mapping[str, Any], *, clock: Clock
+    ) -> tuple[Simulator, dict[str, Any]]:
+        """A simulated chain for a profile entry, and the entry pointing at it.
+
+        The simulator opens its pseudo-terminal at once (so the returned ``link`` is valid)
+        but is not started: start it (or enter it as a context manager) before configuring
+        the driver, and close it after shutting the driver down.
+
+        Args:
+            name: The device's name.
+            config: Its profile entry (validated as in :meth:`from_profile`).
+            clock: Steps the simulated motion.
+
+        Returns:
+            (the :class:`SimDynamixelChain`, the entry with ``link`` = ``serial:<pty path>``
+            and, unless the entry sets one, ``reply_timeout`` = :data:`SIM_REPLY_TIMEOUT`:
+            the simulator shares the client's process and GIL, so on a loaded machine a
+            reply can take longer than a real servo's).
+
+        Raises:
+            ProfileError: An invalid entry.
+        """
+        kwargs = _parse_profile(config, name)
+        servos: Sequence[ServoConfig] = kwargs["servos"]
+        sim = SimDynamixelChain({s.id: s.model for s in servos}, clock=clock, name=name)
+        out = dict(config)
+        out["link"] = f"serial:{sim.path}"
+        out.setdefault("reply_timeout", SIM_REPLY_TIMEOUT)
+        return sim, out
+
+    # ---- capability -------------------------------------------------------------------------
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """The joints of the chain, in profile order."""
+        return tuple(s.joint for s in self.servos)
+
+    def read_state(self) -> JointStates:
+        """The newest poll of every joint (no bus traffic).
+
+        Returns:
+            The states in SI units.
+
+        Raises:
+            StateError: Never configured, or finalized.
+        """
+        state = self.state
+        with self._cache:
+            states = self._states
+        if state in (DriverState.UNCONFIGURED, DriverState.FINALIZED) or states is None:
+            raise StateError(f"{self.name}: no state while {state.value}")
+        return states
+
+    def servo_status(self) -> Mapping[int, ServoStatus]:
+        """The newest temperature, voltage and hardware-error reading of every servo.
+
+        Returns:
+            By servo id (empty before the first status poll).
+        """
+        with self._cache:
+            return dict(self._status)
+
+    def command(self, commands: Iterable[JointCommand]) -> None:
+        """Send set-points with one SyncWrite per register (only ``ACTIVE``).
+
+        A position command's ``velocity_limit`` sets the servo's Profile Velocity.
+
+        Args:
+            commands: Set-points; each joint's mode must match its servo's operating mode.
+
+        Raises:
+            StateError: Not active.
+            ValueError: An unknown joint, a mode the servo is not in, or a value beyond the
+                servo's limits.
+            DriverOperationError: The port refused to send.
+        """
+        self.require_active("command")
+        goals: dict[int, dict[int, bytes]] = {}
+        for cmd in commands:
+            servo = self._by_joint.get(cmd.joint)
+            if servo is None:
+                raise ValueError(f"{self.name}: no joint {cmd.joint!r}")
+            wanted = _COMMAND_MODE[servo.operating_mode]
+            if cmd.mode is not wanted:
+                raise ValueError(
+                    f"{self.name}: joint {cmd.joint} is in {servo.mode} mode and takes"
+                    f" {wanted.value} commands, not {cmd.mode.value}"
+                )
+            vel_limit, cur_limit = self._limits.get(servo.id, (0, 0))
+            if cmd.mode is ControlMode.POSITION:
+                if not servo.min_position <= cmd.value <= servo.max_position:
+                    raise ValueError(
+                        f"{self.name}: joint {cmd.joint}: {cmd.value} rad is outside"
+                        f" [{servo.min_position}, {servo.max_position}]"
+                    )
+                reg, value = ct.GOAL_POSITION, servo.ticks(cmd.value)
+                if cmd.velocity_limit is not None:
+                    units = min(abs(servo.velocity_units(cmd.velocity_limit)), vel_limit)
+                    speed = goals.setdefault(ct.PROFILE_VELOCITY.address, {})
+                    speed[servo.id] = p.to_le(max(units, 1), 4)
+            elif cmd.mode is ControlMode.VELOCITY:
+                reg, value = ct.GOAL_VELOCITY, servo.velocity_units(cmd.value)
+                too_fast = servo.velocity_limit is not None and abs(cmd.value) > (
+                    servo.velocity_limit
+                )
+                if too_fast or abs(value) > vel_limit:
+                    raise ValueError(f"{self.name}: joint {cmd.joint}: {cmd.value} rad/s too fast")
+            else:
+                reg, value = ct.GOAL_CURRENT, servo.current_units(cmd.value)
+                too_hard = servo.effort_limit is not None and abs(cmd.value) > servo.effort_limit
+                if too_hard or abs(value) > cur_limit:
+                    raise ValueError(f"{self.name}: joint {cmd.joint}: {cmd.value} N·m too much")
+            goals.setdefault(reg.address, {})[servo.id] = p.to_le(value, reg.size)
+        order = (ct.PROFILE_VELOCITY, ct.GOAL_POSITION, ct.GOAL_VELOCITY, ct.GOAL_CURRENT)
+        with self._bus:
+            for reg in order:
+                if reg.address in goals:
+                    result = self._writer(reg).write(goals[reg.address])
+                    if result != _sdk.COMM_SUCCESS:
+                        text = self._port().result_text(result)
+                        raise DriverOperationError(f"{self.name}: SyncWrite of {reg.name}: {text}")
+
+    # ---- lifecycle hooks ----------------------------------------------------------------------
+
+    def on_configure(self) -> None:
+        """Open the port, check every servo, set its mode, read once and start polling."""
+        self._stop_polling()
+        port = self._sdk
+        if port is None or not port.is_open:
+            port = _sdk.SdkPort(self.port, self.baud, self.reply_timeout)
+            try:
+                port.open()
+            except OSError as err:
+                raise DriverUnavailableError(
+                    f"{self.name}: cannot open {self.port}: {err}"
+                ) from err
+            except ValueError as err:
+                raise DriverInitError(f"{self.name}: {err}") from err
+            self._sdk = port
+        with self._bus:
+            for servo in self.servos:
+                self._bring_up(servo)
+            self._fast = port.sync_reader(*ct.FAST_READ, self._ids)
+            self._slow = port.sync_reader(*ct.STATUS_READ, self._ids)
+            self._errors = port.sync_reader(ct.HARDWARE_ERROR_STATUS.address, 1, self._ids)
+            self._torques = port.sync_reader(ct.TORQUE_ENABLE.address, 1, self._ids)
+            self._writers = {}
+        self._failures = 0
+        self._comm_fault = self._hw_fault = False
+        if not self._poll_fast():
+            raise DriverInitError(f"{self.name}: the first SyncRead of the chain failed")
+        self._poll_status()
+        self._start_polling()
+
+    def on_activate(self) -> None:
+        """Hold where each servo is, then turn torque on."""
+        with self._bus:
+            result, data, errors = self._reader("fast").read()
+            if result != _sdk.COMM_SUCCESS:
+                raise self._comm_error("read before torque on", result)
+            self._raise_alerts(errors)
+            holds: dict[int, bytes] = {}
+            for servo in self.servos:
+                if servo.operating_mode in _POSITION_MODES:
+                    holds[servo.id] = data[servo.id][6:10]  # present position → goal
+            if holds:
+                self._check_tx(self._writer(ct.GOAL_POSITION).write(holds))
+            zero = {s.id: p.to_le(0, 4) for s in self.servos if s.mode == "velocity"}
+            if zero:
+                self._check_tx(self._writer(ct.GOAL_VELOCITY).write(zero))
+            zero = {s.id: p.to_le(0, 2) for s in self.servos if s.mode == "current"}
+            if zero:
+                self._check_tx(self._writer(ct.GOAL_CURRENT).write(zero))
+            for servo in self.servos:
+                self._write(servo.id, ct.TORQUE_ENABLE, 1, "torque on")
+
+    def on_deactivate(self) -> None:
+        """Turn torque off."""
+        with self._bus:
+            for servo in self.servos:
+                self._write(servo.id, ct.TORQUE_ENABLE, 0, "torque off")
+
+    def on_recover(self) -> None:
+        """Reboot servos with a hardware error and configure again (torque off)."""
+        self._stop_polling()
+        self.on_configure()
+
+    def on_shutdown(self) -> None:
+        """Stop polling, turn torque off (best effort) and close the port."""
+        self._stop_polling()
+        port, self._sdk = self._sdk, None
+        if port is None:
+            return
+        with self._bus:
+            if port.is_open:  # one SYNC_WRITE: nothing to wait for if the chain is gone
+                result = port.sync_writer(ct.TORQUE_ENABLE.address, 1).write(
+                    dict.fromkeys(self._ids, b"\x00")
+                )
+                if result != _sdk.COMM_SUCCESS:
+                    logger.info("%s: torque off: %s", self.name, port.result_text(result))
+            port.close()
+        self._fast = self._slow = self._errors = self._torques = None
+        self._writers = {}
+
+    # ---- bring-up -----------------------------------------------------------------------------
+
+    def _bring_up(self, servo: ServoConfig) -> None:
+        port = self._port()
+        model = self._ping(servo.id)
+        if model != servo.spec.number:
+            found = ct.MODELS_BY_NUMBER.get(model)
+            raise DriverInitError(
+                f"{self.name}: servo {servo.id} ({servo.joint}) is"
+                f" {found.name if found else f'model {model}'}, the profile says {servo.model}"
+            )
+        bits = self._read(servo.id, ct.HARDWARE_ERROR_STATUS, "hardware error", alert_ok=True)
+        if bits:
+            logger.warning(
+                "%s: servo %d (%s) reports %s: rebooting it",
+                self.name,
+                servo.id,
+                servo.joint,
+                ", ".join(p.decode_hardware_error(bits)),
+            )
+            result, _ = port.reboot(servo.id)
+            if result != _sdk.COMM_SUCCESS:
+                raise self._comm_error(f"reboot of servo {servo.id}", result)
+            self._ping(servo.id, tries=_REBOOT_WAIT_TRIES)
+            bits = self._read(servo.id, ct.HARDWARE_ERROR_STATUS, "hardware error", alert_ok=True)
+            if bits:
+                raise self._hardware_error(servo.id, bits)
+        self._write(servo.id, ct.TORQUE_ENABLE, 0, "torque off")
+        if self._read(servo.id, ct.OPERATING_MODE, "operating mode") != servo.operating_mode:
+            self._write(servo.id, ct.OPERATING_MODE, servo.operating_mode, "operating mode")
+        velocity_limit = self._read(servo.id, _VELOCITY_LIMIT, "velocity limit")
+        current_limit = self._read(servo.id, _CURRENT_LIMIT, "current limit")
+        self._limits[servo.id] = (velocity_limit, current_limit)
+
+    def _ping(self, dxl_id: int, tries: int = _PING_TRIES) -> int:
+        port = self._port()
+        result = _sdk.COMM_TX_FAIL
+        for _ in range(tries):
+            model, result, _ = port.ping(dxl_id)
+            if result == _sdk.COMM_SUCCESS:
+                return model
+        joint = self._by_id[dxl_id].joint
+        raise DriverInitError(
+            f"{self.name}: servo {dxl_id} ({joint}) does not answer PING on {self.port}:"
+            f" {port.result_text(result)}"
+        )
+
+    # ---- polling ------------------------------------------------------------------------------
+
+    def _start_polling(self) -> None:
+        self._stop.clear()
+        self._poller = threading.Thread(target=self._run, name=f"temoto-dxl-{self.name}")
+        self._poller.start()
+
+    def _stop_polling(self) -> None:
+        thread, self._poller = self._poller, None
+        if thread is None:
+            return
+        with self._wake:
+            self._stop.set()
+            self._wake.notify_all()
+        thread.join(10.0)
+
+    def _run(self) -> None:
+        count = 0
+        deadline = self.clock.monotonic()
+        while not self._stop.is_set():
+            count += 1
+            try:
+                if self._poll_fast() and count % self.status_every == 0:
+                    self._poll_status()
+            except Exception:  # keep polling; a bug must not silently end the thread
+                logger.exception("%s: poll failed", self.name)
+            deadline += self.period
+            with self._wake:
+                if self._stop.is_set():
+                    break
+                remaining = deadline - self.clock.monotonic()
+                if remaining > 0:
+                    self.clock.wait(self._wake, remaining)
+                else:
+                    deadline = self.clock.monotonic()  # late: do not try to catch up
+
+    def _poll_fast(self) -> bool:
+        """One SyncRead of the chain; faults and recovery follow from it. True if it worked."""
+        with self._bus:
+            reader = self._fast
+            if reader is None:
+                return False
+            result, data, errors = reader.read()
+        stamp = self.clock.monotonic()
+        if result != _sdk.COMM_SUCCESS:
+            self._failures += 1
+            if self._failures >= self.timeout_polls:
+                self._comm_fault = True
+                self.report_fault(self._comm_error(f"{self._failures} polls in a row", result))
+            return False
+        self._failures = 0
+        joints: dict[str, JointState] = {}
+        for servo in self.servos:
+            raw = data[servo.id]
+            current = p.from_le(raw[0:2], signed=True)
+            velocity = p.from_le(raw[2:6], signed=True)
+            position = p.from_le(raw[6:10], signed=True)
+            joints[servo.joint] = JointState(
+                servo.joint,
+                servo.position(position),
+                servo.velocity(velocity),
+                servo.effort(current),
+                stamp,
+            )
+        with self._cache:
+            self._states = JointStates(stamp, joints)
+        if any(e & p.ALERT_BIT for e in errors.values()):
+            self._poll_status()
+        elif self._comm_fault and not self._hw_fault:
+            self._comm_fault = False
+            self._after_link_came_back()
+        return True
+
+    def _after_link_came_back(self) -> None:
+        was_active = self.state is DriverState.FAULT and self._before_fault is DriverState.ACTIVE
+        if was_active:
+            with self._bus:
+                result, data, _ = self._reader("torques").read()
+            if result != _sdk.COMM_SUCCESS:
+                self._comm_fault = True
+                return
+            off = [i for i in self._ids if data[i][0] == 0]
+            if off:
+                self.report_fault(
+                    DriverOperationError(
+                        f"{self.name}: servo(s) {', '.join(map(str, off))} lost torque while"
+                        " unreachable (power cycled?); recover() and activate() again"
+                    )
+                )
+                return
+        self.report_recovered("the chain answers again")
+
+    def _poll_status(self) -> None:
+        """Read voltage, temperature and hardware error status; report hardware errors."""
+        with self._bus:
+            if self._slow is None or self._errors is None:
+                return
+            result, slow, _ = self._slow.read()
+            result2, bits, _ = self._errors.read() if result == _sdk.COMM_SUCCESS else (0, {}, {})
+        if result != _sdk.COMM_SUCCESS or result2 != _sdk.COMM_SUCCESS:
+            return  # the fast poll counts communication failures
+        stamp = self.clock.monotonic()
+        status: dict[int, ServoStatus] = {}
+        failing: list[tuple[int, int]] = []
+        for servo in self.servos:
+            value = bits[servo.id][0]
+            status[servo.id] = ServoStatus(
+                servo.id,
+                servo.joint,
+                float(slow[servo.id][2]),
+                p.from_le(slow[servo.id][0:2]) * ct.VOLT_PER_UNIT,
+                value,
+                p.decode_hardware_error(value),
+                stamp,
+            )
+            if value:
+                failing.append((servo.id, value))
+        with self._cache:
+            self._status = status
+        if failing:
+            self._hw_fault = True
+            self.report_fault(self._hardware_error(*failing[0], also=failing[1:]))
+
+    # ---- helpers ------------------------------------------------------------------------------
+
+    def _port(self) -> _sdk.SdkPort:
+        if self._sdk is None:
+            raise StateError(f"{self.name}: the port is not open")
+        return self._sdk
+
+    def _reader(self, which: str) -> _sdk.SyncReader:
+        reader = {"fast": self._fast, "torques": self._torques}[which]
+        if reader is None:
+            raise StateError(f"{self.name}: not configured")
+        return reader
+
+    def _writer(self, reg: ct.Register) -> _sdk.SyncWriter:
+        writer = self._writers.get(reg.address)
+        if writer is None:
+            writer = self._port().sync_writer(reg.address, reg.size)
+            self._writers[reg.address] = writer
+        return writer
+
+    def _check_tx(self, result: int) -> None:
+        if result != _sdk.COMM_SUCCESS:
+            raise self._comm_error("SyncWrite", result)
+
+    def _read(self, dxl_id: int, reg: ct.Register, what: str, alert_ok: bool = False) -> int:
+        for _ in range(_TRIES):
+            value, result, error = self._port().read(dxl_id, reg.address, reg.size)
+            if result == _sdk.COMM_SUCCESS:
+                break
+        self._check_reply(dxl_id, what, result, error & ~p.ALERT_BIT if alert_ok else error)
+        if reg.signed and value >= 1 << (8 * reg.size - 1):
+            value -= 1 << (8 * reg.size)
+        return value
+
+    def _write(self, dxl_id: int, reg: ct.Register, value: int, what: str) -> None:
+        for _ in range(_TRIES):
+            result, error = self._port().write(dxl_id, reg.address, reg.size, value)
+            if result == _sdk.COMM_SUCCESS:
+                break
+        self._check_reply(dxl_id, what, result, error)
+
+    def _check_reply(self, dxl_id: int, what: str, result: int, error: int) -> None:
+        if result != _sdk.COMM_SUCCESS:
+            raise self._comm_error(f"{what} of servo {dxl_id}", result)
+        if error & p.ALERT_BIT:
+            bits, result, _ = self._port().read(dxl_id, ct.HARDWARE_ERROR_STATUS.address, 1)
+            raise self._hardware_error(dxl_id, bits if result == _sdk.COMM_SUCCESS else 0)
+        if error:
+            number = error & 0x7F
+            name = p.ErrorNumber(number).name if number <= 7 else str(number)
+            raise DriverOperationError(f"{self.name}: servo {dxl_id} refused {what}: {name}")
+
+    def _raise_alerts(self, errors: Mapping[int, int]) -> None:
+        for dxl_id, error in errors.items():
+            if error & p.ALERT_BIT:
+                bits, result, _ = self._port().read(dxl_id, ct.HARDWARE_ERROR_STATUS.address, 1)
+                raise self._hardware_error(dxl_id, bits if result == _sdk.COMM_SUCCESS else 0)
+
+    def _comm_error(self, what: str, result: int) -> DriverError:
+        text = self._sdk.result_text(result) if self._sdk is not None else str(result)
+        message = f"{self.name}: {what}: {text}"
+        if result == _sdk.COMM_RX_TIMEOUT:
+            return DriverTimeoutError(f"{message} (no reply)")
+        return DriverOperationError(message)
+
+    def _hardware_error(
+        self, dxl_id: int, bits: int, also: Sequence[tuple[int, int]] = ()
+    ) -> DynamixelHardwareError:
+        servo = self._by_id[dxl_id]
+        names = ", ".join(p.decode_hardware_error(bits)) or "alert bit"
+        more = "".join(f"; servo {i}: {', '.join(p.decode_hardware_error(b))}" for i, b in also)
+        return DynamixelHardwareError(
+            f"{self.name}: servo {dxl_id} ({servo.joint}) hardware error: {names}{more}"
+            " (recover() reboots it)",
+            servo_id=dxl_id,
+            error=bits,
+        )
+
+
+_VELOCITY_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Velocity Limit")
+_CURRENT_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Current Limit")
+
+
+# ---- profile parsing ----------------------------------------------------------------------------
+
+
+def _parse_profile(config: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """Validate a device entry; keyword arguments for :class:`DynamixelDriver`."""
+    if not isinstance(config, Mapping):
+        raise ProfileError(f"{where}: a device entry must be a mapping")
+    unknown = sorted(set(config) - _TOP_KEYS)
+    if unknown:
+        raise ProfileError(
+            f"{where}.{unknown[0]}: unknown key (known: {', '.join(sorted(_TOP_KEYS))})"
+        )
+    if config.get("driver", "dynamixel") != "dynamixel":
+        raise ProfileError(f"{where}.driver: must be 'dynamixel', got {config['driver']!r}")
+    if "link" not in config:
+        raise ProfileError(f"{where}.link: missing (e.g. 'serial:/dev/ttyUSB0?baud=57600')")
+    port, link_baud = _parse_link(config["link"], f"{where}.link")
+    baud = config.get("baud", link_baud if link_baud is not None else 57600)
+    if not isinstance(baud, int) or isinstance(baud, bool) or baud not in BAUD_RATES:
+        raise ProfileError(f"{where}.baud: must be one of {sorted(BAUD_RATES)}, got {baud!r}")
+    if link_baud is not None and baud != link_baud:
+        raise ProfileError(f"{where}.baud: {baud} contradicts the link's baud={link_baud}")
+    out: dict[str, Any] = {"port": port, "baud": baud}
+    rate = config.get("poll_rate", 50.0)
+    if not _number(rate) or not 0 < rate <= 1000:
+        raise ProfileError(f"{where}.poll_rate: must be a number in (0, 1000] Hz, got {rate!r}")
+    out["poll_rate"] = float(rate)
+    reply = config.get("reply_timeout", 0.034)
+    if not _number(reply) or not 0 < reply <= 1:
+        raise ProfileError(f"{where}.reply_timeout: must be a number in (0, 1] s, got {reply!r}")
+    out["reply_timeout"] = float(reply)
+    for key, default in (("status_every", 10), ("timeout_polls", 3)):
+        value = config.get(key, default)
+        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+            raise ProfileError(f"{where}.{key}: must be an integer >= 1, got {value!r}")
+        out[key] = value
+    servos = config.get("servos")
+    if not isinstance(servos, Sequence) or isinstance(servos, str) or not servos:
+        raise ProfileError(f"{where}.servos: must be a non-empty list of servos")
+    parsed: list[ServoConfig] = []
+    ids: dict[int, int] = {}
+    joints: dict[str, int] = {}
+    for i, entry in enumerate(servos):
+        at = f"{where}.servos[{i}]"
+        servo = _parse_servo(entry, at)
+        if servo.id in ids:
+            raise ProfileError(f"{at}.id: duplicate id {servo.id} (also servos[{ids[servo.id]}])")
+        if servo.joint in joints:
+            raise ProfileError(
+                f"{at}.joint: duplicate joint {servo.joint!r} (also servos[{joints[servo.joint]}])"
+            )
+        ids[servo.id] = i
+        joints[servo.joint] = i
+        parsed.append(servo)
+    out["servos"] = parsed
+    return out
+
+
+def _parse_servo(entry: Any, at: str) -> ServoConfig:
+    if not isinstance(entry, Mapping):
+        raise ProfileError(f"{at}: a servo must be a mapping")
+    unknown = sorted(set(entry) - _SERVO_KEYS)
+    if unknown:
+        known = ", ".join(sorted(_SERVO_KEYS))
+        raise ProfileError(f"{at}.{unknown[0]}: unknown key (known: {known})")
+    for key in ("id", "joint", "model"):
+        if key not in entry:
+            raise ProfileError(f"{at}.{key}: missing")
+    dxl_id = entry["id"]
+    if not isinstance(dxl_id, int) or isinstance(dxl_id, bool) or not 0 <= dxl_id <= p.MAX_ID:
+        raise ProfileError(f"{at}.id: must be an integer 0..{p.MAX_ID}, got {dxl_id!r}")
+    if not isinstance(entry["joint"], str) or not entry["joint"]:
+        raise ProfileError(f"{at}.joint: must be a non-empty string")
+    model = entry["model"]
+    if model not in ct.MODELS:
+        raise ProfileError(f"{at}.model: unknown model {model!r} (known: {', '.join(ct.MODELS)})")
+    mode = entry.get("mode", "position")
+    if mode not in MODES:
+        raise ProfileError(f"{at}.mode: unknown mode {mode!r} (known: {', '.join(MODES)})")
+    floats: dict[str, float] = {}
+    for key in (
+        "min_position",
+        "max_position",
+        "velocity_limit",
+        "effort_limit",
+        "gear",
+        "offset",
+        "torque_constant",
+    ):
+        if key in entry:
+            if not _number(entry[key]) or not math.isfinite(entry[key]):
+                raise ProfileError(f"{at}.{key}: must be a finite number, got {entry[key]!r}")
+            floats[key] = float(entry[key])
+    try:
+        return ServoConfig(id=dxl_id, joint=entry["joint"], model=model, mode=mode, **floats)
+    except _FieldError as err:
+        raise ProfileError(f"{at}.{err.key}: {err}") from err
+
+
+def _parse_link(link: Any, at: str) -> tuple[str, int | None]:
+    if not isinstance(link, str) or not link:
+        raise ProfileError(f"{at}: must be a string like 'serial:/dev/ttyUSB0?baud=57600'")
+    rest = link
+    if ":" in link.split("/", 1)[0]:
+        scheme, _, rest = link.partition(":")
+        if scheme != "serial":
+            raise ProfileError(f"{at}: a Dynamixel chain needs a serial link, not {scheme!r}")
+    path, _, query = rest.partition("?")
+    if not path.startswith("/"):
+        raise ProfileError(f"{at}: the serial device must be an absolute path, got {path!r}")
+    baud: int | None = None
+    for part in filter(None, query.split("&")):
+        key, _, value = part.partition("=")
+        if key != "baud":
+            raise ProfileError(f"{at}: unknown link option {key!r} (known: baud)")
+        if not value.isdigit():
+            raise ProfileError(f"{at}: baud must be an integer, got {value!r}")
+        baud = int(value)
+        if baud not in BAUD_RATES:
+            raise ProfileError(f"{at}: baud must be one of {sorted(BAUD_RATES)}, got {baud}")
+    return path, baud
+
+
+def _number(value: Any) -> bool:
+    return isinstance(value, int | float) and not isinstance(value, bool)

@@ -1,0 +1,169 @@
+"""``python -m temoto.managers.robot --profile hw_profiles/<robot>.yaml``: one robot's instance.
+
+Starts everything the robot runs (ARCHITECTURE §2): its drivers (or their simulators when the
+profile says ``sim: true``), a registrar with the Process and Robot Managers, an engine whose
+actor is the robot's name with the built-in robot actions, and the fleet services (graph
+commands, shared graphs, RIS). With ``--mission GRAPH.json`` it runs that graph at once and
+exits with its result (0 iff ``on_true``); without, it serves until SIGINT or SIGTERM.
+
+This module prints (like :mod:`temoto.cli`); nothing else in the package does.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import secrets
+import signal
+import sys
+import threading
+import time
+from collections.abc import Sequence
+from typing import IO
+
+from temoto._cli_fleet import add_fleet_options, fleet_key
+from temoto.actions.builtin import ROBOT_ACTIONS
+from temoto.clock import MonotonicClock
+from temoto.config import load_profile
+from temoto.core.graph import load_graph
+from temoto.core.instrument import Instrument
+from temoto.core.states import NodeState, Result
+from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
+
+__all__ = ["main"]
+
+EXIT_OK = 0
+EXIT_FAILED = 1
+EXIT_INVALID = 2
+
+
+class _Progress(Instrument):
+    """Mission progress for people: node changes, the robot's pose, the end."""
+
+    def __init__(self, out: IO[str], t0: float) -> None:
+        self.out = out
+        self.t0 = t0
+
+    def node_transition(
+        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
+    ) -> None:
+        """Print a node's change."""
+        if new in (NodeState.RUNNING, NodeState.FINISHED, NodeState.ERROR):
+            self.out.write(f"[{time.monotonic() - self.t0:6.2f}s] {graph}: {node} {new.value}\n")
+            self.out.flush()
+
+    def graph_finished(self, graph: str, result: Result, t: float) -> None:
+        """Print the end."""
+        self.out.write(f"[{time.monotonic() - self.t0:6.2f}s] {graph}: {result.value}\n")
+        self.out.flush()
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="python -m temoto.managers.robot",
+        description="Run one robot: its drivers (or simulators), managers, engine and fleet"
+        " link, from a hardware profile.",
+    )
+    p.add_argument("--profile", required=True, metavar="FILE", help="hardware profile (YAML)")
+    p.add_argument("--mission", metavar="GRAPH.json", help="run this graph, then exit")
+    p.add_argument("--actions", action="append", default=[], metavar="DIR", help="more actions")
+    p.add_argument("--graphs", action="append", default=[], metavar="DIR", help="graph folder")
+    p.add_argument("--timeout", type=float, metavar="SECONDS", help="stop the mission after this")
+    p.add_argument("--catalog", metavar="FILE", help="the registrar's journal")
+    p.add_argument(
+        "--local",
+        action="store_true",
+        help="no fleet: nothing is sent to or taken from the network (a mission on one robot)",
+    )
+    p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    add_fleet_options(p, "the fleet this robot joins (unless --local)")
+    return p
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the robot.
+
+    Args:
+        argv: Arguments without the program name.
+
+    Returns:
+        The exit status: 0 (served until stopped, or the mission ended ``on_true``), 1 (the
+        mission ended otherwise, or a device failed), 2 (invalid input).
+    """
+    args = _parser().parse_args(argv)
+    level = logging.WARNING - 10 * min(args.verbose, 2)
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return _run(args)
+    except (ConfigError, PluginError) as err:
+        sys.stderr.write(f"temoto-robot: error: {err}\n")
+        return EXIT_INVALID
+    except (DriverError, ResourceError, TransportError) as err:
+        sys.stderr.write(f"temoto-robot: error: {err}\n")
+        return EXIT_FAILED
+
+
+def _run(args: argparse.Namespace) -> int:
+    from temoto.instance import Instance
+    from temoto.managers.robot.client import RobotManagerClient
+    from temoto.managers.robot.manager import RobotManager
+    from temoto.transport import InProcessTransport, Transport, open_transport
+
+    t0 = time.monotonic()
+    clock = MonotonicClock()
+    profile = load_profile(args.profile, clock=clock)
+    mission = load_graph(args.mission) if args.mission else None
+    transport: Transport
+    if args.local:
+        transport = InProcessTransport(f"local-{profile.robot}-{secrets.token_hex(4)}")
+        key: bytes | None = secrets.token_bytes(32)  # nobody else is on this bus
+    else:
+        key = fleet_key(args, f"robot '{profile.robot}'")
+        transport = open_transport(args.fleet_url)
+    out = sys.stdout
+    with Instance(
+        profile.robot,
+        transport=transport,
+        key=key,
+        fleet=args.fleet,
+        insecure=key is None,
+        actions=[ROBOT_ACTIONS, *args.actions],
+        graphs=args.graphs,
+        catalog=args.catalog,
+    ) as instance:
+        manager = RobotManager(instance.registrar, profile, clock=clock)
+        instance.add_manager(manager)
+        # load the robot now: a device that does not answer fails here, not mid-mission
+        robot = RobotManagerClient(instance.registrar).request(client="robot-manager")
+        where = "simulated" if profile.sim else "hardware"
+        out.write(
+            f"robot '{profile.robot}' ready in {time.monotonic() - t0:.2f} s ({where};"
+            f" {', '.join(robot.features) or 'no features'};"
+            f" fleet {'off' if args.local else args.fleet_url})\n"
+        )
+        out.flush()
+        if mission is None:
+            return _serve(profile.robot)
+        instance.engine.add_instrument(_Progress(out, t0))
+        outcome = instance.engine.run(mission, timeout=args.timeout)
+        result = outcome.result.value if outcome.result else "none"
+        out.write(f"{mission.name}: {result} in {time.monotonic() - t0:.2f} s\n")
+        for error in outcome.errors:
+            sys.stderr.write(f"  error: {error}\n")
+        return EXIT_OK if outcome.result is Result.TRUE else EXIT_FAILED
+
+
+def _serve(robot: str) -> int:
+    stop = threading.Event()
+    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        sys.stderr.write(f"robot '{robot}' serving; Ctrl-C stops it\n")
+        stop.wait()
+    finally:
+        for signum, handler in previous.items():
+            signal.signal(signum, handler)
+    return EXIT_OK
+
+
+if __name__ == "__main__":
+    sys.exit(main())

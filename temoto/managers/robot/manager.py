@@ -1,0 +1,410 @@
+"""The Robot Manager: robots from hardware profiles, as registrar resources (REFERENCE §4.2).
+
+Two servers on the registrar:
+
+* ``"driver"`` (:class:`DriverRequest`): one device of the profile, opened, configured and
+  activated (its simulator started first when the profile says ``sim: true``). The driver's
+  health reports become statuses of the resource: a fault is ``FATAL`` (with the driver's
+  typed error as the message), a recovery ``OK``.
+* ``"robot"`` (:class:`RobotRequest`): the robot. Loading it requests a ``"driver"`` for every
+  device — dependencies, so a driver's ``FATAL`` reaches every consumer of the robot, and the
+  drivers are closed when the last consumer releases the robot — and builds the features
+  (:mod:`temoto.managers.robot.features`), stepped by one control thread on the robot's clock.
+
+Consumers use :class:`~temoto.managers.robot.client.RobotManagerClient`, never the drivers.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, ClassVar
+
+from temoto.clock import Clock, MonotonicClock
+from temoto.config import Profile
+from temoto.core.registrar import LoadContext, Registrar, ResourceServer, Status
+from temoto.drivers import Actuator, Driver, DriverState, Health, Vehicle, driver_class
+from temoto.drivers.sim import Simulator
+from temoto.errors import ResourceNotFoundError, StateError
+from temoto.managers.robot.features import (
+    ArmController,
+    DriveController,
+    FlightController,
+    controllers_step,
+)
+
+__all__ = [
+    "DriverRequest",
+    "DriverResponse",
+    "Robot",
+    "RobotManager",
+    "RobotRequest",
+    "RobotResponse",
+]
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True)
+class DriverRequest:
+    """One device of a robot.
+
+    Attributes:
+        robot: The robot's name.
+        device: The device's name in the profile.
+    """
+
+    robot: str
+    device: str
+
+
+@dataclass(frozen=True)
+class DriverResponse:
+    """A loaded device.
+
+    Attributes:
+        driver: The driver's registry name.
+        joints: The joints it moves.
+        simulated: Whether its simulator runs in this process.
+    """
+
+    driver: str
+    joints: tuple[str, ...]
+    simulated: bool
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "joints", tuple(self.joints))  # JSON gives lists back
+
+
+@dataclass(frozen=True)
+class RobotRequest:
+    """A robot of the profile.
+
+    Attributes:
+        robot: Its name (empty: the manager's robot).
+    """
+
+    robot: str = ""
+
+
+@dataclass(frozen=True)
+class RobotResponse:
+    """A loaded robot.
+
+    Attributes:
+        robot: Its name.
+        features: ``navigation``, ``manipulation``, ``flight`` (those it has).
+        devices: Its devices.
+    """
+
+    robot: str
+    features: tuple[str, ...]
+    devices: tuple[str, ...]
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "features", tuple(self.features))
+        object.__setattr__(self, "devices", tuple(self.devices))
+
+
+@dataclass(eq=False)
+class _Device:
+    driver: Driver
+    sim: Simulator | None
+    remove_listener: Any = None
+    faulted: bool = False  # a FATAL was sent and no OK since
+
+
+class Robot:
+    """A loaded robot: its features and the thread that steps them.
+
+    Created by the manager; consumers reach it through the client.
+    """
+
+    def __init__(
+        self,
+        profile: Profile,
+        devices: Mapping[str, Driver],
+        clock: Clock,
+        rate_hz: float,
+    ) -> None:
+        self.name = profile.robot
+        self.profile = profile
+        self.clock = clock
+        self.period = 1.0 / rate_hz
+        self._devices = dict(devices)
+        self.drive: DriveController | None = None
+        self.arm: ArmController | None = None
+        self.flight: FlightController | None = None
+        if profile.navigation is not None:
+            nav = profile.navigation
+            left = self._actuator(profile.joint_device(nav.left_wheel))
+            right = self._actuator(profile.joint_device(nav.right_wheel))
+            self.drive = DriveController(nav, (left, right))
+        if profile.manipulation is not None:
+            arm = profile.manipulation
+            self.arm = ArmController(arm, self._actuator(arm.device))
+        if profile.flight is not None:
+            vehicle = self._devices[profile.flight.device]
+            assert isinstance(vehicle, Vehicle)
+            self.flight = FlightController(profile.flight, vehicle)
+        self._cond = threading.Condition()
+        self._stopping = False
+        self._errors_logged = 0
+        self._thread = threading.Thread(
+            target=self._loop, name=f"temoto-robot-{self.name}", daemon=True
+        )
+        self._thread.start()
+
+    def _actuator(self, device: str) -> Actuator:
+        driver = self._devices[device]
+        if not isinstance(driver, Actuator):
+            raise StateError(f"device '{device}' has no joints")
+        return driver
+
+    @property
+    def features(self) -> tuple[str, ...]:
+        """The features it has."""
+        return self.profile.features
+
+    def healthy(self) -> bool:
+        """Whether every device is configured and not in FAULT."""
+        return all(d.health().ok for d in self._devices.values())
+
+    def health(self) -> dict[str, Health]:
+        """Each device's health."""
+        return {name: d.health() for name, d in self._devices.items()}
+
+    def close(self) -> None:
+        """Stop the control thread (the drivers are closed by their resources)."""
+        for controller in (self.drive, self.arm):
+            if controller is not None:
+                controller.stop()
+        with self._cond:
+            self._stopping = True
+            self._cond.notify_all()
+        if threading.current_thread() is not self._thread:
+            self._thread.join(5.0)
+
+    def _loop(self) -> None:
+        controllers = [c for c in (self.drive, self.arm, self.flight) if c is not None]
+        next_step = self.clock.monotonic()
+        while True:
+            with self._cond:
+                while not self._stopping:
+                    remaining = next_step - self.clock.monotonic()
+                    if remaining <= 0:
+                        break
+                    self.clock.wait(self._cond, remaining)
+                if self._stopping:
+                    return
+            next_step += self.period
+            now = self.clock.monotonic()
+            if next_step < now - self.period:  # fell behind (a slow step): do not catch up
+                next_step = now + self.period
+            if not self.healthy():
+                continue  # a faulted device: its consumers were told; nothing to command
+            for err in controllers_step(controllers, self.period):
+                self._errors_logged += 1
+                if self._errors_logged <= 10 or self._errors_logged % 1000 == 0:
+                    logger.warning("robot %s: control step failed: %s", self.name, err)
+
+
+class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
+    """Serves the robot of one profile (``"robot"``) and its devices (``"driver"``).
+
+    Args:
+        registrar: The registrar to serve on (both servers are registered here).
+        profile: The robot's checked profile.
+        clock: The robot's clock (drivers, simulators, control loop).
+        rate_hz: The control loop's rate.
+
+    Raises:
+        ValueError: ``rate_hz`` is not positive, or the servers exist already.
+    """
+
+    name: ClassVar[str] = "robot"
+    request_type: ClassVar[type[Any]] = RobotRequest
+    response_type: ClassVar[type[Any]] = RobotResponse
+
+    def __init__(
+        self,
+        registrar: Registrar,
+        profile: Profile,
+        *,
+        clock: Clock | None = None,
+        rate_hz: float = 50.0,
+    ) -> None:
+        if not rate_hz > 0:
+            raise ValueError("rate_hz must be positive")
+        self.registrar = registrar
+        self.profile = profile
+        self.clock: Clock = clock or MonotonicClock()
+        self.rate_hz = rate_hz
+        self._lock = threading.Lock()
+        self._devices: dict[str, _Device] = {}
+        self._robots: dict[str, Robot] = {}
+        self._drivers = _DriverServer(self)
+        registrar.register(self._drivers)
+        registrar.register(self)
+
+    # ---- consumers' access -------------------------------------------------------------------
+
+    def robot(self, name: str = "") -> Robot:
+        """A loaded robot.
+
+        Args:
+            name: Its name (empty: this manager's robot).
+
+        Returns:
+            The robot.
+
+        Raises:
+            StateError: It is not loaded (request it through the registrar first).
+        """
+        name = name or self.profile.robot
+        with self._lock:
+            robot = self._robots.get(name)
+        if robot is None:
+            raise StateError(f"robot '{name}' is not loaded")
+        return robot
+
+    def simulator(self, device: str) -> Simulator:
+        """The simulator of a loaded device (to inject faults in demos and tests).
+
+        Args:
+            device: The device's name.
+
+        Returns:
+            Its simulator.
+
+        Raises:
+            StateError: The device is not loaded, or not simulated.
+        """
+        with self._lock:
+            loaded = self._devices.get(device)
+        if loaded is None or loaded.sim is None:
+            state = "not simulated" if loaded is not None else "not loaded"
+            raise StateError(f"device '{device}' is {state}")
+        return loaded.sim
+
+    # ---- the "robot" server ------------------------------------------------------------------
+
+    def on_load(self, request: RobotRequest, ctx: LoadContext) -> RobotResponse:
+        """Load every device (as dependencies), then build the robot."""
+        name = request.robot or self.profile.robot
+        if name != self.profile.robot:
+            raise ResourceNotFoundError(
+                f"this manager serves robot '{self.profile.robot}', not '{name}'"
+            )
+        drivers: dict[str, Driver] = {}
+        for device in self.profile.devices:
+            ctx.call("driver", DriverRequest(name, device))
+            with self._lock:
+                drivers[device] = self._devices[device].driver
+        robot = Robot(self.profile, drivers, self.clock, self.rate_hz)
+        with self._lock:
+            self._robots[name] = robot
+        logger.info("robot %s ready (%s)", name, ", ".join(self.profile.features) or "no features")
+        return RobotResponse(name, self.profile.features, tuple(self.profile.devices))
+
+    def on_unload(self, request: RobotRequest, response: RobotResponse) -> None:
+        """Stop the robot's control loop (its drivers are released as dependencies)."""
+        with self._lock:
+            robot = self._robots.pop(response.robot, None)
+        if robot is not None:
+            robot.close()
+
+    def shutdown(self) -> None:
+        """Close every robot and device still open (e.g. the registrar is closing)."""
+        with self._lock:
+            robots = list(self._robots.values())
+            devices = list(self._devices.values())
+            self._robots.clear()
+            self._devices.clear()
+        for robot in robots:
+            robot.close()
+        for device in devices:
+            _close_device(device)
+
+    # ---- devices (called by the "driver" server) ---------------------------------------------
+
+    def _open_device(self, request: DriverRequest, ctx: LoadContext) -> DriverResponse:
+        if request.robot != self.profile.robot or request.device not in self.profile.devices:
+            raise ResourceNotFoundError(f"robot '{request.robot}' has no device '{request.device}'")
+        spec = self.profile.devices[request.device]
+        cls: Any = driver_class(spec.driver)
+        where = f"{self.profile.source}: devices.{spec.name}"
+        config: Mapping[str, Any] = spec.config
+        sim: Simulator | None = None
+        if self.profile.sim:
+            sim, config = cls.simulate(spec.name, config, clock=self.clock)
+            sim.start()
+        try:
+            driver: Driver = cls.from_profile(spec.name, config, clock=self.clock, where=where)
+            device = _Device(driver, sim)
+            resource_id = ctx.resource_id
+            driver.configure()
+            driver.activate()
+            device.remove_listener = driver.add_health_listener(
+                lambda health: self._on_health(device, resource_id, health)
+            )
+        except BaseException:
+            if "driver" in locals():
+                driver.shutdown()
+            if sim is not None:
+                sim.close()
+            raise
+        with self._lock:
+            self._devices[spec.name] = device
+        return DriverResponse(spec.driver, spec.joints, sim is not None)
+
+    def _close_device(self, request: DriverRequest) -> None:
+        with self._lock:
+            device = self._devices.pop(request.device, None)
+        if device is not None:
+            _close_device(device)
+
+    def _on_health(self, device: _Device, resource_id: str, health: Health) -> None:
+        """A driver's thread: a fault is FATAL for every consumer, the recovery OK."""
+        if health.state is DriverState.FAULT:
+            device.faulted = True
+            status, message = Status.FATAL, f"{health.driver}: {health.message}"
+        elif health.ok and device.faulted:
+            device.faulted = False
+            status, message = Status.OK, f"{health.driver}: {health.message}"
+        else:
+            return
+        with contextlib.suppress(ResourceNotFoundError):  # released meanwhile
+            self.registrar.send_status(resource_id, status, message)
+
+
+def _close_device(device: _Device) -> None:
+    if device.remove_listener is not None:
+        device.remove_listener()
+    try:
+        device.driver.shutdown()
+    finally:
+        if device.sim is not None:
+            device.sim.close()
+
+
+class _DriverServer(ResourceServer[DriverRequest, DriverResponse]):
+    """The ``"driver"`` server of a :class:`RobotManager`."""
+
+    name: ClassVar[str] = "driver"
+    request_type: ClassVar[type[Any]] = DriverRequest
+    response_type: ClassVar[type[Any]] = DriverResponse
+
+    def __init__(self, manager: RobotManager) -> None:
+        self._manager = manager
+
+    def on_load(self, request: DriverRequest, ctx: LoadContext) -> DriverResponse:
+        """Open, configure and activate one device."""
+        return self._manager._open_device(request, ctx)
+
+    def on_unload(self, request: DriverRequest, response: DriverResponse) -> None:
+        """Shut the device down (and its simulator)."""
+        self._manager._close_device(request)

@@ -1,0 +1,48 @@
+"""`python -m temoto.managers.robot`: a robot's instance from a profile, with a mission."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+ARM = ROOT / "hw_profiles" / "sim_arm.yaml"
+MISSION = ROOT / "examples" / "missions" / "arm_poses.graph.json"
+
+
+def robot(*args: str, timeout: float = 60) -> subprocess.CompletedProcess[str]:
+    env = {k: v for k, v in os.environ.items() if k != "TEMOTO_FLEET_KEY"}
+    return subprocess.run(
+        [sys.executable, "-m", "temoto.managers.robot", *args],
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+        env=env,
+        check=False,
+    )
+
+
+def test_a_mission_on_the_simulated_arm_ends_on_true() -> None:
+    proc = robot("--profile", str(ARM), "--mission", str(MISSION), "--local")
+    assert proc.returncode == 0, proc.stderr
+    lines = proc.stdout.splitlines()
+    assert lines[0].startswith("robot 'sim_arm' ready in ")
+    assert "(simulated; manipulation; fleet off)" in lines[0]
+    assert any("MoveJoints_2 FINISHED" in line for line in lines)
+    assert lines[-1].startswith("arm_poses: on_true in ")
+
+
+def test_a_bad_profile_is_invalid_input_naming_the_key(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.yaml"
+    bad.write_text(ARM.read_text().replace("model: XM430-W210", "model: XM999"))
+    proc = robot("--profile", str(bad), "--mission", str(MISSION), "--local")
+    assert proc.returncode == 2
+    assert "devices.arm.servos[3].model" in proc.stderr
+
+
+def test_joining_a_fleet_needs_a_key_or_insecure() -> None:
+    proc = robot("--profile", str(ARM))
+    assert proc.returncode == 2
+    assert "a fleet key is needed" in proc.stderr
