@@ -5,6 +5,7 @@ from __future__ import annotations
 import contextlib
 import os
 import queue
+import select
 import signal
 import subprocess
 import sys
@@ -109,6 +110,19 @@ def gone(pid: int) -> bool:
     return state is None or state == "Z"
 
 
+def wait_gone(pid: int, timeout: float = 5.0) -> None:
+    """Wait (on a pidfd, no polling) until a process has exited."""
+    try:
+        fd = os.pidfd_open(pid)
+    except ProcessLookupError:
+        return
+    try:
+        ready, _, _ = select.select([fd], [], [], timeout)
+        assert ready or gone(pid), f"process {pid} still runs after {timeout} s"
+    finally:
+        os.close(fd)
+
+
 # --- the child program ------------------------------------------------------------------------
 
 
@@ -181,6 +195,8 @@ def test_child_ignoring_term_survives_sigterm_and_grandchildren_share_its_group(
     assert not gone(child.pid)
     os.killpg(child.pid, signal.SIGKILL)
     assert exits.get() == (child.pid, None, signal.SIGKILL)
+    for pid in child.grandchildren:  # killed too; wait until the kernel has torn them down
+        wait_gone(pid)
 
 
 # --- start time -------------------------------------------------------------------------------
