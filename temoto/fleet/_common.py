@@ -9,10 +9,15 @@ import collections
 import logging
 import math
 import threading
-from collections.abc import Callable
-from typing import Any
+from collections.abc import Callable, Collection
+from types import TracebackType
+from typing import Any, Self
 
-__all__ = ["CallQueue", "check_name", "check_seconds", "new"]
+from temoto.errors import DecodeError
+from temoto.transport import codec
+from temoto.transport.auth import Opened
+
+__all__ = ["CallQueue", "Closing", "check_name", "check_seconds", "decode_or_count", "new"]
 
 logger = logging.getLogger(__name__)
 
@@ -132,3 +137,51 @@ class CallQueue:
                 with self._cond:
                     self.errors += 1
                 logger.exception("%s raised", self._what)
+
+
+class Closing:
+    """Context-manager support for a fleet service: leaving ``with`` calls ``close()``."""
+
+    def close(self) -> None:  # pragma: no cover - every subclass defines it
+        """Stop the service."""
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+
+def decode_or_count(
+    opened: Opened, expected: Collection[str], counts: dict[str, int], lock: threading.Lock
+) -> Any:
+    """The inner message of an envelope, or None (counted) if it is undecodable or unexpected.
+
+    Args:
+        opened: The authenticated envelope.
+        expected: The type names this channel carries.
+        counts: The service's counters (``decode_errors``, ``unexpected``).
+        lock: Guards ``counts``.
+
+    Returns:
+        The decoded message, or None.
+    """
+    try:
+        msg = codec.decode(opened.type, opened.payload)
+    except DecodeError as err:
+        with lock:
+            counts["decode_errors"] += 1
+        logger.debug("dropped a message from %r on %r: %s", opened.sender, opened.channel, err)
+        return None
+    if opened.type not in expected:
+        with lock:
+            counts["unexpected"] += 1
+        logger.debug("dropped a %s from %r on %r", opened.type, opened.sender, opened.channel)
+        return None
+    return msg

@@ -53,12 +53,12 @@ import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
-from types import TracebackType
-from typing import Any, Final, Self, final
+from typing import Any, Final, final
 
 from temoto.core.remote import Cancel, RemoteResult
 from temoto.core.states import Result
-from temoto.errors import DecodeError, FleetError, StateError, TransportError
+from temoto.errors import FleetError, StateError, TransportError
+from temoto.fleet._common import Closing, check_name, check_seconds, decode_or_count, new
 from temoto.lcm_types import action_ack_t, action_notification_t, handshake_t, heard_actor_t
 from temoto.transport import codec
 from temoto.transport.auth import FleetLink, Opened
@@ -105,24 +105,6 @@ _NodeKey = tuple[str, str]  # action, actor
 # the least recently heard first: a fleet busy with runs this actor is not part of.
 _MAX_STRAY_RUNS = 1024
 _WARN_INTERVAL_S = 1.0
-
-
-def _new(cls: type[Any]) -> Any:
-    """An empty message of a generated (untyped) class."""
-    return cls()
-
-
-def _check_name(what: str, value: object) -> str:
-    if not isinstance(value, str) or not value:
-        raise ValueError(f"{what} must be a non-empty string, got {value!r}")
-    return value
-
-
-def _check_seconds(what: str, value: float, *, zero: bool = False) -> float:
-    ok = isinstance(value, int | float) and math.isfinite(value)
-    if not ok or value < 0 or (value == 0 and not zero):
-        raise ValueError(f"{what} must be a {'' if zero else 'positive '}number of seconds")
-    return float(value)
 
 
 def _names(names: Sequence[str] | set[str]) -> str:
@@ -222,7 +204,7 @@ class _Watch:
 
 
 @final
-class FleetActorLink:
+class FleetActorLink(Closing):
     """The :class:`~temoto.core.remote.ActorLink` of one actor over a fleet link.
 
     It subscribes to :data:`HANDSHAKE_CHANNEL` and :data:`NOTIFY_CHANNEL` of ``link`` and
@@ -271,12 +253,12 @@ class FleetActorLink:
         wall_clock: Callable[[], float] = time.time,
     ) -> None:
         self._link = link
-        self._actor = _check_name("actor", actor)
-        self.resend_s = _check_seconds("resend_s", resend_s)
-        self.silence_s = _check_seconds("silence_s", silence_s)
-        self.grace_s = _check_seconds("grace_s", grace_s, zero=True)
-        self.stray_s = _check_seconds("stray_s", stray_s)
-        self.linger_s = _check_seconds("linger_s", linger_s, zero=True)
+        self._actor = check_name("actor", actor)
+        self.resend_s = check_seconds("resend_s", resend_s)
+        self.silence_s = check_seconds("silence_s", silence_s)
+        self.grace_s = check_seconds("grace_s", grace_s, zero=True)
+        self.stray_s = check_seconds("stray_s", stray_s)
+        self.linger_s = check_seconds("linger_s", linger_s, zero=True)
         self.heartbeat_s = min(5 * self.resend_s, self.silence_s / 3)
         self._clock = clock
         self._wall_clock = wall_clock
@@ -323,17 +305,6 @@ class FleetActorLink:
         state = "closed" if self._closed else "open"
         return f"<FleetActorLink actor={self._actor!r} {state} on {self._link!r}>"
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
-
     # --- ActorLink ----------------------------------------------------------------------------
 
     @property
@@ -363,10 +334,10 @@ class FleetActorLink:
             StateError: A handshake of this run is already running here.
             ValueError: An argument is invalid, or ``actors`` lacks this actor.
         """
-        _check_name("graph", graph)
-        _check_name("session", session)
-        timeout = _check_seconds("timeout", timeout, zero=True)
-        participants = tuple(sorted({_check_name("an actor", a) for a in actors}))
+        check_name("graph", graph)
+        check_name("session", session)
+        timeout = check_seconds("timeout", timeout, zero=True)
+        participants = tuple(sorted({check_name("an actor", a) for a in actors}))
         if self._actor not in participants:
             raise ValueError(f"actors {list(participants)} do not include this actor")
         if len(participants) == 1:
@@ -452,13 +423,13 @@ class FleetActorLink:
                 are not JSON-ready.
             ValueError: An argument is invalid.
         """
-        _check_name("graph", graph)
-        _check_name("session", session)
-        _check_name("action", action)
-        timeout = _check_seconds("timeout", timeout, zero=True)
+        check_name("graph", graph)
+        check_name("session", session)
+        check_name("action", action)
+        timeout = check_seconds("timeout", timeout, zero=True)
         if not isinstance(result, Result):
             raise ValueError(f"result must be a Result, got {result!r}")
-        others = {_check_name("an actor", a) for a in actors} - {self._actor}
+        others = {check_name("an actor", a) for a in actors} - {self._actor}
         try:
             text = json.dumps(dict(outputs), sort_keys=True, separators=(",", ":"))
         except (TypeError, ValueError, RecursionError) as err:
@@ -480,7 +451,7 @@ class FleetActorLink:
             )
         if not others:
             return
-        msg = _new(action_notification_t)
+        msg = new(action_notification_t)
         msg.graph, msg.session, msg.action, msg.actor = graph, session, action, self._actor
         msg.result, msg.outputs = result.value, text
         with self._lock:
@@ -544,8 +515,8 @@ class FleetActorLink:
             FleetError: The link is closed.
             ValueError: An argument is invalid.
         """
-        key = (_check_name("graph", graph), _check_name("session", session))
-        node = (_check_name("action", action), _check_name("actor", actor))
+        key = (check_name("graph", graph), check_name("session", session))
+        node = (check_name("action", action), check_name("actor", actor))
         with self._lock:
             self._check_open()
             run = self._runs.get(key)
@@ -602,7 +573,7 @@ class FleetActorLink:
             FleetError: The link is closed.
             ValueError: An actor name is invalid.
         """
-        names = {_check_name("an actor", a) for a in actors} - {self._actor}
+        names = {check_name("an actor", a) for a in actors} - {self._actor}
         key = (graph, session) if graph or session else None
         with self._lock:
             self._check_open()
@@ -723,19 +694,7 @@ class FleetActorLink:
 
     def _decode(self, opened: Opened, types: tuple[str, ...]) -> Any:
         """The inner message, or None (counted) if it cannot be decoded or is not expected."""
-        try:
-            msg = codec.decode(opened.type, opened.payload)
-        except DecodeError as err:
-            with self._lock:
-                self._counts["decode_errors"] += 1
-            logger.debug("dropped a message from %r on %r: %s", opened.sender, opened.channel, err)
-            return None
-        if opened.type not in types:
-            with self._lock:
-                self._counts["unexpected"] += 1
-            logger.debug("dropped a %s from %r on %r", opened.type, opened.sender, opened.channel)
-            return None
-        return msg
+        return decode_or_count(opened, types, self._counts, self._lock)
 
     def _on_handshake(self, opened: Opened) -> None:
         msg = self._decode(opened, ("handshake_t",))
@@ -875,7 +834,7 @@ class FleetActorLink:
             self._counts["notifications_received"] += 1
         # The acknowledgement leaves before the callback can run: an actor whose run ends
         # with this notification may close its link at once.
-        ack = _new(action_ack_t)
+        ack = new(action_ack_t)
         ack.notification_id, ack.graph, ack.session = msg.notification_id, msg.graph, msg.session
         ack.actor = self._actor
         self._send_quietly(NOTIFY_CHANNEL, ack, "acks_sent")
@@ -1160,13 +1119,13 @@ class FleetActorLink:
         actors: Sequence[str],
         heard: Mapping[str, int],
     ) -> Any:
-        msg = _new(handshake_t)
+        msg = new(handshake_t)
         msg.phase, msg.graph, msg.session, msg.actor = phase, graph, session, self._actor
         msg.stamp_us = self._stamp()
         msg.actors = list(actors)
         msg.heard = []
         for name, stamp in sorted(heard.items()):
-            entry = _new(heard_actor_t)
+            entry = new(heard_actor_t)
             entry.actor, entry.stamp_us = name, stamp
             msg.heard.append(entry)
         return msg

@@ -35,8 +35,7 @@ import time
 from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from types import TracebackType
-from typing import Any, Final, Self
+from typing import Any, Final
 
 from temoto.core.engine import ActionEngine
 from temoto.core.graph import UmrfGraph, graph_from_document
@@ -44,12 +43,12 @@ from temoto.core.instrument import Instrument
 from temoto.core.planning import graph_inputs_from_text
 from temoto.core.states import GraphState, NodeState, Result
 from temoto.errors import (
-    DecodeError,
     FleetError,
     GraphNotFoundError,
     TemotoError,
     TransportError,
 )
+from temoto.fleet._common import Closing, decode_or_count, new
 from temoto.lcm_types import graph_command_reply_t, graph_command_t, graph_feedback_t, node_state_t
 from temoto.transport import codec
 from temoto.transport.auth import FleetLink, Opened
@@ -95,28 +94,6 @@ _ENDED_STATES: Final = frozenset(
 )
 
 
-def _new(cls: type[Any]) -> Any:
-    """An empty message of a generated (untyped) class."""
-    return cls()
-
-
-def _decode(opened: Opened, expected: str, stats: dict[str, int], lock: threading.Lock) -> Any:
-    """The inner message, or None (counted) if it cannot be decoded or is not ``expected``."""
-    try:
-        msg = codec.decode(opened.type, opened.payload)
-    except DecodeError as err:
-        with lock:
-            stats["decode_errors"] += 1
-        logger.debug("dropped a message from %r on %r: %s", opened.sender, opened.channel, err)
-        return None
-    if opened.type != expected:
-        with lock:
-            stats["unexpected"] += 1
-        logger.debug("dropped a %s from %r on %r", opened.type, opened.sender, opened.channel)
-        return None
-    return msg
-
-
 # ===================================================================================== server
 
 
@@ -147,7 +124,7 @@ class _Changes(Instrument):
         self._mark(graph)
 
 
-class GraphControlServer:
+class GraphControlServer(Closing):
     """Carries out graph commands addressed to an engine's actor; publishes its feedback.
 
     Args:
@@ -220,14 +197,6 @@ class GraphControlServer:
             self.close()
             raise
 
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
-
     @property
     def stats(self) -> dict[str, int]:
         """Counters (see :attr:`STATS`)."""
@@ -251,7 +220,7 @@ class GraphControlServer:
 
     def _on_command(self, opened: Opened) -> None:
         """Transport thread: take a command for this actor, or answer a re-sent one."""
-        msg = _decode(opened, "graph_command_t", self._counts, self._lock)
+        msg = decode_or_count(opened, ("graph_command_t",), self._counts, self._lock)
         if msg is None:
             return
         targets = list(msg.targets)
@@ -283,7 +252,7 @@ class GraphControlServer:
 
     def _carry_out(self, msg: Any) -> None:
         """Worker thread: run one command on the engine and answer it."""
-        reply = _new(graph_command_reply_t)
+        reply = new(graph_command_reply_t)
         reply.request_id, reply.actor = msg.request_id, self.actor
         reply.graph, reply.session = msg.graph, msg.session
         reply.code, reply.result, reply.message, reply.errors = _OK, "", "", "[]"
@@ -407,13 +376,13 @@ class GraphControlServer:
             ended = [g for g in self._known if states.get(g, _GONE) in _ENDED_STATES]
             for old in ended[: max(0, len(self._known) - _ENDED_KEPT)]:
                 del self._known[old]
-        msg = _new(graph_feedback_t)
+        msg = new(graph_feedback_t)
         msg.actor, msg.graph, msg.session = self.actor, graph, graph
         msg.state = outcome.state.value
         msg.result = outcome.result.value if outcome.result is not None else ""
         msg.nodes = []
         for name, state in nodes.items():
-            node = _new(node_state_t)
+            node = new(node_state_t)
             node.name, node.state, node.result = name, state.value, ""
             msg.nodes.append(node)
         msg.nodes_count = len(msg.nodes)
@@ -507,7 +476,7 @@ class GraphFeedback:
     nodes: tuple[tuple[str, str], ...]
 
 
-class GraphCommander:
+class GraphCommander(Closing):
     """Sends graph commands to instances and watches their feedback.
 
     Args:
@@ -535,14 +504,6 @@ class GraphCommander:
             link.listen(REPLY_CHANNEL, self._on_reply),
             link.listen(FEEDBACK_CHANNEL, self._on_feedback),
         ]
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
     def close(self) -> None:
         """Stop listening; waiting commands fail."""
@@ -593,7 +554,7 @@ class GraphCommander:
             graph = str(graph_json.get("graph_name", ""))
         if not (graph or session):
             raise ValueError(f"{command}: name the graph")
-        msg = _new(graph_command_t)
+        msg = new(graph_command_t)
         msg.request_id = f"{self._prefix}/{next(self._ids)}"
         msg.command, msg.targets, msg.targets_count = code, wanted, len(wanted)
         msg.graph, msg.session, msg.continue_from = graph, session, continue_from
@@ -652,7 +613,7 @@ class GraphCommander:
             return dict(self._stats)
 
     def _on_reply(self, opened: Opened) -> None:
-        msg = _decode(opened, "graph_command_reply_t", self._stats, self._lock)
+        msg = decode_or_count(opened, ("graph_command_reply_t",), self._stats, self._lock)
         if msg is None:
             return
         try:
@@ -676,7 +637,7 @@ class GraphCommander:
             self._changed.notify_all()
 
     def _on_feedback(self, opened: Opened) -> None:
-        msg = _decode(opened, "graph_feedback_t", self._stats, self._lock)
+        msg = decode_or_count(opened, ("graph_feedback_t",), self._stats, self._lock)
         if msg is None:
             return
         feedback = GraphFeedback(

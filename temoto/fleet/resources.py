@@ -38,8 +38,7 @@ import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from types import TracebackType
-from typing import TYPE_CHECKING, Any, ClassVar, Final, Self, final
+from typing import TYPE_CHECKING, Any, ClassVar, Final, final
 
 from temoto.core.registrar import LoadContext, Resource, ResourceInfo, ResourceServer, Status
 from temoto.core.registrar.messages import StatusUpdate
@@ -51,7 +50,7 @@ from temoto.errors import (
     TransportError,
     TransportTimeoutError,
 )
-from temoto.fleet._common import CallQueue, check_name, check_seconds, new
+from temoto.fleet._common import CallQueue, Closing, check_name, check_seconds, new
 from temoto.fleet._provider import Provider, remember
 from temoto.fleet.resource_types import (
     ERROR,
@@ -159,7 +158,7 @@ class _ProxyServer(ResourceServer[RemoteRequest, RemoteResponse]):
 
 
 @final
-class RemoteResources:
+class RemoteResources(Closing):
     """Requests resources of other robots, and serves this robot's to them (thesis §7.2).
 
     It registers the ``"remote"`` proxy server on ``registrar``, subscribes to
@@ -242,17 +241,6 @@ class RemoteResources:
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"<RemoteResources manager={self.manager!r} {state}>"
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     @property
     def stats(self) -> dict[str, int]:

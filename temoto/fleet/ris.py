@@ -33,11 +33,10 @@ import threading
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
-from types import TracebackType
-from typing import TYPE_CHECKING, Any, Final, Self, final
+from typing import TYPE_CHECKING, Any, Final, final
 
 from temoto.errors import DecodeError, TransportError
-from temoto.fleet._common import CallQueue, check_name, check_seconds, new
+from temoto.fleet._common import CallQueue, Closing, check_name, check_seconds, new
 from temoto.lcm_types import ris_advert_t, ris_request_t, ris_server_t, ris_withdraw_t
 from temoto.transport import codec
 
@@ -137,7 +136,7 @@ def type_name(cls: type[Any]) -> str:
 
 
 @final
-class ResourceInfoSync:
+class ResourceInfoSync(Closing):
     """Advertises this robot's servers and keeps the table of the other robots' (thesis §7.2).
 
     It subscribes to :data:`RIS_CHANNEL`, starts its threads, asks the fleet to advertise and
@@ -211,17 +210,6 @@ class ResourceInfoSync:
     def __repr__(self) -> str:
         state = "closed" if self._closed else "open"
         return f"<ResourceInfoSync robot={self._robot!r} manager={self.manager!r} {state}>"
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # --- queries ------------------------------------------------------------------------------
 
