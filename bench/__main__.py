@@ -25,7 +25,7 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from bench import dynamixel, engine, evolution, fleet, peers, process, registrar, ris
+from bench import dynamixel, engine, evolution, fleet, mavlink, peers, process, registrar, ris
 from bench.common import Metric, Results
 
 GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
@@ -58,6 +58,10 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     "dynamixel": (
         "dynamixel: SyncRead + SyncWrite of 6 servos over a pseudo-terminal",
         dynamixel.bench_dynamixel,
+    ),
+    "mavlink": (
+        "mavlink: CPU of the driver handling 50 Hz telemetry (subprocess)",
+        mavlink.bench_mavlink,
     ),
 }
 

@@ -1,0 +1,844 @@
+"""MAVLink 2 vehicles (ArduPilot Copter) over UDP or serial: :class:`MavlinkDriver`.
+
+The driver is a ground station for one vehicle. ``configure`` opens the link, starts a receive
+thread and a heartbeat thread, waits for the vehicle's HEARTBEAT (``init_timeout``), then asks
+for telemetry streams (``MAV_CMD_SET_MESSAGE_INTERVAL``) and the home position. While
+configured it
+
+* keeps a telemetry cache (position, attitude, battery, mode, armed flag, status texts) stamped
+  with the driver's clock (:meth:`MavlinkDriver.telemetry`);
+* sends its own GCS HEARTBEAT every ``heartbeat_period`` seconds;
+* watches the vehicle: no valid HEARTBEAT within ``heartbeat_timeout`` is a fault
+  (:class:`~temoto.errors.DriverTimeoutError`, or :class:`~temoto.errors.DriverOperationError`
+  when only frames with a bad CRC arrived), and so is an enabled SYS_STATUS sensor reported
+  unhealthy (a hardware error: overheating motors, low battery voltage, ...); when the vehicle
+  is healthy again the driver reports itself recovered;
+* sends commands as COMMAND_LONG (COMMAND_INT for positions), resending up to
+  ``command_retries`` times when no COMMAND_ACK arrives within ``command_timeout``; a result
+  other than ``MAV_RESULT_ACCEPTED`` raises :class:`~temoto.errors.MavlinkCommandError` with the
+  command id and the result (and the vehicle's last STATUSTEXT, e.g. its pre-arm failure).
+
+Flight modes are ArduCopter's (``GUIDED``, ``LOITER``, ``RTL``, ``LAND``, ...);
+:meth:`~MavlinkDriver.takeoff` switches to GUIDED first, :meth:`~MavlinkDriver.goto` sends
+``MAV_CMD_DO_REPOSITION`` (GUIDED), :meth:`~MavlinkDriver.land` and
+:meth:`~MavlinkDriver.return_to_launch` send ``MAV_CMD_NAV_LAND`` and
+``MAV_CMD_NAV_RETURN_TO_LAUNCH``.
+"""
+
+from __future__ import annotations
+
+import collections
+import contextlib
+import logging
+import math
+import socket
+import threading
+import time
+from collections.abc import Callable, Mapping
+from typing import Any, ClassVar, Final, Self
+
+from temoto.clock import Clock
+from temoto.drivers.base import Driver, DriverState
+from temoto.drivers.capabilities import GeoPoint, VehicleTelemetry
+from temoto.drivers.mavlink import protocol as p
+from temoto.drivers.mavlink.link import Link, LinkSpec, open_link, parse_link
+from temoto.drivers.mavlink.protocol import Codec, Message
+from temoto.drivers.mavlink.sim import DEFAULT_RATES, SimVehicle
+from temoto.drivers.sim import Simulator
+from temoto.errors import (
+    DriverError,
+    DriverInitError,
+    DriverOperationError,
+    DriverTimeoutError,
+    MavlinkCommandError,
+    ProfileError,
+    StateError,
+)
+
+__all__ = ["MavlinkDriver"]
+
+logger = logging.getLogger(__name__)
+
+_POLL: Final = 0.05  # real seconds per socket read (also how often waiters re-check)
+_UNKNOWN_VOLTAGE: Final = 65535
+#: Streams asked for in configure: message → share of ``stream_rate`` (capped at 2 Hz if < 1).
+_STREAMS: Final[Mapping[str, float]] = {
+    "GLOBAL_POSITION_INT": 1.0,
+    "ATTITUDE": 1.0,
+    "SYS_STATUS": 0.2,
+    "BATTERY_STATUS": 0.2,
+    "EXTENDED_SYS_STATE": 0.2,
+}
+_SEVERITY_LEVEL: Final = {0: 50, 1: 50, 2: 50, 3: 40, 4: 30, 5: 20, 6: 20, 7: 10}
+
+#: Profile keys → (default, check); None marks the required key.
+_KEYS: Final = frozenset(
+    {
+        "link",
+        "system_id",
+        "component_id",
+        "gcs_system_id",
+        "gcs_component_id",
+        "heartbeat_period",
+        "heartbeat_timeout",
+        "init_timeout",
+        "command_timeout",
+        "command_retries",
+        "stream_rate",
+        "status_texts",
+        "sim",
+    }
+)
+_SIM_KEYS: Final = frozenset(
+    {
+        "home",
+        "battery",
+        "cells",
+        "min_arm_battery",
+        "speed",
+        "climb_rate",
+        "descent_rate",
+        "tau",
+        "rtl_altitude",
+        "drain_idle",
+        "drain_flight",
+        "step_rate",
+        "rates",
+    }
+)
+
+
+class MavlinkDriver(Driver):
+    """An ArduPilot Copter over MAVLink 2 (implements :class:`~temoto.drivers.Vehicle`).
+
+    Args:
+        name: The device's name in its profile.
+        link: Where the vehicle is: ``udpin:HOST:PORT`` (listen, the usual ground-station
+            setup), ``udpout:HOST:PORT`` or ``serial:DEVICE?baud=N``.
+        clock: Stamps, heartbeat periods and timeouts.
+        system_id: The vehicle's system id, or None for the first autopilot heard.
+        component_id: The autopilot's component id.
+        gcs_system_id: This ground station's system id.
+        gcs_component_id: This ground station's component id.
+        heartbeat_period: Seconds between the driver's own heartbeats.
+        heartbeat_timeout: Seconds without a vehicle heartbeat that make a fault.
+        init_timeout: Seconds ``configure`` waits for the first heartbeat.
+        command_timeout: Seconds to wait for one COMMAND_ACK.
+        command_retries: Resends after a missing COMMAND_ACK.
+        stream_rate: Position and attitude rate (Hz) asked of the vehicle; 0 asks for nothing.
+        status_texts: How many STATUSTEXT messages the telemetry keeps.
+
+    Raises:
+        ValueError: A bad argument (``from_profile`` reports it as a ``ProfileError``).
+    """
+
+    kind: ClassVar[str] = "mavlink"
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        link: str,
+        clock: Clock | None = None,
+        system_id: int | None = None,
+        component_id: int = 1,
+        gcs_system_id: int = 255,
+        gcs_component_id: int = 190,
+        heartbeat_period: float = 1.0,
+        heartbeat_timeout: float = 3.0,
+        init_timeout: float = 5.0,
+        command_timeout: float = 1.0,
+        command_retries: int = 2,
+        stream_rate: float = 10.0,
+        status_texts: int = 20,
+    ) -> None:
+        super().__init__(name, clock=clock)
+        self.link_spec: LinkSpec = parse_link(link)
+        for key, ident, low in (
+            ("system_id", system_id, 1),
+            ("component_id", component_id, 0),
+            ("gcs_system_id", gcs_system_id, 1),
+            ("gcs_component_id", gcs_component_id, 0),
+        ):
+            if ident is not None and (
+                isinstance(ident, bool) or not isinstance(ident, int) or not low <= ident <= 255
+            ):
+                raise ValueError(f"{key} must be an integer {low}..255, got {ident!r}")
+        for key, value in (
+            ("heartbeat_period", heartbeat_period),
+            ("heartbeat_timeout", heartbeat_timeout),
+            ("init_timeout", init_timeout),
+            ("command_timeout", command_timeout),
+        ):
+            if not (math.isfinite(value) and value > 0):
+                raise ValueError(f"{key} must be a positive number of seconds, got {value!r}")
+        if not (isinstance(command_retries, int) and 0 <= command_retries <= 10):
+            raise ValueError(f"command_retries must be an integer 0..10, got {command_retries!r}")
+        if not (math.isfinite(stream_rate) and 0 <= stream_rate <= 1000):
+            raise ValueError(f"stream_rate must be 0..1000 Hz, got {stream_rate!r}")
+        if not (isinstance(status_texts, int) and status_texts >= 1):
+            raise ValueError(f"status_texts must be a positive integer, got {status_texts!r}")
+        self.system_id = system_id
+        self.component_id = component_id
+        self.heartbeat_period = float(heartbeat_period)
+        self.heartbeat_timeout = float(heartbeat_timeout)
+        self.init_timeout = float(init_timeout)
+        self.command_timeout = float(command_timeout)
+        self.command_retries = command_retries
+        self.stream_rate = float(stream_rate)
+        self._gcs_ids = (gcs_system_id, gcs_component_id)
+        self._codec = Codec(gcs_system_id, gcs_component_id)
+        self._link: Link | None = None
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._cond = threading.Condition()  # the cache and the acks; notified on every read
+        self._watch = threading.Condition()  # wakes the heartbeat thread
+        self._command_lock = threading.Lock()
+        self._eval_lock = threading.Lock()
+        self._texts: collections.deque[str] = collections.deque(maxlen=status_texts)
+        self._reset()
+
+    def _reset(self) -> None:
+        self._target: int | None = self.system_id
+        self._last_hb: float | None = None
+        self._last_msg = self.clock.monotonic()
+        self._autopilot = p.MAV_AUTOPILOT_INVALID
+        self._armed = False
+        self._custom_mode = 0
+        self._position = (0.0, 0.0, 0.0)
+        self._attitude = (0.0, 0.0, 0.0)
+        self._voltage = math.nan
+        self._remaining = -1
+        self._home: tuple[float, float, float] | None = None
+        self._landed_state = 0
+        self._unhealthy: tuple[str, ...] = ()
+        self._bad_at_hb = 0
+        self._acks: dict[int, tuple[int, int]] = {}  # command → (result, arrival number)
+        self._ack_count = 0
+        self._text_count = 0
+        self._mine = False  # the current FAULT was reported by this driver's watch
+        self._texts.clear()
+        self._received = 0
+
+    # ---- profile -----------------------------------------------------------------------------
+
+    @classmethod
+    def from_profile(
+        cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
+    ) -> Self:
+        """Build a driver from its profile entry (without touching the vehicle).
+
+        Args:
+            name: The device's name.
+            config: The entry's settings (``link`` and the optional keys of the class; see
+                ``docs/driver-mavlink.md``), ``driver`` already removed.
+            clock: The robot's clock.
+            where: The entry's place for messages (``file: devices.quad``).
+
+        Returns:
+            The driver (``UNCONFIGURED``).
+
+        Raises:
+            ProfileError: A missing, unknown or bad key (the message names its path).
+        """
+        unknown = sorted(set(config) - _KEYS)
+        if unknown:
+            raise ProfileError(
+                f"{where}.{unknown[0]}: unknown key (known: {', '.join(sorted(_KEYS))})"
+            )
+        if "link" not in config:
+            raise ProfileError(
+                f"{where}.link: missing: where the vehicle is, e.g. udpin:127.0.0.1:14550"
+            )
+        kwargs: dict[str, Any] = {}
+        for key, value in config.items():
+            if key == "sim":
+                _sim_kwargs(value, f"{where}.sim")  # checked here, used by simulate()
+                continue
+            if key == "link" and not isinstance(value, str):
+                raise ProfileError(f"{where}.link: must be text like udpin:127.0.0.1:14550")
+            number = isinstance(value, int | float) and not isinstance(value, bool)
+            if key not in ("link", "system_id") and not number:
+                raise ProfileError(f"{where}.{key}: must be a number, got {value!r}")
+            if key == "system_id" and not (number or value is None):
+                raise ProfileError(f"{where}.{key}: must be a number, got {value!r}")
+            if key in _INT_KEYS and isinstance(value, float):
+                raise ProfileError(f"{where}.{key}: must be an integer, got {value!r}")
+            kwargs[key] = value
+        try:
+            parse_link(kwargs["link"])
+        except ValueError as err:
+            raise ProfileError(f"{where}.link: {err}") from None
+        try:
+            return cls(name, clock=clock, **kwargs)
+        except ValueError as err:
+            key = next((k for k in kwargs if str(err).startswith(k)), "")
+            raise ProfileError(f"{where}{'.' + key if key else ''}: {err}") from None
+
+    @classmethod
+    def simulate(
+        cls, name: str, config: Mapping[str, Any], *, clock: Clock
+    ) -> tuple[Simulator, dict[str, Any]]:
+        """A simulated vehicle for this profile entry, and the settings to reach it.
+
+        The simulator (not started: call ``start()`` or use it as a context manager) streams
+        to a free UDP port on 127.0.0.1, and the returned settings are ``config`` with
+        ``link: udpin:127.0.0.1:<that port>`` (and without ``sim``). The entry's optional
+        ``sim`` mapping sets the model (see :class:`~temoto.drivers.mavlink.sim.SimVehicle`).
+
+        Args:
+            name: The device's name.
+            config: Its profile settings.
+            clock: The clock the simulator steps on.
+
+        Returns:
+            The simulator and the driver's settings.
+
+        Raises:
+            ProfileError: A bad ``sim`` mapping.
+        """
+        sim_kwargs = _sim_kwargs(config.get("sim", {}), f"{name}.sim")
+        port = _free_udp_port()
+        system_id = config.get("system_id")
+        sim = SimVehicle(
+            name,
+            clock=clock,
+            gcs=[("127.0.0.1", port)],
+            system_id=system_id if isinstance(system_id, int) else 1,
+            **sim_kwargs,
+        )
+        settings = {k: v for k, v in config.items() if k != "sim"}
+        settings["link"] = f"udpin:127.0.0.1:{port}"
+        return sim, settings
+
+    # ---- lifecycle hooks ---------------------------------------------------------------------
+
+    def on_configure(self) -> None:
+        """Open the link, start the threads, wait for a heartbeat, ask for streams.
+
+        Raises:
+            DriverInitError: The link cannot be opened, or the vehicle is not an ArduPilot.
+            DriverTimeoutError: No heartbeat within ``init_timeout``.
+        """
+        try:
+            self._link = open_link(self.link_spec)
+        except OSError as err:
+            raise DriverInitError(f"{self.name}: cannot open {self.link_spec}: {err}") from err
+        self._stop.clear()
+        with self._cond:
+            self._reset()
+        self._threads = [
+            threading.Thread(target=self._rx_loop, name=f"temoto-mavlink-{self.name}-rx"),
+            threading.Thread(target=self._watch_loop, name=f"temoto-mavlink-{self.name}-hb"),
+        ]
+        for thread in self._threads:
+            thread.start()
+        if not self._await(lambda: self._last_hb is not None, self.init_timeout):
+            raise DriverTimeoutError(
+                f"{self.name}: no heartbeat from a vehicle on {self.link_spec}"
+                f" within {self.init_timeout:g} s"
+            )
+        if self._autopilot != p.MAV_AUTOPILOT_ARDUPILOTMEGA:
+            raise DriverInitError(
+                f"{self.name}: system {self._target} is not an ArduPilot autopilot"
+                f" (MAV_AUTOPILOT {self._autopilot}); only ArduCopter modes are supported"
+            )
+        self._request_streams()
+
+    def on_shutdown(self) -> None:
+        """Stop and join the threads, close the link."""
+        self._stop.set()
+        with self._watch:
+            self._watch.notify_all()
+        with self._cond:
+            self._cond.notify_all()
+        for thread in self._threads:
+            if thread is not threading.current_thread():
+                thread.join()
+        self._threads = []
+        if self._link is not None:
+            self._link.close()
+            self._link = None
+
+    def _request_streams(self) -> None:
+        if self.stream_rate <= 0:
+            return
+        for msg, share in _STREAMS.items():
+            hz = self.stream_rate * share if share >= 1 else min(self.stream_rate, 2.0)
+            self._best_effort(p.MAV_CMD_SET_MESSAGE_INTERVAL, p.MSG_ID[msg], 1e6 / hz)
+        self._best_effort(p.MAV_CMD_REQUEST_MESSAGE, p.MSG_ID["HOME_POSITION"])
+
+    def _best_effort(self, command: int, *params: float) -> None:
+        try:
+            self._send_command(command, params, retries=0)
+        except DriverError as err:
+            logger.info("driver %s: %s", self.name, err)
+
+    # ---- Vehicle -----------------------------------------------------------------------------
+
+    def arm(self) -> None:
+        """Arm the motors (waits for the acknowledgement).
+
+        Raises:
+            StateError: The driver is not ``ACTIVE``.
+            MavlinkCommandError: Refused (the message carries the pre-arm failure text).
+            DriverTimeoutError: No acknowledgement.
+        """
+        self.require_active("arm")
+        self._send_command(p.MAV_CMD_COMPONENT_ARM_DISARM, (1.0,))
+
+    def disarm(self) -> None:
+        """Disarm (ArduPilot refuses while flying).
+
+        Raises:
+            StateError: The driver is not ``ACTIVE``.
+            MavlinkCommandError: Refused.
+            DriverTimeoutError: No acknowledgement.
+        """
+        self.require_active("disarm")
+        self._send_command(p.MAV_CMD_COMPONENT_ARM_DISARM, (0.0,))
+
+    def set_mode(self, mode: str) -> None:
+        """Switch the ArduCopter flight mode (``MAV_CMD_DO_SET_MODE``).
+
+        Args:
+            mode: ``GUIDED``, ``LOITER``, ``RTL``, ``LAND``, ``STABILIZE``, ...
+
+        Raises:
+            ValueError: Not an ArduCopter mode.
+            StateError: The driver is not ``ACTIVE``.
+            MavlinkCommandError: Refused.
+            DriverTimeoutError: No acknowledgement.
+        """
+        number = p.mode_number(mode)
+        self.require_active("set_mode")
+        self._send_command(
+            p.MAV_CMD_DO_SET_MODE, (float(p.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(number))
+        )
+
+    def takeoff(self, altitude: float) -> None:
+        """Switch to GUIDED (if needed) and take off to ``altitude`` m above home.
+
+        Returns when the vehicle accepted the command, not when it got there.
+
+        Args:
+            altitude: Metres above home (> 0).
+
+        Raises:
+            ValueError: ``altitude`` not positive and finite.
+            StateError: The driver is not ``ACTIVE``.
+            MavlinkCommandError: Refused (e.g. not armed).
+            DriverTimeoutError: No acknowledgement.
+        """
+        if not (isinstance(altitude, int | float) and math.isfinite(altitude) and altitude > 0):
+            raise ValueError(f"takeoff altitude must be positive metres, got {altitude!r}")
+        self.require_active("takeoff")
+        if p.mode_name(self._custom_mode) != "GUIDED":
+            self.set_mode("GUIDED")
+        nan = math.nan
+        self._send_command(p.MAV_CMD_NAV_TAKEOFF, (0.0, 0.0, 0.0, nan, nan, nan, float(altitude)))
+
+    def goto(self, target: GeoPoint) -> None:
+        """Fly to a position in GUIDED (``MAV_CMD_DO_REPOSITION``, relative altitude).
+
+        Args:
+            target: Latitude, longitude and metres above home.
+
+        Raises:
+            TypeError: ``target`` is not a GeoPoint.
+            StateError: The driver is not ``ACTIVE``.
+            MavlinkCommandError: Refused (e.g. not flying).
+            DriverTimeoutError: No acknowledgement.
+        """
+        if not isinstance(target, GeoPoint):
+            raise TypeError(f"goto needs a GeoPoint, got {type(target).__name__}")
+        self.require_active("goto")
+        flags = float(p.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE)
+        self._send_command(
+            p.MAV_CMD_DO_REPOSITION,
+            (-1.0, flags, 0.0, math.nan),
+            frame=p.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT,
+            position=(p.deg_e7(target.lat), p.deg_e7(target.lon), float(target.alt)),
+        )
+
+    def land(self) -> None:
+        """Land where the vehicle is (``MAV_CMD_NAV_LAND``).
+
+        Raises:
+            StateError: The driver is not ``ACTIVE``.
+            MavlinkCommandError: Refused.
+            DriverTimeoutError: No acknowledgement.
+        """
+        self.require_active("land")
+        self._send_command(p.MAV_CMD_NAV_LAND, (0.0, 0.0, 0.0, math.nan))
+
+    def return_to_launch(self) -> None:
+        """Fly home and land (``MAV_CMD_NAV_RETURN_TO_LAUNCH``).
+
+        Raises:
+            StateError: The driver is not ``ACTIVE``.
+            MavlinkCommandError: Refused.
+            DriverTimeoutError: No acknowledgement.
+        """
+        self.require_active("return_to_launch")
+        self._send_command(p.MAV_CMD_NAV_RETURN_TO_LAUNCH, ())
+
+    def telemetry(self) -> VehicleTelemetry:
+        """The newest telemetry (the driver's cache; no traffic).
+
+        Returns:
+            The snapshot, stamped with the clock time of the newest message.
+
+        Raises:
+            StateError: Never configured, or shut down.
+        """
+        if self.state in (DriverState.UNCONFIGURED, DriverState.FINALIZED):
+            raise StateError(f"{self.name}: no telemetry while {self.state.value}")
+        now = self.clock.monotonic()
+        with self._cond:
+            lat, lon, alt = self._position
+            return VehicleTelemetry(
+                stamp=self._last_msg,
+                armed=self._armed,
+                mode=p.mode_name(self._custom_mode),
+                position=GeoPoint(lat, lon, alt),
+                attitude=self._attitude,
+                battery_voltage=self._voltage,
+                battery_remaining=self._remaining,
+                status_texts=tuple(self._texts),
+                heartbeat_age=math.inf if self._last_hb is None else now - self._last_hb,
+            )
+
+    @property
+    def home(self) -> GeoPoint | None:
+        """The vehicle's home (altitude 0 m above itself), once HOME_POSITION arrived."""
+        with self._cond:
+            home = self._home
+        return None if home is None else GeoPoint(home[0], home[1], 0.0)
+
+    @property
+    def messages_received(self) -> int:
+        """Valid messages received since configure (from any system)."""
+        return self._received
+
+    @property
+    def bad_frames(self) -> int:
+        """Frames dropped since configure (bad CRC, unknown message id)."""
+        return self._codec.bad_frames
+
+    # ---- commands ----------------------------------------------------------------------------
+
+    def _send_command(
+        self,
+        command: int,
+        params: tuple[float, ...],
+        *,
+        retries: int | None = None,
+        frame: int | None = None,
+        position: tuple[int, int, float] | None = None,
+    ) -> None:
+        """Send a command until acknowledged (COMMAND_INT when ``position`` is given)."""
+        tries = 1 + (self.command_retries if retries is None else retries)
+        values = [*params, *([0.0] * (7 - len(params)))]
+        with self._command_lock:
+            with self._cond:
+                target = self._target or 1
+                start_acks, start_texts = self._ack_count, self._text_count
+            for attempt in range(tries):
+                if position is None:
+                    frame_bytes = self._codec.encode(
+                        "COMMAND_LONG",
+                        target_system=target,
+                        target_component=self.component_id,
+                        command=command,
+                        confirmation=attempt,
+                        param1=values[0],
+                        param2=values[1],
+                        param3=values[2],
+                        param4=values[3],
+                        param5=values[4],
+                        param6=values[5],
+                        param7=values[6],
+                    )
+                else:
+                    frame_bytes = self._codec.encode(
+                        "COMMAND_INT",
+                        target_system=target,
+                        target_component=self.component_id,
+                        frame=frame or 0,
+                        command=command,
+                        current=0,
+                        autocontinue=0,
+                        param1=values[0],
+                        param2=values[1],
+                        param3=values[2],
+                        param4=values[3],
+                        x=position[0],
+                        y=position[1],
+                        z=position[2],
+                    )
+                self._write(frame_bytes)
+                result = self._await_ack(command, start_acks, self.command_timeout)
+                if result is None:
+                    continue
+                if result == p.MAV_RESULT_ACCEPTED:
+                    return
+                with self._cond:
+                    news = list(self._texts)[-(self._text_count - start_texts) :]
+                said = f" (vehicle: {'; '.join(news)})" if self._text_count > start_texts else ""
+                raise MavlinkCommandError(
+                    f"{self.name}: {p.command_name(command)} refused:"
+                    f" {p.result_name(result)}{said}",
+                    command=command,
+                    result=result,
+                )
+        raise DriverTimeoutError(
+            f"{self.name}: no COMMAND_ACK for {p.command_name(command)} in {tries} tries"
+            f" of {self.command_timeout:g} s"
+        )
+
+    def _await_ack(self, command: int, after: int, timeout: float) -> int | None:
+        """The result of the first final ack of ``command`` newer than arrival ``after``."""
+        got: list[int] = []
+
+        def acked() -> bool:
+            ack = self._acks.get(command)
+            if ack is None or ack[1] <= after:
+                return False
+            if ack[0] == p.MAV_RESULT_IN_PROGRESS:
+                return False  # the vehicle is still at it; the final ack comes later
+            got.append(ack[0])
+            return True
+
+        return got[0] if self._await(acked, timeout) else None
+
+    def _await(self, pred: Callable[[], bool], timeout: float) -> bool:
+        """Wait (cache lock taken) until ``pred()``, for ``timeout`` clock seconds.
+
+        The wait also ends after ``clock.real_seconds(timeout)`` real seconds, so a virtual
+        clock nobody advances cannot hang a command forever.
+        """
+        deadline = self.clock.monotonic() + timeout
+        real_deadline = time.monotonic() + self.clock.real_seconds(timeout) + _POLL
+        with self._cond:
+            while not pred():
+                now = self.clock.monotonic()
+                if now >= deadline or time.monotonic() >= real_deadline or self._stop.is_set():
+                    return False
+                self.clock.wait(self._cond, deadline - now)
+        return True
+
+    def _write(self, frame: bytes) -> None:
+        link = self._link
+        if link is None:
+            raise StateError(f"{self.name}: the link is closed")
+        try:
+            link.write(frame)
+        except OSError as err:
+            raise DriverOperationError(f"{self.name}: sending failed: {err}") from err
+
+    # ---- threads -----------------------------------------------------------------------------
+
+    def _rx_loop(self) -> None:
+        link = self._link
+        assert link is not None
+        while not self._stop.is_set():
+            try:
+                data = link.read(_POLL)
+            except OSError as err:
+                if self._stop.is_set():
+                    break
+                self._evaluate(DriverOperationError(f"{self.name}: the link failed: {err}"))
+                self._stop.wait(_POLL)
+                continue
+            messages = self._codec.decode(data) if data else []
+            self._received += len(messages)
+            now = self.clock.monotonic()
+            check = False
+            with self._cond:
+                for msg in messages:
+                    check |= self._absorb(msg, now)
+                self._cond.notify_all()
+            if check:
+                self._evaluate()
+
+    def _absorb(self, msg: Message, now: float) -> bool:
+        """Update the cache (lock held); True if health may have changed."""
+        if self._target is None:
+            if msg.name != "HEARTBEAT" or msg.get_int("autopilot") == p.MAV_AUTOPILOT_INVALID:
+                return False
+            if msg.get_int("type") == p.MAV_TYPE_GCS:
+                return False
+            self._target = msg.src_system
+        if msg.src_system != self._target:
+            return False
+        self._last_msg = max(self._last_msg, now)
+        name = msg.name
+        if name == "HEARTBEAT":
+            if msg.src_component != self.component_id:
+                return False
+            self._last_hb = now
+            self._bad_at_hb = self._codec.bad_frames
+            self._autopilot = msg.get_int("autopilot")
+            self._armed = bool(msg.get_int("base_mode") & p.MAV_MODE_FLAG_SAFETY_ARMED)
+            self._custom_mode = msg.get_int("custom_mode")
+            return True
+        if name == "GLOBAL_POSITION_INT":
+            self._position = (
+                msg.get_int("lat") / 1e7,
+                msg.get_int("lon") / 1e7,
+                msg.get_int("relative_alt") / 1000.0,
+            )
+        elif name == "ATTITUDE":
+            self._attitude = (msg.get_float("roll"), msg.get_float("pitch"), msg.get_float("yaw"))
+        elif name == "SYS_STATUS":
+            millivolts = msg.get_int("voltage_battery")
+            self._voltage = math.nan if millivolts == _UNKNOWN_VOLTAGE else millivolts / 1000.0
+            self._remaining = msg.get_int("battery_remaining")
+            enabled = msg.get_int("onboard_control_sensors_present") & msg.get_int(
+                "onboard_control_sensors_enabled"
+            )
+            bad = enabled & ~msg.get_int("onboard_control_sensors_health")
+            unhealthy = tuple(sorted(n for n, bit in p.SENSOR_BITS.items() if bad & bit))
+            changed = unhealthy != self._unhealthy
+            self._unhealthy = unhealthy
+            return changed
+        elif name == "STATUSTEXT":
+            text = msg.get_text("text")
+            self._texts.append(text)
+            self._text_count += 1
+            level = _SEVERITY_LEVEL.get(msg.get_int("severity"), logging.INFO)
+            logger.log(level, "vehicle %s: %s", self.name, text)
+        elif name == "COMMAND_ACK":
+            if msg.fields.get("target_system", 0) in (0, self._codec.system_id):
+                self._ack_count += 1
+                self._acks[msg.get_int("command")] = (msg.get_int("result"), self._ack_count)
+        elif name == "HOME_POSITION":
+            self._home = (
+                msg.get_int("latitude") / 1e7,
+                msg.get_int("longitude") / 1e7,
+                msg.get_int("altitude") / 1000.0,
+            )
+        elif name == "EXTENDED_SYS_STATE":
+            self._landed_state = msg.get_int("landed_state")
+        return False
+
+    def _watch_loop(self) -> None:
+        next_hb = self.clock.monotonic()
+        check = min(0.1, self.heartbeat_timeout / 10)
+        while not self._stop.is_set():
+            now = self.clock.monotonic()
+            if now >= next_hb:
+                next_hb = now + self.heartbeat_period
+                with contextlib.suppress(DriverError, StateError):  # rx loop reports the link
+                    self._write(
+                        self._codec.encode(
+                            "HEARTBEAT",
+                            type=p.MAV_TYPE_GCS,
+                            autopilot=p.MAV_AUTOPILOT_INVALID,
+                            base_mode=0,
+                            custom_mode=0,
+                            system_status=p.MAV_STATE_ACTIVE,
+                            mavlink_version=3,
+                        )
+                    )
+            self._evaluate()
+            with self._watch:
+                if self._stop.is_set():
+                    break
+                self.clock.wait(self._watch, min(next_hb - now, check))
+
+    def _evaluate(self, link_error: DriverError | None = None) -> None:
+        """Report a fault, or the recovery from one this driver reported."""
+        now = self.clock.monotonic()
+        with self._cond:
+            last_hb, unhealthy = self._last_hb, self._unhealthy
+            corrupt = self._codec.bad_frames > self._bad_at_hb
+        error: DriverError | None = link_error
+        if error is None and (last_hb is None or now - last_hb > self.heartbeat_timeout):
+            if corrupt:
+                error = DriverOperationError(
+                    f"{self.name}: only corrupt frames (bad CRC), no valid heartbeat within"
+                    f" {self.heartbeat_timeout:g} s"
+                )
+            else:
+                error = DriverTimeoutError(
+                    f"{self.name}: no heartbeat within {self.heartbeat_timeout:g} s"
+                )
+        elif error is None and unhealthy:
+            error = DriverOperationError(
+                f"{self.name}: hardware error: unhealthy {', '.join(unhealthy)}"
+            )
+        with self._eval_lock:
+            state = self.state
+            if error is not None:
+                if state in (DriverState.INACTIVE, DriverState.ACTIVE) or (
+                    state is DriverState.FAULT and self._mine
+                ):
+                    self._mine = True
+                    self.report_fault(error)
+            elif self._mine and state is DriverState.FAULT:
+                self._mine = False
+                self.report_recovered(f"{self.name}: the vehicle answers and is healthy")
+
+
+def _free_udp_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        port: int = sock.getsockname()[1]
+        return port
+
+
+def _sim_kwargs(raw: Any, where: str) -> dict[str, Any]:
+    """The ``sim`` mapping of a profile entry as SimVehicle keywords (checked)."""
+    if not isinstance(raw, Mapping):
+        raise ProfileError(f"{where}: must be a mapping of simulator settings")
+    unknown = sorted(set(raw) - _SIM_KEYS)
+    if unknown:
+        raise ProfileError(
+            f"{where}.{unknown[0]}: unknown key (known: {', '.join(sorted(_SIM_KEYS))})"
+        )
+    out: dict[str, Any] = {}
+    for key, value in raw.items():
+        if key == "home":
+            ok = isinstance(value, list | tuple) and len(value) == 3
+            ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
+            if not ok or not (-90 <= value[0] <= 90 and -180 <= value[1] <= 180):
+                raise ProfileError(
+                    f"{where}.home: must be [lat, lon, altitude AMSL], got {value!r}"
+                )
+            out[key] = tuple(float(v) for v in value)
+        elif key == "rates":
+            if not isinstance(value, Mapping):
+                raise ProfileError(f"{where}.rates: must map message names to Hz")
+            for msg, hz in value.items():
+                if str(msg).upper() not in DEFAULT_RATES:
+                    raise ProfileError(
+                        f"{where}.rates.{msg}: not a simulated stream"
+                        f" (streams: {', '.join(DEFAULT_RATES)})"
+                    )
+                if isinstance(hz, bool) or not isinstance(hz, int | float) or not hz >= 0:
+                    raise ProfileError(f"{where}.rates.{msg}: must be a rate in Hz, got {hz!r}")
+            out[key] = {str(k): float(v) for k, v in value.items()}
+        else:
+            if isinstance(value, bool) or not isinstance(value, int | float):
+                raise ProfileError(f"{where}.{key}: must be a number, got {value!r}")
+            if not math.isfinite(value) or value < 0 or (value == 0 and key in _POSITIVE):
+                raise ProfileError(f"{where}.{key}: out of range: {value!r}")
+            if key == "battery" and value > 100:
+                raise ProfileError(f"{where}.battery: must be 0..100 %, got {value!r}")
+            out[key] = int(value) if key == "cells" else float(value)
+    return out
+
+
+_INT_KEYS: Final = frozenset(
+    {
+        "system_id",
+        "component_id",
+        "gcs_system_id",
+        "gcs_component_id",
+        "command_retries",
+        "status_texts",
+    }
+)
+_POSITIVE: Final = frozenset({"cells", "speed", "climb_rate", "descent_rate", "tau", "step_rate"})

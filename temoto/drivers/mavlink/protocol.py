@@ -1,0 +1,385 @@
+"""MAVLink 2 encode and decode: a thin, typed adapter over pymavlink's ``ardupilotmega`` dialect.
+
+Pure functions and one small stateful codec, no I/O and no threads (STYLE §3.7). The dialect is
+imported explicitly (``pymavlink.dialects.v20.ardupilotmega``, which includes ``common``); no
+``mavutil`` and none of its module-level state is used.
+
+:class:`Codec` packs messages for one sender (system id, component id, sequence number) and
+parses datagrams into :class:`Message` values. Frames with a bad CRC or an unknown message id
+are counted (:attr:`Codec.bad_frames`) and dropped; they never come back as "bad data" objects.
+
+The constants below are the MAVLink and ArduCopter numbers the driver and the simulator use;
+they are re-exported from the dialect so there is one source of truth.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any, Final
+
+from pymavlink.dialects.v20 import ardupilotmega as _dialect  # type: ignore[import-untyped]
+
+__all__ = [
+    "COPTER_MODES",
+    "Codec",
+    "Message",
+    "command_name",
+    "corrupt",
+    "mode_name",
+    "mode_number",
+    "result_name",
+]
+
+# ---- numbers -------------------------------------------------------------------------------
+
+MAV_TYPE_QUADROTOR: Final[int] = int(_dialect.MAV_TYPE_QUADROTOR)
+MAV_TYPE_GCS: Final[int] = int(_dialect.MAV_TYPE_GCS)
+MAV_AUTOPILOT_ARDUPILOTMEGA: Final[int] = int(_dialect.MAV_AUTOPILOT_ARDUPILOTMEGA)
+MAV_AUTOPILOT_INVALID: Final[int] = int(_dialect.MAV_AUTOPILOT_INVALID)
+
+MAV_MODE_FLAG_CUSTOM_MODE_ENABLED: Final[int] = int(_dialect.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
+MAV_MODE_FLAG_SAFETY_ARMED: Final[int] = int(_dialect.MAV_MODE_FLAG_SAFETY_ARMED)
+MAV_MODE_FLAG_GUIDED_ENABLED: Final[int] = int(_dialect.MAV_MODE_FLAG_GUIDED_ENABLED)
+MAV_MODE_FLAG_STABILIZE_ENABLED: Final[int] = int(_dialect.MAV_MODE_FLAG_STABILIZE_ENABLED)
+
+MAV_STATE_STANDBY: Final[int] = int(_dialect.MAV_STATE_STANDBY)
+MAV_STATE_ACTIVE: Final[int] = int(_dialect.MAV_STATE_ACTIVE)
+MAV_STATE_CRITICAL: Final[int] = int(_dialect.MAV_STATE_CRITICAL)
+
+MAV_CMD_NAV_RETURN_TO_LAUNCH: Final[int] = int(_dialect.MAV_CMD_NAV_RETURN_TO_LAUNCH)  # 20
+MAV_CMD_NAV_LAND: Final[int] = int(_dialect.MAV_CMD_NAV_LAND)  # 21
+MAV_CMD_NAV_TAKEOFF: Final[int] = int(_dialect.MAV_CMD_NAV_TAKEOFF)  # 22
+MAV_CMD_DO_SET_MODE: Final[int] = int(_dialect.MAV_CMD_DO_SET_MODE)  # 176
+MAV_CMD_DO_REPOSITION: Final[int] = int(_dialect.MAV_CMD_DO_REPOSITION)  # 192
+MAV_CMD_COMPONENT_ARM_DISARM: Final[int] = int(_dialect.MAV_CMD_COMPONENT_ARM_DISARM)  # 400
+MAV_CMD_SET_MESSAGE_INTERVAL: Final[int] = int(_dialect.MAV_CMD_SET_MESSAGE_INTERVAL)  # 511
+MAV_CMD_REQUEST_MESSAGE: Final[int] = int(_dialect.MAV_CMD_REQUEST_MESSAGE)  # 512
+MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: Final[int] = int(
+    _dialect.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES
+)  # 520
+
+MAV_RESULT_ACCEPTED: Final[int] = int(_dialect.MAV_RESULT_ACCEPTED)
+MAV_RESULT_TEMPORARILY_REJECTED: Final[int] = int(_dialect.MAV_RESULT_TEMPORARILY_REJECTED)
+MAV_RESULT_DENIED: Final[int] = int(_dialect.MAV_RESULT_DENIED)
+MAV_RESULT_UNSUPPORTED: Final[int] = int(_dialect.MAV_RESULT_UNSUPPORTED)
+MAV_RESULT_FAILED: Final[int] = int(_dialect.MAV_RESULT_FAILED)
+MAV_RESULT_IN_PROGRESS: Final[int] = int(_dialect.MAV_RESULT_IN_PROGRESS)
+
+MAV_FRAME_GLOBAL_INT: Final[int] = int(_dialect.MAV_FRAME_GLOBAL_INT)  # altitude AMSL
+MAV_FRAME_GLOBAL_RELATIVE_ALT_INT: Final[int] = int(_dialect.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)
+MAV_FRAME_GLOBAL: Final[int] = int(_dialect.MAV_FRAME_GLOBAL)
+MAV_FRAME_GLOBAL_RELATIVE_ALT: Final[int] = int(_dialect.MAV_FRAME_GLOBAL_RELATIVE_ALT)
+
+MAV_LANDED_STATE_ON_GROUND: Final[int] = int(_dialect.MAV_LANDED_STATE_ON_GROUND)
+MAV_LANDED_STATE_IN_AIR: Final[int] = int(_dialect.MAV_LANDED_STATE_IN_AIR)
+MAV_LANDED_STATE_TAKEOFF: Final[int] = int(_dialect.MAV_LANDED_STATE_TAKEOFF)
+MAV_LANDED_STATE_LANDING: Final[int] = int(_dialect.MAV_LANDED_STATE_LANDING)
+
+MAV_SEVERITY_CRITICAL: Final[int] = int(_dialect.MAV_SEVERITY_CRITICAL)
+MAV_SEVERITY_WARNING: Final[int] = int(_dialect.MAV_SEVERITY_WARNING)
+MAV_SEVERITY_INFO: Final[int] = int(_dialect.MAV_SEVERITY_INFO)
+
+MAV_BATTERY_CHARGE_STATE_OK: Final[int] = int(_dialect.MAV_BATTERY_CHARGE_STATE_OK)
+MAV_BATTERY_CHARGE_STATE_LOW: Final[int] = int(_dialect.MAV_BATTERY_CHARGE_STATE_LOW)
+MAV_BATTERY_CHARGE_STATE_CRITICAL: Final[int] = int(_dialect.MAV_BATTERY_CHARGE_STATE_CRITICAL)
+
+MAV_DO_REPOSITION_FLAGS_CHANGE_MODE: Final[int] = int(_dialect.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE)
+MAV_BATTERY_FAULT_OVER_TEMPERATURE: Final[int] = int(_dialect.MAV_BATTERY_FAULT_OVER_TEMPERATURE)
+MAV_BATTERY_TYPE_LIPO: Final[int] = int(_dialect.MAV_BATTERY_TYPE_LIPO)
+
+MAV_PROTOCOL_CAPABILITY_MAVLINK2: Final[int] = int(_dialect.MAV_PROTOCOL_CAPABILITY_MAVLINK2)
+MAV_PROTOCOL_CAPABILITY_COMMAND_INT: Final[int] = int(_dialect.MAV_PROTOCOL_CAPABILITY_COMMAND_INT)
+MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT: Final[int] = int(
+    _dialect.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+)
+
+#: SYS_STATUS sensor bits by name (``MAV_SYS_STATUS_SENSOR_GPS`` → ``GPS``).
+SENSOR_BITS: Final[Mapping[str, int]] = {
+    name.removeprefix("MAV_SYS_STATUS_SENSOR_"): int(getattr(_dialect, name))
+    for name in dir(_dialect)
+    if name.startswith("MAV_SYS_STATUS_SENSOR_") and not name.endswith("ENUM_END")
+}
+
+#: Message ids by name (only the ones the driver and simulator name explicitly).
+MSG_ID: Final[Mapping[str, int]] = {
+    name.removeprefix("MAVLINK_MSG_ID_"): int(getattr(_dialect, name))
+    for name in dir(_dialect)
+    if name.startswith("MAVLINK_MSG_ID_") and isinstance(getattr(_dialect, name), int)
+}
+
+#: ArduCopter flight modes: name → ``custom_mode`` (ArduPilot's Copter ``mode.h`` numbers).
+COPTER_MODES: Final[Mapping[str, int]] = {
+    "STABILIZE": 0,
+    "ACRO": 1,
+    "ALT_HOLD": 2,
+    "AUTO": 3,
+    "GUIDED": 4,
+    "LOITER": 5,
+    "RTL": 6,
+    "CIRCLE": 7,
+    "LAND": 9,
+    "DRIFT": 11,
+    "SPORT": 13,
+    "FLIP": 14,
+    "AUTOTUNE": 15,
+    "POSHOLD": 16,
+    "BRAKE": 17,
+    "THROW": 18,
+    "AVOID_ADSB": 19,
+    "GUIDED_NOGPS": 20,
+    "SMART_RTL": 21,
+}
+_MODE_NAMES: Final[Mapping[int, str]] = {number: name for name, number in COPTER_MODES.items()}
+
+
+def mode_name(custom_mode: int) -> str:
+    """The ArduCopter mode name of a heartbeat's ``custom_mode``.
+
+    Args:
+        custom_mode: The number.
+
+    Returns:
+        The name, or ``MODE(<n>)`` for a number ArduCopter does not define.
+    """
+    return _MODE_NAMES.get(custom_mode, f"MODE({custom_mode})")
+
+
+def mode_number(name: str) -> int:
+    """The ArduCopter ``custom_mode`` of a mode name (case-insensitive).
+
+    Args:
+        name: ``GUIDED``, ``LAND``, ...
+
+    Returns:
+        The number.
+
+    Raises:
+        ValueError: Not an ArduCopter mode.
+    """
+    try:
+        return COPTER_MODES[name.strip().upper()]
+    except KeyError:
+        known = ", ".join(COPTER_MODES)
+        raise ValueError(f"unknown ArduCopter flight mode {name!r} (known: {known})") from None
+
+
+def _enum_name(enum: str, value: int) -> str:
+    entry = _dialect.enums.get(enum, {}).get(value)
+    return str(entry.name) if entry is not None else f"{enum}({value})"
+
+
+def command_name(command: int) -> str:
+    """The ``MAV_CMD_*`` name of a command id (``MAV_CMD(<n>)`` if unknown).
+
+    Args:
+        command: The id.
+
+    Returns:
+        The name.
+    """
+    return _enum_name("MAV_CMD", command)
+
+
+def result_name(result: int) -> str:
+    """The ``MAV_RESULT_*`` name of a command result (``MAV_RESULT(<n>)`` if unknown).
+
+    Args:
+        result: The value.
+
+    Returns:
+        The name.
+    """
+    return _enum_name("MAV_RESULT", result)
+
+
+# ---- messages ------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class Message:
+    """One decoded MAVLink message.
+
+    Attributes:
+        name: The message name (``HEARTBEAT``, ``COMMAND_ACK``, ...).
+        msg_id: Its numeric id.
+        src_system: The sender's system id.
+        src_component: The sender's component id.
+        fields: Field name → value (ints, floats, ``str`` for char arrays, lists for arrays).
+    """
+
+    name: str
+    msg_id: int
+    src_system: int
+    src_component: int
+    fields: Mapping[str, Any]
+
+    def get_int(self, field: str) -> int:
+        """A field as an ``int``.
+
+        Args:
+            field: Its name.
+
+        Returns:
+            The value.
+
+        Raises:
+            KeyError: The message has no such field.
+        """
+        return int(self.fields[field])
+
+    def get_float(self, field: str) -> float:
+        """A field as a ``float``.
+
+        Args:
+            field: Its name.
+
+        Returns:
+            The value.
+
+        Raises:
+            KeyError: The message has no such field.
+        """
+        return float(self.fields[field])
+
+    def get_text(self, field: str) -> str:
+        """A ``char[]`` field as text (trailing NULs removed).
+
+        Args:
+            field: Its name.
+
+        Returns:
+            The text.
+
+        Raises:
+            KeyError: The message has no such field.
+        """
+        value = self.fields[field]
+        if isinstance(value, bytes):
+            value = value.decode("utf-8", "replace")
+        return str(value).rstrip("\x00")
+
+
+def _field_value(value: Any) -> Any:
+    if isinstance(value, bytes):
+        return value.decode("utf-8", "replace").rstrip("\x00")
+    return value
+
+
+class Codec:
+    """Packs messages as one MAVLink 2 sender and parses what others send.
+
+    :meth:`encode` may be called from any thread; :meth:`decode` from one thread at a time.
+
+    Args:
+        system_id: This end's system id (1..255).
+        component_id: This end's component id (0..255).
+
+    Raises:
+        ValueError: An id out of range.
+    """
+
+    def __init__(self, system_id: int, component_id: int) -> None:
+        if not (1 <= system_id <= 255 and 0 <= component_id <= 255):
+            raise ValueError(f"bad MAVLink ids: system {system_id}, component {component_id}")
+        self.system_id = system_id
+        self.component_id = component_id
+        self._tx = _dialect.MAVLink(None, system_id, component_id)
+        self._rx = _dialect.MAVLink(None, system_id, component_id)
+        self._rx.robust_parsing = True  # bad frames come back as objects we count and drop
+        self._tx_lock = threading.Lock()
+        #: Frames dropped because their CRC was wrong or their id unknown.
+        self.bad_frames = 0
+
+    def encode(self, name: str, **fields: Any) -> bytes:
+        """Pack one message (the next sequence number of this sender).
+
+        Args:
+            name: The message name, any case (``heartbeat``, ``COMMAND_LONG``).
+            **fields: Its fields; MAVLink 2 extension fields may be left out (zero).
+
+        Returns:
+            The frame's bytes.
+
+        Raises:
+            ValueError: An unknown message, a missing or bad field.
+        """
+        encoder = getattr(self._tx, f"{name.lower()}_encode", None)
+        if encoder is None:
+            raise ValueError(f"unknown MAVLink message {name!r}")
+        try:
+            with self._tx_lock:
+                msg = encoder(**fields)
+                return bytes(msg.pack(self._tx))
+        except (TypeError, ValueError, OverflowError, _dialect.MAVError) as err:
+            raise ValueError(f"cannot encode {name.upper()}: {err}") from err
+        except Exception as err:  # struct.error and friends from the generated packers
+            raise ValueError(f"cannot encode {name.upper()}: {err}") from err
+
+    def decode(self, data: bytes) -> list[Message]:
+        """Parse one datagram (or any chunk of a byte stream) into messages.
+
+        Args:
+            data: The bytes received; a frame split across calls is completed later.
+
+        Returns:
+            The complete, valid messages in it (bad frames are counted and dropped).
+        """
+        out: list[Message] = []
+        try:
+            parsed = self._rx.parse_buffer(data) or []
+        except Exception:  # the legacy parser can still raise on mangled headers
+            self.bad_frames += 1
+            return out
+        for raw in parsed:
+            name = raw.get_type()
+            if name == "BAD_DATA" or raw.get_msgId() < 0:
+                self.bad_frames += 1
+                continue
+            fields = {f: _field_value(getattr(raw, f)) for f in raw.get_fieldnames()}
+            out.append(
+                Message(
+                    name, int(raw.get_msgId()), raw.get_srcSystem(), raw.get_srcComponent(), fields
+                )
+            )
+        return out
+
+
+def corrupt(frame: bytes) -> bytes:
+    """The same frame with its CRC inverted (what a noisy link delivers).
+
+    Args:
+        frame: A packed, unsigned MAVLink frame.
+
+    Returns:
+        The frame with both checksum bytes flipped.
+    """
+    if len(frame) < 3:
+        return frame
+    return frame[:-2] + bytes(b ^ 0xFF for b in frame[-2:])
+
+
+def deg_e7(degrees: float) -> int:
+    """Degrees as MAVLink's ``int32`` degrees·10⁷.
+
+    Args:
+        degrees: Latitude or longitude.
+
+    Returns:
+        The scaled, rounded value.
+    """
+    return round(degrees * 1e7)
+
+
+def nan_if_none(value: float | None) -> float:
+    """NaN for None (MAVLink's "leave unchanged" for float params).
+
+    Args:
+        value: A value or None.
+
+    Returns:
+        The value, or NaN.
+    """
+    return math.nan if value is None else float(value)
