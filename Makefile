@@ -5,7 +5,10 @@ VENV = .venv
 BIN = $(VENV)/bin
 STAMP = $(VENV)/.installed
 
-RUN_CMD = $(BIN)/temoto run examples/graphs/demo_patrol.graph.json --actions examples/actions --progress
+# The main job: the simulated mobile manipulator (ODrive base + Dynamixel arm, simulators
+# in-process) runs a mission: drive to a shelf, reach, drive back, arm home.
+RUN_CMD = $(BIN)/python -m temoto.managers.robot --profile hw_profiles/sim_mobile_manipulator.yaml \
+	--mission examples/missions/mobile_manipulation.graph.json --local
 PYTEST_ARGS ?=
 
 .PHONY: install sysdeps run lint test bench clean

@@ -25,7 +25,19 @@ import traceback
 from collections.abc import Callable
 from pathlib import Path
 
-from bench import dynamixel, engine, evolution, fleet, mavlink, peers, process, registrar, ris
+from bench import (
+    can,
+    dynamixel,
+    engine,
+    evolution,
+    fleet,
+    mavlink,
+    peers,
+    process,
+    registrar,
+    ris,
+    robot,
+)
 from bench.common import Metric, Results
 
 GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
@@ -62,6 +74,11 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     "mavlink": (
         "mavlink: CPU of the driver handling 50 Hz telemetry (subprocess)",
         mavlink.bench_mavlink,
+    ),
+    "can": ("can: 8 CANSimple axes at 500 Hz on a virtual bus", can.bench_can),
+    "robot": (
+        "robot manager: start-to-ready and idle RSS, sim_mobile_manipulator (subprocesses)",
+        robot.bench_robot,
     ),
 }
 

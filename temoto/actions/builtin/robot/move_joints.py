@@ -27,6 +27,6 @@ class MoveJoints(RobotAction):
             motion = robot.move_joints(dict(zip(joints, positions, strict=True)))
         reached = self.run_motion(motion)
         now = robot.joint_positions()
-        self.outputs["joints"] = list(now)
-        self.outputs["positions"] = list(now.values())
+        self.outputs["arm_joints"] = list(now)
+        self.outputs["arm_positions"] = list(now.values())
         return reached

@@ -6,7 +6,10 @@ from temoto.actions.builtin.robot._common import RobotAction
 
 
 class NavigateTo(RobotAction):
-    """Inputs ``x``, ``y`` (m), optional ``yaw`` (rad), ``robot``, ``timeout``; outputs the pose."""
+    """Inputs ``x``, ``y`` (m), optional ``yaw`` (rad), ``robot``, ``timeout``.
+
+    Outputs ``pose_x``, ``pose_y``, ``pose_yaw``: where it stopped.
+    """
 
     def on_run(self) -> bool:
         """Do it; True when the goal was reached."""
@@ -16,7 +19,7 @@ class NavigateTo(RobotAction):
         self.log(f"{robot.name}: navigating to ({x:g}, {y:g})")
         reached = self.run_motion(robot.navigate_to(x, y, yaw))
         px, py, pyaw = robot.pose()
-        self.outputs["x"], self.outputs["y"], self.outputs["yaw"] = px, py, pyaw
+        self.outputs["pose_x"], self.outputs["pose_y"], self.outputs["pose_yaw"] = px, py, pyaw
         if reached:
             self.log(f"{robot.name}: at ({px:.2f}, {py:.2f})")
         return reached

@@ -1,0 +1,648 @@
+"""The ODrive CANSimple protocol (firmware 0.6): frame ids and payloads, pure functions.
+
+Every frame's 11-bit arbitration id is ``node_id << 5 | cmd_id`` (node ids 0..63, command ids
+0..31). Payloads are little-endian; the layouts below follow the official DBC
+(``odrive-cansimple-0.6.10.dbc``, shipped in the ``odrive-can`` package), which the tests use as
+the independent reference. Units are the ODrive's own: turns (rev), rev/s and N·m on the motor
+side; the driver converts to SI joint units.
+
+No I/O and no threads here: a frame is ``(arbitration_id, data)``. Encoders raise ``ValueError``
+for values the wire cannot carry; decoders raise ``ValueError`` for a payload of the wrong
+length (a mangled frame).
+"""
+
+from __future__ import annotations
+
+import enum
+import struct
+from typing import Final, NamedTuple
+
+__all__ = [
+    "MAX_NODE_ID",
+    "AxisError",
+    "AxisState",
+    "Cmd",
+    "ControlMode",
+    "EncoderEstimates",
+    "ErrorStatus",
+    "Heartbeat",
+    "InputMode",
+    "arbitration_id",
+    "decode_clear_errors",
+    "decode_encoder_estimates",
+    "decode_error_status",
+    "decode_heartbeat",
+    "decode_set_axis_state",
+    "decode_set_controller_mode",
+    "decode_set_input_pos",
+    "decode_set_input_torque",
+    "decode_set_input_vel",
+    "decode_set_limits",
+    "decode_torques",
+    "encode_clear_errors",
+    "encode_encoder_estimates",
+    "encode_error_status",
+    "encode_estop",
+    "encode_heartbeat",
+    "encode_set_axis_state",
+    "encode_set_controller_mode",
+    "encode_set_input_pos",
+    "encode_set_input_torque",
+    "encode_set_input_vel",
+    "encode_set_limits",
+    "encode_torques",
+    "error_names",
+    "split_id",
+]
+
+#: The largest node id (6 bits).
+MAX_NODE_ID: Final = 0x3F
+
+
+class Cmd(enum.IntEnum):
+    """CANSimple command ids (the low 5 bits of the arbitration id)."""
+
+    GET_VERSION = 0x00
+    HEARTBEAT = 0x01
+    ESTOP = 0x02
+    GET_ERROR = 0x03
+    RXSDO = 0x04
+    TXSDO = 0x05
+    ADDRESS = 0x06
+    SET_AXIS_STATE = 0x07
+    GET_ENCODER_ESTIMATES = 0x09
+    SET_CONTROLLER_MODE = 0x0B
+    SET_INPUT_POS = 0x0C
+    SET_INPUT_VEL = 0x0D
+    SET_INPUT_TORQUE = 0x0E
+    SET_LIMITS = 0x0F
+    SET_TRAJ_VEL_LIMIT = 0x11
+    SET_TRAJ_ACCEL_LIMITS = 0x12
+    SET_TRAJ_INERTIA = 0x13
+    GET_IQ = 0x14
+    GET_TEMPERATURE = 0x15
+    REBOOT = 0x16
+    GET_BUS_VOLTAGE_CURRENT = 0x17
+    CLEAR_ERRORS = 0x18
+    SET_ABSOLUTE_POSITION = 0x19
+    SET_POS_GAIN = 0x1A
+    SET_VEL_GAINS = 0x1B
+    GET_TORQUES = 0x1C
+    GET_POWERS = 0x1D
+    ENTER_DFU_MODE = 0x1F
+
+
+class AxisState(enum.IntEnum):
+    """``Axis.current_state`` / ``requested_state`` values."""
+
+    UNDEFINED = 0
+    IDLE = 1
+    STARTUP_SEQUENCE = 2
+    FULL_CALIBRATION_SEQUENCE = 3
+    MOTOR_CALIBRATION = 4
+    SENSORLESS_CONTROL = 5
+    ENCODER_INDEX_SEARCH = 6
+    ENCODER_OFFSET_CALIBRATION = 7
+    CLOSED_LOOP_CONTROL = 8
+    LOCKIN_SPIN = 9
+    ENCODER_DIR_FIND = 10
+    HOMING = 11
+    ENCODER_HALL_POLARITY_CALIBRATION = 12
+    ENCODER_HALL_PHASE_CALIBRATION = 13
+    ANTICOGGING_CALIBRATION = 14
+
+
+class ControlMode(enum.IntEnum):
+    """``Controller.config.control_mode`` values."""
+
+    VOLTAGE_CONTROL = 0
+    TORQUE_CONTROL = 1
+    VELOCITY_CONTROL = 2
+    POSITION_CONTROL = 3
+
+
+class InputMode(enum.IntEnum):
+    """``Controller.config.input_mode`` values."""
+
+    INACTIVE = 0
+    PASSTHROUGH = 1
+    VEL_RAMP = 2
+    POS_FILTER = 3
+    MIX_CHANNELS = 4
+    TRAP_TRAJ = 5
+    TORQUE_RAMP = 6
+    MIRROR = 7
+    TUNING = 8
+
+
+class AxisError(enum.IntFlag):
+    """``Axis.active_errors`` / ``disarm_reason`` bits (the heartbeat's ``Axis_Error``)."""
+
+    NONE = 0
+    INITIALIZING = 0x1
+    SYSTEM_LEVEL = 0x2
+    TIMING_ERROR = 0x4
+    MISSING_ESTIMATE = 0x8
+    BAD_CONFIG = 0x10
+    DRV_FAULT = 0x20
+    MISSING_INPUT = 0x40
+    DC_BUS_OVER_VOLTAGE = 0x100
+    DC_BUS_UNDER_VOLTAGE = 0x200
+    DC_BUS_OVER_CURRENT = 0x400
+    DC_BUS_OVER_REGEN_CURRENT = 0x800
+    CURRENT_LIMIT_VIOLATION = 0x1000
+    MOTOR_OVER_TEMP = 0x2000
+    INVERTER_OVER_TEMP = 0x4000
+    VELOCITY_LIMIT_VIOLATION = 0x8000
+    POSITION_LIMIT_VIOLATION = 0x10000
+    WATCHDOG_TIMER_EXPIRED = 0x1000000
+    ESTOP_REQUESTED = 0x2000000
+    SPINOUT_DETECTED = 0x4000000
+    BRAKE_RESISTOR_DISARMED = 0x8000000
+    THERMISTOR_DISCONNECTED = 0x10000000
+    CALIBRATION_ERROR = 0x40000000
+
+
+def error_names(bits: int) -> list[str]:
+    """The names of the set :class:`AxisError` bits (unknown bits as hex).
+
+    Args:
+        bits: ``Axis_Error`` / ``Active_Errors`` / ``Disarm_Reason``.
+
+    Returns:
+        Names, lowest bit first (empty for 0).
+    """
+    names: list[str] = []
+    for bit in range(32):
+        mask = 1 << bit
+        if bits & mask:
+            try:
+                names.append(AxisError(mask).name or hex(mask))
+            except ValueError:
+                names.append(hex(mask))
+    return names
+
+
+class Heartbeat(NamedTuple):
+    """``Heartbeat`` (0x01, node → host, cyclic)."""
+
+    axis_error: int
+    axis_state: int
+    procedure_result: int
+    trajectory_done: bool
+
+
+class EncoderEstimates(NamedTuple):
+    """``Get_Encoder_Estimates`` (0x09, node → host): rev and rev/s."""
+
+    pos: float
+    vel: float
+
+
+class ErrorStatus(NamedTuple):
+    """``Get_Error`` (0x03, node → host)."""
+
+    active_errors: int
+    disarm_reason: int
+
+
+def arbitration_id(node_id: int, cmd: int) -> int:
+    """The arbitration id of a command to or from a node.
+
+    Args:
+        node_id: 0..63.
+        cmd: 0..31 (a :class:`Cmd`).
+
+    Returns:
+        ``node_id << 5 | cmd``.
+
+    Raises:
+        ValueError: Either is out of range.
+    """
+    if not 0 <= node_id <= MAX_NODE_ID:
+        raise ValueError(f"node id must be 0..{MAX_NODE_ID}, got {node_id}")
+    if not 0 <= cmd <= 0x1F:
+        raise ValueError(f"command id must be 0..31, got {cmd}")
+    return node_id << 5 | cmd
+
+
+def split_id(arbitration_id: int) -> tuple[int, int]:
+    """The (node id, command id) of an arbitration id.
+
+    Args:
+        arbitration_id: An 11-bit id.
+
+    Returns:
+        ``(node_id, cmd)``.
+    """
+    return (arbitration_id >> 5) & MAX_NODE_ID, arbitration_id & 0x1F
+
+
+# ---- layouts (precompiled; the hot path encodes and decodes with these directly) ---------------
+
+HEARTBEAT: Final = struct.Struct("<IBBBx")  # error, state, procedure result, flags, reserved
+U32_PAD: Final = struct.Struct("<I4x")  # one u32, padded to 8 bytes
+U32X2: Final = struct.Struct("<II")
+F32_PAD: Final = struct.Struct("<f4x")
+F32X2: Final = struct.Struct("<ff")
+INPUT_POS: Final = struct.Struct("<fhh")  # pos (rev), vel_ff, torque_ff (0.001 units)
+
+_I16_MIN, _I16_MAX = -32768, 32767
+
+
+def _u32(name: str, value: int) -> int:
+    if not 0 <= value <= 0xFFFFFFFF:
+        raise ValueError(f"{name} must fit in 32 unsigned bits, got {value}")
+    return value
+
+
+def _f32(name: str, value: float) -> float:
+    if value != value or abs(value) > 3.4028234663852886e38:  # NaN or beyond float32
+        raise ValueError(f"{name} must be a finite float32, got {value}")
+    return value
+
+
+def _check_len(what: str, data: bytes | bytearray, size: int) -> None:
+    if len(data) != size:
+        raise ValueError(f"{what}: expected {size} data bytes, got {len(data)}")
+
+
+def encode_heartbeat(
+    axis_error: int, axis_state: int, procedure_result: int = 0, trajectory_done: bool = False
+) -> bytes:
+    """``Heartbeat`` payload (8 bytes).
+
+    Args:
+        axis_error: :class:`AxisError` bits.
+        axis_state: An :class:`AxisState`.
+        procedure_result: The last procedure's result (0 = SUCCESS).
+        trajectory_done: The trajectory-done flag.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: A value does not fit.
+    """
+    if not (0 <= axis_state <= 0xFF and 0 <= procedure_result <= 0xFF):
+        raise ValueError("axis state and procedure result are single bytes")
+    return HEARTBEAT.pack(
+        _u32("axis_error", axis_error), axis_state, procedure_result, int(trajectory_done)
+    )
+
+
+def decode_heartbeat(data: bytes | bytearray) -> Heartbeat:
+    """Parse a ``Heartbeat`` payload.
+
+    Args:
+        data: 8 bytes.
+
+    Returns:
+        The heartbeat.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    _check_len("Heartbeat", data, 8)
+    error, state, result, flags = HEARTBEAT.unpack(data)
+    return Heartbeat(error, state, result, bool(flags & 1))
+
+
+def encode_set_axis_state(state: int) -> bytes:
+    """``Set_Axis_State`` payload (8 bytes: u32 requested state, 4 reserved).
+
+    Args:
+        state: An :class:`AxisState`.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Out of range.
+    """
+    return U32_PAD.pack(_u32("axis state", state))
+
+
+def decode_set_axis_state(data: bytes | bytearray) -> int:
+    """Parse ``Set_Axis_State``.
+
+    Args:
+        data: 8 bytes (4 accepted: the requested state alone).
+
+    Returns:
+        The requested state.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    if len(data) == 4:
+        return int.from_bytes(data, "little")
+    _check_len("Set_Axis_State", data, 8)
+    return int(U32_PAD.unpack(data)[0])
+
+
+def encode_set_controller_mode(control_mode: int, input_mode: int) -> bytes:
+    """``Set_Controller_Mode`` payload (u32 control mode, u32 input mode).
+
+    Args:
+        control_mode: A :class:`ControlMode`.
+        input_mode: An :class:`InputMode`.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Out of range.
+    """
+    return U32X2.pack(_u32("control mode", control_mode), _u32("input mode", input_mode))
+
+
+def decode_set_controller_mode(data: bytes | bytearray) -> tuple[int, int]:
+    """Parse ``Set_Controller_Mode``.
+
+    Args:
+        data: 8 bytes.
+
+    Returns:
+        ``(control_mode, input_mode)``.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    _check_len("Set_Controller_Mode", data, 8)
+    control, inp = U32X2.unpack(data)
+    return int(control), int(inp)
+
+
+def encode_set_input_pos(pos: float, vel_ff: float = 0.0, torque_ff: float = 0.0) -> bytes:
+    """``Set_Input_Pos`` payload: float32 rev, int16 vel_ff (0.001 rev/s), int16 torque_ff (mN·m).
+
+    Args:
+        pos: Position set-point, rev.
+        vel_ff: Velocity feed-forward, rev/s (±32.767).
+        torque_ff: Torque feed-forward, N·m (±32.767).
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: A value does not fit.
+    """
+    v = round(vel_ff * 1000.0)
+    t = round(torque_ff * 1000.0)
+    if not (_I16_MIN <= v <= _I16_MAX and _I16_MIN <= t <= _I16_MAX):
+        raise ValueError(f"feed-forwards must be within ±32.767, got {vel_ff}, {torque_ff}")
+    return INPUT_POS.pack(_f32("pos", pos), v, t)
+
+
+def decode_set_input_pos(data: bytes | bytearray) -> tuple[float, float, float]:
+    """Parse ``Set_Input_Pos``.
+
+    Args:
+        data: 8 bytes.
+
+    Returns:
+        ``(pos, vel_ff, torque_ff)`` in rev, rev/s, N·m.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    _check_len("Set_Input_Pos", data, 8)
+    pos, v, t = INPUT_POS.unpack(data)
+    return pos, v * 0.001, t * 0.001
+
+
+def encode_set_input_vel(vel: float, torque_ff: float = 0.0) -> bytes:
+    """``Set_Input_Vel`` payload: float32 rev/s, float32 torque feed-forward N·m.
+
+    Args:
+        vel: Velocity set-point, rev/s.
+        torque_ff: Torque feed-forward, N·m.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Not a finite float32.
+    """
+    return F32X2.pack(_f32("vel", vel), _f32("torque_ff", torque_ff))
+
+
+def decode_set_input_vel(data: bytes | bytearray) -> tuple[float, float]:
+    """Parse ``Set_Input_Vel``.
+
+    Args:
+        data: 8 bytes.
+
+    Returns:
+        ``(vel, torque_ff)``.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    _check_len("Set_Input_Vel", data, 8)
+    vel, tff = F32X2.unpack(data)
+    return vel, tff
+
+
+def encode_set_input_torque(torque: float) -> bytes:
+    """``Set_Input_Torque`` payload: float32 N·m, 4 reserved bytes.
+
+    Args:
+        torque: N·m (motor side).
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Not a finite float32.
+    """
+    return F32_PAD.pack(_f32("torque", torque))
+
+
+def decode_set_input_torque(data: bytes | bytearray) -> float:
+    """Parse ``Set_Input_Torque``.
+
+    Args:
+        data: 8 bytes (4 accepted).
+
+    Returns:
+        N·m.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    if len(data) == 4:
+        return float(struct.unpack("<f", data)[0])
+    _check_len("Set_Input_Torque", data, 8)
+    return float(F32_PAD.unpack(data)[0])
+
+
+def encode_set_limits(velocity_limit: float, current_limit: float) -> bytes:
+    """``Set_Limits`` payload: float32 rev/s, float32 A.
+
+    Args:
+        velocity_limit: rev/s.
+        current_limit: A.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Not a finite float32.
+    """
+    return F32X2.pack(_f32("velocity_limit", velocity_limit), _f32("current_limit", current_limit))
+
+
+def decode_set_limits(data: bytes | bytearray) -> tuple[float, float]:
+    """Parse ``Set_Limits``.
+
+    Args:
+        data: 8 bytes.
+
+    Returns:
+        ``(velocity_limit, current_limit)``.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    _check_len("Set_Limits", data, 8)
+    vel, cur = F32X2.unpack(data)
+    return vel, cur
+
+
+def encode_encoder_estimates(pos: float, vel: float) -> bytes:
+    """``Get_Encoder_Estimates`` reply payload: float32 rev, float32 rev/s.
+
+    Args:
+        pos: rev.
+        vel: rev/s.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Not a finite float32.
+    """
+    return F32X2.pack(_f32("pos", pos), _f32("vel", vel))
+
+
+def decode_encoder_estimates(data: bytes | bytearray) -> EncoderEstimates:
+    """Parse ``Get_Encoder_Estimates``.
+
+    Args:
+        data: 8 bytes.
+
+    Returns:
+        The estimates.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    _check_len("Get_Encoder_Estimates", data, 8)
+    pos, vel = F32X2.unpack(data)
+    return EncoderEstimates(pos, vel)
+
+
+def encode_torques(target: float, estimate: float) -> bytes:
+    """``Get_Torques`` reply payload: float32 torque target, float32 torque estimate (N·m).
+
+    Args:
+        target: N·m.
+        estimate: N·m.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Not a finite float32.
+    """
+    return F32X2.pack(_f32("target", target), _f32("estimate", estimate))
+
+
+def decode_torques(data: bytes | bytearray) -> tuple[float, float]:
+    """Parse ``Get_Torques``.
+
+    Args:
+        data: 8 bytes.
+
+    Returns:
+        ``(target, estimate)`` in N·m.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    _check_len("Get_Torques", data, 8)
+    target, estimate = F32X2.unpack(data)
+    return target, estimate
+
+
+def encode_error_status(active_errors: int, disarm_reason: int) -> bytes:
+    """``Get_Error`` reply payload: u32 active errors, u32 disarm reason.
+
+    Args:
+        active_errors: :class:`AxisError` bits.
+        disarm_reason: :class:`AxisError` bits.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Out of range.
+    """
+    return U32X2.pack(_u32("active_errors", active_errors), _u32("disarm_reason", disarm_reason))
+
+
+def decode_error_status(data: bytes | bytearray) -> ErrorStatus:
+    """Parse ``Get_Error``.
+
+    Args:
+        data: 8 bytes.
+
+    Returns:
+        The status.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    _check_len("Get_Error", data, 8)
+    active, reason = U32X2.unpack(data)
+    return ErrorStatus(active, reason)
+
+
+def encode_estop() -> bytes:
+    """``Estop`` payload: empty (DLC 0).
+
+    Returns:
+        ``b""``.
+    """
+    return b""
+
+
+def encode_clear_errors(identify: bool = False) -> bytes:
+    """``Clear_Errors`` payload: one byte, 1 to also blink the LED (identify).
+
+    Args:
+        identify: Whether to identify the device.
+
+    Returns:
+        The payload.
+    """
+    return b"\x01" if identify else b"\x00"
+
+
+def decode_clear_errors(data: bytes | bytearray) -> bool:
+    """Parse ``Clear_Errors`` (an empty payload is accepted, as older firmware sends it).
+
+    Args:
+        data: 0 or 1 byte.
+
+    Returns:
+        The identify flag.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    if len(data) > 1:
+        raise ValueError(f"Clear_Errors: expected 0 or 1 data bytes, got {len(data)}")
+    return bool(data and data[0])

@@ -1,0 +1,455 @@
+"""CubeMars/T-Motor AK motors in MIT mode (profile ``driver: mit_can``).
+
+The MIT protocol has no heartbeat: a motor answers every frame it gets. So the driver polls:
+its supervisor thread sends every motor a frame each ``1 / poll_rate`` seconds (the held
+command while ``ACTIVE``, the harmless *exit motor mode* frame otherwise), and a motor that
+leaves ``timeout_periods`` polls in a row unanswered is a
+:class:`~temoto.errors.DriverTimeoutError` (recovered by itself when replies return). An error
+code in a reply (newer firmware's 8-byte replies) is a :class:`~temoto.errors.MotorFaultError`,
+latched until :meth:`recover`; a malformed reply is a
+:class:`~temoto.errors.DriverOperationError`.
+
+``activate`` sends *enter motor mode* and then holds the current position with the profile's
+``kp`` / ``kd``; ``deactivate`` sends *exit motor mode*. Joint commands map onto the impedance
+command: position → ``(p, 0, kp, kd, 0)``, velocity → ``(0, v, 0, kd, 0)``, effort →
+``(0, 0, 0, 0, t)``. The protocol's units are the motor's output side (rad, rad/s, N·m); a
+further gearbox is ``gear_ratio`` (motor turns per joint turn).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, Final, Self
+
+import can
+
+from temoto.clock import Clock
+from temoto.drivers.base import DriverState
+from temoto.drivers.can_motor import mitmode as mm
+from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits
+from temoto.drivers.can_motor._driver import CanMotorDriver
+from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
+from temoto.drivers.sim import Simulator
+from temoto.errors import (
+    DriverError,
+    DriverInitError,
+    DriverOperationError,
+    DriverTimeoutError,
+    MotorFaultError,
+)
+
+__all__ = ["MitMotor", "MitMotorDriver"]
+
+_KEYS: Final = frozenset(
+    {"link", "motors", "poll_rate", "timeout_periods", "host_id", "init_timeout"}
+)
+_MOTOR_KEYS: Final = frozenset(
+    {
+        "motor_id",
+        "joint",
+        "model",
+        "p_max",
+        "v_max",
+        "t_max",
+        "gear_ratio",
+        "kp",
+        "kd",
+        "position_min",
+        "position_max",
+        "velocity_limit",
+        "torque_limit",
+    }
+)
+_KINDS: Final = {1: "overheat", 2: "overload", 3: "voltage", 4: "voltage"}
+
+
+@dataclass(frozen=True, slots=True)
+class MitMotor:
+    """One motor of a device entry.
+
+    Attributes:
+        motor_id: Its CAN id (1..255).
+        joint: The joint it moves.
+        ranges: The MIT field ranges of its model.
+        gear_ratio: Motor turns per joint turn, beyond the motor's own gearbox.
+        kp: Position stiffness for position commands, N·m/rad (motor side).
+        kd: Damping for position and velocity commands, N·m·s/rad (motor side).
+        limits: Joint-side limits of set-points.
+    """
+
+    motor_id: int
+    joint: str
+    ranges: mm.MitRanges = field(default_factory=mm.MitRanges)
+    gear_ratio: float = 1.0
+    kp: float = 20.0
+    kd: float = 1.0
+    limits: JointLimits = field(default_factory=JointLimits)
+
+
+class _Motor:
+    """The receive thread's cache of one motor."""
+
+    __slots__ = ("bad", "error", "held", "motor", "replies", "reply", "temperature", "unanswered")
+
+    def __init__(self, motor: MitMotor) -> None:
+        self.motor = motor
+        self.reset()
+
+    def reset(self) -> None:
+        self.reply: tuple[float, float, float, float] | None = None  # p, v, t, stamp
+        self.replies = 0
+        self.unanswered = 0
+        self.error = 0
+        self.temperature: int | None = None
+        self.bad: str | None = None
+        self.held = mm.CMD_EXIT
+
+    def label(self) -> str:
+        return f"motor {self.motor.motor_id} ({self.motor.joint})"
+
+
+class MitMotorDriver(CanMotorDriver):
+    """MIT-mode motors on one CAN bus; an :class:`~temoto.drivers.capabilities.Actuator`.
+
+    Args:
+        name: The device's name.
+        link: python-can ``Bus`` arguments.
+        motors: The motors.
+        clock: Where time is read.
+        poll_rate: Frames per second to every motor (Hz).
+        timeout_periods: Unanswered polls in a row that make a fault.
+        host_id: The arbitration id the motors reply with.
+        init_timeout: Seconds a motor may take to answer in configure / activate / recover.
+
+    Raises:
+        ValueError: No motors, duplicate ids or joints, or a non-positive rate.
+    """
+
+    kind = "mit_can"
+
+    def __init__(
+        self,
+        name: str,
+        *,
+        link: Mapping[str, Any],
+        motors: Sequence[MitMotor],
+        clock: Clock | None = None,
+        poll_rate: float = 100.0,
+        timeout_periods: int = 3,
+        host_id: int = 0,
+        init_timeout: float = 0.5,
+    ) -> None:
+        ids = {m.motor_id for m in motors}
+        if not motors or len(ids) != len(motors) or len({m.joint for m in motors}) != len(motors):
+            raise ValueError("a MitMotorDriver needs motors with distinct ids and joints")
+        if host_id in ids:
+            raise ValueError(f"host id {host_id} is also a motor id")
+        if not (poll_rate > 0 and timeout_periods > 0 and init_timeout > 0):
+            raise ValueError("rates and timeouts must be positive")
+        super().__init__(
+            name,
+            link=link,
+            clock=clock,
+            init_timeout=init_timeout,
+            supervise_period=1.0 / poll_rate,
+        )
+        self.motors = tuple(motors)
+        self.poll_rate = poll_rate
+        self.timeout_periods = timeout_periods
+        self.host_id = host_id
+        self._cache = [_Motor(m) for m in self.motors]
+        self._by_id = {c.motor.motor_id: c for c in self._cache}
+        self._by_joint = {c.motor.joint: c for c in self._cache}
+
+    # ---- profile ---------------------------------------------------------------------------
+
+    @classmethod
+    def from_profile(
+        cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
+    ) -> Self:
+        """Build the driver from its profile entry (see ``docs/driver-can.md``).
+
+        Args:
+            name: The device's name.
+            config: The entry without ``driver``.
+            clock: The robot's clock.
+            where: The entry's key path, for messages.
+
+        Returns:
+            The driver (``UNCONFIGURED``).
+
+        Raises:
+            ProfileError: A bad entry; the message names the key path.
+        """
+        p = Profile(where)
+        cfg = p.mapping(config, "")
+        p.known(cfg, _KEYS, "")
+        link = p.link(cfg)
+        host = p.integer(cfg, "host_id", "", 0, 0x7FF) if "host_id" in cfg else 0
+        motors: list[MitMotor] = []
+        ids: dict[int, int] = {}
+        joints: dict[str, int] = {}
+        for i, raw in enumerate(p.items(cfg, "motors")):
+            path = f"motors[{i}]"
+            p.known(raw, _MOTOR_KEYS, path)
+            motor_id = p.integer(raw, "motor_id", path, 1, 0xFF)
+            if motor_id in ids or motor_id == host:
+                other = f"motors[{ids[motor_id]}]" if motor_id in ids else "host_id"
+                raise p.fail(f"{path}.motor_id", f"duplicate id {motor_id} ({other})")
+            joint = p.name(raw, "joint", path)
+            if joint in joints:
+                raise p.fail(
+                    f"{path}.joint", f"duplicate joint {joint!r} (motors[{joints[joint]}])"
+                )
+            ids[motor_id], joints[joint] = i, i
+            model = raw.get("model", "AK80-9")
+            if model not in mm.MODELS:
+                raise p.fail(
+                    f"{path}.model", f"unknown model {model!r} (known: {', '.join(mm.MODELS)})"
+                )
+            base = mm.MODELS[model]
+            ranges = mm.MitRanges(
+                p.number(raw, "p_max", path, base.p_max),
+                p.number(raw, "v_max", path, base.v_max),
+                p.number(raw, "t_max", path, base.t_max),
+            )
+            kp = p.number(raw, "kp", path, 20.0)
+            kd = p.number(raw, "kd", path, 1.0)
+            if kp > ranges.kp_max:
+                raise p.fail(f"{path}.kp", f"must be at most {ranges.kp_max}")
+            if kd > ranges.kd_max:
+                raise p.fail(f"{path}.kd", f"must be at most {ranges.kd_max}")
+            gear = p.number(raw, "gear_ratio", path, 1.0)
+            motors.append(MitMotor(motor_id, joint, ranges, gear, kp, kd, p.limits(raw, path)))
+        rate = p.number(cfg, "poll_rate", "", 100.0)
+        periods = p.integer(cfg, "timeout_periods", "", 1, 1000) if "timeout_periods" in cfg else 3
+        init = p.number(cfg, "init_timeout", "", 0.5)
+        return cls(
+            name,
+            link=link,
+            motors=motors,
+            clock=clock,
+            poll_rate=rate,
+            timeout_periods=periods,
+            host_id=host,
+            init_timeout=init,
+        )
+
+    @classmethod
+    def simulate(
+        cls, name: str, config: Mapping[str, Any], *, clock: Clock
+    ) -> tuple[Simulator, dict[str, Any]]:
+        """A simulator (not started) serving this device entry, and the entry to drive it.
+
+        Args:
+            name: The device's name.
+            config: The entry without ``driver``.
+            clock: The clock the simulator steps on.
+
+        Returns:
+            ``(simulator, config)``; for CAN the config is the same.
+
+        Raises:
+            ProfileError: A bad entry.
+        """
+        from temoto.drivers.can_motor.sim import MitModel, SimMitMotor
+
+        driver = cls.from_profile(name, config, clock=clock, where=name)
+        driver.shutdown()
+        models = [MitModel(m.motor_id, m.ranges) for m in driver.motors]
+        sim = SimMitMotor(
+            driver.link, models, clock, host_id=driver.host_id, tick=driver.supervise_period
+        )
+        return sim, dict(config)
+
+    # ---- lifecycle -------------------------------------------------------------------------
+
+    @property
+    def joint_names(self) -> tuple[str, ...]:
+        """The joints, in profile order."""
+        return tuple(m.joint for m in self.motors)
+
+    def on_configure(self) -> None:
+        """Open the bus and wait for every motor to answer (it stays out of motor mode).
+
+        Raises:
+            DriverInitError: A motor did not answer within ``init_timeout`` (named).
+            MotorFaultError: A motor reports an error code.
+        """
+        for c in self._cache:
+            c.reset()
+        self._latched = False
+        self._open()
+        for c in self._cache:
+            self._send(c.motor.motor_id, mm.CMD_EXIT)
+        if not self._wait_for(
+            lambda: all(c.reply is not None for c in self._cache),
+            self.init_timeout,
+        ):
+            silent = [c.label() for c in self._cache if c.reply is None]
+            raise DriverInitError(
+                f"{self.name}: no reply within {self.init_timeout} s from {', '.join(silent)}"
+            )
+        problem = self._problem(self.clock.monotonic())
+        if problem is not None:
+            raise problem
+        self._supervising = True
+
+    def on_activate(self) -> None:
+        """Enter motor mode and hold the current position."""
+        self._ping(mm.CMD_ENTER)
+        for c in self._cache:
+            m = c.motor
+            pos = c.reply[0] if c.reply is not None else 0.0
+            c.held = mm.encode_command(mm.MitCommand(pos, 0.0, m.kp, m.kd, 0.0), m.ranges)
+
+    def on_deactivate(self) -> None:
+        """Exit motor mode (the motors go limp)."""
+        for c in self._cache:
+            c.held = mm.CMD_EXIT
+        self._ping(mm.CMD_EXIT)
+
+    def on_recover(self) -> None:
+        """Ask every motor again (out of motor mode) and clear the latch if all are fine.
+
+        Raises:
+            DriverError: A motor is still silent or still reports an error.
+        """
+        if self._bus is None:
+            self.on_configure()
+            return
+        for c in self._cache:
+            c.held, c.bad = mm.CMD_EXIT, None
+        self._ping(mm.CMD_EXIT)
+        problem = self._problem(self.clock.monotonic())
+        if problem is not None:
+            raise problem
+        self._latched = False
+
+    def _ping(self, frame: bytes) -> None:
+        """Send ``frame`` to every motor and wait for each to answer it."""
+        counts = {c: c.replies for c in self._cache}
+        for c in self._cache:
+            self._send(c.motor.motor_id, frame)
+        if not self._wait_for(
+            lambda: all(c.replies > n for c, n in counts.items()), self.init_timeout
+        ):
+            silent = [c.label() for c, n in counts.items() if c.replies <= n]
+            raise DriverTimeoutError(
+                f"{self.name}: no reply within {self.init_timeout} s from {', '.join(silent)}"
+            )
+
+    # ---- verbs -----------------------------------------------------------------------------
+
+    def command(self, commands: Iterable[JointCommand]) -> None:
+        """Send set-points (rad, rad/s or N·m on the joint side); they are held and re-sent.
+
+        Args:
+            commands: One per joint to change; others keep their set-point.
+
+        Raises:
+            StateError: Not active.
+            ValueError: An unknown joint or a set-point outside the joint's or motor's range.
+            DriverOperationError: The bus refused a frame.
+        """
+        self.require_active("command")
+        plan: list[tuple[_Motor, bytes]] = []
+        for cmd in commands:
+            c = self._by_joint.get(cmd.joint)
+            if c is None:
+                raise ValueError(
+                    f"{self.name}: no joint {cmd.joint!r} (joints: {self.joint_names})"
+                )
+            m = c.motor
+            check_limits(cmd.joint, m.limits, cmd.mode.value, cmd.value)
+            if cmd.mode is ControlMode.POSITION:
+                value, top = cmd.value * m.gear_ratio, m.ranges.p_max
+                fields = mm.MitCommand(value, 0.0, m.kp, m.kd, 0.0)
+            elif cmd.mode is ControlMode.VELOCITY:
+                value, top = cmd.value * m.gear_ratio, m.ranges.v_max
+                fields = mm.MitCommand(0.0, value, 0.0, m.kd, 0.0)
+            else:
+                value, top = cmd.value / m.gear_ratio, m.ranges.t_max
+                fields = mm.MitCommand(0.0, 0.0, 0.0, 0.0, value)
+            if abs(value) > top:
+                raise ValueError(
+                    f"joint {cmd.joint}: {cmd.mode.value} {cmd.value} is beyond the motor's"
+                    f" range ±{top} (motor side)"
+                )
+            plan.append((c, mm.encode_command(fields, m.ranges)))
+        for c, frame in plan:
+            c.held = frame
+            self._send(c.motor.motor_id, frame)
+
+    def read_state(self) -> JointStates:
+        """The newest reply of every motor (the cache; no bus traffic).
+
+        Returns:
+            Joint states stamped with the clock time each reply arrived.
+
+        Raises:
+            StateError: Never configured, or finalized.
+        """
+        self._require_open("read the state")
+        joints: dict[str, JointState] = {}
+        newest = -math.inf
+        for c in self._cache:
+            p, v, t, stamp = c.reply or (0.0, 0.0, 0.0, -math.inf)
+            g = c.motor.gear_ratio
+            joints[c.motor.joint] = JointState(c.motor.joint, p / g, v / g, t * g, stamp)
+            newest = max(newest, stamp)
+        return JointStates(newest, joints)
+
+    # ---- receive and supervise -------------------------------------------------------------
+
+    def _on_frame(self, msg: can.Message) -> None:
+        if msg.arbitration_id != self.host_id or msg.is_extended_id:
+            return
+        data = msg.data
+        c = self._by_id.get(data[0]) if data else None
+        if c is None:
+            return
+        if len(data) not in (6, 8):
+            c.bad = f"{c.label()}: malformed reply ({len(data)} data bytes)"
+            self._evaluate()
+            return
+        reply = mm.decode_reply(data, c.motor.ranges)
+        was_fine = c.unanswered <= self.timeout_periods and c.bad is None and not c.error
+        c.reply = (reply.p, reply.v, reply.t, self.clock.monotonic())
+        c.temperature = reply.temperature
+        c.error = reply.error or 0
+        c.unanswered, c.bad = 0, None
+        c.replies += 1
+        self._notify()
+        if not was_fine or c.error or self.state is DriverState.FAULT:
+            self._evaluate()
+
+    def _on_period(self, now: float) -> None:
+        if self._bus is None:
+            return
+        for c in self._cache:
+            c.unanswered += 1
+            with contextlib.suppress(DriverError):  # a broken bus shows as missing replies
+                self._send(c.motor.motor_id, c.held)
+
+    def _problem(self, now: float) -> DriverError | None:
+        for c in self._cache:
+            if c.unanswered > self.timeout_periods:
+                return DriverTimeoutError(
+                    f"{self.name}: {c.label()}: no reply to {c.unanswered - 1} polls in a row"
+                    f" ({self.timeout_periods / self.poll_rate:g} s)"
+                )
+            if c.error:
+                what = mm.ERROR_CODES.get(c.error, f"error code {c.error}")
+                kind = _KINDS.get(c.error)
+                return MotorFaultError(
+                    f"{self.name}: {c.label()}: {what}" + (f" ({kind})" if kind else ""),
+                    node_id=c.motor.motor_id,
+                    error=c.error,
+                )
+            if c.bad is not None:
+                return DriverOperationError(f"{self.name}: {c.bad}")
+        return None

@@ -1,0 +1,535 @@
+"""Simulated CAN motors at the device end of a python-can bus: an ODrive and MIT-mode motors.
+
+:class:`SimODrive` answers CANSimple for one or more axes (node ids) on one bus, like a board
+per node on a real bus: heartbeats every ``heartbeat_period``, encoder estimates every
+``encoder_period`` and on request (an RTR ``Get_Encoder_Estimates``), axis states, controller
+modes, position / velocity / torque inputs, errors, estop and clear errors.
+:class:`SimMitMotor` answers the MIT-mode protocol of CubeMars AK motors: enter / exit / zero
+frames and impedance commands, each with a reply.
+
+Both step a first-order motion model on the injected clock, on a thread that waits with
+``clock.wait`` (so a :class:`~temoto.clock.ManualClock` test runs in virtual time), and read
+the bus on another thread. Faults (:meth:`~temoto.drivers.sim.Simulator.inject`, optionally
+``node=<id>`` for one axis or motor): ``silence`` (dead: no frames, commands ignored),
+``corrupt`` (frames go out truncated: a wrong DLC), ``hardware_error`` (``kind`` = overheat,
+overload or voltage: error bits, the axis disarms; latched until Clear_Errors on an ODrive),
+``no_heartbeat`` (ODrive: cyclic heartbeats stop, everything else answers) and ``link_loss``
+(no frames in either direction, every node).
+
+The bus may be ``virtual`` (one process) or ``udp_multicast`` (across processes).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+from abc import abstractmethod
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Final
+
+import can
+
+from temoto.clock import Clock
+from temoto.drivers.can_motor import cansimple as cs
+from temoto.drivers.can_motor import mitmode as mit
+from temoto.drivers.can_motor._common import open_bus
+from temoto.drivers.sim import Simulator
+
+__all__ = ["AxisModel", "MitModel", "SimMitMotor", "SimODrive"]
+
+logger = logging.getLogger(__name__)
+
+_RX_POLL: Final = 0.05  # real seconds between stop-flag checks of a receive thread
+_HW_BITS: Final = {
+    "overheat": cs.AxisError.MOTOR_OVER_TEMP,
+    "overload": cs.AxisError.CURRENT_LIMIT_VIOLATION,
+    "voltage": cs.AxisError.DC_BUS_UNDER_VOLTAGE,
+}
+_MIT_CODES: Final = {"overheat": 1, "overload": 2, "voltage": 4}
+
+
+@dataclass
+class AxisModel:
+    """One simulated ODrive axis (motor side: rev, rev/s, N·m).
+
+    Attributes:
+        node_id: Its CANSimple node id.
+        time_constant: Seconds of the first-order response.
+        vel_limit: rev/s.
+        damping: N·m per rev/s: in torque control the speed settles at ``torque / damping``.
+    """
+
+    node_id: int
+    time_constant: float = 0.05
+    vel_limit: float = 50.0
+    damping: float = 0.1
+    pos: float = 0.0
+    vel: float = 0.0
+    state: int = cs.AxisState.IDLE
+    error: int = 0
+    control_mode: int = cs.ControlMode.POSITION_CONTROL
+    input_mode: int = cs.InputMode.PASSTHROUGH
+    input_pos: float = 0.0
+    input_vel: float = 0.0
+    input_torque: float = 0.0
+    stamp: float | None = None
+    commands: int = 0  # set-points received (for tests)
+
+    def step(self, now: float) -> None:
+        """Advance the model to ``now`` (clock seconds)."""
+        if self.stamp is None or now <= self.stamp:
+            self.stamp = now if self.stamp is None else self.stamp
+            return
+        dt, self.stamp = now - self.stamp, now
+        decay = math.exp(-dt / self.time_constant)
+        if self.state != cs.AxisState.CLOSED_LOOP_CONTROL:
+            self.vel *= decay  # coasting
+            self.pos += self.vel * dt
+            return
+        if self.control_mode == cs.ControlMode.POSITION_CONTROL:
+            target = self.input_pos + (self.pos - self.input_pos) * decay
+            vel = (target - self.pos) / dt
+            vel = max(-self.vel_limit, min(self.vel_limit, vel))
+            self.pos += vel * dt
+            self.vel = vel
+            return
+        if self.control_mode == cs.ControlMode.VELOCITY_CONTROL:
+            goal = self.input_vel
+        else:
+            goal = self.input_torque / self.damping
+        goal = max(-self.vel_limit, min(self.vel_limit, goal))
+        new = goal + (self.vel - goal) * decay
+        self.pos += 0.5 * (self.vel + new) * dt
+        self.vel = new
+
+    @property
+    def torque(self) -> float:
+        """The torque estimate, N·m."""
+        if self.state != cs.AxisState.CLOSED_LOOP_CONTROL:
+            return 0.0
+        if self.control_mode == cs.ControlMode.TORQUE_CONTROL:
+            return self.input_torque
+        return self.damping * self.vel
+
+
+@dataclass
+class MitModel:
+    """One simulated MIT-mode motor (output side: rad, rad/s, N·m).
+
+    The motor's torque ``kp (p_des - p) + kd (v_des - v) + t_ff`` works against viscous
+    ``damping`` (none by default) with no inertia, which makes the position a first-order
+    system with the time constant ``(kd + damping) / kp``.
+
+    Attributes:
+        motor_id: Its CAN id.
+        ranges: Its field ranges.
+        damping: N·m per rad/s.
+    """
+
+    motor_id: int
+    ranges: mit.MitRanges = field(default_factory=mit.MitRanges)
+    damping: float = 0.0
+    enabled: bool = False
+    pos: float = 0.0
+    vel: float = 0.0
+    torque: float = 0.0
+    command: mit.MitCommand = field(default_factory=lambda: mit.MitCommand(0, 0, 0, 0, 0))
+    error: int = 0
+    temperature: int = 30
+    stamp: float | None = None
+    commands: int = 0
+
+    def step(self, now: float) -> None:
+        """Advance the model to ``now`` (clock seconds)."""
+        if self.stamp is None or now <= self.stamp:
+            self.stamp = now if self.stamp is None else self.stamp
+            return
+        dt, self.stamp = now - self.stamp, now
+        if not self.enabled:
+            self.vel *= math.exp(-dt * 20.0)
+            self.pos += self.vel * dt
+            self.torque = 0.0
+            return
+        c = self.command
+        friction = self.damping + c.kd
+        if c.kp > 0:
+            goal = c.p + (c.kd * c.v + c.t) / c.kp
+            decay = math.exp(-dt * c.kp / friction) if friction > 0 else 0.0
+            new = goal + (self.pos - goal) * decay
+            vel = (new - self.pos) / dt
+        elif friction > 0:
+            vel = (c.kd * c.v + c.t) / friction
+        else:  # a free motor under a constant torque runs up to its limit
+            vel = math.copysign(self.ranges.v_max, c.t) if c.t else 0.0
+        limit = self.ranges.v_max
+        vel = max(-limit, min(limit, vel))
+        self.pos = max(-self.ranges.p_max, min(self.ranges.p_max, self.pos + vel * dt))
+        self.vel = vel
+        torque = c.kp * (c.p - self.pos) + c.kd * (c.v - vel) + c.t
+        self.torque = max(-self.ranges.t_max, min(self.ranges.t_max, torque))
+
+
+class _CanSim(Simulator):
+    """A python-can bus, a receive thread and a clock-driven tick thread."""
+
+    FAULTS: ClassVar[frozenset[str]] = frozenset(
+        {"silence", "corrupt", "hardware_error", "link_loss"}
+    )
+    _KIND: ClassVar[str] = "can"
+
+    def __init__(self, link: Mapping[str, Any], clock: Clock, tick: float) -> None:
+        super().__init__()
+        self.link = dict(link)
+        self.clock = clock
+        self.tick = tick
+        self._cond = threading.Condition()
+        self._stop = False
+        self._bus: can.BusABC | None = None
+        self._threads: list[threading.Thread] = []
+        self._send_lock = threading.Lock()
+
+    def __repr__(self) -> str:
+        return f"<{type(self).__name__} on {self.link.get('channel')!r}>"
+
+    def start(self) -> None:
+        """Open the bus and start answering.
+
+        Raises:
+            RuntimeError: Already started.
+            DriverInitError: The bus cannot be opened.
+        """
+        if self._bus is not None:
+            raise RuntimeError(f"{self!r} is already started")
+        self._bus = open_bus(self.link, repr(self))
+        self._stop = False
+        channel = self.link.get("channel")
+        self._threads = [
+            threading.Thread(target=self._rx_loop, name=f"temoto-sim-{self._KIND}-{channel}-rx"),
+            threading.Thread(
+                target=self._tick_loop, name=f"temoto-sim-{self._KIND}-{channel}-tick"
+            ),
+        ]
+        for thread in self._threads:
+            thread.start()
+
+    def close(self) -> None:
+        """Stop, join the threads and close the bus (idempotent)."""
+        with self._cond:
+            self._stop = True
+            self._cond.notify_all()
+        for thread in self._threads:
+            thread.join()
+        self._threads = []
+        if self._bus is not None:
+            self._bus.shutdown()
+            self._bus = None
+
+    # ---- faults ----------------------------------------------------------------------------
+
+    def _faulted(self, name: str, node: int) -> bool:
+        params = self.fault(name)
+        if params is None:
+            return False
+        which = params.get("node")
+        return which is None or which == node
+
+    def _mute(self, node: int) -> bool:
+        return self.fault("link_loss") is not None or self._faulted("silence", node)
+
+    def send(self, arbitration_id: int, data: bytes, node: int) -> None:
+        """Send a frame from ``node`` (unless muted; truncated when corrupting)."""
+        if self._mute(node):
+            return
+        if data and self._faulted("corrupt", node):
+            data = data[: max(1, len(data) // 2 - 1)]
+        msg = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
+        bus = self._bus
+        if bus is None:
+            return
+        try:
+            with self._send_lock:
+                bus.send(msg)
+        except can.CanError as err:
+            logger.debug("%r: send failed: %s", self, err)
+
+    # ---- threads ---------------------------------------------------------------------------
+
+    def _rx_loop(self) -> None:
+        bus = self._bus
+        assert bus is not None
+        while not self._stop:
+            try:
+                msg = bus.recv(_RX_POLL)
+            except can.CanError as err:  # pragma: no cover - a broken backend
+                logger.warning("%r: receive failed: %s", self, err)
+                continue
+            if msg is None or msg.is_error_frame or self.fault("link_loss") is not None:
+                continue
+            try:
+                self.on_frame(msg)
+            except Exception:  # a simulator never dies of one bad frame
+                logger.exception("%r: handling %s failed", self, msg)
+
+    def _tick_loop(self) -> None:
+        due = self.clock.monotonic()
+        while True:
+            with self._cond:
+                while not self._stop:
+                    left = due - self.clock.monotonic()
+                    if left <= 0:
+                        break
+                    self.clock.wait(self._cond, left)
+                if self._stop:
+                    return
+            now = self.clock.monotonic()
+            try:
+                self.on_tick(now)
+            except Exception:
+                logger.exception("%r: tick failed", self)
+            due = max(due + self.tick, now)
+
+    @abstractmethod
+    def on_frame(self, msg: can.Message) -> None:
+        """Handle one received frame (on the receive thread)."""
+
+    @abstractmethod
+    def on_tick(self, now: float) -> None:
+        """Step the models and send what is due (on the tick thread)."""
+
+
+class SimODrive(_CanSim):
+    """ODrive axes answering CANSimple on a python-can bus.
+
+    Args:
+        link: python-can ``Bus`` arguments (``interface``, ``channel``, ...).
+        nodes: The node ids to serve, or :class:`AxisModel` instances.
+        clock: Where time is read and waited.
+        heartbeat_period: Seconds between heartbeats (``heartbeat_msg_rate_ms``).
+        encoder_period: Seconds between cyclic encoder estimates (0 = only on request).
+        torque_period: Seconds between cyclic ``Get_Torques`` (0 = only on request).
+
+    Raises:
+        ValueError: No nodes, a duplicate node id, or a non-positive period.
+    """
+
+    FAULTS: ClassVar[frozenset[str]] = _CanSim.FAULTS | {"no_heartbeat"}
+    _KIND: ClassVar[str] = "odrive"
+
+    def __init__(
+        self,
+        link: Mapping[str, Any],
+        nodes: Sequence[int | AxisModel],
+        clock: Clock,
+        *,
+        heartbeat_period: float = 0.1,
+        encoder_period: float = 0.01,
+        torque_period: float = 0.0,
+    ) -> None:
+        if not heartbeat_period > 0 or encoder_period < 0 or torque_period < 0:
+            raise ValueError("the heartbeat period must be positive, the others >= 0")
+        periods = [p for p in (heartbeat_period, encoder_period, torque_period) if p > 0]
+        super().__init__(link, clock, min(periods))
+        models = [n if isinstance(n, AxisModel) else AxisModel(n) for n in nodes]
+        if not models or len({m.node_id for m in models}) != len(models):
+            raise ValueError("a SimODrive needs distinct node ids")
+        self.axes: dict[int, AxisModel] = {m.node_id: m for m in models}
+        self.heartbeat_period = heartbeat_period
+        self.encoder_period = encoder_period
+        self.torque_period = torque_period
+        self._model_lock = threading.Lock()
+        self._due_hb = self._due_enc = self._due_tq = -math.inf
+        self._ids: dict[tuple[int, int], int] = {
+            (nid, int(cmd)): cs.arbitration_id(nid, cmd) for nid in self.axes for cmd in cs.Cmd
+        }
+
+    def on_fault_changed(self, fault: str, active: bool) -> None:
+        """Raise the error bits of a hardware error at once (and disarm)."""
+        if fault != "hardware_error":
+            return
+        params = self.fault(fault) or {}
+        with self._model_lock:
+            for axis in self.axes.values():
+                if active and params.get("node") in (None, axis.node_id):
+                    axis.step(self.clock.monotonic())
+                    axis.error |= _HW_BITS[params.get("kind", "overheat")]
+                    axis.state = cs.AxisState.IDLE
+
+    def _hw_bits(self, node: int) -> int:
+        params = self.fault("hardware_error")
+        if params is None or params.get("node") not in (None, node):
+            return 0
+        return int(_HW_BITS[params.get("kind", "overheat")])
+
+    def on_frame(self, msg: can.Message) -> None:
+        """Apply a command or answer a request addressed to one of the axes."""
+        node, cmd = cs.split_id(msg.arbitration_id)
+        axis = self.axes.get(node)
+        if axis is None or msg.is_extended_id or self._mute(node):
+            return
+        data = bytes(msg.data)
+        now = self.clock.monotonic()
+        reply: tuple[int, bytes] | None = None
+        with self._model_lock:
+            axis.step(now)
+            if msg.is_remote_frame:
+                if cmd == cs.Cmd.GET_ENCODER_ESTIMATES:
+                    reply = (cmd, cs.encode_encoder_estimates(axis.pos, axis.vel))
+                elif cmd == cs.Cmd.GET_ERROR:
+                    reply = (cmd, cs.encode_error_status(axis.error, axis.error))
+                elif cmd == cs.Cmd.GET_TORQUES:
+                    reply = (cmd, cs.encode_torques(axis.input_torque, axis.torque))
+                elif cmd == cs.Cmd.HEARTBEAT:
+                    reply = (cmd, self._heartbeat(axis))
+            elif cmd == cs.Cmd.SET_AXIS_STATE:
+                wanted = cs.decode_set_axis_state(data)
+                if wanted == cs.AxisState.CLOSED_LOOP_CONTROL and axis.error:
+                    pass  # a faulted axis does not arm
+                elif wanted in (cs.AxisState.IDLE, cs.AxisState.CLOSED_LOOP_CONTROL):
+                    if wanted == cs.AxisState.CLOSED_LOOP_CONTROL:
+                        axis.input_pos = axis.pos  # the ODrive holds where it is
+                        axis.input_vel = axis.input_torque = 0.0
+                    axis.state = wanted
+            elif cmd == cs.Cmd.SET_CONTROLLER_MODE:
+                axis.control_mode, axis.input_mode = cs.decode_set_controller_mode(data)
+            elif cmd == cs.Cmd.SET_INPUT_POS:
+                axis.input_pos, _, _ = cs.decode_set_input_pos(data)
+                axis.commands += 1
+            elif cmd == cs.Cmd.SET_INPUT_VEL:
+                axis.input_vel, _ = cs.decode_set_input_vel(data)
+                axis.commands += 1
+            elif cmd == cs.Cmd.SET_INPUT_TORQUE:
+                axis.input_torque = cs.decode_set_input_torque(data)
+                axis.commands += 1
+            elif cmd == cs.Cmd.SET_LIMITS:
+                axis.vel_limit, _ = cs.decode_set_limits(data)
+            elif cmd == cs.Cmd.ESTOP:
+                axis.error |= cs.AxisError.ESTOP_REQUESTED
+                axis.state = cs.AxisState.IDLE
+            elif cmd == cs.Cmd.CLEAR_ERRORS:
+                cs.decode_clear_errors(data)
+                axis.error = self._hw_bits(node)  # a present condition stays
+        if reply is not None:
+            self.send(self._ids[node, reply[0]], reply[1], node)
+
+    def _heartbeat(self, axis: AxisModel) -> bytes:
+        return cs.encode_heartbeat(axis.error, axis.state, 0, True)
+
+    def on_tick(self, now: float) -> None:
+        """Send heartbeats, encoder estimates and torques that are due."""
+        hb = now >= self._due_hb
+        enc = self.encoder_period > 0 and now >= self._due_enc
+        tq = self.torque_period > 0 and now >= self._due_tq
+        if hb:
+            self._due_hb = max(self._due_hb + self.heartbeat_period, now)
+        if enc:
+            self._due_enc = max(self._due_enc + self.encoder_period, now)
+        if tq:
+            self._due_tq = max(self._due_tq + self.torque_period, now)
+        frames: list[tuple[int, int, bytes]] = []
+        no_hb = self.fault("no_heartbeat")
+        with self._model_lock:
+            for node, axis in self.axes.items():
+                axis.step(now)
+                if hb and not (no_hb is not None and no_hb.get("node") in (None, node)):
+                    frames.append((node, cs.Cmd.HEARTBEAT, self._heartbeat(axis)))
+                if enc:
+                    data = cs.encode_encoder_estimates(axis.pos, axis.vel)
+                    frames.append((node, cs.Cmd.GET_ENCODER_ESTIMATES, data))
+                if tq:
+                    data = cs.encode_torques(axis.input_torque, axis.torque)
+                    frames.append((node, cs.Cmd.GET_TORQUES, data))
+        for node, cmd, data in frames:
+            self.send(self._ids[node, cmd], data, node)
+
+
+class SimMitMotor(_CanSim):
+    """MIT-mode motors answering on a python-can bus (one reply per received frame).
+
+    Args:
+        link: python-can ``Bus`` arguments.
+        motors: The motor ids to serve, or :class:`MitModel` instances.
+        clock: Where time is read and waited.
+        host_id: The arbitration id replies are sent with.
+        tick: Seconds between model steps.
+        long_replies: Send 8-byte replies (temperature and error code) instead of 6.
+
+    Raises:
+        ValueError: No motors or a duplicate motor id.
+    """
+
+    _KIND: ClassVar[str] = "mit"
+
+    def __init__(
+        self,
+        link: Mapping[str, Any],
+        motors: Sequence[int | MitModel],
+        clock: Clock,
+        *,
+        host_id: int = 0,
+        tick: float = 0.01,
+        long_replies: bool = True,
+    ) -> None:
+        super().__init__(link, clock, tick)
+        models = [m if isinstance(m, MitModel) else MitModel(m) for m in motors]
+        if not models or len({m.motor_id for m in models}) != len(models):
+            raise ValueError("a SimMitMotor needs distinct motor ids")
+        self.motors: dict[int, MitModel] = {m.motor_id: m for m in models}
+        self.host_id = host_id
+        self.long_replies = long_replies
+        self._model_lock = threading.Lock()
+
+    def on_fault_changed(self, fault: str, active: bool) -> None:
+        """Raise or drop the error code of a hardware error (and disable the motor)."""
+        if fault != "hardware_error":
+            return
+        params = self.fault(fault) or {}
+        with self._model_lock:
+            for motor in self.motors.values():
+                if not active:
+                    motor.error = 0
+                elif params.get("node") in (None, motor.motor_id):
+                    motor.error = _MIT_CODES[params.get("kind", "overheat")]
+                    motor.enabled = False
+
+    def on_frame(self, msg: can.Message) -> None:
+        """Answer a frame addressed to one of the motors."""
+        motor = self.motors.get(msg.arbitration_id)
+        if motor is None or msg.is_extended_id or msg.is_remote_frame:
+            return
+        if self._mute(motor.motor_id):
+            return
+        data = bytes(msg.data)
+        with self._model_lock:
+            motor.step(self.clock.monotonic())
+            kind = mit.special(data)
+            if kind == "enter":
+                motor.enabled = motor.error == 0
+                motor.command = mit.MitCommand(motor.pos, 0.0, 0.0, 0.0, 0.0)
+            elif kind == "exit":
+                motor.enabled = False
+            elif kind == "zero":
+                motor.pos = 0.0
+            elif len(data) == 8:
+                if motor.enabled:
+                    motor.command = mit.decode_command(data, motor.ranges)
+                    motor.commands += 1
+            else:
+                return  # not a frame this motor understands: no reply
+            reply = mit.MitReply(
+                motor.motor_id,
+                motor.pos,
+                motor.vel,
+                motor.torque,
+                motor.temperature if self.long_replies else None,
+                motor.error if self.long_replies else None,
+            )
+            payload = mit.encode_reply(reply, motor.ranges)
+        self.send(self.host_id, payload, motor.motor_id)
+
+    def on_tick(self, now: float) -> None:
+        """Step the models."""
+        with self._model_lock:
+            for motor in self.motors.values():
+                motor.step(now)

@@ -1,0 +1,101 @@
+"""The Robot Manager on the simulated ODrive rover and the mobile manipulator (faster clocks)."""
+
+from __future__ import annotations
+
+import json
+import math
+import time
+from collections.abc import Iterator
+from pathlib import Path
+
+import pytest
+
+from temoto import ActionEngine, Result, ScaledClock
+from temoto.actions.builtin import ROBOT_ACTIONS
+from temoto.config import load_profile
+from temoto.core.registrar import Registrar, Status, StatusUpdate
+from temoto.managers.robot import RobotManager, RobotManagerClient
+
+ROOT = Path(__file__).resolve().parents[2]
+PROFILES = ROOT / "hw_profiles"
+MISSIONS = ROOT / "examples" / "missions"
+WAIT = 30.0
+
+
+def mission(name: str) -> dict[str, object]:
+    doc: dict[str, object] = json.loads((MISSIONS / f"{name}.graph.json").read_text())
+    return doc
+
+
+@pytest.fixture
+def rover() -> Iterator[tuple[Registrar, RobotManager, ScaledClock]]:
+    clock = ScaledClock(5)
+    registrar = Registrar("test-rover")
+    profile = load_profile(PROFILES / "sim_rover.yaml", clock=clock)
+    manager = RobotManager(registrar, profile, clock=clock)
+    try:
+        yield registrar, manager, clock
+    finally:
+        for ref in registrar.references():
+            registrar.release(ref.id)
+        manager.shutdown()
+        registrar.close()
+
+
+def test_the_route_comes_back_to_the_start(
+    rover: tuple[Registrar, RobotManager, ScaledClock],
+) -> None:
+    registrar, _, clock = rover
+    with ActionEngine(
+        "sim_rover", actions=[ROBOT_ACTIONS], registrar=registrar, clock=clock
+    ) as engine:
+        outcome = engine.run(mission("rover_route"), timeout=WAIT * 5)
+    assert outcome.result is Result.TRUE, outcome.errors
+    x, y, yaw = (outcome.outputs[k] for k in ("pose_x", "pose_y", "pose_yaw"))
+    assert math.hypot(x, y) < 0.1, (x, y)  # odometry: back where it started
+    assert abs(yaw) < 0.1
+
+
+def test_a_silent_wheel_fails_the_drive_and_its_return_is_reported(
+    rover: tuple[Registrar, RobotManager, ScaledClock],
+) -> None:
+    registrar, manager, clock = rover
+    statuses: list[StatusUpdate] = []
+    watcher = RobotManagerClient(registrar).request(client="watcher", on_status=statuses.append)
+    with ActionEngine(
+        "sim_rover", actions=[ROBOT_ACTIONS], registrar=registrar, clock=clock
+    ) as engine:
+        engine.start(mission("rover_route"))
+        deadline = time.monotonic() + WAIT
+        while watcher.pose()[0] < 0.3:  # under way
+            assert time.monotonic() < deadline, "the rover did not move"
+            time.sleep(0.01)
+        manager.simulator("base").inject("silence", node=2)
+        assert engine.wait("rover_route", WAIT) is Result.ERROR
+        errors = engine.outcome("rover_route").errors
+    assert any("right_wheel" in str(e) or "node 2" in str(e) for e in errors), errors
+    assert [s.status for s in statuses] == [Status.FATAL]
+    manager.simulator("base").clear()
+    deadline = time.monotonic() + WAIT
+    while Status.OK not in [s.status for s in statuses]:
+        assert time.monotonic() < deadline, statuses
+        time.sleep(0.01)
+    assert watcher.healthy()
+
+
+def test_the_mobile_manipulation_mission() -> None:
+    clock = ScaledClock(3)
+    registrar = Registrar("test-mm")
+    profile = load_profile(PROFILES / "sim_mobile_manipulator.yaml", clock=clock)
+    manager = RobotManager(registrar, profile, clock=clock)
+    try:
+        with ActionEngine(
+            "sim_mobile_manipulator", actions=[ROBOT_ACTIONS], registrar=registrar, clock=clock
+        ) as engine:
+            outcome = engine.run(mission("mobile_manipulation"), timeout=WAIT * 3)
+        assert outcome.result is Result.TRUE, outcome.errors
+        assert outcome.outputs["arm_positions"] == pytest.approx([0.0] * 6, abs=0.05)
+        assert registrar.resources() == []
+    finally:
+        manager.shutdown()
+        registrar.close()
