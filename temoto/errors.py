@@ -9,6 +9,7 @@ situation, and inherit the matching builtin so generic callers can catch what th
         │   ├── UmrfError                   an action description (*.umrf.json) is invalid
         │   ├── GraphDefinitionError        a graph is invalid (parse or validation)
         │   │   └── GraphInputError         a required graph input was not supplied
+        │   ├── PipelineError               a component pipeline template is invalid (cycle, ...)
         │   └── ProfileError                a hardware profile is invalid
         ├── PluginError                     discovery and loading of actions and drivers
         │   ├── ActionNotFoundError (+LookupError)
@@ -18,6 +19,9 @@ situation, and inherit the matching builtin so generic callers can catch what th
         │   └── PluginLoadError             found, but importing it failed (cause chained)
         ├── StateError (+RuntimeError)      an illegal transition or a command in the wrong state
         ├── ActionError                     user action code failed; names graph and node
+        ├── ContextError                    the shared world model refused a change
+        │   ├── ContextItemNotFoundError (+LookupError)  no item of that name (or parent)
+        │   └── ContextCycleError           a re-parent would make an item its own ancestor
         ├── ResourceError
         │   ├── ResourceNotFoundError (+LookupError)
         │   │   └── NoProviderError         no robot of the fleet offers the server (RIS)
@@ -25,7 +29,8 @@ situation, and inherit the matching builtin so generic callers can catch what th
         │   ├── ResourceClosedError
         │   ├── ResourceBrokenError
         │   ├── ResourceLoadError           a server failed to load (cause chained per hop)
-        │   └── CatalogCorruptError         the registrar's journal is damaged (file + offset)
+        │   ├── CatalogCorruptError         the registrar's journal is damaged (file + offset)
+        │   └── ComponentNotFoundError (+LookupError) no candidate provides a component type
         ├── DriverError
         │   ├── DriverUnavailableError
         │   ├── DriverInitError
@@ -56,7 +61,11 @@ __all__ = [
     "ActionError",
     "ActionNotFoundError",
     "CatalogCorruptError",
+    "ComponentNotFoundError",
     "ConfigError",
+    "ContextCycleError",
+    "ContextError",
+    "ContextItemNotFoundError",
     "DecodeError",
     "DriverError",
     "DriverInitError",
@@ -73,6 +82,7 @@ __all__ = [
     "MavlinkCommandError",
     "MotorFaultError",
     "NoProviderError",
+    "PipelineError",
     "PluginConflictError",
     "PluginError",
     "PluginLoadError",
@@ -199,6 +209,10 @@ class ProfileError(ConfigError):
     """A hardware profile is invalid."""
 
 
+class PipelineError(ConfigError):
+    """A component pipeline template is invalid (an unknown component type, a cycle, ...)."""
+
+
 class PluginError(TemotoError):
     """Finding or loading an action or driver plugin failed."""
 
@@ -308,6 +322,22 @@ class CatalogCorruptError(ResourceError):
         if offset is not None:
             where += f"byte {offset}: "
         super().__init__(where + message)
+
+
+class ComponentNotFoundError(ResourceNotFoundError):
+    """No candidate (local or on another robot) provides the component type asked for."""
+
+
+class ContextError(TemotoError):
+    """The Context Manager refused a change to the world model (the tree is unchanged)."""
+
+
+class ContextItemNotFoundError(ContextError, LookupError):
+    """No item of that name, or a change names a parent that does not exist."""
+
+
+class ContextCycleError(ContextError):
+    """A re-parent would make an item its own ancestor."""
 
 
 class DriverError(TemotoError):
