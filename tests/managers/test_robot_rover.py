@@ -99,3 +99,48 @@ def test_the_mobile_manipulation_mission() -> None:
     finally:
         manager.shutdown()
         registrar.close()
+
+
+def goto_graph(name: str, x: float, y: float) -> dict[str, object]:
+    return {
+        "graph_name": name,
+        "graph_entry": [{"name": "NavigateTo", "instance_id": 0}],
+        "graph_exit": [{"name": "NavigateTo", "instance_id": 0}],
+        "actions": [
+            {
+                "name": "NavigateTo",
+                "instance_id": 0,
+                "type": "sync",
+                "input_parameters": {
+                    "x": {"pvf_type": "number", "pvf_value": x},
+                    "y": {"pvf_type": "number", "pvf_value": y},
+                },
+            }
+        ],
+    }
+
+
+def test_a_paused_graph_goes_on_after_another_graph_used_the_robot(
+    rover: tuple[Registrar, RobotManager, ScaledClock],
+) -> None:
+    registrar, _, clock = rover
+    watcher = RobotManagerClient(registrar).request(client="watcher")
+    with ActionEngine(
+        "sim_rover", actions=[ROBOT_ACTIONS], registrar=registrar, clock=clock
+    ) as engine:
+        engine.start(goto_graph("patrol", 2.0, 0.0))
+        deadline = time.monotonic() + WAIT
+        while watcher.pose()[0] < 0.3:
+            assert time.monotonic() < deadline, "the rover did not move"
+            time.sleep(0.01)
+        engine.pause("patrol")
+        errand = engine.run(goto_graph("errand", 0.0, 1.0), timeout=WAIT * 5)
+        assert errand.result is Result.TRUE, errand.errors
+        x, y, _ = watcher.pose()
+        assert math.hypot(x, y - 1.0) < 0.1, (x, y)
+        engine.resume("patrol")
+        assert engine.wait("patrol", WAIT) is Result.TRUE
+        x, y, _ = watcher.pose()
+        assert math.hypot(x - 2.0, y) < 0.1, (x, y)
+        logs = engine.graph_json("patrol")["actions"][0]["runtime"]["messages"]
+    assert any("used meanwhile" in m["message"] for m in logs), logs

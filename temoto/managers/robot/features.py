@@ -48,6 +48,7 @@ class Motion:
         self._done = threading.Event()
         self._error: BaseException | None = None
         self._held = False
+        self._superseded = False
         self._listeners: list[Callable[[], None]] = []
         self.progress = ""
 
@@ -65,6 +66,12 @@ class Motion:
         """Why it did not reach its goal, or None."""
         with self._lock:
             return self._error
+
+    @property
+    def superseded(self) -> bool:
+        """Ended because a newer goal for the same feature replaced it."""
+        with self._lock:
+            return self._superseded
 
     @property
     def held(self) -> bool:
@@ -103,6 +110,14 @@ class Motion:
         """Go on after :meth:`hold`."""
         with self._lock:
             self._held = False
+
+    def supersede(self) -> None:
+        """End it because a newer goal for the same feature replaced it."""
+        with self._lock:
+            if self._done.is_set():
+                return
+            self._superseded = True
+        self.cancel("superseded by a new goal")
 
     def cancel(self, why: str = "cancelled") -> None:
         """End it without reaching the goal.
@@ -176,7 +191,7 @@ class DriveController:
         with self._lock:
             old, self._motion, self._goal = self._motion, motion, (x, y, yaw)
         if old is not None:
-            old.cancel("superseded by a new goal")
+            old.supersede()
         return motion
 
     def stop(self) -> None:
@@ -282,7 +297,7 @@ class ArmController:
             old, self._motion, self._targets = self._motion, motion, dict(targets)
             self._sent_hold = False
         if old is not None:
-            old.cancel("superseded by a new goal")
+            old.supersede()
         self._driver.command(commands)
         return motion
 
@@ -419,7 +434,7 @@ class FlightController:
             old, self._motion, self._check, self._resend = self._motion, motion, check, resend
             self._holding = False
         if old is not None:
-            old.cancel("superseded by a new goal")
+            old.supersede()
         return motion
 
     def step(self, dt: float) -> None:

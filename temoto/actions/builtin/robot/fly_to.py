@@ -14,4 +14,4 @@ class FlyTo(RobotAction):
         lat, lon = self.inputs.get_number("lat"), self.inputs.get_number("lon")
         alt = self.inputs.get_number("alt")
         self.log(f"{robot.name}: flying to ({lat:.6f}, {lon:.6f}) at {alt:g} m")
-        return self.run_motion(robot.fly_to(lat, lon, alt))
+        return self.run_motion(lambda: robot.fly_to(lat, lon, alt))

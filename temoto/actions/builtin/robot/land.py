@@ -12,4 +12,4 @@ class Land(RobotAction):
         """Do it; True when the goal was reached."""
         robot = self.robot()
         self.log(f"{robot.name}: landing")
-        return self.run_motion(robot.land())
+        return self.run_motion(robot.land)

@@ -17,7 +17,7 @@ class NavigateTo(RobotAction):
         x, y = self.inputs.get_number("x"), self.inputs.get_number("y")
         yaw = self.inputs.get_number("yaw") if "yaw" in self.inputs else None
         self.log(f"{robot.name}: navigating to ({x:g}, {y:g})")
-        reached = self.run_motion(robot.navigate_to(x, y, yaw))
+        reached = self.run_motion(lambda: robot.navigate_to(x, y, yaw))
         px, py, pyaw = robot.pose()
         self.outputs["pose_x"], self.outputs["pose_y"], self.outputs["pose_yaw"] = px, py, pyaw
         if reached:

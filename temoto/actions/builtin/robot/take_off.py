@@ -13,4 +13,4 @@ class TakeOff(RobotAction):
         robot = self.robot()
         altitude = self.inputs.get_number("altitude")
         self.log(f"{robot.name}: taking off to {altitude:g} m")
-        return self.run_motion(robot.takeoff(altitude))
+        return self.run_motion(lambda: robot.takeoff(altitude))
