@@ -10,6 +10,7 @@ situation, and inherit the matching builtin so generic callers can catch what th
         │   ├── GraphDefinitionError        a graph is invalid (parse or validation)
         │   │   └── GraphInputError         a required graph input was not supplied
         │   ├── PipelineError               a component pipeline template is invalid (cycle, ...)
+        │   ├── TaskParseError              a task in words that no graph can be made of
         │   └── ProfileError                a hardware profile is invalid
         ├── PluginError                     discovery and loading of actions and drivers
         │   ├── ActionNotFoundError (+LookupError)
@@ -96,6 +97,7 @@ __all__ = [
     "ResourceNotFoundError",
     "StateError",
     "StopRequested",
+    "TaskParseError",
     "TemotoError",
     "TransportError",
     "TransportTimeoutError",
@@ -207,6 +209,10 @@ class GraphInputError(GraphDefinitionError):
 
 class ProfileError(ConfigError):
     """A hardware profile is invalid."""
+
+
+class TaskParseError(ConfigError):
+    """A task source cannot turn a task given in words into a graph (the message says where)."""
 
 
 class PipelineError(ConfigError):
