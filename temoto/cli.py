@@ -166,6 +166,20 @@ def _parser() -> argparse.ArgumentParser:
 
     add_graph_commands(gsub)
 
+    demo = sub.add_parser(
+        "demo",
+        help="run one of the thesis' five demonstrations on the simulators",
+        description="Run a demonstration headless and print its timeline (docs/demos.md).",
+    )
+    demo.add_argument("number", type=int, choices=range(1, 6), metavar="N", help="1 to 5")
+    demo.add_argument(
+        "--speed",
+        type=float,
+        default=1.0,
+        metavar="F",
+        help="run the robots' clocks F times faster than real time (default 1)",
+    )
+
     act = sub.add_parser("actions", help="list known actions")
     paths(act)
     return top
@@ -197,6 +211,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _validate(args)
         if args.command == "serve":
             return serve(args)
+        if args.command == "demo":
+            return _demo(args)
         if args.command == "graph" and args.graph_command == "dot":
             return _dot(args)
         if args.command == "graph" and args.graph_command == "watch":
@@ -212,7 +228,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return EXIT_OTHER_RESULT
 
 
-def _error(err: BaseException) -> None:
+def _error(err: BaseException | str) -> None:
     sys.stderr.write(f"temoto: error: {err}\n")
 
 
@@ -350,6 +366,22 @@ def _dot(args: argparse.Namespace) -> int:
         return EXIT_INVALID
     sys.stdout.write(f"wrote {out}\n")
     return 0
+
+
+def _demo(args: argparse.Namespace) -> int:
+    from temoto.demos import DEMOS, run_demo
+
+    try:
+        report = run_demo(args.number, sys.stdout, speed=args.speed)
+    except ModuleNotFoundError as err:
+        if not (err.name or "").startswith("temoto.demos"):
+            raise
+        _error(f"demonstration {args.number} ({DEMOS[args.number][0]}) is not built yet")
+        return EXIT_INVALID
+    except ValueError as err:
+        _error(err)
+        return EXIT_INVALID
+    return EXIT_TRUE if report.ok else EXIT_OTHER_RESULT
 
 
 def _actions(args: argparse.Namespace) -> int:

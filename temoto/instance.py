@@ -22,6 +22,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
+from temoto.clock import Clock
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.engine import ActionEngine
 from temoto.core.registrar import Registrar
@@ -53,6 +54,7 @@ class Instance:
         handshake_timeout: Seconds to wait for the other actors of a shared graph.
         stop_timeout: Seconds an action may take to stop.
         feedback_period_s: Every run's state is published this often.
+        clock: The engine's clock (default: real time).
         advert_period_s: The RIS advertises this robot's servers this often; a robot not
             heard for three periods is lost (its remote resources become FATAL here).
 
@@ -76,6 +78,7 @@ class Instance:
         stop_timeout: float = 5.0,
         feedback_period_s: float = 1.0,
         advert_period_s: float = 1.0,
+        clock: Clock | None = None,
     ) -> None:
         if not actor:
             transport.close()  # it was handed over: closed on every way out
@@ -105,6 +108,7 @@ class Instance:
                 registrar=self.registrar,
                 link=self.actors,
                 handshake_timeout=handshake_timeout,
+                clock=clock,
             )
             closing.append(self.engine)
             self.control = GraphControlServer(

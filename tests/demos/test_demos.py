@@ -1,0 +1,61 @@
+"""The thesis' demonstrations end to end, on faster clocks (each prints its timeline)."""
+
+from __future__ import annotations
+
+import io
+import subprocess
+import sys
+
+import pytest
+
+from temoto.demos import run_demo
+
+
+def test_demo_3_mission_adaptiveness() -> None:
+    out = io.StringIO()
+    report = run_demo(3, out, speed=3)
+    assert report.ok, out.getvalue()
+    facts = report.facts
+    assert facts["delivery"] == {"rover": "on_true", "arm_station": "on_true"}
+    assert facts["paused_at_s"] < facts["resumed_at_s"]
+    assert facts["patrol_legs"] == ["NavigateTo_0", "NavigateTo_1", "NavigateTo_2"]
+    text = out.getvalue()
+    # the patrol pauses before the delivery starts and resumes after it ended on both robots
+    order = [
+        "operator: pause surveillance",
+        "operator: start delivery",
+        "arm_station: delivery: MoveJoints_20 (load the parcel) started",
+        "rover: delivery ended: on_true",
+        "operator: resume surveillance",
+        "rover: surveillance: NavigateTo_2 (warehouse) resumed",
+        "rover: surveillance ended: on_stopped",
+    ]
+    positions = [text.index(line) for line in order]
+    assert positions == sorted(positions), text
+
+
+def test_demo_4_source_agnostic_tasking() -> None:
+    out = io.StringIO()
+    report = run_demo(4, out, speed=3)
+    assert report.ok, out.getvalue()
+    assert report.facts["steps"] == ["NavigateTo", "MoveJoints", "NavigateTo", "MoveJoints"]
+    assert report.facts["result"] == "on_true"
+    assert "unknown place 'kitchen'" in report.facts["refused"]
+
+
+def test_the_command_line_runs_a_demo_and_says_which_are_not_built() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-m", "temoto", "demo", "4", "--speed", "4"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.startswith("== demo 4: Source-agnostic tasking")
+    assert "== done in" in proc.stdout
+
+
+def test_a_demo_that_does_not_exist() -> None:
+    with pytest.raises(ValueError, match="no demonstration 9"):
+        run_demo(9)
