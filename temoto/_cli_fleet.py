@@ -49,6 +49,20 @@ def add_fleet_options(parser: argparse.ArgumentParser, description: str) -> None
         action="store_true",
         help="run without a fleet key: any host on the network could take part",
     )
+    fleet.add_argument(
+        "--fleet-silence",
+        type=float,
+        default=3.0,
+        metavar="SECONDS",
+        help="another actor not heard for this long is lost (default 3)",
+    )
+    fleet.add_argument(
+        "--fleet-resend",
+        type=float,
+        default=0.1,
+        metavar="SECONDS",
+        help="handshakes and notifications are resent this often until answered (default 0.1)",
+    )
 
 
 def fleet_key(args: argparse.Namespace, why: str) -> bytes | None:
@@ -156,6 +170,8 @@ def serve(args: argparse.Namespace) -> int:
             handshake_timeout=args.handshake_timeout,
             stop_timeout=args.stop_timeout,
             feedback_period_s=args.feedback_period,
+            silence_s=args.fleet_silence,
+            resend_s=args.fleet_resend,
         ) as instance:
             graphs = len(instance.engine.indexed_graphs())
             sys.stderr.write(

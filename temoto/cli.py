@@ -260,7 +260,13 @@ def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
     transport = open_transport(args.fleet_url)
     try:
         auth = FleetAuth(args.fleet, args.actor, key, insecure=key is None)
-        return FleetActorLink(FleetLink(transport, auth), args.actor), transport
+        link = FleetActorLink(
+            FleetLink(transport, auth),
+            args.actor,
+            silence_s=args.fleet_silence,
+            resend_s=args.fleet_resend,
+        )
+        return link, transport
     except BaseException:
         transport.close()
         raise

@@ -55,6 +55,8 @@ class Instance:
         stop_timeout: Seconds an action may take to stop.
         feedback_period_s: Every run's state is published this often.
         clock: The engine's clock (default: real time).
+        silence_s: Another actor of a shared graph not heard for this long is lost.
+        resend_s: Handshakes and notifications are resent this often until answered.
         advert_period_s: The RIS advertises this robot's servers this often; a robot not
             heard for three periods is lost (its remote resources become FATAL here).
 
@@ -79,6 +81,8 @@ class Instance:
         feedback_period_s: float = 1.0,
         advert_period_s: float = 1.0,
         clock: Clock | None = None,
+        silence_s: float = 3.0,
+        resend_s: float = 0.1,
     ) -> None:
         if not actor:
             transport.close()  # it was handed over: closed on every way out
@@ -94,7 +98,9 @@ class Instance:
             self.processes = ProcessManager(self.registrar)
             closing.append(self.processes)
             self.link = FleetLink(transport, FleetAuth(fleet, actor, key, insecure=insecure))
-            self.actors = FleetActorLink(self.link, actor)
+            self.actors = FleetActorLink(
+                self.link, actor, silence_s=silence_s, resend_s=resend_s
+            )
             closing.append(self.actors)
             self.ris = ResourceInfoSync(self.link, self.registrar, actor, period_s=advert_period_s)
             closing.append(self.ris)

@@ -48,7 +48,7 @@ ABC = ["Actor A", "Actor B", "Actor C"]
 KEY = "6b" * 32  # a fixed 32-byte fleet key, hex
 
 #: The fleet link's defaults, which `temoto run` does not let us change (temoto/fleet/actors.py).
-SILENCE_S = 3.0  # an actor not heard for this long is lost
+SILENCE_S = 1.5  # --fleet-silence of the partition test: an actor not heard this long is lost
 #: Extra time for process start-up, a noisy two-core machine and CPU load.
 MARGIN_S = 3.0
 
@@ -438,7 +438,16 @@ def test_a_partition_fails_the_graph_on_every_actor(key_file: Path) -> None:
     require()
     cut = 1  # Actor B
     with RobotNetwork(3) as net:
-        actors = start_actors(net, PARTITION, ABC, key_file, "--progress", timeout=15)
+        actors = start_actors(
+            net,
+            PARTITION,
+            ABC,
+            key_file,
+            "--progress",
+            "--fleet-silence",
+            str(SILENCE_S),
+            timeout=15,
+        )
         # every actor is past the handshake and runs its timer: cut B off in the middle
         running = [rf"netns_partition: TaTimer_{i} RUNNING" for i in range(3)]
         started = actors.pump(

@@ -130,6 +130,8 @@ def _run(args: argparse.Namespace) -> int:
         actions=[ROBOT_ACTIONS, *args.actions],
         graphs=args.graphs,
         catalog=args.catalog,
+        silence_s=args.fleet_silence,
+        resend_s=args.fleet_resend,
     ) as instance:
         manager = RobotManager(instance.registrar, profile, clock=clock)
         instance.add_manager(manager)
