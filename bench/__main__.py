@@ -27,6 +27,7 @@ from pathlib import Path
 
 from bench import (
     can,
+    component,
     dynamixel,
     engine,
     evolution,
@@ -76,6 +77,10 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
         mavlink.bench_mavlink,
     ),
     "can": ("can: 8 CANSimple axes at 500 Hz on a virtual bus", can.bench_can),
+    "component": (
+        "component manager: active sensor killed -> substitute's data at the consumer",
+        component.bench_component,
+    ),
     "robot": (
         "robot manager: start-to-ready and idle RSS, sim_mobile_manipulator (subprocesses)",
         robot.bench_robot,

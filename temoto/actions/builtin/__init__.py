@@ -3,6 +3,9 @@
 * :data:`ROBOT_ACTIONS`: the robot verbs (navigate, move joints, take off, fly, land, wait),
   which need a Robot Manager on the engine's registrar (``python -m temoto.managers.robot``
   adds the folder to its catalog).
+* :data:`COMPONENT_ACTIONS`: request a component or a pipeline, wait for its data (a Component
+  Manager on the registrar).
+* :data:`BUILTIN_ACTIONS`: every folder above.
 """
 
 from __future__ import annotations
@@ -10,7 +13,12 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Final
 
-__all__ = ["ROBOT_ACTIONS"]
+__all__ = ["BUILTIN_ACTIONS", "COMPONENT_ACTIONS", "ROBOT_ACTIONS"]
 
+_HERE: Final = Path(__file__).resolve().parent
 #: The folder of the built-in robot actions.
-ROBOT_ACTIONS: Final = Path(__file__).resolve().parent / "robot"
+ROBOT_ACTIONS: Final = _HERE / "robot"
+#: The folder of the built-in component actions.
+COMPONENT_ACTIONS: Final = _HERE / "component"
+#: Every folder of built-in actions.
+BUILTIN_ACTIONS: Final = (ROBOT_ACTIONS, COMPONENT_ACTIONS)

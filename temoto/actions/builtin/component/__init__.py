@@ -1,0 +1,1 @@
+"""The built-in component actions (one ``<name>.py`` + ``<name>.umrf.json`` each)."""
