@@ -629,7 +629,7 @@ class ActionEngine:
                     nxt = effect
                     del fx[i]
                     break
-            if fx:
+            if fx or self._releases:  # an ended run's releases may be all there is
                 self._dispatch(fx, closing=self._closed)
             if nxt is None:
                 return

@@ -378,6 +378,38 @@ def test_actions_release_their_resources_when_the_graph_ends_and_notice_failures
     assert r2.unloads == ["camera"]
 
 
+def test_a_stopped_graph_releases_its_resources_without_another_engine_call() -> None:
+    from temoto import Action, ActionCatalog, ActionEngine, parse_graph, parse_umrf
+    from temoto.core.states import Result
+
+    rr, _, r2 = chain()
+    acquired = threading.Event()
+    unloaded = threading.Event()
+
+    class Holder(Action):
+        def on_run(self) -> bool:
+            self.acquire("m2", Req("camera"))
+            acquired.set()
+            self.wait_until_stopped(10)
+            return True
+
+    def on_unload(request: Req, response: Resp) -> None:
+        Counting.on_unload(r2, request, response)
+        unloaded.set()
+
+    r2.on_unload = on_unload  # type: ignore[method-assign]
+    catalog = ActionCatalog(use_entry_points=False)
+    catalog.register(Holder, parse_umrf({"name": "Holder", "type": "sync"}))
+    graph = parse_graph({"graph_name": "g", "actions": [{"name": "Holder", "type": "sync"}]})
+    with ActionEngine("me", actions=catalog, registrar=rr) as engine:
+        engine.start(graph)
+        assert acquired.wait(5)
+        assert engine.stop("g", timeout=5) is Result.STOPPED
+        # released by the worker that finished the stopped action, not by a later call
+        assert unloaded.wait(5), "the stopped graph still holds its resource"
+        assert rr.resources() == []
+
+
 def test_pre_emption_survives_a_restart(tmp_path: Any) -> None:
     path = tmp_path / "rr.catalog"
     rr, _, _ = build(path)
