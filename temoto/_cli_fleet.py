@@ -20,7 +20,14 @@ from typing import IO, Any
 
 from temoto.errors import ConfigError, GraphInputError
 
-__all__ = ["add_fleet_options", "add_graph_commands", "add_serve", "graph_command", "serve"]
+__all__ = [
+    "add_fleet_options",
+    "add_graph_commands",
+    "add_live_view_option",
+    "add_serve",
+    "graph_command",
+    "serve",
+]
 
 #: The fleet's LCM URL unless --fleet-url says otherwise (ttl=1: the robots' own network).
 DEFAULT_FLEET_URL = "udpm://239.255.76.67:7667?ttl=1"
@@ -62,6 +69,18 @@ def add_fleet_options(parser: argparse.ArgumentParser, description: str) -> None
         default=0.1,
         metavar="SECONDS",
         help="handshakes and notifications are resent this often until answered (default 0.1)",
+    )
+
+
+def add_live_view_option(parser: argparse.ArgumentParser) -> None:
+    """``--live-view [PORT]``: serve the live view of running graphs on localhost."""
+    parser.add_argument(
+        "--live-view",
+        nargs="?",
+        type=int,
+        const=8765,
+        metavar="PORT",
+        help="serve a live view of the running graphs on http://127.0.0.1:PORT (default 8765)",
     )
 
 
@@ -142,6 +161,7 @@ def add_serve(sub: Any, paths: Any) -> None:
         metavar="SECONDS",
         help="publish every run's state this often (default 1)",
     )
+    add_live_view_option(serve_p)
     add_fleet_options(serve_p, "the fleet this instance joins")
 
 
@@ -172,8 +192,11 @@ def serve(args: argparse.Namespace) -> int:
             feedback_period_s=args.feedback_period,
             silence_s=args.fleet_silence,
             resend_s=args.fleet_resend,
+            live_view_port=args.live_view,
         ) as instance:
             graphs = len(instance.engine.indexed_graphs())
+            if instance.live_view is not None:
+                sys.stderr.write(f"temoto: live view on {instance.live_view.url}\n")
             sys.stderr.write(
                 f"temoto: instance '{args.actor}' serving on {args.fleet_url} (fleet"
                 f" '{args.fleet}', {graphs} indexed graph(s)); Ctrl-C stops it\n"

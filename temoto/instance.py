@@ -33,6 +33,7 @@ from temoto.fleet.ris import ResourceInfoSync
 from temoto.managers.process import ProcessManager
 from temoto.transport.auth import FleetAuth, FleetLink
 from temoto.transport.base import Transport
+from temoto.web import LiveView
 
 __all__ = ["Instance"]
 
@@ -57,6 +58,8 @@ class Instance:
         clock: The engine's clock (default: real time).
         silence_s: Another actor of a shared graph not heard for this long is lost.
         resend_s: Handshakes and notifications are resent this often until answered.
+        live_view_port: Serve the live view of running graphs (:mod:`temoto.web`) on this
+            localhost port (0: any free port; None: no live view).
         advert_period_s: The RIS advertises this robot's servers this often; a robot not
             heard for three periods is lost (its remote resources become FATAL here).
 
@@ -83,6 +86,7 @@ class Instance:
         clock: Clock | None = None,
         silence_s: float = 3.0,
         resend_s: float = 0.1,
+        live_view_port: int | None = None,
     ) -> None:
         if not actor:
             transport.close()  # it was handed over: closed on every way out
@@ -98,9 +102,7 @@ class Instance:
             self.processes = ProcessManager(self.registrar)
             closing.append(self.processes)
             self.link = FleetLink(transport, FleetAuth(fleet, actor, key, insecure=insecure))
-            self.actors = FleetActorLink(
-                self.link, actor, silence_s=silence_s, resend_s=resend_s
-            )
+            self.actors = FleetActorLink(self.link, actor, silence_s=silence_s, resend_s=resend_s)
             closing.append(self.actors)
             self.ris = ResourceInfoSync(self.link, self.registrar, actor, period_s=advert_period_s)
             closing.append(self.ris)
@@ -117,6 +119,10 @@ class Instance:
                 clock=clock,
             )
             closing.append(self.engine)
+            self.live_view: LiveView | None = None
+            if live_view_port is not None:
+                self.live_view = LiveView(self.engine, port=live_view_port)
+                closing.append(self.live_view)
             self.control = GraphControlServer(
                 self.engine,
                 self.link,
@@ -143,6 +149,8 @@ class Instance:
             return
         self._closed = True
         self.control.close()  # no new commands
+        if self.live_view is not None:
+            _close(self.live_view)
         parts = (
             self.engine,  # runs stopped, their resources released
             *reversed(self._managers),

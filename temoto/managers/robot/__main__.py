@@ -21,7 +21,7 @@ import time
 from collections.abc import Sequence
 from typing import IO
 
-from temoto._cli_fleet import add_fleet_options, fleet_key
+from temoto._cli_fleet import add_fleet_options, add_live_view_option, fleet_key
 from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.clock import MonotonicClock
 from temoto.config import load_profile
@@ -76,6 +76,7 @@ def _parser() -> argparse.ArgumentParser:
         help="no fleet: nothing is sent to or taken from the network (a mission on one robot)",
     )
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    add_live_view_option(p)
     add_fleet_options(p, "the fleet this robot joins (unless --local)")
     return p
 
@@ -132,6 +133,7 @@ def _run(args: argparse.Namespace) -> int:
         catalog=args.catalog,
         silence_s=args.fleet_silence,
         resend_s=args.fleet_resend,
+        live_view_port=args.live_view,
     ) as instance:
         manager = RobotManager(instance.registrar, profile, clock=clock)
         instance.add_manager(manager)
@@ -143,6 +145,8 @@ def _run(args: argparse.Namespace) -> int:
             f" {', '.join(robot.features) or 'no features'};"
             f" fleet {'off' if args.local else args.fleet_url})\n"
         )
+        if instance.live_view is not None:
+            out.write(f"live view: {instance.live_view.url}\n")
         out.flush()
         if mission is None:
             return _serve(profile.robot)

@@ -1,0 +1,222 @@
+"""Engine events for the live view's clients: an instrument that fans them out to queues.
+
+The :class:`EventHub` is an engine :class:`~temoto.core.instrument.Instrument`. Its hooks run
+under the engine's lock, so they only build a small dict and append it to each subscriber's
+bounded queue; nothing here calls the engine. A client that falls behind by more than its
+queue loses the backlog and is told to re-synchronise (fetch a fresh snapshot) instead, so a
+slow browser can never make the engine wait or the process grow.
+"""
+
+from __future__ import annotations
+
+import threading
+from collections import deque
+from typing import TYPE_CHECKING, Any, final
+
+from temoto.core.instrument import Instrument
+
+if TYPE_CHECKING:
+    from temoto.core.states import NodeState, Result
+
+__all__ = ["Batch", "EventHub", "Subscription"]
+
+#: Longest error text an event carries (the full error is in the run's snapshot).
+MAX_ERROR_CHARS = 500
+
+
+@final
+class Batch:
+    """What a subscriber receives in one wait.
+
+    Attributes:
+        events: The events, oldest first (each a JSON-ready dict with ``seq`` and ``kind``).
+        resync: Events were dropped: the client must fetch fresh snapshots.
+        closed: The hub closed (or the subscription was cancelled): stop reading.
+    """
+
+    __slots__ = ("closed", "events", "resync")
+
+    def __init__(self, events: list[dict[str, Any]], resync: bool, closed: bool) -> None:
+        self.events = events
+        self.resync = resync
+        self.closed = closed
+
+
+@final
+class Subscription:
+    """One client's queue of events (made by :meth:`EventHub.subscribe`).
+
+    Args:
+        hub: The hub it belongs to.
+        size: How many events it keeps before it overflows.
+    """
+
+    def __init__(self, hub: EventHub, size: int) -> None:
+        self._hub = hub
+        self._queue: deque[dict[str, Any]] = deque()
+        self._size = size
+        self._overflowed = False
+        self._cancelled = False
+
+    def _push(self, event: dict[str, Any]) -> None:
+        # hub lock held
+        if len(self._queue) >= self._size:
+            self._queue.clear()
+            self._overflowed = True
+        else:
+            self._queue.append(event)
+
+    def get(self, timeout: float | None) -> Batch:
+        """Wait for events.
+
+        Args:
+            timeout: Seconds to wait at most (None: until something happens).
+
+        Returns:
+            The events that arrived (possibly none, after the timeout).
+
+        Raises:
+            Nothing.
+        """
+        return self._hub._take(self, timeout)
+
+    def cancel(self) -> None:
+        """Stop this subscription (wakes a waiting :meth:`get`; idempotent).
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        self._hub._remove(self)
+
+
+@final
+class EventHub(Instrument):
+    """Fans engine events out to a bounded number of subscribers, each with a bounded queue.
+
+    Events (JSON-ready dicts, ``seq`` increasing by one per event):
+
+    * ``{"kind": "node", "graph", "node", "old", "state", "t"}``: a node changed state;
+    * ``{"kind": "graph", "graph", "state": "RUNNING", "t"}``: a run started;
+    * ``{"kind": "graph", "graph", "state": "ENDED", "result", "t"}``: a run ended;
+    * ``{"kind": "failed", "graph", "node", "error"}``: an action raised.
+
+    Args:
+        max_clients: Subscribers allowed at once.
+        queue_size: Events a subscriber may have waiting before it must re-synchronise.
+
+    Raises:
+        ValueError: If a bound is smaller than 1.
+    """
+
+    def __init__(self, max_clients: int = 8, queue_size: int = 1000) -> None:
+        if max_clients < 1 or queue_size < 1:
+            raise ValueError("max_clients and queue_size must be at least 1")
+        self.max_clients = max_clients
+        self.queue_size = queue_size
+        self._cond = threading.Condition()
+        self._subs: list[Subscription] = []
+        self._seq = 0
+        self._closed = False
+
+    # ------------------------------------------------------------------ subscribers
+
+    def subscribe(self) -> Subscription | None:
+        """Add a subscriber.
+
+        Returns:
+            Its subscription, or None when ``max_clients`` are subscribed or the hub closed.
+
+        Raises:
+            Nothing.
+        """
+        with self._cond:
+            if self._closed or len(self._subs) >= self.max_clients:
+                return None
+            sub = Subscription(self, self.queue_size)
+            self._subs.append(sub)
+            return sub
+
+    @property
+    def subscribers(self) -> int:
+        """How many subscribers there are now."""
+        with self._cond:
+            return len(self._subs)
+
+    def close(self) -> None:
+        """Close: every waiting subscriber wakes and is told to stop; later events are dropped.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        with self._cond:
+            self._closed = True
+            for sub in self._subs:
+                sub._cancelled = True
+            self._subs.clear()
+            self._cond.notify_all()
+
+    def _remove(self, sub: Subscription) -> None:
+        with self._cond:
+            sub._cancelled = True
+            if sub in self._subs:
+                self._subs.remove(sub)
+            self._cond.notify_all()
+
+    def _take(self, sub: Subscription, timeout: float | None) -> Batch:
+        with self._cond:
+            self._cond.wait_for(
+                lambda: bool(sub._queue) or sub._overflowed or sub._cancelled, timeout
+            )
+            events = list(sub._queue)
+            sub._queue.clear()
+            resync, sub._overflowed = sub._overflowed, False
+            return Batch(events, resync, sub._cancelled)
+
+    def _publish(self, event: dict[str, Any]) -> None:
+        # called with the engine lock held: append and notify, nothing more
+        with self._cond:
+            if not self._subs:
+                return
+            self._seq += 1
+            event["seq"] = self._seq
+            for sub in self._subs:
+                sub._push(event)
+            self._cond.notify_all()
+
+    # ------------------------------------------------------------------ engine hooks
+
+    def graph_started(self, graph: str, t: float) -> None:
+        """Publish a run's start."""
+        self._publish({"kind": "graph", "graph": graph, "state": "RUNNING", "t": t})
+
+    def node_transition(
+        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
+    ) -> None:
+        """Publish a node's state change."""
+        self._publish(
+            {
+                "kind": "node",
+                "graph": graph,
+                "node": node,
+                "old": old.value,
+                "state": new.value,
+                "t": t,
+            }
+        )
+
+    def graph_finished(self, graph: str, result: Result, t: float) -> None:
+        """Publish a run's end."""
+        self._publish(
+            {"kind": "graph", "graph": graph, "state": "ENDED", "result": result.value, "t": t}
+        )
+
+    def action_failed(self, graph: str, node: str, error: BaseException) -> None:
+        """Publish an action's failure (its text, cut to ``MAX_ERROR_CHARS``)."""
+        text = f"{type(error).__name__}: {error}"[:MAX_ERROR_CHARS]
+        self._publish({"kind": "failed", "graph": graph, "node": node, "error": text})
