@@ -11,6 +11,19 @@ import pytest
 from temoto.demos import run_demo
 
 
+def test_demo_1_sensor_redundancy() -> None:
+    out = io.StringIO()
+    report = run_demo(1, out)
+    assert report.ok, out.getvalue()
+    facts = report.facts
+    assert facts["fed_the_display"] == ["lidar_3d", "depth_camera", "lidar_2d"]
+    assert len(facts["switch_over_ms"]) == 2
+    assert all(0 < ms < 1000 for ms in facts["switch_over_ms"])
+    assert facts["sensor_processes_max"] == 1  # never more than the one in use
+    assert facts["if_all_started"] == 3
+    assert "display: switched to depth_camera" in out.getvalue()
+
+
 def test_demo_3_mission_adaptiveness() -> None:
     out = io.StringIO()
     report = run_demo(3, out, speed=3)
