@@ -24,6 +24,17 @@ def test_demo_1_sensor_redundancy() -> None:
     assert "display: switched to depth_camera" in out.getvalue()
 
 
+def test_demo_2_multi_robot_escort() -> None:
+    out = io.StringIO()
+    report = run_demo(2, out, speed=3)
+    assert report.ok, out.getvalue()
+    facts = report.facts
+    assert facts["shown"] == ["worker_camera", "escort_camera"]
+    assert facts["camera_robot"] == "escort"  # a remote resource, found through RIS
+    assert facts["switch_over_ms"] < 1000
+    assert facts["escort_gap_m"] < 1.2  # it followed the worker
+
+
 def test_demo_3_mission_adaptiveness() -> None:
     out = io.StringIO()
     report = run_demo(3, out, speed=3)

@@ -1,0 +1,216 @@
+"""Demonstration 2, multi-robot escort (thesis §8).
+
+Two rovers — a worker and an escort — are whole instances on an authenticated fleet bus, each
+with a Robot Manager on its simulators and a Component Manager reading the same camera
+descriptions (``data/cameras.yaml``: each camera's ``robot`` says who hosts it). The operator's
+display asks the worker's Component Manager for a ``camera``: the worker's own camera feeds it.
+The worker's camera fails; the Component Manager finds, through RIS, that the escort offers a
+camera, and asks the escort's manager for it (a remote resource): the escort starts its camera,
+which now feeds the display on the same channel. The escort then follows the worker (0.7 m
+behind it) while the worker drives on.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import secrets
+import signal
+import threading
+import time
+from contextlib import ExitStack
+from pathlib import Path
+from typing import Final
+
+from temoto.actions.builtin import ROBOT_ACTIONS
+from temoto.clock import Clock, MonotonicClock, ScaledClock
+from temoto.config import load_profile
+from temoto.core.registrar import StatusUpdate
+from temoto.demos._timeline import DemoReport, Timeline
+from temoto.instance import Instance
+from temoto.managers.component import ChannelReader, ComponentManager, ComponentManagerClient
+from temoto.managers.robot import RobotHandle, RobotManager, RobotManagerClient
+from temoto.transport import InProcessTransport
+
+__all__ = ["run"]
+
+DATA: Final = Path(__file__).resolve().parent / "data"
+#: Where each robot's odometry frame starts in the world (the escort waits behind the worker).
+ORIGIN: Final = {"worker": (0.0, 0.0), "escort": (-1.5, 0.0)}
+FOLLOW_GAP: Final = 0.7  # metres behind the worker
+WAIT: Final = 30.0
+
+
+class _Display:
+    """The operator's display: notes which camera each reading came from."""
+
+    def __init__(self, reader: ChannelReader, timeline: Timeline) -> None:
+        self.reader = reader
+        self.timeline = timeline
+        self.cond = threading.Condition()
+        self.first: dict[str, float] = {}
+        self._stop = False
+        self.thread = threading.Thread(target=self._read, name="demo2-display", daemon=True)
+        self.thread.start()
+
+    def _read(self) -> None:
+        while not self._stop:
+            data = self.reader.recv(0.1)
+            if not data:
+                continue
+            camera = data.split(b" ", 1)[0].decode(errors="replace")
+            with self.cond:
+                if camera not in self.first:
+                    self.first[camera] = time.monotonic()
+                    self.timeline.say("display", f"showing {camera}")
+                    self.cond.notify_all()
+
+    def wait_for(self, camera: str) -> float:
+        with self.cond:
+            if not self.cond.wait_for(lambda: camera in self.first, WAIT):
+                raise TimeoutError(f"no image from {camera}")
+            return self.first[camera]
+
+    def close(self) -> None:
+        self._stop = True
+        self.thread.join(5.0)
+
+
+def _world(robot: RobotHandle) -> tuple[float, float]:
+    x, y, _ = robot.pose()
+    ox, oy = ORIGIN[robot.name]
+    return x + ox, y + oy
+
+
+class _Follower:
+    """Keeps the escort ``FOLLOW_GAP`` behind the worker, re-aiming every 0.2 s of clock."""
+
+    def __init__(self, escort: RobotHandle, worker: RobotHandle, clock: Clock) -> None:
+        self.escort = escort
+        self.worker = worker
+        self.clock = clock
+        self.cond = threading.Condition()
+        self.stop = False
+        self.thread = threading.Thread(target=self._follow, name="demo2-follow", daemon=True)
+        self.thread.start()
+
+    def _follow(self) -> None:
+        while True:
+            with self.cond:
+                if self.stopping():
+                    return
+                self.clock.wait(self.cond, 0.2)
+                if self.stopping():  # woken by close()
+                    return
+            wx, wy = _world(self.worker)
+            ex, ey = _world(self.escort)
+            gap = math.hypot(wx - ex, wy - ey)
+            if gap <= FOLLOW_GAP + 0.15:
+                continue
+            k = (gap - FOLLOW_GAP) / gap  # a point on the line to the worker, GAP short of it
+            tx, ty = ex + (wx - ex) * k, ey + (wy - ey) * k
+            ox, oy = ORIGIN["escort"]
+            self.escort.navigate_to(tx - ox, ty - oy)
+
+    def stopping(self) -> bool:
+        """Whether :meth:`close` was called (read afresh: another thread sets it)."""
+        return self.stop
+
+    def close(self) -> None:
+        with self.cond:
+            self.stop = True
+            self.cond.notify_all()
+        self.thread.join(5.0)
+
+
+def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
+    """Run the demonstration.
+
+    Args:
+        timeline: Where events are printed.
+        speed: Clock speed-up of the rovers (the cameras are real processes).
+
+    Returns:
+        The report (facts: which camera fed the display, the switch-over time, the escort's
+        gap to the worker at the end).
+    """
+    report = DemoReport()
+    clock: Clock = MonotonicClock() if speed == 1 else ScaledClock(speed)
+    bus = f"demo2-{secrets.token_hex(4)}"
+    key = secrets.token_bytes(32)
+    with ExitStack() as stack:
+        instances: dict[str, Instance] = {}
+        robots: dict[str, RobotHandle] = {}
+        components: dict[str, ComponentManager] = {}
+        for actor in ("worker", "escort"):
+            instance = stack.enter_context(
+                Instance(
+                    actor,
+                    transport=InProcessTransport(bus),
+                    key=key,
+                    actions=[ROBOT_ACTIONS],
+                    clock=clock,
+                    advert_period_s=0.2,
+                )
+            )
+            profile = load_profile(DATA / f"demo_{actor}.yaml", clock=clock)
+            robot_manager = RobotManager(instance.registrar, profile, clock=clock)
+            instance.add_manager(robot_manager)
+            components[actor] = ComponentManager(
+                instance.registrar, files=[DATA / "cameras.yaml"], ris=instance.ris
+            )
+            instance.add_manager(components[actor])
+            robots[actor] = RobotManagerClient(instance.registrar).request(client="demo")
+            instances[actor] = instance
+            timeline.say(actor, f"ready at {ORIGIN[actor]} (navigation; camera)")
+        deadline = time.monotonic() + WAIT
+        while "escort" not in instances["worker"].ris.providers("component"):
+            if time.monotonic() > deadline:
+                raise TimeoutError("the worker never heard the escort's Component Manager")
+            time.sleep(0.02)
+        timeline.say("worker", "RIS: the escort offers components")
+        reader = stack.enter_context(ChannelReader(f"unix:@temoto-demo2-{secrets.token_hex(4)}"))
+        display = _Display(reader, timeline)
+        stack.callback(display.close)
+
+        def on_status(update: StatusUpdate) -> None:
+            timeline.say("display", f"told: {update.status.value} {update.message}")
+
+        client = ComponentManagerClient(instances["worker"].registrar)
+        camera = client.request(
+            "camera", outputs={"image": reader.channel}, client="display", on_status=on_status
+        )
+        display.wait_for("worker_camera")
+        mission = json.loads((DATA / "worker_route.graph.json").read_text())
+        instances["worker"].engine.start(mission)
+        timeline.say("worker", "driving its route")
+        time.sleep(clock.real_seconds(1.0))
+        pid = camera.response.pid
+        timeline.say("operator", f"the worker's camera fails (process {pid} killed)")
+        t_kill = time.monotonic()
+        os.kill(pid, signal.SIGKILL)
+        t_escort = display.wait_for("escort_camera")
+        report.facts["switch_over_ms"] = round((t_escort - t_kill) * 1000, 1)
+        report.facts["camera_robot"] = camera.response.robot
+        timeline.say("escort", "camera on; following the worker")
+        follower = _Follower(robots["escort"], robots["worker"], clock)
+        stack.callback(follower.close)
+        result = instances["worker"].engine.wait(mission["graph_name"], WAIT * 2)
+        timeline.say("worker", f"route ended: {result.value}")
+        time.sleep(clock.real_seconds(3.0))  # the escort catches up
+        follower.close()
+        wx, wy = _world(robots["worker"])
+        ex, ey = _world(robots["escort"])
+        report.facts["escort_gap_m"] = round(math.hypot(wx - ex, wy - ey), 2)
+        report.facts["worker_at"] = (round(wx, 2), round(wy, 2))
+        report.facts["escort_at"] = (round(ex, 2), round(ey, 2))
+        report.facts["shown"] = sorted(display.first, key=display.first.__getitem__)
+        client.release(camera)
+        report.ok = (
+            report.facts["shown"] == ["worker_camera", "escort_camera"]
+            and report.facts["camera_robot"] == "escort"
+            and report.facts["escort_gap_m"] < FOLLOW_GAP + 0.5
+            and result.value == "on_true"
+        )
+    return report
