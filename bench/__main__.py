@@ -28,6 +28,7 @@ from pathlib import Path
 from bench import (
     can,
     component,
+    context,
     dynamixel,
     engine,
     evolution,
@@ -80,6 +81,10 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     "component": (
         "component manager: active sensor killed -> substitute's data at the consumer",
         component.bench_component,
+    ),
+    "context": (
+        "context manager: 3-robot convergence after a change, queries on 10,000 items",
+        context.bench_context,
     ),
     "robot": (
         "robot manager: start-to-ready and idle RSS, sim_mobile_manipulator (subprocesses)",

@@ -6,7 +6,10 @@ and the fleet: an authenticated link on a transport, the actor link for shared g
 :class:`~temoto.fleet.control.GraphControlServer` that takes ``temoto graph start|stop|...``
 commands, and resource sharing — the Resource Info Synchronizer advertising this robot's
 servers and :class:`~temoto.fleet.resources.RemoteResources` (the ``"remote"`` server for what
-only another robot serves, and the provider for the others' requests). ``temoto serve`` runs
+only another robot serves, and the provider for the others' requests). The Component Manager
+(``"component"``, ``"pipeline"``; candidates on other robots through RIS) and the Context
+Manager (``"context"``, the world model synchronised with the other robots) run on the same
+registrar, and their built-in actions are in the engine's catalog. ``temoto serve`` runs
 one until SIGINT or SIGTERM; the Robot Manager builds on it.
 
 Closing stops the runs (their actions get their stop request, their resources are released),
@@ -22,6 +25,7 @@ from pathlib import Path
 from types import TracebackType
 from typing import Self
 
+from temoto.actions.builtin import COMPONENT_ACTIONS, CONTEXT_ACTIONS
 from temoto.clock import Clock
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.engine import ActionEngine
@@ -30,6 +34,8 @@ from temoto.fleet.actors import FleetActorLink
 from temoto.fleet.control import GraphControlServer
 from temoto.fleet.resources import RemoteResources
 from temoto.fleet.ris import ResourceInfoSync
+from temoto.managers.component import ComponentManager
+from temoto.managers.context import ContextManager
 from temoto.managers.process import ProcessManager
 from temoto.transport.auth import FleetAuth, FleetLink
 from temoto.transport.base import Transport
@@ -58,6 +64,7 @@ class Instance:
         clock: The engine's clock (default: real time).
         silence_s: Another actor of a shared graph not heard for this long is lost.
         resend_s: Handshakes and notifications are resent this often until answered.
+        component_files: Component descriptions and pipeline templates (YAML or JSON).
         live_view_port: Serve the live view of running graphs (:mod:`temoto.web`) on this
             localhost port (0: any free port; None: no live view).
         advert_period_s: The RIS advertises this robot's servers this often; a robot not
@@ -87,6 +94,7 @@ class Instance:
         silence_s: float = 3.0,
         resend_s: float = 0.1,
         live_view_port: int | None = None,
+        component_files: Iterable[str | Path] = (),
     ) -> None:
         if not actor:
             transport.close()  # it was handed over: closed on every way out
@@ -108,9 +116,15 @@ class Instance:
             closing.append(self.ris)
             self.resources = RemoteResources(self.link, self.registrar, self.ris)
             closing.append(self.resources)
+            self.components = ComponentManager(self.registrar, files=component_files, ris=self.ris)
+            closing.append(self.components)
+            self.context = ContextManager(
+                actor, link=self.link, registrar=self.registrar, clock=clock
+            )
+            closing.append(self.context)
             self.engine = ActionEngine(
                 actor,
-                actions=ActionCatalog(actions),
+                actions=ActionCatalog([COMPONENT_ACTIONS, CONTEXT_ACTIONS, *actions]),
                 graphs=GraphIndex(graphs),
                 stop_timeout=stop_timeout,
                 registrar=self.registrar,
@@ -154,6 +168,8 @@ class Instance:
         parts = (
             self.engine,  # runs stopped, their resources released
             *reversed(self._managers),
+            self.components,
+            self.context,
             self.resources,  # what others hold here is released, what we hold there too
             self.ris,
             self.actors,

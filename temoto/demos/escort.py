@@ -29,7 +29,7 @@ from temoto.config import load_profile
 from temoto.core.registrar import StatusUpdate
 from temoto.demos._timeline import DemoReport, Timeline
 from temoto.instance import Instance
-from temoto.managers.component import ChannelReader, ComponentManager, ComponentManagerClient
+from temoto.managers.component import ChannelReader, ComponentManagerClient
 from temoto.managers.robot import RobotHandle, RobotManager, RobotManagerClient
 from temoto.transport import InProcessTransport
 
@@ -142,7 +142,6 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
     with ExitStack() as stack:
         instances: dict[str, Instance] = {}
         robots: dict[str, RobotHandle] = {}
-        components: dict[str, ComponentManager] = {}
         for actor in ("worker", "escort"):
             instance = stack.enter_context(
                 Instance(
@@ -157,10 +156,7 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
             profile = load_profile(DATA / f"demo_{actor}.yaml", clock=clock)
             robot_manager = RobotManager(instance.registrar, profile, clock=clock)
             instance.add_manager(robot_manager)
-            components[actor] = ComponentManager(
-                instance.registrar, files=[DATA / "cameras.yaml"], ris=instance.ris
-            )
-            instance.add_manager(components[actor])
+            instance.components.add_file(DATA / "cameras.yaml")
             robots[actor] = RobotManagerClient(instance.registrar).request(client="demo")
             instances[actor] = instance
             timeline.say(actor, f"ready at {ORIGIN[actor]} (navigation; camera)")

@@ -6,6 +6,10 @@ lcm-gen 1.5.3
 
 from .action_ack_t import action_ack_t as action_ack_t
 from .action_notification_t import action_notification_t as action_notification_t
+from .context_digest_t import context_digest_t as context_digest_t
+from .context_item_t import context_item_t as context_item_t
+from .context_request_t import context_request_t as context_request_t
+from .context_update_t import context_update_t as context_update_t
 from .envelope_t import envelope_t as envelope_t
 from .graph_command_reply_t import graph_command_reply_t as graph_command_reply_t
 from .graph_command_t import graph_command_t as graph_command_t

@@ -67,7 +67,18 @@ def test_demo_4_source_agnostic_tasking() -> None:
     assert "unknown place 'kitchen'" in report.facts["refused"]
 
 
-def test_the_command_line_runs_a_demo_and_says_which_are_not_built() -> None:
+def test_demo_5_multi_robot_knowledge_sharing() -> None:
+    out = io.StringIO()
+    report = run_demo(5, out, speed=3)
+    assert report.ok, out.getvalue()
+    facts = report.facts
+    assert facts["trees_equal"]
+    assert facts["found_by"] == {"trash": "scout_1", "chair": "scout_2"}
+    assert all(p == ["map", "bin", "trash"] for p in facts["trash_path"].values())
+    assert "worker: its world model learnt trash from scout_1" in out.getvalue()
+
+
+def test_the_command_line_runs_a_demo() -> None:
     proc = subprocess.run(
         [sys.executable, "-m", "temoto", "demo", "4", "--speed", "4"],
         capture_output=True,

@@ -96,6 +96,7 @@ def decode_errors(fleet: Fleet) -> int:
         fleet.instance.control,
         fleet.instance.ris,
         fleet.instance.resources,
+        fleet.instance.context,
         fleet.commander,
     )
     return sum(service.stats["decode_errors"] for service in services)
@@ -106,7 +107,7 @@ def test_every_attack_on_every_channel_is_dropped_and_counted(fleet: Fleet) -> N
     # the instance's services and the commander's: all of them are attacked
     assert {"TEMOTO_HANDSHAKE", "TEMOTO_NOTIFY", "TEMOTO_GRAPH_CMD"} <= set(channels)
     assert {"TEMOTO_GRAPH_REPLY", "TEMOTO_GRAPH_FEEDBACK"} <= set(channels)
-    assert {"TEMOTO_RIS", "TEMOTO_RESOURCE"} <= set(channels)
+    assert {"TEMOTO_RIS", "TEMOTO_RESOURCE", "TEMOTO_CONTEXT"} <= set(channels)
     member = FleetAuth("temoto", "B", KEY)  # an authentic member whose messages we capture
     stranger = FleetAuth("temoto", "B", OTHER_KEY)
     before = fleet.drops()

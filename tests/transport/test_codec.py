@@ -36,9 +36,12 @@ INNER = {
     "resource_reply_t",
     "resource_release_t",
     "resource_status_t",
+    "context_update_t",
+    "context_request_t",
+    "context_digest_t",
 }
 
-_INTS = {"int8_t": 3, "int16_t": 300, "int32_t": 70_000, "int64_t": 1 << 40}
+_INTS = {"int8_t": 3, "int16_t": 300, "int32_t": 70_000, "int64_t": 1 << 40, "double": 1.5}
 
 
 def sample(cls: type[Any], salt: int = 0) -> Any:

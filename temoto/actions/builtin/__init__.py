@@ -5,6 +5,8 @@
   adds the folder to its catalog).
 * :data:`COMPONENT_ACTIONS`: request a component or a pipeline, wait for its data (a Component
   Manager on the registrar).
+* :data:`CONTEXT_ACTIONS`: add, move, get, remove and find items of the shared world model (a
+  Context Manager on the registrar).
 * :data:`BUILTIN_ACTIONS`: every folder above.
 """
 
@@ -13,12 +15,14 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Final
 
-__all__ = ["BUILTIN_ACTIONS", "COMPONENT_ACTIONS", "ROBOT_ACTIONS"]
+__all__ = ["BUILTIN_ACTIONS", "COMPONENT_ACTIONS", "CONTEXT_ACTIONS", "ROBOT_ACTIONS"]
 
 _HERE: Final = Path(__file__).resolve().parent
 #: The folder of the built-in robot actions.
 ROBOT_ACTIONS: Final = _HERE / "robot"
 #: The folder of the built-in component actions.
 COMPONENT_ACTIONS: Final = _HERE / "component"
+#: The folder of the built-in context (world model) actions.
+CONTEXT_ACTIONS: Final = _HERE / "context"
 #: Every folder of built-in actions.
-BUILTIN_ACTIONS: Final = (ROBOT_ACTIONS, COMPONENT_ACTIONS)
+BUILTIN_ACTIONS: Final = (ROBOT_ACTIONS, COMPONENT_ACTIONS, CONTEXT_ACTIONS)

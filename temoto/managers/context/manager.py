@@ -1,0 +1,762 @@
+"""The Context Manager: a world model shared by the fleet (REFERENCE §4.4, thesis demo 5).
+
+One :class:`ContextManager` runs per robot. It holds a :class:`~.tree.ContextTree` of items —
+maps, objects, robots, components — each with a pose relative to its parent, and keeps it
+equal to every other robot's over the fleet link, on the channel :data:`CONTEXT_CHANNEL`:
+
+``context_update_t``
+    A local change is published at once (one record per changed item: a cascade removal sends
+    all of them). The same message carries a whole tree, in chunks of about 48 KB, answering a
+    request.
+``context_request_t``
+    Sent when the manager starts ("send me your trees": every robot answers, so a late joiner
+    gets the tree within one round trip), and to one robot whose digest stayed different from
+    ours for two digests in a row (a change was missed).
+``context_digest_t``
+    Every ``period_s``: the count of items and an order-independent hash of their versions.
+
+Receivers merge every record by version (:mod:`temoto.managers.context.tree`): the newest
+wins, equal stamps are ordered by the writer's name, removals are tombstones kept for
+``tombstone_s``. Every robot that has merged the same records holds the same tree, whatever
+the order of arrival, so concurrent conflicting changes converge.
+
+The manager is also the registrar server ``"context"`` (:class:`MaintainRequest`): a
+resource is an item this robot maintains while the resource is held; the item is added (or
+taken over) on load and removed when the last holder releases it. An action that acquires one
+keeps the item in the world model exactly as long as its graph runs.
+
+Threads: ``temoto-context`` sends digests and state answers and forgets old tombstones;
+``temoto-context-calls`` runs the change listeners (:meth:`ContextManager.listen`). Bad
+messages (undecodable, wrong type, invalid fields, our own robot's name) are counted in
+:attr:`ContextManager.stats` and dropped, never raised.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import threading
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, ClassVar, Final
+
+from temoto.clock import Clock, MonotonicClock
+from temoto.core.registrar import LoadContext, Registrar, ResourceServer
+from temoto.errors import ContextError, TransportError
+from temoto.fleet._common import CallQueue, Closing, check_seconds, decode_or_count, new
+from temoto.lcm_types import context_digest_t, context_request_t, context_update_t
+from temoto.managers.context._wire import chunks, from_wire
+from temoto.managers.context.pose import Pose
+from temoto.managers.context.tree import (
+    ContextTree,
+    Item,
+    Record,
+    Removal,
+    check_item_name,
+    encode_attributes,
+)
+from temoto.transport import codec
+
+if TYPE_CHECKING:
+    from temoto.transport.auth import FleetLink, Opened
+    from temoto.transport.base import Subscription
+
+__all__ = [
+    "CONTEXT_CHANNEL",
+    "CONTEXT_STATS",
+    "Change",
+    "ContextManager",
+    "MaintainRequest",
+    "MaintainResponse",
+]
+
+logger = logging.getLogger(__name__)
+
+#: Channel of ``context_update_t``, ``context_request_t`` and ``context_digest_t``.
+CONTEXT_CHANNEL: Final = "TEMOTO_CONTEXT"
+
+#: The counters of :attr:`ContextManager.stats`.
+CONTEXT_STATS: Final = (
+    "changes_sent",  # context_update_t with local changes
+    "states_sent",  # context_update_t chunks answering a request
+    "updates_received",  # context_update_t received (changes and state chunks)
+    "records_applied",  # received records newer than ours
+    "records_stale",  # received records not newer than ours (duplicates, late, lost races)
+    "records_invalid",  # received records with invalid fields (dropped)
+    "requests_sent",
+    "requests_received",
+    "digests_sent",
+    "digests_received",
+    "digest_mismatches",  # digests differing from ours (a request follows if it persists)
+    "decode_errors",  # payloads that codec.decode refused
+    "unexpected",  # wrong type for the channel, empty names, our own robot name
+    "send_errors",  # sends that failed (logged)
+    "callback_errors",  # listener callbacks that raised (logged)
+    "tombstones_expired",
+)
+
+_TYPES: Final = ("context_update_t", "context_request_t", "context_digest_t")
+# Requests for our tree are answered at most this often (a flood gets no flood of trees).
+_ANSWER_GAP_S: Final = 0.05
+_MAX_PERIOD_MS: Final = 3_600_000
+
+
+@dataclass(frozen=True, slots=True)
+class Change:
+    """What a listener is told: items that changed (added, updated, moved or removed).
+
+    Attributes:
+        names: The items' names.
+        robot: The robot whose message brought the change (this robot for a local change).
+    """
+
+    names: tuple[str, ...]
+    robot: str
+
+
+@dataclass(frozen=True)
+class MaintainRequest:
+    """A registrar request: keep an item in the world model while the resource is held.
+
+    Attributes:
+        item: The item's name.
+        type: Its type.
+        parent: Its parent ("" for a root); must exist.
+        pose: ``(x, y, z, qx, qy, qz, qw)`` relative to the parent.
+        attributes: A JSON object, as text.
+        cascade: On release, remove the items below it too (else they are kept and the item
+            stays while it has children).
+    """
+
+    item: str
+    type: str = "object"
+    parent: str = ""
+    pose: tuple[float, ...] = (0.0, 0.0, 0.0, 0.0, 0.0, 0.0, 1.0)
+    attributes: str = "{}"
+    cascade: bool = False
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "pose", tuple(self.pose))  # JSON gives lists back
+
+
+@dataclass(frozen=True)
+class MaintainResponse:
+    """A maintained item.
+
+    Attributes:
+        item: Its name.
+        stamp_us: The version stamp of the load's change.
+    """
+
+    item: str
+    stamp_us: int
+
+
+class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing):
+    """One robot's world model, kept equal to the fleet's (see the module docstring).
+
+    Args:
+        robot: This robot's name: the writer of its changes, the default maintainer.
+        link: The fleet link to synchronise over, or None for a world model of one robot.
+        registrar: Registers the manager as the server ``"context"`` here, if given.
+        period_s: Seconds between digests.
+        tombstone_s: Seconds a removal is remembered (a change older than the removal that
+            arrives within this time cannot bring the item back).
+        clock: Monotonic time (periods, tombstones) and wall time (the stamps of changes).
+        queue_capacity: Messages waiting for the receive handler at most (older ones are
+            dropped; the digests repair what is lost).
+
+    Raises:
+        ValueError: If ``robot`` is not a valid name or a duration is not positive.
+        TransportError: If the link's transport is closed.
+    """
+
+    name: ClassVar[str] = "context"
+    request_type: ClassVar[type[Any]] = MaintainRequest
+    response_type: ClassVar[type[Any]] = MaintainResponse
+
+    def __init__(
+        self,
+        robot: str,
+        *,
+        link: FleetLink | None = None,
+        registrar: Registrar | None = None,
+        period_s: float = 1.0,
+        tombstone_s: float = 600.0,
+        clock: Clock | None = None,
+        queue_capacity: int = 4096,
+    ) -> None:
+        self._robot = check_item_name("robot", robot)
+        self.period_s = check_seconds("period_s", period_s)
+        self.tombstone_s = check_seconds("tombstone_s", tombstone_s)
+        self._clock: Clock = clock or MonotonicClock()
+        self._link = link
+        self._lock = threading.Lock()
+        self._wake = threading.Condition(self._lock)
+        # Guarded by _lock.
+        self._tree = ContextTree()
+        self._closed = False
+        self._counts = dict.fromkeys(CONTEXT_STATS, 0)
+        self._listeners: list[Callable[[Change], None]] = []
+        self._answer: set[str] = set()  # robots waiting for our tree ("" for everyone)
+        self._next_answer = -math.inf
+        self._ask: set[str] = set()  # robots whose tree we want
+        self._asked: dict[str, float] = {}  # robot -> when we last asked it
+        self._mismatch: dict[str, int] = {}  # robot -> digests in a row that differed
+        self._next_digest = -math.inf
+        self._calls = CallQueue("temoto-context-calls", "a Context Manager listener")
+        self._sub: Subscription | None = None
+        self._timer: threading.Thread | None = None
+        if link is not None:
+            try:
+                self._sub = link.listen(
+                    CONTEXT_CHANNEL, self._on_message, queue_capacity=queue_capacity
+                )
+            except BaseException:
+                self._calls.close()
+                raise
+            self._timer = threading.Thread(
+                target=self._run_timer, name="temoto-context", daemon=True
+            )
+            self._timer.start()
+            ask = new(context_request_t)
+            ask.requester, ask.target = self._robot, ""
+            self._send(ask, "requests_sent")
+        if registrar is not None:
+            registrar.register(self)
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else "open"
+        return f"<ContextManager robot={self._robot!r} items={len(self._tree)} {state}>"
+
+    # ================================================================ properties
+
+    @property
+    def robot(self) -> str:
+        """This robot's name."""
+        return self._robot
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """A copy of the counters, one per name in :data:`CONTEXT_STATS`."""
+        with self._lock:
+            counts = dict(self._counts)
+        counts["callback_errors"] += self._calls.errors
+        return counts
+
+    # ================================================================ changes
+
+    def add(
+        self,
+        name: str,
+        kind: str = "object",
+        parent: str = "",
+        pose: Pose | None = None,
+        *,
+        maintainer: str | None = None,
+        attributes: Mapping[str, Any] | None = None,
+    ) -> Item:
+        """Add an item.
+
+        Args:
+            name: Unique in the tree.
+            kind: The type: ``map``, ``object``, ``robot``, ``component`` or another
+                non-empty string.
+            parent: The parent item ("" for a root); it must exist.
+            pose: Relative to the parent (default: the parent's origin).
+            maintainer: The robot that maintains it (default: this robot).
+            attributes: A JSON object of user data.
+
+        Returns:
+            The item as stored.
+
+        Raises:
+            ContextError: An item of that name exists (the tree is unchanged).
+            ContextItemNotFoundError: The parent does not exist.
+            ContextCycleError: The item names itself as its parent.
+            ValueError: A name is empty, too long or has control characters; the attributes
+                hold NaN or are too large.
+            TypeError: An argument has the wrong type.
+        """
+        attrs = encode_attributes(attributes)
+        with self._lock:
+            self._check_open()
+            item = self._tree.add(
+                name,
+                kind,
+                parent,
+                Pose() if pose is None else pose,
+                self._robot if maintainer is None else maintainer,
+                attrs,
+                self._now_us(),
+                self._robot,
+            )
+        self._changed([item])
+        return item
+
+    def update(
+        self,
+        name: str,
+        *,
+        pose: Pose | None = None,
+        kind: str | None = None,
+        maintainer: str | None = None,
+        attributes: Mapping[str, Any] | None = None,
+    ) -> Item:
+        """Change an item's pose, type, maintainer or attributes (None: keep).
+
+        Args:
+            name: The item.
+            pose: The new pose, relative to its parent.
+            kind: The new type.
+            maintainer: The new maintainer.
+            attributes: The new attributes (they replace the old ones).
+
+        Returns:
+            The item as stored.
+
+        Raises:
+            ContextItemNotFoundError: No such item.
+            ValueError: An invalid name or attributes.
+            TypeError: An argument has the wrong type.
+        """
+        attrs = None if attributes is None else encode_attributes(attributes)
+        with self._lock:
+            self._check_open()
+            item = self._tree.update(
+                name,
+                kind=kind,
+                pose=pose,
+                maintainer=maintainer,
+                attributes_json=attrs,
+                now_us=self._now_us(),
+                writer=self._robot,
+            )
+        self._changed([item])
+        return item
+
+    def move(self, name: str, parent: str, pose: Pose | None = None) -> Item:
+        """Re-parent an item (what is below it moves with it).
+
+        Args:
+            name: The item.
+            parent: The new parent ("" for a root); it must exist and not be below the item.
+            pose: The pose relative to the new parent; None keeps the item where it is in the
+                world (its relative pose is recomputed), or keeps the relative pose when a
+                world pose is unknown (detached).
+
+        Returns:
+            The item as stored.
+
+        Raises:
+            ContextItemNotFoundError: No such item or no such parent.
+            ContextCycleError: The parent is the item or below it.
+        """
+        with self._lock:
+            self._check_open()
+            item = self._tree.move(name, parent, pose, self._now_us(), self._robot)
+        self._changed([item])
+        return item
+
+    def remove(self, name: str, *, cascade: bool = False) -> list[str]:
+        """Remove an item; with ``cascade``, everything below it too.
+
+        Args:
+            name: The item.
+            cascade: Remove the subtree; otherwise an item with children is refused.
+
+        Returns:
+            The removed names, children before their parents.
+
+        Raises:
+            ContextItemNotFoundError: No such item.
+            ContextError: It has children and ``cascade`` is false (nothing is removed).
+        """
+        with self._lock:
+            self._check_open()
+            removals = self._tree.remove(
+                name, bool(cascade), self._now_us(), self._robot, self._clock.monotonic()
+            )
+        self._changed(removals)
+        return [r.name for r in removals]
+
+    def _now_us(self) -> int:
+        return round(self._clock.time() * 1e6)
+
+    def _check_open(self) -> None:
+        if self._closed:
+            raise ContextError(f"the Context Manager of {self._robot!r} is closed")
+
+    def _changed(self, records: Sequence[Record]) -> None:
+        """Publish local changes and tell the listeners (lock not held)."""
+        self._publish(records, "", "changes_sent")
+        self._notify(tuple(r.name for r in records), self._robot)
+
+    # ================================================================ queries
+
+    def get(self, name: str) -> Item:
+        """An item by name.
+
+        Raises:
+            ContextItemNotFoundError: No such item.
+        """
+        with self._lock:
+            return self._tree.get(name)
+
+    def __contains__(self, name: object) -> bool:
+        with self._lock:
+            return name in self._tree
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._tree)
+
+    def find(self, kind: str) -> list[Item]:
+        """The items of one type, sorted by name."""
+        with self._lock:
+            return self._tree.find(kind)
+
+    def types(self) -> dict[str, int]:
+        """How many items there are of each type."""
+        with self._lock:
+            return self._tree.types()
+
+    def children(self, name: str = "") -> list[Item]:
+        """The attached children of an item ("" for the roots), sorted by name.
+
+        Raises:
+            ContextItemNotFoundError: No such item.
+        """
+        with self._lock:
+            return self._tree.children(name)
+
+    def subtree(self, name: str = "", depth: int | None = None) -> list[Item]:
+        """An item and the items attached below it, breadth first, siblings by name.
+
+        Args:
+            name: The top item; "" for the whole tree (every root and what is below).
+            depth: How many levels below the top to include (0: the top only; for "" the
+                roots are level 0); None for all.
+
+        Returns:
+            The items.
+
+        Raises:
+            ContextItemNotFoundError: No such item.
+            ValueError: A negative depth.
+        """
+        with self._lock:
+            return self._tree.subtree(name, depth)
+
+    def path(self, name: str) -> list[str]:
+        """The names from the item's root down to the item.
+
+        Raises:
+            ContextItemNotFoundError: No such item.
+            ContextError: The item or one above it is detached.
+        """
+        with self._lock:
+            return self._tree.path(name)
+
+    def world_pose(self, name: str) -> Pose:
+        """An item's pose in its root's frame (the relative poses composed up the tree).
+
+        Raises:
+            ContextItemNotFoundError: No such item.
+            ContextError: The item or one above it is detached (its chain has no root).
+        """
+        with self._lock:
+            return self._tree.world_pose(name)
+
+    def detached(self) -> list[Item]:
+        """Items whose parent link is not followed (see the tree module).
+
+        Their parent was removed by another robot, or a cycle of concurrent re-parents was
+        cut there.
+        """
+        with self._lock:
+            return self._tree.detached()
+
+    def removed(self, name: str) -> Removal | None:
+        """The tombstone of a removed item, if it is still remembered."""
+        with self._lock:
+            return self._tree.removed(name)
+
+    def items(self) -> list[Item]:
+        """Every item, sorted by name."""
+        with self._lock:
+            return self._tree.items()
+
+    def dump(self) -> list[Record]:
+        """Every item and remembered removal, sorted by name (compare robots with it)."""
+        with self._lock:
+            return self._tree.records()
+
+    def digest(self) -> tuple[int, int]:
+        """``(count, digest)`` as the digests carry them: equal on robots with equal trees."""
+        with self._lock:
+            return self._tree.digest()
+
+    def listen(self, callback: Callable[[Change], None]) -> Callable[[], None]:
+        """Be told of every change, local or received.
+
+        Callbacks run on the ``temoto-context-calls`` thread, in order; they may call the
+        manager.
+
+        Args:
+            callback: Called with a :class:`Change`.
+
+        Returns:
+            A function that ends the subscription (idempotent).
+        """
+        with self._lock:
+            self._listeners.append(callback)
+
+        def cancel() -> None:
+            with self._lock:
+                if callback in self._listeners:
+                    self._listeners.remove(callback)
+
+        return cancel
+
+    def _notify(self, names: tuple[str, ...], robot: str) -> None:
+        with self._lock:
+            listeners = list(self._listeners)
+        if not listeners or not names:
+            return
+        change = Change(names, robot)
+
+        def call() -> None:
+            for callback in listeners:
+                try:
+                    callback(change)
+                except Exception:
+                    with self._lock:
+                        self._counts["callback_errors"] += 1
+                    logger.exception("a Context Manager listener raised")
+
+        self._calls.put(call)
+
+    # ================================================================ registrar server
+
+    def on_load(self, request: MaintainRequest, ctx: LoadContext) -> MaintainResponse:
+        """Add the item (or take it over: move and update it), maintained by this robot."""
+        pose = Pose(*request.pose)
+        try:
+            attributes = _json_object(request.attributes)
+            encode_attributes(attributes)
+        except (TypeError, ValueError) as err:
+            raise ValueError(f"item '{request.item}': bad attributes: {err}") from None
+        with self._lock:
+            self._check_open()
+            exists = request.item in self._tree
+        if not exists:
+            item = self.add(
+                request.item,
+                request.type,
+                request.parent,
+                pose,
+                attributes=attributes,
+            )
+        else:
+            self.move(request.item, request.parent, pose)
+            item = self.update(
+                request.item,
+                kind=request.type,
+                maintainer=self._robot,
+                attributes=attributes,
+            )
+        return MaintainResponse(item.name, item.stamp_us)
+
+    def on_unload(self, request: MaintainRequest, response: MaintainResponse) -> None:
+        """Remove the item (with ``cascade``, its subtree).
+
+        Unless another robot took it over or it is gone already; an item with children stays
+        without ``cascade``.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            try:
+                item = self._tree.get(request.item)
+            except ContextError:
+                return
+        if item.maintainer != self._robot:
+            return
+        try:
+            self.remove(request.item, cascade=request.cascade)
+        except ContextError as err:
+            logger.warning("context: kept item %r after its release: %s", request.item, err)
+
+    # ================================================================ close
+
+    def close(self) -> None:
+        """Stop syncing, stop and join the threads. Idempotent; the tree stays readable.
+
+        The fleet link and its transport stay the caller's to close.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            if self._closed:
+                return
+            self._closed = True
+            self._wake.notify_all()
+        if self._sub is not None:
+            self._sub.unsubscribe()
+        if self._timer is not None and self._timer is not threading.current_thread():
+            self._timer.join()
+        self._calls.close(drain=True)
+
+    # ================================================================ sending
+
+    def _publish(self, records: Sequence[Record], requester: str, counter: str) -> None:
+        if self._link is None:
+            return
+        parts = list(chunks(records))
+        for index, part in enumerate(parts):
+            msg = new(context_update_t)
+            msg.robot, msg.requester = self._robot, requester
+            msg.chunk, msg.chunks, msg.items = index, len(parts), part
+            self._send(msg, counter)
+
+    def _send(self, msg: Any, counter: str) -> None:
+        """Encode and send; a failure is counted and logged, never raised (lock not held)."""
+        assert self._link is not None
+        try:
+            name, payload = codec.encode(msg)
+            self._link.send(CONTEXT_CHANNEL, name, payload)
+        except (TransportError, ValueError) as err:
+            with self._lock:
+                self._counts["send_errors"] += 1
+                closed = self._closed
+            (logger.debug if closed else logger.warning)(
+                "context %r: cannot send: %s", self._robot, err
+            )
+            return
+        with self._lock:
+            self._counts[counter] += 1
+
+    def _run_timer(self) -> None:
+        """Digests every period, state answers and requests when due, tombstone expiry."""
+        while True:
+            with self._lock:
+                if self._closed:
+                    return
+                now = self._clock.monotonic()
+                expired = self._tree.expire(now - self.tombstone_s)
+                self._counts["tombstones_expired"] += expired
+                digest = None
+                if now >= self._next_digest:
+                    self._next_digest = now + self.period_s
+                    digest = self._tree.digest()
+                answer: list[Record] | None = None
+                to = ""
+                if self._answer and now >= self._next_answer:
+                    to = next(iter(self._answer)) if len(self._answer) == 1 else "*"
+                    self._answer.clear()
+                    self._next_answer = now + min(_ANSWER_GAP_S, self.period_s / 10)
+                    answer = self._tree.records()
+                ask, self._ask = sorted(self._ask), set()
+                if digest is None and answer is None and not ask:
+                    wake = self._next_digest
+                    if self._answer:
+                        wake = min(wake, self._next_answer)
+                    self._clock.wait(self._wake, max(0.0, wake - now))
+                    continue
+            for robot in ask:
+                msg = new(context_request_t)
+                msg.requester, msg.target = self._robot, robot
+                self._send(msg, "requests_sent")
+            if answer is not None:
+                self._publish(answer, to, "states_sent")
+            if digest is not None:
+                msg = new(context_digest_t)
+                msg.robot, (msg.count, value) = self._robot, digest
+                msg.digest = value - (1 << 64) if value >= 1 << 63 else value
+                msg.period_ms = max(1, round(self.period_s * 1000))
+                self._send(msg, "digests_sent")
+
+    # ================================================================ receiving
+
+    def _on_message(self, opened: Opened) -> None:
+        msg = decode_or_count(opened, _TYPES, self._counts, self._lock)
+        if msg is None:
+            return
+        if opened.type == "context_update_t":
+            self._on_update(msg)
+        elif opened.type == "context_request_t":
+            self._on_request(msg)
+        else:
+            self._on_digest(msg)
+
+    def _foreign(self, robot: Any) -> bool:
+        """Whether a sender name is another robot's (lock held; counts if not)."""
+        ok = isinstance(robot, str) and bool(robot) and robot != self._robot
+        if not ok:
+            self._counts["unexpected"] += 1
+        return ok
+
+    def _on_update(self, msg: Any) -> None:
+        records: list[Record] = []
+        invalid = 0
+        for wire in msg.items:
+            try:
+                records.append(from_wire(wire))
+            except (ValueError, TypeError) as err:
+                invalid += 1
+                logger.debug("context: dropped a record from %r: %s", msg.robot, err)
+        applied: list[str] = []
+        with self._lock:
+            if self._closed or not self._foreign(msg.robot):
+                return
+            self._counts["updates_received"] += 1
+            self._counts["records_invalid"] += invalid
+            now = self._clock.monotonic()
+            for record in records:
+                if self._tree.merge(record, now):
+                    applied.append(record.name)
+            self._counts["records_applied"] += len(applied)
+            self._counts["records_stale"] += len(records) - len(applied)
+        self._notify(tuple(applied), msg.robot)
+
+    def _on_request(self, msg: Any) -> None:
+        with self._lock:
+            if self._closed or not self._foreign(msg.requester):
+                return
+            self._counts["requests_received"] += 1
+            if msg.target not in ("", self._robot):
+                return
+            self._answer.add(msg.requester)
+            self._wake.notify_all()
+
+    def _on_digest(self, msg: Any) -> None:
+        with self._lock:
+            if self._closed or not self._foreign(msg.robot):
+                return
+            if not 0 < msg.period_ms <= _MAX_PERIOD_MS or msg.count < 0:
+                self._counts["unexpected"] += 1
+                return
+            self._counts["digests_received"] += 1
+            count, value = self._tree.digest()
+            if (count, value) == (msg.count, msg.digest & ((1 << 64) - 1)):
+                self._mismatch.pop(msg.robot, None)
+                return
+            self._counts["digest_mismatches"] += 1
+            # A change may be on its way: ask only if the difference lasts a whole period.
+            seen = self._mismatch[msg.robot] = self._mismatch.get(msg.robot, 0) + 1
+            now = self._clock.monotonic()
+            if seen >= 2 and now >= self._asked.get(msg.robot, -math.inf) + self.period_s / 2:
+                self._asked[msg.robot] = now
+                self._mismatch.pop(msg.robot, None)
+                self._ask.add(msg.robot)
+                self._wake.notify_all()
+
+
+def _json_object(text: str) -> dict[str, Any]:
+    value = json.loads(text) if text else {}
+    if not isinstance(value, dict):
+        raise ValueError("attributes must be a JSON object")
+    return value
