@@ -600,7 +600,7 @@ class ActionEngine:
                 else:
                     self._pool.submit(self._finish_spontaneous, *effect[1:])
             except RuntimeError:
-                if not closing:
+                if not (closing or self._closed):  # shut down since the caller looked
                     raise
                 self._settle_closed(effect)
 
