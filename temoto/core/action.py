@@ -444,7 +444,9 @@ class Action(ABC):
         self._outputs = Outputs(self._output_params) if self._output_params else _NO_OUTPUTS
 
     def _log_snapshot(self) -> tuple[LogMessage, ...]:
-        return tuple(self._log) if self._log is not None else ()
+        log = self._log
+        # deque.copy() is one C call: safe while the action's thread appends
+        return tuple(log.copy()) if log is not None else ()
 
     # ---- what actions call ------------------------------------------------------------------
 

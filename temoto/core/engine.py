@@ -1290,7 +1290,10 @@ class ActionEngine:
     def _snapshot(self, run: GraphRun) -> dict[str, Any]:
         actions = []
         for node in sorted(run.nodes.values(), key=lambda n: n.name):
-            umrf = dataclasses.replace(node.umrf, state=node.state, runtime_messages=node.log)
+            log = node.log
+            if node.active and node.instance is not None:
+                log = node.instance._log_snapshot()  # a running action's log, as it grows
+            umrf = dataclasses.replace(node.umrf, state=node.state, runtime_messages=log)
             out = dump_umrf(umrf)
             if node.inputs:
                 out["input_parameters"] = dump_parameter_tree(node.inputs, node.data)

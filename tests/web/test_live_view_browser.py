@@ -108,3 +108,66 @@ def test_node_states_on_the_page_change_as_the_graph_runs(tmp_path: Path) -> Non
     if artifacts:
         Path(artifacts).mkdir(parents=True, exist_ok=True)
         shutil.copyfile(shot, Path(artifacts) / "live-view.png")
+
+
+@pytest.mark.slow
+def test_the_page_follows_the_mobile_manipulation_mission(tmp_path: Path) -> None:
+    """The running demo of ``make run`` (simulators, Robot Manager) seen in the browser."""
+    from temoto import ActionEngine, ScaledClock
+    from temoto.actions.builtin import ROBOT_ACTIONS
+    from temoto.config import load_profile
+    from temoto.core.registrar import Registrar
+    from temoto.managers.robot import RobotManager
+
+    binary = require_chromium()
+    root = Path(__file__).resolve().parents[2]
+    mission = json.loads((root / "examples/missions/mobile_manipulation.graph.json").read_text())
+    clock = ScaledClock(3)
+    registrar = Registrar("live-view-mission")
+    profile = load_profile(root / "hw_profiles/sim_mobile_manipulator.yaml", clock=clock)
+    manager = RobotManager(registrar, profile, clock=clock)
+    shot = tmp_path / "live-view-mission.png"
+    try:
+        with (
+            ActionEngine(
+                "sim_mobile_manipulator", actions=[ROBOT_ACTIONS], registrar=registrar, clock=clock
+            ) as engine,
+            LiveView(engine) as view,
+        ):
+            browser = Browser(binary, view.url, tmp_path / "profile", tmp_path / "chromium.log")
+            try:
+                browser.wait_for("document.getElementById('conn').textContent === 'live'")
+                run = engine.start(mission)
+                browser.wait_for(
+                    "document.querySelector('#svg .node[data-node=\"NavigateTo_0\"]')"
+                    "?.getAttribute('data-state') === 'RUNNING'",
+                    timeout=20,
+                )
+                first = states(browser)
+                browser.evaluate(
+                    "document.querySelector('#svg .node[data-node=\"NavigateTo_0\"]')"
+                    ".dispatchEvent(new MouseEvent('click', {bubbles: true}))"
+                )
+                held = browser.wait_for("document.querySelector('#resources li')?.textContent")
+                assert "robot" in held  # the action holds the robot
+                browser.screenshot(shot)
+                assert engine.wait(run, timeout=60) is Result.TRUE
+                browser.wait_for(
+                    "document.getElementById('runstate').textContent"
+                    " === 'FINISHED \\u00b7 on_true'",
+                    timeout=20,
+                )
+                last = states(browser)
+            finally:
+                browser.close()
+    finally:
+        manager.shutdown()
+        registrar.close()
+    assert first["NavigateTo_0"] == "RUNNING"
+    assert first["MoveJoints_2"] == "UNINITIALIZED"
+    assert set(last.values()) == {"FINISHED"}
+    assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    artifacts = os.environ.get("TEMOTO_TEST_ARTIFACTS")
+    if artifacts:
+        Path(artifacts).mkdir(parents=True, exist_ok=True)
+        shutil.copyfile(shot, Path(artifacts) / "live-view-mission.png")
