@@ -1,47 +1,14 @@
-"""A simulated sensor: sends ``<name> <seq>`` datagrams to its output channel.
+"""The simulated sensor of the examples: the one the demonstrations ship, run from here.
 
-Started by the Component Manager as ``python -S -I sim_sensor.py --output CHANNEL --name NAME
-[--rate HZ]``; it imports only ``socket``, ``sys`` and ``time`` so it starts in a few
-milliseconds (failover time includes the substitute's start). The first reading is sent at
-once, then one every 1/rate seconds; readings nobody listens to are dropped. Channels:
-``unix:@NAME`` (abstract Unix datagram socket) or ``udp:HOST:PORT``.
+``python -S -I sim_sensor.py --output CHANNEL --name NAME [--rate HZ]`` sends ``<name> <seq>``
+datagrams to CHANNEL (see ``temoto/demos/data/sim_sensor.py``, which this runs: one program,
+two places that name it).
 """
 
-import socket
-import sys
-import time
-
-
-def address(channel):
-    if channel.startswith("unix:"):
-        rest = channel[5:]
-        return socket.AF_UNIX, ("\0" + rest[1:]) if rest.startswith("@") else rest
-    host, _, port = channel[4:].rpartition(":")
-    host = host.strip("[]")
-    return (socket.AF_INET6 if ":" in host else socket.AF_INET), (host, int(port))
-
-
-def main(argv):
-    opts = dict(zip(argv[::2], argv[1::2], strict=False))
-    family, addr = address(opts["--output"])
-    name = opts.get("--name", "sensor").encode()
-    period = 1.0 / float(opts.get("--rate", "100"))
-    sock = socket.socket(family, socket.SOCK_DGRAM)
-    seq = 0
-    due = time.monotonic()
-    while True:
-        try:  # noqa: SIM105 - no contextlib import: this program must start fast
-            sock.sendto(name + b" " + str(seq).encode(), addr)
-        except OSError:
-            pass  # nobody listens (yet)
-        seq += 1
-        due += period
-        delay = due - time.monotonic()
-        if delay > 0:
-            time.sleep(delay)
-        else:
-            due = time.monotonic()
-
+import os
+import runpy
 
 if __name__ == "__main__":
-    main(sys.argv[1:])
+    here = os.path.dirname(os.path.abspath(__file__))
+    program = os.path.join(here, "..", "..", "temoto", "demos", "data", "sim_sensor.py")
+    runpy.run_path(program, run_name="__main__")

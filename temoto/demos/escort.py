@@ -27,6 +27,7 @@ from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.clock import Clock, MonotonicClock, ScaledClock
 from temoto.config import load_profile
 from temoto.core.registrar import StatusUpdate
+from temoto.demos._display import Display
 from temoto.demos._timeline import DemoReport, Timeline
 from temoto.instance import Instance
 from temoto.managers.component import ChannelReader, ComponentManagerClient
@@ -40,41 +41,6 @@ DATA: Final = Path(__file__).resolve().parent / "data"
 ORIGIN: Final = {"worker": (0.0, 0.0), "escort": (-1.5, 0.0)}
 FOLLOW_GAP: Final = 0.7  # metres behind the worker
 WAIT: Final = 30.0
-
-
-class _Display:
-    """The operator's display: notes which camera each reading came from."""
-
-    def __init__(self, reader: ChannelReader, timeline: Timeline) -> None:
-        self.reader = reader
-        self.timeline = timeline
-        self.cond = threading.Condition()
-        self.first: dict[str, float] = {}
-        self._stop = False
-        self.thread = threading.Thread(target=self._read, name="demo2-display", daemon=True)
-        self.thread.start()
-
-    def _read(self) -> None:
-        while not self._stop:
-            data = self.reader.recv(0.1)
-            if not data:
-                continue
-            camera = data.split(b" ", 1)[0].decode(errors="replace")
-            with self.cond:
-                if camera not in self.first:
-                    self.first[camera] = time.monotonic()
-                    self.timeline.say("display", f"showing {camera}")
-                    self.cond.notify_all()
-
-    def wait_for(self, camera: str) -> float:
-        with self.cond:
-            if not self.cond.wait_for(lambda: camera in self.first, WAIT):
-                raise TimeoutError(f"no image from {camera}")
-            return self.first[camera]
-
-    def close(self) -> None:
-        self._stop = True
-        self.thread.join(5.0)
 
 
 def _world(robot: RobotHandle) -> tuple[float, float]:
@@ -167,7 +133,7 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
             time.sleep(0.02)
         timeline.say("worker", "RIS: the escort offers components")
         reader = stack.enter_context(ChannelReader(f"unix:@temoto-demo2-{secrets.token_hex(4)}"))
-        display = _Display(reader, timeline)
+        display = Display(reader, timeline, "showing")
         stack.callback(display.close)
 
         def on_status(update: StatusUpdate) -> None:
@@ -177,7 +143,7 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
         camera = client.request(
             "camera", outputs={"image": reader.channel}, client="display", on_status=on_status
         )
-        display.wait_for("worker_camera")
+        display.wait_for("worker_camera", WAIT)
         mission = json.loads((DATA / "worker_route.graph.json").read_text())
         instances["worker"].engine.start(mission)
         timeline.say("worker", "driving its route")
@@ -186,7 +152,7 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
         timeline.say("operator", f"the worker's camera fails (process {pid} killed)")
         t_kill = time.monotonic()
         os.kill(pid, signal.SIGKILL)
-        t_escort = display.wait_for("escort_camera")
+        t_escort = display.wait_for("escort_camera", WAIT)
         report.facts["switch_over_ms"] = round((t_escort - t_kill) * 1000, 1)
         report.facts["camera_robot"] = camera.response.robot
         timeline.say("escort", "camera on; following the worker")
@@ -201,7 +167,7 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
         report.facts["escort_gap_m"] = round(math.hypot(wx - ex, wy - ey), 2)
         report.facts["worker_at"] = (round(wx, 2), round(wy, 2))
         report.facts["escort_at"] = (round(ex, 2), round(ey, 2))
-        report.facts["shown"] = sorted(display.first, key=display.first.__getitem__)
+        report.facts["shown"] = display.order()
         client.release(camera)
         report.ok = (
             report.facts["shown"] == ["worker_camera", "escort_camera"]

@@ -23,6 +23,7 @@ from pathlib import Path
 from typing import Final
 
 from temoto.core.registrar import Registrar, StatusUpdate
+from temoto.demos._display import Display
 from temoto.demos._timeline import DemoReport, Timeline
 from temoto.managers import ProcessManager
 from temoto.managers.component import ChannelReader, ComponentManager, ComponentManagerClient
@@ -33,43 +34,6 @@ SENSORS: Final = Path(__file__).resolve().parent / "data" / "sensors.yaml"
 ORDER: Final = ("lidar_3d", "depth_camera", "lidar_2d")
 WAIT: Final = 10.0  # real seconds any step may take
 SAMPLE_S: Final = 0.02  # how often the running sensor processes are counted
-
-
-class _Display:
-    """The operator's display: reads the channel on a thread, notes each sensor's first reading."""
-
-    def __init__(self, reader: ChannelReader, timeline: Timeline) -> None:
-        self.reader = reader
-        self.timeline = timeline
-        self.cond = threading.Condition()
-        self.first: dict[str, float] = {}  # sensor -> monotonic time of its first reading
-        self.count: dict[str, int] = {}
-        self._stop = False
-        self.thread = threading.Thread(target=self._read, name="demo1-display", daemon=True)
-        self.thread.start()
-
-    def _read(self) -> None:
-        while not self._stop:
-            data = self.reader.recv(0.1)
-            if not data:
-                continue
-            sensor = data.split(b" ", 1)[0].decode(errors="replace")
-            with self.cond:
-                self.count[sensor] = self.count.get(sensor, 0) + 1
-                if sensor not in self.first:
-                    self.first[sensor] = time.monotonic()
-                    self.timeline.say("display", f"receiving from {sensor}")
-                    self.cond.notify_all()
-
-    def wait_for(self, sensor: str) -> float:
-        with self.cond:
-            if not self.cond.wait_for(lambda: sensor in self.first, WAIT):
-                raise TimeoutError(f"no reading from {sensor}")
-            return self.first[sensor]
-
-    def close(self) -> None:
-        self._stop = True
-        self.thread.join(5.0)
 
 
 class _ProcessCounter:
@@ -108,7 +72,7 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
     components = ComponentManager(registrar, files=[SENSORS])
     client = ComponentManagerClient(registrar)
     reader = ChannelReader(f"unix:@temoto-demo1-display-{secrets.token_hex(4)}")
-    display = _Display(reader, timeline)
+    display = Display(reader, timeline, "receiving from")
     counter = _ProcessCounter(registrar)
     ranking = [c.description.name for c in components.candidates("range_sensor")]
     timeline.say("component manager", f"range_sensor candidates, best first: {ranking}")
@@ -121,7 +85,7 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
             "range_sensor", outputs={"scan": reader.channel}, client="display", on_status=on_status
         )
         timeline.say("display", f"asked for a range_sensor; got {sensor.name}")
-        display.wait_for(ORDER[0])
+        display.wait_for(ORDER[0], WAIT)
         switch_ms: list[float] = []
         for previous, nxt in itertools.pairwise(ORDER):
             time.sleep(0.3)  # let the display show the active sensor for a moment
@@ -129,11 +93,11 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
             timeline.say("operator", f"{previous} fails (process {pid} killed)")
             t_kill = time.monotonic()
             os.kill(pid, signal.SIGKILL)
-            t_first = display.wait_for(nxt)
+            t_first = display.wait_for(nxt, WAIT)
             switch_ms.append(round((t_first - t_kill) * 1000, 1))
             timeline.say("display", f"switched to {nxt} in {switch_ms[-1]:.1f} ms")
         time.sleep(0.3)
-        report.facts["fed_the_display"] = sorted(display.first, key=display.first.__getitem__)
+        report.facts["fed_the_display"] = display.order()
         report.facts["switch_over_ms"] = switch_ms
         report.facts["readings"] = dict(display.count)
         client.release(sensor)
