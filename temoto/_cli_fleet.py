@@ -21,6 +21,7 @@ from typing import IO, Any
 from temoto.errors import ConfigError, GraphInputError
 
 __all__ = [
+    "add_components_option",
     "add_fleet_options",
     "add_graph_commands",
     "add_live_view_option",
@@ -69,6 +70,18 @@ def add_fleet_options(parser: argparse.ArgumentParser, description: str) -> None
         default=0.1,
         metavar="SECONDS",
         help="handshakes and notifications are resent this often until answered (default 0.1)",
+    )
+
+
+def add_components_option(parser: argparse.ArgumentParser) -> None:
+    """``--components FILE``: component descriptions for the instance's Component Manager."""
+    parser.add_argument(
+        "--components",
+        action="append",
+        default=[],
+        metavar="FILE",
+        help="component descriptions and pipeline templates (YAML/JSON, repeatable;"
+        " docs/component-manager.md)",
     )
 
 
@@ -161,6 +174,7 @@ def add_serve(sub: Any, paths: Any) -> None:
         metavar="SECONDS",
         help="publish every run's state this often (default 1)",
     )
+    add_components_option(serve_p)
     add_live_view_option(serve_p)
     add_fleet_options(serve_p, "the fleet this instance joins")
 
@@ -193,6 +207,7 @@ def serve(args: argparse.Namespace) -> int:
             silence_s=args.fleet_silence,
             resend_s=args.fleet_resend,
             live_view_port=args.live_view,
+            component_files=args.components,
         ) as instance:
             graphs = len(instance.engine.indexed_graphs())
             if instance.live_view is not None:

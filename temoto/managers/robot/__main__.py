@@ -21,7 +21,12 @@ import time
 from collections.abc import Sequence
 from typing import IO
 
-from temoto._cli_fleet import add_fleet_options, add_live_view_option, fleet_key
+from temoto._cli_fleet import (
+    add_components_option,
+    add_fleet_options,
+    add_live_view_option,
+    fleet_key,
+)
 from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.clock import MonotonicClock
 from temoto.config import load_profile
@@ -76,6 +81,7 @@ def _parser() -> argparse.ArgumentParser:
         help="no fleet: nothing is sent to or taken from the network (a mission on one robot)",
     )
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    add_components_option(p)
     add_live_view_option(p)
     add_fleet_options(p, "the fleet this robot joins (unless --local)")
     return p
@@ -134,6 +140,7 @@ def _run(args: argparse.Namespace) -> int:
         silence_s=args.fleet_silence,
         resend_s=args.fleet_resend,
         live_view_port=args.live_view,
+        component_files=args.components,
     ) as instance:
         manager = RobotManager(instance.registrar, profile, clock=clock)
         instance.add_manager(manager)
