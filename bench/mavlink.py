@@ -65,7 +65,7 @@ def bench_mavlink(quick: bool) -> Results:
     except ImportError as err:  # pymavlink missing
         out.notes.append(f"mavlink_* skipped: {err}")
         return out
-    seconds = 3.0 if quick else 10.0
+    seconds = 2.0 if quick else 10.0
     port = _free_udp_port()
     sim = SimVehicle(
         "bench",

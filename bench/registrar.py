@@ -225,7 +225,7 @@ class _Fanout:
 
 def bench_registrar(quick: bool) -> Results:
     out = Results()
-    reps = 5 if quick else 15
+    reps = 3 if quick else 15
     n_dedup = 10_000 if quick else 50_000
     n_new = 2_500 if quick else 20_000
 
