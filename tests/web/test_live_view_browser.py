@@ -113,9 +113,11 @@ def test_node_states_on_the_page_change_as_the_graph_runs(tmp_path: Path) -> Non
 @pytest.mark.slow
 def test_the_page_follows_the_mobile_manipulation_mission(tmp_path: Path) -> None:
     """The running demo of ``make run`` (simulators, Robot Manager) seen in the browser."""
+    import yaml
+
     from temoto import ActionEngine, ScaledClock
     from temoto.actions.builtin import ROBOT_ACTIONS
-    from temoto.config import load_profile
+    from temoto.config import parse_profile
     from temoto.core.registrar import Registrar
     from temoto.managers.robot import RobotManager
 
@@ -124,7 +126,9 @@ def test_the_page_follows_the_mobile_manipulation_mission(tmp_path: Path) -> Non
     mission = json.loads((root / "examples/missions/mobile_manipulation.graph.json").read_text())
     clock = ScaledClock(3)
     registrar = Registrar("live-view-mission")
-    profile = load_profile(root / "hw_profiles/sim_mobile_manipulator.yaml", clock=clock)
+    doc = yaml.safe_load((root / "hw_profiles/sim_mobile_manipulator.yaml").read_text())
+    doc["devices"]["base"]["heartbeat_period"] = 0.25  # 3 missed beats: 250 ms real at 3x
+    profile = parse_profile(doc, file="sim_mobile_manipulator.yaml", clock=clock)
     manager = RobotManager(registrar, profile, clock=clock)
     shot = tmp_path / "live-view-mission.png"
     try:
