@@ -689,7 +689,7 @@ def test_notify_fails_at_once_for_a_peer_known_to_be_silent(fleet: Fleet) -> Non
     t0 = time.monotonic()
     with pytest.raises(FleetError, match="actor 'B' was lost"):
         a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B"], WAIT_S)
-    assert time.monotonic() - t0 < 0.2
+    assert time.monotonic() - t0 < 2.0  # the message is the at-once path's; this bounds it
 
 
 def test_a_notification_waiting_for_a_peer_that_falls_silent_fails_after_silence_s(
