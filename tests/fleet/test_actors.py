@@ -11,6 +11,7 @@ from contextlib import ExitStack
 from typing import Any
 
 import pytest
+from _ris_helpers import Got  # the fleet tests' shared callback recorder
 
 from temoto.core.states import Result
 from temoto.errors import FleetError, StateError
@@ -80,35 +81,6 @@ def handshaking(
     link: FleetActorLink, actors: list[str], timeout: float = WAIT_S, session: str = "s1"
 ) -> Callable[[], None]:
     return lambda: link.handshake("g", session, actors, timeout)
-
-
-class Got:
-    """Records callback calls and waits for them (on a condition, no polling)."""
-
-    def __init__(self) -> None:
-        self.calls: list[tuple[Any, ...]] = []
-        self.threads: list[str] = []
-        self._cond = threading.Condition()
-
-    def __call__(self, *args: Any) -> None:
-        with self._cond:
-            self.calls.append(args)
-            self.threads.append(threading.current_thread().name)
-            self._cond.notify_all()
-
-    def wait_for(self, count: int, timeout: float = WAIT_S) -> list[tuple[Any, ...]]:
-        with self._cond:
-            ok = self._cond.wait_for(lambda: len(self.calls) >= count, timeout)
-            assert ok, f"got {len(self.calls)} of {count} calls: {self.calls}"
-            return list(self.calls)
-
-    def wait_until(
-        self, pred: Callable[[list[tuple[Any, ...]]], bool], timeout: float = WAIT_S
-    ) -> list[tuple[Any, ...]]:
-        with self._cond:
-            ok = self._cond.wait_for(lambda: pred(self.calls), timeout)
-            assert ok, f"condition not met by {len(self.calls)} calls: {self.calls}"
-            return list(self.calls)
 
 
 class Raw:
