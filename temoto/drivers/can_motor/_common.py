@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import math
 import re
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, Final
 
@@ -199,6 +199,48 @@ class Profile:
         if not isinstance(raw, list | tuple) or not raw:
             raise self.fail(key, f"must be a non-empty list, got {raw!r}")
         return [self.mapping(item, f"{key}[{i}]") for i, item in enumerate(raw)]
+
+    def members(
+        self,
+        cfg: Mapping[str, Any],
+        key: str,
+        keys: frozenset[str],
+        id_key: str,
+        id_range: tuple[int, int],
+        *,
+        id_word: str = "id",
+        reserved: Mapping[int, str] | None = None,
+    ) -> Iterator[tuple[str, Mapping[str, Any], int, str]]:
+        """The motors of a bus entry, each checked: known keys, a unique id, a unique joint.
+
+        Args:
+            cfg: The device entry.
+            key: The list's key (``nodes``, ``motors``).
+            keys: The keys a member may have.
+            id_key: The member's bus id key (``node_id``, ``motor_id``).
+            id_range: The lowest and highest id allowed.
+            id_word: How messages call the id (``node id``).
+            reserved: Ids taken by something else, with what takes them (``host_id``).
+
+        Yields:
+            ``(path, member, id, joint)`` for each member, in order.
+
+        Raises:
+            ProfileError: The first problem, naming its key path.
+        """
+        ids: dict[int, str] = dict(reserved or {})
+        joints: dict[str, str] = {}
+        for i, member in enumerate(self.items(cfg, key)):
+            path = f"{key}[{i}]"
+            self.known(member, keys, path)
+            bus_id = self.integer(member, id_key, path, *id_range)
+            if bus_id in ids:
+                raise self.fail(f"{path}.{id_key}", f"duplicate {id_word} {bus_id} ({ids[bus_id]})")
+            joint = self.name(member, "joint", path)
+            if joint in joints:
+                raise self.fail(f"{path}.joint", f"duplicate joint {joint!r} ({joints[joint]})")
+            ids[bus_id], joints[joint] = path, path
+            yield path, member, bus_id, joint
 
     def limits(self, cfg: Mapping[str, Any], path: str) -> JointLimits:
         """The joint-side limits of one node or motor.

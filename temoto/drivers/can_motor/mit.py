@@ -190,21 +190,10 @@ class MitMotorDriver(CanMotorDriver):
         link = p.link(cfg)
         host = p.integer(cfg, "host_id", "", 0, 0x7FF) if "host_id" in cfg else 0
         motors: list[MitMotor] = []
-        ids: dict[int, int] = {}
-        joints: dict[str, int] = {}
-        for i, raw in enumerate(p.items(cfg, "motors")):
-            path = f"motors[{i}]"
-            p.known(raw, _MOTOR_KEYS, path)
-            motor_id = p.integer(raw, "motor_id", path, 1, 0xFF)
-            if motor_id in ids or motor_id == host:
-                other = f"motors[{ids[motor_id]}]" if motor_id in ids else "host_id"
-                raise p.fail(f"{path}.motor_id", f"duplicate id {motor_id} ({other})")
-            joint = p.name(raw, "joint", path)
-            if joint in joints:
-                raise p.fail(
-                    f"{path}.joint", f"duplicate joint {joint!r} (motors[{joints[joint]}])"
-                )
-            ids[motor_id], joints[joint] = i, i
+        members = p.members(
+            cfg, "motors", _MOTOR_KEYS, "motor_id", (1, 0xFF), reserved={host: "host_id"}
+        )
+        for path, raw, motor_id, joint in members:
             model = raw.get("model", "AK80-9")
             if model not in mm.MODELS:
                 raise p.fail(

@@ -209,19 +209,10 @@ class ODriveDriver(CanMotorDriver):
         p.known(cfg, _KEYS, "")
         link = p.link(cfg)
         nodes: list[ODriveNode] = []
-        ids: dict[int, int] = {}
-        joints: dict[str, int] = {}
-        for i, node in enumerate(p.items(cfg, "nodes")):
-            path = f"nodes[{i}]"
-            p.known(node, _NODE_KEYS, path)
-            node_id = p.integer(node, "node_id", path, 0, cs.MAX_NODE_ID)
-            if node_id in ids:
-                first = ids[node_id]
-                raise p.fail(f"{path}.node_id", f"duplicate node id {node_id} (nodes[{first}])")
-            joint = p.name(node, "joint", path)
-            if joint in joints:
-                raise p.fail(f"{path}.joint", f"duplicate joint {joint!r} (nodes[{joints[joint]}])")
-            ids[node_id], joints[joint] = i, i
+        members = p.members(
+            cfg, "nodes", _NODE_KEYS, "node_id", (0, cs.MAX_NODE_ID), id_word="node id"
+        )
+        for path, node, node_id, joint in members:
             gear = p.number(node, "gear_ratio", path, 1.0)
             nodes.append(ODriveNode(node_id, joint, gear, p.limits(node, path)))
         hb = p.number(cfg, "heartbeat_period", "", 0.1)
