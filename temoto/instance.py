@@ -23,7 +23,7 @@ import logging
 from collections.abc import Iterable
 from pathlib import Path
 from types import TracebackType
-from typing import Self
+from typing import TYPE_CHECKING, Self
 
 from temoto.actions.builtin import COMPONENT_ACTIONS, CONTEXT_ACTIONS
 from temoto.clock import Clock
@@ -39,7 +39,9 @@ from temoto.managers.context import ContextManager
 from temoto.managers.process import ProcessManager
 from temoto.transport.auth import FleetAuth, FleetLink
 from temoto.transport.base import Transport
-from temoto.web import LiveView
+
+if TYPE_CHECKING:
+    from temoto.web import LiveView
 
 __all__ = ["Instance"]
 
@@ -135,6 +137,8 @@ class Instance:
             closing.append(self.engine)
             self.live_view: LiveView | None = None
             if live_view_port is not None:
+                from temoto.web import LiveView  # an HTTP server: imported only when asked for
+
                 self.live_view = LiveView(self.engine, port=live_view_port)
                 closing.append(self.live_view)
             self.control = GraphControlServer(
