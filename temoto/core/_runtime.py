@@ -30,7 +30,6 @@ if TYPE_CHECKING:
 __all__ = [
     "RESPONSES",
     "RESULT_CODES",
-    "Edge",
     "GraphRun",
     "Node",
     "NodeKind",
@@ -102,7 +101,6 @@ class Node:
 
     __slots__ = (
         "child_run",
-        "children",
         "cls",
         "control",
         "data",
@@ -140,8 +138,6 @@ class Node:
         self.state = NodeState.UNINITIALIZED
         self.idx = 0  # number in the run's evolution kernel (set by GraphRun.wire)
         self.parents: dict[str, ParentRelation] = {}
-        #: Outgoing edges, in the kernel's edge order.
-        self.children: list[Edge] = []
         self.data: dict[str, Any] = {}
         #: inputs holding a literal of the definition (a set of its own once there is one)
         self.native: set[str] | frozenset[str] = _NO_NAMES
@@ -238,25 +234,16 @@ class Node:
         return f"<Node {self.run.name}/{self.name} {self.state.value}>"
 
 
-class Edge:
-    """A parent -> child relation of a run, numbered as in the evolution kernel."""
-
-    __slots__ = ("child", "idx", "parent", "remap")
-
-    def __init__(self, idx: int, parent: Node, child: Node, remap: dict[str, str]) -> None:
-        self.idx = idx
-        self.parent = parent
-        self.child = child
-        self.remap = remap  # output name -> input name
-
-
 class GraphRun:
     """One execution of a plan."""
 
     __slots__ = (
         "active",
         "done",
-        "edges",
+        "edge_child",
+        "edge_parent",
+        "edge_remap",
+        "edge_start",
         "entry",
         "errors",
         "evolution",
@@ -269,7 +256,6 @@ class GraphRun:
         "peers",
         "plan",
         "result",
-        "slots",
         "started_at",
         "state",
         "stop_failed",
@@ -301,8 +287,13 @@ class GraphRun:
         self.exit.outputs = dict(signature.outputs)
         self.nodes: dict[str, Node] = {}
         self.order: list[Node] = []  # node by kernel number
-        self.edges: list[Edge] = []  # edge by kernel number
-        self.slots: list[tuple[str, str]] = []  # (child, parent) names by kernel slot number
+        # Edges by kernel number, as parallel lists (no object per edge: a big graph's objects
+        # are all scanned by the garbage collector once or twice after it is built).
+        # Node ``i``'s outgoing edges are ``edge_start[i]`` to ``edge_start[i + 1]``.
+        self.edge_start: list[int] = [0]
+        self.edge_parent: list[Node] = []
+        self.edge_child: list[Node] = []
+        self.edge_remap: list[dict[str, str]] = []  # output name -> input name
         self.evolution = Evolution(0, [0], [], [], [], [0], [])
         self.wire(plan)
 
@@ -320,6 +311,7 @@ class GraphRun:
         """
         self.plan = plan
         graph = plan.graph
+        received = self._received_by_slot()
         nodes: dict[str, Node] = {}
         for umrf in graph.actions:
             resolved = plan.actions[umrf.full_name]
@@ -343,34 +335,45 @@ class GraphRun:
             if node.name in entry_names:
                 node.parents[entry.name] = entry_parent
         exit_.parents = {rel.full_name: rel for rel in graph.exit}
-        self._number(graph)
+        self._number(graph, received)
 
-    def _number(self, graph: UmrfGraph) -> None:
+    def _received_by_slot(self) -> dict[tuple[str, str], int]:
+        """The kernel's received flag of every (child, parent) pair of the current wiring."""
+        if not self.order:
+            return {}
+        flags = self.evolution.received_flags()
+        keys = [(node.name, parent) for node in self.order for parent in node.parents]
+        return dict(zip(keys, flags, strict=True))
+
+    def _number(self, graph: UmrfGraph, received: dict[tuple[str, str], int]) -> None:
         """Number nodes, edges and slots, and build the evolution kernel for them.
 
         Received parents survive a re-wiring: a slot whose (child, parent) pair existed before
-        keeps its flag.
+        keeps its flag (``received``, read before the nodes took their new parents).
         """
-        old = dict(zip(self.slots, self.evolution.received_flags(), strict=True))
         order = [self.entry, *self.nodes.values(), self.exit]
         slot_start = [0]
-        slots: list[tuple[str, str]] = []
+        flags: list[int] = []
         slot_of: dict[tuple[str, str], int] = {}
         required: list[int] = []
         for i, node in enumerate(order):
             node.idx = i
+            name = node.name
             for parent, relation in node.parents.items():
-                slot_of[node.name, parent] = len(slots)
-                slots.append((node.name, parent))
+                slot_of[name, parent] = len(required)
                 required.append(1 if relation.required else 0)
-            slot_start.append(len(slots))
+                if received:
+                    flags.append(received.get((name, parent), 0))
+            slot_start.append(len(required))
         no_remap: dict[str, str] = {}
         exit_count: dict[str, int] = {}
         for rel in graph.exit:
             exit_count[rel.full_name] = exit_count.get(rel.full_name, 0) + 1
         nodes = self.nodes
         exit_ = self.exit
-        edges: list[Edge] = []
+        edge_parent: list[Node] = []
+        edge_child_node: list[Node] = []
+        edge_remap: list[dict[str, str]] = []
         edge_start = [0]
         edge_child: list[int] = []
         edge_slot: list[int] = []
@@ -387,13 +390,12 @@ class GraphRun:
                 ]
                 if node.name in exit_count:
                     targets += [(exit_, no_remap)] * exit_count[node.name]
-            children: list[Edge] = []
             name = node.name
             for child, remap in targets:
                 relation = child.parents[name]
-                edge = Edge(len(edges), node, child, remap)
-                edges.append(edge)
-                children.append(edge)
+                edge_parent.append(node)
+                edge_child_node.append(child)
+                edge_remap.append(remap)
                 edge_child.append(child.idx)
                 edge_slot.append(slot_of[child.name, name])
                 conditions = relation.conditions
@@ -403,11 +405,12 @@ class GraphRun:
                         edge_response.append(-1 if written is None else _RESPONSE_CODES[written])
                 else:
                     edge_response += _NO_CONDITIONS
-            node.children = children
-            edge_start.append(len(edges))
+            edge_start.append(len(edge_child))
         self.order = order
-        self.edges = edges
-        self.slots = slots
+        self.edge_start = edge_start
+        self.edge_parent = edge_parent
+        self.edge_child = edge_child_node
+        self.edge_remap = edge_remap
         self.evolution = Evolution(
             len(order),
             edge_start,
@@ -417,7 +420,7 @@ class GraphRun:
             slot_start,
             required,
             self.exit.idx,
-            [old.get(key, 0) for key in slots],
+            flags or [0] * len(required),
         )
 
     def dispose(self) -> None:
@@ -435,11 +438,27 @@ class GraphRun:
             Nothing.
         """
         for node in self.all_nodes():
-            node.children = []
             node.child_run = None
         self.nodes = {}
         self.order = []
-        self.edges = []
+        self.edge_start = [0]
+        self.edge_parent = []
+        self.edge_child = []
+        self.edge_remap = []
+
+    def children(self, node: Node) -> list[Node]:
+        """The children of ``node`` (one per relation, in the kernel's edge order).
+
+        Args:
+            node: A node of this run.
+
+        Returns:
+            The child nodes (``graph_exit`` included when the node is an exit action).
+
+        Raises:
+            Nothing.
+        """
+        return self.edge_child[self.edge_start[node.idx] : self.edge_start[node.idx + 1]]
 
     def received_any(self, node: Node) -> bool:
         """Whether any parent of ``node`` finished in this run.

@@ -31,6 +31,7 @@ import threading
 from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
+from types import MappingProxyType
 from typing import TYPE_CHECKING, Any, TypeVar
 
 from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value
@@ -356,6 +357,8 @@ _NO_INPUTS = Inputs({}, {})
 _NO_OUTPUTS = Outputs({})
 #: Shared by every action that holds no resource (never written: acquire makes its own dict).
 _NOTHING_HELD: dict[str, Any] = {}
+#: The parameter declarations of an unbound action: none.
+_NO_PARAMS: Mapping[str, Parameter] = MappingProxyType({})
 
 
 class Action(ABC):
@@ -366,20 +369,23 @@ class Action(ABC):
     ``__init__`` may be overridden (call ``super().__init__()``) but must not block.
     """
 
-    def __init__(self) -> None:
-        self._control: RunControl | None = None
-        self._log: deque[LogMessage] | None = None  # made by the first log() call
-        self._logger: logging.Logger | None = None
-        self._logger_name = "temoto.action"
-        self._name = type(self).__name__
-        self._graph = ""
-        self._inputs = _NO_INPUTS  # replaced by each run's own (_begin)
-        self._outputs = _NO_OUTPUTS
-        self._input_params: Mapping[str, Parameter] = {}
-        self._output_params: Mapping[str, Parameter] = {}
-        self._registrar: Registrar | None = None
-        self._client = ""
-        self._resources: dict[str, Resource[Any]] = _NOTHING_HELD  # own dict on first acquire
+    # Defaults live on the class: an instance stores only what the engine binds (see _bind),
+    # so creating one per node costs no __init__ call of ours.
+    _control: RunControl | None = None
+    _log: deque[LogMessage] | None = None  # made by the first log() call
+    _logger: logging.Logger | None = None
+    _name = "Action"  # the class name until bound (set per subclass)
+    _graph = ""
+    _inputs = _NO_INPUTS  # replaced by each run's own (_begin)
+    _outputs = _NO_OUTPUTS
+    _input_params: Mapping[str, Parameter] = _NO_PARAMS
+    _output_params: Mapping[str, Parameter] = _NO_PARAMS
+    _registrar: Registrar | None = None
+    _resources: dict[str, Resource[Any]] = _NOTHING_HELD  # own dict on first acquire
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        super().__init_subclass__(**kwargs)
+        cls._name = cls.__name__
 
     # ---- hooks: override these -------------------------------------------------------------
 
@@ -420,17 +426,20 @@ class Action(ABC):
         graph: str,
         inputs: Mapping[str, Parameter],
         outputs: Mapping[str, Parameter],
-        logger_name: str,
         registrar: Registrar | None = None,
     ) -> None:
         self._control = control
-        self._registrar = registrar
-        self._client = f"{graph}/{name}"
         self._name = name
         self._graph = graph
         self._input_params = inputs
         self._output_params = outputs
-        self._logger_name = logger_name
+        if registrar is not None:
+            self._registrar = registrar
+
+    @property
+    def _client(self) -> str:
+        """The client name this node's resources are requested under (``<graph>/<node>``)."""
+        return f"{self._graph}/{self._name}"
 
     def _begin(self, values: dict[str, Any]) -> None:
         """Engine: a run starts with these input values (the dict is handed over, not copied)."""
@@ -479,7 +488,8 @@ class Action(ABC):
     def logger(self) -> logging.Logger:
         """This node's logger (``temoto.action.<graph>.<node>``), made on first use."""
         if self._logger is None:
-            self._logger = logging.getLogger(self._logger_name)
+            name = f"temoto.action.{self._graph}.{self._name}" if self._graph else "temoto.action"
+            self._logger = logging.getLogger(name)
         return self._logger
 
     @property

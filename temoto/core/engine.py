@@ -28,7 +28,7 @@ from pathlib import Path
 from typing import Any
 
 from temoto.clock import Clock, MonotonicClock
-from temoto.core._gc import collect_young, collector_paused
+from temoto.core._gc import collector_paused
 from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import GraphRun, Node, NodeKind, Plan
 from temoto.core.action import NO_VALUES, RunControl
@@ -158,6 +158,9 @@ class ActionEngine:
         self.stop_timeout = stop_timeout
         self.registrar = registrar
         self._instruments = list(instruments)
+        # the instruments that observe node transitions (two per action run: kept apart so an
+        # instrument that only watches graph starts and ends costs nothing per action)
+        self._watchers = [i for i in self._instruments if _watches_transitions(i)]
         self._lock = threading.Lock()
         self._quiet = threading.Condition(self._lock)
         self._quiet_waiters = 0
@@ -226,22 +229,23 @@ class ActionEngine:
             self.link.handshake(
                 plan.graph.name, run_name, sorted({self.actor, *peers}), self.handshake_timeout
             )
-        with collector_paused(), self._lock:
-            if self._closed:
-                raise StateError("the engine is shut down")
-            old = self._runs.get(run_name)
-            if old is not None and old.state in _BUSY_GRAPH:
-                raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
-            run = GraphRun(run_name, plan)
-            run.peers = peers
-            self._runs[run_name] = run
-            if old is not None and not old.active:
-                old.dispose()  # its memory comes back now, not at a later full collection
-            self._start_run(run, values, result, fx)
+        with collector_paused() as pause:
+            with self._lock:
+                if self._closed:
+                    raise StateError("the engine is shut down")
+                old = self._runs.get(run_name)
+                if old is not None and old.state in _BUSY_GRAPH:
+                    raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
+                run = GraphRun(run_name, plan)
+                run.peers = peers
+                self._runs[run_name] = run
+                if old is not None and not old.active:
+                    old.dispose()  # its memory comes back now, not at a later full collection
+                self._start_run(run, values, result, fx)
+            if len(run.nodes) >= YOUNG_COLLECT_AT_START:
+                pause.collect_young()  # outside the lock; before the first action
         if peers:
             self._watch_peers(run)
-        if len(run.nodes) >= YOUNG_COLLECT_AT_START:
-            collect_young()
         self._dispatch(fx)
         return run_name
 
@@ -523,6 +527,8 @@ class ActionEngine:
         """
         with self._lock:
             self._instruments.append(instrument)
+            if _watches_transitions(instrument):
+                self._watchers.append(instrument)
 
     def shutdown(self, timeout: float = 10.0) -> None:
         """Stop every graph, then join the engine's threads. Idempotent.
@@ -696,7 +702,6 @@ class ActionEngine:
             graph=node.run.name,
             inputs=node.inputs,
             outputs=node.outputs,
-            logger_name=f"temoto.action.{node.run.name}.{node.name}",
             registrar=self.registrar,
         )
         instance.on_init()
@@ -767,8 +772,7 @@ class ActionEngine:
         todo = [start]
         while todo:
             node = todo.pop()
-            for edge in node.children:
-                child = edge.child
+            for child in node.run.children(node):
                 if child.kind is NodeKind.EXIT or child.name in seen:
                     continue
                 seen.add(child.name)
@@ -910,9 +914,9 @@ class ActionEngine:
                     self._quiet.notify_all()
                 if node.run.state in _ENDED_GRAPH:
                     self._release_node(node)
-        if self._instruments:
+        if self._watchers:
             t = self.clock.monotonic()
-            for inst in list(self._instruments):
+            for inst in list(self._watchers):
                 try:
                     inst.node_transition(node.run.name, node.name, old, new, t)
                 except Exception:
@@ -924,6 +928,8 @@ class ActionEngine:
         logger.exception("instrument %r raised; removing it", inst)
         if inst in self._instruments:
             self._instruments.remove(inst)
+        if inst in self._watchers:
+            self._watchers.remove(inst)
 
     def _notify(self, hook: str, *args: Any) -> None:
         for inst in list(self._instruments):
@@ -936,7 +942,13 @@ class ActionEngine:
         self, run: GraphRun, values: dict[str, Any], result: Result, fx: list[Effect]
     ) -> None:
         run.state = GraphState.RUNNING
-        run.started_at = self.clock.monotonic()
+        # every local node's control is made now, with the graph's other long-lived objects,
+        # not one by one on the action path (a node added by `modify` gets its own at its run)
+        clock = self.clock
+        for node in run.nodes.values():
+            if node.control is None and node.kind is NodeKind.LOCAL:
+                node.control = RunControl(clock)
+        run.started_at = clock.monotonic()
         if self._instruments:
             self._notify("graph_started", run.name, run.started_at)
         entry = run.entry
@@ -994,10 +1006,10 @@ class ActionEngine:
         this carries out its steps: parameter transfer, input readiness, state changes.
         """
         run = node.run
-        edges = run.edges
+        edge_child = run.edge_child
         for step in run.evolution.propagate(node.idx, _RESULT_CODES[result]):
-            edge = edges[step >> _SHIFT]
-            child = edge.child
+            edge = step >> _SHIFT
+            child = edge_child[edge]
             code = (step >> 1) & 7
             if code == _P_IGNORE:
                 continue
@@ -1013,8 +1025,8 @@ class ActionEngine:
                     "%s: bypass loops back to %s; stopping it there", run.name, child.name
                 )
                 continue
-            if outputs and edge.parent is node:
-                _transfer(node, child, edge.remap, outputs)
+            if outputs and run.edge_parent[edge] is node:
+                _transfer(node, child, run.edge_remap[edge], outputs)
             if not step & 1 or not child.inputs_ready():
                 continue
             if child.kind is NodeKind.EXIT:
@@ -1323,6 +1335,12 @@ def _transfer(
         child.data[target] = value
         if target in child.native:
             child.native.discard(target)  # type: ignore[union-attr]  # non-empty: a set
+
+
+def _watches_transitions(instrument: Instrument) -> bool:
+    """Whether an instrument overrides :meth:`Instrument.node_transition`."""
+    base = Instrument.node_transition
+    return getattr(type(instrument), "node_transition", base) is not base
 
 
 def _ready(node: Node) -> bool:

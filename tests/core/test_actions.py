@@ -42,7 +42,6 @@ def bound(
         graph="g",
         inputs=inputs or {},
         outputs=outputs or {},
-        logger_name="test.probe",
     )
     return action, control
 
