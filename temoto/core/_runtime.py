@@ -215,7 +215,10 @@ class Node:
         if self.kind is NodeKind.EXIT:
             return True
         data = self.data
-        return all(name in data for name in self.required_inputs)
+        for name in self.required_inputs:  # a loop, not all(<generator>): this is per action
+            if name not in data:
+                return False
+        return True
 
     def clear_data(self) -> None:
         """Drop received (non-literal) data after a run; literals persist.

@@ -629,6 +629,9 @@ class ActionEngine:
         """Worker: run an action, evolve, then continue with the first newly ready action."""
         while True:
             fx = self._run_action(node, gen)
+            if len(fx) == 1 and fx[0][0] == _RUN and not self._releases:  # a chain's next action
+                node, gen = fx[0][1], fx[0][2]
+                continue
             nxt = None
             for i, effect in enumerate(fx):
                 if effect[0] == _RUN:
@@ -977,7 +980,8 @@ class ActionEngine:
         if node.stop_timer is not None:
             node.stop_timer.cancel()
             node.stop_timer = None
-        node.clear_data()
+        if len(node.data) != len(node.native):
+            node.clear_data()
         node.last_outputs = outputs
         if node.restart:
             node.restart = False
@@ -995,7 +999,8 @@ class ActionEngine:
         self._set_state(node, _S.ERROR if result is Result.ERROR else _S.FINISHED)
         if run.state is GraphState.RUNNING:
             self._propagate(node, result, outputs, fx)
-        self._after_change(run, fx)
+        if not run.active:
+            self._after_change(run, fx)
 
     def _propagate(
         self, node: Node, result: Result, outputs: Mapping[str, Any], fx: list[Effect]
@@ -1255,7 +1260,8 @@ class ActionEngine:
         self._end_run(run, GraphState.FINISHED, result, fx)
         # Actions still running are no longer needed: stop them (their results are ignored).
         for node in list(run.nodes.values()):
-            self._stop_node(node, fx)
+            if node.state in _ACTIVE:
+                self._stop_node(node, fx)
 
     def _release_node(self, node: Node) -> None:
         """Release the resources a node's action holds (it is idle and its run has ended)."""
@@ -1269,7 +1275,7 @@ class ActionEngine:
         if run.peers:
             fx.append((_CALL, self._end_shared, run))
         for node in run.nodes.values():
-            if not node.active:
+            if node.state not in _ACTIVE and node.instance is not None:
                 self._release_node(node)
         if self._instruments:
             self._notify("graph_finished", run.name, result, self.clock.monotonic())
