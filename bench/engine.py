@@ -155,7 +155,7 @@ class StartStamp(Stamps):
     as it does without observers (an instrument that does not override ``node_transition``
     costs nothing per action)."""
 
-    node_transition = Instrument.node_transition  # type: ignore[assignment]
+    node_transition = Instrument.node_transition
 
 
 class FirstRunning(Instrument):
