@@ -66,7 +66,12 @@ def test_required_extensions_turn_the_fallback_into_an_import_error() -> None:
 
 @pytest.mark.skipif(shutil.which("gcc") is None, reason="needs the toolchain to break it")
 def test_a_build_without_a_c_compiler_succeeds_and_runs_pure(tmp_path: Path) -> None:
-    pytest.importorskip("Cython")
+    try:
+        import Cython  # noqa: F401  # the dev extra has it
+    except ImportError:
+        if os.environ.get("CI"):
+            raise  # `make test` installs the dev extra: under CI this test must run
+        pytest.skip("Cython is not installed (pip install -e '.[dev]')")
     tree = tmp_path / "src"
     tree.mkdir()
     shutil.copy(REPO / "setup.py", tree / "setup.py")
