@@ -31,6 +31,7 @@ from pathlib import Path
 from typing import IO, Any
 
 from temoto import __version__
+from temoto._cli_drivers import add_drivers, drivers_command
 from temoto._cli_fleet import (
     add_fleet_options,
     add_graph_commands,
@@ -182,6 +183,8 @@ def _parser() -> argparse.ArgumentParser:
 
     act = sub.add_parser("actions", help="list known actions")
     paths(act)
+
+    add_drivers(sub)
     return top
 
 
@@ -219,6 +222,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return watch(args)
         if args.command == "graph":
             return graph_command(args)
+        if args.command == "drivers":
+            return drivers_command(args)
         return _actions(args)
     except (ConfigError, PluginError) as err:
         _error(err)

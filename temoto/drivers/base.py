@@ -24,7 +24,7 @@ import logging
 import threading
 import warnings
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from types import TracebackType
 from typing import Any, ClassVar, Final, Self
@@ -282,6 +282,38 @@ class Driver(ABC):
             back = self._before_fault
         logger.info("driver %s: recovered: %s", self.name, message)
         self._set(back, message)
+
+    # ---- discovery -------------------------------------------------------------------------
+
+    @classmethod
+    def detect(
+        cls, links: Sequence[Any] | None = None, *, timeout: float = 1.0
+    ) -> list[dict[str, Any]]:
+        """The devices this driver can reach, as profile device entries (STYLE §3.7).
+
+        Looking must not move anything: a driver only listens, or asks questions the device
+        answers without acting (a ping, a heartbeat). Each entry has ``driver`` and the keys
+        :meth:`from_profile` needs, with placeholder joint names (``joint_<id>``) to rename, so
+        it can be pasted into a profile as it is (``temoto drivers detect`` prints them).
+
+        Args:
+            links: Where to look, each in the form of the profile's ``link`` value (a URL
+                string, or a python-can ``{interface, channel}`` mapping for CAN). None: the
+                driver's own candidates (for example every serial port).
+            timeout: Seconds to listen or wait for answers on each link (and baud rate).
+
+        Returns:
+            One entry per link where devices answered, in the order looked at.
+
+        Raises:
+            ValueError: ``timeout`` is not positive, or a link is not in the driver's form.
+
+        The default finds nothing: a driver whose devices cannot be found without commanding
+        them (MIT-mode CAN motors move on every frame) keeps it.
+        """
+        if not timeout > 0:
+            raise ValueError(f"timeout must be positive, got {timeout!r}")
+        return []
 
     # ---- hooks -----------------------------------------------------------------------------
 

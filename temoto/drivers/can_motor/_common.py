@@ -74,6 +74,22 @@ class Profile:
             where = f"{path}.{unknown[0]}" if path else unknown[0]
             raise self.fail(where, f"unknown key (known: {', '.join(sorted(keys))})")
 
+    def driver(self, cfg: Mapping[str, Any], kind: str) -> None:
+        """Check the entry's optional ``driver`` key: it may only name this driver.
+
+        A profile's loader takes ``driver`` out before the driver reads the entry; an entry
+        from :meth:`~temoto.drivers.base.Driver.detect` still has it.
+
+        Args:
+            cfg: The entry.
+            kind: The driver's name.
+
+        Raises:
+            ProfileError: ``driver`` names another driver.
+        """
+        if cfg.get("driver", kind) != kind:
+            raise self.fail("driver", f"must be {kind!r} for this driver, got {cfg['driver']!r}")
+
     def number(
         self,
         cfg: Mapping[str, Any],

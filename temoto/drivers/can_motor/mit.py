@@ -44,7 +44,7 @@ from temoto.errors import (
 __all__ = ["MitMotor", "MitMotorDriver"]
 
 _KEYS: Final = frozenset(
-    {"link", "motors", "poll_rate", "timeout_periods", "host_id", "init_timeout"}
+    {"driver", "link", "motors", "poll_rate", "timeout_periods", "host_id", "init_timeout"}
 )
 _MOTOR_KEYS: Final = frozenset(
     {
@@ -174,7 +174,7 @@ class MitMotorDriver(CanMotorDriver):
 
         Args:
             name: The device's name.
-            config: The entry without ``driver``.
+            config: The entry (``driver``, when present, must name this driver).
             clock: The robot's clock.
             where: The entry's key path, for messages.
 
@@ -187,6 +187,7 @@ class MitMotorDriver(CanMotorDriver):
         p = Profile(where)
         cfg = p.mapping(config, "")
         p.known(cfg, _KEYS, "")
+        p.driver(cfg, cls.kind)
         link = p.link(cfg)
         host = p.integer(cfg, "host_id", "", 0, 0x7FF) if "host_id" in cfg else 0
         motors: list[MitMotor] = []
@@ -235,7 +236,7 @@ class MitMotorDriver(CanMotorDriver):
 
         Args:
             name: The device's name.
-            config: The entry without ``driver``.
+            config: The entry (``driver``, when present, must name this driver).
             clock: The clock the simulator steps on.
 
         Returns:

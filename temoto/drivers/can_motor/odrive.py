@@ -14,6 +14,9 @@ Faults: a node silent for 3 heartbeat periods is a :class:`~temoto.errors.Driver
 ``Clear_Errors``); a malformed frame (wrong length) is a
 :class:`~temoto.errors.DriverOperationError` until the node's next good heartbeat.
 
+Discovery: :meth:`ODriveDriver.detect` only listens for the nodes' cyclic heartbeats and
+sends nothing, so looking at a bus never moves an axis.
+
 Units: the ODrive speaks motor turns; joints are radians on the output side of
 ``gear_ratio`` (motor turns per joint turn): ``joint_rad = motor_rev * 2π / gear_ratio``,
 ``joint_Nm = motor_Nm * gear_ratio``.
@@ -21,7 +24,9 @@ Units: the ODrive speaks motor turns; joints are radians on the output side of
 
 from __future__ import annotations
 
+import logging
 import math
+import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final, Self
@@ -31,7 +36,7 @@ import can
 from temoto.clock import Clock
 from temoto.drivers.base import DriverState
 from temoto.drivers.can_motor import cansimple as cs
-from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits
+from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits, open_bus
 from temoto.drivers.can_motor._driver import CanMotorDriver
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.sim import Simulator
@@ -41,13 +46,24 @@ from temoto.errors import (
     DriverOperationError,
     DriverTimeoutError,
     MotorFaultError,
+    ProfileError,
 )
 
 __all__ = ["ODriveDriver", "ODriveNode"]
 
+logger = logging.getLogger(__name__)
+
 TAU: Final = 2.0 * math.pi
 _KEYS: Final = frozenset(
-    {"link", "nodes", "heartbeat_period", "encoder_period", "init_timeout", "timeout_periods"}
+    {
+        "driver",
+        "link",
+        "nodes",
+        "heartbeat_period",
+        "encoder_period",
+        "init_timeout",
+        "timeout_periods",
+    }
 )
 _NODE_KEYS: Final = frozenset(
     {
@@ -194,7 +210,7 @@ class ODriveDriver(CanMotorDriver):
 
         Args:
             name: The device's name.
-            config: The entry without ``driver``.
+            config: The entry (``driver``, when present, must name this driver).
             clock: The robot's clock.
             where: The entry's key path, for messages.
 
@@ -207,6 +223,7 @@ class ODriveDriver(CanMotorDriver):
         p = Profile(where)
         cfg = p.mapping(config, "")
         p.known(cfg, _KEYS, "")
+        p.driver(cfg, cls.kind)
         link = p.link(cfg)
         nodes: list[ODriveNode] = []
         members = p.members(
@@ -259,6 +276,59 @@ class ODriveDriver(CanMotorDriver):
             encoder_period=float(encoder),
         )
         return sim, dict(config)
+
+    # ---- discovery -------------------------------------------------------------------------
+
+    @classmethod
+    def detect(
+        cls, links: Sequence[Any] | None = None, *, timeout: float = 1.0
+    ) -> list[dict[str, Any]]:
+        """The ODrive axes heartbeating on CAN buses, as profile device entries.
+
+        Listens only: each link's bus is opened, read for ``timeout`` real seconds and closed
+        again, and no frame is sent (no RTR request either), so nothing moves. A node is an
+        ODrive axis when a well-formed CANSimple ``Heartbeat`` (command 0x01, 8 data bytes,
+        standard id) arrives from it; the newest heartbeat's axis state and error bits are
+        logged at INFO. Only the ODrives' cyclic heartbeats are seen: an axis whose
+        ``heartbeat_msg_rate_ms`` is 0, or slower than ``timeout``, may be missed.
+
+        Each entry is ``{driver: odrive_can, link: {...}, nodes: [{node_id: <id>, joint:
+        joint_<id>}, ...]}`` (node ids sorted); everything else takes :meth:`from_profile`'s
+        defaults (among them ``heartbeat_period: 0.1``: set it if the ODrives send slower).
+
+        Args:
+            links: python-can ``Bus`` mappings, each in the form of the profile's ``link``
+                (``{interface: socketcan, channel: can0}`` plus optional ``Bus`` arguments
+                such as ``bitrate``). None: every configuration
+                :func:`can.detect_available_configs` reports (it may report none).
+            timeout: Real seconds to listen on each link, one link after the other.
+
+        Returns:
+            One entry per link on which at least one node sent a heartbeat, in link order.
+            A link whose bus cannot be opened is skipped with a logged warning.
+
+        Raises:
+            ValueError: ``timeout`` is not a positive finite number, ``links`` is not a
+                sequence, or a link is not a mapping with ``interface`` and ``channel`` (named
+                by its index).
+        """
+        if not timeout > 0 or not math.isfinite(timeout):
+            raise ValueError(f"timeout must be a positive finite number, got {timeout!r}")
+        if links is None:
+            candidates = _available_links()
+        elif isinstance(links, str | bytes | Mapping) or not isinstance(links, Sequence):
+            raise ValueError(
+                f"{cls.kind} detect: links must be a sequence of link mappings, got {links!r}"
+            )
+        else:
+            candidates = [_link(i, link) for i, link in enumerate(links)]
+        entries: list[dict[str, Any]] = []
+        for link in candidates:
+            seen = _listen(link, timeout)
+            if seen:
+                nodes = [{"node_id": n, "joint": f"joint_{n}"} for n in sorted(seen)]
+                entries.append({"driver": cls.kind, "link": dict(link), "nodes": nodes})
+        return entries
 
     # ---- lifecycle -------------------------------------------------------------------------
 
@@ -475,6 +545,84 @@ class ODriveDriver(CanMotorDriver):
             if axis.bad is not None:
                 return DriverOperationError(f"{self.name}: {axis.bad}")
         return None
+
+
+def _link(index: int, link: object) -> dict[str, Any]:
+    """A link to look at, checked as :meth:`ODriveDriver.from_profile` checks ``link``."""
+    try:
+        return Profile(f"links[{index}]").link({"link": link})
+    except ProfileError as err:
+        raise ValueError(
+            f"{ODriveDriver.kind} detect: links[{index}] is not a python-can bus mapping with"
+            f" interface and channel (e.g. {{interface: socketcan, channel: can0}}): {link!r}"
+        ) from err
+
+
+def _available_links() -> list[dict[str, Any]]:
+    """What python-can can open here (a configuration not in profile form is skipped)."""
+    links: list[dict[str, Any]] = []
+    for index, config in enumerate(can.detect_available_configs()):
+        try:
+            links.append(_link(index, config))
+        except ValueError as err:
+            logger.debug("%s", err)
+    return links
+
+
+def _heartbeat(msg: can.Message) -> tuple[int, cs.Heartbeat] | None:
+    """``(node id, heartbeat)`` of a CANSimple heartbeat frame, None for any other frame."""
+    if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+        return None  # a remote Heartbeat is some host's request, not a node's beat
+    if msg.arbitration_id > 0x7FF:
+        return None
+    node, cmd = cs.split_id(msg.arbitration_id)
+    if cmd != cs.Cmd.HEARTBEAT:
+        return None
+    try:
+        return node, cs.decode_heartbeat(msg.data)
+    except ValueError:
+        return None  # wrong length: not a (well-formed) ODrive heartbeat
+
+
+def _listen(link: dict[str, Any], timeout: float) -> dict[int, cs.Heartbeat]:
+    """The newest heartbeat of each node heard on ``link`` within ``timeout`` real seconds."""
+    what = f"{ODriveDriver.kind} detect"
+    try:
+        bus = open_bus(link, what)
+    except DriverError as err:
+        logger.warning("%s: skipping %s: %s", what, link, err)
+        return {}
+    seen: dict[int, cs.Heartbeat] = {}
+    try:
+        deadline = time.monotonic() + timeout
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                msg = bus.recv(timeout=left)
+            except (can.CanError, OSError) as err:
+                logger.warning("%s: receiving on %s failed, stopped listening: %s", what, link, err)
+                break
+            found = _heartbeat(msg) if msg is not None else None
+            if found is not None:
+                seen[found[0]] = found[1]
+    finally:
+        bus.shutdown()
+    for node in sorted(seen):
+        beat = seen[node]
+        try:
+            state = cs.AxisState(beat.axis_state).name
+        except ValueError:
+            state = str(beat.axis_state)
+        errors = " | ".join(cs.error_names(beat.axis_error)) or "none"
+        logger.info(
+            "%s: node %d on %s: axis state %s, axis errors %s, procedure result %d",
+            what,
+            node,
+            link,
+            state,
+            errors,
+            beat.procedure_result,
+        )
+    return seen
 
 
 def _motor_fault(name: str, axis: _Axis) -> MotorFaultError:

@@ -6,13 +6,19 @@ its ``PacketHandler`` (Protocol 2.0) builds, sends and parses packets; ``GroupSy
 ``GroupSyncWrite`` pack one instruction for a whole chain. The SDK reports failures as result
 codes; pyserial raises ``SerialException`` (an ``OSError``) when the port breaks. Both come out
 of this module as a result code, so the driver has one place to turn them into typed errors.
+
+The SDK measures its timeouts with ``time.time``; here each port reads ``time.monotonic``
+instead, so a wall-clock step cannot cut a wait short or stretch it. pyserial's port list (for
+discovery) is read here too.
 """
 
 from __future__ import annotations
 
+import time
 from typing import Any, Final, cast
 
 import dynamixel_sdk as _dxl  # type: ignore[import-untyped]  # no type hints: wrapped here
+from serial.tools import list_ports as _list_ports  # type: ignore[import-untyped]  # pyserial
 
 __all__ = [
     "COMM_RX_CORRUPT",
@@ -22,6 +28,7 @@ __all__ = [
     "SdkPort",
     "SyncReader",
     "SyncWriter",
+    "serial_ports",
 ]
 
 COMM_SUCCESS: Final[int] = cast("int", _dxl.COMM_SUCCESS)
@@ -47,6 +54,7 @@ class SdkPort:
         self.reply_timeout = reply_timeout
         self._port: Any = _dxl.PortHandler(path)
         self._port.setPacketTimeout = self._set_packet_timeout  # the SDK's, with our margin
+        self._port.getCurrentTime = _monotonic_ms  # the SDK's clock, never stepped
         self._ph: Any = _dxl.PacketHandler(2.0)
 
     def _set_packet_timeout(self, packet_length: int) -> None:
@@ -95,6 +103,39 @@ class SdkPort:
             return 0, COMM_TX_FAIL, 0
         return int(out[0]), int(out[1]), int(out[2])
 
+    def broadcast_ping(self, wait: float) -> tuple[dict[int, tuple[int, int]], int]:
+        """PING to the broadcast id: every servo on the bus answers, in ascending id order.
+
+        The SDK collects status packets until its packet timeout, which it sets to the time
+        all 252 ids would take (0.8 s at 1 Mbaud, 4.4 s at 9600 baud); here it listens for
+        ``wait`` real seconds instead.
+
+        Args:
+            wait: Real seconds to collect status packets after the instruction went out.
+
+        Returns:
+            ({id: (model number, firmware version)} of every valid status packet, result):
+            COMM_RX_TIMEOUT when nothing answered, COMM_RX_CORRUPT when some bytes were not
+            a valid status packet (the valid ones are still there).
+        """
+        port = self._port
+
+        def listen(_msec: float) -> None:
+            port.packet_start_time = port.getCurrentTime()
+            port.packet_timeout = wait * 1000.0
+
+        port.setPacketTimeoutMillis = listen  # the only timeout broadcastPing sets
+        try:
+            out = self._guard(self._ph.broadcastPing, port)
+        finally:
+            del port.setPacketTimeoutMillis  # the SDK's own again
+        if out is None:
+            return {}, COMM_TX_FAIL
+        found: dict[int, tuple[int, int]] = {
+            int(dxl_id): (int(info[0]), int(info[1])) for dxl_id, info in out[0].items()
+        }
+        return found, int(out[1])
+
     def read(self, dxl_id: int, address: int, size: int) -> tuple[int, int, int]:
         """READ one register of 1, 2 or 4 bytes: (unsigned value, result, error byte)."""
         call = {
@@ -133,6 +174,20 @@ class SdkPort:
     def sync_writer(self, address: int, length: int) -> SyncWriter:
         """A GroupSyncWrite of ``length`` bytes at ``address``."""
         return SyncWriter(self, address, length)
+
+
+def serial_ports() -> list[str]:
+    """The serial devices pyserial lists (``/dev/ttyUSB0`` ...), sorted.
+
+    Returns:
+        Their paths.
+    """
+    return sorted(str(port.device) for port in _list_ports.comports())
+
+
+def _monotonic_ms() -> float:
+    """``time.monotonic`` in milliseconds (the unit of the SDK's ``getCurrentTime``)."""
+    return time.monotonic() * 1000.0
 
 
 class SyncReader:

@@ -14,6 +14,9 @@ Lifecycle (STYLE §3.5):
   ``INACTIVE``; ``activate`` re-enables torque;
 * ``shutdown`` stops polling, turns torque off (best effort) and closes the port.
 
+:meth:`DynamixelDriver.detect` finds chains without a profile: it only sends a broadcast PING
+(which no servo acts on) and lists the servos that answer as a profile entry.
+
 The poll thread (``temoto-dxl-<name>``) SyncReads present current, velocity and position of
 the chain every ``1 / poll_rate`` seconds of the driver's clock, and every ``status_every``
 polls also Present Input Voltage, Present Temperature and Hardware Error Status. A poll that
@@ -67,6 +70,7 @@ from temoto.errors import (
 
 __all__ = [
     "BAUD_RATES",
+    "DETECT_BAUD_RATES",
     "MODES",
     "SIM_REPLY_TIMEOUT",
     "DynamixelDriver",
@@ -78,6 +82,12 @@ logger = logging.getLogger(__name__)
 
 #: Baud rates both the X series and dynamixel-sdk's port handler support.
 BAUD_RATES: Final = frozenset({9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000})
+#: The baud rates :meth:`DynamixelDriver.detect` tries on a link without ``?baud=``, most
+#: common first: the X series' factory setting, then the usual setting of an arm.
+DETECT_BAUD_RATES: Final = (57600, 1_000_000, 115200, 2_000_000, 3_000_000, 4_000_000, 9600)
+#: The joint limits (rad) in detect's entries: the single turn of position mode (ticks 0 to
+#: 4095, about ±π), rounded inward; ±π itself ends one tick beyond it.
+_DETECT_LIMIT: Final = 3.14
 #: The ``reply_timeout`` :meth:`DynamixelDriver.simulate` gives a driver on a simulated chain.
 SIM_REPLY_TIMEOUT: Final = 0.1
 #: Profile ``mode`` values → Operating Mode.
@@ -407,6 +417,57 @@ class DynamixelDriver(Driver):
         out["link"] = f"serial:{sim.path}"
         out.setdefault("reply_timeout", SIM_REPLY_TIMEOUT)
         return sim, out
+
+    @classmethod
+    def detect(
+        cls, links: Sequence[Any] | None = None, *, timeout: float = 1.0
+    ) -> list[dict[str, Any]]:
+        """The chains of servos that answer a broadcast PING, as profile device entries.
+
+        Each link's port is opened as :meth:`configure` opens it (dynamixel-sdk's
+        ``PortHandler``), one Protocol 2.0 PING goes to the broadcast id, and the status
+        packets that come back within ``timeout`` real seconds are the servos found. PING is
+        the only instruction sent: nothing is written, no torque is enabled, nothing moves. A
+        link without ``?baud=`` is tried at each of :data:`DETECT_BAUD_RATES` in turn (57600,
+        1000000, 115200, 2000000, 3000000, 4000000, 9600), stopping at the first rate at which
+        servos answer. A servo whose model number the driver does not know is left out with a
+        warning naming its id and number; a port that cannot be opened is skipped with a
+        warning.
+
+        Args:
+            links: Link URLs as in a profile's ``link`` (``serial:/dev/ttyUSB0?baud=1000000``,
+                ``serial:/dev/ttyUSB0``, or a bare absolute path); a single string is one link.
+                None: every serial port pyserial lists.
+            timeout: Real seconds to wait for status packets on each link at each baud rate
+                tried (so up to seven times this for a link without a baud rate).
+
+        Returns:
+            One entry per link where known servos answered, in the order given:
+            ``{"driver": "dynamixel", "link": "serial:<device>?baud=<rate that answered>",
+            "servos": [{"id": i, "joint": "joint_<i>", "model": <name>, "mode": "position",
+            "min_position": -3.14, "max_position": 3.14}, ...]}`` with the servos in id order
+            (the limits are the servo's whole single turn: narrow them to the joint's).
+            :meth:`from_profile` accepts each as it is. Empty when nothing answered.
+
+        Raises:
+            ValueError: ``timeout`` is not a positive finite number of seconds, or a link is not
+                a serial link (raised before any port is opened; the message names the link).
+        """
+        if not (_number(timeout) and timeout > 0 and math.isfinite(timeout)):
+            raise ValueError(f"timeout must be positive, got {timeout!r}")
+        if links is None:
+            urls: list[Any] = [f"serial:{path}" for path in _sdk.serial_ports()]
+        elif isinstance(links, str):
+            urls = [links]
+        else:
+            urls = list(links)
+        plans = [_detect_plan(url) for url in urls]  # every link checked before any is opened
+        entries: list[dict[str, Any]] = []
+        for path, bauds in plans:
+            entry = _detect_chain(path, bauds, timeout)
+            if entry is not None:
+                entries.append(entry)
+        return entries
 
     # ---- capability -------------------------------------------------------------------------
 
@@ -833,6 +894,93 @@ class DynamixelDriver(Driver):
 
 _VELOCITY_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Velocity Limit")
 _CURRENT_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Current Limit")
+
+
+# ---- detection ----------------------------------------------------------------------------------
+
+
+def _detect_plan(link: Any) -> tuple[str, tuple[int, ...]]:
+    """The serial device of a link to look at, and the baud rates to try there.
+
+    Raises:
+        ValueError: Not a serial link (the message names it).
+    """
+    try:
+        path, baud = _parse_link(link, f"link {link!r}")
+    except ProfileError as err:
+        raise ValueError(str(err)) from None
+    return path, DETECT_BAUD_RATES if baud is None else (baud,)
+
+
+def _detect_chain(path: str, bauds: Sequence[int], timeout: float) -> dict[str, Any] | None:
+    """Broadcast-PING ``path`` at each baud rate until servos answer; their entry, or None."""
+    for baud in bauds:
+        port = _sdk.SdkPort(path, baud)
+        try:
+            port.open()
+        except OSError as err:
+            logger.warning("dynamixel detect: skipping %s: cannot open it: %s", path, err)
+            return None  # at another baud rate neither
+        except ValueError as err:
+            logger.warning("dynamixel detect: %s: %s", path, err)
+            continue
+        try:
+            found, result = port.broadcast_ping(timeout)
+        finally:
+            port.close()
+        if found:
+            return _detected(path, baud, found)
+        logger.debug(
+            "dynamixel detect: %s at %d baud: no servo answered: %s",
+            path,
+            baud,
+            port.result_text(result),
+        )
+    return None
+
+
+def _detected(path: str, baud: int, found: Mapping[int, tuple[int, int]]) -> dict[str, Any] | None:
+    """The profile entry of the servos that answered (None if none is a known model)."""
+    servos: list[dict[str, Any]] = []
+    for dxl_id, (number, firmware) in sorted(found.items()):
+        if not 0 <= dxl_id <= p.MAX_ID:
+            logger.warning(
+                "dynamixel detect: %s: a status packet from id %d: left out", path, dxl_id
+            )
+            continue
+        model = ct.MODELS_BY_NUMBER.get(number)
+        if model is None:
+            logger.warning(
+                "dynamixel detect: %s at %d baud: servo %d has model number %d, which the"
+                " driver does not know (known: %s): left out",
+                path,
+                baud,
+                dxl_id,
+                number,
+                ", ".join(f"{m.name} = {m.number}" for m in ct.MODELS.values()),
+            )
+            continue
+        logger.info(
+            "dynamixel detect: %s at %d baud: servo %d is %s (firmware %d)",
+            path,
+            baud,
+            dxl_id,
+            model.name,
+            firmware,
+        )
+        servos.append(
+            {
+                "id": dxl_id,
+                "joint": f"joint_{dxl_id}",
+                "model": model.name,
+                "mode": "position",
+                "min_position": -_DETECT_LIMIT,
+                "max_position": _DETECT_LIMIT,
+            }
+        )
+    if not servos:
+        return None
+    return {"driver": "dynamixel", "link": f"serial:{path}?baud={baud}", "servos": servos}
 
 
 # ---- profile parsing ----------------------------------------------------------------------------

@@ -6,13 +6,18 @@ serves the master end on a named thread between :meth:`~SimDynamixelChain.start`
 :meth:`~SimDynamixelChain.close`, and gives every servo a control table
 (:mod:`~temoto.drivers.dynamixel.control_table`). Whatever opens the slave path -- dynamixel-sdk's
 ``PortHandler`` in the driver and the tests -- talks to it exactly as to a U2D2 and a chain.
-A pseudo-terminal ignores the baud rate; replies go out at once (no Return Delay Time).
+A pseudo-terminal carries bytes whatever the baud rate; replies go out at once (no Return
+Delay Time). A chain made with ``baud=`` models the baud rate all the same: each servo then
+hears only the packets sent while the line is set (``termios``, as dynamixel-sdk's
+``PortHandler`` sets it through pyserial) to the rate its Baud Rate register selects, as a
+servo's UART hears only noise at another rate; without ``baud`` every packet is heard.
 
-Instructions answered: PING (also broadcast), READ, WRITE, SYNC_READ, SYNC_WRITE, BULK_READ,
-BULK_WRITE and REBOOT; FACTORY_RESET is refused (``RESULT_FAIL``), anything else answers
-``INSTRUCTION``. An instruction packet with a bad CRC is dropped. Writes check access (read-only
-registers, the EEPROM area while torque is on), the operating modes of the model, and the
-limit registers (``DATA_LIMIT``), as a real servo does.
+Instructions answered: PING (also broadcast: every servo answers, in ascending id order),
+READ, WRITE, SYNC_READ, SYNC_WRITE, BULK_READ, BULK_WRITE and REBOOT; FACTORY_RESET is refused
+(``RESULT_FAIL``), anything else answers ``INSTRUCTION``. PING answers with the Model Number
+register, as a servo does. An instruction packet with a bad CRC is dropped. Writes check
+access (read-only registers, the EEPROM area while torque is on), the operating modes of the
+model, the Baud Rate codes and the limit registers (``DATA_LIMIT``), as a real servo does.
 
 Motion (first order, stepped on the injected clock whenever a packet arrives): in the position
 modes the position approaches the goal with a time constant of 50 ms at no more than the profile
@@ -43,6 +48,7 @@ import logging
 import math
 import os
 import select
+import termios
 import threading
 import tty
 import warnings
@@ -65,6 +71,25 @@ _SNAP_AFTER: Final = 1.0  # s, a longer step settles at once
 _TICKS_S_PER_UNIT: Final = 0.229 * 4096.0 / 60.0  # velocity unit in ticks per second
 _TABLE_SIZE: Final = 256
 _E = p.ErrorNumber
+
+#: Baud Rate register (8) values → bits per second (X series).
+_BAUD_BY_CODE: Final[Mapping[int, int]] = {
+    0: 9600,
+    1: 57600,
+    2: 115200,
+    3: 1_000_000,
+    4: 2_000_000,
+    5: 3_000_000,
+    6: 4_000_000,
+    7: 4_500_000,
+}
+_CODE_BY_BAUD: Final[Mapping[int, int]] = {baud: code for code, baud in _BAUD_BY_CODE.items()}
+#: ``termios`` speed constants → bits per second (those this platform has).
+_LINE_SPEEDS: Final[Mapping[int, int]] = {
+    getattr(termios, f"B{baud}"): baud
+    for baud in _BAUD_BY_CODE.values()
+    if hasattr(termios, f"B{baud}")
+}
 
 _KIND_BITS: Final[Mapping[str, int]] = {
     "overheat": p.HardwareError.OVERHEATING,
@@ -126,9 +151,12 @@ class SimDynamixelChain(Simulator):
         servos: Servo id → model name (``{1: "XM430-W350", 2: "XL430-W250"}``).
         clock: Steps the motion model (a :class:`~temoto.clock.ManualClock` in tests).
         name: For the serving thread's name (``temoto-sim-dxl-<name>``).
+        baud: The servos' baud rate (their Baud Rate register): they hear only packets sent
+            at this rate (or at whatever the register says after a client changes it). None:
+            the baud rate is not modelled, every packet is heard.
 
     Raises:
-        ValueError: No servos, a bad id or an unknown model.
+        ValueError: No servos, a bad id, an unknown model or a baud rate the X series lacks.
         OSError: The pseudo-terminal cannot be opened.
     """
 
@@ -137,11 +165,18 @@ class SimDynamixelChain(Simulator):
     )
 
     def __init__(
-        self, servos: Mapping[int, str], *, clock: Clock | None = None, name: str = "dxl"
+        self,
+        servos: Mapping[int, str],
+        *,
+        clock: Clock | None = None,
+        name: str = "dxl",
+        baud: int | None = None,
     ) -> None:
         super().__init__()
         if not servos:
             raise ValueError("a chain needs at least one servo")
+        if baud is not None and baud not in _CODE_BY_BAUD:
+            raise ValueError(f"baud must be one of {sorted(_CODE_BY_BAUD)}, got {baud!r}")
         chain: dict[int, _Servo] = {}
         for dxl_id, model in sorted(servos.items()):
             if not 0 <= dxl_id <= p.MAX_ID:
@@ -149,7 +184,10 @@ class SimDynamixelChain(Simulator):
             if model not in ct.MODELS:
                 raise ValueError(f"servo {dxl_id}: unknown model {model!r}")
             chain[dxl_id] = _Servo(dxl_id, ct.MODELS[model])
+            if baud is not None:
+                chain[dxl_id].put(_REG["Baud Rate"], _CODE_BY_BAUD[baud])
         self.name = name
+        self.baud = baud
         self.clock: Clock = clock or MonotonicClock()
         self._servos = chain
         self._state = threading.Lock()
@@ -291,18 +329,35 @@ class SimDynamixelChain(Simulator):
                 continue
             if self.fault("link_loss") is not None:
                 continue
+            line = self._line_baud()
             for item in self._reader.feed(data):
                 if isinstance(item, p.PacketError):
                     self.stats["bad_packets"] += 1
                     continue
                 self.stats["packets"] += 1
                 try:
-                    replies = self._handle(item)
+                    replies = self._handle(item, line)
                 except Exception:  # a bug here must not kill the chain
                     logger.exception("sim %s: handling %s failed", self.name, item)
                     continue
                 for reply in replies:
                     self._send(reply)
+
+    def _line_baud(self) -> int | None:
+        """The baud rate the client set on the line (None: unknown, or not modelled)."""
+        if self.baud is None:
+            return None
+        try:
+            speed = termios.tcgetattr(self._slave)[5]  # the client's output speed
+        except (OSError, termios.error):
+            return None
+        return _LINE_SPEEDS.get(speed)
+
+    def _absent(self, servo: _Servo, line: int | None) -> bool:
+        """Whether ``servo`` misses a packet: silenced, or listening at another baud rate."""
+        if self._silent(servo.id):
+            return True
+        return self.baud is not None and _BAUD_BY_CODE.get(servo.get(_REG["Baud Rate"])) != line
 
     def _send(self, data: bytes) -> None:
         if self.fault("link_loss") is not None:
@@ -321,15 +376,15 @@ class SimDynamixelChain(Simulator):
             view = view[sent:]
         self.stats["replies"] += 1
 
-    def _handle(self, packet: p.Packet) -> list[bytes]:
+    def _handle(self, packet: p.Packet, line: int | None = None) -> list[bytes]:
         with self._state:
             self._step_locked()
             if packet.is_status:
                 return []
             if packet.id == p.BROADCAST_ID:
-                return self._broadcast(packet)
+                return self._broadcast(packet, line)
             servo = self._servos.get(packet.id)
-            if servo is None or self._silent(servo.id):
+            if servo is None or self._absent(servo, line):
                 return []
             try:
                 params = self._unicast(servo, packet)
@@ -346,7 +401,8 @@ class SimDynamixelChain(Simulator):
     def _unicast(self, servo: _Servo, packet: p.Packet) -> bytes | None:
         inst, params = packet.instruction, packet.params
         if inst == p.Instruction.PING:
-            return p.to_le(servo.model.number, 2) + bytes([servo.get(_REG["Firmware Version"])])
+            number = servo.get(ct.MODEL_NUMBER)
+            return p.to_le(number, 2) + bytes([servo.get(_REG["Firmware Version"])])
         if inst == p.Instruction.READ:
             if len(params) != 4:
                 raise _Reject(_E.DATA_LENGTH)
@@ -363,12 +419,12 @@ class SimDynamixelChain(Simulator):
             raise _Reject(_E.RESULT_FAIL)
         raise _Reject(_E.INSTRUCTION)
 
-    def _broadcast(self, packet: p.Packet) -> list[bytes]:
+    def _broadcast(self, packet: p.Packet, line: int | None = None) -> list[bytes]:
         inst, params = packet.instruction, packet.params
-        live = [s for s in self._servos.values() if not self._silent(s.id)]
+        live = [s for s in self._servos.values() if not self._absent(s, line)]
         replies: list[bytes] = []
         if inst == p.Instruction.PING:
-            for servo in live:
+            for servo in live:  # in ascending id order, each after the one before
                 replies.append(self._status(servo, 0, self._unicast(servo, packet) or b""))
         elif inst == p.Instruction.SYNC_READ and len(params) >= 4:
             address, length = p.from_le(params[:2]), p.from_le(params[2:4])
@@ -447,6 +503,9 @@ class SimDynamixelChain(Simulator):
                 raise _Reject(_E.DATA_RANGE)
         elif reg is ct.TORQUE_ENABLE:
             if value not in (0, 1):
+                raise _Reject(_E.DATA_RANGE)
+        elif reg is _REG["Baud Rate"]:
+            if value not in _BAUD_BY_CODE:
                 raise _Reject(_E.DATA_RANGE)
         elif reg is ct.GOAL_POSITION and mode == ct.OperatingMode.POSITION:
             if (

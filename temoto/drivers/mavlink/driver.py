@@ -23,19 +23,24 @@ Flight modes are ArduCopter's (``GUIDED``, ``LOITER``, ``RTL``, ``LAND``, ...);
 ``MAV_CMD_DO_REPOSITION`` (GUIDED), :meth:`~MavlinkDriver.land` and
 :meth:`~MavlinkDriver.return_to_launch` send ``MAV_CMD_NAV_LAND`` and
 ``MAV_CMD_NAV_RETURN_TO_LAUNCH``.
+
+:meth:`MavlinkDriver.detect` finds vehicles by listening only: it opens each link, parses the
+HEARTBEATs that arrive within its timeout and sends nothing at all.
 """
 
 from __future__ import annotations
 
 import collections
 import contextlib
+import importlib
 import logging
 import math
 import socket
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Mapping, Sequence
 from typing import Any, ClassVar, Final, Self
+from urllib.parse import parse_qs
 
 from temoto.clock import Clock
 from temoto.drivers.base import Driver, DriverState
@@ -74,6 +79,7 @@ _SEVERITY_LEVEL: Final = {0: 50, 1: 50, 2: 50, 3: 40, 4: 30, 5: 20, 6: 20, 7: 10
 #: Profile keys → (default, check); None marks the required key.
 _KEYS: Final = frozenset(
     {
+        "driver",
         "link",
         "system_id",
         "component_id",
@@ -89,6 +95,12 @@ _KEYS: Final = frozenset(
         "sim",
     }
 )
+#: Baud rates :meth:`MavlinkDriver.detect` tries on a serial link without ``?baud=``, in order.
+_DETECT_BAUDS: Final = (57600, 115200, 921600)
+#: Where a ground station listens (autopilots and telemetry radios send there): detect's UDP
+#: candidate when no links are given.
+_DETECT_UDP: Final = "udpin:0.0.0.0:14550"
+_AUTOPILOT_COMPONENT: Final = 1  # MAV_COMP_ID_AUTOPILOT1, the driver's default component_id
 _SIM_KEYS: Final = frozenset(
     {
         "home",
@@ -231,7 +243,8 @@ class MavlinkDriver(Driver):
         Args:
             name: The device's name.
             config: The entry's settings (``link`` and the optional keys of the class; see
-                ``docs/driver-mavlink.md``), ``driver`` already removed.
+                ``docs/driver-mavlink.md``); ``driver``, if still there, must be ``mavlink``
+                (so an entry from :meth:`detect` is accepted as it is).
             clock: The robot's clock.
             where: The entry's place for messages (``file: devices.quad``).
 
@@ -254,6 +267,10 @@ class MavlinkDriver(Driver):
         for key, value in config.items():
             if key == "sim":
                 _sim_kwargs(value, f"{where}.sim")  # checked here, used by simulate()
+                continue
+            if key == "driver":
+                if value != cls.kind:
+                    raise ProfileError(f"{where}.driver: must be {cls.kind!r}, got {value!r}")
                 continue
             if key == "link" and not isinstance(value, str):
                 raise ProfileError(f"{where}.link: must be text like udpin:127.0.0.1:14550")
@@ -310,6 +327,61 @@ class MavlinkDriver(Driver):
         settings = {k: v for k, v in config.items() if k != "sim"}
         settings["link"] = f"udpin:127.0.0.1:{port}"
         return sim, settings
+
+    # ---- discovery ---------------------------------------------------------------------------
+
+    @classmethod
+    def detect(
+        cls, links: Sequence[Any] | None = None, *, timeout: float = 2.5
+    ) -> list[dict[str, Any]]:
+        """The vehicles heard on MAVLink links, as profile device entries (listening only).
+
+        Each link is opened with :mod:`~temoto.drivers.mavlink.link` and its bytes are parsed
+        with :class:`~temoto.drivers.mavlink.protocol.Codec` for ``timeout`` real seconds.
+        Nothing at all is sent: no heartbeat of our own, no request, so no vehicle even learns
+        that a ground station looked. Every valid HEARTBEAT is a sign of life; those of ground
+        stations (``MAV_TYPE_GCS``) and of components without an autopilot
+        (``MAV_AUTOPILOT_INVALID``: companion computers, cameras, gimbals) are skipped, and
+        the rest are vehicles, logged at INFO with their ``MAV_TYPE`` and ``MAV_AUTOPILOT``
+        names (and a warning for an autopilot other than ArduPilot, which ``configure``
+        refuses). A serial link without ``?baud=`` is tried at 57600, 115200 and 921600 baud in
+        that order, stopping at the first rate at which a valid HEARTBEAT arrives. A link that
+        cannot be opened (a port in use, a missing device) is skipped with a warning. A
+        ``udpout:`` link only hears a vehicle that streams to it unasked.
+
+        Args:
+            links: Link URLs as in a profile's ``link`` (``udpin:``/``udp:``, ``udpout:``,
+                ``serial:``); a single string is one link. None: every serial port pyserial
+                lists (if pyserial is installed), then ``udpin:0.0.0.0:14550``, where
+                autopilots and telemetry radios usually send to a ground station.
+            timeout: Real seconds to listen on each link (and on each baud rate tried). The
+                default, 2.5, hears at least two heartbeats of a vehicle sending one a second.
+
+        Returns:
+            One entry per vehicle (system id) heard, link by link in the order looked at:
+            ``{"driver": "mavlink", "link": ..., "system_id": ..., "component_id": ...}``, the
+            ``link`` as given (with the baud rate that worked for a serial link given without
+            one), the component its autopilot's (1 when heard). :meth:`from_profile` accepts
+            each as it is. Empty when no vehicle was heard.
+
+        Raises:
+            ValueError: ``timeout`` is not a positive number of seconds, or a link is not a URL
+                in a scheme the link module knows (raised before any link is opened).
+            DriverUnavailableError: A serial link, but pyserial is not installed.
+        """
+        if not (isinstance(timeout, int | float) and timeout > 0 and math.isfinite(timeout)):
+            raise ValueError(f"timeout must be a positive number of seconds, got {timeout!r}")
+        if links is None:
+            urls: list[Any] = [*_serial_candidates(), _DETECT_UDP]
+        elif isinstance(links, str):
+            urls = [links]
+        else:
+            urls = list(links)
+        plans = [_detect_plan(url) for url in urls]  # every link checked before any is opened
+        entries: list[dict[str, Any]] = []
+        for plan in plans:
+            entries.extend(_detected(cls.kind, *_sweep(plan, timeout)))
+        return entries
 
     # ---- lifecycle hooks ---------------------------------------------------------------------
 
@@ -787,6 +859,150 @@ def _free_udp_port() -> int:
         sock.bind(("127.0.0.1", 0))
         port: int = sock.getsockname()[1]
         return port
+
+
+#: (system id, component id) → (MAV_TYPE, MAV_AUTOPILOT) of each vehicle heard, first first.
+_Heard = dict[tuple[int, int], tuple[int, int]]
+
+
+def _serial_candidates() -> list[str]:
+    """``serial:<device>`` for every port pyserial lists (none without pyserial)."""
+    try:
+        list_ports = importlib.import_module("serial.tools.list_ports")
+    except ImportError:
+        logger.info("mavlink detect: pyserial is not installed: no serial ports to look at")
+        return []
+    return [f"serial:{port.device}" for port in sorted(list_ports.comports(), key=_device)]
+
+
+def _device(port: Any) -> str:
+    return str(port.device)
+
+
+def _detect_plan(url: Any) -> list[tuple[LinkSpec, str]]:
+    """The links to listen on for one URL (one per baud rate to try) and how each is shown.
+
+    Raises:
+        ValueError: Not a link URL (the message names it).
+    """
+    spec = parse_link(url)  # ValueError names the URL
+    if spec.scheme != "serial" or "baud" in parse_qs(url.partition("?")[2]):
+        return [(spec, url)]
+    tries = [LinkSpec("serial", device=spec.device, baud=baud) for baud in _DETECT_BAUDS]
+    return [(each, str(each)) for each in tries]
+
+
+def _sweep(plan: list[tuple[LinkSpec, str]], timeout: float) -> tuple[str, _Heard]:
+    """Listen on each try of one link until a valid HEARTBEAT arrives.
+
+    Returns:
+        How the link that heard it is shown, and the vehicles heard ("" and none if no try
+        heard a heartbeat).
+    """
+    for spec, shown in plan:
+        heard = _listen(spec, timeout)
+        if heard is None:
+            break  # it cannot be opened: at another baud rate neither
+        valid, vehicles = heard
+        if valid:
+            return shown, vehicles
+    return "", {}
+
+
+def _listen(spec: LinkSpec, timeout: float) -> tuple[bool, _Heard] | None:
+    """Listen on one link for ``timeout`` real seconds, sending nothing.
+
+    Returns:
+        None if the link cannot be opened; else whether any valid HEARTBEAT arrived, and the
+        vehicles heard.
+    """
+    try:
+        link = open_link(spec)
+    except OSError as err:
+        logger.warning("mavlink detect: skipping %s: cannot open it: %s", spec, err)
+        return None
+    codec = Codec(255, 190)  # only its parser is used: detect never encodes or sends
+    valid = False
+    vehicles: _Heard = {}
+    others: set[tuple[int, int]] = set()
+    deadline = time.monotonic() + timeout
+    try:
+        while (remaining := deadline - time.monotonic()) > 0:
+            try:
+                data = link.read(remaining)
+            except OSError as err:
+                logger.warning("mavlink detect: %s failed while listening: %s", spec, err)
+                break
+            for msg in codec.decode(data) if data else []:
+                if msg.name != "HEARTBEAT":
+                    continue
+                valid = True
+                ids = (msg.src_system, msg.src_component)
+                kind, autopilot = msg.get_int("type"), msg.get_int("autopilot")
+                vehicle = kind != p.MAV_TYPE_GCS and autopilot != p.MAV_AUTOPILOT_INVALID
+                if vehicle and msg.src_system >= 1:
+                    vehicles.setdefault(ids, (kind, autopilot))
+                elif ids not in others:
+                    others.add(ids)
+                    logger.debug(
+                        "mavlink detect: %s: system %d component %d is not a vehicle: %s, %s",
+                        spec,
+                        *ids,
+                        _type_name(kind),
+                        _autopilot_name(autopilot),
+                    )
+    finally:
+        link.close()
+    if not valid:
+        logger.debug(
+            "mavlink detect: %s: no valid heartbeat in %g s (%d bad frames)",
+            spec,
+            timeout,
+            codec.bad_frames,
+        )
+    return valid, vehicles
+
+
+def _detected(kind: str, link: str, vehicles: _Heard) -> list[dict[str, Any]]:
+    """One profile entry per system heard on ``link`` (logged)."""
+    systems: dict[int, list[int]] = {}
+    for (system, component), (mav_type, autopilot) in vehicles.items():
+        logger.info(
+            "mavlink detect: %s: system %d component %d: %s, %s",
+            link,
+            system,
+            component,
+            _type_name(mav_type),
+            _autopilot_name(autopilot),
+        )
+        if autopilot != p.MAV_AUTOPILOT_ARDUPILOTMEGA and system not in systems:
+            logger.warning(
+                "mavlink detect: %s: system %d is not an ArduPilot (%s); the driver flies"
+                " ArduPilot only and configure will refuse it",
+                link,
+                system,
+                _autopilot_name(autopilot),
+            )
+        systems.setdefault(system, []).append(component)
+    return [
+        {
+            "driver": kind,
+            "link": link,
+            "system_id": system,
+            "component_id": (
+                _AUTOPILOT_COMPONENT if _AUTOPILOT_COMPONENT in components else components[0]
+            ),
+        }
+        for system, components in systems.items()
+    ]
+
+
+def _type_name(mav_type: int) -> str:
+    return p._enum_name("MAV_TYPE", mav_type)
+
+
+def _autopilot_name(autopilot: int) -> str:
+    return p._enum_name("MAV_AUTOPILOT", autopilot)
 
 
 def _sim_kwargs(raw: Any, where: str) -> dict[str, Any]:
