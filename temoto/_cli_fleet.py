@@ -16,18 +16,21 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, Any, NamedTuple
 
 from temoto.errors import ConfigError, GraphInputError
 
 __all__ = [
+    "StateFiles",
     "add_components_option",
     "add_fleet_options",
     "add_graph_commands",
     "add_live_view_option",
     "add_serve",
+    "add_state_options",
     "graph_command",
     "serve",
+    "state_files",
 ]
 
 #: The fleet's LCM URL unless --fleet-url says otherwise (ttl=1: the robots' own network).
@@ -83,6 +86,50 @@ def add_components_option(parser: argparse.ArgumentParser) -> None:
         help="component descriptions and pipeline templates (YAML/JSON, repeatable;"
         " docs/component-manager.md)",
     )
+
+
+def add_state_options(parser: argparse.ArgumentParser) -> None:
+    """``--state-dir DIR``, ``--catalog FILE``, ``--world FILE``: what survives a restart."""
+    parser.add_argument(
+        "--state-dir",
+        metavar="DIR",
+        help="keep the instance's state here across restarts and crashes: the registrar's"
+        " journal (registrar.journal) and the world model (world.journal); created if missing",
+    )
+    parser.add_argument(
+        "--catalog", metavar="FILE", help="the registrar's journal (default: in --state-dir)"
+    )
+    parser.add_argument(
+        "--world", metavar="FILE", help="the world model's journal (default: in --state-dir)"
+    )
+
+
+class StateFiles(NamedTuple):
+    """Where an instance keeps what survives a restart (None: in memory only)."""
+
+    catalog: Path | None  #: the registrar's journal
+    world: Path | None  #: the world model's journal
+
+
+def state_files(args: argparse.Namespace) -> StateFiles:
+    """The state files ``add_state_options`` asked for.
+
+    Raises:
+        ConfigError: ``--state-dir`` is not a directory and cannot be made one.
+    """
+    directory = Path(args.state_dir) if args.state_dir else None
+    if directory is not None:
+        try:
+            directory.mkdir(parents=True, exist_ok=True)
+        except OSError as err:
+            raise ConfigError(f"--state-dir {directory}: {err}") from err
+
+    def pick(given: str | None, default: str) -> Path | None:
+        if given:
+            return Path(given)
+        return directory / default if directory is not None else None
+
+    return StateFiles(pick(args.catalog, "registrar.journal"), pick(args.world, "world.journal"))
 
 
 def add_live_view_option(parser: argparse.ArgumentParser) -> None:
@@ -150,9 +197,7 @@ def add_serve(sub: Any, paths: Any) -> None:
     )
     serve_p.add_argument("--actor", required=True, help="this instance's actor (robot) name")
     paths(serve_p)
-    serve_p.add_argument(
-        "--catalog", metavar="FILE", help="the registrar's journal (kept across restarts)"
-    )
+    add_state_options(serve_p)
     serve_p.add_argument(
         "--handshake-timeout",
         type=float,
@@ -185,6 +230,7 @@ def serve(args: argparse.Namespace) -> int:
     from temoto.transport import open_transport
 
     key = fleet_key(args, f"instance '{args.actor}'")
+    state = state_files(args)
     stop = threading.Event()
 
     def on_signal(signum: int, frame: object) -> None:
@@ -200,7 +246,8 @@ def serve(args: argparse.Namespace) -> int:
             insecure=key is None,
             actions=args.actions,
             graphs=args.graphs,
-            catalog=args.catalog,
+            catalog=state.catalog,
+            world=state.world,
             handshake_timeout=args.handshake_timeout,
             stop_timeout=args.stop_timeout,
             feedback_period_s=args.feedback_period,

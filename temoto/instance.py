@@ -60,6 +60,7 @@ class Instance:
         actions: Folders of actions.
         graphs: Folders of graphs (what ``temoto graph start NAME`` can start).
         catalog: The registrar's journal file (None: kept in memory only).
+        world: The Context Manager's world-model file (None: kept in memory only).
         handshake_timeout: Seconds to wait for the other actors of a shared graph.
         stop_timeout: Seconds an action may take to stop.
         feedback_period_s: Every run's state is published this often.
@@ -75,6 +76,8 @@ class Instance:
     Raises:
         ValueError: ``actor`` is empty.
         TransportError: The fleet link cannot listen.
+        CatalogCorruptError: The registrar's or the world model's journal is damaged.
+        ResourceBusyError: Another process has one of those journals open.
     """
 
     def __init__(
@@ -88,6 +91,7 @@ class Instance:
         actions: Iterable[str | Path] = (),
         graphs: Iterable[str | Path] = (),
         catalog: str | Path | None = None,
+        world: str | Path | None = None,
         handshake_timeout: float = 5.0,
         stop_timeout: float = 5.0,
         feedback_period_s: float = 1.0,
@@ -121,7 +125,7 @@ class Instance:
             self.components = ComponentManager(self.registrar, files=component_files, ris=self.ris)
             closing.append(self.components)
             self.context = ContextManager(
-                actor, link=self.link, registrar=self.registrar, clock=clock
+                actor, link=self.link, registrar=self.registrar, clock=clock, store=world
             )
             closing.append(self.context)
             self.engine = ActionEngine(

@@ -39,6 +39,7 @@ import math
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, ClassVar, Final
 
 from temoto.clock import Clock, MonotonicClock
@@ -48,6 +49,7 @@ from temoto.fleet._common import CallQueue, Closing, check_seconds, decode_or_co
 from temoto.lcm_types import context_digest_t, context_request_t, context_update_t
 from temoto.managers.context._wire import chunks, from_wire
 from temoto.managers.context.pose import Pose
+from temoto.managers.context.store import WorldStore
 from temoto.managers.context.tree import (
     ContextTree,
     Item,
@@ -84,6 +86,7 @@ CONTEXT_STATS: Final = (
     "records_applied",  # received records newer than ours
     "records_stale",  # received records not newer than ours (duplicates, late, lost races)
     "records_invalid",  # received records with invalid fields (dropped)
+    "store_errors",  # records that could not be written to the world store (disk full, ...)
     "requests_sent",
     "requests_received",
     "digests_sent",
@@ -166,10 +169,15 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
         clock: Monotonic time (periods, tombstones) and wall time (the stamps of changes).
         queue_capacity: Messages waiting for the receive handler at most (older ones are
             dropped; the digests repair what is lost).
+        store: A file that keeps the world model across restarts (``store.py``): read at
+            start, every record the tree takes appended at once. None: memory only.
 
     Raises:
         ValueError: If ``robot`` is not a valid name or a duration is not positive.
         TransportError: If the link's transport is closed.
+        CatalogCorruptError: The store is damaged (beyond a torn last record).
+        ResourceBusyError: Another process has the store open.
+        OSError: The store cannot be opened or created.
     """
 
     name: ClassVar[str] = "context"
@@ -186,6 +194,7 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
         tombstone_s: float = 600.0,
         clock: Clock | None = None,
         queue_capacity: int = 4096,
+        store: str | Path | None = None,
     ) -> None:
         self._robot = check_item_name("robot", robot)
         self.period_s = check_seconds("period_s", period_s)
@@ -205,6 +214,9 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
         self._asked: dict[str, float] = {}  # robot -> when we last asked it
         self._mismatch: dict[str, int] = {}  # robot -> digests in a row that differed
         self._next_digest = -math.inf
+        self._store: WorldStore | None = None
+        if store is not None:
+            self._restore(WorldStore(store))  # before anything runs: nothing to undo on error
         self._calls = CallQueue("temoto-context-calls", "a Context Manager listener")
         self._sub: Subscription | None = None
         self._timer: threading.Thread | None = None
@@ -292,6 +304,7 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
                 self._now_us(),
                 self._robot,
             )
+            self._persist([item])
         self._changed([item])
         return item
 
@@ -333,6 +346,7 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
                 now_us=self._now_us(),
                 writer=self._robot,
             )
+            self._persist([item])
         self._changed([item])
         return item
 
@@ -356,6 +370,7 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
         with self._lock:
             self._check_open()
             item = self._tree.move(name, parent, pose, self._now_us(), self._robot)
+            self._persist([item])
         self._changed([item])
         return item
 
@@ -378,6 +393,7 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
             removals = self._tree.remove(
                 name, bool(cascade), self._now_us(), self._robot, self._clock.monotonic()
             )
+            self._persist(removals)
         self._changed(removals)
         return [r.name for r in removals]
 
@@ -392,6 +408,49 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
         """Publish local changes and tell the listeners (lock not held)."""
         self._publish(records, "", "changes_sent")
         self._notify(tuple(r.name for r in records), self._robot)
+
+    def _restore(self, store: WorldStore) -> None:
+        """Rebuild the tree from the store's records (at start, before any thread runs)."""
+        records = store.open()
+        now = self._clock.monotonic()
+        for record in records:
+            self._tree.merge(record, now)
+        self._store = store
+        logger.info(
+            "context %r: %d items restored from %s (%d records)",
+            self._robot,
+            len(self._tree),
+            store.path,
+            len(records),
+        )
+        self._compact()
+
+    def _persist(self, records: Sequence[Record]) -> None:
+        """Write records the tree took to the store (lock held); failures are counted."""
+        store = self._store
+        if store is None or not records:
+            return
+        try:
+            store.append(records)
+        except (OSError, RuntimeError) as err:  # RuntimeError: closed meanwhile
+            self._counts["store_errors"] += len(records)
+            if self._counts["store_errors"] == len(records):  # the first failure
+                logger.error("context %r: cannot write %s: %s", self._robot, store.path, err)
+            return
+        self._compact()
+
+    def _compact(self) -> None:
+        """Rewrite the store when it holds many more records than the tree (lock held)."""
+        store = self._store
+        if store is None:
+            return
+        records = self._tree.records()
+        if not store.should_compact(len(records)):
+            return
+        try:
+            store.compact(records)
+        except OSError as err:
+            logger.warning("context %r: cannot compact %s: %s", self._robot, store.path, err)
 
     # ================================================================ queries
 
@@ -609,6 +668,8 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
         if self._timer is not None and self._timer is not threading.current_thread():
             self._timer.join()
         self._calls.close(drain=True)
+        if self._store is not None:
+            self._store.close()
 
     # ================================================================ sending
 
@@ -708,7 +769,7 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
             except (ValueError, TypeError) as err:
                 invalid += 1
                 logger.debug("context: dropped a record from %r: %s", msg.robot, err)
-        applied: list[str] = []
+        applied: list[Record] = []
         with self._lock:
             if self._closed or not self._foreign(msg.robot):
                 return
@@ -717,10 +778,11 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
             now = self._clock.monotonic()
             for record in records:
                 if self._tree.merge(record, now):
-                    applied.append(record.name)
+                    applied.append(record)
             self._counts["records_applied"] += len(applied)
             self._counts["records_stale"] += len(records) - len(applied)
-        self._notify(tuple(applied), msg.robot)
+            self._persist(applied)
+        self._notify(tuple(r.name for r in applied), msg.robot)
 
     def _on_request(self, msg: Any) -> None:
         with self._lock:

@@ -25,7 +25,9 @@ from temoto._cli_fleet import (
     add_components_option,
     add_fleet_options,
     add_live_view_option,
+    add_state_options,
     fleet_key,
+    state_files,
 )
 from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.clock import MonotonicClock
@@ -74,7 +76,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--actions", action="append", default=[], metavar="DIR", help="more actions")
     p.add_argument("--graphs", action="append", default=[], metavar="DIR", help="graph folder")
     p.add_argument("--timeout", type=float, metavar="SECONDS", help="stop the mission after this")
-    p.add_argument("--catalog", metavar="FILE", help="the registrar's journal")
+    add_state_options(p)
     p.add_argument(
         "--local",
         action="store_true",
@@ -120,6 +122,7 @@ def _run(args: argparse.Namespace) -> int:
     clock = MonotonicClock()
     profile = load_profile(args.profile, clock=clock)
     mission = load_graph(args.mission) if args.mission else None
+    state = state_files(args)
     transport: Transport
     if args.local:
         transport = InProcessTransport(f"local-{profile.robot}-{secrets.token_hex(4)}")
@@ -136,7 +139,8 @@ def _run(args: argparse.Namespace) -> int:
         insecure=key is None,
         actions=[ROBOT_ACTIONS, *args.actions],
         graphs=args.graphs,
-        catalog=args.catalog,
+        catalog=state.catalog,
+        world=state.world,
         silence_s=args.fleet_silence,
         resend_s=args.fleet_resend,
         live_view_port=args.live_view,
