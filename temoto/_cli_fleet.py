@@ -89,18 +89,24 @@ def add_components_option(parser: argparse.ArgumentParser) -> None:
 
 
 def add_state_options(parser: argparse.ArgumentParser) -> None:
-    """``--state-dir DIR``, ``--catalog FILE``, ``--world FILE``: what survives a restart."""
+    """``--state-dir DIR`` (or ``--catalog``, ``--world``, ``--reliability``): what survives."""
     parser.add_argument(
         "--state-dir",
         metavar="DIR",
         help="keep the instance's state here across restarts and crashes: the registrar's"
-        " journal (registrar.journal) and the world model (world.journal); created if missing",
+        " journal (registrar.journal), the world model (world.journal) and the components'"
+        " reliabilities (reliability.json); created if missing",
     )
     parser.add_argument(
         "--catalog", metavar="FILE", help="the registrar's journal (default: in --state-dir)"
     )
     parser.add_argument(
         "--world", metavar="FILE", help="the world model's journal (default: in --state-dir)"
+    )
+    parser.add_argument(
+        "--reliability",
+        metavar="FILE",
+        help="the components' reliabilities (default: in --state-dir)",
     )
 
 
@@ -109,6 +115,7 @@ class StateFiles(NamedTuple):
 
     catalog: Path | None  #: the registrar's journal
     world: Path | None  #: the world model's journal
+    reliability: Path | None  #: the components' reliabilities
 
 
 def state_files(args: argparse.Namespace) -> StateFiles:
@@ -129,7 +136,11 @@ def state_files(args: argparse.Namespace) -> StateFiles:
             return Path(given)
         return directory / default if directory is not None else None
 
-    return StateFiles(pick(args.catalog, "registrar.journal"), pick(args.world, "world.journal"))
+    return StateFiles(
+        pick(args.catalog, "registrar.journal"),
+        pick(args.world, "world.journal"),
+        pick(args.reliability, "reliability.json"),
+    )
 
 
 def add_live_view_option(parser: argparse.ArgumentParser) -> None:
@@ -248,6 +259,7 @@ def serve(args: argparse.Namespace) -> int:
             graphs=args.graphs,
             catalog=state.catalog,
             world=state.world,
+            reliability_file=state.reliability,
             handshake_timeout=args.handshake_timeout,
             stop_timeout=args.stop_timeout,
             feedback_period_s=args.feedback_period,

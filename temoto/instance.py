@@ -61,6 +61,7 @@ class Instance:
         graphs: Folders of graphs (what ``temoto graph start NAME`` can start).
         catalog: The registrar's journal file (None: kept in memory only).
         world: The Context Manager's world-model file (None: kept in memory only).
+        reliability_file: The Component Manager's reliabilities (None: kept in memory only).
         handshake_timeout: Seconds to wait for the other actors of a shared graph.
         stop_timeout: Seconds an action may take to stop.
         feedback_period_s: Every run's state is published this often.
@@ -77,6 +78,7 @@ class Instance:
         ValueError: ``actor`` is empty.
         TransportError: The fleet link cannot listen.
         CatalogCorruptError: The registrar's or the world model's journal is damaged.
+        ConfigError: The reliability file cannot be used.
         ResourceBusyError: Another process has one of those journals open.
     """
 
@@ -92,6 +94,7 @@ class Instance:
         graphs: Iterable[str | Path] = (),
         catalog: str | Path | None = None,
         world: str | Path | None = None,
+        reliability_file: str | Path | None = None,
         handshake_timeout: float = 5.0,
         stop_timeout: float = 5.0,
         feedback_period_s: float = 1.0,
@@ -122,7 +125,12 @@ class Instance:
             closing.append(self.ris)
             self.resources = RemoteResources(self.link, self.registrar, self.ris)
             closing.append(self.resources)
-            self.components = ComponentManager(self.registrar, files=component_files, ris=self.ris)
+            self.components = ComponentManager(
+                self.registrar,
+                files=component_files,
+                ris=self.ris,
+                reliability_file=reliability_file,
+            )
             closing.append(self.components)
             self.context = ContextManager(
                 actor, link=self.link, registrar=self.registrar, clock=clock, store=world

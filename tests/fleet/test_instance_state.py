@@ -31,13 +31,15 @@ def start(files: StateFiles) -> Instance:
         key=KEY,
         catalog=files.catalog,
         world=files.world,
+        reliability_file=files.reliability,
     )
 
 
 def test_the_world_model_survives_a_restart_of_the_instance(tmp_path: Path) -> None:
     files = state_files(parse("--state-dir", str(tmp_path / "state")))
+    state = tmp_path / "state"
     assert files == StateFiles(
-        tmp_path / "state" / "registrar.journal", tmp_path / "state" / "world.journal"
+        state / "registrar.journal", state / "world.journal", state / "reliability.json"
     )
     with start(files) as first:
         first.context.add("map", "map")
@@ -54,8 +56,8 @@ def test_the_world_model_survives_a_restart_of_the_instance(tmp_path: Path) -> N
 def test_explicit_files_win_and_nothing_is_kept_without_options(tmp_path: Path) -> None:
     mine = tmp_path / "mine.journal"
     files = state_files(parse("--state-dir", str(tmp_path), "--world", str(mine)))
-    assert files == StateFiles(tmp_path / "registrar.journal", mine)
-    assert state_files(parse()) == StateFiles(None, None)
+    assert files == StateFiles(tmp_path / "registrar.journal", mine, tmp_path / "reliability.json")
+    assert state_files(parse()) == StateFiles(None, None, None)
 
 
 def test_a_state_dir_that_cannot_be_made_is_a_clear_error(tmp_path: Path) -> None:

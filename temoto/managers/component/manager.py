@@ -17,6 +17,11 @@ thread) a job goes to the manager's worker thread, which rates the candidate dow
 next one with the same channels (so the consumers and downstream segments keep receiving),
 updates the response and tells the consumers (WARNING ``switched from A to B: ...``), then
 releases the dead one. With no substitute (or ``failover=False``) the consumers get FATAL.
+
+Reliabilities are kept in memory, and with ``reliability_file`` also in a file (format in
+:mod:`temoto.managers.component.reliability`): read at construction, rewritten atomically after
+each operation that recorded outcomes (a start, a failover, a release), outside the manager's
+lock and after the substitute is started, one writer at a time.
 """
 
 from __future__ import annotations
@@ -59,7 +64,7 @@ from temoto.managers.component.messages import (
     PipelineRequest,
     PipelineResponse,
 )
-from temoto.managers.component.reliability import Reliability
+from temoto.managers.component.reliability import Reliability, load_outcomes, save_outcomes
 from temoto.managers.process import ProcessRequest, ProcessResponse
 
 if TYPE_CHECKING:
@@ -79,7 +84,14 @@ logger = logging.getLogger(__name__)
 COMPONENT_VARIABLE = "TEMOTO_COMPONENT"
 
 #: Counters in :attr:`ComponentManager.stats`.
-COMPONENT_STATS = ("starts", "start_failures", "failures", "failovers", "exhausted")
+COMPONENT_STATS = (
+    "starts",
+    "start_failures",
+    "failures",
+    "failovers",
+    "exhausted",
+    "reliability_write_errors",
+)
 
 
 @dataclass(frozen=True)
@@ -142,9 +154,16 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
         ris: The Resource Info Synchronizer, for candidates on other robots.
         window: Outcomes the reliability average covers (upstream: 100).
         channel_prefix: Start of the abstract socket names the manager allocates.
+        reliability_file: Where reliabilities survive a restart (JSON; see
+            :mod:`~temoto.managers.component.reliability`), or None to keep them in memory
+            only. Read now if it exists (outcomes of candidates not described yet are kept
+            for when they are); rewritten atomically whenever outcomes were recorded. A
+            failed write is logged (a warning once per streak of failures), counted in
+            ``stats["reliability_write_errors"]`` and retried with the next write.
 
     Raises:
-        ConfigError: A description file is malformed (``PipelineError`` for templates).
+        ConfigError: A description file is malformed (``PipelineError`` for templates), or
+            the reliability file cannot be read or used (the message names the file).
         ValueError: A server named ``"component"`` or ``"pipeline"`` is registered.
     """
 
@@ -161,9 +180,16 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
         ris: ResourceInfoSync | None = None,
         window: int = 100,
         channel_prefix: str = "temoto",
+        reliability_file: str | Path | None = None,
     ) -> None:
         if window < 1:
             raise ValueError(f"window must be >= 1, got {window}")
+        self._store = None if reliability_file is None else Path(reliability_file)
+        #: Restored outcomes of candidates not described yet (applied by :meth:`add`).
+        self._saved = {} if self._store is None else load_outcomes(self._store, window)
+        self._store_lock = threading.Lock()  # one writer of the file at a time
+        self._unsaved = 0  # outcomes recorded since the last successful write
+        self._store_failing = False  # in a streak of failed writes (guarded by _store_lock)
         self.registrar = registrar
         self.robot = robot or registrar.name
         self.window = window
@@ -232,9 +258,10 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
             for desc in comps:
                 robot = desc.robot or self.robot
                 self._components[(robot, desc.name)] = desc
-                self._reliability.setdefault(
-                    f"{robot}/{desc.name}", Reliability(desc.reliability, self.window)
-                )
+                cand = f"{robot}/{desc.name}"
+                if cand not in self._reliability:  # restored outcomes apply from the start
+                    history = self._saved.pop(cand, [])
+                    self._reliability[cand] = Reliability(desc.reliability, self.window, history)
             for tpl in temps:
                 self._templates[tpl.name] = tpl
 
@@ -404,12 +431,57 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
         return set(self._ris.providers(self.name))
 
     def _rate(self, candidate: Candidate, outcome: float) -> float:
+        """Record an outcome (in memory; :meth:`_persist` writes the file afterwards)."""
         with self._lock:
-            return self._reliability[candidate.key].adjust(outcome)
+            value = self._reliability[candidate.key].adjust(outcome)
+            if self._store is not None:
+                self._unsaved += 1
+            return value
+
+    def _persist(self) -> None:
+        """Write the reliability file if outcomes were recorded since the last write.
+
+        Called after an operation (start, failover, release), outside the manager's lock, by
+        whichever thread did it; ``_store_lock`` serialises writers, and the state is taken
+        inside it, so the last write holds the newest state. An ``OSError`` is counted and
+        logged, never raised (the next write retries).
+        """
+        if self._store is None or not self._unsaved:  # unlocked read: whoever rated persists
+            return
+        with self._store_lock:
+            with self._lock:
+                unsaved, self._unsaved = self._unsaved, 0
+                if not unsaved:
+                    return
+                state = dict(self._saved)
+                for key, rel in self._reliability.items():
+                    outcomes = rel.outcomes()
+                    if outcomes:
+                        state[key] = outcomes
+            try:
+                save_outcomes(self._store, self.window, state)
+            except OSError as err:
+                with self._lock:
+                    self._unsaved += unsaved
+                    self._counts["reliability_write_errors"] += 1
+                if not self._store_failing:
+                    self._store_failing = True
+                    logger.warning(
+                        "cannot write the reliability file %s (kept in memory; retried with "
+                        "the next outcome): %s",
+                        self._store,
+                        err,
+                    )
+                else:
+                    logger.debug("reliability file %s still not written: %s", self._store, err)
+                return
+            if self._store_failing:
+                self._store_failing = False
+                logger.info("reliability file %s written again", self._store)
 
     @property
     def stats(self) -> dict[str, int]:
-        """Counters: starts, start_failures, failures, failovers, exhausted."""
+        """Counters (:data:`COMPONENT_STATS`), e.g. ``failovers``, ``reliability_write_errors``."""
         with self._lock:
             return dict(self._counts)
 
@@ -432,6 +504,8 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
             with self._lock:
                 self._active.pop(state.uid, None)
             raise
+        finally:
+            self._persist()  # candidates that failed to start were rated down
 
     def on_unload(self, request: ComponentRequest, response: ComponentResponse) -> None:
         """Stop the active candidate; it served until released: a success for its rating."""
@@ -446,6 +520,7 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
             return
         if candidate is not None:
             self._rate(candidate, 1.0)
+            self._persist()
         self._release(held)
 
     def on_restore(self, resource: ResourceInfo) -> tuple[Status, str] | None:
@@ -604,6 +679,12 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
 
     def _failover(self, state: _Active, gen: int, message: str) -> None:
         """Worker thread: the active candidate failed; substitute it or report FATAL."""
+        try:
+            self._substitute(state, gen, message)
+        finally:
+            self._persist()  # after the substitute started: the write does not delay it
+
+    def _substitute(self, state: _Active, gen: int, message: str) -> None:
         taken = self._claim(state, gen)
         if taken is None:
             return
@@ -693,7 +774,8 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
     def shutdown(self) -> None:
         """Stop the worker and starter threads (idempotent).
 
-        Components stay loaded: consumers release them (which stops their processes).
+        Components stay loaded: consumers release them (which stops their processes, and
+        still records their outcome). With a reliability file, a write that failed is retried.
 
         Returns:
             None.
@@ -706,6 +788,7 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
         if self._worker.is_alive():
             self._worker.join()
         self._starter.shutdown(wait=True)
+        self._persist()
 
     def __enter__(self) -> ComponentManager:
         return self

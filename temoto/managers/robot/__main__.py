@@ -141,6 +141,7 @@ def _run(args: argparse.Namespace) -> int:
         graphs=args.graphs,
         catalog=state.catalog,
         world=state.world,
+        reliability_file=state.reliability,
         silence_s=args.fleet_silence,
         resend_s=args.fleet_resend,
         live_view_port=args.live_view,
