@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 import threading
 import warnings
 from abc import ABC, abstractmethod
@@ -37,7 +38,7 @@ from temoto.errors import (
     StateError,
 )
 
-__all__ = ["Driver", "DriverState", "Health", "HealthListener"]
+__all__ = ["Driver", "DriverState", "Health", "HealthListener", "detect_links"]
 
 logger = logging.getLogger(__name__)
 
@@ -311,8 +312,7 @@ class Driver(ABC):
         The default finds nothing: a driver whose devices cannot be found without commanding
         them (MIT-mode CAN motors move on every frame) keeps it.
         """
-        if not timeout > 0:
-            raise ValueError(f"timeout must be positive, got {timeout!r}")
+        detect_links(links, timeout, list)
         return []
 
     # ---- hooks -----------------------------------------------------------------------------
@@ -386,3 +386,29 @@ def _as_driver_error(err: BaseException, category: type[DriverError], what: str)
     if isinstance(err, KeyboardInterrupt | SystemExit):
         raise err
     return category(f"{what}: {type(err).__name__}: {err}")
+
+
+def detect_links(
+    links: Sequence[Any] | None, timeout: float, candidates: Callable[[], list[Any]]
+) -> list[Any]:
+    """The links a :meth:`Driver.detect` looks at, after checking its arguments.
+
+    Args:
+        links: What the caller passed: None, one link URL string, or a sequence of links.
+        timeout: What the caller passed as the timeout.
+        candidates: The driver's own candidates, called only when ``links`` is None.
+
+    Returns:
+        The links, in order (not checked further: each driver knows its link forms).
+
+    Raises:
+        ValueError: ``timeout`` is not a positive, finite number of seconds.
+    """
+    number = isinstance(timeout, int | float) and not isinstance(timeout, bool)
+    if not (number and timeout > 0 and math.isfinite(timeout)):
+        raise ValueError(f"timeout must be a positive number of seconds, got {timeout!r}")
+    if links is None:
+        return candidates()
+    if isinstance(links, str):
+        return [links]
+    return list(links)

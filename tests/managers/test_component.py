@@ -4,14 +4,14 @@ from __future__ import annotations
 
 import os
 import signal
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from _statuses import Statuses
 
 from temoto import ActionEngine, Result
-from temoto.core.registrar import Registrar, Status, StatusUpdate
+from temoto.core.registrar import Registrar, Status
 from temoto.errors import (
     ComponentNotFoundError,
     ConfigError,
@@ -33,27 +33,6 @@ DESCRIPTIONS = REPO / "examples" / "components" / "components.yaml"
 ACTIONS = REPO / "temoto" / "actions" / "builtin" / "component"
 WAIT = 10.0
 RANGE = ("lidar_3d", "depth_camera", "lidar_2d")  # priority order
-
-
-class Statuses:
-    """Collects a consumer's statuses; waits for them on a condition."""
-
-    def __init__(self) -> None:
-        self.got: list[StatusUpdate] = []
-        self._cond = threading.Condition()
-
-    def __call__(self, update: StatusUpdate) -> None:
-        with self._cond:
-            self.got.append(update)
-            self._cond.notify_all()
-
-    def wait(self, status: Status, count: int = 1) -> list[StatusUpdate]:
-        with self._cond:
-            ok = self._cond.wait_for(
-                lambda: sum(u.status is status for u in self.got) >= count, WAIT
-            )
-            assert ok, self.got
-            return [u for u in self.got if u.status is status]
 
 
 @pytest.fixture

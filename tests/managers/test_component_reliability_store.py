@@ -7,15 +7,15 @@ import logging
 import os
 import signal
 import sys
-import threading
 from collections.abc import Iterator
 from contextlib import ExitStack
 from pathlib import Path
 from typing import Any
 
 import pytest
+from _statuses import Statuses
 
-from temoto.core.registrar import Registrar, Status, StatusUpdate
+from temoto.core.registrar import Registrar, Status
 from temoto.errors import ConfigError, ResourceLoadError
 from temoto.managers.component import (
     ComponentDescription,
@@ -40,25 +40,6 @@ def peer(name: str) -> ComponentDescription:
 
 #: Cannot start (program missing): each request rates it 0 without starting a process.
 GHOST = ComponentDescription("ghost", "phantom", "/nonexistent/ghost")
-
-
-class Statuses:
-    """Collects a consumer's statuses; waits for them on a condition."""
-
-    def __init__(self) -> None:
-        self.got: list[StatusUpdate] = []
-        self._cond = threading.Condition()
-
-    def __call__(self, update: StatusUpdate) -> None:
-        with self._cond:
-            self.got.append(update)
-            self._cond.notify_all()
-
-    def wait(self, status: Status) -> StatusUpdate:
-        with self._cond:
-            ok = self._cond.wait_for(lambda: any(u.status is status for u in self.got), WAIT)
-            assert ok, self.got
-            return next(u for u in self.got if u.status is status)
 
 
 class Robot:
@@ -133,7 +114,7 @@ def test_outcomes_survive_a_restart_and_rank_candidates(stack: ExitStack, tmp_pa
     handle = client.request("tie", on_status=statuses)
     assert handle.name == "a_sensor"
     os.kill(handle.response.pid, signal.SIGKILL)  # a fails: failover to b
-    assert "switched from r1/a_sensor to r1/b_sensor" in statuses.wait(Status.WARNING).message
+    assert "switched from r1/a_sensor to r1/b_sensor" in statuses.first(Status.WARNING).message
     client.release(handle)  # b served until released: a success
     assert read(file) == {
         "version": 1,

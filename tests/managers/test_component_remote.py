@@ -12,8 +12,9 @@ from contextlib import ExitStack
 from pathlib import Path
 
 import pytest
+from _statuses import Statuses
 
-from temoto.core.registrar import Registrar, Status, StatusUpdate
+from temoto.core.registrar import Registrar, Status
 from temoto.errors import ComponentNotFoundError
 from temoto.fleet.resources import RemoteResources
 from temoto.fleet.ris import ResourceInfoSync, RobotInfo
@@ -101,22 +102,6 @@ def hears(robot: Robot, other: str) -> None:
         cancel()
 
 
-class Statuses:
-    def __init__(self) -> None:
-        self.got: list[StatusUpdate] = []
-        self._cond = threading.Condition()
-
-    def __call__(self, update: StatusUpdate) -> None:
-        with self._cond:
-            self.got.append(update)
-            self._cond.notify_all()
-
-    def wait(self, status: Status) -> StatusUpdate:
-        with self._cond:
-            assert self._cond.wait_for(lambda: any(u.status is status for u in self.got), WAIT)
-            return next(u for u in self.got if u.status is status)
-
-
 def test_failover_to_a_camera_on_another_robot(fleet: tuple[Robot, Robot]) -> None:
     a, b = fleet
     ranked = a.components.candidates("camera")
@@ -134,13 +119,13 @@ def test_failover_to_a_camera_on_another_robot(fleet: tuple[Robot, Robot]) -> No
         os.kill(handle.response.pid, signal.SIGKILL)
         # the escort's camera now feeds A's consumer, on the same channel
         assert reader.recv_until(lambda d: d.startswith(b"cam_b "), WAIT) is not None
-        assert statuses.wait(Status.WARNING).message.startswith("switched from A/cam_a to B/cam_b")
+        assert statuses.first(Status.WARNING).message.startswith("switched from A/cam_a to B/cam_b")
         assert handle.response.robot == "B"
         assert a.processes.running() == []
         assert b.processes.running() == [handle.response.pid]
         # the remote candidate fails too: nothing is left, A's consumer is told
         os.kill(handle.response.pid, signal.SIGKILL)
-        assert "no substitute" in statuses.wait(Status.FATAL).message
+        assert "no substitute" in statuses.first(Status.FATAL).message
     assert a.components.reliability("cam_b", "B") == pytest.approx(0.792)
     client.release(handle)
     assert a.registrar.resources() == []

@@ -34,7 +34,7 @@ from typing import Any, Final, Self
 import can
 
 from temoto.clock import Clock
-from temoto.drivers.base import DriverState
+from temoto.drivers.base import DriverState, detect_links
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits, open_bus
 from temoto.drivers.can_motor._driver import CanMotorDriver
@@ -312,16 +312,14 @@ class ODriveDriver(CanMotorDriver):
                 sequence, or a link is not a mapping with ``interface`` and ``channel`` (named
                 by its index).
         """
-        if not timeout > 0 or not math.isfinite(timeout):
-            raise ValueError(f"timeout must be a positive finite number, got {timeout!r}")
-        if links is None:
-            candidates = _available_links()
-        elif isinstance(links, str | bytes | Mapping) or not isinstance(links, Sequence):
+        if links is not None and (
+            isinstance(links, str | bytes | Mapping) or not isinstance(links, Sequence)
+        ):
             raise ValueError(
                 f"{cls.kind} detect: links must be a sequence of link mappings, got {links!r}"
             )
-        else:
-            candidates = [_link(i, link) for i, link in enumerate(links)]
+        found = detect_links(links, timeout, _available_links)
+        candidates = [_link(i, link) for i, link in enumerate(found)]
         entries: list[dict[str, Any]] = []
         for link in candidates:
             seen = _listen(link, timeout)

@@ -50,7 +50,7 @@ from dataclasses import dataclass
 from typing import Any, ClassVar, Final, Self
 
 from temoto.clock import Clock
-from temoto.drivers.base import Driver, DriverState
+from temoto.drivers.base import Driver, DriverState, detect_links
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.dynamixel import _sdk
 from temoto.drivers.dynamixel import control_table as ct
@@ -453,14 +453,7 @@ class DynamixelDriver(Driver):
             ValueError: ``timeout`` is not a positive finite number of seconds, or a link is not
                 a serial link (raised before any port is opened; the message names the link).
         """
-        if not (_number(timeout) and timeout > 0 and math.isfinite(timeout)):
-            raise ValueError(f"timeout must be positive, got {timeout!r}")
-        if links is None:
-            urls: list[Any] = [f"serial:{path}" for path in _sdk.serial_ports()]
-        elif isinstance(links, str):
-            urls = [links]
-        else:
-            urls = list(links)
+        urls = detect_links(links, timeout, _serial_links)
         plans = [_detect_plan(url) for url in urls]  # every link checked before any is opened
         entries: list[dict[str, Any]] = []
         for path, bauds in plans:
@@ -1104,6 +1097,11 @@ def _parse_link(link: Any, at: str) -> tuple[str, int | None]:
         if baud not in BAUD_RATES:
             raise ProfileError(f"{at}: baud must be one of {sorted(BAUD_RATES)}, got {baud}")
     return path, baud
+
+
+def _serial_links() -> list[Any]:
+    """``serial:`` links of every serial port pyserial lists."""
+    return [f"serial:{path}" for path in _sdk.serial_ports()]
 
 
 def _number(value: Any) -> bool:

@@ -43,7 +43,7 @@ from typing import Any, ClassVar, Final, Self
 from urllib.parse import parse_qs
 
 from temoto.clock import Clock
-from temoto.drivers.base import Driver, DriverState
+from temoto.drivers.base import Driver, DriverState, detect_links
 from temoto.drivers.capabilities import GeoPoint, VehicleTelemetry
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.link import Link, LinkSpec, open_link, parse_link
@@ -369,14 +369,7 @@ class MavlinkDriver(Driver):
                 in a scheme the link module knows (raised before any link is opened).
             DriverUnavailableError: A serial link, but pyserial is not installed.
         """
-        if not (isinstance(timeout, int | float) and timeout > 0 and math.isfinite(timeout)):
-            raise ValueError(f"timeout must be a positive number of seconds, got {timeout!r}")
-        if links is None:
-            urls: list[Any] = [*_serial_candidates(), _DETECT_UDP]
-        elif isinstance(links, str):
-            urls = [links]
-        else:
-            urls = list(links)
+        urls = detect_links(links, timeout, lambda: [*_serial_candidates(), _DETECT_UDP])
         plans = [_detect_plan(url) for url in urls]  # every link checked before any is opened
         entries: list[dict[str, Any]] = []
         for plan in plans:
