@@ -46,3 +46,17 @@ def test_joining_a_fleet_needs_a_key_or_insecure() -> None:
     proc = robot("--profile", str(ARM))
     assert proc.returncode == 2
     assert "a fleet key is needed" in proc.stderr
+
+
+def test_a_restart_with_a_state_dir_loads_the_robot_afresh(tmp_path: Path) -> None:
+    # The first run's robot resource is in the registrar's journal when the process ends; the
+    # second run restores it (FATAL: its drivers ran in the first process), lets the first
+    # run's references go and loads the robot again.
+    state = tmp_path / "state"
+    for run in (1, 2, 3):
+        proc = robot(
+            "--profile", str(ARM), "--mission", str(MISSION), "--local", "--state-dir", str(state)
+        )
+        assert proc.returncode == 0, f"run {run}: {proc.stderr}"
+        assert proc.stdout.splitlines()[-1].startswith("arm_poses: on_true in ")
+    assert sorted(p.name for p in state.iterdir()) == ["registrar.journal", "world.journal"]

@@ -43,6 +43,11 @@ EXIT_OK = 0
 EXIT_FAILED = 1
 EXIT_INVALID = 2
 
+#: The registrar client this command holds the robot as.
+CLIENT = "robot-manager"
+
+logger = logging.getLogger("temoto.robot")
+
 
 class _Progress(Instrument):
     """Mission progress for people: node changes, the robot's pose, the end."""
@@ -150,7 +155,12 @@ def _run(args: argparse.Namespace) -> int:
         manager = RobotManager(instance.registrar, profile, clock=clock)
         instance.add_manager(manager)
         # load the robot now: a device that does not answer fails here, not mid-mission
-        robot = RobotManagerClient(instance.registrar).request(client="robot-manager")
+        # references this command held before a restart died with its process: let them go
+        # (a restored robot is FATAL: its drivers ran there), then load the robot afresh
+        stale = instance.registrar.release_client(CLIENT)
+        if stale:
+            logger.info("released %d references of the previous run", stale)
+        robot = RobotManagerClient(instance.registrar).request(client=CLIENT)
         where = "simulated" if profile.sim else "hardware"
         out.write(
             f"robot '{profile.robot}' ready in {time.monotonic() - t0:.2f} s ({where};"

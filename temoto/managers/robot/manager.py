@@ -25,7 +25,7 @@ from typing import Any, ClassVar
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.config import Profile
-from temoto.core.registrar import LoadContext, Registrar, ResourceServer, Status
+from temoto.core.registrar import LoadContext, Registrar, ResourceInfo, ResourceServer, Status
 from temoto.drivers import Actuator, Driver, DriverState, Health, Vehicle, driver_class
 from temoto.drivers.sim import Simulator
 from temoto.errors import ResourceNotFoundError, StateError
@@ -317,6 +317,10 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         if robot is not None:
             robot.close()
 
+    def on_restore(self, resource: ResourceInfo) -> tuple[Status, str] | None:
+        """After a restart from the catalog: the robot's control loop died with its process."""
+        return Status.FATAL, _GONE
+
     def shutdown(self) -> None:
         """Close every robot and device still open (e.g. the registrar is closing)."""
         with self._lock:
@@ -391,6 +395,13 @@ def _close_device(device: _Device) -> None:
             device.sim.close()
 
 
+#: What the consumers of a robot or device restored from the catalog are told.
+_GONE = (
+    "the Robot Manager that drove it stopped (its drivers ran in that process); request the"
+    " robot again to load it afresh"
+)
+
+
 class _DriverServer(ResourceServer[DriverRequest, DriverResponse]):
     """The ``"driver"`` server of a :class:`RobotManager`."""
 
@@ -408,3 +419,7 @@ class _DriverServer(ResourceServer[DriverRequest, DriverResponse]):
     def on_unload(self, request: DriverRequest, response: DriverResponse) -> None:
         """Shut the device down (and its simulator)."""
         self._manager._close_device(request)
+
+    def on_restore(self, resource: ResourceInfo) -> tuple[Status, str] | None:
+        """After a restart from the catalog: the driver's threads died with its process."""
+        return Status.FATAL, _GONE
