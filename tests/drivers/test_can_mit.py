@@ -339,3 +339,28 @@ def test_profile_errors_name_the_key_path() -> None:
     bad({**ok, "motors": [inverted]}, "motors[0].position_min", "below")
     bad({**ok, "poll_rate": 0}, "poll_rate", "positive")
     bad({**ok, "link": "can0"}, "link", "mapping")
+
+
+def test_a_late_supervisor_poll_does_not_undo_activation(
+    pair: tuple[MitMotorDriver, SimMitMotor], clock: ManualClock, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # The supervisor re-sends each motor's held frame every period. A poll sent late by a busy
+    # supervisor thread lands after activate's ENTER: it must not be an EXIT (it was, and the
+    # motors then ignored every set-point: a CI flake of the contract's fault test).
+    driver, sim = pair
+    driver.configure()
+    real_ping = driver._ping
+    late: list[int] = []
+
+    def ping_then_late_poll(frame: bytes) -> None:
+        real_ping(frame)
+        late.extend(c.replies for c in driver._cache)
+        driver._on_period(clock.monotonic())  # what the late poll sends
+
+    monkeypatch.setattr(driver, "_ping", ping_then_late_poll)
+    driver.activate()
+    eventually(lambda: all(c.replies > n for c, n in zip(driver._cache, late, strict=True)), 1.0)
+    assert sim.motors[1].enabled
+    assert sim.motors[2].enabled
+    driver.command([JointCommand("shoulder", ControlMode.POSITION, 1.0)])
+    eventually(lambda: abs(position(driver, "shoulder") - 1.0) < 0.01, 3.0, clock)

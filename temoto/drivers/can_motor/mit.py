@@ -290,6 +290,11 @@ class MitMotorDriver(CanMotorDriver):
 
     def on_activate(self) -> None:
         """Enter motor mode and hold the current position."""
+        # The supervisor re-sends each motor's held frame every period. Until now that was
+        # EXIT; one such poll sent late (a busy supervisor thread) would land after ENTER and
+        # take the motor out of motor mode again, for good. Hold ENTER first.
+        for c in self._cache:
+            c.held = mm.CMD_ENTER
         self._ping(mm.CMD_ENTER)
         for c in self._cache:
             m = c.motor
