@@ -557,9 +557,21 @@ def _link(index: int, link: object) -> dict[str, Any]:
 
 
 def _available_links() -> list[dict[str, Any]]:
-    """What python-can can open here (a configuration not in profile form is skipped)."""
+    """What python-can can open here (a configuration not in profile form is skipped).
+
+    python-can imports every interface module to ask it, and each one that lacks its vendor
+    library logs a WARNING on the ``can`` logger (a dozen on a machine without them); those
+    are not shown: that logger is quieted to ERROR for the call.
+    """
+    quiet = logging.getLogger("can")
+    level = quiet.level
+    quiet.setLevel(logging.ERROR)
+    try:
+        configs = can.detect_available_configs()
+    finally:
+        quiet.setLevel(level)
     links: list[dict[str, Any]] = []
-    for index, config in enumerate(can.detect_available_configs()):
+    for index, config in enumerate(configs):
         try:
             links.append(_link(index, config))
         except ValueError as err:
