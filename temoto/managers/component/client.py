@@ -13,7 +13,8 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from temoto.core.registrar import Registrar, Resource, StatusUpdate
-from temoto.errors import ComponentNotFoundError, ResourceNotFoundError
+from temoto.errors import ComponentNotFoundError
+from temoto.managers._client import find_manager, registrar_of
 from temoto.managers.component.manager import ComponentManager
 from temoto.managers.component.messages import (
     ComponentRequest,
@@ -114,11 +115,8 @@ class ComponentManagerClient:
     """
 
     def __init__(self, registrar: Registrar) -> None:
-        server = registrar.server(ComponentManager.name)
-        if not isinstance(server, ComponentManager):
-            raise ResourceNotFoundError("the 'component' server is not a Component Manager")
         self.registrar = registrar
-        self.manager = server
+        self.manager = find_manager(registrar, ComponentManager, "Component Manager")
 
     @classmethod
     def for_action(cls, action: Action) -> ComponentManagerClient:
@@ -127,9 +125,7 @@ class ComponentManagerClient:
         Raises:
             ResourceNotFoundError: The engine has no registrar, or no Component Manager.
         """
-        if action.registrar is None:
-            raise ResourceNotFoundError(f"{action.name}: this engine has no resource registrar")
-        return cls(action.registrar)
+        return cls(registrar_of(action))
 
     def component_request(
         self,

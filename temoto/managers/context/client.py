@@ -15,7 +15,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from temoto.core.registrar import Registrar, Resource
-from temoto.errors import ResourceNotFoundError
+from temoto.managers._client import find_manager, registrar_of
 from temoto.managers.context.manager import Change, ContextManager, MaintainRequest
 from temoto.managers.context.pose import Pose
 from temoto.managers.context.tree import Item
@@ -37,11 +37,8 @@ class ContextClient:
     """
 
     def __init__(self, registrar: Registrar) -> None:
-        server = registrar.server(ContextManager.name)
-        if not isinstance(server, ContextManager):
-            raise ResourceNotFoundError("the 'context' server is not a Context Manager")
         self.registrar = registrar
-        self.manager = server
+        self.manager = find_manager(registrar, ContextManager, "Context Manager")
 
     @classmethod
     def for_action(cls, action: Action) -> ContextClient:
@@ -50,9 +47,7 @@ class ContextClient:
         Raises:
             ResourceNotFoundError: The engine has no registrar, or no Context Manager on it.
         """
-        if action.registrar is None:
-            raise ResourceNotFoundError(f"{action.name}: this engine has no resource registrar")
-        return cls(action.registrar)
+        return cls(registrar_of(action))
 
     # ---- the manager's calls (see ContextManager for arguments and errors) --------------------
 

@@ -13,7 +13,8 @@ from typing import TYPE_CHECKING, Any
 
 from temoto.core.registrar import Registrar, Resource
 from temoto.drivers import GeoPoint
-from temoto.errors import ResourceNotFoundError, StateError, StopRequested
+from temoto.errors import StateError, StopRequested
+from temoto.managers._client import find_manager, registrar_of
 from temoto.managers.robot.features import (
     ArmController,
     DriveController,
@@ -123,11 +124,8 @@ class RobotManagerClient:
     """
 
     def __init__(self, registrar: Registrar) -> None:
-        server = registrar.server("robot")
-        if not isinstance(server, RobotManager):
-            raise ResourceNotFoundError("the 'robot' server is not a Robot Manager")
         self.registrar = registrar
-        self.manager = server
+        self.manager = find_manager(registrar, RobotManager, "Robot Manager")
 
     @classmethod
     def for_action(cls, action: Action) -> RobotManagerClient:
@@ -136,9 +134,7 @@ class RobotManagerClient:
         Raises:
             ResourceNotFoundError: The engine has no registrar, or no Robot Manager on it.
         """
-        if action.registrar is None:
-            raise ResourceNotFoundError(f"{action.name}: this engine has no resource registrar")
-        return cls(action.registrar)
+        return cls(registrar_of(action))
 
     def acquire(self, action: Action, robot: str = "") -> RobotHandle:
         """Request the robot for an action (released when its graph ends).
