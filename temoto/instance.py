@@ -22,9 +22,9 @@ from __future__ import annotations
 import logging
 from collections.abc import Iterable
 from pathlib import Path
-from types import TracebackType
-from typing import TYPE_CHECKING, Self
+from typing import TYPE_CHECKING
 
+from temoto._closing import Closing
 from temoto.actions.builtin import COMPONENT_ACTIONS, CONTEXT_ACTIONS
 from temoto.clock import Clock
 from temoto.core.catalog import ActionCatalog, GraphIndex
@@ -48,7 +48,7 @@ __all__ = ["Instance"]
 logger = logging.getLogger(__name__)
 
 
-class Instance:
+class Instance(Closing):
     """An engine, a registrar with its managers, and the fleet services, for one actor.
 
     Args:
@@ -164,14 +164,6 @@ class Instance:
                 _close(part)
             transport.close()
             raise
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self, et: type[BaseException] | None, ev: BaseException | None, tb: TracebackType | None
-    ) -> None:
-        self.close()
 
     def close(self) -> None:
         """Stop everything the instance runs, in dependency order (idempotent)."""

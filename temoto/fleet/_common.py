@@ -10,9 +10,9 @@ import logging
 import math
 import threading
 from collections.abc import Callable, Collection
-from types import TracebackType
-from typing import Any, Self
+from typing import Any
 
+from temoto._closing import Closing
 from temoto.errors import DecodeError
 from temoto.transport import codec
 from temoto.transport.auth import Opened
@@ -137,25 +137,6 @@ class CallQueue:
                 with self._cond:
                     self.errors += 1
                 logger.exception("%s raised", self._what)
-
-
-class Closing:
-    """Context-manager support for a fleet service: leaving ``with`` calls ``close()``."""
-
-    def close(self) -> None:  # pragma: no cover - every subclass defines it
-        """Stop the service."""
-        raise NotImplementedError
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
 
 def decode_or_count(

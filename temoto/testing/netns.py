@@ -48,8 +48,9 @@ import signal
 import subprocess
 import time
 from collections.abc import Sequence
-from types import TracebackType
-from typing import Any, Final, Self
+from typing import Any, Final
+
+from temoto._closing import Closing
 
 __all__ = [
     "LCM_URL",
@@ -188,7 +189,7 @@ def remove_leftovers(*, all_owners: bool = False) -> list[str]:
     return removed
 
 
-class RobotNetwork:
+class RobotNetwork(Closing):
     """Network namespaces for ``robots`` robots on one simulated switch (a context manager).
 
     Building needs root and ``ip``; on a failure halfway, whatever was built is removed
@@ -258,17 +259,6 @@ class RobotNetwork:
     def __repr__(self) -> str:
         state = "closed" if self._closed else f"{len(self.robots)} robots"
         return f"<RobotNetwork {self.switch.removesuffix('-sw')} {state}>"
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     def namespace(self, robot: int | str) -> str:
         """The namespace of a robot.

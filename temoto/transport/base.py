@@ -19,9 +19,8 @@ import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Hashable
-from types import TracebackType
-from typing import Self
 
+from temoto._closing import Closing
 from temoto.errors import TransportError
 
 __all__ = ["CHANNEL_MAX_LEN", "Handler", "Subscription", "Transport", "check_channel"]
@@ -152,7 +151,7 @@ class Subscription(ABC):
         return f"<{type(self).__name__} {self.channel!r} {state}>"
 
 
-class Transport(ABC):
+class Transport(Closing, ABC):
     """Publishes byte strings on named channels and delivers them to subscribed handlers.
 
     Use it as a context manager or call :meth:`close`. Implementations override the hooks
@@ -247,17 +246,6 @@ class Transport(ABC):
     def handler_errors(self) -> int:
         """How many times a handler of this transport raised."""
         return self._handler_errors
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
 
     # --- for implementations ------------------------------------------------------------------
 

@@ -26,10 +26,10 @@ import threading
 from functools import cache
 from http import HTTPStatus
 from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
-from types import TracebackType
-from typing import TYPE_CHECKING, Any, Self, final
+from typing import TYPE_CHECKING, Any, final
 from urllib.parse import unquote, urlsplit
 
+from temoto._closing import Closing
 from temoto.errors import GraphNotFoundError
 from temoto.web import _page
 from temoto.web.events import EventHub
@@ -173,7 +173,7 @@ class _Handler(BaseHTTPRequestHandler):
 
 
 @final
-class LiveView:
+class LiveView(Closing):
     """Serves a live picture of an engine's graph runs to a browser (started at once).
 
     Args:
@@ -258,14 +258,3 @@ class LiveView:
         self._httpd.shutdown()
         self._thread.join()
         self._httpd.server_close()  # closes the socket, joins the request threads
-
-    def __enter__(self) -> Self:
-        return self
-
-    def __exit__(
-        self,
-        exc_type: type[BaseException] | None,
-        exc: BaseException | None,
-        tb: TracebackType | None,
-    ) -> None:
-        self.close()
