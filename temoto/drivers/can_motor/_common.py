@@ -74,6 +74,25 @@ class Profile:
             where = f"{path}.{unknown[0]}" if path else unknown[0]
             raise self.fail(where, f"unknown key (known: {', '.join(sorted(keys))})")
 
+    def entry(self, config: object, keys: frozenset[str], kind: str) -> Mapping[str, Any]:
+        """A device entry checked as a whole: a mapping, known keys, its own ``driver``.
+
+        Args:
+            config: The entry.
+            keys: The keys the driver knows.
+            kind: The driver's name.
+
+        Returns:
+            The entry.
+
+        Raises:
+            ProfileError: Not a mapping, an unknown key, or another driver named.
+        """
+        cfg = self.mapping(config, "")
+        self.known(cfg, keys, "")
+        self.driver(cfg, kind)
+        return cfg
+
     def driver(self, cfg: Mapping[str, Any], kind: str) -> None:
         """Check the entry's optional ``driver`` key: it may only name this driver.
 

@@ -185,9 +185,7 @@ class MitMotorDriver(CanMotorDriver):
             ProfileError: A bad entry; the message names the key path.
         """
         p = Profile(where)
-        cfg = p.mapping(config, "")
-        p.known(cfg, _KEYS, "")
-        p.driver(cfg, cls.kind)
+        cfg = p.entry(config, _KEYS, cls.kind)
         link = p.link(cfg)
         host = p.integer(cfg, "host_id", "", 0, 0x7FF) if "host_id" in cfg else 0
         motors: list[MitMotor] = []

@@ -221,9 +221,7 @@ class ODriveDriver(CanMotorDriver):
             ProfileError: A bad entry; the message names the key path.
         """
         p = Profile(where)
-        cfg = p.mapping(config, "")
-        p.known(cfg, _KEYS, "")
-        p.driver(cfg, cls.kind)
+        cfg = p.entry(config, _KEYS, cls.kind)
         link = p.link(cfg)
         nodes: list[ODriveNode] = []
         members = p.members(
