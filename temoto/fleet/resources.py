@@ -43,14 +43,20 @@ from typing import TYPE_CHECKING, Any, ClassVar, Final, final
 from temoto.core.registrar import LoadContext, Resource, ResourceInfo, ResourceServer, Status
 from temoto.core.registrar.messages import StatusUpdate
 from temoto.errors import (
-    DecodeError,
     NoProviderError,
     ResourceClosedError,
     ResourceError,
     TransportError,
     TransportTimeoutError,
 )
-from temoto.fleet._common import CallQueue, Closing, check_name, check_seconds, new
+from temoto.fleet._common import (
+    CallQueue,
+    Closing,
+    check_name,
+    check_seconds,
+    decode_or_count,
+    new,
+)
 from temoto.fleet._provider import Provider, remember
 from temoto.fleet.resource_types import (
     ERROR,
@@ -513,24 +519,20 @@ class RemoteResources(Closing):
     # --- receiving (the transport's thread) ---------------------------------------------------
 
     def _on_message(self, opened: Opened) -> None:
-        try:
-            msg = codec.decode(opened.type, opened.payload)
-        except DecodeError as err:
-            with self._lock:
-                self._counts["decode_errors"] += 1
-            logger.debug("dropped a message from %r: %s", opened.sender, err)
-            return
-        handler = {
+        handlers = {
             "resource_request_t": self._on_request,
             "resource_reply_t": self._on_reply,
             "resource_release_t": self._on_release,
             "resource_status_t": self._on_status,
-        }.get(opened.type)
-        if handler is None or not msg.provider or not msg.consumer:
+        }
+        msg = decode_or_count(opened, handlers, self._counts, self._lock)
+        if msg is None:
+            return
+        if not msg.provider or not msg.consumer:
             with self._lock:
                 self._counts["unexpected"] += 1
             return
-        handler(msg)
+        handlers[opened.type](msg)
 
     def _on_request(self, msg: Any) -> None:
         if msg.provider == self.manager:  # else for another manager

@@ -35,8 +35,15 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, final
 
-from temoto.errors import DecodeError, TransportError
-from temoto.fleet._common import CallQueue, Closing, check_name, check_seconds, new
+from temoto.errors import TransportError
+from temoto.fleet._common import (
+    CallQueue,
+    Closing,
+    check_name,
+    check_seconds,
+    decode_or_count,
+    new,
+)
 from temoto.lcm_types import ris_advert_t, ris_request_t, ris_server_t, ris_withdraw_t
 from temoto.transport import codec
 
@@ -476,23 +483,14 @@ class ResourceInfoSync(Closing):
     # --- receiving (the transport's thread) ---------------------------------------------------
 
     def _on_message(self, opened: Opened) -> None:
-        try:
-            msg = codec.decode(opened.type, opened.payload)
-        except DecodeError as err:
-            with self._lock:
-                self._counts["decode_errors"] += 1
-            logger.debug("RIS: dropped a message from %r: %s", opened.sender, err)
-            return
-        if opened.type == "ris_advert_t":
-            self._on_advert(msg)
-        elif opened.type == "ris_request_t":
-            self._on_request(msg)
-        elif opened.type == "ris_withdraw_t":
-            self._on_withdraw(msg)
-        else:
-            with self._lock:
-                self._counts["unexpected"] += 1
-            logger.debug("RIS: dropped a %s from %r", opened.type, opened.sender)
+        handlers = {
+            "ris_advert_t": self._on_advert,
+            "ris_request_t": self._on_request,
+            "ris_withdraw_t": self._on_withdraw,
+        }
+        msg = decode_or_count(opened, handlers, self._counts, self._lock)
+        if msg is not None:
+            handlers[opened.type](msg)
 
     def _valid_source(self, robot: Any, manager: Any) -> bool:
         """A robot and manager name another robot may use (lock held; counts if not)."""
