@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from _robots import robot_manager
 
 from temoto import ActionEngine, Result
 from temoto.actions.builtin import ROBOT_ACTIONS
@@ -42,15 +43,8 @@ class Statuses:
 
 @pytest.fixture
 def arm() -> Iterator[tuple[Registrar, RobotManager]]:
-    registrar = Registrar("test-robot")
-    manager = RobotManager(registrar, load_profile(PROFILES / "sim_arm.yaml"))
-    try:
-        yield registrar, manager
-    finally:
-        for ref in registrar.references():
-            registrar.release(ref.id)
-        manager.shutdown()
-        registrar.close()
+    with robot_manager("test-robot", load_profile(PROFILES / "sim_arm.yaml")) as pair:
+        yield pair
 
 
 def test_the_robot_loads_with_its_driver_as_a_dependency_and_moves(

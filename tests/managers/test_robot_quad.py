@@ -9,6 +9,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from _robots import robot_manager
 
 from temoto import ActionEngine, Result, ScaledClock
 from temoto.actions.builtin import ROBOT_ACTIONS
@@ -26,15 +27,8 @@ WAIT = 20.0
 @pytest.fixture
 def quad() -> Iterator[tuple[Registrar, RobotManager, ScaledClock]]:
     clock = ScaledClock(10)
-    registrar = Registrar("test-quad")
-    manager = RobotManager(registrar, load_profile(PROFILE, clock=clock), clock=clock)
-    try:
-        yield registrar, manager, clock
-    finally:
-        for ref in registrar.references():
-            registrar.release(ref.id)
-        manager.shutdown()
-        registrar.close()
+    with robot_manager("test-quad", load_profile(PROFILE, clock=clock), clock) as (reg, manager):
+        yield reg, manager, clock
 
 
 def test_the_survey_mission_flies_and_lands(

@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 import yaml
+from _robots import robot_manager
 
 from temoto import ActionEngine, Result, ScaledClock
 from temoto.actions.builtin import ROBOT_ACTIONS
@@ -45,16 +46,9 @@ def mission(name: str) -> dict[str, object]:
 @pytest.fixture
 def rover() -> Iterator[tuple[Registrar, RobotManager, ScaledClock]]:
     clock = ScaledClock(5)
-    registrar = Registrar("test-rover")
     profile = sim_profile("sim_rover.yaml", clock)
-    manager = RobotManager(registrar, profile, clock=clock)
-    try:
+    with robot_manager("test-rover", profile, clock) as (registrar, manager):
         yield registrar, manager, clock
-    finally:
-        for ref in registrar.references():
-            registrar.release(ref.id)
-        manager.shutdown()
-        registrar.close()
 
 
 def test_the_route_comes_back_to_the_start(
