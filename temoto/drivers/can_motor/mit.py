@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final, Self
@@ -92,7 +93,17 @@ class MitMotor:
 class _Motor:
     """The receive thread's cache of one motor."""
 
-    __slots__ = ("bad", "error", "held", "motor", "replies", "reply", "temperature", "unanswered")
+    __slots__ = (
+        "bad",
+        "error",
+        "held",
+        "motor",
+        "outstanding",
+        "replies",
+        "reply",
+        "temperature",
+        "unanswered",
+    )
 
     def __init__(self, motor: MitMotor) -> None:
         self.motor = motor
@@ -101,6 +112,9 @@ class _Motor:
     def reset(self) -> None:
         self.reply: tuple[float, float, float, float] | None = None  # p, v, t, stamp
         self.replies = 0
+        #: frames sent and not answered yet (a motor answers every frame, in order), forgotten
+        #: when the supervisor finds the motor silent
+        self.outstanding = 0
         self.unanswered = 0
         self.error = 0
         self.temperature: int | None = None
@@ -163,6 +177,11 @@ class MitMotorDriver(CanMotorDriver):
         self._cache = [_Motor(m) for m in self.motors]
         self._by_id = {c.motor.motor_id: c for c in self._cache}
         self._by_joint = {c.motor.joint: c for c in self._cache}
+        # Guards each motor's held frame together with its sending: once a new frame is held,
+        # no poll can still send the old one after it (a supervisor thread descheduled between
+        # reading and sending once sent EXIT after activate's ENTER: the motors then ignored
+        # every set-point).
+        self._held_lock = threading.Lock()
 
     # ---- profile ---------------------------------------------------------------------------
 
@@ -271,8 +290,9 @@ class MitMotorDriver(CanMotorDriver):
             c.reset()
         self._latched = False
         self._open()
-        for c in self._cache:
-            self._send(c.motor.motor_id, mm.CMD_EXIT)
+        with self._held_lock:
+            for c in self._cache:
+                self._send_to(c, mm.CMD_EXIT)
         if not self._wait_for(
             lambda: all(c.reply is not None for c in self._cache),
             self.init_timeout,
@@ -288,21 +308,16 @@ class MitMotorDriver(CanMotorDriver):
 
     def on_activate(self) -> None:
         """Enter motor mode and hold the current position."""
-        # The supervisor re-sends each motor's held frame every period. Until now that was
-        # EXIT; one such poll sent late (a busy supervisor thread) would land after ENTER and
-        # take the motor out of motor mode again, for good. Hold ENTER first.
-        for c in self._cache:
-            c.held = mm.CMD_ENTER
+        self._hold(dict.fromkeys(self._cache, mm.CMD_ENTER))  # the polls now re-send ENTER
         self._ping(mm.CMD_ENTER)
         for c in self._cache:
             m = c.motor
             pos = c.reply[0] if c.reply is not None else 0.0
-            c.held = mm.encode_command(mm.MitCommand(pos, 0.0, m.kp, m.kd, 0.0), m.ranges)
+            self._hold({c: mm.encode_command(mm.MitCommand(pos, 0.0, m.kp, m.kd, 0.0), m.ranges)})
 
     def on_deactivate(self) -> None:
         """Exit motor mode (the motors go limp)."""
-        for c in self._cache:
-            c.held = mm.CMD_EXIT
+        self._hold(dict.fromkeys(self._cache, mm.CMD_EXIT))
         self._ping(mm.CMD_EXIT)
 
     def on_recover(self) -> None:
@@ -315,18 +330,43 @@ class MitMotorDriver(CanMotorDriver):
             self.on_configure()
             return
         for c in self._cache:
-            c.held, c.bad = mm.CMD_EXIT, None
+            c.bad = None
+        self._hold(dict.fromkeys(self._cache, mm.CMD_EXIT))
         self._ping(mm.CMD_EXIT)
         problem = self._problem(self.clock.monotonic())
         if problem is not None:
             raise problem
         self._latched = False
 
+    def _hold(self, frames: Mapping[_Motor, bytes], *, send: bool = False) -> None:
+        """Make these the frames the supervisor re-sends (and, with ``send``, send them now).
+
+        Raises:
+            DriverOperationError: ``send`` and the bus refused a frame.
+        """
+        with self._held_lock:
+            for c, frame in frames.items():
+                c.held = frame
+                if send:
+                    self._send_to(c, frame)
+
+    def _send_to(self, c: _Motor, frame: bytes) -> None:
+        """Send a frame to one motor, counted until it answers (``_held_lock`` held)."""
+        self._send(c.motor.motor_id, frame)
+        c.outstanding += 1
+
     def _ping(self, frame: bytes) -> None:
-        """Send ``frame`` to every motor and wait for each to answer it."""
-        counts = {c: c.replies for c in self._cache}
-        for c in self._cache:
-            self._send(c.motor.motor_id, frame)
+        """Send ``frame`` to every motor and wait for each to answer it.
+
+        A motor answers every frame, in order, so the answer to ``frame`` is the reply after
+        those to the frames still outstanding (a supervisor poll sent just before can be
+        answered after the snapshot: counting any reply as the answer once let ``activate``
+        return before ENTER had reached the motor).
+        """
+        with self._held_lock:
+            counts = {c: c.replies + c.outstanding for c in self._cache}
+            for c in self._cache:
+                self._send_to(c, frame)
         if not self._wait_for(
             lambda: all(c.replies > n for c, n in counts.items()), self.init_timeout
         ):
@@ -373,9 +413,7 @@ class MitMotorDriver(CanMotorDriver):
                     f" range ±{top} (motor side)"
                 )
             plan.append((c, mm.encode_command(fields, m.ranges)))
-        for c, frame in plan:
-            c.held = frame
-            self._send(c.motor.motor_id, frame)
+        self._hold(dict(plan), send=True)
 
     def read_state(self) -> JointStates:
         """The newest reply of every motor (the cache; no bus traffic).
@@ -405,6 +443,8 @@ class MitMotorDriver(CanMotorDriver):
         c = self._by_id.get(data[0]) if data else None
         if c is None:
             return
+        with self._held_lock:  # an answer, even a malformed one
+            c.outstanding = max(0, c.outstanding - 1)
         if len(data) not in (6, 8):
             c.bad = f"{c.label()}: malformed reply ({len(data)} data bytes)"
             self._evaluate()
@@ -425,8 +465,10 @@ class MitMotorDriver(CanMotorDriver):
             return
         for c in self._cache:
             c.unanswered += 1
-            with contextlib.suppress(DriverError):  # a broken bus shows as missing replies
-                self._send(c.motor.motor_id, c.held)
+            with contextlib.suppress(DriverError), self._held_lock:  # a broken bus shows as
+                if c.unanswered > self.timeout_periods:  # missing replies; the motor is
+                    c.outstanding = 0  # silent: what it was sent is lost, not pending
+                self._send_to(c, c.held)
 
     def _problem(self, now: float) -> DriverError | None:
         for c in self._cache:
