@@ -12,7 +12,14 @@ its library) on first use.
 
 from __future__ import annotations
 
-from temoto.drivers.base import Driver, DriverState, Health, HealthListener
+from temoto.drivers.base import (
+    Driver,
+    DriverState,
+    Health,
+    HealthListener,
+    live_drivers,
+    make_all_safe,
+)
 from temoto.drivers.capabilities import (
     Actuator,
     ControlMode,
@@ -40,4 +47,6 @@ __all__ = [
     "VehicleTelemetry",
     "driver_class",
     "driver_names",
+    "live_drivers",
+    "make_all_safe",
 ]

@@ -15,15 +15,28 @@ the device answers again the driver calls :meth:`Driver.report_recovered` (or so
 reports into registrar statuses (FATAL, then OK) for every consumer of the robot.
 
 ``__init__`` stores configuration only and never touches hardware.
+
+**Safe state** (``docs/safety.md``). Every driver declares the states it can leave its device
+in when TeMoto lets go of it (:attr:`Driver.safe_states`, the first is the default; a profile
+picks one with ``safe_state:``). :meth:`Driver.make_safe` applies it from any configured state,
+``FAULT`` included (best effort: a frame is still sent to a device that stopped answering), and
+:meth:`Driver.shutdown` applies it before closing the link, so every path that shuts a driver
+down (mission end, release, fault, exception) leaves the device safe. For paths that skip the
+shutdown, :func:`make_all_safe` reaches every configured driver of the process: the robot
+command calls it on SIGINT/SIGTERM, and it runs at interpreter exit. A process that dies
+without running Python code (SIGKILL, a hang) is covered by the devices' own watchdogs, which
+the drivers feed by sending set-points at a steady rate.
 """
 
 from __future__ import annotations
 
+import atexit
 import enum
 import logging
 import math
 import threading
 import warnings
+import weakref
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -35,10 +48,19 @@ from temoto.errors import (
     DriverError,
     DriverInitError,
     DriverOperationError,
+    ProfileError,
     StateError,
 )
 
-__all__ = ["Driver", "DriverState", "Health", "HealthListener", "detect_links"]
+__all__ = [
+    "Driver",
+    "DriverState",
+    "Health",
+    "HealthListener",
+    "detect_links",
+    "live_drivers",
+    "make_all_safe",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -103,6 +125,14 @@ class Driver(ABC):
     #: The profile's ``driver`` value that selects this class.
     kind: ClassVar[str] = ""
 
+    #: The safe states this driver can leave its device in (``safe_state:`` in a profile);
+    #: the first is the default. Each driver documents what each one sends.
+    safe_states: ClassVar[tuple[str, ...]] = ("idle",)
+
+    #: Real seconds :meth:`make_safe` waits for a transition running on another thread before
+    #: it sends anyway (a driver stuck in ``configure`` must not delay the safe state).
+    SAFE_LOCK_WAIT: ClassVar[float] = 0.05
+
     def __init__(self, name: str, *, clock: Clock | None = None) -> None:
         if not isinstance(name, str) or not name:
             raise ValueError(f"a driver needs a name, got {name!r}")
@@ -114,6 +144,7 @@ class Driver(ABC):
         self._before_fault = DriverState.INACTIVE
         self._health = Health(name, self._state, False, "not configured", self.clock.monotonic())
         self._listeners: list[HealthListener] = []
+        self._safe_state = type(self).safe_states[0]
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name!r} {self.state.value}>"
@@ -171,6 +202,38 @@ class Driver(ABC):
 
         return remove
 
+    @property
+    def safe_state(self) -> str:
+        """The state :meth:`make_safe` leaves the device in (one of :attr:`safe_states`)."""
+        return self._safe_state
+
+    @safe_state.setter
+    def safe_state(self, value: str) -> None:
+        if value not in type(self).safe_states:
+            known = ", ".join(type(self).safe_states)
+            raise ValueError(f"{self.name}: safe_state must be one of {known}, got {value!r}")
+        self._safe_state = value
+
+    @classmethod
+    def safe_state_from(cls, config: Mapping[str, Any], where: str) -> str:
+        """The ``safe_state`` of a profile entry, checked (the default when it is absent).
+
+        Args:
+            config: The device's profile entry.
+            where: The entry's key path, for messages.
+
+        Returns:
+            One of :attr:`safe_states`.
+
+        Raises:
+            ProfileError: The value is not one of them (the message names the key path).
+        """
+        value = config.get("safe_state", cls.safe_states[0])
+        if value not in cls.safe_states:
+            known = ", ".join(cls.safe_states)
+            raise ProfileError(f"{where}.safe_state: must be one of {known}, got {value!r}")
+        return str(value)
+
     # ---- transitions -----------------------------------------------------------------------
 
     def configure(self) -> None:
@@ -190,6 +253,7 @@ class Driver(ABC):
                 self._quietly(self.on_shutdown)
                 raise _as_driver_error(err, DriverInitError, f"{self.name}: configure") from err
             self._set(DriverState.INACTIVE, "configured")
+            _LIVE.add(self)
 
     def activate(self) -> None:
         """Make the device ready to act (``INACTIVE → ACTIVE``).
@@ -241,7 +305,7 @@ class Driver(ABC):
             self._set(DriverState.INACTIVE, "recovered")
 
     def shutdown(self) -> None:
-        """Close the link and finish (any state → ``FINALIZED``).
+        """Make the device safe, close the link and finish (any state → ``FINALIZED``).
 
         Idempotent; never raises for the device (a failing close is logged).
         """
@@ -249,8 +313,48 @@ class Driver(ABC):
             if self.state is DriverState.FINALIZED:
                 return
             if self.state is not DriverState.UNCONFIGURED:
+                self._quietly(lambda: self.make_safe("shutdown"))
                 self._quietly(self.on_shutdown)
             self._set(DriverState.FINALIZED, "shut down")
+            _LIVE.discard(self)
+
+    def make_safe(self, reason: str = "") -> str | None:
+        """Put the device in its declared :attr:`safe_state`, now.
+
+        Works from ``INACTIVE``, ``ACTIVE`` and ``FAULT`` (to a device that stopped answering the
+        commands are still sent, best effort); an ``ACTIVE`` driver becomes ``INACTIVE``.
+        Callable from any thread, also while another transition runs (after
+        :attr:`SAFE_LOCK_WAIT` it sends anyway); calling it again sends again.
+
+        Args:
+            reason: Why (for the log line).
+
+        Returns:
+            What was done, for people (``"left wheel IDLE, right wheel IDLE"``), or None when
+            the driver holds no link (``UNCONFIGURED`` or ``FINALIZED``).
+
+        Raises:
+            DriverError: Sending failed (the device may not be safe; the driver goes to
+                ``FAULT``).
+        """
+        locked = self._lifecycle.acquire(timeout=self.SAFE_LOCK_WAIT)
+        try:
+            state = self.state
+            if state in (DriverState.UNCONFIGURED, DriverState.FINALIZED):
+                return None
+            try:
+                done = self.on_make_safe()
+            except BaseException as err:
+                error = _as_driver_error(err, DriverOperationError, f"{self.name}: make safe")
+                self.report_fault(error)
+                raise error from err
+            if state is DriverState.ACTIVE and self.state is DriverState.ACTIVE:
+                self._set(DriverState.INACTIVE, f"safe: {done}")
+            logger.info("driver %s: safe (%s): %s", self.name, reason or "asked", done)
+            return done
+        finally:
+            if locked:
+                self._lifecycle.release()
 
     # ---- reports from the driver's own threads ---------------------------------------------
 
@@ -327,6 +431,21 @@ class Driver(ABC):
     def on_deactivate(self) -> None:  # noqa: B027  # optional hook: nothing to do by default
         """Stop acting but keep the link (hold or disable torque)."""
 
+    def on_make_safe(self) -> str:
+        """Put the device in :attr:`safe_state` and say what was done (see :meth:`make_safe`).
+
+        Called in ``INACTIVE``, ``ACTIVE`` or ``FAULT``, possibly from a signal's thread while
+        another thread uses the link: send, wait briefly (a bounded time) if the protocol
+        confirms, never block on the device. The default runs :meth:`on_deactivate` when
+        ``ACTIVE``; drivers override it.
+
+        Returns:
+            What was done, for people.
+        """
+        if self.state is DriverState.ACTIVE:
+            self.on_deactivate()
+        return self.safe_state
+
     def on_recover(self) -> None:
         """Reconnect after a fault (default: configure again from scratch)."""
         self._quietly(self.on_shutdown)
@@ -377,6 +496,48 @@ class Driver(ABC):
             hook()
         except Exception:
             logger.exception("driver %s: %s failed", self.name, getattr(hook, "__name__", hook))
+
+
+#: Every driver configured and not yet shut down in this process (weakly held), for
+#: :func:`make_all_safe`: the one process-wide registry, for paths that cannot reach the
+#: drivers' owners (signals, interpreter exit).
+_LIVE: weakref.WeakSet[Driver] = weakref.WeakSet()
+
+
+def live_drivers() -> list[Driver]:
+    """Every driver of this process that is configured and not yet shut down.
+
+    Returns:
+        The drivers, in no particular order.
+    """
+    return list(_LIVE)
+
+
+def make_all_safe(reason: str = "") -> list[tuple[Driver, str]]:
+    """Put every configured driver of this process in its safe state (see ``make_safe``).
+
+    Never raises: a driver that fails is logged and listed with the error's text.
+
+    Args:
+        reason: Why (for the log lines).
+
+    Returns:
+        ``(driver, what was done)`` for each driver that holds a link.
+    """
+    done: list[tuple[Driver, str]] = []
+    for driver in live_drivers():
+        try:
+            what = driver.make_safe(reason)
+        except Exception as err:  # one device's failure never stops the others' safe state
+            logger.error("driver %s: could not make it safe: %s", driver.name, err)
+            done.append((driver, f"NOT SAFE: {err}"))
+            continue
+        if what is not None:
+            done.append((driver, what))
+    return done
+
+
+atexit.register(make_all_safe, "interpreter exit")
 
 
 def _as_driver_error(err: BaseException, category: type[DriverError], what: str) -> DriverError:
