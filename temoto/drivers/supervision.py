@@ -1,7 +1,7 @@
 """Small tools the drivers use to supervise what comes off the wire (``docs/safety.md``).
 
 :class:`StreamAge` turns a feedback stream's arrival times into a staleness fault: a stream
-configured at a period ``T`` is stale when nothing arrived for ``periods × T`` (3 by default).
+configured at a period ``T`` is stale when nothing arrived for ``periods * T`` (3 by default).
 :class:`FaultWindow` counts isolated bad events (malformed frames, CRC errors) and says when
 there were too many in a sliding window: one bad frame is logged and counted, never a fault.
 
@@ -15,7 +15,7 @@ import math
 from collections import deque
 from typing import Final
 
-__all__ = ["BAD_FRAMES_LIMIT", "BAD_FRAMES_WINDOW", "FaultWindow", "STALE_PERIODS", "StreamAge"]
+__all__ = ["BAD_FRAMES_LIMIT", "BAD_FRAMES_WINDOW", "STALE_PERIODS", "FaultWindow", "StreamAge"]
 
 #: Stream periods without data before a stream is stale.
 STALE_PERIODS: Final = 3.0
@@ -43,7 +43,7 @@ class StreamAge:
         ValueError: ``period`` or ``periods`` is not positive.
     """
 
-    __slots__ = ("name", "period", "max_age", "last")
+    __slots__ = ("last", "max_age", "name", "period")
 
     def __init__(self, name: str, period: float, periods: float = STALE_PERIODS) -> None:
         self.name = name
@@ -89,7 +89,7 @@ class FaultWindow:
         ValueError: ``limit`` is not a positive integer, or ``window`` not positive.
     """
 
-    __slots__ = ("limit", "window", "total", "_times")
+    __slots__ = ("_times", "limit", "total", "window")
 
     def __init__(self, limit: int = BAD_FRAMES_LIMIT, window: float = BAD_FRAMES_WINDOW) -> None:
         if not (isinstance(limit, int) and not isinstance(limit, bool) and limit > 0):
