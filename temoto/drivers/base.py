@@ -322,7 +322,8 @@ class Driver(ABC):
         """Put the device in its declared :attr:`safe_state`, now.
 
         Works from ``INACTIVE``, ``ACTIVE`` and ``FAULT`` (to a device that stopped answering the
-        commands are still sent, best effort); an ``ACTIVE`` driver becomes ``INACTIVE``.
+        commands are still sent, best effort); an ``ACTIVE`` driver becomes ``INACTIVE``, and a
+        driver in ``FAULT`` recovers to ``INACTIVE`` (activate it again to act).
         Callable from any thread, also while another transition runs (after
         :attr:`SAFE_LOCK_WAIT` it sends anyway); calling it again sends again.
 
@@ -348,7 +349,11 @@ class Driver(ABC):
                 error = _as_driver_error(err, DriverOperationError, f"{self.name}: make safe")
                 self.report_fault(error)
                 raise error from err
-            if state is DriverState.ACTIVE and self.state is DriverState.ACTIVE:
+            with self._lock:
+                now = self._state
+                if now is DriverState.FAULT:
+                    self._before_fault = DriverState.INACTIVE  # recovery finds it safe, not acting
+            if now is DriverState.ACTIVE:
                 self._set(DriverState.INACTIVE, f"safe: {done}")
             logger.info("driver %s: safe (%s): %s", self.name, reason or "asked", done)
             return done

@@ -6,20 +6,28 @@ actor is the robot's name with the built-in robot actions, and the fleet service
 commands, shared graphs, RIS). With ``--mission GRAPH.json`` it runs that graph at once and
 exits with its result (0 iff ``on_true``); without, it serves until SIGINT or SIGTERM.
 
+Every way out leaves the devices in their declared safe state (``docs/safety.md``): the
+drivers' shutdown applies it at a mission's end, after a failure or an exception; the first
+SIGINT or SIGTERM makes every device safe at once (one line per device on stderr), stops the
+mission and closes the instance, exiting 130 or 143 (0 when serving); a second one makes the
+devices safe again and exits at once, without waiting for the mission's actions.
+
 This module prints (like :mod:`temoto.cli`); nothing else in the package does.
 """
 
 from __future__ import annotations
 
 import argparse
+import contextlib
 import logging
+import os
 import secrets
 import signal
 import sys
 import threading
 import time
 from collections.abc import Sequence
-from typing import IO
+from typing import IO, Any
 
 from temoto._cli_fleet import (
     add_components_option,
@@ -35,6 +43,7 @@ from temoto.config import load_profile
 from temoto.core.graph import load_graph
 from temoto.core.instrument import Instrument
 from temoto.core.states import NodeState, Result
+from temoto.drivers import make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
 
 __all__ = ["main"]
@@ -47,6 +56,66 @@ EXIT_INVALID = 2
 CLIENT = "robot-manager"
 
 logger = logging.getLogger("temoto.robot")
+
+
+class _Interrupts:
+    """SIGINT and SIGTERM while the command runs (see the module docstring).
+
+    The handler only records the signal and starts a thread that makes every device safe: it
+    never waits in the signal's frame, which may hold a driver's lock.
+
+    Args:
+        err: Where the per-device lines go.
+        serving: Whether the command serves (a signal is then the normal end: exit 0).
+    """
+
+    def __init__(self, err: IO[str], *, serving: bool) -> None:
+        self.err = err
+        self.serving = serving
+        self.signum: int | None = None
+        self.event = threading.Event()
+        self._count = 0
+        self._previous: dict[int, Any] = {}
+
+    @property
+    def exit_code(self) -> int:
+        """0 when serving, else 128 + the first signal's number (130 SIGINT, 143 SIGTERM)."""
+        if self.signum is None or self.serving:
+            return EXIT_OK
+        return 128 + self.signum
+
+    def install(self) -> None:
+        """Take SIGINT and SIGTERM over (main thread only)."""
+        for signum in (signal.SIGINT, signal.SIGTERM):
+            self._previous[signum] = signal.signal(signum, self._handle)
+
+    def restore(self) -> None:
+        """Give the signals back."""
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+
+    def _handle(self, signum: int, frame: object) -> None:
+        self._count += 1
+        if self.signum is None:
+            self.signum = signum
+        self.event.set()
+        threading.Thread(
+            target=self._make_safe, args=(signum, self._count), name="temoto-safe", daemon=True
+        ).start()
+
+    def _make_safe(self, signum: int, count: int) -> None:
+        name = signal.Signals(signum).name
+        lines = [f"{driver.name}: {what}" for driver, what in make_all_safe(name)]
+        urgent = count >= 2
+        head = "again: stopping now" if urgent else "stopping the robot"
+        self.err.write(f"temoto-robot: {name}, {head}\n")
+        self.err.writelines(f"  {line}\n" for line in lines)
+        self.err.flush()
+        if urgent:  # the second signal: do not wait for the mission's actions or the instance
+            with contextlib.suppress(Exception):
+                sys.stdout.flush()
+            os._exit(self.exit_code)
 
 
 class _Progress(Instrument):
@@ -107,17 +176,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    interrupts = _Interrupts(sys.stderr, serving=args.mission is None)
+    interrupts.install()
     try:
-        return _run(args)
+        code = _run(args, interrupts)
     except (ConfigError, PluginError) as err:
         sys.stderr.write(f"temoto-robot: error: {err}\n")
-        return EXIT_INVALID
+        code = EXIT_INVALID
     except (DriverError, ResourceError, TransportError) as err:
         sys.stderr.write(f"temoto-robot: error: {err}\n")
-        return EXIT_FAILED
+        code = EXIT_FAILED
+    finally:
+        interrupts.restore()
+    return interrupts.exit_code if interrupts.signum is not None else code
 
 
-def _run(args: argparse.Namespace) -> int:
+def _run(args: argparse.Namespace, interrupts: _Interrupts) -> int:
     from temoto.instance import Instance
     from temoto.managers.robot.client import RobotManagerClient
     from temoto.managers.robot.manager import RobotManager
@@ -171,9 +245,18 @@ def _run(args: argparse.Namespace) -> int:
             out.write(f"live view: {instance.live_view.url}\n")
         out.flush()
         if mission is None:
-            return _serve(profile.robot)
+            sys.stderr.write(f"robot '{profile.robot}' serving; Ctrl-C stops it\n")
+            interrupts.event.wait()
+            return EXIT_OK
+        if interrupts.event.is_set():
+            return interrupts.exit_code
         instance.engine.add_instrument(_Progress(out, t0))
-        outcome = instance.engine.run(mission, timeout=args.timeout)
+        outcome = _mission(instance.engine, mission, args.timeout, interrupts)
+        if interrupts.signum is not None:
+            out.write(f"{mission.name}: interrupted ({signal.Signals(interrupts.signum).name})\n")
+            # the stop waited for the actions already: do not wait for them a second time
+            instance.engine.shutdown(timeout=_AFTER_STOP)
+            return interrupts.exit_code
         result = outcome.result.value if outcome.result else "none"
         out.write(f"{mission.name}: {result} in {time.monotonic() - t0:.2f} s\n")
         for error in outcome.errors:
@@ -181,16 +264,30 @@ def _run(args: argparse.Namespace) -> int:
         return EXIT_OK if outcome.result is Result.TRUE else EXIT_FAILED
 
 
-def _serve(robot: str) -> int:
-    stop = threading.Event()
-    previous = {s: signal.signal(s, lambda *_: stop.set()) for s in (signal.SIGINT, signal.SIGTERM)}
-    try:
-        sys.stderr.write(f"robot '{robot}' serving; Ctrl-C stops it\n")
-        stop.wait()
-    finally:
-        for signum, handler in previous.items():
-            signal.signal(signum, handler)
-    return EXIT_OK
+def _mission(engine: Any, mission: Any, timeout: float | None, interrupts: _Interrupts) -> Any:
+    """Run the mission until it ends, ``timeout`` passes or a signal comes (then stop it)."""
+    name = engine.start(mission)
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while True:
+        try:
+            engine.wait(name, _POLL)
+            break
+        except TimeoutError:
+            pass
+        if interrupts.event.is_set():
+            engine.stop(name)  # a second signal exits without waiting for this
+            break
+        if deadline is not None and time.monotonic() >= deadline:
+            logger.warning("mission %s did not end within %s s; stopping it", name, timeout)
+            engine.stop(name)
+            break
+    return engine.outcome(name)
+
+
+#: Real seconds between the mission's checks for a signal.
+_POLL = 0.05
+#: Real seconds the engine's shutdown waits for actions after an interrupted mission's stop.
+_AFTER_STOP = 0.5
 
 
 if __name__ == "__main__":

@@ -170,8 +170,8 @@ class Robot:
         return self.profile.features
 
     def healthy(self) -> bool:
-        """Whether every device is configured and not in FAULT."""
-        return all(d.health().ok for d in self._devices.values())
+        """Whether every device is active (configured, not in FAULT, not made safe)."""
+        return all(d.state is DriverState.ACTIVE for d in self._devices.values())
 
     def health(self) -> dict[str, Health]:
         """Each device's health."""
@@ -371,18 +371,73 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         if device is not None:
             _close_device(device)
 
+    def make_safe(self, reason: str = "") -> list[str]:
+        """Put every open device of this manager in its safe state now (``docs/safety.md``).
+
+        Never raises: a device that cannot be made safe is listed as ``NOT SAFE``.
+
+        Args:
+            reason: Why (for the log).
+
+        Returns:
+            One line per device, ``"<device>: <what was done>"``.
+        """
+        with self._lock:
+            devices = list(self._devices.values())
+        lines: list[str] = []
+        for device in devices:
+            try:
+                what = device.driver.make_safe(reason)
+            except Exception as err:  # the others are still made safe
+                what = f"NOT SAFE: {err}"
+            if what is not None:
+                lines.append(f"{device.driver.name}: {what}")
+        return lines
+
     def _on_health(self, device: _Device, resource_id: str, health: Health) -> None:
-        """A driver's thread: a fault is FATAL for every consumer, the recovery OK."""
+        """A driver's report: a fault is FATAL for every consumer and makes the device safe.
+
+        Runs on the driver's thread, so the safe state and the reactivation after a recovery
+        (then OK for the consumers) run on threads of their own.
+        """
         if health.state is DriverState.FAULT:
+            first = not device.faulted
             device.faulted = True
-            status, message = Status.FATAL, f"{health.driver}: {health.message}"
+            with contextlib.suppress(ResourceNotFoundError):  # released meanwhile
+                self.registrar.send_status(
+                    resource_id, Status.FATAL, f"{health.driver}: {health.message}"
+                )
+            if first:  # not on the driver's own thread: a safe state may wait for its replies
+                _spawn(f"temoto-safe-{health.driver}", self._fault_safe, device)
         elif health.ok and device.faulted:
             device.faulted = False
-            status, message = Status.OK, f"{health.driver}: {health.message}"
+            _spawn(f"temoto-reactivate-{health.driver}", self._reactivate, device, resource_id)
+
+    def _fault_safe(self, device: _Device) -> None:
+        try:
+            what = device.driver.make_safe("fault")
+        except Exception as err:
+            logger.error("device %s: not safe after its fault: %s", device.driver.name, err)
         else:
+            if what is not None:
+                logger.warning("device %s made safe after its fault: %s", device.driver.name, what)
+
+    def _reactivate(self, device: _Device, resource_id: str) -> None:
+        driver = device.driver
+        try:
+            if driver.state is DriverState.INACTIVE:
+                driver.activate()
+        except Exception as err:  # the driver reported the fault itself (FATAL again)
+            logger.warning("device %s: not active again after its recovery: %s", driver.name, err)
+            return
+        if driver.state is not DriverState.ACTIVE:
             return
         with contextlib.suppress(ResourceNotFoundError):  # released meanwhile
-            self.registrar.send_status(resource_id, status, message)
+            self.registrar.send_status(resource_id, Status.OK, f"{driver.name}: recovered")
+
+
+def _spawn(name: str, target: Any, *args: Any) -> None:
+    threading.Thread(target=target, args=args, name=name, daemon=True).start()
 
 
 def _close_device(device: _Device) -> None:

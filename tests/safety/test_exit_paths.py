@@ -1,0 +1,82 @@
+"""Every way out of the robot command leaves every device family in its safe state.
+
+Each case runs :mod:`temoto.testing.exitpaths`: the device's simulator in a process of its own,
+the robot command in another one talking to it over the real link (CAN over python-can's
+``udp_multicast`` inside ``unshare -n``, the Dynamixel pseudo-terminal, MAVLink over UDP), and
+the device's state as the simulator sees it on the wire. Bounds (issue 13, docs/safety.md):
+safe within 200 ms of SIGINT or SIGTERM; safe before the command exits at a mission's end, after
+an action's exception or a driver fault; a second SIGINT exits at once; no process of the
+command is left behind, and no traceback is printed.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import shutil
+import subprocess
+import sys
+from typing import Any
+
+import pytest
+
+from temoto.testing.exitpaths import FAMILIES
+
+pytestmark = pytest.mark.slow
+
+#: Milliseconds from a signal to every device safe, seen on the wire.
+SIGNAL_BOUND_MS = 200.0
+#: Exit codes per path.
+RC = {"end": 0, "fault": 1, "exception": 1, "sigint": 130, "sigterm": 143, "double_sigint": 130}
+
+
+def _why_not() -> str:
+    if os.geteuid() != 0:
+        return "needs root for unshare -n"
+    if not (shutil.which("unshare") and shutil.which("ip")):
+        return "needs unshare and ip (iproute2)"
+    if importlib.util.find_spec("msgpack") is None:
+        return "python-can's udp_multicast interface needs msgpack"
+    return ""
+
+
+def run(family: str, path: str, entry: dict[str, Any] | None = None) -> dict[str, Any]:
+    """One exit path, in a private network namespace."""
+    argv = [sys.executable, "-m", "temoto.testing.exitpaths", family, path, "--netns"]
+    if entry is not None:
+        argv += ["--entry", json.dumps(entry)]
+    proc = subprocess.run(argv, capture_output=True, text=True, timeout=90, check=False)
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
+    return result
+
+
+def _story(result: dict[str, Any]) -> str:
+    states = [(round((s["t"] - result["event_t"]) * 1000, 1), s["state"]) for s in result["states"]]
+    return (
+        f"rc={result['rc']} safe_ms={result['safe_ms']} safe_at_exit={result['safe_at_exit']}\n"
+        f"states (ms after the event): {states[:8]}\n"
+        f"stdout:\n{result['stdout']}\nstderr:\n{result['stderr'][-2000:]}"
+    )
+
+
+@pytest.mark.skipif(bool(_why_not()), reason=_why_not() or "ok")
+@pytest.mark.parametrize("path", list(RC))
+@pytest.mark.parametrize("family", list(FAMILIES))
+def test_every_exit_path_leaves_the_device_safe(family: str, path: str) -> None:
+    result = run(family, path)
+    story = _story(result)
+    assert result["rc"] == RC[path], story
+    assert not result["traceback"], story
+    assert result["leftovers"] == [], story
+    assert result["safe_at_exit"], story
+    assert result["safe_t"] is not None, story
+    if path in ("sigint", "sigterm", "double_sigint"):
+        assert result["safe_ms"] <= SIGNAL_BOUND_MS, story
+        assert f"SIG{path[-3:].upper()}" in result["stderr"] or "SIGINT" in result["stderr"]
+        assert "device: " in result["stderr"], story  # one line per device
+    else:  # safe before the command had exited
+        assert result["safe_t"] <= result["exit_t"], story
+    if path == "double_sigint":  # the second signal does not wait for the stuck action
+        assert result["exit_t"] - result["event_t"] < 1.0, story
