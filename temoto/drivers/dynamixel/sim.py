@@ -211,7 +211,15 @@ class SimDynamixelChain(Simulator):
         self._thread: threading.Thread | None = None
         self._closed = False
         self._corrupt_left: int | None = None  # corrupt replies still to send (replies=)
-        self.stats: dict[str, int] = {"packets": 0, "replies": 0, "bad_packets": 0, "reboots": 0}
+        #: Packets heard, replies sent, bad packets dropped, REBOOTs, and accepted writes that
+        #: touched the EEPROM area (a real servo's EEPROM wears with each).
+        self.stats: dict[str, int] = {
+            "packets": 0,
+            "replies": 0,
+            "bad_packets": 0,
+            "reboots": 0,
+            "eeprom_writes": 0,
+        }
         self._master, self._slave = os.openpty()
         try:
             tty.setraw(self._slave)  # no echo, no line discipline, before anyone opens it
@@ -548,6 +556,8 @@ class SimDynamixelChain(Simulator):
         for reg in touched:
             value = p.from_le(bytes(scratch[reg.address : reg.address + reg.size]), reg.signed)
             self._check(servo, reg, value)
+        if any(reg.eeprom for reg in touched):
+            self.stats["eeprom_writes"] += 1
         for reg in touched:
             value = p.from_le(bytes(scratch[reg.address : reg.address + reg.size]), reg.signed)
             if reg is ct.TORQUE_ENABLE and value and servo.hardware_error:
