@@ -2,30 +2,44 @@
 
 Lifecycle (STYLE §3.5):
 
-* ``configure`` opens the port at the baud rate, PINGs every servo, checks its model number
-  (a mismatch is a :class:`~temoto.errors.DriverInitError` naming the servo), reboots a servo
-  that reports a hardware error (logged), turns torque off, writes the operating mode when it
-  differs (EEPROM), reads the Velocity and Current Limit registers, reads the state once and
-  starts the poll thread;
-* ``activate`` holds where each servo is (goal position = present position, goal velocity and
-  goal current = 0) and turns torque on; ``deactivate`` turns torque off;
+* ``configure`` opens the port at the baud rate (and warns when the USB adapter's latency timer
+  is above 1 ms), PINGs every servo, checks its model number (a mismatch is a
+  :class:`~temoto.errors.DriverInitError` naming the servo), reboots a servo that reports a
+  hardware error (logged), turns torque off, checks the firmware has a Bus Watchdog (v38 on)
+  when one is configured, writes the EEPROM registers the profile sets -- Operating Mode,
+  Return Delay Time, Min/Max Position Limit -- each only when it differs, reads the Velocity
+  and Current Limit registers, reads the state once and starts the poll thread;
+* ``activate`` clears the Bus Watchdog (0: goals writable again), holds where each servo is
+  (goal position = present position, goal velocity and goal current = 0), turns torque on and
+  arms the Bus Watchdog; ``deactivate`` turns torque off;
+* ``make_safe`` applies the declared ``safe_state``: ``torque_off`` (default; one SYNC_WRITE of
+  Torque Enable = 0, confirmed by a SYNC_READ, or one WRITE per silent servo) or ``hold``
+  (goal = present position, torque kept); it works from ``INACTIVE``, ``ACTIVE`` and ``FAULT``;
 * ``recover`` (from ``FAULT``) stops polling, REBOOTs every servo whose Hardware Error Status
   is not 0 (a servo keeps such an error until rebooted), and configures again: the driver is
   ``INACTIVE``; ``activate`` re-enables torque;
-* ``shutdown`` stops polling, turns torque off (best effort) and closes the port.
+* ``shutdown`` makes the servos safe (the base class), stops polling and closes the port.
 
 :meth:`DynamixelDriver.detect` finds chains without a profile: it only sends a broadcast PING
 (which no servo acts on) and lists the servos that answer as a profile entry.
 
 The poll thread (``temoto-dxl-<name>``) SyncReads present current, velocity and position of
-the chain every ``1 / poll_rate`` seconds of the driver's clock, and every ``status_every``
-polls also Present Input Voltage, Present Temperature and Hardware Error Status. A poll that
-fails ``timeout_polls`` times in a row reports a fault (:class:`~temoto.errors.DriverTimeoutError`
-when nothing answered, :class:`~temoto.errors.DriverOperationError` for corrupt replies); the
-first good poll after that reports recovery (unless a servo lost torque meanwhile, which stays
-a fault until ``recover``). A status packet with the alert bit, or a Hardware Error Status
-other than 0, reports a :class:`~temoto.errors.DynamixelHardwareError` naming the servo and
-the bits (overheating, overload, input voltage, electrical shock, motor encoder); it stays until
+the chain every ``1 / poll_rate`` seconds of the driver's clock, writes every servo's newest goal
+again while ``ACTIVE`` (so the servos' Bus Watchdog sees steady set-points and stops them when
+this process dies or hangs), and every ``status_every`` polls also reads Present Input Voltage,
+Present Temperature, Hardware Error Status and the Bus Watchdog. Supervision: a reply with a bad
+CRC or garbage is logged and counted, and a fault only when 5 fall within 1 s
+(:class:`~temoto.drivers.supervision.FaultWindow`); ``timeout_polls`` polls in a row without
+replies are a :class:`~temoto.errors.DriverTimeoutError`; the present-position stream is stale
+(a :class:`~temoto.errors.DriverTimeoutError` naming it) when no good poll came for 3 x (poll
+period + ``reply_timeout``) clock seconds (:class:`~temoto.drivers.supervision.StreamAge`,
+checked by the poll thread and by :meth:`DynamixelDriver.read_state`). The first good poll after
+a communication fault reports recovery (unless a servo lost torque meanwhile, which stays a
+fault until ``recover``; a servo that its Bus Watchdog stopped meanwhile is cleared and holds
+where it stopped). A Bus Watchdog found expired while ``ACTIVE`` otherwise is a fault until
+``recover``. A status packet with the alert bit, or a Hardware Error Status other than 0,
+reports a :class:`~temoto.errors.DynamixelHardwareError` naming the servo and the bits
+(overheating, overload, input voltage, electrical shock, motor encoder); it stays until
 ``recover``.
 
 Time: the poll period and the stamps come from the driver's clock, so on a

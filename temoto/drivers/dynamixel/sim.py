@@ -356,6 +356,8 @@ class SimDynamixelChain(Simulator):
             except BlockingIOError:
                 continue
             except OSError:  # no slave open (EIO): wait for one
+                with self._state:  # the client is gone: its servos' watchdogs run on
+                    self._step_locked()
                 self._stop.wait(0.01)
                 continue
             if self.fault("link_loss") is not None:
