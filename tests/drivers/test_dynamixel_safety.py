@@ -339,13 +339,14 @@ def test_activate_clears_an_expired_watchdog_first() -> None:
         for i in (1, 2, 3):
             sim.write_register(i, WATCHDOG, -1)  # left over from an earlier run
         driver.activate()
-        assert [sim.read_register(i, WATCHDOG) for i in (1, 2, 3)] == [10, 10, 10]  # 0.2 s
+        assert [sim.read_register(i, WATCHDOG) for i in (1, 2, 3)] == [25, 25, 25]  # 0.5 s
         driver.command([JointCommand("j3", ControlMode.POSITION, 0.7)])
         eventually(lambda: abs(driver.read_state().joints["j3"].position - 0.7) < 0.01, 3, clock)
 
 
 @pytest.mark.parametrize(
-    ("value", "poll_rate", "units"), [(None, 50, 10), (None, 5, 30), (0, 50, 0), (0.15, 50, 8)]
+    ("value", "poll_rate", "units"),
+    [(None, 50, 25), (None, 2, 75), (0, 50, 0), (0.15, 50, 8), (None, 1, 0)],
 )
 def test_bus_watchdog_profile_values(value: float | None, poll_rate: float, units: int) -> None:
     extra = {} if value is None else {"bus_watchdog": value}

@@ -116,7 +116,7 @@ SIM_REPLY_TIMEOUT: Final = 0.1
 SAFE_STATES: Final = ("torque_off", "hold")
 #: The Bus Watchdog time (s) when the profile sets none: this, or three poll periods rounded up
 #: to the watchdog's 20 ms unit when that is longer (off when that exceeds its 2.54 s).
-DEFAULT_BUS_WATCHDOG: Final = 0.2
+DEFAULT_BUS_WATCHDOG: Final = 0.5
 #: The Return Delay Time (s) of a servo as it leaves the factory (register 9 = 250 x 2 µs): what
 #: the poll-rate estimate assumes when the profile sets no ``return_delay_time``.
 FACTORY_RETURN_DELAY: Final = 250 * ct.RETURN_DELAY_UNIT
