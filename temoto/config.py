@@ -59,6 +59,8 @@ class DeviceSpec:
         config: The device's settings as written (the driver validated them).
         joints: The joints it moves (empty for a vehicle).
         vehicle: Whether it is a vehicle.
+        limits: (min, max) position (rad) of the joints whose driver declares limits (its
+            ``joint_limits`` mapping); named poses are checked against them.
     """
 
     name: str
@@ -66,6 +68,7 @@ class DeviceSpec:
     config: Mapping[str, Any]
     joints: tuple[str, ...]
     vehicle: bool
+    limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)
@@ -178,7 +181,9 @@ def load_profile(path: str | Path, *, clock: Clock | None = None) -> Profile:
         The profile.
 
     Raises:
-        ProfileError: The file cannot be read, is not YAML, or is not a valid profile.
+        ProfileError: The file cannot be read, is not YAML, or is not a valid profile. A YAML
+            syntax error is one line: ``<file>:<line>:<column>: not valid YAML: <problem>``
+            (line and column counted from 1).
     """
     file = str(path)
     try:
@@ -188,8 +193,18 @@ def load_profile(path: str | Path, *, clock: Clock | None = None) -> Profile:
     try:
         raw = yaml.safe_load(text)
     except yaml.YAMLError as err:
-        raise ProfileError(f"not valid YAML: {err}", file=file) from None
+        raise _yaml_error(err, file) from None
     return parse_profile(raw, file=file, clock=clock)
+
+
+def _yaml_error(err: yaml.YAMLError, file: str) -> ProfileError:
+    """One line naming the file, line and column of a YAML error."""
+    mark = getattr(err, "problem_mark", None)
+    where = file if mark is None else f"{file}:{mark.line + 1}:{mark.column + 1}"
+    problem = getattr(err, "problem", None)
+    context = getattr(err, "context", None)
+    what = str(err) if not problem else f"{context}: {problem}" if context else str(problem)
+    return ProfileError(f"not valid YAML: {' '.join(what.split())}", file=where)
 
 
 def parse_profile(raw: object, *, file: str = "", clock: Clock | None = None) -> Profile:
@@ -293,6 +308,7 @@ def _devices(p: _Checker, raw: object, clock: Clock) -> dict[str, DeviceSpec]:
         driver: Driver = cls.from_profile(name, settings, clock=clock, where=where)  # type: ignore[attr-defined]
         try:
             joints = tuple(driver.joint_names) if isinstance(driver, Actuator) else ()
+            limits = dict(getattr(driver, "joint_limits", {}))
         finally:
             driver.shutdown()  # never configured: nothing to close, but it is finished
         for joint in joints:
@@ -300,7 +316,7 @@ def _devices(p: _Checker, raw: object, clock: Clock) -> dict[str, DeviceSpec]:
                 p.fail(path, f"joint '{joint}' is also on device '{owner[joint]}'")
             owner[joint] = name
         vehicle = isinstance(driver, Vehicle)
-        out[name] = DeviceSpec(name, str(kind), settings, joints, vehicle)
+        out[name] = DeviceSpec(name, str(kind), settings, joints, vehicle, limits)
     return out
 
 
@@ -362,6 +378,14 @@ def _arm(p: _Checker, raw: object, devices: Mapping[str, DeviceSpec]) -> ArmFeat
             if joint not in joints:
                 p.fail(f"{where}.{joint}", f"not a joint of the arm ({', '.join(joints)})")
             table[joint] = p.number(value, f"{where}.{joint}", positive=False)
+            if joint in device.limits:
+                low, high = device.limits[joint]
+                if not low <= table[joint] <= high:
+                    p.fail(
+                        f"{where}.{joint}",
+                        f"{table[joint]:g} rad is outside the joint's limits"
+                        f" [{low:.4g}, {high:.4g}] (devices.{device.name})",
+                    )
         poses[pose] = dict(table)
     tolerance = p.number(cfg.get("tolerance"), f"{path}.tolerance", default=0.02)
     return ArmFeature(device.name, tuple(joints), poses, tolerance)

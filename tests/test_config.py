@@ -79,7 +79,7 @@ def test_bad_profiles_name_the_key(changes: dict[str, Any], where: str, what: st
 def test_a_file_that_is_not_yaml_or_missing(tmp_path: Path) -> None:
     bad = tmp_path / "bad.yaml"
     bad.write_text("robot: [unclosed")
-    with pytest.raises(ProfileError, match=r"bad\.yaml: not valid YAML"):
+    with pytest.raises(ProfileError, match=r"bad\.yaml:1:17: not valid YAML"):
         load_profile(bad)
     with pytest.raises(ProfileError, match="cannot read"):
         load_profile(tmp_path / "missing.yaml")
@@ -92,3 +92,55 @@ def test_a_joint_on_two_devices_is_refused() -> None:
     doc["devices"]["arm2"] = doc["devices"]["arm"]
     with pytest.raises(ProfileError, match=r"devices\.arm2: joint 'shoulder_pan' is also on"):
         parse_profile(doc, file="arm.yaml")
+
+
+def test_a_yaml_error_is_one_line_with_file_line_and_column(tmp_path: Path) -> None:
+    bad = tmp_path / "arm.yaml"
+    bad.write_text("robot: arm\ndevices:\n  arm: {driver: dynamixel\nfeatures: {}\n")
+    with pytest.raises(ProfileError) as err:
+        load_profile(bad)
+    message = str(err.value)
+    assert "\n" not in message
+    assert message.startswith(f"{bad}:4:9: not valid YAML: "), message
+    assert "<unicode string>" not in message
+
+
+def test_a_minimal_servo_entry_loads() -> None:
+    doc = variant()
+    doc["devices"]["arm"]["servos"] = [{"id": 1, "joint": "j1", "model": "XM430-W350"}]
+    doc["features"]["manipulation"]["poses"] = {"home": {"j1": 0.0}}
+    profile = parse_profile(doc, file="arm.yaml")
+    low, high = profile.devices["arm"].limits["j1"]
+    assert low == pytest.approx(-3.14159, abs=1e-4)  # tick 0
+    assert high == pytest.approx(3.14006, abs=1e-4)  # tick 4095: inside the single turn
+
+
+@pytest.mark.parametrize(("joint", "value"), [("elbow", 2.5), ("gripper", -0.6)])
+def test_a_pose_outside_the_joint_limits_is_refused_before_any_port_opens(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, joint: str, value: float
+) -> None:
+    from temoto.drivers.dynamixel import _sdk
+
+    opened: list[str] = []
+    monkeypatch.setattr(_sdk.SdkPort, "open", lambda self: opened.append(self.path))
+    doc = variant(sim=False)
+    doc["features"]["manipulation"]["poses"]["reach"][joint] = value
+    path = tmp_path / "arm.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    with pytest.raises(ProfileError) as err:
+        load_profile(path)
+    message = str(err.value)
+    assert message.startswith(f"{path}: features.manipulation.poses.reach.{joint}: "), message
+    assert "outside the joint's limits" in message
+    assert opened == []
+
+
+def test_the_robot_command_exits_2_on_a_pose_beyond_the_limits(tmp_path: Path) -> None:
+    from temoto.managers.robot.__main__ import main
+
+    doc = variant(sim=False)
+    doc["devices"]["arm"]["link"] = "serial:/dev/nonexistent-temoto-tty?baud=1000000"
+    doc["features"]["manipulation"]["poses"]["reach"]["elbow"] = 9.0
+    path = tmp_path / "arm.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    assert main(["--profile", str(path), "--local"]) == 2

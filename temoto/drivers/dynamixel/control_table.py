@@ -24,12 +24,22 @@ from dataclasses import dataclass
 from typing import Final
 
 __all__ = [
+    "BUS_WATCHDOG",
+    "BUS_WATCHDOG_ERROR",
+    "BUS_WATCHDOG_FIRMWARE",
+    "BUS_WATCHDOG_MAX",
+    "BUS_WATCHDOG_UNIT",
     "CURRENT",
     "FAST_READ",
+    "FIRMWARE_VERSION",
     "GOAL_CURRENT",
     "GOAL_POSITION",
+    "GOAL_PWM",
+    "GOAL_REGISTERS",
     "GOAL_VELOCITY",
     "HARDWARE_ERROR_STATUS",
+    "MAX_POSITION_LIMIT",
+    "MIN_POSITION_LIMIT",
     "MODELS",
     "MODELS_BY_NUMBER",
     "MODEL_NUMBER",
@@ -44,6 +54,9 @@ __all__ = [
     "RAD_PER_TICK",
     "RAD_S_PER_UNIT",
     "REGISTERS",
+    "RETURN_DELAY_MAX",
+    "RETURN_DELAY_TIME",
+    "RETURN_DELAY_UNIT",
     "STATUS_READ",
     "TORQUE_ENABLE",
     "VOLT_PER_UNIT",
@@ -108,7 +121,9 @@ REGISTERS: Final[tuple[Register, ...]] = (
     _ram("Torque Enable", 64, 1),
     _ram("LED", 65, 1),
     _ram("Status Return Level", 68, 1, 2),
+    _ram("Bus Watchdog", 98, 1, signed=True),
     _ram("Hardware Error Status", 70, 1, rw=False),
+    _ram("Goal PWM", 100, 2, signed=True),
     _ram("Goal Current", 102, 2, signed=True),
     _ram("Goal Velocity", 104, 4, signed=True),
     _ram("Profile Acceleration", 108, 4),
@@ -126,6 +141,12 @@ _BY_NAME: Final = {r.name: r for r in REGISTERS}
 MODEL_NUMBER: Final = _BY_NAME["Model Number"]
 OPERATING_MODE: Final = _BY_NAME["Operating Mode"]
 TORQUE_ENABLE: Final = _BY_NAME["Torque Enable"]
+FIRMWARE_VERSION: Final = _BY_NAME["Firmware Version"]
+RETURN_DELAY_TIME: Final = _BY_NAME["Return Delay Time"]
+MAX_POSITION_LIMIT: Final = _BY_NAME["Max Position Limit"]
+MIN_POSITION_LIMIT: Final = _BY_NAME["Min Position Limit"]
+BUS_WATCHDOG: Final = _BY_NAME["Bus Watchdog"]
+GOAL_PWM: Final = _BY_NAME["Goal PWM"]
 HARDWARE_ERROR_STATUS: Final = _BY_NAME["Hardware Error Status"]
 GOAL_CURRENT: Final = _BY_NAME["Goal Current"]
 GOAL_VELOCITY: Final = _BY_NAME["Goal Velocity"]
@@ -144,6 +165,23 @@ FAST_READ: Final = (PRESENT_CURRENT.address, 10)
 STATUS_READ: Final = (PRESENT_INPUT_VOLTAGE.address, 3)
 #: The writable upper end of the EEPROM area.
 EEPROM_END: Final = TORQUE_ENABLE.address
+
+#: The goal registers (Goal PWM, Current, Velocity, Position): read-only while a Bus Watchdog
+#: error stands (a write is answered with a Data Range error).
+GOAL_REGISTERS: Final = (GOAL_PWM, GOAL_CURRENT, GOAL_VELOCITY, GOAL_POSITION)
+
+#: Bus Watchdog (98), RAM, 1 byte (e-Manual, X series, firmware v38 and later): 0 switches it off
+#: and clears a Bus Watchdog error; 1..127 arm it in units of 20 ms; it reads -1 after it expired.
+#: While Torque Enable is 1, a servo that receives no instruction packet for longer than the
+#: set time stops and refuses goal values until 0 is written here.
+BUS_WATCHDOG_UNIT: Final = 0.020
+BUS_WATCHDOG_MAX: Final = 127
+BUS_WATCHDOG_ERROR: Final = -1
+BUS_WATCHDOG_FIRMWARE: Final = 38
+#: Return Delay Time (9), EEPROM: the delay before a status packet, 2 µs per unit, 0..254
+#: (factory 250 = 500 µs).
+RETURN_DELAY_UNIT: Final = 2e-6
+RETURN_DELAY_MAX: Final = 254
 
 POSITION_CENTER: Final = 2048
 RAD_PER_TICK: Final = 2.0 * math.pi / 4096.0

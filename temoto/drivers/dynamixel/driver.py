@@ -2,30 +2,44 @@
 
 Lifecycle (STYLE §3.5):
 
-* ``configure`` opens the port at the baud rate, PINGs every servo, checks its model number
-  (a mismatch is a :class:`~temoto.errors.DriverInitError` naming the servo), reboots a servo
-  that reports a hardware error (logged), turns torque off, writes the operating mode when it
-  differs (EEPROM), reads the Velocity and Current Limit registers, reads the state once and
-  starts the poll thread;
-* ``activate`` holds where each servo is (goal position = present position, goal velocity and
-  goal current = 0) and turns torque on; ``deactivate`` turns torque off;
+* ``configure`` opens the port at the baud rate (and warns when the USB adapter's latency timer
+  is above 1 ms), PINGs every servo, checks its model number (a mismatch is a
+  :class:`~temoto.errors.DriverInitError` naming the servo), reboots a servo that reports a
+  hardware error (logged), turns torque off, checks the firmware has a Bus Watchdog (v38 on)
+  when one is configured, writes the EEPROM registers the profile sets -- Operating Mode,
+  Return Delay Time, Min/Max Position Limit -- each only when it differs, reads the Velocity
+  and Current Limit registers, reads the state once and starts the poll thread;
+* ``activate`` clears the Bus Watchdog (0: goals writable again), holds where each servo is
+  (goal position = present position, goal velocity and goal current = 0), turns torque on and
+  arms the Bus Watchdog; ``deactivate`` turns torque off;
+* ``make_safe`` applies the declared ``safe_state``: ``torque_off`` (default; one SYNC_WRITE of
+  Torque Enable = 0, confirmed by a SYNC_READ, or one WRITE per silent servo) or ``hold``
+  (goal = present position, torque kept); it works from ``INACTIVE``, ``ACTIVE`` and ``FAULT``;
 * ``recover`` (from ``FAULT``) stops polling, REBOOTs every servo whose Hardware Error Status
   is not 0 (a servo keeps such an error until rebooted), and configures again: the driver is
   ``INACTIVE``; ``activate`` re-enables torque;
-* ``shutdown`` stops polling, turns torque off (best effort) and closes the port.
+* ``shutdown`` makes the servos safe (the base class), stops polling and closes the port.
 
 :meth:`DynamixelDriver.detect` finds chains without a profile: it only sends a broadcast PING
 (which no servo acts on) and lists the servos that answer as a profile entry.
 
 The poll thread (``temoto-dxl-<name>``) SyncReads present current, velocity and position of
-the chain every ``1 / poll_rate`` seconds of the driver's clock, and every ``status_every``
-polls also Present Input Voltage, Present Temperature and Hardware Error Status. A poll that
-fails ``timeout_polls`` times in a row reports a fault (:class:`~temoto.errors.DriverTimeoutError`
-when nothing answered, :class:`~temoto.errors.DriverOperationError` for corrupt replies); the
-first good poll after that reports recovery (unless a servo lost torque meanwhile, which stays
-a fault until ``recover``). A status packet with the alert bit, or a Hardware Error Status
-other than 0, reports a :class:`~temoto.errors.DynamixelHardwareError` naming the servo and
-the bits (overheating, overload, input voltage, electrical shock, motor encoder); it stays until
+the chain every ``1 / poll_rate`` seconds of the driver's clock, writes every servo's newest goal
+again while ``ACTIVE`` (so the servos' Bus Watchdog sees steady set-points and stops them when
+this process dies or hangs), and every ``status_every`` polls also reads Present Input Voltage,
+Present Temperature, Hardware Error Status and the Bus Watchdog. Supervision: a reply with a bad
+CRC or garbage is logged and counted, and a fault only when 5 fall within 1 s
+(:class:`~temoto.drivers.supervision.FaultWindow`); ``timeout_polls`` polls in a row without
+replies are a :class:`~temoto.errors.DriverTimeoutError`; the present-position stream is stale
+(a :class:`~temoto.errors.DriverTimeoutError` naming it) when no good poll came for 3 x (poll
+period + ``reply_timeout``) clock seconds (:class:`~temoto.drivers.supervision.StreamAge`,
+checked by the poll thread and by :meth:`DynamixelDriver.read_state`). The first good poll after
+a communication fault reports recovery (unless a servo lost torque meanwhile, which stays a
+fault until ``recover``; a servo that its Bus Watchdog stopped meanwhile is cleared and holds
+where it stopped). A Bus Watchdog found expired while ``ACTIVE`` otherwise is a fault until
+``recover``. A status packet with the alert bit, or a Hardware Error Status other than 0,
+reports a :class:`~temoto.errors.DynamixelHardwareError` naming the servo and the bits
+(overheating, overload, input voltage, electrical shock, motor encoder); it stays until
 ``recover``.
 
 Time: the poll period and the stamps come from the driver's clock, so on a
@@ -44,6 +58,7 @@ from __future__ import annotations
 
 import logging
 import math
+import os
 import threading
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -57,6 +72,7 @@ from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel import protocol as p
 from temoto.drivers.dynamixel.sim import SimDynamixelChain
 from temoto.drivers.sim import Simulator
+from temoto.drivers.supervision import FaultWindow, StreamAge
 from temoto.errors import (
     DriverError,
     DriverInitError,
@@ -70,12 +86,17 @@ from temoto.errors import (
 
 __all__ = [
     "BAUD_RATES",
+    "DEFAULT_BUS_WATCHDOG",
     "DETECT_BAUD_RATES",
+    "FACTORY_RETURN_DELAY",
     "MODES",
+    "SAFE_STATES",
     "SIM_REPLY_TIMEOUT",
     "DynamixelDriver",
     "ServoConfig",
     "ServoStatus",
+    "latency_timer",
+    "poll_cycle_time",
 ]
 
 logger = logging.getLogger(__name__)
@@ -90,6 +111,21 @@ DETECT_BAUD_RATES: Final = (57600, 1_000_000, 115200, 2_000_000, 3_000_000, 4_00
 _DETECT_LIMIT: Final = 3.14
 #: The ``reply_timeout`` :meth:`DynamixelDriver.simulate` gives a driver on a simulated chain.
 SIM_REPLY_TIMEOUT: Final = 0.1
+#: ``safe_state`` values: ``torque_off`` (the default) writes Torque Enable = 0 to every servo;
+#: ``hold`` keeps torque and sets each goal to where the servo is (goal velocity/current 0).
+SAFE_STATES: Final = ("torque_off", "hold")
+#: The Bus Watchdog time (s) when the profile sets none: this, or three poll periods rounded up
+#: to the watchdog's 20 ms unit when that is longer (off when that exceeds its 2.54 s).
+DEFAULT_BUS_WATCHDOG: Final = 0.5
+#: The Return Delay Time (s) of a servo as it leaves the factory (register 9 = 250 x 2 µs): what
+#: the poll-rate estimate assumes when the profile sets no ``return_delay_time``.
+FACTORY_RETURN_DELAY: Final = 250 * ct.RETURN_DELAY_UNIT
+#: Where Linux lists USB serial adapters; each has a ``latency_timer`` file (ms).
+USB_SERIAL_SYSFS: Final = "/sys/bus/usb-serial/devices"
+_BITS_PER_BYTE: Final = 10  # start bit, 8 data bits, stop bit
+_INSTRUCTION_BYTES: Final = 10  # header 4, id, length 2, instruction, CRC 2
+_STATUS_BYTES: Final = 11  # header 4, id, length 2, instruction 0x55, error, CRC 2
+_SAFE_BUS_WAIT: Final = 0.5  # real s make_safe waits for a transaction of another thread
 #: Profile ``mode`` values → Operating Mode.
 MODES: Final[Mapping[str, ct.OperatingMode]] = {
     "current": ct.OperatingMode.CURRENT,
@@ -124,6 +160,9 @@ _TOP_KEYS: Final = frozenset(
         "timeout_polls",
         "reply_timeout",
         "servos",
+        "safe_state",
+        "bus_watchdog",
+        "return_delay_time",
     }
 )
 _SERVO_KEYS: Final = frozenset(
@@ -161,13 +200,16 @@ class ServoConfig:
         model: Its model name (``XM430-W350``); PING must report this model.
         mode: The operating mode (``position``, ``extended_position``,
             ``current_based_position``, ``velocity``, ``current``).
-        min_position: The lowest joint position a command may ask for (rad).
-        max_position: The highest (rad).
+        min_position: The lowest joint position a command may ask for (rad); by default (NaN)
+            the end of the servo's single turn (tick 0 or 4095, after gear and offset).
+        max_position: The highest (rad); by default the other end of the single turn.
         velocity_limit: The largest joint speed a command may ask for (rad/s), or None.
         effort_limit: The largest joint effort a command may ask for (N·m), or None.
         gear: Motor turns per joint turn (negative reverses the direction).
         offset: Joint position (rad) at the servo's middle position (tick 2048).
         torque_constant: N·m per A of the motor, or None for the model's value.
+        write_limits: Write the limits to the servo's Min/Max Position Limit registers at
+            configure (only in ``position`` mode, the one mode where the servo applies them).
 
     Raises:
         ValueError: A value out of range.
@@ -177,13 +219,14 @@ class ServoConfig:
     joint: str
     model: str
     mode: str = "position"
-    min_position: float = -math.pi
-    max_position: float = math.pi
+    min_position: float = math.nan
+    max_position: float = math.nan
     velocity_limit: float | None = None
     effort_limit: float | None = None
     gear: float = 1.0
     offset: float = 0.0
     torque_constant: float | None = None
+    write_limits: bool = False
 
     def __post_init__(self) -> None:
         if not 0 <= self.id <= p.MAX_ID:
@@ -203,6 +246,11 @@ class ServoConfig:
             raise _FieldError("gear", f"gear must be finite and non-zero, got {self.gear}")
         if not math.isfinite(self.offset):
             raise _FieldError("offset", f"offset must be finite, got {self.offset}")
+        ends = sorted((self.position(0), self.position(4095)))
+        if math.isnan(self.min_position):  # the default: the servo's single turn
+            object.__setattr__(self, "min_position", ends[0])
+        if math.isnan(self.max_position):
+            object.__setattr__(self, "max_position", ends[1])
         lo, hi = self.min_position, self.max_position
         if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
             raise _FieldError(
@@ -230,6 +278,11 @@ class ServoConfig:
     def operating_mode(self) -> ct.OperatingMode:
         """The Operating Mode register's value."""
         return MODES[self.mode]
+
+    def limit_ticks(self) -> tuple[int, int]:
+        """(Min Position Limit, Max Position Limit) register values for the joint limits."""
+        a, b = self.ticks(self.min_position), self.ticks(self.max_position)
+        return max(min(a, b), 0), min(max(a, b), 4095)
 
     def ticks(self, position: float) -> int:
         """Joint radians → Goal Position ticks."""
@@ -298,6 +351,11 @@ class DynamixelDriver(Driver):
         status_every: Read temperature, voltage and hardware errors every this many polls.
         timeout_polls: Failed polls in a row that make a fault.
         reply_timeout: Real seconds a status packet may take beyond its transfer time.
+        bus_watchdog: Seconds of the servos' Bus Watchdog (0: off; 0.02 to 2.54, rounded up to
+            20 ms; at least two poll periods), armed at :meth:`activate`; None:
+            :data:`DEFAULT_BUS_WATCHDOG` or three poll periods, whichever is longer.
+        return_delay_time: Seconds of the servos' Return Delay Time written at configure (0 to
+            508 µs, rounded to 2 µs), or None to leave the register as it is.
         clock: Poll periods and stamps.
 
     Raises:
@@ -305,6 +363,7 @@ class DynamixelDriver(Driver):
     """
 
     kind: ClassVar[str] = "dynamixel"
+    safe_states: ClassVar[tuple[str, ...]] = SAFE_STATES
 
     def __init__(
         self,
@@ -317,6 +376,8 @@ class DynamixelDriver(Driver):
         status_every: int = 10,
         timeout_polls: int = 3,
         reply_timeout: float = 0.034,
+        bus_watchdog: float | None = None,
+        return_delay_time: float | None = None,
         clock: Clock | None = None,
     ) -> None:
         super().__init__(name, clock=clock)
@@ -334,6 +395,8 @@ class DynamixelDriver(Driver):
             raise ValueError(f"reply_timeout must be in (0, 1] s, got {reply_timeout}")
         if status_every < 1 or timeout_polls < 1:
             raise ValueError("status_every and timeout_polls must be at least 1")
+        self.watchdog_units = _watchdog_units(bus_watchdog, 1.0 / poll_rate)
+        self.return_delay_units = _return_delay_units(return_delay_time)
         self.port = port
         self.baud = baud
         self.servos: tuple[ServoConfig, ...] = tuple(servos)
@@ -361,6 +424,28 @@ class DynamixelDriver(Driver):
         self._failures = 0
         self._comm_fault = False
         self._hw_fault = False
+        self._watchdogs: _sdk.SyncReader | None = None
+        #: Each servo's goal register and value, written every poll while ACTIVE.
+        self._goals: dict[int, tuple[ct.Register, bytes]] = {}
+        # A good poll is due every period; one whose replies time out takes a reply timeout
+        # more (real time), so the age limit allows for that: a lost reply is not a fault.
+        self._feedback = StreamAge(f"{name} present position", self.period + reply_timeout)
+        self._bad_packets = FaultWindow()
+        self._last_failure = ""
+
+    @property
+    def bus_watchdog(self) -> float:
+        """The Bus Watchdog time armed at :meth:`activate` (s; 0: off)."""
+        return self.watchdog_units * ct.BUS_WATCHDOG_UNIT
+
+    @property
+    def joint_limits(self) -> Mapping[str, tuple[float, float]]:
+        """(min, max) position (rad) of every joint in a position mode."""
+        return {
+            s.joint: (s.min_position, s.max_position)
+            for s in self.servos
+            if s.operating_mode in _POSITION_MODES
+        }
 
     # ---- profile ------------------------------------------------------------------------------
 
@@ -373,18 +458,49 @@ class DynamixelDriver(Driver):
         Args:
             name: The device's name.
             config: Its entry: ``link``, ``baud``, ``poll_rate``, ``status_every``,
-                ``timeout_polls``, ``servos`` (and ``driver``/``sim``, which are not read).
+                ``timeout_polls``, ``reply_timeout``, ``safe_state``, ``bus_watchdog``,
+                ``return_delay_time``, ``servos`` (and ``driver``/``sim``, which are not read).
             clock: The robot's clock.
             where: The entry's key path, for messages.
 
         Returns:
-            The driver (``UNCONFIGURED``).
+            The driver (``UNCONFIGURED``). A warning is logged when ``poll_rate`` cannot be
+            met on the wire (:func:`poll_cycle_time`).
 
         Raises:
             ProfileError: An invalid entry; the message starts with the key path.
         """
         kwargs = _parse_profile(config, where)
-        return cls(name, clock=clock, **kwargs)
+        safe_state = cls.safe_state_from(config, where)
+        driver = cls(name, clock=clock, **kwargs)
+        driver.safe_state = safe_state
+        driver._warn_if_too_fast(where)
+        return driver
+
+    def _warn_if_too_fast(self, where: str) -> None:
+        """Log a warning when one poll cycle takes longer on the wire than a poll period."""
+        given = self.return_delay_units is not None
+        delay = (
+            (self.return_delay_units or 0) * ct.RETURN_DELAY_UNIT if given else FACTORY_RETURN_DELAY
+        )
+        cycle = poll_cycle_time(
+            len(self.servos), self.baud, delay, self.status_every, self.watchdog_units > 0
+        )
+        if cycle <= self.period:
+            return
+        logger.warning(
+            "%s.poll_rate: %g Hz cannot be met: one poll cycle of %d servos at %d baud takes"
+            " about %.1f ms on the wire (Return Delay Time %g µs%s), so at most about %.0f Hz;"
+            " raise the baud rate, set return_delay_time: 0, or lower poll_rate",
+            where,
+            1.0 / self.period,
+            len(self.servos),
+            self.baud,
+            cycle * 1000.0,
+            delay * 1e6,
+            "" if given else ", the factory value",
+            1.0 / cycle,
+        )
 
     @classmethod
     def simulate(
@@ -473,7 +589,8 @@ class DynamixelDriver(Driver):
         """The newest poll of every joint (no bus traffic).
 
         Returns:
-            The states in SI units.
+            The states in SI units. When the newest poll is older than the present-position
+            stream's limit (:attr:`feedback_max_age`), the driver reports a fault first.
 
         Raises:
             StateError: Never configured, or finalized.
@@ -483,6 +600,7 @@ class DynamixelDriver(Driver):
             states = self._states
         if state in (DriverState.UNCONFIGURED, DriverState.FINALIZED) or states is None:
             raise StateError(f"{self.name}: no state while {state.value}")
+        self._check_stale()
         return states
 
     def servo_status(self) -> Mapping[int, ServoStatus]:
@@ -497,7 +615,9 @@ class DynamixelDriver(Driver):
     def command(self, commands: Iterable[JointCommand]) -> None:
         """Send set-points with one SyncWrite per register (only ``ACTIVE``).
 
-        A position command's ``velocity_limit`` sets the servo's Profile Velocity.
+        A position command's ``velocity_limit`` sets the servo's Profile Velocity. The poll
+        thread writes the newest goal of every servo again each period while ``ACTIVE``, so the
+        servos' Bus Watchdog sees a steady stream of set-points.
 
         Args:
             commands: Set-points; each joint's mode must match its servo's operating mode.
@@ -553,6 +673,9 @@ class DynamixelDriver(Driver):
                     if result != _sdk.COMM_SUCCESS:
                         text = self._port().result_text(result)
                         raise DriverOperationError(f"{self.name}: SyncWrite of {reg.name}: {text}")
+                    if reg is not ct.PROFILE_VELOCITY:
+                        for dxl_id, raw in goals[reg.address].items():
+                            self._goals[dxl_id] = (reg, raw)
 
     # ---- lifecycle hooks ----------------------------------------------------------------------
 
@@ -571,24 +694,31 @@ class DynamixelDriver(Driver):
             except ValueError as err:
                 raise DriverInitError(f"{self.name}: {err}") from err
             self._sdk = port
+            _check_latency_timer(self.name, self.port)
         with self._bus:
+            self._goals = {}
             for servo in self.servos:
                 self._bring_up(servo)
             self._fast = port.sync_reader(*ct.FAST_READ, self._ids)
             self._slow = port.sync_reader(*ct.STATUS_READ, self._ids)
             self._errors = port.sync_reader(ct.HARDWARE_ERROR_STATUS.address, 1, self._ids)
             self._torques = port.sync_reader(ct.TORQUE_ENABLE.address, 1, self._ids)
+            self._watchdogs = port.sync_reader(ct.BUS_WATCHDOG.address, 1, self._ids)
             self._writers = {}
         self._failures = 0
         self._comm_fault = self._hw_fault = False
+        self._feedback.reset()
+        self._bad_packets.clear()
         if not self._poll_fast():
             raise DriverInitError(f"{self.name}: the first SyncRead of the chain failed")
         self._poll_status()
         self._start_polling()
 
     def on_activate(self) -> None:
-        """Hold where each servo is, then turn torque on."""
+        """Clear the Bus Watchdog, hold where each servo is, turn torque on, arm the watchdog."""
         with self._bus:
+            for servo in self.servos:  # 0 clears a Bus Watchdog error: goals writable again
+                self._write(servo.id, ct.BUS_WATCHDOG, 0, "bus watchdog clear")
             result, data, errors = self._reader("fast").read()
             if result != _sdk.COMM_SUCCESS:
                 raise self._comm_error("read before torque on", result)
@@ -605,14 +735,109 @@ class DynamixelDriver(Driver):
             zero = {s.id: p.to_le(0, 2) for s in self.servos if s.mode == "current"}
             if zero:
                 self._check_tx(self._writer(ct.GOAL_CURRENT).write(zero))
+            self._goals = self._hold_goals(data)
             for servo in self.servos:
                 self._write(servo.id, ct.TORQUE_ENABLE, 1, "torque on")
+            if self.watchdog_units:
+                for servo in self.servos:
+                    self._write(servo.id, ct.BUS_WATCHDOG, self.watchdog_units, "bus watchdog")
+
+    def _hold_goals(self, fast: Mapping[int, bytes]) -> dict[int, tuple[ct.Register, bytes]]:
+        """Each servo's goal that keeps it where a fast read found it (velocity/current 0)."""
+        goals: dict[int, tuple[ct.Register, bytes]] = {}
+        for servo in self.servos:
+            if servo.operating_mode in _POSITION_MODES:
+                goals[servo.id] = (ct.GOAL_POSITION, bytes(fast[servo.id][6:10]))
+            elif servo.mode == "velocity":
+                goals[servo.id] = (ct.GOAL_VELOCITY, p.to_le(0, 4))
+            else:
+                goals[servo.id] = (ct.GOAL_CURRENT, p.to_le(0, 2))
+        return goals
+
+    def _write_goals(self, goals: Mapping[int, tuple[ct.Register, bytes]]) -> int:
+        """One SYNC_WRITE per goal register; the first failing result (or success)."""
+        by_register: dict[int, dict[int, bytes]] = {}
+        registers: dict[int, ct.Register] = {}
+        for dxl_id, (reg, value) in goals.items():
+            by_register.setdefault(reg.address, {})[dxl_id] = value
+            registers[reg.address] = reg
+        outcome = _sdk.COMM_SUCCESS
+        for address, values in by_register.items():
+            result = self._writer(registers[address]).write(values)
+            if result != _sdk.COMM_SUCCESS and outcome == _sdk.COMM_SUCCESS:
+                outcome = result
+        return outcome
 
     def on_deactivate(self) -> None:
         """Turn torque off."""
         with self._bus:
+            self._goals = {}
             for servo in self.servos:
                 self._write(servo.id, ct.TORQUE_ENABLE, 0, "torque off")
+
+    def on_make_safe(self) -> str:
+        """Apply :attr:`safe_state` to every servo; a short report of what was done.
+
+        ``torque_off``: one SYNC_WRITE of Torque Enable = 0 to every servo (sent whatever the
+        state, also in ``FAULT``), then one SYNC_READ of Torque Enable to confirm, each reply
+        waited for at most ``reply_timeout``; servos that do not confirm get one WRITE each
+        (with its status packet). ``hold``: a SYNC_READ of the present positions, then goal
+        position = present position (goal velocity or current = 0 in those modes); torque is
+        left as it is.
+
+        Raises:
+            DriverOperationError: The port is closed or refused to send, or (``hold``) the
+                present positions could not be read.
+        """
+        port = self._sdk
+        if port is None or not port.is_open:
+            raise DriverOperationError(f"{self.name}: the port is not open")
+        got = self._bus.acquire(timeout=_SAFE_BUS_WAIT)  # else the SDK says if it is busy
+        try:
+            self._goals = {}
+            if self.safe_state == "hold":
+                return self._hold(port)
+            return self._torque_off(port)
+        finally:
+            if got:
+                self._bus.release()
+
+    def _torque_off(self, port: _sdk.SdkPort) -> str:
+        count = len(self._ids)
+        result = port.sync_writer(ct.TORQUE_ENABLE.address, 1).write(
+            dict.fromkeys(self._ids, b"\x00")
+        )
+        if result != _sdk.COMM_SUCCESS:
+            raise DriverOperationError(f"{self.name}: torque off: {port.result_text(result)}")
+        reader = self._torques or port.sync_reader(ct.TORQUE_ENABLE.address, 1, self._ids)
+        result, data, _ = reader.read()
+        if result == _sdk.COMM_SUCCESS and not any(data[i][0] for i in self._ids):
+            return f"{count} servos torque off"
+        unconfirmed: list[int] = []
+        for dxl_id in self._ids:
+            if dxl_id in data and not data[dxl_id][0]:
+                continue
+            result, error = port.write(dxl_id, ct.TORQUE_ENABLE.address, 1, 0)
+            if result != _sdk.COMM_SUCCESS or error & 0x7F:
+                unconfirmed.append(dxl_id)
+        if not unconfirmed:
+            return f"{count} servos torque off"
+        return (
+            f"{count} servos torque off sent; not confirmed by servo"
+            f" {', '.join(map(str, unconfirmed))}"
+        )
+
+    def _hold(self, port: _sdk.SdkPort) -> str:
+        reader = self._fast or port.sync_reader(*ct.FAST_READ, self._ids)
+        result, data, _ = reader.read()
+        if result != _sdk.COMM_SUCCESS:
+            raise DriverOperationError(
+                f"{self.name}: hold: cannot read the present positions: {port.result_text(result)}"
+            )
+        result = self._write_goals(self._hold_goals(data))
+        if result != _sdk.COMM_SUCCESS:
+            raise DriverOperationError(f"{self.name}: hold: {port.result_text(result)}")
+        return f"{len(self._ids)} servos hold"
 
     def on_recover(self) -> None:
         """Reboot servos with a hardware error and configure again (torque off)."""
@@ -620,21 +845,16 @@ class DynamixelDriver(Driver):
         self.on_configure()
 
     def on_shutdown(self) -> None:
-        """Stop polling, turn torque off (best effort) and close the port."""
+        """Stop polling and close the port (:meth:`shutdown` made the servos safe before)."""
         self._stop_polling()
         port, self._sdk = self._sdk, None
         if port is None:
             return
         with self._bus:
-            if port.is_open:  # one SYNC_WRITE: nothing to wait for if the chain is gone
-                result = port.sync_writer(ct.TORQUE_ENABLE.address, 1).write(
-                    dict.fromkeys(self._ids, b"\x00")
-                )
-                if result != _sdk.COMM_SUCCESS:
-                    logger.info("%s: torque off: %s", self.name, port.result_text(result))
             port.close()
-        self._fast = self._slow = self._errors = self._torques = None
+        self._fast = self._slow = self._errors = self._torques = self._watchdogs = None
         self._writers = {}
+        self._goals = {}
 
     # ---- bring-up -----------------------------------------------------------------------------
 
@@ -664,11 +884,36 @@ class DynamixelDriver(Driver):
             if bits:
                 raise self._hardware_error(servo.id, bits)
         self._write(servo.id, ct.TORQUE_ENABLE, 0, "torque off")
-        if self._read(servo.id, ct.OPERATING_MODE, "operating mode") != servo.operating_mode:
-            self._write(servo.id, ct.OPERATING_MODE, servo.operating_mode, "operating mode")
+        if self.watchdog_units:
+            firmware = self._read(servo.id, ct.FIRMWARE_VERSION, "firmware version")
+            if firmware < ct.BUS_WATCHDOG_FIRMWARE:
+                raise DriverInitError(
+                    f"{self.name}: servo {servo.id} ({servo.joint}) has firmware {firmware},"
+                    f" which has no Bus Watchdog (v{ct.BUS_WATCHDOG_FIRMWARE} on): update it"
+                    " (DYNAMIXEL Wizard) or set bus_watchdog: 0"
+                )
+        # EEPROM registers (torque is off now): written only when they differ.
+        self._set_eeprom(servo, ct.OPERATING_MODE, servo.operating_mode, "operating mode")
+        if self.return_delay_units is not None:
+            self._set_eeprom(
+                servo, ct.RETURN_DELAY_TIME, self.return_delay_units, "return delay time"
+            )
+        if servo.write_limits and servo.operating_mode is ct.OperatingMode.POSITION:
+            low, high = servo.limit_ticks()
+            self._set_eeprom(servo, ct.MIN_POSITION_LIMIT, low, "min position limit")
+            self._set_eeprom(servo, ct.MAX_POSITION_LIMIT, high, "max position limit")
         velocity_limit = self._read(servo.id, _VELOCITY_LIMIT, "velocity limit")
         current_limit = self._read(servo.id, _CURRENT_LIMIT, "current limit")
         self._limits[servo.id] = (velocity_limit, current_limit)
+
+    def _set_eeprom(self, servo: ServoConfig, reg: ct.Register, value: int, what: str) -> None:
+        """Write an EEPROM register only when it differs (spares the EEPROM's write cycles)."""
+        old = self._read(servo.id, reg, what)
+        if old != value:
+            logger.info(
+                "%s: servo %d (%s): %s %d -> %d", self.name, servo.id, servo.joint, what, old, value
+            )
+            self._write(servo.id, reg, value, what)
 
     def _ping(self, dxl_id: int, tries: int = _PING_TRIES) -> int:
         port = self._port()
@@ -705,7 +950,10 @@ class DynamixelDriver(Driver):
         while not self._stop.is_set():
             count += 1
             try:
-                if self._poll_fast() and count % self.status_every == 0:
+                self._check_stale()
+                good = self._poll_fast()
+                self._feed_goals()
+                if good and count % self.status_every == 0:
                     self._poll_status()
             except Exception:  # keep polling; a bug must not silently end the thread
                 logger.exception("%s: poll failed", self.name)
@@ -719,8 +967,51 @@ class DynamixelDriver(Driver):
                 else:
                     deadline = self.clock.monotonic()  # late: do not try to catch up
 
+    @property
+    def feedback_max_age(self) -> float:
+        """Clock seconds without a good poll after which the present position is stale.
+
+        :data:`~temoto.drivers.supervision.STALE_PERIODS` (3) times a poll period plus one
+        ``reply_timeout`` (the time a poll whose reply is lost takes on top of its period).
+        """
+        return self._feedback.max_age
+
+    def _check_stale(self) -> None:
+        """Report a fault when the present-position stream is older than its limit."""
+        now = self.clock.monotonic()
+        age = self._feedback.age(now)
+        if self._feedback.last is None or age <= self._feedback.max_age:
+            return
+        if self.state not in (DriverState.INACTIVE, DriverState.ACTIVE):
+            return
+        last = f"; last poll: {self._last_failure}" if self._last_failure else ""
+        self._comm_fault = True
+        self.report_fault(
+            DriverTimeoutError(
+                f"{self.name}: present position stale: no good poll for {age:.3f} s (limit"
+                f" {self._feedback.max_age:.3f} s at {1.0 / self.period:g} Hz){last}"
+            )
+        )
+
+    def _feed_goals(self) -> None:
+        """While ACTIVE, write every servo's newest goal again (the Bus Watchdog's feed)."""
+        if self.state is not DriverState.ACTIVE:
+            return
+        with self._bus:
+            if not self._goals or self._sdk is None or self.state is not DriverState.ACTIVE:
+                return
+            result = self._write_goals(self._goals)
+        if result != _sdk.COMM_SUCCESS:
+            logger.debug("%s: goal feed: %s", self.name, self._port().result_text(result))
+
     def _poll_fast(self) -> bool:
-        """One SyncRead of the chain; faults and recovery follow from it. True if it worked."""
+        """One SyncRead of the chain; faults and recovery follow from it. True if it worked.
+
+        A reply with a bad CRC or garbage is counted in a sliding window (a fault only when
+        :data:`~temoto.drivers.supervision.BAD_FRAMES_LIMIT` fall within
+        :data:`~temoto.drivers.supervision.BAD_FRAMES_WINDOW`); a poll without replies counts
+        towards ``timeout_polls`` in a row.
+        """
         with self._bus:
             reader = self._fast
             if reader is None:
@@ -728,12 +1019,35 @@ class DynamixelDriver(Driver):
             result, data, errors = reader.read()
         stamp = self.clock.monotonic()
         if result != _sdk.COMM_SUCCESS:
+            self._last_failure = self._port().result_text(result) if self._sdk else str(result)
+            if result == _sdk.COMM_RX_CORRUPT:
+                full = self._bad_packets.add(stamp)
+                window = self._bad_packets
+                logger.info(
+                    "%s: a bad status packet (%d within %g s, %d in all): %s",
+                    self.name,
+                    window.recent(stamp),
+                    window.window,
+                    window.total,
+                    self._last_failure,
+                )
+                if full:
+                    self._comm_fault = True
+                    self.report_fault(
+                        DriverOperationError(
+                            f"{self.name}: {window.recent(stamp)} bad status packets within"
+                            f" {window.window:g} s (CRC errors or garbage): {self._last_failure}"
+                        )
+                    )
+                return False
             self._failures += 1
             if self._failures >= self.timeout_polls:
                 self._comm_fault = True
                 self.report_fault(self._comm_error(f"{self._failures} polls in a row", result))
             return False
         self._failures = 0
+        self._last_failure = ""
+        self._feedback.feed(stamp)
         joints: dict[str, JointState] = {}
         for servo in self.servos:
             raw = data[servo.id]
@@ -773,7 +1087,47 @@ class DynamixelDriver(Driver):
                     )
                 )
                 return
+            expired = self._expired_watchdogs()
+            if expired:
+                try:
+                    self._rearm(expired)
+                except DriverError as err:
+                    self.report_fault(err)
+                    return
+                self.report_recovered(
+                    f"the chain answers again; the Bus Watchdog had stopped servo"
+                    f" {', '.join(map(str, expired))}: it holds where it stopped"
+                )
+                return
         self.report_recovered("the chain answers again")
+
+    def _rearm(self, expired: Sequence[int]) -> None:
+        """Clear expired Bus Watchdogs, hold those servos where they stopped, arm again."""
+        with self._bus:
+            for dxl_id in expired:
+                self._write(dxl_id, ct.BUS_WATCHDOG, 0, "bus watchdog clear")
+            result, data, _ = self._reader("fast").read()
+            if result != _sdk.COMM_SUCCESS:
+                raise self._comm_error("read after the bus watchdog", result)
+            holds = self._hold_goals(data)
+            for dxl_id in expired:
+                self._goals[dxl_id] = holds[dxl_id]
+            self._check_tx(self._write_goals({i: holds[i] for i in expired}))
+            for dxl_id in expired:
+                self._write(dxl_id, ct.BUS_WATCHDOG, self.watchdog_units, "bus watchdog")
+
+    def _expired_watchdogs(self) -> list[int]:
+        """The servos whose Bus Watchdog reads -1 (expired); empty when off or unreadable."""
+        if not self.watchdog_units:
+            return []
+        with self._bus:
+            reader = self._watchdogs
+            if reader is None:
+                return []
+            result, data, _ = reader.read()
+        if result != _sdk.COMM_SUCCESS:
+            return []
+        return [i for i in self._ids if p.from_le(data[i], signed=True) < 0]
 
     def _poll_status(self) -> None:
         """Read voltage, temperature and hardware error status; report hardware errors."""
@@ -784,6 +1138,16 @@ class DynamixelDriver(Driver):
             result2, bits, _ = self._errors.read() if result == _sdk.COMM_SUCCESS else (0, {}, {})
         if result != _sdk.COMM_SUCCESS or result2 != _sdk.COMM_SUCCESS:
             return  # the fast poll counts communication failures
+        expired = self._expired_watchdogs()
+        if expired and self.state is DriverState.ACTIVE:
+            self._hw_fault = True  # stays until recover()
+            self.report_fault(
+                DriverOperationError(
+                    f"{self.name}: the Bus Watchdog of servo {', '.join(map(str, expired))}"
+                    f" expired (no instruction for over {self.bus_watchdog:g} s): stopped, goals"
+                    " refused; recover() and activate() again"
+                )
+            )
         stamp = self.clock.monotonic()
         status: dict[int, ServoStatus] = {}
         failing: list[tuple[int, int]] = []
@@ -887,6 +1251,127 @@ class DynamixelDriver(Driver):
 
 _VELOCITY_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Velocity Limit")
 _CURRENT_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Current Limit")
+
+
+# ---- timing, watchdog and adapter checks --------------------------------------------------------
+
+
+def poll_cycle_time(
+    servos: int,
+    baud: int,
+    return_delay: float = FACTORY_RETURN_DELAY,
+    status_every: int = 10,
+    bus_watchdog: bool = True,
+) -> float:
+    """Seconds one poll cycle of the driver takes on the wire (an estimate, a lower bound).
+
+    Each byte is 10 bits (start, 8 data, stop); an instruction packet is 10 bytes plus its
+    parameters, a status packet 11 plus its data (byte stuffing ignored). Per cycle the driver
+    sends one SYNC_READ of 10 bytes (``14 + n`` bytes out, ``n`` replies of 21 bytes, each after
+    the servo's Return Delay Time) and one SYNC_WRITE of the goals (``14 + 5 n`` bytes; 4-byte
+    goals), and every ``status_every`` cycles SYNC_READs of 3 bytes (voltage, temperature),
+    1 byte (hardware error) and, with the Bus Watchdog on, 1 byte (its register)::
+
+        bytes  = (14 + n + 21 n) + (14 + 5 n)
+                 + [(14 + n + 14 n) + (14 + n + 12 n) (+ (14 + n + 12 n))] / status_every
+        reads  = n + [2 n (+ n)] / status_every
+        time   = 10 * bytes / baud + reads * return_delay
+
+    A USB adapter adds its latency (the FTDI latency timer: 16 ms by default, 1 ms when set;
+    see ``docs/driver-dynamixel.md``) to every read, which this leaves out.
+
+    Args:
+        servos: Servos on the chain.
+        baud: Bits per second.
+        return_delay: The servos' Return Delay Time (s).
+        status_every: Polls per status read.
+        bus_watchdog: Whether the status read includes the Bus Watchdog register.
+
+    Returns:
+        Seconds.
+    """
+    n = servos
+    fast = (_INSTRUCTION_BYTES + 4 + n) + n * (_STATUS_BYTES + 10)
+    goals = _INSTRUCTION_BYTES + 4 + 5 * n
+    status_reads = [3, 1, 1] if bus_watchdog else [3, 1]
+    status = sum((_INSTRUCTION_BYTES + 4 + n) + n * (_STATUS_BYTES + size) for size in status_reads)
+    wire = fast + goals + status / status_every
+    replies = n + len(status_reads) * n / status_every
+    return _BITS_PER_BYTE * wire / baud + replies * return_delay
+
+
+def latency_timer(port: str) -> int | None:
+    """The USB serial adapter's latency timer (ms) of a serial device, where Linux lists it.
+
+    Args:
+        port: The serial device (``/dev/ttyUSB0``; a symlink such as ``/dev/serial/by-id/...``
+            is followed).
+
+    Returns:
+        The value of ``/sys/bus/usb-serial/devices/<tty>/latency_timer``, or None when there is
+        no such file (not Linux, not a USB serial adapter, a pseudo-terminal) or it is unreadable.
+    """
+    tty = os.path.basename(os.path.realpath(port))
+    try:
+        with open(os.path.join(USB_SERIAL_SYSFS, tty, "latency_timer"), encoding="ascii") as f:
+            return int(f.read().strip())
+    except (OSError, ValueError):
+        return None
+
+
+def _check_latency_timer(name: str, port: str) -> None:
+    value = latency_timer(port)
+    if value is not None and value > 1:
+        tty = os.path.basename(os.path.realpath(port))
+        logger.warning(
+            "%s: the USB serial latency timer of %s is %d ms: every read waits up to that long"
+            " for the adapter; set it to 1 (echo 1 | sudo tee %s/%s/latency_timer, or a udev"
+            " rule: docs/driver-dynamixel.md)",
+            name,
+            port,
+            value,
+            USB_SERIAL_SYSFS,
+            tty,
+        )
+
+
+def _watchdog_units(seconds: float | None, period: float) -> int:
+    """Bus Watchdog register units (20 ms) for a time in seconds (None: the default).
+
+    Raises:
+        ValueError: Not 0 and not within 0.02..2.54 s, or shorter than two poll periods.
+    """
+    unit = ct.BUS_WATCHDOG_UNIT
+    if seconds is None:
+        units = math.ceil(max(DEFAULT_BUS_WATCHDOG, 3 * period) / unit - 1e-9)
+        return units if units <= ct.BUS_WATCHDOG_MAX else 0
+    if not math.isfinite(seconds) or seconds < 0:
+        raise ValueError(f"bus_watchdog must be 0 (off) or 0.02..2.54 s, got {seconds}")
+    if seconds == 0:
+        return 0
+    units = math.ceil(seconds / unit - 1e-9)
+    if not 1 <= units <= ct.BUS_WATCHDOG_MAX:
+        raise ValueError(f"bus_watchdog must be 0 (off) or 0.02..2.54 s, got {seconds}")
+    if units * unit < 2 * period:
+        raise ValueError(
+            f"bus_watchdog {units * unit:g} s is shorter than two poll periods"
+            f" ({2 * period:g} s): the servos would stop between two polls"
+        )
+    return units
+
+
+def _return_delay_units(seconds: float | None) -> int | None:
+    """Return Delay Time register units (2 µs) for a time in seconds (None: not written).
+
+    Raises:
+        ValueError: Not within 0..508 µs.
+    """
+    if seconds is None:
+        return None
+    units = round(seconds / ct.RETURN_DELAY_UNIT) if math.isfinite(seconds) else -1
+    if not 0 <= units <= ct.RETURN_DELAY_MAX or seconds < 0:
+        raise ValueError(f"return_delay_time must be 0 to 0.000508 s, got {seconds}")
+    return units
 
 
 # ---- detection ----------------------------------------------------------------------------------
@@ -1012,6 +1497,24 @@ def _parse_profile(config: Mapping[str, Any], where: str) -> dict[str, Any]:
         if not isinstance(value, int) or isinstance(value, bool) or value < 1:
             raise ProfileError(f"{where}.{key}: must be an integer >= 1, got {value!r}")
         out[key] = value
+    if "bus_watchdog" in config:
+        value = config["bus_watchdog"]
+        try:
+            if not _number(value):
+                raise ValueError(f"must be a number of seconds, got {value!r}")
+            _watchdog_units(float(value), 1.0 / out["poll_rate"])
+        except ValueError as err:
+            raise ProfileError(f"{where}.bus_watchdog: {err}") from None
+        out["bus_watchdog"] = float(value)
+    if "return_delay_time" in config:
+        value = config["return_delay_time"]
+        try:
+            if not _number(value):
+                raise ValueError(f"must be a number of seconds, got {value!r}")
+            _return_delay_units(float(value))
+        except ValueError as err:
+            raise ProfileError(f"{where}.return_delay_time: {err}") from None
+        out["return_delay_time"] = float(value)
     servos = config.get("servos")
     if not isinstance(servos, Sequence) or isinstance(servos, str) or not servos:
         raise ProfileError(f"{where}.servos: must be a non-empty list of servos")
@@ -1069,8 +1572,16 @@ def _parse_servo(entry: Any, at: str) -> ServoConfig:
             if not _number(entry[key]) or not math.isfinite(entry[key]):
                 raise ProfileError(f"{at}.{key}: must be a finite number, got {entry[key]!r}")
             floats[key] = float(entry[key])
+    limits = mode == "position" and ("min_position" in floats or "max_position" in floats)
     try:
-        return ServoConfig(id=dxl_id, joint=entry["joint"], model=model, mode=mode, **floats)
+        return ServoConfig(
+            id=dxl_id,
+            joint=entry["joint"],
+            model=model,
+            mode=mode,
+            write_limits=limits,
+            **floats,
+        )
     except _FieldError as err:
         raise ProfileError(f"{at}.{err.key}: {err}") from err
 

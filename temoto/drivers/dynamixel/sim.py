@@ -26,11 +26,23 @@ Velocity mode the velocity approaches the goal velocity; in Current mode it appr
 speed that the goal current's share of the Current Limit gives. Present Current is the effort
 of that tracking (a proportional share of the Current Limit). Torque off stops the servo.
 
+Bus Watchdog (98), as the e-Manual describes it for the X series (firmware v38 on): 0 is off,
+1..127 arms it in units of 20 ms. While Torque Enable is 1, a servo that hears no instruction
+packet meant for it (one to its id, a broadcast, or a SYNC/BULK packet that lists it) for longer
+than the set time stops where it is (torque stays on), the register reads -1, and the goal
+registers (Goal PWM, Current, Velocity, Position) refuse writes with a Data Range error until 0
+is written to it. Expiry is computed on the injected clock, at the exact instant it falls,
+whenever the model steps (on every packet, on a register read, and every 50 ms of real time
+while the line is quiet). After the error is cleared the servo stays stopped until a new goal is
+accepted or torque is switched off (the e-Manual does not say; this never moves a servo by
+itself). Writing 1..127 while the error stands is refused (only 0 clears it).
+
 Faults (:meth:`~temoto.drivers.sim.Simulator.inject`; ``device=<id>`` limits ``silence`` and
 ``hardware_error`` to one servo):
 
 * ``silence`` -- the servos neither answer nor act on instructions;
-* ``corrupt`` -- every reply goes out with a wrong CRC;
+* ``corrupt`` -- every reply goes out with a wrong CRC (``replies=N``: only the next N
+  replies, then the fault clears itself);
 * ``hardware_error`` with ``kind`` = ``overheat`` / ``overload`` / ``voltage`` -- sets the
   Hardware Error Status bit (overheating / overload / input voltage), raises the temperature or
   voltage reading to match, turns torque off, and puts the alert bit in every status packet.
@@ -116,6 +128,8 @@ class _Servo:
     position: float = float(ct.POSITION_CENTER)  # ticks
     velocity: float = 0.0  # ticks/s
     current: float = 0.0  # current units
+    heard: float = 0.0  # clock time of the newest instruction packet meant for it
+    halted: bool = False  # stopped by its Bus Watchdog; until torque off or a new goal
 
     def __post_init__(self) -> None:
         for reg in ct.REGISTERS:
@@ -196,7 +210,16 @@ class SimDynamixelChain(Simulator):
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._closed = False
-        self.stats: dict[str, int] = {"packets": 0, "replies": 0, "bad_packets": 0, "reboots": 0}
+        self._corrupt_left: int | None = None  # corrupt replies still to send (replies=)
+        #: Packets heard, replies sent, bad packets dropped, REBOOTs, and accepted writes that
+        #: touched the EEPROM area (a real servo's EEPROM wears with each).
+        self.stats: dict[str, int] = {
+            "packets": 0,
+            "replies": 0,
+            "bad_packets": 0,
+            "reboots": 0,
+            "eeprom_writes": 0,
+        }
         self._master, self._slave = os.openpty()
         try:
             tty.setraw(self._slave)  # no echo, no line discipline, before anyone opens it
@@ -286,6 +309,12 @@ class SimDynamixelChain(Simulator):
 
     def on_fault_changed(self, fault: str, active: bool) -> None:
         """Raise hardware-error bits at once when ``hardware_error`` is injected."""
+        if fault == "corrupt" and active:
+            replies = (self.fault("corrupt") or {}).get("replies")
+            if replies is not None and not (isinstance(replies, int) and replies > 0):
+                self.clear("corrupt")
+                raise ValueError(f"corrupt replies= must be a positive integer, got {replies!r}")
+            self._corrupt_left = replies
         if fault == "hardware_error" and active:
             params = self.fault("hardware_error") or {}
             with self._state:
@@ -320,11 +349,15 @@ class SimDynamixelChain(Simulator):
             try:
                 ready, _, _ = select.select([self._master], [], [], 0.05)
                 if not ready:
+                    with self._state:  # a Bus Watchdog expires without any packet too
+                        self._step_locked()
                     continue
                 data = os.read(self._master, 4096)
             except BlockingIOError:
                 continue
             except OSError:  # no slave open (EIO): wait for one
+                with self._state:  # the client is gone: its servos' watchdogs run on
+                    self._step_locked()
                 self._stop.wait(0.01)
                 continue
             if self.fault("link_loss") is not None:
@@ -364,6 +397,10 @@ class SimDynamixelChain(Simulator):
             return
         if self.fault("corrupt") is not None:
             data = data[:-1] + bytes([data[-1] ^ 0x5A])
+            if self._corrupt_left is not None:
+                self._corrupt_left -= 1
+                if self._corrupt_left <= 0:
+                    self.clear("corrupt")
         view = memoryview(data)
         while view and not self._stop.is_set():
             try:
@@ -382,10 +419,12 @@ class SimDynamixelChain(Simulator):
             if packet.is_status:
                 return []
             if packet.id == p.BROADCAST_ID:
+                self._hear(self._addressed(packet, line))
                 return self._broadcast(packet, line)
             servo = self._servos.get(packet.id)
             if servo is None or self._absent(servo, line):
                 return []
+            self._hear((servo,))
             try:
                 params = self._unicast(servo, packet)
             except _Reject as reject:
@@ -460,6 +499,33 @@ class SimDynamixelChain(Simulator):
                 self._quiet_write(servo, p.from_le(params[:2]), params[2:])
         return replies
 
+    def _addressed(self, packet: p.Packet, line: int | None) -> list[_Servo]:
+        """The servos a broadcast instruction packet is meant for (those that hear it).
+
+        A SYNC or BULK packet is meant for the ids it lists; any other broadcast for every
+        servo. (The e-Manual counts "all instruction packets" as communication for the Bus
+        Watchdog; a packet that names only other servos is taken as not meant for this one.)
+        """
+        inst, params = packet.instruction, packet.params
+        ids: set[int] | None = None
+        if inst in (p.Instruction.SYNC_READ, p.Instruction.FAST_SYNC_READ):
+            ids = set(params[4:])
+        elif inst == p.Instruction.SYNC_WRITE and len(params) >= 4:
+            length = p.from_le(params[2:4])
+            ids = {params[at] for at in range(4, len(params), length + 1)}
+        elif inst == p.Instruction.BULK_READ:
+            ids = {params[at] for at in range(0, len(params), 5)}
+        elif inst == p.Instruction.BULK_WRITE:
+            ids, at = set(), 0
+            while at + 5 <= len(params):
+                ids.add(params[at])
+                at += 5 + p.from_le(params[at + 3 : at + 5])
+        return [
+            s
+            for s in self._servos.values()
+            if (ids is None or s.id in ids) and not self._absent(s, line)
+        ]
+
     def _reply_read(self, servo: _Servo, address: int, length: int) -> bytes:
         try:
             return self._status(servo, 0, self._read(servo, address, length))
@@ -485,15 +551,21 @@ class SimDynamixelChain(Simulator):
         for reg in touched:
             if not reg.writable or (reg.eeprom and servo.torque):
                 raise _Reject(_E.ACCESS)
+            if reg in ct.GOAL_REGISTERS and servo.get(ct.BUS_WATCHDOG) == ct.BUS_WATCHDOG_ERROR:
+                raise _Reject(_E.DATA_RANGE)  # goal values are read-only after it expired
         scratch = bytearray(servo.table)
         scratch[address:end] = data
         for reg in touched:
             value = p.from_le(bytes(scratch[reg.address : reg.address + reg.size]), reg.signed)
             self._check(servo, reg, value)
+        if any(reg.eeprom for reg in touched):
+            self.stats["eeprom_writes"] += 1
         for reg in touched:
             value = p.from_le(bytes(scratch[reg.address : reg.address + reg.size]), reg.signed)
             if reg is ct.TORQUE_ENABLE and value and servo.hardware_error:
                 continue  # a servo with a hardware error keeps its torque off
+            if (reg is ct.TORQUE_ENABLE and not value) or reg in ct.GOAL_REGISTERS:
+                servo.halted = False
             servo.put(reg, value)
 
     def _check(self, servo: _Servo, reg: ct.Register, value: int) -> None:
@@ -506,6 +578,17 @@ class SimDynamixelChain(Simulator):
                 raise _Reject(_E.DATA_RANGE)
         elif reg is _REG["Baud Rate"]:
             if value not in _BAUD_BY_CODE:
+                raise _Reject(_E.DATA_RANGE)
+        elif reg is ct.BUS_WATCHDOG:
+            if not 0 <= value <= ct.BUS_WATCHDOG_MAX:
+                raise _Reject(_E.DATA_RANGE)
+            if value and servo.get(ct.BUS_WATCHDOG) == ct.BUS_WATCHDOG_ERROR:
+                raise _Reject(_E.DATA_RANGE)  # only 0 clears the error
+        elif reg is ct.RETURN_DELAY_TIME:
+            if value > ct.RETURN_DELAY_MAX:
+                raise _Reject(_E.DATA_RANGE)
+        elif reg in (ct.MIN_POSITION_LIMIT, ct.MAX_POSITION_LIMIT):
+            if not 0 <= value <= 4095:
                 raise _Reject(_E.DATA_RANGE)
         elif reg is ct.GOAL_POSITION and mode == ct.OperatingMode.POSITION:
             if (
@@ -534,6 +617,8 @@ class SimDynamixelChain(Simulator):
         servo.put(ct.GOAL_VELOCITY, 0)
         servo.put(ct.GOAL_CURRENT, 0)
         servo.put(ct.GOAL_POSITION, round(servo.position))
+        servo.put(ct.BUS_WATCHDOG, 0)
+        servo.halted = False
         servo.velocity = 0.0
         servo.current = 0.0
         if still and params is not None:
@@ -543,17 +628,30 @@ class SimDynamixelChain(Simulator):
 
     def _step_locked(self) -> None:
         now = self.clock.monotonic()
-        dt = now - self._last_step
+        start = self._last_step
+        dt = now - start
         self._last_step = now
         if dt <= 0:
             return
         for servo in self._servos.values():
-            _move(servo, dt)
+            expiry = _watchdog_expiry(servo)
+            if expiry is not None and expiry < now:
+                _move(servo, max(expiry - start, 0.0))  # up to the moment it expired
+                _expire_watchdog(servo)
+                _move(servo, now - max(expiry, start))
+            else:
+                _move(servo, dt)
+
+    def _hear(self, servos: Iterable[_Servo]) -> None:
+        """An instruction packet for ``servos`` arrived now: their Bus Watchdogs restart."""
+        now = self.clock.monotonic()
+        for servo in servos:
+            servo.heard = now
 
 
 def _move(servo: _Servo, dt: float) -> None:
     """Advance one servo's first-order model by ``dt`` seconds and refresh its registers."""
-    if not servo.torque:
+    if not servo.torque or servo.halted:
         servo.velocity = 0.0
         servo.current = 0.0
     else:
@@ -605,6 +703,22 @@ def _move(servo: _Servo, dt: float) -> None:
     servo.put(ct.PRESENT_VELOCITY, round(servo.velocity / _TICKS_S_PER_UNIT))
     servo.put(ct.PRESENT_CURRENT, min(max(round(servo.current), -32768), 32767))
     servo.put(_REG["Moving"], 1 if abs(servo.velocity) > _TICKS_S_PER_UNIT else 0)
+
+
+def _watchdog_expiry(servo: _Servo) -> float | None:
+    """When the servo's armed Bus Watchdog expires (None: off, expired, or torque off)."""
+    units = servo.get(ct.BUS_WATCHDOG)
+    if units <= 0 or not servo.torque:
+        return None
+    return servo.heard + units * ct.BUS_WATCHDOG_UNIT
+
+
+def _expire_watchdog(servo: _Servo) -> None:
+    """The Bus Watchdog expired: the servo stops where it is and reads -1 until cleared."""
+    servo.put(ct.BUS_WATCHDOG, ct.BUS_WATCHDOG_ERROR)
+    servo.halted = True
+    servo.velocity = 0.0
+    servo.current = 0.0
 
 
 def chain_from_ids(ids: Iterable[int], model: str = "XM430-W350") -> dict[int, str]:
