@@ -39,6 +39,7 @@ from bench import (
     registrar,
     ris,
     robot,
+    safety,
 )
 from bench.common import Metric, Results
 
@@ -89,6 +90,14 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     "robot": (
         "robot manager: start-to-ready and idle RSS, sim_mobile_manipulator (subprocesses)",
         robot.bench_robot,
+    ),
+    "safety": (
+        "safety: signal -> every device safe, seen by the simulators (subprocesses)",
+        safety.bench_safety,
+    ),
+    "stale": (
+        "safety: an ODrive's encoder stream stops -> driver fault (virtual CAN)",
+        safety.bench_stale,
     ),
 }
 

@@ -60,7 +60,8 @@ PATHS: Final = ("end", "fault", "exception", "sigint", "sigterm", "double_sigint
 
 _CAN_LINK: Final = {"interface": "udp_multicast", "channel": "239.74.163.9", "fd": False}
 
-#: Per family: the device entry, the features, the long and short motions, the fault to inject.
+#: Per family: the device entry, the features, the long and short motions, the fault to inject
+#: and, where the device has a watchdog, the SIGKILL bound (its timeout plus one period).
 FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
     "odrive": {
         "device": {
@@ -116,6 +117,7 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
             "driver": "dynamixel",
             "link": "serial:/dev/null?baud=1000000",
             "poll_rate": 50,
+            "bus_watchdog": 0.1,
             "servos": [
                 {
                     "id": 1,
@@ -146,6 +148,8 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
         "long": ("MoveJoints", {"pose": "reach"}),
         "short": ("MoveJoints", {"pose": "reach"}),
         "fault": "corrupt",
+        # SIGKILL: the Bus Watchdog (0.1 s) plus one poll period (50 Hz)
+        "sigkill_bound_s": 0.1 + 0.02,
     },
     "mavlink": {
         "device": {

@@ -14,7 +14,8 @@ included, apply), starts it, and prints JSON lines on standard output:
 ``active`` says the device acts (every ODrive axis in CLOSED_LOOP_CONTROL, every MIT motor in
 motor mode, every Dynamixel servo's torque on, the vehicle armed); ``safe`` says it is in a
 safe state as ``docs/safety.md`` defines them (every axis IDLE, every MIT motor out of motor
-mode, every servo's torque off, the vehicle disarmed or in a hold, land or return mode). This
+mode, every servo's torque off or stopped by its Bus Watchdog, the vehicle disarmed or in a
+hold, land or return mode). This
 is what a person watching the device sees; the robot process under test never talks to the
 host except over the device's own link.
 
@@ -67,7 +68,14 @@ def _dynamixel(sim: Any) -> tuple[bool, bool, dict[str, Any]]:
     from temoto.drivers.dynamixel import control_table as ct
 
     torque = {str(i): sim.read_register(i, ct.TORQUE_ENABLE.address) for i in sim.ids}
-    return all(torque.values()), not any(torque.values()), {"torque": torque}
+    # the Bus Watchdog's expiry stops a servo with its torque on (e-Manual, address 98)
+    expired = {
+        str(i): sim.read_register(i, ct.BUS_WATCHDOG.address) in (ct.BUS_WATCHDOG_ERROR, 0xFF)
+        for i in sim.ids
+    }
+    active = all(torque.values()) and not any(expired.values())
+    safe = all(not torque[i] or expired[i] for i in torque)
+    return active, safe, {"torque": torque, "watchdog_expired": expired}
 
 
 def _mavlink(sim: Any) -> tuple[bool, bool, dict[str, Any]]:

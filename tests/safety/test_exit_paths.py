@@ -80,3 +80,21 @@ def test_every_exit_path_leaves_the_device_safe(family: str, path: str) -> None:
         assert result["safe_t"] <= result["exit_t"], story
     if path == "double_sigint":  # the second signal does not wait for the stuck action
         assert result["exit_t"] - result["event_t"] < 1.0, story
+
+
+#: Seconds beyond a watchdog's bound for the simulator host's reads (every 2 ms) and scheduling.
+WATCHDOG_SLACK_S = 0.03
+
+
+@pytest.mark.skipif(bool(_why_not()), reason=_why_not() or "ok")
+@pytest.mark.parametrize("family", list(FAMILIES))
+def test_after_a_sigkill_the_devices_watchdog_makes_it_safe(family: str) -> None:
+    # nothing of the robot command runs: only the watchdog the driver kept fed can help
+    bound = FAMILIES[family]["sigkill_bound_s"]
+    result = run(family, "sigkill")
+    story = _story(result)
+    assert result["rc"] == -9, story
+    assert result["leftovers"] == [], story
+    assert result["safe_t"] is not None, story
+    assert result["safe_ms"] <= (bound + WATCHDOG_SLACK_S) * 1000.0, story
+    assert result["safe_ms"] >= 0.0, story
