@@ -57,6 +57,7 @@ __all__ = [
     "ProcessManager",
     "ProcessRequest",
     "ProcessResponse",
+    "hurry_all",
 ]
 
 logger = logging.getLogger(__name__)
@@ -68,6 +69,18 @@ _DEAD_STATES = frozenset({"Z", "X", "x"})
 #: starts): it finds the processes of a load interrupted by a crash, and left-overs of a process
 #: that died while the manager was down.
 TOKEN_VARIABLE = "TEMOTO_PROCESS_TOKEN"
+
+#: Every ProcessManager of this OS process, for :func:`hurry_all` (weakly: no lifetime effect).
+_MANAGERS: weakref.WeakSet[ProcessManager] = weakref.WeakSet()
+
+
+def hurry_all() -> None:
+    """:meth:`ProcessManager.hurry` every manager of this process (for a second Ctrl-C).
+
+    Safe to call from a signal handler.
+    """
+    for manager in list(_MANAGERS):
+        manager.hurry()
 
 
 # ============================================================================ request / response
@@ -356,6 +369,7 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         # Readable once hurry() is called: ends every grace period then and from then on.
         self._hurry_fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
         weakref.finalize(self, os.close, self._hurry_fd)
+        _MANAGERS.add(self)
         self._procs: dict[int, _Proc] = {}
         self._closed = False
         self._monitor = ProcessMonitor(name="temoto-procmon")
