@@ -634,8 +634,10 @@ def spawn(
 
     Raises:
         OSError: Starting the program failed.
-        ValueError: Bad Popen arguments.
+        ValueError: Bad Popen arguments (``preexec_fn`` among them).
     """
+    if "preexec_fn" in popen:
+        raise ValueError("spawn() cannot take a preexec_fn: it sets its own")
     spawner = _the_spawner()
     if death_signal is None or spawner.prctl is None:
         return cast(

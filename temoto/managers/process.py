@@ -304,10 +304,9 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
       its own process group), stdin from ``/dev/null``, and returns as soon as the process
       exists; it does not wait for the program to be "ready". Its output (stdout and stderr
       together) goes to ``<log_dir>/<pid>.log`` with ``log_dir``, to this process's stdout and
-      stderr with ``inherit_output=True``, else to ``/dev/null``. Inheriting is off by default
-      because processes outlive a crash of their manager: holding its stdout/stderr, they
-      would keep a pipe to a supervisor open (no EOF while they run), or die of SIGPIPE when
-      its reader is gone.
+      stderr with ``inherit_output=True``, else to ``/dev/null``. Inheriting is off by default:
+      holding its stdout/stderr, processes would keep a pipe to a supervisor open (no EOF
+      while they run), or die of SIGPIPE when its reader is gone.
     * **Exit**: when a process exits on its own, every consumer gets ``FATAL`` with the exit
       code or signal, within milliseconds.
     * **Unload** (last reference released) sends SIGTERM to the process group, waits up to
