@@ -29,7 +29,7 @@ from temoto.managers import (
     ProcessResponse,
 )
 from temoto.managers._procmon import process_start_time, process_state
-from temoto.managers.process import TOKEN_VARIABLE, hurry_all
+from temoto.managers.process import TOKEN_VARIABLE, _group_members, hurry_all
 from temoto.testing import child_command
 
 GRACE = 0.3
@@ -896,5 +896,8 @@ def test_processes_die_with_the_managers_process_unless_told_otherwise(
     finally:
         if parent.stdout is not None:
             parent.stdout.close()
-        if not die_with_manager:  # an orphan now, as asked: the leak check kills it
+        if not die_with_manager:  # orphans now, as asked: kill them and wait until gone
             os.killpg(pid, signal.SIGKILL)
+            deadline = time.monotonic() + 5
+            while _group_members(pid) and time.monotonic() < deadline:
+                time.sleep(0.01)
