@@ -609,10 +609,12 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
             if pidfd is not None:
                 pidfds[pidfd] = record
         deadline = time.monotonic() + self.grace
+        termed: set[int] = set()  # the groups that got SIGTERM here
         try:
             for pidfd, record in pidfds.items():
                 if not _wait_readable([pidfd], 0):
                     self._signal_group(record.pgid, signal.SIGTERM)
+                    termed.add(record.pgid)
             left = set(pidfds) - _wait_readable(pidfds, self.grace, self._hurry_fd)
             for pidfd in left:
                 self._signal_group(pidfds[pidfd].pgid, signal.SIGKILL)
@@ -625,7 +627,8 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
             for pidfd in pidfds:
                 os.close(pidfd)
         for record in records:
-            self._stop_members(record, deadline, signal.SIGTERM)
+            sent = signal.SIGTERM if record.pgid in termed else None
+            self._stop_members(record, deadline, sent)
             if self.die_with_manager:
                 unguard_group(record.pgid)
             with self._lock:
