@@ -31,21 +31,56 @@ ROOT = Path(__file__).resolve().parents[1]
 
 pytestmark = pytest.mark.timeout(30)
 
-#: An action that acquires a process (the test child, with one grandchild) from the Process
-#: Manager, says "busy <pid>" once the process and its grandchild exist, then waits for its
-#: stop request, or ignores it if BUSY_STUBBORN is set (for the second signal).
+#: An action that drives a device (BUSY_DEVICE: a file standing for the device, whose content
+#: is its state; the driver is a real Driver subclass, so make_all_safe reaches it) and
+#: acquires a process (the test child, with one grandchild) from the Process Manager. It says
+#: "busy <pid>" once the process and its grandchild exist, then waits for its stop request,
+#: or ignores it if BUSY_STUBBORN is set (for the second signal).
 BUSY_ACTION = """
 import os
 import sys
 import time
 
 from temoto import Action
+from temoto.drivers.base import Driver
 from temoto.managers.process import ProcessRequest
 from temoto.testing import child_command
 
 
+class FileDevice(Driver):
+    safe_states = ("off",)
+
+    def __init__(self, path):
+        super().__init__("file_device")
+        self.path = path
+
+    def on_configure(self):
+        self._write("configured")
+
+    def on_activate(self):
+        self._write("running")
+
+    def on_make_safe(self):
+        self._write(self.safe_state)
+        return f"device {self.safe_state}"
+
+    def on_shutdown(self):
+        pass
+
+    def _write(self, text):
+        with open(self.path, "w") as f:
+            f.write(text)
+
+
+DEVICES = []
+
+
 class TaBusy(Action):
     def on_run(self) -> bool:
+        device = FileDevice(os.environ["BUSY_DEVICE"])
+        device.configure()
+        device.activate()
+        DEVICES.append(device)  # kept alive (drivers are found through weak references)
         touch = os.environ["BUSY_TOUCH"]
         stubborn = bool(os.environ.get("BUSY_STUBBORN"))
         argv = child_command(grandchildren=1, touch=touch, ignore_term=stubborn)
@@ -192,17 +227,21 @@ def test_run_stops_the_graph_and_its_processes_on_a_signal(
     code: int,
 ) -> None:
     graph, actions = busy_graph
+    device = tmp_path / "device"
     run = Command(
         ["-m", "temoto", "run", str(graph), "--actions", str(actions)],
-        {"BUSY_TOUCH": str(tmp_path / "child.pid")},
+        {"BUSY_TOUCH": str(tmp_path / "child.pid"), "BUSY_DEVICE": str(device)},
     )
     child = int(run.wait_for("busy ").split()[1])
     assert child in leaks.leftovers()
+    assert device.read_text() == "running"
     run.signal(*signums)
     status, err = run.finish()
     assert status == code, err
     assert "Traceback" not in err
     assert "busy: on_stopped" in run.lines
+    assert "temoto: file_device: device off" in err  # made safe by the command, not atexit
+    assert device.read_text() == "off"
     assert none_left(leaks) == []
 
 
@@ -214,7 +253,11 @@ def test_run_a_second_sigint_stops_at_once(
     graph, actions = busy_graph
     run = Command(
         ["-m", "temoto", "run", str(graph), "--actions", str(actions)],
-        {"BUSY_TOUCH": str(tmp_path / "child.pid"), "BUSY_STUBBORN": "1"},
+        {
+            "BUSY_TOUCH": str(tmp_path / "child.pid"),
+            "BUSY_STUBBORN": "1",
+            "BUSY_DEVICE": str(tmp_path / "device"),
+        },
     )
     run.wait_for("busy ")
     t0 = run.signal(signal.SIGINT, signal.SIGINT)
@@ -223,6 +266,7 @@ def test_run_a_second_sigint_stops_at_once(
     assert time.monotonic() - t0 < 4.0  # well under the 5 s + 5 s the waits would take
     assert "Traceback" not in err
     assert "stopping at once" in err
+    assert "temoto: file_device: device off" in err
     assert none_left(leaks) == []
 
 
