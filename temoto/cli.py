@@ -14,8 +14,13 @@ Commands:
   image when ``-o`` is given and Graphviz's ``dot`` is installed.
 * ``temoto actions [--actions DIR]...``: lists the known actions and where they come from.
 
-Ctrl-C during ``temoto run`` stops the graph cleanly (its actions get their stop request) and
-reports the result (``on_stopped``, exit status 1).
+Signals (ARCHITECTURE.md §8): SIGINT (Ctrl-C) or SIGTERM during ``temoto run`` stops the graph
+cleanly (its actions get their stop request), makes every device of this process safe, stops
+the processes it started, prints the result (``on_stopped``) and exits 130 (SIGINT) or 143
+(SIGTERM); ``temoto demo`` does the same. ``temoto serve`` stopped by either exits 0. A
+second signal skips the waits (action stops, process grace periods) but still cleans up. No
+traceback in any case. A closed standard output (``temoto actions | head``) ends the command
+quietly with status 141 (128 + SIGPIPE, as a program killed by SIGPIPE reports).
 
 This is the only module that configures logging or prints.
 """
@@ -23,9 +28,13 @@ This is the only module that configures logging or prints.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
+import os
+import signal
 import sys
+import time
 from collections.abc import Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -33,11 +42,14 @@ from typing import IO, Any
 from temoto import __version__
 from temoto._cli_drivers import add_drivers, drivers_command
 from temoto._cli_fleet import (
+    Interrupted,
+    SignalExit,
     add_fleet_options,
     add_graph_commands,
     add_serve,
     fleet_key,
     graph_command,
+    make_devices_safe,
     serve,
     watch,
 )
@@ -60,6 +72,7 @@ __all__ = ["main"]
 EXIT_TRUE = 0
 EXIT_OTHER_RESULT = 1
 EXIT_INVALID = 2
+EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE
 
 
 class _Progress(Instrument):
@@ -208,6 +221,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
     )
     try:
+        code = _command(args)
+        sys.stdout.flush()  # here, where a closed pipe is caught, not at interpreter exit
+        return code
+    except BrokenPipeError:
+        # The reader of our output is gone (``temoto actions | head``). Point standard output
+        # at /dev/null so that the interpreter's last flush does not fail again.
+        devnull = os.open(os.devnull, os.O_WRONLY)
+        os.dup2(devnull, sys.stdout.fileno())
+        os.close(devnull)
+        return EXIT_BROKEN_PIPE
+
+
+def _command(args: argparse.Namespace) -> int:
+    try:
         if args.command == "run":
             return _run(args)
         if args.command == "validate":
@@ -278,19 +305,42 @@ def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
 
 
 def _run(args: argparse.Namespace) -> int:
-    graph = load_graph(args.graph)
-    opened = _open_fleet(args, graph)
-    link, transport = opened if opened is not None else (None, None)
-    try:
-        return _run_graph(args, graph, link)
-    finally:
-        if link is not None:
-            link.close()
-        if transport is not None:
-            transport.close()
+    with SignalExit() as signals:
+        graph = load_graph(args.graph)
+        opened = _open_fleet(args, graph)
+        link, transport = opened if opened is not None else (None, None)
+        try:
+            code = _run_graph(args, graph, link, signals)
+        finally:
+            if link is not None:
+                link.close()
+            if transport is not None:
+                transport.close()
+    return signals.exit_code or code
 
 
-def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any) -> int:
+def _wait_run(engine: ActionEngine, name: str, timeout: float | None, interrupt: Any) -> bool:
+    """Wait for a run to end, at most ``timeout`` seconds or until ``interrupt`` is set.
+
+    The wait is in steps of 50 ms so that a signal (whose handler sets ``interrupt``) is
+    noticed soon: the handler runs in this thread, but does not end the step it interrupts.
+
+    Returns:
+        True if the run ended.
+    """
+    deadline = None if timeout is None else time.monotonic() + timeout
+    while True:
+        step = 0.05 if deadline is None else min(0.05, max(0.0, deadline - time.monotonic()))
+        try:
+            engine.wait(name, step)
+            return True
+        except TimeoutError:
+            pass
+        if interrupt.is_set() or (deadline is not None and time.monotonic() >= deadline):
+            return False
+
+
+def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: SignalExit) -> int:
     params = _params(graph, args.param)
     clock = ScaledClock(args.time_scale) if args.time_scale != 1.0 else MonotonicClock()
     t0 = clock.monotonic()
@@ -318,14 +368,26 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any) -> int:
         )
         try:
             with engine:
-                try:
-                    outcome = engine.run(graph, params, timeout=args.timeout)
-                except KeyboardInterrupt:
-                    sys.stderr.write("temoto: interrupted; stopping the graph\n")
-                    engine.stop(graph.name)
-                    outcome = engine.outcome(graph.name)
+                name = engine.start(graph, params)
+                if not _wait_run(engine, name, args.timeout, signals.stop):
+                    if signals.signum is None:
+                        logging.getLogger("temoto.cli").warning(
+                            "graph %s did not end within %s s; stopping it", name, args.timeout
+                        )
+                    else:
+                        sys.stderr.write("temoto: stopping the graph\n")
+                    with contextlib.suppress(TimeoutError):
+                        engine.stop(name, timeout=0)
+                    _wait_run(engine, name, None, signals.hurried)
+                outcome = engine.outcome(name)
+                if signals.signum is not None:
+                    make_devices_safe(f"temoto run stopped by {_signal_name(signals.signum)}")
+                if signals.hurried.is_set():
+                    engine.shutdown(timeout=0.1)  # what did not stop is abandoned
         finally:
-            processes.shutdown()
+            # Whatever the actions did not release (a run that did not stop) is stopped here:
+            # nothing started by this command outlives it.
+            processes.shutdown(stop_processes=True)
             registrar.close()
     finally:
         if trace_file is not None:
@@ -379,11 +441,26 @@ def _dot(args: argparse.Namespace) -> int:
     return 0
 
 
+def _signal_name(signum: int) -> str:
+    return signal.Signals(signum).name
+
+
 def _demo(args: argparse.Namespace) -> int:
     from temoto.demos import DEMOS, run_demo
 
+    # The first signal raises KeyboardInterrupt (Interrupted) inside the demonstration, which
+    # cleans up on its way out as it does for Ctrl-C; its processes are stopped by then.
     try:
-        report = run_demo(args.number, sys.stdout, speed=args.speed)
+        with SignalExit(raise_first=True) as signals:
+            try:
+                report = run_demo(args.number, sys.stdout, speed=args.speed)
+            finally:
+                signals.raising = False
+                if signals.signum is not None:
+                    make_devices_safe(f"temoto demo stopped by {_signal_name(signals.signum)}")
+    except Interrupted as stop:
+        sys.stderr.write(f"temoto: demonstration {args.number} stopped\n")
+        return 128 + stop.signum
     except ModuleNotFoundError as err:
         if not (err.name or "").startswith("temoto.demos"):
             raise
@@ -392,6 +469,8 @@ def _demo(args: argparse.Namespace) -> int:
     except ValueError as err:
         _error(err)
         return EXIT_INVALID
+    if signals.exit_code is not None:  # the signal came after the demonstration had ended
+        return signals.exit_code
     return EXIT_TRUE if report.ok else EXIT_OTHER_RESULT
 
 

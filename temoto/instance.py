@@ -186,6 +186,14 @@ class Instance(Closing):
             self.transport,
         )
         for part in parts:
+            if part is self.processes:
+                # Nothing this instance started outlives it (its consumers above have released
+                # what they held; this stops the rest, e.g. of runs that did not stop in time).
+                try:
+                    self.processes.shutdown(stop_processes=True)
+                except Exception:
+                    logger.exception("closing the process manager failed")
+                continue
             _close(part)
 
     def add_manager(self, manager: object) -> None:

@@ -107,7 +107,7 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
         display.close()
         reader.close()
         components.shutdown()
-        processes.shutdown()
+        processes.shutdown(stop_processes=True)  # nothing it started outlives it
         registrar.close()
     samples = counter.samples or [0]
     report.facts["sensor_processes_max"] = max(samples)

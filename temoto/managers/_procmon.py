@@ -18,16 +18,31 @@ tells a process apart from a later one that got the same pid.
 from __future__ import annotations
 
 import contextlib
+import ctypes
 import logging
 import os
+import queue
 import selectors
+import signal
+import subprocess
+import sys
 import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 from temoto.errors import StateError
 
-__all__ = ["ExitCallback", "ProcessMonitor", "process_start_time", "process_state"]
+__all__ = [
+    "ExitCallback",
+    "ProcessMonitor",
+    "guard_group",
+    "guard_pid",
+    "process_start_time",
+    "process_state",
+    "spawn",
+    "unguard_group",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -364,3 +379,311 @@ def processes_with_environ(entry: bytes) -> list[int]:
         if entry in environ.split(b"\0"):
             found.append(int(name))
     return sorted(found)
+
+
+# ============================================================================ spawning
+
+#: ``prctl`` option number of PR_SET_PDEATHSIG (``<linux/prctl.h>``).
+_PR_SET_PDEATHSIG = 1
+
+#: The guard process (see :class:`_Guard`), run as ``python -I -S -c _GUARD_SOURCE``. It is a
+#: string, not a module, so that it starts in ~10 ms without importing ``site`` or ``temoto``.
+#: Protocol on its standard input, one line each: ``+ PGID TOKEN GRACE`` (a group to stop if
+#: this process dies; TOKEN is a whole ``NAME=value`` environment entry that its members
+#: carry), ``- PGID`` (forget it). End of input (this process is gone, however it ended):
+#: SIGTERM every remembered group that still has a member carrying its token, SIGKILL what is
+#: left after GRACE seconds, then exit.
+_GUARD_SOURCE = r"""
+import os, signal, time
+for s in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP):
+    signal.signal(s, signal.SIG_IGN)
+groups = {}
+buf = b""
+while True:
+    try:
+        data = os.read(0, 65536)
+    except InterruptedError:
+        continue
+    if not data:
+        break
+    buf += data
+    *lines, buf = buf.split(b"\n")
+    for line in lines:
+        f = line.split()
+        if len(f) == 4 and f[0] == b"+":
+            groups[int(f[1])] = (f[2], float(f[3]))
+        elif len(f) == 2 and f[0] == b"-":
+            groups.pop(int(f[1]), None)
+
+def ours(pgid, token):
+    members, marked = 0, False
+    for name in os.listdir("/proc"):
+        if not name.isdigit():
+            continue
+        try:
+            with open("/proc/" + name + "/stat", "rb") as fh:
+                st = fh.read().rpartition(b")")[2].split()
+            if len(st) < 3 or st[0] in (b"Z", b"X", b"x") or int(st[2]) != pgid:
+                continue
+            members += 1
+            with open("/proc/" + name + "/environ", "rb") as fh:
+                marked = marked or token in fh.read().split(b"\0")
+        except OSError:
+            continue
+    return members > 0 and marked
+
+def kill(pgid, sig):
+    try:
+        os.killpg(pgid, sig)
+    except OSError:
+        pass
+
+start = time.monotonic()
+live = {}
+for pgid, (token, grace) in groups.items():
+    if ours(pgid, token):
+        kill(pgid, signal.SIGTERM)
+        live[pgid] = (token, start + grace)
+while live:
+    time.sleep(0.01)
+    for pgid, (token, deadline) in list(live.items()):
+        if not ours(pgid, token):
+            del live[pgid]
+        elif time.monotonic() >= deadline:
+            kill(pgid, signal.SIGKILL)
+            del live[pgid]
+"""
+
+
+def _load_prctl() -> Callable[..., int] | None:
+    """The C library's ``prctl`` through ctypes (resolved in the parent), or None."""
+    try:
+        fn = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):  # pragma: no cover - not glibc/musl on Linux
+        return None
+    fn.argtypes = [ctypes.c_int, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong, ctypes.c_ulong]
+    fn.restype = ctypes.c_int
+    return cast("Callable[..., int]", fn)
+
+
+@dataclass(eq=False)
+class _Job:
+    run: Callable[[], Any]
+    done: threading.Event = field(default_factory=threading.Event)
+    result: Any = None
+    error: BaseException | None = None
+
+
+class _Spawner:
+    """The one long-lived thread of this process that forks children (see :func:`spawn`).
+
+    It belongs to the OS process, not to any object, and is never joined: it must outlive
+    every child it forked. It is therefore named ``process-spawner``, outside the
+    ``temoto-`` prefix of threads that an owner joins on shutdown.
+    """
+
+    def __init__(self) -> None:
+        self.prctl = _load_prctl()
+        self.jobs: queue.SimpleQueue[_Job] = queue.SimpleQueue()
+        self.thread = threading.Thread(target=self._run, name="process-spawner", daemon=True)
+        self.thread.start()
+
+    def call(self, run: Callable[[], Any]) -> Any:
+        if threading.current_thread() is self.thread:
+            return run()
+        job = _Job(run)
+        self.jobs.put(job)
+        job.done.wait()
+        if job.error is not None:
+            raise job.error
+        return job.result
+
+    def _run(self) -> None:
+        while True:
+            job = self.jobs.get()
+            try:
+                job.result = job.run()
+            except BaseException as err:  # handed to the caller
+                job.error = err
+            finally:
+                job.done.set()
+            del job
+
+
+class _Guard:
+    """A helper process that stops registered process groups when this process dies.
+
+    It is started on the first registration, in its own session (a Ctrl-C or a signal to
+    this process's group does not reach it), with an empty environment (it is not one of
+    "our" processes for leak checks: it exits by itself), ignoring SIGINT, SIGTERM and
+    SIGHUP. It reads a pipe whose only writer is this process: end of input means this process
+    is gone, SIGKILL included. If it is killed, the next registration starts a new one and
+    hands it every group still registered.
+    """
+
+    def __init__(self) -> None:
+        self.lock = threading.Lock()
+        self.fd = -1
+        self.pid = 0
+        self.groups: dict[int, str] = {}
+
+    def _start(self) -> None:
+        read_fd, write_fd = os.pipe2(os.O_CLOEXEC)
+        try:
+            proc = subprocess.Popen(
+                [sys.executable, "-I", "-S", "-c", _GUARD_SOURCE],
+                stdin=read_fd,
+                stdout=subprocess.DEVNULL,
+                stderr=subprocess.DEVNULL,
+                close_fds=True,
+                start_new_session=True,
+                env={},
+            )
+        except BaseException:
+            os.close(write_fd)
+            raise
+        finally:
+            os.close(read_fd)
+        # It outlives this process on purpose and is never waited for (it exits after the end
+        # of its input; init reaps it): keep subprocess from polling it.
+        proc.returncode = 0
+        self.fd, self.pid = write_fd, proc.pid
+
+    def add(self, pgid: int, line: str) -> None:
+        with self.lock:
+            self.groups[pgid] = line
+            self._send(line)
+
+    def remove(self, pgid: int) -> None:
+        with self.lock:
+            if self.groups.pop(pgid, None) is not None:
+                self._send(f"- {pgid}")
+
+    def _send(self, line: str) -> None:
+        for attempt in (1, 2):
+            try:
+                if self.fd < 0:
+                    self._start()
+                    # A new guard (the first, or after one was killed) learns every group.
+                    text = "".join(f"{g}\n" for g in self.groups.values())
+                else:
+                    text = line + "\n"
+                os.write(self.fd, text.encode())
+                return
+            except OSError as err:
+                if self.fd >= 0:
+                    os.close(self.fd)
+                    self.fd, self.pid = -1, 0
+                if attempt == 2:
+                    logger.error(
+                        "cannot start the process guard (%s): grandchildren may outlive a"
+                        " crash of this process",
+                        err,
+                    )
+
+    def forget_after_fork(self) -> None:
+        if self.fd >= 0:
+            with contextlib.suppress(OSError):
+                os.close(self.fd)
+        self.lock = threading.Lock()
+        self.fd, self.pid, self.groups = -1, 0, {}
+
+
+_state_lock = threading.Lock()
+_spawner: _Spawner | None = None
+_guard = _Guard()
+
+
+def _forget_after_fork() -> None:
+    """In a forked child: its parent's spawner thread does not exist here, nor its guard."""
+    global _spawner, _state_lock
+    _spawner = None
+    _state_lock = threading.Lock()
+    _guard.forget_after_fork()
+
+
+os.register_at_fork(after_in_child=_forget_after_fork)
+
+
+def _the_spawner() -> _Spawner:
+    global _spawner
+    with _state_lock:
+        if _spawner is None:
+            _spawner = _Spawner()
+        return _spawner
+
+
+def spawn(
+    argv: list[str], *, death_signal: int | None = signal.SIGTERM, **popen: Any
+) -> subprocess.Popen[bytes]:
+    """Start a child process that gets ``death_signal`` when this process dies.
+
+    The parent-death signal (Linux ``PR_SET_PDEATHSIG``) is set in the child between fork and
+    exec. The kernel sends it when the *thread* that forked the child ends, not the process, so
+    every child is forked by one daemon thread, ``temoto-spawner``, that lives as long as this
+    process. The child then checks that its parent is still the process that forked it (the
+    parent may have died before the signal was set): if not, it sends itself the signal.
+
+    Args:
+        argv: The command line.
+        death_signal: The signal for the child when this process dies, or None for none.
+        **popen: Keyword arguments for :class:`subprocess.Popen` (not ``preexec_fn``).
+
+    Returns:
+        The Popen object.
+
+    Raises:
+        OSError: Starting the program failed.
+        ValueError: Bad Popen arguments (``preexec_fn`` among them).
+    """
+    if "preexec_fn" in popen:
+        raise ValueError("spawn() cannot take a preexec_fn: it sets its own")
+    spawner = _the_spawner()
+    if death_signal is None or spawner.prctl is None:
+        return cast(
+            "subprocess.Popen[bytes]", spawner.call(lambda: subprocess.Popen(argv, **popen))
+        )
+    prctl, sig, parent = spawner.prctl, int(death_signal), os.getpid()
+
+    def in_child() -> (
+        None
+    ):  # after fork, before exec: no locks, no logging, no allocation-heavy work
+        prctl(_PR_SET_PDEATHSIG, sig, 0, 0, 0)
+        if os.getppid() != parent:
+            os.kill(os.getpid(), sig)
+            os._exit(128 + sig)
+
+    return cast(
+        "subprocess.Popen[bytes]",
+        spawner.call(lambda: subprocess.Popen(argv, preexec_fn=in_child, **popen)),
+    )
+
+
+def guard_group(pgid: int, token_entry: str, grace: float) -> None:
+    """Have the guard process stop a process group if this process dies (SIGKILL included).
+
+    Args:
+        pgid: The group.
+        token_entry: A whole ``NAME=value`` environment entry its members carry; a group with
+            no such member (its id reused by others) is left alone.
+        grace: Seconds between SIGTERM and SIGKILL.
+    """
+    _guard.add(pgid, f"+ {pgid} {token_entry} {grace:.3f}")
+
+
+def unguard_group(pgid: int) -> None:
+    """Forget a group given to :func:`guard_group` (it was stopped).
+
+    Args:
+        pgid: The group.
+    """
+    _guard.remove(pgid)
+
+
+def guard_pid() -> int:
+    """The guard process's pid, or 0 if none was started (for tests).
+
+    Returns:
+        The pid.
+    """
+    return _guard.pid

@@ -25,6 +25,7 @@ import subprocess
 import threading
 import time
 import uuid
+import weakref
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,9 +44,12 @@ from temoto.errors import (
 )
 from temoto.managers._procmon import (
     ProcessMonitor,
+    guard_group,
     process_start_time,
     process_state,
     processes_with_environ,
+    spawn,
+    unguard_group,
 )
 
 __all__ = [
@@ -53,6 +57,7 @@ __all__ = [
     "ProcessManager",
     "ProcessRequest",
     "ProcessResponse",
+    "hurry_all",
 ]
 
 logger = logging.getLogger(__name__)
@@ -64,6 +69,18 @@ _DEAD_STATES = frozenset({"Z", "X", "x"})
 #: starts): it finds the processes of a load interrupted by a crash, and left-overs of a process
 #: that died while the manager was down.
 TOKEN_VARIABLE = "TEMOTO_PROCESS_TOKEN"
+
+#: Every ProcessManager of this OS process, for :func:`hurry_all` (weakly: no lifetime effect).
+_MANAGERS: weakref.WeakSet[ProcessManager] = weakref.WeakSet()
+
+
+def hurry_all() -> None:
+    """:meth:`ProcessManager.hurry` every manager of this process (for a second Ctrl-C).
+
+    Safe to call from a signal handler.
+    """
+    for manager in list(_MANAGERS):
+        manager.hurry()
 
 
 # ============================================================================ request / response
@@ -220,17 +237,25 @@ def _describe_exit(
     return f"{who} exited (status unknown: not a child of this manager)"
 
 
-def _wait_readable(fds: Iterable[int], timeout: float | None) -> set[int]:
-    """Block until every fd is readable or ``timeout`` passes; returns the readable ones."""
+def _wait_readable(fds: Iterable[int], timeout: float | None, hurry: int = -1) -> set[int]:
+    """Block until every fd is readable or ``timeout`` passes; returns the readable ones.
+
+    ``hurry``, if given, is an fd that ends the wait early when it is readable.
+    """
     ready: set[int] = set()
     deadline = None if timeout is None else time.monotonic() + timeout
     with selectors.DefaultSelector() as sel:
         for fd in fds:
             sel.register(fd, selectors.EVENT_READ)
-        while sel.get_map():
+        if hurry >= 0:
+            sel.register(hurry, selectors.EVENT_READ, "hurry")
+        while len(sel.get_map()) > (hurry >= 0):
             left = None if deadline is None else max(0.0, deadline - time.monotonic())
             events = sel.select(left)
             if not events:
+                break
+            if any(key.data == "hurry" for key, _ in events):
+                ready.update(key.fd for key, _ in events if key.data != "hurry")
                 break
             for key, _ in events:
                 ready.add(key.fd)
@@ -279,10 +304,9 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
       its own process group), stdin from ``/dev/null``, and returns as soon as the process
       exists; it does not wait for the program to be "ready". Its output (stdout and stderr
       together) goes to ``<log_dir>/<pid>.log`` with ``log_dir``, to this process's stdout and
-      stderr with ``inherit_output=True``, else to ``/dev/null``. Inheriting is off by default
-      because processes outlive a crash of their manager: holding its stdout/stderr, they
-      would keep a pipe to a supervisor open (no EOF while they run), or die of SIGPIPE when
-      its reader is gone.
+      stderr with ``inherit_output=True``, else to ``/dev/null``. Inheriting is off by default:
+      holding its stdout/stderr, processes would keep a pipe to a supervisor open (no EOF
+      while they run), or die of SIGPIPE when its reader is gone.
     * **Exit**: when a process exits on its own, every consumer gets ``FATAL`` with the exit
       code or signal, within milliseconds.
     * **Unload** (last reference released) sends SIGTERM to the process group, waits up to
@@ -293,6 +317,11 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
     * **Restore**: a process that still runs with the recorded pid *and* start time is
       re-adopted (watched, stoppable); anything else is reported ``FATAL`` "died while the
       manager was down". A pid reused by another process is never adopted.
+    * **Death of this process** (``die_with_manager``, the default): every process gets SIGTERM
+      from the kernel when this OS process ends, SIGKILL included (the Linux parent-death
+      signal), and a guard process then SIGTERMs the rest of its group (grandchildren) and
+      SIGKILLs whatever is left after ``grace``. See ``docs/process-manager.md`` for what this
+      covers and what it does not.
 
     Args:
         registrar: The registrar to serve on (``register`` is called here).
@@ -302,6 +331,9 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         log_dir: Directory for the processes' output files (created if missing).
         inherit_output: Without ``log_dir``: let the processes write to this process's
             stdout and stderr (instead of ``/dev/null``).
+        die_with_manager: Stop the processes when this OS process dies, however it dies
+            (default). False lets them outlive it, for a manager restarted from its catalog
+            to re-adopt them.
 
     Raises:
         ValueError: A negative ``grace``, both ``log_dir`` and ``inherit_output``, or a server
@@ -320,6 +352,7 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         kill_timeout: float = 5.0,
         log_dir: str | os.PathLike[str] | None = None,
         inherit_output: bool = False,
+        die_with_manager: bool = True,
     ) -> None:
         if grace < 0 or kill_timeout < 0:
             raise ValueError("grace and kill_timeout must be >= 0")
@@ -330,7 +363,12 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         self.kill_timeout = float(kill_timeout)
         self.log_dir = Path(log_dir) if log_dir is not None else None
         self.inherit_output = bool(inherit_output)
+        self.die_with_manager = bool(die_with_manager)
         self._lock = threading.Lock()
+        # Readable once hurry() is called: ends every grace period then and from then on.
+        self._hurry_fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
+        weakref.finalize(self, os.close, self._hurry_fd)
+        _MANAGERS.add(self)
         self._procs: dict[int, _Proc] = {}
         self._closed = False
         self._monitor = ProcessMonitor(name="temoto-procmon")
@@ -371,8 +409,9 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         if log is None and not self.inherit_output:
             output = subprocess.DEVNULL
         try:
-            proc = subprocess.Popen(
+            proc = spawn(
                 argv,
+                death_signal=signal.SIGTERM if self.die_with_manager else None,
                 stdin=subprocess.DEVNULL,
                 stdout=output,
                 stderr=subprocess.STDOUT if output is not None else None,
@@ -402,6 +441,8 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
                 raise OSError(f"process {pid} vanished right after it was started")
             ctx.checkpoint({"token": token, "pid": pid, "pgid": pid, "start_time": start_time})
             record = _Proc(pid, pid, start_time, request.executable, ctx.resource_id, True)
+            if self.die_with_manager:
+                guard_group(pid, f"{TOKEN_VARIABLE}={token}", self.grace)
             with self._lock:
                 self._procs[pid] = record
             self._monitor.watch(pid, self._on_exit, child=True)
@@ -409,6 +450,8 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
             with self._lock:
                 self._procs.pop(pid, None)
             self._kill_at_once(pid)
+            if self.die_with_manager:
+                unguard_group(pid)
             raise
         logger.info("started process %d: %s", pid, " ".join(argv))
         return ProcessResponse(pid, pid, start_time, time.time(), token)
@@ -516,18 +559,98 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
 
     # --------------------------------------------------------------------- lifecycle
 
-    def shutdown(self) -> None:
-        """Stop the monitor thread. Processes are left running (consumers release them).
+    def shutdown(self, *, stop_processes: bool = False) -> None:
+        """Stop the monitor thread, and the processes if asked to.
 
-        Idempotent. After it, loads fail with :class:`StateError`; processes left running can
-        be re-adopted by a new manager on a restored registrar.
+        Idempotent. After it, loads fail with :class:`StateError`. Processes left running
+        can be re-adopted by a new manager on a restored registrar (in this OS process, or in
+        another one with ``die_with_manager=False``); with ``die_with_manager`` they are
+        stopped when this OS process ends.
+
+        Args:
+            stop_processes: Stop every process first (all at once: SIGTERM to each group,
+                ``grace`` seconds, SIGKILL; see :meth:`hurry`), without reporting their exits
+                as failures. For a program that ends: nothing it started outlives it.
 
         Raises:
-            Nothing.
+            Nothing: a process that survives SIGKILL is logged.
         """
         with self._lock:
             self._closed = True
+        if stop_processes:
+            try:
+                self.stop_all()
+            except ResourceError as err:
+                logger.error("%s", err)
         self._monitor.close()
+
+    def stop_all(self) -> list[int]:
+        """Stop every process this manager watches, all at once; returns when they are gone.
+
+        Each process group gets SIGTERM; after ``grace`` seconds (or at once after
+        :meth:`hurry`) what is left gets SIGKILL. The exits are not reported as failures; the
+        resources stay in the registrar until released (releasing them is then harmless).
+
+        Returns:
+            The pids of the group leaders that were stopped.
+
+        Raises:
+            ResourceError: A process survived SIGKILL for ``kill_timeout`` seconds.
+        """
+        with self._lock:
+            records = [p for p in self._procs.values() if p.exit is None and not p.stopping]
+            for record in records:
+                record.stopping = True
+        if not records:
+            return []
+        pidfds: dict[int, _Proc] = {}
+        for record in records:
+            pidfd = self._monitor.detach(record.pid)
+            if pidfd is not None:
+                pidfds[pidfd] = record
+        deadline = time.monotonic() + self.grace
+        termed: set[int] = set()  # the groups that got SIGTERM here
+        try:
+            for pidfd, record in pidfds.items():
+                if not _wait_readable([pidfd], 0):
+                    self._signal_group(record.pgid, signal.SIGTERM)
+                    termed.add(record.pgid)
+            left = set(pidfds) - _wait_readable(pidfds, self.grace, self._hurry_fd)
+            for pidfd in left:
+                self._signal_group(pidfds[pidfd].pgid, signal.SIGKILL)
+            stuck = left - _wait_readable(left, self.kill_timeout)
+            for pidfd, record in pidfds.items():
+                if record.child and pidfd not in stuck:
+                    with contextlib.suppress(ChildProcessError):
+                        os.waitid(os.P_PIDFD, pidfd, os.WEXITED | os.WNOHANG)
+        finally:
+            for pidfd in pidfds:
+                os.close(pidfd)
+        for record in records:
+            sent = signal.SIGTERM if record.pgid in termed else None
+            self._stop_members(record, deadline, sent)
+            if self.die_with_manager:
+                unguard_group(record.pgid)
+            with self._lock:
+                self._procs.pop(record.pid, None)
+        if stuck:
+            raise ResourceError(
+                f"processes {sorted(pidfds[f].pid for f in stuck)} survived SIGKILL for"
+                f" {self.kill_timeout:g} s",
+                origin=self.name,
+            )
+        logger.info("stopped processes %s", [r.pid for r in records])
+        return [r.pid for r in records]
+
+    def hurry(self) -> None:
+        """Skip the grace periods: SIGKILL what does not stop at once after SIGTERM.
+
+        For a second Ctrl-C: stops running now (in :meth:`stop_all`, :meth:`shutdown` and
+        releases, also from another thread) and from then on skip their wait for SIGTERM to
+        work. Processes are still stopped and reaped. Safe to call from a signal handler.
+        """
+        with contextlib.suppress(OSError):
+            os.eventfd_write(self._hurry_fd, 1)
 
     def __enter__(self) -> ProcessManager:
         return self
@@ -600,6 +723,8 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         if process_start_time(pid) != response.start_time or process_state(pid) in _DEAD_STATES:
             return False
         record = _Proc(pid, response.pgid, response.start_time, executable, resource_id, False)
+        if self.die_with_manager and response.token:
+            guard_group(response.pgid, f"{TOKEN_VARIABLE}={response.token}", self.grace)
         with self._lock:
             self._procs[pid] = record
         try:
@@ -637,7 +762,7 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
             if pidfd is not None and not _wait_readable([pidfd], 0):
                 self._signal_group(record.pgid, signal.SIGTERM)
                 sent = signal.SIGTERM
-                if not _wait_readable([pidfd], self.grace):
+                if not _wait_readable([pidfd], self.grace, self._hurry_fd):
                     logger.warning(
                         "process %d (%s) ignored SIGTERM for %.3g s: sending SIGKILL",
                         record.pid,
@@ -661,6 +786,8 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         if sent is None:
             deadline = time.monotonic() + self.grace
         self._stop_members(record, deadline, sent)
+        if self.die_with_manager:
+            unguard_group(record.pgid)
         logger.info("stopped process %d (%s)", record.pid, record.executable)
 
     def _stop_members(self, record: _Proc, deadline: float, sent: int | None) -> None:
@@ -706,7 +833,7 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
                         signal.pidfd_send_signal(fd, signal.SIGTERM)
             left = set(fds)
             if sent != signal.SIGKILL:
-                left -= _wait_readable(fds, max(0.0, deadline - time.monotonic()))
+                left -= _wait_readable(fds, max(0.0, deadline - time.monotonic()), self._hurry_fd)
             if left:
                 if sent != signal.SIGKILL:
                     logger.warning(

@@ -29,7 +29,7 @@ from temoto.managers import (
     ProcessResponse,
 )
 from temoto.managers._procmon import process_start_time, process_state
-from temoto.managers.process import TOKEN_VARIABLE
+from temoto.managers.process import TOKEN_VARIABLE, _group_members, hurry_all
 from temoto.testing import child_command
 
 GRACE = 0.3
@@ -781,3 +781,123 @@ def test_every_process_carries_its_spawn_token(
     with open(f"/proc/{pid}/environ", "rb") as f:
         assert f"{TOKEN_VARIABLE}={token}".encode() in f.read().split(b"\0")
     registrar.release(res.id)
+
+
+# --- stopping everything, hurrying, dying with this process -----------------------------------
+
+
+def test_stop_all_stops_every_group_at_once_without_failures(
+    registrar: Registrar, pipe: PidPipe, log_dir: Path
+) -> None:
+    grace = 0.5
+    mgr = ProcessManager(registrar, grace=grace, log_dir=log_dir)
+    try:
+        statuses = Statuses()
+        pids, grandchildren = [], []
+        request = child_request(grandchildren=1, ignore_term=True, touch=pipe.path)
+        for i in range(3):  # each ignores SIGTERM: each needs the whole grace period
+            # (requests that differ, or they would share one process)
+            registrar.call(
+                "process", dataclasses.replace(request, env={"N": str(i)}), on_status=statuses
+            )
+            pids.append(pipe.next_pid())
+            grandchildren += grandchildren_in_log(log_dir, pids[-1])
+        t0 = time.monotonic()
+        assert sorted(mgr.stop_all()) == sorted(pids)
+        elapsed = time.monotonic() - t0
+        assert grace <= elapsed < 2 * grace  # in parallel, not one grace period after another
+        assert [p for p in pids + grandchildren if alive(p)] == []
+        assert mgr.running() == []
+        assert statuses.none_for(0.05)  # a stop is not a failure
+        assert mgr.stop_all() == []
+    finally:
+        release_everything(registrar)  # harmless now: nothing left to stop
+        mgr.shutdown()
+
+
+def test_shutdown_can_stop_the_processes(registrar: Registrar, pipe: PidPipe) -> None:
+    mgr = ProcessManager(registrar, grace=GRACE)
+    registrar.call("process", child_request(grandchildren=1, touch=pipe.path))
+    pid = pipe.next_pid()
+    mgr.shutdown(stop_processes=True)
+    assert gone(pid)
+    with contextlib.suppress(ChildProcessError):  # reaped by the manager: nothing to wait for
+        assert os.waitpid(pid, os.WNOHANG) == (0, 0)
+    release_everything(registrar)
+
+
+def test_hurry_skips_the_grace_period_of_a_stop_under_way(
+    registrar: Registrar, pipe: PidPipe
+) -> None:
+    mgr = ProcessManager(registrar, grace=30.0)
+    try:
+        res = registrar.call("process", child_request(ignore_term=True, touch=pipe.path))
+        pid = pipe.next_pid()
+        releasing = threading.Thread(target=registrar.release, args=(res.id,))
+        t0 = time.monotonic()
+        releasing.start()
+        assert releasing.is_alive()  # waiting out the 30 s grace period
+        hurry_all()  # what a second Ctrl-C does: every manager of the process
+        releasing.join(5)
+        assert not releasing.is_alive()
+        assert time.monotonic() - t0 < 5
+        assert gone(pid)
+        # and from now on: SIGKILL right after SIGTERM
+        registrar.call("process", child_request(ignore_term=True, touch=pipe.path))
+        pid = pipe.next_pid()
+        t0 = time.monotonic()
+        release_everything(registrar)
+        assert time.monotonic() - t0 < 5
+        assert gone(pid)
+    finally:
+        release_everything(registrar)
+        mgr.shutdown()
+
+
+#: Starts a manager with the given keyword arguments and a child, prints the child's pid, and
+#: waits to be killed.
+PARENT = """
+import sys, time
+from temoto.core.registrar import Registrar
+from temoto.managers import ProcessManager
+from temoto.managers.process import ProcessRequest
+registrar = Registrar("parent")
+manager = ProcessManager(registrar, grace=0.5, **eval(sys.argv[1]))
+ref = registrar.call("process", ProcessRequest(*eval(sys.argv[2])), client="c")
+print(ref.response.pid, flush=True)
+time.sleep(60)
+"""
+
+
+@pytest.mark.parametrize("die_with_manager", [True, False])
+def test_processes_die_with_the_managers_process_unless_told_otherwise(
+    die_with_manager: bool,
+) -> None:
+    argv = child_command(grandchildren=1)
+    parent = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            PARENT,
+            repr({"die_with_manager": die_with_manager}),
+            repr((argv[0], tuple(argv[1:]))),
+        ],
+        stdout=subprocess.PIPE,
+    )
+    try:
+        assert parent.stdout is not None
+        pid = int(parent.stdout.readline())
+        parent.kill()
+        parent.wait()
+        deadline = time.monotonic() + 3
+        while alive(pid) and die_with_manager and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert gone(pid) is die_with_manager
+    finally:
+        if parent.stdout is not None:
+            parent.stdout.close()
+        if not die_with_manager:  # orphans now, as asked: kill them and wait until gone
+            os.killpg(pid, signal.SIGKILL)
+            deadline = time.monotonic() + 5
+            while _group_members(pid) and time.monotonic() < deadline:
+                time.sleep(0.01)

@@ -18,6 +18,7 @@ import pytest
 
 from temoto.errors import StateError
 from temoto.managers._procmon import ProcessMonitor, process_start_time, process_state
+from temoto.managers._procmon import spawn as start_child
 from temoto.testing import CHILD_MODULE, child_command
 
 Exit = tuple[int, "int | None", "int | None"]
@@ -432,3 +433,36 @@ def test_callbacks_may_watch_and_unwatch(spawn: type[Child], monitor: ProcessMon
     assert exits.get() == (b.pid, 2, None)
     with pytest.raises(queue.Empty):
         exits.get(timeout=0.05)
+
+
+# --- spawn: children that die with this process ------------------------------------------------
+
+
+def test_spawn_forks_from_one_long_lived_thread() -> None:
+    # The parent-death signal fires when the forking *thread* ends: a child spawned on behalf
+    # of a thread that then ends must live on.
+    spawned: list[subprocess.Popen[bytes]] = []
+    caller = threading.Thread(
+        target=lambda: spawned.append(start_child(child_command(), stdout=subprocess.PIPE))
+    )
+    caller.start()
+    caller.join()
+    (proc,) = spawned
+    try:
+        assert proc.stdout is not None
+        assert proc.stdout.readline().decode().strip() == f"ready {proc.pid}"
+        assert process_state(proc.pid) not in (None, "Z")
+        # forked by the spawner thread, which is still there
+        assert "process-spawner" in [t.name for t in threading.enumerate()]
+    finally:
+        proc.kill()
+        proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()
+
+
+def test_spawn_hands_back_the_errors_of_popen() -> None:
+    with pytest.raises(FileNotFoundError):
+        start_child(["/nonexistent/program"])
+    with pytest.raises(ValueError, match="preexec_fn"):
+        start_child(["true"], preexec_fn=os.getpid)
