@@ -29,7 +29,8 @@ The CAN families need a network namespace of their own with multicast routed on 
 with ``--netns`` (as root) the command re-runs itself under ``unshare -n`` and sets that up; the
 host's interfaces are never touched. The result's keys: ``family``, ``path``, ``rc`` (None if the
 command did not exit), ``traceback`` (whether its standard error has one), ``event_t`` (the
-path's moment, CLOCK_MONOTONIC), ``exit_t``, ``safe_t`` (the first moment the device was
+path's moment, CLOCK_MONOTONIC; the first signal of ``double_sigint``), ``second_t`` (its second
+signal), ``exit_t``, ``safe_t`` (the first moment the device was
 safe after the event), ``safe_ms`` (``safe_t - event_t``, milliseconds), ``safe_at_exit``,
 ``leftovers`` (processes of the command still alive after it exited), ``states`` (the
 simulator's state lines after the event) and ``stderr``.
@@ -416,7 +417,8 @@ def run_path(
         active = host.wait("airborne" if family_name == "mavlink" else "active")
         if path == "double_sigint" and not stuck.wait(STEP_TIMEOUT):
             raise TimeoutError("the mission's Stuck action did not start")
-        event_t = _take(path, robot, host, family, active["t"])
+        second: dict[str, float] = {}
+        event_t = _take(path, robot, host, family, second)
         try:
             rc: int | None = robot.wait(STEP_TIMEOUT)
         except subprocess.TimeoutExpired:
@@ -439,6 +441,7 @@ def run_path(
             "rc": rc,
             "traceback": "Traceback" in stderr,
             "event_t": event_t,
+            "second_t": second.get("t"),
             "exit_t": exit_t,
             "safe_t": None if safe_line is None else safe_line["t"],
             "safe_ms": None if safe_line is None else (safe_line["t"] - event_t) * 1000.0,
@@ -473,9 +476,12 @@ def _take(
     robot: subprocess.Popen[str],
     host: _SimHost,
     family: Mapping[str, Any],
-    active_t: float,
+    second: dict[str, float],
 ) -> float:
-    """Take the path; returns its moment (the signal, the injection, or the exit)."""
+    """Take the path; returns its moment (the (first) signal, the injection, or the exit).
+
+    For ``double_sigint`` the second signal's moment goes into ``second["t"]``.
+    """
     if path in ("end", "exception"):
         robot.wait(STEP_TIMEOUT)
         return time.monotonic()
@@ -489,12 +495,13 @@ def _take(
         "double_sigint": signal.SIGINT,
         "sigkill": signal.SIGKILL,
     }[path]
-    if path == "double_sigint":  # the first one: the graph's stop then waits for Stuck
-        robot.send_signal(sig)
-        host.wait("safe", since=time.monotonic() - 0.01)
-        time.sleep(0.2)  # the stop is now waiting for the stuck action (up to 5 s)
     t = time.monotonic()
     robot.send_signal(sig)
+    if path == "double_sigint":  # the stop now waits for Stuck (up to 5 s): the second one
+        host.wait("safe", since=t)
+        time.sleep(0.2)
+        second["t"] = time.monotonic()
+        robot.send_signal(sig)
     return t
 
 
