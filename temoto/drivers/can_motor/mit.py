@@ -6,8 +6,7 @@ command while ``ACTIVE``, the harmless *exit motor mode* frame otherwise), and a
 leaves ``timeout_periods`` polls in a row unanswered is a
 :class:`~temoto.errors.DriverTimeoutError` (recovered by itself when replies return). An error
 code in a reply (newer firmware's 8-byte replies) is a :class:`~temoto.errors.MotorFaultError`,
-latched until :meth:`recover`; a malformed reply is a
-:class:`~temoto.errors.DriverOperationError`.
+latched until :meth:`recover`.
 
 The polls are also what feeds the motors' own CAN timeout (``can_timeout``, set on the device):
 while ``ACTIVE`` every poll is a command frame, so a motor whose host died zeroes its command.

@@ -75,7 +75,14 @@ from temoto.errors import (
     StateError,
 )
 
-__all__ = ["DUPLICATE_FACTOR", "DUPLICATE_PERIODS", "SAFE_CONFIRM", "ODriveDriver", "ODriveNode"]
+__all__ = [
+    "DETECT_MIN_BEATS",
+    "DUPLICATE_FACTOR",
+    "DUPLICATE_PERIODS",
+    "SAFE_CONFIRM",
+    "ODriveDriver",
+    "ODriveNode",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -86,6 +93,8 @@ SAFE_CONFIRM: Final = 0.1
 DUPLICATE_FACTOR: Final = 1.5
 #: Over how many of its periods a stream's rate is counted.
 DUPLICATE_PERIODS: Final = 20
+#: Well-formed heartbeats a node must send while :meth:`ODriveDriver.detect` listens.
+DETECT_MIN_BEATS: Final = 2
 _KEYS: Final = frozenset(
     {
         "driver",
@@ -412,10 +421,16 @@ class ODriveDriver(CanMotorDriver):
 
         Listens only: each link's bus is opened, read for ``timeout`` real seconds and closed
         again, and no frame is sent (no RTR request either), so nothing moves. A node is an
-        ODrive axis when a well-formed CANSimple ``Heartbeat`` (command 0x01, 8 data bytes,
-        standard id) arrives from it; the newest heartbeat's axis state and error bits are
-        logged at INFO. Only the ODrives' cyclic heartbeats are seen: an axis whose
-        ``heartbeat_msg_rate_ms`` is 0, or slower than ``timeout``, may be missed.
+        ODrive axis when at least :data:`DETECT_MIN_BEATS` well-formed CANSimple heartbeats
+        (command 0x01, standard id, 8 data bytes whose axis state, procedure result and flags
+        are defined values: :func:`~temoto.drivers.can_motor.cansimple.heartbeat_problem`)
+        arrive from it, outnumbering the malformed frames on its id and not in a burst; so an
+        MIT-mode command frame to motor 0x41 is not node 2. Each listed node's axis state and
+        error bits are logged, at WARNING when it has errors (clear them before use), at INFO
+        otherwise; an id heard but not listed is logged at INFO with the reason. The entries
+        themselves stay as a profile takes them. Only the ODrives' cyclic heartbeats are
+        seen: an axis whose ``heartbeat_msg_rate_ms`` is 0, or slower than half of
+        ``timeout``, may be missed.
 
         Each entry is ``{driver: odrive_can, link: {...}, nodes: [{node_id: <id>, joint:
         joint_<id>}, ...]}`` (node ids sorted); everything else takes :meth:`from_profile`'s
@@ -869,10 +884,6 @@ def _available_links() -> list[dict[str, Any]]:
         except ValueError as err:
             logger.debug("%s", err)
     return links
-
-
-#: Well-formed heartbeats a node must send while detect listens to be listed.
-DETECT_MIN_BEATS: Final = 2
 
 
 def _listen(link: dict[str, Any], timeout: float) -> dict[int, cs.Heartbeat]:
