@@ -48,6 +48,7 @@ from __future__ import annotations
 import itertools
 import logging
 import math
+import statistics
 import threading
 import time
 from collections import deque
@@ -365,6 +366,12 @@ class ODriveDriver(CanMotorDriver):
                 f"must be at most half the watchdog_timeout ({watchdog} s), got {command}",
             )
         safe = cls.safe_state_from(cfg, where)
+        if safe == "hold" and watchdog == 0:
+            logger.warning(
+                "%s.safe_state: hold without watchdog_timeout: the axes stay armed at 0 rev/s"
+                " after TeMoto exits; enable the ODrives' watchdog (docs/driver-can.md)",
+                where,
+            )
         driver = cls(
             name,
             link=link,
@@ -424,7 +431,8 @@ class ODriveDriver(CanMotorDriver):
         ODrive axis when at least :data:`DETECT_MIN_BEATS` well-formed CANSimple heartbeats
         (command 0x01, standard id, 8 data bytes whose axis state, procedure result and flags
         are defined values: :func:`~temoto.drivers.can_motor.cansimple.heartbeat_problem`)
-        arrive from it, outnumbering the malformed frames on its id and not in a burst; so an
+        arrive from it, outnumbering the malformed frames on its id, with a median gap of at
+        least 1 ms between their timestamps (cyclic, not a burst); so an
         MIT-mode command frame to motor 0x41 is not node 2. Each listed node's axis state and
         error bits are logged, at WARNING when it has errors (clear them before use), at INFO
         otherwise; an id heard but not listed is logged at INFO with the reason. The entries
@@ -891,9 +899,10 @@ def _listen(link: dict[str, Any], timeout: float) -> dict[int, cs.Heartbeat]:
 
     A node counts when at least :data:`DETECT_MIN_BEATS` well-formed heartbeats
     (:func:`~temoto.drivers.can_motor.cansimple.heartbeat_problem`) came from it, more than
-    malformed frames on its heartbeat id, and not two within a millisecond (a cyclic
-    message, not a burst). What each node tells is logged: INFO for a clean axis, WARNING for
-    one with error bits, INFO for an id that was heard but not counted, and why.
+    malformed frames on its heartbeat id, with a median gap of 1 ms or more between their
+    frame timestamps (a cyclic message, not a burst). What each node tells is logged: INFO
+    for a clean axis, WARNING for one with error bits, INFO for an id that was heard but not
+    counted, and why.
     """
     what = f"{ODriveDriver.kind} detect"
     try:
@@ -924,7 +933,7 @@ def _listen(link: dict[str, Any], timeout: float) -> dict[int, cs.Heartbeat]:
                 count, _ = bad.get(node, (0, ""))
                 bad[node] = (count + 1, why)
                 continue
-            beats.setdefault(node, []).append(time.monotonic())
+            beats.setdefault(node, []).append(msg.timestamp)
             newest[node] = cs.decode_heartbeat(msg.data)
     finally:
         bus.shutdown()
@@ -938,7 +947,7 @@ def _listen(link: dict[str, Any], timeout: float) -> dict[int, cs.Heartbeat]:
             reason = f"{len(times)} well-formed heartbeat(s), {DETECT_MIN_BEATS} needed"
         elif malformed >= len(times):
             reason = f"{malformed} malformed frames on its heartbeat id ({why})"
-        elif min(gaps) < 0.001:
+        elif statistics.median(gaps) < 0.001:
             reason = "heartbeats less than 1 ms apart: not a cyclic heartbeat"
         if reason is not None:
             extra = f" (and {malformed} malformed: {why})" if malformed and times else ""
