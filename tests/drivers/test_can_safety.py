@@ -448,7 +448,9 @@ def test_mit_safe_state_is_zero_torque_then_exit(
         while (msg := wire.recv(0)) is not None:
             if msg.arbitration_id == 1:
                 frames.append(bytes(msg.data))
-    assert done == ("shoulder zero torque, motor mode off, elbow zero torque, motor mode off")
+    assert done == (
+        "shoulder off (zero torque, exit motor mode), elbow off (zero torque, exit motor mode)"
+    )
     zero = frames.index(mm.encode_command(mm.MitCommand(0, 0, 0, 0, 0), mm.MODELS["AK80-9"]))
     assert frames[zero + 1] == mm.CMD_EXIT  # zero torque first, then exit
     command = mm.decode_command(frames[zero], mm.MODELS["AK80-9"])
@@ -469,10 +471,7 @@ def test_mit_make_safe_in_fault_is_bounded(
     start = time.monotonic()
     done = driver.make_safe("fault")
     assert time.monotonic() - start < 1.0
-    assert (
-        done
-        == "shoulder zero torque, motor mode off, elbow zero torque and exit sent (unconfirmed)"
-    )
+    assert done == "shoulder off (zero torque, exit motor mode), elbow off (sent, unconfirmed)"
     assert not sim.motors[1].enabled
 
 

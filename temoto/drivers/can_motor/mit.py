@@ -406,7 +406,7 @@ class MitMotorDriver(CanMotorDriver):
         :data:`SAFE_CONFIRM` real seconds is reported unconfirmed, not waited for.
 
         Returns:
-            One item per motor, e.g. ``"shoulder zero torque, motor mode off"``.
+            One item per motor, e.g. ``"shoulder off (zero torque, exit motor mode)"``.
 
         Raises:
             DriverError: A frame could not be sent (after trying every motor).
@@ -433,10 +433,8 @@ class MitMotorDriver(CanMotorDriver):
         done = []
         for c, n in counts.items():
             ok = c.replies >= n + 2
-            what = (
-                "zero torque, motor mode off" if ok else "zero torque and exit sent (unconfirmed)"
-            )
-            done.append(f"{c.motor.joint} {what}")
+            what = "(zero torque, exit motor mode)" if ok else "(sent, unconfirmed)"
+            done.append(f"{c.motor.joint} off {what}")
         return ", ".join(done)
 
     def on_recover(self) -> None:
