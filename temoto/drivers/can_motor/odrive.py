@@ -62,7 +62,7 @@ from temoto.clock import Clock
 from temoto.drivers.base import DriverState, detect_links
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits, open_bus
-from temoto.drivers.can_motor._driver import CanMotorDriver
+from temoto.drivers.can_motor._driver import CanMotorDriver, _not_back_to_active
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import FaultWindow, StreamAge
@@ -209,6 +209,8 @@ class _Axis:
         "mode",
         "node",
         "rad",
+        "stale",
+        "stale_checks",
         "state",
         "torque",
     )
@@ -233,6 +235,8 @@ class _Axis:
         self.mode: ControlMode | None = None
         self.bad: str | None = None  # why too many frames were malformed
         self.held: tuple[int, bytes] | None = None  # the set-point re-sent while active
+        self.stale: str | None = None  # why the estimates are stale (two checks in a row)
+        self.stale_checks = 0
         self.enc_age.reset()
         self.hb_rate.clear()
         self.enc_rate.clear()
@@ -558,6 +562,7 @@ class ODriveDriver(CanMotorDriver):
         """
         hold = self.safe_state == "hold"
         self._armed = False  # an axis leaving CLOSED_LOOP_CONTROL now is what was asked
+        _not_back_to_active(self)
         failed: list[str] = []
         with self._held_lock:
             self._feeding = self._holding = hold
@@ -764,6 +769,10 @@ class ODriveDriver(CanMotorDriver):
             axis.enc = (pos, vel, now)
             axis.enc_age.feed(now)
             axis.enc_rate.add(now)
+            axis.stale_checks = 0
+            if axis.stale is not None:
+                axis.stale = None
+                self._evaluate()
         elif cmd == cs.Cmd.HEARTBEAT:
             error, state, _, _ = cs.HEARTBEAT.unpack(data)
             changed = error != axis.error or state != axis.state or axis.bad is not None
@@ -802,12 +811,26 @@ class ODriveDriver(CanMotorDriver):
             self._evaluate()
 
     def _on_period(self, now: float) -> None:
-        """Re-send the held set-points every ``command_period`` (they feed the watchdog).
+        """Judge the encoder streams' age; re-send the held set-points every ``command_period``.
+
+        A stream is stale when, as of the receive thread's last look at the bus, its newest
+        estimate is older than 3 ``encoder_period``, at two supervisor checks in a row.
+        The set-points feed the watchdog.
 
         Not in ``FAULT`` (unless the safe state ``hold`` was applied): a driver that lost
         its device or its data stops feeding, so the device's watchdog disarms the axes if
         nobody makes them safe.
         """
+        seen = min(now, self._rx_seen)
+        for axis in self._axes:
+            why = axis.enc_age.stale(seen)
+            if why is None:
+                axis.stale_checks = 0
+                axis.stale = None
+            else:  # stale at two supervisor checks in a row: a fault
+                axis.stale_checks += 1
+                if axis.stale_checks >= 2:
+                    axis.stale = why
         if not self._feeding or now < self._due_feed:
             return
         if not self._holding and self.state is DriverState.FAULT:
@@ -832,9 +855,8 @@ class ODriveDriver(CanMotorDriver):
                 return _motor_fault(self.name, axis)
             if axis.bad is not None:
                 return DriverOperationError(f"{self.name}: {axis.bad}")
-            stale = axis.enc_age.stale(now)
-            if stale is not None:
-                return DriverTimeoutError(f"{self.name}: {stale}")
+            if axis.stale is not None:
+                return DriverTimeoutError(f"{self.name}: {axis.stale}")
             if self._armed and axis.state != cs.AxisState.CLOSED_LOOP_CONTROL:
                 return DriverOperationError(
                     f"{self.name}: {axis.label()}: the axis left CLOSED_LOOP_CONTROL (now"
