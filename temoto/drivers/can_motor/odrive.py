@@ -20,7 +20,8 @@ for at most :data:`SAFE_CONFIRM` real seconds.
 
 Supervision (``docs/driver-can.md``): a node silent for ``timeout_periods`` heartbeat periods
 is a :class:`~temoto.errors.DriverTimeoutError` (recovered by itself when heartbeats return);
-encoder estimates older than 3 ``encoder_period`` while heartbeats go on are a
+encoder estimates older than 3 ``encoder_period`` (as of the receive thread's last look at
+the bus, at two supervisor checks in a row) while heartbeats go on are a
 :class:`~temoto.errors.DriverTimeoutError` naming the stream (recovered when they return);
 error bits in a heartbeat are a :class:`~temoto.errors.MotorFaultError` naming the decoded bits
 (latched: :meth:`recover` sends ``Clear_Errors``); an axis that leaves ``CLOSED_LOOP_CONTROL``
