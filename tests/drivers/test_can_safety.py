@@ -578,7 +578,9 @@ class DocODrive:
     answered; Set_Axis_State (0x07), Set_Controller_Mode (0x0B), Set_Input_Pos/Vel/Torque
     (0x0C/0x0D/0x0E) applied; with ``watchdog`` > 0 the axis watchdog: an armed axis whose
     watchdog is not fed (by those commands) for that long goes IDLE with
-    WATCHDOG_TIMER_EXPIRED. Stepped by the test with :meth:`tick`.
+    WATCHDOG_TIMER_EXPIRED. A requested state is taken a moment later (by the axis's own
+    state machine): a heartbeat asked for at once still shows the old state. Stepped by the
+    test with :meth:`tick`.
     """
 
     IDLE, CLOSED_LOOP = 1, 8
@@ -587,6 +589,7 @@ class DocODrive:
     def __init__(self, ch: str, node: int, clock: ManualClock, watchdog: float = 0.0) -> None:
         self.node, self.clock, self.watchdog = node, clock, watchdog
         self.state, self.error = self.IDLE, 0
+        self.pending: int | None = None
         self.control_mode, self.input_vel, self.input_pos = 3, 0.0, 0.0
         self.fed = -math.inf
         self.due_hb = self.due_enc = -math.inf
@@ -620,6 +623,7 @@ class DocODrive:
                 if msg.is_remote_frame:
                     if cmd == 0x01:
                         self.out(0x01, self.heartbeat())
+                        self.switch()
                     elif cmd == 0x09:
                         self.out(0x09, struct.pack("<ff", 0.0, 0.0))
                     continue
@@ -628,7 +632,7 @@ class DocODrive:
                     self.fed = now
                     (wanted,) = struct.unpack_from("<I", data)
                     if wanted in (self.IDLE, self.CLOSED_LOOP):
-                        self.state = wanted
+                        self.pending = wanted
                 elif cmd == 0x0B:
                     self.control_mode, _ = struct.unpack("<II", data)
                 elif cmd == 0x0C:
@@ -640,8 +644,13 @@ class DocODrive:
                 elif cmd == 0x0E:
                     self.fed = now
 
+    def switch(self) -> None:
+        if self.pending is not None:
+            self.state, self.pending = self.pending, None
+
     def tick(self, hb: float = HB, enc: float = ENC) -> None:
         with self.lock:
+            self.switch()
             now = self.clock.monotonic()
             if (
                 self.watchdog > 0

@@ -46,6 +46,7 @@ Units: the ODrive speaks motor turns; joints are radians on the output side of
 
 from __future__ import annotations
 
+import contextlib
 import itertools
 import logging
 import math
@@ -615,9 +616,15 @@ class ODriveDriver(CanMotorDriver):
             ]
 
         deadline = time.monotonic() + SAFE_CONFIRM
+        ask_again = time.monotonic() + SAFE_CONFIRM / 4
         with self._cond:
             while not all(fine()) and (left := deadline - time.monotonic()) > 0:
-                self._cond.wait(left)  # real time: never held up by a paused test clock
+                if time.monotonic() >= ask_again:  # an answer sent before the axis switched
+                    ask_again = time.monotonic() + SAFE_CONFIRM / 4
+                    with contextlib.suppress(DriverError, StateError):
+                        self._request_status()
+                # real time: never held up by a paused test clock
+                self._cond.wait(min(left, max(ask_again - time.monotonic(), 0.001)))
         return fine()
 
     def on_recover(self) -> None:
