@@ -2,7 +2,9 @@
 
 One python-can bus per driver; a receive thread (``temoto-can-<name>-rx``) decodes frames into
 a per-joint cache, and a supervisor thread (``temoto-can-<name>-sup``) wakes every
-``supervise_period`` of the driver's clock to poll or check the devices' liveness. Both are
+``supervise_period`` of the driver's clock to poll, re-send set-points and check the devices'
+liveness. Stream ages are judged as of the receive thread's last look at the bus
+(``_rx_seen``), so a process pause that wakes the supervisor first is not a stale stream. Both are
 joined by ``shutdown``. Health is derived in one place (:meth:`CanMotorDriver._evaluate`): a
 problem becomes :meth:`~temoto.drivers.base.Driver.report_fault`; when every device is fine
 again the driver reports itself recovered, except after a motor fault, which stays latched
@@ -63,6 +65,10 @@ class CanMotorDriver(Driver):
         self._eval_lock = threading.Lock()
         self._supervising = False
         self._latched = False
+        #: Clock time the receive thread last finished with a frame or found the bus quiet:
+        #: a stream is judged stale as of then, not as of now (a paused process whose
+        #: supervisor wakes before its receiver has not lost its streams).
+        self._rx_seen = -float("inf")
 
     # ---- link and threads ------------------------------------------------------------------
 
@@ -119,12 +125,12 @@ class CanMotorDriver(Driver):
                 logger.warning("driver %s: CAN receive failed: %s", self.name, err)
                 stop.wait(_RX_POLL)
                 continue
-            if msg is None or msg.is_error_frame or msg.is_remote_frame:
-                continue
-            try:
-                handle(msg)
-            except Exception:  # one bad frame never kills the receive thread
-                logger.exception("driver %s: handling %s failed", self.name, msg)
+            if msg is not None and not (msg.is_error_frame or msg.is_remote_frame):
+                try:
+                    handle(msg)
+                except Exception:  # one bad frame never kills the receive thread
+                    logger.exception("driver %s: handling %s failed", self.name, msg)
+            self._rx_seen = self.clock.monotonic()
 
     def _sup_loop(self) -> None:
         due = self.clock.monotonic()
@@ -203,3 +209,14 @@ class CanMotorDriver(Driver):
     @abstractmethod
     def _problem(self, now: float) -> DriverError | None:
         """What is wrong with the devices now, or None."""
+
+
+def _not_back_to_active(driver: CanMotorDriver) -> None:
+    """A driver made safe in ``FAULT`` recovers to ``INACTIVE``, never back to ``ACTIVE``.
+
+    (The base class returns a recovered driver to the state before the fault; after the safe
+    state the devices are no longer acting.)
+    """
+    with driver._lock:
+        if driver._state is DriverState.FAULT:
+            driver._before_fault = DriverState.INACTIVE

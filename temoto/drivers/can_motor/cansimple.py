@@ -52,6 +52,7 @@ __all__ = [
     "encode_set_limits",
     "encode_torques",
     "error_names",
+    "heartbeat_problem",
     "split_id",
 ]
 
@@ -306,6 +307,40 @@ def decode_heartbeat(data: bytes | bytearray) -> Heartbeat:
     _check_len("Heartbeat", data, 8)
     error, state, result, flags = HEARTBEAT.unpack(data)
     return Heartbeat(error, state, result, bool(flags & 1))
+
+
+#: The largest ``Procedure_Result`` the 0.6.10 DBC names (15: NOT_CONVERGING); a little room
+#: is left for newer firmware.
+MAX_PROCEDURE_RESULT: Final = 31
+_STATES: Final = frozenset(int(s) for s in AxisState)
+
+
+def heartbeat_problem(data: bytes | bytearray) -> str | None:
+    """Why ``data`` is not a well-formed ``Heartbeat`` payload, or None when it is one.
+
+    Beyond the length, the fields are checked against the 0.6.10 DBC: the axis state must be
+    a known :class:`AxisState`, the procedure result at most :data:`MAX_PROCEDURE_RESULT`, and
+    of the flags byte only bit 0 (``Trajectory_Done_Flag``) may be set. Byte 7 is not defined
+    by the DBC and is not checked (0.5 firmware puts its trajectory flag there). An 8-byte
+    frame of another protocol on a heartbeat id (an MIT-mode command to motor 0x41 looks like
+    node 2's heartbeat) fails these checks in all but rare cases.
+
+    Args:
+        data: A frame's payload.
+
+    Returns:
+        A short reason, or None.
+    """
+    if len(data) != 8:
+        return f"{len(data)} data bytes instead of 8"
+    state, result, flags = data[4], data[5], data[6]
+    if state not in _STATES:
+        return f"unknown axis state {state}"
+    if result > MAX_PROCEDURE_RESULT:
+        return f"unknown procedure result {result}"
+    if flags & 0xFE:
+        return f"undefined flag bits 0x{flags & 0xFE:02x}"
+    return None
 
 
 def encode_set_axis_state(state: int) -> bytes:

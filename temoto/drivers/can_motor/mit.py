@@ -6,8 +6,25 @@ command while ``ACTIVE``, the harmless *exit motor mode* frame otherwise), and a
 leaves ``timeout_periods`` polls in a row unanswered is a
 :class:`~temoto.errors.DriverTimeoutError` (recovered by itself when replies return). An error
 code in a reply (newer firmware's 8-byte replies) is a :class:`~temoto.errors.MotorFaultError`,
-latched until :meth:`recover`; a malformed reply is a
-:class:`~temoto.errors.DriverOperationError`.
+latched until :meth:`recover`.
+
+The polls are also what feeds the motors' own CAN timeout (``can_timeout``, set on the device):
+while ``ACTIVE`` every poll is a command frame, so a motor whose host died zeroes its command.
+
+Supervision (``docs/driver-can.md``): besides the unanswered polls, a motor whose newest reply
+is older than ``timeout_periods + 1`` poll periods is a
+:class:`~temoto.errors.DriverTimeoutError` naming its replies (a poll that was never sent is
+noticed too). Malformed replies (wrong length, or an unknown motor id on the host id) are
+counted (:attr:`MitMotorDriver.bad_frames`) and logged; :data:`BAD_REPLIES_LIMIT` of them on the
+bus within :data:`~temoto.drivers.supervision.BAD_FRAMES_WINDOW` seconds make a
+:class:`~temoto.errors.DriverOperationError` until the next good reply (the replies come only
+at the poll rate, so fewer are needed than on a cyclic bus). More replies from a motor than
+frames sent to it (:data:`DUPLICATE_LIMIT` unasked replies within a second) means two motors
+answer on one id: a :class:`~temoto.errors.DriverOperationError`.
+
+**Safe state** (``safe_state: zero_torque``, the only one): a zero-torque command (p, v, kp, kd,
+t_ff all 0) and then *exit motor mode*, which the polls then keep sending; confirmed by the
+motors' replies within :data:`SAFE_CONFIRM` real seconds.
 
 ``activate`` sends *enter motor mode* and then holds the current position with the profile's
 ``kp`` / ``kd``; ``deactivate`` sends *exit motor mode*. Joint commands map onto the impedance
@@ -19,8 +36,10 @@ further gearbox is ``gear_ratio`` (motor turns per joint turn).
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import threading
+import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final, Self
@@ -31,21 +50,43 @@ from temoto.clock import Clock
 from temoto.drivers.base import DriverState
 from temoto.drivers.can_motor import mitmode as mm
 from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits
-from temoto.drivers.can_motor._driver import CanMotorDriver
+from temoto.drivers.can_motor._driver import CanMotorDriver, _not_back_to_active
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.sim import Simulator
+from temoto.drivers.supervision import BAD_FRAMES_WINDOW, FaultWindow, StreamAge
 from temoto.errors import (
     DriverError,
     DriverInitError,
     DriverOperationError,
     DriverTimeoutError,
     MotorFaultError,
+    StateError,
 )
 
-__all__ = ["MitMotor", "MitMotorDriver"]
+__all__ = ["BAD_REPLIES_LIMIT", "DUPLICATE_LIMIT", "SAFE_CONFIRM", "MitMotor", "MitMotorDriver"]
+
+logger = logging.getLogger(__name__)
+
+#: Real seconds :meth:`MitMotorDriver.make_safe` waits for the motors' replies.
+SAFE_CONFIRM: Final = 0.1
+#: Malformed replies on the bus within the window that make a fault.
+BAD_REPLIES_LIMIT: Final = 2
+#: Unasked replies from one motor within a second that mean two motors share its id.
+DUPLICATE_LIMIT: Final = 5
+_ZERO_TORQUE: Final = mm.MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
 
 _KEYS: Final = frozenset(
-    {"driver", "link", "motors", "poll_rate", "timeout_periods", "host_id", "init_timeout"}
+    {
+        "driver",
+        "link",
+        "motors",
+        "poll_rate",
+        "timeout_periods",
+        "host_id",
+        "init_timeout",
+        "can_timeout",
+        "safe_state",
+    }
 )
 _MOTOR_KEYS: Final = frozenset(
     {
@@ -94,7 +135,7 @@ class _Motor:
     """The receive thread's cache of one motor."""
 
     __slots__ = (
-        "bad",
+        "age",
         "error",
         "held",
         "motor",
@@ -103,10 +144,13 @@ class _Motor:
         "reply",
         "temperature",
         "unanswered",
+        "unasked",
     )
 
-    def __init__(self, motor: MitMotor) -> None:
+    def __init__(self, motor: MitMotor, poll_period: float, periods: int) -> None:
         self.motor = motor
+        self.age = StreamAge(f"{self.label()} replies", poll_period, periods + 1)
+        self.unasked = FaultWindow(DUPLICATE_LIMIT, 1.0)
         self.reset()
 
     def reset(self) -> None:
@@ -118,8 +162,9 @@ class _Motor:
         self.unanswered = 0
         self.error = 0
         self.temperature: int | None = None
-        self.bad: str | None = None
         self.held = mm.CMD_EXIT
+        self.age.reset()
+        self.unasked.clear()
 
     def label(self) -> str:
         return f"motor {self.motor.motor_id} ({self.motor.joint})"
@@ -137,12 +182,16 @@ class MitMotorDriver(CanMotorDriver):
         timeout_periods: Unanswered polls in a row that make a fault.
         host_id: The arbitration id the motors reply with.
         init_timeout: Seconds a motor may take to answer in configure / activate / recover.
+        can_timeout: The motors' CAN timeout as set on the devices, seconds (0 = not used);
+            the poll period must be at most half of it.
 
     Raises:
-        ValueError: No motors, duplicate ids or joints, or a non-positive rate.
+        ValueError: No motors, duplicate ids or joints, a non-positive rate, or a poll period
+            too long for the CAN timeout.
     """
 
     kind = "mit_can"
+    safe_states = ("zero_torque",)
 
     def __init__(
         self,
@@ -155,14 +204,20 @@ class MitMotorDriver(CanMotorDriver):
         timeout_periods: int = 3,
         host_id: int = 0,
         init_timeout: float = 0.5,
+        can_timeout: float = 0.0,
     ) -> None:
         ids = {m.motor_id for m in motors}
         if not motors or len(ids) != len(motors) or len({m.joint for m in motors}) != len(motors):
             raise ValueError("a MitMotorDriver needs motors with distinct ids and joints")
         if host_id in ids:
             raise ValueError(f"host id {host_id} is also a motor id")
-        if not (poll_rate > 0 and timeout_periods > 0 and init_timeout > 0):
-            raise ValueError("rates and timeouts must be positive")
+        if not (poll_rate > 0 and timeout_periods > 0 and init_timeout > 0 and can_timeout >= 0):
+            raise ValueError("rates and timeouts must be positive (can_timeout >= 0)")
+        if can_timeout > 0 and 1.0 / poll_rate > can_timeout / 2:
+            raise ValueError(
+                f"the poll period 1/{poll_rate} s must be at most half the can_timeout"
+                f" ({can_timeout} s)"
+            )
         super().__init__(
             name,
             link=link,
@@ -174,7 +229,12 @@ class MitMotorDriver(CanMotorDriver):
         self.poll_rate = poll_rate
         self.timeout_periods = timeout_periods
         self.host_id = host_id
-        self._cache = [_Motor(m) for m in self.motors]
+        self.can_timeout = can_timeout
+        #: Malformed replies received since the driver was made.
+        self.bad_frames = 0
+        self._bad_window = FaultWindow(BAD_REPLIES_LIMIT, BAD_FRAMES_WINDOW)
+        self._bad: str | None = None  # why the bus's replies are a fault, until a good one
+        self._cache = [_Motor(m, 1.0 / poll_rate, timeout_periods) for m in self.motors]
         self._by_id = {c.motor.motor_id: c for c in self._cache}
         self._by_joint = {c.motor.joint: c for c in self._cache}
         # Guards each motor's held frame together with its sending: once a new frame is held,
@@ -234,7 +294,16 @@ class MitMotorDriver(CanMotorDriver):
         rate = p.number(cfg, "poll_rate", "", 100.0)
         periods = p.integer(cfg, "timeout_periods", "", 1, 1000) if "timeout_periods" in cfg else 3
         init = p.number(cfg, "init_timeout", "", 0.5)
-        return cls(
+        timeout = p.number(cfg, "can_timeout", "", 0.0, positive=False)
+        if timeout < 0:
+            raise p.fail("can_timeout", f"must be 0 (not used) or positive, got {timeout}")
+        if timeout > 0 and 1.0 / rate > timeout / 2:
+            raise p.fail(
+                "can_timeout",
+                f"must be at least two poll periods (2/{rate:g} s), got {timeout}",
+            )
+        safe = cls.safe_state_from(cfg, where)
+        driver = cls(
             name,
             link=link,
             motors=motors,
@@ -243,7 +312,10 @@ class MitMotorDriver(CanMotorDriver):
             timeout_periods=periods,
             host_id=host,
             init_timeout=init,
+            can_timeout=timeout,
         )
+        driver.safe_state = safe
+        return driver
 
     @classmethod
     def simulate(
@@ -268,7 +340,12 @@ class MitMotorDriver(CanMotorDriver):
         driver.shutdown()
         models = [MitModel(m.motor_id, m.ranges) for m in driver.motors]
         sim = SimMitMotor(
-            driver.link, models, clock, host_id=driver.host_id, tick=driver.supervise_period
+            driver.link,
+            models,
+            clock,
+            host_id=driver.host_id,
+            tick=driver.supervise_period,
+            can_timeout=driver.can_timeout,
         )
         return sim, dict(config)
 
@@ -289,6 +366,8 @@ class MitMotorDriver(CanMotorDriver):
         for c in self._cache:
             c.reset()
         self._latched = False
+        self._bad = None
+        self._bad_window.clear()
         self._open()
         with self._held_lock:
             for c in self._cache:
@@ -320,6 +399,45 @@ class MitMotorDriver(CanMotorDriver):
         self._hold(dict.fromkeys(self._cache, mm.CMD_EXIT))
         self._ping(mm.CMD_EXIT)
 
+    def on_make_safe(self) -> str:
+        """Zero torque, then exit motor mode, on every motor; confirm by reply, briefly.
+
+        The polls keep sending *exit* afterwards. A motor that does not answer within
+        :data:`SAFE_CONFIRM` real seconds is reported unconfirmed, not waited for.
+
+        Returns:
+            One item per motor, e.g. ``"shoulder off (zero torque, exit motor mode)"``.
+
+        Raises:
+            DriverError: A frame could not be sent (after trying every motor).
+        """
+        _not_back_to_active(self)
+        failed: list[str] = []
+        with self._held_lock:
+            counts = {c: c.replies + c.outstanding for c in self._cache}
+            for c in self._cache:
+                c.held = mm.CMD_EXIT
+                try:
+                    self._send_to(c, mm.encode_command(_ZERO_TORQUE, c.motor.ranges))
+                    self._send_to(c, mm.CMD_EXIT)
+                except (DriverError, StateError) as err:
+                    failed.append(f"{c.label()}: {err}")
+        if failed:
+            raise DriverOperationError(f"{self.name}: safe state not sent: {'; '.join(failed)}")
+        deadline = time.monotonic() + SAFE_CONFIRM
+        with self._cond:
+            while not all(c.replies >= n + 2 for c, n in counts.items()):
+                left = deadline - time.monotonic()
+                if left <= 0:
+                    break
+                self._cond.wait(left)  # real time: never held up by a paused test clock
+        done = []
+        for c, n in counts.items():
+            ok = c.replies >= n + 2
+            what = "(zero torque, exit motor mode)" if ok else "(sent, unconfirmed)"
+            done.append(f"{c.motor.joint} off {what}")
+        return ", ".join(done)
+
     def on_recover(self) -> None:
         """Ask every motor again (out of motor mode) and clear the latch if all are fine.
 
@@ -329,8 +447,10 @@ class MitMotorDriver(CanMotorDriver):
         if self._bus is None:
             self.on_configure()
             return
+        self._bad = None
+        self._bad_window.clear()
         for c in self._cache:
-            c.bad = None
+            c.unasked.clear()
         self._hold(dict.fromkeys(self._cache, mm.CMD_EXIT))
         self._ping(mm.CMD_EXIT)
         problem = self._problem(self.clock.monotonic())
@@ -440,24 +560,52 @@ class MitMotorDriver(CanMotorDriver):
         if msg.arbitration_id != self.host_id or msg.is_extended_id:
             return
         data = msg.data
+        now = self.clock.monotonic()
         c = self._by_id.get(data[0]) if data else None
         if c is None:
+            self._malformed(f"a reply from unknown motor id {data[0] if data else None}", now)
             return
         with self._held_lock:  # an answer, even a malformed one
+            unasked = c.outstanding == 0
             c.outstanding = max(0, c.outstanding - 1)
+        if unasked and c.unanswered <= self.timeout_periods:  # not a late one after silence
+            c.unasked.add(now)
         if len(data) not in (6, 8):
-            c.bad = f"{c.label()}: malformed reply ({len(data)} data bytes)"
-            self._evaluate()
+            self._malformed(f"{c.label()}: a reply of {len(data)} data bytes", now)
             return
         reply = mm.decode_reply(data, c.motor.ranges)
-        was_fine = c.unanswered <= self.timeout_periods and c.bad is None and not c.error
-        c.reply = (reply.p, reply.v, reply.t, self.clock.monotonic())
+        was_fine = c.unanswered <= self.timeout_periods and self._bad is None and not c.error
+        c.reply = (reply.p, reply.v, reply.t, now)
+        c.age.feed(now)
         c.temperature = reply.temperature
         c.error = reply.error or 0
-        c.unanswered, c.bad = 0, None
+        c.unanswered = 0
+        if self._bad is not None:
+            self._bad = None
+            self._bad_window.clear()
         c.replies += 1
         self._notify()
         if not was_fine or c.error or self.state is DriverState.FAULT:
+            self._evaluate()
+
+    def _malformed(self, what: str, now: float) -> None:
+        """Count one malformed reply; too many within the window make a fault."""
+        self.bad_frames += 1
+        window = self._bad_window
+        fault = window.add(now)
+        recent = window.recent(now)
+        if recent == 1 or (fault and self._bad is None):
+            logger.warning(
+                "driver %s: malformed reply (%s); %d within %g s (a fault at %d), %d in all",
+                self.name,
+                what,
+                recent,
+                window.window,
+                window.limit,
+                self.bad_frames,
+            )
+        if fault and self._bad is None:
+            self._bad = f"{recent} malformed replies within {window.window:g} s, the newest: {what}"
             self._evaluate()
 
     def _on_period(self, now: float) -> None:
@@ -485,6 +633,15 @@ class MitMotorDriver(CanMotorDriver):
                     node_id=c.motor.motor_id,
                     error=c.error,
                 )
-            if c.bad is not None:
-                return DriverOperationError(f"{self.name}: {c.bad}")
+            stale = c.age.stale(min(now, self._rx_seen))
+            if stale is not None:
+                return DriverTimeoutError(f"{self.name}: {stale}")
+            if c.unasked.recent(now) >= DUPLICATE_LIMIT:
+                return DriverOperationError(
+                    f"{self.name}: {c.label()}: more replies than frames sent"
+                    f" ({c.unasked.recent(now)} unasked within 1 s): two motors answer as id"
+                    f" {c.motor.motor_id}?"
+                )
+        if self._bad is not None:
+            return DriverOperationError(f"{self.name}: {self._bad}")
         return None

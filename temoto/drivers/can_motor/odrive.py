@@ -8,11 +8,33 @@ heartbeats to confirm it; ``deactivate`` sets ``IDLE``. ``command`` sends ``Set_
 changes); ``read_state`` reads the cache that the receive thread fills from the cyclic
 encoder estimates (and ``Get_Torques``, when the ODrive is set to send them).
 
-Faults: a node silent for 3 heartbeat periods is a :class:`~temoto.errors.DriverTimeoutError`
-(recovered by itself when heartbeats return); error bits in a heartbeat are a
-:class:`~temoto.errors.MotorFaultError` naming the decoded bits (latched: :meth:`recover` sends
-``Clear_Errors``); a malformed frame (wrong length) is a
-:class:`~temoto.errors.DriverOperationError` until the node's next good heartbeat.
+While ``ACTIVE`` the supervisor re-sends every axis's newest set-point each
+``command_period`` (not only when it changes), so the ODrive's axis watchdog
+(``watchdog_timeout``) can be enabled on the device: if TeMoto dies, the axes disarm.
+
+**Safe state** (``safe_state:``): ``idle`` (default) sends ``Set_Axis_State(IDLE)`` to every
+axis; ``hold`` commands zero velocity (``VELOCITY_CONTROL``, input 0 rev/s) and leaves each axis
+in the state it is in (an armed axis stays in ``CLOSED_LOOP_CONTROL``; the zero set-point keeps
+being sent, feeding the watchdog). Both are confirmed by a heartbeat requested at once, waited
+for at most :data:`SAFE_CONFIRM` real seconds.
+
+Supervision (``docs/driver-can.md``): a node silent for ``timeout_periods`` heartbeat periods
+is a :class:`~temoto.errors.DriverTimeoutError` (recovered by itself when heartbeats return);
+encoder estimates older than 3 ``encoder_period`` (as of the receive thread's last look at
+the bus, at two supervisor checks in a row) while heartbeats go on are a
+:class:`~temoto.errors.DriverTimeoutError` naming the stream (recovered when they return);
+error bits in a heartbeat are a :class:`~temoto.errors.MotorFaultError` naming the decoded bits
+(latched: :meth:`recover` sends ``Clear_Errors``); an axis that leaves ``CLOSED_LOOP_CONTROL``
+while the driver is ``ACTIVE``, without an error bit, is a
+:class:`~temoto.errors.DriverOperationError` until :meth:`recover`; a node whose heartbeats or
+estimates arrive at well over their configured rate (:data:`DUPLICATE_FACTOR` times, counted
+over :data:`DUPLICATE_PERIODS` periods, the replies to the driver's own requests not counted)
+is answered by two devices: a :class:`~temoto.errors.DriverOperationError` naming it. Malformed
+frames (wrong length, or a heartbeat with undefined fields) are counted
+(:attr:`ODriveDriver.bad_frames`) and logged; only
+:data:`~temoto.drivers.supervision.BAD_FRAMES_LIMIT` of them from one node within
+:data:`~temoto.drivers.supervision.BAD_FRAMES_WINDOW` seconds make a
+:class:`~temoto.errors.DriverOperationError`, until that node's next good heartbeat.
 
 Discovery: :meth:`ODriveDriver.detect` only listens for the nodes' cyclic heartbeats and
 sends nothing, so looking at a bus never moves an axis.
@@ -24,9 +46,14 @@ Units: the ODrive speaks motor turns; joints are radians on the output side of
 
 from __future__ import annotations
 
+import contextlib
+import itertools
 import logging
 import math
+import statistics
+import threading
 import time
+from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final, Self
@@ -37,9 +64,10 @@ from temoto.clock import Clock
 from temoto.drivers.base import DriverState, detect_links
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits, open_bus
-from temoto.drivers.can_motor._driver import CanMotorDriver
+from temoto.drivers.can_motor._driver import CanMotorDriver, _not_back_to_active
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.sim import Simulator
+from temoto.drivers.supervision import FaultWindow, StreamAge
 from temoto.errors import (
     DriverError,
     DriverInitError,
@@ -47,13 +75,29 @@ from temoto.errors import (
     DriverTimeoutError,
     MotorFaultError,
     ProfileError,
+    StateError,
 )
 
-__all__ = ["ODriveDriver", "ODriveNode"]
+__all__ = [
+    "DETECT_MIN_BEATS",
+    "DUPLICATE_FACTOR",
+    "DUPLICATE_PERIODS",
+    "SAFE_CONFIRM",
+    "ODriveDriver",
+    "ODriveNode",
+]
 
 logger = logging.getLogger(__name__)
 
 TAU: Final = 2.0 * math.pi
+#: Real seconds :meth:`ODriveDriver.make_safe` waits for the heartbeats that confirm it.
+SAFE_CONFIRM: Final = 0.1
+#: A stream arriving at more than this many times its configured rate is two devices.
+DUPLICATE_FACTOR: Final = 1.5
+#: Over how many of its periods a stream's rate is counted.
+DUPLICATE_PERIODS: Final = 20
+#: Well-formed heartbeats a node must send while :meth:`ODriveDriver.detect` listens.
+DETECT_MIN_BEATS: Final = 2
 _KEYS: Final = frozenset(
     {
         "driver",
@@ -63,6 +107,9 @@ _KEYS: Final = frozenset(
         "encoder_period",
         "init_timeout",
         "timeout_periods",
+        "command_period",
+        "watchdog_timeout",
+        "safe_state",
     }
 )
 _NODE_KEYS: Final = frozenset(
@@ -111,36 +158,91 @@ class ODriveNode:
     limits: JointLimits = field(default_factory=JointLimits)
 
 
+class _Rate:
+    """Arrivals of one cyclic stream, for the duplicate-node check (one writer)."""
+
+    __slots__ = ("asked", "limit", "period", "times", "window")
+
+    def __init__(self, period: float) -> None:
+        self.period = period
+        self.window = period * DUPLICATE_PERIODS
+        self.limit = DUPLICATE_FACTOR * DUPLICATE_PERIODS + 2
+        self.times: deque[float] = deque()
+        self.asked = 0  # replies still due to the driver's own requests (not counted)
+
+    def ask(self) -> None:
+        self.asked = min(self.asked + 1, 4)
+
+    def add(self, now: float) -> None:
+        if self.asked:
+            self.asked -= 1
+            return
+        self.times.append(now)
+
+    def excess(self, now: float) -> float | None:
+        """The rate as a multiple of the configured one, when it is a duplicate's."""
+        times = self.times
+        while times and times[0] <= now - self.window:
+            times.popleft()
+        if len(times) <= self.limit:
+            return None
+        return len(times) / DUPLICATE_PERIODS
+
+    def clear(self) -> None:
+        self.times.clear()
+        self.asked = 0
+
+
 class _Axis:
     """The receive thread's cache of one node (plain attributes: one writer)."""
 
     __slots__ = (
         "bad",
+        "beats",
         "enc",
+        "enc_age",
+        "enc_rate",
         "error",
+        "hb_rate",
         "hb_stamp",
+        "held",
         "ids",
+        "malformed",
         "mode",
         "node",
         "rad",
+        "stale",
+        "stale_checks",
         "state",
         "torque",
     )
 
-    def __init__(self, node: ODriveNode) -> None:
+    def __init__(self, node: ODriveNode, heartbeat_period: float, encoder_period: float) -> None:
         self.node = node
         self.rad = TAU / node.gear_ratio  # motor rev → joint rad
         self.ids = {cmd: cs.arbitration_id(node.node_id, cmd) for cmd in cs.Cmd}
+        self.enc_age = StreamAge(f"{self.label()} encoder estimates", encoder_period)
+        self.hb_rate = _Rate(heartbeat_period)
+        self.enc_rate = _Rate(encoder_period)
+        self.malformed = FaultWindow()
         self.reset()
 
     def reset(self) -> None:
         self.hb_stamp: float | None = None
+        self.beats = 0  # heartbeats received
         self.state = int(cs.AxisState.UNDEFINED)
         self.error = 0
         self.enc: tuple[float, float, float] | None = None  # pos rev, vel rev/s, stamp
         self.torque = 0.0
         self.mode: ControlMode | None = None
-        self.bad: str | None = None  # why the newest frame was malformed
+        self.bad: str | None = None  # why too many frames were malformed
+        self.held: tuple[int, bytes] | None = None  # the set-point re-sent while active
+        self.stale: str | None = None  # why the estimates are stale (two checks in a row)
+        self.stale_checks = 0
+        self.enc_age.reset()
+        self.hb_rate.clear()
+        self.enc_rate.clear()
+        self.malformed.clear()
 
     def label(self) -> str:
         return f"node {self.node.node_id} ({self.node.joint})"
@@ -157,12 +259,18 @@ class ODriveDriver(CanMotorDriver):
         heartbeat_period: The ODrives' heartbeat period, seconds.
         init_timeout: Seconds a node may take to answer in configure / activate / recover.
         timeout_periods: Heartbeat periods of silence that make a fault.
+        encoder_period: The ODrives' cyclic encoder estimate period, seconds (stale after 3).
+        command_period: Seconds between re-sends of the set-points while active.
+        watchdog_timeout: The axes' watchdog timeout as set on the devices, seconds (0 = not
+            used); ``command_period`` must be at most half of it.
 
     Raises:
-        ValueError: No nodes, a duplicate node id or joint, or a non-positive period.
+        ValueError: No nodes, a duplicate node id or joint, a non-positive period, or a
+            ``command_period`` too long for the watchdog.
     """
 
     kind = "odrive_can"
+    safe_states = ("idle", "hold")
 
     def __init__(
         self,
@@ -174,6 +282,9 @@ class ODriveDriver(CanMotorDriver):
         heartbeat_period: float = 0.1,
         init_timeout: float = 1.0,
         timeout_periods: float = 3.0,
+        encoder_period: float = 0.01,
+        command_period: float = 0.05,
+        watchdog_timeout: float = 0.0,
     ) -> None:
         if not nodes:
             raise ValueError("an ODriveDriver needs at least one node")
@@ -183,17 +294,34 @@ class ODriveDriver(CanMotorDriver):
             raise ValueError("node ids and joints must be distinct")
         if not (heartbeat_period > 0 and init_timeout > 0 and timeout_periods > 0):
             raise ValueError("periods and timeouts must be positive")
+        if not (encoder_period > 0 and command_period > 0 and watchdog_timeout >= 0):
+            raise ValueError("periods must be positive and watchdog_timeout >= 0")
+        if watchdog_timeout > 0 and command_period > watchdog_timeout / 2:
+            raise ValueError(
+                f"command_period {command_period} s must be at most half the watchdog_timeout"
+                f" ({watchdog_timeout} s)"
+            )
         super().__init__(
             name,
             link=link,
             clock=clock,
             init_timeout=init_timeout,
-            supervise_period=heartbeat_period / 4,
+            supervise_period=min(heartbeat_period / 4, command_period),
         )
         self.nodes = tuple(nodes)
         self.heartbeat_period = heartbeat_period
         self.timeout_periods = timeout_periods
-        self._axes = [_Axis(n) for n in self.nodes]
+        self.encoder_period = encoder_period
+        self.command_period = command_period
+        self.watchdog_timeout = watchdog_timeout
+        #: Malformed frames received from the nodes since the driver was made.
+        self.bad_frames = 0
+        self._armed = False  # the axes were confirmed in CLOSED_LOOP_CONTROL by activate
+        self._feeding = False  # the supervisor re-sends the held set-points
+        self._holding = False  # ... also in FAULT: the safe state "hold" is applied
+        self._due_feed = -math.inf
+        self._held_lock = threading.Lock()  # a held set-point and its sending, together
+        self._axes = [_Axis(n, heartbeat_period, encoder_period) for n in self.nodes]
         self._by_joint = {a.node.joint: a for a in self._axes}
         self._rx: dict[int, tuple[_Axis, int]] = {}
         for axis in self._axes:
@@ -231,10 +359,26 @@ class ODriveDriver(CanMotorDriver):
             gear = p.number(node, "gear_ratio", path, 1.0)
             nodes.append(ODriveNode(node_id, joint, gear, p.limits(node, path)))
         hb = p.number(cfg, "heartbeat_period", "", 0.1)
-        p.number(cfg, "encoder_period", "", 0.01)
+        encoder = p.number(cfg, "encoder_period", "", 0.01)
         init = p.number(cfg, "init_timeout", "", 1.0)
         periods = p.number(cfg, "timeout_periods", "", 3.0)
-        return cls(
+        command = p.number(cfg, "command_period", "", 0.05)
+        watchdog = p.number(cfg, "watchdog_timeout", "", 0.0, positive=False)
+        if watchdog < 0:
+            raise p.fail("watchdog_timeout", f"must be 0 (not used) or positive, got {watchdog}")
+        if watchdog > 0 and command > watchdog / 2:
+            raise p.fail(
+                "command_period",
+                f"must be at most half the watchdog_timeout ({watchdog} s), got {command}",
+            )
+        safe = cls.safe_state_from(cfg, where)
+        if safe == "hold" and watchdog == 0:
+            logger.warning(
+                "%s.safe_state: hold without watchdog_timeout: the axes stay armed at 0 rev/s"
+                " after TeMoto exits; enable the ODrives' watchdog (docs/driver-can.md)",
+                where,
+            )
+        driver = cls(
             name,
             link=link,
             nodes=nodes,
@@ -242,7 +386,12 @@ class ODriveDriver(CanMotorDriver):
             heartbeat_period=hb,
             init_timeout=init,
             timeout_periods=periods,
+            encoder_period=encoder,
+            command_period=command,
+            watchdog_timeout=watchdog,
         )
+        driver.safe_state = safe
+        return driver
 
     @classmethod
     def simulate(
@@ -265,13 +414,13 @@ class ODriveDriver(CanMotorDriver):
 
         driver = cls.from_profile(name, config, clock=clock, where=name)
         driver.shutdown()
-        encoder = config.get("encoder_period", 0.01)
         sim = SimODrive(
             driver.link,
             [n.node_id for n in driver.nodes],
             clock,
             heartbeat_period=driver.heartbeat_period,
-            encoder_period=float(encoder),
+            encoder_period=driver.encoder_period,
+            watchdog_timeout=driver.watchdog_timeout,
         )
         return sim, dict(config)
 
@@ -285,10 +434,17 @@ class ODriveDriver(CanMotorDriver):
 
         Listens only: each link's bus is opened, read for ``timeout`` real seconds and closed
         again, and no frame is sent (no RTR request either), so nothing moves. A node is an
-        ODrive axis when a well-formed CANSimple ``Heartbeat`` (command 0x01, 8 data bytes,
-        standard id) arrives from it; the newest heartbeat's axis state and error bits are
-        logged at INFO. Only the ODrives' cyclic heartbeats are seen: an axis whose
-        ``heartbeat_msg_rate_ms`` is 0, or slower than ``timeout``, may be missed.
+        ODrive axis when at least :data:`DETECT_MIN_BEATS` well-formed CANSimple heartbeats
+        (command 0x01, standard id, 8 data bytes whose axis state, procedure result and flags
+        are defined values: :func:`~temoto.drivers.can_motor.cansimple.heartbeat_problem`)
+        arrive from it, outnumbering the malformed frames on its id, with a median gap of at
+        least 1 ms between their timestamps (cyclic, not a burst); so an
+        MIT-mode command frame to motor 0x41 is not node 2. Each listed node's axis state and
+        error bits are logged, at WARNING when it has errors (clear them before use), at INFO
+        otherwise; an id heard but not listed is logged at INFO with the reason. The entries
+        themselves stay as a profile takes them. Only the ODrives' cyclic heartbeats are
+        seen: an axis whose ``heartbeat_msg_rate_ms`` is 0, or slower than half of
+        ``timeout``, may be missed.
 
         Each entry is ``{driver: odrive_can, link: {...}, nodes: [{node_id: <id>, joint:
         joint_<id>}, ...]}`` (node ids sorted); everything else takes :meth:`from_profile`'s
@@ -343,6 +499,7 @@ class ODriveDriver(CanMotorDriver):
         for axis in self._axes:
             axis.reset()
         self._latched = False
+        self._armed = self._feeding = self._holding = False
         self._open()
         self._request_status()
         ready = self._wait_for(
@@ -361,22 +518,114 @@ class ODriveDriver(CanMotorDriver):
         self._supervising = True
 
     def on_activate(self) -> None:
-        """Hold position, enter ``CLOSED_LOOP_CONTROL`` on every axis and wait for it."""
-        for axis in self._axes:
-            pos = axis.enc[0] if axis.enc is not None else 0.0
-            self._send(
-                axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
-                cs.encode_set_controller_mode(
-                    cs.ControlMode.POSITION_CONTROL, cs.InputMode.PASSTHROUGH
-                ),
-            )
-            axis.mode = ControlMode.POSITION
-            self._send(axis.ids[cs.Cmd.SET_INPUT_POS], cs.encode_set_input_pos(pos))
+        """Hold position, enter ``CLOSED_LOOP_CONTROL`` on every axis and wait for it.
+
+        From then on the supervisor re-sends each axis's set-point every ``command_period``.
+        """
+        with self._held_lock:
+            for axis in self._axes:
+                pos = axis.enc[0] if axis.enc is not None else 0.0
+                self._send(
+                    axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
+                    cs.encode_set_controller_mode(
+                        cs.ControlMode.POSITION_CONTROL, cs.InputMode.PASSTHROUGH
+                    ),
+                )
+                axis.mode = ControlMode.POSITION
+                axis.held = (axis.ids[cs.Cmd.SET_INPUT_POS], cs.encode_set_input_pos(pos))
+                self._send(*axis.held)
         self._request_state(cs.AxisState.CLOSED_LOOP_CONTROL)
+        self._due_feed = self.clock.monotonic() + self.command_period
+        self._holding = False
+        self._armed = self._feeding = True
 
     def on_deactivate(self) -> None:
-        """Set every axis ``IDLE`` and wait for it."""
+        """Stop re-sending set-points, set every axis ``IDLE`` and wait for it."""
+        with self._held_lock:
+            self._armed = self._feeding = self._holding = False
+            for axis in self._axes:
+                axis.held = None
         self._request_state(cs.AxisState.IDLE)
+
+    def on_make_safe(self) -> str:
+        """Apply :attr:`safe_state` to every axis; confirm by heartbeat, briefly.
+
+        ``idle``: ``Set_Axis_State(IDLE)``. ``hold``: ``Set_Controller_Mode(VELOCITY_CONTROL)``
+        and ``Set_Input_Vel(0)``, kept being sent (an axis in ``IDLE`` stays there). Every
+        axis is sent its frames even when one fails; a heartbeat is then requested and waited
+        for at most :data:`SAFE_CONFIRM` real seconds (a device that does not answer is not
+        waited for longer).
+
+        Returns:
+            One item per axis, e.g. ``"left_wheel IDLE, right_wheel IDLE"``.
+
+        Raises:
+            DriverError: A frame could not be sent (after trying every axis).
+        """
+        hold = self.safe_state == "hold"
+        self._armed = False  # an axis leaving CLOSED_LOOP_CONTROL now is what was asked
+        _not_back_to_active(self)
+        failed: list[str] = []
+        with self._held_lock:
+            self._feeding = self._holding = hold
+            for axis in self._axes:
+                try:
+                    if hold:
+                        self._send(
+                            axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
+                            cs.encode_set_controller_mode(
+                                cs.ControlMode.VELOCITY_CONTROL, cs.InputMode.PASSTHROUGH
+                            ),
+                        )
+                        axis.mode = ControlMode.VELOCITY
+                        axis.held = (axis.ids[cs.Cmd.SET_INPUT_VEL], cs.encode_set_input_vel(0.0))
+                        self._send(*axis.held)
+                    else:
+                        axis.held = None
+                        self._send(
+                            axis.ids[cs.Cmd.SET_AXIS_STATE],
+                            cs.encode_set_axis_state(cs.AxisState.IDLE),
+                        )
+                except (DriverError, StateError) as err:
+                    failed.append(f"{axis.label()}: {err}")
+        if failed:
+            raise DriverOperationError(f"{self.name}: safe state not sent: {'; '.join(failed)}")
+        confirmed = self._confirm(None if hold else cs.AxisState.IDLE)
+        done: list[str] = []
+        for axis, ok in zip(self._axes, confirmed, strict=True):
+            state = _state_name(axis.state)
+            if hold:
+                what = f"hold 0 rev/s ({state})" if ok else "hold 0 rev/s sent (unconfirmed)"
+            else:
+                what = "IDLE" if ok else "IDLE sent (unconfirmed)"
+            done.append(f"{axis.node.joint} {what}")
+        return ", ".join(done)
+
+    def _confirm(self, state: cs.AxisState | None) -> list[bool]:
+        """Request heartbeats; wait up to :data:`SAFE_CONFIRM` real seconds for new ones."""
+        before = [a.beats for a in self._axes]
+        try:
+            self._request_status()
+        except (DriverError, StateError):
+            return [False] * len(self._axes)
+
+        def fine() -> list[bool]:
+            return [
+                a.beats > n and (state is None or a.state == state)
+                for a, n in zip(self._axes, before, strict=True)
+            ]
+
+        deadline = time.monotonic() + SAFE_CONFIRM
+        ask_again = time.monotonic() + SAFE_CONFIRM / 4
+        with self._cond:
+            while not all(fine()) and (left := deadline - time.monotonic()) > 0:
+                if time.monotonic() >= ask_again:  # an answer sent before the axis switched
+                    ask_again = time.monotonic() + SAFE_CONFIRM / 4
+                    with contextlib.suppress(DriverError, StateError):
+                        self._request_status()
+                # real time: never held up by a paused test clock
+                self._cond.wait(min(left, max(ask_again - time.monotonic(), 0.001)))
+        return fine()
 
     def on_recover(self) -> None:
         """Clear the nodes' errors (``Clear_Errors``) and wait until they report none.
@@ -384,12 +633,16 @@ class ODriveDriver(CanMotorDriver):
         Raises:
             DriverError: A node is still silent or still reports errors.
         """
+        self._armed = self._feeding = self._holding = False
         if self._bus is None:
             self.on_configure()
             return
         for axis in self._axes:
             self._send(axis.ids[cs.Cmd.CLEAR_ERRORS], cs.encode_clear_errors())
             axis.bad = None
+            axis.malformed.clear()
+            axis.hb_rate.clear()
+            axis.enc_rate.clear()
         self._request_status()
         now = self.clock.monotonic()
         fine = self._wait_for(
@@ -407,7 +660,9 @@ class ODriveDriver(CanMotorDriver):
 
     def _request_status(self) -> None:
         for axis in self._axes:
+            axis.hb_rate.ask()
             self._send(axis.ids[cs.Cmd.HEARTBEAT], b"", remote=True)
+            axis.enc_rate.ask()
             self._send(axis.ids[cs.Cmd.GET_ENCODER_ESTIMATES], b"", remote=True)
 
     def _request_state(self, state: cs.AxisState) -> None:
@@ -449,22 +704,25 @@ class ODriveDriver(CanMotorDriver):
                 raise ValueError(f"{self.name}: no joint {c.joint!r} (joints: {self.joint_names})")
             check_limits(c.joint, axis.node.limits, c.mode.value, c.value)
             plan.append((axis, c))
-        for axis, c in plan:
-            mode = c.mode
-            if axis.mode is not mode:
-                self._send(
-                    axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
-                    cs.encode_set_controller_mode(_MODES[mode], cs.InputMode.PASSTHROUGH),
-                )
-                axis.mode = mode
-            if mode is ControlMode.POSITION:
-                data = cs.INPUT_POS.pack(c.value / axis.rad, 0, 0)
-                self._send(axis.ids[cs.Cmd.SET_INPUT_POS], data)
-            elif mode is ControlMode.VELOCITY:
-                self._send(axis.ids[cs.Cmd.SET_INPUT_VEL], cs.F32X2.pack(c.value / axis.rad, 0.0))
-            else:
-                torque = c.value / axis.node.gear_ratio
-                self._send(axis.ids[cs.Cmd.SET_INPUT_TORQUE], cs.F32_PAD.pack(torque))
+        with self._held_lock:  # no re-send of an older set-point can follow this one
+            for axis, c in plan:
+                mode = c.mode
+                if axis.mode is not mode:
+                    self._send(
+                        axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
+                        cs.encode_set_controller_mode(_MODES[mode], cs.InputMode.PASSTHROUGH),
+                    )
+                    axis.mode = mode
+                if mode is ControlMode.POSITION:
+                    data = cs.INPUT_POS.pack(c.value / axis.rad, 0, 0)
+                    axis.held = (axis.ids[cs.Cmd.SET_INPUT_POS], data)
+                elif mode is ControlMode.VELOCITY:
+                    data = cs.F32X2.pack(c.value / axis.rad, 0.0)
+                    axis.held = (axis.ids[cs.Cmd.SET_INPUT_VEL], data)
+                else:
+                    torque = c.value / axis.node.gear_ratio
+                    axis.held = (axis.ids[cs.Cmd.SET_INPUT_TORQUE], cs.F32_PAD.pack(torque))
+                self._send(*axis.held)
 
     def read_state(self) -> JointStates:
         """The newest estimate of every joint (the receive thread's cache; no bus traffic).
@@ -506,28 +764,93 @@ class ODriveDriver(CanMotorDriver):
             return
         axis, cmd = entry
         data = msg.data
-        if len(data) != 8:
-            what = cs.Cmd(cmd).name
-            axis.bad = f"{axis.label()}: malformed {what} frame ({len(data)} data bytes)"
-            self._evaluate()
-            return
         now = self.clock.monotonic()
+        if cmd == cs.Cmd.HEARTBEAT:
+            why = cs.heartbeat_problem(data)
+        else:
+            why = None if len(data) == 8 else f"{len(data)} data bytes instead of 8"
+        if why is not None:
+            self._malformed(axis, cs.Cmd(cmd).name, why, now)
+            return
         if cmd == cs.Cmd.GET_ENCODER_ESTIMATES:
             pos, vel = cs.F32X2.unpack(data)
             axis.enc = (pos, vel, now)
+            axis.enc_age.feed(now)
+            axis.enc_rate.add(now)
+            axis.stale_checks = 0
+            if axis.stale is not None:
+                axis.stale = None
+                self._evaluate()
         elif cmd == cs.Cmd.HEARTBEAT:
             error, state, _, _ = cs.HEARTBEAT.unpack(data)
             changed = error != axis.error or state != axis.state or axis.bad is not None
             changed = changed or self.state is DriverState.FAULT
-            axis.error, axis.state, axis.hb_stamp, axis.bad = error, state, now, None
+            if axis.bad is not None:
+                axis.bad = None
+                axis.malformed.clear()
+            axis.error, axis.state, axis.hb_stamp = error, state, now
+            axis.beats += 1
+            axis.hb_rate.add(now)
             self._notify()
             if changed:
                 self._evaluate()
         else:
             axis.torque = cs.F32X2.unpack(data)[1]
 
+    def _malformed(self, axis: _Axis, what: str, why: str, now: float) -> None:
+        """Count one malformed frame; too many within the window make a fault."""
+        self.bad_frames += 1
+        window = axis.malformed
+        fault = window.add(now)
+        recent = window.recent(now)
+        text = f"{axis.label()}: malformed {what} frame ({why})"
+        if recent == 1 or (fault and axis.bad is None):
+            logger.warning(
+                "driver %s: %s; %d within %g s (a fault at %d), %d in all",
+                self.name,
+                text,
+                recent,
+                window.window,
+                window.limit,
+                self.bad_frames,
+            )
+        if fault and axis.bad is None:
+            axis.bad = f"{recent} malformed frames within {window.window:g} s, the newest: {text}"
+            self._evaluate()
+
     def _on_period(self, now: float) -> None:
-        pass  # the ODrives send on their own; the supervisor only checks the heartbeats' age
+        """Judge the encoder streams' age; re-send the held set-points every ``command_period``.
+
+        A stream is stale when, as of the receive thread's last look at the bus, its newest
+        estimate is older than 3 ``encoder_period``, at two supervisor checks in a row.
+        The set-points feed the watchdog.
+
+        Not in ``FAULT`` (unless the safe state ``hold`` was applied): a driver that lost
+        its device or its data stops feeding, so the device's watchdog disarms the axes if
+        nobody makes them safe.
+        """
+        seen = min(now, self._rx_seen)
+        for axis in self._axes:
+            why = axis.enc_age.stale(seen)
+            if why is None:
+                axis.stale_checks = 0
+                axis.stale = None
+            else:  # stale at two supervisor checks in a row: a fault
+                axis.stale_checks += 1
+                if axis.stale_checks >= 2:
+                    axis.stale = why
+        if not self._feeding or now < self._due_feed:
+            return
+        if not self._holding and self.state is DriverState.FAULT:
+            return
+        self._due_feed = max(self._due_feed + self.command_period, now)
+        with self._held_lock:  # make_safe and deactivate drop the held frames under it
+            for axis in self._axes:
+                if axis.held is not None:
+                    try:
+                        self._send(*axis.held)
+                    except DriverError as err:  # the link's state shows in the replies
+                        logger.debug("driver %s: re-send failed: %s", self.name, err)
 
     def _problem(self, now: float) -> DriverError | None:
         limit = self.timeout_periods * self.heartbeat_period
@@ -540,7 +863,31 @@ class ODriveDriver(CanMotorDriver):
                 return _motor_fault(self.name, axis)
             if axis.bad is not None:
                 return DriverOperationError(f"{self.name}: {axis.bad}")
+            if axis.stale is not None:
+                return DriverTimeoutError(f"{self.name}: {axis.stale}")
+            if self._armed and axis.state != cs.AxisState.CLOSED_LOOP_CONTROL:
+                return DriverOperationError(
+                    f"{self.name}: {axis.label()}: the axis left CLOSED_LOOP_CONTROL (now"
+                    f" {_state_name(axis.state)}) without an error bit; recover() to go on"
+                )
+            for stream, rate in (
+                ("heartbeats", axis.hb_rate),
+                ("encoder estimates", axis.enc_rate),
+            ):
+                excess = rate.excess(now)
+                if excess is not None:
+                    return DriverOperationError(
+                        f"{self.name}: {axis.label()}: {stream} arrive at {excess:.1f}x the"
+                        f" configured rate: two devices answer as node {axis.node.node_id}?"
+                    )
         return None
+
+
+def _state_name(state: int) -> str:
+    try:
+        return cs.AxisState(state).name
+    except ValueError:
+        return str(state)
 
 
 def _link(index: int, link: object) -> dict[str, Any]:
@@ -577,30 +924,25 @@ def _available_links() -> list[dict[str, Any]]:
     return links
 
 
-def _heartbeat(msg: can.Message) -> tuple[int, cs.Heartbeat] | None:
-    """``(node id, heartbeat)`` of a CANSimple heartbeat frame, None for any other frame."""
-    if msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-        return None  # a remote Heartbeat is some host's request, not a node's beat
-    if msg.arbitration_id > 0x7FF:
-        return None
-    node, cmd = cs.split_id(msg.arbitration_id)
-    if cmd != cs.Cmd.HEARTBEAT:
-        return None
-    try:
-        return node, cs.decode_heartbeat(msg.data)
-    except ValueError:
-        return None  # wrong length: not a (well-formed) ODrive heartbeat
-
-
 def _listen(link: dict[str, Any], timeout: float) -> dict[int, cs.Heartbeat]:
-    """The newest heartbeat of each node heard on ``link`` within ``timeout`` real seconds."""
+    """The newest heartbeat of each ODrive node heard on ``link`` within ``timeout`` s.
+
+    A node counts when at least :data:`DETECT_MIN_BEATS` well-formed heartbeats
+    (:func:`~temoto.drivers.can_motor.cansimple.heartbeat_problem`) came from it, more than
+    malformed frames on its heartbeat id, with a median gap of 1 ms or more between their
+    frame timestamps (a cyclic message, not a burst). What each node tells is logged: INFO
+    for a clean axis, WARNING for one with error bits, INFO for an id that was heard but not
+    counted, and why.
+    """
     what = f"{ODriveDriver.kind} detect"
     try:
         bus = open_bus(link, what)
     except DriverError as err:
         logger.warning("%s: skipping %s: %s", what, link, err)
         return {}
-    seen: dict[int, cs.Heartbeat] = {}
+    beats: dict[int, list[float]] = {}
+    newest: dict[int, cs.Heartbeat] = {}
+    bad: dict[int, tuple[int, str]] = {}
     try:
         deadline = time.monotonic() + timeout
         while (left := deadline - time.monotonic()) > 0:
@@ -609,26 +951,52 @@ def _listen(link: dict[str, Any], timeout: float) -> dict[int, cs.Heartbeat]:
             except (can.CanError, OSError) as err:
                 logger.warning("%s: receiving on %s failed, stopped listening: %s", what, link, err)
                 break
-            found = _heartbeat(msg) if msg is not None else None
-            if found is not None:
-                seen[found[0]] = found[1]
+            if msg is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
+                continue  # a remote Heartbeat is some host's request, not a node's beat
+            if msg.arbitration_id > 0x7FF:
+                continue
+            node, cmd = cs.split_id(msg.arbitration_id)
+            if cmd != cs.Cmd.HEARTBEAT:
+                continue
+            why = cs.heartbeat_problem(msg.data)
+            if why is not None:
+                count, _ = bad.get(node, (0, ""))
+                bad[node] = (count + 1, why)
+                continue
+            beats.setdefault(node, []).append(msg.timestamp)
+            newest[node] = cs.decode_heartbeat(msg.data)
     finally:
         bus.shutdown()
-    for node in sorted(seen):
-        beat = seen[node]
-        try:
-            state = cs.AxisState(beat.axis_state).name
-        except ValueError:
-            state = str(beat.axis_state)
+    seen: dict[int, cs.Heartbeat] = {}
+    for node in sorted(set(beats) | set(bad)):
+        times = beats.get(node, [])
+        malformed, why = bad.get(node, (0, ""))
+        gaps = [b - a for a, b in itertools.pairwise(times)]
+        reason = None
+        if len(times) < DETECT_MIN_BEATS:
+            reason = f"{len(times)} well-formed heartbeat(s), {DETECT_MIN_BEATS} needed"
+        elif malformed >= len(times):
+            reason = f"{malformed} malformed frames on its heartbeat id ({why})"
+        elif statistics.median(gaps) < 0.001:
+            reason = "heartbeats less than 1 ms apart: not a cyclic heartbeat"
+        if reason is not None:
+            extra = f" (and {malformed} malformed: {why})" if malformed and times else ""
+            logger.info(
+                "%s: id 0x%03x on %s not listed: %s%s", what, node << 5 | 1, link, reason, extra
+            )
+            continue
+        seen[node] = beat = newest[node]
         errors = " | ".join(cs.error_names(beat.axis_error)) or "none"
-        logger.info(
-            "%s: node %d on %s: axis state %s, axis errors %s, procedure result %d",
+        logger.log(
+            logging.WARNING if beat.axis_error else logging.INFO,
+            "%s: node %d on %s: axis state %s, axis errors %s, procedure result %d%s",
             what,
             node,
             link,
-            state,
+            _state_name(beat.axis_state),
             errors,
             beat.procedure_result,
+            " (clear the errors before use: Clear_Errors, or recover())" if beat.axis_error else "",
         )
     return seen
 

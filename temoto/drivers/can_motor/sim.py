@@ -13,8 +13,18 @@ the bus on another thread. Faults (:meth:`~temoto.drivers.sim.Simulator.inject`,
 ``node=<id>`` for one axis or motor): ``silence`` (dead: no frames, commands ignored),
 ``corrupt`` (frames go out truncated: a wrong DLC), ``hardware_error`` (``kind`` = overheat,
 overload or voltage: error bits, the axis disarms; latched until Clear_Errors on an ODrive),
-``no_heartbeat`` (ODrive: cyclic heartbeats stop, everything else answers) and ``link_loss``
-(no frames in either direction, every node).
+``no_heartbeat`` (ODrive: cyclic heartbeats stop, everything else answers), ``no_encoder``
+(ODrive: cyclic encoder estimates stop, heartbeats go on) and ``link_loss`` (no frames in
+either direction, every node).
+
+**Device watchdogs** (``docs/driver-can.md``), modelled as the vendors document them so that a
+killed host is testable: :class:`SimODrive` with ``watchdog_timeout`` > 0 is an ODrive with
+``axis.config.enable_watchdog`` set: an axis in ``CLOSED_LOOP_CONTROL`` that gets no set-point
+(``Set_Input_Pos`` / ``_Vel`` / ``_Torque``) and no ``Set_Axis_State`` for that long disarms to
+``IDLE`` with ``WATCHDOG_TIMER_EXPIRED`` (0x1000000) in its heartbeat. :class:`SimMitMotor` with
+``can_timeout`` > 0 is a motor whose firmware CAN timeout is set: in motor mode, when no command
+frame (the special frames do not count) arrived for that long, its command is zeroed
+(p, v, kp, kd, t_ff = 0: no torque); it stays in motor mode.
 
 The bus may be ``virtual`` (one process) or ``udp_multicast`` (across processes).
 """
@@ -48,6 +58,7 @@ _HW_BITS: Final = {
     "voltage": cs.AxisError.DC_BUS_UNDER_VOLTAGE,
 }
 _MIT_CODES: Final = {"overheat": 1, "overload": 2, "voltage": 4}
+_ZERO: Final = mit.MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
 
 
 @dataclass
@@ -76,6 +87,7 @@ class AxisModel:
     input_torque: float = 0.0
     stamp: float | None = None
     commands: int = 0  # set-points received (for tests)
+    fed: float = -math.inf  # the watchdog's last feed, clock seconds
 
     def step(self, now: float) -> None:
         """Advance the model to ``now`` (clock seconds)."""
@@ -140,6 +152,8 @@ class MitModel:
     temperature: int = 30
     stamp: float | None = None
     commands: int = 0
+    fed: float = -math.inf  # the CAN timeout's last reset (a command frame), clock seconds
+    timeouts: int = 0  # times the CAN timeout zeroed the command (for tests)
 
     def step(self, now: float) -> None:
         """Advance the model to ``now`` (clock seconds)."""
@@ -309,12 +323,14 @@ class SimODrive(_CanSim):
         heartbeat_period: Seconds between heartbeats (``heartbeat_msg_rate_ms``).
         encoder_period: Seconds between cyclic encoder estimates (0 = only on request).
         torque_period: Seconds between cyclic ``Get_Torques`` (0 = only on request).
+        watchdog_timeout: The axes' ``watchdog_timeout`` with ``enable_watchdog`` set,
+            seconds (0 = the watchdog is off). See the module docstring.
 
     Raises:
-        ValueError: No nodes, a duplicate node id, or a non-positive period.
+        ValueError: No nodes, a duplicate node id, or a negative or non-positive period.
     """
 
-    FAULTS: ClassVar[frozenset[str]] = _CanSim.FAULTS | {"no_heartbeat"}
+    FAULTS: ClassVar[frozenset[str]] = _CanSim.FAULTS | {"no_heartbeat", "no_encoder"}
     _KIND: ClassVar[str] = "odrive"
 
     def __init__(
@@ -326,11 +342,17 @@ class SimODrive(_CanSim):
         heartbeat_period: float = 0.1,
         encoder_period: float = 0.01,
         torque_period: float = 0.0,
+        watchdog_timeout: float = 0.0,
     ) -> None:
         if not heartbeat_period > 0 or encoder_period < 0 or torque_period < 0:
             raise ValueError("the heartbeat period must be positive, the others >= 0")
+        if not (watchdog_timeout >= 0 and math.isfinite(watchdog_timeout)):
+            raise ValueError(f"watchdog_timeout must be >= 0 s, got {watchdog_timeout!r}")
         periods = [p for p in (heartbeat_period, encoder_period, torque_period) if p > 0]
+        if watchdog_timeout > 0:
+            periods.append(watchdog_timeout / 10)  # expiry seen within a tenth of the timeout
         super().__init__(link, clock, min(periods))
+        self.watchdog_timeout = watchdog_timeout
         models = [n if isinstance(n, AxisModel) else AxisModel(n) for n in nodes]
         if not models or len({m.node_id for m in models}) != len(models):
             raise ValueError("a SimODrive needs distinct node ids")
@@ -383,6 +405,7 @@ class SimODrive(_CanSim):
                 elif cmd == cs.Cmd.HEARTBEAT:
                     reply = (cmd, self._heartbeat(axis))
             elif cmd == cs.Cmd.SET_AXIS_STATE:
+                axis.fed = now
                 wanted = cs.decode_set_axis_state(data)
                 if wanted == cs.AxisState.CLOSED_LOOP_CONTROL and axis.error:
                     pass  # a faulted axis does not arm
@@ -396,12 +419,15 @@ class SimODrive(_CanSim):
             elif cmd == cs.Cmd.SET_INPUT_POS:
                 axis.input_pos, _, _ = cs.decode_set_input_pos(data)
                 axis.commands += 1
+                axis.fed = now
             elif cmd == cs.Cmd.SET_INPUT_VEL:
                 axis.input_vel, _ = cs.decode_set_input_vel(data)
                 axis.commands += 1
+                axis.fed = now
             elif cmd == cs.Cmd.SET_INPUT_TORQUE:
                 axis.input_torque = cs.decode_set_input_torque(data)
                 axis.commands += 1
+                axis.fed = now
             elif cmd == cs.Cmd.SET_LIMITS:
                 axis.vel_limit, _ = cs.decode_set_limits(data)
             elif cmd == cs.Cmd.ESTOP:
@@ -429,12 +455,14 @@ class SimODrive(_CanSim):
             self._due_tq = max(self._due_tq + self.torque_period, now)
         frames: list[tuple[int, int, bytes]] = []
         no_hb = self.fault("no_heartbeat")
+        no_enc = self.fault("no_encoder")
         with self._model_lock:
             for node, axis in self.axes.items():
                 axis.step(now)
+                self._watchdog(axis, now)
                 if hb and not (no_hb is not None and no_hb.get("node") in (None, node)):
                     frames.append((node, cs.Cmd.HEARTBEAT, self._heartbeat(axis)))
-                if enc:
+                if enc and not (no_enc is not None and no_enc.get("node") in (None, node)):
                     data = cs.encode_encoder_estimates(axis.pos, axis.vel)
                     frames.append((node, cs.Cmd.GET_ENCODER_ESTIMATES, data))
                 if tq:
@@ -442,6 +470,15 @@ class SimODrive(_CanSim):
                     frames.append((node, cs.Cmd.GET_TORQUES, data))
         for node, cmd, data in frames:
             self.send(self._ids[node, cmd], data, node)
+
+    def _watchdog(self, axis: AxisModel, now: float) -> None:
+        """Disarm an armed axis whose watchdog expired (``_model_lock`` held)."""
+        timeout = self.watchdog_timeout
+        if timeout <= 0 or axis.state != cs.AxisState.CLOSED_LOOP_CONTROL:
+            return
+        if now - axis.fed > timeout:
+            axis.error |= cs.AxisError.WATCHDOG_TIMER_EXPIRED
+            axis.state = cs.AxisState.IDLE
 
 
 class SimMitMotor(_CanSim):
@@ -454,9 +491,10 @@ class SimMitMotor(_CanSim):
         host_id: The arbitration id replies are sent with.
         tick: Seconds between model steps.
         long_replies: Send 8-byte replies (temperature and error code) instead of 6.
+        can_timeout: The firmware's CAN timeout, seconds (0 = off). See the module docstring.
 
     Raises:
-        ValueError: No motors or a duplicate motor id.
+        ValueError: No motors, a duplicate motor id or a negative timeout.
     """
 
     _KIND: ClassVar[str] = "mit"
@@ -470,8 +508,12 @@ class SimMitMotor(_CanSim):
         host_id: int = 0,
         tick: float = 0.01,
         long_replies: bool = True,
+        can_timeout: float = 0.0,
     ) -> None:
-        super().__init__(link, clock, tick)
+        if not (can_timeout >= 0 and math.isfinite(can_timeout)):
+            raise ValueError(f"can_timeout must be >= 0 s, got {can_timeout!r}")
+        super().__init__(link, clock, min(tick, can_timeout / 10) if can_timeout > 0 else tick)
+        self.can_timeout = can_timeout
         models = [m if isinstance(m, MitModel) else MitModel(m) for m in motors]
         if not models or len({m.motor_id for m in models}) != len(models):
             raise ValueError("a SimMitMotor needs distinct motor ids")
@@ -512,6 +554,7 @@ class SimMitMotor(_CanSim):
             elif kind == "zero":
                 motor.pos = 0.0
             elif len(data) == 8:
+                motor.fed = self.clock.monotonic()
                 if motor.enabled:
                     motor.command = mit.decode_command(data, motor.ranges)
                     motor.commands += 1
@@ -529,7 +572,12 @@ class SimMitMotor(_CanSim):
         self.send(self.host_id, payload, motor.motor_id)
 
     def on_tick(self, now: float) -> None:
-        """Step the models."""
+        """Step the models; zero the command of a motor whose CAN timeout expired."""
+        timeout = self.can_timeout
         with self._model_lock:
             for motor in self.motors.values():
                 motor.step(now)
+                expired = timeout > 0 and motor.enabled and now - motor.fed > timeout
+                if expired and motor.command != _ZERO:
+                    motor.command = _ZERO
+                    motor.timeouts += 1
