@@ -209,14 +209,3 @@ class CanMotorDriver(Driver):
     @abstractmethod
     def _problem(self, now: float) -> DriverError | None:
         """What is wrong with the devices now, or None."""
-
-
-def _not_back_to_active(driver: CanMotorDriver) -> None:
-    """A driver made safe in ``FAULT`` recovers to ``INACTIVE``, never back to ``ACTIVE``.
-
-    (The base class returns a recovered driver to the state before the fault; after the safe
-    state the devices are no longer acting.)
-    """
-    with driver._lock:
-        if driver._state is DriverState.FAULT:
-            driver._before_fault = DriverState.INACTIVE

@@ -50,7 +50,7 @@ from temoto.clock import Clock
 from temoto.drivers.base import DriverState
 from temoto.drivers.can_motor import mitmode as mm
 from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits
-from temoto.drivers.can_motor._driver import CanMotorDriver, _not_back_to_active
+from temoto.drivers.can_motor._driver import CanMotorDriver
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import BAD_FRAMES_WINDOW, FaultWindow, StreamAge
@@ -411,7 +411,6 @@ class MitMotorDriver(CanMotorDriver):
         Raises:
             DriverError: A frame could not be sent (after trying every motor).
         """
-        _not_back_to_active(self)
         failed: list[str] = []
         with self._held_lock:
             counts = {c: c.replies + c.outstanding for c in self._cache}

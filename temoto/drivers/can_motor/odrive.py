@@ -64,7 +64,7 @@ from temoto.clock import Clock
 from temoto.drivers.base import DriverState, detect_links
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits, open_bus
-from temoto.drivers.can_motor._driver import CanMotorDriver, _not_back_to_active
+from temoto.drivers.can_motor._driver import CanMotorDriver
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import FaultWindow, StreamAge
@@ -564,7 +564,6 @@ class ODriveDriver(CanMotorDriver):
         """
         hold = self.safe_state == "hold"
         self._armed = False  # an axis leaving CLOSED_LOOP_CONTROL now is what was asked
-        _not_back_to_active(self)
         failed: list[str] = []
         with self._held_lock:
             self._feeding = self._holding = hold
