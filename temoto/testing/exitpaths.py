@@ -70,6 +70,8 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
             "link": _CAN_LINK,
             "heartbeat_period": 0.05,
             "encoder_period": 0.01,
+            "command_period": 0.05,
+            "watchdog_timeout": 0.2,
             "nodes": [
                 {"node_id": 1, "joint": "left_wheel", "velocity_limit": 20.0},
                 {"node_id": 2, "joint": "right_wheel", "velocity_limit": 20.0},
@@ -90,12 +92,15 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
         "long": ("NavigateTo", {"x": 100.0, "y": 0.0}),
         "short": ("NavigateTo", {"x": 0.3, "y": 0.0}),
         "fault": "no_heartbeat",
+        # SIGKILL: the axis watchdog (0.2 s) plus one set-point period
+        "sigkill_bound_s": 0.2 + 0.05,
     },
     "mit": {
         "device": {
             "driver": "mit_can",
             "link": _CAN_LINK,
             "poll_rate": 100,
+            "can_timeout": 0.1,
             "motors": [
                 {"motor_id": 1, "joint": "shoulder", "model": "AK80-9"},
                 {"motor_id": 2, "joint": "elbow", "model": "AK80-9"},
@@ -112,6 +117,8 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
         "long": ("MoveJoints", {"pose": "reach"}),
         "short": ("MoveJoints", {"pose": "reach"}),
         "fault": "corrupt",
+        # SIGKILL: the motor controller's CAN timeout (0.1 s) plus one poll period
+        "sigkill_bound_s": 0.1 + 0.01,
     },
     "dynamixel": {
         "device": {
@@ -293,7 +300,11 @@ class _SimHost:
     def wait(
         self, what: str, *, since: float = 0.0, timeout: float = STEP_TIMEOUT
     ) -> dict[str, Any]:
-        """The first state line since ``since`` where ``what`` (a key, or ``airborne``) holds."""
+        """The first state line since ``since`` where ``what`` holds.
+
+        ``what``: ``safe``, ``active``, ``acting`` (active and not safe) or ``airborne``
+        (acting and in the air).
+        """
         deadline = time.monotonic() + timeout
         while True:
             for line in list(self.states):
@@ -326,8 +337,11 @@ class _SimHost:
 
 
 def _holds(line: Mapping[str, Any], what: str) -> bool:
+    acting = bool(line["active"] and not line["safe"])
+    if what == "acting":
+        return acting
     if what == "airborne":
-        return bool(line["active"] and line["state"].get("airborne", True))
+        return acting and bool(line["state"].get("airborne", True))
     return bool(line[what])
 
 
@@ -414,7 +428,7 @@ def run_path(
         ]
         for reader in readers:
             reader.start()
-        active = host.wait("airborne" if family_name == "mavlink" else "active")
+        active = host.wait("airborne" if family_name == "mavlink" else "acting")
         if path == "double_sigint" and not stuck.wait(STEP_TIMEOUT):
             raise TimeoutError("the mission's Stuck action did not start")
         second: dict[str, float] = {}

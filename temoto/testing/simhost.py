@@ -14,7 +14,7 @@ included, apply), starts it, and prints JSON lines on standard output:
 ``active`` says the device acts (every ODrive axis in CLOSED_LOOP_CONTROL, every MIT motor in
 motor mode, every Dynamixel servo's torque on, the vehicle armed); ``safe`` says it is in a
 safe state as ``docs/safety.md`` defines them (every axis IDLE, every MIT motor out of motor
-mode, every servo's torque off or stopped by its Bus Watchdog, the vehicle disarmed or in a
+mode or commanded zero torque, every servo's torque off or stopped by its Bus Watchdog, the vehicle disarmed or in a
 hold, land or return mode). This
 is what a person watching the device sees; the robot process under test never talks to the
 host except over the device's own link.
@@ -60,8 +60,13 @@ def _odrive(sim: Any) -> tuple[bool, bool, dict[str, Any]]:
 
 
 def _mit(sim: Any) -> tuple[bool, bool, dict[str, Any]]:
-    enabled = {str(m.motor_id): bool(m.enabled) for m in sim.motors.values()}
-    return all(enabled.values()), not any(enabled.values()), {"motor_mode": enabled}
+    motors = list(sim.motors.values())
+    enabled = {str(m.motor_id): bool(m.enabled) for m in motors}
+    # zero gains and feed-forward: no torque, in or out of motor mode (a CAN timeout of the
+    # motor controller zeroes the command and stays in motor mode)
+    zero = {str(m.motor_id): m.command.kp == m.command.kd == m.command.t == 0 for m in motors}
+    safe = all(not enabled[i] or zero[i] for i in enabled)
+    return all(enabled.values()), safe, {"motor_mode": enabled, "zero_torque": zero}
 
 
 def _dynamixel(sim: Any) -> tuple[bool, bool, dict[str, Any]]:
