@@ -13,11 +13,11 @@ included, apply), starts it, and prints JSON lines on standard output:
 
 ``active`` says the device acts (every ODrive axis in CLOSED_LOOP_CONTROL, every MIT motor in
 motor mode, every Dynamixel servo's torque on, the vehicle armed); ``safe`` says it is in a
-safe state as ``docs/safety.md`` defines them (every axis IDLE, every MIT motor out of motor
-mode or commanded zero torque, every servo's torque off or stopped by its Bus Watchdog, the vehicle disarmed or in a
-hold, land or return mode). This
-is what a person watching the device sees; the robot process under test never talks to the
-host except over the device's own link.
+safe state as ``docs/safety.md`` defines them (every axis IDLE; every MIT motor out of motor
+mode or commanded zero torque; every servo's torque off or stopped by its Bus Watchdog; the
+vehicle disarmed, on the ground, or in a hold, land or return mode). This is what a person
+watching the device sees; the robot process under test never talks to the host except over
+the device's own link.
 
 Commands on standard input, one per line: ``inject FAULT [KEY=VALUE]...``, ``clear [FAULT]``,
 ``quit``. Each is answered ``{"ok": ...}`` or ``{"error": ...}``. The host stops at ``quit``,
