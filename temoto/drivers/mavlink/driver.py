@@ -303,6 +303,7 @@ class MavlinkDriver(Driver):
         self._stale: StreamAge | None = None  # the stream whose staleness is the fault
         self._bad_window.clear()
         self._drained_at: float | None = None  # clock time the link was last read empty
+        self._beat_now = False  # send a heartbeat at once (the vehicle's address is new)
         self.foreign_frames = 0  # datagrams from other addresses with no valid frame
         self._foreign_seen: set[Any] = set()
 
@@ -1058,11 +1059,15 @@ class MavlinkDriver(Driver):
                 )
                 if ours and link.accept_peer(sender):
                     logger.info("driver %s: the vehicle is at %s", self.name, sender)
+                    self._beat_now = True  # greet it at once: its GCS failsafe starts then
                 if bad:
                     check |= self._count_bad(bad, sender, link.peer, ours, now)
                 if not link.pending():
                     self._drained_at = now
                 self._cond.notify_all()
+            if self._beat_now:
+                with self._watch:
+                    self._watch.notify_all()
             if check:
                 self._evaluate()
 
@@ -1172,7 +1177,8 @@ class MavlinkDriver(Driver):
             # A late wake-up means this process was not running: the streams' gaps may be
             # ours, not the vehicle's; judge them at the next, punctual, round.
             punctual = wake is None or now - wake <= shortest
-            if now >= next_hb:
+            if now >= next_hb or self._beat_now:
+                self._beat_now = False
                 next_hb = now + self.heartbeat_period
                 with contextlib.suppress(DriverError, StateError):  # rx loop reports the link
                     self._write(

@@ -324,6 +324,44 @@ class SimVehicle(Simulator):
         with self._lock:
             return self._params[name]
 
+    def set_rate(self, message: str, hz: float) -> None:
+        """Stream ``message`` at ``hz`` from now on (0 stops it), as the vehicle's own setting.
+
+        For fault injection: a stream that stops while the heartbeats go on.
+
+        Args:
+            message: One of :data:`DEFAULT_RATES`.
+            hz: The rate (≥ 0).
+
+        Raises:
+            ValueError: Not a simulated stream, or a negative rate.
+        """
+        name = message.upper()
+        if name not in DEFAULT_RATES or not (math.isfinite(hz) and hz >= 0):
+            raise ValueError(f"bad stream rate {message}={hz!r} (streams: {list(DEFAULT_RATES)})")
+        with self._lock:
+            self._periods[name] = 1.0 / hz if hz > 0 else math.inf
+            self._due[name] = 0.0
+
+    def send_raw(self, datagram: bytes) -> None:
+        """Send bytes as one datagram to every ground station, from the vehicle's own port.
+
+        For fault injection (a malformed frame from the vehicle's address).
+
+        Args:
+            datagram: The bytes, sent as they are.
+
+        Raises:
+            RuntimeError: Not started.
+        """
+        link = self._link
+        if link is None:
+            raise RuntimeError("the simulator is not started")
+        with self._lock:
+            peers = list(dict.fromkeys([*self._gcs, *self._peers]))
+        for peer in peers:
+            link.send_to(datagram, peer)
+
     @property
     def gcs_failsafe(self) -> bool:
         """Whether the GCS failsafe is active (no GCS heartbeat for ``FS_GCS_TIMEOUT``)."""
