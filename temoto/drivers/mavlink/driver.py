@@ -109,8 +109,8 @@ _FAILSAFE_KEYS: Final[Mapping[str, tuple[str, float, float, bool]]] = {
     "enable": ("FS_GCS_ENABLE", 0, 7, True),
     "timeout": ("FS_GCS_TIMEOUT", 2, 120, False),
 }
-#: The parameter naming the GCS system id whose heartbeats the failsafe watches (the first
-#: name before ArduPilot 4.7, the second after).
+#: The parameter naming the GCS system id whose heartbeats the failsafe watches (the older
+#: name, and the one newer ArduPilot firmware uses).
 _GCS_SYSID_PARAMS: Final = ("SYSID_MYGCS", "MAV_GCS_SYSID")
 _TEXT_QUIET: Final = 0.1  # once a refusal's text came: seconds without another end the wait
 
@@ -304,7 +304,7 @@ class MavlinkDriver(Driver):
         self._bad_window.clear()
         self._drained_at: float | None = None  # clock time the link was last read empty
         self._beat_now = False  # send a heartbeat at once (the vehicle's address is new)
-        self.foreign_frames = 0  # datagrams from other addresses with no valid frame
+        self._foreign = 0  # bad frames from addresses other than the vehicle's
         self._foreign_seen: set[Any] = set()
 
     # ---- profile -----------------------------------------------------------------------------
@@ -882,6 +882,11 @@ class MavlinkDriver(Driver):
         return self._received
 
     @property
+    def foreign_frames(self) -> int:
+        """Bad frames since configure from addresses other than the vehicle's (never a fault)."""
+        return self._foreign
+
+    @property
     def bad_frames(self) -> int:
         """Frames dropped since configure (bad CRC, unknown message id)."""
         return self._codec.bad_frames
@@ -1082,7 +1087,7 @@ class MavlinkDriver(Driver):
             for _ in range(bad):
                 fault = self._bad_window.add(now)
             return fault
-        self.foreign_frames += bad
+        self._foreign += bad
         if sender not in self._foreign_seen:
             self._foreign_seen.add(sender)
             logger.warning(
