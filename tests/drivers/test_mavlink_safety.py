@@ -8,6 +8,7 @@ message set (not from our simulator), encoding with pymavlink directly.
 from __future__ import annotations
 
 import contextlib
+import math
 import socket
 import threading
 import time
@@ -218,6 +219,58 @@ def test_bad_failsafe_keys_name_the_key(keys: dict[str, Any], path: str) -> None
     with pytest.raises(ProfileError) as info:
         MavlinkDriver.from_profile("quad", config, clock=ManualClock(), where="devices.quad")
     assert path in str(info.value)
+
+
+def test_a_standalone_simulator_shows_its_gcs_failsafe_on_the_wire(clock: ManualClock) -> None:
+    """What a test in another process sees: a plain SimVehicle, a GCS that stops, the wire."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as gcs:
+        gcs.bind(("127.0.0.1", 0))
+        gcs.settimeout(0.0)
+        params = {"FS_GCS_ENABLE": 5, "FS_GCS_TIMEOUT": 2}
+        sim = SimVehicle(clock=clock, gcs=[gcs.getsockname()], params=params)
+        sim.start()
+        mav = mav2.MAVLink(None, 255, 190)
+        seen: dict[str, Any] = {}
+
+        def send(msg: Any) -> None:
+            gcs.sendto(msg.pack(mav), sim.address)
+
+        def heartbeat() -> None:
+            send(mav.heartbeat_encode(mav2.MAV_TYPE_GCS, mav2.MAV_AUTOPILOT_INVALID, 0, 0, 4))
+
+        def command(cmd: int, *params: float) -> None:
+            send(mav.command_long_encode(1, 1, cmd, 0, *params, *[0.0] * (7 - len(params))))
+
+        def step(beating: bool) -> None:
+            if beating and round(clock.monotonic() / 0.02) % 50 == 0:
+                heartbeat()
+            clock.advance(0.02)
+            time.sleep(0.0007)
+            while True:
+                try:
+                    data = gcs.recv(65536)
+                except BlockingIOError:
+                    return
+                for msg in mav2.MAVLink(None, 255, 190).parse_buffer(data) or []:
+                    seen[msg.get_type()] = msg
+
+        try:
+            heartbeat()
+            command(mav2.MAV_CMD_DO_SET_MODE, mav2.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED, 4)
+            command(mav2.MAV_CMD_COMPONENT_ARM_DISARM, 1)
+            command(mav2.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, math.nan, math.nan, math.nan, 5)
+            while (
+                "GLOBAL_POSITION_INT" not in seen or seen["GLOBAL_POSITION_INT"].relative_alt < 4500
+            ):
+                assert clock.monotonic() < 10.0, "no takeoff"
+                step(beating=True)
+            start = clock.monotonic()
+            while seen["HEARTBEAT"].custom_mode != LAND:
+                assert clock.monotonic() - start <= 2.0 + 1.0 + 0.1, "no failsafe on the wire"
+                step(beating=False)
+            assert seen["HEARTBEAT"].base_mode & mav2.MAV_MODE_FLAG_SAFETY_ARMED
+        finally:
+            sim.close()
 
 
 # ---- supervision (SimVehicle) --------------------------------------------------------------

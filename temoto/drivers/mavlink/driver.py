@@ -669,7 +669,8 @@ class MavlinkDriver(Driver):
         if heard and landed == p.MAV_LANDED_STATE_ON_GROUND:
             return "vehicle on the ground: armed and landed, nothing sent"
         if not heard:  # it may be flying: send anyway, but do not wait for a silent vehicle
-            self._send_mode(mode)
+            if not self._send_mode(mode):
+                return f"vehicle {mode} NOT sent: the vehicle's address is unknown"
             age = "never heard" if last_hb is None else f"not heard for {now - last_hb:.1f} s"
             return f"vehicle {mode} sent, not confirmed ({age})"
         result = self._set_mode_now(mode)
@@ -691,11 +692,15 @@ class MavlinkDriver(Driver):
             result=result,
         )
 
-    def _send_mode(self, mode: str) -> None:
-        """Send MAV_CMD_DO_SET_MODE once, without the command lock (never waits on a caller)."""
+    def _send_mode(self, mode: str) -> bool:
+        """Send MAV_CMD_DO_SET_MODE once, without the command lock (never waits on a caller).
+
+        Returns:
+            False when there was nowhere to send (a ``udpin`` link that never heard it).
+        """
         with self._cond:
             target = self._target or 1
-        self._write(
+        return self._write(
             self._codec.encode(
                 "COMMAND_LONG",
                 target_system=target,
@@ -1017,12 +1022,12 @@ class MavlinkDriver(Driver):
                 self.clock.wait(self._cond, deadline - now)
         return True
 
-    def _write(self, frame: bytes) -> None:
+    def _write(self, frame: bytes) -> bool:
         link = self._link
         if link is None:
             raise StateError(f"{self.name}: the link is closed")
         try:
-            link.write(frame)
+            return link.write(frame)
         except OSError as err:
             raise DriverOperationError(f"{self.name}: sending failed: {err}") from err
 
