@@ -713,7 +713,7 @@ class SimVehicle(Simulator):
     def _set_mode(self, mode: str) -> int:
         if mode not in _SUPPORTED_MODES:
             self._texts.append((p.MAV_SEVERITY_WARNING, f"Mode change to {mode} failed"))
-            return p.MAV_RESULT_DENIED
+            return p.MAV_RESULT_FAILED  # ArduPilot's answer to a mode it cannot enter
         if mode != self.mode:
             self._target = list(self.pos) if self.airborne else None
             self.mode = mode
