@@ -289,7 +289,8 @@ class MavlinkDriver(Driver):
         self._home: tuple[float, float, float] | None = None
         self._landed_state = 0
         self._unhealthy: tuple[str, ...] = ()
-        self._bad_at_hb = 0
+        self._bad_at_hb = 0  # the vehicle's bad frames when its newest heartbeat came
+        self._vehicle_bad = 0  # bad frames from the vehicle's address (or a serial line)
         self._acks: dict[int, tuple[int, int]] = {}  # command → (result, arrival number)
         self._ack_count = 0
         self._text_count = 0
@@ -1088,6 +1089,7 @@ class MavlinkDriver(Driver):
             True when the vehicle's bad frames may have made a fault.
         """
         if sender is None or ours or sender == peer:
+            self._vehicle_bad += bad
             fault = False
             for _ in range(bad):
                 fault = self._bad_window.add(now)
@@ -1125,7 +1127,7 @@ class MavlinkDriver(Driver):
             if msg.src_component != self.component_id:
                 return False
             self._last_hb = now
-            self._bad_at_hb = self._codec.bad_frames
+            self._bad_at_hb = self._vehicle_bad
             self._autopilot = msg.get_int("autopilot")
             self._armed = bool(msg.get_int("base_mode") & p.MAV_MODE_FLAG_SAFETY_ARMED)
             self._custom_mode = msg.get_int("custom_mode")
@@ -1224,7 +1226,7 @@ class MavlinkDriver(Driver):
         now = self.clock.monotonic()
         with self._cond:
             last_hb, unhealthy = self._last_hb, self._unhealthy
-            corrupt = self._codec.bad_frames > self._bad_at_hb
+            corrupt = self._vehicle_bad > self._bad_at_hb
             drained, talked = self._drained_at, self._last_msg
             if streams and drained is not None and self._stale is None:
                 for age in self._ages.values():
