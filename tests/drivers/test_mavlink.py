@@ -204,8 +204,8 @@ def test_arming_on_a_low_battery_is_refused_with_the_result(clock: ManualClock) 
         with pytest.raises(MavlinkCommandError, match="Battery below minimum") as info:
             d.arm()
         assert info.value.command == p.MAV_CMD_COMPONENT_ARM_DISARM == 400
-        assert info.value.result == p.MAV_RESULT_DENIED
-        assert "MAV_RESULT_DENIED" in str(info.value)
+        assert info.value.result == p.MAV_RESULT_FAILED
+        assert "MAV_RESULT_FAILED" in str(info.value)
         assert isinstance(info.value, DriverOperationError)
         assert not sim.armed
 
@@ -348,7 +348,7 @@ def test_a_hardware_error_refuses_arming_in_the_vehicle(
     sim.inject("hardware_error", kind="overheat")
     with pytest.raises(MavlinkCommandError, match="PreArm: Motor overheat") as info:
         d.arm()  # before the next SYS_STATUS: the vehicle itself refuses
-    assert info.value.result == p.MAV_RESULT_DENIED
+    assert info.value.result == p.MAV_RESULT_FAILED
     assert sim.fault("hardware_error") == {"kind": "overheat"}
     with pytest.raises(ValueError, match="kind"):
         sim.inject("hardware_error", kind="meltdown")

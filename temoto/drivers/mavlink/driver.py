@@ -7,16 +7,34 @@ configured it
 
 * keeps a telemetry cache (position, attitude, battery, mode, armed flag, status texts) stamped
   with the driver's clock (:meth:`MavlinkDriver.telemetry`);
-* sends its own GCS HEARTBEAT every ``heartbeat_period`` seconds;
+* sends its own GCS HEARTBEAT every ``heartbeat_period`` seconds, steadily, so that the
+  vehicle's GCS failsafe (ArduPilot ``FS_GCS_ENABLE``) can be used: the profile's
+  ``gcs_failsafe`` sets ``FS_GCS_ENABLE``/``FS_GCS_TIMEOUT`` at configure (PARAM_SET, checked
+  against the PARAM_VALUE echo) and checks that the vehicle watches this driver's system id;
 * watches the vehicle: no valid HEARTBEAT within ``heartbeat_timeout`` is a fault
   (:class:`~temoto.errors.DriverTimeoutError`, or :class:`~temoto.errors.DriverOperationError`
   when only frames with a bad CRC arrived), and so is an enabled SYS_STATUS sensor reported
-  unhealthy (a hardware error: overheating motors, low battery voltage, ...); when the vehicle
-  is healthy again the driver reports itself recovered;
+  unhealthy (a hardware error: overheating motors, low battery voltage, ...); each telemetry
+  stream it asked for (GLOBAL_POSITION_INT, ATTITUDE) is stale after 3 of its periods without
+  a message (a :class:`~temoto.errors.DriverTimeoutError` naming the stream); frames with a
+  bad CRC from the vehicle are counted, and a fault only when 5 fall within 1 s
+  (:class:`~temoto.drivers.supervision.FaultWindow`); when the vehicle is healthy again the
+  driver reports itself recovered;
+* trusts nothing on the wire: each UDP datagram is parsed on its own, and a ``udpin`` link
+  replies only to the address the target vehicle's valid frames (its system and component id)
+  come from; garbage from other addresses is counted and never a fault;
 * sends commands as COMMAND_LONG (COMMAND_INT for positions), resending up to
   ``command_retries`` times when no COMMAND_ACK arrives within ``command_timeout``; a result
   other than ``MAV_RESULT_ACCEPTED`` raises :class:`~temoto.errors.MavlinkCommandError` with the
-  command id and the result (and the vehicle's last STATUSTEXT, e.g. its pre-arm failure).
+  command id and the result, and the STATUSTEXTs the vehicle sent with it: those that arrive
+  within :attr:`MavlinkDriver.STATUS_TEXT_WINDOW` (0.5 s) after a FAILED or DENIED ack are
+  waited for (ArduPilot acknowledges at once and sends "PreArm: ..." after the ack).
+
+**Safe state** (``safe_state:``, :attr:`MavlinkDriver.safe_states`): ``loiter`` (default),
+``brake``, ``land`` or ``rtl``. On the ground (disarmed, or armed and landed) nothing is sent;
+in the air the driver sets that ArduCopter mode (``MAV_CMD_DO_SET_MODE``) and waits at most
+:attr:`MavlinkDriver.SAFE_CONFIRM_WAIT` for the ack or a heartbeat in that mode; a vehicle that
+refuses LOITER or BRAKE (no position estimate) is sent LAND.
 
 Flight modes are ArduCopter's (``GUIDED``, ``LOITER``, ``RTL``, ``LAND``, ...);
 :meth:`~MavlinkDriver.takeoff` switches to GUIDED first, :meth:`~MavlinkDriver.goto` sends
@@ -48,8 +66,9 @@ from temoto.drivers.capabilities import GeoPoint, VehicleTelemetry
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.link import Link, LinkSpec, open_link, parse_link
 from temoto.drivers.mavlink.protocol import Codec, Message
-from temoto.drivers.mavlink.sim import DEFAULT_RATES, SimVehicle
+from temoto.drivers.mavlink.sim import DEFAULT_RATES, PARAMETERS, SimVehicle
 from temoto.drivers.sim import Simulator
+from temoto.drivers.supervision import FaultWindow, StreamAge
 from temoto.errors import (
     DriverError,
     DriverInitError,
@@ -75,6 +94,25 @@ _STREAMS: Final[Mapping[str, float]] = {
     "EXTENDED_SYS_STATE": 0.2,
 }
 _SEVERITY_LEVEL: Final = {0: 50, 1: 50, 2: 50, 3: 40, 4: 30, 5: 20, 6: 20, 7: 10}
+#: The streams whose age is supervised (when the vehicle accepted their interval).
+_SUPERVISED: Final = ("GLOBAL_POSITION_INT", "ATTITUDE")
+#: Safe state → the ArduCopter mode it sets in the air.
+_SAFE_MODES: Final[Mapping[str, str]] = {
+    "loiter": "LOITER",
+    "brake": "BRAKE",
+    "land": "LAND",
+    "rtl": "RTL",
+}
+#: ``gcs_failsafe`` keys → (ArduPilot parameter, low, high, integer); ranges from the
+#: ArduCopter parameter documentation (FS_GCS_ENABLE values 0..7, FS_GCS_TIMEOUT 2..120 s).
+_FAILSAFE_KEYS: Final[Mapping[str, tuple[str, float, float, bool]]] = {
+    "enable": ("FS_GCS_ENABLE", 0, 7, True),
+    "timeout": ("FS_GCS_TIMEOUT", 2, 120, False),
+}
+#: The parameter naming the GCS system id whose heartbeats the failsafe watches (the older
+#: name, and the one newer ArduPilot firmware uses).
+_GCS_SYSID_PARAMS: Final = ("SYSID_MYGCS", "MAV_GCS_SYSID")
+_TEXT_QUIET: Final = 0.1  # once a refusal's text came: seconds without another end the wait
 
 #: Profile keys → (default, check); None marks the required key.
 _KEYS: Final = frozenset(
@@ -92,6 +130,8 @@ _KEYS: Final = frozenset(
         "command_retries",
         "stream_rate",
         "status_texts",
+        "safe_state",
+        "gcs_failsafe",
         "sim",
     }
 )
@@ -116,6 +156,7 @@ _SIM_KEYS: Final = frozenset(
         "drain_flight",
         "step_rate",
         "rates",
+        "params",
     }
 )
 
@@ -139,12 +180,25 @@ class MavlinkDriver(Driver):
         command_retries: Resends after a missing COMMAND_ACK.
         stream_rate: Position and attitude rate (Hz) asked of the vehicle; 0 asks for nothing.
         status_texts: How many STATUSTEXT messages the telemetry keeps.
+        gcs_failsafe: The vehicle's GCS failsafe, set at configure: ``{"enable": N}``
+            (``FS_GCS_ENABLE``, 0..7) and/or ``{"timeout": S}`` (``FS_GCS_TIMEOUT``, 2..120 s);
+            None or empty leaves the vehicle's settings alone.
 
     Raises:
         ValueError: A bad argument (``from_profile`` reports it as a ``ProfileError``).
     """
 
     kind: ClassVar[str] = "mavlink"
+
+    #: ``loiter`` (default), ``brake``, ``land``, ``rtl``: the ArduCopter mode set in the air.
+    safe_states: ClassVar[tuple[str, ...]] = tuple(_SAFE_MODES)
+
+    #: Seconds (clock) after a FAILED or DENIED ack during which the vehicle's STATUSTEXTs are
+    #: attached to the error (ArduPilot sends the reason after the ack).
+    STATUS_TEXT_WINDOW: ClassVar[float] = 0.5
+
+    #: Seconds (clock) :meth:`make_safe` waits for the vehicle to confirm its mode.
+    SAFE_CONFIRM_WAIT: ClassVar[float] = 0.3
 
     def __init__(
         self,
@@ -163,6 +217,7 @@ class MavlinkDriver(Driver):
         command_retries: int = 2,
         stream_rate: float = 10.0,
         status_texts: int = 20,
+        gcs_failsafe: Mapping[str, float] | None = None,
     ) -> None:
         super().__init__(name, clock=clock)
         self.link_spec: LinkSpec = parse_link(link)
@@ -198,6 +253,14 @@ class MavlinkDriver(Driver):
         self.command_timeout = float(command_timeout)
         self.command_retries = command_retries
         self.stream_rate = float(stream_rate)
+        #: ArduPilot parameter → value, set at configure (from ``gcs_failsafe``).
+        self.failsafe_params: dict[str, float] = _failsafe_params(gcs_failsafe)
+        timeout = self.failsafe_params.get("FS_GCS_TIMEOUT")
+        if timeout is not None and self.heartbeat_period > timeout / 2:
+            raise ValueError(
+                f"heartbeat_period must be at most half the GCS failsafe timeout ({timeout:g} s),"
+                f" got {self.heartbeat_period:g}: one lost heartbeat must not trigger it"
+            )
         self._gcs_ids = (gcs_system_id, gcs_component_id)
         self._codec = Codec(gcs_system_id, gcs_component_id)
         self._link: Link | None = None
@@ -208,6 +271,8 @@ class MavlinkDriver(Driver):
         self._command_lock = threading.Lock()
         self._eval_lock = threading.Lock()
         self._texts: collections.deque[str] = collections.deque(maxlen=status_texts)
+        self._ages: dict[str, StreamAge] = {}
+        self._bad_window = FaultWindow()
         self._reset()
 
     def _reset(self) -> None:
@@ -224,13 +289,24 @@ class MavlinkDriver(Driver):
         self._home: tuple[float, float, float] | None = None
         self._landed_state = 0
         self._unhealthy: tuple[str, ...] = ()
-        self._bad_at_hb = 0
+        self._bad_at_hb = 0  # the vehicle's bad frames when its newest heartbeat came
+        self._vehicle_bad = 0  # bad frames from the vehicle's address (or a serial line)
         self._acks: dict[int, tuple[int, int]] = {}  # command → (result, arrival number)
         self._ack_count = 0
         self._text_count = 0
         self._mine = False  # the current FAULT was reported by this driver's watch
         self._texts.clear()
         self._received = 0
+        self._params: dict[str, tuple[float, int]] = {}  # name → (value, MAV_PARAM_TYPE)
+        self._param_count = 0  # PARAM_VALUE arrivals
+        self._param_seen: dict[str, int] = {}  # name → arrival number of its newest value
+        self._ages.clear()
+        self._stale: StreamAge | None = None  # the stream whose staleness is the fault
+        self._bad_window.clear()
+        self._drained_at: float | None = None  # clock time the link was last read empty
+        self._beat_now = False  # send a heartbeat at once (the vehicle's address is new)
+        self._foreign = 0  # bad frames from addresses other than the vehicle's
+        self._foreign_seen: set[Any] = set()
 
     # ---- profile -----------------------------------------------------------------------------
 
@@ -264,9 +340,19 @@ class MavlinkDriver(Driver):
                 f"{where}.link: missing: where the vehicle is, e.g. udpin:127.0.0.1:14550"
             )
         kwargs: dict[str, Any] = {}
+        safe_state = cls.safe_state_from(config, where)
         for key, value in config.items():
             if key == "sim":
                 _sim_kwargs(value, f"{where}.sim")  # checked here, used by simulate()
+                continue
+            if key == "safe_state":
+                continue
+            if key == "gcs_failsafe":
+                try:
+                    _failsafe_params(value)
+                except ValueError as err:
+                    raise ProfileError(f"{where}.{err}") from None
+                kwargs[key] = value
                 continue
             if key == "driver":
                 if value != cls.kind:
@@ -287,10 +373,12 @@ class MavlinkDriver(Driver):
         except ValueError as err:
             raise ProfileError(f"{where}.link: {err}") from None
         try:
-            return cls(name, clock=clock, **kwargs)
+            driver = cls(name, clock=clock, **kwargs)
         except ValueError as err:
             key = next((k for k in kwargs if str(err).startswith(k)), "")
             raise ProfileError(f"{where}{'.' + key if key else ''}: {err}") from None
+        driver.safe_state = safe_state
+        return driver
 
     @classmethod
     def simulate(
@@ -409,6 +497,7 @@ class MavlinkDriver(Driver):
                 f" (MAV_AUTOPILOT {self._autopilot}); only ArduCopter modes are supported"
             )
         self._request_streams()
+        self._configure_failsafe()
 
     def on_shutdown(self) -> None:
         """Stop and join the threads, close the link."""
@@ -426,18 +515,230 @@ class MavlinkDriver(Driver):
             self._link = None
 
     def _request_streams(self) -> None:
+        """Ask for the telemetry streams; supervise those the vehicle accepted."""
         if self.stream_rate <= 0:
             return
         for msg, share in _STREAMS.items():
             hz = self.stream_rate * share if share >= 1 else min(self.stream_rate, 2.0)
-            self._best_effort(p.MAV_CMD_SET_MESSAGE_INTERVAL, p.MSG_ID[msg], 1e6 / hz)
+            accepted = self._best_effort(p.MAV_CMD_SET_MESSAGE_INTERVAL, p.MSG_ID[msg], 1e6 / hz)
+            if accepted and msg in _SUPERVISED:
+                age = StreamAge(msg, 1.0 / hz)
+                age.feed(self.clock.monotonic())  # due from now on, even if none ever comes
+                with self._cond:
+                    self._ages[msg] = age
         self._best_effort(p.MAV_CMD_REQUEST_MESSAGE, p.MSG_ID["HOME_POSITION"])
 
-    def _best_effort(self, command: int, *params: float) -> None:
+    def _best_effort(self, command: int, *params: float) -> bool:
         try:
-            self._send_command(command, params, retries=0)
+            self._send_command(command, params, retries=0, texts=False)
         except DriverError as err:
             logger.info("driver %s: %s", self.name, err)
+            return False
+        return True
+
+    # ---- parameters (only what configure needs; the full protocol is not here) ---------------
+
+    def _configure_failsafe(self) -> None:
+        """Set the GCS failsafe parameters and check that the failsafe watches this driver.
+
+        Raises:
+            DriverInitError: The vehicle kept another value, or watches another GCS system id.
+            DriverTimeoutError: No PARAM_VALUE came back.
+        """
+        if not self.failsafe_params:
+            return
+        for name, value in self.failsafe_params.items():
+            self._set_param(name, value)
+        watched: float | None = None
+        for name in _GCS_SYSID_PARAMS:
+            got = self._read_param(name, retries=0)
+            if got is not None:
+                watched = got[0]
+                break
+        own = self._gcs_ids[0]
+        if watched is None:
+            logger.warning(
+                "driver %s: the vehicle did not say which GCS system id its failsafe watches"
+                " (%s); it must be %d, this driver's gcs_system_id",
+                self.name,
+                " or ".join(_GCS_SYSID_PARAMS),
+                own,
+            )
+        elif round(watched) != own:
+            raise DriverInitError(
+                f"{self.name}: the vehicle's GCS failsafe watches system {round(watched)}"
+                f" ({'/'.join(_GCS_SYSID_PARAMS)}), not this driver's gcs_system_id {own}:"
+                " it would not notice this driver stopping; set one to the other"
+            )
+
+    def _read_param(self, name: str, *, retries: int | None = None) -> tuple[float, int] | None:
+        """Ask for one parameter (PARAM_REQUEST_READ): its value and type, or None."""
+        tries = 1 + (self.command_retries if retries is None else retries)
+        with self._cond:
+            target = self._target or 1
+        for _ in range(tries):
+            with self._cond:
+                start = self._param_count
+            self._write(
+                self._codec.encode(
+                    "PARAM_REQUEST_READ",
+                    target_system=target,
+                    target_component=self.component_id,
+                    param_id=name.encode(),
+                    param_index=-1,
+                )
+            )
+            got = self._await_param(name, start)
+            if got is not None:
+                return got
+        return None
+
+    def _set_param(self, name: str, value: float) -> None:
+        """Set one parameter (PARAM_SET) and check the PARAM_VALUE echo.
+
+        Raises:
+            DriverInitError: The vehicle has no such parameter or kept another value.
+            DriverTimeoutError: No PARAM_VALUE.
+        """
+        current = self._read_param(name)
+        if current is None:
+            raise DriverTimeoutError(
+                f"{self.name}: no PARAM_VALUE for {name} (does this firmware have it?)"
+            )
+        if _same(current[0], value):
+            logger.info("driver %s: %s is %g already", self.name, name, value)
+            return
+        tries = 1 + self.command_retries
+        with self._cond:
+            target = self._target or 1
+        for _ in range(tries):
+            with self._cond:
+                start = self._param_count
+            self._write(
+                self._codec.encode(
+                    "PARAM_SET",
+                    target_system=target,
+                    target_component=self.component_id,
+                    param_id=name.encode(),
+                    param_value=value,
+                    param_type=current[1],
+                )
+            )
+            got = self._await_param(name, start)
+            if got is None:
+                continue
+            if not _same(got[0], value):
+                raise DriverInitError(
+                    f"{self.name}: the vehicle kept {name} = {got[0]:g} (asked for {value:g})"
+                )
+            logger.info("driver %s: %s %g -> %g", self.name, name, current[0], value)
+            return
+        raise DriverTimeoutError(
+            f"{self.name}: no PARAM_VALUE after setting {name} in {tries} tries"
+            f" of {self.command_timeout:g} s"
+        )
+
+    def _await_param(self, name: str, after: int) -> tuple[float, int] | None:
+        def arrived() -> bool:
+            return self._param_seen.get(name, 0) > after
+
+        if not self._await(arrived, self.command_timeout):
+            return None
+        with self._cond:
+            return self._params[name]
+
+    # ---- safe state --------------------------------------------------------------------------
+
+    def on_make_safe(self) -> str:
+        """Nothing on the ground; in the air, the safe state's flight mode (see the module).
+
+        Returns:
+            What was done: ``"vehicle LOITER"``, ``"vehicle on the ground: disarmed, nothing
+            to do"``, or what was sent without confirmation.
+
+        Raises:
+            MavlinkCommandError: The vehicle refused the mode, and LAND too.
+            StateError: The link is closed.
+        """
+        mode = _SAFE_MODES[self.safe_state]
+        now = self.clock.monotonic()
+        with self._cond:
+            last_hb, armed, landed = self._last_hb, self._armed, self._landed_state
+        heard = last_hb is not None and now - last_hb <= self.heartbeat_timeout
+        if heard and not armed:
+            return "vehicle on the ground: disarmed, nothing to do"
+        if heard and landed == p.MAV_LANDED_STATE_ON_GROUND:
+            return "vehicle on the ground: armed and landed, nothing sent"
+        if not heard:  # it may be flying: send anyway, but do not wait for a silent vehicle
+            if not self._send_mode(mode):
+                return f"vehicle {mode} NOT sent: the vehicle's address is unknown"
+            age = "never heard" if last_hb is None else f"not heard for {now - last_hb:.1f} s"
+            return f"vehicle {mode} sent, not confirmed ({age})"
+        result = self._set_mode_now(mode)
+        if result == p.MAV_RESULT_ACCEPTED:
+            return f"vehicle {mode}"
+        if result is None:
+            return f"vehicle {mode} sent, not confirmed within {self.SAFE_CONFIRM_WAIT:g} s"
+        if mode != "LAND":
+            fallback = self._set_mode_now("LAND")
+            refused = f"{mode} refused: {p.result_name(result)}"
+            if fallback == p.MAV_RESULT_ACCEPTED:
+                return f"vehicle LAND ({refused})"
+            if fallback is None:
+                return f"vehicle LAND sent, not confirmed ({refused})"
+            result = fallback
+        raise MavlinkCommandError(
+            f"{self.name}: the vehicle refused its safe mode {mode}: {p.result_name(result)}",
+            command=p.MAV_CMD_DO_SET_MODE,
+            result=result,
+        )
+
+    def _send_mode(self, mode: str) -> bool:
+        """Send MAV_CMD_DO_SET_MODE once, without the command lock (never waits on a caller).
+
+        Returns:
+            False when there was nowhere to send (a ``udpin`` link that never heard it).
+        """
+        with self._cond:
+            target = self._target or 1
+        return self._write(
+            self._codec.encode(
+                "COMMAND_LONG",
+                target_system=target,
+                target_component=self.component_id,
+                command=p.MAV_CMD_DO_SET_MODE,
+                confirmation=0,
+                param1=float(p.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED),
+                param2=float(p.mode_number(mode)),
+                param3=0.0,
+                param4=0.0,
+                param5=0.0,
+                param6=0.0,
+                param7=0.0,
+            )
+        )
+
+    def _set_mode_now(self, mode: str) -> int | None:
+        """Send a mode and wait briefly: ACCEPTED (ack or heartbeat), a refusal, or None."""
+        number = p.mode_number(mode)
+        with self._cond:
+            start = self._ack_count
+            sent_at = self.clock.monotonic()
+        self._send_mode(mode)
+        got: list[int] = []
+
+        def confirmed() -> bool:
+            ack = self._acks.get(p.MAV_CMD_DO_SET_MODE)
+            if ack is not None and ack[1] > start and ack[0] != p.MAV_RESULT_IN_PROGRESS:
+                got.append(ack[0])
+                return True
+            hb = self._last_hb
+            if hb is not None and hb > sent_at and self._custom_mode == number:
+                got.append(p.MAV_RESULT_ACCEPTED)
+                return True
+            return False
+
+        return got[0] if self._await(confirmed, self.SAFE_CONFIRM_WAIT) else None
 
     # ---- Vehicle -----------------------------------------------------------------------------
 
@@ -587,6 +888,11 @@ class MavlinkDriver(Driver):
         return self._received
 
     @property
+    def foreign_frames(self) -> int:
+        """Bad frames since configure from addresses other than the vehicle's (never a fault)."""
+        return self._foreign
+
+    @property
     def bad_frames(self) -> int:
         """Frames dropped since configure (bad CRC, unknown message id)."""
         return self._codec.bad_frames
@@ -601,8 +907,14 @@ class MavlinkDriver(Driver):
         retries: int | None = None,
         frame: int | None = None,
         position: tuple[int, int, float] | None = None,
+        texts: bool = True,
     ) -> None:
-        """Send a command until acknowledged (COMMAND_INT when ``position`` is given)."""
+        """Send a command until acknowledged (COMMAND_INT when ``position`` is given).
+
+        A refusal's error carries the STATUSTEXTs that arrived since the command was sent;
+        after a FAILED or DENIED ack (and ``texts``), those arriving within
+        :attr:`STATUS_TEXT_WINDOW` are waited for.
+        """
         tries = 1 + (self.command_retries if retries is None else retries)
         values = [*params, *([0.0] * (7 - len(params)))]
         with self._command_lock:
@@ -648,9 +960,12 @@ class MavlinkDriver(Driver):
                     continue
                 if result == p.MAV_RESULT_ACCEPTED:
                     return
+                if texts and result in (p.MAV_RESULT_FAILED, p.MAV_RESULT_DENIED):
+                    self._await_texts(start_texts)
                 with self._cond:
-                    news = list(self._texts)[-(self._text_count - start_texts) :]
-                said = f" (vehicle: {'; '.join(news)})" if self._text_count > start_texts else ""
+                    count = self._text_count - start_texts
+                    news = list(self._texts)[-count:] if count > 0 else []
+                said = f" (vehicle: {'; '.join(news)})" if news else ""
                 raise MavlinkCommandError(
                     f"{self.name}: {p.command_name(command)} refused:"
                     f" {p.result_name(result)}{said}",
@@ -661,6 +976,21 @@ class MavlinkDriver(Driver):
             f"{self.name}: no COMMAND_ACK for {p.command_name(command)} in {tries} tries"
             f" of {self.command_timeout:g} s"
         )
+
+    def _await_texts(self, after: int) -> None:
+        """Wait for the STATUSTEXTs that follow a refusal (bounded by STATUS_TEXT_WINDOW).
+
+        Ends when no text came within the window, or :data:`_TEXT_QUIET` seconds after the
+        newest one (ArduPilot may send several "PreArm:" lines).
+        """
+        deadline = self.clock.monotonic() + self.STATUS_TEXT_WINDOW
+        seen = after
+        while (left := deadline - self.clock.monotonic()) > 0:
+            wait = left if seen == after else min(left, _TEXT_QUIET)
+            if not self._await(lambda n=seen: self._text_count > n, wait):  # type: ignore[misc]
+                return
+            with self._cond:
+                seen = self._text_count
 
     def _await_ack(self, command: int, after: int, timeout: float) -> int | None:
         """The result of the first final ack of ``command`` newer than arrival ``after``."""
@@ -693,12 +1023,12 @@ class MavlinkDriver(Driver):
                 self.clock.wait(self._cond, deadline - now)
         return True
 
-    def _write(self, frame: bytes) -> None:
+    def _write(self, frame: bytes) -> bool:
         link = self._link
         if link is None:
             raise StateError(f"{self.name}: the link is closed")
         try:
-            link.write(frame)
+            return link.write(frame)
         except OSError as err:
             raise DriverOperationError(f"{self.name}: sending failed: {err}") from err
 
@@ -709,23 +1039,70 @@ class MavlinkDriver(Driver):
         assert link is not None
         while not self._stop.is_set():
             try:
-                data = link.read(_POLL)
+                data, sender = link.receive(_POLL)
             except OSError as err:
                 if self._stop.is_set():
                     break
                 self._evaluate(DriverOperationError(f"{self.name}: the link failed: {err}"))
                 self._stop.wait(_POLL)
                 continue
-            messages = self._codec.decode(data) if data else []
-            self._received += len(messages)
             now = self.clock.monotonic()
+            if not data:
+                self._drained_at = now
+                with self._cond:
+                    self._cond.notify_all()  # waiters re-check their real-time guards
+                continue
+            bad_before = self._codec.bad_frames
+            if link.datagrams:
+                messages = self._codec.decode_datagram(data)
+            else:
+                messages = self._codec.decode(data)
+            bad = self._codec.bad_frames - bad_before
+            self._received += len(messages)
             check = False
             with self._cond:
                 for msg in messages:
                     check |= self._absorb(msg, now)
+                target = self._target
+                ours = any(
+                    m.src_system == target and m.src_component == self.component_id
+                    for m in messages
+                )
+                if ours and link.accept_peer(sender):
+                    logger.info("driver %s: the vehicle is at %s", self.name, sender)
+                    self._beat_now = True  # greet it at once: its GCS failsafe starts then
+                if bad:
+                    check |= self._count_bad(bad, sender, link.peer, ours, now)
+                if not link.pending():
+                    self._drained_at = now
                 self._cond.notify_all()
+            if self._beat_now:
+                with self._watch:
+                    self._watch.notify_all()
             if check:
                 self._evaluate()
+
+    def _count_bad(self, bad: int, sender: Any, peer: Any, ours: bool, now: float) -> bool:
+        """Count bad frames (lock held): the vehicle's go to the fault window, others' not.
+
+        Returns:
+            True when the vehicle's bad frames may have made a fault.
+        """
+        if sender is None or ours or sender == peer:
+            self._vehicle_bad += bad
+            fault = False
+            for _ in range(bad):
+                fault = self._bad_window.add(now)
+            return fault
+        self._foreign += bad
+        if sender not in self._foreign_seen:
+            self._foreign_seen.add(sender)
+            logger.warning(
+                "driver %s: malformed datagrams from %s (not the vehicle): counted and dropped",
+                self.name,
+                sender,
+            )
+        return False
 
     def _absorb(self, msg: Message, now: float) -> bool:
         """Update the cache (lock held); True if health may have changed."""
@@ -739,11 +1116,18 @@ class MavlinkDriver(Driver):
             return False
         self._last_msg = max(self._last_msg, now)
         name = msg.name
+        age = self._ages.get(name)
+        changed = False
+        if age is not None:
+            age.feed(now)
+            if self._stale is age:
+                self._stale = None
+                changed = True
         if name == "HEARTBEAT":
             if msg.src_component != self.component_id:
                 return False
             self._last_hb = now
-            self._bad_at_hb = self._codec.bad_frames
+            self._bad_at_hb = self._vehicle_bad
             self._autopilot = msg.get_int("autopilot")
             self._armed = bool(msg.get_int("base_mode") & p.MAV_MODE_FLAG_SAFETY_ARMED)
             self._custom_mode = msg.get_int("custom_mode")
@@ -765,7 +1149,7 @@ class MavlinkDriver(Driver):
             )
             bad = enabled & ~msg.get_int("onboard_control_sensors_health")
             unhealthy = tuple(sorted(n for n, bit in p.SENSOR_BITS.items() if bad & bit))
-            changed = unhealthy != self._unhealthy
+            changed |= unhealthy != self._unhealthy
             self._unhealthy = unhealthy
             return changed
         elif name == "STATUSTEXT":
@@ -786,14 +1170,27 @@ class MavlinkDriver(Driver):
             )
         elif name == "EXTENDED_SYS_STATE":
             self._landed_state = msg.get_int("landed_state")
-        return False
+        elif name == "PARAM_VALUE":
+            param = msg.get_text("param_id")
+            self._params[param] = (msg.get_float("param_value"), msg.get_int("param_type"))
+            self._param_count += 1
+            self._param_seen[param] = self._param_count
+        return changed
 
     def _watch_loop(self) -> None:
         next_hb = self.clock.monotonic()
         check = min(0.1, self.heartbeat_timeout / 10)
+        wake: float | None = None
         while not self._stop.is_set():
             now = self.clock.monotonic()
-            if now >= next_hb:
+            with self._cond:
+                periods = [age.period for age in self._ages.values()]
+            shortest = min(periods, default=check)
+            # A late wake-up means this process was not running: the streams' gaps may be
+            # ours, not the vehicle's; judge them at the next, punctual, round.
+            punctual = wake is None or now - wake <= shortest
+            if now >= next_hb or self._beat_now:
+                self._beat_now = False
                 next_hb = now + self.heartbeat_period
                 with contextlib.suppress(DriverError, StateError):  # rx loop reports the link
                     self._write(
@@ -807,20 +1204,46 @@ class MavlinkDriver(Driver):
                             mavlink_version=3,
                         )
                     )
-            self._evaluate()
+            self._evaluate(streams=punctual)
             with self._watch:
                 if self._stop.is_set():
                     break
-                self.clock.wait(self._watch, min(next_hb - now, check))
+                timeout = max(min(next_hb - now, check, shortest), 0.0)
+                wake = now + timeout
+                self.clock.wait(self._watch, timeout)
 
-    def _evaluate(self, link_error: DriverError | None = None) -> None:
-        """Report a fault, or the recovery from one this driver reported."""
+    def _evaluate(self, link_error: DriverError | None = None, *, streams: bool = False) -> None:
+        """Report a fault, or the recovery from one this driver reported.
+
+        Args:
+            link_error: The link failed.
+            streams: Judge the streams' ages now (the watch thread, when it woke on time).
+                A stream is stale when it was overdue both at a moment the link had been
+                read empty (data waiting in the socket never counts as missing) and when
+                another message of the vehicle arrived (the vehicle talks, but not this
+                stream; a vehicle that says nothing at all is the heartbeat timeout's case).
+        """
         now = self.clock.monotonic()
         with self._cond:
             last_hb, unhealthy = self._last_hb, self._unhealthy
-            corrupt = self._codec.bad_frames > self._bad_at_hb
+            corrupt = self._vehicle_bad > self._bad_at_hb
+            drained, talked = self._drained_at, self._last_msg
+            if streams and drained is not None and self._stale is None:
+                for age in self._ages.values():
+                    seen = min(drained, talked)
+                    if age.last is not None and seen - age.last > age.max_age:
+                        self._stale = age
+                        break
+            stale = self._stale
+            window = self._bad_window
+            bursts = window.recent(now) >= window.limit
         error: DriverError | None = link_error
-        if error is None and (last_hb is None or now - last_hb > self.heartbeat_timeout):
+        if error is None and bursts:
+            error = DriverOperationError(
+                f"{self.name}: corrupt frames (bad CRC): {window.limit} or more within"
+                f" {window.window:g} s"
+            )
+        elif error is None and (last_hb is None or now - last_hb > self.heartbeat_timeout):
             if corrupt:
                 error = DriverOperationError(
                     f"{self.name}: only corrupt frames (bad CRC), no valid heartbeat within"
@@ -830,6 +1253,11 @@ class MavlinkDriver(Driver):
                 error = DriverTimeoutError(
                     f"{self.name}: no heartbeat within {self.heartbeat_timeout:g} s"
                 )
+        elif error is None and stale is not None:
+            error = DriverTimeoutError(
+                f"{self.name}: {stale.name} stale: none for over {stale.max_age:g} s"
+                f" (expected every {stale.period:g} s)"
+            )
         elif error is None and unhealthy:
             error = DriverOperationError(
                 f"{self.name}: hardware error: unhealthy {', '.join(unhealthy)}"
@@ -926,7 +1354,8 @@ def _listen(spec: LinkSpec, timeout: float) -> tuple[bool, _Heard] | None:
             except OSError as err:
                 logger.warning("mavlink detect: %s failed while listening: %s", spec, err)
                 break
-            for msg in codec.decode(data) if data else []:
+            messages = codec.decode_datagram(data) if link.datagrams else codec.decode(data)
+            for msg in messages if data else []:
                 if msg.name != "HEARTBEAT":
                     continue
                 valid = True
@@ -1029,6 +1458,19 @@ def _sim_kwargs(raw: Any, where: str) -> dict[str, Any]:
                 if isinstance(hz, bool) or not isinstance(hz, int | float) or not hz >= 0:
                     raise ProfileError(f"{where}.rates.{msg}: must be a rate in Hz, got {hz!r}")
             out[key] = {str(k): float(v) for k, v in value.items()}
+        elif key == "params":
+            if not isinstance(value, Mapping):
+                raise ProfileError(f"{where}.params: must map parameter names to numbers")
+            for param, number in value.items():
+                if param not in PARAMETERS:
+                    raise ProfileError(
+                        f"{where}.params.{param}: not a simulated parameter"
+                        f" (known: {', '.join(PARAMETERS)})"
+                    )
+                finite = isinstance(number, int | float) and math.isfinite(number)
+                if isinstance(number, bool) or not finite:
+                    raise ProfileError(f"{where}.params.{param}: must be a number, got {number!r}")
+            out[key] = {str(k): float(v) for k, v in value.items()}
         else:
             if isinstance(value, bool) or not isinstance(value, int | float):
                 raise ProfileError(f"{where}.{key}: must be a number, got {value!r}")
@@ -1051,3 +1493,39 @@ _INT_KEYS: Final = frozenset(
     }
 )
 _POSITIVE: Final = frozenset({"cells", "speed", "climb_rate", "descent_rate", "tau", "step_rate"})
+
+
+def _failsafe_params(raw: Any) -> dict[str, float]:
+    """The ArduPilot parameters a ``gcs_failsafe`` mapping sets (checked).
+
+    Raises:
+        ValueError: Not a mapping, an unknown key, or a value out of ArduPilot's range (the
+            message starts with the key path, ``gcs_failsafe.enable: ...``).
+    """
+    if raw is None:
+        return {}
+    if not isinstance(raw, Mapping):
+        raise ValueError(
+            f"gcs_failsafe: must be a mapping like {{enable: 5, timeout: 5}}, got {raw!r}"
+        )
+    out: dict[str, float] = {}
+    for key, value in raw.items():
+        if key not in _FAILSAFE_KEYS:
+            known = ", ".join(_FAILSAFE_KEYS)
+            raise ValueError(f"gcs_failsafe.{key}: unknown key (known: {known})")
+        param, low, high, integer = _FAILSAFE_KEYS[key]
+        number = isinstance(value, int | float) and not isinstance(value, bool)
+        if integer and number and isinstance(value, float) and not value.is_integer():
+            number = False
+        if not (number and math.isfinite(value) and low <= value <= high):
+            kind = "an integer" if integer else "a number"
+            raise ValueError(
+                f"gcs_failsafe.{key}: must be {kind} {low:g}..{high:g} ({param}), got {value!r}"
+            )
+        out[param] = float(value)
+    return out
+
+
+def _same(a: float, b: float) -> bool:
+    """Parameter values equal as a float32 carries them."""
+    return abs(a - b) <= 1e-5 * max(1.0, abs(b))

@@ -1,12 +1,18 @@
 """Byte links for MAVLink: UDP (``udpin:``, ``udpout:``) and serial, opened from a URL.
 
 ============================  ================================================================
-``udpin:HOST:PORT``           listen on HOST:PORT; replies go to whoever sent last (``udp:``
-                              is the same, as in pymavlink)
+``udpin:HOST:PORT``           listen on HOST:PORT; replies go only to the address the driver
+                              accepted (:meth:`Link.accept_peer`: where the target vehicle's
+                              valid frames come from); ``udp:`` is the same, as in pymavlink
 ``udpout:HOST:PORT``          send to HOST:PORT from an ephemeral port; the vehicle replies
                               there
 ``serial:DEVICE?baud=57600``  a serial port (needs pyserial: ``pip install 'temoto[dynamixel]'``)
 ============================  ================================================================
+
+A link does not trust the wire: a UDP link hands over whole datagrams with their sender
+(:meth:`Link.receive`, :attr:`Link.datagrams`), so each is parsed on its own, and a ``udpin``
+link never learns where to send from whoever happens to send to it; the driver tells it, after
+checking the frames (system and component id of the target vehicle).
 
 One table maps schemes to link classes; an unknown scheme is a ``ValueError`` (the driver turns
 it into a :class:`~temoto.errors.ProfileError` naming the key).
@@ -15,12 +21,13 @@ it into a :class:`~temoto.errors.ProfileError` naming the key).
 from __future__ import annotations
 
 import importlib
+import select
 import socket
 import threading
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass
-from typing import Any, Final
+from typing import Any, ClassVar, Final
 from urllib.parse import parse_qs
 
 from temoto.errors import DriverUnavailableError
@@ -114,6 +121,48 @@ def parse_link(url: str) -> LinkSpec:
 class Link(ABC):
     """A byte link: whole datagrams (UDP) or chunks of a stream (serial)."""
 
+    #: Whether each read is one whole datagram, to be parsed on its own.
+    datagrams: ClassVar[bool] = False
+
+    def receive(self, timeout: float) -> tuple[bytes, Any]:
+        """Wait up to ``timeout`` real seconds for bytes, and say who sent them.
+
+        Args:
+            timeout: Real seconds.
+
+        Returns:
+            The bytes (empty on timeout) and their sender's address (None where a link has no
+            addresses, as a serial port).
+
+        Raises:
+            OSError: The link failed.
+        """
+        return self.read(timeout), None
+
+    def accept_peer(self, peer: Any) -> bool:
+        """Send to ``peer`` from now on (a ``udpin`` link; others ignore it).
+
+        Args:
+            peer: An address :meth:`receive` returned.
+
+        Returns:
+            Whether the address changed.
+        """
+        return False
+
+    @property
+    def peer(self) -> Any:
+        """Where writes go (None: nowhere yet, or a link without addresses)."""
+        return None
+
+    def pending(self) -> bool:
+        """Whether bytes are waiting to be read (never blocks).
+
+        Returns:
+            True if a read would return at once.
+        """
+        return False
+
     @abstractmethod
     def read(self, timeout: float) -> bytes:
         """Wait up to ``timeout`` real seconds for bytes.
@@ -144,12 +193,18 @@ class Link(ABC):
 class UdpLink(Link):
     """UDP: listen (``udpin``) or send to a fixed address (``udpout``).
 
+    A ``udpin`` link sends nowhere until :meth:`accept_peer` names the address: receiving from
+    an address never makes it the destination (another system on the network must not steal
+    the replies).
+
     Args:
         spec: A ``udpin`` or ``udpout`` spec.
 
     Raises:
         OSError: The socket cannot be bound.
     """
+
+    datagrams: ClassVar[bool] = True
 
     def __init__(self, spec: LinkSpec) -> None:
         family = socket.AF_INET6 if ":" in spec.host else socket.AF_INET
@@ -169,12 +224,31 @@ class UdpLink(Link):
         self.address: tuple[str, int] = self._sock.getsockname()[:2]
 
     def read(self, timeout: float) -> bytes:
-        """See :meth:`Link.read`."""
-        data, peer = self.receive(timeout)
-        if data and self._listening:
-            with self._lock:
-                self._peer = peer
-        return data
+        """See :meth:`Link.read` (one datagram; the sender is dropped: see :meth:`receive`)."""
+        return self.receive(timeout)[0]
+
+    def accept_peer(self, peer: Any) -> bool:
+        """See :meth:`Link.accept_peer` (a ``udpout`` link keeps its fixed address)."""
+        if not self._listening or peer is None:
+            return False
+        with self._lock:
+            changed = bool(self._peer != peer)
+            self._peer = peer
+        return changed
+
+    @property
+    def peer(self) -> Any:
+        """See :attr:`Link.peer`."""
+        with self._lock:
+            return self._peer
+
+    def pending(self) -> bool:
+        """See :meth:`Link.pending`."""
+        try:
+            ready, _, _ = select.select([self._sock], [], [], 0)
+        except (OSError, ValueError):  # closed
+            return False
+        return bool(ready)
 
     def receive(self, timeout: float) -> tuple[bytes, Any]:
         """Wait up to ``timeout`` real seconds for one datagram.
@@ -255,6 +329,13 @@ class SerialLink(Link):
         if not first:
             return b""
         return bytes(first) + bytes(self._port.read(self._port.in_waiting or 0))
+
+    def pending(self) -> bool:
+        """See :meth:`Link.pending`."""
+        try:
+            return bool(self._port.in_waiting)
+        except Exception:  # a closed or unplugged port: nothing to read
+            return False
 
     def write(self, data: bytes) -> bool:
         """See :meth:`Link.write`."""

@@ -5,8 +5,12 @@ imported explicitly (``pymavlink.dialects.v20.ardupilotmega``, which includes ``
 ``mavutil`` and none of its module-level state is used.
 
 :class:`Codec` packs messages for one sender (system id, component id, sequence number) and
-parses datagrams into :class:`Message` values. Frames with a bad CRC or an unknown message id
-are counted (:attr:`Codec.bad_frames`) and dropped; they never come back as "bad data" objects.
+parses what others send into :class:`Message` values: :meth:`Codec.decode_datagram` parses one
+UDP datagram on its own (a fresh parser each time, so a datagram whose header claims more bytes
+than it holds cannot swallow the frames of the next one), :meth:`Codec.decode` a chunk of a byte
+stream (a serial port: a frame split across reads is completed later). Frames with a bad CRC or
+an unknown message id, and a datagram's truncated tail, are counted (:attr:`Codec.bad_frames`)
+and dropped; they never come back as "bad data" objects.
 
 The constants below are the MAVLink and ArduCopter numbers the driver and the simulator use;
 they are re-exported from the dialect so there is one source of truth.
@@ -60,6 +64,11 @@ MAV_CMD_REQUEST_MESSAGE: Final[int] = int(_dialect.MAV_CMD_REQUEST_MESSAGE)  # 5
 MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES: Final[int] = int(
     _dialect.MAV_CMD_REQUEST_AUTOPILOT_CAPABILITIES
 )  # 520
+
+MAV_PARAM_TYPE_INT8: Final[int] = int(_dialect.MAV_PARAM_TYPE_INT8)
+MAV_PARAM_TYPE_INT16: Final[int] = int(_dialect.MAV_PARAM_TYPE_INT16)
+MAV_PARAM_TYPE_INT32: Final[int] = int(_dialect.MAV_PARAM_TYPE_INT32)
+MAV_PARAM_TYPE_REAL32: Final[int] = int(_dialect.MAV_PARAM_TYPE_REAL32)
 
 MAV_RESULT_ACCEPTED: Final[int] = int(_dialect.MAV_RESULT_ACCEPTED)
 MAV_RESULT_TEMPORARILY_REJECTED: Final[int] = int(_dialect.MAV_RESULT_TEMPORARILY_REJECTED)
@@ -319,7 +328,7 @@ class Codec:
             raise ValueError(f"cannot encode {name.upper()}: {err}") from err
 
     def decode(self, data: bytes) -> list[Message]:
-        """Parse one datagram (or any chunk of a byte stream) into messages.
+        """Parse a chunk of a byte stream (a serial port) into messages.
 
         Args:
             data: The bytes received; a frame split across calls is completed later.
@@ -327,9 +336,32 @@ class Codec:
         Returns:
             The complete, valid messages in it (bad frames are counted and dropped).
         """
+        return self._parse(self._rx, data)
+
+    def decode_datagram(self, data: bytes) -> list[Message]:
+        """Parse one whole datagram (UDP) into messages, on its own.
+
+        Each call starts from a fresh parser state: bytes left over at the end of the datagram
+        (a frame whose header claims more bytes than the datagram holds) are one bad frame, and
+        never wait for the next datagram.
+
+        Args:
+            data: The datagram.
+
+        Returns:
+            The complete, valid messages in it (bad frames are counted and dropped).
+        """
+        parser = _dialect.MAVLink(None, self.system_id, self.component_id)
+        parser.robust_parsing = True
+        out = self._parse(parser, data)
+        if parser.buf_len() > 0:
+            self.bad_frames += 1  # a truncated frame: it never completes
+        return out
+
+    def _parse(self, parser: Any, data: bytes) -> list[Message]:
         out: list[Message] = []
         try:
-            parsed = self._rx.parse_buffer(data) or []
+            parsed = parser.parse_buffer(data) or []
         except Exception:  # the legacy parser can still raise on mangled headers
             self.bad_frames += 1
             return out

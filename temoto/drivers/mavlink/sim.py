@@ -12,9 +12,19 @@ is given (``gcs=[(host, port)]``, like a real autopilot streaming to ``udpin:`` 
   ``MAV_CMD_REQUEST_MESSAGE``.
 * A COMMAND_ACK for every COMMAND_LONG and COMMAND_INT: arm/disarm (400) with pre-arm checks
   (battery below ``min_arm_battery`` %, a hardware error, or a mode that cannot arm →
-  ``MAV_RESULT_DENIED`` plus a ``PreArm:`` STATUSTEXT), set mode (176, and the SET_MODE
-  message), takeoff (22, GUIDED and armed), land (21), return to launch (20), reposition (192),
-  and SET_POSITION_TARGET_GLOBAL_INT in GUIDED.
+  ``MAV_RESULT_FAILED``, and a ``PreArm:`` STATUSTEXT *after* the ack, as ArduPilot sends it),
+  set mode (176, and the SET_MODE message), takeoff (22, GUIDED and armed), land (21), return
+  to launch (20), reposition (192), and SET_POSITION_TARGET_GLOBAL_INT in GUIDED.
+* A small parameter table (:data:`PARAMETERS`: the GCS failsafe's), answered with PARAM_VALUE
+  on PARAM_REQUEST_READ (by name or index) and after PARAM_SET (the value as stored; an
+  unknown name or a NaN gets no answer, as in ArduPilot).
+* ArduCopter's GCS failsafe, on the injected clock: once a HEARTBEAT from the GCS system id
+  ``SYSID_MYGCS`` (255) was seen, ``FS_GCS_TIMEOUT`` seconds (5) without one trigger it if
+  ``FS_GCS_ENABLE`` is not 0: disarmed → nothing but a "GCS Failsafe" text; armed and landed →
+  disarm; in the air → RTL (1, 2, 6), SmartRTL-or-RTL (3; SmartRTL is not simulated: RTL),
+  SmartRTL-or-LAND (4: LAND), LAND (5), BRAKE (7), RTL for any other value. A heartbeat ends
+  the failsafe ("GCS Failsafe Cleared"); the mode stays. ``FS_OPTIONS`` is not simulated.
+  Each datagram received is parsed on its own.
 * A first-order kinematic model stepped on the injected clock at ``step_rate`` Hz: the
   position approaches its target with time constant ``tau``, limited to ``speed`` m/s
   horizontally, ``climb_rate`` up and ``descent_rate`` down; LAND descends and disarms on
@@ -43,7 +53,7 @@ from temoto.drivers.mavlink.link import LinkSpec, UdpLink
 from temoto.drivers.mavlink.protocol import Codec, Message
 from temoto.drivers.sim import Simulator
 
-__all__ = ["DEFAULT_RATES", "SimVehicle"]
+__all__ = ["DEFAULT_RATES", "PARAMETERS", "SimVehicle"]
 
 logger = logging.getLogger(__name__)
 
@@ -60,6 +70,29 @@ DEFAULT_RATES: Final[Mapping[str, float]] = {
     "EXTENDED_SYS_STATE": 2.0,
     "VFR_HUD": 4.0,
     "HOME_POSITION": 0.5,
+}
+
+#: The simulated parameters: name → (ArduCopter's default, MAV_PARAM_TYPE).
+PARAMETERS: Final[Mapping[str, tuple[float, int]]] = {
+    "FS_GCS_ENABLE": (0.0, p.MAV_PARAM_TYPE_INT8),
+    "FS_GCS_TIMEOUT": (5.0, p.MAV_PARAM_TYPE_REAL32),
+    "SYSID_MYGCS": (255.0, p.MAV_PARAM_TYPE_INT16),
+}
+_INT_RANGE: Final = {
+    p.MAV_PARAM_TYPE_INT8: (-128, 127),
+    p.MAV_PARAM_TYPE_INT16: (-32768, 32767),
+    p.MAV_PARAM_TYPE_INT32: (-(2**31), 2**31 - 1),
+}
+#: FS_GCS_ENABLE → the mode taken in the air (ArduCopter's failsafe actions; SmartRTL is not
+#: simulated, so its fallbacks are taken).
+_GCS_FAILSAFE_MODE: Final = {
+    1: "RTL",
+    2: "RTL",
+    3: "RTL",
+    4: "LAND",
+    5: "LAND",
+    6: "RTL",
+    7: "BRAKE",
 }
 
 _ARMABLE: Final = frozenset({"STABILIZE", "ACRO", "ALT_HOLD", "GUIDED", "LOITER", "POSHOLD"})
@@ -116,9 +149,11 @@ class SimVehicle(Simulator):
         drain_idle: Battery drain while armed on the ground, %/s.
         drain_flight: Battery drain in the air, %/s.
         step_rate: Model steps per clock second.
+        params: Parameter values over :data:`PARAMETERS`' defaults (e.g.
+            ``{"FS_GCS_ENABLE": 5}`` for a vehicle whose GCS failsafe lands it).
 
     Raises:
-        ValueError: A parameter out of range.
+        ValueError: A parameter out of range, or an unknown parameter name.
     """
 
     FAULTS: ClassVar[frozenset[str]] = frozenset(
@@ -146,8 +181,14 @@ class SimVehicle(Simulator):
         drain_idle: float = 0.01,
         drain_flight: float = 0.1,
         step_rate: float = 50.0,
+        params: Mapping[str, float] | None = None,
     ) -> None:
         super().__init__()
+        self._params = {name: value for name, (value, _) in PARAMETERS.items()}
+        for name, value in (params or {}).items():
+            if name not in PARAMETERS or not math.isfinite(value):
+                raise ValueError(f"bad parameter {name}={value!r} (known: {list(PARAMETERS)})")
+            self._params[name] = self._stored(name, float(value))
         merged = dict(DEFAULT_RATES)
         for msg, hz in (rates or {}).items():
             if msg.upper() not in DEFAULT_RATES or not (math.isfinite(hz) and hz >= 0):
@@ -194,6 +235,8 @@ class SimVehicle(Simulator):
         self._peers: list[Any] = []
         self._t0 = 0.0
         self._last = 0.0
+        self._gcs_seen: float | None = None  # clock time of the GCS's newest heartbeat
+        self._gcs_failsafe = False
         # I/O
         self._link: UdpLink | None = None
         self._stop = threading.Event()
@@ -266,6 +309,72 @@ class SimVehicle(Simulator):
             with self._lock:
                 self._texts.append((p.MAV_SEVERITY_CRITICAL, _HW_TEXT[kind]))
 
+    def param(self, name: str) -> float:
+        """A parameter's value, as the vehicle stores it.
+
+        Args:
+            name: One of :data:`PARAMETERS`.
+
+        Returns:
+            The value.
+
+        Raises:
+            KeyError: Not a simulated parameter.
+        """
+        with self._lock:
+            return self._params[name]
+
+    def set_rate(self, message: str, hz: float) -> None:
+        """Stream ``message`` at ``hz`` from now on (0 stops it), as the vehicle's own setting.
+
+        For fault injection: a stream that stops while the heartbeats go on.
+
+        Args:
+            message: One of :data:`DEFAULT_RATES`.
+            hz: The rate (≥ 0).
+
+        Raises:
+            ValueError: Not a simulated stream, or a negative rate.
+        """
+        name = message.upper()
+        if name not in DEFAULT_RATES or not (math.isfinite(hz) and hz >= 0):
+            raise ValueError(f"bad stream rate {message}={hz!r} (streams: {list(DEFAULT_RATES)})")
+        with self._lock:
+            self._periods[name] = 1.0 / hz if hz > 0 else math.inf
+            self._due[name] = 0.0
+
+    def send_raw(self, datagram: bytes) -> None:
+        """Send bytes as one datagram to every ground station, from the vehicle's own port.
+
+        For fault injection (a malformed frame from the vehicle's address).
+
+        Args:
+            datagram: The bytes, sent as they are.
+
+        Raises:
+            RuntimeError: Not started.
+        """
+        link = self._link
+        if link is None:
+            raise RuntimeError("the simulator is not started")
+        with self._lock:
+            peers = list(dict.fromkeys([*self._gcs, *self._peers]))
+        for peer in peers:
+            link.send_to(datagram, peer)
+
+    @property
+    def gcs_failsafe(self) -> bool:
+        """Whether the GCS failsafe is active (no GCS heartbeat for ``FS_GCS_TIMEOUT``)."""
+        with self._lock:
+            return self._gcs_failsafe
+
+    def _stored(self, name: str, value: float) -> float:
+        """``value`` as a parameter of ``name``'s type holds it."""
+        limits = _INT_RANGE.get(PARAMETERS[name][1])
+        if limits is None:
+            return value
+        return float(min(max(round(value), limits[0]), limits[1]))
+
     # ---- geometry ----------------------------------------------------------------------------
 
     def position(self) -> tuple[float, float, float]:
@@ -298,6 +407,7 @@ class SimVehicle(Simulator):
                 now = self.clock.monotonic()
                 if now >= next_tick:
                     self._advance(now)
+                    self._check_gcs(now)
                     frames = self._streams(now)
                     self._lock.release()
                     try:
@@ -324,7 +434,7 @@ class SimVehicle(Simulator):
             with self._lock:
                 if peer not in self._peers:
                     self._peers.append(peer)
-            for msg in self.codec.decode(data):
+            for msg in self.codec.decode_datagram(data):
                 self.received[msg.name] = self.received.get(msg.name, 0) + 1
                 replies = self._handle(msg)
                 self._send(replies)
@@ -422,12 +532,49 @@ class SimVehicle(Simulator):
         params = self.fault("hardware_error")
         return None if params is None else str(params.get("kind", "overheat"))
 
+    # ---- GCS failsafe (lock held) -------------------------------------------------------------
+
+    def _check_gcs(self, now: float) -> None:
+        """ArduCopter's GCS failsafe check, once per model step."""
+        if self._params["FS_GCS_ENABLE"] == 0 or self._gcs_seen is None:
+            return
+        late = now - self._gcs_seen > self._params["FS_GCS_TIMEOUT"]
+        if late and not self._gcs_failsafe:
+            self._gcs_failsafe = True
+            self._gcs_failsafe_on()
+        elif not late and self._gcs_failsafe:
+            self._gcs_failsafe = False
+            self._texts.append((p.MAV_SEVERITY_WARNING, "GCS Failsafe Cleared"))
+
+    def _gcs_failsafe_on(self) -> None:
+        warn = p.MAV_SEVERITY_WARNING
+        if not self.armed:
+            self._texts.append((warn, "GCS Failsafe"))
+            return
+        if not self.airborne:
+            self._disarm(force=True)
+            self._texts.append((warn, "GCS Failsafe - Disarming"))
+            return
+        self._texts.append((warn, "GCS Failsafe"))
+        enable = int(self._params["FS_GCS_ENABLE"])
+        if enable in (3, 4):
+            fallback = "RTL" if enable == 3 else "Land"
+            self._texts.append((warn, f"SmartRTL Unavailable, Using {fallback} Mode"))
+        self._set_mode(_GCS_FAILSAFE_MODE.get(enable, "RTL"))
+
     # ---- commands ----------------------------------------------------------------------------
 
     def _handle(self, msg: Message) -> list[bytes]:
         target = msg.fields.get("target_system")
         if target not in (None, 0, self.codec.system_id):
             return []
+        if msg.name == "HEARTBEAT":
+            with self._lock:
+                if msg.src_system == round(self._params["SYSID_MYGCS"]):
+                    self._gcs_seen = self.clock.monotonic()
+            return []
+        if msg.name in ("PARAM_REQUEST_READ", "PARAM_SET"):
+            return self._param_message(msg)
         if msg.name in ("COMMAND_LONG", "COMMAND_INT"):
             cmd = msg.get_int("command")
             with self._lock:
@@ -443,7 +590,7 @@ class SimVehicle(Simulator):
                 target_system=msg.src_system,
                 target_component=msg.src_component,
             )
-            return [*self._text_frames(texts), ack, *extra]  # ArduPilot: the reason first
+            return [ack, *extra, *self._text_frames(texts)]  # ArduPilot: the reason after
         if msg.name == "SET_MODE":
             custom = msg.get_int("custom_mode")
             with self._lock:
@@ -468,9 +615,33 @@ class SimVehicle(Simulator):
                         change_mode=False,
                     )
             return []
-        if msg.name == "HEARTBEAT":
-            return []
         return []
+
+    def _param_message(self, msg: Message) -> list[bytes]:
+        """PARAM_REQUEST_READ and PARAM_SET: the PARAM_VALUE answer (none if unknown)."""
+        names = list(PARAMETERS)
+        name = msg.get_text("param_id")
+        with self._lock:
+            if msg.name == "PARAM_REQUEST_READ" and msg.get_int("param_index") >= 0:
+                index = msg.get_int("param_index")
+                name = names[index] if index < len(names) else ""
+            if name not in PARAMETERS:
+                return []
+            if msg.name == "PARAM_SET":
+                value = msg.get_float("param_value")
+                if not math.isfinite(value):
+                    return []
+                self._params[name] = self._stored(name, value)
+            value = self._params[name]
+        frame = self.codec.encode(
+            "PARAM_VALUE",
+            param_id=name.encode(),
+            param_value=value,
+            param_type=PARAMETERS[name][1],
+            param_count=len(names),
+            param_index=names.index(name),
+        )
+        return [frame]
 
     def _command(self, msg: Message, cmd: int) -> tuple[int, list[bytes]]:
         """Carry out one command (lock held): its MAV_RESULT and any frames to send after."""
@@ -513,15 +684,15 @@ class SimVehicle(Simulator):
         kind = self._hw_kind()
         if kind is not None:
             self._texts.append((p.MAV_SEVERITY_CRITICAL, f"PreArm: {_HW_TEXT[kind]}"))
-            return p.MAV_RESULT_DENIED
+            return p.MAV_RESULT_FAILED
         if self.battery < self._min_arm:
             self._texts.append(
                 (p.MAV_SEVERITY_CRITICAL, "PreArm: Battery below minimum arming capacity")
             )
-            return p.MAV_RESULT_DENIED
+            return p.MAV_RESULT_FAILED
         if self.mode not in _ARMABLE:
             self._texts.append((p.MAV_SEVERITY_CRITICAL, "Arm: Mode not armable"))
-            return p.MAV_RESULT_DENIED
+            return p.MAV_RESULT_FAILED
         self.armed = True
         self._texts.append((p.MAV_SEVERITY_INFO, "Arming motors"))
         return p.MAV_RESULT_ACCEPTED
@@ -529,7 +700,7 @@ class SimVehicle(Simulator):
     def _disarm(self, force: bool) -> int:
         if self.airborne and not force:
             self._texts.append((p.MAV_SEVERITY_CRITICAL, "Disarm: vehicle is flying"))
-            return p.MAV_RESULT_DENIED
+            return p.MAV_RESULT_FAILED
         self.armed = False
         self.airborne = False
         self._target = None
@@ -542,7 +713,7 @@ class SimVehicle(Simulator):
     def _set_mode(self, mode: str) -> int:
         if mode not in _SUPPORTED_MODES:
             self._texts.append((p.MAV_SEVERITY_WARNING, f"Mode change to {mode} failed"))
-            return p.MAV_RESULT_DENIED
+            return p.MAV_RESULT_FAILED  # ArduPilot's answer to a mode it cannot enter
         if mode != self.mode:
             self._target = list(self.pos) if self.airborne else None
             self.mode = mode
