@@ -166,12 +166,15 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
             "heartbeat_timeout": 1.0,
             "command_timeout": 1.0,
             "stream_rate": 10,
+            "gcs_failsafe": {"enable": 1, "timeout": 2.0},
             "sim": {"climb_rate": 3.0, "speed": 8.0},
         },
         "features": {"flight": {"type": "vehicle", "device": "device", "tolerance": 1.0}},
         "long": ("TakeOff", {"altitude": 60.0}),
         "short": ("TakeOff", {"altitude": 2.0}),
         "fault": "no_heartbeat",
+        # SIGKILL: ArduPilot's GCS failsafe (FS_GCS_TIMEOUT 2 s, then RTL) plus one heartbeat
+        "sigkill_bound_s": 2.0 + 1.0,
     },
 }
 

@@ -288,6 +288,10 @@ class MavlinkDriver(Driver):
         self._remaining = -1
         self._home: tuple[float, float, float] | None = None
         self._landed_state = 0
+        #: When this driver last asked the vehicle to arm or take off (clock seconds): until a
+        #: newer heartbeat arrives, "disarmed" and "landed" are not to be trusted.
+        self._moved_at: float | None = None
+        self._landed_at: float | None = None  # when EXTENDED_SYS_STATE last said
         self._unhealthy: tuple[str, ...] = ()
         self._bad_at_hb = 0  # the vehicle's bad frames when its newest heartbeat came
         self._vehicle_bad = 0  # bad frames from the vehicle's address (or a serial line)
@@ -664,10 +668,14 @@ class MavlinkDriver(Driver):
         now = self.clock.monotonic()
         with self._cond:
             last_hb, armed, landed = self._last_hb, self._armed, self._landed_state
+            moved, landed_at = self._moved_at, self._landed_at
         heard = last_hb is not None and now - last_hb <= self.heartbeat_timeout
-        if heard and not armed:
+        # an arm or take-off asked for after the newest heartbeat: it may be flying already
+        stale_view = moved is not None and (last_hb is None or last_hb <= moved)
+        if heard and not stale_view and not armed:
             return "vehicle on the ground: disarmed, nothing to do"
-        if heard and landed == p.MAV_LANDED_STATE_ON_GROUND:
+        stale_landed = moved is not None and (landed_at is None or landed_at <= moved)
+        if heard and not stale_landed and landed == p.MAV_LANDED_STATE_ON_GROUND:
             return "vehicle on the ground: armed and landed, nothing sent"
         if not heard:  # it may be flying: send anyway, but do not wait for a silent vehicle
             if not self._send_mode(mode):
@@ -751,6 +759,7 @@ class MavlinkDriver(Driver):
             DriverTimeoutError: No acknowledgement.
         """
         self.require_active("arm")
+        self._moved_at = self.clock.monotonic()
         self._send_command(p.MAV_CMD_COMPONENT_ARM_DISARM, (1.0,))
 
     def disarm(self) -> None:
@@ -802,6 +811,7 @@ class MavlinkDriver(Driver):
         if p.mode_name(self._custom_mode) != "GUIDED":
             self.set_mode("GUIDED")
         nan = math.nan
+        self._moved_at = self.clock.monotonic()
         self._send_command(p.MAV_CMD_NAV_TAKEOFF, (0.0, 0.0, 0.0, nan, nan, nan, float(altitude)))
 
     def goto(self, target: GeoPoint) -> None:
@@ -1170,6 +1180,7 @@ class MavlinkDriver(Driver):
             )
         elif name == "EXTENDED_SYS_STATE":
             self._landed_state = msg.get_int("landed_state")
+            self._landed_at = now
         elif name == "PARAM_VALUE":
             param = msg.get_text("param_id")
             self._params[param] = (msg.get_float("param_value"), msg.get_int("param_type"))
