@@ -61,6 +61,20 @@ PATHS: Final = ("end", "fault", "exception", "sigint", "sigterm", "double_sigint
 
 _CAN_LINK: Final = {"interface": "udp_multicast", "channel": "239.74.163.9", "fd": False}
 
+#: What the two arm families share: a two-joint arm and its motion.
+_ARM: Final[Mapping[str, Any]] = {
+    "features": {
+        "manipulation": {
+            "type": "arm",
+            "device": "device",
+            "tolerance": 0.05,
+            "poses": {"home": {"shoulder": 0.0, "elbow": 0.0}, "reach": {"shoulder": 0.5}},
+        }
+    },
+    "long": ("MoveJoints", {"pose": "reach"}),
+    "short": ("MoveJoints", {"pose": "reach"}),
+}
+
 #: Per family: the device entry, the features, the long and short motions, the fault to inject
 #: and, where the device has a watchdog, the SIGKILL bound (its timeout plus one period).
 FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
@@ -106,16 +120,7 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
                 {"motor_id": 2, "joint": "elbow", "model": "AK80-9"},
             ],
         },
-        "features": {
-            "manipulation": {
-                "type": "arm",
-                "device": "device",
-                "tolerance": 0.05,
-                "poses": {"home": {"shoulder": 0.0, "elbow": 0.0}, "reach": {"shoulder": 0.5}},
-            }
-        },
-        "long": ("MoveJoints", {"pose": "reach"}),
-        "short": ("MoveJoints", {"pose": "reach"}),
+        **_ARM,
         "fault": "corrupt",
         # SIGKILL: the motor controller's CAN timeout (0.1 s) plus one poll period
         "sigkill_bound_s": 0.1 + 0.01,
@@ -145,16 +150,7 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
                 },
             ],
         },
-        "features": {
-            "manipulation": {
-                "type": "arm",
-                "device": "device",
-                "tolerance": 0.05,
-                "poses": {"home": {"shoulder": 0.0, "elbow": 0.0}, "reach": {"shoulder": 0.5}},
-            }
-        },
-        "long": ("MoveJoints", {"pose": "reach"}),
-        "short": ("MoveJoints", {"pose": "reach"}),
+        **_ARM,
         "fault": "corrupt",
         # SIGKILL: the Bus Watchdog (0.1 s) plus one poll period (50 Hz)
         "sigkill_bound_s": 0.1 + 0.02,

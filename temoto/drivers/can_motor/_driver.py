@@ -24,6 +24,7 @@ import can
 from temoto.clock import Clock
 from temoto.drivers.base import Driver, DriverState
 from temoto.drivers.can_motor._common import open_bus
+from temoto.drivers.supervision import FaultWindow
 from temoto.errors import DriverError, DriverOperationError, MotorFaultError, StateError
 
 __all__ = ["CanMotorDriver"]
@@ -65,6 +66,8 @@ class CanMotorDriver(Driver):
         self._eval_lock = threading.Lock()
         self._supervising = False
         self._latched = False
+        #: Malformed frames received since the driver was made (all devices).
+        self.bad_frames = 0
         #: Clock time the receive thread last finished with a frame or found the bus quiet:
         #: a stream is judged stale as of then, not as of now (a paused process whose
         #: supervisor wakes before its receiver has not lost its streams).
@@ -209,3 +212,35 @@ class CanMotorDriver(Driver):
     @abstractmethod
     def _problem(self, now: float) -> DriverError | None:
         """What is wrong with the devices now, or None."""
+
+    def _count_malformed(
+        self, window: FaultWindow, text: str, noun: str, now: float, *, latched: bool
+    ) -> str | None:
+        """Count one malformed frame in ``window`` and log it (the first, and a new fault).
+
+        Args:
+            window: The window it counts in.
+            text: What was wrong, for people.
+            noun: What they are, plural (``frames``, ``replies``).
+            now: Clock seconds.
+            latched: Whether such a fault is reported already.
+
+        Returns:
+            The fault's text when the window is full and none is latched, else None.
+        """
+        self.bad_frames += 1
+        fault = window.add(now)
+        recent = window.recent(now)
+        if recent == 1 or (fault and not latched):
+            logger.warning(
+                "driver %s: %s; %d within %g s (a fault at %d), %d in all",
+                self.name,
+                text,
+                recent,
+                window.window,
+                window.limit,
+                self.bad_frames,
+            )
+        if fault and not latched:
+            return f"{recent} malformed {noun} within {window.window:g} s, the newest: {text}"
+        return None

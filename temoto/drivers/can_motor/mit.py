@@ -231,7 +231,6 @@ class MitMotorDriver(CanMotorDriver):
         self.host_id = host_id
         self.can_timeout = can_timeout
         #: Malformed replies received since the driver was made.
-        self.bad_frames = 0
         self._bad_window = FaultWindow(BAD_REPLIES_LIMIT, BAD_FRAMES_WINDOW)
         self._bad: str | None = None  # why the bus's replies are a fault, until a good one
         self._cache = [_Motor(m, 1.0 / poll_rate, timeout_periods) for m in self.motors]
@@ -589,22 +588,12 @@ class MitMotorDriver(CanMotorDriver):
 
     def _malformed(self, what: str, now: float) -> None:
         """Count one malformed reply; too many within the window make a fault."""
-        self.bad_frames += 1
-        window = self._bad_window
-        fault = window.add(now)
-        recent = window.recent(now)
-        if recent == 1 or (fault and self._bad is None):
-            logger.warning(
-                "driver %s: malformed reply (%s); %d within %g s (a fault at %d), %d in all",
-                self.name,
-                what,
-                recent,
-                window.window,
-                window.limit,
-                self.bad_frames,
-            )
-        if fault and self._bad is None:
-            self._bad = f"{recent} malformed replies within {window.window:g} s, the newest: {what}"
+        text = f"malformed reply ({what})"
+        bad = self._count_malformed(
+            self._bad_window, text, "replies", now, latched=self._bad is not None
+        )
+        if bad is not None:
+            self._bad = bad
             self._evaluate()
 
     def _on_period(self, now: float) -> None:

@@ -315,7 +315,6 @@ class ODriveDriver(CanMotorDriver):
         self.command_period = command_period
         self.watchdog_timeout = watchdog_timeout
         #: Malformed frames received from the nodes since the driver was made.
-        self.bad_frames = 0
         self._armed = False  # the axes were confirmed in CLOSED_LOOP_CONTROL by activate
         self._feeding = False  # the supervisor re-sends the held set-points
         self._holding = False  # ... also in FAULT: the safe state "hold" is applied
@@ -798,23 +797,12 @@ class ODriveDriver(CanMotorDriver):
 
     def _malformed(self, axis: _Axis, what: str, why: str, now: float) -> None:
         """Count one malformed frame; too many within the window make a fault."""
-        self.bad_frames += 1
-        window = axis.malformed
-        fault = window.add(now)
-        recent = window.recent(now)
         text = f"{axis.label()}: malformed {what} frame ({why})"
-        if recent == 1 or (fault and axis.bad is None):
-            logger.warning(
-                "driver %s: %s; %d within %g s (a fault at %d), %d in all",
-                self.name,
-                text,
-                recent,
-                window.window,
-                window.limit,
-                self.bad_frames,
-            )
-        if fault and axis.bad is None:
-            axis.bad = f"{recent} malformed frames within {window.window:g} s, the newest: {text}"
+        bad = self._count_malformed(
+            axis.malformed, text, "frames", now, latched=axis.bad is not None
+        )
+        if bad is not None:
+            axis.bad = bad
             self._evaluate()
 
     def _on_period(self, now: float) -> None:

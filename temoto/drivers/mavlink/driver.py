@@ -578,24 +578,7 @@ class MavlinkDriver(Driver):
     def _read_param(self, name: str, *, retries: int | None = None) -> tuple[float, int] | None:
         """Ask for one parameter (PARAM_REQUEST_READ): its value and type, or None."""
         tries = 1 + (self.command_retries if retries is None else retries)
-        with self._cond:
-            target = self._target or 1
-        for _ in range(tries):
-            with self._cond:
-                start = self._param_count
-            self._write(
-                self._codec.encode(
-                    "PARAM_REQUEST_READ",
-                    target_system=target,
-                    target_component=self.component_id,
-                    param_id=name.encode(),
-                    param_index=-1,
-                )
-            )
-            got = self._await_param(name, start)
-            if got is not None:
-                return got
-        return None
+        return self._param_exchange("PARAM_REQUEST_READ", name, tries, param_index=-1)
 
     def _set_param(self, name: str, value: float) -> None:
         """Set one parameter (PARAM_SET) and check the PARAM_VALUE echo.
@@ -613,6 +596,28 @@ class MavlinkDriver(Driver):
             logger.info("driver %s: %s is %g already", self.name, name, value)
             return
         tries = 1 + self.command_retries
+        got = self._param_exchange(
+            "PARAM_SET", name, tries, param_value=value, param_type=current[1]
+        )
+        if got is None:
+            raise DriverTimeoutError(
+                f"{self.name}: no PARAM_VALUE after setting {name} in {tries} tries"
+                f" of {self.command_timeout:g} s"
+            )
+        if not _same(got[0], value):
+            raise DriverInitError(
+                f"{self.name}: the vehicle kept {name} = {got[0]:g} (asked for {value:g})"
+            )
+        logger.info("driver %s: %s %g -> %g", self.name, name, current[0], value)
+
+    def _param_exchange(
+        self, message: str, name: str, tries: int, **fields: Any
+    ) -> tuple[float, int] | None:
+        """Send ``message`` about parameter ``name`` until a PARAM_VALUE of it answers.
+
+        Up to ``tries`` sends, each waiting ``command_timeout``; the answer's value and type,
+        or None.
+        """
         with self._cond:
             target = self._target or 1
         for _ in range(tries):
@@ -620,27 +625,17 @@ class MavlinkDriver(Driver):
                 start = self._param_count
             self._write(
                 self._codec.encode(
-                    "PARAM_SET",
+                    message,
                     target_system=target,
                     target_component=self.component_id,
                     param_id=name.encode(),
-                    param_value=value,
-                    param_type=current[1],
+                    **fields,
                 )
             )
             got = self._await_param(name, start)
-            if got is None:
-                continue
-            if not _same(got[0], value):
-                raise DriverInitError(
-                    f"{self.name}: the vehicle kept {name} = {got[0]:g} (asked for {value:g})"
-                )
-            logger.info("driver %s: %s %g -> %g", self.name, name, current[0], value)
-            return
-        raise DriverTimeoutError(
-            f"{self.name}: no PARAM_VALUE after setting {name} in {tries} tries"
-            f" of {self.command_timeout:g} s"
-        )
+            if got is not None:
+                return got
+        return None
 
     def _await_param(self, name: str, after: int) -> tuple[float, int] | None:
         def arrived() -> bool:
