@@ -78,12 +78,19 @@ class SignalExit:
     Args:
         raise_first: Raise :class:`Interrupted` on the first signal.
         hurry: Callbacks for the second signal (must be safe in a signal handler).
+        first: Callbacks for the first signal, with its number (must be safe in a signal
+            handler: start a thread, set a flag), called before anything is raised.
     """
 
     def __init__(
-        self, *, raise_first: bool = False, hurry: tuple[Callable[[], None], ...] | None = None
+        self,
+        *,
+        raise_first: bool = False,
+        hurry: tuple[Callable[[], None], ...] | None = None,
+        first: tuple[Callable[[int], None], ...] = (),
     ) -> None:
         self.raise_first = raise_first
+        self._first = first
         self.raising = raise_first
         self.signum: int | None = None
         self.count = 0
@@ -114,6 +121,8 @@ class SignalExit:
             self.stop.set()
             # os.write, not sys.stderr: the main thread may be inside a write to sys.stderr.
             _say(f"temoto: {name}: stopping (a second signal stops at once)\n")
+            for at_first in self._first:
+                at_first(signum)
             if self.raising:
                 self.raising = False
                 raise Interrupted(signum)

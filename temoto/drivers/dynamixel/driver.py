@@ -518,7 +518,8 @@ class DynamixelDriver(Driver):
             clock: Steps the simulated motion.
 
         Returns:
-            (the :class:`SimDynamixelChain`, the entry with ``link`` = ``serial:<pty path>``
+            (the :class:`SimDynamixelChain`, the entry with ``link`` =
+            ``serial:<pty path>?baud=<the entry's baud rate>``
             and, unless the entry sets one, ``reply_timeout`` = :data:`SIM_REPLY_TIMEOUT`:
             the simulator shares the client's process and GIL, so on a loaded machine a
             reply can take longer than a real servo's).
@@ -530,7 +531,8 @@ class DynamixelDriver(Driver):
         servos: Sequence[ServoConfig] = kwargs["servos"]
         sim = SimDynamixelChain({s.id: s.model for s in servos}, clock=clock, name=name)
         out = dict(config)
-        out["link"] = f"serial:{sim.path}"
+        # the profile's baud rate stays: the wire-time estimate (poll-rate warning) uses it
+        out["link"] = f"serial:{sim.path}?baud={kwargs['baud']}"
         out.setdefault("reply_timeout", SIM_REPLY_TIMEOUT)
         return sim, out
 

@@ -30,6 +30,7 @@ from collections.abc import Sequence
 from typing import IO, Any
 
 from temoto._cli_fleet import (
+    SignalExit,
     add_components_option,
     add_fleet_options,
     add_live_view_option,
@@ -45,6 +46,7 @@ from temoto.core.instrument import Instrument
 from temoto.core.states import NodeState, Result
 from temoto.drivers import make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
+from temoto.managers.process import hurry_all
 
 __all__ = ["main"]
 
@@ -58,11 +60,13 @@ CLIENT = "robot-manager"
 logger = logging.getLogger("temoto.robot")
 
 
-class _Interrupts:
-    """SIGINT and SIGTERM while the command runs (see the module docstring).
+class _SafeOnSignal:
+    """What the robot command adds to :class:`~temoto._cli_fleet.SignalExit`.
 
-    The handler only records the signal and starts a thread that makes every device safe: it
-    never waits in the signal's frame, which may hold a driver's lock.
+    The first signal starts a thread that makes every device safe at once (the handler never
+    waits in the signal's frame, which may hold a driver's lock); a second one makes them safe
+    again and exits the process at once, without waiting for the mission's actions or the
+    instance's close.
 
     Args:
         err: Where the per-device lines go.
@@ -72,50 +76,33 @@ class _Interrupts:
     def __init__(self, err: IO[str], *, serving: bool) -> None:
         self.err = err
         self.serving = serving
-        self.signum: int | None = None
-        self.event = threading.Event()
-        self._count = 0
-        self._previous: dict[int, Any] = {}
+        self.signals = SignalExit(first=(self._first,), hurry=(hurry_all, self._again))
 
     @property
-    def exit_code(self) -> int:
-        """0 when serving, else 128 + the first signal's number (130 SIGINT, 143 SIGTERM)."""
-        if self.signum is None or self.serving:
-            return EXIT_OK
-        return 128 + self.signum
+    def exit_code(self) -> int | None:
+        """None before a signal; then 0 when serving, else 130 (SIGINT) or 143 (SIGTERM)."""
+        code = self.signals.exit_code
+        return EXIT_OK if code is not None and self.serving else code
 
-    def install(self) -> None:
-        """Take SIGINT and SIGTERM over (main thread only)."""
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            self._previous[signum] = signal.signal(signum, self._handle)
+    def _first(self, signum: int) -> None:
+        self._spawn(signum, False)
 
-    def restore(self) -> None:
-        """Give the signals back."""
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-        self._previous.clear()
+    def _again(self) -> None:
+        self._spawn(self.signals.signum or signal.SIGINT, True)
 
-    def _handle(self, signum: int, frame: object) -> None:
-        self._count += 1
-        if self.signum is None:
-            self.signum = signum
-        self.event.set()
+    def _spawn(self, signum: int, urgent: bool) -> None:
         threading.Thread(
-            target=self._make_safe, args=(signum, self._count), name="temoto-safe", daemon=True
+            target=self._make_safe, args=(signum, urgent), name="temoto-safe", daemon=True
         ).start()
 
-    def _make_safe(self, signum: int, count: int) -> None:
-        name = signal.Signals(signum).name
-        lines = [f"{driver.name}: {what}" for driver, what in make_all_safe(name)]
-        urgent = count >= 2
-        head = "again: stopping now" if urgent else "stopping the robot"
-        self.err.write(f"temoto-robot: {name}, {head}\n")
+    def _make_safe(self, signum: int, urgent: bool) -> None:
+        lines = [f"{d.name}: {what}" for d, what in make_all_safe(signal.Signals(signum).name)]
         self.err.writelines(f"  {line}\n" for line in lines)
         self.err.flush()
-        if urgent:  # the second signal: do not wait for the mission's actions or the instance
+        if urgent:
             with contextlib.suppress(Exception):
                 sys.stdout.flush()
-            os._exit(self.exit_code)
+            os._exit(self.exit_code or EXIT_OK)
 
 
 class _Progress(Instrument):
@@ -176,22 +163,21 @@ def main(argv: Sequence[str] | None = None) -> int:
     args = _parser().parse_args(argv)
     level = logging.WARNING - 10 * min(args.verbose, 2)
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
-    interrupts = _Interrupts(sys.stderr, serving=args.mission is None)
-    interrupts.install()
-    try:
-        code = _run(args, interrupts)
-    except (ConfigError, PluginError) as err:
-        sys.stderr.write(f"temoto-robot: error: {err}\n")
-        code = EXIT_INVALID
-    except (DriverError, ResourceError, TransportError) as err:
-        sys.stderr.write(f"temoto-robot: error: {err}\n")
-        code = EXIT_FAILED
-    finally:
-        interrupts.restore()
-    return interrupts.exit_code if interrupts.signum is not None else code
+    interrupts = _SafeOnSignal(sys.stderr, serving=args.mission is None)
+    with interrupts.signals:
+        try:
+            code = _run(args, interrupts)
+        except (ConfigError, PluginError) as err:
+            sys.stderr.write(f"temoto-robot: error: {err}\n")
+            code = EXIT_INVALID
+        except (DriverError, ResourceError, TransportError) as err:
+            sys.stderr.write(f"temoto-robot: error: {err}\n")
+            code = EXIT_FAILED
+    signalled = interrupts.exit_code
+    return code if signalled is None else signalled
 
 
-def _run(args: argparse.Namespace, interrupts: _Interrupts) -> int:
+def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
     from temoto.instance import Instance
     from temoto.managers.robot.client import RobotManagerClient
     from temoto.managers.robot.manager import RobotManager
@@ -246,17 +232,18 @@ def _run(args: argparse.Namespace, interrupts: _Interrupts) -> int:
         out.flush()
         if mission is None:
             sys.stderr.write(f"robot '{profile.robot}' serving; Ctrl-C stops it\n")
-            interrupts.event.wait()
+            interrupts.signals.stop.wait()
             return EXIT_OK
-        if interrupts.event.is_set():
-            return interrupts.exit_code
+        signals = interrupts.signals
+        if signals.stop.is_set():
+            return EXIT_FAILED  # main() returns the signal's exit code
         instance.engine.add_instrument(_Progress(out, t0))
-        outcome = _mission(instance.engine, mission, args.timeout, interrupts)
-        if interrupts.signum is not None:
-            out.write(f"{mission.name}: interrupted ({signal.Signals(interrupts.signum).name})\n")
+        outcome = _mission(instance.engine, mission, args.timeout, signals.stop)
+        if signals.stop.is_set():
+            out.write(f"{mission.name}: interrupted ({signal.Signals(signals.signum or 2).name})\n")
             # the stop waited for the actions already: do not wait for them a second time
             instance.engine.shutdown(timeout=_AFTER_STOP)
-            return interrupts.exit_code
+            return EXIT_FAILED
         result = outcome.result.value if outcome.result else "none"
         out.write(f"{mission.name}: {result} in {time.monotonic() - t0:.2f} s\n")
         for error in outcome.errors:
@@ -264,7 +251,7 @@ def _run(args: argparse.Namespace, interrupts: _Interrupts) -> int:
         return EXIT_OK if outcome.result is Result.TRUE else EXIT_FAILED
 
 
-def _mission(engine: Any, mission: Any, timeout: float | None, interrupts: _Interrupts) -> Any:
+def _mission(engine: Any, mission: Any, timeout: float | None, stop: threading.Event) -> Any:
     """Run the mission until it ends, ``timeout`` passes or a signal comes (then stop it)."""
     name = engine.start(mission)
     deadline = None if timeout is None else time.monotonic() + timeout
@@ -274,7 +261,7 @@ def _mission(engine: Any, mission: Any, timeout: float | None, interrupts: _Inte
             break
         except TimeoutError:
             pass
-        if interrupts.event.is_set():
+        if stop.is_set():
             engine.stop(name)  # a second signal exits without waiting for this
             break
         if deadline is not None and time.monotonic() >= deadline:
