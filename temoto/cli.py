@@ -231,6 +231,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         os.dup2(devnull, sys.stdout.fileno())
         os.close(devnull)
         return EXIT_BROKEN_PIPE
+    except KeyboardInterrupt:
+        # a command without a signal handler of its own (watch, detect, validate, ...): Ctrl-C
+        # ends it quietly, devices made safe like everywhere else
+        make_devices_safe("SIGINT")
+        return 128 + signal.SIGINT
 
 
 def _command(args: argparse.Namespace) -> int:
