@@ -37,7 +37,10 @@ SAMPLE_S: Final = 0.02  # how often the running sensor processes are counted
 
 
 class _ProcessCounter:
-    """Counts the running sensor processes every ``SAMPLE_S`` (the energy argument)."""
+    """Counts the running sensor processes every ``SAMPLE_S`` (the energy argument).
+
+    Running: a ``process`` resource not reported FATAL.
+    """
 
     def __init__(self, registrar: Registrar) -> None:
         self.registrar = registrar
@@ -48,7 +51,10 @@ class _ProcessCounter:
 
     def _count(self) -> None:
         while not self._stop.wait(SAMPLE_S):
-            self.samples.append(sum(1 for r in self.registrar.resources() if r.server == "process"))
+            # a killed sensor's resource stays until the substitute runs (make before break):
+            # it is failed, not running
+            resources = self.registrar.resources()
+            self.samples.append(sum(1 for r in resources if r.server == "process" and not r.failed))
 
     def close(self) -> None:
         self._stop.set()
