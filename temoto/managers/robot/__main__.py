@@ -240,7 +240,8 @@ def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
         instance.engine.add_instrument(_Progress(out, t0))
         outcome = _mission(instance.engine, mission, args.timeout, signals.stop)
         if signals.stop.is_set():
-            out.write(f"{mission.name}: interrupted ({signal.Signals(signals.signum or signal.SIGINT).name})\n")
+            name = signal.Signals(signals.signum or signal.SIGINT).name
+            out.write(f"{mission.name}: interrupted ({name})\n")
             # the stop waited for the actions already: do not wait for them a second time
             instance.engine.shutdown(timeout=_AFTER_STOP)
             return EXIT_FAILED
