@@ -7,7 +7,10 @@ Commands:
   in this process and prints its result. Exit status 0 iff the result is ``on_true``, 1 for any
   other result, 2 for invalid input (with a message naming the file and the key path). Its
   actions can acquire processes (``self.acquire("process", ProcessRequest(...))``); they are
-  stopped when the graph ends.
+  stopped when the graph ends. ``--trace FILE`` writes a JSON line per node state change and,
+  as the last line, exactly one result line ``{"graph": ..., "result": ...}``: the result the
+  command prints and its exit status stands for (a halted graph stays ``on_halted``, an
+  interrupted one ``on_stopped``). A graph refused before its start (status 2) has none.
 * ``temoto validate FILE... [--actions DIR]... [--graphs DIR]...``: checks graphs (and, given
   action folders, that every action resolves); exit 2 on the first invalid file.
 * ``temoto graph dot FILE [-o OUT] [--format svg|png|pdf]``: Graphviz DOT of a graph, or an
@@ -34,6 +37,7 @@ import logging
 import os
 import signal
 import sys
+import threading
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -95,6 +99,48 @@ class _Progress(Instrument):
     def graph_finished(self, graph: str, result: Result, t: float) -> None:
         self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: ended with {result.value}\n")
         self.stream.flush()
+
+
+class _RunTrace(TraceInstrument):
+    """The ``--trace`` file of one ``temoto run``: exactly one result line, its last.
+
+    Node lines are written as they happen. The engine's own end-of-graph events are not
+    written: a halted graph is still stopped when the engine shuts down at exit, which would
+    end the trace with a second result. Instead :meth:`finish` writes the result the command
+    prints (ARCHITECTURE.md §8) and closes the trace to everything after it.
+
+    Args:
+        stream: The trace file.
+        graph: The top-level graph's name.
+        t0: Clock reading that ``t`` is measured from.
+    """
+
+    def __init__(self, stream: IO[str], graph: str, t0: float) -> None:
+        super().__init__(stream, graph, t0)
+        self._lock = threading.Lock()  # node lines come from the engine's threads
+        self._finished = False
+
+    def node_transition(
+        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
+    ) -> None:
+        """Write a state line, unless the run's result is written already."""
+        with self._lock:
+            if not self._finished:
+                super().node_transition(graph, node, old, new, t)
+
+    def graph_finished(self, graph: str, result: Result, t: float) -> None:
+        """Write nothing: the command writes the one result line (:meth:`finish`)."""
+
+    def finish(self, result: str) -> None:
+        """Write the result line and nothing after it.
+
+        Args:
+            result: The result the command prints (``on_true``, ...).
+        """
+        with self._lock:
+            if not self._finished:
+                self._finished = True
+                self._write({"graph": self.graph, "result": result})
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -353,9 +399,11 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
     if args.progress:
         instruments.append(_Progress(sys.stderr, t0))
     trace_file = open(args.trace, "w", encoding="utf-8") if args.trace else None  # noqa: SIM115
+    trace = None
     try:
         if trace_file is not None:
-            instruments.append(TraceInstrument(trace_file, graph.name, t0))
+            trace = _RunTrace(trace_file, graph.name, t0)
+            instruments.append(trace)
         # Actions get resources (processes) from a registrar that lives as long as the run;
         # the graph's end releases them, so nothing outlives the command.
         registrar = Registrar("temoto-run")
@@ -385,6 +433,10 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
                         engine.stop(name, timeout=0)
                     _wait_run(engine, name, None, signals.hurried)
                 outcome = engine.outcome(name)
+                result = _printed_result(outcome.result, interrupted=signals.signum is not None)
+                if trace is not None:
+                    # before the engine's shutdown, which stops a halted run once more
+                    trace.finish(result)
                 if signals.signum is not None:
                     make_devices_safe(f"temoto run stopped by {_signal_name(signals.signum)}")
                 if signals.hurried.is_set():
@@ -397,13 +449,23 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
     finally:
         if trace_file is not None:
             trace_file.close()
-    result = outcome.result.value if outcome.result else "none"
     sys.stdout.write(f"{graph.name}: {result}\n")
     for name, value in sorted(outcome.outputs.items()):
         sys.stdout.write(f"  {name} = {json.dumps(value, ensure_ascii=False, default=repr)}\n")
     for error in outcome.errors:
         sys.stderr.write(f"  error: {error}\n")
     return EXIT_TRUE if outcome.result is Result.TRUE else EXIT_OTHER_RESULT
+
+
+def _printed_result(result: Result | None, *, interrupted: bool) -> str:
+    """The result a run reports: printed, in the trace's last line, and behind the exit code.
+
+    A run that a second signal abandoned while it was still stopping has no result of its own;
+    it reports ``on_stopped``, as every interrupted run does (and exits 130 or 143).
+    """
+    if result is None:
+        return Result.STOPPED.value if interrupted else "none"
+    return result.value
 
 
 def _validate(args: argparse.Namespace) -> int:
