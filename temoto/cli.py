@@ -11,8 +11,12 @@ Commands:
   as the last line, exactly one result line ``{"graph": ..., "result": ...}``: the result the
   command prints and its exit status stands for (a halted graph stays ``on_halted``, an
   interrupted one ``on_stopped``). A graph refused before its start (status 2) has none.
-* ``temoto validate FILE... [--actions DIR]... [--graphs DIR]...``: checks graphs (and, given
-  action folders, that every action resolves); exit 2 on the first invalid file.
+* ``temoto validate FILE... [--actions DIR]... [--graphs DIR]... [--actor NAME]``: checks graphs
+  (and, given action or graph folders, that their actions resolve); exit 2 on the first invalid
+  file. A shared graph needs no fleet link: without ``--actor`` the actions of every actor are
+  checked where they resolve here, those that do not are named as left to their actor (a note,
+  not an error); with ``--actor NAME`` the actions of NAME (and those without an actor) must
+  resolve and the other actors' are not looked at.
 * ``temoto graph dot FILE [-o OUT] [--format svg|png|pdf]``: Graphviz DOT of a graph, or an
   image when ``-o`` is given and Graphviz's ``dot`` is installed.
 * ``temoto actions [--actions DIR]...``: lists the known actions and where they come from.
@@ -39,7 +43,7 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -64,11 +68,18 @@ from temoto.core.dot import graph_to_dot, render
 from temoto.core.engine import ActionEngine
 from temoto.core.graph import UmrfGraph, load_graph
 from temoto.core.instrument import Instrument, TraceInstrument
-from temoto.core.planning import graph_inputs_from_text
+from temoto.core.planning import Planner, graph_inputs_from_text
 from temoto.core.registrar import Registrar
 from temoto.core.states import NodeState, Result
+from temoto.core.umrf import Umrf
 from temoto.core.validation import validate_graph
-from temoto.errors import ConfigError, GraphInputError, PluginError, TransportError
+from temoto.errors import (
+    ConfigError,
+    GraphDefinitionError,
+    GraphInputError,
+    PluginError,
+    TransportError,
+)
 from temoto.managers.process import ProcessManager
 
 __all__ = ["main"]
@@ -211,9 +222,23 @@ def _parser() -> argparse.ArgumentParser:
 
     add_serve(sub, paths)
 
-    val = sub.add_parser("validate", help="check graph files")
+    val = sub.add_parser(
+        "validate",
+        help="check graph files",
+        description="Check graphs: their structure and, given action or graph folders, that"
+        " their actions resolve. A shared graph needs no fleet: without --actor, the actions"
+        " of every actor are checked where they resolve here and the others are named as left"
+        " to their actors; with --actor, that actor's actions must all resolve.",
+    )
     val.add_argument("files", nargs="+", metavar="FILE")
     paths(val)
+    val.add_argument(
+        "--actor",
+        default="",
+        metavar="NAME",
+        help="check a shared graph as this actor: its actions must resolve, the other actors'"
+        " are not checked",
+    )
 
     graph = sub.add_parser("graph", help="graph tools")
     gsub = graph.add_subparsers(dest="graph_command", required=True, metavar="TOOL")
@@ -469,23 +494,73 @@ def _printed_result(result: Result | None, *, interrupted: bool) -> str:
 
 
 def _validate(args: argparse.Namespace) -> int:
-    engine = None
-    if args.actions or args.graphs:
-        engine = ActionEngine(actions=ActionCatalog(args.actions), graphs=GraphIndex(args.graphs))
-    try:
-        for file in args.files:
-            graph = load_graph(file)
-            report = validate_graph(graph)
-            report.raise_for_errors(file)
-            if engine is not None:
-                engine.plan(graph)
-            for issue in report.warnings:
-                sys.stdout.write(f"{file}: warning: {issue}\n")
-            sys.stdout.write(f"{file}: ok ({len(graph.actions)} actions)\n")
-    finally:
-        if engine is not None:
-            engine.shutdown()
+    planning = bool(args.actions or args.graphs)
+    catalog = ActionCatalog(args.actions) if planning else None
+    graphs = GraphIndex(args.graphs) if planning else None
+    for file in args.files:
+        graph = load_graph(file)
+        report = validate_graph(graph)
+        report.raise_for_errors(file)
+        actors = sorted({a.actor for a in graph.actions if a.actor})
+        if args.actor and actors and args.actor not in actors:
+            raise GraphDefinitionError(
+                f"graph '{graph.name}' has no actions for actor '{args.actor}' (its actors:"
+                f" {', '.join(repr(a) for a in actors)})",
+                file=file,
+            )
+        elsewhere: list[tuple[Umrf, str]] = []
+        if catalog is not None and graphs is not None:
+            # without --actor, every actor's actions are checked where they resolve here
+            planner = Planner(
+                args.actor,
+                catalog,
+                graphs,
+                remote=True,
+                elsewhere=None if args.actor else _collect(elsewhere),
+            )
+            planner.plan(graph)
+        for issue in report.warnings:
+            sys.stdout.write(f"{file}: warning: {issue}\n")
+        for umrf, why in elsewhere:
+            sys.stdout.write(
+                f"{file}: note: '{umrf.full_name}' is left to actor '{umrf.actor}': {why} here\n"
+            )
+        checked = _validated(graph, actors, args.actor, len(elsewhere) if planning else None)
+        sys.stdout.write(f"{file}: ok ({checked})\n")
     return 0
+
+
+def _collect(into: list[tuple[Umrf, str]]) -> Callable[[Umrf, str], None]:
+    """A planner's ``elsewhere`` callback that appends to ``into``."""
+
+    def elsewhere(umrf: Umrf, why: str) -> None:
+        into.append((umrf, why))
+
+    return elsewhere
+
+
+def _validated(graph: UmrfGraph, actors: list[str], actor: str, elsewhere: int | None) -> str:
+    """What ``temoto validate`` checked in a graph, for its ``ok`` line.
+
+    Args:
+        graph: The graph.
+        actors: The actors it names (empty for a local graph).
+        actor: ``--actor`` (empty when not given).
+        elsewhere: How many actions were left to other actors, or None if actions were not
+            resolved (no ``--actions``/``--graphs``).
+    """
+    count = len(graph.actions)
+    text = f"{count} action{'s' if count != 1 else ''}"
+    if not actors:
+        return text
+    text += f"; shared by {', '.join(repr(a) for a in actors)}"
+    if actor:
+        mine = sum(1 for a in graph.actions if not a.actor or a.actor == actor)
+        what = "to run" if elsewhere is None else "resolved"
+        text += f"; actor '{actor}' has {mine} {what}, the other actors' were not checked"
+    elif elsewhere is not None:
+        text += f"; {count - elsewhere} resolved here, {elsewhere} left to their actors"
+    return text
 
 
 def _dot(args: argparse.Namespace) -> int:
