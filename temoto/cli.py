@@ -91,25 +91,39 @@ EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE
 
 
 class _Progress(Instrument):
-    """Prints node state changes for people (``--progress``)."""
+    """Prints node state changes for people (``--progress``) until the run's result is known.
+
+    What the engine does after that (stopping a halted run, or actions still winding down, as
+    it shuts down at exit) is not part of the run and is not printed.
+    """
 
     def __init__(self, stream: IO[str], t0: float) -> None:
         self.stream = stream
         self.t0 = t0
+        self._lock = threading.Lock()
+        self._finished = False
+
+    def _say(self, t: float, text: str) -> None:
+        with self._lock:
+            if not self._finished:
+                self.stream.write(f"[{t - self.t0:8.3f}s] {text}\n")
+                self.stream.flush()
 
     def graph_started(self, graph: str, t: float) -> None:
-        self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: started\n")
-        self.stream.flush()
+        self._say(t, f"{graph}: started")
 
     def node_transition(
         self, graph: str, node: str, old: NodeState, new: NodeState, t: float
     ) -> None:
-        self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: {node} {new.value}\n")
-        self.stream.flush()
+        self._say(t, f"{graph}: {node} {new.value}")
 
     def graph_finished(self, graph: str, result: Result, t: float) -> None:
-        self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: ended with {result.value}\n")
-        self.stream.flush()
+        self._say(t, f"{graph}: ended with {result.value}")
+
+    def finish(self) -> None:
+        """Print nothing more: the run's result is known."""
+        with self._lock:
+            self._finished = True
 
 
 class _RunTrace(TraceInstrument):
@@ -421,8 +435,9 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
     clock = ScaledClock(args.time_scale) if args.time_scale != 1.0 else MonotonicClock()
     t0 = clock.monotonic()
     instruments: list[Instrument] = []
-    if args.progress:
-        instruments.append(_Progress(sys.stderr, t0))
+    progress = _Progress(sys.stderr, t0) if args.progress else None
+    if progress is not None:
+        instruments.append(progress)
     trace_file = open(args.trace, "w", encoding="utf-8") if args.trace else None  # noqa: SIM115
     trace = None
     try:
@@ -459,9 +474,11 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
                     _wait_run(engine, name, None, signals.hurried)
                 outcome = engine.outcome(name)
                 result = _printed_result(outcome.result, interrupted=signals.signum is not None)
+                # before the engine's shutdown, which stops a halted run once more
                 if trace is not None:
-                    # before the engine's shutdown, which stops a halted run once more
                     trace.finish(result)
+                if progress is not None:
+                    progress.finish()
                 if signals.signum is not None:
                     make_devices_safe(f"temoto run stopped by {_signal_name(signals.signum)}")
                 if signals.hurried.is_set():

@@ -226,3 +226,14 @@ def test_a_run_abandoned_by_a_second_sigint_still_ends_its_trace(tmp_path: Path)
     assert "Traceback" not in err
     assert out.splitlines()[0] == "stubborn: on_stopped"
     check_contract(read_trace(trace), "stubborn", "on_stopped", code)
+
+
+def test_progress_reports_the_one_end_of_a_halted_graph(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    graph = UPSTREAM / "actionengine_test_external_changes_test_3_c.graph.json"
+    assert main(["run", str(graph), "--actions", str(CONFORMANCE), "--progress"]) == 1
+    err = capsys.readouterr().err
+    ends = [line for line in err.splitlines() if "ended with" in line]
+    assert len(ends) == 1, err
+    assert ends[0].endswith("external_changes_test_3_c: ended with on_halted")
