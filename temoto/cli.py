@@ -366,7 +366,7 @@ def _params(graph: UmrfGraph, texts: Sequence[str]) -> dict[str, Any]:
 
 
 def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
-    """A fleet link for a graph shared with other actors, or None for a local graph."""
+    """The fleet link, transport and authentication for a shared graph; None for a local one."""
     others = sorted({a.actor for a in graph.actions if a.actor and a.actor != args.actor})
     if not others:
         return None
@@ -388,7 +388,7 @@ def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
             silence_s=args.fleet_silence,
             resend_s=args.fleet_resend,
         )
-        return link, transport
+        return link, transport, auth
     except BaseException:
         transport.close()
         raise
@@ -398,7 +398,7 @@ def _run(args: argparse.Namespace) -> int:
     with SignalExit() as signals:
         graph = load_graph(args.graph)
         opened = _open_fleet(args, graph)
-        link, transport = opened if opened is not None else (None, None)
+        link, transport, auth = opened if opened is not None else (None, None, None)
         try:
             code = _run_graph(args, graph, link, signals)
         finally:
@@ -406,6 +406,8 @@ def _run(args: argparse.Namespace) -> int:
                 link.close()
             if transport is not None:
                 transport.close()
+            if auth is not None:
+                auth.log_drop_summary()  # the drops of the last seconds, not summarised yet
     return signals.exit_code or code
 
 

@@ -20,7 +20,8 @@ Drops that mean a member cannot be heard (every reason but ``self``, the multica
 ``fleet``, another fleet on the same network) are logged at WARNING, naming the claimed sender
 and the reason: the first drop of each sender and reason at once, later ones as one summary line
 with counts at most every :data:`DROP_SUMMARY_S` seconds (written with the next drop after that
-interval; :attr:`FleetAuth.stats` always has the exact counts). ``self`` and ``fleet`` drops are
+interval, or by :meth:`FleetAuth.log_drop_summary` when the member stops; :attr:`FleetAuth.stats`
+always has the exact counts). ``self`` and ``fleet`` drops are
 logged at DEBUG only.
 
 The mac is ``HMAC-SHA256(key, channel + b"\0" + envelope encoded with an empty mac)``, so it
@@ -189,6 +190,20 @@ class _DropLog:
         self._pending[key] = self._pending.get(key, 0) + 1
         if now - self._since < self.interval_s:
             return False, None
+        return False, self.flush(now)
+
+    def flush(self, now: float) -> str | None:
+        """The summary of the drops held back so far (None if there are none); starts anew.
+
+        Args:
+            now: The current time in seconds.
+
+        Returns:
+            The summary line, or None.
+        """
+        if not self._pending:
+            return None
+        since = now if self._since is None else self._since
         pairs = sorted(self._pending.items(), key=lambda item: -item[1])
         total = sum(n for _, n in pairs)
         shown = ", ".join(
@@ -198,10 +213,10 @@ class _DropLog:
         if len(pairs) > _MAX_SUMMARY_PAIRS:
             rest = sum(n for _, n in pairs[_MAX_SUMMARY_PAIRS:])
             shown += f" and {rest} from {len(pairs) - _MAX_SUMMARY_PAIRS} other senders/reasons"
-        line = f"dropped {total} more messages in the last {now - self._since:.0f} s: {shown}"
+        line = f"dropped {total} more messages in the last {now - since:.0f} s: {shown}"
         self._pending.clear()
         self._since = now
-        return False, line
+        return line
 
 
 def key_from_text(text: str) -> bytes:
@@ -471,6 +486,19 @@ class FleetAuth:
                     more,
                 )
         return None
+
+    def log_drop_summary(self) -> None:
+        """Log the summary of drops held back since the last line (WARNING), if there are any.
+
+        Call it when the member stops, so that the drops of its last seconds are reported too.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            line = self._drop_log.flush(self._clock())
+        if line is not None:
+            logger.warning("fleet %r: %s", self.fleet, line)
 
     # --- internals ----------------------------------------------------------------------------
 

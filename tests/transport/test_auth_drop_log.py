@@ -198,3 +198,21 @@ def test_a_long_claimed_name_is_cut_and_escaped(
     assert "\n" not in line
     assert "'evil\\nxxx" in line
     assert "x" * 100 not in line
+
+
+def test_the_summary_of_the_last_drops_can_be_logged_at_the_end(
+    clock: FakeClock, bob: FleetAuth, caplog: pytest.LogCaptureFixture
+) -> None:
+    mallory = FleetAuth("fleet", "mallory", OTHER_KEY, clock=clock)
+    with caplog.at_level(logging.WARNING, logger="temoto.transport"):
+        bob.log_drop_summary()  # nothing held back: nothing logged
+        for _ in range(5):
+            bob.open(CHANNEL, mallory.seal(CHANNEL, "t", b"x"))
+        clock.t += 2
+        bob.log_drop_summary()
+        bob.log_drop_summary()  # said once
+    lines = warnings(caplog)
+    assert len(lines) == 2, lines
+    assert lines[1] == (
+        "fleet 'fleet': dropped 4 more messages in the last 2 s: 4 from 'mallory' (wrong mac)"
+    )
