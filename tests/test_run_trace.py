@@ -169,7 +169,7 @@ def wait_for_running(trace: Path, proc: subprocess.Popen[str], timeout: float = 
 
 
 def run_and_interrupt(
-    graph: Path, actions: Path, trace: Path, signals: int
+    graph: Path, actions: Path, trace: Path, signals: int, signum: int = signal.SIGINT
 ) -> tuple[int, str, str]:
     proc = subprocess.Popen(
         [
@@ -186,7 +186,7 @@ def run_and_interrupt(
         for i in range(signals):
             if i:
                 time.sleep(0.05)
-            proc.send_signal(signal.SIGINT)
+            proc.send_signal(signum)
         out, err = proc.communicate(timeout=20)
     finally:
         if proc.poll() is None:
@@ -195,11 +195,16 @@ def run_and_interrupt(
     return proc.returncode, out, err
 
 
-def test_an_interrupted_run_exits_130_and_its_trace_ends_with_one_result(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    ("signum", "expected"), [(signal.SIGINT, 130), (signal.SIGTERM, 143)], ids=["INT", "TERM"]
+)
+def test_an_interrupted_run_keeps_its_code_and_its_trace_ends_with_one_result(
+    tmp_path: Path, signum: int, expected: int
+) -> None:
     trace = tmp_path / "trace.jsonl"
     graph = UPSTREAM / "actionengine_test_semantics_test_9_infinite_loop.graph.json"
-    code, out, err = run_and_interrupt(graph, CONFORMANCE, trace, signals=1)
-    assert code == 130, err
+    code, out, err = run_and_interrupt(graph, CONFORMANCE, trace, signals=1, signum=signum)
+    assert code == expected, err
     assert "Traceback" not in err
     assert out.splitlines()[0] == "semantics_test_9_infinite_loop: on_stopped"
     check_contract(read_trace(trace), "semantics_test_9_infinite_loop", "on_stopped", code)
