@@ -74,6 +74,7 @@ from temoto.core.states import NodeState, Result
 from temoto.core.umrf import Umrf
 from temoto.core.validation import validate_graph
 from temoto.errors import (
+    ActionNotFoundError,
     ConfigError,
     GraphDefinitionError,
     GraphInputError,
@@ -537,7 +538,11 @@ def _validate(args: argparse.Namespace) -> int:
                 remote=True,
                 elsewhere=None if args.actor else _collect(elsewhere),
             )
-            planner.plan(graph)
+            try:
+                planner.plan(graph)
+            except ActionNotFoundError as err:  # its message names the graph, not the file
+                _error(f"{file}: {err}")
+                return EXIT_INVALID
         for issue in report.warnings:
             sys.stdout.write(f"{file}: warning: {issue}\n")
         for umrf, why in elsewhere:

@@ -100,6 +100,9 @@ def test_actor_checks_that_actors_actions_only(
             captured.out
         )
     else:
+        assert f"error: {MULTI}: graph 'engine_test_multi_actor': action '{names}_0'" in (
+            captured.err
+        )
         assert f"no action description and no indexed graph named '{names}'" in captured.err
         assert "Traceback" not in captured.err
 
