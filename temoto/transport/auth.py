@@ -17,12 +17,11 @@ content, or None after counting why it was dropped. The checks, in order:
 =================  ===============================================================================
 
 Drops that mean a member cannot be heard (every reason but ``self``, the multicast echo, and
-``fleet``, another fleet on the same network) are logged at WARNING, naming the claimed sender
-and the reason: the first drop of each sender and reason at once, later ones as one summary line
-with counts at most every :data:`DROP_SUMMARY_S` seconds (written with the next drop after that
-interval, or by :meth:`FleetAuth.log_drop_summary` when the member stops; :attr:`FleetAuth.stats`
-always has the exact counts). ``self`` and ``fleet`` drops are
-logged at DEBUG only.
+``fleet``, another fleet on the same network, which are logged at DEBUG only) are logged at
+WARNING, naming the claimed sender and the reason: the first drop of each sender and reason at
+once, later ones as one summary line with counts at most every :data:`DROP_SUMMARY_S` seconds
+(written with the next drop after that interval, or by :meth:`FleetAuth.log_drop_summary` when
+the member stops). :attr:`FleetAuth.stats` always has the exact counts.
 
 The mac is ``HMAC-SHA256(key, channel + b"\0" + envelope encoded with an empty mac)``, so it
 covers the channel too: a captured message cannot be replayed on another channel. Replay
