@@ -7,9 +7,16 @@ Commands:
   in this process and prints its result. Exit status 0 iff the result is ``on_true``, 1 for any
   other result, 2 for invalid input (with a message naming the file and the key path). Its
   actions can acquire processes (``self.acquire("process", ProcessRequest(...))``); they are
-  stopped when the graph ends.
-* ``temoto validate FILE... [--actions DIR]... [--graphs DIR]...``: checks graphs (and, given
-  action folders, that every action resolves); exit 2 on the first invalid file.
+  stopped when the graph ends. ``--trace FILE`` writes a JSON line per node state change and,
+  as the last line, exactly one result line ``{"graph": ..., "result": ...}``: the result the
+  command prints and its exit status stands for (a halted graph stays ``on_halted``, an
+  interrupted one ``on_stopped``). A graph refused before its start (status 2) has none.
+* ``temoto validate FILE... [--actions DIR]... [--graphs DIR]... [--actor NAME]``: checks graphs
+  (and, given action or graph folders, that their actions resolve); exit 2 on the first invalid
+  file. A shared graph needs no fleet link: without ``--actor`` the actions of every actor are
+  checked where they resolve here, those that do not are named as left to their actor (a note,
+  not an error); with ``--actor NAME`` the actions of NAME (and those without an actor) must
+  resolve and the other actors' are not looked at.
 * ``temoto graph dot FILE [-o OUT] [--format svg|png|pdf]``: Graphviz DOT of a graph, or an
   image when ``-o`` is given and Graphviz's ``dot`` is installed.
 * ``temoto actions [--actions DIR]...``: lists the known actions and where they come from.
@@ -34,8 +41,9 @@ import logging
 import os
 import signal
 import sys
+import threading
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
 
@@ -60,11 +68,19 @@ from temoto.core.dot import graph_to_dot, render
 from temoto.core.engine import ActionEngine
 from temoto.core.graph import UmrfGraph, load_graph
 from temoto.core.instrument import Instrument, TraceInstrument
-from temoto.core.planning import graph_inputs_from_text
+from temoto.core.planning import Planner, graph_inputs_from_text
 from temoto.core.registrar import Registrar
 from temoto.core.states import NodeState, Result
+from temoto.core.umrf import Umrf
 from temoto.core.validation import validate_graph
-from temoto.errors import ConfigError, GraphInputError, PluginError, TransportError
+from temoto.errors import (
+    ActionNotFoundError,
+    ConfigError,
+    GraphDefinitionError,
+    GraphInputError,
+    PluginError,
+    TransportError,
+)
 from temoto.managers.process import ProcessManager
 
 __all__ = ["main"]
@@ -76,25 +92,81 @@ EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE
 
 
 class _Progress(Instrument):
-    """Prints node state changes for people (``--progress``)."""
+    """Prints node state changes for people (``--progress``) until the run's result is known.
+
+    What the engine does after that (stopping a halted run, or actions still winding down, as
+    it shuts down at exit) is not part of the run and is not printed.
+    """
 
     def __init__(self, stream: IO[str], t0: float) -> None:
         self.stream = stream
         self.t0 = t0
+        self._lock = threading.Lock()
+        self._finished = False
+
+    def _say(self, t: float, text: str) -> None:
+        with self._lock:
+            if not self._finished:
+                self.stream.write(f"[{t - self.t0:8.3f}s] {text}\n")
+                self.stream.flush()
 
     def graph_started(self, graph: str, t: float) -> None:
-        self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: started\n")
-        self.stream.flush()
+        self._say(t, f"{graph}: started")
 
     def node_transition(
         self, graph: str, node: str, old: NodeState, new: NodeState, t: float
     ) -> None:
-        self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: {node} {new.value}\n")
-        self.stream.flush()
+        self._say(t, f"{graph}: {node} {new.value}")
 
     def graph_finished(self, graph: str, result: Result, t: float) -> None:
-        self.stream.write(f"[{t - self.t0:8.3f}s] {graph}: ended with {result.value}\n")
-        self.stream.flush()
+        self._say(t, f"{graph}: ended with {result.value}")
+
+    def finish(self) -> None:
+        """Print nothing more: the run's result is known."""
+        with self._lock:
+            self._finished = True
+
+
+class _RunTrace(TraceInstrument):
+    """The ``--trace`` file of one ``temoto run``: exactly one result line, its last.
+
+    Node lines are written as they happen. The engine's own end-of-graph events are not
+    written: a halted graph is still stopped when the engine shuts down at exit, which would
+    end the trace with a second result. Instead :meth:`finish` writes the result the command
+    prints (ARCHITECTURE.md §8) and closes the trace to everything after it.
+
+    Args:
+        stream: The trace file.
+        graph: The top-level graph's name.
+        t0: Clock reading that ``t`` is measured from.
+    """
+
+    def __init__(self, stream: IO[str], graph: str, t0: float) -> None:
+        super().__init__(stream, graph, t0)
+        self._lock = threading.Lock()  # node lines come from the engine's threads
+        self._finished = False
+
+    def node_transition(
+        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
+    ) -> None:
+        """Write a state line, unless the run's result is written already."""
+        with self._lock:
+            if not self._finished:
+                super().node_transition(graph, node, old, new, t)
+
+    def graph_finished(self, graph: str, result: Result, t: float) -> None:
+        """Write nothing: the command writes the one result line (:meth:`finish`)."""
+
+    def finish(self, result: str) -> None:
+        """Write the result line and nothing after it.
+
+        Args:
+            result: The result the command prints (``on_true``, ...).
+        """
+        with self._lock:
+            if not self._finished:
+                self._finished = True
+                self._write({"graph": self.graph, "result": result})
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -165,9 +237,23 @@ def _parser() -> argparse.ArgumentParser:
 
     add_serve(sub, paths)
 
-    val = sub.add_parser("validate", help="check graph files")
+    val = sub.add_parser(
+        "validate",
+        help="check graph files",
+        description="Check graphs: their structure and, given action or graph folders, that"
+        " their actions resolve. A shared graph needs no fleet: without --actor, the actions"
+        " of every actor are checked where they resolve here and the others are named as left"
+        " to their actors; with --actor, that actor's actions must all resolve.",
+    )
     val.add_argument("files", nargs="+", metavar="FILE")
     paths(val)
+    val.add_argument(
+        "--actor",
+        default="",
+        metavar="NAME",
+        help="check a shared graph as this actor: its actions must resolve, the other actors'"
+        " are not checked",
+    )
 
     graph = sub.add_parser("graph", help="graph tools")
     gsub = graph.add_subparsers(dest="graph_command", required=True, metavar="TOOL")
@@ -281,7 +367,7 @@ def _params(graph: UmrfGraph, texts: Sequence[str]) -> dict[str, Any]:
 
 
 def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
-    """A fleet link for a graph shared with other actors, or None for a local graph."""
+    """The fleet link, transport and authentication for a shared graph; None for a local one."""
     others = sorted({a.actor for a in graph.actions if a.actor and a.actor != args.actor})
     if not others:
         return None
@@ -303,7 +389,7 @@ def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
             silence_s=args.fleet_silence,
             resend_s=args.fleet_resend,
         )
-        return link, transport
+        return link, transport, auth
     except BaseException:
         transport.close()
         raise
@@ -313,7 +399,7 @@ def _run(args: argparse.Namespace) -> int:
     with SignalExit() as signals:
         graph = load_graph(args.graph)
         opened = _open_fleet(args, graph)
-        link, transport = opened if opened is not None else (None, None)
+        link, transport, auth = opened if opened is not None else (None, None, None)
         try:
             code = _run_graph(args, graph, link, signals)
         finally:
@@ -321,6 +407,8 @@ def _run(args: argparse.Namespace) -> int:
                 link.close()
             if transport is not None:
                 transport.close()
+            if auth is not None:
+                auth.log_drop_summary()  # the drops of the last seconds, not summarised yet
     return signals.exit_code or code
 
 
@@ -350,12 +438,15 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
     clock = ScaledClock(args.time_scale) if args.time_scale != 1.0 else MonotonicClock()
     t0 = clock.monotonic()
     instruments: list[Instrument] = []
-    if args.progress:
-        instruments.append(_Progress(sys.stderr, t0))
+    progress = _Progress(sys.stderr, t0) if args.progress else None
+    if progress is not None:
+        instruments.append(progress)
     trace_file = open(args.trace, "w", encoding="utf-8") if args.trace else None  # noqa: SIM115
+    trace = None
     try:
         if trace_file is not None:
-            instruments.append(TraceInstrument(trace_file, graph.name, t0))
+            trace = _RunTrace(trace_file, graph.name, t0)
+            instruments.append(trace)
         # Actions get resources (processes) from a registrar that lives as long as the run;
         # the graph's end releases them, so nothing outlives the command.
         registrar = Registrar("temoto-run")
@@ -385,6 +476,12 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
                         engine.stop(name, timeout=0)
                     _wait_run(engine, name, None, signals.hurried)
                 outcome = engine.outcome(name)
+                result = _printed_result(outcome.result, interrupted=signals.signum is not None)
+                # before the engine's shutdown, which stops a halted run once more
+                if trace is not None:
+                    trace.finish(result)
+                if progress is not None:
+                    progress.finish()
                 if signals.signum is not None:
                     make_devices_safe(f"temoto run stopped by {_signal_name(signals.signum)}")
                 if signals.hurried.is_set():
@@ -397,7 +494,6 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
     finally:
         if trace_file is not None:
             trace_file.close()
-    result = outcome.result.value if outcome.result else "none"
     sys.stdout.write(f"{graph.name}: {result}\n")
     for name, value in sorted(outcome.outputs.items()):
         sys.stdout.write(f"  {name} = {json.dumps(value, ensure_ascii=False, default=repr)}\n")
@@ -406,24 +502,89 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
     return EXIT_TRUE if outcome.result is Result.TRUE else EXIT_OTHER_RESULT
 
 
+def _printed_result(result: Result | None, *, interrupted: bool) -> str:
+    """The result a run reports: printed, in the trace's last line, and behind the exit code.
+
+    A run that a second signal abandoned while it was still stopping has no result of its own;
+    it reports ``on_stopped``, as every interrupted run does (and exits 130 or 143).
+    """
+    if result is None:
+        return Result.STOPPED.value if interrupted else "none"
+    return result.value
+
+
 def _validate(args: argparse.Namespace) -> int:
-    engine = None
-    if args.actions or args.graphs:
-        engine = ActionEngine(actions=ActionCatalog(args.actions), graphs=GraphIndex(args.graphs))
-    try:
-        for file in args.files:
-            graph = load_graph(file)
-            report = validate_graph(graph)
-            report.raise_for_errors(file)
-            if engine is not None:
-                engine.plan(graph)
-            for issue in report.warnings:
-                sys.stdout.write(f"{file}: warning: {issue}\n")
-            sys.stdout.write(f"{file}: ok ({len(graph.actions)} actions)\n")
-    finally:
-        if engine is not None:
-            engine.shutdown()
+    planning = bool(args.actions or args.graphs)
+    catalog = ActionCatalog(args.actions) if planning else None
+    graphs = GraphIndex(args.graphs) if planning else None
+    for file in args.files:
+        graph = load_graph(file)
+        report = validate_graph(graph)
+        report.raise_for_errors(file)
+        actors = sorted({a.actor for a in graph.actions if a.actor})
+        if args.actor and actors and args.actor not in actors:
+            raise GraphDefinitionError(
+                f"graph '{graph.name}' has no actions for actor '{args.actor}' (its actors:"
+                f" {', '.join(repr(a) for a in actors)})",
+                file=file,
+            )
+        elsewhere: list[tuple[Umrf, str]] = []
+        if catalog is not None and graphs is not None:
+            # without --actor, every actor's actions are checked where they resolve here
+            planner = Planner(
+                args.actor,
+                catalog,
+                graphs,
+                remote=True,
+                elsewhere=None if args.actor else _collect(elsewhere),
+            )
+            try:
+                planner.plan(graph)
+            except ActionNotFoundError as err:  # its message names the graph, not the file
+                _error(f"{file}: {err}")
+                return EXIT_INVALID
+        for issue in report.warnings:
+            sys.stdout.write(f"{file}: warning: {issue}\n")
+        for umrf, why in elsewhere:
+            sys.stdout.write(
+                f"{file}: note: '{umrf.full_name}' is left to actor '{umrf.actor}': {why} here\n"
+            )
+        checked = _validated(graph, actors, args.actor, len(elsewhere) if planning else None)
+        sys.stdout.write(f"{file}: ok ({checked})\n")
     return 0
+
+
+def _collect(into: list[tuple[Umrf, str]]) -> Callable[[Umrf, str], None]:
+    """A planner's ``elsewhere`` callback that appends to ``into``."""
+
+    def elsewhere(umrf: Umrf, why: str) -> None:
+        into.append((umrf, why))
+
+    return elsewhere
+
+
+def _validated(graph: UmrfGraph, actors: list[str], actor: str, elsewhere: int | None) -> str:
+    """What ``temoto validate`` checked in a graph, for its ``ok`` line.
+
+    Args:
+        graph: The graph.
+        actors: The actors it names (empty for a local graph).
+        actor: ``--actor`` (empty when not given).
+        elsewhere: How many actions were left to other actors, or None if actions were not
+            resolved (no ``--actions``/``--graphs``).
+    """
+    count = len(graph.actions)
+    text = f"{count} action{'s' if count != 1 else ''}"
+    if not actors:
+        return text
+    text += f"; shared by {', '.join(repr(a) for a in actors)}"
+    if actor:
+        mine = sum(1 for a in graph.actions if not a.actor or a.actor == actor)
+        what = "to run" if elsewhere is None else "resolved"
+        text += f"; actor '{actor}' has {mine} {what}, the other actors' were not checked"
+    elif elsewhere is not None:
+        text += f"; {count - elsewhere} resolved here, {elsewhere} left to their actors"
+    return text
 
 
 def _dot(args: argparse.Namespace) -> int:

@@ -6,6 +6,11 @@ imported now, so a broken module fails this graph only, before anything runs); e
 if an indexed graph has that name and signature (planned recursively; a graph using itself is
 an error). Parameters are merged (the description's definitions with the graph's literals and
 allowed values; a type conflict is an error), and the effective graph is validated.
+
+To check a shared graph on a machine that is none of its actors (``temoto validate``), a
+planner with an ``elsewhere`` callback tries every actor's actions here: those that resolve are
+checked like local ones, those that do not (no description or indexed graph of that name and
+signature) are reported to the callback and planned as remote, left to their actor.
 """
 
 from __future__ import annotations
@@ -15,7 +20,7 @@ import json
 import logging
 import threading
 from collections import OrderedDict
-from collections.abc import Mapping
+from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from temoto.core._runtime import NodeKind, Plan, ResolvedAction
@@ -51,13 +56,27 @@ class Planner:
         graphs: Where sub-graphs come from.
         remote: Whether actions of other actors may be planned (the engine has a fleet link);
             without, a graph naming another actor is refused.
+        elsewhere: For checking a shared graph without being one of its actors: actions of
+            other actors are resolved here too; one that does not resolve (no description or
+            indexed graph of its name and parameters) is passed to this callback with the
+            reason and planned as remote. Other actors' actions are then allowed without
+            ``remote``. None (the default): they are remote without being looked at. Called
+            only while a plan is made, not when a remembered plan is returned.
     """
 
     def __init__(
-        self, actor: str, catalog: ActionCatalog, graphs: GraphIndex, *, remote: bool = False
+        self,
+        actor: str,
+        catalog: ActionCatalog,
+        graphs: GraphIndex,
+        *,
+        remote: bool = False,
+        elsewhere: Callable[[Umrf, str], None] | None = None,
     ) -> None:
         self.actor = actor
-        self.remote = remote  # actions of other actors are allowed (a fleet link exists)
+        # actions of other actors are allowed (a fleet link exists, or only checked here)
+        self.remote = remote or elsewhere is not None
+        self.elsewhere = elsewhere
         self.catalog = catalog
         self.graphs = graphs
         self._local: dict[type[Action], ResolvedAction] = {}
@@ -101,6 +120,11 @@ class Planner:
         remote: list[str] = []
         for umrf in graph.actions:
             if umrf.actor and umrf.actor != self.actor:
+                found = self._resolve_elsewhere(graph, umrf, stack)
+                if found is not None:
+                    actions.append(found[0])
+                    resolved[umrf.full_name] = found[1]
+                    continue
                 resolved[umrf.full_name] = ResolvedAction(NodeKind.REMOTE)
                 remote.append(f"{umrf.full_name} ({umrf.actor})")
                 actions.append(umrf)
@@ -121,6 +145,21 @@ class Planner:
         for issue in report.warnings:
             logger.warning("graph '%s': %s", graph.name, issue)
         return Plan(effective_graph, resolved, tuple(str(w) for w in report.warnings))
+
+    def _resolve_elsewhere(
+        self, graph: UmrfGraph, umrf: Umrf, stack: tuple[str, ...]
+    ) -> tuple[Umrf, ResolvedAction] | None:
+        """Resolve another actor's action here when checking (``elsewhere``); None: remote."""
+        if self.elsewhere is None:
+            return None
+        try:
+            return self._resolve(graph, umrf, stack)
+        except ActionNotFoundError:
+            reason = f"no action description and no indexed graph named '{umrf.name}'"
+        except _MismatchError as err:
+            reason = err.mismatch
+        self.elsewhere(umrf, reason)
+        return None
 
     def _resolve(
         self, graph: UmrfGraph, umrf: Umrf, stack: tuple[str, ...]
@@ -145,11 +184,25 @@ class Planner:
             return umrf, ResolvedAction(NodeKind.GRAPH, plan=self._plan(sub, (*stack, sub.name)))
         where = f"graph '{graph.name}': action '{umrf.full_name}'"
         if mismatch:
-            raise GraphDefinitionError(f"{where}: {mismatch}", file=graph.source)
+            raise _MismatchError(f"{where}: {mismatch}", file=graph.source, mismatch=mismatch)
         raise ActionNotFoundError(
             f"{where}: no action description and no indexed graph named '{umrf.name}'"
             " (add its folder with --actions, or its graph's folder with --graphs)"
         )
+
+
+class _MismatchError(GraphDefinitionError):
+    """An action's parameters differ from the description of its name (and no graph fits).
+
+    Args:
+        message: The whole message.
+        file: The graph's file.
+        mismatch: How the parameters differ.
+    """
+
+    def __init__(self, message: str, *, file: str | None, mismatch: str) -> None:
+        super().__init__(message, file=file)
+        self.mismatch = mismatch
 
 
 def _param_mismatch(umrf: Umrf, description: Umrf) -> str:

@@ -16,6 +16,13 @@ content, or None after counting why it was dropped. The checks, in order:
 ``replayed``       a sequence number already seen, or too far below the highest seen
 =================  ===============================================================================
 
+Drops that mean a member cannot be heard (every reason but ``self``, the multicast echo, and
+``fleet``, another fleet on the same network, which are logged at DEBUG only) are logged at
+WARNING, naming the claimed sender and the reason: the first drop of each sender and reason at
+once, later ones as one summary line with counts at most every :data:`DROP_SUMMARY_S` seconds
+(written with the next drop after that interval, or by :meth:`FleetAuth.log_drop_summary` when
+the member stops). :attr:`FleetAuth.stats` always has the exact counts.
+
 The mac is ``HMAC-SHA256(key, channel + b"\0" + envelope encoded with an empty mac)``, so it
 covers the channel too: a captured message cannot be replayed on another channel. Replay
 protection follows IPsec (RFC 4303 §3.4.3): per sender, the highest sequence number seen and a
@@ -50,6 +57,7 @@ from temoto.transport.base import Subscription, Transport, _LogLimiter
 
 __all__ = [
     "DROP_REASONS",
+    "DROP_SUMMARY_S",
     "ENVELOPE_VERSION",
     "KEY_ENV",
     "MIN_KEY_BYTES",
@@ -84,6 +92,18 @@ DROP_REASONS = (
     "replayed",
 )
 
+#: Drops that are normal on a shared network and logged at DEBUG only; the others at WARNING.
+_QUIET_REASONS = frozenset({"self", "fleet"})
+#: Seconds between two summary lines of dropped messages (WARNING).
+DROP_SUMMARY_S = 10.0
+#: At most this many (sender, reason) pairs get a line of their own; any later pair (a stranger
+#: inventing sender names) is only counted in the summaries.
+_MAX_FIRST_LINES = 64
+#: A claimed sender name is cut to this many characters in a log line.
+_MAX_NAME_CHARS = 64
+#: A summary line lists at most this many (sender, reason) pairs.
+_MAX_SUMMARY_PAIRS = 8
+
 _MAC_SIZE = hashlib.sha256().digest_size
 _MAC_SIZE_FIELD = struct.pack(">h", _MAC_SIZE)
 _NO_MAC_FIELD = struct.pack(">h", 0)
@@ -103,6 +123,99 @@ _EXPLAIN = {
     "stale": "stamp outside the time window",
     "replayed": "sequence number already seen or too old",
 }
+
+
+#: What a WARNING says about each reason it logs: what was wrong, and what to check.
+_WARN_EXPLAIN = {
+    "garbage": ("not a well-formed envelope", "damaged, truncated, or another program's message"),
+    "version": ("an unknown envelope version", "does the sender run another TeMoto version?"),
+    "unsigned": ("no mac, but this fleet has a key", "does the sender run --insecure?"),
+    "unexpected_mac": ("a mac, but this member runs --insecure", "the sender has a fleet key"),
+    "forged": (
+        "wrong mac",
+        f"sealed with another fleet key (check {KEY_ENV} or --fleet-key-file), or changed",
+    ),
+    "stale": ("time stamp outside the window", "are the clocks synchronised (NTP)?"),
+    "replayed": (
+        "sequence number already seen or too old",
+        "a replayed message, or two members using this name",
+    ),
+}
+
+
+def _claimed(sender: str | None) -> str:
+    """A claimed sender name for a log line: quoted, escaped, cut (it is the sender's text)."""
+    if sender is None:
+        return "an unknown sender"
+    if len(sender) > _MAX_NAME_CHARS:
+        return repr(sender[:_MAX_NAME_CHARS]) + "..."
+    return repr(sender)
+
+
+class _DropLog:
+    """Decides which authentication drops are logged at WARNING, and summarises the rest.
+
+    The first drop of each (sender, reason) is logged at once (up to :data:`_MAX_FIRST_LINES`
+    pairs); later ones are counted and written as one summary line when a drop arrives at least
+    ``interval_s`` after the last line. Not thread-safe: the caller holds a lock.
+
+    Args:
+        interval_s: Seconds between two summary lines.
+    """
+
+    def __init__(self, interval_s: float) -> None:
+        self.interval_s = interval_s
+        self._first: set[tuple[str | None, str]] = set()
+        self._pending: dict[tuple[str | None, str], int] = {}
+        self._since: float | None = None  # when the current summary period began
+
+    def drop(self, sender: str | None, reason: str, now: float) -> tuple[bool, str | None]:
+        """Record one drop.
+
+        Args:
+            sender: The claimed sender, or None when unknown.
+            reason: Why it was dropped (one of :data:`DROP_REASONS`).
+            now: The current time in seconds.
+
+        Returns:
+            Whether this drop gets a line of its own, and a summary line to log now (or None).
+        """
+        key = (sender, reason)
+        if self._since is None or now < self._since:  # first drop, or the clock went back
+            self._since = now
+        if key not in self._first and len(self._first) < _MAX_FIRST_LINES:
+            self._first.add(key)
+            return True, None
+        self._pending[key] = self._pending.get(key, 0) + 1
+        if now - self._since < self.interval_s:
+            return False, None
+        return False, self.flush(now)
+
+    def flush(self, now: float) -> str | None:
+        """The summary of the drops held back so far (None if there are none); starts anew.
+
+        Args:
+            now: The current time in seconds.
+
+        Returns:
+            The summary line, or None.
+        """
+        if not self._pending:
+            return None
+        since = now if self._since is None else self._since
+        pairs = sorted(self._pending.items(), key=lambda item: -item[1])
+        total = sum(n for _, n in pairs)
+        shown = ", ".join(
+            f"{n} from {_claimed(who)} ({_WARN_EXPLAIN[why][0]})"
+            for (who, why), n in pairs[:_MAX_SUMMARY_PAIRS]
+        )
+        if len(pairs) > _MAX_SUMMARY_PAIRS:
+            rest = sum(n for _, n in pairs[_MAX_SUMMARY_PAIRS:])
+            shown += f" and {rest} from {len(pairs) - _MAX_SUMMARY_PAIRS} other senders/reasons"
+        line = f"dropped {total} more messages in the last {now - since:.0f} s: {shown}"
+        self._pending.clear()
+        self._since = now
+        return line
 
 
 def key_from_text(text: str) -> bytes:
@@ -257,7 +370,8 @@ class FleetAuth:
         self._counts = dict.fromkeys(("accepted", *DROP_REASONS), 0)
         self._peers: dict[str, _Peer] = {}
         self._next_prune = clock() + self.window_s
-        self._log = _LogLimiter()
+        self._log = _LogLimiter()  # the DEBUG lines of quiet drops
+        self._drop_log = _DropLog(DROP_SUMMARY_S)  # guarded by _lock
         if insecure:
             logger.warning(
                 "fleet %r runs INSECURE (no key): anyone on the network can forge, alter or "
@@ -337,10 +451,28 @@ class FleetAuth:
         result = self._check(channel, data)
         if isinstance(result, Opened):
             return result
-        reason, sender = result
+        reason, sender, detail = result
+        first, summary = False, None
         with self._lock:
             self._counts[reason] += 1
-        if logger.isEnabledFor(logging.DEBUG):
+            if reason not in _QUIET_REASONS:
+                first, summary = self._drop_log.drop(sender, reason, self._clock())
+        if first:
+            what, hint = _WARN_EXPLAIN[reason]
+            logger.warning(
+                "fleet %r: dropped a message on %r from %s: %s%s; %s (further drops are"
+                " summarised at most every %.0f s)",
+                self.fleet,
+                channel,
+                _claimed(sender),
+                what,
+                detail,
+                hint,
+                DROP_SUMMARY_S,
+            )
+        elif summary is not None:
+            logger.warning("fleet %r: %s", self.fleet, summary)
+        if reason in _QUIET_REASONS and logger.isEnabledFor(logging.DEBUG):
             held = self._log.allow(reason)
             if held is not None:
                 more = f" ({held} more since the last report)" if held else ""
@@ -348,16 +480,34 @@ class FleetAuth:
                     "fleet %r: dropped a message on %r from %s: %s%s",
                     self.fleet,
                     channel,
-                    "an unknown sender" if sender is None else repr(sender),
+                    _claimed(sender),
                     _EXPLAIN[reason],
                     more,
                 )
         return None
 
+    def log_drop_summary(self) -> None:
+        """Log the summary of drops held back since the last line (WARNING), if there are any.
+
+        Call it when the member stops, so that the drops of its last seconds are reported too.
+
+        Raises:
+            Nothing.
+        """
+        with self._lock:
+            line = self._drop_log.flush(self._clock())
+        if line is not None:
+            logger.warning("fleet %r: %s", self.fleet, line)
+
     # --- internals ----------------------------------------------------------------------------
 
-    def _check(self, channel: str, data: bytes) -> Opened | tuple[str, str | None]:
-        """Run the checks of :meth:`open`: the content, or why and from whom it is dropped."""
+    def _check(self, channel: str, data: bytes) -> Opened | tuple[str, str | None, str]:
+        """Run the checks of :meth:`open`.
+
+        Returns:
+            The content; or why it is dropped, from whom (None: unknown) and details for the
+            log line (``""`` or ``" (...)"``).
+        """
         try:
             env = envelope_t.decode(data)
             # Only the canonical encoding is accepted: LCM's decoder ignores trailing bytes,
@@ -369,34 +519,35 @@ class FleetAuth:
                 and env.encode() == data
             )
         except Exception:
-            return "garbage", None
+            return "garbage", None, ""
         if not canonical:
-            return "garbage", None
+            return "garbage", None, ""
         sender: str = env.sender
         if env.version != ENVELOPE_VERSION:
-            return "version", sender
+            return "version", sender, f" (version {env.version})"
         if env.fleet != self.fleet:
-            return "fleet", sender
+            return "fleet", sender, ""
         if sender == self.sender:
-            return "self", sender
+            return "self", sender, ""
         mac_size: int = env.mac_size
         if self._key is None:
             if mac_size != 0:
-                return "unexpected_mac", sender
+                return "unexpected_mac", sender, ""
         elif mac_size == 0:
-            return "unsigned", sender
+            return "unsigned", sender, ""
         else:
             body = data[: len(data) - len(_MAC_SIZE_FIELD) - mac_size] + _NO_MAC_FIELD
             if mac_size != _MAC_SIZE or not hmac.compare_digest(self._mac(channel, body), env.mac):
-                return "forged", sender
+                return "forged", sender, ""
         now = self._clock()
         stamp_us: int = env.stamp_us
-        if abs(stamp_us / 1e6 - now) > self.window_s:
-            return "stale", sender
+        skew = stamp_us / 1e6 - now
+        if abs(skew) > self.window_s:
+            return "stale", sender, f" ({skew:+.1f} s from our clock, window ±{self.window_s:g} s)"
         seq: int = env.seq
         with self._lock:
             if not self._admit(sender, seq, now):
-                return "replayed", sender
+                return "replayed", sender, ""
             self._counts["accepted"] += 1
             if now >= self._next_prune:
                 self._prune(now)

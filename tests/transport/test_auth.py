@@ -375,22 +375,25 @@ def test_checks_run_in_the_documented_order(clock: FakeClock, alice: FleetAuth) 
 # --- logging --------------------------------------------------------------------------------------
 
 
-def test_drops_are_debug_logged_at_most_once_per_reason_per_second(
-    alice: FleetAuth, bob: FleetAuth, caplog: pytest.LogCaptureFixture
+def test_echoes_and_other_fleets_are_debug_logged_at_most_once_per_reason_per_second(
+    alice: FleetAuth, clock: FakeClock, caplog: pytest.LogCaptureFixture
 ) -> None:
-    data = alice.seal(CHANNEL, "t", PAYLOAD)
+    # Normal on a shared network: no warning (tests/transport/test_auth_drop_log.py has those).
+    own = alice.seal(CHANNEL, "t", PAYLOAD)
+    stranger = FleetAuth("other", "carol", KEY, clock=clock).seal(CHANNEL, "t", PAYLOAD)
     with caplog.at_level(logging.DEBUG, logger="temoto.transport"):
         for _ in range(10):
-            bob.open(CHANNEL, b"junk")
-        bob.open(CHANNEL, data)
+            alice.open(CHANNEL, own)
         for _ in range(10):
-            bob.open(CHANNEL, data)
+            alice.open(CHANNEL, stranger)
     lines = [r.getMessage() for r in caplog.records if r.levelno == logging.DEBUG]
     assert len(lines) == 2, lines
-    assert "unknown sender" in lines[0]
-    assert "'alice'" in lines[1]
-    assert "already seen" in lines[1]
-    assert bob.stats["garbage"] == bob.stats["replayed"] == 10
+    assert "'alice'" in lines[0]
+    assert "our own message" in lines[0]
+    assert "'carol'" in lines[1]
+    assert "another fleet" in lines[1]
+    assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+    assert alice.stats["self"] == alice.stats["fleet"] == 10
 
 
 def test_an_insecure_member_warns_once_when_created(
