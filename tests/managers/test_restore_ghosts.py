@@ -16,6 +16,7 @@ import logging
 import os
 import secrets
 import signal
+import subprocess
 import sys
 import threading
 from collections.abc import Iterator
@@ -310,3 +311,40 @@ def test_sigkilled_robot_command_restarts_clean_on_its_state_dir(
     assert [r.moment for r in rounds] == list(tool.MOMENTS)
     failed = [r.line() for r in rounds if not r.ok]
     assert not failed, "\n".join(failed)
+
+
+def test_serve_restores_without_ghosts_and_leaves_an_empty_catalog_at_sigterm(
+    tmp_path: Path,
+) -> None:
+    # A catalog left by a run killed while one of its graph runs held a process.
+    state = tmp_path / "state"
+    state.mkdir()
+    catalog = state / "registrar.journal"
+    first = Registrar("a", catalog=catalog, fsync="never")
+    processes = ProcessManager(first)
+    first.call("process", SLEEPER, client="a_run/Node_0")
+    processes.shutdown(stop_processes=True)
+    first.close()
+    env = {k: v for k, v in os.environ.items() if k != "TEMOTO_FLEET_KEY"}
+    bus = f"inproc://ghosts-{os.getpid()}"
+    argv = ["-m", "temoto", "serve", "--actor", "a", "--insecure", "--fleet-url", bus]
+    serve = subprocess.Popen(
+        [sys.executable, *argv, "--state-dir", str(state)],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        assert serve.stdout is not None
+        assert serve.stdout.readline() == "ready\n"
+        assert entries(catalog) == {}  # the dead run's reference was released at restore
+        serve.send_signal(signal.SIGTERM)
+        _, err = serve.communicate(timeout=20)
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+            serve.communicate()
+    assert serve.returncode == 0, err
+    assert ALARM not in err
+    assert entries(catalog) == {}
