@@ -83,7 +83,7 @@ MISSION: dict[str, Any] = {
             "type": "sync",
             "parents": [{"name": "RequestPipeline", "instance_id": 0}],
             "input_parameters": {
-                "count": {"pvf_type": "number", "pvf_value": 60},
+                "count": {"pvf_type": "number", "pvf_value": 100},
                 "timeout": {"pvf_type": "number", "pvf_value": 5},
             },
         },
