@@ -65,7 +65,9 @@ class Instance(Closing):
         insecure: Run without a key (any host could command this instance; logged).
         actions: Folders of actions.
         graphs: Folders of graphs (what ``temoto graph start NAME`` can start).
-        catalog: The registrar's journal file (None: kept in memory only).
+        catalog: The registrar's journal file (None: kept in memory only). One left by an
+            earlier run is restored and settled: the references it lists are released (their
+            holders died with that run), so what they held is unloaded (processes stopped).
         world: The Context Manager's world-model file (None: kept in memory only).
         reliability_file: The Component Manager's reliabilities (None: kept in memory only).
         handshake_timeout: Seconds to wait for the other actors of a shared graph.
