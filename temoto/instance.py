@@ -13,8 +13,14 @@ registrar, and their built-in actions are in the engine's catalog. ``temoto serv
 one until SIGINT or SIGTERM; the Robot Manager builds on it.
 
 Closing stops the runs (their actions get their stop request, their resources are released),
-then the fleet services, the managers and the transport, in that order, so nothing started by
-the instance outlives it.
+then the fleet services and the managers, releases whatever is still held, then stops the
+processes and closes the transport, in that order, so nothing started by the instance outlives
+it and its catalog ends empty.
+
+Restarted on the catalog of a previous run (``--state-dir``), an instance releases every
+reference that run held: graph runs are not persistent (a run that died with its process is
+not resumed), nor is anything else that holds resources in an instance. What only they held is
+unloaded (processes stopped) before the servers re-check the rest (``docs/registrar.md``).
 """
 
 from __future__ import annotations
@@ -59,7 +65,9 @@ class Instance(Closing):
         insecure: Run without a key (any host could command this instance; logged).
         actions: Folders of actions.
         graphs: Folders of graphs (what ``temoto graph start NAME`` can start).
-        catalog: The registrar's journal file (None: kept in memory only).
+        catalog: The registrar's journal file (None: kept in memory only). One left by an
+            earlier run is restored and settled: the references it lists are released (their
+            holders died with that run), so what they held is unloaded (processes stopped).
         world: The Context Manager's world-model file (None: kept in memory only).
         reliability_file: The Component Manager's reliabilities (None: kept in memory only).
         handshake_timeout: Seconds to wait for the other actors of a shared graph.
@@ -114,7 +122,12 @@ class Instance(Closing):
         self._managers: list[object] = []
         closing: list[object] = []
         try:
-            self.registrar = Registrar(actor, catalog=catalog, restore=catalog is not None)
+            # Every consumer of this registrar lives in this process (graph runs, the robot
+            # command, the managers' own holds, what the provider holds for other robots):
+            # after a crash none of them is coming back for its references.
+            self.registrar = Registrar(
+                actor, catalog=catalog, restore=catalog is not None, transient=_died_with_us
+            )
             closing.append(self.registrar)
             self.processes = ProcessManager(self.registrar)
             closing.append(self.processes)
@@ -187,6 +200,9 @@ class Instance(Closing):
         )
         for part in parts:
             if part is self.processes:
+                # What a consumer above did not release (one that died in an action, a
+                # reference taken outside a run) goes now: the catalog ends empty.
+                self._release_leftovers()
                 # Nothing this instance started outlives it (its consumers above have released
                 # what they held; this stops the rest, e.g. of runs that did not stop in time).
                 try:
@@ -196,6 +212,17 @@ class Instance(Closing):
                 continue
             _close(part)
 
+    def _release_leftovers(self) -> None:
+        try:
+            left = [
+                f"{r.client} ({r.resource_id})" for r in self.registrar.references() if not r.holder
+            ]
+            if left:
+                logger.info("releasing what was still held at close: %s", ", ".join(left))
+            self.registrar.release_consumers()
+        except Exception:
+            logger.exception("releasing the references left at close failed")
+
     def add_manager(self, manager: object) -> None:
         """Have :meth:`close` shut ``manager`` down after the engine (e.g. a Robot Manager).
 
@@ -203,6 +230,11 @@ class Instance(Closing):
             manager: Anything with a ``shutdown()`` or ``close()`` method.
         """
         self._managers.append(manager)
+
+
+def _died_with_us(client: str) -> bool:
+    """Restore: every consumer of an instance's catalog died with the process that wrote it."""
+    return True
 
 
 def _close(part: object) -> None:

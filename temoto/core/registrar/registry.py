@@ -132,6 +132,10 @@ class Registrar:
         fsync: ``"group"`` (default: fsync at most every ``fsync_interval``), ``"always"``
             (every change), ``"never"``.
         fsync_interval: Seconds between grouped fsyncs.
+        transient: With ``restore``: which consumers (by client name) died with the process
+            that wrote the catalog. Their references are released at restore, before the
+            servers are asked about their resources (what only they held is unloaded). None
+            (default): every consumer is expected back (it re-attaches with ``subscribe``).
 
     Raises:
         CatalogCorruptError: If ``restore`` finds a corrupt catalog (the file is untouched).
@@ -146,8 +150,10 @@ class Registrar:
         restore: bool = False,
         fsync: Literal["group", "always", "never"] = "group",
         fsync_interval: float = 0.1,
+        transient: Callable[[str], bool] | None = None,
     ) -> None:
         self.name = name
+        self._transient = transient
         self._lock = threading.Lock()
         self._servers: dict[str, ResourceServer[Any, Any]] = {}
         self._entries: dict[str, _Entry] = {}
@@ -538,6 +544,37 @@ class Registrar:
                 pass
         return count
 
+    def release_consumers(self, select: Callable[[Reference], bool] | None = None) -> int:
+        """Release consumers' references (not dependencies), newest first.
+
+        For a program that ends, or whose consumers are gone: what only they held is unloaded
+        (dependencies first), and the catalog no longer lists it.
+
+        Args:
+            select: Which references (all if None); called without the registrar's lock.
+
+        Returns:
+            How many references were released.
+
+        Raises:
+            ResourceClosedError: The registrar is closed.
+        """
+        with self._lock:
+            self._check_open()
+            refs = [r.snapshot() for r in self._refs.values() if not r.holder]
+        chosen = [r.id for r in refs if select is None or select(r)]
+        count = 0
+        for ref_id in reversed(chosen):
+            try:
+                self.release(ref_id)
+                count += 1
+            except ResourceNotFoundError:
+                pass  # released meanwhile (e.g. by an unload this loop caused)
+            except ResourceClosedError:
+                if self._closed:
+                    raise
+        return count
+
     # ================================================================ status
 
     def send_status(self, resource_id: str, status: Status, message: str = "") -> int:
@@ -855,17 +892,24 @@ class Registrar:
                     self._book_ref(ref, self._entries[ref.uid], -1)
             restored = list(self._entries.values())
         logger.info("restored %d resources from %s", len(restored), name)
-        reports: list[tuple[str, Status, str]] = []
+        # Settle what the crash left, before any server is asked about its resources (a
+        # resource unloaded here is never reported on): a resource whose last reference had
+        # been released is unloaded; the references of consumers that died with the previous
+        # process are released; a half-done load is undone (its dependencies released, the
+        # server told to clean up).
         for entry in restored:
-            if not entry.loading:
-                with self._lock:
-                    info = self._info(entry)
-                verdict = self._servers[entry.server].on_restore(info)
-                if verdict is not None:
-                    reports.append((entry.uid, verdict[0], verdict[1]))
-        # Settle what the crash interrupted: a half-done load is undone (its dependencies
-        # released, the server told to clean up); a resource whose last reference had been
-        # released is unloaded.
+            with self._lock:
+                if entry.slot < 0 or entry.loading or self._book.count(entry.slot):
+                    continue
+                if self._live.get((entry.server, entry.key)) == entry.uid:
+                    del self._live[(entry.server, entry.key)]
+            logger.warning("restore: %s had been released; unloading it", entry.uid)
+            self._unload(entry)
+        if self._transient is not None:
+            transient = self._transient
+            gone = self.release_consumers(lambda ref: transient(ref.client))
+            if gone:
+                logger.info("restore: released %d references of consumers that are gone", gone)
         for entry in restored:
             if entry.loading and entry.uid in self._entries:
                 logger.warning("restore: the load of %s was interrupted; undoing it", entry.uid)
@@ -881,17 +925,50 @@ class Registrar:
                 with self._lock:
                     self._forget(entry)
                     self._write({"op": "abandon", "uid": entry.uid})
-        for uid, status, message in reports:
-            if uid in self._entries:
-                self.send_status(uid, status, message)
-        for entry in restored:
+        # Then each server re-checks what is left of its resources (re-adopts them, or reports
+        # them failed), dependencies before the resources holding them; a verdict is reported
+        # at once, so a holder's server sees its dependencies' failures.
+        with self._lock:
+            order = self._restore_order(restored)
+        for entry in order:
             with self._lock:
-                if entry.slot < 0 or entry.loading or self._book.count(entry.slot):
-                    continue
-                if self._live.get((entry.server, entry.key)) == entry.uid:
-                    del self._live[(entry.server, entry.key)]
-            logger.warning("restore: %s had been released; unloading it", entry.uid)
-            self._unload(entry)
+                if self._entries.get(entry.uid) is not entry or entry.loading:
+                    continue  # unloaded meanwhile (by an earlier hook's release): not reported
+                info = self._info(entry)
+            verdict = self._servers[entry.server].on_restore(info)
+            if verdict is not None and entry.uid in self._entries:
+                self.send_status(entry.uid, verdict[0], verdict[1])
+
+    def _restore_order(self, entries: list[_Entry]) -> list[_Entry]:
+        """Live ``entries``, each after the resources it depends on (lock held)."""
+
+        def deps(entry: _Entry) -> list[_Entry]:
+            if entry.slot < 0:
+                return []
+            found = (
+                self._entries.get(self._slot_refs[s].uid)
+                for s in self._book.dependencies(entry.slot)
+            )
+            return [e for e in found if e is not None]
+
+        order: list[_Entry] = []
+        seen: set[str] = set()
+        for root in entries:
+            if root.uid in seen or self._entries.get(root.uid) is not root:
+                continue
+            seen.add(root.uid)
+            stack = [(root, iter(deps(root)))]
+            while stack:
+                node, todo = stack[-1]
+                for dep in todo:
+                    if dep.uid not in seen:
+                        seen.add(dep.uid)
+                        stack.append((dep, iter(deps(dep))))
+                        break
+                else:
+                    stack.pop()
+                    order.append(node)
+        return order
 
     def _journal_name(self) -> str:
         return str(self._journal.path) if self._journal is not None else "catalog"

@@ -30,7 +30,7 @@ import functools
 import logging
 import queue
 import threading
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -496,6 +496,9 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
         self._check_open()
         self.check_type(request.type, name=request.name, local_only=request.local_only)
         state = _Active(ctx.resource_id, request, f"{self.registrar.name}/{ctx.resource_id}")
+        # What holds the candidates: if this process dies before the load returns, the
+        # restarted registrar hands it to on_abandoned, which releases them.
+        ctx.checkpoint({"client": state.client})
         with self._lock:
             self._active[state.uid] = state
         try:
@@ -511,11 +514,15 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
         """Stop the active candidate; it served until released: a success for its rating."""
         with self._lock:
             state = self._active.pop(response.resource_id, None)
-            if state is None:
-                return
-            state.closing = True
-            held, state.held, state.held_gen = state.held, None, -1
-            candidate = state.candidate
+            if state is not None:
+                state.closing = True
+                held, state.held, state.held_gen = state.held, None, -1
+                candidate = state.candidate
+        if state is None:
+            # Restored from the catalog (what held its candidate died with the previous
+            # process): release what it held, if anything still is.
+            self.registrar.release_client(f"{self.registrar.name}/{response.resource_id}")
+            return
         if held is None:
             return
         if candidate is not None:
@@ -524,9 +531,30 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
         self._release(held)
 
     def on_restore(self, resource: ResourceInfo) -> tuple[Status, str] | None:
-        """After a restart: components are not re-adopted; their candidates are released."""
+        """After a restart: a component is not re-adopted; its candidate is released.
+
+        The manager that watched the candidate and would fail it over died with the previous
+        process, so the resource is reported FATAL (its consumers request it again; new equal
+        requests load a fresh one) and the candidate's process is stopped now, not when the
+        consumers get round to releasing the component.
+        """
+        if resource.failed:
+            return None  # reported before the restart; released by on_unload
         self.registrar.release_client(f"{self.registrar.name}/{resource.id}")
         return Status.FATAL, "the Component Manager restarted; request the component again"
+
+    def on_abandoned(self, request: ComponentRequest, progress: Mapping[str, Any] | None) -> None:
+        """After a restart: a load was interrupted; release the candidate it may have started.
+
+        Args:
+            request: The request being loaded.
+            progress: ``{"client": ...}``, the client name its candidates were held under.
+        """
+        client = (progress or {}).get("client")
+        if isinstance(client, str) and client:
+            released = self.registrar.release_client(client)
+            if released:
+                logger.info("interrupted load of %s: released its candidate", request.type)
 
     # ------------------------------------------------------------------ starting
 
@@ -882,3 +910,51 @@ class PipelineServer(ResourceServer[PipelineRequest, PipelineResponse]):
 
     def on_unload(self, request: PipelineRequest, response: PipelineResponse) -> None:
         """Nothing: the segments are dependencies, released by the registrar."""
+
+    def on_status(self, resource: ResourceInfo, status: Status, message: str) -> None:
+        """A segment failed for good (FATAL): the pipeline is failed too.
+
+        Its consumers already got the segment's FATAL; marking the pipeline failed keeps new
+        equal requests from sharing a pipeline with a dead segment (they load a fresh one).
+
+        Args:
+            resource: The pipeline.
+            status: The status (of the pipeline or, up the chain, of a segment).
+            message: What happened.
+        """
+        if status is Status.FATAL and not resource.failed:
+            try:
+                self.manager.registrar.send_status(
+                    resource.id, Status.FATAL, f"a segment failed: {message}"
+                )
+            except ResourceError as err:
+                logger.debug("pipeline %s is gone: %s", resource.id, err)
+
+    def on_restore(self, resource: ResourceInfo) -> tuple[Status, str] | None:
+        """After a restart: the pipeline is live only if every segment still is.
+
+        The registrar asks the segments (components) first; one that is gone or failed makes
+        the pipeline FATAL, so that it is never shared with nothing behind it.
+
+        Args:
+            resource: A restored pipeline.
+
+        Returns:
+            None if every segment is live (or the pipeline had failed before), else FATAL.
+        """
+        if resource.failed:
+            return None
+        response = resource.response
+        registrar = self.manager.registrar
+        for segment, uid in response.segments:
+            try:
+                failed = registrar.info(uid).failed
+            except ResourceError:
+                failed = True
+            if failed:
+                return (
+                    Status.FATAL,
+                    f"pipeline '{response.template}': segment '{segment}' did not survive the"
+                    " restart; request the pipeline again",
+                )
+        return None

@@ -221,35 +221,47 @@ def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
         if stale:
             logger.info("released %d references of the previous run", stale)
         robot = RobotManagerClient(instance.registrar).request(client=CLIENT)
-        where = "simulated" if profile.sim else "hardware"
-        out.write(
-            f"robot '{profile.robot}' ready in {time.monotonic() - t0:.2f} s ({where};"
-            f" {', '.join(robot.features) or 'no features'};"
-            f" fleet {'off' if args.local else args.fleet_url})\n"
-        )
-        if instance.live_view is not None:
-            out.write(f"live view: {instance.live_view.url}\n")
-        out.flush()
-        if mission is None:
-            sys.stderr.write(f"robot '{profile.robot}' serving; Ctrl-C stops it\n")
-            interrupts.signals.stop.wait()
-            return EXIT_OK
-        signals = interrupts.signals
-        if signals.stop.is_set():
-            return EXIT_FAILED  # main() returns the signal's exit code
-        instance.engine.add_instrument(_Progress(out, t0))
-        outcome = _mission(instance.engine, mission, args.timeout, signals.stop)
-        if signals.stop.is_set():
-            name = signal.Signals(signals.signum or signal.SIGINT).name
-            out.write(f"{mission.name}: interrupted ({name})\n")
-            # the stop waited for the actions already: do not wait for them a second time
-            instance.engine.shutdown(timeout=_AFTER_STOP)
-            return EXIT_FAILED
-        result = outcome.result.value if outcome.result else "none"
-        out.write(f"{mission.name}: {result} in {time.monotonic() - t0:.2f} s\n")
-        for error in outcome.errors:
-            sys.stderr.write(f"  error: {error}\n")
-        return EXIT_OK if outcome.result is Result.TRUE else EXIT_FAILED
+        try:
+            where = "simulated" if profile.sim else "hardware"
+            out.write(
+                f"robot '{profile.robot}' ready in {time.monotonic() - t0:.2f} s ({where};"
+                f" {', '.join(robot.features) or 'no features'};"
+                f" fleet {'off' if args.local else args.fleet_url})\n"
+            )
+            if instance.live_view is not None:
+                out.write(f"live view: {instance.live_view.url}\n")
+            out.flush()
+            if mission is None:
+                sys.stderr.write(f"robot '{profile.robot}' serving; Ctrl-C stops it\n")
+                interrupts.signals.stop.wait()
+                return EXIT_OK
+            signals = interrupts.signals
+            if signals.stop.is_set():
+                return EXIT_FAILED  # main() returns the signal's exit code
+            instance.engine.add_instrument(_Progress(out, t0))
+            outcome = _mission(instance.engine, mission, args.timeout, signals.stop)
+            if signals.stop.is_set():
+                name = signal.Signals(signals.signum or signal.SIGINT).name
+                out.write(f"{mission.name}: interrupted ({name})\n")
+                # the stop waited for the actions already: do not wait for them a second time
+                instance.engine.shutdown(timeout=_AFTER_STOP)
+                return EXIT_FAILED
+            result = outcome.result.value if outcome.result else "none"
+            out.write(f"{mission.name}: {result} in {time.monotonic() - t0:.2f} s\n")
+            for error in outcome.errors:
+                sys.stderr.write(f"  error: {error}\n")
+            return EXIT_OK if outcome.result is Result.TRUE else EXIT_FAILED
+        finally:
+            # at every way out but a second signal: the catalog keeps nothing of this run
+            _release(instance.registrar, robot.resource.id)
+
+
+def _release(registrar: Any, reference: str) -> None:
+    """Release this command's reference to the robot (the instance closes after it)."""
+    try:
+        registrar.release(reference)
+    except ResourceError as err:
+        logger.debug("releasing the robot: %s", err)
 
 
 def _mission(engine: Any, mission: Any, timeout: float | None, stop: threading.Event) -> Any:
