@@ -478,7 +478,12 @@ class DynamixelDriver(Driver):
         return driver
 
     def _warn_if_too_fast(self, where: str) -> None:
-        """Log a warning when one poll cycle takes longer on the wire than a poll period."""
+        """Log a warning when one poll cycle takes longer on the wire than a poll period.
+
+        Not for a pseudo-terminal (a simulated chain): it has no wire whose time to estimate.
+        """
+        if os.path.realpath(self.port).startswith("/dev/pts/"):
+            return
         given = self.return_delay_units is not None
         delay = (
             (self.return_delay_units or 0) * ct.RETURN_DELAY_UNIT if given else FACTORY_RETURN_DELAY
@@ -518,8 +523,7 @@ class DynamixelDriver(Driver):
             clock: Steps the simulated motion.
 
         Returns:
-            (the :class:`SimDynamixelChain`, the entry with ``link`` =
-            ``serial:<pty path>?baud=<the entry's baud rate>``
+            (the :class:`SimDynamixelChain`, the entry with ``link`` = ``serial:<pty path>``
             and, unless the entry sets one, ``reply_timeout`` = :data:`SIM_REPLY_TIMEOUT`:
             the simulator shares the client's process and GIL, so on a loaded machine a
             reply can take longer than a real servo's).
@@ -531,8 +535,7 @@ class DynamixelDriver(Driver):
         servos: Sequence[ServoConfig] = kwargs["servos"]
         sim = SimDynamixelChain({s.id: s.model for s in servos}, clock=clock, name=name)
         out = dict(config)
-        # the profile's baud rate stays: the wire-time estimate (poll-rate warning) uses it
-        out["link"] = f"serial:{sim.path}?baud={kwargs['baud']}"
+        out["link"] = f"serial:{sim.path}"
         out.setdefault("reply_timeout", SIM_REPLY_TIMEOUT)
         return sim, out
 
