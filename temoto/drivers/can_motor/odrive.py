@@ -161,7 +161,7 @@ class ODriveNode:
 class _Rate:
     """Arrivals of one cyclic stream, for the duplicate-node check (one writer)."""
 
-    __slots__ = ("asked", "limit", "period", "times", "window")
+    __slots__ = ("asked", "limit", "period", "since", "times", "window")
 
     def __init__(self, period: float) -> None:
         self.period = period
@@ -169,6 +169,7 @@ class _Rate:
         self.limit = DUPLICATE_FACTOR * DUPLICATE_PERIODS + 2
         self.times: deque[float] = deque()
         self.asked = 0  # replies still due to the driver's own requests (not counted)
+        self.since: float | None = None  # when the rate went over the limit
 
     def ask(self) -> None:
         self.asked = min(self.asked + 1, 4)
@@ -180,17 +181,28 @@ class _Rate:
         self.times.append(now)
 
     def excess(self, now: float) -> float | None:
-        """The rate as a multiple of the configured one, when it is a duplicate's."""
+        """The rate as a multiple of the configured one, when it is a duplicate's.
+
+        Only when it stayed over the limit for a whole window: a backlog of frames handled in
+        a burst after a pause of our process (or of the receive thread) fills one window, not
+        two; a second device keeps it full.
+        """
         times = self.times
         while times and times[0] <= now - self.window:
             times.popleft()
         if len(times) <= self.limit:
+            self.since = None
+            return None
+        if self.since is None:
+            self.since = now
+        if now - self.since < self.window:
             return None
         return len(times) / DUPLICATE_PERIODS
 
     def clear(self) -> None:
         self.times.clear()
         self.asked = 0
+        self.since = None
 
 
 class _Axis:
