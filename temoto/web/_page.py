@@ -433,7 +433,9 @@ function renderTimeline() {
     return;
   }
   const now = typeof view.now === "number" ? view.now : line.end;
-  const t0 = line.start, t1 = Math.max(line.end !== null ? line.end : now, t0 + 0.001);
+  let t1 = Math.max(line.end !== null ? line.end : now, line.start + 0.001);
+  for (const s of line.spans) if (s.end !== null) t1 = Math.max(t1, s.end);
+  const t0 = line.start;
   const rows = [];
   for (const s of line.spans) if (!rows.includes(s.node)) rows.push(s.node);
   const labelW = 130, rowH = 20, width = Math.max(box.clientWidth - 4, 300);
