@@ -72,7 +72,7 @@ body[data-mode="replay"] #controls { display: none; }
 #clock { font: 12px ui-monospace, monospace; min-width: 150px; text-align: right; }
 #source { color: #6b7280; font-size: 12px; max-width: 320px; overflow: hidden;
   text-overflow: ellipsis; white-space: nowrap; }
-main { flex: 1; min-height: 0; display: grid; grid-template-columns: 200px minmax(0, 1fr) 350px;
+main { flex: 1; min-height: 0; display: grid; grid-template-columns: 220px minmax(0, 1fr) 350px;
   gap: 10px; padding: 10px; }
 .col { display: flex; flex-direction: column; gap: 10px; min-height: 0; min-width: 0; }
 section { background: #fff; border-radius: 6px; box-shadow: 0 1px 2px #0002;
@@ -93,7 +93,8 @@ h3 { font-size: 12px; margin: 8px 0 3px; color: #374151; }
 .badge[data-state="HALTED"], .badge[data-state="STOPPED"] { background: #f59e57; }
 #graph { flex: 3; display: flex; flex-direction: column; }
 #runhead { display: flex; gap: 8px; align-items: baseline; white-space: nowrap; min-width: 0; }
-#runname { font-size: 15px; font-weight: 600; overflow: hidden; text-overflow: ellipsis; }
+#runname { font-size: 15px; font-weight: 600; overflow: hidden; text-overflow: ellipsis;
+  flex: none; max-width: 60%; }
 #rundesc { color: #6b7280; font-size: 12px; overflow: hidden; text-overflow: ellipsis; }
 #errors { color: #b91c1c; font-size: 12px; margin: 2px 0; padding-left: 18px; }
 #canvas { flex: 1; min-height: 0; position: relative; border: 1px solid #e5e7eb;
@@ -439,7 +440,7 @@ function renderTimeline() {
   const rows = [];
   for (const s of line.spans) if (!rows.includes(s.node)) rows.push(s.node);
   const labelW = 130, rowH = 20, width = Math.max(box.clientWidth - 4, 300);
-  const plotW = width - labelW - 70, height = rows.length * rowH + 22;
+  const plotW = width - labelW - 120, height = rows.length * rowH + 22;
   const X = (t) => labelW + ((t - t0) / (t1 - t0)) * plotW;
   const svg = sv("svg", {width: width, height: height, id: "ganttsvg"});
   const ticks = 6;
@@ -535,6 +536,7 @@ function renderRobot() {
   $("vehiclebox").hidden = !(r && r.vehicle);
   $("healthbox").hidden = !r;
   $("norobot").hidden = !!r;
+  if (MODE === "replay") $("norobot").textContent = "No robot readings in this recording.";
   if (!r) return;
   if (r.pose) {
     renderMap(r);
@@ -714,9 +716,6 @@ function onEvent(ev) {
   if (ev.kind === "hello" || ev.kind === "resync") { loadRuns(); loadIndexed(); return; }
   if (ev.kind === "graph") { refreshRuns(); }
   if (ev.graph !== current) return;
-  if (ev.kind === "graph" && view && ev.state === "ENDED") {
-    view.result = ev.result; renderHead();
-  }
   if (ev.kind === "node") {
     for (const g of document.querySelectorAll("#svg .node")) {
       if (g.getAttribute("data-node") !== ev.node) continue;

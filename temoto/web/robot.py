@@ -178,6 +178,10 @@ class RobotWatch(Closing):
             if id(robot) != self._robot_id:  # a newly loaded robot: a new odometry frame
                 self._robot_id = id(robot)
                 self._trail.clear()
+            elif self._latest is not None:  # a device closing: keep what it showed last
+                for part in ("joints", "vehicle"):
+                    if reading[part] is None:
+                        reading[part] = self._latest[part]
             pose = reading["pose"]
             if pose is not None:
                 here = (round(pose["x"], 4), round(pose["y"], 4))
