@@ -295,3 +295,94 @@ def test_a_replay_view_refuses_writes(tmp_path: Path, demo: Demo) -> None:
         )
         assert conn.getresponse().status == 403
         conn.close()
+
+
+# ---------------------------------------------------------------- the robot
+
+
+def test_the_robot_answer_shows_a_vehicle_and_its_drivers() -> None:
+    """The simulated quadcopter: position, altitude, mode, armed state, battery, health."""
+    from temoto import ActionEngine
+    from temoto.config import load_profile
+    from temoto.core.registrar import Registrar
+    from temoto.managers.robot import RobotManager
+    from temoto.managers.robot.client import RobotManagerClient
+
+    root = Path(__file__).resolve().parents[2]
+    registrar = Registrar("console-quad")
+    manager = RobotManager(registrar, load_profile(root / "hw_profiles/sim_quad.yaml"))
+    try:
+        with (
+            ActionEngine("quad", registrar=registrar) as engine,
+            LiveView(engine, robot_period_s=0.05) as view,
+        ):
+            assert get(view.base_url + "api/robot") == {"robot": None}  # not loaded yet
+            handle = RobotManagerClient(registrar).request(client="console-test")
+            deadline = time.monotonic() + WAIT
+            robot = None
+            while robot is None or robot["vehicle"] is None:
+                assert time.monotonic() < deadline
+                robot = get(view.base_url + "api/robot")["robot"]
+                time.sleep(0.02)
+            vehicle = robot["vehicle"]
+            assert (robot["name"], robot["loaded"], robot["features"]) == (
+                "sim_quad",
+                True,
+                ["flight"],
+            )
+            assert vehicle["lat"] == pytest.approx(47.397742, abs=1e-4)
+            assert vehicle["lon"] == pytest.approx(8.545594, abs=1e-4)
+            assert abs(vehicle["alt"]) < 1.0
+            assert vehicle["armed"] is False
+            assert isinstance(vehicle["mode"], str)
+            assert vehicle["mode"]
+            assert 0 < vehicle["battery_remaining"] <= 100
+            assert robot["pose"] is None
+            assert robot["joints"] is None
+            assert [h["device"] for h in robot["health"]] == ["quad"]
+            assert robot["healthy"] is True
+            registrar.release(handle.resource.id)
+            while robot["loaded"]:  # released: the last reading stays, marked
+                assert time.monotonic() < deadline
+                robot = get(view.base_url + "api/robot")["robot"]
+                time.sleep(0.02)
+            assert robot["vehicle"]["lat"] == vehicle["lat"]
+    finally:
+        manager.shutdown()
+        registrar.close()
+
+
+def test_the_timeline_has_a_span_per_run_of_an_action() -> None:
+    from temoto.core.states import NodeState as S
+    from temoto.web.events import EventHub
+
+    hub = EventHub()
+    assert hub.timeline("g") is None
+    hub.graph_started("g", 10.0)
+    steps = [
+        ("A_0", S.INITIALIZED, S.RUNNING, 10.0),
+        ("A_0", S.RUNNING, S.FINISHED, 11.0),
+        ("A_0", S.FINISHED, S.RUNNING, 12.0),  # a loop runs it again: a second span
+        ("A_0", S.RUNNING, S.ERROR, 12.5),
+        ("B_0", S.UNINITIALIZED, S.BYPASSED, 12.5),
+        ("C_0", S.INITIALIZED, S.RUNNING, 12.6),
+        ("C_0", S.RUNNING, S.STOPPING, 13.0),
+        ("C_0", S.STOPPING, S.FINISHED, 13.2),
+        ("D_0", S.INITIALIZED, S.RUNNING, 13.3),
+    ]
+    for node, old, new, t in steps:
+        hub.node_transition("g", node, old, new, t)
+    line = hub.timeline("g")
+    assert line is not None
+    assert (line["start"], line["end"]) == (10.0, None)
+    assert [(s["node"], s["start"], s["end"], s["state"], s["result"]) for s in line["spans"]] == [
+        ("A_0", 10.0, 11.0, "FINISHED", None),
+        ("A_0", 12.0, 12.5, "ERROR", "on_error"),
+        ("B_0", 12.5, 12.5, "BYPASSED", None),
+        ("C_0", 12.6, 13.2, "FINISHED", "on_stopped"),
+        ("D_0", 13.3, None, "RUNNING", None),
+    ]
+    hub.graph_finished("g", Result.ERROR, 14.0)
+    assert hub.timeline("g")["end"] == 14.0  # type: ignore[index]
+    hub.graph_started("g", 20.0)  # the name runs again: a fresh timeline
+    assert hub.timeline("g") == {"start": 20.0, "end": None, "spans": []}
