@@ -90,6 +90,7 @@ h3 { font-size: 12px; margin: 8px 0 3px; color: #374151; }
 #runs li.current { background: #dbe7fb; font-weight: 600; }
 .badge { font-size: 11px; padding: 1px 6px; border-radius: 8px; background: #e5e7eb;
   white-space: nowrap; font-weight: 500; flex: none; }
+.badge:empty { display: none; }
 .badge[data-state="HALTED"], .badge[data-state="STOPPED"] { background: #f59e57; }
 #graph { flex: 3; display: flex; flex-direction: column; }
 #runhead { display: flex; gap: 8px; align-items: baseline; white-space: nowrap; min-width: 0; }

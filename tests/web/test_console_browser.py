@@ -280,3 +280,49 @@ def test_a_recorded_trace_replays_with_a_time_slider(tmp_path: Path) -> None:
         finally:
             browser.close()
     keep(shot)
+
+
+@pytest.mark.slow
+def test_the_console_shows_a_vehicle(tmp_path: Path) -> None:
+    """The simulated quadcopter, loaded outside any graph: the vehicle table and its driver."""
+    from temoto import ActionEngine
+    from temoto.config import load_profile
+    from temoto.core.registrar import Registrar
+    from temoto.managers.robot import RobotManager
+    from temoto.managers.robot.client import RobotManagerClient
+
+    binary = require_chromium()
+    registrar = Registrar("console-quad-page")
+    manager = RobotManager(registrar, load_profile(ROOT / "hw_profiles/sim_quad.yaml"))
+    shot = tmp_path / "console-vehicle.png"
+    try:
+        with (
+            ActionEngine("quad", registrar=registrar) as engine,
+            LiveView(engine, robot_period_s=0.05) as view,
+        ):
+            RobotManagerClient(registrar).request(client="console-test")
+            browser = Browser(binary, view.url, tmp_path / "profile", tmp_path / "chromium.log")
+            try:
+                rows = browser.wait_for(
+                    "document.querySelectorAll('#vehicle tr').length >= 5 &&"
+                    " [...document.querySelectorAll('#vehicle tr')].map((tr) =>"
+                    " [tr.children[0].textContent, tr.children[1].textContent])"
+                )
+                table = dict(rows)
+                assert table["position"].startswith("47.39")
+                assert table["altitude"].endswith(" m")
+                assert table["armed"] == "disarmed"
+                assert "%" in table["battery"]
+                assert table["mode"]
+                assert browser.evaluate("document.getElementById('mapbox').hidden") is True
+                assert browser.evaluate("document.getElementById('jointsbox').hidden") is True
+                assert browser.evaluate(
+                    "document.querySelector('#health li').getAttribute('data-device')"
+                ) == ("quad")
+                browser.screenshot(shot)
+            finally:
+                browser.close()
+    finally:
+        manager.shutdown()
+        registrar.close()
+    keep(shot)
