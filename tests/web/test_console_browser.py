@@ -270,6 +270,27 @@ def test_a_recorded_trace_replays_with_a_time_slider(tmp_path: Path) -> None:
             )
             assert browser.evaluate("document.getElementById('clock').textContent").endswith(" s")
             browser.screenshot(shot)
+            # the graph is fitted to its panel; the wheel zooms, a drag pans, "fit" refits
+            fitted = browser.evaluate("document.getElementById('svg').getAttribute('viewBox')")
+            browser.evaluate(
+                "document.getElementById('canvas').dispatchEvent(new WheelEvent('wheel',"
+                " {deltaY: -100, clientX: 400, clientY: 300, bubbles: true, cancelable: true}))"
+            )
+            zoomed = browser.evaluate("document.getElementById('svg').getAttribute('viewBox')")
+            assert float(zoomed.split()[2]) < float(fitted.split()[2])
+            browser.evaluate(
+                "(() => { const c = document.getElementById('canvas');"
+                " c.dispatchEvent(new PointerEvent('pointerdown', {clientX: 400, clientY: 300,"
+                " bubbles: true}));"
+                " window.dispatchEvent(new PointerEvent('pointermove', {clientX: 450,"
+                " clientY: 320})); window.dispatchEvent(new PointerEvent('pointerup')); })()"
+            )
+            panned = browser.evaluate("document.getElementById('svg').getAttribute('viewBox')")
+            assert float(panned.split()[0]) < float(zoomed.split()[0])
+            click(browser, "#zoomfit")
+            assert browser.evaluate("document.getElementById('svg').getAttribute('viewBox')") == (
+                fitted
+            )
             # play runs to the end by itself
             browser.evaluate("document.getElementById('speed').value = '16'")
             click(browser, "#play")
