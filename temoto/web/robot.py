@@ -140,7 +140,8 @@ class RobotWatch(Closing):
 
         Returns:
             :func:`robot_state`'s dict plus ``"trail": [[x, y], ...]`` (oldest first);
-            ``"loaded"`` is False once the robot was released (the last reading stays).
+            ``"loaded"`` is False once the robot was released (the last reading stays,
+            without a goal).
 
         Raises:
             Nothing.
@@ -167,7 +168,7 @@ class RobotWatch(Closing):
         if robot is None:  # not loaded (yet, or released): the last reading stays, marked
             with self._lock:
                 if self._latest is not None and self._latest["loaded"]:
-                    self._latest = {**self._latest, "loaded": False}
+                    self._latest = {**self._latest, "loaded": False, "goal": None}
             return
         try:
             reading = robot_state(robot)
