@@ -82,6 +82,7 @@ from temoto.errors import (
     TransportError,
 )
 from temoto.managers.process import ProcessManager
+from temoto.web.replay import add_view, view_command
 
 __all__ = ["main"]
 
@@ -284,6 +285,7 @@ def _parser() -> argparse.ArgumentParser:
     paths(act)
 
     add_drivers(sub)
+    add_view(sub)
     return top
 
 
@@ -342,6 +344,8 @@ def _command(args: argparse.Namespace) -> int:
             return graph_command(args)
         if args.command == "drivers":
             return drivers_command(args)
+        if args.command == "view":
+            return view_command(args)
         return _actions(args)
     except (ConfigError, PluginError) as err:
         _error(err)

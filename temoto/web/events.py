@@ -5,6 +5,10 @@ under the engine's lock, so they only build a small dict and append it to each s
 bounded queue; nothing here calls the engine. A client that falls behind by more than its
 queue loses the backlog and is told to re-synchronise (fetch a fresh snapshot) instead, so a
 slow browser can never make the engine wait or the process grow.
+
+The hub also keeps each run's **timeline**: one span per action run (start, end, the state it
+ended in and, where the events tell it, its result), bounded per run and in the number of runs,
+for the page's Gantt chart.
 """
 
 from __future__ import annotations
@@ -22,6 +26,28 @@ __all__ = ["Batch", "EventHub", "Subscription"]
 
 #: Longest error text an event carries (the full error is in the run's snapshot).
 MAX_ERROR_CHARS = 500
+
+#: Runs whose timeline is kept (the oldest are dropped), and spans kept per run.
+MAX_TIMELINES = 50
+MAX_SPANS = 5000
+
+_ACTIVE = frozenset({"RUNNING", "PAUSE_REQUESTED", "PAUSED", "STOPPING"})
+
+
+def span_result(span: dict[str, Any]) -> str | None:
+    """The result a span's events tell: ``on_error``, ``on_stopped``, or None (not known).
+
+    Args:
+        span: A timeline span.
+
+    Returns:
+        The result's name, or None.
+    """
+    if span["state"] == "ERROR":
+        return "on_error"
+    if span["state"] == "FINISHED" and span.get("stopping"):
+        return "on_stopped"
+    return None
 
 
 @final
@@ -120,6 +146,7 @@ class EventHub(Instrument):
         self._subs: list[Subscription] = []
         self._seq = 0
         self._closed = False
+        self._timelines: dict[str, dict[str, Any]] = {}
 
     # ------------------------------------------------------------------ subscribers
 
@@ -178,6 +205,68 @@ class EventHub(Instrument):
             resync, sub._overflowed = sub._overflowed, False
             return Batch(events, resync, sub._cancelled)
 
+    def timeline(self, graph: str) -> dict[str, Any] | None:
+        """A run's timeline (copied), or None for a run it has not seen start.
+
+        Args:
+            graph: The run's name.
+
+        Returns:
+            ``{"start": t, "end": t or None, "spans": [{"node", "start", "end", "state",
+            "result"}]}`` in engine clock seconds; a running span has ``end`` None.
+
+        Raises:
+            Nothing.
+        """
+        with self._cond:
+            line = self._timelines.get(graph)
+            if line is None:
+                return None
+            spans = [
+                {
+                    "node": sp["node"],
+                    "start": sp["start"],
+                    "end": sp["end"],
+                    "state": sp["state"],
+                    "result": span_result(sp),
+                }
+                for sp in line["spans"]
+            ]
+            return {"start": line["start"], "end": line["end"], "spans": spans}
+
+    def _record(self, graph: str, node: str, old: str, new: str, t: float) -> None:
+        # hub lock held
+        line = self._timelines.get(graph)
+        if line is None:  # a run started before the view: its spans from now on
+            line = self._new_timeline(graph, t)
+        spans: list[dict[str, Any]] = line["spans"]
+        open_span = line["open"].get(node)
+        if new == "RUNNING" and open_span is None:
+            if len(spans) >= MAX_SPANS:
+                return
+            open_span = {"node": node, "start": t, "end": None, "state": new}
+            spans.append(open_span)
+            line["open"][node] = open_span
+            return
+        if new == "BYPASSED" and len(spans) < MAX_SPANS:
+            spans.append({"node": node, "start": t, "end": t, "state": new})
+            return
+        if open_span is None:
+            return
+        open_span["state"] = new
+        if new == "STOPPING":
+            open_span["stopping"] = True
+        if new not in _ACTIVE:
+            open_span["end"] = t
+            del line["open"][node]
+
+    def _new_timeline(self, graph: str, t: float) -> dict[str, Any]:
+        while len(self._timelines) >= MAX_TIMELINES:
+            del self._timelines[next(iter(self._timelines))]
+        line: dict[str, Any] = {"start": t, "end": None, "spans": [], "open": {}}
+        self._timelines[graph] = line
+        return line
+
     def _publish(self, event: dict[str, Any]) -> None:
         # called with the engine lock held: append and notify, nothing more
         with self._cond:
@@ -193,12 +282,17 @@ class EventHub(Instrument):
 
     def graph_started(self, graph: str, t: float) -> None:
         """Publish a run's start."""
+        with self._cond:
+            self._timelines.pop(graph, None)  # a name used again: a new timeline
+            self._new_timeline(graph, t)
         self._publish({"kind": "graph", "graph": graph, "state": "RUNNING", "t": t})
 
     def node_transition(
         self, graph: str, node: str, old: NodeState, new: NodeState, t: float
     ) -> None:
-        """Publish a node's state change."""
+        """Publish a node's state change (and add it to the run's timeline)."""
+        with self._cond:
+            self._record(graph, node, old.value, new.value, t)
         self._publish(
             {
                 "kind": "node",
@@ -212,6 +306,10 @@ class EventHub(Instrument):
 
     def graph_finished(self, graph: str, result: Result, t: float) -> None:
         """Publish a run's end."""
+        with self._cond:
+            line = self._timelines.get(graph)
+            if line is not None:
+                line["end"] = t
         self._publish(
             {"kind": "graph", "graph": graph, "state": "ENDED", "result": result.value, "t": t}
         )

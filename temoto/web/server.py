@@ -1,26 +1,37 @@
-"""The live view's HTTP server: a page, a JSON API and a Server-Sent Events stream.
+"""The live view's HTTP server: a page, a JSON API, a Server-Sent Events stream, controls.
 
 :class:`LiveView` serves one engine on localhost from a :class:`~http.server.ThreadingHTTPServer`
-on a named thread. Endpoints (all ``GET``; see ``docs/live-view.md``):
+on a named thread. Endpoints (see ``docs/live-view.md``):
 
-* ``/``: the page (inline CSS and JavaScript, nothing fetched from elsewhere);
-* ``/api/graphs``: every run with its state and result;
-* ``/api/graphs/<run>``: one run (URL-encoded name): nodes, edges, layout, logs, resources;
-* ``/api/events``: a ``text/event-stream`` of engine events (:mod:`temoto.web.events`).
+* ``GET /``: the page (inline CSS and JavaScript, nothing fetched from elsewhere);
+* ``GET /api/graphs``: every run with its state and result;
+* ``GET /api/graphs/<run>``: one run (URL-encoded name): nodes, edges, layout, logs,
+  resources, timeline;
+* ``GET /api/indexed``: the graphs the engine can start by name;
+* ``GET /api/robot``: the Robot Manager's robot (:mod:`temoto.web.robot`), or null;
+* ``GET /api/events``: a ``text/event-stream`` of engine events (:mod:`temoto.web.events`);
+* ``POST /api/start`` (``{"graph": name}``), ``POST /api/graphs/<run>/pause|resume|stop``:
+  the controls. A write needs the view's token in the ``X-TeMoto-Token`` header (never a
+  cookie, so another site cannot make a browser send it), a same-origin ``Origin`` when the
+  browser sends one, and a JSON body; anything else is refused with 403.
 
 Threads: ``temoto-web`` accepts connections; each request runs on its own ``temoto-web-<n>``
-thread (an event stream for as long as its client stays). Streams are bounded
-(``max_clients``), sockets time out, and :meth:`LiveView.close` ends the streams, stops the
-server and joins every one of these threads.
+thread (an event stream for as long as its client stays); ``temoto-web-robot`` samples the
+robot. Streams are bounded (``max_clients``), sockets time out, and :meth:`LiveView.close`
+ends the streams, stops the server and joins every one of these threads.
 """
 
 from __future__ import annotations
 
 import base64
+import contextlib
 import hashlib
+import hmac
 import ipaddress
 import itertools
+import json
 import logging
+import secrets
 import socket
 import threading
 from functools import cache
@@ -30,24 +41,32 @@ from typing import TYPE_CHECKING, Any, final
 from urllib.parse import unquote, urlsplit
 
 from temoto._closing import Closing
-from temoto.errors import GraphNotFoundError
+from temoto.errors import GraphNotFoundError, TemotoError
 from temoto.web import _page
 from temoto.web.events import EventHub
+from temoto.web.robot import RobotWatch
 from temoto.web.view import graph_view, graphs_list, to_json
 
 if TYPE_CHECKING:
     from temoto.core.engine import ActionEngine
 
-__all__ = ["LiveView"]
+__all__ = ["LiveView", "Site"]
 
 logger = logging.getLogger(__name__)
 
 _GRAPH_PREFIX = "/api/graphs/"
+_CONTROLS = ("pause", "resume", "stop")
+
+#: Header that carries the write token.
+TOKEN_HEADER = "X-TeMoto-Token"
+
+#: Largest request body a write may have.
+MAX_BODY = 4096
 
 
 @cache
-def _page_bytes() -> tuple[bytes, str]:
-    """The page and its Content-Security-Policy (the inline script and style, by hash)."""
+def _page_bytes(mode: str) -> tuple[bytes, str]:
+    """The page in a mode (``live``/``replay``) and its Content-Security-Policy (by hash)."""
 
     def digest(text: str) -> str:
         return base64.b64encode(hashlib.sha256(text.encode()).digest()).decode()
@@ -59,7 +78,7 @@ def _page_bytes() -> tuple[bytes, str]:
         "connect-src 'self'; img-src data:; base-uri 'none'; form-action 'none'; "
         "frame-ancestors 'none'"
     )
-    return _page.page().encode(), policy
+    return _page.page(mode).encode(), policy
 
 
 def _is_loopback(host: str) -> bool:
@@ -78,8 +97,8 @@ class _Server(ThreadingHTTPServer):
     block_on_close = True
     daemon_threads = True
 
-    def __init__(self, address: tuple[str, int], view: LiveView) -> None:
-        self.view = view
+    def __init__(self, address: tuple[str, int], site: Site) -> None:
+        self.site = site
         self._numbers = itertools.count(1)
         super().__init__(address, _Handler)
 
@@ -103,32 +122,49 @@ class _Handler(BaseHTTPRequestHandler):
         logger.debug("%s %s", self.address_string(), format % args)
 
     def do_GET(self) -> None:
-        view = self.server.view
-        if not view._host_allowed(self.headers.get("Host", "")):
-            self._send_json(HTTPStatus.MISDIRECTED_REQUEST, {"error": "unexpected Host header"})
+        site = self.server.site
+        if not site._host_allowed(self.headers.get("Host", "")):
+            self.send_json(HTTPStatus.MISDIRECTED_REQUEST, {"error": "unexpected Host header"})
             return
         path = urlsplit(self.path).path
         if path in ("/", "/index.html"):
-            body, policy = _page_bytes()
-            self._send(HTTPStatus.OK, "text/html; charset=utf-8", body, policy)
-        elif path == "/api/graphs":
-            self._send_json(HTTPStatus.OK, graphs_list(view.engine))
-        elif path.startswith(_GRAPH_PREFIX) and len(path) > len(_GRAPH_PREFIX):
-            name = unquote(path[len(_GRAPH_PREFIX) :])
-            try:
-                answer = graph_view(view.engine, name)
-            except GraphNotFoundError:
-                self._send_json(HTTPStatus.NOT_FOUND, {"error": f"no graph run named {name!r}"})
-                return
-            self._send_json(HTTPStatus.OK, answer)
-        elif path == "/api/events":
-            self._stream(view)
-        else:
-            self._send_json(HTTPStatus.NOT_FOUND, {"error": "not found"})
+            body, policy = _page_bytes(site.mode)
+            self.send(HTTPStatus.OK, "text/html; charset=utf-8", body, policy)
+        elif not site._get(self, path):
+            self.send_json(HTTPStatus.NOT_FOUND, {"error": "not found"})
 
-    def _send(
+    def do_POST(self) -> None:
+        site = self.server.site
+        refusal = site._write_refusal(self.headers)
+        if refusal is not None:
+            status, why = refusal
+            self.close_connection = True
+            self.send_json(status, {"error": why})
+            return
+        try:
+            length = int(self.headers.get("Content-Length", "0"))
+        except ValueError:
+            length = -1
+        if not 0 <= length <= MAX_BODY:
+            self.close_connection = True
+            self.send_json(HTTPStatus.BAD_REQUEST, {"error": "bad Content-Length"})
+            return
+        raw = self.rfile.read(length) if length else b"{}"
+        try:
+            body = json.loads(raw)
+        except ValueError:
+            body = None
+        if not isinstance(body, dict):
+            self.send_json(HTTPStatus.BAD_REQUEST, {"error": "the body must be a JSON object"})
+            return
+        path = urlsplit(self.path).path
+        if not site._post(self, path, body):
+            self.send_json(HTTPStatus.NOT_FOUND, {"error": "not found"})
+
+    def send(
         self, status: HTTPStatus, kind: str, body: bytes, policy: str = "default-src 'none'"
     ) -> None:
+        """Send a whole answer (never cached, never sniffed)."""
         self.send_response(status)
         self.send_header("Content-Type", kind)
         self.send_header("Content-Length", str(len(body)))
@@ -138,11 +174,13 @@ class _Handler(BaseHTTPRequestHandler):
         self.end_headers()
         self.wfile.write(body)
 
-    def _send_json(self, status: HTTPStatus, answer: Any) -> None:
-        self._send(status, "application/json", to_json(answer).encode())
+    def send_json(self, status: HTTPStatus, answer: Any) -> None:
+        """Send a JSON answer."""
+        self.send(status, "application/json", to_json(answer).encode())
 
-    def _stream(self, view: LiveView) -> None:
-        sub = view._hub.subscribe()
+    def stream(self, hub: EventHub, heartbeat_s: float) -> None:
+        """Serve an event stream until the client leaves or the hub closes."""
+        sub = hub.subscribe()
         if sub is None:
             self.send_response(HTTPStatus.SERVICE_UNAVAILABLE)
             self.send_header("Retry-After", "5")
@@ -159,7 +197,7 @@ class _Handler(BaseHTTPRequestHandler):
             # "hello" tells a (re)connected page to fetch fresh snapshots
             self.wfile.write(b'retry: 1000\ndata: {"kind": "hello"}\n\n')
             while True:
-                batch = sub.get(view.heartbeat_s)
+                batch = sub.get(heartbeat_s)
                 if batch.closed:
                     break
                 chunks = [f"id: {e['seq']}\ndata: {to_json(e)}\n\n" for e in batch.events]
@@ -172,18 +210,130 @@ class _Handler(BaseHTTPRequestHandler):
             sub.cancel()
 
 
+class Site(Closing):
+    """The part every page server shares: the socket, its thread, Host and write checks.
+
+    Subclasses (:class:`LiveView`, :class:`~temoto.web.replay.ReplayView`) answer paths in
+    :meth:`_get` and :meth:`_post`.
+
+    Args:
+        host: Address to listen on. On a loopback address, requests must also name a
+            loopback host with this port (no DNS rebinding).
+        port: Port to listen on (0: any free port).
+        token: The write token (None: a new random one; ``""``: writes are refused).
+
+    Raises:
+        OSError: If the address cannot be bound.
+    """
+
+    #: The page's mode (``live`` or ``replay``).
+    mode = "live"
+
+    def __init__(self, host: str, port: int, token: str | None) -> None:
+        self.host = host
+        self.token: str = secrets.token_urlsafe(24) if token is None else token
+        server_class = _Server6 if ":" in host else _Server
+        self._httpd = server_class((host, port), self)
+        self.port: int = self._httpd.server_address[1]
+        self._loopback = _is_loopback(host)
+        self._closed = False
+        self._thread = threading.Thread(
+            target=self._httpd.serve_forever,
+            kwargs={"poll_interval": 0.1},
+            name="temoto-web",
+        )
+
+    def _serve(self) -> None:
+        self._thread.start()
+
+    @property
+    def base_url(self) -> str:
+        """The page's address without the token, e.g. ``http://127.0.0.1:8765/``."""
+        host = self.host
+        if host in ("", "0.0.0.0"):
+            host = "127.0.0.1"
+        elif host == "::":
+            host = "::1"
+        if ":" in host:
+            host = f"[{host}]"
+        return f"http://{host}:{self.port}/"
+
+    @property
+    def url(self) -> str:
+        """The address to open: :attr:`base_url` with ``?token=`` (what the commands print).
+
+        Whoever opens it may use the controls; the page moves the token out of the address
+        bar into the tab's session storage.
+        """
+        return f"{self.base_url}?token={self.token}" if self.token else self.base_url
+
+    def _host_allowed(self, header: str) -> bool:
+        if not self._loopback:
+            return True
+        host, _, port = header.rpartition(":") if not header.endswith("]") else (header, "", "")
+        host = host.strip("[]")
+        return _is_loopback(host) and port == str(self.port)
+
+    def _write_refusal(self, headers: Any) -> tuple[HTTPStatus, str] | None:
+        """Why a write request is refused, or None: token, Host, Origin, content type."""
+        host = headers.get("Host", "")
+        if not self._host_allowed(host):
+            return HTTPStatus.MISDIRECTED_REQUEST, "unexpected Host header"
+        origin = headers.get("Origin")
+        if origin is not None and urlsplit(origin).netloc != host:
+            return HTTPStatus.FORBIDDEN, "cross-origin write refused"
+        given = headers.get(TOKEN_HEADER, "")
+        if not self.token or not hmac.compare_digest(given.encode(), self.token.encode()):
+            return HTTPStatus.FORBIDDEN, f"a write needs the view's token in {TOKEN_HEADER}"
+        kind = headers.get("Content-Type", "").split(";")[0].strip().lower()
+        if kind != "application/json":
+            return HTTPStatus.UNSUPPORTED_MEDIA_TYPE, "a write's body must be application/json"
+        return None
+
+    def _get(self, handler: _Handler, path: str) -> bool:
+        """Answer a GET of ``path``; False: not found."""
+        return False
+
+    def _post(self, handler: _Handler, path: str, body: dict[str, Any]) -> bool:
+        """Answer an authorised POST of ``path``; False: not found."""
+        return False
+
+    def _close_server(self) -> None:
+        self._httpd.shutdown()
+        self._thread.join()
+        self._httpd.server_close()  # closes the socket, joins the request threads
+
+    def close(self) -> None:
+        """Stop serving and join every thread. Idempotent.
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
+        if self._closed:
+            return
+        self._closed = True
+        self._close_server()
+
+
 @final
-class LiveView(Closing):
+class LiveView(Site):
     """Serves a live picture of an engine's graph runs to a browser (started at once).
 
     Args:
-        engine: The engine to show; the view adds an instrument to it.
+        engine: The engine to show; the view adds an instrument to it. When the engine has a
+            registrar with a Robot Manager, the page also shows the robot.
         host: Address to listen on. The default serves this machine only; on a loopback
             address, requests must also name a loopback host (no DNS rebinding).
         port: Port to listen on (0: any free port; see :attr:`url`).
         max_clients: Event streams (open pages) served at once; more get HTTP 503.
         heartbeat_s: Seconds between keep-alive comments on an idle event stream (how soon a
             vanished client is noticed).
+        token: The write token the controls need (None: a new random one, shown in
+            :attr:`url`; ``""``: read-only, every write refused).
+        robot_period_s: Real seconds between readings of the robot.
 
     Raises:
         OSError: If the address cannot be bound.
@@ -197,48 +347,78 @@ class LiveView(Closing):
         *,
         max_clients: int = 8,
         heartbeat_s: float = 10.0,
+        token: str | None = None,
+        robot_period_s: float = 0.2,
     ) -> None:
+        super().__init__(host, port, token)
         self.engine = engine
         self.heartbeat_s = heartbeat_s
         self._hub = EventHub(max_clients=max_clients)
-        server_class = _Server6 if ":" in host else _Server
-        self._httpd = server_class((host, port), self)
-        self.host = host
-        self.port: int = self._httpd.server_address[1]
-        self._loopback = _is_loopback(host)
-        self._closed = False
         engine.add_instrument(self._hub)
-        self._thread = threading.Thread(
-            target=self._httpd.serve_forever,
-            kwargs={"poll_interval": 0.1},
-            name="temoto-web",
-        )
-        self._thread.start()
-        logger.info("live view at %s", self.url)
-
-    @property
-    def url(self) -> str:
-        """The page's address, e.g. ``http://127.0.0.1:8765/``."""
-        host = self.host
-        if host in ("", "0.0.0.0"):
-            host = "127.0.0.1"
-        elif host == "::":
-            host = "::1"
-        if ":" in host:
-            host = f"[{host}]"
-        return f"http://{host}:{self.port}/"
+        registrar = engine.registrar
+        self._robot = RobotWatch(registrar, robot_period_s) if registrar is not None else None
+        self._serve()
+        logger.info("live view at %s", self.base_url)
 
     @property
     def clients(self) -> int:
         """Event streams open now."""
         return self._hub.subscribers
 
-    def _host_allowed(self, header: str) -> bool:
-        if not self._loopback:
-            return True
-        host, _, port = header.rpartition(":") if not header.endswith("]") else (header, "", "")
-        host = host.strip("[]")
-        return _is_loopback(host) and port == str(self.port)
+    def _get(self, handler: _Handler, path: str) -> bool:
+        engine = self.engine
+        if path == "/api/graphs":
+            handler.send_json(HTTPStatus.OK, graphs_list(engine))
+        elif path.startswith(_GRAPH_PREFIX) and len(path) > len(_GRAPH_PREFIX):
+            name = unquote(path[len(_GRAPH_PREFIX) :])
+            try:
+                answer = graph_view(engine, name, self._hub.timeline(name))
+            except GraphNotFoundError:
+                handler.send_json(HTTPStatus.NOT_FOUND, {"error": f"no graph run named {name!r}"})
+                return True
+            handler.send_json(HTTPStatus.OK, answer)
+        elif path == "/api/indexed":
+            names = sorted(g.name for g in engine.indexed_graphs())
+            handler.send_json(HTTPStatus.OK, {"graphs": names})
+        elif path == "/api/robot":
+            state = self._robot.state() if self._robot is not None else None
+            handler.send_json(HTTPStatus.OK, {"robot": state})
+        elif path == "/api/events":
+            handler.stream(self._hub, self.heartbeat_s)
+        else:
+            return False
+        return True
+
+    def _post(self, handler: _Handler, path: str, body: dict[str, Any]) -> bool:
+        engine = self.engine
+        try:
+            if path == "/api/start":
+                graph = body.get("graph")
+                if not isinstance(graph, str) or not graph:
+                    handler.send_json(HTTPStatus.BAD_REQUEST, {"error": "name a graph"})
+                    return True
+                run = engine.start(graph)
+                logger.info("live view: started %s", run)
+                handler.send_json(HTTPStatus.OK, {"run": run})
+                return True
+            name, _, verb = path[len(_GRAPH_PREFIX) :].rpartition("/")
+            if not path.startswith(_GRAPH_PREFIX) or not name or verb not in _CONTROLS:
+                return False
+            name = unquote(name)
+            if verb == "pause":
+                engine.pause(name)
+            elif verb == "resume":
+                engine.resume(name)
+            else:
+                with contextlib.suppress(TimeoutError):  # answer now; the page sees it end
+                    engine.stop(name, timeout=0.0)
+            logger.info("live view: %s %s", verb, name)
+            handler.send_json(HTTPStatus.OK, {"run": name, "done": verb})
+        except GraphNotFoundError as err:
+            handler.send_json(HTTPStatus.NOT_FOUND, {"error": str(err)})
+        except TemotoError as err:  # not RUNNING, already active, a bad graph, ...
+            handler.send_json(HTTPStatus.CONFLICT, {"error": f"{type(err).__name__}: {err}"})
+        return True
 
     def close(self) -> None:
         """End the event streams, stop serving and join every thread. Idempotent.
@@ -255,6 +435,6 @@ class LiveView(Closing):
             return
         self._closed = True
         self._hub.close()
-        self._httpd.shutdown()
-        self._thread.join()
-        self._httpd.server_close()  # closes the socket, joins the request threads
+        if self._robot is not None:
+            self._robot.close()
+        self._close_server()

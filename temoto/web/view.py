@@ -22,7 +22,7 @@ from temoto.web.layout import layered_layout
 if TYPE_CHECKING:
     from temoto.core.engine import ActionEngine
 
-__all__ = ["ENTRY", "EXIT", "graph_view", "graphs_list", "to_json"]
+__all__ = ["ENTRY", "EXIT", "graph_picture", "graph_view", "graphs_list", "to_json"]
 
 #: Names of the two pseudo-nodes drawn for ``graph_entry`` and ``graph_exit`` (no action's
 #: full name can be one of them: those end in ``_<instance id>``).
@@ -64,12 +64,16 @@ def graphs_list(engine: ActionEngine) -> dict[str, Any]:
     return {"actor": engine.actor, "graphs": graphs}
 
 
-def graph_view(engine: ActionEngine, run: str) -> dict[str, Any]:
+def graph_view(
+    engine: ActionEngine, run: str, timeline: dict[str, Any] | None = None
+) -> dict[str, Any]:
     """One run's picture: nodes with state, logs and held resources; edges; a layout.
 
     Args:
         engine: The engine.
         run: The run's name.
+        timeline: The run's timeline (:meth:`EventHub.timeline`), if known: it gives each
+            node's result where the events tell it, and the page's Gantt chart.
 
     Returns:
         A JSON-ready dict (its keys are described in ``docs/live-view.md``).
@@ -79,8 +83,46 @@ def graph_view(engine: ActionEngine, run: str) -> dict[str, Any]:
     """
     snapshot = engine.graph_json(run)
     outcome = engine.outcome(run)
+    answer = graph_picture(snapshot, _held_resources(engine, run), timeline)
+    answer.update(
+        {
+            "name": run,
+            "state": outcome.state.value,
+            "result": outcome.result.value if outcome.result else None,
+            "errors": [_error_text(e) for e in outcome.errors],
+            "timeline": timeline,
+            "now": engine.clock.monotonic(),
+        }
+    )
+    return answer
+
+
+def graph_picture(
+    snapshot: Mapping[str, Any],
+    held: Mapping[str, list[dict[str, Any]]] | None = None,
+    timeline: Mapping[str, Any] | None = None,
+) -> dict[str, Any]:
+    """The drawing of a graph in UMRF JSON form (a run's snapshot, or a graph file's dict).
+
+    Args:
+        snapshot: The graph as :func:`~temoto.core.graph.graph_to_dict` writes it (with
+            run-time states and logs when it is a run's snapshot).
+        held: Resources held, by node name.
+        timeline: The run's timeline: each node's result is its newest span's.
+
+    Returns:
+        ``{"description", "nodes", "edges", "width", "height"}``; each edge has a ``status``:
+        ``taken`` (its parent ended and its child ran), ``skipped`` (its child was bypassed)
+        or ``pending``.
+
+    Raises:
+        Nothing.
+    """
     actions: list[dict[str, Any]] = snapshot.get("actions", [])
-    held = _held_resources(engine, run)
+    held = held or {}
+    results: dict[str, str | None] = {}
+    for span in (timeline or {}).get("spans", []):
+        results[span["node"]] = span.get("result")
 
     nodes: list[dict[str, Any]] = []
     edges: list[dict[str, Any]] = []
@@ -107,6 +149,7 @@ def graph_view(engine: ActionEngine, run: str) -> dict[str, Any]:
                 "actor": action.get("actor", ""),
                 "description": action.get("description", ""),
                 "state": action.get("state"),
+                "result": results.get(node_id),
                 "inputs": _parameters(action.get("input_parameters")),
                 "logs": logs,
                 "resources": held.get(node_id, []),
@@ -134,22 +177,36 @@ def graph_view(engine: ActionEngine, run: str) -> dict[str, Any]:
         )
 
     layout = layered_layout([n["id"] for n in nodes], [(e["from"], e["to"]) for e in edges])
+    states = {n["id"]: n["state"] for n in nodes}
     for node in nodes:
         node["x"], node["y"] = layout.positions[node["id"]]
         node["layer"] = layout.layers[node["id"]]
     for edge in edges:
         edge["back"] = (edge["from"], edge["to"]) in layout.back_edges
+        edge["status"] = _edge_status(states.get(edge["from"]), states.get(edge["to"]), edge)
     return {
-        "name": run,
         "description": snapshot.get("graph_description", ""),
-        "state": outcome.state.value,
-        "result": outcome.result.value if outcome.result else None,
-        "errors": [_error_text(e) for e in outcome.errors],
         "nodes": nodes,
         "edges": edges,
         "width": layout.width,
         "height": layout.height,
     }
+
+
+_ENDED = frozenset({"FINISHED", "ERROR"})
+_STARTED = frozenset({"RUNNING", "PAUSE_REQUESTED", "PAUSED", "STOPPING", "FINISHED", "ERROR"})
+
+
+def _edge_status(parent: str | None, child: str | None, edge: Mapping[str, Any]) -> str:
+    """``taken``, ``skipped`` or ``pending``: what an edge did, from its ends' states."""
+    parent_ended = edge["from"] == ENTRY or parent in _ENDED
+    if not parent_ended:
+        return "pending"
+    if child == "BYPASSED":
+        return "skipped"
+    if edge["to"] == EXIT or child in _STARTED:
+        return "taken"
+    return "pending"
 
 
 def _full_name(ref: Mapping[str, Any]) -> str:
@@ -167,7 +224,10 @@ def _parameters(params: Any) -> dict[str, Any]:
     out: dict[str, Any] = {}
     for name, spec in params.items():
         if isinstance(spec, Mapping) and "pvf_type" in spec:
-            out[str(name)] = {"type": spec["pvf_type"], "value": spec.get("pvf_value")}
+            entry: dict[str, Any] = {"type": spec["pvf_type"]}
+            if spec.get("pvf_value") is not None:  # unset: no value (the page says so)
+                entry["value"] = spec["pvf_value"]
+            out[str(name)] = entry
         elif isinstance(spec, Mapping):  # a nested parameter tree
             for sub, value in _parameters(spec).items():
                 out[f"{name}::{sub}"] = value

@@ -37,7 +37,7 @@ def test_the_live_view_lists_the_instances_runs_and_stops_with_it() -> None:
         live_view_port=0,
     ) as instance:
         assert instance.live_view is not None
-        url = instance.live_view.url
+        url = instance.live_view.base_url
         instance.engine.run(GRAPH, timeout=10)
         with urllib.request.urlopen(f"{url}api/graphs", timeout=5) as reply:
             runs = json.load(reply)

@@ -82,14 +82,14 @@ class Stream:
 def test_the_api_lists_runs_and_shows_a_run_with_states_layout_logs_and_resources(
     demo: Demo, view: LiveView
 ) -> None:
-    assert get(view.url + "api/graphs") == {"actor": "robot", "graphs": []}
+    assert get(view.base_url + "api/graphs") == {"actor": "robot", "graphs": []}
     run = demo.engine.start(demo_graph(timer_s=30))
     assert demo.acquired.wait(WAIT)
-    assert get(view.url + "api/graphs") == {
+    assert get(view.base_url + "api/graphs") == {
         "actor": "robot",
         "graphs": [{"name": run, "state": "RUNNING", "result": None}],
     }
-    answer = get(view.url + "api/graphs/" + quote(run, safe=""))
+    answer = get(view.base_url + "api/graphs/" + quote(run, safe=""))
     assert (answer["name"], answer["state"], answer["result"]) == (run, "RUNNING", None)
     nodes = {n["id"]: n for n in answer["nodes"]}
     assert list(nodes) == [
@@ -126,7 +126,7 @@ def test_the_api_lists_runs_and_shows_a_run_with_states_layout_logs_and_resource
     assert nodes["TaTimer_0"]["resources"] == []
 
     assert demo.engine.stop(run, timeout=WAIT) is Result.STOPPED
-    answer = get(view.url + "api/graphs/" + quote(run, safe=""))
+    answer = get(view.base_url + "api/graphs/" + quote(run, safe=""))
     assert (answer["state"], answer["result"]) == ("STOPPED", "on_stopped")
     # the engine keeps an action's log once its run returns
     holder = next(n for n in answer["nodes"] if n["id"] == "Holder_0")
@@ -135,15 +135,15 @@ def test_the_api_lists_runs_and_shows_a_run_with_states_layout_logs_and_resource
 
 def test_unknown_runs_and_paths_are_404_and_the_page_is_self_contained(view: LiveView) -> None:
     with pytest.raises(urllib.error.HTTPError) as err:
-        urllib.request.urlopen(view.url + "api/graphs/" + quote("no/such run?", safe=""))
+        urllib.request.urlopen(view.base_url + "api/graphs/" + quote("no/such run?", safe=""))
     assert err.value.code == 404
     assert json.load(err.value) == {"error": "no graph run named 'no/such run?'"}
     err.value.close()
     with pytest.raises(urllib.error.HTTPError) as err:
-        urllib.request.urlopen(view.url + "etc/passwd")
+        urllib.request.urlopen(view.base_url + "etc/passwd")
     assert err.value.code == 404
     err.value.close()
-    with urllib.request.urlopen(view.url) as r:
+    with urllib.request.urlopen(view.base_url) as r:
         html = r.read().decode()
         policy = r.headers["Content-Security-Policy"]
     assert r.headers["Content-Type"] == "text/html; charset=utf-8"
@@ -203,7 +203,7 @@ def test_streams_are_bounded_and_close_cleanly_with_the_view(demo: Demo) -> None
             assert s.next() == {"kind": "hello"}
         assert view.clients == 2
         with pytest.raises(urllib.error.HTTPError) as err:
-            urllib.request.urlopen(view.url + "api/events", timeout=WAIT)
+            urllib.request.urlopen(view.base_url + "api/events", timeout=WAIT)
         assert err.value.code == 503
         err.value.close()
         # a client that goes away frees its place (noticed at the next keep-alive)
@@ -277,7 +277,7 @@ def test_a_failed_action_and_its_error_show_without_a_registrar() -> None:
     with ActionEngine("robot", actions=catalog) as engine, LiveView(engine) as view:
         run = engine.start(demo_graph(timer_s=0.05, name="no <registrar>"))
         engine.wait(run, timeout=WAIT)
-        answer = get(view.url + "api/graphs/" + quote(run, safe=""))
+        answer = get(view.base_url + "api/graphs/" + quote(run, safe=""))
     assert answer["name"] == "no <registrar>"
     nodes = {n["id"]: n for n in answer["nodes"]}
     assert nodes["Holder_0"]["state"] == "ERROR"

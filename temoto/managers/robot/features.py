@@ -179,6 +179,11 @@ class DriveController:
         with self._lock:
             return self.x, self.y, self.yaw
 
+    def goal(self) -> tuple[float, float, float | None] | None:
+        """The goal it drives to: x, y (m), yaw (rad, or None), or None when it has none."""
+        with self._lock:
+            return self._goal
+
     def navigate_to(self, x: float, y: float, yaw: float | None = None) -> Motion:
         """Drive to ``(x, y)`` (odometry frame), then turn to ``yaw`` if given.
 

@@ -1,0 +1,349 @@
+"""Replay of a recorded run in the live view's page: ``temoto view FILE``.
+
+A :class:`Recording` is what the page replays: the graph's drawing, node state changes (and
+results) in time, the run's result, and robot readings in time. Loaders turn a file into one,
+chosen by the file's suffix (:data:`READERS`):
+
+* ``.jsonl``, ``.json``, ``.trace``, anything else: the JSON lines of ``temoto run --trace``
+  (``{"t", "graph", "node", "state"}`` per node change, ``{"graph", "result"}`` at the end;
+  a node line may carry its ``result``);
+* ``.mcap``: whatever reader :func:`register_reader` installed for it (the MCAP recorder
+  registers one); without one, a clear error.
+
+A reader is ``(path) -> Recording``. The graph's edges are not in a trace: give the graph file
+(``--graph``) to draw them; without it the actions are drawn in the order they first ran.
+
+:class:`ReplayView` serves the page in replay mode (``/api/recording``: the whole recording
+at once; the page computes every moment from it as the time slider moves). It is read-only.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import signal
+import sys
+import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from http import HTTPStatus
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, final
+
+from temoto.errors import ConfigError
+from temoto.web.server import Site
+from temoto.web.view import graph_picture
+
+if TYPE_CHECKING:
+    from temoto.web.server import _Handler
+
+__all__ = [
+    "READERS",
+    "Recording",
+    "ReplayView",
+    "add_view",
+    "load_recording",
+    "read_trace",
+    "register_reader",
+    "view_command",
+]
+
+logger = logging.getLogger(__name__)
+
+#: States a node line of a trace may carry.
+_STATES = frozenset(
+    {
+        "UNINITIALIZED",
+        "INITIALIZED",
+        "RUNNING",
+        "PAUSE_REQUESTED",
+        "PAUSED",
+        "STOPPING",
+        "FINISHED",
+        "BYPASSED",
+        "ERROR",
+    }
+)
+
+
+@dataclass
+class Recording:
+    """A recorded run, ready for the page.
+
+    Attributes:
+        source: Where it came from (the file's path).
+        name: The run's (top-level graph's) name.
+        events: Node changes ``{"t", "node", "state"}`` (``"result"`` when known), by time;
+            ``t`` in seconds from the start of the recording.
+        result: The run's result (``on_true``, ...), or None when the recording has none.
+        robot: Robot readings ``{"t", ...}`` in the form of
+            :func:`temoto.web.robot.robot_state` (``pose``, ``goal``, ``joints``,
+            ``vehicle``, ``health``), by time.
+        graph: The graph in UMRF JSON form (to draw its edges), or None.
+        notes: What the reader wants a person to know (a skipped line, missing edges).
+    """
+
+    source: str
+    name: str
+    events: list[dict[str, Any]] = field(default_factory=list)
+    result: str | None = None
+    robot: list[dict[str, Any]] = field(default_factory=list)
+    graph: dict[str, Any] | None = None
+    notes: list[str] = field(default_factory=list)
+
+    def to_page(self) -> dict[str, Any]:
+        """The ``/api/recording`` answer: the drawing plus the timed events and readings.
+
+        Returns:
+            ``{"source", "name", "result", "start", "end", "events", "robot", "graph",
+            "notes"}``; ``graph`` is :func:`~temoto.web.view.graph_picture`'s drawing.
+
+        Raises:
+            Nothing.
+        """
+        times = [e["t"] for e in self.events] + [r["t"] for r in self.robot]
+        start = min(times, default=0.0)
+        end = max(times, default=0.0)
+        doc = self.graph
+        notes = list(self.notes)
+        if doc is None:
+            seen: list[str] = []
+            for e in self.events:
+                if e["node"] not in seen:
+                    seen.append(e["node"])
+            doc = {"graph_name": self.name, "actions": [_ref(n) for n in seen]}
+            notes.append("edges unknown: give the graph file (--graph) to draw them")
+        picture = graph_picture(doc)
+        return {
+            "source": self.source,
+            "name": self.name,
+            "result": self.result,
+            "start": min(start, 0.0),
+            "end": end,
+            "events": self.events,
+            "robot": self.robot,
+            "graph": picture,
+            "notes": notes,
+        }
+
+
+def _ref(full_name: str) -> dict[str, Any]:
+    """An action entry for a node known only by its full name (``Name_<id>``)."""
+    name, _, instance = full_name.rpartition("_")
+    if name and instance.isdigit():
+        return {"name": name, "instance_id": int(instance)}
+    return {"name": full_name, "instance_id": 0}  # drawn as "<name>_0"
+
+
+def read_trace(path: Path) -> Recording:
+    """Read a ``temoto run --trace`` file.
+
+    Args:
+        path: The JSON-lines file.
+
+    Returns:
+        The recording (events of the top-level graph and its sub-graphs, by time).
+
+    Raises:
+        ConfigError: The file cannot be read, a line is not JSON, or it holds no run; the
+            message names the file and the line.
+    """
+    file = str(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"cannot read: {err.strerror or err}", file=file) from None
+    name = ""
+    result: str | None = None
+    events: list[dict[str, Any]] = []
+    for number, line in enumerate(text.splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            record = json.loads(line)
+        except json.JSONDecodeError as err:
+            raise ConfigError(f"not JSON ({err.msg})", file=file, path=f"line {number}") from None
+        if not isinstance(record, dict):
+            raise ConfigError("expected a JSON object", file=file, path=f"line {number}")
+        if "result" in record and "node" not in record:
+            result = str(record["result"])
+            name = str(record.get("graph", name))
+            continue
+        t, node, state = record.get("t"), record.get("node"), record.get("state")
+        if not (
+            isinstance(t, int | float)
+            and math.isfinite(t)
+            and isinstance(node, str)
+            and state in _STATES
+        ):
+            raise ConfigError(
+                'expected {"t": seconds, "graph", "node", "state"} or {"graph", "result"}',
+                file=file,
+                path=f"line {number}",
+            )
+        event: dict[str, Any] = {"t": float(t), "node": node, "state": state}
+        if isinstance(record.get("result"), str):
+            event["result"] = record["result"]
+        if not name and isinstance(record.get("graph"), str):
+            name = record["graph"]
+        events.append(event)
+    if not events and result is None:
+        raise ConfigError("no trace lines: is this a `temoto run --trace` file?", file=file)
+    events.sort(key=lambda e: e["t"])  # stable: lines of one instant keep their order
+    return Recording(source=file, name=name or path.stem, events=events, result=result)
+
+
+#: Readers by file suffix (lower case, with the dot); :func:`load_recording` falls back to
+#: :func:`read_trace` for a suffix not listed.
+READERS: dict[str, Callable[[Path], Recording]] = {}
+
+
+def register_reader(suffix: str, reader: Callable[[Path], Recording]) -> None:
+    """Make :func:`load_recording` read files ending in ``suffix`` with ``reader``.
+
+    Args:
+        suffix: The suffix with its dot (``.mcap``); case does not matter.
+        reader: Turns a path into a :class:`Recording` (raising :class:`ConfigError` for a
+            file it cannot read).
+
+    Returns:
+        None.
+
+    Raises:
+        ValueError: The suffix does not start with a dot.
+    """
+    if not suffix.startswith("."):
+        raise ValueError(f"a suffix starts with a dot, got {suffix!r}")
+    READERS[suffix.lower()] = reader
+
+
+def load_recording(path: str | Path, graph: str | Path | None = None) -> Recording:
+    """Read a recorded run, and the graph file that draws its edges if given.
+
+    Args:
+        path: The recording (a trace; ``.mcap`` with a registered reader).
+        graph: The run's graph file (optional).
+
+    Returns:
+        The recording.
+
+    Raises:
+        ConfigError: The file (or the graph file) cannot be read, or no reader knows it.
+    """
+    from temoto.core.graph import graph_to_dict, load_graph
+
+    file = Path(path)
+    suffix = file.suffix.lower()
+    reader = READERS.get(suffix)
+    if reader is None and suffix == ".mcap":
+        raise ConfigError(
+            "no MCAP reader is installed in this TeMoto (replay a `--trace` file instead)",
+            file=str(file),
+        )
+    recording = (reader or read_trace)(file)
+    if graph is not None:
+        recording.graph = graph_to_dict(load_graph(graph))
+    return recording
+
+
+@final
+class ReplayView(Site):
+    """Serves a recording in the live view's page, with a time slider (started at once).
+
+    Read-only: every write is refused (it has no token).
+
+    Args:
+        recording: What to replay.
+        host: Address to listen on (default: this machine only).
+        port: Port (0: any free port).
+
+    Raises:
+        OSError: If the address cannot be bound.
+    """
+
+    mode = "replay"
+
+    def __init__(self, recording: Recording, host: str = "127.0.0.1", port: int = 0) -> None:
+        super().__init__(host, port, token="")
+        self.recording = recording
+        self._answer = recording.to_page()
+        self._serve()
+
+    def _get(self, handler: _Handler, path: str) -> bool:
+        if path == "/api/recording":
+            handler.send_json(HTTPStatus.OK, self._answer)
+            return True
+        return False
+
+
+def add_view(sub: Any) -> None:
+    """Add ``temoto view FILE [--graph GRAPH.json] [--port N] [--host ADDR]``.
+
+    Args:
+        sub: The ``add_subparsers()`` object of the top-level parser.
+
+    Returns:
+        None.
+    """
+    p = sub.add_parser(
+        "view",
+        help="replay a recorded run in the live view's page",
+        description="Serve a recorded run (a `temoto run --trace` file) in the live view's"
+        " page, with a time slider, until Ctrl-C.",
+    )
+    p.add_argument("file", metavar="FILE", help="the recording (--trace JSON lines)")
+    p.add_argument("--graph", metavar="GRAPH.json", help="the run's graph, to draw its edges")
+    p.add_argument("--port", type=_port, default=0, help="port to serve on (default: any free)")
+    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
+
+
+def _port(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 <= value <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 0 to 65535, got {value}")
+    return value
+
+
+def view_command(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
+    """Run ``temoto view``: print the page's address, serve until SIGINT/SIGTERM (or ``stop``).
+
+    Args:
+        args: The parsed arguments (``file``, ``graph``, ``port``, ``host``).
+        stop: Set to end the command (tests); signals do the same.
+
+    Returns:
+        0 after an interruption; 1 when the address cannot be bound.
+
+    Raises:
+        ConfigError: The recording or the graph file is invalid (the command line prints it
+            as one line and exits 2).
+    """
+    recording = load_recording(args.file, args.graph)
+    try:
+        site = ReplayView(recording, host=args.host, port=args.port)
+    except OSError as err:
+        sys.stderr.write(f"temoto: error: cannot serve on {args.host}:{args.port}: {err}\n")
+        return 1
+    done = stop or threading.Event()
+    previous: dict[signal.Signals, Any] = {}
+    if threading.current_thread() is threading.main_thread():
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            previous[sig] = signal.signal(sig, lambda *_: done.set())
+    try:
+        with site:
+            sys.stdout.write(
+                f"replaying {recording.source} ({len(recording.events)} node changes,"
+                f" result {recording.result or 'none'})\nopen {site.url}\n"
+            )
+            sys.stdout.flush()
+            while not done.wait(0.5):
+                pass
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+    return 0
