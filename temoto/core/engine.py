@@ -91,6 +91,7 @@ class GraphOutcome:
         result: Its result, or None while it runs.
         outputs: The graph's outputs (the exit actions' outputs), by name.
         errors: Errors raised by its actions, in order.
+        aborted: Why a shared run was aborted (the same words on every actor), or None.
     """
 
     graph: str
@@ -98,6 +99,7 @@ class GraphOutcome:
     result: Result | None
     outputs: dict[str, Any]
     errors: tuple[BaseException, ...]
+    aborted: str | None = None
 
 
 class ActionEngine:
@@ -121,7 +123,11 @@ class ActionEngine:
         link: The other actors of shared graphs (``temoto.fleet``). Without one, a graph that
             names another actor is refused at start.
         handshake_timeout: Seconds the handshake before a shared graph may take.
-        notify_timeout: Seconds every other actor has to acknowledge a finished action.
+        notify_timeout: Seconds every other actor has to acknowledge a finished action; one
+            that does not aborts the shared run on every actor.
+        settle_timeout: Real seconds an aborted shared run keeps listening to the other actors
+            before :meth:`wait` returns: a peer that reached the end meanwhile gives its result,
+            concurrent aborts agree on one reason (``docs/fleet.md``).
 
     Raises:
         ConfigError: If an action or graph directory does not exist.
@@ -142,6 +148,7 @@ class ActionEngine:
         link: ActorLink | None = None,
         handshake_timeout: float = 5.0,
         notify_timeout: float = 5.0,
+        settle_timeout: float = 1.0,
     ) -> None:
         if link is not None and link.actor != actor:
             raise ValueError(f"the link speaks for actor '{link.actor}', the engine is '{actor}'")
@@ -154,7 +161,11 @@ class ActionEngine:
             None
             if link is None
             else SharedRuns(
-                self, link, handshake_timeout=handshake_timeout, notify_timeout=notify_timeout
+                self,
+                link,
+                handshake_timeout=handshake_timeout,
+                notify_timeout=notify_timeout,
+                settle_timeout=settle_timeout,
             )
         )
         self.catalog = (
@@ -448,7 +459,12 @@ class ActionEngine:
         run = self._get(name)
         with self._lock:
             return GraphOutcome(
-                run.name, run.state, run.result, dict(run.outputs), tuple(run.errors)
+                run.name,
+                run.state,
+                run.result,
+                dict(run.outputs),
+                tuple(run.errors),
+                run.aborted,
             )
 
     def node_states(self, name: str) -> dict[str, NodeState]:

@@ -106,30 +106,48 @@ class ActorLink(Protocol):
         *,
         graph: str = "",
         session: str = "",
+        on_end: Callable[[str, Result], None] | None = None,
+        on_abort: Callable[[str, str], None] | None = None,
     ) -> Cancel:
         """Call ``on_lost(actor, reason)`` if one of ``actors`` falls silent or leaves.
 
-        An actor whose run (``graph``, ``session``) finished normally is no longer watched
-        for that run: it may go quiet once it has nothing more to do.
+        An actor whose run (``graph``, ``session``) finished is no longer watched for that
+        run (it may go quiet once it has nothing more to do) and ``on_end(actor, result)``
+        is called; an actor that aborted the run is reported to ``on_abort(actor, reason)``
+        with its reason, word for word. What a peer said before this call is reported too.
 
         Args:
             actors: The actors to watch (the other participants of a run).
             on_lost: The callback, at most once per actor.
             graph: The run's graph.
             session: The run's session.
+            on_end: Called when an actor's run finished, with its result.
+            on_abort: Called when an actor aborted the run, with the reason.
 
         Returns:
             A function that stops watching.
         """
         ...
 
-    def end(self, graph: str, session: str, *, gave_up: bool = False) -> None:
+    def end(
+        self,
+        graph: str,
+        session: str,
+        *,
+        gave_up: bool = False,
+        result: Result | None = None,
+        reason: str = "",
+    ) -> None:
         """Forget what the link keeps for an ended run (received notifications, waiters).
 
         Args:
             graph: The graph's name.
             session: The run's session.
-            gave_up: The run did not finish here (stopped, failed, halted): the other actors
-                are told, and report this actor lost for the run (reason "left").
+            gave_up: The run was aborted here (stopped, failed): the other actors are told,
+                and abort it too with ``reason`` (without one, they report this actor lost
+                for the run, reason "left").
+            result: How the run finished here, if it did: the other actors are told, and
+                end it with that result too.
+            reason: Why the run was aborted.
         """
         ...

@@ -156,8 +156,9 @@ class _Run:
     pending: dict[_NodeKey, collections.deque[_Notice]] = field(default_factory=dict)
     waiters: dict[_NodeKey, collections.deque[_Waiter]] = field(default_factory=dict)
     seen: set[str] = field(default_factory=set)  # notification ids taken
-    ended_peers: set[str] = field(default_factory=set)  # peers whose run finished (END)
+    ended_peers: dict[str, str] = field(default_factory=dict)  # peer -> result it ended with
     left_peers: set[str] = field(default_factory=set)  # peers that gave the run up (LEAVE)
+    left_reasons: dict[str, str] = field(default_factory=dict)  # peer -> why it aborted
 
 
 @dataclass(slots=True, eq=False)
@@ -178,7 +179,9 @@ class _Ended:
     heard: dict[str, int] | None  # the frozen heard list, if the handshake had completed
     seen: set[str]  # notification ids taken: late resends stay duplicates
     until: float
-    finished: bool = False  # ended normally here: END is said again when the link closes
+    # (END or LEAVE, result, reason) said here: said again when the link closes, and to
+    # peers still speaking of the run
+    decision: tuple[int, str, str] | None = None
 
 
 @dataclass(slots=True, eq=False)
@@ -199,6 +202,9 @@ class _Watch:
     on_lost: Callable[[str, str], None]
     started: float
     key: _SessionKey | None = None  # the run watched for (END of a peer takes it off)
+    on_end: Callable[[str, Result], None] | None = None
+    on_abort: Callable[[str, str], None] | None = None
+    aborts: set[tuple[str, str]] = field(default_factory=set)  # (actor, reason) reported
     reported: set[str] = field(default_factory=set)
     active: bool = True
 
@@ -357,6 +363,9 @@ class FleetActorLink(Closing):
             run.local = True
             run.actors = participants
             run.phase = _Phase.JOINING
+            # what peers said of an earlier run of this session does not stand for this one
+            run.ended_peers.clear()
+            run.left_reasons.clear()
             run.aborted = None
             run.frozen = {}
             msg = self._join_msg(run)
@@ -441,7 +450,7 @@ class FleetActorLink(Closing):
             run = self._runs.get(key)
             left: set[str] = set()
             if run is not None:
-                others -= run.ended_peers  # finished there: they need nothing more
+                others -= set(run.ended_peers)  # finished there: they need nothing more
                 left = run.left_peers
             gone = sorted(a for a in others if a in left or self._gone(a, self._clock()))
         if gone:
@@ -551,20 +560,27 @@ class FleetActorLink(Closing):
         *,
         graph: str = "",
         session: str = "",
+        on_end: Callable[[str, Result], None] | None = None,
+        on_abort: Callable[[str, str], None] | None = None,
     ) -> Cancel:
         """Call ``on_lost(actor, reason)`` if one of ``actors`` falls silent or leaves.
 
         An actor is lost when nothing was heard from it for ``silence_s`` (counted from this
-        call at the earliest), or when it gave up a run this actor takes part in (LEAVE). The
-        callback runs on the link's callback thread, at most once per actor. Watching for a
-        run (``graph`` and ``session``), an actor whose run finished there (END) is no
-        longer watched: it may go quiet.
+        call at the earliest), or when it gave up a run this actor takes part in (LEAVE
+        without a reason). The callbacks run on the link's callback thread, at most one per
+        actor. Watching for a run (``graph`` and ``session``), an actor whose run finished
+        there (END) is no longer watched (it may go quiet) and ``on_end(actor, result)`` is
+        called; an actor that aborted the run (LEAVE with a reason) is reported to
+        ``on_abort(actor, reason)``. What a peer said of the run before this call is
+        reported too.
 
         Args:
             actors: The actors to watch (this actor, if listed, is left out).
             on_lost: The callback.
             graph: The run's graph, if the watch is for a run.
             session: The run's session.
+            on_end: Called when a watched actor's run finished (END), with its result.
+            on_abort: Called when a watched actor aborted the run, with its reason.
 
         Returns:
             A function that stops watching (idempotent).
@@ -578,10 +594,13 @@ class FleetActorLink(Closing):
         with self._lock:
             self._check_open()
             run = self._runs.get(key) if key is not None else None
-            if run is not None:
-                names -= run.ended_peers
-            watch = _Watch(names, on_lost, self._clock(), key)
+            watch = _Watch(names, on_lost, self._clock(), key, on_end, on_abort)
             self._watches.append(watch)
+            if run is not None:
+                for actor, result in sorted(run.ended_peers.items()):
+                    self._report_end(watch, actor, result)
+                for actor, reason in sorted(run.left_reasons.items()):
+                    self._report_abort(watch, actor, reason)
             for actor in sorted(names & self._left):
                 self._report_lost(watch, actor, "left")
             self._timer_wake.notify()
@@ -595,28 +614,56 @@ class FleetActorLink(Closing):
 
         return cancel
 
-    def end(self, graph: str, session: str, *, gave_up: bool = False) -> None:
+    def end(
+        self,
+        graph: str,
+        session: str,
+        *,
+        gave_up: bool = False,
+        result: Result | None = None,
+        reason: str = "",
+    ) -> None:
         """Forget an ended run: its notifications, waiters and handshake state.
 
         A handshake or notify of that run still waiting fails. For ``grace_s`` the run's ids
         stay known (late resends are acknowledged, not taken) and, if its handshake had
-        completed, peers still in it are answered and heartbeats go on.
+        completed, peers still in it are answered, heartbeats go on, and a peer heard
+        speaking of the run is told again how it ended here (END or LEAVE), in case the
+        first word was lost.
 
         Args:
             graph: The graph's name.
             session: The run's session.
-            gave_up: The run did not finish here: LEAVE is sent for it, so the peers report
-                this actor lost ("left") at once instead of after ``silence_s``.
+            gave_up: The run did not finish here: LEAVE is sent for it, so the peers abort it
+                too, with ``reason`` (without one, they report this actor lost, "left"), at
+                once instead of after ``silence_s``.
+            result: How the run finished here (END carries it; the peers take it).
+            reason: Why the run was aborted (LEAVE carries it word for word).
         """
         key = (graph, session)
         leave = None
+        decision: tuple[int, str, str] | None = None
         with self._lock:
             now = self._clock()
             run = self._runs.pop(key, None)
+            ended = self._ended.get(key)
+            if run is None and ended is not None and ended.decision is not None:
+                # a new word on a run that ended here: an abort's reason, or a result taken
+                # from a peer while the abort settled
+                if gave_up:
+                    ended.decision = (_LEAVE, "", reason)
+                elif result is not None:
+                    ended.decision = (_END, result.value, "")
+                if not self._closed:
+                    leave = self._decision_msg(key, ended.actors, ended.decision)
             finished = run is not None and not gave_up and run.phase is _Phase.READY
-            if run is not None and not self._closed and (gave_up or finished):
-                phase = _LEAVE if gave_up else _END
-                leave = self._handshake_msg(phase, run.graph, run.session, run.actors, {})
+            if run is not None and (gave_up or finished):
+                if gave_up:
+                    decision = (_LEAVE, "", reason)
+                else:
+                    decision = (_END, "" if result is None else result.value, "")
+                if not self._closed:
+                    leave = self._decision_msg(key, run.actors, decision)
             if run is not None:
                 for waiters in run.waiters.values():
                     for waiter in waiters:
@@ -629,7 +676,7 @@ class FleetActorLink(Closing):
                         run.frozen if done else None,
                         run.seen,
                         now + self.grace_s,
-                        finished,
+                        decision if done else None,
                     )
             for out in self._outgoing.values():
                 if out.key == key:
@@ -664,7 +711,7 @@ class FleetActorLink(Closing):
                 thread.join()
 
     def _linger(self) -> None:
-        """Before closing: repeat END for runs that just finished here, and keep answering.
+        """Before closing: repeat END or LEAVE for runs that just ended here; keep answering.
 
         For ``linger_s``, so a peer whose last notification we acknowledged (an
         acknowledgement that may have been lost) is not left resending to nobody.
@@ -674,9 +721,9 @@ class FleetActorLink(Closing):
                 return
             now = self._clock()
             ends = [
-                self._handshake_msg(_END, g, s, e.actors, {})
-                for (g, s), e in self._ended.items()
-                if e.finished and e.until > now
+                self._decision_msg(key, e.actors, e.decision)
+                for key, e in self._ended.items()
+                if e.decision is not None and e.until > now
             ]
         if not ends or self.linger_s <= 0:
             return
@@ -711,10 +758,10 @@ class FleetActorLink(Closing):
             now = self._clock()
             self._heard_at[actor] = now
             if msg.phase == _LEAVE:
-                self._on_leave(actor, msg.graph, msg.session)
+                self._on_leave(actor, msg.graph, msg.session, msg.reason)
                 return
             if msg.phase == _END:
-                self._on_end(actor, (msg.graph, msg.session))
+                self._on_end(actor, (msg.graph, msg.session), msg.result)
                 return
             self._left.discard(actor)
             reply = self._on_join_or_ready(msg, now) if msg.graph or msg.session else None
@@ -729,8 +776,11 @@ class FleetActorLink(Closing):
         reply: Any = None
         if run is None or not run.local:
             ended = self._ended.get(key)
-            answer = msg.phase == _JOIN and ended is not None and actor in ended.actors
-            if answer and ended is not None and ended.heard is not None:
+            known = ended is not None and actor in ended.actors
+            if known and msg.phase == _READY and ended is not None and ended.decision is not None:
+                # a peer still in a run that ended here: tell it again how (END may be lost)
+                reply = self._decision_msg(key, ended.actors, ended.decision)
+            elif known and msg.phase == _JOIN and ended is not None and ended.heard is not None:
                 reply = self._handshake_msg(_READY, *key, ended.actors, ended.heard)
             if msg.phase != _JOIN:
                 return reply  # a READY of a run not started here: liveness only
@@ -754,7 +804,7 @@ class FleetActorLink(Closing):
             reply = self._ready_msg(run)
         return reply
 
-    def _on_leave(self, actor: str, graph: str, session: str) -> None:
+    def _on_leave(self, actor: str, graph: str, session: str, reason: str = "") -> None:
         """A peer gave up a run (or, with no graph and session, left the fleet). Lock held."""
         fleet = not graph and not session
         if fleet:
@@ -762,10 +812,14 @@ class FleetActorLink(Closing):
             runs = list(self._runs.values())
         else:
             run = self._runs.get((graph, session))
+            if run is None and reason and (graph, session) not in self._ended:
+                run = self._new_run((graph, session), self._clock())  # kept for a later watch
             runs = [] if run is None else [run]
         lost = fleet
         for run in runs:
             run.left_peers.add(actor)
+            if reason and not fleet:
+                run.left_reasons[actor] = reason
             if run.phase is not _Phase.JOINING:
                 run.peers.pop(actor, None)  # kept: its JOIN no longer stands
             if not run.local or actor not in run.actors:
@@ -780,22 +834,69 @@ class FleetActorLink(Closing):
             if actor in out.waiting and (fleet or out.key == (graph, session)):
                 out.aborted = f"'{actor}' {why}"
                 self._changed.notify_all()
-        if lost:
-            for watch in self._watches:
+        for watch in self._watches:
+            if reason and not fleet and watch.key == (graph, session):
+                self._report_abort(watch, actor, reason)  # also once the run ended here
+            elif lost:
                 self._report_lost(watch, actor, "left")
 
-    def _on_end(self, actor: str, key: _SessionKey) -> None:
-        """A peer's run finished: stop waiting for it in that run. Lock held."""
+    def _on_end(self, actor: str, key: _SessionKey, result: str = "") -> None:
+        """A peer's run finished: stop waiting for it in that run, take its result. Lock held."""
         run = self._runs.get(key)
+        if run is None and key not in self._ended:
+            run = self._new_run(key, self._clock())  # kept for a watch of a run not started yet
         if run is not None:
-            run.ended_peers.add(actor)
+            run.ended_peers.setdefault(actor, result)
         for out in self._outgoing.values():
             if out.key == key and actor in out.waiting:
                 out.waiting.discard(actor)  # it needs nothing more of this run
                 self._changed.notify_all()
         for watch in self._watches:
             if watch.key == key:
-                watch.actors.discard(actor)
+                self._report_end(watch, actor, result)
+
+    def _report_end(self, watch: _Watch, actor: str, result: str) -> None:
+        """A watched peer's run finished with ``result``: stop watching it, tell. Lock held."""
+        if not watch.active or actor not in watch.actors:
+            return
+        watch.actors.discard(actor)
+        on_end = watch.on_end
+        if on_end is None:
+            return
+        try:
+            taken = Result(result)
+        except ValueError:
+            logger.warning("actor %r: END of %r with unknown result %r", self._actor, actor, result)
+            return
+
+        def call() -> None:
+            with self._lock:
+                if not watch.active:
+                    return
+            on_end(actor, taken)
+
+        self._calls.append(call)
+        self._calls_ready.notify()
+
+    def _report_abort(self, watch: _Watch, actor: str, reason: str) -> None:
+        """A watched peer aborted the run with ``reason``. Lock held."""
+        on_abort = watch.on_abort
+        if on_abort is None:
+            self._report_lost(watch, actor, "left")
+            return
+        if not watch.active or (actor, reason) in watch.aborts:
+            return
+        watch.aborts.add((actor, reason))
+        self._counts["lost"] += 1
+
+        def call() -> None:
+            with self._lock:
+                if not watch.active:
+                    return
+            on_abort(actor, reason)
+
+        self._calls.append(call)
+        self._calls_ready.notify()
 
     def _gone(self, actor: str, now: float) -> bool:
         """Whether a peer is gone: it left, or was heard once but not for ``silence_s``.
@@ -832,14 +933,13 @@ class FleetActorLink(Closing):
                 self._counts["unexpected"] += 1
                 return
             self._counts["notifications_received"] += 1
-        # The acknowledgement leaves before the callback can run: an actor whose run ends
-        # with this notification may close its link at once.
+            # Taken (its delivery queued) before the acknowledgement leaves: the sender's END,
+            # which may follow the acknowledgement at once, is then handled after it.
+            self._take(msg)
         ack = new(action_ack_t)
         ack.notification_id, ack.graph, ack.session = msg.notification_id, msg.graph, msg.session
         ack.actor = self._actor
         self._send_quietly(NOTIFY_CHANNEL, ack, "acks_sent")
-        with self._lock:
-            self._take(msg)
 
     def _take(self, msg: Any) -> None:
         """Store or deliver a notification unless it is a duplicate. Lock held."""
@@ -1122,6 +1222,7 @@ class FleetActorLink(Closing):
         msg = new(handshake_t)
         msg.phase, msg.graph, msg.session, msg.actor = phase, graph, session, self._actor
         msg.stamp_us = self._stamp()
+        msg.result, msg.reason = "", ""
         msg.actors = list(actors)
         msg.heard = []
         for name, stamp in sorted(heard.items()):
@@ -1139,6 +1240,15 @@ class FleetActorLink(Closing):
 
     def _leave_msg(self, graph: str, session: str, actors: Sequence[str]) -> Any:
         return self._handshake_msg(_LEAVE, graph, session, actors, {})
+
+    def _decision_msg(
+        self, key: _SessionKey, actors: Sequence[str], decision: tuple[int, str, str]
+    ) -> Any:
+        """END with the run's result, or LEAVE with the abort's reason."""
+        phase, result, reason = decision
+        msg = self._handshake_msg(phase, key[0], key[1], actors, {})
+        msg.result, msg.reason = result, reason
+        return msg
 
     def _send(self, channel: str, msg: Any, counter: str) -> None:
         """Not locked: encode and send; FleetError if it cannot be sent."""

@@ -460,24 +460,28 @@ def test_a_partition_fails_the_graph_on_every_actor(key_file: Path) -> None:
     report = describe(actors, ABC)
     assert None not in codes, f"hung: exit codes {codes}\n{report}"
     assert codes == [1, 1, 1], f"exit codes {codes}\n{report}"
-    # Whoever notices first fails its run and gives it up (LEAVE); a peer may hear that LEAVE
-    # before its own silence timer fires, so it names that peer ("left") instead of B.
-    lost = r"netns_partition: actor '(Actor [ABC])' was lost \((not heard for|left)"
+    # One outcome: every actor aborts the run with the same reason, whether it found a peer
+    # silent itself or heard the abort of a peer on its side of the cut first (B is alone on
+    # its side: it finds both silent). Each actor's own finding names whom it misses.
+    aborted = "netns_partition aborted: an actor was lost (not heard for"
+    missed = r"netns_partition: actor '(Actor [ABC])' was lost \(not heard for"
     named_b = False
     for i, name in enumerate(ABC):
-        line = actors.first(i, lost)
-        assert line is not None, f"{name} did not report a lost actor\n{report}"
-        found = re.search(lost, line.text)
-        assert found is not None
-        assert found.group(1) != name, line.text
-        if i != cut and found.group(1) == ABC[cut] and found.group(2) == "not heard for":
-            named_b = True
+        line = actors.first(i, re.escape(aborted))
+        assert line is not None, f"{name} did not abort the run\n{report}"
+        own = actors.first(i, missed)
+        if own is not None:
+            found = re.search(missed, own.text)
+            assert found is not None
+            assert found.group(1) != name, own.text
+            named_b = named_b or (i != cut and found.group(1) == ABC[cut])
         assert "netns_partition: on_error" in actors.text(i, "out"), (name, report)
         detected, ended = line.t - t_cut, actors.exited[i] - t_cut
-        print(f"{name}: lost reported {detected:.2f} s, exited {ended:.2f} s after the cut")
+        print(f"{name}: aborted {detected:.2f} s, exited {ended:.2f} s after the cut")
         assert SILENCE_S - 0.5 < detected < SILENCE_S + MARGIN_S, (name, detected)
-        # a notification for a lost actor is not waited for: the run ends at once
-        assert ended < SILENCE_S + MARGIN_S, (name, ended)
+        # a notification for a lost actor is not waited for: the run ends at once (after the
+        # engine's settle_timeout, 1 s by default)
+        assert ended < SILENCE_S + 1.0 + MARGIN_S, (name, ended)
     assert named_b, f"no survivor found the partitioned actor silent\n{report}"
 
 
