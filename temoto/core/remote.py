@@ -21,14 +21,34 @@ from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Protocol
 
 from temoto.core.states import Result
+from temoto.errors import FleetError
 
-__all__ = ["ActorLink", "Cancel", "RemoteResult"]
+__all__ = ["ActorLink", "ActorLostError", "Cancel", "RemoteResult"]
 
 #: Called with the result and outputs of a remote action (``on_true`` ... ``on_error``).
 RemoteResult = Callable[[Result, Mapping[str, Any]], None]
 
 #: Undoes a registration (idempotent).
 Cancel = Callable[[], None]
+
+
+class ActorLostError(FleetError):
+    """A notification was not acknowledged because an actor is gone.
+
+    Args:
+        message: What happened, for people.
+        actor: The actor that is gone.
+        why: ``left`` (it left the run or the fleet), or ``not heard for N s``.
+
+    Attributes:
+        actor: The actor that is gone.
+        why: Why it is taken as gone.
+    """
+
+    def __init__(self, message: str, *, actor: str, why: str) -> None:
+        super().__init__(message)
+        self.actor = actor
+        self.why = why
 
 
 class ActorLink(Protocol):
@@ -75,6 +95,7 @@ class ActorLink(Protocol):
             timeout: Seconds to wait for every acknowledgement (resending meanwhile).
 
         Raises:
+            ActorLostError: An actor it was meant for is gone (silent, or left).
             FleetError: Some actor did not acknowledge in time (the message names it).
         """
         ...

@@ -38,7 +38,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from temoto.core._runtime import GraphRun, Node, Plan
-from temoto.core.remote import ActorLink
+from temoto.core.remote import ActorLink, ActorLostError
 from temoto.core.states import GraphState, Result
 from temoto.errors import ActionError, FleetError
 
@@ -327,6 +327,9 @@ class SharedRuns:
                 run.peers,
                 self.notify_timeout,
             )
+        except ActorLostError as err:
+            if err.why != "left":  # one that left is reported by the watch, with its reason
+                self._actor_lost(run, err.actor, err.why)
         except FleetError as err:
             self.abort(run, str(err))
         return result, error

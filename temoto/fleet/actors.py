@@ -55,7 +55,7 @@ from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final, final
 
-from temoto.core.remote import Cancel, RemoteResult
+from temoto.core.remote import ActorLostError, Cancel, RemoteResult
 from temoto.core.states import Result
 from temoto.errors import FleetError, StateError, TransportError
 from temoto.fleet._common import Closing, check_name, check_seconds, decode_or_count, new
@@ -182,6 +182,8 @@ class _Ended:
     # (END or LEAVE, result, reason) said here: said again when the link closes, and to
     # peers still speaking of the run
     decision: tuple[int, str, str] | None = None
+    decided: float = 0.0  # our clock when the decision was (last) made: repeated for silence_s
+    next_repeat: float = 0.0
 
 
 @dataclass(slots=True, eq=False)
@@ -192,6 +194,7 @@ class _Outgoing:
     waiting: set[str]
     started: float
     aborted: str | None = None
+    lost: tuple[str, str] | None = None  # (actor, why) when an actor waited for is gone
 
 
 @dataclass(slots=True, eq=False)
@@ -427,6 +430,8 @@ class FleetActorLink(Closing):
             timeout: Seconds to wait for every acknowledgement.
 
         Raises:
+            ActorLostError: An actor waited for is gone: it left the run or the fleet, or was
+                not heard for ``silence_s``.
             FleetError: Some actor did not acknowledge in time (the message names it), the
                 run was ended meanwhile, the link is closed or cannot send, or the outputs
                 are not JSON-ready.
@@ -454,9 +459,12 @@ class FleetActorLink(Closing):
                 left = run.left_peers
             gone = sorted(a for a in others if a in left or self._gone(a, self._clock()))
         if gone:
-            raise FleetError(
+            why = "left" if gone[0] in left else self._why_gone(gone[0])
+            raise ActorLostError(
                 f"{action} ({result.value}) of graph '{graph}' session '{session}': "
-                + ", ".join(f"actor '{a}' was lost ({self._why_gone(a)})" for a in gone)
+                + ", ".join(f"actor '{a}' was lost ({self._why_gone(a)})" for a in gone),
+                actor=gone[0],
+                why=why,
             )
         if not others:
             return
@@ -480,11 +488,14 @@ class FleetActorLink(Closing):
                         if self._closed:
                             raise FleetError("the fleet link is closed")
                         if out.aborted is not None:
-                            raise FleetError(
+                            text = (
                                 f"{action} ({result.value}) of graph '{graph}' session "
                                 f"'{session}': {out.aborted} before {_names(out.waiting)} "
                                 "acknowledged it"
                             )
+                            if out.lost is not None:
+                                raise ActorLostError(text, actor=out.lost[0], why=out.lost[1])
+                            raise FleetError(text)
                         now = self._clock()
                         if now >= deadline:
                             raise FleetError(
@@ -654,6 +665,7 @@ class FleetActorLink(Closing):
                     ended.decision = (_LEAVE, "", reason)
                 elif result is not None:
                     ended.decision = (_END, result.value, "")
+                ended.decided, ended.next_repeat = now, now + self.resend_s
                 if not self._closed:
                     leave = self._decision_msg(key, ended.actors, ended.decision)
             finished = run is not None and not gave_up and run.phase is _Phase.READY
@@ -677,6 +689,8 @@ class FleetActorLink(Closing):
                         run.seen,
                         now + self.grace_s,
                         decision if done else None,
+                        now,
+                        now + self.resend_s,
                     )
             for out in self._outgoing.values():
                 if out.key == key:
@@ -833,6 +847,7 @@ class FleetActorLink(Closing):
         for out in self._outgoing.values():  # it will not acknowledge: do not wait for it
             if actor in out.waiting and (fleet or out.key == (graph, session)):
                 out.aborted = f"'{actor}' {why}"
+                out.lost = (actor, "left")
                 self._changed.notify_all()
         for watch in self._watches:
             if reason and not fleet and watch.key == (graph, session):
@@ -1004,11 +1019,32 @@ class FleetActorLink(Closing):
                 else:
                     self._next_heartbeat = now
                 wake = min(wake, self._check_silences(now), self._expire(now))
+                repeats, due = self._repeats(now)
+                msgs += repeats
+                wake = min(wake, due)
                 if not msgs:
                     self._timer_wake.wait(None if wake == math.inf else max(0.0, wake - now))
                     continue
             for msg in msgs:
                 self._send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
+
+    def _repeats(self, now: float) -> tuple[list[Any], float]:
+        """The ENDs and LEAVEs to say again, and when next to look. Lock held.
+
+        Each is said every ``resend_s`` for ``silence_s`` after the decision: a peer that
+        ended the run too (an abort settling there) no longer sends heartbeats of it to
+        answer.
+        """
+        msgs: list[Any] = []
+        wake = math.inf
+        for key, ended in self._ended.items():
+            if ended.decision is None or now >= ended.decided + self.silence_s:
+                continue
+            if now >= ended.next_repeat:
+                msgs.append(self._decision_msg(key, ended.actors, ended.decision))
+                ended.next_repeat = now + self.resend_s
+            wake = min(wake, ended.next_repeat)
+        return msgs, wake
 
     def _check_silences(self, now: float) -> float:
         """Report silent watched actors; fail notifications waiting for silent actors.
@@ -1023,6 +1059,7 @@ class FleetActorLink(Closing):
                 due = max(self._heard_at.get(actor, -math.inf), out.started) + self.silence_s
                 if now >= due:
                     out.aborted = f"'{actor}' was not heard for {self.silence_s:g} s"
+                    out.lost = (actor, f"not heard for {self.silence_s:g} s")
                     self._changed.notify_all()
                     break
                 wake = min(wake, due)

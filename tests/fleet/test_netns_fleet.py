@@ -44,6 +44,8 @@ GRAPHS = Path(__file__).resolve().parent / "graphs"
 UPSTREAM = ROOT.parent / "shared" / "conformance" / "umrf" / "upstream"
 MULTI = UPSTREAM / "actionengine_test_engine_test_multi_actor.graph.json"
 PARTITION = GRAPHS / "netns_partition.graph.json"
+LOST_NOTIFICATION = GRAPHS / "netns_lost_notification.graph.json"
+SETTLE_S = 1.0  # the engine's settle_timeout (default): an aborted run is done after it
 ABC = ["Actor A", "Actor B", "Actor C"]
 KEY = "6b" * 32  # a fixed 32-byte fleet key, hex
 
@@ -483,6 +485,81 @@ def test_a_partition_fails_the_graph_on_every_actor(key_file: Path) -> None:
         # engine's settle_timeout, 1 s by default)
         assert ended < SILENCE_S + 1.0 + MARGIN_S, (name, ended)
     assert named_b, f"no survivor found the partitioned actor silent\n{report}"
+
+
+def aborted_with(actors: Actors, i: int, graph: str) -> str | None:
+    """The reason actor ``i`` aborted ``graph`` with, from its log, or None."""
+    line = actors.first(i, rf"shared run {graph} aborted: ")
+    return None if line is None else line.text.split(f"shared run {graph} aborted: ", 1)[1]
+
+
+def test_an_actor_killed_mid_run_aborts_the_run_on_every_other(key_file: Path) -> None:
+    require()
+    killed = 1  # Actor B
+    with RobotNetwork(3) as net:
+        actors = start_actors(
+            net, PARTITION, ABC, key_file, "--progress", "--fleet-silence", str(SILENCE_S)
+        )
+        running = [rf"netns_partition: TaTimer_{i} RUNNING" for i in range(3)]
+        started = actors.pump(
+            lambda: all(actors.first(i, running[i]) for i in range(3)), time.monotonic() + 15
+        )
+        assert started, f"the timers did not all start\n{describe(actors, ABC)}"
+        t_kill = time.monotonic()
+        actors.procs[killed].kill()  # SIGKILL: no LEAVE, no END, nothing
+        codes = actors.finish(t_kill + SILENCE_S + SETTLE_S + 2 * MARGIN_S)
+    report = describe(actors, ABC)
+    assert codes[killed] == -9, report
+    survivors = [i for i in range(3) if i != killed]
+    assert [codes[i] for i in survivors] == [1, 1], f"exit codes {codes}\n{report}"
+    reasons = {aborted_with(actors, i, "netns_partition") for i in survivors}
+    assert reasons == {f"an actor was lost (not heard for {SILENCE_S:g} s)"}, report
+    for i in survivors:
+        ended = actors.exited[i] - t_kill
+        print(f"{ABC[i]}: exited {ended:.2f} s after the kill")
+        assert ended < SILENCE_S + SETTLE_S + MARGIN_S, (ABC[i], ended)
+
+
+def test_a_notification_lost_on_purpose_aborts_the_run_everywhere(key_file: Path) -> None:
+    require(nft=True)
+    deaf = 2  # Actor C hears nothing for a while: it never acknowledges A's notification
+    silence = 9.0  # longer than the notify timeout (5 s): C is still in the run when it hears
+    with RobotNetwork(3) as net:
+        actors = start_actors(
+            net,
+            LOST_NOTIFICATION,
+            ABC,
+            key_file,
+            "--progress",
+            "--fleet-silence",
+            str(silence),
+            timeout=40,
+        )
+        running = [rf"netns_lost_notification: TaTimer_{i} RUNNING" for i in range(3)]
+        started = actors.pump(
+            lambda: all(actors.first(i, running[i]) for i in range(3)), time.monotonic() + 15
+        )
+        assert started, f"the timers did not all start\n{describe(actors, ABC)}"
+        t_deaf = time.monotonic()
+        net.loss(deaf, 100)
+        # A's timer ends after 1 s; C does not acknowledge; A aborts 5 s later
+        aborted = actors.pump(
+            lambda: aborted_with(actors, 0, "netns_lost_notification") is not None,
+            t_deaf + 15,
+        )
+        assert aborted, f"A did not abort the run\n{describe(actors, ABC)}"
+        net.loss(deaf, 0)  # C hears again, before it would find A and B silent
+        codes = actors.finish(time.monotonic() + silence + MARGIN_S)
+    report = describe(actors, ABC)
+    assert codes == [1, 1, 1], f"exit codes {codes}\n{report}"
+    reasons = {aborted_with(actors, i, "netns_lost_notification") for i in range(3)}
+    assert len(reasons) == 1, report
+    (reason,) = reasons
+    assert reason is not None
+    assert "TaTimer_0 (on_true)" in reason, reason
+    assert "was not acknowledged by 'Actor C'" in reason, reason
+    for i in range(3):
+        print(f"{ABC[i]}: exited {actors.exited[i] - t_deaf:.2f} s after C went deaf")
 
 
 def test_random_loss_on_every_robot_is_survived(key_file: Path) -> None:
