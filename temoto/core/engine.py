@@ -243,9 +243,10 @@ class ActionEngine:
             plan = self.plan(model)
             values = graph_inputs(plan.graph, params or {})
         peers = SharedRuns.peers(self.actor, plan)
+        session = run_name
         if peers:
             assert self._shared is not None  # the planner refuses remote actions without a link
-            self._shared.handshake(plan, run_name, peers)
+            session = self._shared.handshake(plan, run_name, peers)
         with collector_paused() as pause:
             with self._lock:
                 if self._closed:
@@ -255,6 +256,7 @@ class ActionEngine:
                     raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
                 run = GraphRun(run_name, plan)
                 run.peers = peers
+                run.session = session
                 self._runs[run_name] = run
                 if old is not None and not old.active:
                     old.dispose()  # its memory comes back now, not at a later full collection

@@ -59,14 +59,18 @@ class ActorLink(Protocol):
         """This engine's actor name."""
         ...
 
-    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> None:
+    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> str:
         """Block until every pair of ``actors`` has heard each other for this session.
 
         Args:
             graph: The graph's name (the handshake token).
-            session: Identifies this run of the graph, the same on every actor.
+            session: Names this run of the graph, the same on every actor.
             actors: Every participating actor, this one included.
             timeout: Seconds to wait at most.
+
+        Returns:
+            The run id the participants agreed on, unique to this run: the ``session`` of
+            every later call for the run (notify, expect, watch, end).
 
         Raises:
             FleetError: Not every actor answered in time (the message names them).

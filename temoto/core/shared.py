@@ -96,19 +96,22 @@ class SharedRuns:
         actors = {a.actor for a in plan.graph.actions if a.actor and a.actor != actor}
         return tuple(sorted(actors))
 
-    def handshake(self, plan: Plan, run_name: str, peers: tuple[str, ...]) -> None:
+    def handshake(self, plan: Plan, run_name: str, peers: tuple[str, ...]) -> str:
         """Block until every participant of a run has heard every other.
 
         Args:
             plan: The run's plan.
-            run_name: The run's name (its session).
+            run_name: The run's name (the handshake's session).
             peers: The other participants.
+
+        Returns:
+            The run id the participants agreed on (the session of every later message).
 
         Raises:
             FleetError: The handshake did not complete within ``handshake_timeout``.
         """
         actors = sorted({self.link.actor, *peers})
-        self.link.handshake(plan.graph.name, run_name, actors, self.handshake_timeout)
+        return self.link.handshake(plan.graph.name, run_name, actors, self.handshake_timeout)
 
     def watch(self, run: GraphRun) -> None:
         """Have the link report a peer of ``run`` that ends, aborts, falls silent or leaves."""
@@ -117,7 +120,7 @@ class SharedRuns:
             run.peers,
             lambda actor, why: self._actor_lost(run, actor, why),
             graph=run.plan.graph.name,
-            session=run.name,
+            session=run.session,
             on_end=lambda actor, result: self._peer_ended(run, actor, result),
             on_abort=lambda actor, reason: self.abort(run, reason),
         )
@@ -166,7 +169,7 @@ class SharedRuns:
         if fx:
             engine._dispatch(fx, closing=engine._closed)
         else:
-            self.link.end(run.plan.graph.name, run.name, gave_up=True, reason=reason)
+            self.link.end(run.plan.graph.name, run.session, gave_up=True, reason=reason)
 
     def _peer_ended(self, run: GraphRun, actor: str, result: Result) -> None:
         """Link thread: a peer reached the end of the run; it ends here with its result."""
@@ -206,7 +209,7 @@ class SharedRuns:
         try:
             if unwatch is not None:
                 unwatch()
-            self.link.end(run.plan.graph.name, run.name, result=result)
+            self.link.end(run.plan.graph.name, run.session, result=result)
         finally:
             run.done.set()
 
@@ -236,7 +239,7 @@ class SharedRuns:
             result, reason = run.result, run.aborted or ""
         graph = run.plan.graph.name
         if not reached:
-            self.link.end(graph, run.name, gave_up=True, reason=reason)
+            self.link.end(graph, run.session, gave_up=True, reason=reason)
             try:
                 engine._timer.call_later(self.settle_timeout, self._settled, run)
             except RuntimeError:  # the engine's timer is shut down: no time to settle
@@ -245,7 +248,7 @@ class SharedRuns:
         try:
             if unwatch is not None:
                 unwatch()
-            self.link.end(graph, run.name, result=result)
+            self.link.end(graph, run.session, result=result)
         finally:
             run.done.set()  # only now: a caller may close the link as soon as wait() returns
 
@@ -268,7 +271,7 @@ class SharedRuns:
         run = node.run
         cancel = self.link.expect(
             run.plan.graph.name,
-            run.name,
+            run.session,
             node.name,
             node.umrf.actor,
             lambda result, outputs: self._remote_finished(node, gen, result, outputs),
@@ -320,7 +323,7 @@ class SharedRuns:
         try:
             self.link.notify(
                 run.plan.graph.name,
-                run.name,
+                run.session,
                 node.name,
                 result,
                 outputs,

@@ -49,6 +49,7 @@ import itertools
 import json
 import logging
 import math
+import secrets
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -127,6 +128,7 @@ class _Peer:
     phase: int
     actors: tuple[str, ...]
     heard: dict[str, int]
+    run_id: str = ""  # its proposal (JOIN) or the run id it agreed on (READY)
 
 
 @dataclass(slots=True, eq=False)
@@ -149,6 +151,8 @@ class _Run:
     phase: _Phase = _Phase.KEPT
     actors: tuple[str, ...] = ()
     first_stamp: int = 0  # the stamp of the first JOIN of the current handshake call
+    proposal: str = ""  # this actor's run id proposal in the current handshake call
+    run_id: str = ""  # the run id agreed on (once READY); the run is also kept under it
     frozen: dict[str, int] = field(default_factory=dict)  # our heard list once READY
     aborted: str | None = None  # why the running handshake must fail
     peers: dict[str, _Peer] = field(default_factory=dict)
@@ -184,6 +188,7 @@ class _Ended:
     decision: tuple[int, str, str] | None = None
     decided: float = 0.0  # our clock when the decision was (last) made: repeated for silence_s
     next_repeat: float = 0.0
+    out_key: _SessionKey | None = None  # (graph, run id) the decision is said for
 
 
 @dataclass(slots=True, eq=False)
@@ -327,14 +332,24 @@ class FleetActorLink(Closing):
         with self._lock:
             return dict(self._counts)
 
-    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> None:
+    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> str:
         """Block until every pair of ``actors`` has heard each other in this run.
+
+        Each participant proposes a random run id in its JOINs; the run id of the run is the
+        smallest proposal, which every participant knows once the handshake is done. Every
+        later message of the run (notifications, acknowledgements, END, LEAVE) carries it as
+        its session, so two runs of the same graph and session name never mix, however
+        quickly one follows the other.
 
         Args:
             graph: The graph's name (the handshake token).
-            session: Identifies this run of the graph, the same on every actor.
+            session: Names this run of the graph, the same on every actor.
             actors: Every participating actor, this one included.
             timeout: Seconds to wait at most.
+
+        Returns:
+            The run id: the session of :meth:`notify`, :meth:`expect`, :meth:`watch` and
+            :meth:`end` for this run (``session`` itself for a run of this actor alone).
 
         Raises:
             FleetError: Not every pair heard each other in time (the message names who was
@@ -350,7 +365,7 @@ class FleetActorLink(Closing):
         if self._actor not in participants:
             raise ValueError(f"actors {list(participants)} do not include this actor")
         if len(participants) == 1:
-            return
+            return session
         key = (graph, session)
         with self._lock:
             self._check_open()
@@ -366,6 +381,8 @@ class FleetActorLink(Closing):
             run.local = True
             run.actors = participants
             run.phase = _Phase.JOINING
+            run.proposal = f"{session}@{secrets.token_hex(6)}"
+            run.run_id = ""
             # what peers said of an earlier run of this session does not stand for this one
             run.ended_peers.clear()
             run.left_reasons.clear()
@@ -385,6 +402,7 @@ class FleetActorLink(Closing):
                         if not self._missing(run):
                             run.phase = _Phase.READY
                             run.frozen = {p: peer.stamp for p, peer in run.peers.items()}
+                            self._agree(run)
                             ready = self._ready_msg(run)
                             # READY goes out now: the next heartbeat can wait a period
                             self._next_heartbeat = self._clock() + self.heartbeat_s
@@ -405,6 +423,7 @@ class FleetActorLink(Closing):
             self._give_up(run)
             raise
         self._send_quietly(HANDSHAKE_CHANNEL, ready, "handshakes_sent")
+        return run.run_id
 
     def notify(
         self,
@@ -657,6 +676,10 @@ class FleetActorLink(Closing):
         with self._lock:
             now = self._clock()
             run = self._runs.pop(key, None)
+            if run is not None:
+                for other in ((run.graph, run.session), (run.graph, run.run_id)):
+                    if self._runs.get(other) is run:
+                        del self._runs[other]  # the same run under its other key
             ended = self._ended.get(key)
             if run is None and ended is not None and ended.decision is not None:
                 # a new word on a run that ended here: an abort's reason, or a result taken
@@ -667,7 +690,7 @@ class FleetActorLink(Closing):
                     ended.decision = (_END, result.value, "")
                 ended.decided, ended.next_repeat = now, now + self.resend_s
                 if not self._closed:
-                    leave = self._decision_msg(key, ended.actors, ended.decision)
+                    leave = self._decision_msg(ended.out_key or key, ended.actors, ended.decision)
             finished = run is not None and not gave_up and run.phase is _Phase.READY
             if run is not None and (gave_up or finished):
                 if gave_up:
@@ -683,7 +706,7 @@ class FleetActorLink(Closing):
                 run.aborted = "the run was ended"
                 done = run.phase is _Phase.READY
                 if done or run.seen:
-                    self._ended[key] = _Ended(
+                    kept = _Ended(
                         run.actors,
                         run.frozen if done else None,
                         run.seen,
@@ -691,7 +714,10 @@ class FleetActorLink(Closing):
                         decision if done else None,
                         now,
                         now + self.resend_s,
+                        key,
                     )
+                    self._ended[key] = kept
+                    self._ended[(run.graph, run.session)] = kept  # late JOINs name the session
             for out in self._outgoing.values():
                 if out.key == key:
                     out.aborted = "the run was ended"
@@ -710,7 +736,7 @@ class FleetActorLink(Closing):
             if self._closed:
                 return
             self._closed = True
-            active = [r for r in self._runs.values() if r.local and r.phase is not _Phase.KEPT]
+            active = [r for r in self._distinct_runs() if r.local and r.phase is not _Phase.KEPT]
             leaves = [self._leave_msg(r.graph, r.session, r.actors) for r in active]
             self._calls.clear()
             self._changed.notify_all()
@@ -737,7 +763,7 @@ class FleetActorLink(Closing):
             ends = [
                 self._decision_msg(key, e.actors, e.decision)
                 for key, e in self._ended.items()
-                if e.decision is not None and e.until > now
+                if e.decision is not None and e.until > now and e.out_key in (None, key)
             ]
         if not ends or self.linger_s <= 0:
             return
@@ -793,7 +819,7 @@ class FleetActorLink(Closing):
             known = ended is not None and actor in ended.actors
             if known and msg.phase == _READY and ended is not None and ended.decision is not None:
                 # a peer still in a run that ended here: tell it again how (END may be lost)
-                reply = self._decision_msg(key, ended.actors, ended.decision)
+                reply = self._decision_msg(ended.out_key or key, ended.actors, ended.decision)
             elif known and msg.phase == _JOIN and ended is not None and ended.heard is not None:
                 reply = self._handshake_msg(_READY, *key, ended.actors, ended.heard)
             if msg.phase != _JOIN:
@@ -807,7 +833,7 @@ class FleetActorLink(Closing):
         if peer is None or msg.stamp_us > peer.stamp:
             rejoined = peer is not None and msg.phase == _JOIN and peer.phase != _JOIN
             heard = {h.actor: h.stamp_us for h in msg.heard}
-            run.peers[actor] = _Peer(msg.stamp_us, msg.phase, tuple(msg.actors), heard)
+            run.peers[actor] = _Peer(msg.stamp_us, msg.phase, tuple(msg.actors), heard, msg.run_id)
         if run.phase is _Phase.JOINING:
             if actor in run.actors:
                 self._check_same_actors(run, actor)
@@ -823,7 +849,7 @@ class FleetActorLink(Closing):
         fleet = not graph and not session
         if fleet:
             self._left.add(actor)
-            runs = list(self._runs.values())
+            runs = self._distinct_runs()
         else:
             run = self._runs.get((graph, session))
             if run is None and reason and (graph, session) not in self._ended:
@@ -1006,7 +1032,7 @@ class FleetActorLink(Closing):
                     return
                 now = self._clock()
                 wake = math.inf
-                ready = [r for r in self._runs.values() if r.local and r.phase is _Phase.READY]
+                ready = [r for r in self._distinct_runs() if r.local and r.phase is _Phase.READY]
                 graced = any(e.heard is not None for e in self._ended.values())
                 msgs: list[Any] = []
                 if ready or graced or self._watches:
@@ -1040,6 +1066,8 @@ class FleetActorLink(Closing):
         for key, ended in self._ended.items():
             if ended.decision is None or now >= ended.decided + self.silence_s:
                 continue
+            if ended.out_key not in (None, key):
+                continue  # the same run under its session's name: said under its run id
             if now >= ended.next_repeat:
                 msgs.append(self._decision_msg(key, ended.actors, ended.decision))
                 ended.next_repeat = now + self.resend_s
@@ -1259,7 +1287,7 @@ class FleetActorLink(Closing):
         msg = new(handshake_t)
         msg.phase, msg.graph, msg.session, msg.actor = phase, graph, session, self._actor
         msg.stamp_us = self._stamp()
-        msg.result, msg.reason = "", ""
+        msg.result, msg.reason, msg.run_id = "", "", ""
         msg.actors = list(actors)
         msg.heard = []
         for name, stamp in sorted(heard.items()):
@@ -1270,10 +1298,42 @@ class FleetActorLink(Closing):
 
     def _join_msg(self, run: _Run) -> Any:
         heard = {p: peer.stamp for p, peer in run.peers.items()}
-        return self._handshake_msg(_JOIN, run.graph, run.session, run.actors, heard)
+        msg = self._handshake_msg(_JOIN, run.graph, run.session, run.actors, heard)
+        msg.run_id = run.proposal
+        return msg
 
     def _ready_msg(self, run: _Run) -> Any:
-        return self._handshake_msg(_READY, run.graph, run.session, run.actors, run.frozen)
+        msg = self._handshake_msg(_READY, run.graph, run.session, run.actors, run.frozen)
+        msg.run_id = run.run_id
+        return msg
+
+    def _distinct_runs(self) -> list[_Run]:
+        """Every run once (a run whose handshake is done is kept under two keys). Lock held."""
+        return list({id(r): r for r in self._runs.values()}.values())
+
+    def _agree(self, run: _Run) -> None:
+        """The handshake of ``run`` is done: agree on its run id. Lock held.
+
+        The run id is the smallest proposal; the run is kept under it too, with what peers
+        that ran ahead already said under it.
+        """
+        proposals = [run.proposal]
+        for actor in run.actors:
+            peer = run.peers.get(actor)
+            if peer is not None and peer.run_id:
+                proposals.append(peer.run_id)
+        run.run_id = min(proposals)
+        key = (run.graph, run.run_id)
+        early = self._runs.get(key)
+        if early is not None and early is not run:  # peers that ran ahead spoke of it already
+            for node, notices in early.pending.items():
+                run.pending.setdefault(node, collections.deque()).extend(notices)
+            run.seen |= early.seen
+            for actor, result in early.ended_peers.items():
+                run.ended_peers.setdefault(actor, result)
+            run.left_reasons.update(early.left_reasons)
+            run.left_peers |= early.left_peers
+        self._runs[key] = run
 
     def _leave_msg(self, graph: str, session: str, actors: Sequence[str]) -> Any:
         return self._handshake_msg(_LEAVE, graph, session, actors, {})

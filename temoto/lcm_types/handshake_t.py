@@ -17,11 +17,11 @@ class handshake_t(object):
     echoed heard list.
     """
 
-    __slots__ = ["version", "phase", "graph", "session", "actor", "stamp_us", "actors_count", "actors", "heard_count", "heard", "result", "reason"]
+    __slots__ = ["version", "phase", "graph", "session", "actor", "stamp_us", "actors_count", "actors", "heard_count", "heard", "result", "reason", "run_id"]
 
-    __typenames__ = ["int16_t", "int8_t", "string", "string", "string", "int64_t", "int16_t", "string", "int16_t", "temoto.lcm_types.heard_actor_t", "string", "string"]
+    __typenames__ = ["int16_t", "int8_t", "string", "string", "string", "int64_t", "int16_t", "string", "int16_t", "temoto.lcm_types.heard_actor_t", "string", "string", "string"]
 
-    __dimensions__ = [None, None, None, None, None, None, None, ["actors_count"], None, ["heard_count"], None, None]
+    __dimensions__ = [None, None, None, None, None, None, None, ["actors_count"], None, ["heard_count"], None, None, None]
 
     JOIN = 1
     """
@@ -104,6 +104,14 @@ class handshake_t(object):
         LCM Type: string
         """
 
+        self.run_id = ""
+        """
+        JOIN: the sender's proposal for the run id; READY: the run id agreed on (the smallest
+        proposal of the participants). Every later message of the run carries the run id as
+        its session.
+        LCM Type: string
+        """
+
 
     def encode(self):
         buf = BytesIO()
@@ -143,6 +151,10 @@ class handshake_t(object):
         buf.write(struct.pack('>I', len(__reason_encoded)+1))
         buf.write(__reason_encoded)
         buf.write(b"\0")
+        __run_id_encoded = self.run_id.encode('utf-8')
+        buf.write(struct.pack('>I', len(__run_id_encoded)+1))
+        buf.write(__run_id_encoded)
+        buf.write(b"\0")
 
     @staticmethod
     def decode(data: bytes):
@@ -177,13 +189,15 @@ class handshake_t(object):
         self.result = buf.read(__result_len)[:-1].decode('utf-8', 'replace')
         __reason_len = struct.unpack('>I', buf.read(4))[0]
         self.reason = buf.read(__reason_len)[:-1].decode('utf-8', 'replace')
+        __run_id_len = struct.unpack('>I', buf.read(4))[0]
+        self.run_id = buf.read(__run_id_len)[:-1].decode('utf-8', 'replace')
         return self
 
     @staticmethod
     def _get_hash_recursive(parents):
         if handshake_t in parents: return 0
         newparents = parents + [handshake_t]
-        tmphash = (0x3b6f20d0986d1270+ temoto.lcm_types.heard_actor_t._get_hash_recursive(newparents)) & 0xffffffffffffffff
+        tmphash = (0x1891eadd89cb49ee+ temoto.lcm_types.heard_actor_t._get_hash_recursive(newparents)) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None

@@ -108,7 +108,7 @@ class MemoryFleet:
 
     def _handshake(
         self, actor: str, graph: str, session: str, actors: Sequence[str], timeout: float
-    ) -> None:
+    ) -> str:
         key = (graph, session)
         with self._cond:
             rounds = self._joined.setdefault(key, {})
@@ -118,6 +118,7 @@ class MemoryFleet:
             if not ok:
                 missing = sorted(a for a in actors if rounds.get(a, 0) < mine)
                 raise FleetError(f"handshake for {graph}: no answer from {', '.join(missing)}")
+            return f"{session}#{mine}"  # the same on every participant of this round
 
     def _notify(
         self,
@@ -209,9 +210,9 @@ class MemoryActorLink:
         """This actor's name."""
         return self._actor
 
-    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> None:
-        """See :meth:`temoto.core.remote.ActorLink.handshake`."""
-        self._fleet._handshake(self._actor, graph, session, actors, timeout)
+    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> str:
+        """See :meth:`temoto.core.remote.ActorLink.handshake` (run ids: ``session#round``)."""
+        return self._fleet._handshake(self._actor, graph, session, actors, timeout)
 
     def notify(
         self,

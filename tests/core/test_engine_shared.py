@@ -75,8 +75,9 @@ class RecordingLink:
     def actor(self) -> str:
         return self._actor
 
-    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> None:
+    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> str:
         self.calls.append(("handshake", graph, session, tuple(actors), timeout))
+        return f"{session}@id"
 
     def notify(
         self,
@@ -160,10 +161,11 @@ def test_a_shared_run_shakes_hands_watches_notifies_and_expects() -> None:
             threading.Event().wait(0.01)
         assert engine.stop(name, timeout=WAIT) is Result.STOPPED
     assert link.calls[0] == ("handshake", "shared", "run-1", ("A", "B"), 2.0)
-    assert ("watch", ("B",), "shared", "run-1") in link.calls
-    assert ("notify", "shared", "run-1", "Step_0", Result.TRUE, ("B",), 5.0) in link.calls
-    assert ("expect", "shared", "run-1", "Step_1", "B") in link.calls
-    assert link.calls[-1] == ("end", "shared", "run-1", True, None, "actor 'A' stopped the run")
+    # every later call names the run by the run id the handshake agreed on
+    assert ("watch", ("B",), "shared", "run-1@id") in link.calls
+    assert ("notify", "shared", "run-1@id", "Step_0", Result.TRUE, ("B",), 5.0) in link.calls
+    assert ("expect", "shared", "run-1@id", "Step_1", "B") in link.calls
+    assert link.calls[-1] == ("end", "shared", "run-1@id", True, None, "actor 'A' stopped the run")
 
 
 def test_a_finished_shared_run_ends_without_giving_up() -> None:
@@ -179,7 +181,7 @@ def test_a_finished_shared_run_ends_without_giving_up() -> None:
             run.nodes["Step_0"], run.nodes["Step_0"].gen, Result.TRUE, {}
         )
         assert engine.wait(name, WAIT) is Result.TRUE
-    assert link.calls[-1] == ("end", "shared", "run-2", False, Result.TRUE, "")
+    assert link.calls[-1] == ("end", "shared", "run-2@id", False, Result.TRUE, "")
 
 
 def test_a_peer_that_ended_the_run_ends_it_here_with_its_result() -> None:
@@ -192,7 +194,7 @@ def test_a_peer_that_ended_the_run_ends_it_here_with_its_result() -> None:
         outcome = engine.outcome("run-3")
     assert outcome.state is GraphState.FINISHED
     assert outcome.aborted is None
-    assert link.calls[-1] == ("end", "shared", "run-3", False, Result.FALSE, "")
+    assert link.calls[-1] == ("end", "shared", "run-3@id", False, Result.FALSE, "")
 
 
 def test_a_peer_that_aborted_the_run_aborts_it_here_with_its_reason() -> None:
@@ -205,7 +207,7 @@ def test_a_peer_that_aborted_the_run_aborts_it_here_with_its_reason() -> None:
         outcome = engine.outcome("run-4")
     assert outcome.aborted == "actor 'C' was lost (left)"
     # passed on word for word
-    assert link.calls[-1] == ("end", "shared", "run-4", True, None, "actor 'C' was lost (left)")
+    assert link.calls[-1] == ("end", "shared", "run-4@id", True, None, "actor 'C' was lost (left)")
 
 
 def test_a_lost_peer_aborts_the_run() -> None:
@@ -229,7 +231,7 @@ def test_an_unacknowledged_notification_aborts_the_run_with_the_links_words() ->
     assert outcome.aborted == "'B' did not acknowledge"
     assert states["Step_0"] is NodeState.FINISHED  # stopped by the abort, not failed
     assert not link.expected  # B's node was never waited for
-    assert link.calls[-1] == ("end", "shared", "run-6", True, None, "'B' did not acknowledge")
+    assert link.calls[-1] == ("end", "shared", "run-6@id", True, None, "'B' did not acknowledge")
 
 
 def test_a_peer_result_heard_while_an_abort_settles_is_taken() -> None:
@@ -246,7 +248,7 @@ def test_a_peer_result_heard_while_an_abort_settles_is_taken() -> None:
         outcome = engine.outcome("run-7")
     assert outcome.state is GraphState.FINISHED
     assert outcome.aborted is None
-    assert link.calls[-1] == ("end", "shared", "run-7", False, Result.TRUE, "")
+    assert link.calls[-1] == ("end", "shared", "run-7@id", False, Result.TRUE, "")
 
 
 def test_concurrent_aborts_settle_on_the_smallest_reason() -> None:
@@ -261,6 +263,6 @@ def test_concurrent_aborts_settle_on_the_smallest_reason() -> None:
         assert engine.outcome("run-8").aborted == "reason 1"
     ends = [c for c in link.calls if c[0] == "end"]
     assert ends == [
-        ("end", "shared", "run-8", True, None, "reason 2"),
-        ("end", "shared", "run-8", True, None, "reason 1"),
+        ("end", "shared", "run-8@id", True, None, "reason 2"),
+        ("end", "shared", "run-8@id", True, None, "reason 1"),
     ]
