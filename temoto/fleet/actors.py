@@ -106,6 +106,13 @@ _NodeKey = tuple[str, str]  # action, actor
 # the least recently heard first: a fleet busy with runs this actor is not part of.
 _MAX_STRAY_RUNS = 1024
 _WARN_INTERVAL_S = 1.0
+# A JOIN that answers newly heard peers waits this share of resend_s for more of them, so a
+# fleet that starts at once exchanges a few JOINs per actor, not one per pair; READY answers
+# to late JOINs are as rare.
+_ANSWER_WINDOW = 0.25
+# Resends of a JOIN or a notification that brought nothing new slow down, to this many times
+# resend_s.
+_MAX_BACKOFF = 8
 
 
 def _names(names: Sequence[str] | set[str]) -> str:
@@ -152,6 +159,9 @@ class _Run:
     actors: tuple[str, ...] = ()
     first_stamp: int = 0  # the stamp of the first JOIN of the current handshake call
     proposal: str = ""  # this actor's run id proposal in the current handshake call
+    answer_at: float | None = None  # when to send the JOIN that answers newly heard peers
+    last_join: float = -math.inf  # our clock when the newest JOIN went out
+    next_ready_reply: float = 0.0  # READY answers to late JOINs: at most one per window
     run_id: str = ""  # the run id agreed on (once READY); the run is also kept under it
     frozen: dict[str, int] = field(default_factory=dict)  # our heard list once READY
     aborted: str | None = None  # why the running handshake must fail
@@ -189,6 +199,7 @@ class _Ended:
     decided: float = 0.0  # our clock when the decision was (last) made: repeated for silence_s
     next_repeat: float = 0.0
     out_key: _SessionKey | None = None  # (graph, run id) the decision is said for
+    next_answer: float = 0.0  # answers to heartbeats of peers still in the run: rate-limited
 
 
 @dataclass(slots=True, eq=False)
@@ -392,14 +403,18 @@ class FleetActorLink(Closing):
             run.first_stamp = msg.stamp_us
         deadline = now + timeout
         ready: Any = None
+        period = self.resend_s  # doubles while a resend brings nothing new (to _MAX_BACKOFF)
+        unheard = math.inf  # pairs not heard yet at the last resend
         try:
             while ready is None:
                 self._send(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
-                next_send = self._clock() + self.resend_s
+                run.last_join = self._clock()
+                next_send = run.last_join + period
                 with self._lock:
                     while True:
                         self._check_joining(run)
-                        if not self._missing(run):
+                        missing = self._missing(run)
+                        if not missing:
                             run.phase = _Phase.READY
                             run.frozen = {p: peer.stamp for p, peer in run.peers.items()}
                             self._agree(run)
@@ -415,10 +430,20 @@ class FleetActorLink(Closing):
                                 f"{_names(participants)} timed out after {timeout:g} s: "
                                 + self._status(run)
                             )
-                        if now >= next_send:
+                        answer = run.answer_at
+                        if answer is not None and now >= answer:  # newly heard peers
+                            run.answer_at = None
                             msg = self._join_msg(run)
                             break
-                        self._changed.wait(min(next_send, deadline) - now)
+                        if now >= next_send:
+                            count = sum(len(hearers) for hearers in missing.values())
+                            slower = count >= unheard and period < _MAX_BACKOFF * self.resend_s
+                            period = period * 2 if slower else self.resend_s
+                            unheard = count
+                            msg = self._join_msg(run)
+                            break
+                        wake = min(next_send, deadline, math.inf if answer is None else answer)
+                        self._changed.wait(wake - now)
         except BaseException:
             self._give_up(run)
             raise
@@ -498,10 +523,12 @@ class FleetActorLink(Closing):
             self._outgoing[msg.notification_id] = out
             self._timer_wake.notify()  # it watches the silence of the actors waited for
         deadline = self._clock() + timeout
+        period = self.resend_s  # doubles while a resend brings no acknowledgement
+        waiting = len(out.waiting)
         try:
             while True:
                 self._send(NOTIFY_CHANNEL, msg, "notifications_sent")
-                next_send = self._clock() + self.resend_s
+                next_send = self._clock() + period
                 with self._lock:
                     while out.waiting:
                         if self._closed:
@@ -523,6 +550,13 @@ class FleetActorLink(Closing):
                                 f"within {timeout:g} s"
                             )
                         if now >= next_send:
+                            # a resend that brought no acknowledgement: the next comes later
+                            slower = len(out.waiting) >= waiting
+                            if slower and period < _MAX_BACKOFF * self.resend_s:
+                                period *= 2
+                            elif not slower:
+                                period = self.resend_s
+                            waiting = len(out.waiting)
                             break
                         self._changed.wait(min(next_send, deadline) - now)
                     else:
@@ -817,9 +851,17 @@ class FleetActorLink(Closing):
         if run is None or not run.local:
             ended = self._ended.get(key)
             known = ended is not None and actor in ended.actors
-            if known and msg.phase == _READY and ended is not None and ended.decision is not None:
-                # a peer still in a run that ended here: tell it again how (END may be lost)
+            if (
+                known
+                and msg.phase == _READY
+                and ended is not None
+                and ended.decision is not None
+                and now >= ended.next_answer
+            ):
+                # a peer still in a run that ended here: tell it again how (END may be lost);
+                # one answer per heartbeat period reaches every peer
                 reply = self._decision_msg(ended.out_key or key, ended.actors, ended.decision)
+                ended.next_answer = now + self.heartbeat_s / 2
             elif known and msg.phase == _JOIN and ended is not None and ended.heard is not None:
                 reply = self._handshake_msg(_READY, *key, ended.actors, ended.heard)
             if msg.phase != _JOIN:
@@ -837,11 +879,21 @@ class FleetActorLink(Closing):
         if run.phase is _Phase.JOINING:
             if actor in run.actors:
                 self._check_same_actors(run, actor)
-                if first or rejoined:
-                    reply = self._join_msg(run)
+                if (first or rejoined) and run.answer_at is None:
+                    # answered by the handshake's thread, with every peer heard meanwhile,
+                    # and never sooner than a resend period after its last JOIN
+                    run.answer_at = max(
+                        now + self.resend_s * _ANSWER_WINDOW, run.last_join + self.resend_s
+                    )
             self._changed.notify_all()
-        elif run.phase is _Phase.READY and msg.phase == _JOIN and actor in run.actors:
+        elif (
+            run.phase is _Phase.READY
+            and msg.phase == _JOIN
+            and actor in run.actors
+            and now >= run.next_ready_reply  # one READY answers every late peer
+        ):
             reply = self._ready_msg(run)
+            run.next_ready_reply = now + self.resend_s
         return reply
 
     def _on_leave(self, actor: str, graph: str, session: str, reason: str = "") -> None:
@@ -1055,16 +1107,17 @@ class FleetActorLink(Closing):
                 self._send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
 
     def _repeats(self, now: float) -> tuple[list[Any], float]:
-        """The ENDs and LEAVEs to say again, and when next to look. Lock held.
+        """The LEAVEs to say again, and when next to look. Lock held.
 
-        Each is said every ``resend_s`` for ``silence_s`` after the decision: a peer that
-        ended the run too (an abort settling there) no longer sends heartbeats of it to
-        answer.
+        Each is said every ``resend_s`` for ``silence_s`` after the abort: a peer that aborted
+        the run too (settling there) no longer sends heartbeats of it to answer.
         """
         msgs: list[Any] = []
         wake = math.inf
         for key, ended in self._ended.items():
-            if ended.decision is None or now >= ended.decided + self.silence_s:
+            if ended.decision is None or ended.decision[0] != _LEAVE:
+                continue  # an END is answered to the heartbeats of peers still in the run
+            if now >= ended.decided + self.silence_s:
                 continue
             if ended.out_key not in (None, key):
                 continue  # the same run under its session's name: said under its run id
