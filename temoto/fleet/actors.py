@@ -110,6 +110,8 @@ _WARN_INTERVAL_S = 1.0
 # fleet that starts at once exchanges a few JOINs per actor, not one per pair; READY answers
 # to late JOINs are as rare.
 _ANSWER_WINDOW = 0.25
+# ... except the first few JOINs of a handshake, which answer at once.
+_ANSWERS_AT_ONCE = 3
 # Resends of a JOIN or a notification that brought nothing new slow down, to this many times
 # resend_s.
 _MAX_BACKOFF = 8
@@ -161,6 +163,7 @@ class _Run:
     proposal: str = ""  # this actor's run id proposal in the current handshake call
     answer_at: float | None = None  # when to send the JOIN that answers newly heard peers
     last_join: float = -math.inf  # our clock when the newest JOIN went out
+    joins: int = 0  # JOINs sent by the current handshake call
     next_ready_reply: float = 0.0  # READY answers to late JOINs: at most one per window
     run_id: str = ""  # the run id agreed on (once READY); the run is also kept under it
     frozen: dict[str, int] = field(default_factory=dict)  # our heard list once READY
@@ -393,6 +396,7 @@ class FleetActorLink(Closing):
             run.actors = participants
             run.phase = _Phase.JOINING
             run.proposal = f"{session}@{secrets.token_hex(6)}"
+            run.joins = 0
             run.run_id = ""
             # what peers said of an earlier run of this session does not stand for this one
             run.ended_peers.clear()
@@ -409,6 +413,7 @@ class FleetActorLink(Closing):
             while ready is None:
                 self._send(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
                 run.last_join = self._clock()
+                run.joins += 1
                 next_send = run.last_join + period
                 with self._lock:
                     while True:
@@ -880,10 +885,15 @@ class FleetActorLink(Closing):
             if actor in run.actors:
                 self._check_same_actors(run, actor)
                 if (first or rejoined) and run.answer_at is None:
-                    # answered by the handshake's thread, with every peer heard meanwhile,
-                    # and never sooner than a resend period after its last JOIN
-                    run.answer_at = max(
-                        now + self.resend_s * _ANSWER_WINDOW, run.last_join + self.resend_s
+                    # answered by the handshake's thread: the first few JOINs at once (a small
+                    # fleet is done in a round trip or two), later ones with every peer heard
+                    # meanwhile, and never sooner than a resend period after the last JOIN
+                    run.answer_at = (
+                        now
+                        if run.joins < _ANSWERS_AT_ONCE
+                        else max(
+                            now + self.resend_s * _ANSWER_WINDOW, run.last_join + self.resend_s
+                        )
                     )
             self._changed.notify_all()
         elif (
