@@ -37,20 +37,30 @@ for line in sys.stdin:
     if words[0] == "quit":
         break
     session, t_go = words[1], float(words[2])
-    link.handshake("bench", session, actors, 10.0)
+    sent = link.stats["handshakes_sent"]
+    try:
+        link.handshake("bench", session, actors, 10.0)
+    except Exception as err:
+        print(json.dumps({"hand": None, "sent": 0, "error": str(err)[:200]}), flush=True)
+        continue
     t_hand = time.time()
+    sent = link.stats["handshakes_sent"] - sent
     got = []
     if actor == actors[0]:
         t_send = time.time()
-        link.notify("bench", session, "Act_0", Result.TRUE, {"x": 1}, actors[1:], 10.0)
-        out = {"hand": t_hand - t_go, "send": t_send, "acked": time.time() - t_send}
+        try:
+            link.notify("bench", session, "Act_0", Result.TRUE, {"x": 1}, actors[1:], 10.0)
+            acked = time.time() - t_send
+        except Exception:
+            acked = None
+        out = {"hand": t_hand - t_go, "send": t_send, "acked": acked, "sent": sent}
     else:
         import threading
         done = threading.Event()
         link.expect("bench", session, "Act_0", actors[0],
                     lambda r, o: (got.append(time.time()), done.set()))
         done.wait(10.0)
-        out = {"hand": t_hand - t_go, "recv": got[0] if got else None}
+        out = {"hand": t_hand - t_go, "recv": got[0] if got else None, "sent": sent}
     link.end("bench", session)
     print(json.dumps(out), flush=True)
 link.close()
@@ -105,7 +115,7 @@ for n in spec["sizes"]:
     for p in procs:
         assert p.stdout.readline().strip() == "ready"
     rounds = []
-    for r in range(spec["rounds"]):
+    for r in range(spec["rounds_of"].get(str(n), spec["rounds"])):
         t_go = time.time()
         for p in procs:
             p.stdin.write(f"go s{n}_{r} {t_go}\n"); p.stdin.flush()
@@ -145,10 +155,12 @@ def bench_fleet(quick: bool) -> Results:
         out.notes.append(f"{why}: handshake_*/notify_* skipped")
         return out
     rounds = 10 if quick else 50
+    big_rounds = 2 if quick else 5
     flood_n = 20_000 if quick else 100_000
     spec = {
-        "sizes": [2, 3, 5],
+        "sizes": [2, 3, 5, 50],
         "rounds": rounds,
+        "rounds_of": {"50": big_rounds},
         "worker": WORKER,
         "flood": FLOOD,
         "flood_n": flood_n,
@@ -168,6 +180,11 @@ def bench_fleet(quick: bool) -> Results:
     if proc.returncode != 0:
         raise RuntimeError(f"fleet benchmark failed: {proc.stderr[-3000:]}")
     data = json.loads(proc.stdout)
+    for n in (2, 3, 5):  # a handshake that timed out (a loaded machine) is left out, and said
+        done = [rnd for rnd in data[str(n)] if all(w["hand"] is not None for w in rnd)]
+        if len(done) < len(data[str(n)]):
+            out.notes.append(f"{n} actors: {len(data[str(n)]) - len(done)} handshakes timed out")
+        data[str(n)] = done
     for n in (2, 3, 5):
         per_round = [max(w["hand"] for w in rnd) * 1e3 for rnd in data[str(n)]]
         name = f"handshake_{n}_actors_ms"
@@ -181,11 +198,48 @@ def bench_fleet(quick: bool) -> Results:
             ("<=", 5.0) if n == 3 else None,
         )
         out.add(f"{name}_p99", percentile(per_round, 99), "ms", f"p99 of the same {rounds}")
+    big = [rnd for rnd in data["50"] if all(w["hand"] is not None for w in rnd)]
+    failed = len(data["50"]) - len(big)
+    if failed:
+        out.notes.append(
+            f"50 actors: {failed} of {big_rounds} handshakes did not complete within 10 s"
+        )
+    if not big:
+        return out
+    out.add(
+        "handshake_50_actors_ms",
+        median([max(w["hand"] for w in rnd) * 1e3 for rnd in big]),
+        "ms",
+        f"50 actor processes (one per actor, spawned before 'go'), as handshake_N_actors_ms;"
+        f" median of the {len(big)} of {big_rounds} rounds that completed",
+        ("<=", 5000.0),
+    )
+
+    def per_actor_s(rnds: list[list[dict[str, float]]]) -> float:
+        return median(
+            [sum(w["sent"] / max(w["hand"], 1e-3) for w in rnd) / len(rnd) for rnd in rnds]
+        )
+
+    out.add(
+        "handshake_msgs_per_actor_s",
+        per_actor_s(big),
+        "1/s",
+        "50 actors: handshake_t messages an actor sent during its handshake() (JOINs, READY,"
+        f" heartbeats) / its handshake time, mean over actors, median of {len(big)} rounds;"
+        f" 5 actors: {per_actor_s(data['5']):.1f}/s",
+    )
+    unacked = sum(1 for rnd in big if rnd[0].get("acked") is None)
+    if unacked:
+        out.notes.append(
+            f"50 actors: the notification to 49 actors was not acknowledged within 10 s in"
+            f" {unacked} of {big_rounds} rounds"
+        )
     latencies = []
     acked = []
     for rnd in data["3"]:
         sender = rnd[0]
-        acked.append(sender["acked"] * 1e3)
+        if sender["acked"] is not None:
+            acked.append(sender["acked"] * 1e3)
         latencies += [(w["recv"] - sender["send"]) * 1e3 for w in rnd[1:] if w["recv"]]
     out.add(
         "notify_latency_ms",

@@ -241,6 +241,7 @@ class GraphRun:
     """One execution of a plan."""
 
     __slots__ = (
+        "aborted",
         "active",
         "done",
         "edge_child",
@@ -259,6 +260,7 @@ class GraphRun:
         "peers",
         "plan",
         "result",
+        "session",
         "started_at",
         "state",
         "stop_failed",
@@ -279,6 +281,8 @@ class GraphRun:
         self.started_at = 0.0
         self.peers: tuple[str, ...] = ()  # the other actors of a shared graph
         self.unwatch: Callable[[], None] | None = None  # stops watching them
+        self.session = name  # a shared run's run id, agreed in the handshake
+        self.aborted: str | None = None  # why a shared run was aborted, the same on every actor
         signature = plan.graph.signature()
         entry_umrf = Umrf(ENTRY_NAME, "sync")
         exit_umrf = Umrf(EXIT_NAME, "sync")

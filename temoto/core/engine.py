@@ -40,11 +40,11 @@ from temoto.core.params import dump_parameter_tree
 from temoto.core.planning import Planner, graph_inputs
 from temoto.core.registrar.registry import Registrar
 from temoto.core.remote import ActorLink
+from temoto.core.shared import SharedRuns
 from temoto.core.states import NODE_TRANSITIONS, GraphState, NodeState, Result
 from temoto.core.umrf import dump_umrf
 from temoto.errors import (
     ActionError,
-    FleetError,
     GraphNotFoundError,
     StateError,
     StopRequested,
@@ -91,6 +91,7 @@ class GraphOutcome:
         result: Its result, or None while it runs.
         outputs: The graph's outputs (the exit actions' outputs), by name.
         errors: Errors raised by its actions, in order.
+        aborted: Why a shared run was aborted (the same words on every actor), or None.
     """
 
     graph: str
@@ -98,6 +99,7 @@ class GraphOutcome:
     result: Result | None
     outputs: dict[str, Any]
     errors: tuple[BaseException, ...]
+    aborted: str | None = None
 
 
 class ActionEngine:
@@ -121,7 +123,11 @@ class ActionEngine:
         link: The other actors of shared graphs (``temoto.fleet``). Without one, a graph that
             names another actor is refused at start.
         handshake_timeout: Seconds the handshake before a shared graph may take.
-        notify_timeout: Seconds every other actor has to acknowledge a finished action.
+        notify_timeout: Seconds every other actor has to acknowledge a finished action; one
+            that does not aborts the shared run on every actor.
+        settle_timeout: Real seconds an aborted shared run keeps listening to the other actors
+            before :meth:`wait` returns: a peer that reached the end meanwhile gives its result,
+            concurrent aborts agree on one reason (``docs/fleet.md``).
 
     Raises:
         ConfigError: If an action or graph directory does not exist.
@@ -142,6 +148,7 @@ class ActionEngine:
         link: ActorLink | None = None,
         handshake_timeout: float = 5.0,
         notify_timeout: float = 5.0,
+        settle_timeout: float = 1.0,
     ) -> None:
         if link is not None and link.actor != actor:
             raise ValueError(f"the link speaks for actor '{link.actor}', the engine is '{actor}'")
@@ -149,6 +156,18 @@ class ActionEngine:
         self.link = link
         self.handshake_timeout = handshake_timeout
         self.notify_timeout = notify_timeout
+        # the shared-run protocol's engine side (temoto.core.shared), with a link only
+        self._shared = (
+            None
+            if link is None
+            else SharedRuns(
+                self,
+                link,
+                handshake_timeout=handshake_timeout,
+                notify_timeout=notify_timeout,
+                settle_timeout=settle_timeout,
+            )
+        )
         self.catalog = (
             actions if isinstance(actions, ActionCatalog) else ActionCatalog(actions or ())
         )
@@ -223,12 +242,11 @@ class ActionEngine:
         with collector_paused():  # a big graph is a burst of long-lived objects
             plan = self.plan(model)
             values = graph_inputs(plan.graph, params or {})
-        peers = self._peers(plan)
+        peers = SharedRuns.peers(self.actor, plan)
+        session = run_name
         if peers:
-            assert self.link is not None  # the planner refuses remote actions without a link
-            self.link.handshake(
-                plan.graph.name, run_name, sorted({self.actor, *peers}), self.handshake_timeout
-            )
+            assert self._shared is not None  # the planner refuses remote actions without a link
+            session = self._shared.handshake(plan, run_name, peers)
         with collector_paused() as pause:
             with self._lock:
                 if self._closed:
@@ -238,6 +256,7 @@ class ActionEngine:
                     raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
                 run = GraphRun(run_name, plan)
                 run.peers = peers
+                run.session = session
                 self._runs[run_name] = run
                 if old is not None and not old.active:
                     old.dispose()  # its memory comes back now, not at a later full collection
@@ -245,7 +264,8 @@ class ActionEngine:
             if len(run.nodes) >= YOUNG_COLLECT_AT_START:
                 pause.collect_young()  # outside the lock; before the first action
         if peers:
-            self._watch_peers(run)
+            assert self._shared is not None
+            self._shared.watch(run)
         self._dispatch(fx)
         return run_name
 
@@ -441,7 +461,12 @@ class ActionEngine:
         run = self._get(name)
         with self._lock:
             return GraphOutcome(
-                run.name, run.state, run.result, dict(run.outputs), tuple(run.errors)
+                run.name,
+                run.state,
+                run.result,
+                dict(run.outputs),
+                tuple(run.errors),
+                run.aborted,
             )
 
     def node_states(self, name: str) -> dict[str, NodeState]:
@@ -680,7 +705,8 @@ class ActionEngine:
                 error.__cause__ = err
             outputs = instance._outputs._taken()
         if run.peers and result is not Result.STOPPED and node.umrf.actor == self.actor:
-            result, error = self._notify_peers(node, result, outputs, error)
+            assert self._shared is not None
+            result, error = self._shared.notify(node, result, outputs, error)
         with self._lock:
             if instance is not None and gen == node.gen:
                 node.log = instance._log_snapshot()
@@ -782,123 +808,6 @@ class ActionEngine:
                 out.append(child)
                 todo.append(child)
         return out
-
-    # ================================================================ shared graphs
-
-    def _peers(self, plan: Plan) -> tuple[str, ...]:
-        """The other actors a plan's graph is shared with (empty for a local graph)."""
-        actors = {a.actor for a in plan.graph.actions if a.actor and a.actor != self.actor}
-        return tuple(sorted(actors))
-
-    def _watch_peers(self, run: GraphRun) -> None:
-        """Have the link report a peer that falls silent (called outside the lock)."""
-        assert self.link is not None
-        cancel = self.link.watch(
-            run.peers,
-            lambda actor, why: self._actor_lost(run, actor, why),
-            graph=run.plan.graph.name,
-            session=run.name,
-        )
-        with self._lock:
-            ended = run.state in _ENDED_GRAPH
-            if not ended:
-                run.unwatch = cancel
-        if ended:
-            cancel()
-
-    def _actor_lost(self, run: GraphRun, actor: str, reason: str) -> None:
-        """Link thread: a peer of a shared run is gone; the run ends in ERROR here too."""
-        fx: list[Effect] = []
-        with self._lock:
-            if run.state not in (GraphState.RUNNING, GraphState.PAUSED):
-                return
-            error = FleetError(f"graph {run.name}: actor '{actor}' was lost ({reason})")
-            run.errors.append(error)
-            run.stop_failed = True  # the stop ends the run in ERROR, not STOPPED
-            logger.error("%s", error)
-            self._stop_run(run, fx)
-        self._dispatch(fx, closing=self._closed)
-
-    def _end_shared(self, run: GraphRun) -> None:
-        """Outside the lock: stop watching the run's peers and let the link forget the run."""
-        assert self.link is not None
-        with self._lock:
-            unwatch, run.unwatch = run.unwatch, None
-        try:
-            if unwatch is not None:
-                unwatch()
-            # a run that did not finish here is abandoned by this actor: the others are told
-            self.link.end(
-                run.plan.graph.name, run.name, gave_up=run.state is not GraphState.FINISHED
-            )
-        finally:
-            run.done.set()  # only now: a caller may close the link as soon as wait() returns
-
-    def _expect_remote(self, node: Node, gen: int) -> None:
-        """Outside the lock: wait (through the link) for a remote action's notification."""
-        assert self.link is not None
-        run = node.run
-        cancel = self.link.expect(
-            run.plan.graph.name,
-            run.name,
-            node.name,
-            node.umrf.actor,
-            lambda result, outputs: self._remote_finished(node, gen, result, outputs),
-        )
-        with self._lock:
-            current = node.gen == gen and node.active
-            if current:
-                node.remote_cancel = cancel
-        if not current:
-            cancel()
-
-    def _remote_finished(
-        self, node: Node, gen: int, result: Result, outputs: Mapping[str, Any]
-    ) -> None:
-        """Link thread: another actor finished the action this node stands for."""
-        fx: list[Effect] = []
-        with self._lock:
-            if node.gen != gen or not node.active:
-                return  # stopped meanwhile, or a notification for an earlier run of the node
-            node.remote_cancel = None
-            error: BaseException | None = None
-            if result is Result.ERROR:
-                error = ActionError(
-                    f"{node.name} failed on actor '{node.umrf.actor}'",
-                    graph=node.run.name,
-                    node=node.name,
-                )
-            self._on_finished(node, gen, result, dict(outputs), error, fx)
-        self._dispatch(fx, closing=self._closed)
-
-    def _notify_peers(
-        self, node: Node, result: Result, outputs: dict[str, Any], error: BaseException | None
-    ) -> tuple[Result, BaseException | None]:
-        """Worker: tell the other actors that this actor's action finished (they acknowledge).
-
-        An actor that does not acknowledge in time turns the result into an error here.
-        """
-        assert self.link is not None
-        run = node.run
-        try:
-            self.link.notify(
-                run.plan.graph.name,
-                run.name,
-                node.name,
-                result,
-                outputs,
-                run.peers,
-                self.notify_timeout,
-            )
-        except FleetError as err:
-            failure = ActionError(
-                f"{node.name}: the other actors were not told ({err})",
-                graph=run.name,
-                node=node.name,
-            )
-            failure.__cause__ = err
-            return Result.ERROR, failure
-        return result, error
 
     # ================================================================ evolution (lock held)
 
@@ -1070,7 +979,8 @@ class ActionEngine:
             return
         if node.kind is NodeKind.REMOTE:
             self._set_state(node, _S.RUNNING)
-            fx.append((_CALL, self._expect_remote, node, node.gen))
+            assert self._shared is not None
+            fx.append((_CALL, self._shared.expect, node, node.gen))
             return
         assert node.plan is not None
         self._set_state(node, _S.RUNNING)
@@ -1273,14 +1183,15 @@ class ActionEngine:
         run.state = state
         run.result = result
         if run.peers:
-            fx.append((_CALL, self._end_shared, run))
+            assert self._shared is not None
+            fx.append((_CALL, self._shared.end, run))
         for node in run.nodes.values():
             if node.state not in _ACTIVE and node.instance is not None:
                 self._release_node(node)
         if self._instruments:
             self._notify("graph_finished", run.name, result, self.clock.monotonic())
         if not run.peers:
-            run.done.set()  # a shared run is done once the link has forgotten it (_end_shared)
+            run.done.set()  # a shared run is done once the link has forgotten it (SharedRuns.end)
         parent = run.parent_node
         if parent is not None and parent.child_run is run and parent.active:
             error: BaseException | None = None

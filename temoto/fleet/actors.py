@@ -49,13 +49,14 @@ import itertools
 import json
 import logging
 import math
+import secrets
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final, final
 
-from temoto.core.remote import Cancel, RemoteResult
+from temoto.core.remote import ActorLostError, Cancel, RemoteResult
 from temoto.core.states import Result
 from temoto.errors import FleetError, StateError, TransportError
 from temoto.fleet._common import Closing, check_name, check_seconds, decode_or_count, new
@@ -105,6 +106,15 @@ _NodeKey = tuple[str, str]  # action, actor
 # the least recently heard first: a fleet busy with runs this actor is not part of.
 _MAX_STRAY_RUNS = 1024
 _WARN_INTERVAL_S = 1.0
+# A JOIN that answers newly heard peers waits this share of resend_s for more of them, so a
+# fleet that starts at once exchanges a few JOINs per actor, not one per pair; READY answers
+# to late JOINs are as rare.
+_ANSWER_WINDOW = 0.25
+# ... except the first few JOINs of a handshake, which answer at once.
+_ANSWERS_AT_ONCE = 3
+# Resends of a JOIN or a notification that brought nothing new slow down, to this many times
+# resend_s.
+_MAX_BACKOFF = 8
 
 
 def _names(names: Sequence[str] | set[str]) -> str:
@@ -127,6 +137,7 @@ class _Peer:
     phase: int
     actors: tuple[str, ...]
     heard: dict[str, int]
+    run_id: str = ""  # its proposal (JOIN) or the run id it agreed on (READY)
 
 
 @dataclass(slots=True, eq=False)
@@ -149,6 +160,12 @@ class _Run:
     phase: _Phase = _Phase.KEPT
     actors: tuple[str, ...] = ()
     first_stamp: int = 0  # the stamp of the first JOIN of the current handshake call
+    proposal: str = ""  # this actor's run id proposal in the current handshake call
+    answer_at: float | None = None  # when to send the JOIN that answers newly heard peers
+    last_join: float = -math.inf  # our clock when the newest JOIN went out
+    joins: int = 0  # JOINs sent by the current handshake call
+    next_ready_reply: float = 0.0  # READY answers to late JOINs: at most one per window
+    run_id: str = ""  # the run id agreed on (once READY); the run is also kept under it
     frozen: dict[str, int] = field(default_factory=dict)  # our heard list once READY
     aborted: str | None = None  # why the running handshake must fail
     peers: dict[str, _Peer] = field(default_factory=dict)
@@ -156,8 +173,9 @@ class _Run:
     pending: dict[_NodeKey, collections.deque[_Notice]] = field(default_factory=dict)
     waiters: dict[_NodeKey, collections.deque[_Waiter]] = field(default_factory=dict)
     seen: set[str] = field(default_factory=set)  # notification ids taken
-    ended_peers: set[str] = field(default_factory=set)  # peers whose run finished (END)
+    ended_peers: dict[str, str] = field(default_factory=dict)  # peer -> result it ended with
     left_peers: set[str] = field(default_factory=set)  # peers that gave the run up (LEAVE)
+    left_reasons: dict[str, str] = field(default_factory=dict)  # peer -> why it aborted
 
 
 @dataclass(slots=True, eq=False)
@@ -178,7 +196,13 @@ class _Ended:
     heard: dict[str, int] | None  # the frozen heard list, if the handshake had completed
     seen: set[str]  # notification ids taken: late resends stay duplicates
     until: float
-    finished: bool = False  # ended normally here: END is said again when the link closes
+    # (END or LEAVE, result, reason) said here: said again when the link closes, and to
+    # peers still speaking of the run
+    decision: tuple[int, str, str] | None = None
+    decided: float = 0.0  # our clock when the decision was (last) made: repeated for silence_s
+    next_repeat: float = 0.0
+    out_key: _SessionKey | None = None  # (graph, run id) the decision is said for
+    next_answer: float = 0.0  # answers to heartbeats of peers still in the run: rate-limited
 
 
 @dataclass(slots=True, eq=False)
@@ -189,6 +213,7 @@ class _Outgoing:
     waiting: set[str]
     started: float
     aborted: str | None = None
+    lost: tuple[str, str] | None = None  # (actor, why) when an actor waited for is gone
 
 
 @dataclass(slots=True, eq=False)
@@ -199,6 +224,9 @@ class _Watch:
     on_lost: Callable[[str, str], None]
     started: float
     key: _SessionKey | None = None  # the run watched for (END of a peer takes it off)
+    on_end: Callable[[str, Result], None] | None = None
+    on_abort: Callable[[str, str], None] | None = None
+    aborts: set[tuple[str, str]] = field(default_factory=set)  # (actor, reason) reported
     reported: set[str] = field(default_factory=set)
     active: bool = True
 
@@ -318,14 +346,24 @@ class FleetActorLink(Closing):
         with self._lock:
             return dict(self._counts)
 
-    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> None:
+    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> str:
         """Block until every pair of ``actors`` has heard each other in this run.
+
+        Each participant proposes a random run id in its JOINs; the run id of the run is the
+        smallest proposal, which every participant knows once the handshake is done. Every
+        later message of the run (notifications, acknowledgements, END, LEAVE) carries it as
+        its session, so two runs of the same graph and session name never mix, however
+        quickly one follows the other.
 
         Args:
             graph: The graph's name (the handshake token).
-            session: Identifies this run of the graph, the same on every actor.
+            session: Names this run of the graph, the same on every actor.
             actors: Every participating actor, this one included.
             timeout: Seconds to wait at most.
+
+        Returns:
+            The run id: the session of :meth:`notify`, :meth:`expect`, :meth:`watch` and
+            :meth:`end` for this run (``session`` itself for a run of this actor alone).
 
         Raises:
             FleetError: Not every pair heard each other in time (the message names who was
@@ -341,7 +379,7 @@ class FleetActorLink(Closing):
         if self._actor not in participants:
             raise ValueError(f"actors {list(participants)} do not include this actor")
         if len(participants) == 1:
-            return
+            return session
         key = (graph, session)
         with self._lock:
             self._check_open()
@@ -357,22 +395,34 @@ class FleetActorLink(Closing):
             run.local = True
             run.actors = participants
             run.phase = _Phase.JOINING
+            run.proposal = f"{session}@{secrets.token_hex(6)}"
+            run.joins = 0
+            run.run_id = ""
+            # what peers said of an earlier run of this session does not stand for this one
+            run.ended_peers.clear()
+            run.left_reasons.clear()
             run.aborted = None
             run.frozen = {}
             msg = self._join_msg(run)
             run.first_stamp = msg.stamp_us
         deadline = now + timeout
         ready: Any = None
+        period = self.resend_s  # doubles while a resend brings nothing new (to _MAX_BACKOFF)
+        unheard = math.inf  # pairs not heard yet at the last resend
         try:
             while ready is None:
                 self._send(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
-                next_send = self._clock() + self.resend_s
+                run.last_join = self._clock()
+                run.joins += 1
+                next_send = run.last_join + period
                 with self._lock:
                     while True:
                         self._check_joining(run)
-                        if not self._missing(run):
+                        missing = self._missing(run)
+                        if not missing:
                             run.phase = _Phase.READY
                             run.frozen = {p: peer.stamp for p, peer in run.peers.items()}
+                            self._agree(run)
                             ready = self._ready_msg(run)
                             # READY goes out now: the next heartbeat can wait a period
                             self._next_heartbeat = self._clock() + self.heartbeat_s
@@ -385,14 +435,25 @@ class FleetActorLink(Closing):
                                 f"{_names(participants)} timed out after {timeout:g} s: "
                                 + self._status(run)
                             )
-                        if now >= next_send:
+                        answer = run.answer_at
+                        if answer is not None and now >= answer:  # newly heard peers
+                            run.answer_at = None
                             msg = self._join_msg(run)
                             break
-                        self._changed.wait(min(next_send, deadline) - now)
+                        if now >= next_send:
+                            count = sum(len(hearers) for hearers in missing.values())
+                            slower = count >= unheard and period < _MAX_BACKOFF * self.resend_s
+                            period = period * 2 if slower else self.resend_s
+                            unheard = count
+                            msg = self._join_msg(run)
+                            break
+                        wake = min(next_send, deadline, math.inf if answer is None else answer)
+                        self._changed.wait(wake - now)
         except BaseException:
             self._give_up(run)
             raise
         self._send_quietly(HANDSHAKE_CHANNEL, ready, "handshakes_sent")
+        return run.run_id
 
     def notify(
         self,
@@ -418,6 +479,8 @@ class FleetActorLink(Closing):
             timeout: Seconds to wait for every acknowledgement.
 
         Raises:
+            ActorLostError: An actor waited for is gone: it left the run or the fleet, or was
+                not heard for ``silence_s``.
             FleetError: Some actor did not acknowledge in time (the message names it), the
                 run was ended meanwhile, the link is closed or cannot send, or the outputs
                 are not JSON-ready.
@@ -441,13 +504,16 @@ class FleetActorLink(Closing):
             run = self._runs.get(key)
             left: set[str] = set()
             if run is not None:
-                others -= run.ended_peers  # finished there: they need nothing more
+                others -= set(run.ended_peers)  # finished there: they need nothing more
                 left = run.left_peers
             gone = sorted(a for a in others if a in left or self._gone(a, self._clock()))
         if gone:
-            raise FleetError(
+            why = "left" if gone[0] in left else self._why_gone(gone[0])
+            raise ActorLostError(
                 f"{action} ({result.value}) of graph '{graph}' session '{session}': "
-                + ", ".join(f"actor '{a}' was lost ({self._why_gone(a)})" for a in gone)
+                + ", ".join(f"actor '{a}' was lost ({self._why_gone(a)})" for a in gone),
+                actor=gone[0],
+                why=why,
             )
         if not others:
             return
@@ -462,20 +528,25 @@ class FleetActorLink(Closing):
             self._outgoing[msg.notification_id] = out
             self._timer_wake.notify()  # it watches the silence of the actors waited for
         deadline = self._clock() + timeout
+        period = self.resend_s  # doubles while a resend brings no acknowledgement
+        waiting = len(out.waiting)
         try:
             while True:
                 self._send(NOTIFY_CHANNEL, msg, "notifications_sent")
-                next_send = self._clock() + self.resend_s
+                next_send = self._clock() + period
                 with self._lock:
                     while out.waiting:
                         if self._closed:
                             raise FleetError("the fleet link is closed")
                         if out.aborted is not None:
-                            raise FleetError(
+                            text = (
                                 f"{action} ({result.value}) of graph '{graph}' session "
                                 f"'{session}': {out.aborted} before {_names(out.waiting)} "
                                 "acknowledged it"
                             )
+                            if out.lost is not None:
+                                raise ActorLostError(text, actor=out.lost[0], why=out.lost[1])
+                            raise FleetError(text)
                         now = self._clock()
                         if now >= deadline:
                             raise FleetError(
@@ -484,6 +555,13 @@ class FleetActorLink(Closing):
                                 f"within {timeout:g} s"
                             )
                         if now >= next_send:
+                            # a resend that brought no acknowledgement: the next comes later
+                            slower = len(out.waiting) >= waiting
+                            if slower and period < _MAX_BACKOFF * self.resend_s:
+                                period *= 2
+                            elif not slower:
+                                period = self.resend_s
+                            waiting = len(out.waiting)
                             break
                         self._changed.wait(min(next_send, deadline) - now)
                     else:
@@ -551,20 +629,27 @@ class FleetActorLink(Closing):
         *,
         graph: str = "",
         session: str = "",
+        on_end: Callable[[str, Result], None] | None = None,
+        on_abort: Callable[[str, str], None] | None = None,
     ) -> Cancel:
         """Call ``on_lost(actor, reason)`` if one of ``actors`` falls silent or leaves.
 
         An actor is lost when nothing was heard from it for ``silence_s`` (counted from this
-        call at the earliest), or when it gave up a run this actor takes part in (LEAVE). The
-        callback runs on the link's callback thread, at most once per actor. Watching for a
-        run (``graph`` and ``session``), an actor whose run finished there (END) is no
-        longer watched: it may go quiet.
+        call at the earliest), or when it gave up a run this actor takes part in (LEAVE
+        without a reason). The callbacks run on the link's callback thread, at most one per
+        actor. Watching for a run (``graph`` and ``session``), an actor whose run finished
+        there (END) is no longer watched (it may go quiet) and ``on_end(actor, result)`` is
+        called; an actor that aborted the run (LEAVE with a reason) is reported to
+        ``on_abort(actor, reason)``. What a peer said of the run before this call is
+        reported too.
 
         Args:
             actors: The actors to watch (this actor, if listed, is left out).
             on_lost: The callback.
             graph: The run's graph, if the watch is for a run.
             session: The run's session.
+            on_end: Called when a watched actor's run finished (END), with its result.
+            on_abort: Called when a watched actor aborted the run, with its reason.
 
         Returns:
             A function that stops watching (idempotent).
@@ -578,10 +663,13 @@ class FleetActorLink(Closing):
         with self._lock:
             self._check_open()
             run = self._runs.get(key) if key is not None else None
-            if run is not None:
-                names -= run.ended_peers
-            watch = _Watch(names, on_lost, self._clock(), key)
+            watch = _Watch(names, on_lost, self._clock(), key, on_end, on_abort)
             self._watches.append(watch)
+            if run is not None:
+                for actor, result in sorted(run.ended_peers.items()):
+                    self._report_end(watch, actor, result)
+                for actor, reason in sorted(run.left_reasons.items()):
+                    self._report_abort(watch, actor, reason)
             for actor in sorted(names & self._left):
                 self._report_lost(watch, actor, "left")
             self._timer_wake.notify()
@@ -595,28 +683,61 @@ class FleetActorLink(Closing):
 
         return cancel
 
-    def end(self, graph: str, session: str, *, gave_up: bool = False) -> None:
+    def end(
+        self,
+        graph: str,
+        session: str,
+        *,
+        gave_up: bool = False,
+        result: Result | None = None,
+        reason: str = "",
+    ) -> None:
         """Forget an ended run: its notifications, waiters and handshake state.
 
         A handshake or notify of that run still waiting fails. For ``grace_s`` the run's ids
         stay known (late resends are acknowledged, not taken) and, if its handshake had
-        completed, peers still in it are answered and heartbeats go on.
+        completed, peers still in it are answered, heartbeats go on, and a peer heard
+        speaking of the run is told again how it ended here (END or LEAVE), in case the
+        first word was lost.
 
         Args:
             graph: The graph's name.
             session: The run's session.
-            gave_up: The run did not finish here: LEAVE is sent for it, so the peers report
-                this actor lost ("left") at once instead of after ``silence_s``.
+            gave_up: The run did not finish here: LEAVE is sent for it, so the peers abort it
+                too, with ``reason`` (without one, they report this actor lost, "left"), at
+                once instead of after ``silence_s``.
+            result: How the run finished here (END carries it; the peers take it).
+            reason: Why the run was aborted (LEAVE carries it word for word).
         """
         key = (graph, session)
         leave = None
+        decision: tuple[int, str, str] | None = None
         with self._lock:
             now = self._clock()
             run = self._runs.pop(key, None)
+            if run is not None:
+                for other in ((run.graph, run.session), (run.graph, run.run_id)):
+                    if self._runs.get(other) is run:
+                        del self._runs[other]  # the same run under its other key
+            ended = self._ended.get(key)
+            if run is None and ended is not None and ended.decision is not None:
+                # a new word on a run that ended here: an abort's reason, or a result taken
+                # from a peer while the abort settled
+                if gave_up:
+                    ended.decision = (_LEAVE, "", reason)
+                elif result is not None:
+                    ended.decision = (_END, result.value, "")
+                ended.decided, ended.next_repeat = now, now + self.resend_s
+                if not self._closed:
+                    leave = self._decision_msg(ended.out_key or key, ended.actors, ended.decision)
             finished = run is not None and not gave_up and run.phase is _Phase.READY
-            if run is not None and not self._closed and (gave_up or finished):
-                phase = _LEAVE if gave_up else _END
-                leave = self._handshake_msg(phase, run.graph, run.session, run.actors, {})
+            if run is not None and (gave_up or finished):
+                if gave_up:
+                    decision = (_LEAVE, "", reason)
+                else:
+                    decision = (_END, "" if result is None else result.value, "")
+                if not self._closed:
+                    leave = self._decision_msg(key, run.actors, decision)
             if run is not None:
                 for waiters in run.waiters.values():
                     for waiter in waiters:
@@ -624,13 +745,18 @@ class FleetActorLink(Closing):
                 run.aborted = "the run was ended"
                 done = run.phase is _Phase.READY
                 if done or run.seen:
-                    self._ended[key] = _Ended(
+                    kept = _Ended(
                         run.actors,
                         run.frozen if done else None,
                         run.seen,
                         now + self.grace_s,
-                        finished,
+                        decision if done else None,
+                        now,
+                        now + self.resend_s,
+                        key,
                     )
+                    self._ended[key] = kept
+                    self._ended[(run.graph, run.session)] = kept  # late JOINs name the session
             for out in self._outgoing.values():
                 if out.key == key:
                     out.aborted = "the run was ended"
@@ -649,7 +775,7 @@ class FleetActorLink(Closing):
             if self._closed:
                 return
             self._closed = True
-            active = [r for r in self._runs.values() if r.local and r.phase is not _Phase.KEPT]
+            active = [r for r in self._distinct_runs() if r.local and r.phase is not _Phase.KEPT]
             leaves = [self._leave_msg(r.graph, r.session, r.actors) for r in active]
             self._calls.clear()
             self._changed.notify_all()
@@ -664,7 +790,7 @@ class FleetActorLink(Closing):
                 thread.join()
 
     def _linger(self) -> None:
-        """Before closing: repeat END for runs that just finished here, and keep answering.
+        """Before closing: repeat END or LEAVE for runs that just ended here; keep answering.
 
         For ``linger_s``, so a peer whose last notification we acknowledged (an
         acknowledgement that may have been lost) is not left resending to nobody.
@@ -674,9 +800,9 @@ class FleetActorLink(Closing):
                 return
             now = self._clock()
             ends = [
-                self._handshake_msg(_END, g, s, e.actors, {})
-                for (g, s), e in self._ended.items()
-                if e.finished and e.until > now
+                self._decision_msg(key, e.actors, e.decision)
+                for key, e in self._ended.items()
+                if e.decision is not None and e.until > now and e.out_key in (None, key)
             ]
         if not ends or self.linger_s <= 0:
             return
@@ -711,10 +837,10 @@ class FleetActorLink(Closing):
             now = self._clock()
             self._heard_at[actor] = now
             if msg.phase == _LEAVE:
-                self._on_leave(actor, msg.graph, msg.session)
+                self._on_leave(actor, msg.graph, msg.session, msg.reason)
                 return
             if msg.phase == _END:
-                self._on_end(actor, (msg.graph, msg.session))
+                self._on_end(actor, (msg.graph, msg.session), msg.result)
                 return
             self._left.discard(actor)
             reply = self._on_join_or_ready(msg, now) if msg.graph or msg.session else None
@@ -729,8 +855,19 @@ class FleetActorLink(Closing):
         reply: Any = None
         if run is None or not run.local:
             ended = self._ended.get(key)
-            answer = msg.phase == _JOIN and ended is not None and actor in ended.actors
-            if answer and ended is not None and ended.heard is not None:
+            known = ended is not None and actor in ended.actors
+            if (
+                known
+                and msg.phase == _READY
+                and ended is not None
+                and ended.decision is not None
+                and now >= ended.next_answer
+            ):
+                # a peer still in a run that ended here: tell it again how (END may be lost);
+                # one answer per heartbeat period reaches every peer
+                reply = self._decision_msg(ended.out_key or key, ended.actors, ended.decision)
+                ended.next_answer = now + self.heartbeat_s / 2
+            elif known and msg.phase == _JOIN and ended is not None and ended.heard is not None:
                 reply = self._handshake_msg(_READY, *key, ended.actors, ended.heard)
             if msg.phase != _JOIN:
                 return reply  # a READY of a run not started here: liveness only
@@ -743,29 +880,48 @@ class FleetActorLink(Closing):
         if peer is None or msg.stamp_us > peer.stamp:
             rejoined = peer is not None and msg.phase == _JOIN and peer.phase != _JOIN
             heard = {h.actor: h.stamp_us for h in msg.heard}
-            run.peers[actor] = _Peer(msg.stamp_us, msg.phase, tuple(msg.actors), heard)
+            run.peers[actor] = _Peer(msg.stamp_us, msg.phase, tuple(msg.actors), heard, msg.run_id)
         if run.phase is _Phase.JOINING:
             if actor in run.actors:
                 self._check_same_actors(run, actor)
-                if first or rejoined:
-                    reply = self._join_msg(run)
+                if (first or rejoined) and run.answer_at is None:
+                    # answered by the handshake's thread: the first few JOINs at once (a small
+                    # fleet is done in a round trip or two), later ones with every peer heard
+                    # meanwhile, and never sooner than a resend period after the last JOIN
+                    run.answer_at = (
+                        now
+                        if run.joins < _ANSWERS_AT_ONCE
+                        else max(
+                            now + self.resend_s * _ANSWER_WINDOW, run.last_join + self.resend_s
+                        )
+                    )
             self._changed.notify_all()
-        elif run.phase is _Phase.READY and msg.phase == _JOIN and actor in run.actors:
+        elif (
+            run.phase is _Phase.READY
+            and msg.phase == _JOIN
+            and actor in run.actors
+            and now >= run.next_ready_reply  # one READY answers every late peer
+        ):
             reply = self._ready_msg(run)
+            run.next_ready_reply = now + self.resend_s
         return reply
 
-    def _on_leave(self, actor: str, graph: str, session: str) -> None:
+    def _on_leave(self, actor: str, graph: str, session: str, reason: str = "") -> None:
         """A peer gave up a run (or, with no graph and session, left the fleet). Lock held."""
         fleet = not graph and not session
         if fleet:
             self._left.add(actor)
-            runs = list(self._runs.values())
+            runs = self._distinct_runs()
         else:
             run = self._runs.get((graph, session))
+            if run is None and reason and (graph, session) not in self._ended:
+                run = self._new_run((graph, session), self._clock())  # kept for a later watch
             runs = [] if run is None else [run]
         lost = fleet
         for run in runs:
             run.left_peers.add(actor)
+            if reason and not fleet:
+                run.left_reasons[actor] = reason
             if run.phase is not _Phase.JOINING:
                 run.peers.pop(actor, None)  # kept: its JOIN no longer stands
             if not run.local or actor not in run.actors:
@@ -779,23 +935,71 @@ class FleetActorLink(Closing):
         for out in self._outgoing.values():  # it will not acknowledge: do not wait for it
             if actor in out.waiting and (fleet or out.key == (graph, session)):
                 out.aborted = f"'{actor}' {why}"
+                out.lost = (actor, "left")
                 self._changed.notify_all()
-        if lost:
-            for watch in self._watches:
+        for watch in self._watches:
+            if reason and not fleet and watch.key == (graph, session):
+                self._report_abort(watch, actor, reason)  # also once the run ended here
+            elif lost:
                 self._report_lost(watch, actor, "left")
 
-    def _on_end(self, actor: str, key: _SessionKey) -> None:
-        """A peer's run finished: stop waiting for it in that run. Lock held."""
+    def _on_end(self, actor: str, key: _SessionKey, result: str = "") -> None:
+        """A peer's run finished: stop waiting for it in that run, take its result. Lock held."""
         run = self._runs.get(key)
+        if run is None and key not in self._ended:
+            run = self._new_run(key, self._clock())  # kept for a watch of a run not started yet
         if run is not None:
-            run.ended_peers.add(actor)
+            run.ended_peers.setdefault(actor, result)
         for out in self._outgoing.values():
             if out.key == key and actor in out.waiting:
                 out.waiting.discard(actor)  # it needs nothing more of this run
                 self._changed.notify_all()
         for watch in self._watches:
             if watch.key == key:
-                watch.actors.discard(actor)
+                self._report_end(watch, actor, result)
+
+    def _report_end(self, watch: _Watch, actor: str, result: str) -> None:
+        """A watched peer's run finished with ``result``: stop watching it, tell. Lock held."""
+        if not watch.active or actor not in watch.actors:
+            return
+        watch.actors.discard(actor)
+        on_end = watch.on_end
+        if on_end is None:
+            return
+        try:
+            taken = Result(result)
+        except ValueError:
+            logger.warning("actor %r: END of %r with unknown result %r", self._actor, actor, result)
+            return
+
+        def call() -> None:
+            with self._lock:
+                if not watch.active:
+                    return
+            on_end(actor, taken)
+
+        self._calls.append(call)
+        self._calls_ready.notify()
+
+    def _report_abort(self, watch: _Watch, actor: str, reason: str) -> None:
+        """A watched peer aborted the run with ``reason``. Lock held."""
+        on_abort = watch.on_abort
+        if on_abort is None:
+            self._report_lost(watch, actor, "left")
+            return
+        if not watch.active or (actor, reason) in watch.aborts:
+            return
+        watch.aborts.add((actor, reason))
+        self._counts["lost"] += 1
+
+        def call() -> None:
+            with self._lock:
+                if not watch.active:
+                    return
+            on_abort(actor, reason)
+
+        self._calls.append(call)
+        self._calls_ready.notify()
 
     def _gone(self, actor: str, now: float) -> bool:
         """Whether a peer is gone: it left, or was heard once but not for ``silence_s``.
@@ -832,14 +1036,13 @@ class FleetActorLink(Closing):
                 self._counts["unexpected"] += 1
                 return
             self._counts["notifications_received"] += 1
-        # The acknowledgement leaves before the callback can run: an actor whose run ends
-        # with this notification may close its link at once.
+            # Taken (its delivery queued) before the acknowledgement leaves: the sender's END,
+            # which may follow the acknowledgement at once, is then handled after it.
+            self._take(msg)
         ack = new(action_ack_t)
         ack.notification_id, ack.graph, ack.session = msg.notification_id, msg.graph, msg.session
         ack.actor = self._actor
         self._send_quietly(NOTIFY_CHANNEL, ack, "acks_sent")
-        with self._lock:
-            self._take(msg)
 
     def _take(self, msg: Any) -> None:
         """Store or deliver a notification unless it is a duplicate. Lock held."""
@@ -891,7 +1094,7 @@ class FleetActorLink(Closing):
                     return
                 now = self._clock()
                 wake = math.inf
-                ready = [r for r in self._runs.values() if r.local and r.phase is _Phase.READY]
+                ready = [r for r in self._distinct_runs() if r.local and r.phase is _Phase.READY]
                 graced = any(e.heard is not None for e in self._ended.values())
                 msgs: list[Any] = []
                 if ready or graced or self._watches:
@@ -904,11 +1107,35 @@ class FleetActorLink(Closing):
                 else:
                     self._next_heartbeat = now
                 wake = min(wake, self._check_silences(now), self._expire(now))
+                repeats, due = self._repeats(now)
+                msgs += repeats
+                wake = min(wake, due)
                 if not msgs:
                     self._timer_wake.wait(None if wake == math.inf else max(0.0, wake - now))
                     continue
             for msg in msgs:
                 self._send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
+
+    def _repeats(self, now: float) -> tuple[list[Any], float]:
+        """The LEAVEs to say again, and when next to look. Lock held.
+
+        Each is said every ``resend_s`` for ``silence_s`` after the abort: a peer that aborted
+        the run too (settling there) no longer sends heartbeats of it to answer.
+        """
+        msgs: list[Any] = []
+        wake = math.inf
+        for key, ended in self._ended.items():
+            if ended.decision is None or ended.decision[0] != _LEAVE:
+                continue  # an END is answered to the heartbeats of peers still in the run
+            if now >= ended.decided + self.silence_s:
+                continue
+            if ended.out_key not in (None, key):
+                continue  # the same run under its session's name: said under its run id
+            if now >= ended.next_repeat:
+                msgs.append(self._decision_msg(key, ended.actors, ended.decision))
+                ended.next_repeat = now + self.resend_s
+            wake = min(wake, ended.next_repeat)
+        return msgs, wake
 
     def _check_silences(self, now: float) -> float:
         """Report silent watched actors; fail notifications waiting for silent actors.
@@ -923,6 +1150,7 @@ class FleetActorLink(Closing):
                 due = max(self._heard_at.get(actor, -math.inf), out.started) + self.silence_s
                 if now >= due:
                     out.aborted = f"'{actor}' was not heard for {self.silence_s:g} s"
+                    out.lost = (actor, f"not heard for {self.silence_s:g} s")
                     self._changed.notify_all()
                     break
                 wake = min(wake, due)
@@ -1122,6 +1350,7 @@ class FleetActorLink(Closing):
         msg = new(handshake_t)
         msg.phase, msg.graph, msg.session, msg.actor = phase, graph, session, self._actor
         msg.stamp_us = self._stamp()
+        msg.result, msg.reason, msg.run_id = "", "", ""
         msg.actors = list(actors)
         msg.heard = []
         for name, stamp in sorted(heard.items()):
@@ -1132,13 +1361,54 @@ class FleetActorLink(Closing):
 
     def _join_msg(self, run: _Run) -> Any:
         heard = {p: peer.stamp for p, peer in run.peers.items()}
-        return self._handshake_msg(_JOIN, run.graph, run.session, run.actors, heard)
+        msg = self._handshake_msg(_JOIN, run.graph, run.session, run.actors, heard)
+        msg.run_id = run.proposal
+        return msg
 
     def _ready_msg(self, run: _Run) -> Any:
-        return self._handshake_msg(_READY, run.graph, run.session, run.actors, run.frozen)
+        msg = self._handshake_msg(_READY, run.graph, run.session, run.actors, run.frozen)
+        msg.run_id = run.run_id
+        return msg
+
+    def _distinct_runs(self) -> list[_Run]:
+        """Every run once (a run whose handshake is done is kept under two keys). Lock held."""
+        return list({id(r): r for r in self._runs.values()}.values())
+
+    def _agree(self, run: _Run) -> None:
+        """The handshake of ``run`` is done: agree on its run id. Lock held.
+
+        The run id is the smallest proposal; the run is kept under it too, with what peers
+        that ran ahead already said under it.
+        """
+        proposals = [run.proposal]
+        for actor in run.actors:
+            peer = run.peers.get(actor)
+            if peer is not None and peer.run_id:
+                proposals.append(peer.run_id)
+        run.run_id = min(proposals)
+        key = (run.graph, run.run_id)
+        early = self._runs.get(key)
+        if early is not None and early is not run:  # peers that ran ahead spoke of it already
+            for node, notices in early.pending.items():
+                run.pending.setdefault(node, collections.deque()).extend(notices)
+            run.seen |= early.seen
+            for actor, result in early.ended_peers.items():
+                run.ended_peers.setdefault(actor, result)
+            run.left_reasons.update(early.left_reasons)
+            run.left_peers |= early.left_peers
+        self._runs[key] = run
 
     def _leave_msg(self, graph: str, session: str, actors: Sequence[str]) -> Any:
         return self._handshake_msg(_LEAVE, graph, session, actors, {})
+
+    def _decision_msg(
+        self, key: _SessionKey, actors: Sequence[str], decision: tuple[int, str, str]
+    ) -> Any:
+        """END with the run's result, or LEAVE with the abort's reason."""
+        phase, result, reason = decision
+        msg = self._handshake_msg(phase, key[0], key[1], actors, {})
+        msg.result, msg.reason = result, reason
+        return msg
 
     def _send(self, channel: str, msg: Any, counter: str) -> None:
         """Not locked: encode and send; FleetError if it cannot be sent."""

@@ -18,7 +18,10 @@ Thesis §7.2, REFERENCE §4.6, ``docs/ris.md``. One :class:`ResourceInfoSync` ru
 
 A robot not heard for ``missed`` of *its own* advertised periods is lost: it is forgotten and
 reported to the subscribers (:meth:`~ResourceInfoSync.subscribe`); heard again, it joins
-again. Threads: ``temoto-fleet-ris`` sends the adverts and checks silences;
+again. Every advert carries the sender's *boot id*, new at every start: a robot heard with
+another boot id than before restarted, however quickly, and is reported lost ("restarted")
+and joined again at once, so a provider releases what its previous start held without waiting
+for a silence that never comes. Threads: ``temoto-fleet-ris`` sends the adverts and checks silences;
 ``temoto-fleet-ris-calls`` runs the subscribers' callbacks, so a slow callback never delays
 an advert. Bad messages (undecodable, wrong type for the channel, empty or invalid fields, our
 own robot's name from another sender, an older ``seq``) are dropped and counted in
@@ -29,6 +32,7 @@ from __future__ import annotations
 
 import logging
 import math
+import secrets
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -112,6 +116,7 @@ class RobotInfo:
         period_s: Its advert period.
         heard: This robot's clock when it was last heard.
         seq: The ``seq`` of its newest advert.
+        boot: Its boot id: new at every start of its manager ("" from a sender without).
     """
 
     robot: str
@@ -120,6 +125,7 @@ class RobotInfo:
     period_s: float
     heard: float
     seq: int
+    boot: str = ""
 
 
 @dataclass(slots=True, eq=False)
@@ -197,6 +203,8 @@ class ResourceInfoSync(Closing):
         self._subscribers: list[_Subscriber] = []
         self._counts = dict.fromkeys(RIS_STATS, 0)
         self._seq = round(wall_clock() * 1e6)
+        #: This start's boot id, carried by every advert.
+        self.boot = f"{self._seq:x}-{secrets.token_hex(4)}"
         self._offer: tuple[ServerInfo, ...] | None = None
         self._hidden: set[str] = set()  # withdrawn: never advertised again
         self._next_advert = 0.0  # advertise at once
@@ -399,6 +407,7 @@ class ResourceInfoSync(Closing):
                 self._seq += 1
             msg = new(ris_advert_t)
             msg.manager, msg.robot, msg.seq = self.manager, self._robot, self._seq
+            msg.boot = self.boot
             msg.period_ms = max(1, round(self.period_s * 1000))
         msg.servers = []
         for info in offer:
@@ -522,11 +531,18 @@ class ResourceInfoSync(Closing):
                 self._counts["unexpected"] += 1
                 return
             old = self._robots.get(robot)
+            boot: str = msg.boot
+            if old is not None and boot != old.boot:
+                # restarted: what its previous start held goes now, not after a silence
+                self._lose(robot, "restarted")
+                old = None
             if old is not None and msg.seq < old.seq:
                 self._counts["stale"] += 1
                 return
             self._counts["adverts_received"] += 1
-            info = RobotInfo(robot, msg.manager, servers, period_ms / 1000, self._clock(), msg.seq)
+            info = RobotInfo(
+                robot, msg.manager, servers, period_ms / 1000, self._clock(), msg.seq, boot
+            )
             self._robots[robot] = info
             self._wake.notify()  # its silence deadline may be the next one
             if old is not None and old.servers != servers:
@@ -572,6 +588,8 @@ class ResourceInfoSync(Closing):
                 return
             left = {n: s for n, s in info.servers.items() if n not in names}
             if left != info.servers:
-                info = RobotInfo(robot, info.manager, left, info.period_s, info.heard, info.seq)
+                info = RobotInfo(
+                    robot, info.manager, left, info.period_s, info.heard, info.seq, info.boot
+                )
                 self._robots[robot] = info
                 self._changed(info)

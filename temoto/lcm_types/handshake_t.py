@@ -17,18 +17,19 @@ class handshake_t(object):
     echoed heard list.
     """
 
-    __slots__ = ["version", "phase", "graph", "session", "actor", "stamp_us", "actors_count", "actors", "heard_count", "heard"]
+    __slots__ = ["version", "phase", "graph", "session", "actor", "stamp_us", "actors_count", "actors", "heard_count", "heard", "result", "reason", "run_id"]
 
-    __typenames__ = ["int16_t", "int8_t", "string", "string", "string", "int64_t", "int16_t", "string", "int16_t", "temoto.lcm_types.heard_actor_t"]
+    __typenames__ = ["int16_t", "int8_t", "string", "string", "string", "int64_t", "int16_t", "string", "int16_t", "temoto.lcm_types.heard_actor_t", "string", "string", "string"]
 
-    __dimensions__ = [None, None, None, None, None, None, None, ["actors_count"], None, ["heard_count"]]
+    __dimensions__ = [None, None, None, None, None, None, None, ["actors_count"], None, ["heard_count"], None, None, None]
 
     JOIN = 1
     """
     JOIN: still gathering peers. READY: the sender has reached consensus and starts the
-    graph. LEAVE: the sender gave up (timeout, stop); the others abort this run too.
-    END: the sender's run finished normally; it needs nothing more of this run, so the
-    others stop waiting for its acknowledgements and do not miss it when it goes quiet.
+    graph. LEAVE: the sender aborted the run (handshake timeout, stop, an unacknowledged
+    notification, a lost actor); the others abort it too, with the same reason. END: the
+    sender's run finished with `result`; the others end it with that result too, and stop
+    waiting for the sender's acknowledgements.
     """
     READY = 2
     LEAVE = 3
@@ -90,6 +91,27 @@ class handshake_t(object):
         LCM Type: temoto.lcm_types.heard_actor_t[heard_count]
         """
 
+        self.result = ""
+        """
+        END: the run's result (on_true, on_false, ...); empty otherwise.
+        LCM Type: string
+        """
+
+        self.reason = ""
+        """
+        LEAVE: why the run was aborted, word for word what every actor reports; empty for a
+        handshake given up or a link closed without a run to abort.
+        LCM Type: string
+        """
+
+        self.run_id = ""
+        """
+        JOIN: the sender's proposal for the run id; READY: the run id agreed on (the smallest
+        proposal of the participants). Every later message of the run carries the run id as
+        its session.
+        LCM Type: string
+        """
+
 
     def encode(self):
         buf = BytesIO()
@@ -121,6 +143,18 @@ class handshake_t(object):
         for i0 in range(self.heard_count):
             assert self.heard[i0]._get_packed_fingerprint() == temoto.lcm_types.heard_actor_t._get_packed_fingerprint()
             self.heard[i0]._encode_one(buf)
+        __result_encoded = self.result.encode('utf-8')
+        buf.write(struct.pack('>I', len(__result_encoded)+1))
+        buf.write(__result_encoded)
+        buf.write(b"\0")
+        __reason_encoded = self.reason.encode('utf-8')
+        buf.write(struct.pack('>I', len(__reason_encoded)+1))
+        buf.write(__reason_encoded)
+        buf.write(b"\0")
+        __run_id_encoded = self.run_id.encode('utf-8')
+        buf.write(struct.pack('>I', len(__run_id_encoded)+1))
+        buf.write(__run_id_encoded)
+        buf.write(b"\0")
 
     @staticmethod
     def decode(data: bytes):
@@ -151,13 +185,19 @@ class handshake_t(object):
         self.heard = []
         for i0 in range(self.heard_count):
             self.heard.append(temoto.lcm_types.heard_actor_t._decode_one(buf))
+        __result_len = struct.unpack('>I', buf.read(4))[0]
+        self.result = buf.read(__result_len)[:-1].decode('utf-8', 'replace')
+        __reason_len = struct.unpack('>I', buf.read(4))[0]
+        self.reason = buf.read(__reason_len)[:-1].decode('utf-8', 'replace')
+        __run_id_len = struct.unpack('>I', buf.read(4))[0]
+        self.run_id = buf.read(__run_id_len)[:-1].decode('utf-8', 'replace')
         return self
 
     @staticmethod
     def _get_hash_recursive(parents):
         if handshake_t in parents: return 0
         newparents = parents + [handshake_t]
-        tmphash = (0xc0b43a71b7b53317+ temoto.lcm_types.heard_actor_t._get_hash_recursive(newparents)) & 0xffffffffffffffff
+        tmphash = (0x1891eadd89cb49ee+ temoto.lcm_types.heard_actor_t._get_hash_recursive(newparents)) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None

@@ -15,11 +15,11 @@ class ris_advert_t(object):
     its servers every period_ms, and at once when they change or a ris_request_t asks.
     """
 
-    __slots__ = ["version", "manager", "robot", "seq", "period_ms", "servers_count", "servers"]
+    __slots__ = ["version", "manager", "robot", "seq", "period_ms", "servers_count", "servers", "boot"]
 
-    __typenames__ = ["int16_t", "string", "string", "int64_t", "int32_t", "int16_t", "temoto.lcm_types.ris_server_t"]
+    __typenames__ = ["int16_t", "string", "string", "int64_t", "int32_t", "int16_t", "temoto.lcm_types.ris_server_t", "string"]
 
-    __dimensions__ = [None, None, None, None, None, None, ["servers_count"]]
+    __dimensions__ = [None, None, None, None, None, None, ["servers_count"], None]
 
     def __init__(self):
         self.version = 0
@@ -63,6 +63,13 @@ class ris_advert_t(object):
         LCM Type: temoto.lcm_types.ris_server_t[servers_count]
         """
 
+        self.boot = ""
+        """
+        Identifies this start of the manager (unique per process start): a robot heard with a
+        new boot id restarted, so what its previous start held is released at once.
+        LCM Type: string
+        """
+
 
     def encode(self):
         buf = BytesIO()
@@ -84,6 +91,10 @@ class ris_advert_t(object):
         for i0 in range(self.servers_count):
             assert self.servers[i0]._get_packed_fingerprint() == temoto.lcm_types.ris_server_t._get_packed_fingerprint()
             self.servers[i0]._encode_one(buf)
+        __boot_encoded = self.boot.encode('utf-8')
+        buf.write(struct.pack('>I', len(__boot_encoded)+1))
+        buf.write(__boot_encoded)
+        buf.write(b"\0")
 
     @staticmethod
     def decode(data: bytes):
@@ -107,13 +118,15 @@ class ris_advert_t(object):
         self.servers = []
         for i0 in range(self.servers_count):
             self.servers.append(temoto.lcm_types.ris_server_t._decode_one(buf))
+        __boot_len = struct.unpack('>I', buf.read(4))[0]
+        self.boot = buf.read(__boot_len)[:-1].decode('utf-8', 'replace')
         return self
 
     @staticmethod
     def _get_hash_recursive(parents):
         if ris_advert_t in parents: return 0
         newparents = parents + [ris_advert_t]
-        tmphash = (0xfb22fa1fe02e56d+ temoto.lcm_types.ris_server_t._get_hash_recursive(newparents)) & 0xffffffffffffffff
+        tmphash = (0x3d66472272fd11+ temoto.lcm_types.ris_server_t._get_hash_recursive(newparents)) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None

@@ -25,6 +25,24 @@ __all__ = ["MemoryActorLink", "MemoryFleet"]
 _Key = tuple[str, str, str, str]  # graph, session, action, actor
 
 
+class _Watcher:
+    """One watch: actors, the run watched for, the callbacks."""
+
+    def __init__(
+        self,
+        actors: Sequence[str],
+        run: tuple[str, str],
+        on_lost: Callable[[str, str], None],
+        on_end: Callable[[str, Result], None] | None,
+        on_abort: Callable[[str, str], None] | None,
+    ) -> None:
+        self.actors = frozenset(actors)
+        self.run = run
+        self.on_lost = on_lost
+        self.on_end = on_end
+        self.on_abort = on_abort
+
+
 class MemoryFleet:
     """The shared state of the in-memory links of one test (close it when done)."""
 
@@ -34,7 +52,7 @@ class MemoryFleet:
         self._joined: dict[tuple[str, str], dict[str, int]] = {}
         self._results: dict[_Key, tuple[Result, dict[str, Any]]] = {}
         self._waiters: dict[_Key, list[RemoteResult]] = {}
-        self._watchers: list[tuple[frozenset[str], Callable[[str, str], None]]] = []
+        self._watchers: list[_Watcher] = []
         self._deaf: set[str] = set()
         self._lost: dict[str, str] = {}  # actor -> why it was lost
         self._calls: queue.SimpleQueue[Callable[[], None] | None] = queue.SimpleQueue()
@@ -70,9 +88,9 @@ class MemoryFleet:
         """
         with self._cond:
             self._lost.setdefault(actor, reason)
-            watchers = [w for w in self._watchers if actor in w[0]]
-        for _, on_lost in watchers:
-            self._calls.put(functools.partial(on_lost, actor, reason))
+            watchers = [w for w in self._watchers if actor in w.actors]
+        for w in watchers:
+            self._calls.put(functools.partial(w.on_lost, actor, reason))
 
     def close(self) -> None:
         """Stop the delivery thread."""
@@ -90,7 +108,7 @@ class MemoryFleet:
 
     def _handshake(
         self, actor: str, graph: str, session: str, actors: Sequence[str], timeout: float
-    ) -> None:
+    ) -> str:
         key = (graph, session)
         with self._cond:
             rounds = self._joined.setdefault(key, {})
@@ -100,6 +118,7 @@ class MemoryFleet:
             if not ok:
                 missing = sorted(a for a in actors if rounds.get(a, 0) < mine)
                 raise FleetError(f"handshake for {graph}: no answer from {', '.join(missing)}")
+            return f"{session}#{mine}"  # the same on every participant of this round
 
     def _notify(
         self,
@@ -141,8 +160,9 @@ class MemoryFleet:
 
         return cancel
 
-    def _watch(self, actors: Sequence[str], on_lost: Callable[[str, str], None]) -> Cancel:
-        entry = (frozenset(actors), on_lost)
+    def _watch(self, entry: _Watcher) -> Cancel:
+        actors = entry.actors
+        on_lost = entry.on_lost
         with self._cond:
             self._watchers.append(entry)
             already = sorted(set(actors) & self._lost.keys())
@@ -156,10 +176,20 @@ class MemoryFleet:
 
         return cancel
 
-    def _end(self, graph: str, session: str) -> None:
+    def _end(
+        self, actor: str, graph: str, session: str, result: Result | None, reason: str
+    ) -> None:
         with self._cond:
             for key in [k for k in self._waiters if k[:2] == (graph, session)]:
                 del self._waiters[key]
+            watchers = [
+                w for w in self._watchers if actor in w.actors and w.run == (graph, session)
+            ]
+        for w in watchers:
+            if result is not None and w.on_end is not None:
+                self._calls.put(functools.partial(w.on_end, actor, result))
+            elif reason and w.on_abort is not None:
+                self._calls.put(functools.partial(w.on_abort, actor, reason))
 
 
 class MemoryActorLink:
@@ -180,9 +210,9 @@ class MemoryActorLink:
         """This actor's name."""
         return self._actor
 
-    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> None:
-        """See :meth:`temoto.core.remote.ActorLink.handshake`."""
-        self._fleet._handshake(self._actor, graph, session, actors, timeout)
+    def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> str:
+        """See :meth:`temoto.core.remote.ActorLink.handshake` (run ids: ``session#round``)."""
+        return self._fleet._handshake(self._actor, graph, session, actors, timeout)
 
     def notify(
         self,
@@ -211,12 +241,24 @@ class MemoryActorLink:
         *,
         graph: str = "",
         session: str = "",
+        on_end: Callable[[str, Result], None] | None = None,
+        on_abort: Callable[[str, str], None] | None = None,
     ) -> Cancel:
         """See :meth:`temoto.core.remote.ActorLink.watch` (nobody falls silent here)."""
-        return self._fleet._watch(actors, on_lost)
+        actors = [a for a in actors if a != self._actor]
+        watcher = _Watcher(actors, (graph, session), on_lost, on_end, on_abort)
+        return self._fleet._watch(watcher)
 
-    def end(self, graph: str, session: str, *, gave_up: bool = False) -> None:
+    def end(
+        self,
+        graph: str,
+        session: str,
+        *,
+        gave_up: bool = False,
+        result: Result | None = None,
+        reason: str = "",
+    ) -> None:
         """See :meth:`temoto.core.remote.ActorLink.end`."""
-        self._fleet._end(graph, session)
-        if gave_up:
+        self._fleet._end(self._actor, graph, session, result, reason)
+        if gave_up and not reason:
             self._fleet.lose(self._actor, "left")

@@ -9,7 +9,7 @@ from typing import Any
 
 import pytest
 
-from temoto import Action, ActionEngine, GraphState, Result, load_graph
+from temoto import Action, ActionEngine, GraphState, NodeState, Result, load_graph
 from temoto.core.catalog import ActionCatalog
 from temoto.core.graph import UmrfGraph, parse_graph
 from temoto.core.umrf import parse_umrf
@@ -148,19 +148,26 @@ def test_a_missing_actor_fails_the_handshake(fleet: MemoryFleet) -> None:
         assert e.running_graphs() == {}
 
 
-def test_an_actor_that_does_not_acknowledge_fails_the_action(fleet: MemoryFleet) -> None:
+def test_an_actor_that_does_not_acknowledge_aborts_the_run_everywhere(
+    fleet: MemoryFleet,
+) -> None:
     engines = [ActionEngine(n, actions=catalog(), link=fleet.link(n)) for n in ("A", "B")]
     fleet.silence("B")
     try:
         started = threading.Thread(target=lambda: engines[1].start(two_actor_graph()))
-        started.start()  # B waits for A's Step_0, which never reaches it; shutdown stops it
+        started.start()  # B waits for A's Step_0, which never reaches it
         a = engines[0].run(two_actor_graph(), timeout=WAIT)
         started.join(WAIT)
+        # B does not wait for A's node: A's abort reaches it, with A's reason
+        assert engines[1].wait("shared", WAIT) is Result.ERROR
+        b = engines[1].outcome("shared")
     finally:
         for e in engines:
             e.shutdown(timeout=2.0)
     assert a.result is Result.ERROR
-    assert any("were not told" in str(err) for err in a.errors)
+    assert a.aborted == "Step_0: no acknowledgement from B"
+    assert b.aborted == a.aborted
+    assert engines[0].node_states("shared")["Step_0"] is NodeState.FINISHED  # stopped, not ERROR
 
 
 def test_a_lost_actor_fails_the_graph_on_the_others(fleet: MemoryFleet) -> None:
@@ -178,7 +185,8 @@ def test_a_lost_actor_fails_the_graph_on_the_others(fleet: MemoryFleet) -> None:
         assert engines[0].wait(name, WAIT) is Result.ERROR
         outcome = engines[0].outcome(name)
         assert outcome.state is GraphState.ERROR
-        assert any("actor 'B' was lost (silent for 3 s)" in str(e) for e in outcome.errors)
+        assert outcome.aborted == "an actor was lost (silent for 3 s)"
+        assert any(outcome.aborted in str(e) for e in outcome.errors)
     finally:
         Step.block.set()
         Step.block = None
@@ -199,8 +207,9 @@ def test_stopping_a_shared_graph_stops_waiting_for_remote_actions(fleet: MemoryF
         # ... and A gave the run up: B is told, and its run fails instead of waiting for A
         Step.block.set()
         assert engines[1].wait(name, WAIT) is Result.ERROR
-        errors = engines[1].outcome(name).errors
-        assert any("actor 'A' was lost (left)" in str(e) for e in errors), errors
+        outcome = engines[1].outcome(name)
+        assert outcome.aborted == "actor 'A' stopped the run"
+        assert engines[0].outcome(name).aborted == outcome.aborted
     finally:
         Step.block.set()
         Step.block = None

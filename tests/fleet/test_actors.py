@@ -261,6 +261,31 @@ def test_a_run_can_handshake_again_after_end(fleet: Fleet) -> None:
         b.end("g", "s1")
 
 
+def test_every_run_gets_one_run_id_on_every_actor_and_a_new_one_each_time(fleet: Fleet) -> None:
+    names = ["A", "B", "C"]
+    links = fleet.links(*names)
+    seen: list[str] = []
+    for _ in range(2):
+        ids: list[str] = []
+        calls = [
+            lambda link=link, ids=ids: ids.append(link.handshake("g", "s1", names, WAIT_S))
+            for link in links
+        ]
+        assert concurrently(*calls) == [None] * 3
+        assert len(set(ids)) == 1, ids  # agreed
+        (run_id,) = set(ids)
+        assert run_id.startswith("s1@")
+        assert run_id not in seen  # the same session name, another run
+        seen.append(run_id)
+        # messages of the run name it by its run id: a notification under it is delivered
+        got = Got()
+        links[1].expect("g", run_id, "Step_0", "A", got)
+        links[0].notify("g", run_id, "Step_0", Result.TRUE, {}, ["B", "C"], WAIT_S)
+        got.wait_for(1)
+        for link in links:
+            link.end("g", run_id)
+
+
 def test_a_peer_still_in_the_previous_run_does_not_complete_a_new_one(fleet: Fleet) -> None:
     a, b = fleet.links("A", "B")
     assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2

@@ -44,6 +44,8 @@ GRAPHS = Path(__file__).resolve().parent / "graphs"
 UPSTREAM = ROOT.parent / "shared" / "conformance" / "umrf" / "upstream"
 MULTI = UPSTREAM / "actionengine_test_engine_test_multi_actor.graph.json"
 PARTITION = GRAPHS / "netns_partition.graph.json"
+LOST_NOTIFICATION = GRAPHS / "netns_lost_notification.graph.json"
+SETTLE_S = 1.0  # the engine's settle_timeout (default): an aborted run is done after it
 ABC = ["Actor A", "Actor B", "Actor C"]
 KEY = "6b" * 32  # a fixed 32-byte fleet key, hex
 
@@ -460,25 +462,104 @@ def test_a_partition_fails_the_graph_on_every_actor(key_file: Path) -> None:
     report = describe(actors, ABC)
     assert None not in codes, f"hung: exit codes {codes}\n{report}"
     assert codes == [1, 1, 1], f"exit codes {codes}\n{report}"
-    # Whoever notices first fails its run and gives it up (LEAVE); a peer may hear that LEAVE
-    # before its own silence timer fires, so it names that peer ("left") instead of B.
-    lost = r"netns_partition: actor '(Actor [ABC])' was lost \((not heard for|left)"
+    # One outcome: every actor aborts the run with the same reason, whether it found a peer
+    # silent itself or heard the abort of a peer on its side of the cut first (B is alone on
+    # its side: it finds both silent). Each actor's own finding names whom it misses.
+    aborted = "netns_partition aborted: an actor was lost (not heard for"
+    missed = r"netns_partition: actor '(Actor [ABC])' was lost \(not heard for"
     named_b = False
     for i, name in enumerate(ABC):
-        line = actors.first(i, lost)
-        assert line is not None, f"{name} did not report a lost actor\n{report}"
-        found = re.search(lost, line.text)
-        assert found is not None
-        assert found.group(1) != name, line.text
-        if i != cut and found.group(1) == ABC[cut] and found.group(2) == "not heard for":
-            named_b = True
+        line = actors.first(i, re.escape(aborted))
+        assert line is not None, f"{name} did not abort the run\n{report}"
+        own = actors.first(i, missed)
+        if own is not None:
+            found = re.search(missed, own.text)
+            assert found is not None
+            assert found.group(1) != name, own.text
+            named_b = named_b or (i != cut and found.group(1) == ABC[cut])
         assert "netns_partition: on_error" in actors.text(i, "out"), (name, report)
         detected, ended = line.t - t_cut, actors.exited[i] - t_cut
-        print(f"{name}: lost reported {detected:.2f} s, exited {ended:.2f} s after the cut")
+        print(f"{name}: aborted {detected:.2f} s, exited {ended:.2f} s after the cut")
         assert SILENCE_S - 0.5 < detected < SILENCE_S + MARGIN_S, (name, detected)
-        # a notification for a lost actor is not waited for: the run ends at once
-        assert ended < SILENCE_S + MARGIN_S, (name, ended)
+        # a notification for a lost actor is not waited for: the run ends at once (after the
+        # engine's settle_timeout, 1 s by default)
+        assert ended < SILENCE_S + 1.0 + MARGIN_S, (name, ended)
     assert named_b, f"no survivor found the partitioned actor silent\n{report}"
+
+
+def aborted_with(actors: Actors, i: int, graph: str) -> str | None:
+    """The reason actor ``i`` aborted ``graph`` with, from its log, or None."""
+    line = actors.first(i, rf"shared run {graph} aborted: ")
+    return None if line is None else line.text.split(f"shared run {graph} aborted: ", 1)[1]
+
+
+def test_an_actor_killed_mid_run_aborts_the_run_on_every_other(key_file: Path) -> None:
+    require()
+    killed = 1  # Actor B
+    with RobotNetwork(3) as net:
+        actors = start_actors(
+            net, PARTITION, ABC, key_file, "--progress", "--fleet-silence", str(SILENCE_S)
+        )
+        running = [rf"netns_partition: TaTimer_{i} RUNNING" for i in range(3)]
+        started = actors.pump(
+            lambda: all(actors.first(i, running[i]) for i in range(3)), time.monotonic() + 15
+        )
+        assert started, f"the timers did not all start\n{describe(actors, ABC)}"
+        t_kill = time.monotonic()
+        actors.procs[killed].kill()  # SIGKILL: no LEAVE, no END, nothing
+        codes = actors.finish(t_kill + SILENCE_S + SETTLE_S + 2 * MARGIN_S)
+    report = describe(actors, ABC)
+    assert codes[killed] == -9, report
+    survivors = [i for i in range(3) if i != killed]
+    assert [codes[i] for i in survivors] == [1, 1], f"exit codes {codes}\n{report}"
+    reasons = {aborted_with(actors, i, "netns_partition") for i in survivors}
+    assert reasons == {f"an actor was lost (not heard for {SILENCE_S:g} s)"}, report
+    for i in survivors:
+        ended = actors.exited[i] - t_kill
+        print(f"{ABC[i]}: exited {ended:.2f} s after the kill")
+        assert ended < SILENCE_S + SETTLE_S + MARGIN_S, (ABC[i], ended)
+
+
+def test_a_notification_lost_on_purpose_aborts_the_run_everywhere(key_file: Path) -> None:
+    require(nft=True)
+    deaf = 2  # Actor C hears nothing for a while: it never acknowledges A's notification
+    silence = 9.0  # longer than the notify timeout (5 s): C is still in the run when it hears
+    with RobotNetwork(3) as net:
+        actors = start_actors(
+            net,
+            LOST_NOTIFICATION,
+            ABC,
+            key_file,
+            "--progress",
+            "--fleet-silence",
+            str(silence),
+            timeout=40,
+        )
+        running = [rf"netns_lost_notification: TaTimer_{i} RUNNING" for i in range(3)]
+        started = actors.pump(
+            lambda: all(actors.first(i, running[i]) for i in range(3)), time.monotonic() + 15
+        )
+        assert started, f"the timers did not all start\n{describe(actors, ABC)}"
+        t_deaf = time.monotonic()
+        net.loss(deaf, 100)
+        # A's timer ends after 1 s; C does not acknowledge; A aborts 5 s later
+        aborted = actors.pump(
+            lambda: aborted_with(actors, 0, "netns_lost_notification") is not None,
+            t_deaf + 15,
+        )
+        assert aborted, f"A did not abort the run\n{describe(actors, ABC)}"
+        net.loss(deaf, 0)  # C hears again, before it would find A and B silent
+        codes = actors.finish(time.monotonic() + silence + MARGIN_S)
+    report = describe(actors, ABC)
+    assert codes == [1, 1, 1], f"exit codes {codes}\n{report}"
+    reasons = {aborted_with(actors, i, "netns_lost_notification") for i in range(3)}
+    assert len(reasons) == 1, report
+    (reason,) = reasons
+    assert reason is not None
+    assert "TaTimer_0 (on_true)" in reason, reason
+    assert "was not acknowledged by 'Actor C'" in reason, reason
+    for i in range(3):
+        print(f"{ABC[i]}: exited {actors.exited[i] - t_deaf:.2f} s after C went deaf")
 
 
 def test_random_loss_on_every_robot_is_survived(key_file: Path) -> None:

@@ -557,3 +557,28 @@ def test_closing_the_provider_releases_what_remote_consumers_hold(fleet: Fleet) 
     (update,) = fatal(got)
     assert update.message == "robot 'B' was lost: withdrew"
     a.registrar.release(held.id)
+
+
+def test_a_consumer_that_restarts_quickly_has_its_old_references_released_at_once(
+    fleet: Fleet,
+) -> None:
+    b = fleet.robot("B", processes=True, period_s=60.0)  # silences would take minutes
+    with ExitStack() as a_stack:
+        a = fleet.robot("A", stack=a_stack, period_s=60.0)
+        known = Got()
+        a.ris.subscribe(on_joined=known)
+        if a.ris.robot_info("B") is None:
+            known.wait_for(1)
+        one = remote(a).request("process", sleeper("one"), client="me")
+        pid = response_of(one, ProcessResponse).pid
+        old_boot = a.ris.boot
+        lost = Got()
+        b.ris.subscribe(on_lost=lost)
+        a.link.transport.close()  # A dies without a word ...
+        again = fleet.robot("A", period_s=60.0)  # ... and is back at once: a new boot id
+        assert again.ris.boot != old_boot
+        ((info, reason),) = lost.wait_for(1)
+        assert (info.robot, reason) == ("A", "restarted")
+        assert wait_exit(pid), "B did not stop the process of A's previous start"
+    assert remote(b).held() == {}
+    assert remote(b).stats["released_for_lost"] == 1

@@ -349,3 +349,31 @@ def test_arguments_are_checked(fleet: Fleet) -> None:
         ResourceInfoSync(link, registrar, "A", period_s=0)
     with pytest.raises(ValueError, match="missed"):
         ResourceInfoSync(link, registrar, "A", missed=0)
+
+
+def test_a_robot_heard_with_a_new_boot_id_restarted_and_is_lost_and_joined_at_once(
+    fleet: Fleet,
+) -> None:
+    a = fleet.robot("A", period_s=60.0)
+    lost, joined = Got(), Got()
+    a.ris.subscribe(on_lost=lost, on_joined=joined)
+    raw = fleet.raw("m", RIS_CHANNEL)
+    first = advert("m", "camera", seq=100)
+    first.boot = "boot-1"
+    raw.send(first)
+    joined.wait_for(1)
+    # the same boot id with a lower seq is stale; a new boot id is a new start, whatever its seq
+    stale = advert("m", seq=99)
+    stale.boot = "boot-1"
+    raw.send(stale)
+    restarted = advert("m", "lidar", seq=5)
+    restarted.boot = "boot-2"
+    raw.send(restarted)
+    ((info, reason),) = lost.wait_for(1)
+    assert (info.robot, info.boot, reason) == ("m", "boot-1", "restarted")
+    (_, (again,)) = joined.wait_for(2)
+    assert (again.robot, again.boot, again.seq) == ("m", "boot-2", 5)
+    assert a.ris.providers("lidar") == ["m"]
+    assert a.ris.providers("camera") == []
+    assert a.ris.stats["stale"] == 1
+    assert a.ris.boot != fleet.robot("B", period_s=60.0).ris.boot

@@ -1,0 +1,338 @@
+"""Shared runs: the engine's side of graphs shared by several actors.
+
+A graph that names other actors is *shared*: every actor runs it in its own engine, and the
+engines keep their runs in step through an :class:`~temoto.core.remote.ActorLink` (REFERENCE
+§2.14, thesis §6.3.2; the wire protocol is ``temoto.fleet.actors``). The engine evolves one
+graph and knows nothing of the protocol; :class:`SharedRuns` does the rest:
+
+* the handshake before a shared run starts (:meth:`SharedRuns.handshake`);
+* notifying the peers of the end of a local action (:meth:`SharedRuns.notify`), and waiting
+  for the notifications of remote actions (:meth:`SharedRuns.expect`);
+* watching the peers of a running shared run (:meth:`SharedRuns.watch`) and telling them how
+  it ended here (:meth:`SharedRuns.end`).
+
+*One outcome per shared run.* A shared run either ends with the same result on every actor,
+or is aborted on every actor with the same reason (:attr:`GraphOutcome.aborted
+<temoto.core.engine.GraphOutcome>`, and an ERROR result):
+
+* the first actor to reach the end of the run (the graph's exit, or a halt) tells the others
+  its result (END); an actor still running the run ends it with that result at once, as it
+  would have once the last notifications arrived, and tells the others in turn;
+* a notification that is not acknowledged in time, a lost peer (silent, or gone without a
+  word) or a stop here aborts the run here, and the reason goes to the others word for word
+  (LEAVE): they abort the run with it and pass it on. A failing action is not a reason to
+  abort: its ERROR is notified like any result and the graph handles it the same everywhere.
+
+So no actor waits for a node of an actor that has ended or left the run: it hears how the run
+ended (the link repeats it to peers that still speak of the run) or, if every word is lost,
+finds the actor silent after the link's ``silence_s``.
+
+The methods are called by the engine outside its lock (effects, workers); link callbacks come
+in on the link's thread and take the engine's lock to change the run.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping
+from typing import TYPE_CHECKING, Any
+
+from temoto.core._runtime import GraphRun, Node, Plan
+from temoto.core.remote import ActorLink, ActorLostError
+from temoto.core.states import GraphState, Result
+from temoto.errors import ActionError, FleetError
+
+if TYPE_CHECKING:
+    from temoto.core.engine import ActionEngine
+
+__all__ = ["SharedRuns"]
+
+logger = logging.getLogger(__name__)
+
+_ENDED_GRAPH = frozenset(
+    {GraphState.FINISHED, GraphState.STOPPED, GraphState.ERROR, GraphState.HALTED}
+)
+
+
+class SharedRuns:
+    """The shared runs of one engine, over its actor link.
+
+    Args:
+        engine: The engine whose runs these are.
+        link: The link to the other actors.
+        handshake_timeout: Seconds the handshake before a shared run may take.
+        notify_timeout: Seconds every other actor has to acknowledge a finished action.
+        settle_timeout: Real seconds an aborted run still listens to its peers before it is
+            done (a peer's result, or a smaller reason, may still change its outcome).
+    """
+
+    def __init__(
+        self,
+        engine: ActionEngine,
+        link: ActorLink,
+        *,
+        handshake_timeout: float,
+        notify_timeout: float,
+        settle_timeout: float = 1.0,
+    ) -> None:
+        self._engine = engine
+        self.link = link
+        self.handshake_timeout = handshake_timeout
+        self.notify_timeout = notify_timeout
+        self.settle_timeout = settle_timeout
+        self._settling: set[GraphRun] = set()  # aborted runs not done yet (engine lock)
+
+    @staticmethod
+    def peers(actor: str, plan: Plan) -> tuple[str, ...]:
+        """The other actors a plan's graph is shared with (empty for a local graph).
+
+        Args:
+            actor: This engine's actor.
+            plan: The plan.
+
+        Returns:
+            Their names, sorted.
+        """
+        actors = {a.actor for a in plan.graph.actions if a.actor and a.actor != actor}
+        return tuple(sorted(actors))
+
+    def handshake(self, plan: Plan, run_name: str, peers: tuple[str, ...]) -> str:
+        """Block until every participant of a run has heard every other.
+
+        Args:
+            plan: The run's plan.
+            run_name: The run's name (the handshake's session).
+            peers: The other participants.
+
+        Returns:
+            The run id the participants agreed on (the session of every later message).
+
+        Raises:
+            FleetError: The handshake did not complete within ``handshake_timeout``.
+        """
+        actors = sorted({self.link.actor, *peers})
+        return self.link.handshake(plan.graph.name, run_name, actors, self.handshake_timeout)
+
+    def watch(self, run: GraphRun) -> None:
+        """Have the link report a peer of ``run`` that ends, aborts, falls silent or leaves."""
+        engine = self._engine
+        cancel = self.link.watch(
+            run.peers,
+            lambda actor, why: self._actor_lost(run, actor, why),
+            graph=run.plan.graph.name,
+            session=run.session,
+            on_end=lambda actor, result: self._peer_ended(run, actor, result),
+            on_abort=lambda actor, reason: self.abort(run, reason),
+        )
+        with engine._lock:
+            ended = run.state in _ENDED_GRAPH and run not in self._settling
+            if not ended:
+                run.unwatch = cancel
+        if ended:
+            cancel()
+
+    def _actor_lost(self, run: GraphRun, actor: str, why: str) -> None:
+        """Link thread: a peer fell silent or left without a word; the run is aborted."""
+        with self._engine._lock:
+            if run.state not in (GraphState.RUNNING, GraphState.PAUSED):
+                return  # a settling abort takes words from peers only (they agree on those)
+            logger.error("%s: actor '%s' was lost (%s)", run.name, actor, why)
+        # the same words on every actor, whoever it misses (a partition: each side another)
+        self.abort(run, f"an actor was lost ({why})")
+
+    def abort(self, run: GraphRun, reason: str) -> None:
+        """Abort a shared run here: it ends in ERROR, and the others are told why.
+
+        Called from any thread, outside the engine's lock. A run that has ended here is left
+        as it is, except while an abort settles (``settle_timeout``): then the smaller of
+        the two reasons is kept, and told to the others, so that actors that aborted at the
+        same time for different reasons end with the same one.
+
+        Args:
+            run: The run.
+            reason: Why, in the words every actor reports.
+        """
+        engine = self._engine
+        fx: list[Any] = []
+        with engine._lock:
+            if run.state in (GraphState.RUNNING, GraphState.PAUSED):
+                run.aborted = reason
+                error = FleetError(f"shared run {run.name} aborted: {reason}")
+                run.errors.append(error)
+                run.stop_failed = True  # the stop ends the run in ERROR, not STOPPED
+                logger.error("%s", error)
+                engine._stop_run(run, fx)
+            elif run in self._settling and run.aborted is not None and reason < run.aborted:
+                run.aborted = reason
+            else:
+                return
+        if fx:
+            engine._dispatch(fx, closing=engine._closed)
+        else:
+            self.link.end(run.plan.graph.name, run.session, gave_up=True, reason=reason)
+
+    def _peer_ended(self, run: GraphRun, actor: str, result: Result) -> None:
+        """Link thread: a peer reached the end of the run; it ends here with its result."""
+        engine = self._engine
+        fx: list[Any] = []
+        with engine._lock:
+            if run.state in (GraphState.RUNNING, GraphState.PAUSED):
+                logger.info(
+                    "%s: actor '%s' ended the run %s; so does this one", run.name, actor, result
+                )
+                if result is Result.HALTED:
+                    engine._end_run(run, GraphState.HALTED, result, fx)
+                    for node in list(run.nodes.values()):
+                        if node.active:
+                            engine._stop_node(node, fx)
+                else:
+                    engine._finish_run(run, result, fx)
+            elif run in self._settling:
+                # a peer had reached the end when this actor aborted: its result stands
+                logger.warning(
+                    "%s: actor '%s' ended the run %s; aborted here (%s), it takes that result",
+                    run.name,
+                    actor,
+                    result,
+                    run.aborted,
+                )
+                self._settling.discard(run)
+                run.state = GraphState.HALTED if result is Result.HALTED else GraphState.FINISHED
+                run.result = result
+                run.aborted = None
+                unwatch, run.unwatch = run.unwatch, None
+            else:
+                return
+        if fx:
+            engine._dispatch(fx, closing=engine._closed)
+            return
+        try:
+            if unwatch is not None:
+                unwatch()
+            self.link.end(run.plan.graph.name, run.session, result=result)
+        finally:
+            run.done.set()
+
+    def end(self, run: GraphRun) -> None:
+        """Tell the peers how the run ended here; then (an abort: once settled) it is done.
+
+        A run that reached its end here (finished, or halted) says its result (END) and is
+        done. Any other (aborted, stopped, failed) says its reason (LEAVE) and is done after
+        ``settle_timeout``, during which a peer's result or a smaller reason can still change
+        its outcome (see :meth:`abort`).
+        """
+        engine = self._engine
+        me = self.link.actor
+        with engine._lock:
+            reached = run.state in (GraphState.FINISHED, GraphState.HALTED)
+            if reached:
+                unwatch, run.unwatch = run.unwatch, None
+            else:
+                unwatch = None
+                if run.aborted is None:
+                    run.aborted = (
+                        f"actor '{me}' stopped the run"
+                        if run.state is GraphState.STOPPED
+                        else f"the run failed on actor '{me}'"
+                    )
+                self._settling.add(run)
+            result, reason = run.result, run.aborted or ""
+        graph = run.plan.graph.name
+        if not reached:
+            self.link.end(graph, run.session, gave_up=True, reason=reason)
+            try:
+                engine._timer.call_later(self.settle_timeout, self._settled, run)
+            except RuntimeError:  # the engine's timer is shut down: no time to settle
+                self._settled(run)
+            return
+        try:
+            if unwatch is not None:
+                unwatch()
+            self.link.end(graph, run.session, result=result)
+        finally:
+            run.done.set()  # only now: a caller may close the link as soon as wait() returns
+
+    def _settled(self, run: GraphRun) -> None:
+        """Timer thread: an aborted run's outcome is final."""
+        with self._engine._lock:
+            if run not in self._settling:
+                return  # a peer's result was taken meanwhile
+            self._settling.discard(run)
+            unwatch, run.unwatch = run.unwatch, None
+        try:
+            if unwatch is not None:
+                unwatch()
+        finally:
+            run.done.set()
+
+    def expect(self, node: Node, gen: int) -> None:
+        """Wait (through the link) for the notification of a remote action's end."""
+        engine = self._engine
+        run = node.run
+        cancel = self.link.expect(
+            run.plan.graph.name,
+            run.session,
+            node.name,
+            node.umrf.actor,
+            lambda result, outputs: self._remote_finished(node, gen, result, outputs),
+        )
+        with engine._lock:
+            current = node.gen == gen and node.active
+            if current:
+                node.remote_cancel = cancel
+        if not current:
+            cancel()
+
+    def _remote_finished(
+        self, node: Node, gen: int, result: Result, outputs: Mapping[str, Any]
+    ) -> None:
+        """Link thread: another actor finished the action this node stands for."""
+        engine = self._engine
+        fx: list[Any] = []
+        with engine._lock:
+            if node.gen != gen or not node.active:
+                return  # stopped meanwhile, or a notification for an earlier run of the node
+            node.remote_cancel = None
+            error: BaseException | None = None
+            if result is Result.ERROR:
+                error = ActionError(
+                    f"{node.name} failed on actor '{node.umrf.actor}'",
+                    graph=node.run.name,
+                    node=node.name,
+                )
+            engine._on_finished(node, gen, result, dict(outputs), error, fx)
+        engine._dispatch(fx, closing=engine._closed)
+
+    def notify(
+        self, node: Node, result: Result, outputs: dict[str, Any], error: BaseException | None
+    ) -> tuple[Result, BaseException | None]:
+        """Worker: tell the other actors that a local action finished (they acknowledge).
+
+        Args:
+            node: The action's node.
+            result: Its result.
+            outputs: Its outputs.
+            error: What it raised, if anything.
+
+        Returns:
+            The result and error the node finishes with here. An actor that does not
+            acknowledge in time aborts the run (on every actor: the reason goes to them), so
+            the node ends STOPPED here.
+        """
+        run = node.run
+        try:
+            self.link.notify(
+                run.plan.graph.name,
+                run.session,
+                node.name,
+                result,
+                outputs,
+                run.peers,
+                self.notify_timeout,
+            )
+        except ActorLostError as err:
+            if err.why != "left":  # one that left is reported by the watch, with its reason
+                self._actor_lost(run, err.actor, err.why)
+        except FleetError as err:
+            self.abort(run, str(err))
+        return result, error
