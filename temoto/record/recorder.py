@@ -112,9 +112,12 @@ class Recorder(Instrument):
         clock: Stamps every message (``clock.time()``) and paces the sampling (default: real
             time).
         metadata: Written as the recording's ``temoto`` metadata record (strings).
+        flush_period_s: Real seconds between flushes (each closes the chunk in progress):
+            what a SIGKILL may lose at most (0: after every message).
 
     Raises:
         ConfigError: The file cannot be written (the message names it).
+        ValueError: ``flush_period_s`` is negative.
     """
 
     def __init__(
@@ -123,7 +126,11 @@ class Recorder(Instrument):
         *,
         clock: Clock | None = None,
         metadata: dict[str, str] | None = None,
+        flush_period_s: float = FLUSH_PERIOD_S,
     ) -> None:
+        if not (math.isfinite(flush_period_s) and flush_period_s >= 0):
+            raise ValueError(f"a flush period must be finite and >= 0: {flush_period_s!r}")
+        self.flush_period_s = flush_period_s
         self.path = Path(path)
         self.clock: Clock = clock or MonotonicClock()
         try:
@@ -352,13 +359,13 @@ class Recorder(Instrument):
         last_flush = time.monotonic()
         while True:
             try:
-                item = self._queue.get(timeout=FLUSH_PERIOD_S)
+                item = self._queue.get(timeout=max(self.flush_period_s, 0.05))
             except queue.Empty:
                 item = None
             if item is _STOP:
                 return
             now = time.monotonic()
-            flush = now - last_flush >= FLUSH_PERIOD_S
+            flush = now - last_flush >= self.flush_period_s
             if flush:
                 last_flush = now
             with self._write_lock:
