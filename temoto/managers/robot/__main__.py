@@ -12,6 +12,10 @@ SIGINT or SIGTERM makes every device safe at once (one line per device on stderr
 mission and closes the instance, exiting 130 or 143 (0 when serving); a second one makes the
 devices safe again and exits at once, without waiting for the mission's actions.
 
+``--record FILE.mcap`` records the runs, the action logs, the robot's telemetry (10 Hz) and the
+fleet's envelopes (``docs/recording.md``); the file is finished at every way out but SIGKILL,
+the second signal's immediate exit included.
+
 This module prints (like :mod:`temoto.cli`); nothing else in the package does.
 """
 
