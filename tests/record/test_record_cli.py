@@ -7,12 +7,14 @@ import os
 import signal
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
 from mcap.reader import make_reader
 
 from temoto.cli import main
+from temoto.errors import ConfigError
 from temoto.record import TELEMETRY_RATE_HZ, read_messages, read_transitions
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -186,3 +188,28 @@ def test_serve_records_fleet_traffic_until_sigterm(tmp_path: Path) -> None:
     assert complete
     assert metadata(record)["command"] == "temoto serve"
     assert topics(record).get("/fleet/TEMOTO_RIS", ("", 0))[1] >= 1  # its own adverts
+
+
+def test_a_robot_command_killed_with_sigkill_leaves_what_it_flushed(tmp_path: Path) -> None:
+    record = tmp_path / "killed.mcap"
+    command = robot(record)
+    command.wait_for("NavigateTo_0 RUNNING")
+    deadline = time.monotonic() + 10.0
+    # the recorder flushes at least once a second: the transition reaches the disk on its own
+    while ("NavigateTo_0", "RUNNING") not in _transitions_so_far(record):
+        assert time.monotonic() < deadline, "nothing flushed within 10 s"
+        time.sleep(0.05)
+    command.proc.send_signal(signal.SIGKILL)
+    command.finish()
+    messages, complete = read_messages(record)
+    assert not complete
+    assert ("NavigateTo_0", "RUNNING") in [(t.node, t.new) for t in read_transitions(record)]
+    assert any(m.topic == f"/{ROBOT}/pose" for m in messages)
+
+
+def _transitions_so_far(path: Path) -> list[tuple[str, str]]:
+    """The transitions a file being written holds so far (none while it holds no chunk)."""
+    try:
+        return [(t.node, t.new) for t in read_transitions(path)]
+    except ConfigError:
+        return []
