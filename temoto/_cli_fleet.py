@@ -29,10 +29,12 @@ __all__ = [
     "add_fleet_options",
     "add_graph_commands",
     "add_live_view_option",
+    "add_record_option",
     "add_serve",
     "add_state_options",
     "graph_command",
     "make_devices_safe",
+    "open_recorder",
     "serve",
     "state_files",
 ]
@@ -278,6 +280,57 @@ def add_live_view_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_record_option(parser: argparse.ArgumentParser) -> None:
+    """``--record FILE.mcap``: record the command's runs, logs, telemetry and fleet traffic."""
+    parser.add_argument(
+        "--record",
+        metavar="FILE.mcap",
+        help="record graph runs, node transitions, action logs, robot telemetry and fleet"
+        " messages to this MCAP file (opens in Foxglove; docs/recording.md)",
+    )
+
+
+def open_recorder(
+    args: argparse.Namespace, command: str, actor: str = "", transport: Any = None
+) -> Any:
+    """The :class:`~temoto.record.Recorder` that ``--record`` asks for, or None.
+
+    It already takes the action logs, and the fleet's envelopes when ``transport`` is given;
+    the caller adds it to its engine (and has it sample its robot), and closes it last.
+
+    Args:
+        args: The parsed arguments (``args.record``).
+        command: What runs (kept in the recording's metadata).
+        actor: The instance's actor, if any (likewise).
+        transport: The fleet transport to listen to (None: no fleet messages).
+
+    Raises:
+        ConfigError: The file cannot be written.
+    """
+    if not getattr(args, "record", None):
+        return None
+    from temoto.record import Recorder
+
+    recorder = Recorder(args.record, metadata={"command": command, "actor": actor})
+    recorder.capture_logs()
+    if transport is not None:
+        try:
+            recorder.listen(transport)
+        except BaseException:
+            recorder.close()
+            raise
+    return recorder
+
+
+def close_recorder(recorder: Any) -> None:
+    """Finish a recording made by :func:`open_recorder` (None: nothing) and say where it is."""
+    if recorder is None:
+        return
+    recorder.close()
+    count = sum(recorder.counts.values())
+    sys.stderr.write(f"temoto: recorded {count} message(s) to {recorder.path}\n")
+
+
 def fleet_key(args: argparse.Namespace, why: str) -> bytes | None:
     """The fleet key from ``--fleet-key-file`` or the environment; None only with --insecure.
 
@@ -355,6 +408,7 @@ def add_serve(sub: Any, paths: Any) -> None:
     )
     add_components_option(serve_p)
     add_live_view_option(serve_p)
+    add_record_option(serve_p)
     add_fleet_options(serve_p, "the fleet this instance joins")
 
 
@@ -362,48 +416,73 @@ def serve(args: argparse.Namespace) -> int:
     """Run an instance until SIGINT/SIGTERM; then exit 0 (a service stopped as asked).
 
     The first signal makes every device safe and closes the instance (its runs stopped, its
-    processes stopped); a second one skips the grace periods of the process stops.
+    processes stopped); a second one skips the grace periods of the process stops. A
+    ``--record`` file is finished after the instance closed, on every way out.
     """
-    from temoto.instance import Instance
     from temoto.transport import open_transport
 
     key = fleet_key(args, f"instance '{args.actor}'")
     state = state_files(args)
     with SignalExit() as signals:
-        instance = Instance(
-            args.actor,
-            transport=open_transport(args.fleet_url),
-            key=key,
-            fleet=args.fleet,
-            insecure=key is None,
-            actions=args.actions,
-            graphs=args.graphs,
-            catalog=state.catalog,
-            world=state.world,
-            reliability_file=state.reliability,
-            handshake_timeout=args.handshake_timeout,
-            stop_timeout=args.stop_timeout,
-            feedback_period_s=args.feedback_period,
-            silence_s=args.fleet_silence,
-            resend_s=args.fleet_resend,
-            live_view_port=args.live_view,
-            component_files=args.components,
-        )
+        transport = open_transport(args.fleet_url)
         try:
-            graphs = len(instance.engine.indexed_graphs())
-            if instance.live_view is not None:
-                sys.stderr.write(f"temoto: live view on {instance.live_view.url}\n")
-            sys.stderr.write(
-                f"temoto: instance '{args.actor}' serving on {args.fleet_url} (fleet"
-                f" '{args.fleet}', {graphs} indexed graph(s)); Ctrl-C stops it\n"
-            )
-            sys.stdout.write("ready\n")
-            sys.stdout.flush()
-            signals.stop.wait()
-            sys.stderr.write(f"temoto: instance '{args.actor}' stopping\n")
-            make_devices_safe(f"instance '{args.actor}' stopped by a signal")
+            recorder = open_recorder(args, "temoto serve", args.actor, transport)
+        except BaseException:
+            transport.close()
+            raise
+        try:
+            return _serve(args, key, state, transport, recorder, signals)
         finally:
-            instance.close()
+            close_recorder(recorder)  # after the instance: its runs' last transitions are in
+
+
+def _serve(
+    args: argparse.Namespace,
+    key: bytes | None,
+    state: StateFiles,
+    transport: Any,
+    recorder: Any,
+    signals: SignalExit,
+) -> int:
+    from temoto.instance import Instance
+
+    instance = Instance(
+        args.actor,
+        transport=transport,
+        key=key,
+        fleet=args.fleet,
+        insecure=key is None,
+        actions=args.actions,
+        graphs=args.graphs,
+        catalog=state.catalog,
+        world=state.world,
+        reliability_file=state.reliability,
+        handshake_timeout=args.handshake_timeout,
+        stop_timeout=args.stop_timeout,
+        feedback_period_s=args.feedback_period,
+        silence_s=args.fleet_silence,
+        resend_s=args.fleet_resend,
+        live_view_port=args.live_view,
+        component_files=args.components,
+    )
+    try:
+        if recorder is not None:
+            instance.engine.add_instrument(recorder)
+            sys.stderr.write(f"temoto: recording to {recorder.path}\n")
+        graphs = len(instance.engine.indexed_graphs())
+        if instance.live_view is not None:
+            sys.stderr.write(f"temoto: live view on {instance.live_view.url}\n")
+        sys.stderr.write(
+            f"temoto: instance '{args.actor}' serving on {args.fleet_url} (fleet"
+            f" '{args.fleet}', {graphs} indexed graph(s)); Ctrl-C stops it\n"
+        )
+        sys.stdout.write("ready\n")
+        sys.stdout.flush()
+        signals.stop.wait()
+        sys.stderr.write(f"temoto: instance '{args.actor}' stopping\n")
+        make_devices_safe(f"instance '{args.actor}' stopped by a signal")
+    finally:
+        instance.close()
     return EXIT_OK
 
 

@@ -54,10 +54,13 @@ from temoto._cli_fleet import (
     SignalExit,
     add_fleet_options,
     add_graph_commands,
+    add_record_option,
     add_serve,
+    close_recorder,
     fleet_key,
     graph_command,
     make_devices_safe,
+    open_recorder,
     serve,
     watch,
 )
@@ -212,6 +215,7 @@ def _parser() -> argparse.ArgumentParser:
         help="a graph input (repeatable)",
     )
     run.add_argument("--trace", metavar="FILE", help="write a JSON line per node state change")
+    add_record_option(run)
     run.add_argument(
         "--timeout", type=float, metavar="SECONDS", help="stop the graph after this long"
     )
@@ -404,9 +408,12 @@ def _run(args: argparse.Namespace) -> int:
         graph = load_graph(args.graph)
         opened = _open_fleet(args, graph)
         link, transport, auth = opened if opened is not None else (None, None, None)
+        recorder = None
         try:
-            code = _run_graph(args, graph, link, signals)
+            recorder = open_recorder(args, "temoto run", args.actor, transport)
+            code = _run_graph(args, graph, link, signals, recorder)
         finally:
+            close_recorder(recorder)
             if link is not None:
                 link.close()
             if transport is not None:
@@ -437,11 +444,13 @@ def _wait_run(engine: ActionEngine, name: str, timeout: float | None, interrupt:
             return False
 
 
-def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: SignalExit) -> int:
+def _run_graph(
+    args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: SignalExit, recorder: Any
+) -> int:
     params = _params(graph, args.param)
     clock = ScaledClock(args.time_scale) if args.time_scale != 1.0 else MonotonicClock()
     t0 = clock.monotonic()
-    instruments: list[Instrument] = []
+    instruments: list[Instrument] = [] if recorder is None else [recorder]
     progress = _Progress(sys.stderr, t0) if args.progress else None
     if progress is not None:
         instruments.append(progress)

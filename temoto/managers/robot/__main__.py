@@ -12,6 +12,10 @@ SIGINT or SIGTERM makes every device safe at once (one line per device on stderr
 mission and closes the instance, exiting 130 or 143 (0 when serving); a second one makes the
 devices safe again and exits at once, without waiting for the mission's actions.
 
+``--record FILE.mcap`` records the runs, the action logs, the robot's telemetry (10 Hz) and the
+fleet's envelopes (``docs/recording.md``); the file is finished at every way out but SIGKILL,
+the second signal's immediate exit included.
+
 This module prints (like :mod:`temoto.cli`); nothing else in the package does.
 """
 
@@ -34,8 +38,11 @@ from temoto._cli_fleet import (
     add_components_option,
     add_fleet_options,
     add_live_view_option,
+    add_record_option,
     add_state_options,
+    close_recorder,
     fleet_key,
+    open_recorder,
     state_files,
 )
 from temoto.actions.builtin import ROBOT_ACTIONS
@@ -76,6 +83,9 @@ class _SafeOnSignal:
     def __init__(self, err: IO[str], *, serving: bool) -> None:
         self.err = err
         self.serving = serving
+        #: Called (in order) before a second signal exits the process, e.g. to finish a
+        #: recording; what they raise is ignored.
+        self.before_exit: list[Any] = []
         self.signals = SignalExit(first=(self._first,), hurry=(hurry_all, self._again))
 
     @property
@@ -100,6 +110,9 @@ class _SafeOnSignal:
         self.err.writelines(f"  {line}\n" for line in lines)
         self.err.flush()
         if urgent:
+            for callback in self.before_exit:
+                with contextlib.suppress(Exception):
+                    callback()
             with contextlib.suppress(Exception):
                 sys.stdout.flush()
             os._exit(self.exit_code or EXIT_OK)
@@ -146,6 +159,7 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     add_components_option(p)
     add_live_view_option(p)
+    add_record_option(p)
     add_fleet_options(p, "the fleet this robot joins (unless --local)")
     return p
 
@@ -178,9 +192,6 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 
 def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
-    from temoto.instance import Instance
-    from temoto.managers.robot.client import RobotManagerClient
-    from temoto.managers.robot.manager import RobotManager
     from temoto.transport import InProcessTransport, Transport, open_transport
 
     t0 = time.monotonic()
@@ -195,6 +206,36 @@ def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
     else:
         key = fleet_key(args, f"robot '{profile.robot}'")
         transport = open_transport(args.fleet_url)
+    try:
+        recorder = open_recorder(args, "robot", profile.robot, transport)
+    except BaseException:
+        transport.close()
+        raise
+    if recorder is not None:
+        interrupts.before_exit.append(recorder.close)  # a second signal: finished, then exit
+    try:
+        return _run_instance(
+            args, interrupts, (t0, clock), (profile, mission, state), transport, key, recorder
+        )
+    finally:
+        close_recorder(recorder)  # after the instance: the runs' last transitions are in
+
+
+def _run_instance(
+    args: argparse.Namespace,
+    interrupts: _SafeOnSignal,
+    started: tuple[float, MonotonicClock],
+    inputs: tuple[Any, Any, Any],
+    transport: Any,
+    key: bytes | None,
+    recorder: Any,
+) -> int:
+    from temoto.instance import Instance
+    from temoto.managers.robot.client import RobotManagerClient
+    from temoto.managers.robot.manager import RobotManager
+
+    t0, clock = started
+    profile, mission, state = inputs
     out = sys.stdout
     with Instance(
         profile.robot,
@@ -222,6 +263,10 @@ def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
             logger.info("released %d references of the previous run", stale)
         robot = RobotManagerClient(instance.registrar).request(client=CLIENT)
         try:
+            if recorder is not None:
+                instance.engine.add_instrument(recorder)
+                recorder.sample(robot)
+                out.write(f"recording to {recorder.path}\n")
             where = "simulated" if profile.sim else "hardware"
             out.write(
                 f"robot '{profile.robot}' ready in {time.monotonic() - t0:.2f} s ({where};"
@@ -252,6 +297,8 @@ def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
                 sys.stderr.write(f"  error: {error}\n")
             return EXIT_OK if outcome.result is Result.TRUE else EXIT_FAILED
         finally:
+            if recorder is not None:
+                recorder.stop_sampling()  # before the robot goes
             # at every way out but a second signal: the catalog keeps nothing of this run
             _release(instance.registrar, robot.resource.id)
 
