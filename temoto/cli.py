@@ -3,14 +3,19 @@
 Commands:
 
 * ``temoto run GRAPH.json [--actions DIR]... [--graphs DIR]... [--actor NAME]
-  [--param NAME=VALUE]... [--trace FILE] [--timeout SECONDS] [--progress]``: runs one graph
-  in this process and prints its result. Exit status 0 iff the result is ``on_true``, 1 for any
+  [--param NAME=VALUE]... [--trace FILE] [--timeout SECONDS] [--stop-timeout SECONDS]
+  [--progress]``: runs one graph in this process and prints its result. Exit status 0 iff the result is ``on_true``, 1 for any
   other result, 2 for invalid input (with a message naming the file and the key path). Its
   actions can acquire processes (``self.acquire("process", ProcessRequest(...))``); they are
   stopped when the graph ends. ``--trace FILE`` writes a JSON line per node state change and,
   as the last line, exactly one result line ``{"graph": ..., "result": ...}``: the result the
   command prints and its exit status stands for (a halted graph stays ``on_halted``, an
   interrupted one ``on_stopped``). A graph refused before its start (status 2) has none.
+  ``--timeout`` (seconds, more than 0; default none) stops the graph after that long;
+  ``--stop-timeout`` (seconds, 0 or more; default 5) is how long a stopped action may take to
+  return before its node is marked ERROR, and the most the exit then waits for it (an action
+  that ignores its stop delays the exit by ``--stop-timeout`` once, not more). ``temoto -v
+  run`` also prints the Python traceback of each action that raised (its plugin's lines).
 * ``temoto validate FILE... [--actions DIR]... [--graphs DIR]... [--actor NAME]``: checks graphs
   (and, given action or graph folders, that their actions resolve); exit 2 on the first invalid
   file. A shared graph needs no fleet link: without ``--actor`` the actions of every actor are
@@ -19,7 +24,12 @@ Commands:
   resolve and the other actors' are not looked at.
 * ``temoto graph dot FILE [-o OUT] [--format svg|png|pdf]``: Graphviz DOT of a graph, or an
   image when ``-o`` is given and Graphviz's ``dot`` is installed.
-* ``temoto actions [--actions DIR]...``: lists the known actions and where they come from.
+* ``temoto actions [--actions DIR]... [--no-builtin]``: lists the known actions and where they
+  come from: the built-in robot, component and context actions (``--no-builtin`` leaves them
+  out) and those of the folders.
+
+Errors are one line, ``temoto: error: ...``, without a traceback: invalid input (status 2),
+including a ``--live-view`` port out of range or in use.
 
 Signals (ARCHITECTURE.md §8): SIGINT (Ctrl-C) or SIGTERM during ``temoto run`` stops the graph
 cleanly (its actions get their stop request), makes every device of this process safe, stops
@@ -38,11 +48,14 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import os
 import signal
 import sys
+import textwrap
 import threading
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -169,6 +182,28 @@ class _RunTrace(TraceInstrument):
                 self._write({"graph": self.graph, "result": result})
 
 
+def _seconds(text: str, *, zero: bool) -> float:
+    """A duration option's value: a finite number of seconds, above 0 (or at least 0)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not math.isfinite(value) or value < 0 or (value == 0 and not zero):
+        bound = "at least 0" if zero else "more than 0"
+        raise argparse.ArgumentTypeError(f"{text!r}: must be {bound} seconds")
+    return value
+
+
+def _positive(text: str) -> float:
+    """``--timeout`` and the like: seconds, more than 0."""
+    return _seconds(text, zero=False)
+
+
+def _not_negative(text: str) -> float:
+    """``--stop-timeout``: seconds, 0 or more (0: give up at once on an action asked to stop)."""
+    return _seconds(text, zero=True)
+
+
 def _parser() -> argparse.ArgumentParser:
     top = argparse.ArgumentParser(
         prog="temoto", description="TeMoto for Python: run and check UMRF task graphs."
@@ -212,16 +247,20 @@ def _parser() -> argparse.ArgumentParser:
     )
     run.add_argument("--trace", metavar="FILE", help="write a JSON line per node state change")
     run.add_argument(
-        "--timeout", type=float, metavar="SECONDS", help="stop the graph after this long"
+        "--timeout",
+        type=_positive,
+        metavar="SECONDS",
+        help="stop the graph after this long (seconds > 0)",
     )
     run.add_argument("--progress", action="store_true", help="print state changes and action logs")
     run.add_argument("--time-scale", type=float, default=1.0, metavar="F", help=argparse.SUPPRESS)
     run.add_argument(
         "--stop-timeout",
-        type=float,
+        type=_not_negative,
         default=5.0,
         metavar="SECONDS",
-        help="how long an action may take to stop (default 5)",
+        help="how long an action may take to stop; also the most the exit waits for actions"
+        " still winding down (default 5)",
     )
     add_fleet_options(
         run, "for a graph shared with other actors (docs/fleet.md); not used otherwise"
@@ -229,7 +268,7 @@ def _parser() -> argparse.ArgumentParser:
     fleet = run.add_argument_group("shared graphs")
     fleet.add_argument(
         "--handshake-timeout",
-        type=float,
+        type=_positive,
         default=5.0,
         metavar="SECONDS",
         help="how long to wait for the other actors before the start (default 5)",
@@ -280,8 +319,14 @@ def _parser() -> argparse.ArgumentParser:
         help="run the robots' clocks F times faster than real time (default 1)",
     )
 
-    act = sub.add_parser("actions", help="list known actions")
+    act = sub.add_parser(
+        "actions",
+        help="list known actions",
+        description="List the built-in actions (robot, component and context verbs, which need"
+        " the managers of `temoto serve` or of the robot command) and those of --actions.",
+    )
     paths(act)
+    act.add_argument("--no-builtin", action="store_true", help="leave out the built-in actions")
 
     add_drivers(sub)
     return top
@@ -465,6 +510,7 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
         try:
             with engine:
                 name = engine.start(graph, params)
+                grace = args.stop_timeout  # what the exit waits for actions still stopping
                 if not _wait_run(engine, name, args.timeout, signals.stop):
                     if signals.signum is None:
                         logging.getLogger("temoto.cli").warning(
@@ -472,9 +518,12 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
                         )
                     else:
                         sys.stderr.write("temoto: stopping the graph\n")
+                    stop_sent = time.monotonic()
                     with contextlib.suppress(TimeoutError):
                         engine.stop(name, timeout=0)
                     _wait_run(engine, name, None, signals.hurried)
+                    # the run's actions had their --stop-timeout from here on: not twice
+                    grace = max(0.1, args.stop_timeout - (time.monotonic() - stop_sent))
                 outcome = engine.outcome(name)
                 result = _printed_result(outcome.result, interrupted=signals.signum is not None)
                 # before the engine's shutdown, which stops a halted run once more
@@ -484,8 +533,9 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
                     progress.finish()
                 if signals.signum is not None:
                     make_devices_safe(f"temoto run stopped by {_signal_name(signals.signum)}")
-                if signals.hurried.is_set():
-                    engine.shutdown(timeout=0.1)  # what did not stop is abandoned
+                # Actions still winding down get what is left of --stop-timeout (not the
+                # engine's default of 10 s); one that ignored its stop is given up on.
+                engine.shutdown(timeout=0.1 if signals.hurried.is_set() else grace)
         finally:
             # Whatever the actions did not release (a run that did not stop) is stopped here:
             # nothing started by this command outlives it.
@@ -499,7 +549,22 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
         sys.stdout.write(f"  {name} = {json.dumps(value, ensure_ascii=False, default=repr)}\n")
     for error in outcome.errors:
         sys.stderr.write(f"  error: {error}\n")
+        if args.verbose:
+            _write_traceback(error)
     return EXIT_TRUE if outcome.result is Result.TRUE else EXIT_OTHER_RESULT
+
+
+def _write_traceback(error: BaseException) -> None:
+    """``-v``: where an action failed, as Python prints it (the plugin's own lines included).
+
+    The engine wraps what ``on_run`` raised in an :class:`~temoto.errors.ActionError`; the
+    traceback shown is that of the original exception.
+    """
+    cause = error.__cause__ if error.__cause__ is not None else error
+    if cause.__traceback__ is None:
+        return
+    for line in traceback.format_exception(cause):
+        sys.stderr.write(textwrap.indent(line, "    "))
 
 
 def _printed_result(result: Result | None, *, interrupted: bool) -> str:
@@ -641,7 +706,10 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _actions(args: argparse.Namespace) -> int:
-    catalog = ActionCatalog(args.actions)
+    from temoto.actions.builtin import BUILTIN_ACTIONS
+
+    folders = [*args.actions] if args.no_builtin else [*BUILTIN_ACTIONS, *args.actions]
+    catalog = ActionCatalog(folders)
     for name in catalog.names():
         try:
             entry = catalog.entry(name)

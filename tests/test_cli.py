@@ -1,6 +1,8 @@
 import json
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -113,7 +115,7 @@ def test_graph_dot_prints_graphviz(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_actions_lists_the_conformance_actions(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["actions", "--actions", str(ACTIONS)]) == 0
+    assert main(["actions", "--no-builtin", "--actions", str(ACTIONS)]) == 0
     out = capsys.readouterr().out
     assert out.count("\n") == 9
     assert "TaTriggerResultMulti (spontaneous)" in out
@@ -199,3 +201,89 @@ def test_version_names_the_build(capsys: pytest.CaptureFixture[str]) -> None:
     assert out.startswith("temoto ")
     assert f"({_fast.BUILD} build," in out
     assert ("compiled" if _fast.COMPILED else "pure") == _fast.BUILD
+
+
+# --- the newcomer's path: one-line errors, checked options, tracebacks on demand (issue 15) ----
+
+GUIDE = ROOT / "examples" / "umrf-guide"
+CLI_ACTIONS = ROOT / "tests" / "data" / "cli_actions"
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "soon"])
+def test_timeout_must_be_a_positive_number_of_seconds(
+    value: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(["run", upstream("semantics_test_1"), "--actions", str(ACTIONS), "--timeout", value])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "--timeout" in err
+    assert "Traceback" not in err
+
+
+def test_stop_timeout_may_be_0_but_not_negative(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(["run", upstream("semantics_test_1"), "--stop-timeout", "-1"])
+    assert stop.value.code == 2
+    assert "--stop-timeout" in capsys.readouterr().err
+    graph, actions = upstream("semantics_test_1"), str(ACTIONS)
+    assert main(["run", graph, "--actions", actions, "--stop-timeout", "0"]) == 0
+
+
+def test_a_bad_live_view_port_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["serve", "--actor", "a", "--insecure", "--live-view", "99999"]) == 2
+    err = capsys.readouterr().err
+    assert "temoto: error: live view: cannot listen on 127.0.0.1:99999" in err
+    assert "Traceback" not in err
+
+
+def test_a_busy_live_view_port_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert main(["serve", "--actor", "a", "--insecure", "--live-view", str(port)]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot listen on 127.0.0.1:{port}: Address already in use" in err
+    assert "Traceback" not in err
+
+
+def test_actions_lists_the_builtin_actions_without_arguments(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["actions"]) == 0
+    names = {line.split()[0] for line in capsys.readouterr().out.splitlines()}
+    assert {"NavigateTo", "MoveJoints", "TakeOff", "RequestComponent", "AddItem"} <= names
+    assert main(["actions", "--no-builtin", "--actions", str(ACTIONS)]) == 0
+    names = {line.split()[0] for line in capsys.readouterr().out.splitlines()}
+    assert "TaAddString" in names
+    assert "NavigateTo" not in names
+
+
+def test_verbose_shows_where_an_action_failed(capsys: pytest.CaptureFixture[str]) -> None:
+    graph = str(GUIDE / "graphs" / "07_recover.graph.json")
+    actions = str(GUIDE / "actions")
+    assert main(["run", graph, "--actions", actions]) == 0  # the graph recovers
+    err = capsys.readouterr().err
+    assert "error: Divide_0 failed: float division by zero" in err
+    assert "Traceback" not in err
+    assert main(["-v", "run", graph, "--actions", actions]) == 0
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err
+    assert 'divide.py", line 8, in _divide' in err  # the plugin's failing line
+    assert "ZeroDivisionError: float division by zero" in err
+
+
+def test_the_exit_waits_no_longer_than_stop_timeout_for_a_stuck_action() -> None:
+    # Stubborn_0 blocks for 60 s and ignores its stop. The run is stopped after 0.3 s, the
+    # action is given up on 0.3 s later, and the exit must not wait more for it: before, the
+    # engine's shutdown waited 10 s more whatever --stop-timeout said.
+    cmd = [sys.executable, "-m", "temoto", "run", str(CLI_ACTIONS / "stubborn.graph.json")]
+    cmd += ["--actions", str(CLI_ACTIONS), "--timeout", "0.3", "--stop-timeout", "0.3"]
+    began = time.monotonic()
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd=ROOT)
+    took = time.monotonic() - began
+    assert proc.returncode == 1, proc.stderr
+    assert "stubborn: on_error" in proc.stdout
+    assert "did not stop within 0.3 s" in proc.stderr
+    assert took < 8.0, f"the exit took {took:.1f} s"  # 10.6 s or more when it waited 10 s

@@ -30,7 +30,7 @@ from typing import TYPE_CHECKING, Any, final
 from urllib.parse import unquote, urlsplit
 
 from temoto._closing import Closing
-from temoto.errors import GraphNotFoundError
+from temoto.errors import ConfigError, GraphNotFoundError
 from temoto.web import _page
 from temoto.web.events import EventHub
 from temoto.web.view import graph_view, graphs_list, to_json
@@ -186,7 +186,8 @@ class LiveView(Closing):
             vanished client is noticed).
 
     Raises:
-        OSError: If the address cannot be bound.
+        ConfigError: If the address cannot be bound (a port out of range, or one in use);
+            the message names the address and why, in one line.
     """
 
     def __init__(
@@ -202,7 +203,11 @@ class LiveView(Closing):
         self.heartbeat_s = heartbeat_s
         self._hub = EventHub(max_clients=max_clients)
         server_class = _Server6 if ":" in host else _Server
-        self._httpd = server_class((host, port), self)
+        try:
+            self._httpd = server_class((host, port), self)
+        except (OSError, OverflowError) as err:  # out of range: OverflowError; in use: OSError
+            why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+            raise ConfigError(f"live view: cannot listen on {host}:{port}: {why}") from None
         self.host = host
         self.port: int = self._httpd.server_address[1]
         self._loopback = _is_loopback(host)
