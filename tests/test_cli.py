@@ -287,3 +287,33 @@ def test_the_exit_waits_no_longer_than_stop_timeout_for_a_stuck_action() -> None
     assert "stubborn: on_error" in proc.stdout
     assert "did not stop within 0.3 s" in proc.stderr
     assert took < 8.0, f"the exit took {took:.1f} s"  # 10.6 s or more when it waited 10 s
+
+
+@pytest.mark.parametrize(
+    ("value", "ran", "skipped"), [("12", "Say_0", "Say_1"), ("3", "Say_1", "Say_0")]
+)
+def test_progress_and_trace_show_each_nodes_result(
+    value: str, ran: str, skipped: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    graph = str(GUIDE / "graphs" / "03_branch.graph.json")
+    trace = tmp_path / "trace.jsonl"
+    argv = ["run", graph, "--actions", str(GUIDE / "actions"), "--param", f"value={value}"]
+    assert main([*argv, "--progress", "--trace", str(trace)]) == 0
+    err = capsys.readouterr().err
+    decided = "on_true" if value == "12" else "on_false"
+    assert f"branch: AtLeast_0 FINISHED {decided}" in err  # which branch ran
+    assert f"branch: AtLeast_0: {value} {'>=' if value == '12' else '<'} 10" in err  # its log
+    assert f"branch: {ran} FINISHED on_true" in err
+    assert skipped not in err
+    records = [json.loads(line) for line in trace.read_text().splitlines()]
+    ends = {r["node"]: r["node_result"] for r in records if "node_result" in r}
+    assert ends == {"AtLeast_0": decided, ran: "on_true"}
+    assert [r for r in records if "result" in r] == [{"graph": "branch", "result": "on_true"}]
+
+
+def test_progress_shows_an_action_error_as_its_result(capsys: pytest.CaptureFixture[str]) -> None:
+    graph = str(GUIDE / "graphs" / "07_recover.graph.json")
+    assert main(["run", graph, "--actions", str(GUIDE / "actions"), "--progress"]) == 0
+    err = capsys.readouterr().err
+    assert "recover: Divide_0 ERROR on_error" in err
+    assert "recover: Say_0: no quotient: carrying on" in err
