@@ -455,6 +455,18 @@ def _error(err: BaseException | str) -> None:
     sys.stderr.write(f"temoto: error: {err}\n")
 
 
+def _open_output(path: str | Path) -> IO[str]:
+    """A file the command writes (``--trace``, ``-o``), opened for writing.
+
+    Raises:
+        ConfigError: It cannot be written (no such folder, no permission), in one line.
+    """
+    try:
+        return open(path, "w", encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot write: {err.strerror or err}") from None
+
+
 def _params(graph: UmrfGraph, texts: Sequence[str]) -> dict[str, Any]:
     """``--param NAME=VALUE`` options as graph input values."""
     pairs: dict[str, str] = {}
@@ -543,7 +555,7 @@ def _run_graph(args: argparse.Namespace, graph: UmrfGraph, link: Any, signals: S
     if progress is not None and action_logs is not None:
         instruments.append(progress)
         action_logs.install()
-    trace_file = open(args.trace, "w", encoding="utf-8") if args.trace else None  # noqa: SIM115
+    trace_file = _open_output(args.trace) if args.trace else None
     trace = None
     try:
         if trace_file is not None:
@@ -720,7 +732,8 @@ def _dot(args: argparse.Namespace) -> int:
     out = Path(args.output)
     fmt = args.format or out.suffix.lstrip(".") or "svg"
     if fmt == "dot":
-        out.write_text(text, encoding="utf-8")
+        with _open_output(out) as file:
+            file.write(text)
         return 0
     try:
         render(text, out, fmt)

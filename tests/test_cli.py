@@ -317,3 +317,20 @@ def test_progress_shows_an_action_error_as_its_result(capsys: pytest.CaptureFixt
     err = capsys.readouterr().err
     assert "recover: Divide_0 ERROR on_error" in err
     assert "recover: Say_0: no quotient: carrying on" in err
+
+
+@pytest.mark.parametrize("tool", ["trace", "dot"])
+def test_an_output_file_that_cannot_be_written_is_one_line(
+    tool: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    graph = str(GUIDE / "graphs" / "02_remap.graph.json")
+    nowhere = tmp_path / "no-such-folder" / "out"
+    if tool == "trace":
+        argv = ["run", graph, "--actions", str(GUIDE / "actions"), "--trace", f"{nowhere}.jsonl"]
+    else:
+        argv = ["graph", "dot", graph, "-o", f"{nowhere}.dot"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"temoto: error: {nowhere}.")
+    assert "cannot write: No such file or directory" in err
+    assert "Traceback" not in err
