@@ -22,11 +22,12 @@ $(STAMP): pyproject.toml setup.py $(wildcard temoto/core/_fast/*.py temoto/core/
 	$(BIN)/python -m pip install -e '.[dev]'
 	touch $@
 
-# System tools of the network tests (tests/fleet/test_netns_fleet.py) and of the live view's
-# browser test (tests/web), as command:package.
+# System tools of the network tests (tests/fleet/test_netns_fleet.py), of the live view's
+# browser test (tests/web) and of the Graphviz renderings (tests/core/test_dot.py), as
+# command:package.
 # Installed with apt-get only when running as root and one is missing; otherwise the missing
 # ones are just reported (the tests then skip, or fail under CI).
-SYSDEPS = ip:iproute2 nft:nftables chromium:chromium
+SYSDEPS = ip:iproute2 nft:nftables chromium:chromium dot:graphviz
 
 sysdeps:
 	@missing=""; \

@@ -3,14 +3,22 @@
 Commands:
 
 * ``temoto run GRAPH.json [--actions DIR]... [--graphs DIR]... [--actor NAME]
-  [--param NAME=VALUE]... [--trace FILE] [--timeout SECONDS] [--progress]``: runs one graph
-  in this process and prints its result. Exit status 0 iff the result is ``on_true``, 1 for any
-  other result, 2 for invalid input (with a message naming the file and the key path). Its
-  actions can acquire processes (``self.acquire("process", ProcessRequest(...))``); they are
-  stopped when the graph ends. ``--trace FILE`` writes a JSON line per node state change and,
-  as the last line, exactly one result line ``{"graph": ..., "result": ...}``: the result the
+  [--param NAME=VALUE]... [--trace FILE] [--timeout SECONDS] [--stop-timeout SECONDS]
+  [--progress]``: runs one graph in this process and prints its result. Exit status 0 iff
+  the result is ``on_true``, 1 for any other result, 2 for invalid input (with a message
+  naming the file and the key path). Its actions can acquire processes
+  (``self.acquire("process", ProcessRequest(...))``); they are stopped when the graph ends.
+  ``--progress`` prints every node state change, each node's result (``FINISHED on_false``:
+  the branch its children take) and the actions' logs. ``--trace FILE`` writes a JSON line per
+  node state change (``"node_result"`` on the line where a node's run ends) and, as the last
+  line, exactly one result line ``{"graph": ..., "result": ...}``: the result the
   command prints and its exit status stands for (a halted graph stays ``on_halted``, an
   interrupted one ``on_stopped``). A graph refused before its start (status 2) has none.
+  ``--timeout`` (seconds, more than 0; default none) stops the graph after that long;
+  ``--stop-timeout`` (seconds, 0 or more; default 5) is how long a stopped action may take to
+  return before its node is marked ERROR, and the most the exit then waits for it (an action
+  that ignores its stop delays the exit by ``--stop-timeout`` once, not more). ``temoto -v
+  run`` also prints the Python traceback of each action that raised (its plugin's lines).
 * ``temoto validate FILE... [--actions DIR]... [--graphs DIR]... [--actor NAME]``: checks graphs
   (and, given action or graph folders, that their actions resolve); exit 2 on the first invalid
   file. A shared graph needs no fleet link: without ``--actor`` the actions of every actor are
@@ -19,7 +27,12 @@ Commands:
   resolve and the other actors' are not looked at.
 * ``temoto graph dot FILE [-o OUT] [--format svg|png|pdf]``: Graphviz DOT of a graph, or an
   image when ``-o`` is given and Graphviz's ``dot`` is installed.
-* ``temoto actions [--actions DIR]...``: lists the known actions and where they come from.
+* ``temoto actions [--actions DIR]... [--no-builtin]``: lists the known actions and where they
+  come from: the built-in robot, component and context actions (``--no-builtin`` leaves them
+  out) and those of the folders.
+
+Errors are one line, ``temoto: error: ...``, without a traceback: invalid input (status 2),
+including a ``--live-view`` port out of range or in use.
 
 Signals (ARCHITECTURE.md §8): SIGINT (Ctrl-C) or SIGTERM during ``temoto run`` stops the graph
 cleanly (its actions get their stop request), makes every device of this process safe, stops
@@ -38,11 +51,14 @@ import argparse
 import contextlib
 import json
 import logging
+import math
 import os
 import signal
 import sys
+import textwrap
 import threading
 import time
+import traceback
 from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any
@@ -64,7 +80,7 @@ from temoto._cli_fleet import (
     serve,
     watch,
 )
-from temoto.clock import MonotonicClock, ScaledClock
+from temoto.clock import Clock, MonotonicClock, ScaledClock
 from temoto.core import _fast
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.dot import graph_to_dot, render
@@ -96,17 +112,27 @@ EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE
 
 
 class _Progress(Instrument):
-    """Prints node state changes for people (``--progress``) until the run's result is known.
+    """Prints a run for people (``--progress``) until its result is known.
 
-    What the engine does after that (stopping a halted run, or actions still winding down, as
-    it shuts down at exit) is not part of the run and is not printed.
+    One line per node state change (with the node's result when its run ends: ``FINISHED
+    on_false`` says which branch its children take) and per line of an action's log (the
+    built-in robot actions log their progress: distance left, altitude, joints reached).
+    What the engine does after the result (stopping a halted run, or actions still winding
+    down, as it shuts down at exit) is not part of the run and is not printed.
+
+    Args:
+        stream: Where to print.
+        clock: The engine's clock (action log lines are stamped with it).
+        t0: Clock reading that times are measured from.
     """
 
-    def __init__(self, stream: IO[str], t0: float) -> None:
+    def __init__(self, stream: IO[str], clock: Clock, t0: float) -> None:
         self.stream = stream
+        self.clock = clock
         self.t0 = t0
         self._lock = threading.Lock()
         self._finished = False
+        self._results: dict[tuple[str, str], Result] = {}
 
     def _say(self, t: float, text: str) -> None:
         with self._lock:
@@ -117,18 +143,60 @@ class _Progress(Instrument):
     def graph_started(self, graph: str, t: float) -> None:
         self._say(t, f"{graph}: started")
 
+    def node_result(self, graph: str, node: str, result: Result, t: float) -> None:
+        self._results[(graph, node)] = result  # printed with the state change that follows
+
     def node_transition(
         self, graph: str, node: str, old: NodeState, new: NodeState, t: float
     ) -> None:
-        self._say(t, f"{graph}: {node} {new.value}")
+        result = self._results.pop((graph, node), None)
+        suffix = f" {result.value}" if result is not None else ""
+        self._say(t, f"{graph}: {node} {new.value}{suffix}")
 
     def graph_finished(self, graph: str, result: Result, t: float) -> None:
         self._say(t, f"{graph}: ended with {result.value}")
+
+    def action_log(self, record: logging.LogRecord) -> None:
+        """A line of an action's log (logger ``temoto.action.<graph>.<node>``)."""
+        where = record.name.removeprefix("temoto.action").lstrip(".")
+        graph, _, node = where.rpartition(".")
+        text = f"{graph}: {node}: {record.getMessage()}" if graph else record.getMessage()
+        self._say(self.clock.monotonic(), text)
 
     def finish(self) -> None:
         """Print nothing more: the run's result is known."""
         with self._lock:
             self._finished = True
+
+
+class _ActionLogHandler(logging.Handler):
+    """Hands the action logs (``temoto.action``) to ``--progress``, in its timeline.
+
+    Installed for the run only (:meth:`install`, :meth:`remove`); while it is, action logs
+    do not also reach the root handler (no line twice).
+    """
+
+    def __init__(self, progress: _Progress) -> None:
+        super().__init__(logging.INFO)
+        self.progress = progress
+        self._logger = logging.getLogger("temoto.action")
+        self._saved = (self._logger.level, self._logger.propagate)
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            self.progress.action_log(record)
+        except Exception:  # a closed stream: as logging does, never raise into the action
+            self.handleError(record)
+
+    def install(self) -> None:
+        self._logger.addHandler(self)
+        self._logger.setLevel(logging.INFO)
+        self._logger.propagate = False
+
+    def remove(self) -> None:
+        self._logger.removeHandler(self)
+        self._logger.setLevel(self._saved[0])
+        self._logger.propagate = self._saved[1]
 
 
 class _RunTrace(TraceInstrument):
@@ -171,6 +239,28 @@ class _RunTrace(TraceInstrument):
             if not self._finished:
                 self._finished = True
                 self._write({"graph": self.graph, "result": result})
+
+
+def _seconds(text: str, *, zero: bool) -> float:
+    """A duration option's value: a finite number of seconds, above 0 (or at least 0)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not math.isfinite(value) or value < 0 or (value == 0 and not zero):
+        bound = "at least 0" if zero else "more than 0"
+        raise argparse.ArgumentTypeError(f"{text!r}: must be {bound} seconds")
+    return value
+
+
+def _positive(text: str) -> float:
+    """``--timeout`` and the like: seconds, more than 0."""
+    return _seconds(text, zero=False)
+
+
+def _not_negative(text: str) -> float:
+    """``--stop-timeout``: seconds, 0 or more (0: give up at once on an action asked to stop)."""
+    return _seconds(text, zero=True)
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -217,16 +307,20 @@ def _parser() -> argparse.ArgumentParser:
     run.add_argument("--trace", metavar="FILE", help="write a JSON line per node state change")
     add_record_option(run)
     run.add_argument(
-        "--timeout", type=float, metavar="SECONDS", help="stop the graph after this long"
+        "--timeout",
+        type=_positive,
+        metavar="SECONDS",
+        help="stop the graph after this long (seconds > 0)",
     )
     run.add_argument("--progress", action="store_true", help="print state changes and action logs")
     run.add_argument("--time-scale", type=float, default=1.0, metavar="F", help=argparse.SUPPRESS)
     run.add_argument(
         "--stop-timeout",
-        type=float,
+        type=_not_negative,
         default=5.0,
         metavar="SECONDS",
-        help="how long an action may take to stop (default 5)",
+        help="how long an action may take to stop; also the most the exit waits for actions"
+        " still winding down (default 5)",
     )
     add_fleet_options(
         run, "for a graph shared with other actors (docs/fleet.md); not used otherwise"
@@ -234,7 +328,7 @@ def _parser() -> argparse.ArgumentParser:
     fleet = run.add_argument_group("shared graphs")
     fleet.add_argument(
         "--handshake-timeout",
-        type=float,
+        type=_positive,
         default=5.0,
         metavar="SECONDS",
         help="how long to wait for the other actors before the start (default 5)",
@@ -285,8 +379,14 @@ def _parser() -> argparse.ArgumentParser:
         help="run the robots' clocks F times faster than real time (default 1)",
     )
 
-    act = sub.add_parser("actions", help="list known actions")
+    act = sub.add_parser(
+        "actions",
+        help="list known actions",
+        description="List the built-in actions (robot, component and context verbs, which need"
+        " the managers of `temoto serve` or of the robot command) and those of --actions.",
+    )
     paths(act)
+    act.add_argument("--no-builtin", action="store_true", help="leave out the built-in actions")
 
     add_drivers(sub)
     add_view(sub)
@@ -361,6 +461,18 @@ def _command(args: argparse.Namespace) -> int:
 
 def _error(err: BaseException | str) -> None:
     sys.stderr.write(f"temoto: error: {err}\n")
+
+
+def _open_output(path: str | Path) -> IO[str]:
+    """A file the command writes (``--trace``, ``-o``), opened for writing.
+
+    Raises:
+        ConfigError: It cannot be written (no such folder, no permission), in one line.
+    """
+    try:
+        return open(path, "w", encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot write: {err.strerror or err}") from None
 
 
 def _params(graph: UmrfGraph, texts: Sequence[str]) -> dict[str, Any]:
@@ -451,10 +563,12 @@ def _run_graph(
     clock = ScaledClock(args.time_scale) if args.time_scale != 1.0 else MonotonicClock()
     t0 = clock.monotonic()
     instruments: list[Instrument] = [] if recorder is None else [recorder]
-    progress = _Progress(sys.stderr, t0) if args.progress else None
-    if progress is not None:
+    progress = _Progress(sys.stderr, clock, t0) if args.progress else None
+    action_logs = _ActionLogHandler(progress) if progress is not None else None
+    if progress is not None and action_logs is not None:
         instruments.append(progress)
-    trace_file = open(args.trace, "w", encoding="utf-8") if args.trace else None  # noqa: SIM115
+        action_logs.install()
+    trace_file = _open_output(args.trace) if args.trace else None
     trace = None
     try:
         if trace_file is not None:
@@ -478,6 +592,7 @@ def _run_graph(
         try:
             with engine:
                 name = engine.start(graph, params)
+                grace = args.stop_timeout  # what the exit waits for actions still stopping
                 if not _wait_run(engine, name, args.timeout, signals.stop):
                     if signals.signum is None:
                         logging.getLogger("temoto.cli").warning(
@@ -485,9 +600,12 @@ def _run_graph(
                         )
                     else:
                         sys.stderr.write("temoto: stopping the graph\n")
+                    stop_sent = time.monotonic()
                     with contextlib.suppress(TimeoutError):
                         engine.stop(name, timeout=0)
                     _wait_run(engine, name, None, signals.hurried)
+                    # the run's actions had their --stop-timeout from here on: not twice
+                    grace = max(0.1, args.stop_timeout - (time.monotonic() - stop_sent))
                 outcome = engine.outcome(name)
                 result = _printed_result(outcome.result, interrupted=signals.signum is not None)
                 # before the engine's shutdown, which stops a halted run once more
@@ -497,8 +615,9 @@ def _run_graph(
                     progress.finish()
                 if signals.signum is not None:
                     make_devices_safe(f"temoto run stopped by {_signal_name(signals.signum)}")
-                if signals.hurried.is_set():
-                    engine.shutdown(timeout=0.1)  # what did not stop is abandoned
+                # Actions still winding down get what is left of --stop-timeout (not the
+                # engine's default of 10 s); one that ignored its stop is given up on.
+                engine.shutdown(timeout=0.1 if signals.hurried.is_set() else grace)
         finally:
             # Whatever the actions did not release (a run that did not stop) is stopped here:
             # nothing started by this command outlives it.
@@ -507,12 +626,29 @@ def _run_graph(
     finally:
         if trace_file is not None:
             trace_file.close()
+        if action_logs is not None:
+            action_logs.remove()
     sys.stdout.write(f"{graph.name}: {result}\n")
     for name, value in sorted(outcome.outputs.items()):
         sys.stdout.write(f"  {name} = {json.dumps(value, ensure_ascii=False, default=repr)}\n")
     for error in outcome.errors:
         sys.stderr.write(f"  error: {error}\n")
+        if args.verbose:
+            _write_traceback(error)
     return EXIT_TRUE if outcome.result is Result.TRUE else EXIT_OTHER_RESULT
+
+
+def _write_traceback(error: BaseException) -> None:
+    """``-v``: where an action failed, as Python prints it (the plugin's own lines included).
+
+    The engine wraps what ``on_run`` raised in an :class:`~temoto.errors.ActionError`; the
+    traceback shown is that of the original exception.
+    """
+    cause = error.__cause__ if error.__cause__ is not None else error
+    if cause.__traceback__ is None:
+        return
+    for line in traceback.format_exception(cause):
+        sys.stderr.write(textwrap.indent(line, "    "))
 
 
 def _printed_result(result: Result | None, *, interrupted: bool) -> str:
@@ -609,7 +745,8 @@ def _dot(args: argparse.Namespace) -> int:
     out = Path(args.output)
     fmt = args.format or out.suffix.lstrip(".") or "svg"
     if fmt == "dot":
-        out.write_text(text, encoding="utf-8")
+        with _open_output(out) as file:
+            file.write(text)
         return 0
     try:
         render(text, out, fmt)
@@ -654,7 +791,10 @@ def _demo(args: argparse.Namespace) -> int:
 
 
 def _actions(args: argparse.Namespace) -> int:
-    catalog = ActionCatalog(args.actions)
+    from temoto.actions.builtin import BUILTIN_ACTIONS
+
+    folders = [*args.actions] if args.no_builtin else [*BUILTIN_ACTIONS, *args.actions]
+    catalog = ActionCatalog(folders)
     for name in catalog.names():
         try:
             entry = catalog.entry(name)

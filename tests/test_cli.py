@@ -1,6 +1,8 @@
 import json
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -113,7 +115,7 @@ def test_graph_dot_prints_graphviz(capsys: pytest.CaptureFixture[str]) -> None:
 
 
 def test_actions_lists_the_conformance_actions(capsys: pytest.CaptureFixture[str]) -> None:
-    assert main(["actions", "--actions", str(ACTIONS)]) == 0
+    assert main(["actions", "--no-builtin", "--actions", str(ACTIONS)]) == 0
     out = capsys.readouterr().out
     assert out.count("\n") == 9
     assert "TaTriggerResultMulti (spontaneous)" in out
@@ -199,3 +201,136 @@ def test_version_names_the_build(capsys: pytest.CaptureFixture[str]) -> None:
     assert out.startswith("temoto ")
     assert f"({_fast.BUILD} build," in out
     assert ("compiled" if _fast.COMPILED else "pure") == _fast.BUILD
+
+
+# --- the newcomer's path: one-line errors, checked options, tracebacks on demand (issue 15) ----
+
+GUIDE = ROOT / "examples" / "umrf-guide"
+CLI_ACTIONS = ROOT / "tests" / "data" / "cli_actions"
+
+
+@pytest.mark.parametrize("value", ["0", "-1", "nan", "inf", "soon"])
+def test_timeout_must_be_a_positive_number_of_seconds(
+    value: str, capsys: pytest.CaptureFixture[str]
+) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(["run", upstream("semantics_test_1"), "--actions", str(ACTIONS), "--timeout", value])
+    assert stop.value.code == 2
+    err = capsys.readouterr().err
+    assert "--timeout" in err
+    assert "Traceback" not in err
+
+
+def test_stop_timeout_may_be_0_but_not_negative(capsys: pytest.CaptureFixture[str]) -> None:
+    with pytest.raises(SystemExit) as stop:
+        main(["run", upstream("semantics_test_1"), "--stop-timeout", "-1"])
+    assert stop.value.code == 2
+    assert "--stop-timeout" in capsys.readouterr().err
+    graph, actions = upstream("semantics_test_1"), str(ACTIONS)
+    assert main(["run", graph, "--actions", actions, "--stop-timeout", "0"]) == 0
+
+
+def test_a_bad_live_view_port_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["serve", "--actor", "a", "--insecure", "--live-view", "99999"]) == 2
+    err = capsys.readouterr().err
+    assert "temoto: error: live view: cannot listen on 127.0.0.1:99999" in err
+    assert "Traceback" not in err
+
+
+def test_a_busy_live_view_port_is_one_line(capsys: pytest.CaptureFixture[str]) -> None:
+    with socket.socket() as busy:
+        busy.bind(("127.0.0.1", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        assert main(["serve", "--actor", "a", "--insecure", "--live-view", str(port)]) == 2
+    err = capsys.readouterr().err
+    assert f"cannot listen on 127.0.0.1:{port}: Address already in use" in err
+    assert "Traceback" not in err
+
+
+def test_actions_lists_the_builtin_actions_without_arguments(
+    capsys: pytest.CaptureFixture[str],
+) -> None:
+    assert main(["actions"]) == 0
+    names = {line.split()[0] for line in capsys.readouterr().out.splitlines()}
+    assert {"NavigateTo", "MoveJoints", "TakeOff", "RequestComponent", "AddItem"} <= names
+    assert main(["actions", "--no-builtin", "--actions", str(ACTIONS)]) == 0
+    names = {line.split()[0] for line in capsys.readouterr().out.splitlines()}
+    assert "TaAddString" in names
+    assert "NavigateTo" not in names
+
+
+def test_verbose_shows_where_an_action_failed(capsys: pytest.CaptureFixture[str]) -> None:
+    graph = str(GUIDE / "graphs" / "07_recover.graph.json")
+    actions = str(GUIDE / "actions")
+    assert main(["run", graph, "--actions", actions]) == 0  # the graph recovers
+    err = capsys.readouterr().err
+    assert "error: Divide_0 failed: float division by zero" in err
+    assert "Traceback" not in err
+    assert main(["-v", "run", graph, "--actions", actions]) == 0
+    err = capsys.readouterr().err
+    assert "Traceback (most recent call last)" in err
+    assert 'divide.py", line 8, in _divide' in err  # the plugin's failing line
+    assert "ZeroDivisionError: float division by zero" in err
+
+
+def test_the_exit_waits_no_longer_than_stop_timeout_for_a_stuck_action() -> None:
+    # Stubborn_0 blocks for 60 s and ignores its stop. The run is stopped after 0.3 s, the
+    # action is given up on 0.3 s later, and the exit must not wait more for it: before, the
+    # engine's shutdown waited 10 s more whatever --stop-timeout said.
+    cmd = [sys.executable, "-m", "temoto", "run", str(CLI_ACTIONS / "stubborn.graph.json")]
+    cmd += ["--actions", str(CLI_ACTIONS), "--timeout", "0.3", "--stop-timeout", "0.3"]
+    began = time.monotonic()
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=60, cwd=ROOT)
+    took = time.monotonic() - began
+    assert proc.returncode == 1, proc.stderr
+    assert "stubborn: on_error" in proc.stdout
+    assert "did not stop within 0.3 s" in proc.stderr
+    assert took < 8.0, f"the exit took {took:.1f} s"  # 10.6 s or more when it waited 10 s
+
+
+@pytest.mark.parametrize(
+    ("value", "ran", "skipped"), [("12", "Say_0", "Say_1"), ("3", "Say_1", "Say_0")]
+)
+def test_progress_and_trace_show_each_nodes_result(
+    value: str, ran: str, skipped: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    graph = str(GUIDE / "graphs" / "03_branch.graph.json")
+    trace = tmp_path / "trace.jsonl"
+    argv = ["run", graph, "--actions", str(GUIDE / "actions"), "--param", f"value={value}"]
+    assert main([*argv, "--progress", "--trace", str(trace)]) == 0
+    err = capsys.readouterr().err
+    decided = "on_true" if value == "12" else "on_false"
+    assert f"branch: AtLeast_0 FINISHED {decided}" in err  # which branch ran
+    assert f"branch: AtLeast_0: {value} {'>=' if value == '12' else '<'} 10" in err  # its log
+    assert f"branch: {ran} FINISHED on_true" in err
+    assert skipped not in err
+    records = [json.loads(line) for line in trace.read_text().splitlines()]
+    ends = {r["node"]: r["node_result"] for r in records if "node_result" in r}
+    assert ends == {"AtLeast_0": decided, ran: "on_true"}
+    assert [r for r in records if "result" in r] == [{"graph": "branch", "result": "on_true"}]
+
+
+def test_progress_shows_an_action_error_as_its_result(capsys: pytest.CaptureFixture[str]) -> None:
+    graph = str(GUIDE / "graphs" / "07_recover.graph.json")
+    assert main(["run", graph, "--actions", str(GUIDE / "actions"), "--progress"]) == 0
+    err = capsys.readouterr().err
+    assert "recover: Divide_0 ERROR on_error" in err
+    assert "recover: Say_0: no quotient: carrying on" in err
+
+
+@pytest.mark.parametrize("tool", ["trace", "dot"])
+def test_an_output_file_that_cannot_be_written_is_one_line(
+    tool: str, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    graph = str(GUIDE / "graphs" / "02_remap.graph.json")
+    nowhere = tmp_path / "no-such-folder" / "out"
+    if tool == "trace":
+        argv = ["run", graph, "--actions", str(GUIDE / "actions"), "--trace", f"{nowhere}.jsonl"]
+    else:
+        argv = ["graph", "dot", graph, "-o", f"{nowhere}.dot"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(f"temoto: error: {nowhere}.")
+    assert "cannot write: No such file or directory" in err
+    assert "Traceback" not in err

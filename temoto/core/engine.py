@@ -905,6 +905,13 @@ class ActionEngine:
             logger.warning("%s: %s", run.name, error)
             if self._instruments:
                 self._notify("action_failed", run.name, node.name, error)
+        if self._watchers:  # the result, then the state change it leads to
+            t = self.clock.monotonic()
+            for inst in list(self._watchers):
+                try:
+                    inst.node_result(run.name, node.name, result, t)
+                except Exception:
+                    self._drop_instrument(inst)
         self._set_state(node, _S.ERROR if result is Result.ERROR else _S.FINISHED)
         if run.state is GraphState.RUNNING:
             self._propagate(node, result, outputs, fx)
@@ -1255,9 +1262,18 @@ def _transfer(
 
 
 def _watches_transitions(instrument: Instrument) -> bool:
-    """Whether an instrument overrides :meth:`Instrument.node_transition`."""
-    base = Instrument.node_transition
-    return getattr(type(instrument), "node_transition", base) is not base
+    """Whether an instrument overrides a hook called per action run.
+
+    Those are :meth:`Instrument.node_transition` and :meth:`Instrument.node_result`.
+    """
+    kind = type(instrument)
+    return any(
+        getattr(kind, hook, base) is not base
+        for hook, base in (
+            ("node_transition", Instrument.node_transition),
+            ("node_result", Instrument.node_result),
+        )
+    )
 
 
 def _ready(node: Node) -> bool:

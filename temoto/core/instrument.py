@@ -33,6 +33,14 @@ class Instrument:
     def graph_finished(self, graph: str, result: Result, t: float) -> None:
         """A graph run ended (finished, halted, stopped or failed) with ``result``."""
 
+    def node_result(self, graph: str, node: str, result: Result, t: float) -> None:
+        """A node's run ended with ``result``: which branch its children take.
+
+        ``on_true``, ``on_false``, ``on_stopped`` or ``on_error`` (a sub-graph node: the
+        sub-graph's result). Called just before the node's change to FINISHED (ERROR for
+        ``on_error``), so the result tells which of its children's conditions apply.
+        """
+
     def action_failed(self, graph: str, node: str, error: BaseException) -> None:
         """An action raised (its result is ``on_error``)."""
 
@@ -122,8 +130,10 @@ class RecordingInstrument(Instrument):
 class TraceInstrument(Instrument):
     """Writes the ``temoto run --trace`` JSON lines (one per node state change).
 
-    Lines: ``{"t": s, "graph": name, "node": "<Name>_<id>", "state": "RUNNING"}`` and, when the
-    top-level graph ends, ``{"graph": name, "result": "on_true"}``.
+    Lines: ``{"t": s, "graph": name, "node": "<Name>_<id>", "state": "RUNNING"}`` (a line of
+    a node's run ending, ``FINISHED`` or ``ERROR``, also has ``"node_result": "on_false"``: which
+    branch its children take) and, when the top-level graph ends, ``{"graph": name, "result":
+    "on_true"}`` (the only lines with a ``"result"`` key).
 
     Args:
         stream: A text stream to write to (flushed after every line).
@@ -135,6 +145,7 @@ class TraceInstrument(Instrument):
         self.stream = stream
         self.graph = graph
         self.t0 = t0
+        self._results: dict[tuple[str, str], str] = {}  # node results until their state line
 
     def _write(self, record: dict[str, object]) -> None:
         self.stream.write(json.dumps(record, ensure_ascii=False) + "\n")
@@ -143,8 +154,21 @@ class TraceInstrument(Instrument):
     def node_transition(
         self, graph: str, node: str, old: NodeState, new: NodeState, t: float
     ) -> None:
-        """Write a state line."""
-        self._write({"t": round(t - self.t0, 6), "graph": graph, "node": node, "state": new.value})
+        """Write a state line (with the node's result when its run ended)."""
+        record: dict[str, object] = {
+            "t": round(t - self.t0, 6),
+            "graph": graph,
+            "node": node,
+            "state": new.value,
+        }
+        result = self._results.pop((graph, node), None)
+        if result is not None:
+            record["node_result"] = result
+        self._write(record)
+
+    def node_result(self, graph: str, node: str, result: Result, t: float) -> None:
+        """Keep a node's result for the line of its state change, which comes next."""
+        self._results[(graph, node)] = result.value
 
     def graph_finished(self, graph: str, result: Result, t: float) -> None:
         """Write the result line of the top-level graph."""

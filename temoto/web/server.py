@@ -41,7 +41,7 @@ from typing import TYPE_CHECKING, Any, final
 from urllib.parse import unquote, urlsplit
 
 from temoto._closing import Closing
-from temoto.errors import GraphNotFoundError, TemotoError
+from temoto.errors import ConfigError, GraphNotFoundError, TemotoError
 from temoto.web import _page
 from temoto.web.events import EventHub
 from temoto.web.robot import RobotWatch
@@ -223,7 +223,8 @@ class Site(Closing):
         token: The write token (None: a new random one; ``""``: writes are refused).
 
     Raises:
-        OSError: If the address cannot be bound.
+        ConfigError: If the address cannot be bound (a port out of range, or one in use);
+            the message names the address and why, in one line.
     """
 
     #: The page's mode (``live`` or ``replay``).
@@ -233,7 +234,11 @@ class Site(Closing):
         self.host = host
         self.token: str = secrets.token_urlsafe(24) if token is None else token
         server_class = _Server6 if ":" in host else _Server
-        self._httpd = server_class((host, port), self)
+        try:
+            self._httpd = server_class((host, port), self)
+        except (OSError, OverflowError) as err:  # out of range: OverflowError; in use: OSError
+            why = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
+            raise ConfigError(f"live view: cannot listen on {host}:{port}: {why}") from None
         self.port: int = self._httpd.server_address[1]
         self._loopback = _is_loopback(host)
         self._closed = False
@@ -336,7 +341,8 @@ class LiveView(Site):
         robot_period_s: Real seconds between readings of the robot.
 
     Raises:
-        OSError: If the address cannot be bound.
+        ConfigError: If the address cannot be bound (a port out of range, or one in use);
+            the message names the address and why, in one line.
     """
 
     def __init__(

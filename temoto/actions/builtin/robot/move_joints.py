@@ -3,13 +3,18 @@
 from __future__ import annotations
 
 from temoto.actions.builtin.robot._common import RobotAction
+from temoto.managers.robot.features import Motion
 
 
 class MoveJoints(RobotAction):
     """Input ``pose`` (a profile pose) or ``joints`` + ``positions`` (rad).
 
-    Optional: ``robot``, ``timeout``.
+    Optional: ``robot``, ``timeout``. Progress: ``mm: arm to pose 'reach': 0.120 rad to go``
+    (the joint farthest from its goal), then ``mm: joints reached (pose 'reach')``.
     """
+
+    _robot_name = ""
+    _goal = ""  # "pose 'reach'" or "j1 0.5, j2 -1"
 
     def on_run(self) -> bool:
         """Do it; True when the goal was reached."""
@@ -17,6 +22,7 @@ class MoveJoints(RobotAction):
         if "pose" in self.inputs and self.inputs.get_string("pose"):
             pose = self.inputs.get_string("pose")
             self.log(f"{robot.name}: arm to pose '{pose}'")
+            self._robot_name, self._goal = robot.name, f"pose '{pose}'"
             reached = self.run_motion(lambda: robot.move_to_pose(pose))
         else:
             joints = self.inputs.get_strings("joints") if "joints" in self.inputs else []
@@ -25,8 +31,18 @@ class MoveJoints(RobotAction):
                 raise ValueError("give a pose, or joints and positions of the same length")
             targets = dict(zip(joints, positions, strict=True))
             self.log(f"{robot.name}: arm to {targets}")
+            self._robot_name = robot.name
+            self._goal = ", ".join(f"{j} {v:g}" for j, v in targets.items())
             reached = self.run_motion(lambda: robot.move_joints(targets))
+        if reached:
+            self.log(f"{robot.name}: joints reached ({self._goal})")
         now = robot.joint_positions()
         self.outputs["arm_joints"] = list(now)
         self.outputs["arm_positions"] = list(now.values())
         return reached
+
+    def progress(self, motion: Motion) -> str:
+        """The goal and how far the farthest joint is from it."""
+        if not motion.progress:
+            return ""
+        return f"{self._robot_name}: arm to {self._goal}: {motion.progress}"

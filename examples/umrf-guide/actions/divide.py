@@ -1,0 +1,14 @@
+"""Divide: ``quotient = a / b``. Dividing by 0 raises, which makes the node's result
+``on_error``; ``temoto -v run`` prints where (this file, the line below)."""
+
+from temoto import Action
+
+
+def _divide(a: float, b: float) -> float:
+    return a / b  # ZeroDivisionError when b is 0
+
+
+class Divide(Action):
+    def on_run(self) -> bool:
+        self.outputs["quotient"] = _divide(self.inputs.get_number("a"), self.inputs.get_number("b"))
+        return True

@@ -1,0 +1,11 @@
+"""Say: write ``text`` to the action's log and pass it on as ``said``."""
+
+from temoto import Action
+
+
+class Say(Action):
+    def on_run(self) -> bool:
+        text = self.inputs.get_string("text")
+        self.log(text)
+        self.outputs["said"] = text
+        return True
