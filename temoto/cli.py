@@ -80,7 +80,8 @@ from temoto._cli_fleet import (
     serve,
     watch,
 )
-from temoto.clock import Clock, MonotonicClock, ScaledClock
+from temoto._progress import ActionLogHandler, Progress
+from temoto.clock import MonotonicClock, ScaledClock
 from temoto.core import _fast
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.dot import graph_to_dot, render
@@ -109,94 +110,6 @@ EXIT_TRUE = 0
 EXIT_OTHER_RESULT = 1
 EXIT_INVALID = 2
 EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE
-
-
-class _Progress(Instrument):
-    """Prints a run for people (``--progress``) until its result is known.
-
-    One line per node state change (with the node's result when its run ends: ``FINISHED
-    on_false`` says which branch its children take) and per line of an action's log (the
-    built-in robot actions log their progress: distance left, altitude, joints reached).
-    What the engine does after the result (stopping a halted run, or actions still winding
-    down, as it shuts down at exit) is not part of the run and is not printed.
-
-    Args:
-        stream: Where to print.
-        clock: The engine's clock (action log lines are stamped with it).
-        t0: Clock reading that times are measured from.
-    """
-
-    def __init__(self, stream: IO[str], clock: Clock, t0: float) -> None:
-        self.stream = stream
-        self.clock = clock
-        self.t0 = t0
-        self._lock = threading.Lock()
-        self._finished = False
-        self._results: dict[tuple[str, str], Result] = {}
-
-    def _say(self, t: float, text: str) -> None:
-        with self._lock:
-            if not self._finished:
-                self.stream.write(f"[{t - self.t0:8.3f}s] {text}\n")
-                self.stream.flush()
-
-    def graph_started(self, graph: str, t: float) -> None:
-        self._say(t, f"{graph}: started")
-
-    def node_result(self, graph: str, node: str, result: Result, t: float) -> None:
-        self._results[(graph, node)] = result  # printed with the state change that follows
-
-    def node_transition(
-        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
-    ) -> None:
-        result = self._results.pop((graph, node), None)
-        suffix = f" {result.value}" if result is not None else ""
-        self._say(t, f"{graph}: {node} {new.value}{suffix}")
-
-    def graph_finished(self, graph: str, result: Result, t: float) -> None:
-        self._say(t, f"{graph}: ended with {result.value}")
-
-    def action_log(self, record: logging.LogRecord) -> None:
-        """A line of an action's log (logger ``temoto.action.<graph>.<node>``)."""
-        where = record.name.removeprefix("temoto.action").lstrip(".")
-        graph, _, node = where.rpartition(".")
-        text = f"{graph}: {node}: {record.getMessage()}" if graph else record.getMessage()
-        self._say(self.clock.monotonic(), text)
-
-    def finish(self) -> None:
-        """Print nothing more: the run's result is known."""
-        with self._lock:
-            self._finished = True
-
-
-class _ActionLogHandler(logging.Handler):
-    """Hands the action logs (``temoto.action``) to ``--progress``, in its timeline.
-
-    Installed for the run only (:meth:`install`, :meth:`remove`); while it is, action logs
-    do not also reach the root handler (no line twice).
-    """
-
-    def __init__(self, progress: _Progress) -> None:
-        super().__init__(logging.INFO)
-        self.progress = progress
-        self._logger = logging.getLogger("temoto.action")
-        self._saved = (self._logger.level, self._logger.propagate)
-
-    def emit(self, record: logging.LogRecord) -> None:
-        try:
-            self.progress.action_log(record)
-        except Exception:  # a closed stream: as logging does, never raise into the action
-            self.handleError(record)
-
-    def install(self) -> None:
-        self._logger.addHandler(self)
-        self._logger.setLevel(logging.INFO)
-        self._logger.propagate = False
-
-    def remove(self) -> None:
-        self._logger.removeHandler(self)
-        self._logger.setLevel(self._saved[0])
-        self._logger.propagate = self._saved[1]
 
 
 class _RunTrace(TraceInstrument):
@@ -563,8 +476,8 @@ def _run_graph(
     clock = ScaledClock(args.time_scale) if args.time_scale != 1.0 else MonotonicClock()
     t0 = clock.monotonic()
     instruments: list[Instrument] = [] if recorder is None else [recorder]
-    progress = _Progress(sys.stderr, clock, t0) if args.progress else None
-    action_logs = _ActionLogHandler(progress) if progress is not None else None
+    progress = Progress(sys.stderr, clock, t0) if args.progress else None
+    action_logs = ActionLogHandler(progress) if progress is not None else None
     if progress is not None and action_logs is not None:
         instruments.append(progress)
         action_logs.install()

@@ -45,11 +45,11 @@ from temoto._cli_fleet import (
     open_recorder,
     state_files,
 )
+from temoto._progress import ActionLogHandler, Progress
 from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.clock import MonotonicClock
 from temoto.config import load_profile
 from temoto.core.graph import load_graph
-from temoto.core.instrument import Instrument
 from temoto.core.states import NodeState, Result
 from temoto.drivers import make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
@@ -118,25 +118,8 @@ class _SafeOnSignal:
             os._exit(self.exit_code or EXIT_OK)
 
 
-class _Progress(Instrument):
-    """Mission progress for people: node changes, the robot's pose, the end."""
-
-    def __init__(self, out: IO[str], t0: float) -> None:
-        self.out = out
-        self.t0 = t0
-
-    def node_transition(
-        self, graph: str, node: str, old: NodeState, new: NodeState, t: float
-    ) -> None:
-        """Print a node's change."""
-        if new in (NodeState.RUNNING, NodeState.FINISHED, NodeState.ERROR):
-            self.out.write(f"[{time.monotonic() - self.t0:6.2f}s] {graph}: {node} {new.value}\n")
-            self.out.flush()
-
-    def graph_finished(self, graph: str, result: Result, t: float) -> None:
-        """Print the end."""
-        self.out.write(f"[{time.monotonic() - self.t0:6.2f}s] {graph}: {result.value}\n")
-        self.out.flush()
+#: The node changes the robot command prints.
+_SHOWN = frozenset({NodeState.RUNNING, NodeState.FINISHED, NodeState.ERROR})
 
 
 def _parser() -> argparse.ArgumentParser:
@@ -283,8 +266,15 @@ def _run_instance(
             signals = interrupts.signals
             if signals.stop.is_set():
                 return EXIT_FAILED  # main() returns the signal's exit code
-            instance.engine.add_instrument(_Progress(out, t0))
-            outcome = _mission(instance.engine, mission, args.timeout, signals.stop)
+            progress = Progress(out, clock, t0, states=_SHOWN)
+            instance.engine.add_instrument(progress)
+            action_logs = ActionLogHandler(progress)  # the actions' progress lines, in order
+            action_logs.install()
+            try:
+                outcome = _mission(instance.engine, mission, args.timeout, signals.stop)
+            finally:
+                progress.finish()
+                action_logs.remove()
             if signals.stop.is_set():
                 name = signal.Signals(signals.signum or signal.SIGINT).name
                 out.write(f"{mission.name}: interrupted ({name})\n")
