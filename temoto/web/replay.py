@@ -6,7 +6,7 @@ chosen by the file's suffix (:data:`READERS`):
 
 * ``.jsonl``, ``.json``, ``.trace``, anything else: the JSON lines of ``temoto run --trace``
   (``{"t", "graph", "node", "state"}`` per node change, ``{"graph", "result"}`` at the end;
-  a node line may carry its ``result``);
+  the line of a node's run ending carries its ``node_result``);
 * ``.mcap``: whatever reader :func:`register_reader` installed for it (the MCAP recorder
   registers one); without one, a clear error.
 
@@ -184,8 +184,10 @@ def read_trace(path: Path) -> Recording:
                 path=f"line {number}",
             )
         event: dict[str, Any] = {"t": float(t), "node": node, "state": state}
-        if isinstance(record.get("result"), str):
-            event["result"] = record["result"]
+        for key in ("node_result", "result"):  # "result": the key of traces before 0.15
+            if isinstance(record.get(key), str):
+                event["result"] = record[key]
+                break
         if not name and isinstance(record.get("graph"), str):
             name = record["graph"]
         events.append(event)

@@ -157,6 +157,9 @@ def test_a_runs_answer_has_its_timeline_and_no_null_for_unset_inputs(
     assert spans["Holder_0"]["result"] == "on_stopped"  # stopped when the graph ended
     nodes = {n["id"]: n for n in answer["nodes"]}
     assert nodes["Holder_0"]["result"] == "on_stopped"
+    # the engine's node_result hook: the result of every node, on_true included
+    for node in ("TaLogger_0", "TaTimer_0", "TaRelayString_0"):
+        assert (spans[node]["result"], nodes[node]["result"]) == ("on_true", "on_true")
     assert isinstance(answer["now"], float)
     assert {e["status"] for e in answer["edges"]} == {"taken"}
     # an input with no value carries no "value" (the page says "not set", never null)
@@ -198,6 +201,11 @@ def test_a_trace_loads_as_a_recording(tmp_path: Path, demo: Demo) -> None:
         "Holder_0",
         "TaRelayString_0",
     }
+    # the trace's node_result keys: each node's result at the change that ends its run
+    ended = {e["node"]: e.get("result") for e in rec.events if e["state"] == "FINISHED"}
+    # Holder_0 is stopped as the graph ends: its line may come after the file was closed
+    assert ended.pop("Holder_0", "on_stopped") == "on_stopped"
+    assert ended == {"TaLogger_0": "on_true", "TaTimer_0": "on_true", "TaRelayString_0": "on_true"}
     page = rec.to_page()
     assert page["end"] >= 0.05
     assert {n["id"] for n in page["graph"]["nodes"]} >= {"TaTimer_0"}
@@ -371,12 +379,17 @@ def test_the_timeline_has_a_span_per_run_of_an_action() -> None:
         ("D_0", S.INITIALIZED, S.RUNNING, 13.3),
     ]
     for node, old, new, t in steps:
+        if (node, t) == (  # the engine gives this run's result (the others: none given)
+            "A_0",
+            11.0,
+        ):
+            hub.node_result("g", node, Result.FALSE, t)
         hub.node_transition("g", node, old, new, t)
     line = hub.timeline("g")
     assert line is not None
     assert (line["start"], line["end"]) == (10.0, None)
     assert [(s["node"], s["start"], s["end"], s["state"], s["result"]) for s in line["spans"]] == [
-        ("A_0", 10.0, 11.0, "FINISHED", None),
+        ("A_0", 10.0, 11.0, "FINISHED", "on_false"),
         ("A_0", 12.0, 12.5, "ERROR", "on_error"),
         ("B_0", 12.5, 12.5, "BYPASSED", None),
         ("C_0", 12.6, 13.2, "FINISHED", "on_stopped"),
