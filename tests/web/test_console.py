@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import math
 import threading
 import time
 import urllib.request
@@ -24,9 +25,10 @@ from _demo import Demo, demo_engine, demo_graph
 from temoto import Result
 from temoto.cli import main
 from temoto.core.graph import dump_graph
+from temoto.drivers import GeoPoint, VehicleTelemetry
 from temoto.errors import ConfigError
 from temoto.web import LiveView
-from temoto.web.replay import ReplayView, load_recording, read_trace, view_command
+from temoto.web.replay import READERS, ReplayView, load_recording, read_trace, view_command
 
 WAIT = 10.0
 
@@ -240,11 +242,130 @@ def test_a_bad_trace_is_one_line_naming_the_file_and_line(
     assert "\n" not in message
 
 
-def test_an_mcap_file_needs_a_reader(tmp_path: Path) -> None:
+def test_an_mcap_file_that_is_not_a_recording_is_one_line_naming_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     file = tmp_path / "run.mcap"
     file.write_bytes(b"\x89MCAP0\r\n")
+    with pytest.raises(ConfigError, match="not an MCAP recording") as err:
+        load_recording(file)
+    assert str(err.value).startswith(str(file))
+    assert "\n" not in str(err.value)
+    monkeypatch.delitem(READERS, ".mcap")  # a TeMoto without the reader says so
     with pytest.raises(ConfigError, match="no MCAP reader"):
         load_recording(file)
+
+
+UPSTREAM = (
+    Path(__file__).resolve().parents[2].parent / "shared" / "conformance" / "umrf" / "upstream"
+)
+CONFORMANCE = Path(__file__).resolve().parents[2] / "examples" / "actions" / "conformance"
+
+
+@pytest.mark.skipif(not UPSTREAM.is_dir(), reason=f"no conformance data at {UPSTREAM}")
+def test_an_mcap_recording_of_temoto_run_replays_what_its_trace_shows(tmp_path: Path) -> None:
+    graph = UPSTREAM / "actionengine_test_external_changes_test_1.graph.json"
+    trace, record = tmp_path / "trace.jsonl", tmp_path / "run.mcap"
+    argv = ["run", str(graph), "--actions", str(CONFORMANCE), "--graphs", str(UPSTREAM)]
+    assert main([*argv, "--time-scale", "10", "--trace", str(trace), "--record", str(record)]) == 1
+    traced = read_trace(trace)
+    rec = load_recording(record)
+    assert (rec.name, rec.result) == (traced.name, "on_false")
+    assert [(e["node"], e["state"]) for e in rec.events] == [
+        (e["node"], e["state"]) for e in traced.events
+    ]
+    times = [e["t"] for e in rec.events]
+    assert times == sorted(times)
+    assert times[0] >= 0.0
+    assert rec.robot == []  # temoto run drives no robot
+    assert rec.notes == []  # a finished file, one run
+    with ReplayView(rec) as site:
+        answer = get(site.url + "api/recording")
+    assert (answer["name"], answer["result"], answer["source"]) == (
+        rec.name,
+        "on_false",
+        str(record),
+    )
+    assert len(answer["events"]) == len(rec.events)
+
+
+class Rover:
+    """What the recorder samples of a robot: a rover with an arm that also flies."""
+
+    name = "bot"
+    features = ("navigation", "manipulation", "flight")
+
+    def __init__(self) -> None:
+        self.x = 0.0
+
+    def pose(self) -> tuple[float, float, float]:
+        self.x += 0.5
+        return self.x, 1.0, math.pi / 2
+
+    def joint_positions(self) -> dict[str, float]:
+        return {"shoulder": 0.25, "elbow": -0.5}
+
+    def telemetry(self) -> VehicleTelemetry:
+        return VehicleTelemetry(
+            stamp=1.0,
+            armed=True,
+            mode="GUIDED",
+            position=GeoPoint(47.39, 8.54, 10.0),
+            attitude=(0.0, 0.0, 0.0),
+            battery_voltage=12.4,
+            battery_remaining=87,
+            status_texts=(),
+            heartbeat_age=0.1,
+        )
+
+    def healthy(self) -> bool:
+        return True
+
+
+def record_rover(path: Path) -> None:
+    """Record a run "mission" (and a run "other") and 4 samples of a :class:`Rover`, 0.1 s apart."""
+    from temoto.clock import ManualClock
+    from temoto.core.states import NodeState as S
+    from temoto.record import Recorder
+
+    clock = ManualClock()
+    with Recorder(path, clock=clock) as recorder:
+        recorder.graph_started("mission", 0.0)
+        recorder.node_transition("mission", "NavigateTo_0", S.INITIALIZED, S.RUNNING, 0.0)
+        recorder.graph_started("other", 0.0)  # a second run: noted, not replayed
+        recorder.node_transition("other", "X_0", S.INITIALIZED, S.RUNNING, 0.0)
+        recorder.sample(Rover(), rate_hz=10.0)
+        assert recorder.wait_for_samples(1, WAIT)
+        for tick in range(1, 4):
+            clock.advance(0.1)
+            assert recorder.wait_for_samples(tick + 1, WAIT)
+        recorder.stop_sampling()
+        recorder.node_transition("mission", "NavigateTo_0", S.RUNNING, S.ERROR, 0.3)
+        recorder.graph_finished("mission", Result.ERROR, 0.3)
+
+
+def test_an_mcap_recording_replays_the_robots_samples_on_its_time(tmp_path: Path) -> None:
+    path = tmp_path / "robot.mcap"
+    record_rover(path)
+    rec = load_recording(path)
+    assert (rec.name, rec.result) == ("mission", "on_error")
+    assert [(e["node"], e["state"]) for e in rec.events] == [
+        ("NavigateTo_0", "RUNNING"),
+        ("NavigateTo_0", "ERROR"),
+    ]
+    assert rec.events[-1]["t"] == pytest.approx(0.3)
+    assert [round(r["t"], 3) for r in rec.robot] == [0.0, 0.1, 0.2, 0.3]
+    assert [r["pose"]["x"] for r in rec.robot] == [0.5, 1.0, 1.5, 2.0]
+    first = rec.robot[0]
+    assert first["pose"]["yaw"] == pytest.approx(math.pi / 2)
+    assert [(j["name"], j["position"]) for j in first["joints"]] == [
+        ("shoulder", 0.25),
+        ("elbow", -0.5),
+    ]
+    assert (first["vehicle"]["alt"], first["vehicle"]["mode"]) == (10.0, "GUIDED")
+    assert first["healthy"] is True
+    assert first["features"] == ["navigation", "manipulation", "flight"]
+    assert rec.notes == ["other runs recorded, not replayed: other"]
 
 
 def test_temoto_view_serves_the_recording_until_stopped(

@@ -23,6 +23,7 @@ from typing import Any
 import pytest
 from _cdp import Browser
 from _demo import demo_engine, demo_graph
+from test_console import record_rover
 from test_live_view_browser import require_chromium
 
 from temoto import Result
@@ -319,6 +320,42 @@ def test_a_recorded_trace_replays_with_a_time_slider(tmp_path: Path) -> None:
                 "document.getElementById('runstate').textContent === 'FINISHED \\u00b7 on_true'",
                 timeout=WAIT,
             )
+        finally:
+            browser.close()
+    keep(shot)
+
+
+def test_an_mcap_recording_replays_with_the_robot_on_the_map(tmp_path: Path) -> None:
+    binary = require_chromium()
+    path = tmp_path / "robot.mcap"
+    record_rover(path)
+    shot = tmp_path / "console-replay-mcap.png"
+    with ReplayView(load_recording(path)) as site:
+        browser = Browser(binary, site.url, tmp_path / "profile", tmp_path / "chromium.log")
+        try:
+            # at the end: the run failed, its node shows on_error, the rover at its last pose
+            browser.wait_for(
+                "document.getElementById('runstate').textContent === 'FINISHED \\u00b7 on_error'"
+            )
+            assert browser.evaluate(
+                "document.querySelector('#svg .node[data-node=\"NavigateTo_0\"] .state')"
+                ".textContent"
+            ) == ("ERROR \u00b7 on_error")
+            assert rover(browser) == (2.0, 1.0)
+            assert (
+                len(
+                    browser.evaluate(
+                        "document.querySelector('#map .trail').getAttribute('points')"
+                    ).split()
+                )
+                == 4
+            )
+            joints = browser.evaluate(
+                "[...document.querySelectorAll('#joints .joint')]"
+                ".map((j) => j.getAttribute('data-joint'))"
+            )
+            assert joints == ["shoulder", "elbow"]
+            browser.screenshot(shot)
         finally:
             browser.close()
     keep(shot)
