@@ -520,3 +520,75 @@ def test_the_timeline_has_a_span_per_run_of_an_action() -> None:
     assert hub.timeline("g")["end"] == 14.0  # type: ignore[index]
     hub.graph_started("g", 20.0)  # the name runs again: a fresh timeline
     assert hub.timeline("g") == {"start": 20.0, "end": None, "spans": []}
+
+
+def test_serve_v_prints_the_traceback_of_an_action_that_raised(tmp_path: Path) -> None:
+    """``temoto serve -v``: a graph started from the console fails; its plugin's line is shown."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    graphs = tmp_path / "graphs"
+    graphs.mkdir()
+    trigger = {"name": "TaTriggerResult", "instance_id": 0}
+    doc = {
+        "graph_name": "boom",
+        "graph_entry": [trigger],
+        "graph_exit": [trigger],
+        "actions": [
+            {
+                **trigger,
+                "type": "sync",
+                "input_parameters": {"result": {"pvf_type": "string", "pvf_value": "boom"}},
+            }
+        ],
+    }
+    (graphs / "boom.graph.json").write_text(json.dumps(doc))
+    argv = ["serve", "-v", "--actor", "a", "--insecure", "--fleet-url", "inproc://serve-v"]
+    argv += ["--actions", str(CONFORMANCE), "--graphs", str(graphs), "--live-view", "0"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "temoto", *argv],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    assert proc.stderr is not None
+    seen: list[str] = []
+    killer = threading.Timer(WAIT * 2, proc.kill)  # a missing line fails the test, not hangs
+    killer.start()
+    try:
+        url = ""
+        for line in proc.stderr:
+            seen.append(line)
+            if "live view on " in line:
+                url = line.split("live view on ")[1].strip()
+                break
+        assert url, seen
+        base, _, token = url.partition("?token=")
+        request = urllib.request.Request(
+            base + "api/start",
+            data=json.dumps({"graph": "boom"}).encode(),
+            headers={
+                "Content-Type": "application/json",
+                "Origin": base.rstrip("/"),
+                "X-TeMoto-Token": token,
+            },
+        )
+        with urllib.request.urlopen(request, timeout=WAIT) as reply:
+            assert json.load(reply) == {"run": "boom"}
+        for line in proc.stderr:
+            seen.append(line)
+            if line.strip().startswith("RuntimeError:"):
+                break
+    finally:
+        killer.cancel()
+        proc.send_signal(signal.SIGTERM)
+        _, rest = proc.communicate(timeout=30)
+        seen.append(rest)
+    text = "".join(seen)
+    assert "temoto: boom/TaTriggerResult_0: TaTriggerResult_0 failed:" in text, text
+    assert "ta_trigger_result.py" in text  # the plugin's own file and line
+    assert "raise RuntimeError" in text
+    assert proc.returncode == 0
