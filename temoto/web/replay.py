@@ -185,7 +185,7 @@ def read_trace(path: Path) -> Recording:
                 path=f"line {number}",
             )
         event: dict[str, Any] = {"t": float(t), "node": node, "state": state}
-        for key in ("node_result", "result"):  # "result": the key of traces before 0.15
+        for key in ("node_result", "result"):  # "result": what older traces wrote
             if isinstance(record.get(key), str):
                 event["result"] = record[key]
                 break

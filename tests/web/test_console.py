@@ -251,6 +251,14 @@ def test_an_mcap_file_that_is_not_a_recording_is_one_line_naming_it(
         load_recording(file)
     assert str(err.value).startswith(str(file))
     assert "\n" not in str(err.value)
+    from temoto.record import Recorder
+
+    empty = tmp_path / "serve.mcap"
+    with Recorder(empty) as recorder:  # a recording of no graph run: nothing to replay
+        recorder.log(30, "only a warning", "temoto.test")
+    with pytest.raises(ConfigError, match="no graph run") as err:
+        load_recording(empty)
+    assert str(err.value).startswith(str(empty))
     monkeypatch.delitem(READERS, ".mcap")  # a TeMoto without the reader says so
     with pytest.raises(ConfigError, match="no MCAP reader"):
         load_recording(file)
