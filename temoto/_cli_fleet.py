@@ -383,6 +383,13 @@ def add_serve(sub: Any, paths: Any) -> None:
         " until SIGINT or SIGTERM; `temoto graph start|stop|... --target ACTOR` command it.",
     )
     serve_p.add_argument("--actor", required=True, help="this instance's actor (robot) name")
+    serve_p.add_argument(  # also after the command (SUPPRESS: `temoto -v serve` is kept)
+        "-v",
+        "--verbose",
+        action="count",
+        default=argparse.SUPPRESS,
+        help="more log output (-vv: debug); -v also prints each failed action's traceback",
+    )
     paths(serve_p)
     add_state_options(serve_p)
     serve_p.add_argument(
@@ -466,6 +473,8 @@ def _serve(
         component_files=args.components,
     )
     try:
+        if getattr(args, "verbose", 0):
+            instance.engine.add_instrument(_traceback_printer())
         if recorder is not None:
             instance.engine.add_instrument(recorder)
             sys.stderr.write(f"temoto: recording to {recorder.path}\n")
@@ -484,6 +493,31 @@ def _serve(
     finally:
         instance.close()
     return EXIT_OK
+
+
+def _traceback_printer() -> Any:
+    """``serve -v``: an instrument that prints where each failing action raised, as it fails.
+
+    One line naming the run and the node, then the Python traceback of what the action raised
+    (the engine's :class:`~temoto.errors.ActionError` wraps it as ``__cause__``), the plugin's
+    own lines included: what ``temoto -v run`` prints after its run.
+    """
+    import textwrap
+    import traceback
+
+    from temoto.core.instrument import Instrument
+
+    class TracebackPrinter(Instrument):
+        def action_failed(self, graph: str, node: str, error: BaseException) -> None:
+            cause = error.__cause__ if error.__cause__ is not None else error
+            lines = [f"temoto: {graph}/{node}: {error}\n"]
+            if cause.__traceback__ is not None:
+                for line in traceback.format_exception(cause):
+                    lines.append(textwrap.indent(line, "    "))
+            sys.stderr.write("".join(lines))
+            sys.stderr.flush()
+
+    return TracebackPrinter()
 
 
 # ===================================================================================== graph

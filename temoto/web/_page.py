@@ -722,7 +722,7 @@ function onEvent(ev) {
       if (g.getAttribute("data-node") !== ev.node) continue;
       g.setAttribute("data-state", ev.state);
       const s = g.querySelector(".state");
-      if (s) s.textContent = ev.state;
+      if (s) s.textContent = ev.state + (ev.result ? " \u00b7 " + ev.result : "");
     }
   }
   refresh();

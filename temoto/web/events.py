@@ -7,8 +7,9 @@ queue loses the backlog and is told to re-synchronise (fetch a fresh snapshot) i
 slow browser can never make the engine wait or the process grow.
 
 The hub also keeps each run's **timeline**: one span per action run (start, end, the state it
-ended in and, where the events tell it, its result), bounded per run and in the number of runs,
-for the page's Gantt chart.
+ended in and its result: ``on_true``, ``on_false``, ... from the engine's
+:meth:`~temoto.core.instrument.Instrument.node_result` hook), bounded per run and in the number
+of runs, for the page's Gantt chart.
 """
 
 from __future__ import annotations
@@ -35,7 +36,12 @@ _ACTIVE = frozenset({"RUNNING", "PAUSE_REQUESTED", "PAUSED", "STOPPING"})
 
 
 def span_result(span: dict[str, Any]) -> str | None:
-    """The result a span's events tell: ``on_error``, ``on_stopped``, or None (not known).
+    """A span's result: the one the engine gave, else what its states tell, else None.
+
+    The engine's ``node_result`` hook gives every ended run's result (``on_true``,
+    ``on_false``, ``on_stopped``, ``on_error``); a span it did not reach (a run that ended
+    before the hub was an instrument) falls back to its states: ``on_error`` for ERROR,
+    ``on_stopped`` for a stopped run, otherwise not known.
 
     Args:
         span: A timeline span.
@@ -43,6 +49,9 @@ def span_result(span: dict[str, Any]) -> str | None:
     Returns:
         The result's name, or None.
     """
+    given = span.get("result")
+    if isinstance(given, str):
+        return given
     if span["state"] == "ERROR":
         return "on_error"
     if span["state"] == "FINISHED" and span.get("stopping"):
@@ -124,7 +133,10 @@ class EventHub(Instrument):
 
     Events (JSON-ready dicts, ``seq`` increasing by one per event):
 
-    * ``{"kind": "node", "graph", "node", "old", "state", "t"}``: a node changed state;
+    * ``{"kind": "node", "graph", "node", "old", "state", "t"}``: a node changed state; the
+      change that ends a node's run (to ``FINISHED`` or ``ERROR``) also has ``"result"``
+      (``on_true``, ``on_false``, ``on_stopped`` or ``on_error``: which branch its children
+      take);
     * ``{"kind": "graph", "graph", "state": "RUNNING", "t"}``: a run started;
     * ``{"kind": "graph", "graph", "state": "ENDED", "result", "t"}``: a run ended;
     * ``{"kind": "failed", "graph", "node", "error"}``: an action raised.
@@ -147,6 +159,7 @@ class EventHub(Instrument):
         self._seq = 0
         self._closed = False
         self._timelines: dict[str, dict[str, Any]] = {}
+        self._results: dict[tuple[str, str], str] = {}  # node results until their change
 
     # ------------------------------------------------------------------ subscribers
 
@@ -287,22 +300,33 @@ class EventHub(Instrument):
             self._new_timeline(graph, t)
         self._publish({"kind": "graph", "graph": graph, "state": "RUNNING", "t": t})
 
+    def node_result(self, graph: str, node: str, result: Result, t: float) -> None:
+        """Keep a node's result for its run's span and for the state change that comes next."""
+        with self._cond:
+            self._results[(graph, node)] = result.value
+            line = self._timelines.get(graph)
+            open_span = line["open"].get(node) if line is not None else None
+            if open_span is not None:
+                open_span["result"] = result.value
+
     def node_transition(
         self, graph: str, node: str, old: NodeState, new: NodeState, t: float
     ) -> None:
         """Publish a node's state change (and add it to the run's timeline)."""
         with self._cond:
             self._record(graph, node, old.value, new.value, t)
-        self._publish(
-            {
-                "kind": "node",
-                "graph": graph,
-                "node": node,
-                "old": old.value,
-                "state": new.value,
-                "t": t,
-            }
-        )
+            result = self._results.pop((graph, node), None)
+        event: dict[str, Any] = {
+            "kind": "node",
+            "graph": graph,
+            "node": node,
+            "old": old.value,
+            "state": new.value,
+            "t": t,
+        }
+        if result is not None:
+            event["result"] = result
+        self._publish(event)
 
     def graph_finished(self, graph: str, result: Result, t: float) -> None:
         """Publish a run's end."""

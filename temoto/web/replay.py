@@ -6,9 +6,9 @@ chosen by the file's suffix (:data:`READERS`):
 
 * ``.jsonl``, ``.json``, ``.trace``, anything else: the JSON lines of ``temoto run --trace``
   (``{"t", "graph", "node", "state"}`` per node change, ``{"graph", "result"}`` at the end;
-  a node line may carry its ``result``);
-* ``.mcap``: whatever reader :func:`register_reader` installed for it (the MCAP recorder
-  registers one); without one, a clear error.
+  the line of a node's run ending carries its ``node_result``);
+* ``.mcap``: a ``--record FILE.mcap`` recording (:func:`read_mcap`: its node transitions,
+  the run's result and the robot's pose, joint, vehicle and health samples).
 
 A reader is ``(path) -> Recording``. The graph's edges are not in a trace: give the graph file
 (``--graph``) to draw them; without it the actions are drawn in the order they first ran.
@@ -45,6 +45,7 @@ __all__ = [
     "ReplayView",
     "add_view",
     "load_recording",
+    "read_mcap",
     "read_trace",
     "register_reader",
     "view_command",
@@ -184,8 +185,10 @@ def read_trace(path: Path) -> Recording:
                 path=f"line {number}",
             )
         event: dict[str, Any] = {"t": float(t), "node": node, "state": state}
-        if isinstance(record.get("result"), str):
-            event["result"] = record["result"]
+        for key in ("node_result", "result"):  # "result": what older traces wrote
+            if isinstance(record.get(key), str):
+                event["result"] = record[key]
+                break
         if not name and isinstance(record.get("graph"), str):
             name = record["graph"]
         events.append(event)
@@ -195,9 +198,146 @@ def read_trace(path: Path) -> Recording:
     return Recording(source=file, name=name or path.stem, events=events, result=result)
 
 
+def read_mcap(path: Path) -> Recording:
+    """Read a ``--record FILE.mcap`` recording (finished, or cut short by SIGKILL).
+
+    The replayed run is the first graph run the recording saw start (with its sub-graphs,
+    ``<run>__<Name>__<id>``); its node changes come from ``/temoto/transitions`` and its
+    result from ``/temoto/graphs``. The robot readings are those of the first robot with
+    samples: ``/<robot>/pose``, ``/<robot>/joint_states``, ``/<robot>/vehicle`` and
+    ``/<robot>/health``, one reading per sample (the recorder writes health last in each).
+    Times are seconds from the recording's first message (the messages' log times).
+
+    A recording holds no node results (``on_true``/``on_false``); the page shows those its
+    states tell (``on_error``, ``on_stopped``).
+
+    Args:
+        path: The MCAP file.
+
+    Returns:
+        The recording.
+
+    Raises:
+        ConfigError: The file cannot be read, is not an MCAP recording, or holds no graph
+            run (the message names the file).
+    """
+    from temoto.record import read_messages
+
+    file = str(path)
+    messages, complete = read_messages(path)
+    t0 = messages[0].log_time_ns if messages else 0
+    name = ""
+    result: str | None = None
+    for m in messages:
+        if m.topic != "/temoto/graphs":
+            continue
+        if not name and m.data.get("event") == "started":
+            name = str(m.data.get("graph", ""))
+        elif name and m.data.get("event") == "finished" and m.data.get("graph") == name:
+            given = m.data.get("result")
+            result = given if isinstance(given, str) and given else None
+    if not name:  # a recording whose start was not flushed: the first transition's run
+        name = next((str(m.data["graph"]) for m in messages if _is_transition(m.data)), "")
+    if not name:
+        raise ConfigError("no graph run in this recording (nothing to replay)", file=file)
+    events: list[dict[str, Any]] = []
+    for m in messages:
+        if m.topic != "/temoto/transitions" or not _is_transition(m.data):
+            continue
+        graph = m.data["graph"]
+        if graph == name or graph.startswith(name + "__"):
+            t = (m.log_time_ns - t0) / 1e9
+            events.append({"t": t, "node": m.data["node"], "state": m.data["new"]})
+    robot, notes = _robot_readings(messages, t0)
+    if not complete:
+        notes.append("the recording was cut short (no footer): replaying what it holds")
+    others = sorted({str(m.data["graph"]) for m in messages if _is_transition(m.data)})
+    others = [g for g in others if g != name and not g.startswith(name + "__")]
+    if others:
+        notes.append(f"other runs recorded, not replayed: {', '.join(others)}")
+    return Recording(file, name, events, result, robot, notes=notes)
+
+
+def _is_transition(data: dict[str, Any]) -> bool:
+    return (
+        isinstance(data.get("graph"), str)
+        and isinstance(data.get("node"), str)
+        and data.get("new") in _STATES
+    )
+
+
+#: The recorder's robot topics this replay reads, by their last part.
+_ROBOT_PARTS = ("pose", "joint_states", "vehicle", "health")
+#: A robot's features, by the part of a reading that shows it.
+_FEATURES = (("navigation", "pose"), ("manipulation", "joints"), ("flight", "vehicle"))
+
+
+def _robot_readings(messages: list[Any], t0: int) -> tuple[list[dict[str, Any]], list[str]]:
+    """One robot reading per sample of the first robot with samples (and a note for others)."""
+    names: list[str] = []
+    for m in messages:
+        robot, _, part = m.topic[1:].partition("/")
+        if part in _ROBOT_PARTS and robot not in ("temoto", "fleet") and robot not in names:
+            names.append(robot)
+    if not names:
+        return [], []
+    robot = names[0]
+    notes = [f"robots recorded, not shown: {', '.join(names[1:])}"] if names[1:] else []
+    current: dict[str, Any] = {"pose": None, "joints": None, "vehicle": None}
+    readings: list[dict[str, Any]] = []
+    for m in messages:
+        if not m.topic.startswith(f"/{robot}/"):
+            continue
+        part, data = m.topic[len(robot) + 2 :], m.data
+        try:
+            if part == "pose":
+                pose = data["pose"]
+                q = pose["orientation"]
+                yaw = 2 * math.atan2(float(q["z"]), float(q["w"]))
+                where = pose["position"]
+                current["pose"] = {"x": float(where["x"]), "y": float(where["y"]), "yaw": yaw}
+            elif part == "joint_states":
+                current["joints"] = [
+                    {"name": str(n), "position": float(p), "min": None, "max": None}
+                    for n, p in zip(data["name"], data["position"], strict=True)
+                ]
+            elif part == "vehicle":
+                current["vehicle"] = {
+                    "lat": data["latitude"],
+                    "lon": data["longitude"],
+                    "alt": data["altitude"],
+                    "mode": data["mode"],
+                    "armed": data["armed"],
+                    "battery_voltage": data.get("battery_voltage"),
+                    "battery_remaining": data.get("battery_remaining"),
+                    "heartbeat_age": data.get("heartbeat_age"),
+                    "status": [],
+                }
+            elif part == "health":  # the last of a sample: the reading is complete
+                ok = bool(data["healthy"])
+                health = {"device": robot, "state": "ACTIVE" if ok else "FAULT", "ok": ok}
+                readings.append(
+                    {
+                        "t": (m.log_time_ns - t0) / 1e9,
+                        "name": robot,
+                        "loaded": True,
+                        "features": [
+                            feature for feature, part in _FEATURES if current[part] is not None
+                        ],
+                        "goal": None,
+                        "health": [{**health, "message": "" if ok else "unhealthy"}],
+                        "healthy": ok,
+                        **current,
+                    }
+                )
+        except (KeyError, TypeError, ValueError) as err:  # a message of another shape
+            logger.debug("%s: %s message skipped: %s", robot, part, err)
+    return readings, notes
+
+
 #: Readers by file suffix (lower case, with the dot); :func:`load_recording` falls back to
 #: :func:`read_trace` for a suffix not listed.
-READERS: dict[str, Callable[[Path], Recording]] = {}
+READERS: dict[str, Callable[[Path], Recording]] = {".mcap": read_mcap}
 
 
 def register_reader(suffix: str, reader: Callable[[Path], Recording]) -> None:
@@ -223,7 +363,7 @@ def load_recording(path: str | Path, graph: str | Path | None = None) -> Recordi
     """Read a recorded run, and the graph file that draws its edges if given.
 
     Args:
-        path: The recording (a trace; ``.mcap`` with a registered reader).
+        path: The recording (a trace, or a ``.mcap`` recording).
         graph: The run's graph file (optional).
 
     Returns:
@@ -290,10 +430,12 @@ def add_view(sub: Any) -> None:
     p = sub.add_parser(
         "view",
         help="replay a recorded run in the live view's page",
-        description="Serve a recorded run (a `temoto run --trace` file) in the live view's"
-        " page, with a time slider, until Ctrl-C.",
+        description="Serve a recorded run (a `temoto run --trace` file, or a `--record"
+        " FILE.mcap` recording) in the live view's page, with a time slider, until Ctrl-C.",
     )
-    p.add_argument("file", metavar="FILE", help="the recording (--trace JSON lines)")
+    p.add_argument(
+        "file", metavar="FILE", help="the recording (--trace JSON lines, or --record .mcap)"
+    )
     p.add_argument("--graph", metavar="GRAPH.json", help="the run's graph, to draw its edges")
     p.add_argument("--port", type=_port, default=0, help="port to serve on (default: any free)")
     p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")

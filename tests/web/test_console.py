@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import http.client
 import json
+import math
 import threading
 import time
 import urllib.request
@@ -24,9 +25,10 @@ from _demo import Demo, demo_engine, demo_graph
 from temoto import Result
 from temoto.cli import main
 from temoto.core.graph import dump_graph
+from temoto.drivers import GeoPoint, VehicleTelemetry
 from temoto.errors import ConfigError
 from temoto.web import LiveView
-from temoto.web.replay import ReplayView, load_recording, read_trace, view_command
+from temoto.web.replay import READERS, ReplayView, load_recording, read_trace, view_command
 
 WAIT = 10.0
 
@@ -157,6 +159,9 @@ def test_a_runs_answer_has_its_timeline_and_no_null_for_unset_inputs(
     assert spans["Holder_0"]["result"] == "on_stopped"  # stopped when the graph ended
     nodes = {n["id"]: n for n in answer["nodes"]}
     assert nodes["Holder_0"]["result"] == "on_stopped"
+    # the engine's node_result hook: the result of every node, on_true included
+    for node in ("TaLogger_0", "TaTimer_0", "TaRelayString_0"):
+        assert (spans[node]["result"], nodes[node]["result"]) == ("on_true", "on_true")
     assert isinstance(answer["now"], float)
     assert {e["status"] for e in answer["edges"]} == {"taken"}
     # an input with no value carries no "value" (the page says "not set", never null)
@@ -198,6 +203,11 @@ def test_a_trace_loads_as_a_recording(tmp_path: Path, demo: Demo) -> None:
         "Holder_0",
         "TaRelayString_0",
     }
+    # the trace's node_result keys: each node's result at the change that ends its run
+    ended = {e["node"]: e.get("result") for e in rec.events if e["state"] == "FINISHED"}
+    # Holder_0 is stopped as the graph ends: its line may come after the file was closed
+    assert ended.pop("Holder_0", "on_stopped") == "on_stopped"
+    assert ended == {"TaLogger_0": "on_true", "TaTimer_0": "on_true", "TaRelayString_0": "on_true"}
     page = rec.to_page()
     assert page["end"] >= 0.05
     assert {n["id"] for n in page["graph"]["nodes"]} >= {"TaTimer_0"}
@@ -232,11 +242,138 @@ def test_a_bad_trace_is_one_line_naming_the_file_and_line(
     assert "\n" not in message
 
 
-def test_an_mcap_file_needs_a_reader(tmp_path: Path) -> None:
+def test_an_mcap_file_that_is_not_a_recording_is_one_line_naming_it(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
     file = tmp_path / "run.mcap"
     file.write_bytes(b"\x89MCAP0\r\n")
+    with pytest.raises(ConfigError, match="not an MCAP recording") as err:
+        load_recording(file)
+    assert str(err.value).startswith(str(file))
+    assert "\n" not in str(err.value)
+    from temoto.record import Recorder
+
+    empty = tmp_path / "serve.mcap"
+    with Recorder(empty) as recorder:  # a recording of no graph run: nothing to replay
+        recorder.log(30, "only a warning", "temoto.test")
+    with pytest.raises(ConfigError, match="no graph run") as err:
+        load_recording(empty)
+    assert str(err.value).startswith(str(empty))
+    monkeypatch.delitem(READERS, ".mcap")  # a TeMoto without the reader says so
     with pytest.raises(ConfigError, match="no MCAP reader"):
         load_recording(file)
+
+
+UPSTREAM = (
+    Path(__file__).resolve().parents[2].parent / "shared" / "conformance" / "umrf" / "upstream"
+)
+CONFORMANCE = Path(__file__).resolve().parents[2] / "examples" / "actions" / "conformance"
+
+
+@pytest.mark.skipif(not UPSTREAM.is_dir(), reason=f"no conformance data at {UPSTREAM}")
+def test_an_mcap_recording_of_temoto_run_replays_what_its_trace_shows(tmp_path: Path) -> None:
+    graph = UPSTREAM / "actionengine_test_external_changes_test_1.graph.json"
+    trace, record = tmp_path / "trace.jsonl", tmp_path / "run.mcap"
+    argv = ["run", str(graph), "--actions", str(CONFORMANCE), "--graphs", str(UPSTREAM)]
+    assert main([*argv, "--time-scale", "10", "--trace", str(trace), "--record", str(record)]) == 1
+    traced = read_trace(trace)
+    rec = load_recording(record)
+    assert (rec.name, rec.result) == (traced.name, "on_false")
+    assert [(e["node"], e["state"]) for e in rec.events] == [
+        (e["node"], e["state"]) for e in traced.events
+    ]
+    times = [e["t"] for e in rec.events]
+    assert times == sorted(times)
+    assert times[0] >= 0.0
+    assert rec.robot == []  # temoto run drives no robot
+    assert rec.notes == []  # a finished file, one run
+    with ReplayView(rec) as site:
+        answer = get(site.url + "api/recording")
+    assert (answer["name"], answer["result"], answer["source"]) == (
+        rec.name,
+        "on_false",
+        str(record),
+    )
+    assert len(answer["events"]) == len(rec.events)
+
+
+class Rover:
+    """What the recorder samples of a robot: a rover with an arm that also flies."""
+
+    name = "bot"
+    features = ("navigation", "manipulation", "flight")
+
+    def __init__(self) -> None:
+        self.x = 0.0
+
+    def pose(self) -> tuple[float, float, float]:
+        self.x += 0.5
+        return self.x, 1.0, math.pi / 2
+
+    def joint_positions(self) -> dict[str, float]:
+        return {"shoulder": 0.25, "elbow": -0.5}
+
+    def telemetry(self) -> VehicleTelemetry:
+        return VehicleTelemetry(
+            stamp=1.0,
+            armed=True,
+            mode="GUIDED",
+            position=GeoPoint(47.39, 8.54, 10.0),
+            attitude=(0.0, 0.0, 0.0),
+            battery_voltage=12.4,
+            battery_remaining=87,
+            status_texts=(),
+            heartbeat_age=0.1,
+        )
+
+    def healthy(self) -> bool:
+        return True
+
+
+def record_rover(path: Path) -> None:
+    """Record a run "mission" (and a run "other") and 4 samples of a :class:`Rover`, 0.1 s apart."""
+    from temoto.clock import ManualClock
+    from temoto.core.states import NodeState as S
+    from temoto.record import Recorder
+
+    clock = ManualClock()
+    with Recorder(path, clock=clock) as recorder:
+        recorder.graph_started("mission", 0.0)
+        recorder.node_transition("mission", "NavigateTo_0", S.INITIALIZED, S.RUNNING, 0.0)
+        recorder.graph_started("other", 0.0)  # a second run: noted, not replayed
+        recorder.node_transition("other", "X_0", S.INITIALIZED, S.RUNNING, 0.0)
+        recorder.sample(Rover(), rate_hz=10.0)
+        assert recorder.wait_for_samples(1, WAIT)
+        for tick in range(1, 4):
+            clock.advance(0.1)
+            assert recorder.wait_for_samples(tick + 1, WAIT)
+        recorder.stop_sampling()
+        recorder.node_transition("mission", "NavigateTo_0", S.RUNNING, S.ERROR, 0.3)
+        recorder.graph_finished("mission", Result.ERROR, 0.3)
+
+
+def test_an_mcap_recording_replays_the_robots_samples_on_its_time(tmp_path: Path) -> None:
+    path = tmp_path / "robot.mcap"
+    record_rover(path)
+    rec = load_recording(path)
+    assert (rec.name, rec.result) == ("mission", "on_error")
+    assert [(e["node"], e["state"]) for e in rec.events] == [
+        ("NavigateTo_0", "RUNNING"),
+        ("NavigateTo_0", "ERROR"),
+    ]
+    assert rec.events[-1]["t"] == pytest.approx(0.3)
+    assert [round(r["t"], 3) for r in rec.robot] == [0.0, 0.1, 0.2, 0.3]
+    assert [r["pose"]["x"] for r in rec.robot] == [0.5, 1.0, 1.5, 2.0]
+    first = rec.robot[0]
+    assert first["pose"]["yaw"] == pytest.approx(math.pi / 2)
+    assert [(j["name"], j["position"]) for j in first["joints"]] == [
+        ("shoulder", 0.25),
+        ("elbow", -0.5),
+    ]
+    assert (first["vehicle"]["alt"], first["vehicle"]["mode"]) == (10.0, "GUIDED")
+    assert first["healthy"] is True
+    assert first["features"] == ["navigation", "manipulation", "flight"]
+    assert rec.notes == ["other runs recorded, not replayed: other"]
 
 
 def test_temoto_view_serves_the_recording_until_stopped(
@@ -371,12 +508,17 @@ def test_the_timeline_has_a_span_per_run_of_an_action() -> None:
         ("D_0", S.INITIALIZED, S.RUNNING, 13.3),
     ]
     for node, old, new, t in steps:
+        if (node, t) == (  # the engine gives this run's result (the others: none given)
+            "A_0",
+            11.0,
+        ):
+            hub.node_result("g", node, Result.FALSE, t)
         hub.node_transition("g", node, old, new, t)
     line = hub.timeline("g")
     assert line is not None
     assert (line["start"], line["end"]) == (10.0, None)
     assert [(s["node"], s["start"], s["end"], s["state"], s["result"]) for s in line["spans"]] == [
-        ("A_0", 10.0, 11.0, "FINISHED", None),
+        ("A_0", 10.0, 11.0, "FINISHED", "on_false"),
         ("A_0", 12.0, 12.5, "ERROR", "on_error"),
         ("B_0", 12.5, 12.5, "BYPASSED", None),
         ("C_0", 12.6, 13.2, "FINISHED", "on_stopped"),
@@ -386,3 +528,75 @@ def test_the_timeline_has_a_span_per_run_of_an_action() -> None:
     assert hub.timeline("g")["end"] == 14.0  # type: ignore[index]
     hub.graph_started("g", 20.0)  # the name runs again: a fresh timeline
     assert hub.timeline("g") == {"start": 20.0, "end": None, "spans": []}
+
+
+def test_serve_v_prints_the_traceback_of_an_action_that_raised(tmp_path: Path) -> None:
+    """``temoto serve -v``: a graph started from the console fails; its plugin's line is shown."""
+    import os
+    import signal
+    import subprocess
+    import sys
+
+    graphs = tmp_path / "graphs"
+    graphs.mkdir()
+    trigger = {"name": "TaTriggerResult", "instance_id": 0}
+    doc = {
+        "graph_name": "boom",
+        "graph_entry": [trigger],
+        "graph_exit": [trigger],
+        "actions": [
+            {
+                **trigger,
+                "type": "sync",
+                "input_parameters": {"result": {"pvf_type": "string", "pvf_value": "boom"}},
+            }
+        ],
+    }
+    (graphs / "boom.graph.json").write_text(json.dumps(doc))
+    argv = ["serve", "-v", "--actor", "a", "--insecure", "--fleet-url", "inproc://serve-v"]
+    argv += ["--actions", str(CONFORMANCE), "--graphs", str(graphs), "--live-view", "0"]
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "temoto", *argv],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env={**os.environ, "PYTHONUNBUFFERED": "1"},
+    )
+    assert proc.stderr is not None
+    seen: list[str] = []
+    killer = threading.Timer(WAIT * 2, proc.kill)  # a missing line fails the test, not hangs
+    killer.start()
+    try:
+        url = ""
+        for line in proc.stderr:
+            seen.append(line)
+            if "live view on " in line:
+                url = line.split("live view on ")[1].strip()
+                break
+        assert url, seen
+        base, _, token = url.partition("?token=")
+        request = urllib.request.Request(
+            base + "api/start",
+            data=json.dumps({"graph": "boom"}).encode(),
+            headers={
+                "Content-Type": "application/json",
+                "Origin": base.rstrip("/"),
+                "X-TeMoto-Token": token,
+            },
+        )
+        with urllib.request.urlopen(request, timeout=WAIT) as reply:
+            assert json.load(reply) == {"run": "boom"}
+        for line in proc.stderr:
+            seen.append(line)
+            if line.strip().startswith("RuntimeError:"):
+                break
+    finally:
+        killer.cancel()
+        proc.send_signal(signal.SIGTERM)
+        _, rest = proc.communicate(timeout=30)
+        seen.append(rest)
+    text = "".join(seen)
+    assert "temoto: boom/TaTriggerResult_0: TaTriggerResult_0 failed:" in text, text
+    assert "ta_trigger_result.py" in text  # the plugin's own file and line
+    assert "raise RuntimeError" in text
+    assert proc.returncode == 0

@@ -23,6 +23,7 @@ from typing import Any
 import pytest
 from _cdp import Browser
 from _demo import demo_engine, demo_graph
+from test_console import record_rover
 from test_live_view_browser import require_chromium
 
 from temoto import Result
@@ -180,6 +181,12 @@ def test_the_console_shows_the_robot_mission_and_controls_it(tmp_path: Path) -> 
                 click(browser, "#resume")
                 wait_engine(lambda: engine.outcome(run).state.value == "RUNNING")
                 browser.wait_for("document.getElementById('runstate').textContent === 'RUNNING'")
+                # the arm's first move ends on_true: its node says so (from node_result)
+                browser.wait_for(
+                    "document.querySelector('#svg .node[data-node=\"MoveJoints_0\"] .state')"
+                    ".textContent === 'FINISHED \\u00b7 on_true'",
+                    timeout=WAIT,
+                )
                 browser.wait_for("!document.getElementById('stop').disabled")
                 click(browser, "#stop")
                 assert engine.wait(run, timeout=WAIT) is Result.STOPPED
@@ -242,6 +249,21 @@ def test_a_recorded_trace_replays_with_a_time_slider(tmp_path: Path) -> None:
             assert states == ["FINISHED"] * 4
             assert browser.evaluate("document.querySelectorAll('#svg .edge').length") == 5
             assert browser.evaluate("document.querySelectorAll('#ganttsvg .bar').length") == 4
+            # each node shows its result (the trace's node_result), each taken edge its parent's
+            shown = browser.evaluate(
+                "Object.fromEntries([...document.querySelectorAll('#svg .node')].map((g) =>"
+                " [g.getAttribute('data-node'), g.querySelector('.state').textContent]))"
+            )
+            assert shown == {
+                "TaLogger_0": "FINISHED \u00b7 on_true",
+                "TaTimer_0": "FINISHED \u00b7 on_true",
+                "Holder_0": "FINISHED \u00b7 on_stopped",
+                "TaRelayString_0": "FINISHED \u00b7 on_true",
+            }
+            labels = browser.evaluate(
+                "[...document.querySelectorAll('#svg .elabel')].map((t) => t.textContent)"
+            )
+            assert labels == ["on_true"] * 4  # entry -> TaLogger_0 has none
             assert "run.jsonl" in browser.evaluate("document.getElementById('source').textContent")
 
             def slide_to(t: float) -> None:
@@ -298,6 +320,42 @@ def test_a_recorded_trace_replays_with_a_time_slider(tmp_path: Path) -> None:
                 "document.getElementById('runstate').textContent === 'FINISHED \\u00b7 on_true'",
                 timeout=WAIT,
             )
+        finally:
+            browser.close()
+    keep(shot)
+
+
+def test_an_mcap_recording_replays_with_the_robot_on_the_map(tmp_path: Path) -> None:
+    binary = require_chromium()
+    path = tmp_path / "robot.mcap"
+    record_rover(path)
+    shot = tmp_path / "console-replay-mcap.png"
+    with ReplayView(load_recording(path)) as site:
+        browser = Browser(binary, site.url, tmp_path / "profile", tmp_path / "chromium.log")
+        try:
+            # at the end: the run failed, its node shows on_error, the rover at its last pose
+            browser.wait_for(
+                "document.getElementById('runstate').textContent === 'FINISHED \\u00b7 on_error'"
+            )
+            assert browser.evaluate(
+                "document.querySelector('#svg .node[data-node=\"NavigateTo_0\"] .state')"
+                ".textContent"
+            ) == ("ERROR \u00b7 on_error")
+            assert rover(browser) == (2.0, 1.0)
+            assert (
+                len(
+                    browser.evaluate(
+                        "document.querySelector('#map .trail').getAttribute('points')"
+                    ).split()
+                )
+                == 4
+            )
+            joints = browser.evaluate(
+                "[...document.querySelectorAll('#joints .joint')]"
+                ".map((j) => j.getAttribute('data-joint'))"
+            )
+            assert joints == ["shoulder", "elbow"]
+            browser.screenshot(shot)
         finally:
             browser.close()
     keep(shot)

@@ -283,3 +283,24 @@ def test_a_failed_action_and_its_error_show_without_a_registrar() -> None:
     assert nodes["Holder_0"]["state"] == "ERROR"
     assert nodes["Holder_0"]["resources"] == []
     assert any("no resource registrar" in e for e in answer["errors"])
+
+
+def test_the_event_ending_a_nodes_run_carries_its_result(demo: Demo, view: LiveView) -> None:
+    stream = Stream(view)
+    try:
+        assert stream.next()["kind"] == "hello"
+        run = demo.engine.start(demo_graph(timer_s=0.01))
+        # Holder_0 is stopped as the graph ends: its change is the last one
+        events = stream.until(lambda e: e.get("node") == "Holder_0" and e["state"] == "FINISHED")
+        assert demo.engine.wait(run, timeout=WAIT) is Result.TRUE
+    finally:
+        stream.close()
+    nodes = [e for e in events if e["kind"] == "node"]
+    ended = {e["node"]: e.get("result") for e in nodes if e["state"] in ("FINISHED", "ERROR")}
+    assert ended == {
+        "TaLogger_0": "on_true",
+        "TaTimer_0": "on_true",
+        "TaRelayString_0": "on_true",
+        "Holder_0": "on_stopped",
+    }
+    assert all("result" not in e for e in nodes if e["state"] not in ("FINISHED", "ERROR"))
