@@ -39,6 +39,7 @@ class Transition(NamedTuple):
     node: str  #: ``<Name>_<instance id>``
     old: str  #: the state it left (``NodeState`` value)
     new: str  #: the state it entered
+    result: str | None = None  #: the node's result on the change that ends its run
 
 
 def read_messages(
@@ -111,6 +112,7 @@ def read_transitions(path: str | Path) -> list[Transition]:
             str(m.data["node"]),
             str(m.data["old"]),
             str(m.data["new"]),
+            str(m.data["result"]) if isinstance(m.data.get("result"), str) else None,
         )
         for m in messages
     ]

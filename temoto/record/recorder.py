@@ -145,6 +145,8 @@ class Recorder(Instrument):
         self._channels: dict[str, int] = {}
         self._counts: dict[str, int] = {}
         self._queue: queue.SimpleQueue[object] = queue.SimpleQueue()
+        self._results: dict[tuple[str, str], str] = {}  # node results awaiting their transition
+        self._results_lock = threading.Lock()
         self._closed = False
         self._close_lock = threading.Lock()
         self._broken = False
@@ -185,11 +187,20 @@ class Recorder(Instrument):
         event = {"t": t, "graph": graph, "event": "started", "result": ""}
         self.put("/temoto/graphs", "temoto.GraphEvent", event)
 
+    def node_result(self, graph: str, node: str, result: Result, t: float) -> None:
+        """Keep a node's result for the transition that ends its run (which carries it)."""
+        with self._results_lock:
+            self._results[(graph, node)] = result.value
+
     def node_transition(
         self, graph: str, node: str, old: NodeState, new: NodeState, t: float
     ) -> None:
-        """Record a transition on ``/temoto/transitions``."""
+        """Record a transition on ``/temoto/transitions`` (with ``result`` when it ends a run)."""
+        with self._results_lock:
+            result = self._results.pop((graph, node), None)
         transition = {"t": t, "graph": graph, "node": node, "old": old.value, "new": new.value}
+        if result is not None:
+            transition["result"] = result
         self.put("/temoto/transitions", "temoto.NodeTransition", transition)
 
     def graph_finished(self, graph: str, result: Result, t: float) -> None:

@@ -123,6 +123,11 @@ SCHEMAS: Final[dict[str, dict[str, Any]]] = {
         node=_STRING,
         old=_STRING,
         new=_STRING,
+        result={
+            **_STRING,
+            "description": "the node's result (on_true, on_false, ...) on the change that ends"
+            " its run; absent otherwise",
+        },
     ),
     "temoto.JointStates": _object(
         "temoto.JointStates",

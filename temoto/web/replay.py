@@ -208,8 +208,9 @@ def read_mcap(path: Path) -> Recording:
     ``/<robot>/health``, one reading per sample (the recorder writes health last in each).
     Times are seconds from the recording's first message (the messages' log times).
 
-    A recording holds no node results (``on_true``/``on_false``); the page shows those its
-    states tell (``on_error``, ``on_stopped``).
+    A node's result (``on_true``, ``on_false``, ...) comes with the change that ends its run;
+    recordings made before results were recorded show only what states tell (``on_error``,
+    ``on_stopped``).
 
     Args:
         path: The MCAP file.
@@ -247,7 +248,10 @@ def read_mcap(path: Path) -> Recording:
         graph = m.data["graph"]
         if graph == name or graph.startswith(name + "__"):
             t = (m.log_time_ns - t0) / 1e9
-            events.append({"t": t, "node": m.data["node"], "state": m.data["new"]})
+            event = {"t": t, "node": m.data["node"], "state": m.data["new"]}
+            if isinstance(m.data.get("result"), str):
+                event["result"] = m.data["result"]
+            events.append(event)
     robot, notes = _robot_readings(messages, t0)
     if not complete:
         notes.append("the recording was cut short (no footer): replaying what it holds")

@@ -87,6 +87,10 @@ def test_run_records_the_transitions_its_trace_shows(tmp_path: Path) -> None:
     transitions = read_transitions(record)
     assert states
     assert [(t.graph, t.node, t.new) for t in transitions] == states
+    # the node results the trace shows are in the recording too, on the same changes
+    results = [(r["node"], r["state"], r.get("node_result")) for r in lines if "state" in r]
+    assert [(t.node, t.new, t.result) for t in transitions] == results
+    assert any(t.result is not None for t in transitions)
     messages, complete = read_messages(record, {"/temoto/graphs"})
     assert complete
     assert [(m.data["event"], m.data["result"]) for m in messages][-1] == ("finished", "on_false")
