@@ -17,7 +17,7 @@ from temoto.core.states import Result
 from temoto.errors import FleetError, StateError
 from temoto.fleet import HANDSHAKE_CHANNEL, NOTIFY_CHANNEL, STATS, FleetActorLink
 from temoto.fleet.actors import ACK_CHANNEL_PREFIX, ack_channel
-from temoto.lcm_types import action_ack_t, action_notification_t, handshake_t
+from temoto.lcm_types import action_ack_t, action_notification_t, handshake_t, heard_actor_t
 from temoto.transport import FleetAuth, FleetLink, InProcessTransport, Opened, codec
 from temoto.transport.inprocess import live_buses
 
@@ -883,3 +883,38 @@ def test_ack_channel_names_a_plain_actor_and_hashes_any_other() -> None:
     assert ack_channel("robot #1") == odd  # the same on every actor
     with pytest.raises(ValueError, match="actor must be a non-empty string"):
         ack_channel("")
+
+
+def test_a_ready_without_heard_list_leaves_the_peers_report_standing(fleet: Fleet) -> None:
+    (a,) = fleet.links("A")
+    x = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
+    y = Raw(fleet.fleet_link("Y"), HANDSHAKE_CHANNEL)
+    done: list[BaseException | None] = []
+    thread = threading.Thread(
+        target=lambda: done.extend(concurrently(handshaking(a, ["A", "X", "Y"]))), daemon=True
+    )
+    thread.start()
+
+    def joins_of_a(calls: list[tuple[Any, ...]]) -> list[Any]:
+        msgs = [codec.decode(o.type, o.payload) for (o,) in calls]
+        return [m for m in msgs if m.actor == "A" and m.phase == handshake_t.JOIN]
+
+    join = joins_of_a(x.got.wait_until(lambda calls: bool(joins_of_a(calls))))[0]
+
+    def report(actor: str, phase: int, heard: dict[str, int]) -> Any:
+        msg = handshake(phase, actor)
+        msg.actors = ["A", "X", "Y"]
+        for name, stamp in heard.items():
+            entry = heard_actor_t()
+            entry.actor, entry.stamp_us = name, stamp
+            msg.heard.append(entry)
+        return msg
+
+    x_join = report("X", handshake_t.JOIN, {"A": join.stamp_us, "Y": 1})
+    x.send(HANDSHAKE_CHANNEL, x_join)
+    heartbeat = report("X", handshake_t.READY, {})  # newer, but says nothing of the handshake
+    heartbeat.actors, heartbeat.stamp_us = [], x_join.stamp_us + 1
+    x.send(HANDSHAKE_CHANNEL, heartbeat)
+    y.send(HANDSHAKE_CHANNEL, report("Y", handshake_t.JOIN, {"A": join.stamp_us, "X": 1}))
+    thread.join(WAIT_S + 5)
+    assert done == [None]  # X's JOIN still says X heard A and Y
