@@ -43,7 +43,8 @@ thesis §6.3.2) with the messages of ``temoto/lcm_types/defs`` on two channels:
 handshake every ``heartbeat_s`` (``5 * resend_s``, at most a third of ``silence_s``); a
 watched actor from which nothing at all was heard for ``silence_s`` is reported lost. A
 heartbeat names its run but carries no actor or heard list (a READY without a heard list
-changes nothing in a handshake): the first READY and the answers to late JOINs carry them.
+changes nothing in a handshake) once every participant said READY with its lists; until then
+heartbeats are full READYs, as are the first READY and the answers to late JOINs.
 
 Threads: receiving runs on the transport's thread; one thread (``temoto-fleet-actors``)
 sends heartbeats, checks silences and forgets expired state; another
@@ -1159,7 +1160,10 @@ class FleetActorLink(Closing):
                 msgs: list[Any] = []
                 if ready or graced or self._watches:
                     if now >= self._next_heartbeat:
-                        msgs = [self._heartbeat_msg(r) for r in ready]
+                        msgs = [
+                            self._heartbeat_msg(r) if self._all_ready(r) else self._ready_msg(r)
+                            for r in ready
+                        ]
                         if not msgs:
                             msgs.append(self._handshake_msg(_READY, "", "", (), {}))
                         self._next_heartbeat = now + self.heartbeat_s
@@ -1429,6 +1433,20 @@ class FleetActorLink(Closing):
         msg = self._handshake_msg(_READY, run.graph, run.session, run.actors, run.frozen)
         msg.run_id = run.run_id
         return msg
+
+    def _all_ready(self, run: _Run) -> bool:
+        """Whether every other participant said READY (with its lists) in this run. Lock held.
+
+        Until then the heartbeats of ``run`` are full READYs: a peer still in its handshake
+        completes with one even if this actor's first READY was lost and it dies before
+        answering a JOIN.
+        """
+        for actor in run.actors:
+            if actor != self._actor:
+                peer = run.peers.get(actor)
+                if peer is None or peer.phase != _READY:
+                    return False
+        return True
 
     def _heartbeat_msg(self, run: _Run) -> Any:
         """A READY of ``run`` without the actor and heard lists: liveness, and "still in it".
