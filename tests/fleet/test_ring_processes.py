@@ -8,7 +8,7 @@ run in one network namespace (`unshare -n`: loopback up, multicast routed to it)
 
 40, not the 50 of issue 14: with 50 `temoto run` processes the first node's notification, sent
 as soon as its handshake is done, is not acknowledged within the engine's 5 s notify timeout
-(every process is still decoding the handshake's JOINs), so the run aborts everywhere (3 of 3
+(every process is still decoding the handshake's JOINs), so the run aborts everywhere (4 of 4
 tries on 2026-11-25; 40 passed 3 of 3 in about 12 s). `python -m bench --only fleet` measures
 50 actors (`ring_50_actors_ms`), starting the ring after every handshake.
 """
