@@ -15,6 +15,7 @@ import shutil
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 from bench.common import Results, median, percentile
 
@@ -24,7 +25,7 @@ KEY = "42" * 32
 # One actor process: build the link, say "ready", then per round wait for "go <t>", shake hands,
 # notify or expect one action, and report the times as one JSON line.
 WORKER = r"""
-import json, sys, time
+import json, sys, threading, time
 from temoto.core.states import Result
 from temoto.fleet import FleetActorLink
 from temoto.transport import FleetAuth, FleetLink, key_from_text, open_transport
@@ -39,29 +40,61 @@ for line in sys.stdin:
     session, t_go = words[1], float(words[2])
     sent = link.stats["handshakes_sent"]
     try:
-        link.handshake("bench", session, actors, 10.0)
+        run = link.handshake("bench", session, actors, 10.0)
     except Exception as err:
         print(json.dumps({"hand": None, "sent": 0, "error": str(err)[:200]}), flush=True)
         continue
     t_hand = time.time()
     sent = link.stats["handshakes_sent"] - sent
+    me, n = actors.index(actor), len(actors)
+    # the ring's expectations first: a ring notification may come before Act_0's
+    lock, heard, turn, got_all = threading.Lock(), set(), threading.Event(), threading.Event()
+    def on_ring(j):
+        def take(result, outputs):
+            with lock:
+                heard.add(j)
+                if len(heard) == n - 1:
+                    got_all.set()
+            if j == me - 1:
+                turn.set()
+        return take
+    for j in range(n):
+        if j != me:
+            link.expect("bench", run, f"Ring_{j}", actors[j], on_ring(j))
     got = []
-    if actor == actors[0]:
+    if me == 0:
         t_send = time.time()
         try:
-            link.notify("bench", session, "Act_0", Result.TRUE, {"x": 1}, actors[1:], 10.0)
-            acked = time.time() - t_send
-        except Exception:
-            acked = None
-        out = {"hand": t_hand - t_go, "send": t_send, "acked": acked, "sent": sent}
+            link.notify("bench", run, "Act_0", Result.TRUE, {"x": 1}, actors[1:], 10.0)
+            acked, why = time.time() - t_send, None
+        except Exception as err:
+            acked, why = None, str(err)[:200]
+        out = {"hand": t_hand - t_go, "send": t_send, "acked": acked, "sent": sent,
+               "error": why}
     else:
-        import threading
         done = threading.Event()
-        link.expect("bench", session, "Act_0", actors[0],
+        link.expect("bench", run, "Act_0", actors[0],
                     lambda r, o: (got.append(time.time()), done.set()))
         done.wait(10.0)
         out = {"hand": t_hand - t_go, "recv": got[0] if got else None, "sent": sent}
-    link.end("bench", session)
+    # the ring: actor i waits for Ring_{i-1} of actor i-1, then notifies Ring_i to all (as
+    # the engine does for a node of a shared graph whose every node is on the next actor)
+    if me == 0:
+        out["ring_start"] = time.time()
+    ring_error = None
+    if me == 0 or turn.wait(30.0):
+        try:
+            link.notify("bench", run, f"Ring_{me}", Result.TRUE, {}, actors, 30.0)
+        except Exception as err:
+            ring_error = str(err)[:200]
+    else:
+        ring_error = f"Ring_{me - 1} did not come"
+    if ring_error is None and not got_all.wait(30.0):
+        ring_error = f"heard {len(heard)} of {n - 1} ring notifications"
+    out["ring_done"] = None if ring_error else time.time()
+    out["ring_error"] = ring_error
+    out["stats"] = link.stats
+    link.end("bench", run)
     print(json.dumps(out), flush=True)
 link.close()
 transport.close()
@@ -228,6 +261,33 @@ def bench_fleet(quick: bool) -> Results:
         f" heartbeats) / its handshake time, mean over actors, median of {len(big)} rounds;"
         f" 5 actors: {per_actor_s(data['5']):.1f}/s",
     )
+
+    def ring_ms(rnds: list[list[dict[str, Any]]]) -> list[float]:
+        return [
+            (max(w["ring_done"] for w in rnd) - rnd[0]["ring_start"]) * 1e3
+            for rnd in rnds
+            if all(w.get("ring_done") is not None for w in rnd)
+        ]
+
+    for n, rnds in ((5, data["5"]), (50, big)):
+        rings = ring_ms(rnds)
+        if len(rings) < len(rnds):
+            errors = {w["ring_error"] for rnd in rnds for w in rnd if w.get("ring_error")}
+            out.notes.append(
+                f"{n} actors: {len(rnds) - len(rings)} of {len(rnds)} rings did not end"
+                f" everywhere ({'; '.join(sorted(errors))[:300]})"
+            )
+        if rings:
+            out.add(
+                f"ring_{n}_actors_ms",
+                median(rings),
+                "ms",
+                f"{n} actor processes after their handshake: actor i waits for Ring_(i-1) of"
+                f" actor i-1, then notifies Ring_i to all the others; actor 0's first notify()"
+                f" -> the last actor has every Ring_j and its own acknowledged; median of the"
+                f" {len(rings)} of {len(rnds)} rounds that ended",
+                None,
+            )
     unacked = sum(1 for rnd in big if rnd[0].get("acked") is None)
     if unacked:
         out.notes.append(

@@ -22,17 +22,29 @@ thesis §6.3.2) with the messages of ``temoto/lcm_types/defs`` on two channels:
     already running reports the sender lost to its watchers (reason ``left``). An actor that
     merely ended the run says nothing.
 
-``TEMOTO_NOTIFY`` (``action_notification_t``, ``action_ack_t``)
+``TEMOTO_NOTIFY`` (``action_notification_t``)
     *Notifications*: the end of a local action, with its result and outputs (JSON), is
-    published and re-published every ``resend_s`` until every other participant acknowledged
-    it. A receiver acknowledges every copy of every notification of another actor, whether it
-    expects it or not, and takes each notification (by its id) once: the first copy goes to the
-    oldest :meth:`~FleetActorLink.expect` of that (graph, session, action, actor) or waits for
-    one. A node in a cycle finishes more than once per run; each time is a new notification.
+    published, and published again until every other participant acknowledged it, but only
+    after a period in which no acknowledgement came in (a loaded fleet acknowledges slowly, and
+    each copy costs every actor a decode and an acknowledgement). The period is ``resend_s``
+    after an acknowledgement and doubles with each copy, up to ``8 * resend_s``. A receiver
+    acknowledges every copy of every notification of another actor, whether it expects it or
+    not, and takes each notification (by its id) once: the first copy goes to the oldest
+    :meth:`~FleetActorLink.expect` of that (graph, session, action, actor) or waits for one. A
+    node in a cycle finishes more than once per run; each time is a new notification.
+
+``TEMOTO_ACK_<sender>`` (``action_ack_t``, see :func:`ack_channel`)
+    *Acknowledgements* go to the notification's sender alone: each actor listens on its own
+    acknowledgement channel, so an acknowledgement is handled by one process, not by the whole
+    fleet (a notification to N actors costs the fleet N handled acknowledgements per copy, not
+    N * N; LCM drops the other channels before Python sees them).
 
 *Liveness*: while a run is active or something is watched, the link sends a ``READY``
 handshake every ``heartbeat_s`` (``5 * resend_s``, at most a third of ``silence_s``); a
-watched actor from which nothing at all was heard for ``silence_s`` is reported lost.
+watched actor from which nothing at all was heard for ``silence_s`` is reported lost. A
+heartbeat names its run but carries no actor or heard list (a READY without a heard list
+changes nothing in a handshake) once every participant said READY with its lists; until then
+heartbeats are full READYs, as are the first READY and the answers to late JOINs.
 
 Threads: receiving runs on the transport's thread; one thread (``temoto-fleet-actors``)
 sends heartbeats, checks silences and forgets expired state; another
@@ -45,10 +57,12 @@ from __future__ import annotations
 
 import collections
 import enum
+import hashlib
 import itertools
 import json
 import logging
 import math
+import re
 import secrets
 import threading
 import time
@@ -65,14 +79,25 @@ from temoto.transport import codec
 from temoto.transport.auth import FleetLink, Opened
 from temoto.transport.base import Subscription
 
-__all__ = ["HANDSHAKE_CHANNEL", "NOTIFY_CHANNEL", "STATS", "FleetActorLink"]
+__all__ = [
+    "ACK_CHANNEL_PREFIX",
+    "HANDSHAKE_CHANNEL",
+    "NOTIFY_CHANNEL",
+    "STATS",
+    "FleetActorLink",
+    "ack_channel",
+]
 
 logger = logging.getLogger(__name__)
 
 #: Channel of ``handshake_t``: handshakes, heartbeats, leaving.
 HANDSHAKE_CHANNEL: Final = "TEMOTO_HANDSHAKE"
-#: Channel of ``action_notification_t`` and ``action_ack_t``.
+#: Channel of ``action_notification_t``.
 NOTIFY_CHANNEL: Final = "TEMOTO_NOTIFY"
+#: The channels of ``action_ack_t``: this prefix and the notification sender (:func:`ack_channel`).
+ACK_CHANNEL_PREFIX: Final = "TEMOTO_ACK_"
+# What an actor name may be to name its acknowledgement channel as it is (else it is hashed).
+_PLAIN_NAME = re.compile(r"[A-Za-z0-9_.:-]{1,40}")
 
 #: The counters of :attr:`FleetActorLink.stats`.
 STATS: Final = (
@@ -115,6 +140,29 @@ _ANSWERS_AT_ONCE = 3
 # Resends of a JOIN or a notification that brought nothing new slow down, to this many times
 # resend_s.
 _MAX_BACKOFF = 8
+
+
+def ack_channel(actor: str) -> str:
+    """The channel on which ``actor`` receives the acknowledgements of its notifications.
+
+    ``TEMOTO_ACK_<actor>`` for a name of at most 40 characters from ``A-Z a-z 0-9 _ . : -``;
+    otherwise ``TEMOTO_ACK_`` and 16 hex digits of the name's BLAKE2b hash (a channel name is
+    at most 63 characters). Two actors that share a channel only handle each other's
+    acknowledgements too.
+
+    Args:
+        actor: The notifying actor's name.
+
+    Returns:
+        The channel name.
+
+    Raises:
+        ValueError: If ``actor`` is empty.
+    """
+    check_name("actor", actor)
+    if _PLAIN_NAME.fullmatch(actor):
+        return ACK_CHANNEL_PREFIX + actor
+    return ACK_CHANNEL_PREFIX + hashlib.blake2b(actor.encode(), digest_size=8).hexdigest()
 
 
 def _names(names: Sequence[str] | set[str]) -> str:
@@ -235,9 +283,10 @@ class _Watch:
 class FleetActorLink(Closing):
     """The :class:`~temoto.core.remote.ActorLink` of one actor over a fleet link.
 
-    It subscribes to :data:`HANDSHAKE_CHANNEL` and :data:`NOTIFY_CHANNEL` of ``link`` and
-    starts its threads at once; :meth:`close` (or leaving the ``with`` block) stops them. The
-    fleet link and its transport stay the caller's to close, after this link.
+    It subscribes to :data:`HANDSHAKE_CHANNEL`, :data:`NOTIFY_CHANNEL` and its own
+    :func:`ack_channel` of ``link`` and starts its threads at once; :meth:`close` (or leaving
+    the ``with`` block) stops them. The fleet link and its transport stay the caller's to
+    close, after this link.
 
     Args:
         link: Sends and receives authenticated fleet messages.
@@ -314,6 +363,7 @@ class FleetActorLink(Closing):
             for channel, handler in (
                 (HANDSHAKE_CHANNEL, self._on_handshake),
                 (NOTIFY_CHANNEL, self._on_notify),
+                (ack_channel(self._actor), self._on_ack),
             ):
                 self._subs.append(link.listen(channel, handler, queue_capacity=_QUEUE_CAPACITY))
         except BaseException:
@@ -467,7 +517,9 @@ class FleetActorLink(Closing):
     ) -> None:
         """Tell ``actors`` that a local action finished; block until each acknowledged.
 
-        The notification is re-published every ``resend_s`` until then.
+        The notification is published again after each period without an acknowledgement
+        (``resend_s`` after an acknowledgement, doubling with each copy up to
+        ``8 * resend_s``) until then.
 
         Args:
             graph: The graph's name.
@@ -528,7 +580,7 @@ class FleetActorLink(Closing):
             self._outgoing[msg.notification_id] = out
             self._timer_wake.notify()  # it watches the silence of the actors waited for
         deadline = self._clock() + timeout
-        period = self.resend_s  # doubles while a resend brings no acknowledgement
+        period = self.resend_s  # doubles with every copy (to _MAX_BACKOFF * resend_s)
         waiting = len(out.waiting)
         try:
             while True:
@@ -555,13 +607,15 @@ class FleetActorLink(Closing):
                                 f"within {timeout:g} s"
                             )
                         if now >= next_send:
-                            # a resend that brought no acknowledgement: the next comes later
-                            slower = len(out.waiting) >= waiting
-                            if slower and period < _MAX_BACKOFF * self.resend_s:
-                                period *= 2
-                            elif not slower:
+                            if len(out.waiting) < waiting:
+                                # acknowledgements still coming in (a loaded fleet answers
+                                # slowly): no copy yet, look again a resend_s later
+                                waiting = len(out.waiting)
                                 period = self.resend_s
-                            waiting = len(out.waiting)
+                                next_send = now + period
+                                continue
+                            # a period without any acknowledgement: send again, later next time
+                            period = min(period * 2, _MAX_BACKOFF * self.resend_s)
                             break
                         self._changed.wait(min(next_send, deadline) - now)
                     else:
@@ -873,6 +927,8 @@ class FleetActorLink(Closing):
                 return reply  # a READY of a run not started here: liveness only
             if run is None:
                 run = self._new_run(key, now)
+        if msg.phase == _READY and not msg.heard:
+            return reply  # a heartbeat: liveness only; the peer's full READY still stands
         run.touched = now
         peer = run.peers.get(actor)
         first = peer is None
@@ -1012,23 +1068,28 @@ class FleetActorLink(Closing):
     def _why_gone(self, actor: str) -> str:
         return "left" if actor in self._left else f"not heard for {self.silence_s:g} s"
 
-    def _on_notify(self, opened: Opened) -> None:
-        msg = self._decode(opened, ("action_notification_t", "action_ack_t"))
+    def _on_ack(self, opened: Opened) -> None:
+        """An acknowledgement on this actor's :func:`ack_channel`."""
+        msg = self._decode(opened, ("action_ack_t",))
         if msg is None:
             return
         actor: str = msg.actor
-        if opened.type == "action_ack_t":
-            with self._lock:
-                if self._closed or not actor or actor == self._actor:
-                    return
-                self._counts["acks_received"] += 1
-                self._heard_at[actor] = self._clock()
-                out = self._outgoing.get(msg.notification_id)
-                if out is not None and actor in out.waiting:
-                    out.waiting.discard(actor)
-                    if not out.waiting:
-                        self._changed.notify_all()
+        with self._lock:
+            if self._closed or not actor or actor == self._actor:
+                return
+            self._counts["acks_received"] += 1
+            self._heard_at[actor] = self._clock()
+            out = self._outgoing.get(msg.notification_id)
+            if out is not None and actor in out.waiting:
+                out.waiting.discard(actor)
+                if not out.waiting:
+                    self._changed.notify_all()
+
+    def _on_notify(self, opened: Opened) -> None:
+        msg = self._decode(opened, ("action_notification_t",))
+        if msg is None:
             return
+        actor: str = msg.actor
         with self._lock:
             if self._closed:
                 return
@@ -1042,7 +1103,7 @@ class FleetActorLink(Closing):
         ack = new(action_ack_t)
         ack.notification_id, ack.graph, ack.session = msg.notification_id, msg.graph, msg.session
         ack.actor = self._actor
-        self._send_quietly(NOTIFY_CHANNEL, ack, "acks_sent")
+        self._send_quietly(ack_channel(actor), ack, "acks_sent")
 
     def _take(self, msg: Any) -> None:
         """Store or deliver a notification unless it is a duplicate. Lock held."""
@@ -1099,7 +1160,10 @@ class FleetActorLink(Closing):
                 msgs: list[Any] = []
                 if ready or graced or self._watches:
                     if now >= self._next_heartbeat:
-                        msgs = [self._ready_msg(r) for r in ready]
+                        msgs = [
+                            self._heartbeat_msg(r) if self._all_ready(r) else self._ready_msg(r)
+                            for r in ready
+                        ]
                         if not msgs:
                             msgs.append(self._handshake_msg(_READY, "", "", (), {}))
                         self._next_heartbeat = now + self.heartbeat_s
@@ -1367,6 +1431,30 @@ class FleetActorLink(Closing):
 
     def _ready_msg(self, run: _Run) -> Any:
         msg = self._handshake_msg(_READY, run.graph, run.session, run.actors, run.frozen)
+        msg.run_id = run.run_id
+        return msg
+
+    def _all_ready(self, run: _Run) -> bool:
+        """Whether every other participant said READY (with its lists) in this run. Lock held.
+
+        Until then the heartbeats of ``run`` are full READYs: a peer still in its handshake
+        completes with one even if this actor's first READY was lost and it dies before
+        answering a JOIN.
+        """
+        for actor in run.actors:
+            if actor != self._actor:
+                peer = run.peers.get(actor)
+                if peer is None or peer.phase != _READY:
+                    return False
+        return True
+
+    def _heartbeat_msg(self, run: _Run) -> Any:
+        """A READY of ``run`` without the actor and heard lists: liveness, and "still in it".
+
+        The first READY and the answers to late JOINs carry the lists; a heartbeat need not
+        (decoding a 50-actor heard list 50 times a period was most of a fleet's work).
+        """
+        msg = self._handshake_msg(_READY, run.graph, run.session, (), {})
         msg.run_id = run.run_id
         return msg
 

@@ -9,8 +9,9 @@ import struct
 
 class action_ack_t(object):
     """
-    Channel TEMOTO_NOTIFY. Acknowledges one action_notification_t; sent again for every resend
-    of it (the notification may be taken only once).
+    Channel TEMOTO_ACK_<actor> of the notification's sender (temoto.fleet.actors.ack_channel),
+    so that only the sender handles it. Acknowledges one action_notification_t; sent again for
+    every resend of it (the notification may be taken only once).
     """
 
     __slots__ = ["version", "notification_id", "graph", "session", "actor"]

@@ -11,8 +11,9 @@ class action_notification_t(object):
     """
     Channel TEMOTO_NOTIFY. An action assigned to the sender's actor has finished: the other
     actors of the run take its result and outputs as their remote node's own. Re-published
-    (about every 100 ms) until every other actor of the run has answered with an action_ack_t,
-    or the resend times out.
+    after each period without an acknowledgement (100 ms, doubling with each copy to 800 ms)
+    until every other actor of the run has answered with an action_ack_t on the sender's
+    TEMOTO_ACK_<actor> channel, or the notification times out.
     """
 
     __slots__ = ["version", "notification_id", "graph", "session", "action", "actor", "result", "outputs"]

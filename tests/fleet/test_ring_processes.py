@@ -1,0 +1,150 @@
+"""A ring graph through 40 `temoto run --actor` processes, one per actor, ends on_true on each.
+
+``TaRelayString_i`` runs on actor ``i`` and hands the string to ``TaRelayString_(i+1)`` on the
+next actor, so every node's result is a notification passed from actor to actor (and to the
+48 others); ``TaCompareString_0`` on actor 0 checks the string that went round. All processes
+run in one network namespace (`unshare -n`: loopback up, multicast routed to it). Needs root,
+`unshare` and `ip`; skipped otherwise. Slow: 40 Python processes start on a 2-core machine.
+
+40, not the 50 of issue 14: with 50 `temoto run` processes the first node's notification, sent
+as soon as its handshake is done, is not acknowledged within the engine's 5 s notify timeout
+(every process is still decoding the handshake's JOINs), so the run aborts everywhere (4 of 4
+tries on 2026-11-25; 40 passed 3 of 3 in about 12 s). `python -m bench --only fleet` measures
+50 actors (`ring_50_actors_ms`), starting the ring after every handshake.
+"""
+
+from __future__ import annotations
+
+import itertools
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+from typing import Any
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[2]
+ACTIONS = ROOT / "examples" / "actions" / "conformance"
+KEY = "6b" * 32  # a fixed 32-byte fleet key, hex
+URL = "udpm://239.255.76.67:7667?ttl=0"
+N = 40
+# Every process has started and imported temoto well before this (2 cores, 50 processes).
+HANDSHAKE_S = 120.0
+
+pytestmark = [
+    pytest.mark.slow,
+    pytest.mark.skipif(os.geteuid() != 0, reason="network namespaces need root"),
+    pytest.mark.skipif(
+        shutil.which("unshare") is None or shutil.which("ip") is None,
+        reason="needs unshare and ip (util-linux, iproute2)",
+    ),
+]
+
+# Runs inside the namespace: route multicast to loopback, start one process per actor, report.
+RUNNER = r"""
+import json, os, subprocess, sys
+subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
+subprocess.run(["ip", "route", "replace", "224.0.0.0/4", "dev", "lo"], check=True)
+spec = json.loads(sys.argv[1])
+procs = [
+    subprocess.Popen(
+        [sys.executable, "-m", "temoto", "run", spec["graph"], "--actions", spec["actions"],
+         "--actor", actor, "--fleet-url", spec["url"], *spec["extra"]],
+        env={**os.environ, "TEMOTO_FLEET_KEY": spec["key"]}, stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    for actor in spec["actors"]
+]
+out = []
+for p in procs:
+    try:
+        stdout, stderr = p.communicate(timeout=spec["timeout"])
+    except subprocess.TimeoutExpired:
+        p.kill()
+        stdout, stderr = p.communicate()
+    out.append({"code": p.returncode, "stdout": stdout[-1500:], "stderr": stderr[-1500:]})
+print(json.dumps(out))
+"""
+
+
+def ring_graph(n: int) -> dict[str, Any]:
+    """``TaRelayString_0`` on ``Actor 0`` .. ``TaRelayString_(n-1)``, then a check on actor 0."""
+    actors = [f"Actor {i}" for i in range(n)]
+    actions: list[dict[str, Any]] = []
+    for i in range(n):
+        value = {"pvf_value": "round the ring"} if i == 0 else {}
+        actions.append(
+            {
+                "name": "TaRelayString",
+                "actor": actors[i],
+                "instance_id": i,
+                "type": "sync",
+                "input_parameters": {"string_in": {"pvf_type": "string"} | value},
+                "output_parameters": {"string_out": {"pvf_type": "string"}},
+            }
+        )
+    actions.append(
+        {
+            "name": "TaCompareString",
+            "actor": actors[0],
+            "instance_id": 0,
+            "type": "sync",
+            "input_parameters": {
+                "str_a": {"pvf_type": "string"},
+                "str_b": {"pvf_type": "string", "pvf_value": "round the ring"},
+            },
+        }
+    )
+    for parent, child in itertools.pairwise(actions):
+        to = "string_in" if child["name"] == "TaRelayString" else "str_a"
+        remap = {"from": "string_out", "to": to}
+        parent["children"] = [
+            {"name": child["name"], "instance_id": child["instance_id"], "remap": [remap]}
+        ]
+        child["parents"] = [
+            {
+                "name": parent["name"],
+                "instance_id": parent["instance_id"],
+                "required": True,
+                "conditions": ["on_true -> run"],
+            }
+        ]
+    return {
+        "graph_name": f"ring_{n}",
+        "graph_description": f"a ring through {n} actors (tests/fleet/test_ring_processes.py)",
+        "graph_entry": [{"name": "TaRelayString", "instance_id": 0}],
+        "graph_exit": [{"name": "TaCompareString", "instance_id": 0}],
+        "actions": actions,
+    }
+
+
+def test_a_ring_through_40_actor_processes_ends_on_true_everywhere(tmp_path: Path) -> None:
+    graph = tmp_path / f"ring_{N}.graph.json"
+    graph.write_text(json.dumps(ring_graph(N), indent=2))
+    actors = [f"Actor {i}" for i in range(N)]
+    spec = {
+        "actors": actors,
+        "graph": str(graph),
+        "actions": str(ACTIONS),
+        "url": URL,
+        "key": KEY,
+        "extra": ["--handshake-timeout", str(HANDSHAKE_S), "--timeout", str(HANDSHAKE_S + 60)],
+        "timeout": HANDSHAKE_S + 90,
+    }
+    env = {k: v for k, v in os.environ.items() if k != "TEMOTO_FLEET_KEY"}
+    proc = subprocess.run(
+        ["unshare", "-n", sys.executable, "-c", RUNNER, json.dumps(spec)],
+        capture_output=True,
+        text=True,
+        timeout=HANDSHAKE_S + 150,
+        env=env,
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    results = json.loads(proc.stdout)
+    failed = [(a, r) for a, r in zip(actors, results, strict=True) if r["code"] != 0]
+    assert not failed, f"{len(failed)} of {N} failed; first: {failed[0]}"
+    for actor, res in zip(actors, results, strict=True):
+        assert f"ring_{N}: on_true" in res["stdout"], (actor, res)
