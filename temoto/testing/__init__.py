@@ -19,6 +19,16 @@ Processes:
           if leaked:
               pytest.fail(f"test left processes running: {leaked}")
 
+Devices and robots:
+
+* ``python -m temoto.testing.simhost`` (:mod:`temoto.testing.simhost`) runs one device
+  simulator in a process of its own and prints the device's state on every change;
+  ``python -m temoto.testing.exitpaths`` (:mod:`temoto.testing.exitpaths`) takes the robot
+  command out by one way (mission end, fault, exception, signals, SIGKILL) and reports what the
+  device saw (``docs/safety.md``).
+* :class:`temoto.testing.robots.FakeRobot` is a robot handle's read side (pose, joints, vehicle,
+  health) for tests of code that samples a robot.
+
 Importing this package has no side effects and does not import :mod:`temoto.testing.child`
 (so ``python -m temoto.testing.child`` runs without a ``runpy`` warning).
 """

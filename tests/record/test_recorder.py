@@ -19,47 +19,19 @@ from mcap.reader import make_reader
 
 from temoto.clock import ManualClock
 from temoto.core.states import NodeState, Result
-from temoto.drivers import GeoPoint, VehicleTelemetry
 from temoto.errors import ConfigError
 from temoto.record import Recorder, read_messages, read_transitions
 from temoto.record.schemas import SCHEMAS
+from temoto.testing.robots import FakeRobot as Robot
 from temoto.transport import InProcessTransport
 from temoto.transport.auth import FleetAuth, FleetLink
 
 pytestmark = pytest.mark.timeout(30)
 
 
-class FakeRobot:
-    """What the recorder reads of a robot handle: a rover with an arm that also flies."""
-
-    name = "bot"
-    features = ("navigation", "manipulation", "flight")
-
-    def __init__(self) -> None:
-        self.x = 0.0
-
-    def pose(self) -> tuple[float, float, float]:
-        self.x += 0.1
-        return self.x, 0.5, math.pi / 2
-
-    def joint_positions(self) -> dict[str, float]:
-        return {"shoulder": 0.25, "elbow": -0.5}
-
-    def telemetry(self) -> VehicleTelemetry:
-        return VehicleTelemetry(
-            stamp=1.0,
-            armed=True,
-            mode="GUIDED",
-            position=GeoPoint(47.39, 8.54, 10.0),
-            attitude=(0.0, 0.1, 0.2),
-            battery_voltage=12.4,
-            battery_remaining=87,
-            status_texts=(),
-            heartbeat_age=0.1,
-        )
-
-    def healthy(self) -> bool:
-        return True
+def FakeRobot() -> Robot:  # noqa: N802 - reads like the class it makes
+    """A rover with an arm that also flies, moving 0.1 m per pose."""
+    return Robot(step=0.1, y=0.5, attitude=(0.0, 0.1, 0.2))
 
 
 def summary(path: Path) -> dict[str, tuple[str, str, int]]:

@@ -25,8 +25,8 @@ from _demo import Demo, demo_engine, demo_graph
 from temoto import Result
 from temoto.cli import main
 from temoto.core.graph import dump_graph
-from temoto.drivers import GeoPoint, VehicleTelemetry
 from temoto.errors import ConfigError
+from temoto.testing.robots import FakeRobot
 from temoto.web import LiveView
 from temoto.web.replay import READERS, ReplayView, load_recording, read_trace, view_command
 
@@ -297,37 +297,9 @@ def test_an_mcap_recording_of_temoto_run_replays_what_its_trace_shows(tmp_path: 
     assert len(answer["events"]) == len(rec.events)
 
 
-class Rover:
-    """What the recorder samples of a robot: a rover with an arm that also flies."""
-
-    name = "bot"
-    features = ("navigation", "manipulation", "flight")
-
-    def __init__(self) -> None:
-        self.x = 0.0
-
-    def pose(self) -> tuple[float, float, float]:
-        self.x += 0.5
-        return self.x, 1.0, math.pi / 2
-
-    def joint_positions(self) -> dict[str, float]:
-        return {"shoulder": 0.25, "elbow": -0.5}
-
-    def telemetry(self) -> VehicleTelemetry:
-        return VehicleTelemetry(
-            stamp=1.0,
-            armed=True,
-            mode="GUIDED",
-            position=GeoPoint(47.39, 8.54, 10.0),
-            attitude=(0.0, 0.0, 0.0),
-            battery_voltage=12.4,
-            battery_remaining=87,
-            status_texts=(),
-            heartbeat_age=0.1,
-        )
-
-    def healthy(self) -> bool:
-        return True
+def Rover() -> FakeRobot:  # noqa: N802 - reads like the class it makes
+    """A rover with an arm that also flies, moving 0.5 m per pose."""
+    return FakeRobot(step=0.5, y=1.0)
 
 
 def record_rover(path: Path) -> None:
