@@ -38,7 +38,9 @@ def _loop(seconds: float) -> tuple[list[float], list[float], float, int]:
     link = {"interface": "virtual", "channel": f"bench-can-{time.monotonic_ns()}"}
     sim = SimODrive(link, list(range(NODES)), clock, heartbeat_period=0.1, encoder_period=period)
     nodes = [ODriveNode(i, f"wheel{i}") for i in range(NODES)]
-    driver = ODriveDriver("bench", link=link, nodes=nodes, clock=clock, init_timeout=2.0)
+    driver = ODriveDriver(
+        "bench", link=link, nodes=nodes, clock=clock, init_timeout=2.0, encoder_period=period
+    )
     joints = driver.joint_names
     gaps: list[float] = []
     ages: list[float] = []

@@ -188,7 +188,7 @@ def bench_fleet(quick: bool) -> Results:
         out.notes.append(f"{why}: handshake_*/notify_* skipped")
         return out
     rounds = 10 if quick else 50
-    big_rounds = 2 if quick else 5
+    big_rounds = 1 if quick else 5
     flood_n = 20_000 if quick else 100_000
     spec = {
         "sizes": [2, 3, 5, 50],
