@@ -200,6 +200,9 @@ class ResourceInfoSync(Closing):
         # Guarded by _lock.
         self._closed = False
         self._robots: dict[str, RobotInfo] = {}
+        # robot -> boot id of a start that withdrew as a whole (it shut down): an advert of that
+        # start still in flight must not bring it back; a new start has a new boot id
+        self._withdrawn: dict[str, str] = {}
         self._subscribers: list[_Subscriber] = []
         self._counts = dict.fromkeys(RIS_STATS, 0)
         self._seq = round(wall_clock() * 1e6)
@@ -532,6 +535,10 @@ class ResourceInfoSync(Closing):
                 return
             old = self._robots.get(robot)
             boot: str = msg.boot
+            if self._withdrawn.get(robot) == boot:
+                self._counts["stale"] += 1  # sent before its withdraw, heard after it
+                return
+            self._withdrawn.pop(robot, None)
             if old is not None and boot != old.boot:
                 # restarted: what its previous start held goes now, not after a silence
                 self._lose(robot, "restarted")
@@ -584,6 +591,9 @@ class ResourceInfoSync(Closing):
                 return
             names = [s for s in msg.servers if s]
             if not msg.servers:
+                if len(self._withdrawn) >= _MAX_ROBOTS:
+                    self._withdrawn.pop(next(iter(self._withdrawn)))
+                self._withdrawn[robot] = info.boot
                 self._lose(robot, "withdrew")
                 return
             left = {n: s for n, s in info.servers.items() if n not in names}

@@ -377,3 +377,35 @@ def test_a_robot_heard_with_a_new_boot_id_restarted_and_is_lost_and_joined_at_on
     assert a.ris.providers("camera") == []
     assert a.ris.stats["stale"] == 1
     assert a.ris.boot != fleet.robot("B", period_s=60.0).ris.boot
+
+
+def test_an_advert_heard_after_its_robots_withdraw_does_not_bring_it_back(fleet: Fleet) -> None:
+    # a closing robot's last advert can be overtaken by its withdraw: that start stays gone,
+    # a new start (a new boot id) joins again
+    a = fleet.robot("A", period_s=60.0)
+    raw = fleet.raw("M", RIS_CHANNEL)
+    joined, lost = Got(), Got()
+    a.ris.subscribe(on_joined=joined, on_lost=lost)
+
+    def start(seq: int, boot: str) -> Any:
+        msg = advert("M", "camera", seq=seq)
+        msg.boot = boot
+        return msg
+
+    raw.send(start(1, "boot-1"))
+    joined.wait_for(1)
+    withdraw = ris_withdraw_t()
+    withdraw.manager, withdraw.robot, withdraw.servers = "M", "M", []
+    raw.send(withdraw)
+    (info, reason), *_ = lost.wait_for(1)
+    assert (info.robot, reason) == ("M", "withdrew")
+    stale = a.ris.stats["stale"]
+    raw.send(start(2, "boot-1"))  # sent before the withdraw, heard after it
+    deadline = time.monotonic() + WAIT_S
+    while a.ris.stats["stale"] == stale:
+        assert time.monotonic() < deadline, "the late advert was not seen"
+        time.sleep(0.005)
+    assert a.ris.robots() == []
+    raw.send(start(1, "boot-2"))  # the robot started again
+    joined.wait_for(2)
+    assert [r.robot for r in a.ris.robots()] == ["M"]
