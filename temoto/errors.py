@@ -81,6 +81,7 @@ __all__ = [
     "GraphInputError",
     "GraphNotFoundError",
     "MavlinkCommandError",
+    "MavlinkMissionError",
     "MotorFaultError",
     "NoProviderError",
     "PipelineError",
@@ -389,6 +390,19 @@ class MavlinkCommandError(DriverOperationError):
     def __init__(self, message: str, *, command: int, result: int) -> None:
         super().__init__(message)
         self.command = command
+        self.result = result
+
+
+class MavlinkMissionError(DriverOperationError):
+    """A MAVLink vehicle refused a mission transfer (its ``MISSION_ACK`` result).
+
+    Args:
+        message: What happened.
+        result: The ``MAV_MISSION_RESULT`` value.
+    """
+
+    def __init__(self, message: str, *, result: int) -> None:
+        super().__init__(message)
         self.result = result
 
 

@@ -30,6 +30,17 @@ configured it
   within :attr:`MavlinkDriver.STATUS_TEXT_WINDOW` (0.5 s) after a FAILED or DENIED ack are
   waited for (ArduPilot acknowledges at once and sends "PreArm: ..." after the ack).
 
+**Missions and parameters.** :meth:`MavlinkDriver.upload_mission`,
+:meth:`~MavlinkDriver.download_mission` and :meth:`~MavlinkDriver.clear_mission` speak the
+MAVLink mission protocol with MISSION_INT (each step waits ``mission_timeout``, 1.5 s, and is
+resent up to ``mission_retries``, 5, times, the protocol's defaults; a refusing MISSION_ACK is a
+:class:`~temoto.errors.MavlinkMissionError` naming the ``MAV_MISSION_RESULT``);
+:meth:`~MavlinkDriver.start_mission` arms in GUIDED and sends ``MAV_CMD_MISSION_START`` as
+ArduCopter expects; MISSION_CURRENT and MISSION_ITEM_REACHED become
+:attr:`~MavlinkDriver.mission_progress` (and listeners). :meth:`~MavlinkDriver.get_param` and
+:meth:`~MavlinkDriver.set_param` read and write one parameter (PARAM_REQUEST_READ / PARAM_SET →
+PARAM_VALUE, typed by its ``MAV_PARAM_TYPE``, integers carried as floats as ArduPilot does).
+
 **Safe state** (``safe_state:``, :attr:`MavlinkDriver.safe_states`): ``loiter`` (default),
 ``brake``, ``land`` or ``rtl``. On the ground (disarmed, or armed and landed) nothing is sent;
 in the air the driver sets that ArduCopter mode (``MAV_CMD_DO_SET_MODE``) and waits at most
@@ -62,7 +73,7 @@ from urllib.parse import parse_qs
 
 from temoto.clock import Clock
 from temoto.drivers.base import Driver, DriverState, detect_links
-from temoto.drivers.capabilities import GeoPoint, VehicleTelemetry
+from temoto.drivers.capabilities import GeoPoint, MissionItem, MissionProgress, VehicleTelemetry
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.link import Link, LinkSpec, open_link, parse_link
 from temoto.drivers.mavlink.protocol import Codec, Message
@@ -75,6 +86,7 @@ from temoto.errors import (
     DriverOperationError,
     DriverTimeoutError,
     MavlinkCommandError,
+    MavlinkMissionError,
     ProfileError,
     StateError,
 )
@@ -128,6 +140,8 @@ _KEYS: Final = frozenset(
         "init_timeout",
         "command_timeout",
         "command_retries",
+        "mission_timeout",
+        "mission_retries",
         "stream_rate",
         "status_texts",
         "safe_state",
@@ -177,7 +191,11 @@ class MavlinkDriver(Driver):
         heartbeat_timeout: Seconds without a vehicle heartbeat that make a fault.
         init_timeout: Seconds ``configure`` waits for the first heartbeat.
         command_timeout: Seconds to wait for one COMMAND_ACK.
-        command_retries: Resends after a missing COMMAND_ACK.
+        command_retries: Resends after a missing COMMAND_ACK (and a missing PARAM_VALUE).
+        mission_timeout: Seconds one step of a mission transfer waits (the MAVLink mission
+            protocol's default, 1.5 s).
+        mission_retries: Resends of a mission transfer's step that went unanswered (the
+            protocol's default, 5).
         stream_rate: Position and attitude rate (Hz) asked of the vehicle; 0 asks for nothing.
         status_texts: How many STATUSTEXT messages the telemetry keeps.
         gcs_failsafe: The vehicle's GCS failsafe, set at configure: ``{"enable": N}``
@@ -215,6 +233,8 @@ class MavlinkDriver(Driver):
         init_timeout: float = 5.0,
         command_timeout: float = 1.0,
         command_retries: int = 2,
+        mission_timeout: float = 1.5,
+        mission_retries: int = 5,
         stream_rate: float = 10.0,
         status_texts: int = 20,
         gcs_failsafe: Mapping[str, float] | None = None,
@@ -236,11 +256,14 @@ class MavlinkDriver(Driver):
             ("heartbeat_timeout", heartbeat_timeout),
             ("init_timeout", init_timeout),
             ("command_timeout", command_timeout),
+            ("mission_timeout", mission_timeout),
         ):
             if not (math.isfinite(value) and value > 0):
                 raise ValueError(f"{key} must be a positive number of seconds, got {value!r}")
         if not (isinstance(command_retries, int) and 0 <= command_retries <= 10):
             raise ValueError(f"command_retries must be an integer 0..10, got {command_retries!r}")
+        if not (isinstance(mission_retries, int) and 0 <= mission_retries <= 20):
+            raise ValueError(f"mission_retries must be an integer 0..20, got {mission_retries!r}")
         if not (math.isfinite(stream_rate) and 0 <= stream_rate <= 1000):
             raise ValueError(f"stream_rate must be 0..1000 Hz, got {stream_rate!r}")
         if not (isinstance(status_texts, int) and status_texts >= 1):
@@ -252,6 +275,8 @@ class MavlinkDriver(Driver):
         self.init_timeout = float(init_timeout)
         self.command_timeout = float(command_timeout)
         self.command_retries = command_retries
+        self.mission_timeout = float(mission_timeout)
+        self.mission_retries = mission_retries
         self.stream_rate = float(stream_rate)
         #: ArduPilot parameter → value, set at configure (from ``gcs_failsafe``).
         self.failsafe_params: dict[str, float] = _failsafe_params(gcs_failsafe)
@@ -269,6 +294,9 @@ class MavlinkDriver(Driver):
         self._cond = threading.Condition()  # the cache and the acks; notified on every read
         self._watch = threading.Condition()  # wakes the heartbeat thread
         self._command_lock = threading.Lock()
+        self._param_lock = threading.Lock()  # one public parameter exchange at a time
+        self._mission_lock = threading.Lock()  # one mission transfer at a time
+        self._mission_listeners: list[Callable[[MissionProgress], None]] = []
         self._eval_lock = threading.Lock()
         self._texts: collections.deque[str] = collections.deque(maxlen=status_texts)
         self._ages: dict[str, StreamAge] = {}
@@ -304,6 +332,12 @@ class MavlinkDriver(Driver):
         self._params: dict[str, tuple[float, int]] = {}  # name → (value, MAV_PARAM_TYPE)
         self._param_count = 0  # PARAM_VALUE arrivals
         self._param_seen: dict[str, int] = {}  # name → arrival number of its newest value
+        #: Mission-transfer messages for this GCS: (arrival number, message), newest last.
+        self._mission_rx: collections.deque[tuple[int, Message]] = collections.deque(maxlen=64)
+        self._mission_seq = 0
+        self._mission_total = 0  # items of the mission this driver uploaded or downloaded
+        self._progress = MissionProgress()
+        self._notify: list[tuple[Callable[[MissionProgress], None], MissionProgress]] = []
         self._ages.clear()
         self._stale: StreamAge | None = None  # the stream whose staleness is the fault
         self._bad_window.clear()
@@ -645,6 +679,434 @@ class MavlinkDriver(Driver):
             return None
         with self._cond:
             return self._params[name]
+
+    # ---- parameters (public) ------------------------------------------------------------------
+
+    def get_param(self, name: str) -> float | int:
+        """Read one parameter of the vehicle (``PARAM_REQUEST_READ`` → ``PARAM_VALUE``).
+
+        Sent up to ``1 + command_retries`` times, each waiting ``command_timeout``. The value
+        is typed by the answer's ``MAV_PARAM_TYPE``: an ``int`` for the integer types (which
+        ArduPilot sends as a float holding the integer, its "C cast" encoding), a ``float``
+        for ``REAL32``.
+
+        Args:
+            name: The parameter's name (``WPNAV_SPEED``; at most 16 characters).
+
+        Returns:
+            The value.
+
+        Raises:
+            ValueError: Not a parameter name.
+            StateError: The driver is not configured.
+            DriverTimeoutError: No PARAM_VALUE of it (a name the firmware does not have goes
+                unanswered too; the message says so).
+        """
+        self._check_param_name(name)
+        self._require_link("get_param")
+        with self._param_lock:
+            got = self._read_param(name)
+        if got is None:
+            tries = 1 + self.command_retries
+            raise DriverTimeoutError(
+                f"{self.name}: no PARAM_VALUE for {name} in {tries} tries of"
+                f" {self.command_timeout:g} s (does this firmware have it?)"
+            )
+        return _typed_value(*got)
+
+    def set_param(self, name: str, value: float) -> float | int:
+        """Set one parameter of the vehicle (``PARAM_SET`` → the ``PARAM_VALUE`` echo).
+
+        The parameter is read first for its type (unless this driver has seen it); an integer
+        type takes only integers in its range, and no more than 2**24 in size (ArduPilot carries
+        every value as a float32). ``PARAM_SET`` is sent up to ``1 + command_retries`` times,
+        each waiting ``command_timeout`` for the echo; a value equal to the current one is
+        not sent again.
+
+        Args:
+            name: The parameter's name (at most 16 characters).
+            value: The new value.
+
+        Returns:
+            The value the vehicle reports it now holds.
+
+        Raises:
+            ValueError: Not a parameter name, or a value its type cannot hold.
+            StateError: The driver is not configured.
+            DriverTimeoutError: No PARAM_VALUE came back (for the read or the set).
+            DriverOperationError: The vehicle kept another value.
+        """
+        self._check_param_name(name)
+        if isinstance(value, bool) or not isinstance(value, int | float):
+            raise ValueError(f"{name}: a parameter value must be a number, got {value!r}")
+        if not math.isfinite(value):
+            raise ValueError(f"{name}: a parameter value must be finite, got {value!r}")
+        self._require_link("set_param")
+        tries = 1 + self.command_retries
+        with self._param_lock:
+            with self._cond:
+                known = self._params.get(name)
+            current = known if known is not None else self._read_param(name)
+            if current is None:
+                raise DriverTimeoutError(
+                    f"{self.name}: no PARAM_VALUE for {name} in {tries} tries of"
+                    f" {self.command_timeout:g} s (does this firmware have it?)"
+                )
+            param_type = current[1]
+            _check_param_value(name, value, param_type)
+            if known is not None or not _same(current[0], value):
+                got = self._param_exchange(
+                    "PARAM_SET", name, tries, param_value=float(value), param_type=param_type
+                )
+                if got is None:
+                    raise DriverTimeoutError(
+                        f"{self.name}: no PARAM_VALUE after setting {name} in {tries} tries"
+                        f" of {self.command_timeout:g} s"
+                    )
+                current = got
+        if not _same(current[0], value):
+            raise DriverOperationError(
+                f"{self.name}: the vehicle kept {name} = {current[0]:g} (asked for {value:g})"
+            )
+        logger.info("driver %s: %s = %g", self.name, name, current[0])
+        return _typed_value(*current)
+
+    def _check_param_name(self, name: str) -> None:
+        if not (
+            isinstance(name, str) and 0 < len(name) <= p.PARAM_ID_LEN and name.isascii()
+        ) or any(c.isspace() or c == "\x00" for c in name):
+            raise ValueError(
+                f"{self.name}: a parameter name is 1..{p.PARAM_ID_LEN} ASCII characters without"
+                f" spaces, got {name!r}"
+            )
+
+    def _require_link(self, what: str) -> None:
+        if self._link is None or self.state in (DriverState.UNCONFIGURED, DriverState.FINALIZED):
+            raise StateError(f"{self.name}: {what} needs a configured driver ({self.state.value})")
+
+    # ---- missions -----------------------------------------------------------------------------
+
+    def upload_mission(self, items: Sequence[MissionItem]) -> None:
+        """Replace the vehicle's mission (the MAVLink mission protocol, MISSION_INT).
+
+        Sends ``MISSION_COUNT`` and answers each ``MISSION_REQUEST_INT`` (and the older
+        ``MISSION_REQUEST``) with the ``MISSION_ITEM_INT`` asked for, until the vehicle's
+        ``MISSION_ACK``. ArduPilot keeps its home position as item 0, so the items go as
+        1..n after a placeholder item 0 (the home position when known). Each step waits
+        ``mission_timeout``; with nothing heard, the last message is sent again, up to
+        ``mission_retries`` times; a request for an earlier item is answered again, and a
+        ``MAV_MISSION_INVALID_SEQUENCE`` ack (ArduPilot's answer to a stray copy of an item)
+        does not end the upload. Positions go in ``MAV_FRAME_GLOBAL_RELATIVE_ALT``
+        (altitudes above home).
+
+        Args:
+            items: The mission (see :class:`~temoto.drivers.capabilities.MissionItem`).
+
+        Raises:
+            ValueError: No items, too many, or not MissionItems.
+            StateError: The driver is not configured.
+            MavlinkMissionError: The vehicle's MISSION_ACK refused it (the message names the
+                ``MAV_MISSION_RESULT``, and the item the vehicle asked for last).
+            DriverTimeoutError: A step went unanswered (the message names it).
+        """
+        mission = list(items)
+        if not mission:
+            raise ValueError(f"{self.name}: a mission needs at least one item")
+        for index, item in enumerate(mission, 1):
+            if not isinstance(item, MissionItem):
+                raise ValueError(
+                    f"{self.name}: mission item {index} is not a MissionItem: {type(item).__name__}"
+                )
+        if len(mission) >= 0xFFFF:
+            raise ValueError(f"{self.name}: {len(mission)} items: too many for MAVLink")
+        self._require_link("upload_mission")
+        with self._mission_lock:
+            target = self._target_ids()
+            with self._cond:
+                home = self._home
+            frames = [self._item_frame(0, _home_fields(home), target)]
+            frames += [
+                self._item_frame(seq, _item_fields(item), target)
+                for seq, item in enumerate(mission, 1)
+            ]
+            count = len(frames)
+            last = self._codec.encode(
+                "MISSION_COUNT",
+                target_system=target[0],
+                target_component=target[1],
+                count=count,
+                mission_type=p.MAV_MISSION_TYPE_MISSION,
+            )
+            with self._cond:
+                seen = self._mission_seq
+                self._mission_total = 0
+            self._write(last)
+            step = "MISSION_REQUEST for item 0 after MISSION_COUNT"
+            asked = -1  # the highest item the vehicle asked for
+            tries = 0
+            while True:
+                got = self._await_mission(seen, _UPLOAD_ANSWERS)
+                if got is None:
+                    tries += 1
+                    if tries > self.mission_retries:
+                        raise DriverTimeoutError(
+                            f"{self.name}: mission upload: no {step} in"
+                            f" {1 + self.mission_retries} tries of {self.mission_timeout:g} s"
+                        )
+                    self._write(last)
+                    continue
+                seen, msg = got
+                if msg.name == "MISSION_ACK":
+                    result = msg.get_int("type")
+                    if result == p.MAV_MISSION_INVALID_SEQUENCE:
+                        # ArduPilot's answer to a copy of an item it did not ask for (ours
+                        # after a lost or doubled request): the upload goes on.
+                        logger.debug("driver %s: mission upload: %s", self.name, msg.fields)
+                        continue
+                    if result != p.MAV_MISSION_ACCEPTED:
+                        where = f" at item {asked}" if asked >= 0 else ""
+                        raise MavlinkMissionError(
+                            f"{self.name}: mission upload refused{where}:"
+                            f" {p.mission_result_name(result)}",
+                            result=result,
+                        )
+                    if asked < count - 1:
+                        raise DriverOperationError(
+                            f"{self.name}: mission upload: the vehicle accepted after item"
+                            f" {asked} of {count - 1}: it does not hold the whole mission"
+                        )
+                    break
+                seq = msg.get_int("seq")
+                if not 0 <= seq < count:
+                    raise DriverOperationError(
+                        f"{self.name}: mission upload: the vehicle asked for item {seq},"
+                        f" the mission has 0..{count - 1}"
+                    )
+                tries = 0  # progress: each step has its own retries
+                asked = max(asked, seq)
+                last = frames[seq]
+                self._write(last)
+                step = (
+                    "MISSION_ACK after the last item"
+                    if seq == count - 1
+                    else f"MISSION_REQUEST for item {seq + 1}"
+                )
+            with self._cond:
+                self._mission_total = len(mission)
+                self._progress = MissionProgress(total=len(mission))
+        logger.info("driver %s: mission of %d items uploaded", self.name, len(mission))
+
+    def download_mission(self) -> list[MissionItem]:
+        """The vehicle's mission (``MISSION_REQUEST_LIST``, then each ``MISSION_REQUEST_INT``).
+
+        Item 0, ArduPilot's home position, is left out. Each step waits ``mission_timeout``
+        and is sent again up to ``mission_retries`` times; the transfer ends with a
+        ``MISSION_ACK`` (accepted) to the vehicle.
+
+        Returns:
+            The items, first first.
+
+        Raises:
+            StateError: The driver is not configured.
+            DriverOperationError: An item this driver cannot represent (its command or frame is
+                named), or the vehicle refused the transfer.
+            DriverTimeoutError: A step went unanswered (the message names it).
+        """
+        self._require_link("download_mission")
+        with self._mission_lock:
+            target = self._target_ids()
+            ids = {"target_system": target[0], "target_component": target[1]}
+            request = self._codec.encode(
+                "MISSION_REQUEST_LIST", **ids, mission_type=p.MAV_MISSION_TYPE_MISSION
+            )
+            with self._cond:
+                seen = self._mission_seq
+            got = self._mission_step(request, seen, _COUNT_ANSWERS, "MISSION_COUNT")
+            seen, msg = got
+            count = msg.get_int("count")
+            raw: list[Message] = []
+            for seq in range(count):
+                request = self._codec.encode(
+                    "MISSION_REQUEST_INT", **ids, seq=seq, mission_type=p.MAV_MISSION_TYPE_MISSION
+                )
+                seen, msg = self._mission_step(
+                    request, seen, _item_answer(seq), f"MISSION_ITEM_INT {seq} of {count}"
+                )
+                raw.append(msg)
+            self._write(
+                self._codec.encode(
+                    "MISSION_ACK",
+                    **ids,
+                    type=p.MAV_MISSION_ACCEPTED,
+                    mission_type=p.MAV_MISSION_TYPE_MISSION,
+                )
+            )
+            with self._cond:
+                home = self._home
+        items = [_decoded_item(self.name, msg, home) for msg in raw[1:]]
+        with self._cond:
+            self._mission_total = len(items)
+        return items
+
+    def clear_mission(self) -> None:
+        """Delete the vehicle's mission (``MISSION_CLEAR_ALL`` → ``MISSION_ACK``).
+
+        Raises:
+            StateError: The driver is not configured.
+            MavlinkMissionError: The vehicle refused (its ``MAV_MISSION_RESULT`` named).
+            DriverTimeoutError: No MISSION_ACK.
+        """
+        self._require_link("clear_mission")
+        with self._mission_lock:
+            target = self._target_ids()
+            request = self._codec.encode(
+                "MISSION_CLEAR_ALL",
+                target_system=target[0],
+                target_component=target[1],
+                mission_type=p.MAV_MISSION_TYPE_MISSION,
+            )
+            with self._cond:
+                seen = self._mission_seq
+            _, msg = self._mission_step(
+                request, seen, _ACK_ANSWERS, "MISSION_ACK to MISSION_CLEAR_ALL"
+            )
+            result = msg.get_int("type")
+            if result != p.MAV_MISSION_ACCEPTED:
+                raise MavlinkMissionError(
+                    f"{self.name}: mission clear refused: {p.mission_result_name(result)}",
+                    result=result,
+                )
+            with self._cond:
+                self._mission_total = 0
+                self._progress = MissionProgress()
+
+    def start_mission(self) -> None:
+        """Fly the vehicle's mission from its first item, as ArduCopter expects it.
+
+        On the ground and disarmed: GUIDED (ArduCopter does not arm in AUTO), arm, then
+        ``MAV_CMD_MISSION_START``, which switches to AUTO and starts the mission with the
+        motors running (ArduCopter's AUTO refuses a landed, armed start whose first item is not
+        a take-off: "Auto: Missing Takeoff Cmd"). Armed (flying, or on the ground):
+        ``MAV_CMD_MISSION_START`` alone. Returns when the vehicle accepted, not when it flew.
+
+        Raises:
+            StateError: The driver is not ``ACTIVE``.
+            MavlinkCommandError: A step was refused (the message carries the vehicle's words).
+            DriverTimeoutError: No acknowledgement.
+        """
+        self.require_active("start_mission")
+        with self._cond:
+            armed = self._armed
+        if not armed:
+            if p.mode_name(self._custom_mode) != "GUIDED":
+                self.set_mode("GUIDED")
+            self.arm()
+        self._moved_at = self.clock.monotonic()
+        with self._cond:
+            self._progress = MissionProgress(total=self._mission_total)
+        self._send_command(p.MAV_CMD_MISSION_START, (0.0, 0.0))
+
+    @property
+    def mission_progress(self) -> MissionProgress:
+        """The newest mission progress (``MISSION_CURRENT``, ``MISSION_ITEM_REACHED``).
+
+        Items are counted as :meth:`upload_mission` took them (1..n; ArduPilot's home item 0
+        is not one).
+        """
+        with self._cond:
+            return self._progress
+
+    def add_mission_listener(self, listener: Callable[[MissionProgress], None]) -> None:
+        """Call ``listener`` with each new mission progress (on the receive thread: be quick).
+
+        Args:
+            listener: Takes the :class:`~temoto.drivers.capabilities.MissionProgress`.
+        """
+        with self._cond:
+            self._mission_listeners.append(listener)
+
+    def _target_ids(self) -> tuple[int, int]:
+        with self._cond:
+            return (self._target or 1, self.component_id)
+
+    def _item_frame(self, seq: int, fields: dict[str, Any], target: tuple[int, int]) -> bytes:
+        return self._codec.encode(
+            "MISSION_ITEM_INT",
+            target_system=target[0],
+            target_component=target[1],
+            seq=seq,
+            current=0,
+            autocontinue=1,
+            mission_type=p.MAV_MISSION_TYPE_MISSION,
+            **fields,
+        )
+
+    def _mission_step(
+        self, request: bytes, seen: int, accept: Callable[[Message], bool], step: str
+    ) -> tuple[int, Message]:
+        """Send ``request`` until an accepted answer (retries); a refusing MISSION_ACK raises."""
+        for _ in range(1 + self.mission_retries):
+            self._write(request)
+            got = self._await_mission(seen, lambda m: accept(m) or m.name == "MISSION_ACK")
+            if got is None:
+                continue
+            if got[1].name == "MISSION_ACK" and not accept(got[1]):
+                result = got[1].get_int("type")
+                raise MavlinkMissionError(
+                    f"{self.name}: the vehicle ended the transfer waiting for {step}:"
+                    f" {p.mission_result_name(result)}",
+                    result=result,
+                )
+            return got
+        raise DriverTimeoutError(
+            f"{self.name}: no {step} in {1 + self.mission_retries} tries of"
+            f" {self.mission_timeout:g} s"
+        )
+
+    def _await_mission(
+        self, after: int, accept: Callable[[Message], bool]
+    ) -> tuple[int, Message] | None:
+        """The first mission-transfer message newer than ``after`` that ``accept`` takes."""
+        found: list[tuple[int, Message]] = []
+
+        def arrived() -> bool:
+            for number, msg in self._mission_rx:
+                if number > after and accept(msg):
+                    found.append((number, msg))
+                    return True
+            return False
+
+        return found[0] if self._await(arrived, self.mission_timeout) else None
+
+    def _absorb_mission(self, msg: Message) -> list[Callable[[MissionProgress], None]]:
+        """A mission message (lock held); the listeners to call when progress changed."""
+        name = msg.name
+        if name in _TRANSFER_MESSAGES:
+            if msg.fields.get("target_system", 0) not in (0, self._codec.system_id):
+                return []
+            if msg.fields.get("mission_type", 0) != p.MAV_MISSION_TYPE_MISSION:
+                return []
+            self._mission_seq += 1
+            self._mission_rx.append((self._mission_seq, msg))
+            return []
+        old = self._progress
+        if name == "MISSION_CURRENT":
+            total = msg.fields.get("total", 0)
+            known = self._mission_total or (total - 1 if 0 < total < 0xFFFF else 0)
+            finished = old.finished or (
+                msg.fields.get("mission_state", 0) == p.MISSION_STATE_COMPLETE
+            )
+            new = MissionProgress(msg.get_int("seq"), known, old.reached, finished)
+        else:  # MISSION_ITEM_REACHED
+            seq = msg.get_int("seq")
+            total = old.total
+            new = MissionProgress(
+                max(old.current, seq), total, seq, old.finished or (total > 0 and seq >= total)
+            )
+        if new == old:
+            return []
+        self._progress = new
+        return list(self._mission_listeners)
 
     # ---- safe state --------------------------------------------------------------------------
 
@@ -1081,6 +1543,12 @@ class MavlinkDriver(Driver):
                 if not link.pending():
                     self._drained_at = now
                 self._cond.notify_all()
+                notify, self._notify = self._notify, []
+            for listener, progress in notify:
+                try:
+                    listener(progress)
+                except Exception:
+                    logger.exception("driver %s: a mission listener raised", self.name)
             if self._beat_now:
                 with self._watch:
                     self._watch.notify_all()
@@ -1176,6 +1644,9 @@ class MavlinkDriver(Driver):
         elif name == "EXTENDED_SYS_STATE":
             self._landed_state = msg.get_int("landed_state")
             self._landed_at = now
+        elif name in _MISSION_MESSAGES:
+            for listener in self._absorb_mission(msg):
+                self._notify.append((listener, self._progress))
         elif name == "PARAM_VALUE":
             param = msg.get_text("param_id")
             self._params[param] = (msg.get_float("param_value"), msg.get_int("param_type"))
@@ -1495,6 +1966,7 @@ _INT_KEYS: Final = frozenset(
         "gcs_system_id",
         "gcs_component_id",
         "command_retries",
+        "mission_retries",
         "status_texts",
     }
 )
@@ -1535,3 +2007,158 @@ def _failsafe_params(raw: Any) -> dict[str, float]:
 def _same(a: float, b: float) -> bool:
     """Parameter values equal as a float32 carries them."""
     return abs(a - b) <= 1e-5 * max(1.0, abs(b))
+
+
+# ---- missions and parameters: wire encoding ----------------------------------------------------
+
+#: Mission-transfer messages kept for the mission waiters (the rest is progress).
+_TRANSFER_MESSAGES: Final = frozenset(
+    {"MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK", "MISSION_COUNT", "MISSION_ITEM_INT"}
+)
+_MISSION_MESSAGES: Final = _TRANSFER_MESSAGES | {"MISSION_CURRENT", "MISSION_ITEM_REACHED"}
+
+
+def _upload_answer(msg: Message) -> bool:
+    return msg.name in ("MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK")
+
+
+def _count_answer(msg: Message) -> bool:
+    return msg.name == "MISSION_COUNT"
+
+
+def _ack_answer(msg: Message) -> bool:
+    return msg.name == "MISSION_ACK"
+
+
+_UPLOAD_ANSWERS: Final = _upload_answer
+_COUNT_ANSWERS: Final = _count_answer
+_ACK_ANSWERS: Final = _ack_answer
+
+
+def _item_answer(seq: int) -> Callable[[Message], bool]:
+    def accept(msg: Message) -> bool:
+        return msg.name == "MISSION_ITEM_INT" and msg.get_int("seq") == seq
+
+    return accept
+
+
+#: MissionItem kind → its MAV_CMD.
+_ITEM_COMMANDS: Final[Mapping[str, int]] = {
+    "takeoff": p.MAV_CMD_NAV_TAKEOFF,
+    "waypoint": p.MAV_CMD_NAV_WAYPOINT,
+    "loiter_time": p.MAV_CMD_NAV_LOITER_TIME,
+    "speed": p.MAV_CMD_DO_CHANGE_SPEED,
+    "land": p.MAV_CMD_NAV_LAND,
+    "rtl": p.MAV_CMD_NAV_RETURN_TO_LAUNCH,
+}
+_ITEM_KINDS: Final[Mapping[int, str]] = {command: kind for kind, command in _ITEM_COMMANDS.items()}
+
+
+def _home_fields(home: tuple[float, float, float] | None) -> dict[str, Any]:
+    """Item 0, ArduPilot's home: the home position (AMSL) when known, else zeros."""
+    lat, lon, alt = home if home is not None else (0.0, 0.0, 0.0)
+    return {
+        "frame": int(p.MAV_FRAME_GLOBAL),
+        "command": p.MAV_CMD_NAV_WAYPOINT,
+        "param1": 0.0,
+        "param2": 0.0,
+        "param3": 0.0,
+        "param4": 0.0,
+        "x": p.deg_e7(lat),
+        "y": p.deg_e7(lon),
+        "z": float(alt),
+    }
+
+
+def _item_fields(item: MissionItem) -> dict[str, Any]:
+    """A MissionItem as MISSION_ITEM_INT fields (ArduCopter's use of each command's params)."""
+    params = [0.0, 0.0, 0.0, 0.0]
+    frame = p.MAV_FRAME_GLOBAL_RELATIVE_ALT
+    if item.kind == "waypoint" or item.kind == "loiter_time":
+        params[0] = item.seconds  # hold time / loiter time, s
+    elif item.kind == "speed":
+        params[:3] = [1.0, item.speed, -1.0]  # ground speed, m/s, throttle unchanged
+    if item.kind in ("speed", "rtl"):
+        frame = p.MAV_FRAME_MISSION
+    return {
+        "frame": frame,
+        "command": _ITEM_COMMANDS[item.kind],
+        "param1": params[0],
+        "param2": params[1],
+        "param3": params[2],
+        "param4": params[3],
+        "x": 0 if item.lat is None else p.deg_e7(item.lat),
+        "y": 0 if item.lon is None else p.deg_e7(item.lon),
+        "z": 0.0 if item.alt is None else float(item.alt),
+    }
+
+
+def _decoded_item(name: str, msg: Message, home: tuple[float, float, float] | None) -> MissionItem:
+    """A downloaded MISSION_ITEM_INT as a MissionItem.
+
+    Raises:
+        DriverOperationError: A command or frame MissionItem cannot represent.
+    """
+    seq, command, frame = msg.get_int("seq"), msg.get_int("command"), msg.get_int("frame")
+    kind = _ITEM_KINDS.get(command)
+    if kind is None:
+        raise DriverOperationError(
+            f"{name}: mission item {seq} is {p.command_name(command)}, which a MissionItem"
+            f" cannot hold (kinds: {', '.join(_ITEM_COMMANDS)})"
+        )
+    x, y, z = msg.get_int("x"), msg.get_int("y"), msg.get_float("z")
+    lat, lon = (None, None) if x == 0 and y == 0 else (x / 1e7, y / 1e7)
+    alt: float | None = z
+    if kind in ("speed", "rtl"):
+        lat = lon = alt = None
+    elif frame in p.MAV_FRAME_GLOBAL_INT_FRAMES:
+        if home is None:
+            raise DriverOperationError(
+                f"{name}: mission item {seq} has an altitude above sea level"
+                f" ({p._enum_name('MAV_FRAME', frame)}) and the home position is unknown"
+            )
+        alt = z - home[2]
+    elif frame not in p.MAV_FRAME_RELATIVE_FRAMES:
+        raise DriverOperationError(
+            f"{name}: mission item {seq} ({p.command_name(command)}) is in"
+            f" {p._enum_name('MAV_FRAME', frame)}; only global frames are supported"
+        )
+    if kind == "land":
+        alt = None
+    elif kind == "takeoff":
+        lat = lon = None
+    elif kind == "loiter_time" and lat is None and alt == 0.0:
+        alt = None
+    seconds = msg.get_float("param1") if kind in ("waypoint", "loiter_time") else 0.0
+    speed = msg.get_float("param2") if kind == "speed" else 0.0
+    try:
+        return MissionItem(kind, lat, lon, alt, seconds=seconds, speed=speed)
+    except ValueError as err:
+        raise DriverOperationError(f"{name}: mission item {seq}: {err}") from None
+
+
+def _typed_value(value: float, param_type: int) -> float | int:
+    """A PARAM_VALUE's value as its MAV_PARAM_TYPE says (ArduPilot's float-carried ints)."""
+    if param_type in p.PARAM_INT_RANGES:
+        return round(value)
+    return value
+
+
+def _check_param_value(name: str, value: float, param_type: int) -> None:
+    """Raise ValueError when ``value`` does not fit a parameter of ``param_type``."""
+    limits = p.PARAM_INT_RANGES.get(param_type)
+    if limits is None:
+        if param_type not in (p.MAV_PARAM_TYPE_REAL32, p.MAV_PARAM_TYPE_REAL64):
+            raise ValueError(f"{name}: unsupported parameter type {p.param_type_name(param_type)}")
+        return
+    kind = p.param_type_name(param_type)
+    if isinstance(value, float) and not value.is_integer():
+        raise ValueError(f"{name} is an integer ({kind}), got {value!r}")
+    low, high = limits
+    if not low <= value <= high:
+        raise ValueError(f"{name} ({kind}) must be {low}..{high}, got {value:g}")
+    if abs(value) > p.FLOAT32_EXACT_INT:
+        raise ValueError(
+            f"{name}: {value:g} does not survive ArduPilot's float32 encoding of integer"
+            f" parameters (at most {p.FLOAT32_EXACT_INT} in size)"
+        )

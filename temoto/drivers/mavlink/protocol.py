@@ -415,3 +415,67 @@ def nan_if_none(value: float | None) -> float:
         The value, or NaN.
     """
     return math.nan if value is None else float(value)
+
+
+# ---- missions and parameters (the driver's mission and parameter microservices) ------------
+
+MAV_CMD_NAV_WAYPOINT: Final[int] = int(_dialect.MAV_CMD_NAV_WAYPOINT)  # 16
+MAV_CMD_NAV_LOITER_TIME: Final[int] = int(_dialect.MAV_CMD_NAV_LOITER_TIME)  # 19
+MAV_CMD_DO_CHANGE_SPEED: Final[int] = int(_dialect.MAV_CMD_DO_CHANGE_SPEED)  # 178
+MAV_CMD_MISSION_START: Final[int] = int(_dialect.MAV_CMD_MISSION_START)  # 300
+
+MAV_FRAME_MISSION: Final[int] = int(_dialect.MAV_FRAME_MISSION)  # 2: no position
+MAV_FRAME_GLOBAL_INT_FRAMES: Final = frozenset(
+    {int(_dialect.MAV_FRAME_GLOBAL), int(_dialect.MAV_FRAME_GLOBAL_INT)}
+)
+MAV_FRAME_RELATIVE_FRAMES: Final = frozenset(
+    {int(_dialect.MAV_FRAME_GLOBAL_RELATIVE_ALT), int(_dialect.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)}
+)
+
+MAV_MISSION_TYPE_MISSION: Final[int] = int(_dialect.MAV_MISSION_TYPE_MISSION)  # 0
+MAV_MISSION_ACCEPTED: Final[int] = int(_dialect.MAV_MISSION_ACCEPTED)  # 0
+MAV_MISSION_INVALID_SEQUENCE: Final[int] = int(_dialect.MAV_MISSION_INVALID_SEQUENCE)  # 13
+MISSION_STATE_COMPLETE: Final[int] = int(_dialect.MISSION_STATE_COMPLETE)  # 5
+
+MAV_PARAM_TYPE_UINT8: Final[int] = int(_dialect.MAV_PARAM_TYPE_UINT8)
+MAV_PARAM_TYPE_UINT16: Final[int] = int(_dialect.MAV_PARAM_TYPE_UINT16)
+MAV_PARAM_TYPE_UINT32: Final[int] = int(_dialect.MAV_PARAM_TYPE_UINT32)
+MAV_PARAM_TYPE_REAL64: Final[int] = int(_dialect.MAV_PARAM_TYPE_REAL64)
+
+#: Integer MAV_PARAM_TYPEs → the (low, high) range of their values.
+PARAM_INT_RANGES: Final[Mapping[int, tuple[int, int]]] = {
+    MAV_PARAM_TYPE_UINT8: (0, 0xFF),
+    MAV_PARAM_TYPE_INT8: (-0x80, 0x7F),
+    MAV_PARAM_TYPE_UINT16: (0, 0xFFFF),
+    MAV_PARAM_TYPE_INT16: (-0x8000, 0x7FFF),
+    MAV_PARAM_TYPE_UINT32: (0, 0xFFFFFFFF),
+    MAV_PARAM_TYPE_INT32: (-0x80000000, 0x7FFFFFFF),
+}
+#: The largest integer a float32 carries exactly (ArduPilot sends every value as a float).
+FLOAT32_EXACT_INT: Final[int] = 1 << 24
+#: A parameter name's longest length (PARAM_VALUE's ``param_id`` is char[16]).
+PARAM_ID_LEN: Final[int] = 16
+
+
+def mission_result_name(result: int) -> str:
+    """The ``MAV_MISSION_*`` name of a MISSION_ACK type (``MAV_MISSION_RESULT(<n>)`` if unknown).
+
+    Args:
+        result: The value.
+
+    Returns:
+        The name.
+    """
+    return _enum_name("MAV_MISSION_RESULT", result)
+
+
+def param_type_name(param_type: int) -> str:
+    """The ``MAV_PARAM_TYPE_*`` name of a parameter type.
+
+    Args:
+        param_type: The value.
+
+    Returns:
+        The name (``MAV_PARAM_TYPE(<n>)`` if unknown).
+    """
+    return _enum_name("MAV_PARAM_TYPE", param_type)
