@@ -8,11 +8,11 @@ an action, stop- and pause-aware.
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Any
 
 from temoto.core.registrar import Registrar, Resource
-from temoto.drivers import GeoPoint
+from temoto.drivers import GeoPoint, MissionItem
 from temoto.errors import StateError, StopRequested
 from temoto.managers._client import find_manager, registrar_of
 from temoto.managers.robot.features import (
@@ -92,6 +92,10 @@ class RobotHandle:
     def land(self) -> Motion:
         """Land where it is."""
         return self._flight().land()
+
+    def fly_mission(self, items: Sequence[MissionItem]) -> Motion:
+        """Upload and fly a mission (:class:`~temoto.drivers.MissionItem` list) to its end."""
+        return self._flight().fly_mission(items)
 
     def telemetry(self) -> Any:
         """The vehicle's newest telemetry."""

@@ -24,6 +24,8 @@ from temoto.drivers import (
     ControlMode,
     GeoPoint,
     JointCommand,
+    MissionItem,
+    MissionVehicle,
     Vehicle,
 )
 from temoto.errors import StateError
@@ -367,7 +369,11 @@ def _distance(a: GeoPoint, b: GeoPoint) -> float:
 
 
 class FlightController:
-    """A flying vehicle: take off, fly to, land; arrival checked on every step.
+    """A flying vehicle: take off, fly to, land, fly a mission; arrival checked on every step.
+
+    A held motion makes the vehicle LOITER; resumed, it goes on in GUIDED (a mission: in AUTO,
+    from the item it was at). A mission that ends without being done (stopped, timed out)
+    leaves the vehicle in LOITER, holding where it is, not flying the rest on its own.
 
     Args:
         feature: The profile's flight settings.
@@ -384,6 +390,8 @@ class FlightController:
         self._motion: Motion | None = None
         self._check: Callable[[Any], bool] | None = None
         self._resend: Callable[[], None] | None = None
+        self._resume_mode = "GUIDED"
+        self._describe: Callable[[Any], str] | None = None
         self._holding = False
 
     def telemetry(self) -> Any:
@@ -433,10 +441,77 @@ class FlightController:
         self._vehicle.land()
         return self._start("land", lambda t: t.position.alt <= self.LANDED_ALT, self._vehicle.land)
 
-    def _start(self, what: str, check: Callable[[Any], bool], resend: Callable[[], None]) -> Motion:
+    def fly_mission(self, items: Sequence[MissionItem]) -> Motion:
+        """Upload a mission, start it (arming and taking off as the vehicle needs) and follow it.
+
+        The motion is reached when the vehicle reports its last item done (a mission that ends
+        with ``land`` or ``rtl``: also down, within :attr:`LANDED_ALT`); its progress says
+        ``item 2/5 (waypoint), alt 9.8 m``. Ended without being reached (cancelled, timed
+        out), it sets the vehicle to LOITER.
+
+        Args:
+            items: The mission.
+
+        Raises:
+            StateError: The vehicle cannot fly missions.
+            ValueError: No items.
+            DriverError: The vehicle refused the mission or its start, or did not answer.
+        """
+        vehicle = self._vehicle
+        if not isinstance(vehicle, MissionVehicle):
+            raise StateError(
+                f"the flight feature's vehicle ({type(vehicle).__name__}) cannot fly missions"
+            )
+        mission = list(items)
+        if not mission:
+            raise ValueError("a mission needs at least one item")
+        vehicle.upload_mission(mission)
+        vehicle.start_mission()
+        total = len(mission)
+        lands = mission[-1].kind in ("land", "rtl")
+
+        def done(telemetry: Any) -> bool:
+            progress = vehicle.mission_progress
+            down = telemetry.position.alt <= self.LANDED_ALT
+            if lands and progress.current >= total and down and not telemetry.armed:
+                return True  # landed at the end and disarmed, as ArduCopter does
+            return progress.finished and (not lands or down)
+
+        def describe(telemetry: Any) -> str:
+            at = vehicle.mission_progress.current
+            kind = f" ({mission[at - 1].kind})" if 1 <= at <= total else ""
+            return f"item {at}/{total}{kind}, alt {telemetry.position.alt:.1f} m"
+
+        motion = self._start(
+            f"fly a mission of {total} items", done, None, resume_mode="AUTO", describe=describe
+        )
+        motion.add_listener(lambda: self._hold_unfinished(motion))
+        return motion
+
+    def _hold_unfinished(self, motion: Motion) -> None:
+        """A mission that ended unreached (not superseded): LOITER, not the rest of it."""
+        if not motion.done or motion.error is None or motion.superseded:
+            return
+        try:
+            self._vehicle.set_mode("LOITER")
+        except Exception as err:
+            logger.warning("%s ended (%s); LOITER refused: %s", motion.what, motion.error, err)
+        else:
+            logger.info("%s ended (%s): vehicle LOITER", motion.what, motion.error)
+
+    def _start(
+        self,
+        what: str,
+        check: Callable[[Any], bool],
+        resend: Callable[[], None] | None,
+        *,
+        resume_mode: str = "GUIDED",
+        describe: Callable[[Any], str] | None = None,
+    ) -> Motion:
         motion = Motion(what)
         with self._lock:
             old, self._motion, self._check, self._resend = self._motion, motion, check, resend
+            self._resume_mode, self._describe = resume_mode, describe
             self._holding = False
         if old is not None:
             old.supersede()
@@ -446,6 +521,7 @@ class FlightController:
         """Control thread: check arrival; loiter while held, go on when resumed."""
         with self._lock:
             motion, check, resend = self._motion, self._check, self._resend
+            resume_mode, describe = self._resume_mode, self._describe
         if motion is None or check is None:
             return
         if motion.done:
@@ -458,15 +534,18 @@ class FlightController:
                 self._vehicle.set_mode("LOITER")
                 self._holding = True
                 return
-            if not motion.held and self._holding and resend is not None:
-                self._vehicle.set_mode("GUIDED")
-                resend()
+            if not motion.held and self._holding:
+                self._vehicle.set_mode(resume_mode)
+                if resend is not None:
+                    resend()
                 self._holding = False
         except Exception as err:  # a refused mode change ends the motion with the reason
             motion.finish(err)
             return
         telemetry = self._vehicle.telemetry()
-        motion.progress = f"alt {telemetry.position.alt:.1f} m"
+        motion.progress = (
+            describe(telemetry) if describe is not None else f"alt {telemetry.position.alt:.1f} m"
+        )
         if not motion.held and check(telemetry):
             with self._lock:
                 if self._motion is motion:

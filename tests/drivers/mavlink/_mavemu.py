@@ -83,6 +83,11 @@ class MavEmu:
         self.drop_param: set[str] = set()
         self.silent: set[str] = set()  # GCS messages never answered
         self.nack_stray = False  # a stray item gets MAV_MISSION_INVALID_SEQUENCE, as ArduPilot
+        # flying: with ``item_seconds`` set, AUTO goes to the next item every so many real
+        # seconds (not in another mode: LOITER holds), and after a last LAND it disarms
+        self.item_seconds: float | None = None
+        self.flying_seq = 0  # the item AUTO is at (0: none)
+        self._item_due = 0.0
 
     # ---- running -------------------------------------------------------------------------------
 
@@ -125,6 +130,7 @@ class MavEmu:
             if now >= next_hb and self.peer is not None:
                 next_hb = now + 0.1
                 self._heartbeat()
+            self._fly(now)
             try:
                 data, peer = self.sock.recvfrom(65536)
             except (TimeoutError, OSError):
@@ -278,6 +284,8 @@ class MavEmu:
     def _on_command_long(self, msg: Any) -> None:
         result = mav.MAV_RESULT_ACCEPTED
         if msg.command == mav.MAV_CMD_DO_SET_MODE:
+            if self.mode != AUTO and int(msg.param2) == AUTO:  # resumed: this item again
+                self._item_due = time.monotonic() + (self.item_seconds or 0.0)
             self.mode = int(msg.param2)
         elif msg.command == mav.MAV_CMD_COMPONENT_ARM_DISARM:
             self.armed = msg.param1 == 1
@@ -286,9 +294,28 @@ class MavEmu:
                 result = mav.MAV_RESULT_FAILED
             else:
                 self.mode = AUTO
+                self.flying_seq = 1
+                self._item_due = time.monotonic() + (self.item_seconds or 0.0)
                 self.current(1)
         self.send(self.mav.command_ack_encode(msg.command, result, 0, 0, 255, 190))
         self._heartbeat()
+
+    def _fly(self, now: float) -> None:
+        if self.item_seconds is None or self.mode != AUTO or not self.flying_seq:
+            return
+        if now < self._item_due:
+            return
+        seq = self.flying_seq
+        self.reached(seq)
+        if seq + 1 < len(self.mission):
+            self.flying_seq = seq + 1
+            self._item_due = now + self.item_seconds
+            self.current(seq + 1)
+            return
+        self.flying_seq = 0
+        if self.mission[seq].command == mav.MAV_CMD_NAV_LAND:
+            self.armed = False  # landed: ArduCopter disarms
+        self.current(seq, mav.MISSION_STATE_COMPLETE)
 
     # ---- what the vehicle reports --------------------------------------------------------------
 
