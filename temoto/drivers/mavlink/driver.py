@@ -332,6 +332,9 @@ class MavlinkDriver(Driver):
         self._params: dict[str, tuple[float, int]] = {}  # name → (value, MAV_PARAM_TYPE)
         self._param_count = 0  # PARAM_VALUE arrivals
         self._param_seen: dict[str, int] = {}  # name → arrival number of its newest value
+        #: name → MAV_PARAM_ERROR of a PARAM_ERROR about it (newer ArduPilot answers an unknown
+        #: name or a bad value so; older ones stay silent), since its exchange began.
+        self._param_errors: dict[str, int] = {}
         #: Mission-transfer messages for this GCS: (arrival number, message), newest last.
         self._mission_rx: collections.deque[tuple[int, Message]] = collections.deque(maxlen=64)
         self._mission_seq = 0
@@ -650,10 +653,11 @@ class MavlinkDriver(Driver):
         """Send ``message`` about parameter ``name`` until a PARAM_VALUE of it answers.
 
         Up to ``tries`` sends, each waiting ``command_timeout``; the answer's value and type,
-        or None.
+        or None (also at once when a PARAM_ERROR about it came: :attr:`_param_errors`).
         """
         with self._cond:
             target = self._target or 1
+            self._param_errors.pop(name, None)
         for _ in range(tries):
             with self._cond:
                 start = self._param_count
@@ -673,12 +677,30 @@ class MavlinkDriver(Driver):
 
     def _await_param(self, name: str, after: int) -> tuple[float, int] | None:
         def arrived() -> bool:
-            return self._param_seen.get(name, 0) > after
+            return self._param_seen.get(name, 0) > after or name in self._param_errors
 
         if not self._await(arrived, self.command_timeout):
             return None
         with self._cond:
-            return self._params[name]
+            if self._param_seen.get(name, 0) > after:
+                return self._params[name]
+        return None
+
+    def _param_failure(self, name: str, what: str) -> DriverError:
+        """The error of a parameter exchange that got no PARAM_VALUE (after its retries)."""
+        with self._cond:
+            error = self._param_errors.get(name)
+        if error is not None:
+            return DriverOperationError(
+                f"{self.name}: {what} {name}: the vehicle answered PARAM_ERROR"
+                f" {p._enum_name('MAV_PARAM_ERROR', error)}"
+            )
+        tries = 1 + self.command_retries
+        hint = " (does this firmware have it?)" if what == "reading" else ""
+        return DriverTimeoutError(
+            f"{self.name}: no PARAM_VALUE for {name} in {tries} tries of"
+            f" {self.command_timeout:g} s ({what}){hint}"
+        )
 
     # ---- parameters (public) ------------------------------------------------------------------
 
@@ -707,11 +729,7 @@ class MavlinkDriver(Driver):
         with self._param_lock:
             got = self._read_param(name)
         if got is None:
-            tries = 1 + self.command_retries
-            raise DriverTimeoutError(
-                f"{self.name}: no PARAM_VALUE for {name} in {tries} tries of"
-                f" {self.command_timeout:g} s (does this firmware have it?)"
-            )
+            raise self._param_failure(name, "reading")
         return _typed_value(*got)
 
     def set_param(self, name: str, value: float) -> float | int:
@@ -748,10 +766,7 @@ class MavlinkDriver(Driver):
                 known = self._params.get(name)
             current = known if known is not None else self._read_param(name)
             if current is None:
-                raise DriverTimeoutError(
-                    f"{self.name}: no PARAM_VALUE for {name} in {tries} tries of"
-                    f" {self.command_timeout:g} s (does this firmware have it?)"
-                )
+                raise self._param_failure(name, "reading")
             param_type = current[1]
             _check_param_value(name, value, param_type)
             if known is not None or not _same(current[0], value):
@@ -759,10 +774,7 @@ class MavlinkDriver(Driver):
                     "PARAM_SET", name, tries, param_value=float(value), param_type=param_type
                 )
                 if got is None:
-                    raise DriverTimeoutError(
-                        f"{self.name}: no PARAM_VALUE after setting {name} in {tries} tries"
-                        f" of {self.command_timeout:g} s"
-                    )
+                    raise self._param_failure(name, "setting")
                 current = got
         if not _same(current[0], value):
             raise DriverOperationError(
@@ -981,7 +993,11 @@ class MavlinkDriver(Driver):
                 self._progress = MissionProgress()
 
     def start_mission(self) -> None:
-        """Fly the vehicle's mission from its first item, as ArduCopter expects it.
+        """Fly the vehicle's mission, as ArduCopter expects it.
+
+        ArduCopter starts a freshly uploaded mission at item 1, and otherwise resumes it at its
+        current item (``MIS_RESTART`` 0, the default; ``MAV_CMD_MISSION_START``'s first and
+        last item must be 0).
 
         On the ground and disarmed: GUIDED (ArduCopter does not arm in AUTO), arm, then
         ``MAV_CMD_MISSION_START``, which switches to AUTO and starts the mission with the
@@ -1647,6 +1663,9 @@ class MavlinkDriver(Driver):
         elif name in _MISSION_MESSAGES:
             for listener in self._absorb_mission(msg):
                 self._notify.append((listener, self._progress))
+        elif name == "PARAM_ERROR":
+            if msg.fields.get("target_system", 0) in (0, self._codec.system_id):
+                self._param_errors[msg.get_text("param_id")] = msg.get_int("error")
         elif name == "PARAM_VALUE":
             param = msg.get_text("param_id")
             self._params[param] = (msg.get_float("param_value"), msg.get_int("param_type"))

@@ -8,7 +8,9 @@ sends an ArduPilot heartbeat, and answers
 * the mission microservice: MISSION_COUNT → MISSION_REQUEST_INT (or the older MISSION_REQUEST)
   per item → MISSION_ACK; MISSION_REQUEST_LIST → MISSION_COUNT, MISSION_REQUEST_INT →
   MISSION_ITEM_INT; MISSION_CLEAR_ALL → MISSION_ACK; an item it did not ask for makes it ask
-  again for the one it waits for (the vehicle's re-request);
+  again for the one it waits for (ArduPilot re-requests after 1 s without an item; this end at
+  once), with MAV_MISSION_INVALID_SEQUENCE first when ``nack_stray`` (as ArduPilot answers a
+  stray item);
 * the parameter microservice: PARAM_REQUEST_READ (by name or index) and PARAM_SET →
   PARAM_VALUE, integers carried as floats (ArduPilot's "C cast"); an unknown name gets no
   answer, as on ArduPilot;
@@ -82,6 +84,7 @@ class MavEmu:
         self.drop_download_item: set[int] = set()
         self.drop_param: set[str] = set()
         self.silent: set[str] = set()  # GCS messages never answered
+        self.param_errors = False  # unknown names get PARAM_ERROR (newer ArduPilot), not silence
         self.nack_stray = False  # a stray item gets MAV_MISSION_INVALID_SEQUENCE, as ArduPilot
         # flying: with ``item_seconds`` set, AUTO goes to the next item every so many real
         # seconds (not in another mode: LOITER holds), and after a last LAND it disarms
@@ -268,11 +271,22 @@ class MavEmu:
             name = names[msg.param_index]
         if name in self.params:
             self._param_value(name)
+        else:
+            self._param_error(name)
+
+    def _param_error(self, name: str) -> None:
+        if self.param_errors:
+            self.send(
+                self.mav.param_error_encode(
+                    255, 190, name.encode(), -1, mav.MAV_PARAM_ERROR_DOES_NOT_EXIST
+                )
+            )
 
     def _on_param_set(self, msg: Any) -> None:
         name = msg.param_id
         if name not in self.params:
-            return  # ArduPilot: unknown names go unanswered
+            self._param_error(name)  # older ArduPilot: unanswered
+            return
         kind = self.params[name][1]
         value = float(msg.param_value)
         if kind in INT_TYPES:

@@ -284,6 +284,17 @@ def test_get_param_retries_and_times_out_naming_the_parameter(
         driver.get_param("NO_SUCH_PARAM")
 
 
+def test_a_param_error_answer_ends_the_exchange_naming_it(
+    emu: MavEmu, driver: MavlinkDriver
+) -> None:
+    emu.param_errors = True  # as newer ArduPilot answers a name it does not have
+    with pytest.raises(DriverOperationError, match="MAV_PARAM_ERROR_DOES_NOT_EXIST"):
+        driver.get_param("NO_SUCH_PARAM")
+    assert emu.names_received().count("PARAM_REQUEST_READ") == 1  # no retries: it answered
+    with pytest.raises(DriverOperationError, match=r"reading NO_SUCH_PARAM: .*DOES_NOT_EXIST"):
+        driver.set_param("NO_SUCH_PARAM", 2)
+
+
 def test_set_param_checks_the_echo(emu: MavEmu, driver: MavlinkDriver) -> None:
     assert driver.set_param("WPNAV_SPEED", 750.5) == 750.5
     assert emu.params["WPNAV_SPEED"][0] == 750.5
