@@ -999,7 +999,8 @@ class MavlinkDriver(Driver):
         current item (``MIS_RESTART`` 0, the default; ``MAV_CMD_MISSION_START``'s first and
         last item must be 0).
 
-        On the ground and disarmed: GUIDED (ArduCopter does not arm in AUTO), arm, then
+        On the ground and disarmed: GUIDED (ArduCopter does not arm in AUTO unless
+        ``AUTO_OPTIONS`` allows it), arm, then
         ``MAV_CMD_MISSION_START``, which switches to AUTO and starts the mission with the
         motors running (ArduCopter's AUTO refuses a landed, armed start whose first item is not
         a take-off: "Auto: Missing Takeoff Cmd"). Armed (flying, or on the ground):
