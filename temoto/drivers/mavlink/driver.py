@@ -1109,7 +1109,8 @@ class MavlinkDriver(Driver):
         old = self._progress
         if name == "MISSION_CURRENT":
             total = msg.fields.get("total", 0)
-            known = self._mission_total or (total - 1 if 0 < total < 0xFFFF else 0)
+            # MISSION_CURRENT.total leaves out a home item 0 (on the last item, seq == total)
+            known = self._mission_total or (total if 0 < total < 0xFFFF else 0)
             finished = old.finished or (
                 msg.fields.get("mission_state", 0) == p.MISSION_STATE_COMPLETE
             )

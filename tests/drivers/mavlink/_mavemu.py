@@ -333,9 +333,33 @@ class MavEmu:
 
     # ---- what the vehicle reports --------------------------------------------------------------
 
+    def load(self, items: int) -> None:
+        """Hold a mission of ``items`` waypoints (and home), as if another station uploaded it."""
+        self.mission = [
+            self.mav.mission_item_int_encode(
+                255,
+                190,
+                seq,
+                3,
+                mav.MAV_CMD_NAV_WAYPOINT,
+                0,
+                1,
+                0,
+                0,
+                0,
+                0,
+                473977420 + seq * 1000,
+                85455940,
+                10.0,
+                0,
+            )
+            for seq in range(items + 1)
+        ]
+
     def current(self, seq: int, state: int = mav.MISSION_STATE_ACTIVE) -> None:
         """Send MISSION_CURRENT."""
-        self.send(self.mav.mission_current_encode(seq, len(self.mission), state, 0))
+        total = max(len(self.mission) - 1, 0)  # without item 0, home: seq == total on the last
+        self.send(self.mav.mission_current_encode(seq, total, state, 0))
 
     def reached(self, seq: int) -> None:
         """Send MISSION_ITEM_REACHED."""

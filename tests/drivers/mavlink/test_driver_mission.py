@@ -253,6 +253,17 @@ def test_start_when_armed_sends_mission_start_alone_and_a_refusal_is_typed(
     assert commands == [mav.MAV_CMD_MISSION_START]
 
 
+def test_progress_of_a_mission_another_station_uploaded_takes_its_total_from_the_vehicle(
+    emu: MavEmu, driver: MavlinkDriver
+) -> None:
+    emu.load(3)
+    driver.start_mission()
+    _wait_for(lambda: driver.mission_progress.current == 1)
+    assert driver.mission_progress.total == 3  # MISSION_CURRENT.total leaves home out
+    emu.current(3, mav.MISSION_STATE_COMPLETE)
+    _wait_for(lambda: driver.mission_progress.finished)
+
+
 def test_the_driver_is_a_mission_vehicle_and_needs_a_link() -> None:
     drv = MavlinkDriver("quad", link="udpout:127.0.0.1:9", clock=MonotonicClock())
     assert isinstance(drv, MissionVehicle)
