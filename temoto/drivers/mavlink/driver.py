@@ -74,6 +74,7 @@ from urllib.parse import parse_qs
 from temoto.clock import Clock
 from temoto.drivers.base import Driver, DriverState, detect_links
 from temoto.drivers.capabilities import GeoPoint, MissionItem, MissionProgress, VehicleTelemetry
+from temoto.drivers.mavlink import missions
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.link import Link, LinkSpec, open_link, parse_link
 from temoto.drivers.mavlink.protocol import Codec, Message
@@ -673,6 +674,9 @@ class MavlinkDriver(Driver):
             got = self._await_param(name, start)
             if got is not None:
                 return got
+            with self._cond:
+                if name in self._param_errors:
+                    break  # the vehicle answered: asking again changes nothing
         return None
 
     def _await_param(self, name: str, after: int) -> tuple[float, int] | None:
@@ -730,7 +734,7 @@ class MavlinkDriver(Driver):
             got = self._read_param(name)
         if got is None:
             raise self._param_failure(name, "reading")
-        return _typed_value(*got)
+        return missions.typed_param_value(*got)
 
     def set_param(self, name: str, value: float) -> float | int:
         """Set one parameter of the vehicle (``PARAM_SET`` → the ``PARAM_VALUE`` echo).
@@ -768,7 +772,7 @@ class MavlinkDriver(Driver):
             if current is None:
                 raise self._param_failure(name, "reading")
             param_type = current[1]
-            _check_param_value(name, value, param_type)
+            missions.check_param_value(name, value, param_type)
             if known is not None or not _same(current[0], value):
                 got = self._param_exchange(
                     "PARAM_SET", name, tries, param_value=float(value), param_type=param_type
@@ -781,7 +785,7 @@ class MavlinkDriver(Driver):
                 f"{self.name}: the vehicle kept {name} = {current[0]:g} (asked for {value:g})"
             )
         logger.info("driver %s: %s = %g", self.name, name, current[0])
-        return _typed_value(*current)
+        return missions.typed_param_value(*current)
 
     def _check_param_name(self, name: str) -> None:
         if not (
@@ -836,9 +840,9 @@ class MavlinkDriver(Driver):
             target = self._target_ids()
             with self._cond:
                 home = self._home
-            frames = [self._item_frame(0, _home_fields(home), target)]
+            frames = [self._item_frame(0, missions.home_fields(home), target)]
             frames += [
-                self._item_frame(seq, _item_fields(item), target)
+                self._item_frame(seq, missions.item_fields(item), target)
                 for seq, item in enumerate(mission, 1)
             ]
             count = len(frames)
@@ -857,7 +861,7 @@ class MavlinkDriver(Driver):
             asked = -1  # the highest item the vehicle asked for
             tries = 0
             while True:
-                got = self._await_mission(seen, _UPLOAD_ANSWERS)
+                got = self._await_mission(seen, missions.upload_answer)
                 if got is None:
                     tries += 1
                     if tries > self.mission_retries:
@@ -933,7 +937,7 @@ class MavlinkDriver(Driver):
             )
             with self._cond:
                 seen = self._mission_seq
-            got = self._mission_step(request, seen, _COUNT_ANSWERS, "MISSION_COUNT")
+            got = self._mission_step(request, seen, missions.count_answer, "MISSION_COUNT")
             seen, msg = got
             count = msg.get_int("count")
             raw: list[Message] = []
@@ -942,7 +946,7 @@ class MavlinkDriver(Driver):
                     "MISSION_REQUEST_INT", **ids, seq=seq, mission_type=p.MAV_MISSION_TYPE_MISSION
                 )
                 seen, msg = self._mission_step(
-                    request, seen, _item_answer(seq), f"MISSION_ITEM_INT {seq} of {count}"
+                    request, seen, missions.item_answer(seq), f"MISSION_ITEM_INT {seq} of {count}"
                 )
                 raw.append(msg)
             self._write(
@@ -955,7 +959,7 @@ class MavlinkDriver(Driver):
             )
             with self._cond:
                 home = self._home
-        items = [_decoded_item(self.name, msg, home) for msg in raw[1:]]
+        items = [missions.decoded_item(self.name, msg, home) for msg in raw[1:]]
         with self._cond:
             self._mission_total = len(items)
         return items
@@ -980,7 +984,7 @@ class MavlinkDriver(Driver):
             with self._cond:
                 seen = self._mission_seq
             _, msg = self._mission_step(
-                request, seen, _ACK_ANSWERS, "MISSION_ACK to MISSION_CLEAR_ALL"
+                request, seen, missions.ack_answer, "MISSION_ACK to MISSION_CLEAR_ALL"
             )
             result = msg.get_int("type")
             if result != p.MAV_MISSION_ACCEPTED:
@@ -1064,7 +1068,7 @@ class MavlinkDriver(Driver):
         """Send ``request`` until an accepted answer (retries); a refusing MISSION_ACK raises."""
         for _ in range(1 + self.mission_retries):
             self._write(request)
-            got = self._await_mission(seen, lambda m: accept(m) or m.name == "MISSION_ACK")
+            got = self._await_mission(seen, lambda msg: accept(msg) or msg.name == "MISSION_ACK")
             if got is None:
                 continue
             if got[1].name == "MISSION_ACK" and not accept(got[1]):
@@ -1098,7 +1102,7 @@ class MavlinkDriver(Driver):
     def _absorb_mission(self, msg: Message) -> list[Callable[[MissionProgress], None]]:
         """A mission message (lock held); the listeners to call when progress changed."""
         name = msg.name
-        if name in _TRANSFER_MESSAGES:
+        if name in missions.TRANSFER_MESSAGES:
             if msg.fields.get("target_system", 0) not in (0, self._codec.system_id):
                 return []
             if msg.fields.get("mission_type", 0) != p.MAV_MISSION_TYPE_MISSION:
@@ -1662,7 +1666,7 @@ class MavlinkDriver(Driver):
         elif name == "EXTENDED_SYS_STATE":
             self._landed_state = msg.get_int("landed_state")
             self._landed_at = now
-        elif name in _MISSION_MESSAGES:
+        elif name in missions.MISSION_MESSAGES:
             for listener in self._absorb_mission(msg):
                 self._notify.append((listener, self._progress))
         elif name == "PARAM_ERROR":
@@ -2028,158 +2032,3 @@ def _failsafe_params(raw: Any) -> dict[str, float]:
 def _same(a: float, b: float) -> bool:
     """Parameter values equal as a float32 carries them."""
     return abs(a - b) <= 1e-5 * max(1.0, abs(b))
-
-
-# ---- missions and parameters: wire encoding ----------------------------------------------------
-
-#: Mission-transfer messages kept for the mission waiters (the rest is progress).
-_TRANSFER_MESSAGES: Final = frozenset(
-    {"MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK", "MISSION_COUNT", "MISSION_ITEM_INT"}
-)
-_MISSION_MESSAGES: Final = _TRANSFER_MESSAGES | {"MISSION_CURRENT", "MISSION_ITEM_REACHED"}
-
-
-def _upload_answer(msg: Message) -> bool:
-    return msg.name in ("MISSION_REQUEST_INT", "MISSION_REQUEST", "MISSION_ACK")
-
-
-def _count_answer(msg: Message) -> bool:
-    return msg.name == "MISSION_COUNT"
-
-
-def _ack_answer(msg: Message) -> bool:
-    return msg.name == "MISSION_ACK"
-
-
-_UPLOAD_ANSWERS: Final = _upload_answer
-_COUNT_ANSWERS: Final = _count_answer
-_ACK_ANSWERS: Final = _ack_answer
-
-
-def _item_answer(seq: int) -> Callable[[Message], bool]:
-    def accept(msg: Message) -> bool:
-        return msg.name == "MISSION_ITEM_INT" and msg.get_int("seq") == seq
-
-    return accept
-
-
-#: MissionItem kind → its MAV_CMD.
-_ITEM_COMMANDS: Final[Mapping[str, int]] = {
-    "takeoff": p.MAV_CMD_NAV_TAKEOFF,
-    "waypoint": p.MAV_CMD_NAV_WAYPOINT,
-    "loiter_time": p.MAV_CMD_NAV_LOITER_TIME,
-    "speed": p.MAV_CMD_DO_CHANGE_SPEED,
-    "land": p.MAV_CMD_NAV_LAND,
-    "rtl": p.MAV_CMD_NAV_RETURN_TO_LAUNCH,
-}
-_ITEM_KINDS: Final[Mapping[int, str]] = {command: kind for kind, command in _ITEM_COMMANDS.items()}
-
-
-def _home_fields(home: tuple[float, float, float] | None) -> dict[str, Any]:
-    """Item 0, ArduPilot's home: the home position (AMSL) when known, else zeros."""
-    lat, lon, alt = home if home is not None else (0.0, 0.0, 0.0)
-    return {
-        "frame": int(p.MAV_FRAME_GLOBAL),
-        "command": p.MAV_CMD_NAV_WAYPOINT,
-        "param1": 0.0,
-        "param2": 0.0,
-        "param3": 0.0,
-        "param4": 0.0,
-        "x": p.deg_e7(lat),
-        "y": p.deg_e7(lon),
-        "z": float(alt),
-    }
-
-
-def _item_fields(item: MissionItem) -> dict[str, Any]:
-    """A MissionItem as MISSION_ITEM_INT fields (ArduCopter's use of each command's params)."""
-    params = [0.0, 0.0, 0.0, 0.0]
-    frame = p.MAV_FRAME_GLOBAL_RELATIVE_ALT
-    if item.kind == "waypoint" or item.kind == "loiter_time":
-        params[0] = item.seconds  # hold time / loiter time, s
-    elif item.kind == "speed":
-        params[:3] = [1.0, item.speed, -1.0]  # ground speed, m/s, throttle unchanged
-    if item.kind in ("speed", "rtl"):
-        frame = p.MAV_FRAME_MISSION
-    return {
-        "frame": frame,
-        "command": _ITEM_COMMANDS[item.kind],
-        "param1": params[0],
-        "param2": params[1],
-        "param3": params[2],
-        "param4": params[3],
-        "x": 0 if item.lat is None else p.deg_e7(item.lat),
-        "y": 0 if item.lon is None else p.deg_e7(item.lon),
-        "z": 0.0 if item.alt is None else float(item.alt),
-    }
-
-
-def _decoded_item(name: str, msg: Message, home: tuple[float, float, float] | None) -> MissionItem:
-    """A downloaded MISSION_ITEM_INT as a MissionItem.
-
-    Raises:
-        DriverOperationError: A command or frame MissionItem cannot represent.
-    """
-    seq, command, frame = msg.get_int("seq"), msg.get_int("command"), msg.get_int("frame")
-    kind = _ITEM_KINDS.get(command)
-    if kind is None:
-        raise DriverOperationError(
-            f"{name}: mission item {seq} is {p.command_name(command)}, which a MissionItem"
-            f" cannot hold (kinds: {', '.join(_ITEM_COMMANDS)})"
-        )
-    x, y, z = msg.get_int("x"), msg.get_int("y"), msg.get_float("z")
-    lat, lon = (None, None) if x == 0 and y == 0 else (x / 1e7, y / 1e7)
-    alt: float | None = z
-    if kind in ("speed", "rtl"):
-        lat = lon = alt = None
-    elif frame in p.MAV_FRAME_GLOBAL_INT_FRAMES:
-        if home is None:
-            raise DriverOperationError(
-                f"{name}: mission item {seq} has an altitude above sea level"
-                f" ({p._enum_name('MAV_FRAME', frame)}) and the home position is unknown"
-            )
-        alt = z - home[2]
-    elif frame not in p.MAV_FRAME_RELATIVE_FRAMES:
-        raise DriverOperationError(
-            f"{name}: mission item {seq} ({p.command_name(command)}) is in"
-            f" {p._enum_name('MAV_FRAME', frame)}; only global frames are supported"
-        )
-    if kind == "land":
-        alt = None
-    elif kind == "takeoff":
-        lat = lon = None
-    elif kind == "loiter_time" and lat is None and alt == 0.0:
-        alt = None
-    seconds = msg.get_float("param1") if kind in ("waypoint", "loiter_time") else 0.0
-    speed = msg.get_float("param2") if kind == "speed" else 0.0
-    try:
-        return MissionItem(kind, lat, lon, alt, seconds=seconds, speed=speed)
-    except ValueError as err:
-        raise DriverOperationError(f"{name}: mission item {seq}: {err}") from None
-
-
-def _typed_value(value: float, param_type: int) -> float | int:
-    """A PARAM_VALUE's value as its MAV_PARAM_TYPE says (ArduPilot's float-carried ints)."""
-    if param_type in p.PARAM_INT_RANGES:
-        return round(value)
-    return value
-
-
-def _check_param_value(name: str, value: float, param_type: int) -> None:
-    """Raise ValueError when ``value`` does not fit a parameter of ``param_type``."""
-    limits = p.PARAM_INT_RANGES.get(param_type)
-    if limits is None:
-        if param_type not in (p.MAV_PARAM_TYPE_REAL32, p.MAV_PARAM_TYPE_REAL64):
-            raise ValueError(f"{name}: unsupported parameter type {p.param_type_name(param_type)}")
-        return
-    kind = p.param_type_name(param_type)
-    if isinstance(value, float) and not value.is_integer():
-        raise ValueError(f"{name} is an integer ({kind}), got {value!r}")
-    low, high = limits
-    if not low <= value <= high:
-        raise ValueError(f"{name} ({kind}) must be {low}..{high}, got {value:g}")
-    if abs(value) > p.FLOAT32_EXACT_INT:
-        raise ValueError(
-            f"{name}: {value:g} does not survive ArduPilot's float32 encoding of integer"
-            f" parameters (at most {p.FLOAT32_EXACT_INT} in size)"
-        )
