@@ -44,6 +44,7 @@ __all__ = [
     "DEFAULT_PORT",
     "Endpoint",
     "add_sim",
+    "endpoint_for",
     "parse_udp_address",
     "sim_command",
 ]
@@ -83,6 +84,10 @@ class Endpoint:
     def line(self) -> str:
         """The text line: ``<device> (<driver>): link: <value>``."""
         return f"{self.device} ({self.driver}): link: {_flow(self.link)}"
+
+    def summary(self) -> str:
+        """One line: :meth:`line` and how the first of the tools connects."""
+        return f"{self.line()}   # {self.tools[0]}" if self.tools else self.line()
 
     def json(self) -> dict[str, Any]:
         """The JSON line's object."""
@@ -695,6 +700,44 @@ def _group(index: int) -> str:
     return str(base + index)
 
 
+def endpoint_for(
+    name: str,
+    driver: str,
+    sim: Any,
+    settings: Mapping[str, Any],
+    outs: Sequence[tuple[str, int]] = (),
+) -> Endpoint:
+    """The endpoint of a started simulator that a driver's ``simulate()`` made.
+
+    Args:
+        name: The device's name.
+        driver: The driver's profile name.
+        sim: The simulator (started: a vehicle's own port is known only then).
+        settings: The entry ``simulate()`` returned (its ``link`` reaches the simulator).
+        outs: The extra ground stations a vehicle streams to (``--out``, ``--sim-out``).
+
+    Returns:
+        The endpoint (a driver of another kind: its ``link`` alone).
+    """
+    link = settings.get("link")
+    if driver == "mavlink":
+        text = str(link)
+        host, _, port = text.rpartition(":")  # the driver's udpin: port the vehicle streams to
+        gcs = [(host.partition(":")[2], int(port)), *outs] if port.isdigit() else list(outs)
+        return _vehicle_endpoint(name, sim, text, gcs)
+    if driver == "dynamixel":
+        servos = {
+            int(s["id"]): str(s.get("model", "?"))
+            for s in settings.get("servos", [])
+            if isinstance(s, Mapping) and isinstance(s.get("id"), int)
+        }
+        return _dxl_endpoint(name, sim, str(link), servos)
+    if isinstance(link, Mapping) and driver in ("odrive_can", "mit_can"):
+        ids = sorted(getattr(sim, "axes", None) or getattr(sim, "motors", {}))
+        return _can_endpoint(name, driver, link, ids)
+    return Endpoint(name, driver, link)
+
+
 def _profile_served(
     name: str,
     driver: str,
@@ -702,25 +745,14 @@ def _profile_served(
     settings: Mapping[str, Any],
     outs: Sequence[tuple[str, int]],
 ) -> _Served:
-    link = settings.get("link")
+    endpoint = endpoint_for(name, driver, sim, settings, outs)
     if driver == "mavlink":
-        text = str(link)
-        host, _, port = text.rpartition(":")  # the driver's udpin: port the vehicle streams to
-        gcs = [(host.partition(":")[2], int(port)), *outs] if port.isdigit() else list(outs)
-        return _Served(_vehicle_endpoint(name, sim, text, gcs), sim, _mavlink_traffic(sim))
+        return _Served(endpoint, sim, _mavlink_traffic(sim))
     if driver == "dynamixel":
-        servos = {
-            int(s["id"]): str(s.get("model", "?"))
-            for s in settings.get("servos", [])
-            if isinstance(s, Mapping) and isinstance(s.get("id"), int)
-        }
-        return _Served(_dxl_endpoint(name, sim, str(link), servos), sim, _dxl_traffic(sim))
-    if isinstance(link, Mapping) and hasattr(sim, "frames_received"):
-        ids = sorted(getattr(sim, "axes", None) or getattr(sim, "motors", {}))
-        return _Served(
-            _can_endpoint(name, driver, link, ids), sim, _counter(lambda: sim.frames_received)
-        )
-    return _Served(Endpoint(name, driver, link), sim, _counter(lambda: 0))
+        return _Served(endpoint, sim, _dxl_traffic(sim))
+    if hasattr(sim, "frames_received"):
+        return _Served(endpoint, sim, _counter(lambda: sim.frames_received))
+    return _Served(endpoint, sim, _counter(lambda: 0))
 
 
 # ---- output ----------------------------------------------------------------------------------
