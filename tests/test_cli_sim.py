@@ -450,3 +450,119 @@ def test_can_logger_records_the_profile_s_odrives_while_a_driver_drives_them(
     assert ids.get(heartbeat, 0) >= 5
     assert ids.get(estimates, 0) >= 50
     assert ids.get(1 << 5 | 0x0D, 0) >= 1  # the driver's Set_Input_Vel, seen on the bus too
+
+
+# ---- the tools' own ways in ------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    ("args", "key", "ids"),
+    [
+        (("odrive", "--bus", "virtual", "--node", "3", "--node", "1"), "nodes", [1, 3]),
+        (("mit", "--bus", "virtual", "--motor", "2:AK60-6", "--motor", "5"), "motors", [2, 5]),
+    ],
+)
+def test_can_simulators_print_their_bus_and_ids(
+    served: list[Served], args: tuple[str, ...], key: str, ids: list[int]
+) -> None:
+    sim = start(served, *args)
+    (endpoint,) = sim.endpoints(1)
+    assert endpoint["link"] == {"interface": "virtual", "channel": "temoto-sim"}
+    assert endpoint[key] == ids
+    assert sim.stop(signal.SIGINT)[0] == 0
+
+
+def test_odrive_rates_are_printed_as_the_odrive_s_settings(served: list[Served]) -> None:
+    sim = start(served, "odrive", "--bus", "virtual", "--node", "1", "--rate", "heartbeat=0",
+                "--rate", "torques_msg_rate_ms=20")  # fmt: skip
+    (endpoint,) = sim.endpoints(1)
+    rates = endpoint["rates_ms"]
+    assert rates["heartbeat_msg_rate_ms"] == 0
+    assert rates["torques_msg_rate_ms"] == pytest.approx(20)
+    assert rates["encoder_msg_rate_ms"] == pytest.approx(10)
+    assert sim.stop()[0] == 0
+
+
+@pytest.mark.skipif(shutil.which("socat") is None, reason="needs socat")
+def test_socat_exposes_the_chain_as_a_tcp_serial_port(served: list[Served]) -> None:
+    serial = pytest.importorskip("serial")
+    from temoto.drivers.dynamixel import protocol as dxl
+
+    chain = start(served, "dynamixel", "--servo", "4:XM430-W350")
+    (endpoint,) = chain.endpoints(1)
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as probe:
+        probe.bind(("127.0.0.1", 0))
+        tcp = probe.getsockname()[1]
+    bridge = subprocess.Popen(
+        [
+            "socat",
+            f"TCP-LISTEN:{tcp},reuseaddr,bind=127.0.0.1",
+            f"FILE:{endpoint['port']},raw,echo=0",
+        ]
+    )
+    try:
+        deadline = time.monotonic() + READ_TIMEOUT
+        while True:  # until socat listens
+            try:
+                port = serial.serial_for_url(f"socket://127.0.0.1:{tcp}", timeout=2)
+                break
+            except serial.SerialException:
+                if time.monotonic() > deadline:
+                    raise
+                time.sleep(0.05)
+        with port:
+            port.write(dxl.ping_packet(4))
+            reply = b""
+            while len(reply) < 14:  # a PING's status packet: 11 + 3 bytes
+                more = port.read(14 - len(reply))
+                assert more, f"no reply through socat, got {reply!r}"
+                reply += more
+        status = dxl.parse_packet(reply)
+        assert status.id == 4
+        assert dxl.from_le(status.params[:2]) == 1020  # XM430-W350's model number
+    finally:
+        bridge.terminate()
+        bridge.wait(10)
+    assert chain.stop()[0] == 0
+
+
+def _mavproxy() -> str | None:
+    local = Path(sys.executable).parent / "mavproxy.py"
+    return str(local) if local.exists() else shutil.which("mavproxy.py")
+
+
+@pytest.mark.skipif(_mavproxy() is None, reason="needs MAVProxy (pip install MAVProxy)")
+@pytest.mark.parametrize("master", ["out", "vehicle"])
+def test_mavproxy_detects_the_vehicle(served: list[Served], tmp_path: Path, master: str) -> None:
+    out = free_udp_port()
+    quad = start(served, "quad", "--port", "0", "--out", f"udp:127.0.0.1:{out}")
+    (endpoint,) = quad.endpoints(1)
+    # MAVProxy listening where the vehicle streams (udp:), or sending to it first (udpout:)
+    url = f"udp:127.0.0.1:{out}" if master == "out" else endpoint["link"]
+    proc = subprocess.Popen(
+        [str(_mavproxy()), "--master", url, "--non-interactive", "--default-modules=mode"],
+        stdin=subprocess.DEVNULL,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.STDOUT,
+        text=True,
+        cwd=tmp_path,  # its telemetry log goes there
+    )
+    seen: list[str] = []
+    try:
+        assert proc.stdout is not None
+        deadline = time.monotonic() + 60  # MAVProxy imports a lot on a loaded machine
+        for line in proc.stdout:
+            seen.append(line)
+            if "Detected vehicle 1:1" in line or time.monotonic() > deadline:
+                break
+        assert any("Detected vehicle 1:1" in line for line in seen), "".join(seen)[-2000:]
+        # MAVProxy's own heartbeat reaches the vehicle, which reports the client
+        assert quad.until(event="message", name="HEARTBEAT")["device"] == "quad"
+    finally:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.communicate(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.communicate()
+    assert quad.stop()[0] == 0
