@@ -566,3 +566,64 @@ def test_mavproxy_detects_the_vehicle(served: list[Served], tmp_path: Path, mast
             proc.kill()
             proc.communicate()
     assert quad.stop()[0] == 0
+
+
+VIEWER_SCRIPT = r"""
+import json, os, pty, re, select, signal, subprocess, sys, time
+sim = subprocess.Popen([sys.executable, "-m", "temoto", "sim", "odrive", "--node", "1",
+                        "--node", "2", "--json"], stdout=subprocess.PIPE,
+                       stderr=subprocess.DEVNULL, text=True)
+channel = json.loads(sim.stdout.readline())["endpoint"]["link"]["channel"]
+pid, fd = pty.fork()  # can.viewer is a terminal program: give it one
+if pid == 0:
+    os.environ["TERM"] = "xterm"
+    os.execv(sys.executable, [sys.executable, "-m", "can.viewer", "-i", "udp_multicast",
+                              "-c", channel])
+screen = b""
+end = time.monotonic() + 20
+wanted = (b"0x021", b"0x029", b"0x041", b"0x049")
+while time.monotonic() < end and not all(i in screen for i in wanted):
+    ready, _, _ = select.select([fd], [], [], 0.2)
+    if ready:
+        try:
+            screen += os.read(fd, 65536)
+        except OSError:
+            break
+os.kill(pid, signal.SIGINT)
+os.waitpid(pid, 0)
+sim.send_signal(signal.SIGINT)
+ids = sorted(set(re.findall(r"0x0[0-9A-F]{2}", screen.decode(errors="replace"))))
+print(json.dumps({"ids": ids, "sim_rc": sim.wait(20)}))
+"""
+
+
+@pytest.mark.skipif(bool(_why_no_netns()), reason=_why_no_netns() or "ok")
+def test_can_viewer_shows_the_odrives_frames() -> None:
+    script = (
+        "ip link set lo up && ip route replace 224.0.0.0/4 dev lo && "
+        f'exec "{sys.executable}" -c "$0"'
+    )
+    proc = subprocess.run(
+        ["unshare", "-n", "sh", "-c", script, VIEWER_SCRIPT],
+        capture_output=True,
+        text=True,
+        timeout=90,
+        env=env(),
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr[-3000:]
+    result = json.loads(proc.stdout.strip().splitlines()[-1])
+    # node 1's and node 2's heartbeats (0x021, 0x041) and estimates (0x029, 0x049) on screen
+    assert {"0x021", "0x029", "0x041", "0x049"} <= set(result["ids"])
+    assert result["sim_rc"] == 0
+
+
+def test_a_port_in_use_is_invalid_input(served: list[Served]) -> None:
+    first = start(served, "quad", "--port", "0", "--out", "udp:127.0.0.1:9")
+    (endpoint,) = first.endpoints(1)
+    taken = endpoint["vehicle"].rsplit(":", 1)[1]
+    proc = sim_cli("quad", "--port", taken)
+    assert proc.returncode == 2
+    assert "cannot start" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    assert first.stop()[0] == 0
