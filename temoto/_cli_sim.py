@@ -435,15 +435,21 @@ class _Printer:
         self.as_json = as_json
         self.out = out or sys.stdout
         self.text = sys.stderr if as_json else self.out
+        self.broken = False  # a reader went away (``temoto sim quad | head -1``)
         self._lock = threading.Lock()
 
     def say(self, line: str, event: Mapping[str, Any] | None = None) -> None:
         with self._lock:
-            self.text.write(line + "\n")
-            self.text.flush()
-            if self.as_json and event is not None:
-                self.out.write(json.dumps(event, sort_keys=True) + "\n")
-                self.out.flush()
+            if self.broken:
+                return
+            try:
+                self.text.write(line + "\n")
+                self.text.flush()
+                if self.as_json and event is not None:
+                    self.out.write(json.dumps(event, sort_keys=True) + "\n")
+                    self.out.flush()
+            except BrokenPipeError:
+                self.broken = True
 
 
 @dataclass
@@ -467,6 +473,7 @@ def sim_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
 
     Raises:
         ConfigError: Invalid input (a bad profile, neither or both of KIND and --profile).
+        BrokenPipeError: The reader of the output went away (the simulators are closed).
     """
     from temoto._cli_fleet import SignalExit
 
@@ -484,15 +491,20 @@ def sim_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
         else:
             served = [_one(str(kind), args, stack)]
         _announce(printer, served, profile)
+        if printer.broken:
+            raise BrokenPipeError("the reader of temoto sim's output went away")
         watcher = threading.Thread(
             target=_watch, args=(printer, served, signals.stop), name="temoto-sim-watch"
         )
         watcher.start()
         try:
-            signals.stop.wait()
+            while not signals.stop.wait(WATCH_PERIOD_S) and not printer.broken:
+                pass
         finally:
             signals.stop.set()
             watcher.join()
+    if printer.broken:
+        raise BrokenPipeError("the reader of temoto sim's output went away")
     return 0
 
 
