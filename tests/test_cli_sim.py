@@ -264,7 +264,7 @@ def test_params_persist_across_runs(served: list[Served], tmp_path: Path) -> Non
                     target_component=1,
                     param_id=b"RTL_ALT",
                     param_value=value,
-                    param_type=4,
+                    param_type=9,  # MAV_PARAM_TYPE_REAL32, as pymavlink sends it
                 )
             else:
                 msg = codec.encode(
