@@ -694,8 +694,11 @@ def _from_profile(path: Path, args: argparse.Namespace, stack: ExitStack) -> lis
         if isinstance(link, Mapping) and link.get("interface") == "virtual":
             group = groups.setdefault(str(link.get("channel")), _group(len(groups)))
             config["link"] = {"interface": "udp_multicast", "channel": group}
-        cls: Any = driver_class(spec.driver)
-        sim, settings = cls.simulate(name, config, clock=clock)
+        try:
+            cls: Any = driver_class(spec.driver)
+            sim, settings = cls.simulate(name, config, clock=clock)
+        except DriverError as err:  # a driver whose library is missing, a busy resource
+            raise ConfigError(f"{path}: devices.{name}: {err}") from err
         if outs and hasattr(sim, "add_gcs"):
             for host, port in outs:
                 sim.add_gcs(host, port)
