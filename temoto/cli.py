@@ -80,6 +80,7 @@ from temoto._cli_fleet import (
     serve,
     watch,
 )
+from temoto._cli_sim import add_sim, sim_command
 from temoto._progress import ActionLogHandler, Progress
 from temoto.clock import MonotonicClock, ScaledClock
 from temoto.core import _fast
@@ -302,6 +303,7 @@ def _parser() -> argparse.ArgumentParser:
     act.add_argument("--no-builtin", action="store_true", help="leave out the built-in actions")
 
     add_drivers(sub)
+    add_sim(sub)
     add_view(sub)
     return top
 
@@ -361,6 +363,8 @@ def _command(args: argparse.Namespace) -> int:
             return graph_command(args)
         if args.command == "drivers":
             return drivers_command(args)
+        if args.command == "sim":
+            return sim_command(args)
         if args.command == "view":
             return view_command(args)
         return _actions(args)

@@ -31,6 +31,7 @@ __all__ = [
     "decode_clear_errors",
     "decode_encoder_estimates",
     "decode_error_status",
+    "decode_float_pair",
     "decode_heartbeat",
     "decode_set_axis_state",
     "decode_set_controller_mode",
@@ -39,17 +40,21 @@ __all__ = [
     "decode_set_input_vel",
     "decode_set_limits",
     "decode_torques",
+    "encode_bus_voltage_current",
     "encode_clear_errors",
     "encode_encoder_estimates",
     "encode_error_status",
     "encode_estop",
     "encode_heartbeat",
+    "encode_iq",
+    "encode_powers",
     "encode_set_axis_state",
     "encode_set_controller_mode",
     "encode_set_input_pos",
     "encode_set_input_torque",
     "encode_set_input_vel",
     "encode_set_limits",
+    "encode_temperature",
     "encode_torques",
     "error_names",
     "heartbeat_problem",
@@ -681,3 +686,90 @@ def decode_clear_errors(data: bytes | bytearray) -> bool:
     if len(data) > 1:
         raise ValueError(f"Clear_Errors: expected 0 or 1 data bytes, got {len(data)}")
     return bool(data and data[0])
+
+
+def _float_pair(first: str, second: str, a: float, b: float) -> bytes:
+    return F32X2.pack(_f32(first, a), _f32(second, b))
+
+
+def encode_iq(setpoint: float, measured: float) -> bytes:
+    """``Get_Iq`` reply payload: float32 Iq set-point, float32 Iq measured (A).
+
+    Args:
+        setpoint: A.
+        measured: A.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Not a finite float32.
+    """
+    return _float_pair("Iq_Setpoint", "Iq_Measured", setpoint, measured)
+
+
+def encode_temperature(fet: float, motor: float) -> bytes:
+    """``Get_Temperature`` reply payload: float32 FET, float32 motor temperature (°C).
+
+    Args:
+        fet: °C.
+        motor: °C.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Not a finite float32.
+    """
+    return _float_pair("FET_Temperature", "Motor_Temperature", fet, motor)
+
+
+def encode_bus_voltage_current(voltage: float, current: float) -> bytes:
+    """``Get_Bus_Voltage_Current`` reply payload: float32 V, float32 A.
+
+    Args:
+        voltage: The DC bus voltage, V.
+        current: The DC bus current, A.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Not a finite float32.
+    """
+    return _float_pair("Bus_Voltage", "Bus_Current", voltage, current)
+
+
+def encode_powers(electrical: float, mechanical: float) -> bytes:
+    """``Get_Powers`` reply payload: float32 electrical, float32 mechanical power (W).
+
+    Args:
+        electrical: W.
+        mechanical: W.
+
+    Returns:
+        The payload.
+
+    Raises:
+        ValueError: Not a finite float32.
+    """
+    return _float_pair("Electrical_Power", "Mechanical_Power", electrical, mechanical)
+
+
+def decode_float_pair(data: bytes | bytearray) -> tuple[float, float]:
+    """Parse a payload of two float32, in the DBC's signal order.
+
+    ``Get_Iq``, ``Get_Temperature``, ``Get_Bus_Voltage_Current`` and ``Get_Powers`` carry two.
+
+    Args:
+        data: 8 bytes.
+
+    Returns:
+        The two values.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    _check_len("two float32", data, 8)
+    a, b = F32X2.unpack(data)
+    return a, b

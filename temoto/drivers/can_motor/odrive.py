@@ -85,6 +85,7 @@ __all__ = [
     "SAFE_CONFIRM",
     "ODriveDriver",
     "ODriveNode",
+    "sim_rates",
 ]
 
 logger = logging.getLogger(__name__)
@@ -110,6 +111,7 @@ _KEYS: Final = frozenset(
         "command_period",
         "watchdog_timeout",
         "safe_state",
+        "sim",
     }
 )
 _NODE_KEYS: Final = frozenset(
@@ -382,6 +384,7 @@ class ODriveDriver(CanMotorDriver):
                 "command_period",
                 f"must be at most half the watchdog_timeout ({watchdog} s), got {command}",
             )
+        sim_rates(p, cfg, hb, encoder)  # checked here, used by simulate()
         safe = cls.safe_state_from(cfg, where)
         if safe == "hold" and watchdog == 0:
             logger.warning(
@@ -410,13 +413,19 @@ class ODriveDriver(CanMotorDriver):
     ) -> tuple[Simulator, dict[str, Any]]:
         """A simulator (not started) serving this device entry, and the entry to drive it.
 
+        The simulated ODrives send their heartbeats every ``heartbeat_period`` and their
+        encoder estimates every ``encoder_period``; the entry's optional ``sim`` mapping sets
+        the rates of their other cyclic messages by the ODrive's own names, in ms
+        (``{torques_msg_rate_ms: 10, iq_msg_rate_ms: 100}``: :func:`sim_rates`).
+
         Args:
             name: The device's name.
             config: The entry without ``driver`` (valid: see :meth:`from_profile`).
             clock: The clock the simulator steps on.
 
         Returns:
-            ``(simulator, config)``; for CAN the config is the same (the link is shared).
+            ``(simulator, config)``; for CAN the config is the entry without ``sim`` (the link
+            is shared).
 
         Raises:
             ProfileError: A bad entry.
@@ -425,6 +434,7 @@ class ODriveDriver(CanMotorDriver):
 
         driver = cls.from_profile(name, config, clock=clock, where=name)
         driver.shutdown()
+        rates = sim_rates(Profile(name), config, driver.heartbeat_period, driver.encoder_period)
         sim = SimODrive(
             driver.link,
             [n.node_id for n in driver.nodes],
@@ -432,8 +442,9 @@ class ODriveDriver(CanMotorDriver):
             heartbeat_period=driver.heartbeat_period,
             encoder_period=driver.encoder_period,
             watchdog_timeout=driver.watchdog_timeout,
+            rates_ms=rates,
         )
-        return sim, dict(config)
+        return sim, {k: v for k, v in config.items() if k != "sim"}
 
     # ---- discovery -------------------------------------------------------------------------
 
@@ -880,6 +891,75 @@ class ODriveDriver(CanMotorDriver):
                         f" configured rate: two devices answer as node {axis.node.node_id}?"
                     )
         return None
+
+
+#: The cyclic messages the driver supervises, and the key that states each one's period.
+_SUPERVISED: Final = {
+    "heartbeat_msg_rate_ms": "heartbeat_period",
+    "encoder_msg_rate_ms": "encoder_period",
+}
+
+
+def sim_rates(
+    p: Profile, cfg: Mapping[str, Any], heartbeat_period: float, encoder_period: float
+) -> dict[str, float]:
+    """The simulated ODrives' cyclic message rates from an entry's ``sim`` mapping.
+
+    ``sim`` maps the ODrive's ``axis.config.can`` rate settings
+    (:data:`~temoto.drivers.can_motor.sim.CYCLIC_RATES`: ``torques_msg_rate_ms``,
+    ``iq_msg_rate_ms``, ...) to milliseconds, 0 for off. The heartbeats and the encoder
+    estimates are supervised by the driver, which expects them every ``heartbeat_period`` and
+    ``encoder_period``: those two rates follow the driver's keys, and a ``sim`` value for them
+    that differs (0 above all: the driver would find the axes dead or their estimates stale)
+    is refused.
+
+    Args:
+        p: The entry's profile reader (for messages).
+        cfg: The entry.
+        heartbeat_period: The driver's ``heartbeat_period``, s.
+        encoder_period: The driver's ``encoder_period``, s.
+
+    Returns:
+        ``{name: ms}`` for every rate, the supervised two included.
+
+    Raises:
+        ProfileError: ``sim`` is not a mapping, names an unknown rate, has a value that is
+            not a number of ms >= 0, or turns off (or changes) a supervised stream.
+    """
+    from temoto.drivers.can_motor.sim import CYCLIC_RATES
+
+    raw = cfg.get("sim")
+    rates = {
+        "heartbeat_msg_rate_ms": heartbeat_period * 1000.0,
+        "encoder_msg_rate_ms": encoder_period * 1000.0,
+    }
+    if raw is None:
+        return rates
+    sim = p.mapping(raw, "sim")
+    for key, value in sim.items():
+        if key not in CYCLIC_RATES:
+            raise p.fail(
+                f"sim.{key}",
+                f"unknown; the simulator's settings are the ODrive's cyclic message rates:"
+                f" {', '.join(CYCLIC_RATES)}",
+            )
+        ms = p.number(sim, key, "sim", 0.0, positive=False)
+        if ms < 0:
+            raise p.fail(f"sim.{key}", f"must be 0 (off) or a number of ms, got {value!r}")
+        driver_key = _SUPERVISED.get(key)
+        if driver_key is not None and not math.isclose(ms, rates[key]):
+            why = (
+                "0 turns them off, but the driver supervises them"
+                if ms == 0
+                else f"differs from {driver_key} ({rates[key] / 1000.0:g} s), which the"
+                " driver expects them at"
+            )
+            raise p.fail(
+                f"sim.{key}",
+                f"{why}: leave it out, or set {driver_key} (the device's {key} / 1000)",
+            )
+        rates[key] = ms
+    return rates
 
 
 def _state_name(state: int) -> str:

@@ -1,9 +1,12 @@
 """Simulated CAN motors at the device end of a python-can bus: an ODrive and MIT-mode motors.
 
 :class:`SimODrive` answers CANSimple for one or more axes (node ids) on one bus, like a board
-per node on a real bus: heartbeats every ``heartbeat_period``, encoder estimates every
-``encoder_period`` and on request (an RTR ``Get_Encoder_Estimates``), axis states, controller
-modes, position / velocity / torque inputs, errors, estop and clear errors.
+per node on a real bus: the cyclic messages of ODrive 0.6 at the rates of its
+``axis.config.can.*_msg_rate_ms`` settings (:data:`CYCLIC_RATES`: heartbeats every 100 ms and
+encoder estimates every 10 ms by default, the others off; 0 turns one off), each also on request
+(an RTR frame), axis states, controller modes, position / velocity / torque inputs,
+``Set_Limits`` (the velocity limit and the current limit bound the motion: see
+:class:`AxisModel`), errors, estop and clear errors.
 :class:`SimMitMotor` answers the MIT-mode protocol of CubeMars AK motors: enter / exit / zero
 frames and impedance commands, each with a reply.
 
@@ -47,7 +50,15 @@ from temoto.drivers.can_motor import mitmode as mit
 from temoto.drivers.can_motor._common import open_bus
 from temoto.drivers.sim import Simulator
 
-__all__ = ["AxisModel", "MitModel", "SimMitMotor", "SimODrive"]
+__all__ = [
+    "CYCLIC_RATES",
+    "TORQUE_CONSTANT",
+    "VEL_LIMIT_TOLERANCE",
+    "AxisModel",
+    "MitModel",
+    "SimMitMotor",
+    "SimODrive",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -60,22 +71,62 @@ _HW_BITS: Final = {
 _MIT_CODES: Final = {"overheat": 1, "overload": 2, "voltage": 4}
 _ZERO: Final = mit.MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
 
+#: ODrive 0.6's cyclic messages: each ``axis.config.can`` rate setting → (the message, its
+#: default period in ms; 0 = not sent). The defaults are the firmware's: heartbeats every
+#: 100 ms and encoder estimates every 10 ms, the others off until set.
+CYCLIC_RATES: Final[Mapping[str, tuple[cs.Cmd, int]]] = {
+    "version_msg_rate_ms": (cs.Cmd.GET_VERSION, 0),
+    "heartbeat_msg_rate_ms": (cs.Cmd.HEARTBEAT, 100),
+    "encoder_msg_rate_ms": (cs.Cmd.GET_ENCODER_ESTIMATES, 10),
+    "iq_msg_rate_ms": (cs.Cmd.GET_IQ, 0),
+    "error_msg_rate_ms": (cs.Cmd.GET_ERROR, 0),
+    "temperature_msg_rate_ms": (cs.Cmd.GET_TEMPERATURE, 0),
+    "bus_voltage_msg_rate_ms": (cs.Cmd.GET_BUS_VOLTAGE_CURRENT, 0),
+    "torques_msg_rate_ms": (cs.Cmd.GET_TORQUES, 0),
+    "powers_msg_rate_ms": (cs.Cmd.GET_POWERS, 0),
+}
+#: N·m per A: ODrive's default ``motor.config.torque_constant``, turning a current limit into
+#: a torque limit and a torque into Iq.
+TORQUE_CONSTANT: Final = 0.04
+#: ``controller.config.vel_limit_tolerance``'s default: an axis faster than this many times its
+#: velocity limit disarms with ``VELOCITY_LIMIT_VIOLATION`` (``enable_overspeed_error``).
+VEL_LIMIT_TOLERANCE: Final = 1.2
+_BUS_VOLTAGE: Final = 24.0  # V
+_PHASE_RESISTANCE: Final = 0.1  # Ω: the copper losses in the electrical power
+_TEMPERATURES: Final = (40.0, 35.0)  # FET, motor, °C
+_VERSION: Final = bytes([2, 0, 0, 0, 0, 6, 10, 0])  # protocol 2, hardware 0.0.0, firmware 0.6.10
+
 
 @dataclass
 class AxisModel:
     """One simulated ODrive axis (motor side: rev, rev/s, N·m).
 
+    The motor's torque works against viscous ``damping`` only, so in torque control the speed
+    settles at ``torque / damping`` and holding a speed takes ``damping * speed``.
+
+    **Limits**, as ``Set_Limits`` sets them (``controller.config.vel_limit`` and the motor's
+    current limit) and as the ODrive documents them: the velocity set-point, the position
+    loop's velocity and (``enable_torque_mode_vel_limit``) the speed in torque control are
+    clamped to ``vel_limit``; the torque is clamped to ``current_limit * torque_constant``, so
+    a speed that needs more torque than that is not reached. An axis that is found faster than
+    :data:`VEL_LIMIT_TOLERANCE` times ``vel_limit`` (a limit lowered below the present speed)
+    disarms with ``VELOCITY_LIMIT_VIOLATION``, as with ``enable_overspeed_error``.
+
     Attributes:
         node_id: Its CANSimple node id.
         time_constant: Seconds of the first-order response.
         vel_limit: rev/s.
-        damping: N·m per rev/s: in torque control the speed settles at ``torque / damping``.
+        damping: N·m per rev/s.
+        current_limit: A (infinite: not limited until ``Set_Limits``).
+        torque_constant: N·m per A.
     """
 
     node_id: int
     time_constant: float = 0.05
     vel_limit: float = 50.0
     damping: float = 0.1
+    current_limit: float = math.inf
+    torque_constant: float = TORQUE_CONSTANT
     pos: float = 0.0
     vel: float = 0.0
     state: int = cs.AxisState.IDLE
@@ -100,21 +151,50 @@ class AxisModel:
             self.vel *= decay  # coasting
             self.pos += self.vel * dt
             return
+        if abs(self.vel) > VEL_LIMIT_TOLERANCE * self.vel_limit:  # overspeed: disarm
+            self.error |= cs.AxisError.VELOCITY_LIMIT_VIOLATION
+            self.state = cs.AxisState.IDLE
+            self.vel *= decay
+            self.pos += self.vel * dt
+            return
+        # the fastest the axis may go: its velocity limit, and the speed its torque limit holds
+        fastest = min(self.vel_limit, self.torque_limit / self.damping)
         if self.control_mode == cs.ControlMode.POSITION_CONTROL:
             target = self.input_pos + (self.pos - self.input_pos) * decay
             vel = (target - self.pos) / dt
-            vel = max(-self.vel_limit, min(self.vel_limit, vel))
+            vel = max(-fastest, min(fastest, vel))
             self.pos += vel * dt
             self.vel = vel
             return
         if self.control_mode == cs.ControlMode.VELOCITY_CONTROL:
             goal = self.input_vel
         else:
-            goal = self.input_torque / self.damping
-        goal = max(-self.vel_limit, min(self.vel_limit, goal))
+            goal = self._torque_command() / self.damping
+        goal = max(-fastest, min(fastest, goal))
         new = goal + (self.vel - goal) * decay
         self.pos += 0.5 * (self.vel + new) * dt
         self.vel = new
+
+    @property
+    def torque_limit(self) -> float:
+        """The largest torque the current limit allows, N·m."""
+        return self.current_limit * self.torque_constant
+
+    def _torque_command(self) -> float:
+        limit = self.torque_limit
+        return max(-limit, min(limit, self.input_torque))
+
+    def set_limits(self, vel_limit: float, current_limit: float) -> None:
+        """Apply ``Set_Limits`` (rev/s, A); a value that is not finite and positive is ignored.
+
+        Args:
+            vel_limit: The velocity limit, rev/s.
+            current_limit: The current limit, A.
+        """
+        if math.isfinite(vel_limit) and vel_limit > 0:
+            self.vel_limit = vel_limit
+        if math.isfinite(current_limit) and current_limit > 0:
+            self.current_limit = current_limit
 
     @property
     def torque(self) -> float:
@@ -122,8 +202,17 @@ class AxisModel:
         if self.state != cs.AxisState.CLOSED_LOOP_CONTROL:
             return 0.0
         if self.control_mode == cs.ControlMode.TORQUE_CONTROL:
-            return self.input_torque
+            return self._torque_command()
         return self.damping * self.vel
+
+    @property
+    def torque_target(self) -> float:
+        """The torque the controller aims at, N·m (``Get_Torques``' ``Torque_Target``)."""
+        if self.state != cs.AxisState.CLOSED_LOOP_CONTROL:
+            return 0.0
+        if self.control_mode == cs.ControlMode.TORQUE_CONTROL:
+            return self._torque_command()
+        return self.torque
 
 
 @dataclass
@@ -316,18 +405,28 @@ class _CanSim(Simulator):
 class SimODrive(_CanSim):
     """ODrive axes answering CANSimple on a python-can bus.
 
+    The cyclic messages are sent at the rates of ODrive 0.6's ``axis.config.can.*_msg_rate_ms``
+    settings (:data:`CYCLIC_RATES`), the same for every axis: ``heartbeat_period``,
+    ``encoder_period`` and ``torque_period`` set three of them in seconds, ``rates_ms`` any of
+    them by the ODrive's own names in milliseconds (and wins where both are given). 0 turns a
+    message off; every message is still answered on request (an RTR frame).
+
     Args:
         link: python-can ``Bus`` arguments (``interface``, ``channel``, ...).
         nodes: The node ids to serve, or :class:`AxisModel` instances.
         clock: Where time is read and waited.
-        heartbeat_period: Seconds between heartbeats (``heartbeat_msg_rate_ms``).
+        heartbeat_period: Seconds between heartbeats (``heartbeat_msg_rate_ms`` / 1000; 0 =
+            off).
         encoder_period: Seconds between cyclic encoder estimates (0 = only on request).
         torque_period: Seconds between cyclic ``Get_Torques`` (0 = only on request).
         watchdog_timeout: The axes' ``watchdog_timeout`` with ``enable_watchdog`` set,
             seconds (0 = the watchdog is off). See the module docstring.
+        rates_ms: ``{"<name>_msg_rate_ms": ms}`` over the periods (names in
+            :data:`CYCLIC_RATES`).
 
     Raises:
-        ValueError: No nodes, a duplicate node id, or a negative or non-positive period.
+        ValueError: No nodes, a duplicate node id, a negative or non-finite period or rate, or
+            an unknown rate name.
     """
 
     FAULTS: ClassVar[frozenset[str]] = _CanSim.FAULTS | {"no_heartbeat", "no_encoder"}
@@ -343,25 +442,39 @@ class SimODrive(_CanSim):
         encoder_period: float = 0.01,
         torque_period: float = 0.0,
         watchdog_timeout: float = 0.0,
+        rates_ms: Mapping[str, float] | None = None,
     ) -> None:
-        if not heartbeat_period > 0 or encoder_period < 0 or torque_period < 0:
-            raise ValueError("the heartbeat period must be positive, the others >= 0")
+        periods = {name: ms / 1000.0 for name, (_, ms) in CYCLIC_RATES.items()}
+        periods["heartbeat_msg_rate_ms"] = heartbeat_period
+        periods["encoder_msg_rate_ms"] = encoder_period
+        periods["torques_msg_rate_ms"] = torque_period
+        for name, ms in (rates_ms or {}).items():
+            if name not in CYCLIC_RATES:
+                raise ValueError(f"unknown rate {name!r} (known: {', '.join(CYCLIC_RATES)})")
+            periods[name] = ms / 1000.0
+        for name, period in periods.items():
+            if not (math.isfinite(period) and period >= 0):
+                raise ValueError(f"{name} must be 0 (off) or a positive number of ms")
         if not (watchdog_timeout >= 0 and math.isfinite(watchdog_timeout)):
             raise ValueError(f"watchdog_timeout must be >= 0 s, got {watchdog_timeout!r}")
-        periods = [p for p in (heartbeat_period, encoder_period, torque_period) if p > 0]
+        ticks = [p for p in periods.values() if p > 0]
         if watchdog_timeout > 0:
-            periods.append(watchdog_timeout / 10)  # expiry seen within a tenth of the timeout
-        super().__init__(link, clock, min(periods))
+            ticks.append(watchdog_timeout / 10)  # expiry seen within a tenth of the timeout
+        super().__init__(link, clock, min(ticks) if ticks else 0.1)
         self.watchdog_timeout = watchdog_timeout
         models = [n if isinstance(n, AxisModel) else AxisModel(n) for n in nodes]
         if not models or len({m.node_id for m in models}) != len(models):
             raise ValueError("a SimODrive needs distinct node ids")
         self.axes: dict[int, AxisModel] = {m.node_id: m for m in models}
-        self.heartbeat_period = heartbeat_period
-        self.encoder_period = encoder_period
-        self.torque_period = torque_period
+        #: Seconds between the cyclic messages, by the ODrive's setting names (0 = off).
+        self.periods: dict[str, float] = periods
+        self.heartbeat_period = periods["heartbeat_msg_rate_ms"]
+        self.encoder_period = periods["encoder_msg_rate_ms"]
+        self.torque_period = periods["torques_msg_rate_ms"]
+        #: Frames received that the axes acted on or answered (a host at work), for tools.
+        self.frames_received = 0
         self._model_lock = threading.Lock()
-        self._due_hb = self._due_enc = self._due_tq = -math.inf
+        self._due = dict.fromkeys(periods, -math.inf)
         self._ids: dict[tuple[int, int], int] = {
             (nid, int(cmd)): cs.arbitration_id(nid, cmd) for nid in self.axes for cmd in cs.Cmd
         }
@@ -390,20 +503,18 @@ class SimODrive(_CanSim):
         axis = self.axes.get(node)
         if axis is None or msg.is_extended_id or self._mute(node):
             return
+        if not msg.is_remote_frame and cmd in _DEVICE_SENDS:
+            return  # a message of the axis itself (a multicast bus hears its own frames)
         data = bytes(msg.data)
         now = self.clock.monotonic()
         reply: tuple[int, bytes] | None = None
         with self._model_lock:
+            self.frames_received += 1
             axis.step(now)
             if msg.is_remote_frame:
-                if cmd == cs.Cmd.GET_ENCODER_ESTIMATES:
-                    reply = (cmd, cs.encode_encoder_estimates(axis.pos, axis.vel))
-                elif cmd == cs.Cmd.GET_ERROR:
-                    reply = (cmd, cs.encode_error_status(axis.error, axis.error))
-                elif cmd == cs.Cmd.GET_TORQUES:
-                    reply = (cmd, cs.encode_torques(axis.input_torque, axis.torque))
-                elif cmd == cs.Cmd.HEARTBEAT:
-                    reply = (cmd, self._heartbeat(axis))
+                payload = self._payload(axis, cmd)
+                if payload is not None:
+                    reply = (cmd, payload)
             elif cmd == cs.Cmd.SET_AXIS_STATE:
                 axis.fed = now
                 wanted = cs.decode_set_axis_state(data)
@@ -429,7 +540,7 @@ class SimODrive(_CanSim):
                 axis.commands += 1
                 axis.fed = now
             elif cmd == cs.Cmd.SET_LIMITS:
-                axis.vel_limit, _ = cs.decode_set_limits(data)
+                axis.set_limits(*cs.decode_set_limits(data))
             elif cmd == cs.Cmd.ESTOP:
                 axis.error |= cs.AxisError.ESTOP_REQUESTED
                 axis.state = cs.AxisState.IDLE
@@ -439,20 +550,46 @@ class SimODrive(_CanSim):
         if reply is not None:
             self.send(self._ids[node, reply[0]], reply[1], node)
 
-    def _heartbeat(self, axis: AxisModel) -> bytes:
-        return cs.encode_heartbeat(axis.error, axis.state, 0, True)
+    def _payload(self, axis: AxisModel, cmd: int) -> bytes | None:
+        """What the axis sends as ``cmd`` now (cyclic or on request); None for no such message.
+
+        ``_model_lock`` held.
+        """
+        if cmd == cs.Cmd.HEARTBEAT:
+            return cs.encode_heartbeat(axis.error, axis.state, 0, True)
+        if cmd == cs.Cmd.GET_ENCODER_ESTIMATES:
+            return cs.encode_encoder_estimates(axis.pos, axis.vel)
+        if cmd == cs.Cmd.GET_ERROR:
+            return cs.encode_error_status(axis.error, axis.error)
+        if cmd == cs.Cmd.GET_TORQUES:
+            return cs.encode_torques(axis.torque_target, axis.torque)
+        if cmd == cs.Cmd.GET_IQ:
+            kt = axis.torque_constant
+            return cs.encode_iq(axis.torque_target / kt, axis.torque / kt)
+        hot = self._hw_bits(axis.node_id) & cs.AxisError.MOTOR_OVER_TEMP
+        if cmd == cs.Cmd.GET_TEMPERATURE:
+            fet, motor = _TEMPERATURES
+            return cs.encode_temperature(fet, 130.0 if hot else motor)
+        mechanical = axis.torque * axis.vel * 2.0 * math.pi
+        electrical = mechanical + _PHASE_RESISTANCE * (axis.torque / axis.torque_constant) ** 2
+        if cmd == cs.Cmd.GET_BUS_VOLTAGE_CURRENT:
+            low = self._hw_bits(axis.node_id) & cs.AxisError.DC_BUS_UNDER_VOLTAGE
+            volts = 8.0 if low else _BUS_VOLTAGE
+            return cs.encode_bus_voltage_current(volts, electrical / volts)
+        if cmd == cs.Cmd.GET_POWERS:
+            return cs.encode_powers(electrical, mechanical)
+        if cmd == cs.Cmd.GET_VERSION:
+            return _VERSION
+        return None
 
     def on_tick(self, now: float) -> None:
-        """Send heartbeats, encoder estimates and torques that are due."""
-        hb = now >= self._due_hb
-        enc = self.encoder_period > 0 and now >= self._due_enc
-        tq = self.torque_period > 0 and now >= self._due_tq
-        if hb:
-            self._due_hb = max(self._due_hb + self.heartbeat_period, now)
-        if enc:
-            self._due_enc = max(self._due_enc + self.encoder_period, now)
-        if tq:
-            self._due_tq = max(self._due_tq + self.torque_period, now)
+        """Send the cyclic messages that are due."""
+        due: list[str] = []
+        for name, period in self.periods.items():
+            if period > 0 and now >= self._due[name]:
+                due.append(name)
+                after = self._due[name] + period  # keeps the phase; late by a period: skip
+                self._due[name] = after if after > now else now + period
         frames: list[tuple[int, int, bytes]] = []
         no_hb = self.fault("no_heartbeat")
         no_enc = self.fault("no_encoder")
@@ -460,14 +597,16 @@ class SimODrive(_CanSim):
             for node, axis in self.axes.items():
                 axis.step(now)
                 self._watchdog(axis, now)
-                if hb and not (no_hb is not None and no_hb.get("node") in (None, node)):
-                    frames.append((node, cs.Cmd.HEARTBEAT, self._heartbeat(axis)))
-                if enc and not (no_enc is not None and no_enc.get("node") in (None, node)):
-                    data = cs.encode_encoder_estimates(axis.pos, axis.vel)
-                    frames.append((node, cs.Cmd.GET_ENCODER_ESTIMATES, data))
-                if tq:
-                    data = cs.encode_torques(axis.input_torque, axis.torque)
-                    frames.append((node, cs.Cmd.GET_TORQUES, data))
+                for name in due:
+                    what = CYCLIC_RATES[name][0]
+                    off = no_hb if what == cs.Cmd.HEARTBEAT else None
+                    if what == cs.Cmd.GET_ENCODER_ESTIMATES:
+                        off = no_enc
+                    if off is not None and off.get("node") in (None, node):
+                        continue
+                    payload = self._payload(axis, what)
+                    if payload is not None:
+                        frames.append((node, what, payload))
         for node, cmd, data in frames:
             self.send(self._ids[node, cmd], data, node)
 
@@ -479,6 +618,10 @@ class SimODrive(_CanSim):
         if now - axis.fed > timeout:
             axis.error |= cs.AxisError.WATCHDOG_TIMER_EXPIRED
             axis.state = cs.AxisState.IDLE
+
+
+#: Commands an axis sends on its own (a data frame with one of these ids is not for it).
+_DEVICE_SENDS: Final = frozenset(cmd for cmd, _ in CYCLIC_RATES.values())
 
 
 class SimMitMotor(_CanSim):
@@ -519,6 +662,8 @@ class SimMitMotor(_CanSim):
             raise ValueError("a SimMitMotor needs distinct motor ids")
         self.motors: dict[int, MitModel] = {m.motor_id: m for m in models}
         self.host_id = host_id
+        #: Frames received that a motor answered (a host at work), for tools.
+        self.frames_received = 0
         self.long_replies = long_replies
         self._model_lock = threading.Lock()
 
@@ -560,6 +705,7 @@ class SimMitMotor(_CanSim):
                     motor.commands += 1
             else:
                 return  # not a frame this motor understands: no reply
+            self.frames_received += 1
             reply = mit.MitReply(
                 motor.motor_id,
                 motor.pos,

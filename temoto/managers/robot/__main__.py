@@ -12,6 +12,12 @@ SIGINT or SIGTERM makes every device safe at once (one line per device on stderr
 mission and closes the instance, exiting 130 or 143 (0 when serving); a second one makes the
 devices safe again and exits at once, without waiting for the mission's actions.
 
+With ``sim: true`` the command prints, after its ``ready`` line, one line per simulated device:
+the ``link`` that reaches its simulator and how a tool connects (``docs/simulators.md``), so a
+ground station, ``can.viewer`` or a serial terminal can watch the robot's own simulators.
+``--sim-out udp:HOST:PORT`` (repeatable) makes every simulated vehicle stream to that loopback
+address too (QGroundControl listens on 14550); it needs ``sim: true`` and a MAVLink device.
+
 ``--record FILE.mcap`` records the runs, the action logs, the robot's telemetry (10 Hz) and the
 fleet's envelopes (``docs/recording.md``); the file is finished at every way out but SIGKILL,
 the second signal's immediate exit included.
@@ -45,6 +51,7 @@ from temoto._cli_fleet import (
     open_recorder,
     state_files,
 )
+from temoto._cli_sim import endpoint_for, parse_udp_address
 from temoto._progress import ActionLogHandler, Progress
 from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.clock import MonotonicClock
@@ -133,6 +140,15 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--actions", action="append", default=[], metavar="DIR", help="more actions")
     p.add_argument("--graphs", action="append", default=[], metavar="DIR", help="graph folder")
     p.add_argument("--timeout", type=float, metavar="SECONDS", help="stop the mission after this")
+    p.add_argument(
+        "--sim-out",
+        type=parse_udp_address,
+        action="append",
+        default=[],
+        metavar="udp:HOST:PORT",
+        help="with sim: true, also stream the simulated vehicle to this loopback address, for a"
+        " ground station (repeatable; QGroundControl listens on udp:127.0.0.1:14550)",
+    )
     add_state_options(p)
     p.add_argument(
         "--local",
@@ -180,6 +196,7 @@ def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
     t0 = time.monotonic()
     clock = MonotonicClock()
     profile = load_profile(args.profile, clock=clock)
+    _check_sim_out(args.sim_out, profile)
     mission = load_graph(args.mission) if args.mission else None
     state = state_files(args)
     transport: Transport
@@ -236,7 +253,7 @@ def _run_instance(
         live_view_port=args.live_view,
         component_files=args.components,
     ) as instance:
-        manager = RobotManager(instance.registrar, profile, clock=clock)
+        manager = RobotManager(instance.registrar, profile, clock=clock, sim_gcs=args.sim_out)
         instance.add_manager(manager)
         # load the robot now: a device that does not answer fails here, not mid-mission
         # references this command held before a restart died with its process: let them go
@@ -258,6 +275,9 @@ def _run_instance(
             )
             if instance.live_view is not None:
                 out.write(f"live view: {instance.live_view.url}\n")
+            for sim in manager.simulated():
+                line = endpoint_for(sim.name, sim.driver, sim.simulator, sim.settings, args.sim_out)
+                out.write(f"  simulator {line.summary()}\n")
             out.flush()
             if mission is None:
                 sys.stderr.write(f"robot '{profile.robot}' serving; Ctrl-C stops it\n")
@@ -291,6 +311,16 @@ def _run_instance(
                 recorder.stop_sampling()  # before the robot goes
             # at every way out but a second signal: the catalog keeps nothing of this run
             _release(instance.registrar, robot.resource.id)
+
+
+def _check_sim_out(sim_out: Sequence[tuple[str, int]], profile: Any) -> None:
+    """``--sim-out`` needs simulators, and a vehicle among them."""
+    if not sim_out:
+        return
+    if not profile.sim:
+        raise ConfigError(f"--sim-out: {profile.source} has sim: false (no simulated vehicle)")
+    if not any(spec.driver == "mavlink" for spec in profile.devices.values()):
+        raise ConfigError(f"--sim-out: {profile.source} has no MAVLink vehicle to stream")
 
 
 def _release(registrar: Any, reference: str) -> None:

@@ -19,9 +19,9 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Protocol, runtime_checkable
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.config import Profile
@@ -43,6 +43,7 @@ __all__ = [
     "RobotManager",
     "RobotRequest",
     "RobotResponse",
+    "SimulatedDevice",
 ]
 
 logger = logging.getLogger(__name__)
@@ -109,12 +110,37 @@ class RobotResponse:
         object.__setattr__(self, "devices", tuple(self.devices))
 
 
+@dataclass(frozen=True)
+class SimulatedDevice:
+    """A loaded device whose simulator runs in this process.
+
+    Attributes:
+        name: The device's name in the profile.
+        driver: The driver's profile name.
+        simulator: The started simulator.
+        settings: The entry the driver was built from: its ``link`` reaches the simulator.
+    """
+
+    name: str
+    driver: str
+    simulator: Simulator
+    settings: Mapping[str, Any]
+
+
+@runtime_checkable
+class _StreamsToGcs(Protocol):
+    """A simulated vehicle that streams to ground stations (``SimVehicle.add_gcs``)."""
+
+    def add_gcs(self, host: str, port: int) -> None: ...
+
+
 @dataclass(eq=False)
 class _Device:
     driver: Driver
     sim: Simulator | None
     remove_listener: Any = None
     faulted: bool = False  # a FATAL was sent and no OK since
+    settings: Mapping[str, Any] | None = None  # the entry the driver got (simulated devices)
 
 
 class Robot:
@@ -220,6 +246,9 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         profile: The robot's checked profile.
         clock: The robot's clock (drivers, simulators, control loop).
         rate_hz: The control loop's rate.
+        sim_gcs: With ``sim: true``: more UDP addresses every simulated vehicle streams to
+            (ground stations watching the robot's own vehicle, the robot command's
+            ``--sim-out``).
 
     Raises:
         ValueError: ``rate_hz`` is not positive, or the servers exist already.
@@ -236,9 +265,11 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         *,
         clock: Clock | None = None,
         rate_hz: float = 50.0,
+        sim_gcs: Sequence[tuple[str, int]] = (),
     ) -> None:
         if not rate_hz > 0:
             raise ValueError("rate_hz must be positive")
+        self.sim_gcs = tuple(sim_gcs)
         self.registrar = registrar
         self.profile = profile
         self.clock: Clock = clock or MonotonicClock()
@@ -289,6 +320,22 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             state = "not simulated" if loaded is not None else "not loaded"
             raise StateError(f"device '{device}' is {state}")
         return loaded.sim
+
+    def simulated(self) -> list[SimulatedDevice]:
+        """The loaded devices whose simulators run in this process, in profile order.
+
+        Returns:
+            One per simulated device (none when the profile says ``sim: false``).
+        """
+        with self._lock:
+            loaded = dict(self._devices)
+        found: list[SimulatedDevice] = []
+        for name, spec in self.profile.devices.items():
+            device = loaded.get(name)
+            if device is not None and device.sim is not None:
+                settings = device.settings or spec.config
+                found.append(SimulatedDevice(name, spec.driver, device.sim, settings))
+        return found
 
     # ---- the "robot" server ------------------------------------------------------------------
 
@@ -345,10 +392,13 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         sim: Simulator | None = None
         if self.profile.sim:
             sim, config = cls.simulate(spec.name, config, clock=self.clock)
+            if isinstance(sim, _StreamsToGcs):
+                for host, port in self.sim_gcs:
+                    sim.add_gcs(host, port)
             sim.start()
         try:
             driver: Driver = cls.from_profile(spec.name, config, clock=self.clock, where=where)
-            device = _Device(driver, sim)
+            device = _Device(driver, sim, settings=dict(config) if sim is not None else None)
             resource_id = ctx.resource_id
             driver.configure()
             driver.activate()
