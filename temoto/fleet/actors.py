@@ -6,8 +6,12 @@ thesis §6.3.2) with the messages of ``temoto/lcm_types/defs`` on two channels:
 ``TEMOTO_HANDSHAKE`` (``handshake_t``)
     *The N-to-N handshake* (thesis Algorithm 3). Each participant broadcasts a ``JOIN`` naming
     the run (graph and session), the participants, and the peers it has heard in this run with
-    the stamp of their newest handshake. It does so every ``resend_s`` and at once when it hears
-    a peer for the first time, so a handshake takes about one network round trip. It is done
+    the stamp of their newest handshake (``handshake_t`` version 2: the participants as one
+    JSON string, the stamps as one byte array by place in it, read without parsing by a
+    receiver whose list is the same). It does so every ``resend_s`` (for N > 10 participants
+    at most every ``resend_s * N / 10``: the fleet's JOINs per second do not grow with it) and
+    at once when it hears a peer for the first time, so a handshake takes about one network
+    round trip. It is done
     when every ordered pair ``(a, b)`` of participants is known to be heard: ``a`` heard ``b``
     according to ``a``'s newest heard list (our own for ``a`` = this actor). A pair
     ``(peer, this actor)`` needs a *fresh* stamp: the peer must echo a stamp of this call, so a

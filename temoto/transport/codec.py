@@ -48,7 +48,7 @@ _ENVELOPE = "envelope_t"
 def _inner_types() -> dict[str, type[Any]]:
     """Find the inner message classes: generated classes whose first field is ``version``.
 
-    Nested structs (``heard_actor_t``, ``node_state_t``, ``ris_server_t``) have no version
+    Nested structs (``node_state_t``, ``ris_server_t``) have no version
     field and travel only inside an inner message.
     """
     found: dict[str, type[Any]] = {}
