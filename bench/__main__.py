@@ -59,7 +59,8 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
         registrar.bench_registrar,
     ),
     "fleet": (
-        "fleet: handshake of 2/3/5/50 actor processes, notification latency, throughput",
+        "fleet: handshake of 2/3/5 and 20 (full: 10/20/50) actor processes, notification latency,"
+        " throughput",
         fleet.bench_fleet,
     ),
     "process": (

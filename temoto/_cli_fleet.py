@@ -315,7 +315,7 @@ def open_recorder(
     recorder.capture_logs()
     if transport is not None:
         try:
-            recorder.listen(transport)
+            recorder.listen(transport, [actor] if actor else [])
         except BaseException:
             recorder.close()
             raise

@@ -21,6 +21,12 @@ __all__ = ["CallQueue", "Closing", "check_name", "check_seconds", "decode_or_cou
 
 logger = logging.getLogger(__name__)
 
+# (sender, type, version) already warned about: a peer of another release is named once, not
+# once per message. Bounded: past this many, further ones are logged at DEBUG only.
+_VERSION_WARNED: set[tuple[str, str, int]] = set()
+_VERSION_WARNED_MAX = 256
+_version_lock = threading.Lock()
+
 
 def new(cls: type[Any]) -> Any:
     """An empty message of a generated (untyped) LCM class.
@@ -144,6 +150,9 @@ def decode_or_count(
 ) -> Any:
     """The inner message of an envelope, or None (counted) if it is undecodable or unexpected.
 
+    A message of a version this build does not speak (a peer of another release) is logged
+    at WARNING, once per sender, type and version; other drops at DEBUG.
+
     Args:
         opened: The authenticated envelope.
         expected: The type names this channel carries.
@@ -158,6 +167,20 @@ def decode_or_count(
     except DecodeError as err:
         with lock:
             counts["decode_errors"] += 1
+        if isinstance(err, codec.UnsupportedVersion):
+            key = (opened.sender, opened.type, err.version)
+            with _version_lock:
+                first = key not in _VERSION_WARNED and len(_VERSION_WARNED) < _VERSION_WARNED_MAX
+                if first:
+                    _VERSION_WARNED.add(key)
+            if first:
+                logger.warning(
+                    "dropping the messages of %r on %r: %s (this warning once per sender)",
+                    opened.sender,
+                    opened.channel,
+                    err,
+                )
+                return None
         logger.debug("dropped a message from %r on %r: %s", opened.sender, opened.channel, err)
         return None
     if opened.type not in expected:

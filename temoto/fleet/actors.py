@@ -6,8 +6,12 @@ thesis §6.3.2) with the messages of ``temoto/lcm_types/defs`` on two channels:
 ``TEMOTO_HANDSHAKE`` (``handshake_t``)
     *The N-to-N handshake* (thesis Algorithm 3). Each participant broadcasts a ``JOIN`` naming
     the run (graph and session), the participants, and the peers it has heard in this run with
-    the stamp of their newest handshake. It does so every ``resend_s`` and at once when it hears
-    a peer for the first time, so a handshake takes about one network round trip. It is done
+    the stamp of their newest handshake (``handshake_t`` version 2: the participants as one
+    JSON string, the stamps as one byte array by place in it, read without parsing by a
+    receiver whose list is the same). It does so every ``resend_s`` (for N > 10 participants
+    at most every ``resend_s * N / 10``: the fleet's JOINs per second do not grow with it) and
+    at once when it hears a peer for the first time, so a handshake takes about one network
+    round trip. It is done
     when every ordered pair ``(a, b)`` of participants is known to be heard: ``a`` heard ``b``
     according to ``a``'s newest heard list (our own for ``a`` = this actor). A pair
     ``(peer, this actor)`` needs a *fresh* stamp: the peer must echo a stamp of this call, so a
@@ -64,6 +68,7 @@ import logging
 import math
 import re
 import secrets
+import struct
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
@@ -74,7 +79,7 @@ from temoto.core.remote import ActorLostError, Cancel, RemoteResult
 from temoto.core.states import Result
 from temoto.errors import FleetError, StateError, TransportError
 from temoto.fleet._common import Closing, check_name, check_seconds, decode_or_count, new
-from temoto.lcm_types import action_ack_t, action_notification_t, handshake_t, heard_actor_t
+from temoto.lcm_types import action_ack_t, action_notification_t, handshake_t
 from temoto.transport import codec
 from temoto.transport.auth import FleetLink, Opened
 from temoto.transport.base import Subscription
@@ -140,6 +145,11 @@ _ANSWERS_AT_ONCE = 3
 # Resends of a JOIN or a notification that brought nothing new slow down, to this many times
 # resend_s.
 _MAX_BACKOFF = 8
+# A handshake of more actors than this sends its JOINs (and READY answers) at most every
+# resend_s * actors / _ACTORS_PER_PERIOD: every JOIN is decoded by every other actor, so the
+# whole fleet sends about as many JOINs per second as this many actors would, and the work
+# of each actor per second does not grow with the fleet (50 actors: a JOIN every 0.5 s).
+_ACTORS_PER_PERIOD = 10
 
 
 def ack_channel(actor: str) -> str:
@@ -177,15 +187,45 @@ class _Phase(enum.Enum):
     READY = "ready"  # handshake done: the heard list is frozen; answering late peers
 
 
+def _actors_text(actors: Sequence[str]) -> str:
+    """A run's actor list as a handshake carries it: a compact JSON array (sorted by caller)."""
+    return json.dumps(list(actors), ensure_ascii=False, separators=(",", ":"))
+
+
 @dataclass(slots=True)
 class _Peer:
-    """What one peer said in its newest handshake of a run."""
+    """What one peer said in its newest handshake of a run.
+
+    ``stamps`` is its heard list by place in its actor list (``actors``, as sent); the list is
+    parsed only when it differs from this actor's (:meth:`names`), so a report of a 50-actor
+    run costs a few field reads, not 100 (see handshake_t.lcm).
+    """
 
     stamp: int
     phase: int
-    actors: tuple[str, ...]
-    heard: dict[str, int]
+    actors: str  # its actor list, as sent (JSON)
+    stamps: tuple[int, ...]  # the stamps it heard, by place in its actor list; 0: not heard
     run_id: str = ""  # its proposal (JOIN) or the run id it agreed on (READY)
+    full: bool = False  # it heard every actor of its list
+    parsed: tuple[str, ...] | None = None  # its actor list, once parsed
+
+    def names(self) -> tuple[str, ...]:
+        """Its actor list (empty if it is not a JSON array of strings)."""
+        if self.parsed is None:
+            try:
+                value = json.loads(self.actors) if self.actors else []
+            except (ValueError, RecursionError):
+                value = None
+            ok = isinstance(value, list) and all(isinstance(a, str) for a in value)
+            self.parsed = tuple(value) if ok and value is not None else ()
+        return self.parsed
+
+    def heard(self) -> dict[str, int]:
+        """The actors it heard, with the stamp it echoes for each."""
+        names = self.names()
+        if len(names) != len(self.stamps):
+            return {}
+        return {a: t for a, t in zip(names, self.stamps, strict=True) if t > 0}
 
 
 @dataclass(slots=True, eq=False)
@@ -207,6 +247,8 @@ class _Run:
     local: bool = False  # handshake, expect or notify was called for it here
     phase: _Phase = _Phase.KEPT
     actors: tuple[str, ...] = ()
+    actors_text: str = ""  # actors as a handshake carries them (_actors_text)
+    me: int = 0  # this actor's place in actors
     first_stamp: int = 0  # the stamp of the first JOIN of the current handshake call
     proposal: str = ""  # this actor's run id proposal in the current handshake call
     answer_at: float | None = None  # when to send the JOIN that answers newly heard peers
@@ -444,6 +486,8 @@ class FleetActorLink(Closing):
                 run.seen |= ended.seen
             run.local = True
             run.actors = participants
+            run.actors_text = _actors_text(participants)
+            run.me = participants.index(self._actor)
             run.phase = _Phase.JOINING
             run.proposal = f"{session}@{secrets.token_hex(6)}"
             run.joins = 0
@@ -457,8 +501,10 @@ class FleetActorLink(Closing):
             run.first_stamp = msg.stamp_us
         deadline = now + timeout
         ready: Any = None
-        period = self.resend_s  # doubles while a resend brings nothing new (to _MAX_BACKOFF)
-        unheard = math.inf  # pairs not heard yet at the last resend
+        gap = self._gap(run)  # the least time between two JOINs
+        period = gap  # doubles while a resend brings nothing new (to _MAX_BACKOFF)
+        longest = max(gap, _MAX_BACKOFF * self.resend_s)
+        unheard = math.inf  # reports missing at the last resend
         try:
             while ready is None:
                 self._send(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
@@ -468,7 +514,7 @@ class FleetActorLink(Closing):
                 with self._lock:
                     while True:
                         self._check_joining(run)
-                        missing = self._missing(run)
+                        missing = self._unheard(run)
                         if not missing:
                             run.phase = _Phase.READY
                             run.frozen = {p: peer.stamp for p, peer in run.peers.items()}
@@ -491,10 +537,9 @@ class FleetActorLink(Closing):
                             msg = self._join_msg(run)
                             break
                         if now >= next_send:
-                            count = sum(len(hearers) for hearers in missing.values())
-                            slower = count >= unheard and period < _MAX_BACKOFF * self.resend_s
-                            period = period * 2 if slower else self.resend_s
-                            unheard = count
+                            slower = missing >= unheard and period < longest
+                            period = min(period * 2, longest) if slower else gap
+                            unheard = missing
                             msg = self._join_msg(run)
                             break
                         wake = min(next_send, deadline, math.inf if answer is None else answer)
@@ -929,14 +974,19 @@ class FleetActorLink(Closing):
                 run = self._new_run(key, now)
         if msg.phase == _READY and not msg.heard:
             return reply  # a heartbeat: liveness only; the peer's full READY still stands
+        raw: bytes = msg.heard
+        if len(raw) % 8:
+            self._counts["unexpected"] += 1  # not whole stamps
+            return reply
         run.touched = now
         peer = run.peers.get(actor)
         first = peer is None
         rejoined = False
         if peer is None or msg.stamp_us > peer.stamp:
             rejoined = peer is not None and msg.phase == _JOIN and peer.phase != _JOIN
-            heard = {h.actor: h.stamp_us for h in msg.heard}
-            run.peers[actor] = _Peer(msg.stamp_us, msg.phase, tuple(msg.actors), heard, msg.run_id)
+            stamps: tuple[int, ...] = struct.unpack(f">{len(raw) // 8}q", raw)
+            full = bool(stamps) and min(stamps) > 0
+            run.peers[actor] = _Peer(msg.stamp_us, msg.phase, msg.actors, stamps, msg.run_id, full)
         if run.phase is _Phase.JOINING:
             if actor in run.actors:
                 self._check_same_actors(run, actor)
@@ -948,7 +998,7 @@ class FleetActorLink(Closing):
                         now
                         if run.joins < _ANSWERS_AT_ONCE
                         else max(
-                            now + self.resend_s * _ANSWER_WINDOW, run.last_join + self.resend_s
+                            now + self.resend_s * _ANSWER_WINDOW, run.last_join + self._gap(run)
                         )
                     )
             self._changed.notify_all()
@@ -959,7 +1009,7 @@ class FleetActorLink(Closing):
             and now >= run.next_ready_reply  # one READY answers every late peer
         ):
             reply = self._ready_msg(run)
-            run.next_ready_reply = now + self.resend_s
+            run.next_ready_reply = now + self._gap(run)
         return reply
 
     def _on_leave(self, actor: str, graph: str, session: str, reason: str = "") -> None:
@@ -1165,7 +1215,7 @@ class FleetActorLink(Closing):
                             for r in ready
                         ]
                         if not msgs:
-                            msgs.append(self._handshake_msg(_READY, "", "", (), {}))
+                            msgs.append(self._handshake_msg(_READY, "", "", (), None))
                         self._next_heartbeat = now + self.heartbeat_s
                     wake = self._next_heartbeat
                 else:
@@ -1286,12 +1336,50 @@ class FleetActorLink(Closing):
         self._timer_wake.notify()  # it expires unless started here
         return run
 
+    def _gap(self, run: _Run) -> float:
+        """The least time between two JOINs (or READY answers) of ``run``.
+
+        See ``_ACTORS_PER_PERIOD``.
+        """
+        return self.resend_s * max(1.0, len(run.actors) / _ACTORS_PER_PERIOD)
+
+    def _report_done(self, run: _Run, actor: str, report: _Peer) -> bool:
+        """Whether ``actor``'s newest report says it heard every other participant.
+
+        This actor must be heard with a stamp of the current handshake call. Lock held.
+        """
+        if report.actors == run.actors_text:  # the same list: read the stamps by place
+            stamps = report.stamps
+            return (
+                report.full and len(stamps) == len(run.actors) and stamps[run.me] >= run.first_stamp
+            )
+        heard = report.heard()
+        for b in run.actors:
+            if b != actor and heard.get(b, 0) < (run.first_stamp if b == self._actor else 1):
+                return False
+        return True
+
+    def _unheard(self, run: _Run) -> int:
+        """How many participants are not heard, or have no complete report, here.
+
+        0: the handshake is done. Lock held.
+        """
+        count = 0
+        for actor in run.actors:
+            if actor == self._actor:
+                continue
+            report = run.peers.get(actor)
+            if report is None or not self._report_done(run, actor, report):
+                count += 1
+        return count
+
     def _missing(self, run: _Run) -> dict[str, list[str]]:
         """Who has not (yet, freshly) been heard by whom: heard actor -> hearers."""
         me = self._actor
         missing: dict[str, list[str]] = {}
         for a in run.actors:
             report = run.peers.get(a)
+            heard = {} if report is None else report.heard()
             for b in run.actors:
                 if a == b:
                     continue
@@ -1300,9 +1388,9 @@ class FleetActorLink(Closing):
                 elif report is None:
                     ok = False
                 elif b == me:
-                    ok = report.heard.get(me, -1) >= run.first_stamp
+                    ok = heard.get(me, -1) >= run.first_stamp
                 else:
-                    ok = b in report.heard
+                    ok = b in heard
                 if not ok:
                     missing.setdefault(b, []).append(a)
         return missing
@@ -1323,12 +1411,14 @@ class FleetActorLink(Closing):
         for actor in sorted(run.warned):
             peer = run.peers.get(actor)
             if peer is not None:
-                parts.append(f"'{actor}' lists the actors {list(peer.actors)}")
+                parts.append(f"'{actor}' lists the actors {list(peer.names())}")
         return "; ".join(parts)
 
     def _check_same_actors(self, run: _Run, actor: str) -> None:
         peer = run.peers.get(actor)
-        if peer is None or actor in run.warned or set(peer.actors) == set(run.actors):
+        if peer is None or actor in run.warned or peer.actors == run.actors_text:
+            return
+        if set(peer.names()) == set(run.actors):
             return
         run.warned.add(actor)
         logger.warning(
@@ -1336,7 +1426,7 @@ class FleetActorLink(Closing):
             run.graph,
             run.session,
             actor,
-            list(peer.actors),
+            list(peer.names()),
             list(run.actors),
         )
 
@@ -1409,18 +1499,20 @@ class FleetActorLink(Closing):
         graph: str,
         session: str,
         actors: Sequence[str],
-        heard: Mapping[str, int],
+        heard: Mapping[str, int] | None,
     ) -> Any:
+        """A handshake_t; ``heard`` (None: no heard list) is written by place in ``actors``."""
         msg = new(handshake_t)
         msg.phase, msg.graph, msg.session, msg.actor = phase, graph, session, self._actor
         msg.stamp_us = self._stamp()
         msg.result, msg.reason, msg.run_id = "", "", ""
-        msg.actors = list(actors)
-        msg.heard = []
-        for name, stamp in sorted(heard.items()):
-            entry = new(heard_actor_t)
-            entry.actor, entry.stamp_us = name, stamp
-            msg.heard.append(entry)
+        msg.actors = _actors_text(actors) if actors else ""
+        if heard is not None and actors:  # by place; this actor's place: this message's stamp
+            own = {self._actor: msg.stamp_us}
+            stamps = [own.get(a) or heard.get(a, 0) for a in actors]
+            msg.heard = struct.pack(f">{len(stamps)}q", *stamps)
+        else:
+            msg.heard = b""
         return msg
 
     def _join_msg(self, run: _Run) -> Any:
@@ -1454,7 +1546,7 @@ class FleetActorLink(Closing):
         The first READY and the answers to late JOINs carry the lists; a heartbeat need not
         (decoding a 50-actor heard list 50 times a period was most of a fleet's work).
         """
-        msg = self._handshake_msg(_READY, run.graph, run.session, (), {})
+        msg = self._handshake_msg(_READY, run.graph, run.session, (), None)
         msg.run_id = run.run_id
         return msg
 
@@ -1487,14 +1579,14 @@ class FleetActorLink(Closing):
         self._runs[key] = run
 
     def _leave_msg(self, graph: str, session: str, actors: Sequence[str]) -> Any:
-        return self._handshake_msg(_LEAVE, graph, session, actors, {})
+        return self._handshake_msg(_LEAVE, graph, session, actors, None)
 
     def _decision_msg(
         self, key: _SessionKey, actors: Sequence[str], decision: tuple[int, str, str]
     ) -> Any:
         """END with the run's result, or LEAVE with the abort's reason."""
         phase, result, reason = decision
-        msg = self._handshake_msg(phase, key[0], key[1], actors, {})
+        msg = self._handshake_msg(phase, key[0], key[1], actors, None)
         msg.result, msg.reason = result, reason
         return msg
 

@@ -15,7 +15,6 @@ from .graph_command_reply_t import graph_command_reply_t as graph_command_reply_
 from .graph_command_t import graph_command_t as graph_command_t
 from .graph_feedback_t import graph_feedback_t as graph_feedback_t
 from .handshake_t import handshake_t as handshake_t
-from .heard_actor_t import heard_actor_t as heard_actor_t
 from .node_state_t import node_state_t as node_state_t
 from .resource_release_t import resource_release_t as resource_release_t
 from .resource_reply_t import resource_reply_t as resource_reply_t

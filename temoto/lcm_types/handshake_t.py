@@ -7,21 +7,20 @@ DO NOT MODIFY BY HAND!!!!
 from io import BytesIO
 import struct
 
-import temoto.lcm_types
-
 class handshake_t(object):
     """
     Channel TEMOTO_HANDSHAKE. The N-to-N handshake before a multi-actor graph starts (thesis
-    Algorithm 3, REFERENCE 2.14): every participant re-publishes it (about every 100 ms) until
-    each pair of participants has heard each other with a fresh stamp, learnt through the
-    echoed heard list.
+    Algorithm 3, REFERENCE 2.14): every participant re-publishes it until each pair of
+    participants has heard each other with a fresh stamp, learnt through the echoed stamps in
+    `heard`. Version 2: the actor list is one string and the heard list one array of stamps by
+    place in it, so a receiver decodes a message of a 50-actor run in a few fields, not 100.
     """
 
-    __slots__ = ["version", "phase", "graph", "session", "actor", "stamp_us", "actors_count", "actors", "heard_count", "heard", "result", "reason", "run_id"]
+    __slots__ = ["version", "phase", "graph", "session", "actor", "stamp_us", "actors", "heard_size", "heard", "result", "reason", "run_id"]
 
-    __typenames__ = ["int16_t", "int8_t", "string", "string", "string", "int64_t", "int16_t", "string", "int16_t", "temoto.lcm_types.heard_actor_t", "string", "string", "string"]
+    __typenames__ = ["int16_t", "int8_t", "string", "string", "string", "int64_t", "string", "int32_t", "byte", "string", "string", "string"]
 
-    __dimensions__ = [None, None, None, None, None, None, None, ["actors_count"], None, ["heard_count"], None, None, None]
+    __dimensions__ = [None, None, None, None, None, None, None, None, ["heard_size"], None, None, None]
 
     JOIN = 1
     """
@@ -38,7 +37,8 @@ class handshake_t(object):
     def __init__(self):
         self.version = 0
         """
-        Format of this message (temoto.transport.codec.VERSION).
+        Format of this message: 2 (temoto.transport.codec.VERSIONS); other versions are dropped
+        with a warning naming the sender.
         LCM Type: int16_t
         """
 
@@ -70,25 +70,28 @@ class handshake_t(object):
         self.stamp_us = 0
         """
         When the sender published this handshake, microseconds since the epoch; peers echo it
-        in their heard list.
+        in their `heard`.
         LCM Type: int64_t
         """
 
-        self.actors_count = 0
-        """ LCM Type: int16_t """
-        self.actors = []
+        self.actors = ""
         """
         Every actor that takes part in this run (the sender included), as the sender's copy of
-        the graph names them.
-        LCM Type: string[actors_count]
+        the graph names them: sorted by code point, as a JSON array of strings without spaces
+        (["Actor 0","Actor 1"]). Empty in heartbeats. A receiver whose own list is the same
+        string reads `heard` by its own list.
+        LCM Type: string
         """
 
-        self.heard_count = 0
-        """ LCM Type: int16_t """
-        self.heard = []
+        self.heard_size = 0
+        """ LCM Type: int32_t """
+        self.heard = b""
         """
-        The peers the sender has heard in this handshake, each with its newest stamp.
-        LCM Type: temoto.lcm_types.heard_actor_t[heard_count]
+        The peers the sender has heard in this handshake: one big-endian int64 per actor of
+        `actors`, in that order, the stamp_us of the newest handshake_t heard from it (the
+        sender's own stamp_us at its own place); 0 for an actor not heard yet. Empty in
+        heartbeats, LEAVE and END.
+        LCM Type: byte[heard_size]
         """
 
         self.result = ""
@@ -133,16 +136,13 @@ class handshake_t(object):
         buf.write(struct.pack('>I', len(__actor_encoded)+1))
         buf.write(__actor_encoded)
         buf.write(b"\0")
-        buf.write(struct.pack(">qh", self.stamp_us, self.actors_count))
-        for i0 in range(self.actors_count):
-            __actors_encoded = self.actors[i0].encode('utf-8')
-            buf.write(struct.pack('>I', len(__actors_encoded)+1))
-            buf.write(__actors_encoded)
-            buf.write(b"\0")
-        buf.write(struct.pack(">h", self.heard_count))
-        for i0 in range(self.heard_count):
-            assert self.heard[i0]._get_packed_fingerprint() == temoto.lcm_types.heard_actor_t._get_packed_fingerprint()
-            self.heard[i0]._encode_one(buf)
+        buf.write(struct.pack(">q", self.stamp_us))
+        __actors_encoded = self.actors.encode('utf-8')
+        buf.write(struct.pack('>I', len(__actors_encoded)+1))
+        buf.write(__actors_encoded)
+        buf.write(b"\0")
+        buf.write(struct.pack(">i", self.heard_size))
+        buf.write(bytearray(self.heard[:self.heard_size]))
         __result_encoded = self.result.encode('utf-8')
         buf.write(struct.pack('>I', len(__result_encoded)+1))
         buf.write(__result_encoded)
@@ -176,15 +176,11 @@ class handshake_t(object):
         self.session = buf.read(__session_len)[:-1].decode('utf-8', 'replace')
         __actor_len = struct.unpack('>I', buf.read(4))[0]
         self.actor = buf.read(__actor_len)[:-1].decode('utf-8', 'replace')
-        self.stamp_us, self.actors_count = struct.unpack(">qh", buf.read(10))
-        self.actors = []
-        for i0 in range(self.actors_count):
-            __actors_len = struct.unpack('>I', buf.read(4))[0]
-            self.actors.append(buf.read(__actors_len)[:-1].decode('utf-8', 'replace'))
-        self.heard_count = struct.unpack(">h", buf.read(2))[0]
-        self.heard = []
-        for i0 in range(self.heard_count):
-            self.heard.append(temoto.lcm_types.heard_actor_t._decode_one(buf))
+        self.stamp_us = struct.unpack(">q", buf.read(8))[0]
+        __actors_len = struct.unpack('>I', buf.read(4))[0]
+        self.actors = buf.read(__actors_len)[:-1].decode('utf-8', 'replace')
+        self.heard_size = struct.unpack(">i", buf.read(4))[0]
+        self.heard = buf.read(self.heard_size)
         __result_len = struct.unpack('>I', buf.read(4))[0]
         self.result = buf.read(__result_len)[:-1].decode('utf-8', 'replace')
         __reason_len = struct.unpack('>I', buf.read(4))[0]
@@ -196,8 +192,7 @@ class handshake_t(object):
     @staticmethod
     def _get_hash_recursive(parents):
         if handshake_t in parents: return 0
-        newparents = parents + [handshake_t]
-        tmphash = (0x1891eadd89cb49ee+ temoto.lcm_types.heard_actor_t._get_hash_recursive(newparents)) & 0xffffffffffffffff
+        tmphash = (0xcfdca7eeca38dad7) & 0xffffffffffffffff
         tmphash  = (((tmphash<<1)&0xffffffffffffffff) + (tmphash>>63)) & 0xffffffffffffffff
         return tmphash
     _packed_fingerprint = None

@@ -17,7 +17,7 @@ import math
 import queue
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import IO, Any, Final, cast
 
@@ -37,6 +37,8 @@ logger = logging.getLogger(__name__)
 TELEMETRY_RATE_HZ: Final = 10.0
 #: Real seconds between flushes of the file (what a SIGKILL may lose at most).
 FLUSH_PERIOD_S: Final = 1.0
+#: The most acknowledgement channels (``TEMOTO_ACK_<actor>``) one recording subscribes to.
+MAX_ACK_CHANNELS: Final = 1024
 #: The recorder's own topics and their schemas (``{robot}``: the robot's name; ``{channel}``:
 #: a fleet channel).
 TOPICS: Final[dict[str, str]] = {
@@ -156,6 +158,8 @@ class Recorder(Instrument):
         self._samplers: list[threading.Thread] = []
         self._stopping = False
         self._subscriptions: list[Any] = []
+        self._transport: Any = None  # the transport of listen(), for the acknowledgement channels
+        self._ack_channels: set[str] = set()  # TEMOTO_ACK_<actor> channels subscribed to
         self._undo_logs: list[Callable[[], None]] = []
         self._thread = threading.Thread(target=self._drain, name="temoto-record", daemon=True)
         self._thread.start()
@@ -284,18 +288,50 @@ class Recorder(Instrument):
         self._samplers.append(thread)
         thread.start()
 
-    def listen(self, transport: Any) -> None:
+    def listen(self, transport: Any, actors: Sequence[str] = ()) -> None:
         """Record the envelope of every fleet message heard on ``transport``.
 
         One topic per fleet channel (``/fleet/TEMOTO_RIS`` ...): the channel, sender, inner
         type, sequence number, sender's stamp and size of each envelope, as heard (neither
         authenticated nor decoded; ``docs/recording.md`` says how to keep the raw traffic).
 
+        The acknowledgements of shared runs travel on one channel per notifying actor
+        (``TEMOTO_ACK_<actor>``, :func:`temoto.fleet.actors.ack_channel`): those of
+        ``actors`` are recorded from the start, and those of every actor named by a handshake
+        heard on ``TEMOTO_HANDSHAKE`` from then on (a handshake precedes every notification
+        of its run), at most :data:`MAX_ACK_CHANNELS`.
+
         Args:
             transport: A :class:`~temoto.transport.base.Transport` (open).
+            actors: Actors whose acknowledgement channels are recorded at once (e.g. this
+                instance's own).
         """
+        self._transport = transport
         for channel in _fleet_channels():
             self._subscriptions.append(transport.subscribe(channel, self._on_fleet))
+        for actor in actors:
+            self._listen_acks(actor)
+
+    def _listen_acks(self, actor: str) -> None:
+        """Record the acknowledgement channel of ``actor`` too (once)."""
+        from temoto.fleet.actors import ack_channel
+
+        if not actor:
+            return
+        channel = ack_channel(actor)
+        with self._close_lock:  # close() unsubscribes everything under it
+            if (
+                self._closed
+                or self._transport is None
+                or channel in self._ack_channels
+                or len(self._ack_channels) >= MAX_ACK_CHANNELS
+            ):
+                return
+            self._ack_channels.add(channel)
+            try:
+                self._subscriptions.append(self._transport.subscribe(channel, self._on_fleet))
+            except Exception:  # the transport was closed meanwhile
+                logger.debug("cannot record %s", channel, exc_info=True)
 
     def stop_sampling(self) -> None:
         """Stop every :meth:`sample` thread (e.g. before the robot is released); idempotent."""
@@ -538,6 +574,24 @@ class Recorder(Instrument):
         except Exception:
             message.update(sender="", type="", seq=0, stamp_us=0, signed=False)
         self.put(f"/fleet/{channel}", "temoto.FleetMessage", message)
+        if message["type"] == "handshake_t" and channel == "TEMOTO_HANDSHAKE":
+            for actor in _handshake_actors(env.payload):
+                self._listen_acks(actor)
+
+
+def _handshake_actors(payload: bytes) -> list[str]:
+    """The sender and the participants a handshake_t names (none if it does not decode)."""
+    from temoto.errors import DecodeError
+    from temoto.transport import codec
+
+    try:
+        msg = codec.decode("handshake_t", bytes(payload))
+        names = json.loads(msg.actors) if msg.actors else []
+    except (DecodeError, ValueError, RecursionError):
+        return []
+    if not isinstance(names, list):
+        return []
+    return [str(msg.actor), *(n for n in names if isinstance(n, str))]
 
 
 def _fleet_channels() -> tuple[str, ...]:

@@ -10,7 +10,9 @@ payload's type, so a receiver decodes with::
 :func:`decode` is strict: an unknown type, bytes of another type or of another definition of
 the type (LCM fingerprint), a truncated payload, bytes after the end of the message, a negative
 array size and an unknown version all raise :class:`~temoto.errors.DecodeError`, which the
-receiver counts and drops.
+receiver counts and drops. Each type has its version (:data:`VERSIONS`): a type whose format
+changes gets a new version and a new LCM fingerprint, and a payload of another version is
+refused naming both versions.
 
 This module is the only hand-written code about the generated types (STYLE.md 3.10).
 """
@@ -24,11 +26,20 @@ from typing import Any
 import temoto.lcm_types as lcm_types
 from temoto.errors import DecodeError
 
-__all__ = ["TYPES", "VERSION", "decode", "encode"]
+__all__ = ["TYPES", "VERSION", "VERSIONS", "UnsupportedVersion", "decode", "encode"]
 
-#: The format version of every inner message and of the envelope; :func:`encode` writes it,
-#: :func:`decode` refuses any other.
+#: The format version of the envelope and of every inner message not in :data:`VERSIONS`.
 VERSION = 1
+
+#: Inner messages whose format changed since :data:`VERSION`, and their version now:
+#: ``handshake_t`` 2 (the actor list as one string, the heard list as stamps by place).
+_CHANGED = {"handshake_t": 2}
+
+#: The LCM fingerprints of the earlier versions of changed types, so that a message of an
+#: older release is refused as that version (and said so), not as some unknown payload.
+_EARLIER: dict[bytes, tuple[str, int]] = {
+    bytes.fromhex("253b31dc311612e4"): ("handshake_t", 1),
+}
 
 #: The generated envelope; it carries inner messages but is not one.
 _ENVELOPE = "envelope_t"
@@ -37,7 +48,7 @@ _ENVELOPE = "envelope_t"
 def _inner_types() -> dict[str, type[Any]]:
     """Find the inner message classes: generated classes whose first field is ``version``.
 
-    Nested structs (``heard_actor_t``, ``node_state_t``, ``ris_server_t``) have no version
+    Nested structs (``node_state_t``, ``ris_server_t``) have no version
     field and travel only inside an inner message.
     """
     found: dict[str, type[Any]] = {}
@@ -51,6 +62,24 @@ def _inner_types() -> dict[str, type[Any]]:
 
 #: Inner message classes by type name (the envelope's ``type``).
 TYPES: dict[str, type[Any]] = _inner_types()
+
+#: The version of each inner message (:func:`encode` writes it, :func:`decode` refuses any
+#: other).
+VERSIONS: dict[str, int] = {name: _CHANGED.get(name, VERSION) for name in TYPES}
+
+
+class UnsupportedVersion(DecodeError):
+    """A payload of a known type in a version this build does not speak (another release).
+
+    Attributes:
+        version: The payload's version.
+        supported: The version this build speaks.
+    """
+
+    def __init__(self, message: str, *, version: int, supported: int) -> None:
+        super().__init__(message)
+        self.version = version
+        self.supported = supported
 
 
 class _Short(Exception):
@@ -74,30 +103,47 @@ class _ExactReader(io.BytesIO):
         return data
 
 
-def _arrays(msg: Any) -> list[tuple[str, str]]:
-    """The variable-size arrays of a message: (array field, size field) pairs."""
-    return [
-        (slot, dims[0])
-        for slot, dims in zip(msg.__slots__, msg.__dimensions__, strict=True)
-        if dims is not None and isinstance(dims[0], str)
-    ]
+_ARRAYS: dict[type[Any], list[tuple[str, str, bool]]] = {}
+
+
+def _arrays(msg: Any) -> list[tuple[str, str, bool]]:
+    """The variable-size arrays of a message: (array field, size field, of structs) triples.
+
+    Cached per class (the generated classes never change). Only arrays of structs are walked
+    for nested arrays: a ``byte`` array of a few hundred stamps is not looked at item by item.
+    """
+    cls = type(msg)
+    found = _ARRAYS.get(cls)
+    if found is None:
+        found = [
+            (slot, dims[0], "." in typename)
+            for slot, typename, dims in zip(
+                msg.__slots__, msg.__typenames__, msg.__dimensions__, strict=True
+            )
+            if dims is not None and isinstance(dims[0], str)
+        ]
+        _ARRAYS[cls] = found
+    return found
 
 
 def _fill_sizes(msg: Any) -> None:
     """Set every array's size field from the array's length, in nested structs too."""
-    for field, size_field in _arrays(msg):
+    for field, size_field, structs in _arrays(msg):
         items = getattr(msg, field)
         setattr(msg, size_field, len(items))
-        for item in items:
-            if hasattr(item, "__dimensions__"):
-                _fill_sizes(item)
+        if structs:
+            for item in items:
+                if hasattr(item, "__dimensions__"):
+                    _fill_sizes(item)
 
 
 def _negative_size(msg: Any) -> str | None:
     """The first size field holding a negative number, in nested structs too, or None."""
-    for field, size_field in _arrays(msg):
+    for field, size_field, structs in _arrays(msg):
         if getattr(msg, size_field) < 0:
             return f"{size_field} = {getattr(msg, size_field)}"
+        if not structs:
+            continue
         for item in getattr(msg, field):
             if hasattr(item, "__dimensions__") and (bad := _negative_size(item)) is not None:
                 return f"{field}: {bad}"
@@ -107,7 +153,8 @@ def _negative_size(msg: Any) -> str | None:
 def encode(msg: Any) -> tuple[str, bytes]:
     """Encode an inner message for an envelope.
 
-    The message is updated in place first: its ``version`` becomes :data:`VERSION` and every
+    The message is updated in place first: its ``version`` becomes its type's version
+    (:data:`VERSIONS`) and every
     array size field (``actors_count``, ...) the length of its array, so callers fill lists
     and never the counts.
 
@@ -126,7 +173,7 @@ def encode(msg: Any) -> tuple[str, bytes]:
     name = cls.__name__
     if TYPES.get(name) is not cls:
         raise TypeError(f"{name} is not an inner fleet message; expected one of {', '.join(TYPES)}")
-    msg.version = VERSION
+    msg.version = VERSIONS[name]
     try:
         _fill_sizes(msg)
         data: bytes = msg.encode()
@@ -148,7 +195,8 @@ def decode(type_name: str, payload: bytes) -> Any:
     Raises:
         DecodeError: For an unknown type name; a payload that is not this type as defined
             here (another type, or another definition of it); a truncated payload or bytes
-            after its end; a negative array size; a version other than :data:`VERSION`.
+            after its end; a negative array size. :class:`UnsupportedVersion` (a
+            DecodeError) for a version other than the type's (:data:`VERSIONS`).
     """
     cls = TYPES.get(type_name)
     if cls is None:
@@ -159,6 +207,15 @@ def decode(type_name: str, payload: bytes) -> Any:
         if len(fingerprint) < len(expected):
             raise DecodeError(
                 f"{type_name}: payload of {len(payload)} bytes is shorter than a fingerprint"
+            )
+        earlier = _EARLIER.get(fingerprint)
+        if earlier is not None and earlier[0] == type_name:
+            version = earlier[1]
+            raise UnsupportedVersion(
+                f"{type_name}: version {version} is not supported (this build speaks version"
+                f" {VERSIONS[type_name]}; the sender runs another release)",
+                version=version,
+                supported=VERSIONS[type_name],
             )
         raise DecodeError(
             f"{type_name}: the payload is not a {type_name} as defined here (fingerprint"
@@ -176,9 +233,11 @@ def decode(type_name: str, payload: bytes) -> Any:
         raise DecodeError(f"{type_name}: {left} unexpected bytes after the end of the message")
     if (bad := _negative_size(msg)) is not None:
         raise DecodeError(f"{type_name}: negative array size {bad}")
-    if msg.version != VERSION:
-        raise DecodeError(
+    if msg.version != VERSIONS[type_name]:
+        raise UnsupportedVersion(
             f"{type_name}: version {msg.version} is not supported (this build speaks"
-            f" version {VERSION})"
+            f" version {VERSIONS[type_name]})",
+            version=msg.version,
+            supported=VERSIONS[type_name],
         )
     return msg

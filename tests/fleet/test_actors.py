@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import itertools
 import json
+import logging
+import struct
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping
@@ -17,7 +19,7 @@ from temoto.core.states import Result
 from temoto.errors import FleetError, StateError
 from temoto.fleet import HANDSHAKE_CHANNEL, NOTIFY_CHANNEL, STATS, FleetActorLink
 from temoto.fleet.actors import ACK_CHANNEL_PREFIX, ack_channel
-from temoto.lcm_types import action_ack_t, action_notification_t, handshake_t, heard_actor_t
+from temoto.lcm_types import action_ack_t, action_notification_t, handshake_t
 from temoto.transport import FleetAuth, FleetLink, InProcessTransport, Opened, codec
 from temoto.transport.inprocess import live_buses
 
@@ -139,8 +141,23 @@ def handshake(phase: int, actor: str, graph: str = "g", session: str = "s1") -> 
     msg = handshake_t()
     msg.phase, msg.graph, msg.session, msg.actor = phase, graph, session, actor
     msg.stamp_us = round(time.time() * 1e6)
-    msg.actors, msg.heard = [], []
+    msg.actors, msg.heard = "", b""
     return msg
+
+
+def set_heard(msg: Any, actors: list[str], heard: dict[str, int]) -> Any:
+    """Fill a handshake's actor list and heard stamps (by place; its sender's: its stamp)."""
+    msg.actors = json.dumps(actors, separators=(",", ":"))
+    stamps = [msg.stamp_us if a == msg.actor else heard.get(a, 0) for a in actors]
+    msg.heard = struct.pack(f">{len(actors)}q", *stamps)
+    return msg
+
+
+def heard_of(msg: Any) -> dict[str, int]:
+    """The peers a handshake says its sender heard (its own place left out)."""
+    actors = json.loads(msg.actors)
+    stamps = struct.unpack(f">{len(actors)}q", msg.heard)
+    return {a: t for a, t in zip(actors, stamps, strict=True) if t and a != msg.actor}
 
 
 # --- handshake --------------------------------------------------------------------------------
@@ -206,7 +223,7 @@ def test_a_join_heard_before_the_handshake_starts_is_kept(fleet: Fleet) -> None:
         lambda calls: any(codec.decode(o.type, o.payload).actor == "B" for (o,) in calls)
     )
     first_of_b = next(m for m in seen.decoded() if m.actor == "B")
-    assert [h.actor for h in first_of_b.heard] == ["A"]  # B's very first JOIN names A
+    assert list(heard_of(first_of_b)) == ["A"]  # B's very first JOIN names A
 
 
 def test_two_sessions_run_side_by_side(fleet: Fleet) -> None:
@@ -850,8 +867,9 @@ def test_messages_are_what_the_lcm_definitions_say(fleet: Fleet) -> None:
     readies = [m for m in hs if m.phase == handshake_t.READY and m.actor == "A" and m.heard]
     assert joins
     assert readies
-    assert all(list(m.actors) == ["A", "B"] for m in joins + readies)
-    assert [(h.actor) for h in readies[0].heard] == ["B"]
+    assert all(m.actors == '["A","B"]' for m in joins + readies)
+    assert list(heard_of(readies[0])) == ["B"]
+    assert all(len(m.heard) == 16 for m in joins + readies)  # a stamp per actor, by place
 
 
 def test_an_acknowledgement_goes_to_the_notifying_actor_alone(fleet: Fleet) -> None:
@@ -902,19 +920,117 @@ def test_a_ready_without_heard_list_leaves_the_peers_report_standing(fleet: Flee
     join = joins_of_a(x.got.wait_until(lambda calls: bool(joins_of_a(calls))))[0]
 
     def report(actor: str, phase: int, heard: dict[str, int]) -> Any:
-        msg = handshake(phase, actor)
-        msg.actors = ["A", "X", "Y"]
-        for name, stamp in heard.items():
-            entry = heard_actor_t()
-            entry.actor, entry.stamp_us = name, stamp
-            msg.heard.append(entry)
-        return msg
+        return set_heard(handshake(phase, actor), ["A", "X", "Y"], heard)
 
     x_join = report("X", handshake_t.JOIN, {"A": join.stamp_us, "Y": 1})
     x.send(HANDSHAKE_CHANNEL, x_join)
-    heartbeat = report("X", handshake_t.READY, {})  # newer, but says nothing of the handshake
-    heartbeat.actors, heartbeat.stamp_us = [], x_join.stamp_us + 1
+    heartbeat = handshake(handshake_t.READY, "X")  # newer, but says nothing of the handshake
+    heartbeat.stamp_us = x_join.stamp_us + 1
     x.send(HANDSHAKE_CHANNEL, heartbeat)
     y.send(HANDSHAKE_CHANNEL, report("Y", handshake_t.JOIN, {"A": join.stamp_us, "X": 1}))
     thread.join(WAIT_S + 5)
     assert done == [None]  # X's JOIN still says X heard A and Y
+
+
+# --- the compact handshake (handshake_t version 2) --------------------------------------------
+
+
+def test_a_peer_with_another_actor_list_is_read_by_its_own_list(
+    fleet: Fleet, caplog: pytest.LogCaptureFixture
+) -> None:
+    """X's copy of the graph names a fourth actor: its stamps are read by its own list (the
+    places differ from A's), the handshake completes as every pair of A's list is heard, and
+    A warns with X's list."""
+    (a,) = fleet.links("A")
+    x = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
+    y = Raw(fleet.fleet_link("Y"), HANDSHAKE_CHANNEL)
+    done: list[BaseException | None] = []
+    thread = threading.Thread(
+        target=lambda: done.extend(concurrently(handshaking(a, ["A", "X", "Y"]))), daemon=True
+    )
+    thread.start()
+
+    def joins_of_a(calls: list[tuple[Any, ...]]) -> list[Any]:
+        msgs = [codec.decode(o.type, o.payload) for (o,) in calls]
+        return [m for m in msgs if m.actor == "A" and m.phase == handshake_t.JOIN]
+
+    join = joins_of_a(x.got.wait_until(lambda calls: bool(joins_of_a(calls))))[0]
+    assert join.actors == '["A","X","Y"]'
+    x_join = handshake(handshake_t.JOIN, "X")  # A at place 1 of X's list, not at place 0
+    x.send(HANDSHAKE_CHANNEL, set_heard(x_join, ["0", "A", "X", "Y"], {"A": join.stamp_us, "Y": 1}))
+    y_join = set_heard(handshake(handshake_t.JOIN, "Y"), ["A", "X", "Y"], {"A": join.stamp_us})
+    y_join.heard = y_join.heard[:16] + struct.pack(">q", 0)  # Y has not heard X yet
+    with caplog.at_level(logging.WARNING, logger="temoto.fleet.actors"):
+        y.send(HANDSHAKE_CHANNEL, y_join)
+        thread.join(0.3)
+        assert thread.is_alive()  # Y's report misses X: not done
+        later = set_heard(handshake(handshake_t.JOIN, "Y"), ["A", "X", "Y"], {"A": 1, "X": 1})
+        later.stamp_us = y_join.stamp_us + 1
+        y.send(HANDSHAKE_CHANNEL, later)  # ... but A's stamp in it is not this call's
+        thread.join(0.3)
+        assert thread.is_alive()
+        later.stamp_us += 1
+        y.send(HANDSHAKE_CHANNEL, set_heard(later, ["A", "X", "Y"], {"A": join.stamp_us, "X": 1}))
+        thread.join(WAIT_S + 5)
+    assert done == [None]
+    assert "'X' lists the actors ['0', 'A', 'X', 'Y'], this actor ['A', 'X', 'Y']" in caplog.text
+
+
+def test_a_join_with_stamps_that_are_not_whole_is_dropped_and_counted(fleet: Fleet) -> None:
+    (a,) = fleet.links("A")
+    x = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
+    bad = set_heard(handshake(handshake_t.JOIN, "X"), ["A", "X"], {"A": 1})
+    bad.heard = bad.heard[:-1]
+    x.send(HANDSHAKE_CHANNEL, bad)
+    deadline = time.monotonic() + WAIT_S
+    while a.stats["unexpected"] < 1 and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert a.stats["unexpected"] == 1
+    with pytest.raises(FleetError, match="no answer from 'X'"):
+        a.handshake("g", "s1", ["A", "X"], 0.2)  # the bad JOIN was not taken as X's report
+
+
+def test_a_big_handshake_sends_its_joins_no_faster_than_the_fleet_budget(fleet: Fleet) -> None:
+    """40 actors, resend_s 0.05: JOINs at most every 0.2 s (resend_s * 40 / 10) after the first
+    three, however fast new peers arrive (every 10 ms here), so the fleet's JOINs per second
+    do not grow with its size. (Without the budget: one answer per 0.05 s, about 14.)"""
+    names = ["A", *(f"P{i:02d}" for i in range(39))]
+    a = fleet.link("A", resend_s=0.05)
+    peer = Raw(fleet.fleet_link("Peers"), HANDSHAKE_CHANNEL)
+    done: list[BaseException | None] = []
+    thread = threading.Thread(
+        target=lambda: done.extend(concurrently(handshaking(a, names, 0.8))), daemon=True
+    )
+    thread.start()
+    peer.got.wait_for(1)  # A's first JOIN
+    for name in names[1:]:
+        peer.send(HANDSHAKE_CHANNEL, set_heard(handshake(handshake_t.JOIN, name), names, {}))
+        time.sleep(0.01)
+    thread.join(WAIT_S + 5)
+    assert len(done) == 1
+    assert isinstance(done[0], FleetError)  # the peers never heard each other
+    joins = [m for m in peer.decoded() if m.actor == "A" and m.phase == handshake_t.JOIN]
+    assert 3 <= len(joins) <= 9, len(joins)
+    assert all(len(j.heard) == 8 * 40 for j in joins)
+
+
+def test_a_handshake_of_an_older_release_is_named_once(
+    fleet: Fleet, caplog: pytest.LogCaptureFixture
+) -> None:
+    (a,) = fleet.links("A")
+    old = Raw(fleet.fleet_link("Old-release-1"), HANDSHAKE_CHANNEL)
+    _, payload = codec.encode(set_heard(handshake(handshake_t.JOIN, "Old"), ["A", "Old"], {}))
+    v1 = bytes.fromhex("253b31dc311612e4") + (1).to_bytes(2, "big") + payload[10:]
+    with caplog.at_level(logging.WARNING, logger="temoto.fleet"):
+        for _ in range(3):
+            old.link.send(HANDSHAKE_CHANNEL, "handshake_t", v1)
+        deadline = time.monotonic() + WAIT_S
+        while a.stats["decode_errors"] < 3 and time.monotonic() < deadline:
+            time.sleep(0.005)
+    assert a.stats["decode_errors"] == 3
+    warnings = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    assert warnings == [
+        "dropping the messages of 'Old-release-1' on 'TEMOTO_HANDSHAKE': handshake_t: version 1"
+        " is not supported (this build speaks version 2; the sender runs another release)"
+        " (this warning once per sender)"
+    ]

@@ -279,7 +279,7 @@ def test_bad_messages_are_counted_and_dropped_never_raised(fleet: Fleet) -> None
     # sealed, but not a RIS message / not decodable / another version
     hs = handshake_t()
     hs.graph = hs.session = hs.actor = "x"
-    hs.actors, hs.heard = [], []
+    hs.actors, hs.heard = "", b""
     raw.send(hs)
     raw.send_raw("nonsense_t", b"abc")
     raw.send_raw("ris_advert_t", b"\x01\x02")

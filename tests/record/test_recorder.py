@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import textwrap
+import threading
 from pathlib import Path
 from typing import Any
 
@@ -179,6 +180,59 @@ def test_fleet_envelopes_are_recorded_per_channel_with_sender_and_type(tmp_path:
         ("/fleet/TEMOTO_RIS", "", "", False),
     ]
     assert summary(path)["/fleet/TEMOTO_RIS"] == ("temoto.FleetMessage", "jsonschema", 2)
+
+
+def test_the_acknowledgement_channels_of_shared_runs_are_recorded(tmp_path: Path) -> None:
+    """TEMOTO_ACK_<actor>: the listening actor's own from the start, every other one from the
+    first handshake that names it (a handshake comes before the notifications of its run)."""
+    from temoto.fleet import FleetActorLink
+    from temoto.fleet.actors import ack_channel
+
+    path = tmp_path / "acks.mcap"
+    bus = "record-acks-test"
+    transports = [InProcessTransport(bus) for _ in range(3)]
+    try:
+        links = [
+            FleetActorLink(FleetLink(t, FleetAuth("temoto", name, bytes(32))), name)
+            for t, name in zip(transports[1:], ("A", "B c"), strict=True)
+        ]
+        with Recorder(path, flush_period_s=0.0) as recorder:
+            recorder.listen(transports[0], ["Me"])
+            own = FleetLink(transports[0], FleetAuth("temoto", "me", bytes(32)))
+            own.send(ack_channel("Me"), "action_ack_t", b"\x01")
+            own.send(ack_channel("A"), "action_ack_t", b"\x02")  # A not named yet: not kept
+            errors: list[BaseException] = []
+
+            def shake(link: FleetActorLink) -> None:
+                try:
+                    run = link.handshake("g", "s", ["A", "B c"], 5.0)
+                    if link.actor == "A":
+                        link.notify("g", run, "Go_0", Result.TRUE, {}, ["B c"], 5.0)
+                    else:
+                        done: list[Result] = []
+                        link.expect("g", run, "Go_0", "A", lambda r, o: done.append(r))
+                        assert _wait(lambda: bool(done))
+                except BaseException as err:
+                    errors.append(err)
+
+            threads = [threading.Thread(target=shake, args=(link,)) for link in links]
+            for thread in threads:
+                thread.start()
+            for thread in threads:
+                thread.join(10.0)
+            assert errors == []
+            assert _wait(lambda: recorder.counts.get("/fleet/TEMOTO_ACK_A", 0) >= 1)
+        for link in links:
+            link.close()
+    finally:
+        for transport in transports:
+            transport.close()
+    topics = summary(path)
+    assert topics["/fleet/TEMOTO_ACK_Me"][2] == 1
+    assert topics["/fleet/TEMOTO_ACK_A"][2] >= 1  # B c's acknowledgement of Go_0
+    acks = [m for m in read_messages(path)[0] if m.topic == "/fleet/TEMOTO_ACK_A"]
+    # only after the handshake named A: the acknowledgement "me" sent before is not there
+    assert {(m.data["sender"], m.data["type"]) for m in acks} == {("B c", "action_ack_t")}
 
 
 def _wait(condition: Any, timeout: float = 5.0) -> bool:

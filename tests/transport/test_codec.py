@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import struct
 from typing import Any
 
 import pytest
@@ -14,7 +15,6 @@ from temoto.lcm_types import (
     envelope_t,
     graph_feedback_t,
     handshake_t,
-    heard_actor_t,
     node_state_t,
     resource_status_t,
     ris_withdraw_t,
@@ -59,6 +59,8 @@ def sample(cls: type[Any], salt: int = 0) -> Any:
         if dims is not None:
             if typename == "string":
                 value: Any = [f"{field}-{salt}-{i}-ü" for i in range(2)]
+            elif typename == "byte":
+                value = bytes([salt % 7 + 1, 0, 255, salt % 5 + 2])
             else:
                 nested = _class_of(typename)
                 value = [sample(nested, salt * 10 + i + 1) for i in range(2)]
@@ -102,6 +104,8 @@ def test_registry_holds_exactly_the_inner_types() -> None:
         assert cls.__slots__[0] == "version"
         assert cls.__typenames__[0] == "int16_t"
     assert codec.VERSION == 1
+    versions = dict.fromkeys(INNER, 1) | {"handshake_t": 2}
+    assert versions == codec.VERSIONS
 
 
 def test_decode_error_is_a_transport_error() -> None:
@@ -117,7 +121,7 @@ def test_every_type_round_trips_with_every_field_set(name: str) -> None:
     msg = sample(codec.TYPES[name], salt=7)
     type_name, payload = codec.encode(msg)
     assert type_name == name
-    assert msg.version == codec.VERSION
+    assert msg.version == codec.VERSIONS[name]
     decoded = codec.decode(type_name, payload)
     assert type(decoded) is codec.TYPES[name]
     assert as_plain(decoded) == as_plain(msg)
@@ -128,19 +132,29 @@ def test_every_type_round_trips_with_every_field_set(name: str) -> None:
 
 
 def test_encode_fills_version_and_array_sizes_in_nested_structs_too() -> None:
+    msg = graph_feedback_t()
+    node = node_state_t()
+    node.name, node.state = "Go_0", "RUNNING"
+    msg.nodes = [node, node_state_t()]
+    msg.nodes_count = 99  # stale counts are corrected, never trusted
+    name, payload = codec.encode(msg)
+    assert (msg.version, msg.nodes_count) == (1, 2)
+    back = codec.decode(name, payload)
+    assert [(n.name, n.state) for n in back.nodes] == [("Go_0", "RUNNING"), ("", "")]
+
+
+def test_a_handshake_carries_its_heard_stamps_as_bytes() -> None:
     msg = handshake_t()
     msg.phase = handshake_t.READY
     msg.graph, msg.session, msg.actor, msg.stamp_us = "patrol", "s-1", "alpha", 1_700_000_000
-    msg.actors = ["alpha", "beta", "gamma"]
-    heard = heard_actor_t()
-    heard.actor, heard.stamp_us = "beta", 1_699_999_999
-    msg.heard = [heard]
-    msg.actors_count = 99  # stale counts are corrected, never trusted
+    msg.actors = '["alpha","beta","gamma"]'
+    msg.heard = struct.pack(">3q", 1_700_000_000, 1_699_999_999, 0)
+    msg.heard_size = 7  # stale sizes are corrected, never trusted
     name, payload = codec.encode(msg)
-    assert (msg.version, msg.actors_count, msg.heard_count) == (1, 3, 1)
+    assert (msg.version, msg.heard_size) == (2, 24)
     back = codec.decode(name, payload)
-    assert back.actors == ["alpha", "beta", "gamma"]
-    assert (back.heard[0].actor, back.heard[0].stamp_us) == ("beta", 1_699_999_999)
+    assert back.actors == '["alpha","beta","gamma"]'
+    assert struct.unpack(">3q", back.heard) == (1_700_000_000, 1_699_999_999, 0)
     assert back.phase == handshake_t.READY
 
 
@@ -163,7 +177,7 @@ def test_constants_are_generated() -> None:
 # ================================================================ encode refusals
 
 
-@pytest.mark.parametrize("msg", [envelope_t(), heard_actor_t(), object(), "handshake_t"])
+@pytest.mark.parametrize("msg", [envelope_t(), node_state_t(), object(), "handshake_t"])
 def test_encode_refuses_what_is_not_an_inner_message(msg: Any) -> None:
     with pytest.raises(TypeError, match="not an inner fleet message"):
         codec.encode(msg)
@@ -183,7 +197,7 @@ def test_encode_refuses_values_that_do_not_fit() -> None:
 # ================================================================ decode refusals
 
 
-@pytest.mark.parametrize("name", ["nope_t", "envelope_t", "heard_actor_t", ""])
+@pytest.mark.parametrize("name", ["nope_t", "envelope_t", "node_state_t", ""])
 def test_unknown_type_name(name: str) -> None:
     _, payload = codec.encode(sample(action_ack_t))
     with pytest.raises(DecodeError, match="unknown message type"):
@@ -221,8 +235,22 @@ def test_bytes_after_the_end_are_refused() -> None:
 def test_unknown_version(version: int) -> None:
     msg = sample(action_ack_t)
     msg.version = version
-    with pytest.raises(DecodeError, match=f"version {version} is not supported"):
+    with pytest.raises(codec.UnsupportedVersion, match=f"version {version} is not supported"):
         codec.decode("action_ack_t", msg.encode())  # the raw encoder keeps the version
+
+
+def test_a_handshake_of_the_first_format_names_both_versions() -> None:
+    """A version 1 handshake_t (an older release: another definition, so another LCM
+    fingerprint, 253b31dc311612e4) is refused as that version, not as an unknown payload."""
+    msg = sample(handshake_t)
+    _, payload = codec.encode(msg)
+    old = bytearray(payload)
+    old[:8] = bytes.fromhex("253b31dc311612e4")
+    old[8:10] = (1).to_bytes(2, "big")
+    with pytest.raises(codec.UnsupportedVersion, match=r"version 1 is not supported.*2") as err:
+        codec.decode("handshake_t", bytes(old))
+    assert (err.value.version, err.value.supported) == (1, 2)
+    assert isinstance(err.value, DecodeError)
 
 
 def test_negative_array_size_is_refused() -> None:
