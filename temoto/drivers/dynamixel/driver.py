@@ -908,7 +908,9 @@ class DynamixelDriver(Driver):
             self._set_eeprom(servo, ct.MIN_POSITION_LIMIT, low, "min position limit")
             self._set_eeprom(servo, ct.MAX_POSITION_LIMIT, high, "max position limit")
         velocity_limit = self._read(servo.id, _VELOCITY_LIMIT, "velocity limit")
-        current_limit = self._read(servo.id, _CURRENT_LIMIT, "current limit")
+        current_limit = 0  # a model that reports load has no Current Limit (nor current mode)
+        if servo.spec.register(_CURRENT_LIMIT.name) is not None:
+            current_limit = self._read(servo.id, _CURRENT_LIMIT, "current limit")
         self._limits[servo.id] = (velocity_limit, current_limit)
 
     def _set_eeprom(self, servo: ServoConfig, reg: ct.Register, value: int, what: str) -> None:
