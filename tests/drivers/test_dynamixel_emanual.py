@@ -18,11 +18,13 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
+from contract import eventually
 
 from temoto.clock import ManualClock
+from temoto.drivers import ControlMode, JointCommand
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel import protocol as p
-from temoto.drivers.dynamixel.driver import ServoConfig
+from temoto.drivers.dynamixel.driver import DynamixelDriver, ServoConfig
 from temoto.drivers.dynamixel.sim import SimDynamixelChain
 
 dxl: Any = pytest.importorskip("dynamixel_sdk")
@@ -583,3 +585,45 @@ def test_the_driver_accepts_every_model_in_its_units(name: str) -> None:
         assert model.current_unit == unit
         assert servo.effort(1000) == pytest.approx(1000 * unit * model.torque_constant)
     assert servo.velocity(100) == pytest.approx(100 * 0.229 * 2 * 3.141592653589793 / 60)
+
+
+@pytest.mark.parametrize(
+    ("model", "mode", "command"),
+    [
+        ("XL330-M077", "current", 0.05),  # 1 mA units, 5 V
+        ("XH430-V350", "current", 1.0),  # 1.34 mA units, 24 V
+        ("XC430-W150", "velocity", 2.0),  # no current sensor: Present Load, no Current Limit
+        ("2XL430-W250", "extended_position", 7.0),
+        ("XW540-T140", "current_based_position", -1.0),
+        ("XD540-T270", "position", 1.0),
+    ],
+)
+def test_the_driver_brings_up_new_models_on_the_simulator(
+    model: str, mode: str, command: float
+) -> None:
+    clock = ManualClock()
+    servo = {"id": 4, "joint": "j", "model": model, "mode": mode}
+    if mode == "extended_position":
+        servo |= {"min_position": -20.0, "max_position": 20.0}
+    config = {"link": "/dev/null", "poll_rate": 200, "servos": [servo]}
+    kind = {"current": ControlMode.EFFORT, "velocity": ControlMode.VELOCITY}.get(
+        mode, ControlMode.POSITION
+    )
+    sim, config = DynamixelDriver.simulate("x", config, clock=clock)
+    with sim, DynamixelDriver.from_profile("x", config, clock=clock, where="x") as driver:
+        driver.configure()
+        driver.activate()
+        driver.command([JointCommand("j", kind, command)])
+        field = {ControlMode.EFFORT: "effort", ControlMode.VELOCITY: "velocity"}.get(
+            kind, "position"
+        )
+
+        def reached() -> bool:
+            got = getattr(driver.read_state().joints["j"], field)
+            return bool(abs(got - command) < 0.02 * max(abs(command), 1.0))
+
+        eventually(reached, 30.0, clock)
+        status = driver.servo_status()[4]
+        assert status.voltage == pytest.approx(ct.MODELS[model].nominal_voltage)
+        driver.deactivate()
+        assert sim.read_register(4, 64) == 0
