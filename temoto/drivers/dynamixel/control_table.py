@@ -6,9 +6,15 @@ into SI units.
 
 Units (X-series): position 4096 ticks per revolution (2048 is the middle of the single-turn
 range; the driver takes it as 0 rad before the profile's ``offset``); velocity 0.229 rev/min per
-unit; current per unit depends on the model (2.69 mA for XM430/XH430/XM540, 1 mA for XL330;
-XL430 has no current sensor and reports *load* in 0.1 % of its maximum torque at the same
-address); input voltage 0.1 V per unit; temperature 1 °C per unit.
+unit; current per unit depends on the model (2.69 mA for XM430, XH430-W, XD, XW and the X540s,
+1.34 mA for XH430-V, 1 mA for XL330; XL430, 2XL430 and XC430 have no current sensor and report
+*load* in 0.1 % of their maximum torque at the same address); input voltage 0.1 V per unit;
+temperature 1 °C per unit.
+
+Each :class:`Model` carries its whole control table (:attr:`Model.registers`): every register
+of its e-Manual page with address, size, access, initial value and range. :data:`REGISTERS` is
+the XM430-W350's, the layout the family shares; the module-level register constants
+(:data:`GOAL_POSITION`, ...) are from it and hold for every model that has the register.
 
 Effort: torque = current x torque constant, with the torque constant taken as stall torque /
 stall current at the nominal voltage from the e-Manual's performance table (an approximation:
@@ -31,6 +37,7 @@ __all__ = [
     "BUS_WATCHDOG_UNIT",
     "CURRENT",
     "FAST_READ",
+    "FIRMWARE",
     "FIRMWARE_VERSION",
     "GOAL_CURRENT",
     "GOAL_POSITION",
@@ -63,6 +70,7 @@ __all__ = [
     "Model",
     "OperatingMode",
     "Register",
+    "table_of",
 ]
 
 
