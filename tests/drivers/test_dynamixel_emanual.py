@@ -490,6 +490,28 @@ def test_status_return_level(one: tuple[SimDynamixelChain, Any, Any]) -> None:
     assert ph.read1ByteTxRx(port, 1, 68) == (2, dxl.COMM_SUCCESS, 0)
 
 
+def test_a_secondary_id_groups_servos_for_ram_writes_without_replies(
+    one: tuple[SimDynamixelChain, Any, Any],
+) -> None:
+    sim, port, ph = one
+    for dxl_id in (1, 2):
+        assert write(ph, port, dxl_id, 12, 1, 2) == OK  # Secondary ID 2; servo 2's own id too
+    assert ph.write1ByteTxRx(port, 2, 65, 1) == (dxl.COMM_SUCCESS, 0)  # servo 2 answers
+    assert [sim.read_register(i, 65) for i in (1, 2)] == [1, 1]  # and servo 1 acted too
+    assert write(ph, port, 1, 12, 1, 100) == OK
+    assert write(ph, port, 2, 12, 1, 100) == OK
+    with silence_expected():
+        assert ph.write1ByteTxRx(port, 100, 65, 0)[0] == dxl.COMM_RX_TIMEOUT  # nobody answers
+    assert [sim.read_register(i, 65) for i in (1, 2)] == [0, 0]  # both acted
+    with silence_expected():
+        assert ph.write1ByteTxRx(port, 100, 9, 0)[0] == dxl.COMM_RX_TIMEOUT
+    assert [sim.read_register(i, 9) for i in (1, 2)] == [250, 250]  # no EEPROM through it
+    assert write(ph, port, 1, 12, 1, 253) == OK  # 253..255: off
+    with silence_expected():
+        ph.write1ByteTxRx(port, 100, 65, 1)
+    assert [sim.read_register(i, 65) for i in (1, 2)] == [0, 1]
+
+
 # ---- REG_WRITE / ACTION, REBOOT, FACTORY_RESET, CLEAR ---------------------------------------
 
 

@@ -45,8 +45,10 @@ checks above apply to the register behind it). Status Return Level, as set when 
 instruction arrives: 0 answers PING only, 1 PING and the reads, 2 everything (broadcast
 instructions other than PING and the SYNC/BULK reads are never answered). A servo whose
 Protocol Type is set to anything but 2 no longer hears Protocol 2.0 (Protocol 1.0 is not
-modelled). Not modelled: Homing Offset, Drive Mode's direction and time-based profile bits,
-Secondary ID, External Port levels, Control Table Backup (0x20), and the fast sync/bulk reads
+modelled). Secondary ID (0..252; 253..255 off): a packet to it is carried out by every servo
+of that group whose own ID differs, RAM area only, without a status packet (the servo whose ID
+it is answers as usual). Not modelled: Homing Offset, Drive Mode's direction and time-based
+profile bits, External Port levels, Control Table Backup (0x20), and the fast sync/bulk reads
 (0x8A, 0x9A), which are answered with an Instruction Error.
 
 Motion (first order, stepped on the injected clock whenever a packet arrives): in the position
@@ -577,8 +579,12 @@ class SimDynamixelChain(Simulator):
                 self._hear(self._addressed(packet, line))
                 return self._broadcast(packet, line)
             replies: list[bytes] = []
-            for servo in [s for s in self._servos if s.id == packet.id]:
-                if self._absent(servo, line):
+            for servo in [s for s in self._servos if not self._absent(s, line)]:
+                if servo.id != packet.id:
+                    if servo.value("Secondary ID", 255) == packet.id:  # a group member
+                        self._hear((servo,))
+                        with contextlib.suppress(_Reject):  # no status packet, RAM only
+                            self._unicast(servo, packet, shadow=True)
                     continue
                 self._hear((servo,))
                 answer_id, answers = servo.id, _answers(servo, packet.instruction)
@@ -598,8 +604,12 @@ class SimDynamixelChain(Simulator):
         alert = p.ALERT_BIT if servo.hardware_error else 0
         return p.status_packet(servo.id if dxl_id is None else dxl_id, number | alert, params)
 
-    def _unicast(self, servo: _Servo, packet: p.Packet) -> bytes:
-        """Carry out one instruction for one servo; the status packet's parameters."""
+    def _unicast(self, servo: _Servo, packet: p.Packet, *, shadow: bool = False) -> bytes:
+        """Carry out one instruction for one servo; the status packet's parameters.
+
+        ``shadow``: the packet is addressed to the servo's Secondary ID, through which only the
+        RAM area can be changed (and no status packet goes back).
+        """
         inst, params = packet.instruction, packet.params
         if inst == _I.PING:
             return p.to_le(servo.value("Model Number"), 2) + bytes(
@@ -612,11 +622,11 @@ class SimDynamixelChain(Simulator):
         if inst == _I.WRITE:
             if len(params) < 3:
                 raise _Reject(_E.DATA_LENGTH)
-            self._write(servo, p.from_le(params[:2]), params[2:])
+            self._write(servo, p.from_le(params[:2]), params[2:], ram_only=shadow)
         elif inst == _I.REG_WRITE:
             if len(params) < 3:
                 raise _Reject(_E.DATA_LENGTH)
-            self._register(servo, p.from_le(params[:2]), params[2:])
+            self._register(servo, p.from_le(params[:2]), params[2:], ram_only=shadow)
         elif inst == _I.ACTION:
             if servo.registered is None:
                 raise _Reject(_E.INSTRUCTION)
@@ -624,6 +634,8 @@ class SimDynamixelChain(Simulator):
         elif inst == _I.REBOOT:
             self._reboot(servo)
         elif inst == _I.FACTORY_RESET:
+            if shadow:
+                raise _Reject(_E.ACCESS)  # it rewrites the EEPROM area
             if len(params) != 1:
                 raise _Reject(_E.DATA_LENGTH)
             if params[0] not in (0xFF, 0x01, 0x02):
@@ -732,8 +744,13 @@ class SimDynamixelChain(Simulator):
             raise _Reject(_E.ACCESS)
         return bytes(servo.table[servo.resolve(a)] for a in range(address, address + length))
 
-    def _write(self, servo: _Servo, address: int, data: bytes, *, dry: bool = False) -> None:
-        """Check a write as the servo does and (unless ``dry``) carry it out."""
+    def _write(
+        self, servo: _Servo, address: int, data: bytes, *, dry: bool = False, ram_only: bool = False
+    ) -> None:
+        """Check a write as the servo does and (unless ``dry``) carry it out.
+
+        ``ram_only``: the EEPROM area is read-only (a write through the Secondary ID).
+        """
         if not data:
             raise _Reject(_E.DATA_LENGTH)
         if address + len(data) > servo.layout.size:
@@ -752,6 +769,8 @@ class SimDynamixelChain(Simulator):
         watchdog_error = servo.value("Bus Watchdog") == ct.BUS_WATCHDOG_ERROR
         for reg in touched.values():
             if not reg.writable or (reg.torque_locked and servo.torque):
+                raise _Reject(_E.ACCESS)
+            if ram_only and reg.eeprom:
                 raise _Reject(_E.ACCESS)
             if reg.name in _GOAL_NAMES and watchdog_error:
                 raise _Reject(_E.DATA_RANGE)  # goal values are read-only after it expired
@@ -807,9 +826,11 @@ class SimDynamixelChain(Simulator):
         elif reg.low is not None and reg.high is not None and not reg.low <= value <= reg.high:
             raise _Reject(_E.DATA_RANGE)
 
-    def _register(self, servo: _Servo, address: int, data: bytes) -> None:
+    def _register(
+        self, servo: _Servo, address: int, data: bytes, *, ram_only: bool = False
+    ) -> None:
         """REG_WRITE: check now, hold until ACTION."""
-        self._write(servo, address, data, dry=True)
+        self._write(servo, address, data, dry=True, ram_only=ram_only)
         servo.registered = (address, bytes(data))
         servo.set("Registered Instruction", 1)
 
