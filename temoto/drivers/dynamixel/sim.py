@@ -229,8 +229,8 @@ class _Servo:
         return self.layout.by_name.get(name)
 
     def get(self, reg: ct.Register) -> int:
-        data = self.table[reg.address : reg.address + reg.size]
-        return p.from_le(bytes(data), reg.signed)
+        at = reg.address
+        return int.from_bytes(self.table[at : at + reg.size], "little", signed=reg.signed)
 
     def put(self, reg: ct.Register, value: int) -> None:
         self.table[reg.address : reg.address + reg.size] = p.to_le(value, reg.size)
@@ -238,7 +238,10 @@ class _Servo:
     def value(self, name: str, default: int = 0) -> int:
         """A register's value by name (``default`` if the model has no such register)."""
         reg = self.layout.by_name.get(name)
-        return default if reg is None else self.get(reg)
+        if reg is None:
+            return default
+        at = reg.address
+        return int.from_bytes(self.table[at : at + reg.size], "little", signed=reg.signed)
 
     def set(self, name: str, value: int) -> None:
         """Set a register by name (nothing if the model has no such register)."""
