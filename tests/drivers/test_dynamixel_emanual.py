@@ -598,6 +598,25 @@ def test_clear_drops_the_multi_turn_count_when_standing_still(
     assert wrong.error_number == DATA_RANGE
 
 
+def test_homing_offset_shifts_the_present_position(
+    one: tuple[SimDynamixelChain, Any, Any], clock: ManualClock
+) -> None:
+    sim, port, ph = one
+    assert write(ph, port, 1, 20, 4, 1000) == OK
+    assert read(ph, port, 1, 132, 4)[0] == 3048  # actual 2048 + 1000
+    assert write(ph, port, 1, 116, 4, 3048) == OK
+    assert write(ph, port, 1, 64, 1, 1) == OK
+    clock.advance(1.0)
+    assert sim.read_register(1, 132) == 3048  # it did not move
+    assert write(ph, port, 1, 64, 1, 0) == OK
+    assert write(ph, port, 1, 20, 4, -5000) == OK
+    assert sim.read_register(1, 132) == 2048 - 5000
+    assert ph.reboot(port, 1) == (dxl.COMM_SUCCESS, 0)
+    assert sim.read_register(1, 132) == 2048 - 5000  # the actual position is within a turn
+    assert ph.factoryReset(port, 1, 0x02) == (dxl.COMM_SUCCESS, 0)
+    assert sim.read_register(1, 132) == 2048
+
+
 def test_a_servo_switched_to_another_protocol_stops_answering_protocol_2(
     one: tuple[SimDynamixelChain, Any, Any],
 ) -> None:

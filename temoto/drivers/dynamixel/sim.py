@@ -47,9 +47,10 @@ instructions other than PING and the SYNC/BULK reads are never answered). A serv
 Protocol Type is set to anything but 2 no longer hears Protocol 2.0 (Protocol 1.0 is not
 modelled). Secondary ID (0..252; 253..255 off): a packet to it is carried out by every servo
 of that group whose own ID differs, RAM area only, without a status packet (the servo whose ID
-it is answers as usual). Not modelled: Homing Offset, Drive Mode's direction and time-based
-profile bits, External Port levels, Control Table Backup (0x20), and the fast sync/bulk reads
-(0x8A, 0x9A), which are answered with an Instruction Error.
+it is answers as usual). Homing Offset shifts Present Position (actual position + offset; the
+goal and limit registers are in the same shifted ticks). Not modelled: Drive Mode's direction
+and time-based profile bits, External Port levels, Control Table Backup (0x20), and the fast
+sync/bulk reads (0x8A, 0x9A), which are answered with an Instruction Error.
 
 Motion (first order, stepped on the injected clock whenever a packet arrives): in the position
 modes the position approaches the goal with a time constant of 50 ms at no more than the profile
@@ -797,6 +798,9 @@ class SimDynamixelChain(Simulator):
                 continue  # a servo with a hardware error keeps its torque off
             if (reg.name == "Torque Enable" and not value) or reg.name in _GOAL_NAMES:
                 servo.halted = False
+            if reg.name == "Homing Offset":  # Present Position = actual position + offset
+                servo.position += value - servo.get(reg)
+                servo.set("Present Position", round(servo.position))
             servo.put(reg, value)
 
     def _check(self, servo: _Servo, reg: ct.Register, value: int, now: Any) -> None:
@@ -852,7 +856,8 @@ class SimDynamixelChain(Simulator):
         for reg in servo.model.registers:
             if not reg.eeprom:
                 servo.put(reg, reg.default)
-        servo.position = float(round(servo.position) % 4096)
+        offset = servo.value("Homing Offset")
+        servo.position = float((round(servo.position) - offset) % 4096 + offset)
         servo.set("Present Position", round(servo.position))
         servo.set("Position Trajectory", round(servo.position))
         servo.set("Goal Position", round(servo.position))
@@ -870,6 +875,7 @@ class SimDynamixelChain(Simulator):
         """FACTORY_RESET: every register to its factory value (but the ID / the baud rate)."""
         self.stats["factory_resets"] += 1
         keep = {"ID", "Baud Rate"} if option == 0x02 else {"ID"} if option == 0x01 else set()
+        servo.position -= servo.value("Homing Offset")  # back to 0 with the rest
         for reg in servo.model.registers:
             if reg.eeprom and reg.name not in keep:
                 servo.put(reg, reg.default)
@@ -883,7 +889,7 @@ class SimDynamixelChain(Simulator):
             raise _Reject(_E.DATA_RANGE)
         if servo.value("Moving") or abs(servo.velocity) > _TICKS_S_PER_UNIT:
             raise _Reject(_E.RESULT_FAIL)
-        turns = math.floor(servo.position / 4096)
+        turns = math.floor((servo.position - servo.value("Homing Offset")) / 4096)
         servo.position -= turns * 4096
         for name in ("Present Position", "Position Trajectory"):
             servo.set(name, round(servo.position))
