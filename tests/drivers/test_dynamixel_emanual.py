@@ -45,16 +45,15 @@ class Spec:
     temperature: int = 80
     gains: tuple[int, int, int, int, int] = (1920, 100, 0, 0, 800)  # VI VP PD PI PP
     volts: int = 120  # Present Input Voltage of the simulated supply (the recommended one)
-    drive_mode_max: int = 5
     led: bool = True
     ports: bool = False  # External Port Mode/Data (X540 M/H/D)
     xl330: bool = False  # 20 indirect pairs, PWM Slope, 0..2047 velocity, baud 0..6, ...
 
 
-def _load(number: int, velocity: int, gains: tuple[int, ...], xl: bool, modes: int) -> Spec:
+def _load(number: int, velocity: int, gains: tuple[int, ...], xl: bool) -> Spec:
     """XL430 / 2XL430 (``xl``) and XC430: Present Load, their voltage and temperature."""
     voltage = (140, 60, 60, 140) if xl else (160, 60, 60, 160)
-    return Spec(number, velocity, None, voltage, 72 if xl else 80, _g(gains), drive_mode_max=modes)
+    return Spec(number, velocity, None, voltage, 72 if xl else 80, _g(gains))
 
 
 def _xl330(number: int, velocity: int, gains: tuple[int, ...]) -> Spec:
@@ -74,10 +73,10 @@ def _g(gains: tuple[int, ...]) -> tuple[int, int, int, int, int]:
 _H = _g((1920, 100, 0, 0, 900))  # the XH430-W, XD430 and XW430 Position P Gain
 
 E_MANUAL: dict[str, Spec] = {
-    "XL430-W250": _load(1060, 265, (1000, 100, 4000, 0, 640), xl=True, modes=13),
-    "2XL430-W250": _load(1090, 250, (1800, 100, 2000, 0, 640), xl=True, modes=1),
-    "XC430-W150": _load(1070, 460, (1920, 100, 0, 0, 460), xl=False, modes=1),
-    "XC430-W240": _load(1080, 306, (1920, 100, 0, 0, 700), xl=False, modes=1),
+    "XL430-W250": _load(1060, 265, (1000, 100, 4000, 0, 640), xl=True),
+    "2XL430-W250": _load(1090, 250, (1800, 100, 2000, 0, 640), xl=True),
+    "XC430-W150": _load(1070, 460, (1920, 100, 0, 0, 460), xl=False),
+    "XC430-W240": _load(1080, 306, (1920, 100, 0, 0, 700), xl=False),
     "XL330-M077": _xl330(1190, 1620, (400, 40, 0, 400, 400)),
     "XL330-M288": _xl330(1200, 445, (1600, 180, 0, 0, 400)),
     "XM430-W210": Spec(1030, 330, 1193),
@@ -96,8 +95,8 @@ E_MANUAL: dict[str, Spec] = {
     "XH540-V270": _v(1140, 128, 2047, ports=True),
     "XD540-T150": Spec(1111, 300, 2047, ports=True),
     "XD540-T270": Spec(1101, 167, 2047, ports=True),
-    "XW430-T200": Spec(1280, 235, 2047, gains=_H, drive_mode_max=13, led=False),
-    "XW430-T333": Spec(1270, 139, 2047, gains=_H, drive_mode_max=13, led=False),
+    "XW430-T200": Spec(1280, 235, 2047, gains=_H, led=False),
+    "XW430-T333": Spec(1270, 139, 2047, gains=_H, led=False),
     "XW540-T140": Spec(1180, 304, 2047, led=False),
     "XW540-T260": Spec(1170, 167, 2047, led=False),
 }
@@ -315,7 +314,7 @@ def test_write_ranges_of_the_e_manual(
     ranges = [
         (8, 1, 6 if spec.xl330 else 7, 0),  # Baud Rate
         (9, 1, 254, 0),  # Return Delay Time
-        (10, 1, spec.drive_mode_max, 0),  # Drive Mode
+        (10, 1, 15 if spec.ports else 13, 0),  # Drive Mode: bits 0, (1 dual: X540), 2, 3
         (24, 4, 1023, 0),  # Moving Threshold
         (31, 1, 100, 0),  # Temperature Limit
         (32, 2, vhigh, vlow),  # Max Voltage Limit
@@ -615,6 +614,18 @@ def test_homing_offset_shifts_the_present_position(
     assert sim.read_register(1, 132) == 2048 - 5000  # the actual position is within a turn
     assert ph.factoryReset(port, 1, 0x02) == (dxl.COMM_SUCCESS, 0)
     assert sim.read_register(1, 132) == 2048
+
+
+def test_torque_on_by_goal_update(one: tuple[SimDynamixelChain, Any, Any]) -> None:
+    sim, port, ph = one
+    assert write(ph, port, 1, 116, 4, 2100) == OK
+    assert sim.read_register(1, 64) == 0  # Drive Mode 0: a goal leaves torque off
+    assert write(ph, port, 1, 10, 1, 0x08) == OK
+    assert write(ph, port, 1, 116, 4, 2200) == OK
+    assert sim.read_register(1, 64) == 1
+    assert write(ph, port, 1, 64, 1, 0) == OK
+    assert write(ph, port, 1, 116, 4, 9000) == DATA_LIMIT  # a refused goal switches nothing
+    assert sim.read_register(1, 64) == 0
 
 
 def test_a_servo_switched_to_another_protocol_stops_answering_protocol_2(

@@ -173,7 +173,6 @@ def _table(
     volts_now: int = 120,
     temperature: int = 80,
     gains: tuple[int, int, int, int, int] = (1920, 100, 0, 0, 800),
-    drive_mode_max: int = 5,
     baud_max: int = 7,
     protocol: tuple[int, int] = (1, 2),
     shutdown: int = 52,
@@ -194,7 +193,6 @@ def _table(
         volts_now: The Present Input Voltage the simulator reports (0.1 V).
         temperature: Temperature Limit's initial value.
         gains: Velocity I, Velocity P, Position D, Position I, Position P initial values.
-        drive_mode_max: Drive Mode's largest value.
         baud_max: Baud Rate's largest code.
         protocol: Protocol Type's range.
         shutdown: Shutdown's initial value.
@@ -215,7 +213,9 @@ def _table(
         _ee("ID", 7, 1, 1, 0, 252),
         _ee("Baud Rate", 8, 1, 1, 0, baud_max),
         _ee("Return Delay Time", 9, 1, 250, 0, 254),
-        _ee("Drive Mode", 10, 1, 0, 0, drive_mode_max),
+        # Drive Mode bits: 0 reverse, 1 dual joint (X540 M/H/D only), 2 time-based profile,
+        # 3 torque on by goal update; ``high`` is the mask of the bits the model has.
+        _ee("Drive Mode", 10, 1, 0, 0, 0x0F if external_ports else 0x0D),
         _ee("Operating Mode", 11, 1, 3, 0, 16),
         # 0..252 sets it; 253..255 switch it off (255 is the factory value).
         _ee("Secondary ID", 12, 1, 255, 0, 255),
@@ -430,9 +430,8 @@ def _m(
 _XL430: Final[dict[str, Any]] = {
     "voltage": (140, 60, 60, 140),
     "temperature": 72,
-    "drive_mode_max": 13,
 }
-_XC430: Final[dict[str, Any]] = {"voltage": (160, 60, 60, 160), "drive_mode_max": 1}
+_XC430: Final[dict[str, Any]] = {"voltage": (160, 60, 60, 160)}
 _XL330: Final[dict[str, Any]] = {
     "velocity_max": 2047,
     "voltage": (70, 35, 31, 70),
@@ -454,9 +453,11 @@ _XW: Final[dict[str, Any]] = {"led": False}
 #: model numbers are the XH's plus one, as ROBOTIS's DYNAMIXEL Wizard and SDKs list them (the
 #: XD430-T210 page prints 1,010, the XH430-W210's number, which a chain could not tell apart).
 #: The XW430 pages print Protocol Type 1 as the initial value; the servo ships speaking Protocol
-#: 2.0 (its Model Number is read over 2.0), so the simulator starts at 2. Stall values marked
-#: ``~`` were not in the stored e-Manual pages and are the sibling model's (the effort estimate
-#: only; a profile can set ``torque_constant``).
+#: 2.0 (its Model Number is read over 2.0), so the simulator starts at 2. Drive Mode takes the
+#: bits the e-Manual's Drive Mode section gives each group (0, 2, 3; and 1, dual joint, on the
+#: X540 M/H/D), where some pages' Range column (0 ~ 1, 0 ~ 5) predates bits 2 and 3. Stall
+#: values marked ``~`` were not in the stored e-Manual pages and are the sibling model's (the
+#: effort estimate only; a profile can set ``torque_constant``).
 MODELS: Final[Mapping[str, Model]] = {
     m.name: m
     for m in (
@@ -476,7 +477,7 @@ MODELS: Final[Mapping[str, Model]] = {
             (1.5, 1.4),
             velocity_limit=250,
             gains=(1800, 100, 2000, 0, 640),
-            **{**_XL430, "drive_mode_max": 1},
+            **_XL430,
         ),
         _m(
             "XC430-W150",
@@ -629,7 +630,6 @@ MODELS: Final[Mapping[str, Model]] = {
             (2.5, 1.3),
             velocity_limit=235,  # ~ stall
             current_limit=2047,
-            drive_mode_max=13,
             **_XH430,
             **_XW,
         ),
@@ -640,7 +640,6 @@ MODELS: Final[Mapping[str, Model]] = {
             (3.4, 1.3),
             velocity_limit=139,  # ~ stall
             current_limit=2047,
-            drive_mode_max=13,
             **_XH430,
             **_XW,
         ),

@@ -48,9 +48,10 @@ Protocol Type is set to anything but 2 no longer hears Protocol 2.0 (Protocol 1.
 modelled). Secondary ID (0..252; 253..255 off): a packet to it is carried out by every servo
 of that group whose own ID differs, RAM area only, without a status packet (the servo whose ID
 it is answers as usual). Homing Offset shifts Present Position (actual position + offset; the
-goal and limit registers are in the same shifted ticks). Not modelled: Drive Mode's direction
-and time-based profile bits, External Port levels, Control Table Backup (0x20), and the fast
-sync/bulk reads (0x8A, 0x9A), which are answered with an Instruction Error.
+goal and limit registers are in the same shifted ticks). Drive Mode bit 3 (Torque On by Goal
+Update): a goal accepted while torque is off switches it on. Not modelled: Drive Mode's
+direction and time-based profile bits, External Port levels, Control Table Backup (0x20), and
+the fast sync/bulk reads (0x8A, 0x9A), which are answered with an Instruction Error.
 
 Motion (first order, stepped on the injected clock whenever a packet arrives): in the position
 modes the position approaches the goal with a time constant of 50 ms at no more than the profile
@@ -122,6 +123,7 @@ _LOAD_FULL: Final = 1000  # Present Load of a model without a current sensor: 0.
 _PWM_FULL: Final = 885
 _EXTENDED_GOAL: Final = 1_048_575  # |Goal Position| in the multi-turn modes (e-Manual)
 _CLEAR_MULTI_TURN: Final = bytes([0x01, 0x44, 0x58, 0x4C, 0x22])
+_TORQUE_ON_BY_GOAL: Final = 0x08  # Drive Mode bit 3 (firmware v45 on; v46 on the XL330)
 _E = p.ErrorNumber
 _I = p.Instruction
 
@@ -802,6 +804,9 @@ class SimDynamixelChain(Simulator):
                 servo.position += value - servo.get(reg)
                 servo.set("Present Position", round(servo.position))
             servo.put(reg, value)
+        goal = any(reg.name in _GOAL_NAMES for reg in touched.values())
+        if goal and servo.value("Drive Mode") & _TORQUE_ON_BY_GOAL and not servo.hardware_error:
+            servo.set("Torque Enable", 1)  # Drive Mode bit 3: Torque On by Goal Update
 
     def _check(self, servo: _Servo, reg: ct.Register, value: int, now: Any) -> None:
         """Refuse ``value`` for ``reg`` as the e-Manual says (``now``: values after the write)."""
@@ -815,6 +820,9 @@ class SimDynamixelChain(Simulator):
                 raise _Reject(_E.DATA_RANGE)
             if value and servo.value("Bus Watchdog") == ct.BUS_WATCHDOG_ERROR:
                 raise _Reject(_E.DATA_RANGE)  # only 0 clears the error
+        elif name == "Drive Mode":
+            if value & ~(reg.high or 0):
+                raise _Reject(_E.DATA_RANGE)  # a bit the model does not have
         elif name == "Goal Position":
             if mode == ct.OperatingMode.POSITION:
                 if not now("Min Position Limit") <= value <= now("Max Position Limit"):
