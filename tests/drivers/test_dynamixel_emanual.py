@@ -388,13 +388,19 @@ def test_eeprom_and_indirect_addresses_are_locked_while_torque_is_on(
 
 
 def test_data_length_and_unknown_instructions(one: tuple[SimDynamixelChain, Any, Any]) -> None:
-    _, port, _ = one
+    _, port, ph = one
     short_write = raw(port, p.build_packet(1, p.Instruction.WRITE, b"\x41\x00"))
     assert short_write is not None
     assert short_write.error_number == DATA_LENGTH
     short_read = raw(port, p.build_packet(1, p.Instruction.READ, b"\x84\x00\x04"))
     assert short_read is not None
     assert short_read.error_number == DATA_LENGTH
+    assert write(ph, port, 1, 116, 2, 100) == DATA_LENGTH  # 2 bytes of Goal Position
+    assert write(ph, port, 1, 118, 2, 0) == DATA_LENGTH  # its last 2
+    assert write(ph, port, 1, 132, 2, 0) == ACCESS  # a read-only register: Access goes first
+    assert write(ph, port, 1, 168, 2, 116) == OK  # Indirect Data 1 → Goal Position's 1st byte
+    assert write(ph, port, 1, 224, 1, 0) == DATA_LENGTH
+    assert read(ph, port, 1, 116, 4)[0] == 2048
     reset = raw(port, p.build_packet(1, p.Instruction.FACTORY_RESET, b"\x03"))
     assert reset is not None
     assert reset.error_number == DATA_RANGE

@@ -26,7 +26,8 @@ Instructions, as the e-Manual's Protocol 2.0 page describes them:
   register's range (the e-Manual's Range column, the model's operating modes and baud codes)
   is a Data Range Error; a goal beyond its limit register (Goal Position outside Min/Max
   Position Limit in position mode, Goal Velocity/Current/PWM beyond Velocity/Current/PWM
-  Limit) a Data Limit Error; a WRITE with no data a Data Length Error. Writing ID makes the
+  Limit) a Data Limit Error; a WRITE with no data, or with only part of a register's bytes, a
+  Data Length Error (after the access checks). Writing ID makes the
   servo answer to the new id from the next packet on (the status packet still comes from the
   old one); writing Baud Rate makes it listen at the new rate likewise;
 * REG_WRITE (checked like WRITE, held until ACTION; Registered Instruction reads 1) and ACTION
@@ -763,6 +764,7 @@ class SimDynamixelChain(Simulator):
             raise _Reject(_E.ACCESS)
         scratch = bytearray(servo.table)
         touched: dict[int, ct.Register] = {}
+        covered: dict[int, int] = {}  # register address → bytes of it this write sets
         for offset, byte in enumerate(data):
             at = servo.resolve(address + offset)
             reg = servo.layout.owner[at]
@@ -770,6 +772,7 @@ class SimDynamixelChain(Simulator):
                 continue  # a reserved byte: ignored
             scratch[at] = byte
             touched[reg.address] = reg
+            covered[reg.address] = covered.get(reg.address, 0) + 1
         if not touched:
             raise _Reject(_E.ACCESS)
         watchdog_error = servo.value("Bus Watchdog") == ct.BUS_WATCHDOG_ERROR
@@ -780,6 +783,8 @@ class SimDynamixelChain(Simulator):
                 raise _Reject(_E.ACCESS)
             if reg.name in _GOAL_NAMES and watchdog_error:
                 raise _Reject(_E.DATA_RANGE)  # goal values are read-only after it expired
+        if any(covered[at] < reg.size for at, reg in touched.items()):
+            raise _Reject(_E.DATA_LENGTH)  # only part of a register (2 bytes of a 4-byte one)
 
         def new(reg: ct.Register) -> int:
             return p.from_le(bytes(scratch[reg.address : reg.address + reg.size]), reg.signed)
