@@ -437,6 +437,35 @@ def test_indirect_data_reads_and_writes_the_register_it_points_at(
     assert group.getData(1, 634, 4) == sim.read_register(1, 132) == 3000
 
 
+def test_fast_sync_and_fast_bulk_read(
+    every_model: tuple[SimDynamixelChain, Any, Any], clock: ManualClock
+) -> None:
+    sim, port, ph = every_model
+    ids = [IDS[m] for m in ("XM430-W350", "XL330-M288", "XH540-V270", "XC430-W150")]
+    for dxl_id, goal in zip(ids, (1000, 3000, 2500, 100), strict=True):
+        assert write(ph, port, dxl_id, 64, 1, 1) == OK
+        assert write(ph, port, dxl_id, 116, 4, goal) == OK
+    clock.advance(5.0)
+    group = dxl.GroupSyncRead(port, ph, 132, 4)
+    for dxl_id in ids:
+        assert group.addParam(dxl_id)
+    assert group.fastSyncRead() == dxl.COMM_SUCCESS  # one packet, the CRC checked at its end
+    assert [group.getData(i, 132, 4) for i in ids] == [1000, 3000, 2500, 100]
+    bulk = dxl.GroupBulkRead(port, ph)
+    assert bulk.addParam(ids[0], 132, 4)
+    assert bulk.addParam(ids[1], 146, 1)  # Present Temperature
+    assert bulk.addParam(ids[2], 144, 2)  # Present Input Voltage: 24 V
+    assert bulk.fastBulkRead() == dxl.COMM_SUCCESS
+    got = (bulk.getData(ids[0], 132, 4), bulk.getData(ids[1], 146, 1), bulk.getData(ids[2], 144, 2))
+    assert got == (1000, 30, 240)
+    assert group.addParam(
+        IDS["2XL430-W250"]
+    )  # "2XL/2XC Not Supported": the packet stays unfinished
+    with silence_expected():
+        assert group.fastSyncRead() != dxl.COMM_SUCCESS
+    assert sim.read_register(ids[0], 132) == 1000
+
+
 # ---- ID, baud rate, Status Return Level ------------------------------------------------------
 
 

@@ -50,9 +50,11 @@ modelled). Secondary ID (0..252; 253..255 off): a packet to it is carried out by
 of that group whose own ID differs, RAM area only, without a status packet (the servo whose ID
 it is answers as usual). Homing Offset shifts Present Position (actual position + offset; the
 goal and limit registers are in the same shifted ticks). Drive Mode bit 3 (Torque On by Goal
-Update): a goal accepted while torque is off switches it on. Not modelled: Drive Mode's
-direction and time-based profile bits, External Port levels, Control Table Backup (0x20), and
-the fast sync/bulk reads (0x8A, 0x9A), which are answered with an Instruction Error.
+Update): a goal accepted while torque is off switches it on. FAST_SYNC_READ and
+FAST_BULK_READ (firmware v45 on; not the 2XL430) are answered with one status packet the listed
+servos build together, as the e-Manual shows. Not modelled: Drive Mode's direction and
+time-based profile bits, External Port levels, and Control Table Backup (0x20), which is
+answered with an Instruction Error.
 
 Motion (first order, stepped on the injected clock whenever a packet arrives): in the position
 modes the position approaches the goal with a time constant of 50 ms at no more than the profile
@@ -161,7 +163,11 @@ _POSITION_MODES: Final = frozenset(
     }
 )
 #: Instructions answered at Status Return Level 1 (PING is answered at every level).
-_READS: Final = frozenset({_I.READ, _I.SYNC_READ, _I.BULK_READ})
+_READS: Final = frozenset(
+    {_I.READ, _I.SYNC_READ, _I.BULK_READ, _I.FAST_SYNC_READ, _I.FAST_BULK_READ}
+)
+#: Models without Fast Sync/Bulk Read (e-Manual: "2XL/2XC Not Supported").
+_NO_FAST_READ: Final = frozenset({"2XL430-W250"})
 _GENERIC: Final = {r.address: r for r in ct.REGISTERS}
 
 
@@ -679,6 +685,10 @@ class SimDynamixelChain(Simulator):
                         address = p.from_le(params[at + 1 : at + 3])
                         length = p.from_le(params[at + 3 : at + 5])
                         replies.append(self._reply_read(found, address, length))
+        elif inst in (_I.FAST_SYNC_READ, _I.FAST_BULK_READ):
+            reply = self._fast_read(packet, live)
+            if reply is not None:
+                replies.append(reply)
         elif inst == _I.BULK_WRITE:
             at = 0
             while at + 5 <= len(params):
@@ -722,7 +732,7 @@ class SimDynamixelChain(Simulator):
         elif inst == _I.SYNC_WRITE and len(params) >= 4:
             length = p.from_le(params[2:4])
             ids = {params[at] for at in range(4, len(params), length + 1)}
-        elif inst == _I.BULK_READ:
+        elif inst in (_I.BULK_READ, _I.FAST_BULK_READ):
             ids = {params[at] for at in range(0, len(params), 5)}
         elif inst == _I.BULK_WRITE:
             ids, at = set(), 0
@@ -732,6 +742,54 @@ class SimDynamixelChain(Simulator):
         return [
             s for s in self._servos if (ids is None or s.id in ids) and not self._absent(s, line)
         ]
+
+    def _fast_read(self, packet: p.Packet, live: list[_Servo]) -> bytes | None:
+        """FAST_SYNC_READ / FAST_BULK_READ: one status packet the listed servos build together.
+
+        Each servo in turn appends its error, id, data and the CRC of the packet so far; the
+        last CRC is the packet's (e-Manual: no byte stuffing in this reply). A listed servo that
+        is absent, silent at this Status Return Level or of a model without the instruction
+        leaves the packet unfinished: nothing goes out, and the client times out.
+        """
+        params = packet.params
+        wanted: list[tuple[int, int, int]] = []
+        if packet.instruction == _I.FAST_SYNC_READ:
+            if len(params) < 5:
+                return None
+            address, length = p.from_le(params[:2]), p.from_le(params[2:4])
+            wanted = [(dxl_id, address, length) for dxl_id in params[4:]]
+        else:
+            for at in range(0, len(params) - 4, 5):
+                wanted.append(
+                    (
+                        params[at],
+                        p.from_le(params[at + 1 : at + 3]),
+                        p.from_le(params[at + 3 : at + 5]),
+                    )
+                )
+        parts: list[bytes] = []
+        for dxl_id, address, length in wanted:
+            found = next((s for s in live if s.id == dxl_id), None)
+            if (
+                found is None
+                or found.model.name in _NO_FAST_READ
+                or not _answers(found, packet.instruction)
+            ):
+                return None
+            try:
+                data, number = self._read(found, address, length), 0
+            except _Reject as reject:
+                data, number = bytes(length), reject.number
+            alert = p.ALERT_BIT if found.hardware_error else 0
+            parts.append(bytes([number | alert, dxl_id]) + data)
+        if not parts:
+            return None
+        size = 1 + sum(len(part) + 2 for part in parts)  # INST, then each part and its CRC
+        out = bytearray(p.HEADER + bytes([p.BROADCAST_ID]) + p.to_le(size, 2) + bytes([_I.STATUS]))
+        for part in parts:
+            out += part
+            out += p.to_le(p.crc16(out), 2)
+        return bytes(out)
 
     def _reply_read(self, servo: _Servo, address: int, length: int) -> bytes:
         try:
