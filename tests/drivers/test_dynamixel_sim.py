@@ -87,7 +87,8 @@ def test_write_errors_like_a_servo(sdk: tuple[Any, Any]) -> None:
     assert ph.write1ByteTxRx(port, 1, 11, 1)[1] == access  # EEPROM while torque is on
     assert ph.write4ByteTxRx(port, 1, 116, 5000)[1] == 6  # beyond Max Position Limit
     assert ph.write1ByteTxRx(port, 3, 11, 0)[1] == 4  # XL430 has no current mode
-    assert ph.factoryReset(port, 1, 0xFF)[1] == 1  # refused
+    assert ph.factoryReset(port, 1, 0x02) == (dxl.COMM_SUCCESS, 0)  # and a reboot:
+    assert ph.read1ByteTxRx(port, 1, 64)[0] == 0  # torque off
 
 
 def test_sync_read_and_sync_write(sdk: tuple[Any, Any], clock: ManualClock) -> None:

@@ -51,7 +51,8 @@ whatever the clock says, so a fault bound in clock seconds is ``timeout_polls`` 
 Units: position ``(ticks - 2048) x 2π/4096 / gear + offset`` rad; velocity
 ``units x 0.229 rev/min / gear``; effort ``current x torque_constant x gear`` N·m, with the
 model's current unit and torque constant from :mod:`~temoto.drivers.dynamixel.control_table`
-(XL430 reports load in 0.1 % of its stall torque instead of current).
+(XL430, 2XL430 and XC430 report load in 0.1 % of their stall torque instead of current, and
+have no Current Limit to read).
 """
 
 from __future__ import annotations
@@ -302,7 +303,7 @@ class ServoConfig:
 
     def _newton_metres_per_unit(self) -> float:
         spec = self.spec
-        if spec.current_unit is None:  # XL430: Present Load in 0.1 % of the stall torque
+        if spec.current_unit is None:  # XL430/XC430: Present Load, 0.1 % of the stall torque
             return 0.001 * spec.stall_torque * abs(self.gear)
         kt = self.torque_constant or spec.torque_constant
         return spec.current_unit * kt * abs(self.gear)
@@ -908,7 +909,9 @@ class DynamixelDriver(Driver):
             self._set_eeprom(servo, ct.MIN_POSITION_LIMIT, low, "min position limit")
             self._set_eeprom(servo, ct.MAX_POSITION_LIMIT, high, "max position limit")
         velocity_limit = self._read(servo.id, _VELOCITY_LIMIT, "velocity limit")
-        current_limit = self._read(servo.id, _CURRENT_LIMIT, "current limit")
+        current_limit = 0  # a model that reports load has no Current Limit (nor current mode)
+        if servo.spec.register(_CURRENT_LIMIT.name) is not None:
+            current_limit = self._read(servo.id, _CURRENT_LIMIT, "current limit")
         self._limits[servo.id] = (velocity_limit, current_limit)
 
     def _set_eeprom(self, servo: ServoConfig, reg: ct.Register, value: int, what: str) -> None:
