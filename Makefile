@@ -23,11 +23,12 @@ $(STAMP): pyproject.toml setup.py $(wildcard temoto/core/_fast/*.py temoto/core/
 	touch $@
 
 # System tools of the network tests (tests/fleet/test_netns_fleet.py), of the live view's
-# browser test (tests/web) and of the Graphviz renderings (tests/core/test_dot.py), as
+# browser test (tests/web), of the Graphviz renderings (tests/core/test_dot.py) and of the
+# simulators as a TCP serial port (socat, tests/test_cli_sim.py), as
 # command:package.
 # Installed with apt-get only when running as root and one is missing; otherwise the missing
 # ones are just reported (the tests then skip, or fail under CI).
-SYSDEPS = ip:iproute2 nft:nftables chromium:chromium dot:graphviz
+SYSDEPS = ip:iproute2 nft:nftables chromium:chromium dot:graphviz socat:socat
 
 sysdeps:
 	@missing=""; \

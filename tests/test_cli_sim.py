@@ -26,6 +26,7 @@ from temoto.drivers.dynamixel.driver import DynamixelDriver
 from temoto.drivers.mavlink.driver import MavlinkDriver
 from temoto.drivers.mavlink.protocol import Codec
 from temoto.drivers.mavlink.sim import SimVehicle
+from temoto.testing.tools import require_tool
 
 ROOT = Path(__file__).resolve().parents[1]
 PROFILES = ROOT / "hw_profiles"
@@ -483,8 +484,8 @@ def test_odrive_rates_are_printed_as_the_odrive_s_settings(served: list[Served])
     assert sim.stop()[0] == 0
 
 
-@pytest.mark.skipif(shutil.which("socat") is None, reason="needs socat")
 def test_socat_exposes_the_chain_as_a_tcp_serial_port(served: list[Served]) -> None:
+    socat = require_tool("socat", hint="apt-get install socat")
     serial = pytest.importorskip("serial")
     from temoto.drivers.dynamixel import protocol as dxl
 
@@ -495,7 +496,7 @@ def test_socat_exposes_the_chain_as_a_tcp_serial_port(served: list[Served]) -> N
         tcp = probe.getsockname()[1]
     bridge = subprocess.Popen(
         [
-            "socat",
+            socat,
             f"TCP-LISTEN:{tcp},reuseaddr,bind=127.0.0.1",
             f"FILE:{endpoint['port']},raw,echo=0",
         ]
@@ -526,21 +527,16 @@ def test_socat_exposes_the_chain_as_a_tcp_serial_port(served: list[Served]) -> N
     assert chain.stop()[0] == 0
 
 
-def _mavproxy() -> str | None:
-    local = Path(sys.executable).parent / "mavproxy.py"
-    return str(local) if local.exists() else shutil.which("mavproxy.py")
-
-
-@pytest.mark.skipif(_mavproxy() is None, reason="needs MAVProxy (pip install MAVProxy)")
 @pytest.mark.parametrize("master", ["out", "vehicle"])
 def test_mavproxy_detects_the_vehicle(served: list[Served], tmp_path: Path, master: str) -> None:
+    mavproxy = require_tool("mavproxy.py", hint="pip install MAVProxy")
     out = free_udp_port()
     quad = start(served, "quad", "--port", "0", "--out", f"udp:127.0.0.1:{out}")
     (endpoint,) = quad.endpoints(1)
     # MAVProxy listening where the vehicle streams (udp:), or sending to it first (udpout:)
     url = f"udp:127.0.0.1:{out}" if master == "out" else endpoint["link"]
     proc = subprocess.Popen(
-        [str(_mavproxy()), "--master", url, "--non-interactive", "--default-modules=mode"],
+        [mavproxy, "--master", url, "--non-interactive", "--default-modules=mode"],
         stdin=subprocess.DEVNULL,
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
