@@ -136,8 +136,7 @@ class MissionItem:
                 return p.MAV_MISSION_UNSUPPORTED
             if self.frame not in _FRAMES:
                 return p.MAV_MISSION_UNSUPPORTED_FRAME
-        values = (self.param1, self.param2, self.param3, self.param4, self.z)
-        if not all(math.isfinite(v) for v in values):
+        if not math.isfinite(self.z):  # NaN params mean "default" (MAVLink); z must be a number
             return p.MAV_MISSION_ERROR
         return p.MAV_MISSION_ACCEPTED
 
