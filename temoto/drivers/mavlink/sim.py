@@ -1334,10 +1334,13 @@ class SimVehicle(Simulator):
             return result, extra
         if cmd == p.MAV_CMD_DO_CHANGE_SPEED:
             return self._change_speed(prm[0], prm[1]), []
-        if cmd == p.MAV_CMD_MISSION_START:
-            if not self.armed:
+        if cmd == p.MAV_CMD_MISSION_START:  # ArduCopter: armed, then AUTO; a stopped or
+            if not self.armed:  # finished mission starts (again)
                 return p.MAV_RESULT_FAILED, []
-            return self._set_mode("AUTO"), []
+            result = self._set_mode("AUTO")
+            if result == p.MAV_RESULT_ACCEPTED and self._mis_state != p.MISSION_STATE_ACTIVE:
+                self._start_or_resume()
+            return result, []
         if cmd == p.MAV_CMD_DO_SET_MISSION_CURRENT:
             result = self._set_current(int(prm[0]), reset=prm[1] == 1.0)
             frames, self._outbox = self._outbox, []
