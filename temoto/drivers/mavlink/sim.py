@@ -32,8 +32,8 @@ QGroundControl, MAVSDK and a pymavlink ground station work with it as with SITL:
   NAV_RETURN_TO_LAUNCH, DO_CHANGE_SPEED and DO_JUMP; other commands are skipped. Entering AUTO
   needs a mission and, armed on the ground, a NAV_TAKEOFF first ("Auto: Missing Takeoff
   Cmd"); arming in AUTO needs ``AUTO_OPTIONS`` bit 0, as in ArduCopter;
-  ``MAV_CMD_MISSION_START`` (armed) switches to AUTO. At the end of the mission the vehicle
-  holds in the air, or disarms on the ground.
+  ``MAV_CMD_MISSION_START`` switches to AUTO and starts a stopped mission. At the end of the
+  mission the vehicle holds in the air, or disarms on the ground.
 * A COMMAND_ACK for every COMMAND_LONG and COMMAND_INT addressed to the autopilot (component 1
   or broadcast 0; messages for another component, e.g. a camera's 100, are not acted on):
   arm/disarm (400) with pre-arm checks (``ARMING_CHECK``; a battery below
@@ -1333,10 +1333,14 @@ class SimVehicle(Simulator):
             extra = [self._frame("HOME_POSITION", now)] if result == p.MAV_RESULT_ACCEPTED else []
             return result, extra
         if cmd == p.MAV_CMD_DO_CHANGE_SPEED:
+            if not (math.isfinite(prm[1]) and prm[1] > 0) or not 0 <= prm[0] < 4:
+                return p.MAV_RESULT_DENIED, []
+            if self.mode not in ("AUTO", "GUIDED"):
+                return p.MAV_RESULT_FAILED, []  # modes without a speed to change
             return self._change_speed(prm[0], prm[1]), []
-        if cmd == p.MAV_CMD_MISSION_START:  # ArduCopter: armed, then AUTO; a stopped or
-            if not self.armed:  # finished mission starts (again)
-                return p.MAV_RESULT_FAILED, []
+        if cmd == p.MAV_CMD_MISSION_START:  # ArduCopter: AUTO, then start a stopped mission
+            if prm[0] != 0 or prm[1] != 0:
+                return p.MAV_RESULT_DENIED, []  # first/last item: not supported
             result = self._set_mode("AUTO")
             if result == p.MAV_RESULT_ACCEPTED and self._mis_state != p.MISSION_STATE_ACTIVE:
                 self._start_or_resume()

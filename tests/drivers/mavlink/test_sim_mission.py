@@ -260,7 +260,10 @@ def test_entering_auto_and_arming_in_it_as_arducopter_allows() -> None:
         result, texts = set_mode(gcs, "AUTO", texts_for=0.3)
         assert result == mavlink.MAV_RESULT_FAILED  # no mission
         assert "Mode change to AUTO failed: init failed" in texts
-        assert command(gcs, mavlink.MAV_CMD_MISSION_START)[0] == mavlink.MAV_RESULT_FAILED
+        assert (
+            command(gcs, mavlink.MAV_CMD_MISSION_START)[0] == mavlink.MAV_RESULT_FAILED
+        )  # no AUTO
+        assert command(gcs, mavlink.MAV_CMD_MISSION_START, 2, 4)[0] == mavlink.MAV_RESULT_DENIED
         wps = [m for m in _mission() if m[0] != 22]  # no takeoff first
         assert upload(gcs, wps) == p.MAV_MISSION_ACCEPTED
         assert set_mode(gcs, "AUTO")[0] == 0  # disarmed: allowed
