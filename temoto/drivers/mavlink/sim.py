@@ -1329,6 +1329,8 @@ class SimVehicle(Simulator):
                 p.MAV_FRAME_GLOBAL,
                 p.MAV_FRAME_GLOBAL_INT,
             )
+            if prm[0] not in (0.0, 1.0):
+                return p.MAV_RESULT_FAILED, []  # ArduCopter: param1 is 1 (here) or 0
             result = self._set_home(prm[0] == 1.0, prm[4], prm[5], prm[6], relative=relative)
             extra = [self._frame("HOME_POSITION", now)] if result == p.MAV_RESULT_ACCEPTED else []
             return result, extra
@@ -1441,8 +1443,8 @@ class SimVehicle(Simulator):
         return p.MAV_RESULT_ACCEPTED
 
     def _set_home(self, here: bool, lat: float, lon: float, alt: float, *, relative: bool) -> int:
-        """DO_SET_HOME: here (param1 1, or no position given), or at a position (AMSL)."""
-        if here or (lat == 0.0 and lon == 0.0):
+        """DO_SET_HOME: here (param1 1), or at a position (AMSL, or relative in COMMAND_INT)."""
+        if here:
             lat, lon, up = self._geo(self.pos)
             alt = self._origin[2] + up
         else:

@@ -45,6 +45,10 @@ def test_home_position_on_request_and_set_home() -> None:
         # GLOBAL_POSITION_INT's relative altitude is now above the new home (2 m higher)
         recv(gcs, "GLOBAL_POSITION_INT", 5.0, lambda m: m.relative_alt == -2000)
         assert sim.position()[2] == pytest.approx(-2.0)
+        assert command(gcs, mavlink.MAV_CMD_DO_SET_HOME, 2)[0] == 4  # param1 is 0 or 1
+        assert command(gcs, mavlink.MAV_CMD_DO_SET_HOME, 1)[0] == 0  # here
+        recv(gcs, "HOME_POSITION", 5.0, lambda m: m.latitude == p.deg_e7(HOME[0]))
+        assert sim.position()[2] == pytest.approx(0.0)
 
 
 def test_timesync_is_answered() -> None:
