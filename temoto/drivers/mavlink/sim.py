@@ -334,7 +334,8 @@ class SimVehicle(Simulator):
                     self._params[key] = self._stored(key, value)
         sysid = round(self._params["SYSID_THISMAV"])
         if not 1 <= sysid <= 255:
-            raise ValueError(f"SYSID_THISMAV must be 1..255, got {sysid}")
+            where = f" ({self.params_file})" if self.params_file is not None else ""
+            raise ValueError(f"SYSID_THISMAV must be 1..255, got {sysid}{where}")
         self._names = sorted(self._params)  # PARAM_VALUE index order
         self.name = name
         self.clock: Clock = clock or MonotonicClock()
@@ -1653,9 +1654,9 @@ class SimVehicle(Simulator):
                 latitude=p.deg_e7(self.home[0]),
                 longitude=p.deg_e7(self.home[1]),
                 altitude=round(self.home[2] * 1000),
-                x=0.0,
-                y=0.0,
-                z=0.0,
+                x=self._home_local()[0],  # home in the local frame (NED from the origin)
+                y=self._home_local()[1],
+                z=-self._home_up(),
                 q=[1.0, 0.0, 0.0, 0.0],
                 approach_x=0.0,
                 approach_y=0.0,
