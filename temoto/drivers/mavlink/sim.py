@@ -51,7 +51,9 @@ QGroundControl, MAVSDK and a pymavlink ground station work with it as with SITL:
   ``FS_GCS_ENABLE`` is not 0: disarmed → nothing but a "GCS Failsafe" text; armed and landed →
   disarm; in the air → RTL (1, 2, 6), SmartRTL-or-RTL (3; SmartRTL is not simulated: RTL),
   SmartRTL-or-LAND (4: LAND), LAND (5), BRAKE (7), RTL for any other value. A heartbeat ends
-  the failsafe ("GCS Failsafe Cleared"); the mode stays. ``FS_OPTIONS`` is not simulated.
+  the failsafe ("GCS Failsafe Cleared"); the mode stays. In AUTO, ``FS_GCS_ENABLE`` 2 or
+  ``FS_OPTIONS`` bit 1 (2) continue the mission; the other ``FS_OPTIONS`` bits are not
+  simulated.
   The battery failsafe likewise: ``BATT_LOW_VOLT`` (for ``BATT_LOW_TIMER`` s) or
   ``BATT_LOW_MAH`` (of ``BATT_CAPACITY``) → ``BATT_FS_LOW_ACT``, the ``CRT`` ones →
   ``BATT_FS_CRT_ACT`` (0 none, 1 LAND, 2 RTL, 3 RTL, 4 LAND, 5 disarm, 6 RTL, 7 BRAKE);
@@ -999,8 +1001,12 @@ class SimVehicle(Simulator):
             self._disarm(force=True)
             self._texts.append((warn, "GCS Failsafe - Disarming"))
             return
-        self._texts.append((warn, "GCS Failsafe"))
         enable = int(self._params["FS_GCS_ENABLE"])
+        continue_auto = enable == 2 or round(self._p("FS_OPTIONS")) & 2  # FS_OPTIONS bit 1
+        if self.mode == "AUTO" and continue_auto:
+            self._texts.append((warn, "GCS Failsafe - Continuing Auto Mode"))
+            return
+        self._texts.append((warn, "GCS Failsafe"))
         if enable in (3, 4):
             fallback = "RTL" if enable == 3 else "Land"
             self._texts.append((warn, f"SmartRTL Unavailable, Using {fallback} Mode"))

@@ -326,3 +326,24 @@ def _distance(a: tuple[float, float, float], b: tuple[float, ...]) -> float:
     north = math.radians(a[0] - b[0]) * 6_378_137.0
     east = math.radians(a[1] - b[1]) * 6_378_137.0 * math.cos(math.radians(b[0]))
     return math.sqrt(north**2 + east**2 + (a[2] - b[2]) ** 2)
+
+
+@pytest.mark.parametrize(("params", "mode"), [({"FS_GCS_ENABLE": 2}, "AUTO"),
+                                              ({"FS_GCS_ENABLE": 1, "FS_OPTIONS": 2}, "AUTO"),
+                                              ({"FS_GCS_ENABLE": 1}, "RTL")])  # fmt: skip
+def test_the_gcs_failsafe_in_auto_continues_the_mission_when_told(
+    params: dict[str, float], mode: str
+) -> None:
+    items = [*_mission()[:3], (19, 60.0, *_offset(40.0, 0.0), 10.0)]  # loiter there for 60 s
+    with ground_station(params=params, tau=0.5) as (sim, gcs):
+        assert upload(gcs, items) == p.MAV_MISSION_ACCEPTED
+        assert set_mode(gcs, "GUIDED")[0] == 0
+        assert command(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)[0] == 0
+        assert command(gcs, mavlink.MAV_CMD_MISSION_START)[0] == 0
+        recv(gcs, "MISSION_CURRENT", 20.0, lambda m: m.seq == 3)
+        gcs.mav.heartbeat_send(mavlink.MAV_TYPE_GCS, mavlink.MAV_AUTOPILOT_INVALID, 0, 0, 0)
+        text = recv(gcs, "STATUSTEXT", 5.0, lambda m: m.text.startswith("GCS Failsafe")).text
+        expected = "GCS Failsafe - Continuing Auto Mode" if mode == "AUTO" else "GCS Failsafe"
+        assert text == expected
+        recv(gcs, "HEARTBEAT", 5.0, lambda m: m.custom_mode == p.COPTER_MODES[mode])
+        assert sim.gcs_failsafe
