@@ -8,11 +8,12 @@ import time
 from typing import Any
 
 import pytest
-from sim_gcs import HOME, command, ground_station, mavlink, none_within, recv, set_mode
 
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.protocol import Codec
 from temoto.drivers.mavlink.sim_mission import MissionItem, MissionService
+
+from .sim_gcs import HOME, command, ground_station, mavlink, none_within, recv, set_mode
 
 GCS = Codec(255, 190)
 VEHICLE = Codec(1, 1)

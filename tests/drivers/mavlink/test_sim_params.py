@@ -8,12 +8,13 @@ import struct
 from pathlib import Path
 
 import pytest
-from sim_gcs import command, ground_station, mavlink, none_within, recv, set_mode, set_param
 
 from temoto.drivers.mavlink import SimVehicle
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.sim import PARAMETERS
 from temoto.drivers.mavlink.sim_params import load_param_file, save_param_file, stored_value
+
+from .sim_gcs import command, ground_station, mavlink, none_within, recv, set_mode, set_param
 
 # ---- the table and the file -------------------------------------------------------------------
 

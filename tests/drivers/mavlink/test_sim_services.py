@@ -7,10 +7,11 @@ from __future__ import annotations
 import time
 
 import pytest
-from sim_gcs import HOME, command, ground_station, mavlink, none_within, recv, set_mode, set_param
 
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.sim import DEFAULT_RATES, STREAM_GROUPS
+
+from .sim_gcs import HOME, command, ground_station, mavlink, none_within, recv, set_mode, set_param
 
 
 def test_commands_for_another_component_are_not_acted_on() -> None:

@@ -18,10 +18,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from sim_gcs import HOME, free_port, until
 
 from temoto.clock import ScaledClock
 from temoto.drivers.mavlink import SimVehicle
+
+from .sim_gcs import HOME, free_port, until
 
 pytestmark = pytest.mark.slow
 
