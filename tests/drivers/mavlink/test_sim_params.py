@@ -173,3 +173,14 @@ def test_ftp_is_nacked_so_mavproxy_falls_back_to_the_parameter_list() -> None:
         gcs.mav.file_transfer_protocol_send(0, gcs.target_system, 1, list(header + bytes(239)))
         reply = bytes(recv(gcs, "FILE_TRANSFER_PROTOCOL").payload)
         assert (reply[3], reply[5]) == (128, 1)  # ACK
+
+
+def test_a_parameter_file_that_cannot_be_written_is_logged_not_fatal(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    path = tmp_path / "no-such-dir" / "quad.param"
+    with ground_station(params_file=path) as (sim, gcs):
+        assert set_param(gcs, "RTL_ALT", 2500, p.MAV_PARAM_TYPE_INT32).param_value == 2500.0
+        assert sim.param("RTL_ALT") == 2500.0  # the vehicle keeps it in memory
+    assert not path.exists()
+    assert any("cannot write parameters" in r.getMessage() for r in caplog.records)
