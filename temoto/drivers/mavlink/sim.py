@@ -1532,7 +1532,8 @@ class SimVehicle(Simulator):
                 base |= p.MAV_MODE_FLAG_GUIDED_ENABLED  # ArduCopter's modes with a position goal
             if self.armed:
                 base |= p.MAV_MODE_FLAG_SAFETY_ARMED
-            status = p.MAV_STATE_ACTIVE if self.armed else p.MAV_STATE_STANDBY
+            # ArduCopter: STANDBY while landed (armed or not), ACTIVE in the air
+            status = p.MAV_STATE_ACTIVE if self.airborne else p.MAV_STATE_STANDBY
             if kind is not None or self._gcs_failsafe or self._batt_failsafe:
                 status = p.MAV_STATE_CRITICAL  # ArduCopter: any failsafe triggered
             return enc(
