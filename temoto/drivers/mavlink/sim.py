@@ -1527,7 +1527,11 @@ class SimVehicle(Simulator):
         kind = self._hw_kind()
         enc = self.codec.encode
         if name == "HEARTBEAT":
-            base = p.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED | p.MAV_MODE_FLAG_STABILIZE_ENABLED
+            base = (
+                p.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+                | p.MAV_MODE_FLAG_STABILIZE_ENABLED
+                | p.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED  # ArduCopter sets it in every mode
+            )
             if self.mode in ("GUIDED", "AUTO", "RTL", "LOITER", "POSHOLD", "BRAKE"):
                 base |= p.MAV_MODE_FLAG_GUIDED_ENABLED  # ArduCopter's modes with a position goal
             if self.armed:
