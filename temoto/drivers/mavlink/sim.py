@@ -1497,14 +1497,12 @@ class SimVehicle(Simulator):
         frames.extend(self._outbox)
         self._outbox = []
         frames.extend(self._mission.tick(now))
-        if self._param_cursor is not None:
-            for index in range(self._param_cursor, len(self._names)):
-                if index - self._param_cursor == _PARAMS_PER_STEP:
-                    break
-                frames.append(self._param_value(self._names[index], index))
-            else:
-                index = len(self._names)
-            self._param_cursor = index if index < len(self._names) else None
+        if self._param_cursor is not None:  # a PARAM_REQUEST_LIST being answered, paced
+            stop = min(self._param_cursor + _PARAMS_PER_STEP, len(self._names))
+            frames += [
+                self._param_value(self._names[i], i) for i in range(self._param_cursor, stop)
+            ]
+            self._param_cursor = stop if stop < len(self._names) else None
         return frames
 
     def _text_frames(self, texts: list[tuple[int, str]]) -> list[bytes]:
