@@ -816,16 +816,15 @@ class SimVehicle(Simulator):
             if running:
                 self._mission_complete()
                 self._mis_state = p.MISSION_STATE_NO_MISSION
-        else:
-            if self._mis_state == p.MISSION_STATE_NO_MISSION or self._mis_index >= count:
+        elif not running:  # a new mission, not started yet
+            self._mis_index = 1
+            self._mis_state = p.MISSION_STATE_NOT_STARTED
+            self._jumps = {}
+        else:  # flying it: restart the current command of the new mission
+            if self._mis_index >= count:
                 self._mis_index = 1
-                if not running:
-                    self._mis_state = p.MISSION_STATE_NOT_STARTED
-            if running:
-                self._nav = None  # restart the current command of the new mission
-                self._texts.append(
-                    (p.MAV_SEVERITY_CRITICAL, "Auto mission changed, restarted command")
-                )
+            self._nav = None
+            self._texts.append((p.MAV_SEVERITY_CRITICAL, "Auto mission changed, restarted command"))
         self._outbox.append(self._frame("MISSION_CURRENT", self._last))
 
     def _first_nav_is_takeoff(self) -> bool:

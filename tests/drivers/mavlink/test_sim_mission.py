@@ -348,3 +348,30 @@ def test_the_gcs_failsafe_in_auto_continues_the_mission_when_told(
         assert text == expected
         recv(gcs, "HEARTBEAT", 5.0, lambda m: m.custom_mode == p.COPTER_MODES[mode])
         assert sim.gcs_failsafe
+
+
+def test_a_mission_changed_in_flight_restarts_the_current_command() -> None:
+    first = [*_mission()[:2], (16, 30.0, *_offset(40.0, 0.0), 10.0)]  # hold 30 s up north
+    second = [*_mission()[:2], (16, 30.0, *_offset(0.0, 40.0), 10.0)]  # the same, east
+    with ground_station(params={"WPNAV_SPEED": 1500}, tau=0.5) as (sim, gcs):
+        assert upload(gcs, first) == p.MAV_MISSION_ACCEPTED
+        assert set_mode(gcs, "GUIDED")[0] == 0
+        assert command(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)[0] == 0
+        assert command(gcs, mavlink.MAV_CMD_MISSION_START)[0] == 0
+        recv(gcs, "MISSION_CURRENT", 20.0, lambda m: m.seq == 2)
+        assert upload(gcs, second) == p.MAV_MISSION_ACCEPTED
+        there = (*second[2][2:4], 10.0)
+
+        def arrived(m: Any) -> bool:
+            return _distance((m.lat / 1e7, m.lon / 1e7, m.relative_alt / 1000), there) < 1.0
+
+        recv(gcs, "GLOBAL_POSITION_INT", 20.0, arrived)
+        assert sim.mode == "AUTO"
+        assert sim.mission_current == 2
+    with ground_station() as (sim, gcs):  # uploaded while not flying: not started, from 1
+        assert upload(gcs, first) == p.MAV_MISSION_ACCEPTED
+        gcs.mav.mission_set_current_send(gcs.target_system, 1, 2)
+        recv(gcs, "MISSION_CURRENT", 5.0, lambda m: m.seq == 2)
+        assert upload(gcs, second) == p.MAV_MISSION_ACCEPTED
+        current = recv(gcs, "MISSION_CURRENT", 5.0, lambda m: m.seq == 1)
+        assert current.mission_state == 2  # NOT_STARTED
