@@ -375,3 +375,44 @@ def test_a_mission_changed_in_flight_restarts_the_current_command() -> None:
         assert upload(gcs, second) == p.MAV_MISSION_ACCEPTED
         current = recv(gcs, "MISSION_CURRENT", 5.0, lambda m: m.seq == 1)
         assert current.mission_state == 2  # NOT_STARTED
+
+
+def test_do_commands_loiter_time_and_rtl_in_a_mission() -> None:
+    north = (*_offset(30.0, 0.0), 10.0)
+    items = [
+        *_mission()[:2],  # home, takeoff to 10 m
+        (178, 1.0, 0.0, 0.0, 0.0),  # DO_CHANGE_SPEED: ground speed (param2 below) 3 m/s
+        (16, 0.0, *north),  # 3: 30 m north
+        (177, 3.0, 0.0, 0.0, 0.0),  # DO_JUMP to 3, once more (param2 below)
+        (19, 2.0, *north),  # 5: LOITER_TIME 2 s
+        (20, 0.0, 0.0, 0.0, 0.0),  # 6: RETURN_TO_LAUNCH
+    ]
+    with ground_station(tau=0.5, climb_rate=4.0, descent_rate=3.0) as (sim, gcs):
+        gcs.mav.mission_count_send(gcs.target_system, 1, len(items), 0)
+        while (
+            msg := recv(gcs, ["MISSION_REQUEST_INT", "MISSION_ACK"])
+        ).get_type() != "MISSION_ACK":
+            cmd, param1, lat, lon, alt = items[msg.seq]
+            param2 = {178: 3.0, 177: 1.0}.get(cmd, 0.0)
+            gcs.mav.mission_item_int_send(
+                gcs.target_system, 1, msg.seq, p.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT, cmd, 0, 1,
+                param1, param2, 0, 0, p.deg_e7(lat), p.deg_e7(lon), alt, 0,
+            )  # fmt: skip
+        assert msg.type == p.MAV_MISSION_ACCEPTED
+        assert set_mode(gcs, "GUIDED")[0] == 0
+        assert command(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)[0] == 0
+        assert command(gcs, mavlink.MAV_CMD_MISSION_START)[0] == 0
+        reached, fastest = [], 0.0
+        deadline = time.monotonic() + 30.0
+        while sim.armed or len(reached) < 5:
+            assert time.monotonic() < deadline, f"reached only {reached}"
+            msg = recv(gcs, ["MISSION_ITEM_REACHED", "GLOBAL_POSITION_INT"])
+            if msg.get_type() == "MISSION_ITEM_REACHED":
+                reached.append(msg.seq)
+            elif msg.relative_alt > 9000:
+                fastest = max(fastest, math.hypot(msg.vx, msg.vy) / 100.0)
+        assert reached == [1, 3, 3, 5, 6]  # DO commands are not "reached"; the jump repeats 3
+        assert fastest == pytest.approx(3.0, abs=0.05)  # DO_CHANGE_SPEED, not WPNAV_SPEED 5 m/s
+        lat, lon, alt = sim.position()
+        assert alt == 0.0
+        assert _distance((lat, lon, 0.0), (HOME[0], HOME[1], 0.0)) < 1.0
