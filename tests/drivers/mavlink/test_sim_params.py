@@ -9,12 +9,22 @@ from pathlib import Path
 
 import pytest
 
+from temoto.clock import ManualClock
 from temoto.drivers.mavlink import SimVehicle
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.sim import PARAMETERS
 from temoto.drivers.mavlink.sim_params import load_param_file, save_param_file, stored_value
 
-from .sim_gcs import command, ground_station, mavlink, none_within, recv, set_mode, set_param
+from .sim_gcs import (
+    command,
+    ground_station,
+    mavlink,
+    none_within,
+    recv,
+    set_mode,
+    set_param,
+    until,
+)
 
 # ---- the table and the file -------------------------------------------------------------------
 
@@ -184,3 +194,19 @@ def test_a_parameter_file_that_cannot_be_written_is_logged_not_fatal(
         assert sim.param("RTL_ALT") == 2500.0  # the vehicle keeps it in memory
     assert not path.exists()
     assert any("cannot write parameters" in r.getMessage() for r in caplog.records)
+
+
+def test_the_parameter_list_is_paced_five_per_model_step() -> None:
+    clock = ManualClock()
+    with ground_station(clock=clock, step_rate=50.0) as (sim, gcs):
+        gcs.mav.param_request_list_send(gcs.target_system, 0)
+        until(lambda: sim.received.get("PARAM_REQUEST_LIST", 0) == 1, 5.0, "request")
+        got: list[int] = []
+        while len(got) < len(PARAMETERS):
+            before = len(got)
+            clock.advance(0.02)  # one model step
+            expect = min(5, len(PARAMETERS) - before)
+            while len(got) < before + expect:
+                got.append(recv(gcs, "PARAM_VALUE", 5.0).param_index)
+            none_within(gcs, "PARAM_VALUE", 0.05)  # and no more until the next step
+        assert got == list(range(len(PARAMETERS)))
