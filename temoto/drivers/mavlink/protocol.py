@@ -105,6 +105,79 @@ MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT: Final[int] = int(
     _dialect.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
 )
 
+# ---- used by the simulator's parameter, mission and FTP services (issue 16) -----------------
+
+MAV_CMD_NAV_WAYPOINT: Final[int] = int(_dialect.MAV_CMD_NAV_WAYPOINT)  # 16
+MAV_CMD_NAV_LOITER_UNLIM: Final[int] = int(_dialect.MAV_CMD_NAV_LOITER_UNLIM)  # 17
+MAV_CMD_NAV_LOITER_TIME: Final[int] = int(_dialect.MAV_CMD_NAV_LOITER_TIME)  # 19
+MAV_CMD_DO_JUMP: Final[int] = int(_dialect.MAV_CMD_DO_JUMP)  # 177
+MAV_CMD_DO_CHANGE_SPEED: Final[int] = int(_dialect.MAV_CMD_DO_CHANGE_SPEED)  # 178
+MAV_CMD_DO_SET_HOME: Final[int] = int(_dialect.MAV_CMD_DO_SET_HOME)  # 179
+MAV_CMD_DO_SET_MISSION_CURRENT: Final[int] = int(_dialect.MAV_CMD_DO_SET_MISSION_CURRENT)  # 224
+MAV_CMD_MISSION_START: Final[int] = int(_dialect.MAV_CMD_MISSION_START)  # 300
+MAV_CMD_GET_HOME_POSITION: Final[int] = int(_dialect.MAV_CMD_GET_HOME_POSITION)  # 410
+
+MAV_FRAME_MISSION: Final[int] = int(_dialect.MAV_FRAME_MISSION)
+MAV_FRAME_GLOBAL_TERRAIN_ALT: Final[int] = int(_dialect.MAV_FRAME_GLOBAL_TERRAIN_ALT)
+MAV_FRAME_GLOBAL_TERRAIN_ALT_INT: Final[int] = int(_dialect.MAV_FRAME_GLOBAL_TERRAIN_ALT_INT)
+
+MAV_MISSION_TYPE_MISSION: Final[int] = int(_dialect.MAV_MISSION_TYPE_MISSION)
+MAV_MISSION_TYPE_FENCE: Final[int] = int(_dialect.MAV_MISSION_TYPE_FENCE)
+MAV_MISSION_TYPE_RALLY: Final[int] = int(_dialect.MAV_MISSION_TYPE_RALLY)
+MAV_MISSION_TYPE_ALL: Final[int] = int(_dialect.MAV_MISSION_TYPE_ALL)
+
+MAV_MISSION_ACCEPTED: Final[int] = int(_dialect.MAV_MISSION_ACCEPTED)
+MAV_MISSION_ERROR: Final[int] = int(_dialect.MAV_MISSION_ERROR)
+MAV_MISSION_UNSUPPORTED_FRAME: Final[int] = int(_dialect.MAV_MISSION_UNSUPPORTED_FRAME)
+MAV_MISSION_UNSUPPORTED: Final[int] = int(_dialect.MAV_MISSION_UNSUPPORTED)
+MAV_MISSION_NO_SPACE: Final[int] = int(_dialect.MAV_MISSION_NO_SPACE)
+MAV_MISSION_INVALID_SEQUENCE: Final[int] = int(_dialect.MAV_MISSION_INVALID_SEQUENCE)
+MAV_MISSION_DENIED: Final[int] = int(_dialect.MAV_MISSION_DENIED)
+MAV_MISSION_OPERATION_CANCELLED: Final[int] = int(_dialect.MAV_MISSION_OPERATION_CANCELLED)
+
+MISSION_STATE_NO_MISSION: Final[int] = int(_dialect.MISSION_STATE_NO_MISSION)
+MISSION_STATE_NOT_STARTED: Final[int] = int(_dialect.MISSION_STATE_NOT_STARTED)
+MISSION_STATE_ACTIVE: Final[int] = int(_dialect.MISSION_STATE_ACTIVE)
+MISSION_STATE_PAUSED: Final[int] = int(_dialect.MISSION_STATE_PAUSED)
+MISSION_STATE_COMPLETE: Final[int] = int(_dialect.MISSION_STATE_COMPLETE)
+
+MAV_DATA_STREAM_ALL: Final[int] = int(_dialect.MAV_DATA_STREAM_ALL)
+MAV_DATA_STREAM_EXTENDED_STATUS: Final[int] = int(_dialect.MAV_DATA_STREAM_EXTENDED_STATUS)
+MAV_DATA_STREAM_RC_CHANNELS: Final[int] = int(_dialect.MAV_DATA_STREAM_RC_CHANNELS)
+MAV_DATA_STREAM_POSITION: Final[int] = int(_dialect.MAV_DATA_STREAM_POSITION)
+MAV_DATA_STREAM_EXTRA1: Final[int] = int(_dialect.MAV_DATA_STREAM_EXTRA1)
+MAV_DATA_STREAM_EXTRA2: Final[int] = int(_dialect.MAV_DATA_STREAM_EXTRA2)
+MAV_DATA_STREAM_EXTRA3: Final[int] = int(_dialect.MAV_DATA_STREAM_EXTRA3)
+
+MAV_SYS_STATUS_PREARM_CHECK: Final[int] = int(_dialect.MAV_SYS_STATUS_PREARM_CHECK)
+MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT: Final[int] = int(_dialect.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT)
+MAV_PROTOCOL_CAPABILITY_MISSION_INT: Final[int] = int(_dialect.MAV_PROTOCOL_CAPABILITY_MISSION_INT)
+MAV_PROTOCOL_CAPABILITY_MISSION_FENCE: Final[int] = int(
+    _dialect.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
+)
+MAV_PROTOCOL_CAPABILITY_MISSION_RALLY: Final[int] = int(
+    _dialect.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
+)
+MAV_MODE_FLAG_MANUAL_INPUT_ENABLED: Final[int] = int(_dialect.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED)
+MAV_POWER_STATUS_BRICK_VALID: Final[int] = int(_dialect.MAV_POWER_STATUS_BRICK_VALID)
+
+#: MAVLink FTP (FILE_TRANSFER_PROTOCOL payload) opcodes and NAK error codes used by the
+#: simulator (https://mavlink.io/en/services/ftp.html).
+FTP_OP_TERMINATE_SESSION: Final = 1
+FTP_OP_RESET_SESSIONS: Final = 2
+FTP_OP_READ_FILE: Final = 5
+FTP_OP_WRITE_FILE: Final = 7
+FTP_OP_BURST_READ_FILE: Final = 15
+FTP_OP_ACK: Final = 128
+FTP_OP_NAK: Final = 129
+FTP_ERR_INVALID_SESSION: Final = 4
+FTP_ERR_FILE_NOT_FOUND: Final = 10
+
+#: The MAV_CMD ids the dialect defines (for checking uploaded mission items).
+MAV_CMDS: Final[frozenset[int]] = frozenset(
+    int(k) for k, entry in _dialect.enums["MAV_CMD"].items() if not entry.name.endswith("ENUM_END")
+)
+
 #: SYS_STATUS sensor bits by name (``MAV_SYS_STATUS_SENSOR_GPS`` → ``GPS``).
 SENSOR_BITS: Final[Mapping[str, int]] = {
     name.removeprefix("MAV_SYS_STATUS_SENSOR_"): int(getattr(_dialect, name))
