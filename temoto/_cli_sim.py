@@ -22,7 +22,6 @@ Kept apart from :mod:`temoto.cli` so that other commands import no driver code. 
 from __future__ import annotations
 
 import argparse
-import inspect
 import ipaddress
 import json
 import math
@@ -534,11 +533,6 @@ def _quad(args: argparse.Namespace, stack: ExitStack) -> _Served:
     if args.home is not None:
         kwargs["home"] = args.home
     if args.params is not None:
-        if "params_file" not in inspect.signature(SimVehicle).parameters:
-            raise ConfigError(
-                f"--params {args.params}: this TeMoto's simulated vehicle keeps no parameter"
-                " files yet"
-            )
         kwargs["params_file"] = args.params
     outs = getattr(args, "out", None) or [DEFAULT_OUT]
     try:

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import importlib.util
-import inspect
 import json
 import os
 import queue
@@ -25,7 +24,6 @@ from temoto.clock import MonotonicClock
 from temoto.drivers.dynamixel.driver import DynamixelDriver
 from temoto.drivers.mavlink.driver import MavlinkDriver
 from temoto.drivers.mavlink.protocol import Codec
-from temoto.drivers.mavlink.sim import SimVehicle
 from temoto.testing.tools import require_tool
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -159,15 +157,6 @@ def test_every_form_has_help() -> None:
     assert "--profile FILE" in top.stdout
 
 
-def test_params_is_refused_clearly_where_the_vehicle_keeps_no_files(tmp_path: Path) -> None:
-    if "params_file" in inspect.signature(SimVehicle).parameters:
-        pytest.skip("SimVehicle keeps parameter files: test_params_persist covers --params")
-    proc = sim_cli("quad", "--port", "0", "--params", str(tmp_path / "quad.parm"))
-    assert proc.returncode == 2
-    assert "--params" in proc.stderr
-    assert "no parameter files" in proc.stderr
-
-
 # ---- quad ------------------------------------------------------------------------------------
 
 
@@ -242,10 +231,6 @@ def test_quad_speedup_runs_the_vehicle_clock_faster(served: list[Served]) -> Non
     assert quad.stop(signal.SIGINT)[0] == 0
 
 
-@pytest.mark.skipif(
-    "params_file" not in inspect.signature(SimVehicle).parameters,
-    reason="SimVehicle(params_file=...) is not on this branch yet (issue 16, the vehicle's part)",
-)
 def test_params_persist_across_runs(served: list[Served], tmp_path: Path) -> None:
     file = tmp_path / "quad.parm"
     codec = Codec(255, 190)

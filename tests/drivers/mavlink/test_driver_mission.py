@@ -11,7 +11,6 @@ import threading
 from collections.abc import Iterator
 
 import pytest
-from _mavemu import AUTO, GUIDED, MavEmu
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from temoto.clock import MonotonicClock
@@ -25,6 +24,8 @@ from temoto.errors import (
     ProfileError,
     StateError,
 )
+
+from ._mavemu import AUTO, GUIDED, MavEmu
 
 LAT, LON = 47.397742, 8.545594
 NORTH = round(LAT + 0.0003, 7)  # what int32 degrees·1e7 carry back unchanged

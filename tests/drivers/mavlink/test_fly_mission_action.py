@@ -12,7 +12,6 @@ from collections.abc import Callable, Iterator
 from typing import Any
 
 import pytest
-from _mavemu import AUTO, MavEmu
 from pymavlink.dialects.v20 import ardupilotmega as mav
 
 from temoto import ActionEngine, Result
@@ -23,6 +22,8 @@ from temoto.config import parse_profile
 from temoto.core.registrar import Registrar
 from temoto.drivers import MissionItem
 from temoto.managers.robot import RobotManager, RobotManagerClient
+
+from ._mavemu import AUTO, MavEmu
 
 LAT = [47.3981, 47.3981, 47.39785, 47.39785]
 LON = [8.54560, 8.54610, 8.54610, 8.54560]

@@ -59,10 +59,14 @@ def test_the_sim_quad_mission_flies_four_waypoints_and_lands(
                 assert time.monotonic() < deadline, "the mission did not end in 120 s"
         outcome = engine.outcome("sim_quad_mission")
     assert outcome.result is Result.TRUE, outcome.errors
-    telemetry = watcher.telemetry()
     assert peak[0] > 12.0  # it climbed to the last waypoints' 15 m
-    assert telemetry.position.alt < 0.5  # and landed
-    assert not telemetry.armed
+    # the action ends when the last item is done and the vehicle is down; ArduCopter disarms on
+    # landing, which the driver hears with the next HEARTBEAT (1 Hz of the vehicle's clock)
+    deadline = time.monotonic() + 10.0
+    while (telemetry := watcher.telemetry()).armed and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert telemetry.position.alt < 0.5  # landed
+    assert not telemetry.armed, telemetry.status_texts[-3:]
     home_lat = 47.397742
     assert abs(telemetry.position.lat - home_lat) > 0.0003  # it landed at the last waypoint
     registrar.release(watcher.resource.id)

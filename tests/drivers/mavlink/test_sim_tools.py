@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import math
 import os
-import shutil
 import subprocess
 import sys
 import time
@@ -21,6 +20,7 @@ import pytest
 
 from temoto.clock import ScaledClock
 from temoto.drivers.mavlink import SimVehicle
+from temoto.testing.tools import require_tool
 
 from .sim_gcs import HOME, free_port, until
 
@@ -146,13 +146,7 @@ def _local(lat: float, lon: float) -> tuple[float, float]:
 
 
 def _mavproxy() -> list[str]:
-    script = Path(sys.executable).with_name("mavproxy.py")
-    if not script.exists():
-        found = shutil.which("mavproxy.py")
-        if found is None:
-            pytest.skip("MAVProxy is not installed (pip install MAVProxy)")
-        script = Path(found)
-    return [sys.executable, str(script)]
+    return [sys.executable, require_tool("mavproxy.py", hint="pip install MAVProxy")]
 
 
 def _waypoints(path: Path) -> None:
