@@ -490,25 +490,14 @@ def nan_if_none(value: float | None) -> float:
     return math.nan if value is None else float(value)
 
 
-# ---- missions and parameters (the driver's mission and parameter microservices) ------------
+# ---- the driver's mission and parameter microservices (shared constants are above) ----------
 
-MAV_CMD_NAV_WAYPOINT: Final[int] = int(_dialect.MAV_CMD_NAV_WAYPOINT)  # 16
-MAV_CMD_NAV_LOITER_TIME: Final[int] = int(_dialect.MAV_CMD_NAV_LOITER_TIME)  # 19
-MAV_CMD_DO_CHANGE_SPEED: Final[int] = int(_dialect.MAV_CMD_DO_CHANGE_SPEED)  # 178
-MAV_CMD_MISSION_START: Final[int] = int(_dialect.MAV_CMD_MISSION_START)  # 300
-
-MAV_FRAME_MISSION: Final[int] = int(_dialect.MAV_FRAME_MISSION)  # 2: no position
 MAV_FRAME_GLOBAL_INT_FRAMES: Final = frozenset(
     {int(_dialect.MAV_FRAME_GLOBAL), int(_dialect.MAV_FRAME_GLOBAL_INT)}
 )
 MAV_FRAME_RELATIVE_FRAMES: Final = frozenset(
     {int(_dialect.MAV_FRAME_GLOBAL_RELATIVE_ALT), int(_dialect.MAV_FRAME_GLOBAL_RELATIVE_ALT_INT)}
 )
-
-MAV_MISSION_TYPE_MISSION: Final[int] = int(_dialect.MAV_MISSION_TYPE_MISSION)  # 0
-MAV_MISSION_ACCEPTED: Final[int] = int(_dialect.MAV_MISSION_ACCEPTED)  # 0
-MAV_MISSION_INVALID_SEQUENCE: Final[int] = int(_dialect.MAV_MISSION_INVALID_SEQUENCE)  # 13
-MISSION_STATE_COMPLETE: Final[int] = int(_dialect.MISSION_STATE_COMPLETE)  # 5
 
 MAV_PARAM_TYPE_UINT8: Final[int] = int(_dialect.MAV_PARAM_TYPE_UINT8)
 MAV_PARAM_TYPE_UINT16: Final[int] = int(_dialect.MAV_PARAM_TYPE_UINT16)
