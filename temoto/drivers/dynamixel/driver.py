@@ -429,8 +429,12 @@ class DynamixelDriver(Driver):
         #: Each servo's goal register and value, written every poll while ACTIVE.
         self._goals: dict[int, tuple[ct.Register, bytes]] = {}
         # A good poll is due every period; one whose replies time out takes a reply timeout
-        # more (real time), so the age limit allows for that: a lost reply is not a fault.
-        self._feedback = StreamAge(f"{name} present position", self.period + reply_timeout)
+        # more (real time, so as many seconds of the clock as pass meanwhile: three times
+        # as many on a ScaledClock(3)), so the age limit allows for that: a lost reply is
+        # not a fault.
+        real_rate = self.clock.real_seconds(1.0)
+        reply_clock_s = reply_timeout / real_rate if real_rate > 0 else reply_timeout
+        self._feedback = StreamAge(f"{name} present position", self.period + reply_clock_s)
         self._bad_packets = FaultWindow()
         self._last_failure = ""
 
@@ -980,7 +984,8 @@ class DynamixelDriver(Driver):
         """Clock seconds without a good poll after which the present position is stale.
 
         :data:`~temoto.drivers.supervision.STALE_PERIODS` (3) times a poll period plus one
-        ``reply_timeout`` (the time a poll whose reply is lost takes on top of its period).
+        ``reply_timeout`` (the time a poll whose reply is lost takes on top of its period: real
+        seconds, counted here in seconds of the driver's clock).
         """
         return self._feedback.max_age
 
