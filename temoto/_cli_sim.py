@@ -103,21 +103,24 @@ def _flow(value: Any) -> str:
 # ---- arguments -------------------------------------------------------------------------------
 
 
-def parse_udp_address(text: str) -> tuple[str, int]:
+def parse_udp_address(text: str, *, bind: str = "127.0.0.1") -> tuple[str, int]:
     """An ``--out`` / ``--sim-out`` value: ``udp:HOST:PORT`` (also ``udpout:`` or bare).
 
-    The simulated vehicle binds 127.0.0.1, so the host must be a loopback address (or
-    ``localhost``); a ground station elsewhere is reached through MAVProxy's ``--out``.
+    A vehicle bound to a loopback address (the default, and always the robot command's) can
+    send only to loopback addresses, so then the host must be one (or ``localhost``); a
+    ground station elsewhere is reached through ``temoto sim quad --bind`` or MAVProxy's
+    ``--out``.
 
     Args:
         text: The value.
+        bind: The address the vehicle binds.
 
     Returns:
         ``(host, port)``.
 
     Raises:
         argparse.ArgumentTypeError: Not that form, a port outside 1..65535, or a host that is
-            not loopback.
+            not loopback for a vehicle bound to loopback.
     """
     rest = text
     for prefix in ("udp:", "udpout:"):
@@ -131,16 +134,35 @@ def parse_udp_address(text: str) -> tuple[str, int]:
         )
     if host == "localhost":
         host = "127.0.0.1"
-    try:
-        loopback = ipaddress.ip_address(host).is_loopback
-    except ValueError:
-        loopback = False
-    if not loopback:
+    if _is_loopback(bind) and not _is_loopback(host):
         raise argparse.ArgumentTypeError(
-            f"{text!r}: the simulated vehicle binds 127.0.0.1 and can only send to a loopback"
-            " address; forward further with MAVProxy (mavproxy.py --master ... --out HOST:PORT)"
+            f"{text!r}: the simulated vehicle binds {bind} and can only send to a loopback"
+            " address; bind it to a network address (temoto sim quad --bind 0.0.0.0) or"
+            " forward with MAVProxy (mavproxy.py --master ... --out HOST:PORT)"
         )
     return host, int(port_text)
+
+
+def _is_loopback(host: str) -> bool:
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return host == "localhost"
+
+
+def _any_udp_address(text: str) -> tuple[str, int]:
+    """``--out`` of ``temoto sim``: any host here; checked against ``--bind`` later."""
+    return parse_udp_address(text, bind="0.0.0.0")
+
+
+def _bind_address(text: str) -> str:
+    try:
+        ipaddress.IPv4Address(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: expected an IPv4 address of this host, e.g. 127.0.0.1 or 0.0.0.0"
+        ) from None
+    return text
 
 
 def _home(text: str) -> tuple[float, float, float]:
@@ -269,6 +291,14 @@ def add_sim(sub: Any) -> None:
         description="A simulated ArduCopter on UDP: it binds 127.0.0.1:PORT (a ground station"
         " may send to it: udpout:127.0.0.1:PORT) and streams to every --out (default"
         f" udp:{DEFAULT_OUT[0]}:{DEFAULT_OUT[1]}, where QGroundControl and MAVProxy listen).",
+    )
+    quad.add_argument(
+        "--bind",
+        type=_bind_address,
+        default="127.0.0.1",
+        metavar="ADDR",
+        help="the address the vehicle binds (default 127.0.0.1; 0.0.0.0 or a network"
+        " address lets a ground station on another machine reach it, and --out go there)",
     )
     quad.add_argument(
         "--port",
@@ -415,12 +445,13 @@ def _common(p: argparse.ArgumentParser, *, out: bool) -> None:
     if out:
         p.add_argument(
             "--out",
-            type=parse_udp_address,
+            type=_any_udp_address,
             action="append",
             default=default,
             metavar="udp:HOST:PORT",
-            help="also stream each simulated vehicle to this loopback UDP address (repeatable;"
-            f" for `quad` the default is udp:{DEFAULT_OUT[0]}:{DEFAULT_OUT[1]})",
+            help="also stream each simulated vehicle to this UDP address (repeatable; loopback"
+            " unless `quad --bind` names a network address; for `quad` the default is"
+            f" udp:{DEFAULT_OUT[0]}:{DEFAULT_OUT[1]})",
         )
 
 
@@ -535,15 +566,31 @@ def _quad(args: argparse.Namespace, stack: ExitStack) -> _Served:
     if args.params is not None:
         kwargs["params_file"] = args.params
     outs = getattr(args, "out", None) or [DEFAULT_OUT]
+    _outs_reachable(outs, args.bind)
     try:
         sim = SimVehicle(
-            "quad", clock=clock, gcs=outs, port=args.port, system_id=args.sysid, **kwargs
+            "quad",
+            clock=clock,
+            gcs=outs,
+            host=args.bind,
+            port=args.port,
+            system_id=args.sysid,
+            **kwargs,
         )
     except (ValueError, OSError) as err:
         where = f"--params {args.params}: " if args.params is not None else ""
         raise ConfigError(f"temoto sim quad: {where}{err}") from err
-    _started(stack, sim, f"quad on udp 127.0.0.1:{args.port}")
+    _started(stack, sim, f"quad on udp {args.bind}:{args.port}")
     return _Served(_vehicle_endpoint("quad", sim, None, outs), sim, _mavlink_traffic(sim))
+
+
+def _outs_reachable(outs: Sequence[tuple[str, int]], bind: str) -> None:
+    """Refuse ``--out`` addresses a vehicle bound to ``bind`` cannot send to."""
+    for host, port in outs:
+        try:
+            parse_udp_address(f"udp:{host}:{port}", bind=bind)
+        except argparse.ArgumentTypeError as err:
+            raise ConfigError(f"temoto sim: --out {err}") from None
 
 
 def _vehicle_endpoint(
@@ -680,6 +727,7 @@ def _from_profile(path: Path, args: argparse.Namespace, stack: ExitStack) -> lis
     clock = MonotonicClock()
     profile = load_profile(path, clock=clock)
     outs: list[tuple[str, int]] = getattr(args, "out", None) or []
+    _outs_reachable(outs, "127.0.0.1")  # a profile's simulated vehicles bind loopback
     groups: dict[str, str] = {}  # virtual channel → the multicast group serving it
     served: list[_Served] = []
     for name, spec in profile.devices.items():

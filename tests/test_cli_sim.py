@@ -608,3 +608,52 @@ def test_a_port_in_use_is_invalid_input(served: list[Served]) -> None:
     assert "cannot start" in proc.stderr
     assert "Traceback" not in proc.stderr
     assert first.stop()[0] == 0
+
+
+BIND_SCRIPT = r"""
+import socket, subprocess, sys
+from temoto.drivers.mavlink.protocol import Codec
+listener = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+listener.bind(("10.77.0.1", 0))
+listener.settimeout(20)
+port = listener.getsockname()[1]
+sim = subprocess.Popen([sys.executable, "-m", "temoto", "sim", "quad", "--bind", "0.0.0.0",
+                        "--port", "0", "--out", f"udp:10.77.0.1:{port}"],
+                       stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+try:
+    codec = Codec(255, 190)
+    while True:
+        data, sender = listener.recvfrom(4096)
+        if any(m.name == "HEARTBEAT" for m in codec.decode(data)):
+            break
+    print("heard", sender[0])
+finally:
+    sim.terminate()
+    print("rc", sim.wait(20))
+"""
+
+
+@pytest.mark.skipif(bool(_why_no_netns()), reason=_why_no_netns() or "ok")
+def test_a_vehicle_bound_to_a_network_address_streams_to_another_machine() -> None:
+    # a network namespace with a network interface (one end of a veth pair) at 10.77.0.1:
+    # the vehicle binds 0.0.0.0 and a ground station on that non-loopback address hears it
+    script = (
+        "ip link set lo up && ip link add temoto0 type veth peer name temoto1 && "
+        "ip link set temoto0 up && ip link set temoto1 up && "
+        "ip addr add 10.77.0.1/24 dev temoto0 && "
+        f'exec "{sys.executable}" -c "$0"'
+    )
+    proc = subprocess.run(
+        ["unshare", "-n", "sh", "-c", script, BIND_SCRIPT],
+        capture_output=True,
+        text=True,
+        timeout=60,
+    )
+    assert "heard 10.77.0.1" in proc.stdout, proc.stdout + proc.stderr
+    assert "rc 0" in proc.stdout, proc.stdout + proc.stderr
+
+
+def test_bind_takes_an_address_of_this_host() -> None:
+    proc = sim_cli("quad", "--bind", "not-an-address")
+    assert proc.returncode == 2
+    assert "IPv4 address" in proc.stderr

@@ -1,10 +1,10 @@
-"""A simulated ArduCopter on UDP loopback: the vehicle's side of MAVLink 2 (STYLE §3.7).
+"""A simulated ArduCopter on UDP: the vehicle's side of MAVLink 2 (STYLE §3.7).
 
-:class:`SimVehicle` binds a UDP socket on ``127.0.0.1`` and *sends* to the ground stations it
-is given (``gcs=[(host, port)]``, like a real autopilot streaming to ``udpin:`` listeners on
-14550 or MAVSDK on 14540); it also answers anyone who sends to its own port (so a
-``udpout:`` client works too). It behaves like a small ArduCopter 4.5, so that MAVProxy,
-QGroundControl, MAVSDK and a pymavlink ground station work with it as with SITL:
+:class:`SimVehicle` binds a UDP socket (on ``127.0.0.1`` unless told ``host=``) and *sends*
+to the ground stations it is given (``gcs=[(host, port)]``, like a real autopilot streaming
+to ``udpin:`` listeners on 14550 or MAVSDK on 14540); it also answers anyone who sends to its
+own port (so a ``udpout:`` client works too). It behaves like a small ArduCopter 4.5, so
+that MAVProxy, QGroundControl, MAVSDK and a pymavlink ground station work with it as with SITL:
 
 * HEARTBEAT at 1 Hz (``MAV_TYPE_QUADROTOR``, ``MAV_AUTOPILOT_ARDUPILOTMEGA``, ArduCopter custom
   modes, the armed flag) and the streams of :data:`DEFAULT_RATES`, grouped as ArduCopter's
@@ -222,7 +222,9 @@ class SimVehicle(Simulator):
         name: For thread names and logs.
         clock: Steps the model and paces the streams.
         gcs: Where to send (host, port) pairs; more are learned from whoever sends to us.
-        port: This vehicle's own UDP port on 127.0.0.1 (0: any free port).
+        port: This vehicle's own UDP port (0: any free port).
+        host: The address it binds: loopback by default; ``0.0.0.0`` or a network address
+            for ground stations on other machines.
         system_id: The vehicle's MAVLink system id (``SYSID_THISMAV``; a value in the
             parameter file wins).
         home: Home latitude, longitude (degrees) and altitude above mean sea level (m); also
@@ -264,6 +266,7 @@ class SimVehicle(Simulator):
         clock: Clock | None = None,
         gcs: Iterable[tuple[str, int]] = (),
         port: int = 0,
+        host: str = "127.0.0.1",
         system_id: int = 1,
         home: tuple[float, float, float] = (47.397742, 8.545594, 488.0),
         rates: Mapping[str, float] | None = None,
@@ -343,6 +346,7 @@ class SimVehicle(Simulator):
         self.clock: Clock = clock or MonotonicClock()
         self.codec = Codec(sysid, _AUTOPILOT)
         self.port = port
+        self.host = host
         self._origin = home
         #: Home: latitude, longitude (degrees), altitude above mean sea level (m).
         self.home = home
@@ -430,7 +434,7 @@ class SimVehicle(Simulator):
         """
         if self._link is not None:
             raise RuntimeError("the simulator is already started")
-        self._link = UdpLink(LinkSpec("udpin", "127.0.0.1", self.port))
+        self._link = UdpLink(LinkSpec("udpin", self.host, self.port))
         self.port = self._link.address[1]
         self._stop.clear()
         now = self.clock.monotonic()
