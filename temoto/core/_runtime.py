@@ -109,6 +109,7 @@ class Node:
         "gen",
         "held",
         "idx",
+        "inline",
         "inputs",
         "instance",
         "kind",
@@ -158,6 +159,7 @@ class Node:
         self.outputs: dict[str, Parameter] = {}
         self.required_inputs: tuple[str, ...] = ()
         self.spontaneous = False
+        self.inline = False
         self.define(umrf, resolved)
 
     def define(self, umrf: Umrf, resolved: ResolvedAction) -> None:
@@ -180,6 +182,9 @@ class Node:
         self.cls = resolved.cls
         self.plan = resolved.plan
         self.spontaneous = umrf.spontaneous
+        # runs on the thread that evolves the graph (Action.blocking = False)
+        cls = resolved.cls
+        self.inline = resolved.kind is NodeKind.LOCAL and cls is not None and not cls.blocking
         self.inputs = dict(umrf.input_parameters)
         self.outputs = dict(umrf.output_parameters)
         first = not self.native and not self.data

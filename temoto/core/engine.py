@@ -31,7 +31,7 @@ from temoto.clock import Clock, MonotonicClock
 from temoto.core._gc import collector_paused
 from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import GraphRun, Node, NodeKind, Plan
-from temoto.core.action import NO_VALUES, RunControl
+from temoto.core.action import NO_VALUES, Action, RunControl
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.executor import DeadlineTimer, WorkerPool
 from temoto.core.graph import UmrfGraph, graph_from_document, graph_to_dict
@@ -75,6 +75,10 @@ _RELEASE = 3  # (_RELEASE, action instance): release the resources a node acquir
 _CALL = 4  # (_CALL, function, *args): a short call to the actor link, made outside the lock
 
 Effect = tuple[Any, ...]
+# a run prepared under the lock: (node, gen, its instance or None, input values)
+_Todo = tuple[Node, int, Action | None, dict[str, Any]]
+# a run's end, applied under the lock: (node, gen, instance, result, outputs, error)
+_Done = tuple[Node, int, Action | None, Result, dict[str, Any], BaseException | None]
 
 # response codes of the evolution kernel (temoto.core._fast._evolution_py)
 _SHIFT = 4
@@ -610,23 +614,34 @@ class ActionEngine:
     # ================================================================ effects
 
     def _dispatch(self, fx: list[Effect], *, closing: bool = False) -> None:
+        """Carry out effects (lock released): calls here, actions and hooks on workers.
+
+        Ready actions leave as one batch: the inline ones together as one worker job that runs
+        them back to back (:meth:`_run_batch`), each blocking one as a job of its own, all
+        handed to the pool under one lock of its own (:meth:`WorkerPool.submit_many`).
+        """
         if self._releases:
             with self._lock:
                 fx = [*fx, *self._releases]
                 self._releases.clear()
+        inline: list[tuple[Node, int]] = []
+        runs: list[tuple[Node, int]] = []
         for effect in fx:
-            if effect[0] == _CALL:
+            kind = effect[0]
+            if kind == _RUN:
+                node = effect[1]
+                (inline if node.inline else runs).append((node, effect[2]))
+                continue
+            if kind == _CALL:
                 try:
                     effect[1](*effect[2:])
                 except Exception:
                     logger.exception("call to the actor link failed: %r", effect[1])
                 continue
             try:
-                if effect[0] == _RUN:
-                    self._pool.submit(self._execute, effect[1], effect[2])
-                elif effect[0] == _HOOK:
+                if kind == _HOOK:
                     self._pool.submit(self._call_hook, effect[1], effect[2], effect[3])
-                elif effect[0] == _RELEASE:
+                elif kind == _RELEASE:
                     self._pool.submit(_release_resources, effect[1])
                 else:
                     self._pool.submit(self._finish_spontaneous, *effect[1:])
@@ -634,6 +649,17 @@ class ActionEngine:
                 if not (closing or self._closed):  # shut down since the caller looked
                     raise
                 self._settle_closed(effect)
+        if not (inline or runs):
+            return
+        jobs: list[tuple[Any, ...]] = [(inline,)] if inline else []
+        jobs += [([run],) for run in runs]
+        try:
+            self._pool.submit_many(self._run_batch, jobs)
+        except RuntimeError:
+            if not (closing or self._closed):
+                raise
+            for node, gen in inline + runs:
+                self._settle_closed((_RUN, node, gen))
 
     def _settle_closed(self, effect: Effect) -> None:
         """The pool is shut down: settle an effect in this thread so no node stays active."""
@@ -650,46 +676,82 @@ class ActionEngine:
         else:
             self._finish_spontaneous(*effect[1:])
 
-    def _execute(self, node: Node, gen: int) -> None:
-        """Worker: run an action, evolve, then continue with the first newly ready action."""
-        while True:
-            fx = self._run_action(node, gen)
-            if len(fx) == 1 and fx[0][0] == _RUN and not self._releases:  # a chain's next action
-                node, gen = fx[0][1], fx[0][2]
-                continue
-            nxt = None
-            for i, effect in enumerate(fx):
-                if effect[0] == _RUN:
-                    nxt = effect
-                    del fx[i]
-                    break
-            if fx or self._releases:  # an ended run's releases may be all there is
-                self._dispatch(fx, closing=self._closed)
-            if nxt is None:
-                return
-            node, gen = nxt[1], nxt[2]
+    def _run_batch(self, batch: list[tuple[Node, int]]) -> None:
+        """Worker: run actions, evolve, and go on with what became ready, batch by batch.
 
-    def _run_action(self, node: Node, gen: int) -> list[Effect]:
-        run = node.run
+        Each round runs the prepared actions back to back outside the lock, then takes the
+        lock once to apply every result (evolution) and to prepare the next round: the inline
+        actions that became ready, or, when none did, the first ready blocking action (a chain
+        continues on this thread without a hand-off). Further blocking actions go to other
+        workers. One lock per round, not per action.
+        """
+        todo: list[_Todo] = []
+        rest: list[Effect] = []
         fx: list[Effect] = []
         with self._lock:
-            if gen != node.gen or node.state not in _ACTIVE:
-                return fx
-            if node.state is _S.STOPPING:  # stopped before a worker got to it: do not start
-                self._on_finished(node, gen, Result.STOPPED, {}, None, fx)
-                return fx
-            instance = node.instance
-            values = dict(node.data) if node.data else NO_VALUES
+            for node, gen in batch:
+                self._prep(node, gen, todo, fx)
+            self._collect(fx, todo, rest)
+        while True:
+            if rest or self._releases:  # an ended run's releases may be all there is
+                self._dispatch(rest, closing=self._closed)
+                rest = []
+            if not todo:
+                return
+            done = [self._call(*item) for item in todo]
+            todo = []
+            fx = []
+            with self._lock:
+                for item in done:
+                    self._settle(item, fx)
+                self._collect(fx, todo, rest)
+
+    def _prep(self, node: Node, gen: int, todo: list[_Todo], fx: list[Effect]) -> None:
+        """Lock held: queue a ready node's run with what it reads, unless it is stale."""
+        if gen != node.gen or node.state not in _ACTIVE:
+            return
+        if node.state is _S.STOPPING:  # stopped before a worker got to it: do not start
+            self._on_finished(node, gen, Result.STOPPED, {}, None, fx)
+            return
+        todo.append((node, gen, node.instance, dict(node.data) if node.data else NO_VALUES))
+
+    def _collect(self, fx: list[Effect], todo: list[_Todo], rest: list[Effect]) -> None:
+        """Lock held: split effects into runs for this thread (``todo``) and the rest.
+
+        Inline runs are prepared here (a stale or stopped one may add effects, which are
+        collected too); the first blocking run is kept only when no inline run is.
+        """
+        blocking: list[Effect] = []
+        i = 0
+        while True:
+            while i < len(fx):
+                effect = fx[i]
+                i += 1
+                if effect[0] != _RUN:
+                    rest.append(effect)
+                elif effect[1].inline:
+                    self._prep(effect[1], effect[2], todo, fx)
+                else:
+                    blocking.append(effect)
+            if todo or not blocking:
+                break
+            first = blocking.pop(0)
+            self._prep(first[1], first[2], todo, fx)
+        rest += blocking
+
+    def _call(self, node: Node, gen: int, instance: Action | None, values: dict[str, Any]) -> _Done:
+        """No lock: one run of an action's ``on_run`` (its instance made first if need be)."""
+        run = node.run
         error: BaseException | None = None
         if instance is None:
             try:
-                instance = self._instantiate(node)
+                instance = self._instantiate(node, gen)
             except Exception as err:
                 error = ActionError(
                     f"{node.name} could not be initialised: {err}", graph=run.name, node=node.name
                 )
                 error.__cause__ = err
-        outputs: dict[str, Any] = {}
+        outputs: dict[str, Any] = NO_VALUES
         result = Result.ERROR
         if instance is not None:
             instance._begin(values)
@@ -707,21 +769,32 @@ class ActionEngine:
         if run.peers and result is not Result.STOPPED and node.umrf.actor == self.actor:
             assert self._shared is not None
             result, error = self._shared.notify(node, result, outputs, error)
-        with self._lock:
-            if instance is not None and gen == node.gen:
-                node.log = instance._log_snapshot()
-            if (
-                node.spontaneous
-                and gen == node.gen
-                and run.state is not GraphState.PAUSED
-                and not node.restart
-            ):
-                fx.append((_SPONT, node, gen, result, outputs, error))
-            else:
-                self._on_finished(node, gen, result, outputs, error, fx)
-        return fx
+        return node, gen, instance, result, outputs, error
 
-    def _instantiate(self, node: Node) -> Any:
+    def _settle(self, done: _Done, fx: list[Effect]) -> None:
+        """Lock held: apply the end of an action run (evolution)."""
+        node, gen, instance, result, outputs, error = done
+        if instance is not None and gen == node.gen:
+            if node.instance is None:  # an inline node's first run (see _instantiate)
+                node.instance = instance
+            node.log = instance._log_snapshot()
+        if (
+            node.spontaneous
+            and gen == node.gen
+            and node.run.state is not GraphState.PAUSED
+            and not node.restart
+        ):
+            fx.append((_SPONT, node, gen, result, outputs, error))
+        else:
+            self._on_finished(node, gen, result, outputs, error, fx)
+
+    def _instantiate(self, node: Node, gen: int) -> Action:
+        """No lock: make a node's action instance and call its ``on_init``.
+
+        A blocking node's instance is registered at once, so that ``on_stop`` and ``on_pause``
+        reach its first run; an inline node's is registered with its first result
+        (:meth:`_settle`), saving a lock per new node: its run does not wait for hooks.
+        """
         assert node.cls is not None
         assert node.control is not None
         instance = node.cls()
@@ -734,8 +807,9 @@ class ActionEngine:
             registrar=self.registrar,
         )
         instance.on_init()
-        with self._lock:
-            node.instance = instance
+        if not node.inline:
+            with self._lock:
+                node.instance = instance
         return instance
 
     def _call_hook(self, node: Node, gen: int, hook: str) -> None:
@@ -793,7 +867,7 @@ class ActionEngine:
             fx.remove(nxt)
         self._dispatch(fx, closing=self._closed)
         if nxt is not None:
-            self._execute(nxt[1], nxt[2])
+            self._run_batch([(nxt[1], nxt[2])])
 
     def _downstream(self, start: Node) -> list[Node]:
         seen = {start.name}
