@@ -59,6 +59,7 @@ logger = logging.getLogger(__name__)
 YOUNG_COLLECT_AT_START = 1000
 
 _S = NodeState
+_LOCAL = NodeKind.LOCAL
 _ACTIVE = frozenset({_S.RUNNING, _S.PAUSE_REQUESTED, _S.PAUSED, _S.STOPPING})
 _BUSY_GRAPH = frozenset(
     {GraphState.RUNNING, GraphState.PAUSED, GraphState.STOPPING, GraphState.CLEARING}
@@ -684,26 +685,88 @@ class ActionEngine:
         actions that became ready, or, when none did, the first ready blocking action (a chain
         continues on this thread without a hand-off). Further blocking actions go to other
         workers. One lock per round, not per action.
+
+        The common end of a run (the current run of a RUNNING node that returned True or
+        False in a RUNNING graph, nobody observing transitions) is applied here directly;
+        it does what :meth:`_settle` and :meth:`_on_finished` do for that case.
         """
+        lock = self._lock
         todo: list[_Todo] = []
         rest: list[Effect] = []
         fx: list[Effect] = []
-        with self._lock:
+        with lock:
             for node, gen in batch:
                 self._prep(node, gen, todo, fx)
             self._collect(fx, todo, rest)
+        running = _S.RUNNING
+        graph_running = GraphState.RUNNING
+        true, false = Result.TRUE, Result.FALSE
         while True:
             if rest or self._releases:  # an ended run's releases may be all there is
                 self._dispatch(rest, closing=self._closed)
                 rest = []
             if not todo:
                 return
-            done = [self._call(*item) for item in todo]
+            done: list[_Done] = []
+            for node, gen, instance, values in todo:  # the actions, outside the lock
+                if instance is None or node.run.peers:
+                    done.append(self._call(node, gen, instance, values))
+                    continue
+                instance._begin(values)
+                error: BaseException | None = None
+                try:
+                    ok = instance.on_run()
+                    if ok is True:
+                        result = true
+                    elif ok is False:
+                        result = false
+                    else:
+                        raise TypeError(
+                            f"on_run() must return True or False, not {type(ok).__name__}"
+                        )
+                except StopRequested:
+                    result = Result.STOPPED
+                except BaseException as err:
+                    result = Result.ERROR
+                    error = ActionError(
+                        f"{node.name} failed: {err}", graph=node.run.name, node=node.name
+                    )
+                    error.__cause__ = err
+                done.append((node, gen, instance, result, instance._outputs._taken(), error))
             todo = []
             fx = []
-            with self._lock:
+            with lock:
+                fast = not self._watchers and not self._feedback_on
                 for item in done:
-                    self._settle(item, fx)
+                    node, gen, instance, result, outputs, error = item
+                    run = node.run
+                    if not (
+                        fast
+                        and error is None
+                        and gen == node.gen
+                        and node.state is running
+                        and run.state is graph_running
+                        and not node.restart
+                        and not node.spontaneous
+                        and node.stop_timer is None
+                        and instance is not None
+                    ):
+                        self._settle(item, fx)
+                        continue
+                    if node.instance is None:
+                        node.instance = instance
+                    if instance._log is not None or node.log:
+                        node.log = instance._log_snapshot()
+                    if len(node.data) != len(node.native):
+                        node.clear_data()
+                    node.last_outputs = outputs
+                    node.state = _S.FINISHED  # RUNNING -> FINISHED, in a RUNNING graph
+                    run.active -= 1
+                    if self._quiet_waiters:
+                        self._quiet.notify_all()
+                    self._propagate(node, result, outputs, fx)
+                    if not run.active:
+                        self._after_change(run, fx)
                 self._collect(fx, todo, rest)
 
     def _prep(self, node: Node, gen: int, todo: list[_Todo], fx: list[Effect]) -> None:
@@ -729,10 +792,15 @@ class ActionEngine:
                 i += 1
                 if effect[0] != _RUN:
                     rest.append(effect)
-                elif effect[1].inline:
-                    self._prep(effect[1], effect[2], todo, fx)
-                else:
+                    continue
+                node = effect[1]
+                if not node.inline:
                     blocking.append(effect)
+                elif effect[2] == node.gen and node.state is _S.RUNNING:  # _prep's common case
+                    data = node.data
+                    todo.append((node, effect[2], node.instance, dict(data) if data else NO_VALUES))
+                else:
+                    self._prep(node, effect[2], todo, fx)
             if todo or not blocking:
                 break
             first = blocking.pop(0)
@@ -1002,6 +1070,7 @@ class ActionEngine:
         """
         run = node.run
         edge_child = run.edge_child
+        fast = not self._watchers and not self._feedback_on
         for step in run.evolution.propagate(node.idx, _RESULT_CODES[result]):
             edge = step >> _SHIFT
             child = edge_child[edge]
@@ -1022,9 +1091,27 @@ class ActionEngine:
                 continue
             if outputs and run.edge_parent[edge] is node:
                 _transfer(node, child, run.edge_remap[edge], outputs)
-            if not step & 1 or not child.inputs_ready():
+            if not step & 1 or (child.required_inputs and not child.inputs_ready()):
                 continue
-            if child.kind is NodeKind.EXIT:
+            kind = child.kind
+            if kind is _LOCAL and code == _P_RUN and fast and child.state not in _ACTIVE:
+                # _run_node's path for an idle local node, without observers to tell: every
+                # idle state may go to RUNNING (NODE_TRANSITIONS)
+                child.gen += 1
+                child.held = None
+                control = child.control
+                if control is None:
+                    child.control = RunControl(self.clock)
+                else:
+                    control.reset()
+                if child.fresh_instance:
+                    child.instance = None  # the old one is stuck in a run we gave up on
+                    child.fresh_instance = False
+                child.state = _S.RUNNING
+                run.active += 1
+                fx.append((_RUN, child, child.gen))
+                continue
+            if kind is NodeKind.EXIT:
                 self._finish_run(run, result, fx)
                 return
             if code == _P_RUN:
