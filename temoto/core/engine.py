@@ -709,11 +709,24 @@ class ActionEngine:
                 return
             done: list[_Done] = []
             for node, gen, instance, values in todo:  # the actions, outside the lock
-                if instance is None or node.run.peers:
+                if node.run.peers:
                     done.append(self._call(node, gen, instance, values))
                     continue
-                instance._begin(values)
                 error: BaseException | None = None
+                if instance is None:
+                    try:
+                        instance = self._instantiate(node, gen)
+                    except Exception as err:
+                        error = ActionError(
+                            f"{node.name} could not be initialised: {err}",
+                            graph=node.run.name,
+                            node=node.name,
+                        )
+                        error.__cause__ = err
+                        done.append((node, gen, None, Result.ERROR, NO_VALUES, error))
+                        continue
+                if values or instance._input_params or instance._output_params:
+                    instance._begin(values)  # else: the shared empty views it holds already
                 try:
                     ok = instance.on_run()
                     if ok is True:
@@ -732,7 +745,9 @@ class ActionEngine:
                         f"{node.name} failed: {err}", graph=node.run.name, node=node.name
                     )
                     error.__cause__ = err
-                done.append((node, gen, instance, result, instance._outputs._taken(), error))
+                written = instance._outputs
+                outputs = written._taken() if written._values else NO_VALUES
+                done.append((node, gen, instance, result, outputs, error))
             todo = []
             fx = []
             with lock:
