@@ -10,8 +10,10 @@ Concurrency model (see ``docs/engine.md``):
 * One engine lock guards every graph run. Evolution is plain computation under that lock and
   never waits on user code; user hooks (``on_run``, ``on_stop``, ...) run on the bounded
   :class:`~temoto.core.executor.WorkerPool`.
-* A worker that finishes an action evolves the graph and then runs the first action that became
-  ready itself (no queue hand-off in a chain); further ready actions go to other workers.
+* A worker that finishes an action evolves the graph and goes on itself with what became
+  ready: every inline action (``Action.blocking = False``, run back to back, one lock per
+  round), or else the first blocking one (no queue hand-off in a chain); further blocking
+  actions go to other workers, handed to the pool as one batch.
 * Stops are cooperative with a deadline (``stop_timeout``, clock seconds) enforced by one
   timer thread; a node that does not stop in time goes to ERROR.
 """
