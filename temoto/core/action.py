@@ -440,7 +440,6 @@ class Action(ABC):
 
     def _bind(
         self,
-        *,
         control: RunControl,
         name: str,
         graph: str,

@@ -808,6 +808,12 @@ class ActionEngine:
                     self._propagate(node, result, outputs, fx)
                     if not run.active:
                         self._after_change(run, fx)
+                if len(fx) == 1 and fx[0][0] == _RUN:  # a chain: _collect's common case
+                    _, node, gen = fx[0]
+                    if node.inline and gen == node.gen and node.state is running:
+                        data = node.data
+                        todo.append((node, gen, node.instance, dict(data) if data else NO_VALUES))
+                        continue
                 self._collect(fx, todo, rest)
 
     def _prep(self, node: Node, gen: int, todo: list[_Todo], fx: list[Effect]) -> None:
@@ -907,13 +913,8 @@ class ActionEngine:
         assert node.cls is not None
         assert node.control is not None
         instance = node.cls()
-        instance._bind(
-            control=node.control,
-            name=node.name,
-            graph=node.run.name,
-            inputs=node.inputs,
-            outputs=node.outputs,
-            registrar=self.registrar,
+        instance._bind(  # positional: one action binding per node and run, on the hot path
+            node.control, node.name, node.run.name, node.inputs, node.outputs, self.registrar
         )
         instance.on_init()
         if not node.inline:
@@ -1139,6 +1140,8 @@ class ActionEngine:
                 control = child.control
                 if control is None:
                     child.control = RunControl(self.clock)
+                elif control._cond is None:  # RunControl.reset without a waiter to race with
+                    control.stop = control.paused = False
                 else:
                     control.reset()
                 if child.fresh_instance:
