@@ -209,6 +209,46 @@ def test_an_inline_child_of_a_blocking_action_runs_on_its_parents_worker() -> No
     assert threads == [RUNS[0][1]]
 
 
+def test_a_wave_with_inline_and_blocking_children_splits_them_between_threads() -> None:
+    event = threading.Event()
+    waiter_thread: list[int] = []
+
+    @describe("Waiter")
+    class Waiter(Action):
+        """Blocking: true once the inline sibling has run (which it must, meanwhile)."""
+
+        def on_run(self) -> bool:
+            waiter_thread.append(threading.get_ident())
+            return event.wait(WAIT)
+
+    @describe("Setter")
+    class Setter(Action):
+        blocking = False
+
+        def on_run(self) -> bool:
+            _record(self.name)
+            event.set()
+            return True
+
+    g = graph(
+        "split",
+        [
+            act("Quick_0", children=["Waiter_1", "Setter_2"]),
+            act("Waiter_1", parents=["Quick_0"]),
+            act("Setter_2", parents=["Quick_0"]),
+        ],
+        ["Quick_0"],
+        ["Waiter_1", "Setter_2"],
+    )
+    with engine_with(Waiter, Setter, *CLASSES) as (engine, _):
+        assert engine.wait(engine.start(g), WAIT) is Result.TRUE
+    # the inline child continued on its parent's worker; the blocking one went to the pool
+    # (had the worker run it first, it would have waited for the inline one in vain)
+    assert [name for name, _ in RUNS] == ["Quick_0", "Setter_2"]
+    assert RUNS[0][1] == RUNS[1][1]
+    assert len(waiter_thread) == 1
+
+
 # ================================================================ same semantics as blocking
 
 
