@@ -720,6 +720,8 @@ class ActionEngine:
         todo: list[_Todo] = []
         rest: list[Effect] = []
         fx: list[Effect] = []
+        # the round's lists are reused: fewer objects for the collector per action
+        done: list[_Done] = []
         with lock:
             for node, gen in batch:
                 self._prep(node, gen, todo, fx)
@@ -730,10 +732,10 @@ class ActionEngine:
         while True:
             if rest or self._releases:  # an ended run's releases may be all there is
                 self._dispatch(rest, closing=self._closed)
-                rest = []
+                rest.clear()
             if not todo:
                 return
-            done: list[_Done] = []
+            done.clear()
             for node, gen, instance, values in todo:  # the actions, outside the lock
                 if node.run.peers:
                     done.append(self._call(node, gen, instance, values))
@@ -774,8 +776,8 @@ class ActionEngine:
                 written = instance._outputs
                 outputs = written._taken() if written._values else NO_VALUES
                 done.append((node, gen, instance, result, outputs, error))
-            todo = []
-            fx = []
+            todo.clear()
+            fx.clear()
             with lock:
                 fast = not self._watchers and not self._feedback_on
                 for item in done:
