@@ -215,6 +215,10 @@ def main(argv: list[str] | None = None) -> int:
         for note in res.notes:
             print(f"      note: {note}", flush=True)
 
+    derived = engine.ratios(metrics)  # ours / the peers', when both ran in this run
+    metrics.extend(derived.metrics)
+    notes.extend(derived.notes)
+
     width = max([len(m.name) for m in metrics] + [6])
     print()
     print(f"{'metric':<{width}}  {'value':>10}  {'unit':<4}  goal / how")

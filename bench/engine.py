@@ -19,6 +19,7 @@ import os
 import subprocess
 import sys
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -26,6 +27,7 @@ from typing import Any
 from bench.common import (
     COUNTER,
     NOOP,
+    Metric,
     Results,
     chain_graph,
     cyclic_graph,
@@ -70,7 +72,16 @@ GOAL_IMPORT_MS = ("<=", 150.0)
 
 
 class BenchNoop(Action):
-    """The no-op action: returns on_true at once."""
+    """The no-op action: returns on_true at once (declared blocking, the default)."""
+
+    def on_run(self) -> bool:
+        return True
+
+
+class BenchInline(Action):
+    """The no-op action declared inline (``blocking = False``): runs on the evolving thread."""
+
+    blocking = False
 
     def on_run(self) -> bool:
         return True
@@ -260,13 +271,13 @@ def _compiled_note() -> str:
 # ------------------------------------------------------------------------------------ chain
 
 
-def chain_runs(reps: int, *, traced: bool = False) -> list[Run]:
-    """``reps`` runs of the CHAIN_N chain on one warm engine, checked.
+def chain_runs(reps: int, *, traced: bool = False, noop: type[Action] = BenchNoop) -> list[Run]:
+    """``reps`` runs of the CHAIN_N chain of ``noop`` actions on one warm engine, checked.
 
     A run that ends ``on_true`` ran every action: each waits for its parent's ``on_true``.
     Traced runs also check that CHAIN_N actions were stamped RUNNING.
     """
-    catalog = make_catalog()
+    catalog = make_catalog(noop)
     graph = parse_graph(chain_graph(CHAIN_N))
     runs = warm_runs(graph, catalog, reps, traced=traced)
     for run in runs:
@@ -331,6 +342,14 @@ def bench_chain(quick: bool) -> Results:
         " the longest pause, a garbage collection when one lands in the run",
     )
     out.add("engine_chain_actions_per_s", 1e6 / value, "1/s", "1e6 / engine_chain_us_per_action")
+    inline = [_per_action_us(run) for run in chain_runs(reps, noop=BenchInline)]
+    out.add(
+        "engine_chain_inline_us_per_action",
+        median(inline),
+        "us",
+        f"as engine_chain_us_per_action with inline actions (blocking = False: each runs on"
+        f" the thread that evolved the graph); median of {reps} more runs; {_compiled_note()}",
+    )
     out.add(
         "engine_chain_us_per_action_incl_plan",
         median([(r.t_end - r.t_call) / n * 1e6 for r in runs]),
@@ -458,10 +477,10 @@ def bench_fanout(quick: bool) -> Results:
     join = f"{NOOP}_{n}"
 
     def measure(
-        max_workers: int | None, count: int, traced: bool = False
+        max_workers: int | None, count: int, traced: bool = False, cat: ActionCatalog = catalog
     ) -> tuple[list[float], list[float], list[float]]:
         # an untraced run that ends on_true finished all n: the join needs every parent
-        runs = warm_runs(graph, catalog, count, max_workers=max_workers, traced=traced)
+        runs = warm_runs(graph, cat, count, max_workers=max_workers, traced=traced)
         wall, incl, gaps = [], [], []
         for run in runs:
             st = run.stamps
@@ -486,6 +505,15 @@ def bench_fanout(quick: bool) -> Results:
         " graph started -> wait() returned; excludes planning; no per-transition observer;"
         f" {_compiled_note()}",
         GOAL_FANOUT_MS,
+    )
+    inline_wall, _, _ = measure(None, reps, cat=make_catalog(BenchInline))
+    out.add(
+        "engine_fanout_inline_1000_ms",
+        median(inline_wall),
+        "ms",
+        f"as engine_fanout_1000_ms with inline actions (blocking = False: the 1,000 ready"
+        f" actions run as one batch on one worker); median of {reps} more runs;"
+        f" {_compiled_note()}",
     )
     out.add(
         "engine_fanout_1000_ms_traced",
@@ -861,3 +889,66 @@ def _env(**extra: str) -> dict[str, str]:
     env["PYTHONPATH"] = str(REPO) + (os.pathsep + path if path else "")
     env.update(extra)
     return env
+
+
+# ------------------------------------------------------------------------- ratios to the peers
+
+#: (ratio metric, ours, theirs, goal, what): computed from the same run's metrics.
+RATIOS: tuple[tuple[str, str, str, tuple[str, float], str], ...] = (
+    (
+        "engine_chain_vs_bt_cpp",
+        "engine_chain_inline_us_per_action",
+        "peer_bt_cpp_seq_us_per_leaf",
+        ("<=", 1.0),
+        "per action in a 10,000 chain of inline actions / per Python leaf of BehaviorTree.CPP's"
+        " Sequence",
+    ),
+    (
+        "engine_chain_vs_py_trees",
+        "engine_chain_inline_us_per_action",
+        "peer_py_trees_seq_us_per_leaf",
+        ("<=", 0.5),
+        "per action in a 10,000 chain of inline actions / per leaf of py_trees' Sequence",
+    ),
+    (
+        "engine_fanout_vs_bt_cpp",
+        "engine_fanout_inline_1000_ms",
+        "peer_bt_cpp_parallel_1000_ms",
+        ("<=", 1.0),
+        "1,000 concurrent inline actions / BehaviorTree.CPP's Parallel of 1,000 Python leaves",
+    ),
+    (
+        "engine_fanout_vs_py_trees",
+        "engine_fanout_inline_1000_ms",
+        "peer_py_trees_parallel_1000_ms",
+        ("<=", 1.0),
+        "1,000 concurrent inline actions / py_trees' Parallel of 1,000 leaves",
+    ),
+)
+
+
+def ratios(metrics: Sequence[Metric]) -> Results:
+    """Ours / the peer's, for every pair of :data:`RATIOS` measured in this run.
+
+    Args:
+        metrics: Every metric of the run so far.
+
+    Returns:
+        The ratios (lower is better for us; below 1 we are faster), and a note for each that
+        could not be computed because a group did not run or a peer was missing.
+    """
+    out = Results()
+    values = {m.name: m.value for m in metrics}
+    for name, ours, theirs, goal, what in RATIOS:
+        if ours in values and theirs in values and values[theirs] > 0:
+            out.add(
+                name,
+                values[ours] / values[theirs],
+                "x",
+                f"{ours} / {theirs} of this run: {what}",
+                goal,
+            )
+        elif ours in values or theirs in values:
+            missing = theirs if ours in values else ours
+            out.notes.append(f"{name} not computed: {missing} was not measured in this run")
+    return out

@@ -91,6 +91,12 @@ class Plan:
     warnings: tuple[str, ...] = field(default=())
 
 
+# Enum members read per node or per action, as globals (a member lookup on the enum class costs
+# several times a global's)
+_UNINITIALIZED = NodeState.UNINITIALIZED
+_LOCAL = NodeKind.LOCAL
+_EXIT = NodeKind.EXIT
+
 _ACTIVE = frozenset(
     {NodeState.RUNNING, NodeState.PAUSE_REQUESTED, NodeState.PAUSED, NodeState.STOPPING}
 )
@@ -109,6 +115,7 @@ class Node:
         "gen",
         "held",
         "idx",
+        "inline",
         "inputs",
         "instance",
         "kind",
@@ -135,7 +142,7 @@ class Node:
         self.kind = resolved.kind
         self.cls = resolved.cls
         self.plan = resolved.plan
-        self.state = NodeState.UNINITIALIZED
+        self.state = _UNINITIALIZED
         self.idx = 0  # number in the run's evolution kernel (set by GraphRun.wire)
         self.parents: dict[str, ParentRelation] = {}
         self.data: dict[str, Any] = {}
@@ -158,6 +165,7 @@ class Node:
         self.outputs: dict[str, Parameter] = {}
         self.required_inputs: tuple[str, ...] = ()
         self.spontaneous = False
+        self.inline = False
         self.define(umrf, resolved)
 
     def define(self, umrf: Umrf, resolved: ResolvedAction) -> None:
@@ -180,6 +188,9 @@ class Node:
         self.cls = resolved.cls
         self.plan = resolved.plan
         self.spontaneous = umrf.spontaneous
+        # runs on the thread that evolves the graph (Action.blocking = False)
+        cls = resolved.cls
+        self.inline = resolved.kind is _LOCAL and cls is not None and not cls.blocking
         self.inputs = dict(umrf.input_parameters)
         self.outputs = dict(umrf.output_parameters)
         first = not self.native and not self.data
@@ -212,7 +223,7 @@ class Node:
         Raises:
             Nothing.
         """
-        if self.kind is NodeKind.EXIT:
+        if self.kind is _EXIT:
             return True
         data = self.data
         for name in self.required_inputs:  # noqa: SIM110 - per action: a generator costs more

@@ -22,6 +22,16 @@ Hooks and where they run:
   ``on_run`` to return after a stop, then marks the node ERROR.
 * ``on_pause()``, ``on_resume()``, ``on_stop()``: in a worker thread, concurrently with
   ``on_run``; keep them short and thread-safe.
+
+**Inline actions.** An action whose ``on_run`` never waits (no helper that sleeps or waits, no
+I/O, no resource acquisition: a computation, a comparison, a relay) declares so with the class
+attribute ``blocking = False``. The engine then runs it on the thread that evolves its graph,
+right after the evolution step that made it ready, without handing it to another worker; the
+inline actions that become ready together run back to back in one loop. Stop, pause, resume,
+modify and ``stop_timeout`` behave as for any action (``on_run`` still runs outside the
+engine's lock); the difference is cost: an inline action saves the hand-off to a worker, and an
+inline action that does block holds up the inline actions queued behind it on its thread.
+``blocking = True`` (the default) keeps every run on a worker of its own.
 """
 
 from __future__ import annotations
@@ -32,7 +42,7 @@ from abc import ABC, abstractmethod
 from collections import deque
 from collections.abc import Callable, Iterator, Mapping
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
 
 from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value
 from temoto.core.registrar.messages import Resource, Status, StatusUpdate
@@ -367,7 +377,17 @@ class Action(ABC):
     Subclasses implement :meth:`on_run` and optionally the other ``on_*`` hooks. They are
     created by the engine with no arguments; configuration comes from the input parameters.
     ``__init__`` may be overridden (call ``super().__init__()``) but must not block.
+
+    Attributes:
+        blocking: Class attribute. True (the default): ``on_run`` may wait (sleep, wait for a
+            device or a resource), so each run gets a worker thread. False: ``on_run`` never
+            waits, and the engine runs it inline on the thread that evolves the graph (see the
+            module docstring and ``docs/engine.md``).
     """
+
+    #: Whether ``on_run`` may wait; ``False`` declares an inline action (read when a graph is
+    #: planned, per class).
+    blocking: ClassVar[bool] = True
 
     # Defaults live on the class: an instance stores only what the engine binds (see _bind),
     # so creating one per node costs no __init__ call of ours.
@@ -420,7 +440,6 @@ class Action(ABC):
 
     def _bind(
         self,
-        *,
         control: RunControl,
         name: str,
         graph: str,

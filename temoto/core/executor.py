@@ -96,6 +96,44 @@ class WorkerPool:
                 queued = time.monotonic()
         self._jobs.put((fn, args, queued))
 
+    def submit_many(self, fn: Callable[..., Any], jobs: list[tuple[Any, ...]]) -> None:
+        """Run ``fn(*args)`` for every ``args`` of ``jobs``, under one lock for them all.
+
+        As :meth:`submit` for each job (idle workers are claimed, new ones started up to
+        ``max_workers``, the rest queued), but the pool's lock is taken once: a fan-out of N
+        ready actions is one batch, not N submissions. Nothing is queued if the pool is shut
+        down.
+
+        Args:
+            fn: The function.
+            jobs: Its arguments, one tuple per job.
+
+        Returns:
+            None.
+
+        Raises:
+            RuntimeError: After :meth:`shutdown` (no job was queued).
+        """
+        queued = 0.0
+        with self._mutex:
+            if self._closed:
+                raise RuntimeError("worker pool is shut down")
+            for _ in jobs:
+                if self._idle:
+                    self._idle -= 1
+                elif len(self._threads) < self.max_workers:
+                    thread = threading.Thread(
+                        target=self._work, name=f"{self._name}-{next(self._counter)}", daemon=True
+                    )
+                    self._threads.add(thread)
+                    thread.start()
+                else:
+                    self._backlog += 1
+                    queued = queued or time.monotonic()
+        put = self._jobs.put
+        for args in jobs:
+            put((fn, args, queued))
+
     def _work(self) -> None:
         me = threading.current_thread()
         while True:

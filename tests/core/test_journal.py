@@ -558,3 +558,15 @@ def test_the_compact_encoding_matches_json_dumps(path: Path, journal: Journal) -
     payload = path.read_bytes()[HEADER_LEN + 16 :]
     expected = json.dumps(RECORDS[1], sort_keys=True, ensure_ascii=False, separators=(",", ":"))
     assert payload == expected.encode()
+
+
+def test_append_text_writes_a_record_read_back_like_any_other(path: Path) -> None:
+    j = Journal(path, fsync="never")
+    j.open()
+    j.append_text('{"id":"a-1","op":"unref","resumes":["b ✓"]}')
+    size = j.size
+    with pytest.raises(ValueError, match="over"):
+        j.append_text('{"x":"' + "a" * MAX_RECORD_BYTES + '"}')
+    assert j.size == size  # nothing written
+    j.close()
+    assert reopen(path) == [{"id": "a-1", "op": "unref", "resumes": ["b ✓"]}]

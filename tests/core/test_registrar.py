@@ -548,3 +548,64 @@ def test_a_catalog_whose_records_do_not_fit_is_corrupt(tmp_path: Any) -> None:
     journal.close()
     with pytest.raises(CatalogCorruptError, match="record 1"):
         Registrar("rr", catalog=path, restore=True)
+
+
+# ================================================================ precompiled record layouts
+
+
+@pytest.mark.parametrize(
+    ("client", "holder", "suspends", "exclusive", "priority"),
+    [
+        ("bench", "", [], False, 0),
+        ('Grüße "quoted"\\ / \n 日本語 \U0001f916', "r-9", ["a-1", 'b"2'], True, -7),
+        ("", "x", ["only"], False, 2**40),
+    ],
+)
+def test_the_ref_and_unref_layouts_write_the_encoders_very_bytes(
+    client: str, holder: str, suspends: list[str], exclusive: bool, priority: int
+) -> None:
+    from temoto.core.registrar import registry
+    from temoto.core.registrar.journal import _encode
+
+    ref = registry._Ref("a-1", "u-1", client, priority, exclusive, holder, True)
+    ref.suspends = suspends
+    record = {"op": "ref", **ref.record(), "suspends": ref.suspends}
+    text = registry._REF % (
+        registry._json_str(ref.client),
+        registry._JSON_BOOL[ref.exclusive],
+        registry._json_str(ref.holder),
+        registry._json_str(ref.id),
+        ref.priority,
+        registry._JSON_BOOL[ref.suspended],
+        registry._json_list(ref.suspends),
+        registry._json_str(ref.uid),
+    )
+    assert text.encode("utf-8") == _encode(record)
+    unref = registry._UNREF % (registry._json_str(client), registry._json_list(suspends))
+    assert unref.encode("utf-8") == _encode({"op": "unref", "id": client, "resumes": suspends})
+
+
+def test_deduplicated_pairs_journal_what_a_restore_reads_back(tmp_path: Any) -> None:
+    path = tmp_path / "catalog.tjl"
+    rr, _, _ = build(path)
+    held = rr.call("m2", Req("shared"), client="holder")
+    refs = [rr.call("m2", Req("shared"), client=f"c{i} ✓") for i in range(3)]
+    rr.release(refs[1].id)
+    before = accounting(rr)
+    rr.close()
+    again, _, _ = build(path, restore=True)
+    try:
+        assert accounting(again) == before
+        (info,) = again.resources()
+        assert sorted(info.consumers) == sorted(["holder", "c0 ✓", "c2 ✓"])
+        assert held.id != refs[0].id
+    finally:
+        again.close()
+
+
+def test_request_keys_of_a_dataclass_use_its_fields_in_order_of_name() -> None:
+    from temoto.core.registrar.messages import canonical_json
+
+    assert canonical_json(Req("x")) == canonical_json(Req("x"))
+    assert canonical_json(Req("x")) != canonical_json(Req("y"))
+    assert canonical_json({"b": 1, "a": [2]}) == '{"a":[2],"b":1}'

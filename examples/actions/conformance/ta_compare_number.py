@@ -15,6 +15,8 @@ _OPERATORS = {
 
 
 class TaCompareNumber(Action):
+    blocking = False  # never waits: runs inline, on the thread evolving the graph
+
     def on_run(self) -> bool:
         op = self.inputs.get_string("operation")
         if op not in _OPERATORS:

@@ -4,6 +4,8 @@ from temoto import Action
 
 
 class TaLogger(Action):
+    blocking = False  # never waits: runs inline, on the thread evolving the graph
+
     def on_run(self) -> bool:
         for message in self.inputs.get_strings("messages"):
             self.log(message)

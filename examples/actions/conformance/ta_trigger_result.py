@@ -4,6 +4,8 @@ from temoto import Action
 
 
 class TaTriggerResult(Action):
+    blocking = False  # never waits: runs inline, on the thread evolving the graph
+
     def on_run(self) -> bool:
         result = self.inputs.get_string("result")
         if result == "on_true":

@@ -9,6 +9,8 @@ def _divide(a: float, b: float) -> float:
 
 
 class Divide(Action):
+    blocking = False  # never waits: runs inline, on the thread evolving the graph
+
     def on_run(self) -> bool:
         self.outputs["quotient"] = _divide(self.inputs.get_number("a"), self.inputs.get_number("b"))
         return True

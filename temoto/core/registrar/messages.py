@@ -188,9 +188,23 @@ def canonical_json(value: Any) -> str:
 
 def _shallow(value: Any) -> Any:
     """A dataclass as a dict of its fields (nested ones are converted by the encoder)."""
-    if dataclasses.is_dataclass(value) and not isinstance(value, type):
-        return {f.name: getattr(value, f.name) for f in dataclasses.fields(value)}
-    return value
+    names = _FIELD_NAMES.get(type(value))
+    if names is None:
+        if not dataclasses.is_dataclass(value) or isinstance(value, type):
+            return value
+        names = _field_names(type(value))
+    return {name: getattr(value, name) for name in names}
+
+
+#: Field names by dataclass: the layout of a request class, looked up once per class instead
+#: of asking ``dataclasses.fields`` for every key (the dedup path makes a key per call).
+_FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+
+
+def _field_names(cls: type) -> tuple[str, ...]:
+    names = tuple(f.name for f in dataclasses.fields(cls))
+    _FIELD_NAMES[cls] = names  # one entry per class; a racing thread writes the same tuple
+    return names
 
 
 def _nested(value: Any) -> Any:

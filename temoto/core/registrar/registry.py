@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import collections
 import itertools
+import json.encoder
 import logging
 import secrets
 import threading
@@ -64,6 +65,22 @@ StatusCallback = Callable[[StatusUpdate], None]
 COMPACT_SLACK = 20_000
 #: Remember this many released reference ids, to tell a double release from an unknown id.
 RELEASED_MEMORY = 10_000
+
+# Precompiled layouts of the journal records written for every deduplicated request (a "ref"
+# record per call, an "unref" per release): the very bytes the journal's encoder would give
+# (keys sorted, no spaces, UTF-8), without building a dict and walking it for each.
+_REF = (
+    '{"client":%s,"exclusive":%s,"holder":%s,"id":%s,"op":"ref","priority":%d,'
+    '"suspended":%s,"suspends":%s,"uid":%s}'
+)
+_UNREF = '{"id":%s,"op":"unref","resumes":%s}'
+_JSON_BOOL = {True: "true", False: "false"}
+_json_str = json.encoder.encode_basestring  # the encoder's own string quoting (C)
+
+
+def _json_list(items: list[str]) -> str:
+    """A list of strings as the encoder writes it."""
+    return "[" + ",".join(map(_json_str, items)) + "]" if items else "[]"
 
 
 @dataclass(slots=True)
@@ -319,7 +336,7 @@ class Registrar:
                     ref = self._add_ref(
                         entry, client, priority, exclusive, holder, on_status, notices
                     )
-                    self._write({"op": "ref", **ref.record(), "suspends": ref.suspends})
+                    self._write_ref(ref)
                     result = Resource(ref.id, entry.uid, server, entry.request, entry.response)
                     wait_for = None
             if wait_for is None:
@@ -467,7 +484,10 @@ class Registrar:
             for other in resumed:
                 other.suspended = False
             # one record, so a crash cannot leave only suspended references behind
-            self._write({"op": "unref", "id": reference_id, "resumes": [r.id for r in resumed]})
+            if self._journal is not None:
+                self._journal.append_text(
+                    _UNREF % (_json_str(reference_id), _json_list([r.id for r in resumed]))
+                )
             if resumed:
                 for other in resumed:
                     update = self._update(other, Status.OK, "resource returned", entry)
@@ -782,6 +802,29 @@ class Registrar:
     def _write(self, record: dict[str, Any]) -> None:
         if self._journal is not None:
             self._journal.append(record)
+
+    def _write_ref(self, ref: _Ref) -> None:
+        """Journal a new reference from the precompiled layout (the bytes the encoder gives)."""
+        journal = self._journal
+        if journal is None:
+            return
+        if type(ref.priority) is not int or type(ref.exclusive) is not bool:
+            # not the layout's types: let the encoder decide
+            self._write({"op": "ref", **ref.record(), "suspends": ref.suspends})
+            return
+        journal.append_text(
+            _REF
+            % (
+                _json_str(ref.client),
+                _JSON_BOOL[ref.exclusive],
+                _json_str(ref.holder),
+                _json_str(ref.id),
+                ref.priority,
+                _JSON_BOOL[ref.suspended],
+                _json_list(ref.suspends),
+                _json_str(ref.uid),
+            )
+        )
 
     def _checkpoint(self, uid: str, progress: Mapping[str, Any]) -> None:
         with self._lock:
