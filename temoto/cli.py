@@ -80,6 +80,7 @@ from temoto._cli_fleet import (
     serve,
     watch,
 )
+from temoto._cli_router import add_router, router_command
 from temoto._cli_sim import add_sim, sim_command
 from temoto._progress import ActionLogHandler, Progress
 from temoto.clock import MonotonicClock, ScaledClock
@@ -304,6 +305,7 @@ def _parser() -> argparse.ArgumentParser:
 
     add_drivers(sub)
     add_sim(sub)
+    add_router(sub)
     add_view(sub)
     return top
 
@@ -365,6 +367,8 @@ def _command(args: argparse.Namespace) -> int:
             return drivers_command(args)
         if args.command == "sim":
             return sim_command(args)
+        if args.command == "router":
+            return router_command(args)
         if args.command == "view":
             return view_command(args)
         return _actions(args)
