@@ -248,6 +248,15 @@ def _parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="how long to wait for the other actors before the start (default 5)",
     )
+    fleet.add_argument(
+        "--notify-timeout",
+        type=_positive,
+        default=5.0,
+        metavar="SECONDS",
+        help="how long every other actor has to acknowledge a finished action before the run"
+        " aborts (default 5); raise it with --fleet-silence on lossy links over TCP (Zenoh),"
+        " where a lost packet arrives late rather than never (docs/zenoh.md)",
+    )
 
     add_serve(sub, paths)
 
@@ -509,6 +518,7 @@ def _run_graph(
             registrar=registrar,
             link=link,
             handshake_timeout=args.handshake_timeout,
+            notify_timeout=args.notify_timeout,
         )
         try:
             with engine:

@@ -21,6 +21,7 @@ The URL (:func:`parse_zenoh_url`)::
     zenoh:/etc/temoto/zenoh.json5           a Zenoh configuration file, used as it is
     ...?listen=tcp/0.0.0.0:7448             also listen there (several: comma-separated)
     ...?prefix=site1/fleet                  key expressions under this prefix (default temoto)
+    ...?timeout=5                           a client tries its routers this long (seconds)
 
 The ``eclipse-zenoh`` wheel (the ``zenoh`` extra) is imported when a transport is created,
 never when this module is imported.
@@ -45,6 +46,7 @@ if TYPE_CHECKING:
     from types import ModuleType
 
 __all__ = [
+    "DEFAULT_CONNECT_TIMEOUT_S",
     "DEFAULT_PREFIX",
     "DEFAULT_ROUTER_LISTEN",
     "INSTALL_HINT",
@@ -64,12 +66,17 @@ ZENOH_SCHEME: Final = "zenoh:"
 #: The key expression prefix of the fleet's channels unless the URL gives ``prefix=``.
 DEFAULT_PREFIX: Final = "temoto"
 
+#: Seconds a client keeps trying to reach its routers when it opens, unless ``timeout=`` says.
+#: Robots may start before their router, and on a lossy link the first attempt may be lost.
+DEFAULT_CONNECT_TIMEOUT_S: Final = 5.0
+
 #: What to install for the Zenoh transport and ``temoto router``.
 INSTALL_HINT: Final = "pip install 'temoto[zenoh]' (the eclipse-zenoh package)"
 
 logger = logging.getLogger(__name__)
 
 _MODES: Final = ("peer", "client")
+_RETRY: Final = '{"period_init_ms": 100, "period_max_ms": 1000, "period_increase_factor": 2}'
 _CONFIG_SUFFIXES: Final = (".json5", ".json", ".yaml", ".yml")
 # Zenoh endpoints are <protocol>/<address>[#<config>] (tcp, udp, quic, tls, ws, unixsock-stream).
 _ENDPOINT_RE: Final = re.compile(r"[a-z][a-z0-9-]*/[^\s,?&#]+(#[^\s,?&]*)?")
@@ -117,6 +124,8 @@ class ZenohUrl:
         listen: Endpoints to listen on.
         prefix: The key expression prefix of the channels.
         config_file: A Zenoh configuration file, or None.
+        connect_timeout_s: Seconds a client keeps trying to reach its routers when it opens
+            (0: one attempt).
     """
 
     mode: str | None
@@ -124,6 +133,7 @@ class ZenohUrl:
     listen: tuple[str, ...]
     prefix: str
     config_file: str | None
+    connect_timeout_s: float = DEFAULT_CONNECT_TIMEOUT_S
 
     def config(self, zenoh: Any) -> Any:
         """Build the ``zenoh.Config`` for this URL.
@@ -146,8 +156,13 @@ class ZenohUrl:
                 conf.insert_json5("mode", json.dumps(self.mode))
                 if self.mode == "client":
                     # A client talks to the routers it was given, not to whatever answers on
-                    # the multicast scouting group.
+                    # the multicast scouting group; it tries them for a while, every 0.1 s at
+                    # first, then less often (up to every second).
                     conf.insert_json5("scouting/multicast/enabled", "false")
+                    conf.insert_json5(
+                        "connect/timeout_ms", str(round(self.connect_timeout_s * 1000))
+                    )
+                    conf.insert_json5("connect/retry", _RETRY)
             if self.connect:
                 conf.insert_json5("connect/endpoints", json.dumps(list(self.connect)))
             if self.listen:
@@ -163,11 +178,13 @@ def parse_zenoh_url(url: str) -> ZenohUrl:
 
     Args:
         url: ``zenoh:[ENDPOINT[,ENDPOINT...]][?mode=peer|client][&listen=ENDPOINT[,...]]
-            [&prefix=KEY]``, or ``zenoh:FILE`` for a Zenoh configuration file (a name ending
-            in ``.json5``, ``.json``, ``.yaml`` or ``.yml``; only ``prefix`` and ``listen`` may
-            follow). Without endpoints the mode is peer (multicast scouting finds the others),
-            with them client (the endpoints are routers); ``mode=peer`` makes a peer that also
-            connects to them.
+            [&prefix=KEY][&timeout=SECONDS]``, or ``zenoh:FILE`` for a Zenoh configuration
+            file (a name ending in ``.json5``, ``.json``, ``.yaml`` or ``.yml``; only ``prefix``
+            and ``listen`` may follow). Without endpoints the mode is peer (multicast scouting
+            finds the others), with them client (the endpoints are routers); ``mode=peer``
+            makes a peer that also connects to them. ``timeout`` is how long a client keeps
+            trying to reach its routers when it opens (default
+            :data:`DEFAULT_CONNECT_TIMEOUT_S`; 0: once).
 
     Returns:
         The parsed URL.
@@ -181,9 +198,10 @@ def parse_zenoh_url(url: str) -> ZenohUrl:
     params: dict[str, str] = {}
     for item in query.split("&") if query else ():
         name, eq, value = item.partition("=")
-        if not eq or name not in ("mode", "listen", "prefix"):
+        if not eq or name not in ("mode", "listen", "prefix", "timeout"):
             raise ValueError(
-                f"{url!r}: unknown parameter {item!r} (expected mode=, listen= or prefix=)"
+                f"{url!r}: unknown parameter {item!r} (expected mode=, listen=, prefix= or"
+                " timeout=)"
             )
         if name in params:
             raise ValueError(f"{url!r}: {name}= given twice")
@@ -195,9 +213,20 @@ def parse_zenoh_url(url: str) -> ZenohUrl:
             " joined by /"
         )
     listen = _endpoints(url, "listen", params["listen"]) if "listen" in params else ()
+    timeout = DEFAULT_CONNECT_TIMEOUT_S
+    if "timeout" in params:
+        try:
+            timeout = float(params["timeout"])
+        except ValueError:
+            timeout = -1.0
+        if not 0 <= timeout <= 3600:
+            raise ValueError(
+                f"{url!r}: timeout must be 0 to 3600 seconds, not {params['timeout']!r}"
+            )
     if body.endswith(_CONFIG_SUFFIXES):
-        if "mode" in params:
-            raise ValueError(f"{url!r}: with a configuration file, the file sets the mode")
+        for name in ("mode", "timeout"):
+            if name in params:
+                raise ValueError(f"{url!r}: with a configuration file, the file sets the {name}")
         return ZenohUrl(None, (), listen, prefix, body)
     connect = _endpoints(url, "endpoint", body) if body else ()
     mode = params.get("mode", "client" if connect else "peer")
@@ -205,7 +234,7 @@ def parse_zenoh_url(url: str) -> ZenohUrl:
         raise ValueError(f"{url!r}: mode must be peer or client, not {mode!r}")
     if mode == "client" and not connect:
         raise ValueError(f"{url!r}: a client needs the endpoint of a router (zenoh:tcp/HOST:7447)")
-    return ZenohUrl(mode, connect, listen, prefix, None)
+    return ZenohUrl(mode, connect, listen, prefix, None, timeout)
 
 
 def _endpoints(url: str, what: str, text: str) -> tuple[str, ...]:

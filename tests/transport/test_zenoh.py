@@ -66,8 +66,8 @@ def pair(router: str) -> Iterator[tuple[ZenohTransport, ZenohTransport]]:
             ),
         ),
         (
-            "zenoh:tcp/[::1]:7447#iface=lo",
-            ZenohUrl("client", ("tcp/[::1]:7447#iface=lo",), (), DEFAULT_PREFIX, None),
+            "zenoh:tcp/[::1]:7447#iface=lo?timeout=0.5",
+            ZenohUrl("client", ("tcp/[::1]:7447#iface=lo",), (), DEFAULT_PREFIX, None, 0.5),
         ),
         (
             "zenoh:/etc/temoto/zenoh.json5?prefix=x",
@@ -91,6 +91,9 @@ def test_urls_parse_to_mode_endpoints_and_prefix(url: str, expected: ZenohUrl) -
         ("zenoh:tcp/a:1?prefix=a&prefix=b", "prefix= given twice"),
         ("zenoh:?listen=7447", "listen '7447'"),
         ("zenoh:z.json5?mode=peer", "the file sets the mode"),
+        ("zenoh:z.json5?timeout=1", "the file sets the timeout"),
+        ("zenoh:tcp/a:1?timeout=-1", "timeout must be 0 to 3600 seconds, not '-1'"),
+        ("zenoh:tcp/a:1?timeout=soon", "timeout must be 0 to 3600 seconds, not 'soon'"),
     ],
 )
 def test_malformed_urls_name_the_part_at_fault(url: str, blamed: str) -> None:
@@ -329,14 +332,40 @@ def test_two_peers_talk_directly_without_a_router() -> None:
         assert inbox.data[-1] == b"direct"
 
 
-def test_a_client_without_a_router_fails_at_once_with_a_hint() -> None:
-    url = f"zenoh:tcp/127.0.0.1:{free_port()}"
+def test_a_client_without_a_router_fails_with_a_hint() -> None:
+    url = f"zenoh:tcp/127.0.0.1:{free_port()}?timeout=0"
     started = time.monotonic()
     with pytest.raises(TransportError, match="temoto router") as info:
         open_transport(url)
     assert url in str(info.value)
     assert ".rs:" not in str(info.value)  # the Rust source location is cut off
     assert time.monotonic() - started < WAIT_S
+
+
+def test_a_client_keeps_trying_until_its_router_is_up() -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    routers: list[Any] = []
+    trying = threading.Event()
+    opened: list[ZenohTransport] = []
+
+    def client() -> None:
+        trying.set()
+        opened.append(ZenohTransport(f"zenoh:{endpoint}?timeout=10&prefix={prefix()}"))
+
+    thread = threading.Thread(target=client)
+    thread.start()
+    try:
+        assert trying.wait(WAIT_S)
+        routers.append(open_router((endpoint,)))  # started after the client
+        thread.join(WAIT_S * 2)
+        assert opened, "the client did not reach the router started after it"
+        assert len(opened[0].peers()) == 1
+    finally:
+        thread.join()
+        for t in opened:
+            t.close()
+        for r in routers:
+            r.close()
 
 
 def test_a_missing_configuration_file_is_named(tmp_path: Any) -> None:
