@@ -6,6 +6,7 @@ this machine cannot hear each other, and free ports picked by the kernel.
 
 from __future__ import annotations
 
+import subprocess
 import sys
 import threading
 import time
@@ -414,3 +415,13 @@ def test_a_router_on_a_port_in_use_fails_naming_it() -> None:
         first.close()
     with pytest.raises(ValueError, match="listen '7447'"):
         open_router(("7447",))
+
+
+def test_importing_the_transports_and_the_cli_does_not_import_zenoh() -> None:
+    code = (
+        "import sys, temoto.transport, temoto.cli, temoto._cli_router;"
+        " temoto.cli._parser();"
+        " assert 'zenoh' not in sys.modules, 'zenoh imported'"
+    )
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr

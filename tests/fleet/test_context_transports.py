@@ -1,12 +1,15 @@
-"""Context Manager synchronisation over Zenoh: three robots, each a client of one router.
+"""Context Manager synchronisation over the real transports: LCM and Zenoh.
 
 The same managers as tests/managers/test_context_sync.py (which runs them on the in-process
-bus), here each on a ZenohTransport of its own through an in-process router on loopback: a
-change reaches every robot, and conflicting changes made at once converge to one tree.
+bus), here over Zenoh (each robot a ZenohTransport of its own, clients of an in-process router
+on loopback) and over LCM (``memq://``, which delivers within one LCM instance only: the robots
+share one LcmTransport, each with its own FleetLink and name): a change reaches every robot,
+and conflicting changes made at once converge to one tree.
 """
 
 from __future__ import annotations
 
+import importlib.util
 import sys
 import threading
 import time
@@ -20,9 +23,8 @@ import pytest
 
 from temoto.managers.context import ContextManager, Pose
 from temoto.managers.context.tree import Item
-from temoto.transport import FleetAuth, FleetLink, ZenohTransport
+from temoto.transport import FleetAuth, FleetLink, LcmTransport, Transport, ZenohTransport
 
-pytest.importorskip("zenoh", reason="the zenoh extra is not installed")
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "transport"))
 from _zenoh_helpers import WAIT_S, free_port, prefix, until_routed
 
@@ -32,23 +34,31 @@ KEY = bytes(range(32))
 
 
 class Fleet:
-    """Robots with a Context Manager each, on Zenoh clients of one router."""
+    """Robots with a Context Manager each: on Zenoh clients of one router, or on LCM memq."""
 
     def __init__(self, url: str, stack: ExitStack) -> None:
         self.url = url
         self.stack = stack
+        self.shared: LcmTransport | None = None
         self.transports: list[ZenohTransport] = []
         self.managers: list[ContextManager] = []
         self.changed = threading.Condition()
         self.generation = 0
 
     def robot(self, name: str) -> ContextManager:
-        transport = ZenohTransport(self.url)
-        self.stack.callback(transport.close)
-        for other in self.transports:  # routes both ways before the first change
-            until_routed(other, transport)
-            until_routed(transport, other)
-        self.transports.append(transport)
+        transport: Transport
+        if self.url == "memq://":
+            if self.shared is None:
+                self.shared = LcmTransport(self.url)
+                self.stack.callback(self.shared.close)
+            transport = self.shared
+        else:
+            transport = zenoh = ZenohTransport(self.url)
+            self.stack.callback(zenoh.close)
+            for other in self.transports:  # routes both ways before the first change
+                until_routed(other, zenoh)
+                until_routed(zenoh, other)
+            self.transports.append(zenoh)
         link = FleetLink(transport, FleetAuth("ctx-fleet", name, KEY))
         manager = ContextManager(name, link=link)
         self.stack.callback(manager.close)
@@ -79,16 +89,31 @@ class Fleet:
             assert woken, "\n".join(f"{m.robot}: {m.dump()}" for m in self.managers)
 
 
-@pytest.fixture
-def fleet() -> Iterator[Fleet]:
-    endpoint = f"tcp/127.0.0.1:{free_port()}"
+@pytest.fixture(
+    params=[
+        pytest.param("lcm", id="lcm"),
+        pytest.param(
+            "zenoh",
+            id="zenoh",
+            marks=pytest.mark.skipif(
+                importlib.util.find_spec("zenoh") is None,
+                reason="the zenoh extra is not installed",
+            ),
+        ),
+    ]
+)
+def fleet(request: pytest.FixtureRequest) -> Iterator[Fleet]:
     with ExitStack() as stack:
+        if request.param == "lcm":
+            yield Fleet("memq://", stack)
+            return
+        endpoint = f"tcp/127.0.0.1:{free_port()}"
         router = open_router((endpoint,))
         stack.callback(router.close)
         yield Fleet(f"zenoh:{endpoint}?prefix={prefix()}", stack)
 
 
-def test_a_change_reaches_every_robot_through_the_router(fleet: Fleet) -> None:
+def test_a_change_reaches_every_robot(fleet: Fleet) -> None:
     a, b, c = fleet.robot("A"), fleet.robot("B"), fleet.robot("C")
     a.add("map", "map")
     fleet.converge()
