@@ -13,7 +13,7 @@ import pytest
 from temoto._cli_router import DEFAULT_LISTEN
 from temoto.testing.inbox import Inbox
 from temoto.transport import ZenohTransport
-from temoto.transport.zenoh import DEFAULT_ROUTER_LISTEN
+from temoto.transport.zenoh import DEFAULT_ROUTER_LISTEN, open_router
 
 pytest.importorskip("zenoh", reason="the zenoh extra is not installed")
 
@@ -30,7 +30,7 @@ def start_router(*args: str) -> subprocess.Popen[str]:
 
 
 def first_line(proc: subprocess.Popen[str]) -> str:
-    """The router's announcement, read on a thread so that a silent router fails in time."""
+    """The first line of output, read on a thread so that a silent process fails in time."""
     lines: list[str] = []
     reader = threading.Thread(target=lambda: lines.append(proc.stdout.readline()))  # type: ignore[union-attr]
     reader.start()
@@ -108,3 +108,27 @@ def test_an_address_in_use_is_exit_2_naming_it() -> None:
     finally:
         first.terminate()
         first.communicate(timeout=WAIT_S * 2)
+
+
+@pytest.mark.parametrize("sig", [signal.SIGTERM, signal.SIGINT])
+def test_serve_over_zenoh_exits_0_on_a_signal(sig: signal.Signals) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    router = open_router((endpoint,))
+    url = f"zenoh:{endpoint}?prefix={prefix()}"
+    serve = subprocess.Popen(
+        [sys.executable, "-m", "temoto", "serve", "--actor", "a", "--insecure", "--fleet-url", url],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert first_line(serve).strip() == "ready"
+        os.kill(serve.pid, sig)
+        _, err = serve.communicate(timeout=WAIT_S * 4)
+        assert serve.returncode == 0, err
+        assert "Traceback" not in err
+    finally:
+        if serve.poll() is None:
+            serve.kill()
+            serve.communicate()
+        router.close()
