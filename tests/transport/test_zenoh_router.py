@@ -7,6 +7,7 @@ import signal
 import subprocess
 import sys
 import threading
+from pathlib import Path
 
 import pytest
 
@@ -132,3 +133,19 @@ def test_serve_over_zenoh_exits_0_on_a_signal(sig: signal.Signals) -> None:
             serve.kill()
             serve.communicate()
         router.close()
+
+
+def test_a_configuration_file_gives_the_router_its_endpoints(tmp_path: Path) -> None:
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    conf = tmp_path / "router.json5"
+    conf.write_text(f'{{ listen: {{ endpoints: ["{endpoint}"] }} }}\n')
+    proc = start_router("--config", str(conf))
+    try:
+        assert f"the endpoints of {conf}" in first_line(proc)
+        url = f"zenoh:{endpoint}?prefix={prefix()}"
+        with ZenohTransport(url) as a, ZenohTransport(url) as b:
+            until_routed(a, b)
+    finally:
+        proc.terminate()
+        proc.communicate(timeout=WAIT_S * 2)
+    assert proc.returncode == 0
