@@ -35,7 +35,7 @@ from test_netns_fleet import (
     start_actors,
 )
 
-from temoto.testing.netns import LCM_URL, RoutedNetwork
+from temoto.testing.netns import LCM_URL, RoutedNetwork, namespaces, remove_leftovers
 
 pytestmark = [
     pytest.mark.slow,
@@ -126,6 +126,21 @@ def test_the_subnets_route_unicast_but_not_multicast() -> None:
             assert sender.wait(10) == 0
             assert watch.finish(time.monotonic() + window + 5) == [0], watch.text(0)
             assert watch.first(0, expected) is not None, (target, watch.text(0))
+
+
+def test_a_routed_network_is_removed_and_its_leftovers_are_recognised() -> None:
+    require()
+    with RoutedNetwork(2) as net:
+        made = [*net.robots, net.router]
+        assert net.router.endswith("-rt")
+        assert set(made) <= set(namespaces())
+    assert not set(made) & set(namespaces())
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()  # the owner of a "crashed" run
+    stale = f"temoto-net-{gone.pid}-0-rt"
+    subprocess.run(["ip", "netns", "add", stale], check=True)
+    assert stale in remove_leftovers()
+    assert stale not in namespaces()
 
 
 def test_a_shared_graph_across_subnets_ends_on_true_through_the_router(key_file: Path) -> None:
