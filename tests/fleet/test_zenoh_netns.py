@@ -29,6 +29,7 @@ from test_netns_fleet import (
     MARGIN_S,
     MULTI,
     Actors,
+    _no_leftover_namespaces,  # noqa: F401 -- autouse: no namespace left
     assert_all_on_true,
     describe,
     require,
