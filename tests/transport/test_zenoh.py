@@ -106,6 +106,14 @@ def test_malformed_urls_name_the_part_at_fault(url: str, blamed: str) -> None:
     assert blamed in str(opened.value)
 
 
+def test_open_transport_makes_a_zenoh_transport_from_a_zenoh_url(router: str) -> None:
+    with open_transport(router) as t:
+        assert isinstance(t, ZenohTransport)
+        assert t.prefix == router.rsplit("=", 1)[1]
+        assert "open" in repr(t)
+    assert "closed" in repr(t)
+
+
 def test_channels_map_one_to_one_onto_single_key_chunks() -> None:
     assert channel_key("temoto", "TEMOTO_NOTIFY") == "temoto/TEMOTO_NOTIFY"
     assert channel_key("a/b", "x/y") == "a/b/x~y"
