@@ -7,11 +7,13 @@ channel is one chunk and channel names need no rules beyond :func:`~temoto.trans
 check_channel`'s); the bytes travel unchanged, so the authenticated envelopes of
 :mod:`temoto.transport.auth` and everything above them work as over LCM.
 
-Zenoh runs subscriber callbacks on threads of its own, and a ``put`` delivers to this session's
-own subscribers on the caller's thread. So the callbacks only queue the message for its
-subscription (bounded when ``queue_capacity`` is given: the oldest is dropped), and one thread of
-ours, ``temoto-zenoh``, hands the queued messages to the handlers in arrival order: handlers
-never run on the publisher's thread, as with LCM.
+Zenoh runs subscriber callbacks on its network threads, and a ``put`` delivers to this
+session's own subscribers on the caller's thread. So the callbacks only queue the message for
+its subscription (bounded when ``queue_capacity`` is given: the oldest is dropped), and one
+thread of ours, ``temoto-zenoh``, hands the queued messages to the handlers in arrival order:
+handlers never run on the publisher's thread, as with LCM. The callbacks are called directly
+(``Callback(..., indirect=False)``), not through the thread zenoh-python gives each callback by
+default, so the messages of one sender keep their order across channels, as over LCM.
 
 The URL (:func:`parse_zenoh_url`)::
 
@@ -317,6 +319,7 @@ class ZenohTransport(Transport):
             if parsed.mode == "client":
                 hint = " (is a router running there? `temoto router` starts one)"
             raise TransportError(f"Zenoh cannot open {url!r}: {_reason(err)}{hint}") from err
+        self._zenoh = zenoh
         self._zerror: type[Exception] = zenoh.ZError
         self._cond = threading.Condition()
         # Guarded by _cond: the live subscriptions, and one token per message waiting in a
@@ -370,7 +373,8 @@ class ZenohTransport(Transport):
             self._enqueue(sub, sample.payload.to_bytes())
 
         try:
-            sub._zsub = self._session.declare_subscriber(key, on_sample)
+            callback = self._zenoh.handlers.Callback(on_sample, indirect=False)
+            sub._zsub = self._session.declare_subscriber(key, callback)
         except self._zerror as err:
             sub._active = False
             self._remove(sub)

@@ -154,15 +154,16 @@ def test_a_transport_hears_its_own_messages_but_never_on_the_publishers_thread(
     assert inbox.wait_for(1)[0] == ("SELF", b"mine", "temoto-zenoh")
 
 
-def test_messages_of_one_publisher_arrive_in_order(
+def test_messages_of_one_publisher_arrive_in_order_across_channels(
     pair: tuple[ZenohTransport, ZenohTransport],
 ) -> None:
     a, b = pair
     inbox = Inbox()
-    b.subscribe("SEQ", inbox)
+    b.subscribe("SEQ_A", inbox)
+    b.subscribe("SEQ_B", inbox)
     until_routed(a, b)
     for i in range(300):
-        a.publish("SEQ", i.to_bytes(2, "big"))
+        a.publish("SEQ_A" if i % 2 else "SEQ_B", i.to_bytes(2, "big"))
     inbox.wait_for(300)
     assert [int.from_bytes(d, "big") for d in inbox.data] == list(range(300))
 
@@ -199,9 +200,12 @@ def test_unsubscribe_stops_delivery_and_a_handler_may_unsubscribe_itself(
     sub = b.subscribe("CHAT", inbox)
     b.subscribe("CHAT", other)
 
+    once_done = threading.Event()
+
     def one_shot(channel: str, data: bytes) -> None:
         once.append(data)
         me.unsubscribe()
+        once_done.set()
 
     me = b.subscribe("CHAT", one_shot)
     until_routed(a, b)
@@ -211,6 +215,7 @@ def test_unsubscribe_stops_delivery_and_a_handler_may_unsubscribe_itself(
     sub.unsubscribe()
     a.publish("CHAT", b"2")
     other.wait_for(2)
+    assert once_done.wait(WAIT_S)
     assert inbox.data == [b"1"]
     assert once == [b"1"]
     assert not sub.active
@@ -223,16 +228,26 @@ def test_a_raising_handler_is_counted_and_the_thread_survives(
     pair: tuple[ZenohTransport, ZenohTransport], caplog: pytest.LogCaptureFixture
 ) -> None:
     a, _ = pair
+    calls: list[bytes] = []
+    second = threading.Event()
 
     def broken(channel: str, data: bytes) -> None:
+        calls.append(data)
+        if len(calls) == 2:
+            second.set()
         raise ValueError("bad message")
 
     bad = a.subscribe("CHAT", broken)
-    inbox = Inbox()
+    inbox, after = Inbox(), Inbox()
     a.subscribe("CHAT", inbox)
+    a.subscribe("AFTER", after)
     a.publish("CHAT", b"1")
     a.publish("CHAT", b"2")
     inbox.wait_for(2)
+    assert second.wait(WAIT_S)
+    # one receive thread: once it has handled a later message, the second raise was counted
+    a.publish("AFTER", b"")
+    after.wait_for(1)
     assert bad.handler_errors == 2
     assert a.handler_errors == 2
     assert "bad message" in caplog.text
@@ -257,7 +272,7 @@ def test_a_full_subscription_queue_drops_its_oldest_messages(
     for i in range(10):
         a.publish("BOUNDED", bytes([i]))
     assert isinstance(sub, ZenohSubscription)
-    with a._cond:  # Zenoh hands local messages to our callback on a thread of its own
+    with a._cond:  # every message has reached the queue (dropped or waiting)
         assert a._cond.wait_for(lambda: sub.dropped + len(sub._pending) == 10, WAIT_S)
     release.set()
     inbox.wait_for(3)
