@@ -7,13 +7,19 @@ channel is one chunk and channel names need no rules beyond :func:`~temoto.trans
 check_channel`'s); the bytes travel unchanged, so the authenticated envelopes of
 :mod:`temoto.transport.auth` and everything above them work as over LCM.
 
-Zenoh runs subscriber callbacks on its network threads, and a ``put`` delivers to this
-session's own subscribers on the caller's thread. So the callbacks only queue the message for
-its subscription (bounded when ``queue_capacity`` is given: the oldest is dropped), and one
-thread of ours, ``temoto-zenoh``, hands the queued messages to the handlers in arrival order:
-handlers never run on the publisher's thread, as with LCM. The callbacks are called directly
-(``Callback(..., indirect=False)``), not through the thread zenoh-python gives each callback by
-default, so the messages of one sender keep their order across channels, as over LCM.
+A transport declares **one** Zenoh subscriber, on ``<prefix>/**``, when its first subscription
+is made, and sorts what arrives by key expression. One subscriber because zenoh-python runs
+every subscriber's callback on a thread of its own: with a subscriber per channel, messages of
+one sender on two channels could be handled in another order than sent, which LCM never does.
+(Calling the callbacks on Zenoh's network threads instead keeps the order, but every message
+then waits there for the GIL: a third of the throughput, and Zenoh dropped messages of a
+flood.) The price is LCM's: every member receives every channel under its prefix.
+
+The callback only queues the message for each subscription of its channel (bounded when
+``queue_capacity`` is given: the oldest is dropped), and one thread of ours, ``temoto-zenoh``,
+hands the queued messages to the handlers in arrival order: handlers never run on the
+publisher's thread (a ``put`` may call this session's callback on the caller's thread), as
+with LCM.
 
 The URL (:func:`parse_zenoh_url`)::
 
@@ -32,7 +38,6 @@ never when this module is imported.
 from __future__ import annotations
 
 import collections
-import contextlib
 import json
 import logging
 import re
@@ -274,7 +279,6 @@ class ZenohSubscription(Subscription):
         self.key = key
         self.queue_capacity = queue_capacity
         self._transport = transport
-        self._zsub: Any = None  # the zenoh.Subscriber, once declared
         # Guarded by the transport's condition.
         self._pending: collections.deque[bytes] = collections.deque()
         self._dropped = 0
@@ -319,13 +323,14 @@ class ZenohTransport(Transport):
             if parsed.mode == "client":
                 hint = " (is a router running there? `temoto router` starts one)"
             raise TransportError(f"Zenoh cannot open {url!r}: {_reason(err)}{hint}") from err
-        self._zenoh = zenoh
         self._zerror: type[Exception] = zenoh.ZError
         self._cond = threading.Condition()
-        # Guarded by _cond: the live subscriptions, and one token per message waiting in a
-        # subscription's queue, in arrival order (a full queue drops its oldest message and
-        # keeps its token count, as InProcessTransport does).
-        self._subs: list[ZenohSubscription] = []
+        # Guarded by _cond: the live subscriptions by key expression, the Zenoh subscriber
+        # once declared, and one token per message waiting in a subscription's queue, in
+        # arrival order (a full queue drops its oldest message and keeps its token count, as
+        # InProcessTransport does).
+        self._by_key: dict[str, list[ZenohSubscription]] = {}
+        self._zsub: Any = None
         self._ready: collections.deque[ZenohSubscription] = collections.deque()
         self._stopping = False
         self._thread = threading.Thread(target=self._run, name="temoto-zenoh", daemon=True)
@@ -367,26 +372,22 @@ class ZenohTransport(Transport):
         with self._cond:
             if self._stopping:
                 raise TransportError("ZenohTransport is closed")
-            self._subs.append(sub)
-
-        def on_sample(sample: Any) -> None:  # on a Zenoh thread, or the publisher's
-            self._enqueue(sub, sample.payload.to_bytes())
-
-        try:
-            callback = self._zenoh.handlers.Callback(on_sample, indirect=False)
-            sub._zsub = self._session.declare_subscriber(key, callback)
-        except self._zerror as err:
-            sub._active = False
-            self._remove(sub)
-            raise TransportError(f"Zenoh subscribe to {key!r} failed: {_reason(err)}") from err
-        if not sub.active or self.closed:  # unsubscribed or closed while declaring
-            self._undeclare(sub)
+            if self._zsub is None:
+                wildcard = f"{self.prefix}/**"
+                try:
+                    self._zsub = self._session.declare_subscriber(wildcard, self._on_sample)
+                except self._zerror as err:
+                    raise TransportError(
+                        f"Zenoh subscribe to {wildcard!r} failed: {_reason(err)}"
+                    ) from err
+            self._by_key.setdefault(key, []).append(sub)
         return sub
 
     def _close(self) -> None:
         with self._cond:
             self._stopping = True
-            subs, self._subs = self._subs, []
+            subs = [sub for subs in self._by_key.values() for sub in subs]
+            self._by_key.clear()
             self._ready.clear()
             self._cond.notify_all()
         for sub in subs:
@@ -402,31 +403,30 @@ class ZenohTransport(Transport):
 
     # --- internals ----------------------------------------------------------------------------
 
-    def _enqueue(self, sub: ZenohSubscription, data: bytes) -> None:
+    def _on_sample(self, sample: Any) -> None:
+        """Queue a message for the subscriptions of its channel (on zenoh-python's thread)."""
+        key = str(sample.key_expr)
+        data = sample.payload.to_bytes()
         with self._cond:
-            if self._stopping or not sub.active:
+            if self._stopping:
                 return
-            if sub.queue_capacity is not None and len(sub._pending) >= sub.queue_capacity:
-                sub._pending.popleft()
-                sub._dropped += 1
-            else:
-                self._ready.append(sub)
-            sub._pending.append(data)
+            for sub in self._by_key.get(key, ()):
+                if sub.queue_capacity is not None and len(sub._pending) >= sub.queue_capacity:
+                    sub._pending.popleft()
+                    sub._dropped += 1
+                else:
+                    self._ready.append(sub)
+                sub._pending.append(data)
             self._cond.notify_all()  # the dispatcher, and whoever watches the queues
 
     def _remove(self, sub: ZenohSubscription) -> None:
         with self._cond:
-            if sub in self._subs:
-                self._subs.remove(sub)
+            subs = self._by_key.get(sub.key)
+            if subs is not None and sub in subs:
+                subs.remove(sub)
+                if not subs:
+                    del self._by_key[sub.key]
             sub._pending.clear()  # its tokens stay in _ready; the dispatcher skips them
-        self._undeclare(sub)
-
-    def _undeclare(self, sub: ZenohSubscription) -> None:
-        zsub, sub._zsub = sub._zsub, None
-        if zsub is not None and not self._session.is_closed():
-            # the session may close meanwhile, which undeclares it
-            with contextlib.suppress(self._zerror):
-                zsub.undeclare()
 
     def _run(self) -> None:
         while True:
