@@ -172,7 +172,8 @@ def add_fleet_options(parser: argparse.ArgumentParser, description: str) -> None
         "--fleet-url",
         default=DEFAULT_FLEET_URL,
         metavar="URL",
-        help=f"LCM URL of the fleet (default {DEFAULT_FLEET_URL})",
+        help=f"the fleet's transport: an LCM URL (default {DEFAULT_FLEET_URL}) or"
+        " zenoh:tcp/ROUTER:7447 for a Zenoh client of a router (docs/zenoh.md)",
     )
     fleet.add_argument("--fleet", default="temoto", metavar="NAME", help="fleet name")
     fleet.add_argument(

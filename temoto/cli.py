@@ -80,6 +80,7 @@ from temoto._cli_fleet import (
     serve,
     watch,
 )
+from temoto._cli_router import add_router, router_command
 from temoto._cli_sim import add_sim, sim_command
 from temoto._progress import ActionLogHandler, Progress
 from temoto.clock import MonotonicClock, ScaledClock
@@ -247,6 +248,15 @@ def _parser() -> argparse.ArgumentParser:
         metavar="SECONDS",
         help="how long to wait for the other actors before the start (default 5)",
     )
+    fleet.add_argument(
+        "--notify-timeout",
+        type=_positive,
+        default=5.0,
+        metavar="SECONDS",
+        help="how long every other actor has to acknowledge a finished action before the run"
+        " aborts (default 5); raise it with --fleet-silence on lossy links over TCP (Zenoh),"
+        " where a lost packet arrives late rather than never (docs/zenoh.md)",
+    )
 
     add_serve(sub, paths)
 
@@ -304,6 +314,7 @@ def _parser() -> argparse.ArgumentParser:
 
     add_drivers(sub)
     add_sim(sub)
+    add_router(sub)
     add_view(sub)
     return top
 
@@ -365,6 +376,8 @@ def _command(args: argparse.Namespace) -> int:
             return drivers_command(args)
         if args.command == "sim":
             return sim_command(args)
+        if args.command == "router":
+            return router_command(args)
         if args.command == "view":
             return view_command(args)
         return _actions(args)
@@ -505,6 +518,7 @@ def _run_graph(
             registrar=registrar,
             link=link,
             handshake_timeout=args.handshake_timeout,
+            notify_timeout=args.notify_timeout,
         )
         try:
             with engine:

@@ -57,6 +57,7 @@ __all__ = [
     "PREFIX",
     "NetworkSetupError",
     "RobotNetwork",
+    "RoutedNetwork",
     "missing_requirements",
     "namespaces",
     "remove_leftovers",
@@ -73,7 +74,7 @@ BRIDGE: Final = "br0"
 ROBOT_IF: Final = "veth0"
 LOSS_TABLE: Final = "temoto_loss"
 
-_NAME = re.compile(re.escape(PREFIX) + r"(\d+)-\d+-(?:sw|r\d+)$")
+_NAME = re.compile(re.escape(PREFIX) + r"(\d+)-\d+-(?:sw|rt|r\d+)$")
 _serials = itertools.count()
 _IP_TIMEOUT_S: Final = 10.0
 
@@ -209,13 +210,15 @@ class RobotNetwork(Closing):
         NetworkSetupError: A setup command failed.
     """
 
+    _middle = "sw"  # the role suffix of the namespace between the robots
+
     def __init__(self, robots: int, *, subnet: str = "10.77.0") -> None:
         if not 1 <= robots <= 250:
             raise ValueError(f"robots must be 1..250, not {robots}")
         if not re.fullmatch(r"10\.\d{1,3}\.\d{1,3}", subnet):
             raise ValueError(f"subnet must look like '10.x.y', not {subnet!r}")
         base = f"{PREFIX}{os.getpid()}-{next(_serials)}-"
-        self.switch = base + "sw"
+        self.switch = base + self._middle
         self.robots = [f"{base}r{i}" for i in range(robots)]
         self.addresses = [f"{subnet}.{i + 1}" for i in range(robots)]
         self._procs: list[subprocess.Popen[Any]] = []
@@ -304,11 +307,13 @@ class RobotNetwork(Closing):
             ValueError: ``start_new_session=False`` was asked for.
             NetworkSetupError: The network is closed.
         """
+        return self._run_in(self.namespace(robot), argv, **popen_kwargs)
+
+    def _run_in(self, ns: str, argv: Sequence[str], **popen_kwargs: Any) -> subprocess.Popen[Any]:
         if self._closed:
             raise NetworkSetupError(f"{self!r}: cannot start a program")
         if not popen_kwargs.setdefault("start_new_session", True):
             raise ValueError("processes in a RobotNetwork need their own session")
-        ns = self.namespace(robot)
         proc: subprocess.Popen[Any] = subprocess.Popen(
             ["ip", "netns", "exec", ns, *argv], **popen_kwargs
         )
@@ -428,3 +433,153 @@ def _signal_groups(procs: Sequence[subprocess.Popen[Any]], sig: signal.Signals) 
     for proc in procs:
         with contextlib.suppress(ProcessLookupError, PermissionError):
             os.killpg(proc.pid, sig)
+
+
+class RoutedNetwork(RobotNetwork):
+    """Robots on different subnets joined only by a router namespace (a context manager).
+
+    ::
+
+        <pid>-<n>-r0                       <pid>-<n>-rt                        <pid>-<n>-r1
+        veth0 10.78.0.2/24 ──── p0 10.78.0.1/24   p1 10.78.1.1/24 ──── veth0 10.78.1.2/24
+        default via 10.78.0.1   ip_forward=1, no multicast routing  default via 10.78.1.1
+
+    Robot ``i`` has the /24 ``10.x.(y+i)`` of its own, a veth pair to the router namespace and a
+    default route through it. Unicast is routed between the subnets; multicast is not (Linux
+    forwards multicast only with a multicast routing daemon, and none runs), so LCM opens
+    (the default route covers its group) but hears nobody, while a Zenoh router run in the
+    router namespace (:meth:`run_router`) joins everyone over TCP. The robots' addresses are
+    :attr:`addresses`, the router's on each robot's subnet :attr:`gateways`.
+
+    :meth:`partition` and :meth:`heal` take the router's port of the robot down and up;
+    :meth:`loss` drops a share of *every* IPv4 packet crossing the robot's link, in both
+    directions (TCP included, unlike :meth:`RobotNetwork.loss`).
+
+    Args:
+        robots: How many robot namespaces (1 to 250).
+        subnet: The first robot's /24 as its first three octets; the third octet counts up.
+
+    Attributes:
+        router: The router namespace's name (also :attr:`switch`, for the inherited calls).
+        gateways: The router's address on each robot's subnet, by robot index.
+
+    Raises:
+        ValueError: A bad ``robots`` count or subnet, or subnets past ``.255``.
+        NetworkSetupError: A setup command failed.
+    """
+
+    _middle = "rt"
+
+    def __init__(self, robots: int, *, subnet: str = "10.78.0") -> None:
+        match = re.fullmatch(r"(10\.\d{1,3})\.(\d{1,3})", subnet)
+        if match is None:
+            raise ValueError(f"subnet must look like '10.x.y', not {subnet!r}")
+        if int(match.group(2)) + robots - 1 > 255:
+            raise ValueError(f"{robots} subnets from {subnet} run past 255")
+        self._net, self._first = match.group(1), int(match.group(2))
+        self.gateways = [f"{self._net}.{self._first + i}.1" for i in range(robots)]
+        super().__init__(robots, subnet=subnet)
+
+    @property
+    def router(self) -> str:
+        """The router namespace's name."""
+        return self.switch
+
+    def _build(self, subnet: str) -> None:
+        self.addresses = [f"{self._net}.{self._first + i}.2" for i in range(len(self.robots))]
+        for ns in [self.switch, *self.robots]:
+            _cmd(["ip", "netns", "add", ns])
+            self._made.append(ns)
+        router = ["link set lo up"]
+        for i, (ns, gateway) in enumerate(zip(self.robots, self.gateways, strict=True)):
+            router += [
+                f"link add p{i} type veth peer name {ROBOT_IF} netns {ns}",
+                f"addr add {gateway}/24 dev p{i}",
+                f"link set p{i} up",
+            ]
+        _cmd(["ip", "-n", self.switch, "-batch", "-"], "\n".join(router) + "\n")
+        _cmd(["ip", "netns", "exec", self.switch, "sysctl", "-qw", "net.ipv4.ip_forward=1"])
+        for ns, address, gateway in zip(self.robots, self.addresses, self.gateways, strict=True):
+            robot = [
+                "link set lo up",
+                f"addr add {address}/24 dev {ROBOT_IF}",
+                f"link set {ROBOT_IF} up",
+                f"route add default via {gateway}",
+            ]
+            _cmd(["ip", "-n", ns, "-batch", "-"], "\n".join(robot) + "\n")
+
+    def __repr__(self) -> str:
+        state = "closed" if self._closed else f"{len(self.robots)} robots"
+        return f"<RoutedNetwork {self.switch.removesuffix('-rt')} {state}>"
+
+    def run_router(self, argv: Sequence[str], **popen_kwargs: Any) -> subprocess.Popen[Any]:
+        """Start a program inside the router namespace (``temoto router``, ``zenohd``).
+
+        Args:
+            argv: The program and its arguments.
+            **popen_kwargs: As for :meth:`RobotNetwork.run`.
+
+        Returns:
+            The process (its own process group; :meth:`close` stops it).
+
+        Raises:
+            ValueError: ``start_new_session=False`` was asked for.
+            NetworkSetupError: The network is closed.
+        """
+        return self._run_in(self.switch, argv, **popen_kwargs)
+
+    def loss(self, robot: int | str, percent: float) -> None:
+        """Drop a percentage of every IPv4 packet on a robot's link, both ways.
+
+        Installs (or replaces) the nftables table ``inet temoto_loss`` in the robot's namespace
+        (input hook, packets arriving on ``veth0``) and ``inet temoto_loss_p<i>`` in the router
+        namespace (input and forward hooks, packets arriving on ``p<i>``), each with the rule
+        ``meta nfproto ipv4 numgen random mod 100 < N counter drop``. Percent 0 removes them.
+
+        Args:
+            robot: The robot's index or namespace.
+            percent: 0 to 100, rounded to a whole percent.
+
+        Raises:
+            ValueError: Percent out of range.
+            NetworkSetupError: ``nft`` is missing or failed.
+        """
+        if not 0 <= percent <= 100:
+            raise ValueError(f"loss must be 0..100 %, not {percent}")
+        i = self._index(robot)
+        share = round(percent)
+        for ns, table, iface, hooks in (
+            (self.robots[i], LOSS_TABLE, ROBOT_IF, ("input",)),
+            (self.switch, f"{LOSS_TABLE}_p{i}", f"p{i}", ("input", "forward")),
+        ):
+            script = [f"table inet {table}", f"delete table inet {table}"]
+            if share > 0:
+                chance = f" numgen random mod 100 < {share}" if share < 100 else ""
+                script.append(f"table inet {table} {{")
+                for hook in hooks:
+                    script += [
+                        f"  chain {hook} {{",
+                        f"    type filter hook {hook} priority filter; policy accept;",
+                        f'    iifname "{iface}" meta nfproto ipv4{chance} counter drop',
+                        "  }",
+                    ]
+                script.append("}")
+            _cmd(["ip", "netns", "exec", ns, "nft", "-f", "-"], "\n".join(script) + "\n")
+
+    def dropped(self, robot: int | str) -> int:
+        """How many packets the :meth:`loss` rules of a robot's link have dropped so far.
+
+        Args:
+            robot: The robot's index or namespace.
+
+        Returns:
+            The sum of the rules' packet counters, both ways (0 without loss rules).
+        """
+        i = self._index(robot)
+        total = 0
+        for ns, table in ((self.robots[i], LOSS_TABLE), (self.switch, f"{LOSS_TABLE}_p{i}")):
+            out = _cmd(
+                ["ip", "netns", "exec", ns, "nft", "list", "table", "inet", table], check=False
+            )
+            total += sum(int(n) for n in re.findall(r"counter packets (\d+)", out))
+        return total

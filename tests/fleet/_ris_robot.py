@@ -1,4 +1,4 @@
-"""Robots for the multi-process RIS tests and the ``ris`` benchmark, over LCM multicast.
+"""Robots for the multi-process RIS tests and the ``ris`` benchmark, over LCM or Zenoh.
 
 One file, four roles (``python _ris_robot.py ROLE ...``), run inside a network namespace in
 which multicast is routed to loopback (see ``test_remote_resources_processes.py``):
@@ -12,8 +12,9 @@ which multicast is routed to loopback (see ``test_remote_resources_processes.py`
     knows a robot that offers ``process``, then obeys ``load TAG`` (prints ``loaded REF PID
     MS``), ``release REF`` (prints ``released REF``) and ``quit``. Every status update of a
     loaded process is printed as ``status REF STATUS UNIX_TIME MESSAGE``.
-``driver``
-    Starts B and A, and runs the test scenario; prints one JSON object.
+``driver [URL]``
+    Starts B and A on the fleet URL (default LCM multicast; for a ``zenoh:`` URL a `temoto
+    router` first), and runs the test scenario; prints one JSON object.
 ``bench N``
     Starts B and A, and measures N crashes and loads; prints one JSON object.
 
@@ -82,10 +83,10 @@ def robot(role: str, name: str, url: str, period: float) -> None:
     from temoto.fleet.resources import RemoteResources, response_of
     from temoto.fleet.ris import ResourceInfoSync
     from temoto.managers.process import ProcessManager, ProcessRequest, ProcessResponse
-    from temoto.transport import FleetAuth, FleetLink, LcmTransport, key_from_env
+    from temoto.transport import FleetAuth, FleetLink, key_from_env, open_transport
 
     with contextlib.ExitStack() as stack:
-        transport = stack.enter_context(LcmTransport(url))
+        transport = stack.enter_context(open_transport(url))
         link = FleetLink(transport, FleetAuth("risfleet", name, key_from_env()))
         registrar = Registrar(name)
         stack.callback(registrar.close)
@@ -137,14 +138,15 @@ def robot(role: str, name: str, url: str, period: float) -> None:
 class Robots:
     """Starts robot B and robot A in this namespace; kills what is left on exit."""
 
-    def __init__(self) -> None:
+    def __init__(self, url: str = URL) -> None:
+        self.url = url
         self.procs: dict[str, subprocess.Popen[bytes]] = {}
         self.lines: dict[str, Lines] = {}
         self.pids: list[int] = []  # processes B started, killed at the end if still there
 
     def start(self, role: str, name: str) -> None:
         proc = subprocess.Popen(
-            [sys.executable, __file__, role, name, URL, str(PERIOD_S)],
+            [sys.executable, __file__, role, name, self.url, str(PERIOD_S)],
             stdin=subprocess.PIPE,
             stdout=subprocess.PIPE,
         )
@@ -211,9 +213,14 @@ def start_both(robots: Robots) -> None:
     robots.lines["A"].expect("ready", 20)
 
 
-def driver() -> None:
+def driver(url: str) -> None:
+    from _router import start_router, stop_router
+
     result: dict[str, Any] = {}
-    with Robots() as robots:
+    router = start_router(url)
+    with contextlib.ExitStack() as stack:
+        stack.callback(stop_router, router)
+        robots = stack.enter_context(Robots(url))
         start_both(robots)
         # 1. a process on B crashes: A's consumer is told
         latency, message, load_ms = crash(robots, "crash")
@@ -255,6 +262,6 @@ if __name__ == "__main__":
     if sys.argv[1] in ("provider", "consumer"):
         robot(sys.argv[1], sys.argv[2], sys.argv[3], float(sys.argv[4]))
     elif sys.argv[1] == "driver":
-        driver()
+        driver(sys.argv[2] if len(sys.argv) > 2 else URL)
     else:
         bench(int(sys.argv[2]))

@@ -1,4 +1,7 @@
-"""Three `temoto run --actor` processes run upstream's three-actor graph over LCM multicast.
+"""Three `temoto run --actor` processes run upstream's three-actor graph, over LCM and Zenoh.
+
+Over LCM the processes use multicast on loopback; over Zenoh they are clients of a `temoto
+router` started first in the same namespace (``_transports.py``).
 
 Each test runs inside its own network namespace (`unshare -n`: loopback up, multicast routed
 to it); the host's interfaces are never touched, and the namespace goes away with its
@@ -15,6 +18,7 @@ import sys
 from pathlib import Path
 
 import pytest
+from _transports import ROUTER_CODE, TRANSPORTS
 
 ROOT = Path(__file__).resolve().parents[2]
 ACTIONS = ROOT / "examples" / "actions" / "conformance"
@@ -28,7 +32,6 @@ MULTI = (
 )
 ACTORS = ["Actor A", "Actor B", "Actor C"]
 KEY = "6b" * 32  # a fixed 32-byte fleet key, hex
-URL = "udpm://239.255.76.67:7667?ttl=0"
 
 pytestmark = [
     pytest.mark.skipif(os.geteuid() != 0, reason="network namespaces need root"),
@@ -40,11 +43,14 @@ pytestmark = [
 ]
 
 # Runs inside the namespace: route multicast to loopback, start one process per actor, report.
-RUNNER = r"""
+RUNNER = (
+    ROUTER_CODE
+    + r"""
 import json, os, subprocess, sys
 subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
 subprocess.run(["ip", "route", "replace", "224.0.0.0/4", "dev", "lo"], check=True)
 spec = json.loads(sys.argv[1])
+router = start_router(spec["url"])
 procs = []
 for actor, env in spec["actors"]:
     procs.append(subprocess.Popen(
@@ -59,16 +65,20 @@ for p in procs:
         p.kill()
         stdout, stderr = p.communicate()
     out.append({"code": p.returncode, "stdout": stdout, "stderr": stderr[-2000:]})
+stop_router(router)
 print(json.dumps(out))
 """
+)
 
 
-def run_actors(actors: list[tuple[str, dict[str, str]]], extra: list[str], timeout: float) -> list:
+def run_actors(
+    actors: list[tuple[str, dict[str, str]]], extra: list[str], timeout: float, url: str
+) -> list:
     spec = {
         "actors": actors,
         "graph": str(MULTI),
         "actions": str(ACTIONS),
-        "url": URL,
+        "url": url,
         "extra": extra,
         "timeout": timeout,
     }
@@ -85,14 +95,16 @@ def run_actors(actors: list[tuple[str, dict[str, str]]], extra: list[str], timeo
     return json.loads(proc.stdout)
 
 
-def test_three_actor_processes_end_on_true() -> None:
-    results = run_actors([(a, {"TEMOTO_FLEET_KEY": KEY}) for a in ACTORS], [], timeout=30)
+@pytest.mark.parametrize("url", TRANSPORTS)
+def test_three_actor_processes_end_on_true(url: str) -> None:
+    results = run_actors([(a, {"TEMOTO_FLEET_KEY": KEY}) for a in ACTORS], [], 30, url)
     for actor, res in zip(ACTORS, results, strict=True):
         assert res["code"] == 0, f"{actor}: {res}"
         assert "engine_test_multi_actor: on_true" in res["stdout"], (actor, res)
 
 
-def test_an_actor_without_the_fleet_key_cannot_take_part() -> None:
+@pytest.mark.parametrize("url", TRANSPORTS)
+def test_an_actor_without_the_fleet_key_cannot_take_part(url: str) -> None:
     # A and B share the key; C has another one: nobody completes the handshake with C
     wrong = "5a" * 32
     actors = [
@@ -100,7 +112,7 @@ def test_an_actor_without_the_fleet_key_cannot_take_part() -> None:
         ("Actor B", {"TEMOTO_FLEET_KEY": KEY}),
         ("Actor C", {"TEMOTO_FLEET_KEY": wrong}),
     ]
-    results = run_actors(actors, ["--handshake-timeout", "1.5"], timeout=20)
+    results = run_actors(actors, ["--handshake-timeout", "1.5"], 20, url)
     for actor, res in zip(ACTORS, results, strict=True):
         assert res["code"] == 1, f"{actor}: {res}"
         assert "handshake" in res["stderr"].lower(), (actor, res["stderr"])

@@ -16,6 +16,7 @@ by sleeping.
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -191,16 +192,20 @@ def start_actors(
     key_file: Path,
     *extra: str,
     timeout: float = 15.0,
+    url: str | Sequence[str] = LCM_URL,
 ) -> Actors:
-    """Start `temoto run GRAPH --actor A` for every actor, actor ``i`` on robot ``i``."""
+    """Start `temoto run GRAPH --actor A` for every actor, actor ``i`` on robot ``i``.
+
+    ``url`` is the fleet URL of every actor, or one per actor.
+    """
     env = {k: v for k, v in os.environ.items() if k != "TEMOTO_FLEET_KEY"}
     command = [sys.executable, "-m", "temoto", "run", str(graph), "--actions", str(ACTIONS)]
-    options = ["--fleet-url", LCM_URL, "--fleet-key-file", str(key_file)]
-    options += ["--timeout", str(timeout), *extra]
+    urls = [url] * len(actors) if isinstance(url, str) else list(url)
+    options = ["--fleet-key-file", str(key_file), "--timeout", str(timeout), *extra]
     procs = [
         net.run(
             i,
-            [*command, "--actor", actor, *options],
+            [*command, "--actor", actor, "--fleet-url", urls[i], *options],
             stdout=subprocess.PIPE,
             stderr=subprocess.PIPE,
             stdin=subprocess.DEVNULL,
@@ -350,10 +355,21 @@ def test_remove_leftovers_takes_only_namespaces_of_dead_owners() -> None:
 # ------------------------------------------------------------------------------ fleet over it
 
 
-def test_upstream_three_actor_graph_one_namespace_each(key_file: Path) -> None:
+#: Zenoh in peer mode on the switched LAN: the peers find each other by multicast scouting.
+ZENOH_PEER_URL = "zenoh:"
+needs_zenoh = pytest.mark.skipif(
+    importlib.util.find_spec("zenoh") is None, reason="the zenoh extra is not installed"
+)
+
+
+@pytest.mark.parametrize(
+    "url",
+    [pytest.param(LCM_URL, id="lcm"), pytest.param(ZENOH_PEER_URL, id="zenoh", marks=needs_zenoh)],
+)
+def test_upstream_three_actor_graph_one_namespace_each(key_file: Path, url: str) -> None:
     require()
     with RobotNetwork(3) as net:
-        actors = start_actors(net, MULTI, ABC, key_file)
+        actors = start_actors(net, MULTI, ABC, key_file, url=url)
         assert_all_on_true(actors, ABC, "engine_test_multi_actor", time.monotonic() + 25)
 
 
@@ -425,14 +441,24 @@ def fan_graph(n: int) -> dict[str, Any]:
     }
 
 
-@pytest.mark.parametrize("n", [3, 4, 5])
-def test_fan_out_fan_in_graph_across_robots(n: int, tmp_path: Path, key_file: Path) -> None:
+@pytest.mark.parametrize(
+    ("n", "url"),
+    [
+        pytest.param(3, LCM_URL, id="3-lcm"),
+        pytest.param(4, LCM_URL, id="4-lcm"),
+        pytest.param(5, LCM_URL, id="5-lcm"),
+        pytest.param(5, ZENOH_PEER_URL, id="5-zenoh", marks=needs_zenoh),
+    ],
+)
+def test_fan_out_fan_in_graph_across_robots(
+    n: int, url: str, tmp_path: Path, key_file: Path
+) -> None:
     require()
     graph = tmp_path / f"netns_fan_{n}.graph.json"
     graph.write_text(json.dumps(fan_graph(n), indent=2))
     robots = [f"Robot {i}" for i in range(n)]
     with RobotNetwork(n) as net:
-        actors = start_actors(net, graph, robots, key_file)
+        actors = start_actors(net, graph, robots, key_file, url=url)
         assert_all_on_true(actors, robots, f"netns_fan_{n}", time.monotonic() + 25)
 
 

@@ -1,5 +1,8 @@
 """`temoto serve` instances commanded by `temoto graph start|stop|watch` in other processes.
 
+Over both transports: LCM multicast on loopback, or Zenoh clients of a `temoto router` started
+first in the namespace (``_transports.py``).
+
 Everything runs inside its own network namespace (`unshare -n`: loopback up, multicast routed
 to it), so the host's interfaces are never touched. Needs root, `unshare` and `ip`.
 """
@@ -15,6 +18,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _transports import ROUTER_CODE, TRANSPORTS
 
 ROOT = Path(__file__).resolve().parents[2]
 ACTIONS = ROOT / "examples" / "actions" / "conformance"
@@ -28,7 +32,6 @@ MULTI = (
 )
 ACTORS = ["Actor A", "Actor B", "Actor C"]
 KEY = "6b" * 32
-URL = "udpm://239.255.76.67:7667?ttl=0"
 
 pytestmark = [
     pytest.mark.skipif(os.geteuid() != 0, reason="network namespaces need root"),
@@ -41,7 +44,9 @@ pytestmark = [
 
 # Runs inside the namespace: start the instances, wait for each one's "ready", then run the
 # commands one after the other; report every command's exit status and output as JSON.
-RUNNER = r"""
+RUNNER = (
+    ROUTER_CODE
+    + r"""
 import json, os, signal, subprocess, sys, time
 subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
 subprocess.run(["ip", "route", "replace", "224.0.0.0/4", "dev", "lo"], check=True)
@@ -51,6 +56,7 @@ fleet = ["--fleet-url", spec["url"]]
 env = {**os.environ, "TEMOTO_FLEET_KEY": spec["key"]}
 servers = []
 report = {"steps": [], "servers": []}
+router = start_router(spec["url"])
 try:
     for actor in spec["actors"]:
         p = subprocess.Popen(
@@ -80,12 +86,14 @@ finally:
             p.kill()
             out, err = p.communicate()
         report["servers"].append({"code": p.returncode, "stderr": err[-2000:]})
+    stop_router(router)
 print(json.dumps(report))
 """
+)
 
 
-def scenario(steps: list[dict[str, Any]], timeout: float = 90) -> dict[str, Any]:
-    spec = {"actors": ACTORS, "actions": str(ACTIONS), "url": URL, "key": KEY, "steps": steps}
+def scenario(steps: list[dict[str, Any]], url: str, timeout: float = 90) -> dict[str, Any]:
+    spec = {"actors": ACTORS, "actions": str(ACTIONS), "url": url, "key": KEY, "steps": steps}
     env = {k: v for k, v in os.environ.items() if k != "TEMOTO_FLEET_KEY"}
     proc = subprocess.run(
         ["unshare", "-n", sys.executable, "-c", RUNNER, json.dumps(spec)],
@@ -106,7 +114,8 @@ def targets(*actors: str) -> list[str]:
     return [arg for a in actors for arg in ("--target", a)]
 
 
-def test_start_a_shared_graph_on_three_instances_and_watch_it_end(tmp_path: Path) -> None:
+@pytest.mark.parametrize("url", TRANSPORTS)
+def test_start_a_shared_graph_on_three_instances_and_watch_it_end(tmp_path: Path, url: str) -> None:
     timer = {
         "graph_name": "ticking",
         "graph_entry": [{"name": "TaTimer", "instance_id": 0}],
@@ -137,7 +146,8 @@ def test_start_a_shared_graph_on_three_instances_and_watch_it_end(tmp_path: Path
                 "env": {"TEMOTO_FLEET_KEY": "5a" * 32},
             },
             {"argv": ["graph", "start", str(timer_file), *targets("Actor A")], "no_key": True},
-        ]
+        ],
+        url,
     )
     steps = report["steps"]
     start, timer_start, watched, pause, stop, stop_a, missing, stranger, _ = steps

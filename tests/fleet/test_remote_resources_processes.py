@@ -1,4 +1,6 @@
-"""Robot A uses a process of robot B, each an OS process, over LCM multicast with a fleet key.
+"""Robot A uses a process of robot B, each an OS process, over LCM or Zenoh with a fleet key.
+
+Over Zenoh both robots are clients of a `temoto router` started first in the namespace.
 
 Runs inside its own network namespace (``unshare -n``: loopback up, multicast routed to it),
 so the host's interfaces are never touched; ``_ris_robot.py driver`` starts both robots and
@@ -17,6 +19,7 @@ from collections.abc import Iterator
 from pathlib import Path
 
 import pytest
+from _transports import TRANSPORTS
 
 from temoto.testing import ProcessLeakCheck
 from temoto.transport import KEY_ENV
@@ -66,11 +69,12 @@ def run_in_namespace(*args: str, timeout: float) -> dict[str, object]:
     return result
 
 
-def test_a_process_on_robot_b_is_watched_and_stopped_for_robot_a() -> None:
+@pytest.mark.parametrize("url", TRANSPORTS)
+def test_a_process_on_robot_b_is_watched_and_stopped_for_robot_a(url: str) -> None:
     problem = _namespace_problem()
     if problem:
         pytest.skip(problem)
-    result = run_in_namespace("driver", timeout=60)
+    result = run_in_namespace("driver", url, timeout=60)
     latency = result["status_latency_s"]
     assert isinstance(latency, float)
     assert latency < 0.5, f"the crash on B reached A after {latency * 1e3:.1f} ms"
