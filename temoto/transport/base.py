@@ -13,17 +13,26 @@ publishes while holding a lock cannot deadlock against its own handler.
 
 from __future__ import annotations
 
+import collections
 import logging
 import re
 import threading
 import time
 from abc import ABC, abstractmethod
 from collections.abc import Callable, Hashable
+from typing import Self
 
 from temoto._closing import Closing
 from temoto.errors import TransportError
 
-__all__ = ["CHANNEL_MAX_LEN", "Handler", "Subscription", "Transport", "check_channel"]
+__all__ = [
+    "CHANNEL_MAX_LEN",
+    "Handler",
+    "QueuedSubscription",
+    "Subscription",
+    "Transport",
+    "check_channel",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -149,6 +158,51 @@ class Subscription(ABC):
     def __repr__(self) -> str:
         state = "active" if self._active else "unsubscribed"
         return f"<{type(self).__name__} {self.channel!r} {state}>"
+
+
+class QueuedSubscription(Subscription):
+    """A subscription with a bounded queue of its own, drained by its transport's one thread.
+
+    The transport, holding its lock, :meth:`_offer` s each message to the subscriptions of its
+    channel and pops ``_pending`` on its dispatch thread, one message per token in its ready
+    queue; a subscription that was emptied (unsubscribed) leaves stale tokens that the
+    dispatcher skips.
+
+    Args:
+        channel: The channel name.
+        handler: Called with the channel and the message bytes on the dispatch thread.
+        queue_capacity: The most messages that wait for the handler (None: no limit); when
+            full, the oldest is dropped for the new one.
+
+    Attributes:
+        queue_capacity: As given.
+    """
+
+    def __init__(self, channel: str, handler: Handler, queue_capacity: int | None) -> None:
+        super().__init__(channel, handler)
+        self.queue_capacity = queue_capacity
+        # Guarded by the transport's lock.
+        self._pending: collections.deque[bytes] = collections.deque()
+        self._dropped = 0
+
+    @property
+    def dropped(self) -> int:
+        """How many messages were dropped because the queue was full."""
+        return self._dropped
+
+    def _offer(self, data: bytes, ready: collections.deque[Self]) -> None:
+        """Queue ``data`` (transport lock held); a token goes to ``ready`` unless one is dropped.
+
+        A full queue drops its oldest message for this one: the dispatcher's tokens still
+        match the messages waiting, so none is added.
+        """
+        capacity = self.queue_capacity
+        if capacity is not None and len(self._pending) >= capacity:
+            self._pending.popleft()
+            self._dropped += 1
+        else:
+            ready.append(self)
+        self._pending.append(data)
 
 
 class Transport(Closing, ABC):

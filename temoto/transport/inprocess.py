@@ -16,7 +16,7 @@ import collections
 import threading
 from typing import final
 
-from temoto.transport.base import Handler, Subscription, Transport
+from temoto.transport.base import Handler, QueuedSubscription, Transport
 
 __all__ = ["InProcessSubscription", "InProcessTransport", "live_buses"]
 
@@ -38,7 +38,7 @@ def live_buses() -> dict[str, int]:
 
 
 @final
-class InProcessSubscription(Subscription):
+class InProcessSubscription(QueuedSubscription):
     """A subscription of an :class:`InProcessTransport`, with its own bounded queue.
 
     Attributes:
@@ -53,17 +53,8 @@ class InProcessSubscription(Subscription):
         handler: Handler,
         queue_capacity: int | None,
     ) -> None:
-        super().__init__(channel, handler)
-        self.queue_capacity = queue_capacity
+        super().__init__(channel, handler, queue_capacity)
         self._transport = transport
-        # Guarded by the transport's condition.
-        self._pending: collections.deque[bytes] = collections.deque()
-        self._dropped = 0
-
-    @property
-    def dropped(self) -> int:
-        """How many messages were dropped because the queue was full."""
-        return self._dropped
 
     def _on_unsubscribe(self) -> None:
         self._transport._remove(self)
@@ -171,12 +162,7 @@ class InProcessTransport(Transport):
             if self._stopping:
                 return
             for sub in self._subs.get(channel, ()):
-                if sub.queue_capacity is not None and len(sub._pending) >= sub.queue_capacity:
-                    sub._pending.popleft()
-                    sub._dropped += 1
-                else:
-                    self._ready.append(sub)
-                sub._pending.append(data)
+                sub._offer(data, self._ready)
             self._cond.notify_all()  # the dispatcher, and flushes waiting
 
     def _remove(self, sub: InProcessSubscription) -> None:

@@ -47,7 +47,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, final
 
 from temoto.errors import TransportError
-from temoto.transport.base import Handler, Subscription, Transport
+from temoto.transport.base import Handler, QueuedSubscription, Transport
 
 if TYPE_CHECKING:
     from types import ModuleType
@@ -258,7 +258,7 @@ def _reason(err: BaseException) -> str:
 
 
 @final
-class ZenohSubscription(Subscription):
+class ZenohSubscription(QueuedSubscription):
     """A subscription of a :class:`ZenohTransport`, with its own bounded queue.
 
     Attributes:
@@ -275,18 +275,9 @@ class ZenohSubscription(Subscription):
         handler: Handler,
         queue_capacity: int | None,
     ) -> None:
-        super().__init__(channel, handler)
+        super().__init__(channel, handler, queue_capacity)
         self.key = key
-        self.queue_capacity = queue_capacity
         self._transport = transport
-        # Guarded by the transport's condition.
-        self._pending: collections.deque[bytes] = collections.deque()
-        self._dropped = 0
-
-    @property
-    def dropped(self) -> int:
-        """How many messages were dropped because the queue was full."""
-        return self._dropped
 
     def _on_unsubscribe(self) -> None:
         self._transport._remove(self)
@@ -411,12 +402,7 @@ class ZenohTransport(Transport):
             if self._stopping:
                 return
             for sub in self._by_key.get(key, ()):
-                if sub.queue_capacity is not None and len(sub._pending) >= sub.queue_capacity:
-                    sub._pending.popleft()
-                    sub._dropped += 1
-                else:
-                    self._ready.append(sub)
-                sub._pending.append(data)
+                sub._offer(data, self._ready)
             self._cond.notify_all()  # the dispatcher, and whoever watches the queues
 
     def _remove(self, sub: ZenohSubscription) -> None:
