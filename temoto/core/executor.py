@@ -79,22 +79,30 @@ class WorkerPool:
         Raises:
             RuntimeError: After :meth:`shutdown`.
         """
-        queued = 0.0
         with self._mutex:
             if self._closed:
                 raise RuntimeError("worker pool is shut down")
-            if self._idle:
-                self._idle -= 1
-            elif len(self._threads) < self.max_workers:
-                thread = threading.Thread(
-                    target=self._work, name=f"{self._name}-{next(self._counter)}", daemon=True
-                )
-                self._threads.add(thread)
-                thread.start()
-            else:
-                self._backlog += 1
-                queued = time.monotonic()
+            queued = time.monotonic() if self._claim() else 0.0
         self._jobs.put((fn, args, queued))
+
+    def _claim(self) -> bool:
+        """Find a worker for one more job (mutex held): an idle one, a new one, or none.
+
+        Returns:
+            Whether the job must wait in the backlog (every worker busy, none may be added).
+        """
+        if self._idle:
+            self._idle -= 1
+            return False
+        if len(self._threads) < self.max_workers:
+            thread = threading.Thread(
+                target=self._work, name=f"{self._name}-{next(self._counter)}", daemon=True
+            )
+            self._threads.add(thread)
+            thread.start()
+            return False
+        self._backlog += 1
+        return True
 
     def submit_many(self, fn: Callable[..., Any], jobs: list[tuple[Any, ...]]) -> None:
         """Run ``fn(*args)`` for every ``args`` of ``jobs``, under one lock for them all.
@@ -119,16 +127,7 @@ class WorkerPool:
             if self._closed:
                 raise RuntimeError("worker pool is shut down")
             for _ in jobs:
-                if self._idle:
-                    self._idle -= 1
-                elif len(self._threads) < self.max_workers:
-                    thread = threading.Thread(
-                        target=self._work, name=f"{self._name}-{next(self._counter)}", daemon=True
-                    )
-                    self._threads.add(thread)
-                    thread.start()
-                else:
-                    self._backlog += 1
+                if self._claim():
                     queued = queued or time.monotonic()
         put = self._jobs.put
         for args in jobs:
