@@ -1,0 +1,118 @@
+"""What the command line's modules share: exit codes, error lines, output files, option types.
+
+Not public API: :mod:`temoto.cli` and its ``_cli_*`` modules use it. Like them, it prints (to
+standard error only).
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import signal
+import sys
+from pathlib import Path
+from typing import IO, Any
+
+from temoto.errors import ConfigError
+
+__all__ = [
+    "EXIT_BROKEN_PIPE",
+    "EXIT_INVALID",
+    "EXIT_OTHER_RESULT",
+    "EXIT_TRUE",
+    "add_paths",
+    "error",
+    "not_negative",
+    "open_output",
+    "positive",
+    "seconds",
+    "signal_name",
+]
+
+EXIT_TRUE = 0
+EXIT_OTHER_RESULT = 1
+EXIT_INVALID = 2
+EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE
+
+
+def error(err: BaseException | str) -> None:
+    """Write the one-line error of the command line: ``temoto: error: ...``.
+
+    Args:
+        err: The error, or its text.
+    """
+    sys.stderr.write(f"temoto: error: {err}\n")
+
+
+def open_output(path: str | Path) -> IO[str]:
+    """A file the command writes (``--trace``, ``-o``), opened for writing.
+
+    Args:
+        path: The file.
+
+    Returns:
+        The open file (text, UTF-8).
+
+    Raises:
+        ConfigError: It cannot be written (no such folder, no permission), in one line.
+    """
+    try:
+        return open(path, "w", encoding="utf-8")
+    except OSError as err:
+        raise ConfigError(f"{path}: cannot write: {err.strerror or err}") from None
+
+
+def signal_name(signum: int) -> str:
+    """``SIGINT`` for 2, and so on.
+
+    Args:
+        signum: A signal number.
+
+    Returns:
+        Its name.
+    """
+    return signal.Signals(signum).name
+
+
+def add_paths(p: argparse.ArgumentParser | Any) -> None:
+    """Add ``--actions DIR`` and ``--graphs DIR`` (both repeatable) to a command's parser.
+
+    Args:
+        p: The command's parser.
+    """
+    p.add_argument(
+        "--actions",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="folder of actions (repeatable)",
+    )
+    p.add_argument(
+        "--graphs",
+        action="append",
+        default=[],
+        metavar="DIR",
+        help="folder of graphs (repeatable)",
+    )
+
+
+def seconds(text: str, *, zero: bool) -> float:
+    """A duration option's value: a finite number of seconds, above 0 (or at least 0)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number of seconds") from None
+    if not math.isfinite(value) or value < 0 or (value == 0 and not zero):
+        bound = "at least 0" if zero else "more than 0"
+        raise argparse.ArgumentTypeError(f"{text!r}: must be {bound} seconds")
+    return value
+
+
+def positive(text: str) -> float:
+    """``--timeout`` and the like: seconds, more than 0."""
+    return seconds(text, zero=False)
+
+
+def not_negative(text: str) -> float:
+    """``--stop-timeout``: seconds, 0 or more (0: give up at once on an action asked to stop)."""
+    return seconds(text, zero=True)
