@@ -7,10 +7,32 @@ The public API::
     with ActionEngine("robot_1", actions=["examples/actions/conformance"]) as engine:
         outcome = engine.run(load_graph("my.graph.json"))
         print(outcome.result)
+
+Actions and graphs can also be written in Python (:mod:`temoto.build`, ``docs/python-api.md``)::
+
+    from temoto import ActionEngine, action, catalog, graph
+
+    @action(inputs={"text": str}, outputs={"text": str})
+    def shout(text):
+        return {"text": text.upper() + "!"}
+
+    with ActionEngine(actions=catalog(shout)) as engine:
+        print(engine.run(graph(shout), {"text": "hi"}).outputs)  # {'text': 'HI!'}
 """
 
 from __future__ import annotations
 
+from temoto.build import (
+    GraphBuilder,
+    Param,
+    action,
+    branch,
+    catalog,
+    graph,
+    node,
+    parallel,
+    sequence,
+)
 from temoto.clock import Clock, ManualClock, MonotonicClock, ScaledClock
 from temoto.core.action import Action
 from temoto.core.catalog import ActionCatalog, GraphIndex
@@ -40,6 +62,7 @@ __all__ = [
     "ActionError",
     "Clock",
     "ConfigError",
+    "GraphBuilder",
     "GraphDefinitionError",
     "GraphIndex",
     "GraphInputError",
@@ -49,6 +72,7 @@ __all__ = [
     "ManualClock",
     "MonotonicClock",
     "NodeState",
+    "Param",
     "PluginError",
     "Response",
     "Result",
@@ -60,11 +84,18 @@ __all__ = [
     "UmrfGraph",
     "ValidationReport",
     "__version__",
+    "action",
+    "branch",
+    "catalog",
     "dump_graph",
+    "graph",
     "load_graph",
     "load_umrf",
+    "node",
+    "parallel",
     "parse_graph",
     "parse_graph_text",
     "parse_umrf",
+    "sequence",
     "validate_graph",
 ]

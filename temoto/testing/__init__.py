@@ -29,8 +29,17 @@ Devices and robots:
 * :class:`temoto.testing.robots.FakeRobot` is a robot handle's read side (pose, joints, vehicle,
   health) for tests of code that samples a robot.
 
+Actions:
+
+* :class:`Script` (:mod:`temoto.testing.scripted`) makes scripted actions: per node, what each
+  run returns, which outputs it sets, how long it waits (on the engine's clock) and whether it
+  waits for its stop; it records every run and hook call, and a test can wait for a node's
+  start without polling (``docs/python-api.md``).
+
 Importing this package has no side effects and does not import :mod:`temoto.testing.child`
-(so ``python -m temoto.testing.child`` runs without a ``runpy`` warning).
+(so ``python -m temoto.testing.child`` runs without a ``runpy`` warning), nor the engine:
+:class:`Script`, :class:`Outcome`, :class:`Run` and :class:`ScriptedAction` are imported from
+:mod:`temoto.testing.scripted` on first use.
 """
 
 from __future__ import annotations
@@ -42,8 +51,32 @@ import signal
 import sys
 import time
 import uuid
+from typing import TYPE_CHECKING, Any
 
-__all__ = ["CHILD_MODULE", "CHILD_SCRIPT", "ProcessLeakCheck", "child_command"]
+if TYPE_CHECKING:
+    from temoto.testing.scripted import Outcome, Run, Script, ScriptedAction
+
+__all__ = [
+    "CHILD_MODULE",
+    "CHILD_SCRIPT",
+    "Outcome",
+    "ProcessLeakCheck",
+    "Run",
+    "Script",
+    "ScriptedAction",
+    "child_command",
+]
+
+_SCRIPTED = frozenset({"Outcome", "Run", "Script", "ScriptedAction"})
+
+
+def __getattr__(name: str) -> Any:
+    """The scripted-action names, imported on first use (they import the engine's modules)."""
+    if name in _SCRIPTED:
+        from temoto.testing import scripted
+
+        return getattr(scripted, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 CHILD_MODULE = "temoto.testing.child"
 """The module to run with ``python -m`` for the scriptable child program."""
