@@ -1,8 +1,9 @@
 """Action Engine features beyond upstream's own tests.
 
-Graphs are built in the tests (dicts → ``parse_graph``); actions are tiny classes registered in
-code on an ``ActionCatalog(use_entry_points=False)``. Real time is used unless a test says
-otherwise; waits are bounded by generous timeouts (correctness, not performance).
+Graphs are built in the tests with :mod:`temoto.build` (compositions, or ``GraphBuilder`` node by
+node); actions are tiny classes declared with ``@action`` and registered in code. Real time is
+used unless a test says otherwise; waits are bounded by generous timeouts (correctness, not
+performance).
 """
 
 from __future__ import annotations
@@ -17,16 +18,15 @@ import pytest
 
 from temoto import (
     Action,
-    ActionCatalog,
     ActionEngine,
     GraphIndex,
     GraphState,
     Instrument,
     Result,
     ScaledClock,
-    parse_graph,
-    parse_umrf,
+    build,
 )
+from temoto.build import Param, action, description_of
 from temoto.core.graph import UmrfGraph
 from temoto.core.instrument import RecordingInstrument
 from temoto.errors import ActionError, GraphInputError, StateError
@@ -34,111 +34,16 @@ from temoto.errors import ActionError, GraphInputError, StateError
 WAIT = 10.0  # real seconds a graph may take before a test gives up
 
 
-# ================================================================ graph building helpers
-
-
-def s(value: str | None = None, **extra: Any) -> dict[str, Any]:
-    """A string parameter."""
-    out: dict[str, Any] = {"pvf_type": "string", **extra}
-    if value is not None:
-        out["pvf_value"] = value
-    return out
-
-
-def n(value: float | None = None, **extra: Any) -> dict[str, Any]:
-    """A number parameter."""
-    out: dict[str, Any] = {"pvf_type": "number", **extra}
-    if value is not None:
-        out["pvf_value"] = value
-    return out
-
-
-def rel(spec: str | dict[str, Any]) -> dict[str, Any]:
-    """ "Name_3" → {"name": "Name", "instance_id": 3}; dicts pass through (name given as Name_3)."""
-    if isinstance(spec, dict):
-        out = dict(spec)
-        name, _, inst = out.pop("node").rpartition("_")
-        return {"name": name, "instance_id": int(inst), **out}
-    name, _, inst = spec.rpartition("_")
-    return {"name": name, "instance_id": int(inst)}
-
-
-def act(
-    node: str,
-    *,
-    type_: str = "sync",
-    inputs: dict[str, Any] | None = None,
-    outputs: dict[str, Any] | None = None,
-    parents: Sequence[str | dict[str, Any]] = (),
-    children: Sequence[str | dict[str, Any]] = (),
-) -> dict[str, Any]:
-    """A graph action ``Name_i``."""
-    name, _, inst = node.rpartition("_")
-    out: dict[str, Any] = {"name": name, "instance_id": int(inst), "type": type_}
-    if inputs:
-        out["input_parameters"] = inputs
-    if outputs:
-        out["output_parameters"] = outputs
-    if parents:
-        out["parents"] = [rel(p) for p in parents]
-    if children:
-        out["children"] = [rel(c) for c in children]
-    return out
-
-
-def graph(
-    name: str,
-    actions: list[dict[str, Any]],
-    entry: Sequence[str | dict[str, Any]],
-    exit_: Sequence[str | dict[str, Any]],
-) -> UmrfGraph:
-    return parse_graph(
-        {
-            "graph_name": name,
-            "actions": actions,
-            "graph_entry": [rel(e) for e in entry],
-            "graph_exit": [rel(e) for e in exit_],
-        }
-    )
-
-
-def cond(node: str, *conditions: str, required: bool = True) -> dict[str, Any]:
-    """A parent relation (or graph_exit entry) with conditions."""
-    return {"node": node, "required": required, "conditions": list(conditions)}
-
-
-def remap(node: str, **pairs: str) -> dict[str, Any]:
-    """A child relation with remaps from=to."""
-    return {"node": node, "remap": [{"from": k, "to": v} for k, v in pairs.items()]}
-
-
 # ================================================================ actions
 
 
-def describe(
-    name: str, inputs: dict[str, Any] | None = None, outputs: dict[str, Any] | None = None
-):
-    """Class decorator: attach the action description used to register it."""
-
-    def deco(cls: type[Action]) -> type[Action]:
-        doc: dict[str, Any] = {"name": name, "type": "sync"}
-        if inputs:
-            doc["input_parameters"] = inputs
-        if outputs:
-            doc["output_parameters"] = outputs
-        cls.DESCRIPTION = doc  # type: ignore[attr-defined]
-        return cls
-
-    return deco
-
-
-@describe("Noop")
+@action
 class Noop(Action):
     def on_run(self) -> bool:
         return True
 
 
-@describe("Emit", inputs={"value": s()}, outputs={"out": s()})
+@action(inputs={"value": str}, outputs={"out": str})
 class Emit(Action):
     """out = value."""
 
@@ -147,7 +52,7 @@ class Emit(Action):
         return True
 
 
-@describe("Ret", inputs={"result": s()})
+@action(inputs={"result": str})
 class Ret(Action):
     """Returns what ``result`` says: "true", "false", anything else raises."""
 
@@ -160,13 +65,13 @@ class Ret(Action):
         raise RuntimeError(f"asked to fail ({result})")
 
 
-@describe("Fail")
+@action
 class Fail(Action):
     def on_run(self) -> bool:
         raise RuntimeError("boom")
 
 
-@describe("Blocker")
+@action
 class Blocker(Action):
     """Runs until stopped; returns True."""
 
@@ -175,7 +80,7 @@ class Blocker(Action):
         return True
 
 
-@describe("Nap", inputs={"seconds": n()})
+@action(inputs={"seconds": float})
 class Nap(Action):
     """Pause-aware sleep of ``seconds`` clock seconds."""
 
@@ -187,11 +92,13 @@ class Nap(Action):
 COMMON: tuple[type[Action], ...] = (Noop, Emit, Ret, Fail, Blocker, Nap)
 
 
-def make_catalog(*classes: type[Action]) -> ActionCatalog:
-    catalog = ActionCatalog(use_entry_points=False)
-    for cls in (*COMMON, *classes):
-        catalog.register(cls, parse_umrf(cls.DESCRIPTION))  # type: ignore[attr-defined]
-    return catalog
+def halting(name: str) -> UmrfGraph:
+    """One Noop whose exit ignores its on_true: the graph halts."""
+    b = build.GraphBuilder(name)
+    only = b.add(Noop)
+    b.entry(only)
+    b.exit(only, "on_true -> ignore")
+    return b.build()
 
 
 @contextmanager
@@ -206,7 +113,11 @@ def engine_with(
     kwargs.setdefault("stop_timeout", 2.0)
     instruments = [rec, *kwargs.pop("instruments", ())]
     with ActionEngine(
-        "me", actions=make_catalog(*classes), graphs=index, instruments=instruments, **kwargs
+        "me",
+        actions=build.catalog(*COMMON, *classes),
+        graphs=index,
+        instruments=instruments,
+        **kwargs,
     ) as engine:
         yield engine, rec
 
@@ -238,26 +149,11 @@ def require(condition: bool, what: str) -> None:
 
 
 def test_sequence_runs_in_order_and_passes_data() -> None:
-    g = graph(
-        "seq",
-        [
-            act(
-                "Emit_0",
-                inputs={"value": s("x")},
-                outputs={"out": s()},
-                children=[remap("Emit_1", out="value")],
-            ),
-            act(
-                "Emit_1",
-                inputs={"value": s()},
-                outputs={"out": s()},
-                parents=["Emit_0"],
-                children=[remap("Emit_2", out="value")],
-            ),
-            act("Emit_2", inputs={"value": s()}, outputs={"out": s()}, parents=["Emit_1"]),
-        ],
-        ["Emit_0"],
-        ["Emit_2"],
+    g = build.graph(
+        build.node(Emit, value="x", remap={"out": "value"}),
+        build.node(Emit, remap={"out": "value"}),
+        Emit,
+        name="seq",
     )
     with engine_with() as (engine, rec):
         outcome = engine.run(g, timeout=WAIT)
@@ -271,29 +167,20 @@ def test_concurrent_branches_run_at_the_same_time_and_join_once() -> None:
     barrier = threading.Barrier(3, timeout=5)
     joined: list[int] = []
 
-    @describe("Meet")
+    @action
     class Meet(Action):
         def on_run(self) -> bool:
             barrier.wait()  # raises BrokenBarrierError unless all three run concurrently
             return True
 
-    @describe("Join")
+    @action
     class Join(Action):
         def on_run(self) -> bool:
             joined.append(1)
             return True
 
     branches = ["Meet_0", "Meet_1", "Meet_2"]
-    g = graph(
-        "fan",
-        [
-            act("Noop_0", children=branches),
-            *[act(b, parents=["Noop_0"], children=["Join_0"]) for b in branches],
-            act("Join_0", parents=branches),
-        ],
-        ["Noop_0"],
-        ["Join_0"],
-    )
+    g = build.graph(Noop, build.parallel(Meet, Meet, Meet), Join, name="fan")
     with engine_with(Meet, Join) as (engine, rec):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         order = rec.started("fan")
@@ -304,16 +191,13 @@ def test_concurrent_branches_run_at_the_same_time_and_join_once() -> None:
 
 
 def test_non_required_parents_start_child_on_first_parent() -> None:
-    g = graph(
-        "any",
-        [
-            act("Noop_0", children=["Noop_2"]),
-            act("Nap_0", inputs={"seconds": n(0.3)}, children=["Noop_2"]),
-            act("Noop_2", parents=[cond("Noop_0", required=False), cond("Nap_0", required=False)]),
-        ],
-        ["Noop_0", "Nap_0"],
-        ["Noop_2"],
-    )
+    b = build.GraphBuilder("any")
+    first, nap, last = b.add(Noop), b.add(Nap, seconds=0.3), b.add(Noop, instance=2)
+    for parent in (first, nap):
+        b.entry(parent)
+        b.link(parent, last, required=False)
+    b.exit(last)
+    g = b.build()
     with engine_with() as (engine, rec):
         t0 = time.monotonic()
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
@@ -325,16 +209,7 @@ def test_non_required_parents_start_child_on_first_parent() -> None:
 
 
 def test_error_propagates_to_graph_result_through_bypass() -> None:
-    g = graph(
-        "err",
-        [
-            act("Fail_0", children=["Noop_0"]),
-            act("Noop_0", parents=["Fail_0"], children=["Noop_1"]),
-            act("Noop_1", parents=["Noop_0"]),
-        ],
-        ["Fail_0"],
-        ["Noop_1"],
-    )
+    g = build.graph(Fail, Noop, Noop, name="err")
     with engine_with() as (engine, rec):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.ERROR
@@ -350,45 +225,23 @@ def test_error_propagates_to_graph_result_through_bypass() -> None:
 
 
 def test_on_false_runs_children_by_default() -> None:
-    g = graph(
-        "false",
-        [
-            act("Ret_0", inputs={"result": s("false")}, children=["Noop_0"]),
-            act("Noop_0", parents=["Ret_0"]),
-        ],
-        ["Ret_0"],
-        ["Noop_0"],
-    )
+    g = build.graph(build.node(Ret, result="false"), Noop, name="false")
     with engine_with() as (engine, rec):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert rec.started("false") == ["Ret_0", "Noop_0"]
 
 
 def test_on_false_reaches_graph_exit_as_graph_result() -> None:
-    g = graph("f1", [act("Ret_0", inputs={"result": s("false")})], ["Ret_0"], ["Ret_0"])
+    g = build.graph(build.node(Ret, result="false"), name="f1")
     with engine_with() as (engine, _):
         assert engine.run(g, timeout=WAIT).result is Result.FALSE
 
 
 def test_on_false_bypass_branching() -> None:
-    g = graph(
-        "branch",
-        [
-            act("Ret_0", inputs={"result": s("false")}, children=["Noop_0", "Noop_1"]),
-            act(
-                "Noop_0",
-                parents=[cond("Ret_0", "on_true -> run", "on_false -> ignore")],
-                children=["Noop_2"],
-            ),
-            act(
-                "Noop_1",
-                parents=[cond("Ret_0", "on_true -> ignore", "on_false -> run")],
-                children=["Noop_2"],
-            ),
-            act("Noop_2", parents=[cond("Noop_0", required=False), cond("Noop_1", required=False)]),
-        ],
-        ["Ret_0"],
-        ["Noop_2"],
+    g = build.graph(
+        build.branch(build.node(Ret, result="false"), on_true=Noop, on_false=Noop),
+        Noop,
+        name="branch",
     )
     with engine_with() as (engine, rec):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
@@ -401,7 +254,7 @@ def test_on_false_bypass_branching() -> None:
 def test_restart_response_restarts_a_running_child_on_the_same_instance() -> None:
     runs: list[tuple[int, str]] = []
 
-    @describe("Worker")
+    @action
     class Worker(Action):
         def __init__(self) -> None:
             super().__init__()
@@ -418,15 +271,13 @@ def test_restart_response_restarts_a_running_child_on_the_same_instance() -> Non
 
     # Worker_0 starts at once; Nap_0 finishes a moment later and restarts it.
     # An on_stopped reaching graph_exit would end the graph with on_stopped.
-    g = graph(
-        "restart",
-        [
-            act("Worker_0", parents=[cond("Nap_0", "on_true -> restart", required=False)]),
-            act("Nap_0", inputs={"seconds": n(0.1)}, children=["Worker_0"]),
-        ],
-        ["Worker_0", "Nap_0"],
-        [cond("Worker_0", "on_stopped -> run")],
-    )
+    b = build.GraphBuilder("restart")
+    worker, nap = b.add(Worker), b.add(Nap, seconds=0.1)
+    b.link(nap, worker, "on_true -> restart", required=False)
+    b.entry(worker)
+    b.entry(nap)
+    b.exit(worker, "on_stopped -> run")
+    g = b.build()
     with engine_with(Worker) as (engine, rec):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.TRUE
@@ -437,20 +288,15 @@ def test_restart_response_restarts_a_running_child_on_the_same_instance() -> Non
 
 def test_pause_response_pauses_a_running_child() -> None:
     # Nap_0 runs 0.3 s; Noop_1 finishes after 0.05 s and pauses it (on_true -> pause)
-    g = graph(
-        "pausing",
-        [
-            act(
-                "Nap_0",
-                inputs={"seconds": n(0.3)},
-                parents=[cond("Noop_1", "on_true -> pause", required=False)],
-            ),
-            act("Nap_1", inputs={"seconds": n(0.05)}, children=["Noop_1"]),
-            act("Noop_1", parents=["Nap_1"], children=["Nap_0"]),
-        ],
-        ["Nap_0", "Nap_1"],
-        ["Nap_0"],
-    )
+    b = build.GraphBuilder("pausing")
+    long, short = b.add(Nap, seconds=0.3), b.add(Nap, seconds=0.05)
+    pauser = b.add(Noop, instance=1)
+    b.link(short, pauser)
+    b.link(pauser, long, "on_true -> pause", required=False)
+    b.entry(long)
+    b.entry(short)
+    b.exit(long)
+    g = b.build()
     with engine_with() as (engine, _):
         run = engine.start(g)
         eventually(lambda: node_state(engine, run, "Nap_0") == "PAUSED", 5, "Nap_0 paused")
@@ -465,7 +311,7 @@ def test_pause_response_pauses_a_running_child() -> None:
 def test_stop_response_stops_a_running_child_and_calls_on_stop() -> None:
     hooks: list[str] = []
 
-    @describe("Stoppable")
+    @action
     class Stoppable(Action):
         def on_run(self) -> bool:
             stopped = self.wait_until_stopped(5.0)
@@ -475,15 +321,13 @@ def test_stop_response_stops_a_running_child_and_calls_on_stop() -> None:
         def on_stop(self) -> None:
             hooks.append("on_stop")
 
-    g = graph(
-        "stopping",
-        [
-            act("Stoppable_0", parents=[cond("Nap_0", "on_true -> stop", required=False)]),
-            act("Nap_0", inputs={"seconds": n(0.05)}, children=["Stoppable_0"]),
-        ],
-        ["Stoppable_0", "Nap_0"],
-        [cond("Stoppable_0", "on_stopped -> run")],
-    )
+    b = build.GraphBuilder("stopping")
+    target, nap = b.add(Stoppable), b.add(Nap, seconds=0.05)
+    b.link(nap, target, "on_true -> stop", required=False)
+    b.entry(target)
+    b.entry(nap)
+    b.exit(target, "on_stopped -> run")
+    g = b.build()
     with engine_with(Stoppable) as (engine, rec):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.STOPPED
@@ -497,15 +341,13 @@ def test_stop_response_stops_a_running_child_and_calls_on_stop() -> None:
 def test_stopped_result_is_ignored_by_default() -> None:
     # same as above, default exit conditions: on_stopped -> ignore; Nap_0 has no other child →
     # nothing runs any more → halted
-    g = graph(
-        "stop_ignored",
-        [
-            act("Blocker_0", parents=[cond("Nap_0", "on_true -> stop", required=False)]),
-            act("Nap_0", inputs={"seconds": n(0.05)}, children=["Blocker_0"]),
-        ],
-        ["Blocker_0", "Nap_0"],
-        ["Blocker_0"],
-    )
+    b = build.GraphBuilder("stop_ignored")
+    target, nap = b.add(Blocker), b.add(Nap, seconds=0.05)
+    b.link(nap, target, "on_true -> stop", required=False)
+    b.entry(target)
+    b.entry(nap)
+    b.exit(target)
+    g = b.build()
     with engine_with() as (engine, _):
         assert engine.run(g, timeout=WAIT).result is Result.HALTED
 
@@ -517,7 +359,7 @@ def test_non_pause_aware_action_finishing_while_paused_is_held_until_resume() ->
     started = threading.Event()
     returned = threading.Event()
 
-    @describe("Busy")
+    @action
     class Busy(Action):
         def on_run(self) -> bool:
             started.set()
@@ -525,12 +367,7 @@ def test_non_pause_aware_action_finishing_while_paused_is_held_until_resume() ->
             returned.set()
             return True
 
-    g = graph(
-        "held",
-        [act("Busy_0", children=["Noop_0"]), act("Noop_0", parents=["Busy_0"])],
-        ["Busy_0"],
-        ["Noop_0"],
-    )
+    g = build.graph(Busy, Noop, name="held")
     with engine_with(Busy) as (engine, rec):
         run = engine.start(g)
         assert started.wait(5)
@@ -549,7 +386,7 @@ def test_non_pause_aware_action_finishing_while_paused_is_held_until_resume() ->
 
 
 def test_pause_blocks_sleep_and_resume_continues() -> None:
-    g = graph("napping", [act("Nap_0", inputs={"seconds": n(0.2)})], ["Nap_0"], ["Nap_0"])
+    g = build.graph(build.node(Nap, seconds=0.2), name="napping")
     with engine_with() as (engine, _):
         t0 = time.monotonic()
         run = engine.start(g)
@@ -565,7 +402,7 @@ def test_pause_blocks_sleep_and_resume_continues() -> None:
 
 
 def test_pause_and_resume_in_wrong_states_raise() -> None:
-    g = graph("once", [act("Noop_0")], ["Noop_0"], ["Noop_0"])
+    g = build.graph(Noop, name="once")
     with engine_with() as (engine, _):
         run = engine.start(g)
         engine.wait(run, timeout=WAIT)
@@ -582,7 +419,7 @@ def test_action_ignoring_stop_goes_to_error_after_stop_timeout() -> None:
     started = threading.Event()
     done = threading.Event()
 
-    @describe("Stubborn")
+    @action
     class Stubborn(Action):
         def on_run(self) -> bool:
             started.set()
@@ -591,7 +428,7 @@ def test_action_ignoring_stop_goes_to_error_after_stop_timeout() -> None:
             done.set()
             return True
 
-    g = graph("stubborn", [act("Stubborn_0")], ["Stubborn_0"], ["Stubborn_0"])
+    g = build.graph(Stubborn, name="stubborn")
     with engine_with(Stubborn, stop_timeout=0.15) as (engine, _):
         run = engine.start(g)
         assert started.wait(5)
@@ -615,7 +452,7 @@ def test_action_ignoring_stop_goes_to_error_after_stop_timeout() -> None:
 def test_stop_timeout_is_in_clock_seconds() -> None:
     started = threading.Event()
 
-    @describe("Stubborn2")
+    @action
     class Stubborn2(Action):
         def on_run(self) -> bool:
             started.set()
@@ -623,7 +460,7 @@ def test_stop_timeout_is_in_clock_seconds() -> None:
                 threading.Event().wait(0.03)
             return True
 
-    g = graph("stubborn2", [act("Stubborn2_0")], ["Stubborn2_0"], ["Stubborn2_0"])
+    g = build.graph(Stubborn2, name="stubborn2")
     # 1 clock-second at factor 10 = 0.1 s real
     with engine_with(Stubborn2, stop_timeout=1.0, clock=ScaledClock(10)) as (engine, _):
         run = engine.start(g)
@@ -639,10 +476,9 @@ def test_stop_timeout_is_in_clock_seconds() -> None:
 def test_counter_loop_parameter_lifetime() -> None:
     seen: list[dict[str, Any]] = []
 
-    @describe(
-        "Inc",
-        inputs={"count": n(), "step": n(), "extra": s(pvf_required=False)},
-        outputs={"count": n()},
+    @action(
+        inputs={"count": float, "step": float, "extra": Param(str, required=False)},
+        outputs={"count": float},
     )
     class Inc(Action):
         def on_run(self) -> bool:
@@ -650,34 +486,20 @@ def test_counter_loop_parameter_lifetime() -> None:
             self.outputs["count"] = self.inputs.get_number("count") + self.inputs.get_number("step")
             return True
 
-    @describe("AtLeast", inputs={"count": n(), "limit": n()}, outputs={"count": n()})
+    @action(inputs={"count": float, "limit": float}, outputs={"count": float})
     class AtLeast(Action):
         def on_run(self) -> bool:
             count = self.inputs.get_number("count")
             self.outputs["count"] = count
             return count >= self.inputs.get_number("limit")
 
-    g = graph(
-        "loop",
-        [
-            act(
-                "Inc_0",
-                inputs={"count": n(), "step": n(1), "extra": s(pvf_required=False)},
-                outputs={"count": n()},
-                parents=[cond("AtLeast_0", "on_true -> ignore", required=False)],
-                children=["AtLeast_0"],
-            ),
-            act(
-                "AtLeast_0",
-                inputs={"count": n(), "limit": n(3)},
-                outputs={"count": n()},
-                parents=["Inc_0"],
-                children=["Inc_0"],
-            ),
-        ],
-        ["Inc_0"],
-        [cond("AtLeast_0", "on_false -> ignore")],
-    )
+    b = build.GraphBuilder("loop")
+    inc, check = b.add(Inc, step=1), b.add(AtLeast, limit=3)
+    b.link(inc, check)
+    b.link(check, inc, "on_true -> ignore", required=False)
+    b.entry(inc)
+    b.exit(check, "on_false -> ignore")
+    g = b.build()
     with engine_with(Inc, AtLeast) as (engine, rec):
         run = engine.start(g, {"count": 0, "extra": "first run only"})
         assert engine.wait(run, timeout=WAIT) is Result.TRUE
@@ -700,34 +522,20 @@ def test_counter_loop_parameter_lifetime() -> None:
 def test_parent_value_replacing_a_literal_is_consumed() -> None:
     seen: list[dict[str, Any]] = []
 
-    @describe("Show", inputs={"value": s()}, outputs={"value": s()})
+    @action(inputs={"value": str}, outputs={"value": str})
     class Show(Action):
         def on_run(self) -> bool:
             seen.append(dict(self.inputs))
             return len(seen) >= 3
 
     # Show_0 (literal "lit") <-> Emit_0 (sends "sent"): the loop runs Show_0 three times
-    g = graph(
-        "lit",
-        [
-            act(
-                "Show_0",
-                inputs={"value": s("lit")},
-                outputs={"value": s()},
-                parents=[cond("Emit_0", required=False)],
-                children=["Emit_0"],
-            ),
-            act(
-                "Emit_0",
-                inputs={"value": s("sent")},
-                outputs={"out": s()},
-                parents=[cond("Show_0", "on_true -> ignore")],
-                children=[remap("Show_0", out="value")],
-            ),
-        ],
-        ["Show_0"],
-        [cond("Show_0", "on_false -> ignore")],
-    )
+    b = build.GraphBuilder("lit")
+    show, emit = b.add(Show, value="lit"), b.add(Emit, value="sent")
+    b.link(show, emit, "on_true -> ignore")
+    b.link(emit, show, required=False, remap={"out": "value"})
+    b.entry(show)
+    b.exit(show, "on_false -> ignore")
+    g = b.build()
     with engine_with(Show) as (engine, _):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert seen == [{"value": "lit"}, {"value": "sent"}, {"value": "sent"}]
@@ -740,36 +548,27 @@ def test_parent_value_replacing_a_literal_is_consumed() -> None:
 def test_allowed_values_route_to_exactly_one_child(state: str) -> None:
     got: list[tuple[str, str]] = []
 
-    @describe("Dispatch", inputs={"choice": s()}, outputs={"state": s()})
+    @action(inputs={"choice": str}, outputs={"state": str})
     class Dispatch(Action):
         def on_run(self) -> bool:
             self.outputs["state"] = self.inputs.get_string("choice")
             return True
 
-    @describe("Handle", inputs={"state": s()})
+    @action(inputs={"state": str})
     class Handle(Action):
         def on_run(self) -> bool:
             got.append((self.name, self.inputs.get_string("state")))
             return True
 
     targets = {"charge": "Handle_0", "navigate": "Handle_1", "pickup": "Handle_2"}
-    g = graph(
-        "route",
-        [
-            act(
-                "Dispatch_0",
-                inputs={"choice": s(state)},
-                outputs={"state": s()},
-                children=list(targets.values()),
-            ),
-            *[
-                act(node, inputs={"state": s(pvf_allowed_values=[value])}, parents=["Dispatch_0"])
-                for value, node in targets.items()
-            ],
-        ],
-        ["Dispatch_0"],
-        [cond(node, required=False) for node in targets.values()],
-    )
+    b = build.GraphBuilder("route")
+    dispatch = b.add(Dispatch, choice=state)
+    b.entry(dispatch)
+    for value in targets:
+        handler = b.add(Handle, state=Param(str, allowed=[value]))
+        b.link(dispatch, handler)
+        b.exit(handler, required=False)
+    g = b.build()
     with engine_with(Dispatch, Handle) as (engine, rec):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert got == [(targets[state], state)]
@@ -777,24 +576,10 @@ def test_allowed_values_route_to_exactly_one_child(state: str) -> None:
 
 
 def test_value_outside_allowed_values_halts_instead_of_hanging() -> None:
-    g = graph(
-        "nowhere",
-        [
-            act(
-                "Emit_0",
-                inputs={"value": s("z")},
-                outputs={"out": s()},
-                children=[remap("Emit_1", out="value")],
-            ),
-            act(
-                "Emit_1",
-                inputs={"value": s(pvf_allowed_values=["a", "b"])},
-                outputs={"out": s()},
-                parents=["Emit_0"],
-            ),
-        ],
-        ["Emit_0"],
-        ["Emit_1"],
+    g = build.graph(
+        build.node(Emit, value="z", remap={"out": "value"}),
+        build.node(Emit, value=Param(str, allowed=["a", "b"])),
+        name="nowhere",
     )
     with engine_with() as (engine, rec):
         assert engine.run(g, timeout=WAIT).result is Result.HALTED
@@ -807,25 +592,16 @@ def test_updatable_flag_decides_whether_parent_overwrites_literal(
 ) -> None:
     # pvf_updatable is a property of the action's description (the graph supplies literals and
     # allowed values; REFERENCE 2.3)
-    @describe("Keep", inputs={"value": s(pvf_updatable=updatable)}, outputs={"out": s()})
+    @action(inputs={"value": Param(str, updatable=updatable)}, outputs={"out": str})
     class Keep(Action):
         def on_run(self) -> bool:
             self.outputs["out"] = self.inputs.get_string("value")
             return True
 
-    g = graph(
-        "upd",
-        [
-            act(
-                "Emit_0",
-                inputs={"value": s("from parent")},
-                outputs={"out": s()},
-                children=[remap("Keep_0", out="value")],
-            ),
-            act("Keep_0", inputs={"value": s("literal")}, outputs={"out": s()}, parents=["Emit_0"]),
-        ],
-        ["Emit_0"],
-        ["Keep_0"],
+    g = build.graph(
+        build.node(Emit, value="from parent", remap={"out": "value"}),
+        build.node(Keep, value="literal"),
+        name="upd",
     )
     with engine_with(Keep) as (engine, _):
         outcome = engine.run(g, timeout=WAIT)
@@ -834,20 +610,7 @@ def test_updatable_flag_decides_whether_parent_overwrites_literal(
 
 
 def test_remap_renames_parent_output() -> None:
-    g = graph(
-        "remap",
-        [
-            act(
-                "Emit_0",
-                inputs={"value": s("hello")},
-                outputs={"out": s()},
-                children=[remap("Ret_0", out="result")],
-            ),
-            act("Ret_0", inputs={"result": s()}, parents=["Emit_0"]),
-        ],
-        ["Emit_0"],
-        ["Ret_0"],
-    )
+    g = build.graph(build.node(Emit, value="hello", remap={"out": "result"}), Ret, name="remap")
     with engine_with() as (engine, _):
         # "hello" reaches Ret_0.result → it raises "asked to fail (hello)"
         outcome = engine.run(g, timeout=WAIT)
@@ -858,21 +621,13 @@ def test_remap_renames_parent_output() -> None:
 def test_same_name_output_flows_without_remap() -> None:
     seen: list[str] = []
 
-    @describe("Take", inputs={"out": s()})
+    @action(inputs={"out": str})
     class Take(Action):
         def on_run(self) -> bool:
             seen.append(self.inputs.get_string("out"))
             return True
 
-    g = graph(
-        "same",
-        [
-            act("Emit_0", inputs={"value": s("v")}, outputs={"out": s()}, children=["Take_0"]),
-            act("Take_0", inputs={"out": s()}, parents=["Emit_0"]),
-        ],
-        ["Emit_0"],
-        ["Take_0"],
-    )
+    g = build.graph(build.node(Emit, value="v"), Take, name="same")
     with engine_with(Take) as (engine, _):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert seen == ["v"]
@@ -885,7 +640,7 @@ def test_spontaneous_source_reruns_and_preempts_downstream() -> None:
     work: list[tuple[float, str]] = []
     source_runs: list[int] = []
 
-    @describe("Events", outputs={"n": n()})
+    @action(outputs={"n": float}, type="spontaneous")
     class Events(Action):
         def __init__(self) -> None:
             super().__init__()
@@ -901,7 +656,7 @@ def test_spontaneous_source_reruns_and_preempts_downstream() -> None:
             self.outputs["n"] = self.k
             return True
 
-    @describe("Work", inputs={"n": n()})
+    @action(inputs={"n": float})
     class Work(Action):
         def on_run(self) -> bool:
             k = self.inputs.get_number("n")
@@ -912,15 +667,7 @@ def test_spontaneous_source_reruns_and_preempts_downstream() -> None:
             work.append((k, "done"))
             return True
 
-    g = graph(
-        "spont",
-        [
-            act("Events_0", type_="spontaneous", outputs={"n": n()}, children=["Work_0"]),
-            act("Work_0", inputs={"n": n()}, parents=["Events_0"]),
-        ],
-        ["Events_0"],
-        ["Work_0"],
-    )
+    g = build.graph(Events, Work, name="spont")
     with engine_with(Events, Work) as (engine, rec):
         t0 = time.monotonic()
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
@@ -935,36 +682,13 @@ def test_spontaneous_source_reruns_and_preempts_downstream() -> None:
 
 
 def _upper_graphs() -> tuple[UmrfGraph, UmrfGraph, UmrfGraph]:
-    leaf = graph(
-        "Leaf",
-        [act("Upper_0", inputs={"text": s()}, outputs={"text_out": s()})],
-        ["Upper_0"],
-        ["Upper_0"],
-    )
-    mid = graph(
-        "Mid",
-        [act("Leaf_0", inputs={"text": s()}, outputs={"text_out": s()})],
-        ["Leaf_0"],
-        ["Leaf_0"],
-    )
-    top = graph(
-        "Top",
-        [
-            act(
-                "Mid_0",
-                inputs={"text": s("hi")},
-                outputs={"text_out": s()},
-                children=[remap("Emit_0", text_out="value")],
-            ),
-            act("Emit_0", inputs={"value": s()}, outputs={"out": s()}, parents=["Mid_0"]),
-        ],
-        ["Mid_0"],
-        ["Emit_0"],
-    )
+    leaf = build.graph(Upper, name="Leaf")
+    mid = build.graph(leaf, name="Mid")
+    top = build.graph(build.node(mid, text="hi", remap={"text_out": "value"}), Emit, name="Top")
     return leaf, mid, top
 
 
-@describe("Upper", inputs={"text": s()}, outputs={"text_out": s()})
+@action(inputs={"text": str}, outputs={"text_out": str})
 class Upper(Action):
     def on_run(self) -> bool:
         self.outputs["text_out"] = self.inputs.get_string("text").upper()
@@ -986,13 +710,8 @@ def test_nested_subgraphs_two_levels_deep() -> None:
 
 
 def test_subgraph_error_propagates_to_parent_graph() -> None:
-    leaf = graph("Boom", [act("Fail_0")], ["Fail_0"], ["Fail_0"])
-    top = graph(
-        "TopB",
-        [act("Boom_0", children=["Noop_0"]), act("Noop_0", parents=["Boom_0"])],
-        ["Boom_0"],
-        ["Noop_0"],
-    )
+    leaf = build.graph(Fail, name="Boom")
+    top = build.graph(leaf, Noop, name="TopB")
     with engine_with(graphs=[leaf]) as (engine, rec):
         outcome = engine.run(top, timeout=WAIT)
         assert outcome.result is Result.ERROR
@@ -1001,8 +720,8 @@ def test_subgraph_error_propagates_to_parent_graph() -> None:
 
 
 def test_subgraph_is_paused_with_its_parent() -> None:
-    inner = graph("Sleepy", [act("Nap_0", inputs={"seconds": n(0.2)})], ["Nap_0"], ["Nap_0"])
-    top = graph("TopP", [act("Sleepy_0")], ["Sleepy_0"], ["Sleepy_0"])
+    inner = build.graph(build.node(Nap, seconds=0.2), name="Sleepy")
+    top = build.graph(inner, name="TopP")
     with engine_with(graphs=[inner]) as (engine, _):
         t0 = time.monotonic()
         run = engine.start(top)
@@ -1022,8 +741,8 @@ def test_subgraph_is_paused_with_its_parent() -> None:
 
 
 def test_subgraph_is_stopped_with_its_parent() -> None:
-    inner = graph("Forever", [act("Blocker_0")], ["Blocker_0"], ["Blocker_0"])
-    top = graph("TopS", [act("Forever_0")], ["Forever_0"], ["Forever_0"])
+    inner = build.graph(Blocker, name="Forever")
+    top = build.graph(inner, name="TopS")
     with engine_with(graphs=[inner]) as (engine, _):
         run = engine.start(top)
         sub = "TopS__Forever__0"
@@ -1037,13 +756,8 @@ def test_subgraph_is_stopped_with_its_parent() -> None:
 
 
 def test_modify_refuses_to_delete_a_running_node() -> None:
-    g = graph(
-        "mod",
-        [act("Blocker_0", children=["Noop_0"]), act("Noop_0", parents=["Blocker_0"])],
-        ["Blocker_0"],
-        ["Noop_0"],
-    )
-    smaller = graph("mod", [act("Noop_0")], ["Noop_0"], ["Noop_0"])
+    g = build.graph(Blocker, Noop, name="mod")
+    smaller = build.graph(Noop, name="mod")
     with engine_with() as (engine, _):
         run = engine.start(g)
         eventually(lambda: node_state(engine, run, "Blocker_0") == "RUNNING", 5, "blocker running")
@@ -1056,7 +770,7 @@ def test_modify_refuses_to_delete_a_running_node() -> None:
 
 
 def test_modify_of_ended_graph_is_refused() -> None:
-    g = graph("ended", [act("Noop_0")], ["Noop_0"], ["Noop_0"])
+    g = build.graph(Noop, name="ended")
     with engine_with() as (engine, _):
         engine.run(g, timeout=WAIT)
         with pytest.raises(StateError):
@@ -1064,7 +778,7 @@ def test_modify_of_ended_graph_is_refused() -> None:
 
 
 def test_modify_unknown_continue_from_raises_key_error() -> None:
-    g = graph("halts", [act("Noop_0")], ["Noop_0"], [cond("Noop_0", "on_true -> ignore")])
+    g = halting("halts")
     with engine_with() as (engine, _):
         run = engine.start(g)
         assert engine.wait(run, timeout=WAIT) is Result.HALTED
@@ -1077,7 +791,7 @@ def test_modify_unknown_continue_from_raises_key_error() -> None:
 
 
 def test_starting_an_active_graph_raises_state_error() -> None:
-    g = graph("busy", [act("Blocker_0")], ["Blocker_0"], ["Blocker_0"])
+    g = build.graph(Blocker, name="busy")
     with engine_with() as (engine, _):
         run = engine.start(g)
         with pytest.raises(StateError, match="already active"):
@@ -1086,7 +800,7 @@ def test_starting_an_active_graph_raises_state_error() -> None:
 
 
 def test_run_under_another_name_is_independent() -> None:
-    g = graph("twice", [act("Blocker_0")], ["Blocker_0"], ["Blocker_0"])
+    g = build.graph(Blocker, name="twice")
     with engine_with() as (engine, _):
         a = engine.start(g)
         b = engine.start(g, name="twice-b")
@@ -1099,7 +813,7 @@ def test_run_under_another_name_is_independent() -> None:
 def test_restarting_a_finished_graph_gives_fresh_instances() -> None:
     instances: list[tuple[Action, int]] = []  # the objects, not id()s: a freed one's is reused
 
-    @describe("Counted")
+    @action
     class Counted(Action):
         def __init__(self) -> None:
             super().__init__()
@@ -1110,7 +824,7 @@ def test_restarting_a_finished_graph_gives_fresh_instances() -> None:
             instances.append((self, self.runs))
             return True
 
-    g = graph("again", [act("Counted_0")], ["Counted_0"], ["Counted_0"])
+    g = build.graph(Counted, name="again")
     with engine_with(Counted) as (engine, _):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
@@ -1119,12 +833,7 @@ def test_restarting_a_finished_graph_gives_fresh_instances() -> None:
 
 
 def _input_graph() -> UmrfGraph:
-    return graph(
-        "inputs",
-        [act("Emit_0", inputs={"value": s()}, outputs={"out": s()})],
-        ["Emit_0"],
-        ["Emit_0"],
-    )
+    return build.graph(Emit, name="inputs")
 
 
 def test_graph_input_is_passed() -> None:
@@ -1156,12 +865,12 @@ def test_missing_graph_input_is_refused() -> None:
 
 @pytest.mark.parametrize("returned", [None, 1, "yes"])
 def test_on_run_returning_non_bool_is_an_error(returned: Any) -> None:
-    @describe("Sloppy")
+    @action
     class Sloppy(Action):
         def on_run(self) -> bool:
             return returned  # type: ignore[no-any-return]
 
-    g = graph("sloppy", [act("Sloppy_0")], ["Sloppy_0"], ["Sloppy_0"])
+    g = build.graph(Sloppy, name="sloppy")
     with engine_with(Sloppy) as (engine, _):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.ERROR
@@ -1176,7 +885,7 @@ def test_on_run_returning_non_bool_is_an_error(returned: Any) -> None:
 def test_raising_on_init_is_an_error() -> None:
     ran: list[int] = []
 
-    @describe("BadInit")
+    @action
     class BadInit(Action):
         def on_init(self) -> None:
             raise ValueError("no hardware")
@@ -1185,12 +894,7 @@ def test_raising_on_init_is_an_error() -> None:
             ran.append(1)
             return True
 
-    g = graph(
-        "badinit",
-        [act("BadInit_0", children=["Noop_0"]), act("Noop_0", parents=["BadInit_0"])],
-        ["BadInit_0"],
-        ["Noop_0"],
-    )
+    g = build.graph(BadInit, Noop, name="badinit")
     with engine_with(BadInit) as (engine, rec):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.ERROR
@@ -1203,16 +907,14 @@ def test_raising_on_init_is_an_error() -> None:
 def test_waiting_for_a_parent_that_never_runs_halts_quickly() -> None:
     # Noop_2 needs both Noop_0 and Noop_1; Noop_1 ignores Noop_0's on_true so it never runs.
     # Upstream would leave the graph RUNNING forever.
-    g = graph(
-        "stuck",
-        [
-            act("Noop_0", children=["Noop_1", "Noop_2"]),
-            act("Noop_1", parents=[cond("Noop_0", "on_true -> ignore")], children=["Noop_2"]),
-            act("Noop_2", parents=["Noop_0", "Noop_1"]),
-        ],
-        ["Noop_0"],
-        ["Noop_2"],
-    )
+    b = build.GraphBuilder("stuck")
+    first, second, last = b.add(Noop), b.add(Noop), b.add(Noop)
+    b.link(first, second, "on_true -> ignore")
+    b.link(first, last)
+    b.link(second, last)
+    b.entry(first)
+    b.exit(last)
+    g = b.build()
     with engine_with() as (engine, rec):
         t0 = time.monotonic()
         run = engine.start(g)
@@ -1223,7 +925,7 @@ def test_waiting_for_a_parent_that_never_runs_halts_quickly() -> None:
 
 
 def test_halted_graph_can_be_resumed_from_a_node() -> None:
-    g = graph("resumable", [act("Noop_0")], ["Noop_0"], [cond("Noop_0", "on_true -> ignore")])
+    g = halting("resumable")
     with engine_with() as (engine, rec):
         run = engine.start(g)
         assert engine.wait(run, timeout=WAIT) is Result.HALTED
@@ -1236,12 +938,7 @@ def test_halted_graph_can_be_resumed_from_a_node() -> None:
 
 
 def test_feedback_snapshots_show_changing_node_states() -> None:
-    g = graph(
-        "fb",
-        [act("Noop_0", children=["Noop_1"]), act("Noop_1", parents=["Noop_0"])],
-        ["Noop_0"],
-        ["Noop_1"],
-    )
+    g = build.graph(Noop, Noop, name="fb")
     with engine_with(feedback_size=100) as (engine, _):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         snapshots = engine.read_feedback()
@@ -1264,15 +961,7 @@ def test_feedback_snapshots_show_changing_node_states() -> None:
 
 
 def test_feedback_is_a_ring_buffer() -> None:
-    actions = [
-        act(
-            f"Noop_{i}",
-            children=[f"Noop_{i + 1}"] if i < 4 else [],
-            parents=[f"Noop_{i - 1}"] if i else [],
-        )
-        for i in range(5)
-    ]
-    g = graph("ring", actions, ["Noop_0"], ["Noop_4"])
+    g = build.graph(*[Noop] * 5, name="ring")
     with engine_with(feedback_size=3) as (engine, _):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         snapshots = engine.read_feedback()
@@ -1282,7 +971,7 @@ def test_feedback_is_a_ring_buffer() -> None:
 
 
 def test_feedback_off_by_default() -> None:
-    g = graph("nofb", [act("Noop_0")], ["Noop_0"], ["Noop_0"])
+    g = build.graph(Noop, name="nofb")
     with engine_with() as (engine, _):
         engine.run(g, timeout=WAIT)
         assert engine.read_feedback() == []
@@ -1303,12 +992,7 @@ def test_raising_instrument_is_removed_and_graph_finishes() -> None:
             BrokenStart.calls += 1
             raise RuntimeError("instrument bug")
 
-    g = graph(
-        "instr",
-        [act("Noop_0", children=["Noop_1"]), act("Noop_1", parents=["Noop_0"])],
-        ["Noop_0"],
-        ["Noop_1"],
-    )
+    g = build.graph(Noop, Noop, name="instr")
     with engine_with(instruments=[Broken(), BrokenStart()]) as (engine, rec):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
@@ -1324,7 +1008,7 @@ def test_fan_out_of_200_respects_max_workers() -> None:
     peak = [0]
     lock = threading.Lock()
 
-    @describe("Tick")
+    @action
     class Tick(Action):
         def on_run(self) -> bool:
             workers = len([t for t in threading.enumerate() if t.name.startswith("temoto-worker")])
@@ -1335,12 +1019,7 @@ def test_fan_out_of_200_respects_max_workers() -> None:
 
     width = 200
     leaves = [f"Tick_{i}" for i in range(width)]
-    g = graph(
-        "wide",
-        [act("Noop_0", children=leaves), *[act(leaf, parents=["Noop_0"]) for leaf in leaves]],
-        ["Noop_0"],
-        leaves,
-    )
+    g = build.graph(Noop, build.parallel(*[Tick] * width), name="wide")
     with engine_with(Tick, max_workers=4) as (engine, rec):
         assert engine.run(g, timeout=30).result is Result.TRUE
         assert sorted(rec.started("wide")) == sorted(["Noop_0", *leaves])
@@ -1348,20 +1027,13 @@ def test_fan_out_of_200_respects_max_workers() -> None:
 
 
 def test_shutdown_stops_an_infinite_graph_and_joins_threads() -> None:
-    loop = graph(
-        "forever",
-        [
-            act(
-                "Nap_0",
-                inputs={"seconds": n(0.01)},
-                parents=[cond("Nap_1", required=False)],
-                children=["Nap_1"],
-            ),
-            act("Nap_1", inputs={"seconds": n(0.01)}, parents=["Nap_0"], children=["Nap_0"]),
-        ],
-        ["Nap_0"],
-        [cond("Nap_1", "on_true -> ignore", "on_false -> ignore")],
-    )
+    b = build.GraphBuilder("forever")
+    one, two = b.add(Nap, seconds=0.01), b.add(Nap, seconds=0.01)
+    b.link(one, two)
+    b.link(two, one, required=False)
+    b.entry(one)
+    b.exit(two, "on_true -> ignore", "on_false -> ignore")
+    loop = b.build()
     before = set(threading.enumerate())
     with engine_with() as (engine, rec):
         run = engine.start(loop)
@@ -1381,12 +1053,7 @@ def test_shutdown_stops_an_infinite_graph_and_joins_threads() -> None:
 
 
 def test_all_required_exits_must_finish() -> None:
-    g = graph(
-        "exits",
-        [act("Noop_0"), act("Nap_0", inputs={"seconds": n(0.15)})],
-        ["Noop_0", "Nap_0"],
-        ["Noop_0", "Nap_0"],
-    )
+    g = build.graph(build.parallel(Noop, build.node(Nap, seconds=0.15)), name="exits")
     with engine_with() as (engine, _):
         t0 = time.monotonic()
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
@@ -1394,12 +1061,11 @@ def test_all_required_exits_must_finish() -> None:
 
 
 def test_non_required_exit_finishes_on_first_and_stops_the_rest() -> None:
-    g = graph(
-        "first_exit",
-        [act("Noop_0"), act("Blocker_0")],
-        ["Noop_0", "Blocker_0"],
-        [cond("Noop_0", required=False), cond("Blocker_0", required=False)],
-    )
+    b = build.GraphBuilder("first_exit")
+    for node in (b.add(Noop), b.add(Blocker)):
+        b.entry(node)
+        b.exit(node, required=False)
+    g = b.build()
     with engine_with() as (engine, rec):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.TRUE
@@ -1425,7 +1091,7 @@ def test_non_required_exit_finishes_on_first_and_stops_the_rest() -> None:
 def test_start_result_is_handed_to_the_entry_actions(
     given: Result, expected: Result, ran: list[str]
 ) -> None:
-    g = graph("entry_result", [act("Noop_0")], ["Noop_0"], ["Noop_0"])
+    g = build.graph(Noop, name="entry_result")
     with engine_with() as (engine, rec):
         run = engine.start(g, result=given)
         assert engine.wait(run, timeout=WAIT) is expected
@@ -1433,13 +1099,8 @@ def test_start_result_is_handed_to_the_entry_actions(
 
 
 def test_halting_subgraph_fails_its_parent_node() -> None:
-    inner = graph("Halter", [act("Noop_0")], ["Noop_0"], [cond("Noop_0", "on_true -> ignore")])
-    top = graph(
-        "TopH",
-        [act("Halter_0", children=["Noop_0"]), act("Noop_0", parents=["Halter_0"])],
-        ["Halter_0"],
-        ["Noop_0"],
-    )
+    inner = halting("Halter")
+    top = build.graph(inner, Noop, name="TopH")
     with engine_with(graphs=[inner]) as (engine, rec):
         outcome = engine.run(top, timeout=WAIT)
         assert outcome.result is Result.ERROR
@@ -1451,19 +1112,14 @@ def test_halting_subgraph_fails_its_parent_node() -> None:
 def test_stop_paused_graph_with_held_result() -> None:
     started = threading.Event()
 
-    @describe("Quick")
+    @action
     class Quick(Action):
         def on_run(self) -> bool:
             started.set()
             threading.Event().wait(0.05)
             return True
 
-    g = graph(
-        "held_stop",
-        [act("Quick_0", children=["Noop_0"]), act("Noop_0", parents=["Quick_0"])],
-        ["Quick_0"],
-        ["Noop_0"],
-    )
+    g = build.graph(Quick, Noop, name="held_stop")
     with engine_with(Quick) as (engine, rec):
         run = engine.start(g)
         assert started.wait(5)
@@ -1475,7 +1131,7 @@ def test_stop_paused_graph_with_held_result() -> None:
 
 
 def test_stop_halted_graph() -> None:
-    g = graph("halt_stop", [act("Noop_0")], ["Noop_0"], [cond("Noop_0", "on_true -> ignore")])
+    g = halting("halt_stop")
     with engine_with() as (engine, _):
         run = engine.start(g)
         assert engine.wait(run, timeout=WAIT) is Result.HALTED
@@ -1488,7 +1144,7 @@ def test_stop_halted_graph() -> None:
 def test_preempted_action_ignoring_stop_is_abandoned_and_next_event_gets_fresh_instance() -> None:
     runs: list[tuple[int, float]] = []
 
-    @describe("Src", outputs={"n": n()})
+    @action(outputs={"n": float}, type="spontaneous")
     class Src(Action):
         def __init__(self) -> None:
             super().__init__()
@@ -1503,7 +1159,7 @@ def test_preempted_action_ignoring_stop_is_abandoned_and_next_event_gets_fresh_i
             self.outputs["n"] = self.k
             return True
 
-    @describe("Deaf", inputs={"n": n()})
+    @action(inputs={"n": float})
     class Deaf(Action):
         def on_run(self) -> bool:
             k = self.inputs.get_number("n")
@@ -1513,15 +1169,7 @@ def test_preempted_action_ignoring_stop_is_abandoned_and_next_event_gets_fresh_i
                     threading.Event().wait(0.03)
             return True
 
-    g = graph(
-        "deaf",
-        [
-            act("Src_0", type_="spontaneous", outputs={"n": n()}, children=["Deaf_0"]),
-            act("Deaf_0", inputs={"n": n()}, parents=["Src_0"]),
-        ],
-        ["Src_0"],
-        ["Deaf_0"],
-    )
+    g = build.graph(Src, Deaf, name="deaf")
     with engine_with(Src, Deaf, stop_timeout=0.1) as (engine, _):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.TRUE
@@ -1533,7 +1181,7 @@ def test_preempted_action_ignoring_stop_is_abandoned_and_next_event_gets_fresh_i
 def test_restart_of_an_action_ignoring_stop_runs_a_fresh_instance() -> None:
     runs: list[int] = []
 
-    @describe("Deaf2")
+    @action
     class Deaf2(Action):
         def on_run(self) -> bool:
             runs.append(id(self))
@@ -1542,15 +1190,13 @@ def test_restart_of_an_action_ignoring_stop_runs_a_fresh_instance() -> None:
                     threading.Event().wait(0.03)
             return True
 
-    g = graph(
-        "restart_deaf",
-        [
-            act("Deaf2_0", parents=[cond("Noop_0", "on_true -> restart", required=False)]),
-            act("Noop_0", children=["Deaf2_0"]),
-        ],
-        ["Deaf2_0", "Noop_0"],
-        [cond("Deaf2_0", "on_error -> ignore")],
-    )
+    b = build.GraphBuilder("restart_deaf")
+    deaf, restarter = b.add(Deaf2), b.add(Noop)
+    b.link(restarter, deaf, "on_true -> restart", required=False)
+    b.entry(deaf)
+    b.entry(restarter)
+    b.exit(deaf, "on_error -> ignore")
+    g = b.build()
     with engine_with(Deaf2, stop_timeout=0.1) as (engine, _):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.TRUE
@@ -1561,7 +1207,7 @@ def test_restart_of_an_action_ignoring_stop_runs_a_fresh_instance() -> None:
 def test_on_stop_is_not_delivered_to_the_restarted_run() -> None:
     events: list[str] = []
 
-    @describe("Restartee")
+    @action
     class Restartee(Action):
         def __init__(self) -> None:
             super().__init__()
@@ -1580,15 +1226,13 @@ def test_on_stop_is_not_delivered_to_the_restarted_run() -> None:
         def on_stop(self) -> None:
             events.append(f"on_stop during run{self.k}")
 
-    g = graph(
-        "restart_hook",
-        [
-            act("Restartee_0", parents=[cond("Nap_0", "on_true -> restart", required=False)]),
-            act("Nap_0", inputs={"seconds": n(0.02)}, children=["Restartee_0"]),
-        ],
-        ["Restartee_0", "Nap_0"],
-        ["Restartee_0"],
-    )
+    b = build.GraphBuilder("restart_hook")
+    target, nap = b.add(Restartee), b.add(Nap, seconds=0.02)
+    b.link(nap, target, "on_true -> restart", required=False)
+    b.entry(target)
+    b.entry(nap)
+    b.exit(target)
+    g = b.build()
     for _ in range(5):
         events.clear()
         with engine_with(Restartee) as (engine, _):
@@ -1600,7 +1244,7 @@ def test_on_stop_is_not_delivered_to_the_restarted_run() -> None:
 def test_shutdown_right_after_finish_leaves_no_node_active() -> None:
     second_run = threading.Event()
 
-    @describe("Source", outputs={"n": n()})
+    @action(outputs={"n": float}, type="spontaneous")
     class Source(Action):
         def __init__(self) -> None:
             super().__init__()
@@ -1616,21 +1260,13 @@ def test_shutdown_right_after_finish_leaves_no_node_active() -> None:
             self.outputs["n"] = self.k
             return True
 
-    @describe("Gate")
+    @action
     class Gate(Action):
         def on_run(self) -> bool:
             # finish the graph only once the source is inside its next (blocking) run
             return second_run.wait(5)
 
-    g = graph(
-        "spont_end",
-        [
-            act("Source_0", type_="spontaneous", outputs={"n": n()}, children=["Gate_0"]),
-            act("Gate_0", parents=["Source_0"]),
-        ],
-        ["Source_0"],
-        ["Gate_0"],
-    )
+    g = build.graph(Source, Gate, name="spont_end")
     with engine_with(Source, Gate) as (engine, _):
         require(engine.run(g, timeout=WAIT).result is Result.TRUE, "graph result")
         require(node_state(engine, "spont_end", "Source_0") == "STOPPING", "source stopping")
@@ -1640,18 +1276,12 @@ def test_shutdown_right_after_finish_leaves_no_node_active() -> None:
 
 
 def test_modify_removing_a_literal_does_not_keep_the_old_value() -> None:
-    v1 = graph(
-        "lit_mod",
-        [act("Emit_0", inputs={"value": s("old")}, outputs={"out": s()})],
-        ["Emit_0"],
-        [cond("Emit_0", "on_true -> ignore")],
-    )
-    v2 = graph(
-        "lit_mod",
-        [act("Emit_0", inputs={"value": s()}, outputs={"out": s()})],
-        ["Emit_0"],
-        ["Emit_0"],
-    )
+    b = build.GraphBuilder("lit_mod")
+    emit = b.add(Emit, value="old")
+    b.entry(emit)
+    b.exit(emit, "on_true -> ignore")
+    v1 = b.build()
+    v2 = build.graph(Emit, name="lit_mod")
     with engine_with() as (engine, _):
         run = engine.start(v1)
         require(engine.wait(run, timeout=WAIT) is Result.HALTED, "v1 halts")
@@ -1664,15 +1294,7 @@ def test_modify_removing_a_literal_does_not_keep_the_old_value() -> None:
 
 
 def test_a_replaced_run_lets_go_of_its_nodes_and_the_new_one_runs() -> None:
-    g = graph(
-        "again",
-        [
-            act("Emit_0", inputs={"value": s("x")}, outputs={"out": s()}, children=["Emit_1"]),
-            act("Emit_1", inputs={"value": s("y")}, outputs={"out": s()}, parents=["Emit_0"]),
-        ],
-        ["Emit_0"],
-        ["Emit_1"],
-    )
+    g = build.graph(build.node(Emit, value="x"), build.node(Emit, value="y"), name="again")
     with engine_with() as (engine, _):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         old = engine._runs["again"]
@@ -1700,25 +1322,23 @@ def test_a_graph_started_again_is_planned_once_until_the_catalog_changes(
         return real(g)
 
     monkeypatch.setattr(planning, "validate_graph", counting)
-    g = graph("cached", [act("Emit_0", inputs={"value": s("x")}, outputs={"out": s()})],
-              ["Emit_0"], ["Emit_0"])  # fmt: skip
+    g = build.graph(build.node(Emit, value="x"), name="cached")
     with engine_with() as (engine, _):
         for _ in range(3):
             assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert validated == ["cached"]  # the same graph object: one plan
-        same_text = graph("cached", [act("Emit_0", inputs={"value": s("x")}, outputs={"out": s()})],
-                          ["Emit_0"], ["Emit_0"])  # fmt: skip
+        same_text = build.graph(build.node(Emit, value="x"), name="cached")
         assert engine.run(same_text, timeout=WAIT).result is Result.TRUE
         assert validated == ["cached", "cached"]  # another object is planned afresh
 
-        @describe("Later")
+        @action
         class Later(Action):
             def on_run(self) -> bool:
                 return True
 
-        engine.catalog.register(Later, parse_umrf(Later.DESCRIPTION))  # type: ignore[attr-defined]
+        engine.catalog.register(Later, description_of(Later))
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert validated == ["cached", "cached", "cached"]  # the catalog changed: planned again
-        engine.graphs.add(graph("other", [act("Emit_0")], ["Emit_0"], ["Emit_0"]))
+        engine.graphs.add(build.graph(Emit, name="other"))
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
         assert len(validated) == 4  # so did the index
