@@ -9,10 +9,10 @@ from typing import Any
 
 import pytest
 
-from temoto import Action, ActionEngine, GraphState, NodeState, Result, load_graph
+from temoto import Action, ActionEngine, GraphState, NodeState, Result, build, load_graph
+from temoto.build import action
 from temoto.core.catalog import ActionCatalog
-from temoto.core.graph import UmrfGraph, parse_graph
-from temoto.core.umrf import parse_umrf
+from temoto.core.graph import UmrfGraph
 from temoto.errors import FleetError, GraphDefinitionError
 from temoto.testing.actors import MemoryFleet
 
@@ -71,9 +71,8 @@ def test_upstream_three_actor_graph_ends_on_true_on_every_actor(fleet: MemoryFle
 
 # ----------------------------------------------------------------------------- small graphs
 
-DESCRIPTION = {"name": "Step", "type": "sync", "input_parameters": {}, "output_parameters": {}}
 
-
+@action
 class Step(Action):
     """Returns True; ``Step_1`` first sets :attr:`entered` and waits for :attr:`block` when one
     is set."""
@@ -89,42 +88,13 @@ class Step(Action):
 
 
 def catalog() -> ActionCatalog:
-    c = ActionCatalog(use_entry_points=False)
-    c.register(Step, parse_umrf(DESCRIPTION))
-    return c
+    return build.catalog(Step)
 
 
 def two_actor_graph() -> UmrfGraph:
     """Step_0 on A -> Step_1 on B -> Step_2 (no actor: runs on both)."""
-    return parse_graph(
-        {
-            "graph_name": "shared",
-            "graph_entry": [{"name": "Step", "instance_id": 0}],
-            "graph_exit": [{"name": "Step", "instance_id": 2}],
-            "actions": [
-                {
-                    "name": "Step",
-                    "instance_id": 0,
-                    "type": "sync",
-                    "actor": "A",
-                    "children": [{"name": "Step", "instance_id": 1}],
-                },
-                {
-                    "name": "Step",
-                    "instance_id": 1,
-                    "type": "sync",
-                    "actor": "B",
-                    "parents": [{"name": "Step", "instance_id": 0, "required": True}],
-                    "children": [{"name": "Step", "instance_id": 2}],
-                },
-                {
-                    "name": "Step",
-                    "instance_id": 2,
-                    "type": "sync",
-                    "parents": [{"name": "Step", "instance_id": 1, "required": True}],
-                },
-            ],
-        }
+    return build.graph(
+        build.node(Step, actor="A"), build.node(Step, actor="B"), Step, name="shared"
     )
 
 

@@ -8,17 +8,17 @@ from typing import Any
 
 import pytest
 
-from temoto import Action, ActionEngine, GraphState, NodeState, Result
+from temoto import Action, ActionEngine, GraphState, NodeState, Result, build
+from temoto.build import action
 from temoto.core.catalog import ActionCatalog
-from temoto.core.graph import UmrfGraph, parse_graph
+from temoto.core.graph import UmrfGraph
 from temoto.core.shared import SharedRuns
-from temoto.core.umrf import parse_umrf
 from temoto.errors import FleetError
 
 WAIT = 5.0
-DESCRIPTION = {"name": "Step", "type": "sync", "input_parameters": {}, "output_parameters": {}}
 
 
+@action
 class Step(Action):
     """Returns True."""
 
@@ -27,36 +27,12 @@ class Step(Action):
 
 
 def catalog() -> ActionCatalog:
-    c = ActionCatalog(use_entry_points=False)
-    c.register(Step, parse_umrf(DESCRIPTION))
-    return c
+    return build.catalog(Step)
 
 
 def shared_graph() -> UmrfGraph:
     """Step_0 on A -> Step_1 on B."""
-    return parse_graph(
-        {
-            "graph_name": "shared",
-            "graph_entry": [{"name": "Step", "instance_id": 0}],
-            "graph_exit": [{"name": "Step", "instance_id": 1}],
-            "actions": [
-                {
-                    "name": "Step",
-                    "instance_id": 0,
-                    "type": "sync",
-                    "actor": "A",
-                    "children": [{"name": "Step", "instance_id": 1}],
-                },
-                {
-                    "name": "Step",
-                    "instance_id": 1,
-                    "type": "sync",
-                    "actor": "B",
-                    "parents": [{"name": "Step", "instance_id": 0, "required": True}],
-                },
-            ],
-        }
-    )
+    return build.graph(build.node(Step, actor="A"), build.node(Step, actor="B"), name="shared")
 
 
 class RecordingLink:
