@@ -145,8 +145,11 @@ def test_the_example_prints_the_result() -> None:
     )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout == "{'text': 'HELLO!'}\n"
-    lines = (ROOT / "examples" / "python_api.py").read_text().splitlines()
-    assert sum(1 for line in lines if line.strip()) <= 12
+    text = (ROOT / "examples" / "python_api.py").read_text()
+    assert sum(1 for line in text.splitlines() if line.strip()) <= 12
+    # the README's quick start and docs/python-api.md show this very file
+    for doc in ("README.md", "docs/python-api.md"):
+        assert f"```python\n{text}```" in (ROOT / doc).read_text(), doc
 
 
 def test_join_runs_with_function_actions() -> None:

@@ -38,7 +38,8 @@ class Outcome:
         result: True or False (the result), or an exception the run raises (``on_error``).
         outputs: Output values to set, or a function of the run's input values that returns
             them.
-        seconds: Clock seconds to wait first (stop- and pause-aware: a stop ends the run).
+        seconds: Clock seconds to wait first, from the run's start (stop- and pause-aware: a
+            stop ends the run).
         until_stopped: Wait until the node is stopped, then finish with ``result``.
     """
 
@@ -224,9 +225,12 @@ class ScriptedAction(Action):
             BaseException: The planned exception.
         """
         inputs = dict(self.inputs)
+        # the wait is measured from before the start is recorded: a test that advances a manual
+        # clock as soon as it sees the start cannot advance it before the wait begins
+        began = self.clock.monotonic()
         outcome = self.script._start(self.name, self.graph_name, inputs) or self.default
         if outcome.seconds:
-            self.sleep(outcome.seconds)
+            self.sleep(max(0.0, outcome.seconds - (self.clock.monotonic() - began)))
         if outcome.until_stopped:
             self.wait_until_stopped()
         values = outcome.outputs(inputs) if callable(outcome.outputs) else outcome.outputs
