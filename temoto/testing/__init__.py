@@ -78,6 +78,7 @@ def __getattr__(name: str) -> Any:
         return getattr(scripted, name)
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
+
 CHILD_MODULE = "temoto.testing.child"
 """The module to run with ``python -m`` for the scriptable child program."""
 
