@@ -14,9 +14,10 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from test_engine import WAIT, act, cond, describe, engine_with, eventually, graph, n, s
+from test_engine import WAIT, engine_with, eventually
 
-from temoto import Action, ActionCatalog, GraphState, Result
+from temoto import Action, ActionCatalog, GraphState, Result, build
+from temoto.build import action
 from temoto.core.executor import WorkerPool
 from temoto.errors import ActionError
 
@@ -37,7 +38,7 @@ def _clear_runs() -> None:
     RUNS.clear()
 
 
-@describe("Quick")
+@action
 class Quick(Action):
     """Inline: records its thread, returns True."""
 
@@ -48,7 +49,7 @@ class Quick(Action):
         return True
 
 
-@describe("QuickRet", inputs={"result": s()})
+@action(inputs={"result": str})
 class QuickRet(Action):
     """Inline: returns what ``result`` says ("true" / "false"), raises otherwise."""
 
@@ -61,7 +62,7 @@ class QuickRet(Action):
         raise RuntimeError(f"asked to fail ({result})")
 
 
-@describe("Count", inputs={"count": n()}, outputs={"count": n()})
+@action(inputs={"count": float}, outputs={"count": float})
 class Count(Action):
     """Inline: count + 1 (a loop's body)."""
 
@@ -73,7 +74,7 @@ class Count(Action):
         return True
 
 
-@describe("Meet", inputs={"parties": n()})
+@action(inputs={"parties": float})
 class Meet(Action):
     """Blocking: waits at a barrier with the other Meet runs (only concurrent runs pass)."""
 
@@ -85,7 +86,7 @@ class Meet(Action):
         return True
 
 
-@describe("NapInline", inputs={"seconds": n()})
+@action(inputs={"seconds": float})
 class NapInline(Action):
     """Declares itself inline but sleeps (a broken promise): still stoppable."""
 
@@ -99,60 +100,32 @@ class NapInline(Action):
 CLASSES = (Quick, QuickRet, Count, Meet, NapInline)
 
 
-def chain(name: str, cls: str, length: int) -> Any:
-    nodes = [f"{cls}_{i}" for i in range(length)]
-    return graph(
-        name,
-        [
-            act(
-                node,
-                parents=nodes[i - 1 : i] if i else (),
-                children=nodes[i + 1 : i + 2],
-            )
-            for i, node in enumerate(nodes)
-        ],
-        [nodes[0]],
-        [nodes[-1]],
-    )
+def chain(name: str, cls: type[Action], length: int) -> Any:
+    return build.graph(*[cls] * length, name=name)
 
 
-def fan(name: str, cls: str, width: int, inputs: dict[str, Any] | None = None) -> Any:
+def fan(name: str, cls: type[Action], width: int, **inputs: Any) -> Any:
     """``width`` parallel ``cls`` nodes joined by Quick_999."""
-    nodes = [f"{cls}_{i}" for i in range(width)]
-    return graph(
-        name,
-        [
-            *(act(node, inputs=inputs, children=["Quick_999"]) for node in nodes),
-            act("Quick_999", parents=nodes),
-        ],
-        nodes,
-        ["Quick_999"],
-    )
+    nodes = [build.node(cls, inputs) for _ in range(width)]
+    return build.graph(build.parallel(*nodes), build.node(Quick, instance=999), name=name)
 
 
 def endless_loop() -> Any:
     """Count_0 <-> Count_1 forever (nothing reaches the exit)."""
-    return graph(
-        "endless",
-        [
-            act(
-                "Count_0",
-                inputs={"count": n()},
-                outputs={"count": n()},
-                parents=[cond("Count_1", required=False)],
-                children=["Count_1"],
-            ),
-            act(
-                "Count_1",
-                inputs={"count": n()},
-                outputs={"count": n()},
-                parents=["Count_0"],
-                children=["Count_0"],
-            ),
-        ],
-        ["Count_0"],
-        [cond("Count_1", "on_true -> ignore", "on_false -> ignore")],
-    )
+    b = build.GraphBuilder("endless")
+    first, second = b.add(Count), b.add(Count)
+    b.link(first, second)
+    b.link(second, first, required=False)
+    b.entry(first)
+    b.exit(second, "on_true -> ignore", "on_false -> ignore")
+    return b.build()
+
+
+def no_exit(name: str, cls: type[Action], **values: Any) -> Any:
+    """One ``cls`` node and no exit: the graph ends only when stopped (or halts)."""
+    b = build.GraphBuilder(name)
+    b.entry(b.add(cls, values))
+    return b.build()
 
 
 # ================================================================ where inline actions run
@@ -160,7 +133,7 @@ def endless_loop() -> Any:
 
 def test_an_inline_chain_runs_on_one_worker_thread_not_the_callers() -> None:
     with engine_with(*CLASSES) as (engine, rec):
-        run = engine.start(chain("c", "Quick", 50))
+        run = engine.start(chain("c", Quick, 50))
         assert engine.wait(run, WAIT) is Result.TRUE
     assert [name for name, _ in RUNS] == [f"Quick_{i}" for i in range(50)]
     threads = {ident for _, ident in RUNS}
@@ -171,7 +144,7 @@ def test_an_inline_chain_runs_on_one_worker_thread_not_the_callers() -> None:
 
 def test_a_fan_out_of_inline_actions_runs_as_one_batch_on_one_thread() -> None:
     with engine_with(*CLASSES) as (engine, _):
-        run = engine.start(fan("f", "Quick", 200))
+        run = engine.start(fan("f", Quick, 200))
         assert engine.wait(run, WAIT) is Result.TRUE
         # one worker did all 201 runs: the batch was not split across the pool
         assert len(RUNS) == 201
@@ -183,7 +156,7 @@ def test_blocking_actions_of_a_fan_out_still_get_a_worker_each() -> None:
     width = 4
     Meet.barrier = threading.Barrier(width)
     with engine_with(*CLASSES) as (engine, _):
-        run = engine.start(fan("meet", "Meet", width, inputs={"parties": n(width)}))
+        run = engine.start(fan("meet", Meet, width, parties=width))
         # only if all four run at once do they pass the barrier
         assert engine.wait(run, WAIT) is Result.TRUE
         assert engine._pool.size >= width
@@ -192,18 +165,13 @@ def test_blocking_actions_of_a_fan_out_still_get_a_worker_each() -> None:
 def test_an_inline_child_of_a_blocking_action_runs_on_its_parents_worker() -> None:
     threads: list[int] = []
 
-    @describe("Slow")
+    @action
     class Slow(Action):
         def on_run(self) -> bool:
             threads.append(threading.get_ident())
             return True
 
-    g = graph(
-        "mixed",
-        [act("Slow_0", children=["Quick_1"]), act("Quick_1", parents=["Slow_0"])],
-        ["Slow_0"],
-        ["Quick_1"],
-    )
+    g = build.graph(Slow, build.node(Quick, instance=1), name="mixed")
     with engine_with(Slow, *CLASSES) as (engine, _):
         assert engine.wait(engine.start(g), WAIT) is Result.TRUE
     assert threads == [RUNS[0][1]]
@@ -213,7 +181,7 @@ def test_a_wave_with_inline_and_blocking_children_splits_them_between_threads() 
     event = threading.Event()
     waiter_thread: list[int] = []
 
-    @describe("Waiter")
+    @action
     class Waiter(Action):
         """Blocking: true once the inline sibling has run (which it must, meanwhile)."""
 
@@ -221,7 +189,7 @@ def test_a_wave_with_inline_and_blocking_children_splits_them_between_threads() 
             waiter_thread.append(threading.get_ident())
             return event.wait(WAIT)
 
-    @describe("Setter")
+    @action
     class Setter(Action):
         blocking = False
 
@@ -230,15 +198,10 @@ def test_a_wave_with_inline_and_blocking_children_splits_them_between_threads() 
             event.set()
             return True
 
-    g = graph(
-        "split",
-        [
-            act("Quick_0", children=["Waiter_1", "Setter_2"]),
-            act("Waiter_1", parents=["Quick_0"]),
-            act("Setter_2", parents=["Quick_0"]),
-        ],
-        ["Quick_0"],
-        ["Waiter_1", "Setter_2"],
+    g = build.graph(
+        Quick,
+        build.parallel(build.node(Waiter, instance=1), build.node(Setter, instance=2)),
+        name="split",
     )
     with engine_with(Waiter, Setter, *CLASSES) as (engine, _):
         assert engine.wait(engine.start(g), WAIT) is Result.TRUE
@@ -253,20 +216,11 @@ def test_a_wave_with_inline_and_blocking_children_splits_them_between_threads() 
 
 
 def test_inline_results_and_errors_propagate_like_blocking_ones() -> None:
-    g = graph(
-        "results",
-        [
-            act("QuickRet_0", inputs={"result": s("false")}, children=["QuickRet_1"]),
-            act(
-                "QuickRet_1",
-                inputs={"result": s("boom")},
-                parents=[cond("QuickRet_0", "on_false -> run")],
-                children=["Quick_2"],
-            ),
-            act("Quick_2", parents=["QuickRet_1"]),
-        ],
-        ["QuickRet_0"],
-        ["Quick_2"],
+    g = build.graph(
+        build.node(QuickRet, result="false"),  # on_false runs the child (the default)
+        build.node(QuickRet, result="boom"),
+        build.node(Quick, instance=2),
+        name="results",
     )
     with engine_with(*CLASSES) as (engine, rec):
         run = engine.start(g)
@@ -305,7 +259,7 @@ def _active(engine: Any, run: str) -> list[bool]:
 
 
 def test_an_inline_action_that_sleeps_is_still_stopped() -> None:
-    g = graph("nap", [act("NapInline_0", inputs={"seconds": n(3600)})], ["NapInline_0"], [])
+    g = no_exit("nap", NapInline, seconds=3600)
     with engine_with(*CLASSES) as (engine, rec):
         run = engine.start(g)
         eventually(lambda: rec.started(run) == ["NapInline_0"], what="the nap to start")
@@ -316,7 +270,7 @@ def test_an_inline_action_ignoring_its_stop_goes_to_error_after_stop_timeout() -
     release = threading.Event()
     entered = threading.Event()
 
-    @describe("Stubborn")
+    @action
     class Stubborn(Action):
         blocking = False
 
@@ -325,7 +279,7 @@ def test_an_inline_action_ignoring_its_stop_goes_to_error_after_stop_timeout() -
             release.wait(WAIT)  # does not look at stops
             return True
 
-    g = graph("stubborn", [act("Stubborn_0")], ["Stubborn_0"], [])
+    g = no_exit("stubborn", Stubborn)
     with engine_with(Stubborn, *CLASSES, stop_timeout=0.05) as (engine, _):
         run = engine.start(g)
         assert entered.wait(WAIT)
@@ -335,16 +289,13 @@ def test_an_inline_action_ignoring_its_stop_goes_to_error_after_stop_timeout() -
 
 
 def test_modify_extends_a_halted_inline_graph() -> None:
-    g = chain("grow", "Quick", 2)
+    g = chain("grow", Quick, 2)
+    halting = build.GraphBuilder("grow")
+    first, second = halting.add(Quick), halting.add(Quick)
+    halting.link(first, second)
+    halting.entry(first)
     with engine_with(*CLASSES) as (engine, _):
-        run = engine.start(
-            graph(
-                "grow",
-                [act("Quick_0", children=["Quick_1"]), act("Quick_1", parents=["Quick_0"])],
-                ["Quick_0"],
-                [],
-            )
-        )
+        run = engine.start(halting.build())
         assert engine.wait(run, WAIT) is Result.HALTED
         engine.modify(run, g, continue_from="Quick_1")
         assert engine.wait(run, WAIT) is Result.TRUE
@@ -353,7 +304,7 @@ def test_modify_extends_a_halted_inline_graph() -> None:
 
 @pytest.mark.parametrize("returned", [None, 1, "yes"])
 def test_an_inline_on_run_returning_a_non_bool_is_an_error(returned: Any) -> None:
-    @describe("Odd")
+    @action
     class Odd(Action):
         blocking = False
 
@@ -361,7 +312,7 @@ def test_an_inline_on_run_returning_a_non_bool_is_an_error(returned: Any) -> Non
             return returned  # type: ignore[no-any-return]
 
     with engine_with(Odd) as (engine, _):
-        run = engine.start(graph("odd", [act("Odd_0")], ["Odd_0"], ["Odd_0"]))
+        run = engine.start(build.graph(Odd, name="odd"))
         assert engine.wait(run, WAIT) is Result.ERROR
         assert "must return True or False" in str(engine.outcome(run).errors[0])
 
@@ -369,7 +320,7 @@ def test_an_inline_on_run_returning_a_non_bool_is_an_error(returned: Any) -> Non
 def test_an_inline_instance_lives_across_the_runs_of_a_loop() -> None:
     instances: list[tuple[str, int]] = []
 
-    @describe("Same", inputs={"count": n()}, outputs={"count": n()})
+    @action(inputs={"count": float}, outputs={"count": float})
     class Same(Action):
         blocking = False
 
@@ -379,27 +330,13 @@ def test_an_inline_instance_lives_across_the_runs_of_a_loop() -> None:
             self.outputs["count"] = count
             return count < 10
 
-    g = graph(
-        "same",
-        [
-            act(
-                "Same_0",
-                inputs={"count": n()},
-                outputs={"count": n()},
-                parents=[cond("Same_1", "on_false -> ignore", required=False)],
-                children=["Same_1"],
-            ),
-            act(
-                "Same_1",
-                inputs={"count": n()},
-                outputs={"count": n()},
-                parents=["Same_0"],
-                children=["Same_0"],
-            ),
-        ],
-        ["Same_0"],
-        [cond("Same_1", "on_true -> ignore")],
-    )
+    b = build.GraphBuilder("same")
+    first, second = b.add(Same), b.add(Same)
+    b.link(first, second)
+    b.link(second, first, "on_false -> ignore", required=False)
+    b.entry(first)
+    b.exit(second, "on_true -> ignore")
+    g = b.build()
     with engine_with(Same) as (engine, _):
         run = engine.start(g, {"count": 0})
         assert engine.wait(run, WAIT) is Result.FALSE
@@ -426,7 +363,7 @@ def test_conformance_actions_that_never_wait_are_inline_and_the_others_are_not()
 
 
 def test_blocking_is_the_default() -> None:
-    @describe("Plain")
+    @action
     class Plain(Action):
         def on_run(self) -> bool:
             return True
