@@ -92,6 +92,25 @@ class Nap(Action):
 COMMON: tuple[type[Action], ...] = (Noop, Emit, Ret, Fail, Blocker, Nap)
 
 
+def answering(
+    name: str,
+    target: type[Action],
+    response: str,
+    *exit_conditions: str,
+    trigger: type[Action] = Nap,
+    **trigger_values: Any,
+) -> UmrfGraph:
+    """``target`` and ``trigger`` start together; ``trigger``'s on_true makes ``target``
+    ``response`` (restart, stop, pause); ``target`` is the exit."""
+    b = build.GraphBuilder(name)
+    node, cause = b.add(target), b.add(trigger, trigger_values)
+    b.link(cause, node, f"on_true -> {response}", required=False)
+    b.entry(node)
+    b.entry(cause)
+    b.exit(node, *exit_conditions)
+    return b.build()
+
+
 def halting(name: str) -> UmrfGraph:
     """One Noop whose exit ignores its on_true: the graph halts."""
     b = build.GraphBuilder(name)
@@ -271,13 +290,7 @@ def test_restart_response_restarts_a_running_child_on_the_same_instance() -> Non
 
     # Worker_0 starts at once; Nap_0 finishes a moment later and restarts it.
     # An on_stopped reaching graph_exit would end the graph with on_stopped.
-    b = build.GraphBuilder("restart")
-    worker, nap = b.add(Worker), b.add(Nap, seconds=0.1)
-    b.link(nap, worker, "on_true -> restart", required=False)
-    b.entry(worker)
-    b.entry(nap)
-    b.exit(worker, "on_stopped -> run")
-    g = b.build()
+    g = answering("restart", Worker, "restart", "on_stopped -> run", seconds=0.1)
     with engine_with(Worker) as (engine, rec):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.TRUE
@@ -321,13 +334,7 @@ def test_stop_response_stops_a_running_child_and_calls_on_stop() -> None:
         def on_stop(self) -> None:
             hooks.append("on_stop")
 
-    b = build.GraphBuilder("stopping")
-    target, nap = b.add(Stoppable), b.add(Nap, seconds=0.05)
-    b.link(nap, target, "on_true -> stop", required=False)
-    b.entry(target)
-    b.entry(nap)
-    b.exit(target, "on_stopped -> run")
-    g = b.build()
+    g = answering("stopping", Stoppable, "stop", "on_stopped -> run", seconds=0.05)
     with engine_with(Stoppable) as (engine, rec):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.STOPPED
@@ -341,13 +348,7 @@ def test_stop_response_stops_a_running_child_and_calls_on_stop() -> None:
 def test_stopped_result_is_ignored_by_default() -> None:
     # same as above, default exit conditions: on_stopped -> ignore; Nap_0 has no other child →
     # nothing runs any more → halted
-    b = build.GraphBuilder("stop_ignored")
-    target, nap = b.add(Blocker), b.add(Nap, seconds=0.05)
-    b.link(nap, target, "on_true -> stop", required=False)
-    b.entry(target)
-    b.entry(nap)
-    b.exit(target)
-    g = b.build()
+    g = answering("stop_ignored", Blocker, "stop", seconds=0.05)
     with engine_with() as (engine, _):
         assert engine.run(g, timeout=WAIT).result is Result.HALTED
 
@@ -1190,13 +1191,7 @@ def test_restart_of_an_action_ignoring_stop_runs_a_fresh_instance() -> None:
                     threading.Event().wait(0.03)
             return True
 
-    b = build.GraphBuilder("restart_deaf")
-    deaf, restarter = b.add(Deaf2), b.add(Noop)
-    b.link(restarter, deaf, "on_true -> restart", required=False)
-    b.entry(deaf)
-    b.entry(restarter)
-    b.exit(deaf, "on_error -> ignore")
-    g = b.build()
+    g = answering("restart_deaf", Deaf2, "restart", "on_error -> ignore", trigger=Noop)
     with engine_with(Deaf2, stop_timeout=0.1) as (engine, _):
         outcome = engine.run(g, timeout=WAIT)
         assert outcome.result is Result.TRUE
@@ -1226,13 +1221,7 @@ def test_on_stop_is_not_delivered_to_the_restarted_run() -> None:
         def on_stop(self) -> None:
             events.append(f"on_stop during run{self.k}")
 
-    b = build.GraphBuilder("restart_hook")
-    target, nap = b.add(Restartee), b.add(Nap, seconds=0.02)
-    b.link(nap, target, "on_true -> restart", required=False)
-    b.entry(target)
-    b.entry(nap)
-    b.exit(target)
-    g = b.build()
+    g = answering("restart_hook", Restartee, "restart", seconds=0.02)
     for _ in range(5):
         events.clear()
         with engine_with(Restartee) as (engine, _):
