@@ -32,7 +32,14 @@ JSON), checked by the same parser with the same messages. ``docs/python-api.md``
 
 from __future__ import annotations
 
-from temoto.build._actions import Param, ParamSpec, action, catalog, description_of
+from temoto.build._actions import (
+    ActionDecorator,
+    Param,
+    ParamDecl,
+    action,
+    catalog,
+    description_of,
+)
 from temoto.build._builder import ActionRef, GraphBuilder, Node
 from temoto.build._flows import (
     Flow,
@@ -48,13 +55,14 @@ from temoto.build._flows import (
 )
 
 __all__ = [
+    "ActionDecorator",
     "ActionRef",
     "Flow",
     "GraphBuilder",
     "Leaf",
     "Node",
     "Param",
-    "ParamSpec",
+    "ParamDecl",
     "Step",
     "action",
     "branch",

@@ -10,14 +10,14 @@ import keyword
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, ClassVar, TypeAlias
+from typing import Any, ClassVar, Protocol, TypeAlias, TypeVar, overload
 
 from temoto.core.action import Action
 from temoto.core.catalog import ActionCatalog
 from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value
 from temoto.core.umrf import Umrf, parse_umrf
 
-__all__ = ["Param", "ParamSpec", "action", "catalog", "description_of"]
+__all__ = ["ActionDecorator", "Param", "ParamDecl", "action", "catalog", "description_of"]
 
 #: Python types accepted as parameter types, and their ``pvf_type``.
 _PY_TYPES: dict[object, str] = {
@@ -99,7 +99,7 @@ class Param:
 
 
 #: How one parameter may be declared: a type (``str``, ``"number"``) or a :class:`Param`.
-ParamSpec: TypeAlias = "str | type | Param | Any"
+ParamDecl: TypeAlias = "str | type | Param | Any"
 
 
 def _pvf_type(spec: object) -> str:
@@ -114,7 +114,7 @@ def _pvf_type(spec: object) -> str:
     return found
 
 
-def _tree(specs: Mapping[str, ParamSpec] | None) -> dict[str, Any]:
+def _tree(specs: Mapping[str, ParamDecl] | None) -> dict[str, Any]:
     """A parameter tree in UMRF JSON from declared parameters (``a::b`` names nest)."""
     root: dict[str, Any] = {}
     for name, spec in (specs or {}).items():
@@ -129,13 +129,60 @@ def _tree(specs: Mapping[str, ParamSpec] | None) -> dict[str, Any]:
     return root
 
 
+_A = TypeVar("_A", bound="type[Action]")
+
+
+class ActionDecorator(Protocol):
+    """What ``@action(...)`` with arguments returns: the decorator proper."""
+
+    @overload
+    def __call__(self, obj: _A, /) -> _A: ...
+    @overload
+    def __call__(self, obj: Callable[..., Any], /) -> type[Action]: ...
+
+
+@overload
+def action(
+    target: _A,
+    /,
+    *,
+    name: str | None = None,
+    inputs: Mapping[str, ParamDecl] | None = None,
+    outputs: Mapping[str, ParamDecl] | None = None,
+    type: str = "sync",
+    blocking: bool | None = None,
+) -> _A: ...
+@overload
+def action(
+    target: Callable[..., Any],
+    /,
+    *,
+    name: str | None = None,
+    inputs: Mapping[str, ParamDecl] | None = None,
+    outputs: Mapping[str, ParamDecl] | None = None,
+    type: str = "sync",
+    blocking: bool | None = None,
+) -> type[Action]: ...
+@overload
+def action(
+    target: None = None,
+    /,
+    *,
+    name: str | None = None,
+    inputs: Mapping[str, ParamDecl] | None = None,
+    outputs: Mapping[str, ParamDecl] | None = None,
+    type: str = "sync",
+    blocking: bool | None = None,
+) -> ActionDecorator: ...
+
+
 def action(
     target: Any = None,
     /,
     *,
     name: str | None = None,
-    inputs: Mapping[str, ParamSpec] | None = None,
-    outputs: Mapping[str, ParamSpec] | None = None,
+    inputs: Mapping[str, ParamDecl] | None = None,
+    outputs: Mapping[str, ParamDecl] | None = None,
     type: str = "sync",  # noqa: A002 - the UMRF key's name
     blocking: bool | None = None,
 ) -> Any:
@@ -179,8 +226,8 @@ def action(
 def _describe(
     obj: Any,
     name: str | None,
-    inputs: Mapping[str, ParamSpec] | None,
-    outputs: Mapping[str, ParamSpec] | None,
+    inputs: Mapping[str, ParamDecl] | None,
+    outputs: Mapping[str, ParamDecl] | None,
     kind: str,
     blocking: bool | None,
 ) -> type[Action]:

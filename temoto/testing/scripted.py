@@ -24,7 +24,7 @@ from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
 from typing import Any, ClassVar
 
-from temoto.build import ParamSpec, action
+from temoto.build import ParamDecl, action
 from temoto.core.action import Action
 
 __all__ = ["Outcome", "Run", "Script", "ScriptedAction"]
@@ -89,8 +89,8 @@ class Script:
         self,
         name: str,
         *,
-        inputs: Mapping[str, ParamSpec] | None = None,
-        outputs: Mapping[str, ParamSpec] | None = None,
+        inputs: Mapping[str, ParamDecl] | None = None,
+        outputs: Mapping[str, ParamDecl] | None = None,
         type: str = "sync",  # noqa: A002 - the UMRF key's name
         default: Any = True,
         blocking: bool = True,
@@ -114,9 +114,7 @@ class Script:
         """
         namespace = {"script": self, "default": _outcome(default), "__qualname__": name}
         cls = type_of(name, namespace)
-        return action(  # type: ignore[no-any-return]
-            cls, inputs=inputs, outputs=outputs, type=type, blocking=blocking
-        )
+        return action(cls, inputs=inputs, outputs=outputs, type=type, blocking=blocking)
 
     def plan(self, node: str, *runs: Any) -> None:
         """Say what the next runs of a node do (after them, its action's default).
