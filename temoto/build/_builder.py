@@ -62,6 +62,8 @@ class GraphBuilder:
         self._nodes: dict[str, dict[str, Any]] = {}
         self._entry: list[dict[str, Any]] = []
         self._exit: list[dict[str, Any]] = []
+        self._used: dict[str, set[int]] = {}  # instance ids by action name
+        self._free: dict[str, int] = {}  # no free id below this, by action name
 
     def add(
         self,
@@ -94,12 +96,16 @@ class GraphBuilder:
             temoto.errors.ActionNotFoundError: A named action is not in the catalog.
         """
         umrf = self._description(target)
-        used = {int(key.rpartition("_")[2]) for key in self._nodes if _base(key) == umrf.name}
+        used = self._used.setdefault(umrf.name, set())
         if instance is None:
-            instance = next(i for i in range(len(used) + 1) if i not in used)
+            instance = self._free.get(umrf.name, 0)
+            while instance in used:
+                instance += 1
+            self._free[umrf.name] = instance + 1
         elif instance in used:
             raise ValueError(f"graph '{self.name}' already has a node {umrf.name}_{instance}")
         new = Node(umrf.name, instance)
+        used.add(instance)
         given = {**(values or {}), **more}
         params = dict(umrf.input_parameters)
         literals: dict[str, Any] = {}
@@ -234,10 +240,6 @@ class GraphBuilder:
                 )
             return found
         return description_of(target)
-
-
-def _base(full_name: str) -> str:
-    return full_name.rpartition("_")[0]
 
 
 def _copy(raw: dict[str, Any]) -> dict[str, Any]:
