@@ -30,6 +30,7 @@ from temoto.build import Param, action, description_of
 from temoto.core.graph import UmrfGraph
 from temoto.core.instrument import RecordingInstrument
 from temoto.errors import ActionError, GraphInputError, StateError
+from temoto.testing import Outcome, Run, Script
 
 WAIT = 10.0  # real seconds a graph may take before a test gives up
 
@@ -475,17 +476,13 @@ def test_stop_timeout_is_in_clock_seconds() -> None:
 
 
 def test_counter_loop_parameter_lifetime() -> None:
-    seen: list[dict[str, Any]] = []
-
-    @action(
+    script = Script()
+    inc_action = script.action(
+        "Inc",
         inputs={"count": float, "step": float, "extra": Param(str, required=False)},
         outputs={"count": float},
+        default=Outcome(outputs=lambda values: {"count": values["count"] + values["step"]}),
     )
-    class Inc(Action):
-        def on_run(self) -> bool:
-            seen.append(dict(self.inputs))
-            self.outputs["count"] = self.inputs.get_number("count") + self.inputs.get_number("step")
-            return True
 
     @action(inputs={"count": float, "limit": float}, outputs={"count": float})
     class AtLeast(Action):
@@ -495,19 +492,19 @@ def test_counter_loop_parameter_lifetime() -> None:
             return count >= self.inputs.get_number("limit")
 
     b = build.GraphBuilder("loop")
-    inc, check = b.add(Inc, step=1), b.add(AtLeast, limit=3)
+    inc, check = b.add(inc_action, step=1), b.add(AtLeast, limit=3)
     b.link(inc, check)
     b.link(check, inc, "on_true -> ignore", required=False)
     b.entry(inc)
     b.exit(check, "on_false -> ignore")
     g = b.build()
-    with engine_with(Inc, AtLeast) as (engine, rec):
+    with engine_with(inc_action, AtLeast) as (engine, rec):
         run = engine.start(g, {"count": 0, "extra": "first run only"})
         assert engine.wait(run, timeout=WAIT) is Result.TRUE
         assert rec.started(run) == ["Inc_0", "AtLeast_0"] * 3
         assert engine.outcome(run).outputs == {"count": 3.0}
         # received data is consumed by each run; literals stay
-        assert seen == [
+        assert [run.inputs for run in script.runs] == [
             {"count": 0.0, "step": 1.0, "extra": "first run only"},
             {"count": 1.0, "step": 1.0},
             {"count": 2.0, "step": 1.0},
@@ -547,7 +544,8 @@ def test_parent_value_replacing_a_literal_is_consumed() -> None:
 
 @pytest.mark.parametrize("state", ["charge", "navigate", "pickup"])
 def test_allowed_values_route_to_exactly_one_child(state: str) -> None:
-    got: list[tuple[str, str]] = []
+    script = Script()
+    handle = script.action("Handle", inputs={"state": str})
 
     @action(inputs={"choice": str}, outputs={"state": str})
     class Dispatch(Action):
@@ -555,24 +553,18 @@ def test_allowed_values_route_to_exactly_one_child(state: str) -> None:
             self.outputs["state"] = self.inputs.get_string("choice")
             return True
 
-    @action(inputs={"state": str})
-    class Handle(Action):
-        def on_run(self) -> bool:
-            got.append((self.name, self.inputs.get_string("state")))
-            return True
-
     targets = {"charge": "Handle_0", "navigate": "Handle_1", "pickup": "Handle_2"}
     b = build.GraphBuilder("route")
     dispatch = b.add(Dispatch, choice=state)
     b.entry(dispatch)
     for value in targets:
-        handler = b.add(Handle, state=Param(str, allowed=[value]))
+        handler = b.add(handle, state=Param(str, allowed=[value]))
         b.link(dispatch, handler)
         b.exit(handler, required=False)
     g = b.build()
-    with engine_with(Dispatch, Handle) as (engine, rec):
+    with engine_with(Dispatch, handle) as (engine, rec):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
-        assert got == [(targets[state], state)]
+        assert script.runs == [Run(targets[state], "route", {"state": state})]
         assert rec.started("route") == ["Dispatch_0", targets[state]]
 
 
@@ -620,18 +612,12 @@ def test_remap_renames_parent_output() -> None:
 
 
 def test_same_name_output_flows_without_remap() -> None:
-    seen: list[str] = []
-
-    @action(inputs={"out": str})
-    class Take(Action):
-        def on_run(self) -> bool:
-            seen.append(self.inputs.get_string("out"))
-            return True
-
-    g = build.graph(build.node(Emit, value="v"), Take, name="same")
-    with engine_with(Take) as (engine, _):
+    script = Script()
+    take = script.action("Take", inputs={"out": str})
+    g = build.graph(build.node(Emit, value="v"), take, name="same")
+    with engine_with(take) as (engine, _):
         assert engine.run(g, timeout=WAIT).result is Result.TRUE
-        assert seen == ["v"]
+        assert script.inputs("Take_0") == {"out": "v"}
 
 
 # ================================================================ spontaneous actions
