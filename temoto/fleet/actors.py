@@ -70,17 +70,17 @@ import re
 import secrets
 import struct
 import threading
-import time
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any, Final, final
 
+from temoto.clock import Clock
 from temoto.core.remote import ActorLostError, Cancel, RemoteResult
 from temoto.core.states import Result
 from temoto.errors import FleetError, StateError, TransportError
-from temoto.fleet._common import Closing, check_name, check_seconds, decode_or_count, new
+from temoto.fleet.common import Closing, check_name, check_seconds, new
+from temoto.fleet.service import ServiceCore
 from temoto.lcm_types import action_ack_t, action_notification_t, handshake_t
-from temoto.transport import codec
 from temoto.transport.auth import FleetLink, Opened
 from temoto.transport.base import Subscription
 
@@ -341,8 +341,9 @@ class FleetActorLink(Closing):
             of it.
         linger_s: On close, how long to keep answering (and repeating END) after runs that
             just finished here (0: close at once).
-        clock: Monotonic clock in seconds (deadlines, silences).
-        wall_clock: Seconds since the epoch (handshake stamps, notification ids).
+        clock: Where time is read: monotonic seconds (deadlines, silences) and the epoch
+            seconds of handshake stamps and notification ids (default:
+            :class:`~temoto.clock.MonotonicClock`).
 
     Attributes:
         resend_s: Period of handshake and notification resends.
@@ -355,6 +356,7 @@ class FleetActorLink(Closing):
 
     Raises:
         ValueError: If ``actor`` is empty or a duration is not a positive number.
+        TypeError: If ``clock`` is not a :class:`~temoto.clock.Clock`.
         TransportError: If the link's transport is closed.
     """
 
@@ -368,9 +370,9 @@ class FleetActorLink(Closing):
         grace_s: float = 5.0,
         stray_s: float = 60.0,
         linger_s: float = 0.3,
-        clock: Callable[[], float] = time.monotonic,
-        wall_clock: Callable[[], float] = time.time,
+        clock: Clock | None = None,
     ) -> None:
+        self._core = core = ServiceCore(link, STATS, clock)
         self._link = link
         self._actor = check_name("actor", actor)
         self.resend_s = check_seconds("resend_s", resend_s)
@@ -379,14 +381,11 @@ class FleetActorLink(Closing):
         self.stray_s = check_seconds("stray_s", stray_s)
         self.linger_s = check_seconds("linger_s", linger_s, zero=True)
         self.heartbeat_s = min(5 * self.resend_s, self.silence_s / 3)
-        self._clock = clock
-        self._wall_clock = wall_clock
-        self._lock = threading.Lock()
-        self._changed = threading.Condition(self._lock)  # handshake() and notify() wait on it
-        self._timer_wake = threading.Condition(self._lock)
-        self._calls_ready = threading.Condition(self._lock)
+        self._lock = core.lock
+        self._changed = core.condition()  # handshake() and notify() wait on it
+        self._timer_wake = core.condition()
+        self._calls_ready = core.condition()
         # All below guarded by _lock.
-        self._closed = False
         self._runs: dict[_SessionKey, _Run] = {}
         self._ended: dict[_SessionKey, _Ended] = {}
         self._outgoing: dict[str, _Outgoing] = {}
@@ -394,9 +393,8 @@ class FleetActorLink(Closing):
         self._heard_at: dict[str, float] = {}  # actor -> our clock when last heard (anything)
         self._left: set[str] = set()  # actors that left the fleet and were not heard since
         self._calls: collections.deque[Callable[[], None]] = collections.deque()
-        self._counts = dict.fromkeys(STATS, 0)
         self._ids = itertools.count(1)
-        self._boot = f"{round(wall_clock() * 1000):x}"  # keeps ids unique across restarts
+        self._boot = f"{round(core.wall() * 1000):x}"  # keeps ids unique across restarts
         self._last_stamp = 0
         self._next_heartbeat = 0.0
         self._next_warning = 0.0
@@ -422,7 +420,7 @@ class FleetActorLink(Closing):
         self._caller.start()
 
     def __repr__(self) -> str:
-        state = "closed" if self._closed else "open"
+        state = "closed" if self._core.closed else "open"
         return f"<FleetActorLink actor={self._actor!r} {state} on {self._link!r}>"
 
     # --- ActorLink ----------------------------------------------------------------------------
@@ -435,8 +433,7 @@ class FleetActorLink(Closing):
     @property
     def stats(self) -> dict[str, int]:
         """A copy of the counters, one per name in :data:`STATS`."""
-        with self._lock:
-            return dict(self._counts)
+        return self._core.stats()
 
     def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> str:
         """Block until every pair of ``actors`` has heard each other in this run.
@@ -475,7 +472,7 @@ class FleetActorLink(Closing):
         key = (graph, session)
         with self._lock:
             self._check_open()
-            now = self._clock()
+            now = self._core.now()
             run = self._runs.get(key)
             if run is not None and run.phase is _Phase.JOINING:
                 raise StateError(f"a handshake of graph '{graph}' session '{session}' is running")
@@ -508,7 +505,7 @@ class FleetActorLink(Closing):
         try:
             while ready is None:
                 self._send(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
-                run.last_join = self._clock()
+                run.last_join = self._core.now()
                 run.joins += 1
                 next_send = run.last_join + period
                 with self._lock:
@@ -521,10 +518,10 @@ class FleetActorLink(Closing):
                             self._agree(run)
                             ready = self._ready_msg(run)
                             # READY goes out now: the next heartbeat can wait a period
-                            self._next_heartbeat = self._clock() + self.heartbeat_s
+                            self._next_heartbeat = self._core.now() + self.heartbeat_s
                             self._timer_wake.notify()
                             break
-                        now = self._clock()
+                        now = self._core.now()
                         if now >= deadline:
                             raise FleetError(
                                 f"handshake of graph '{graph}' session '{session}' with "
@@ -543,7 +540,7 @@ class FleetActorLink(Closing):
                             msg = self._join_msg(run)
                             break
                         wake = min(next_send, deadline, math.inf if answer is None else answer)
-                        self._changed.wait(wake - now)
+                        self._core.wait(self._changed, wake - now)
         except BaseException:
             self._give_up(run)
             raise
@@ -603,7 +600,7 @@ class FleetActorLink(Closing):
             if run is not None:
                 others -= set(run.ended_peers)  # finished there: they need nothing more
                 left = run.left_peers
-            gone = sorted(a for a in others if a in left or self._gone(a, self._clock()))
+            gone = sorted(a for a in others if a in left or self._gone(a, self._core.now()))
         if gone:
             why = "left" if gone[0] in left else self._why_gone(gone[0])
             raise ActorLostError(
@@ -621,19 +618,19 @@ class FleetActorLink(Closing):
             self._check_open()
             serial = f"{self._boot}.{next(self._ids)}"
             msg.notification_id = f"{self._actor}/{graph}/{session}/{action}/{serial}"
-            out = _Outgoing(key, set(others), self._clock())
+            out = _Outgoing(key, set(others), self._core.now())
             self._outgoing[msg.notification_id] = out
             self._timer_wake.notify()  # it watches the silence of the actors waited for
-        deadline = self._clock() + timeout
+        deadline = self._core.now() + timeout
         period = self.resend_s  # doubles with every copy (to _MAX_BACKOFF * resend_s)
         waiting = len(out.waiting)
         try:
             while True:
                 self._send(NOTIFY_CHANNEL, msg, "notifications_sent")
-                next_send = self._clock() + period
+                next_send = self._core.now() + period
                 with self._lock:
                     while out.waiting:
-                        if self._closed:
+                        if self._core.closed:
                             raise FleetError("the fleet link is closed")
                         if out.aborted is not None:
                             text = (
@@ -644,7 +641,7 @@ class FleetActorLink(Closing):
                             if out.lost is not None:
                                 raise ActorLostError(text, actor=out.lost[0], why=out.lost[1])
                             raise FleetError(text)
-                        now = self._clock()
+                        now = self._core.now()
                         if now >= deadline:
                             raise FleetError(
                                 f"{action} ({result.value}) of graph '{graph}' session "
@@ -662,7 +659,7 @@ class FleetActorLink(Closing):
                             # a period without any acknowledgement: send again, later next time
                             period = min(period * 2, _MAX_BACKOFF * self.resend_s)
                             break
-                        self._changed.wait(min(next_send, deadline) - now)
+                        self._core.wait(self._changed, min(next_send, deadline) - now)
                     else:
                         return
         finally:
@@ -698,7 +695,7 @@ class FleetActorLink(Closing):
             self._check_open()
             run = self._runs.get(key)
             if run is None:
-                run = self._new_run(key, self._clock())
+                run = self._new_run(key, self._core.now())
             run.local = True
             waiter = _Waiter(run, node, on_result)
             pending = run.pending.get(node)
@@ -762,7 +759,7 @@ class FleetActorLink(Closing):
         with self._lock:
             self._check_open()
             run = self._runs.get(key) if key is not None else None
-            watch = _Watch(names, on_lost, self._clock(), key, on_end, on_abort)
+            watch = _Watch(names, on_lost, self._core.now(), key, on_end, on_abort)
             self._watches.append(watch)
             if run is not None:
                 for actor, result in sorted(run.ended_peers.items()):
@@ -812,7 +809,7 @@ class FleetActorLink(Closing):
         leave = None
         decision: tuple[int, str, str] | None = None
         with self._lock:
-            now = self._clock()
+            now = self._core.now()
             run = self._runs.pop(key, None)
             if run is not None:
                 for other in ((run.graph, run.session), (run.graph, run.run_id)):
@@ -827,7 +824,7 @@ class FleetActorLink(Closing):
                 elif result is not None:
                     ended.decision = (_END, result.value, "")
                 ended.decided, ended.next_repeat = now, now + self.resend_s
-                if not self._closed:
+                if not self._core.closed:
                     leave = self._decision_msg(ended.out_key or key, ended.actors, ended.decision)
             finished = run is not None and not gave_up and run.phase is _Phase.READY
             if run is not None and (gave_up or finished):
@@ -835,7 +832,7 @@ class FleetActorLink(Closing):
                     decision = (_LEAVE, "", reason)
                 else:
                     decision = (_END, "" if result is None else result.value, "")
-                if not self._closed:
+                if not self._core.closed:
                     leave = self._decision_msg(key, run.actors, decision)
             if run is not None:
                 for waiters in run.waiters.values():
@@ -871,9 +868,9 @@ class FleetActorLink(Closing):
         """
         self._linger()
         with self._lock:
-            if self._closed:
+            if self._core.closed:
                 return
-            self._closed = True
+            self._core.closed = True
             active = [r for r in self._distinct_runs() if r.local and r.phase is not _Phase.KEPT]
             leaves = [self._leave_msg(r.graph, r.session, r.actors) for r in active]
             self._calls.clear()
@@ -895,9 +892,9 @@ class FleetActorLink(Closing):
         acknowledgement that may have been lost) is not left resending to nobody.
         """
         with self._lock:
-            if self._closed:
+            if self._core.closed:
                 return
-            now = self._clock()
+            now = self._core.now()
             ends = [
                 self._decision_msg(key, e.actors, e.decision)
                 for key, e in self._ended.items()
@@ -905,21 +902,21 @@ class FleetActorLink(Closing):
             ]
         if not ends or self.linger_s <= 0:
             return
-        deadline = time.monotonic() + self.linger_s
+        deadline = self._core.now() + self.linger_s
         while True:
             for msg in ends:
                 self._send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
-            remaining = deadline - time.monotonic()
+            remaining = deadline - self._core.now()
             if remaining <= 0:
                 return
             with self._lock:
-                self._changed.wait(min(self.resend_s, remaining))
+                self._core.wait(self._changed, min(self.resend_s, remaining))
 
     # --- receiving (the transport's thread) ---------------------------------------------------
 
     def _decode(self, opened: Opened, types: tuple[str, ...]) -> Any:
         """The inner message, or None (counted) if it cannot be decoded or is not expected."""
-        return decode_or_count(opened, types, self._counts, self._lock)
+        return self._core.decode(opened, types)
 
     def _on_handshake(self, opened: Opened) -> None:
         msg = self._decode(opened, ("handshake_t",))
@@ -927,13 +924,13 @@ class FleetActorLink(Closing):
             return
         actor: str = msg.actor
         with self._lock:
-            if self._closed:
+            if self._core.closed:
                 return
             if not actor or actor == self._actor or msg.phase not in _PHASES:
-                self._counts["unexpected"] += 1
+                self._core.count("unexpected")
                 return
-            self._counts["handshakes_received"] += 1
-            now = self._clock()
+            self._core.count("handshakes_received")
+            now = self._core.now()
             self._heard_at[actor] = now
             if msg.phase == _LEAVE:
                 self._on_leave(actor, msg.graph, msg.session, msg.reason)
@@ -976,7 +973,7 @@ class FleetActorLink(Closing):
             return reply  # a heartbeat: liveness only; the peer's full READY still stands
         raw: bytes = msg.heard
         if len(raw) % 8:
-            self._counts["unexpected"] += 1  # not whole stamps
+            self._core.count("unexpected")  # not whole stamps
             return reply
         run.touched = now
         peer = run.peers.get(actor)
@@ -1021,7 +1018,7 @@ class FleetActorLink(Closing):
         else:
             run = self._runs.get((graph, session))
             if run is None and reason and (graph, session) not in self._ended:
-                run = self._new_run((graph, session), self._clock())  # kept for a later watch
+                run = self._new_run((graph, session), self._core.now())  # kept for a later watch
             runs = [] if run is None else [run]
         lost = fleet
         for run in runs:
@@ -1053,7 +1050,7 @@ class FleetActorLink(Closing):
         """A peer's run finished: stop waiting for it in that run, take its result. Lock held."""
         run = self._runs.get(key)
         if run is None and key not in self._ended:
-            run = self._new_run(key, self._clock())  # kept for a watch of a run not started yet
+            run = self._new_run(key, self._core.now())  # kept for a watch of a run not started yet
         if run is not None:
             run.ended_peers.setdefault(actor, result)
         for out in self._outgoing.values():
@@ -1096,7 +1093,7 @@ class FleetActorLink(Closing):
         if not watch.active or (actor, reason) in watch.aborts:
             return
         watch.aborts.add((actor, reason))
-        self._counts["lost"] += 1
+        self._core.count("lost")
 
         def call() -> None:
             with self._lock:
@@ -1125,10 +1122,10 @@ class FleetActorLink(Closing):
             return
         actor: str = msg.actor
         with self._lock:
-            if self._closed or not actor or actor == self._actor:
+            if self._core.closed or not actor or actor == self._actor:
                 return
-            self._counts["acks_received"] += 1
-            self._heard_at[actor] = self._clock()
+            self._core.count("acks_received")
+            self._heard_at[actor] = self._core.now()
             out = self._outgoing.get(msg.notification_id)
             if out is not None and actor in out.waiting:
                 out.waiting.discard(actor)
@@ -1141,12 +1138,12 @@ class FleetActorLink(Closing):
             return
         actor: str = msg.actor
         with self._lock:
-            if self._closed:
+            if self._core.closed:
                 return
             if not actor or actor == self._actor or not msg.notification_id:
-                self._counts["unexpected"] += 1
+                self._core.count("unexpected")
                 return
-            self._counts["notifications_received"] += 1
+            self._core.count("notifications_received")
             # Taken (its delivery queued) before the acknowledgement leaves: the sender's END,
             # which may follow the acknowledgement at once, is then handled after it.
             self._take(msg)
@@ -1157,16 +1154,16 @@ class FleetActorLink(Closing):
 
     def _take(self, msg: Any) -> None:
         """Store or deliver a notification unless it is a duplicate. Lock held."""
-        if self._closed:
+        if self._core.closed:
             return
-        now = self._clock()
+        now = self._core.now()
         self._heard_at[msg.actor] = now
         key: _SessionKey = (msg.graph, msg.session)
         nid: str = msg.notification_id
         ended = self._ended.get(key)
         run = self._runs.get(key)
         if (run is not None and nid in run.seen) or (ended is not None and nid in ended.seen):
-            self._counts["duplicates"] += 1
+            self._core.count("duplicates")
             return
         if run is None:
             run = self._new_run(key, now)
@@ -1201,9 +1198,9 @@ class FleetActorLink(Closing):
         """Heartbeats, silence checks, expiry of kept state."""
         while True:
             with self._lock:
-                if self._closed:
+                if self._core.closed:
                     return
-                now = self._clock()
+                now = self._core.now()
                 wake = math.inf
                 ready = [r for r in self._distinct_runs() if r.local and r.phase is _Phase.READY]
                 graced = any(e.heard is not None for e in self._ended.values())
@@ -1225,7 +1222,9 @@ class FleetActorLink(Closing):
                 msgs += repeats
                 wake = min(wake, due)
                 if not msgs:
-                    self._timer_wake.wait(None if wake == math.inf else max(0.0, wake - now))
+                    self._core.wait(
+                        self._timer_wake, None if wake == math.inf else max(0.0, wake - now)
+                    )
                     continue
             for msg in msgs:
                 self._send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
@@ -1298,22 +1297,22 @@ class FleetActorLink(Closing):
         """Run the callbacks, in order."""
         while True:
             with self._lock:
-                while not self._calls and not self._closed:
+                while not self._calls and not self._core.closed:
                     self._calls_ready.wait()
-                if self._closed:
+                if self._core.closed:
                     return
                 call = self._calls.popleft()
             try:
                 call()
             except Exception:
                 with self._lock:
-                    self._counts["callback_errors"] += 1
+                    self._core.count("callback_errors")
                 logger.exception("actor %r: a fleet callback raised", self._actor)
 
     # --- internals (lock held unless said otherwise) ------------------------------------------
 
     def _check_open(self) -> None:
-        if self._closed:
+        if self._core.closed:
             raise FleetError("the fleet link is closed")
 
     def _check_joining(self, run: _Run) -> None:
@@ -1438,8 +1437,12 @@ class FleetActorLink(Closing):
                 return
             del self._runs[key]
             if run.seen:
-                self._ended[key] = _Ended(run.actors, None, run.seen, self._clock() + self.grace_s)
-            leave = None if self._closed else self._leave_msg(run.graph, run.session, run.actors)
+                self._ended[key] = _Ended(
+                    run.actors, None, run.seen, self._core.now() + self.grace_s
+                )
+            leave = (
+                None if self._core.closed else self._leave_msg(run.graph, run.session, run.actors)
+            )
         if leave is not None:
             self._send_quietly(HANDSHAKE_CHANNEL, leave, "handshakes_sent")
 
@@ -1477,7 +1480,7 @@ class FleetActorLink(Closing):
         if not watch.active or actor not in watch.actors or actor in watch.reported:
             return
         watch.reported.add(actor)
-        self._counts["lost"] += 1
+        self._core.count("lost")
 
         def call() -> None:
             with self._lock:
@@ -1490,7 +1493,7 @@ class FleetActorLink(Closing):
 
     def _stamp(self) -> int:
         """A handshake stamp: the wall clock in microseconds, strictly increasing."""
-        self._last_stamp = max(self._last_stamp + 1, round(self._wall_clock() * 1e6))
+        self._last_stamp = max(self._last_stamp + 1, round(self._core.wall() * 1e6))
         return self._last_stamp
 
     def _handshake_msg(
@@ -1593,23 +1596,18 @@ class FleetActorLink(Closing):
     def _send(self, channel: str, msg: Any, counter: str) -> None:
         """Not locked: encode and send; FleetError if it cannot be sent."""
         try:
-            name, payload = codec.encode(msg)
-            self._link.send(channel, name, payload)
+            self._core.send(channel, msg, counter)
         except (TransportError, ValueError) as err:
-            with self._lock:
-                self._counts["send_errors"] += 1
             raise FleetError(f"cannot send on {channel}: {err}") from err
-        with self._lock:
-            self._counts[counter] += 1
 
     def _send_quietly(self, channel: str, msg: Any, counter: str) -> None:
         """Not locked: send from the link's threads; a failure is counted and logged."""
         try:
             self._send(channel, msg, counter)
         except FleetError as err:
-            now = self._clock()
+            now = self._core.now()
             with self._lock:
-                warn = now >= self._next_warning and not self._closed
+                warn = now >= self._next_warning and not self._core.closed
                 if warn:
                     self._next_warning = now + _WARN_INTERVAL_S
             if warn:
