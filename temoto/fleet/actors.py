@@ -66,6 +66,7 @@ and the tables of runs): :mod:`temoto.fleet._handshake`, :mod:`temoto.fleet._not
 from __future__ import annotations
 
 import threading
+import time
 from collections.abc import Callable, Mapping, Sequence
 from typing import Any, Final, final
 
@@ -494,15 +495,16 @@ class FleetActorLink(Closing):
             ]
         if not ends or self.linger_s <= 0:
             return
-        deadline = self._core.now() + self.linger_s
+        # Real time, not the link's clock: closing must not wait for a virtual clock to move.
+        deadline = time.monotonic() + self.linger_s
         while True:
             for msg in ends:
                 self._st.send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
-            remaining = deadline - self._core.now()
+            remaining = deadline - time.monotonic()
             if remaining <= 0:
                 return
             with self._lock:
-                self._core.wait(self._changed, min(self.resend_s, remaining))
+                self._changed.wait(min(self.resend_s, remaining))
 
     # --- receiving (the transport's thread) ---------------------------------------------------
 

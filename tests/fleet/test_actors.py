@@ -811,6 +811,19 @@ def test_a_handshake_times_out_on_the_injected_clock(fleet: Fleet) -> None:
     assert "timed out after 60 s" in str(errors[0])
 
 
+def test_close_lingers_in_real_time_on_a_manual_clock(fleet: Fleet) -> None:
+    a = fleet.link("A", clock=ManualClock())
+    b = fleet.link("B")
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    a.end("g", "s1")  # a run that just finished: close() repeats its END for linger_s
+    closing = threading.Thread(target=a.close, name="test-close")
+    t0 = time.monotonic()
+    closing.start()
+    closing.join(WAIT_S)  # the virtual clock never moves: close must not wait for it
+    assert not closing.is_alive()
+    assert time.monotonic() - t0 >= 0.25
+
+
 def test_a_plain_function_is_refused_as_a_clock(fleet: Fleet) -> None:
     with pytest.raises(TypeError, match=r"temoto\.clock\.Clock.*MonotonicClock"):
         FleetActorLink(fleet.fleet_link("A"), "A", clock=time.monotonic)  # type: ignore[arg-type]
