@@ -2,7 +2,9 @@
 
 Kept apart from :mod:`temoto.cli` (which owns the parser, logging and exit codes) so that a
 local ``temoto run`` imports none of the fleet stack. Like :mod:`temoto.cli`, this module
-prints; nothing else in the package does.
+prints; nothing else in the package does. The handling of signals lives in
+:mod:`temoto._cli_signals`; its names are re-exported here for the commands that import them
+from this module.
 """
 
 from __future__ import annotations
@@ -14,11 +16,12 @@ import signal
 import sys
 import threading
 import time
-from collections.abc import Callable, Iterator
-from contextlib import contextmanager, suppress
+from collections.abc import Iterator
+from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, Any, NamedTuple
 
+from temoto._cli_signals import Interrupted, SignalExit, make_devices_safe
 from temoto.errors import ConfigError, GraphInputError
 
 __all__ = [
@@ -44,125 +47,6 @@ DEFAULT_FLEET_URL = "udpm://239.255.76.67:7667?ttl=1"
 
 EXIT_OK = 0
 EXIT_FAILED = 1
-
-
-# ===================================================================================== signals
-
-
-class Interrupted(KeyboardInterrupt):
-    """Raised in the main thread by the first SIGINT or SIGTERM (see :class:`SignalExit`).
-
-    A :class:`KeyboardInterrupt`, so code that already cleans up on Ctrl-C does the same on
-    SIGTERM.
-
-    Args:
-        signum: The signal.
-    """
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signal.Signals(signum).name)
-        self.signum = signum
-
-
-class SignalExit:
-    """How a command reacts to SIGINT and SIGTERM (ARCHITECTURE.md §8 "Signals").
-
-    Use it as a context manager around the command (main thread only); the previous handlers
-    are restored at the end.
-
-    * The **first** signal sets :attr:`stop` and, if ``raise_first`` (and :attr:`raising`
-      is still true), raises :class:`Interrupted` in the main thread; otherwise the command
-      watches :attr:`stop`.
-    * A **second** signal (and any later one) sets :attr:`hurried`, calls the ``hurry``
-      callbacks (by default :func:`temoto.managers.process.hurry_all`: process stops skip
-      their grace period) and never raises, so that the clean-up it interrupts still runs.
-
-    Args:
-        raise_first: Raise :class:`Interrupted` on the first signal.
-        hurry: Callbacks for the second signal (must be safe in a signal handler).
-        first: Callbacks for the first signal, with its number (must be safe in a signal
-            handler: start a thread, set a flag), called before anything is raised.
-    """
-
-    def __init__(
-        self,
-        *,
-        raise_first: bool = False,
-        hurry: tuple[Callable[[], None], ...] | None = None,
-        first: tuple[Callable[[int], None], ...] = (),
-    ) -> None:
-        self.raise_first = raise_first
-        self._first = first
-        self.raising = raise_first
-        self.signum: int | None = None
-        self.count = 0
-        self.stop = threading.Event()
-        self.hurried = threading.Event()
-        self._hurry = hurry
-        self._previous: dict[int, Any] = {}
-
-    @property
-    def exit_code(self) -> int | None:
-        """128 + the first signal's number (130 for SIGINT, 143 for SIGTERM), or None."""
-        return None if self.signum is None else 128 + self.signum
-
-    def __enter__(self) -> SignalExit:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            self._previous[signum] = signal.signal(signum, self._handle)
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
-
-    def _handle(self, signum: int, frame: object) -> None:
-        self.count += 1
-        name = signal.Signals(signum).name
-        if self.signum is None:
-            self.signum = signum
-            self.stop.set()
-            # os.write, not sys.stderr: the main thread may be inside a write to sys.stderr.
-            _say(f"temoto: {name}: stopping (a second signal stops at once)\n")
-            for at_first in self._first:
-                at_first(signum)
-            if self.raising:
-                self.raising = False
-                raise Interrupted(signum)
-            return
-        if not self.hurried.is_set():
-            _say(f"temoto: {name} again: stopping at once\n")
-        self.hurried.set()
-        for callback in self._hurry if self._hurry is not None else _default_hurry():
-            callback()
-
-
-def _say(text: str) -> None:
-    """Write to standard error from a signal handler (one ``os.write``, errors ignored)."""
-    with suppress(OSError):
-        os.write(2, text.encode())
-
-
-def _default_hurry() -> tuple[Callable[[], None], ...]:
-    from temoto.managers.process import hurry_all
-
-    return (hurry_all,)
-
-
-def make_devices_safe(reason: str) -> None:
-    """Put every device driven by this process in its safe state (``make_all_safe``).
-
-    Drivers exist only if :mod:`temoto.drivers.base` was imported; it is not imported here
-    (that would cost 0.1 s for a command that has no devices). One line per device goes to
-    standard error.
-
-    Args:
-        reason: Why (for the log).
-    """
-    base = sys.modules.get("temoto.drivers.base")
-    if base is None:
-        return
-    for driver, what in base.make_all_safe(reason):
-        sys.stderr.write(f"temoto: {driver.name}: {what}\n")
 
 
 def add_fleet_options(parser: argparse.ArgumentParser, description: str) -> None:
@@ -591,7 +475,6 @@ def _targets(p: argparse.ArgumentParser, *, required: bool = True) -> None:
 
 
 def _sender() -> str:
-    import os
     import socket
 
     return f"cli-{socket.gethostname()}-{os.getpid()}"

@@ -14,6 +14,10 @@ what lies outside one engine; ``temoto.core`` never imports it.
   another robot serves through a local ``"remote"`` server and serves the requests of others
   (:data:`RESOURCE_CHANNEL`); see ``docs/ris.md``.
 * :mod:`temoto.fleet.control`: remote graph commands and feedback (``temoto graph ...``).
+* :mod:`temoto.fleet.service`: :class:`~temoto.fleet.service.ServiceCore`, the lock,
+  counters, sending and clock that the parts of one service share (each service takes a
+  :class:`temoto.clock.Clock`); :mod:`temoto.fleet.common`: helpers for code that speaks on
+  the fleet link (message construction and decoding, argument checks, a call queue).
 
 Importing this package opens nothing, starts no thread and does not import the ``lcm`` wheel.
 """

@@ -1,191 +1,23 @@
-"""Helpers shared by the fleet modules: message construction, argument checks, a call queue.
-
-Private to :mod:`temoto.fleet`; nothing here is public API.
-"""
+"""Deprecated alias of :mod:`temoto.fleet.common`, kept while the managers move to it."""
 
 from __future__ import annotations
 
-import collections
-import logging
-import math
-import threading
-from collections.abc import Callable, Collection
-from typing import Any
+from temoto.fleet.common import (
+    CallQueue,
+    Closing,
+    check_clock,
+    check_name,
+    check_seconds,
+    decode_or_count,
+    new,
+)
 
-from temoto._closing import Closing
-from temoto.errors import DecodeError
-from temoto.transport import codec
-from temoto.transport.auth import Opened
-
-__all__ = ["CallQueue", "Closing", "check_name", "check_seconds", "decode_or_count", "new"]
-
-logger = logging.getLogger(__name__)
-
-# (sender, type, version) already warned about: a peer of another release is named once, not
-# once per message. Bounded: past this many, further ones are logged at DEBUG only.
-_VERSION_WARNED: set[tuple[str, str, int]] = set()
-_VERSION_WARNED_MAX = 256
-_version_lock = threading.Lock()
-
-
-def new(cls: type[Any]) -> Any:
-    """An empty message of a generated (untyped) LCM class.
-
-    Args:
-        cls: The generated class.
-
-    Returns:
-        A new instance with default field values.
-    """
-    return cls()
-
-
-def check_name(what: str, value: object) -> str:
-    """Check a non-empty string argument.
-
-    Args:
-        what: The argument's description, for the error.
-        value: The value.
-
-    Returns:
-        The value.
-
-    Raises:
-        ValueError: If it is not a non-empty string.
-    """
-    if not isinstance(value, str) or not value:
-        raise ValueError(f"{what} must be a non-empty string, got {value!r}")
-    return value
-
-
-def check_seconds(what: str, value: float, *, zero: bool = False) -> float:
-    """Check a duration argument.
-
-    Args:
-        what: The argument's description, for the error.
-        value: Seconds.
-        zero: Whether 0 is allowed.
-
-    Returns:
-        The value as a float.
-
-    Raises:
-        ValueError: If it is not a finite number, is negative, or is 0 when not allowed.
-    """
-    ok = isinstance(value, int | float) and not isinstance(value, bool) and math.isfinite(value)
-    if not ok or value < 0 or (value == 0 and not zero):
-        raise ValueError(f"{what} must be a {'' if zero else 'positive '}number of seconds")
-    return float(value)
-
-
-class CallQueue:
-    """Runs callables one at a time, in order, on one named thread.
-
-    Used so that user callbacks and registrar calls never run on a transport's receive thread
-    (a slow one would delay every message behind it). What a call raises is logged and
-    counted in :attr:`errors`; it never stops the thread.
-
-    Args:
-        name: The thread's name.
-        what: Describes the calls in log lines.
-    """
-
-    def __init__(self, name: str, what: str) -> None:
-        self._what = what
-        self._cond = threading.Condition()
-        self._calls: collections.deque[Callable[[], None]] = collections.deque()
-        self._closed = False
-        self.errors = 0
-        self._thread = threading.Thread(target=self._run, name=name, daemon=True)
-        self._thread.start()
-
-    def put(self, call: Callable[[], None]) -> bool:
-        """Queue a call.
-
-        Args:
-            call: Runs on the queue's thread.
-
-        Returns:
-            False if the queue is closed (the call is dropped).
-        """
-        with self._cond:
-            if self._closed:
-                return False
-            self._calls.append(call)
-            self._cond.notify()
-            return True
-
-    def close(self, *, drain: bool = False) -> None:
-        """Stop the thread and join it (unless called from it). Idempotent.
-
-        Args:
-            drain: Run the calls already queued before stopping (else they are dropped).
-        """
-        with self._cond:
-            self._closed = True
-            if not drain:
-                self._calls.clear()
-            self._cond.notify()
-        if self._thread is not threading.current_thread():
-            self._thread.join()
-
-    def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._calls and not self._closed:
-                    self._cond.wait()
-                if not self._calls:
-                    return
-                call = self._calls.popleft()
-            try:
-                call()
-            except Exception:
-                with self._cond:
-                    self.errors += 1
-                logger.exception("%s raised", self._what)
-
-
-def decode_or_count(
-    opened: Opened, expected: Collection[str], counts: dict[str, int], lock: threading.Lock
-) -> Any:
-    """The inner message of an envelope, or None (counted) if it is undecodable or unexpected.
-
-    A message of a version this build does not speak (a peer of another release) is logged
-    at WARNING, once per sender, type and version; other drops at DEBUG.
-
-    Args:
-        opened: The authenticated envelope.
-        expected: The type names this channel carries.
-        counts: The service's counters (``decode_errors``, ``unexpected``).
-        lock: Guards ``counts``.
-
-    Returns:
-        The decoded message, or None.
-    """
-    try:
-        msg = codec.decode(opened.type, opened.payload)
-    except DecodeError as err:
-        with lock:
-            counts["decode_errors"] += 1
-        if isinstance(err, codec.UnsupportedVersion):
-            key = (opened.sender, opened.type, err.version)
-            with _version_lock:
-                first = key not in _VERSION_WARNED and len(_VERSION_WARNED) < _VERSION_WARNED_MAX
-                if first:
-                    _VERSION_WARNED.add(key)
-            if first:
-                logger.warning(
-                    "dropping the messages of %r on %r: %s (this warning once per sender)",
-                    opened.sender,
-                    opened.channel,
-                    err,
-                )
-                return None
-        logger.debug("dropped a message from %r on %r: %s", opened.sender, opened.channel, err)
-        return None
-    if opened.type not in expected:
-        with lock:
-            counts["unexpected"] += 1
-        logger.debug("dropped a %s from %r on %r", opened.type, opened.sender, opened.channel)
-        return None
-    return msg
+__all__ = [
+    "CallQueue",
+    "Closing",
+    "check_clock",
+    "check_name",
+    "check_seconds",
+    "decode_or_count",
+    "new",
+]

@@ -1,7 +1,10 @@
 """The provider side of remote resources: serving other robots' requests with the registrar.
 
-Private to :mod:`temoto.fleet.resources`, whose :class:`~temoto.fleet.resources.RemoteResources`
-owns one :class:`Provider` and shares its lock, counters, sender and worker pool with it.
+Private to :mod:`temoto.fleet.resources`. Its :class:`~temoto.fleet.resources.RemoteResources`
+owns one :class:`Provider` and one :class:`~temoto.fleet._consumer.Consumer`; the two share the
+service's :class:`~temoto.fleet.service.ServiceCore` (lock, counters, clock) and nothing else:
+the provider is handed the functions that send on the resource channel and run a job on the
+service's worker pool.
 """
 
 from __future__ import annotations
@@ -16,31 +19,19 @@ from typing import TYPE_CHECKING, Any
 
 from temoto.core.registrar.messages import StatusUpdate, canonical_json, from_plain
 from temoto.errors import ResourceError
-from temoto.fleet._common import new
-from temoto.fleet.resource_types import ERROR, MEMORY, OK, STATUS_CODES, records_json
+from temoto.fleet.common import new
+from temoto.fleet.resource_types import ERROR, OK, STATUS_CODES, records_json, remember
 from temoto.fleet.ris import REMOTE_SERVER
 from temoto.lcm_types import resource_reply_t, resource_status_t
 
 if TYPE_CHECKING:
-    from temoto.fleet.resources import RemoteResources
-    from temoto.fleet.ris import RobotInfo
+    from temoto.core.registrar import Registrar
+    from temoto.fleet.ris import ResourceInfoSync, RobotInfo
+    from temoto.fleet.service import ServiceCore
 
-__all__ = ["Provider", "remember"]
+__all__ = ["Provider"]
 
 logger = logging.getLogger(__name__)
-
-
-def remember(memory: collections.OrderedDict[str, Any], key: str, value: Any) -> None:
-    """Add to a bounded memory, forgetting the oldest entry beyond :data:`MEMORY`.
-
-    Args:
-        memory: The memory.
-        key: The key.
-        value: The value.
-    """
-    memory[key] = value
-    if len(memory) > MEMORY:
-        memory.popitem(last=False)
 
 
 @dataclass(slots=True, eq=False)
@@ -63,19 +54,36 @@ class _Held:
 class Provider:
     """Serves ``resource_request_t`` and ``resource_release_t`` addressed to this manager.
 
-    Requests are served on the owner's worker pool (a load may block); a resent request gets
-    the remembered reply; status updates of the references go to their consumers; references
-    of a consumer robot that is lost, or that the RIS never heard of for ``missed`` periods,
-    are released. Everything is guarded by the owner's lock.
+    Requests are served on the service's worker pool (a load may block); a resent request
+    gets the remembered reply; status updates of the references go to their consumers;
+    references of a consumer robot that is lost, or that the RIS never heard of for
+    ``missed`` periods, are released. Everything is guarded by the core's lock.
 
     Args:
-        owner: The remote-resources service this is the provider side of.
+        core: The service's lock, counters and clock.
+        registrar: This robot's registrar (its name is this manager's name).
+        ris: This robot's Resource Info Synchronizer.
+        send: ``send(msg, counter)`` on the resource channel (logs a failure, never raises).
+        submit: Runs a job on the service's worker pool (drops it once closed).
     """
 
-    def __init__(self, owner: RemoteResources) -> None:
-        self._owner = owner
-        self._lock = owner._lock
-        # Guarded by the owner's lock.
+    def __init__(
+        self,
+        core: ServiceCore,
+        registrar: Registrar,
+        ris: ResourceInfoSync,
+        *,
+        send: Callable[[Any, str], None],
+        submit: Callable[[Callable[[], None]], None],
+    ) -> None:
+        self._core = core
+        self._lock = core.lock
+        self._registrar = registrar
+        self._ris = ris
+        self._send = send
+        self._submit = submit
+        self.manager = registrar.name
+        # Guarded by the lock.
         self._served: collections.OrderedDict[str, _Served] = collections.OrderedDict()
         self._held: dict[str, _Held] = {}
         self._released: collections.OrderedDict[str, None] = collections.OrderedDict()
@@ -91,46 +99,44 @@ class Provider:
 
     def on_request(self, msg: Any) -> None:
         """A ``resource_request_t`` for this manager: answer from memory, or serve it."""
-        owner = self._owner
         send: Any = None
         with self._lock:
-            if owner._closed:
+            if self._core.closed:
                 return
-            if not msg.request_id or not msg.server or msg.consumer == owner.manager:
-                owner._counts["unexpected"] += 1
+            if not msg.request_id or not msg.server or msg.consumer == self.manager:
+                self._core.count("unexpected")
                 return
-            owner._counts["requests_received"] += 1
+            self._core.count("requests_received")
             served = self._served.get(msg.request_id)
             if served is not None:
                 if served.consumer != msg.consumer:
-                    owner._counts["unexpected"] += 1
+                    self._core.count("unexpected")
                     return
-                owner._counts["duplicates"] += 1
+                self._core.count("duplicates")
                 send = served.reply  # None while it loads: the reply will come
             else:
                 remember(self._served, msg.request_id, _Served(msg.consumer))
         if send is not None:
-            owner._send(send, "replies_sent")
+            self._send(send, "replies_sent")
         elif served is None:
-            owner._submit(functools.partial(self._serve, msg))
+            self._submit(functools.partial(self._serve, msg))
 
     def on_release(self, msg: Any) -> None:
         """A ``resource_release_t`` for this manager: acknowledge, then release (idempotent)."""
-        owner = self._owner
         reply = new(resource_reply_t)
-        reply.request_id, reply.provider = msg.request_id, owner.manager
+        reply.request_id, reply.provider = msg.request_id, self.manager
         reply.consumer, reply.reference_id = msg.consumer, msg.reference_id
         release = ""
         with self._lock:
-            if owner._closed:
+            if self._core.closed:
                 return
             if not msg.request_id or not msg.reference_id:
-                owner._counts["unexpected"] += 1
+                self._core.count("unexpected")
                 return
-            owner._counts["releases_received"] += 1
+            self._core.count("releases_received")
             cached = self._replies.get(msg.request_id)
             if cached is not None:
-                owner._counts["duplicates"] += 1
+                self._core.count("duplicates")
                 reply = cached
             else:
                 held = self._held.get(msg.reference_id)
@@ -146,19 +152,18 @@ class Provider:
                     reply.message = f"no reference {msg.reference_id} held for {msg.consumer!r}"
                 remember(self._replies, msg.request_id, reply)
         # Acknowledged before the release runs: it may block (a process is given its grace).
-        owner._send(reply, "replies_sent")
+        self._send(reply, "replies_sent")
         if release:
-            owner._submit(functools.partial(self.release_local, release))
+            self._submit(functools.partial(self.release_local, release))
 
     # --- the worker threads -------------------------------------------------------------------
 
     def _serve(self, msg: Any) -> None:
-        owner = self._owner
-        registrar = owner._registrar
+        registrar = self._registrar
         consumer: str = msg.consumer
         request_id: str = msg.request_id
         reply = new(resource_reply_t)
-        reply.request_id, reply.provider, reply.consumer = request_id, owner.manager, consumer
+        reply.request_id, reply.provider, reply.consumer = request_id, self.manager, consumer
         try:
             if msg.server == REMOTE_SERVER:
                 raise ValueError("requests are not forwarded further: ask the provider itself")
@@ -182,19 +187,19 @@ class Provider:
             )
         except Exception as err:
             reply.code = ERROR
-            reply.message = f"robot '{owner._ris.robot}' could not serve '{msg.server}': {err}"
-            reply.errors = records_json(err, owner.manager)
+            reply.message = f"robot '{self._ris.robot}' could not serve '{msg.server}': {err}"
+            reply.errors = records_json(err, self.manager)
             with self._lock:
-                owner._counts["refused"] += 1
+                self._core.count("refused")
             logger.info("remote request %s from %r refused: %s", request_id, consumer, err)
         else:
             reply.code = OK
             reply.reference_id, reply.resource_id = resource.id, resource.resource_id
             reply.response = canonical_json(resource.response)
             with self._lock:
-                orphan = owner._closed or consumer in self._lost
+                orphan = self._core.closed or consumer in self._lost
                 if not orphan:
-                    self._held[resource.id] = _Held(consumer, request_id, owner._clock())
+                    self._held[resource.id] = _Held(consumer, request_id, self._core.now())
             if orphan:  # the consumer was lost (or this closed) while it loaded
                 self.release_local(resource.id)
                 return
@@ -202,22 +207,21 @@ class Provider:
             served = self._served.get(request_id)
             if served is not None:
                 served.reply = reply
-        owner._send(reply, "replies_sent")
+        self._send(reply, "replies_sent")
 
     def _status_out(self, consumer: str, update: StatusUpdate) -> None:
         """A status of a reference held for a remote consumer (any thread): forward it."""
-        owner = self._owner
         msg = new(resource_status_t)
-        msg.provider, msg.consumer = owner.manager, consumer
+        msg.provider, msg.consumer = self.manager, consumer
         msg.reference_id, msg.resource_id = update.reference_id, update.resource_id
         msg.status, msg.message = STATUS_CODES[update.status], update.message
         msg.origin, msg.hops = update.origin, list(update.hops)
-        owner._send(msg, "statuses_sent")
+        self._send(msg, "statuses_sent")
 
     def release_local(self, reference_id: str) -> None:
         """Release a reference held for a remote consumer (a worker thread, or closing)."""
         try:
-            self._owner._registrar.release(reference_id)
+            self._registrar.release(reference_id)
         except ResourceError as err:
             logger.warning("releasing %s for a remote consumer failed: %s", reference_id, err)
 
@@ -234,7 +238,7 @@ class Provider:
 
     def sweep(self, now: float) -> list[str]:
         """References held too long for consumers the RIS never heard (lock held)."""
-        ris = self._owner._ris
+        ris = self._ris
         limit = ris.missed * ris.period_s
         known = {r.manager for r in ris.robots()}
         return self._take(lambda held: held.consumer not in known and now - held.since > limit)

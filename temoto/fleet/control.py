@@ -37,6 +37,7 @@ from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Final
 
+from temoto.clock import Clock, MonotonicClock
 from temoto.core.engine import ActionEngine
 from temoto.core.graph import UmrfGraph, graph_from_document
 from temoto.core.instrument import Instrument
@@ -48,7 +49,7 @@ from temoto.errors import (
     TemotoError,
     TransportError,
 )
-from temoto.fleet._common import Closing, decode_or_count, new
+from temoto.fleet.common import Closing, check_clock, decode_or_count, new
 from temoto.lcm_types import graph_command_reply_t, graph_command_t, graph_feedback_t, node_state_t
 from temoto.transport import codec
 from temoto.transport.auth import FleetLink, Opened
@@ -135,10 +136,11 @@ class GraphControlServer(Closing):
         stop_timeout: Seconds a ``stop`` command waits for the actions to stop.
         workers: Commands carried out at once (a start waits for the handshake of a shared
             graph; a stop waits for the actions).
-        clock: Monotonic seconds (for tests).
+        clock: Where time is read (default: :class:`~temoto.clock.MonotonicClock`).
 
     Raises:
         ValueError: The engine has no actor name, or a period is not positive.
+        TypeError: If ``clock`` is not a :class:`~temoto.clock.Clock`.
     """
 
     #: The counters of :attr:`stats`.
@@ -162,7 +164,7 @@ class GraphControlServer(Closing):
         feedback_period_s: float = 1.0,
         stop_timeout: float | None = 10.0,
         workers: int = 4,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Clock | None = None,
     ) -> None:
         if not engine.actor:
             raise ValueError("the engine needs an actor name to take remote commands")
@@ -174,7 +176,8 @@ class GraphControlServer(Closing):
         self.feedback_period_s = float(feedback_period_s)
         self.stop_timeout = stop_timeout
         self._link = link
-        self._clock = clock
+        self._time: Clock = MonotonicClock() if clock is None else check_clock("clock", clock)
+        self._clock = self._time.monotonic
         self._lock = threading.Lock()
         self._counts = dict.fromkeys(self.STATS, 0)
         self._replies: collections.OrderedDict[str, Any] = collections.OrderedDict()
@@ -341,7 +344,7 @@ class GraphControlServer(Closing):
                         self._last_sent.get(g, -1e9) + self.feedback_interval_s - now
                         for g in self._changes.changed
                     ]
-                    self._wake.wait(max(0.001, min(waits)))
+                    self._time.wait(self._wake, max(0.001, min(waits)))
                 if now >= next_all:
                     due = set(self._known) | self._changes.changed
                     next_all = now + self.feedback_period_s

@@ -8,6 +8,7 @@ protocol.
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import json
 import time
@@ -69,6 +70,19 @@ STATUS_CODES: Final = {
 STATUSES: Final = {code: status for status, code in STATUS_CODES.items()}
 #: Replies, released references and given-up requests remembered (the oldest are forgotten).
 MEMORY: Final = 10_000
+
+
+def remember(memory: collections.OrderedDict[str, Any], key: str, value: Any) -> None:
+    """Add to a bounded memory, forgetting the oldest entry beyond :data:`MEMORY`.
+
+    Args:
+        memory: The memory.
+        key: The key.
+        value: The value.
+    """
+    memory[key] = value
+    if len(memory) > MEMORY:
+        memory.popitem(last=False)
 
 
 # ================================================================================ request types

@@ -28,56 +28,32 @@ in :attr:`RemoteResources.stats`, never raised.
 
 from __future__ import annotations
 
-import collections
 import functools
-import itertools
 import logging
-import math
 import threading
-import time
 from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Any, ClassVar, Final, final
+from typing import TYPE_CHECKING, Any, final
 
-from temoto.core.registrar import LoadContext, Resource, ResourceInfo, ResourceServer, Status
+from temoto.core.registrar import Resource
 from temoto.core.registrar.messages import StatusUpdate
-from temoto.errors import (
-    NoProviderError,
-    ResourceClosedError,
-    ResourceError,
-    TransportError,
-    TransportTimeoutError,
-)
-from temoto.fleet._common import (
-    CallQueue,
-    Closing,
-    check_name,
-    check_seconds,
-    decode_or_count,
-    new,
-)
-from temoto.fleet._provider import Provider, remember
+from temoto.errors import NoProviderError, TransportError
+from temoto.fleet._consumer import Consumer, Proxy, ProxyServer
+from temoto.fleet._provider import Provider
+from temoto.fleet.common import CallQueue, Closing, check_name, check_seconds
 from temoto.fleet.resource_types import (
-    ERROR,
-    OK,
     RESOURCE_CHANNEL,
     RESOURCE_STATS,
-    STATUSES,
     RemoteRequest,
     RemoteResponse,
-    remote_error,
     remote_request,
     response_of,
 )
 from temoto.fleet.ris import REMOTE_SERVER, ResourceInfoSync, RobotInfo
-from temoto.lcm_types import (
-    resource_release_t,
-    resource_request_t,
-)
-from temoto.transport import codec
+from temoto.fleet.service import ServiceCore
 
 if TYPE_CHECKING:
+    from temoto.clock import Clock
     from temoto.core.registrar import Registrar
     from temoto.transport.auth import FleetLink, Opened
     from temoto.transport.base import Subscription
@@ -94,74 +70,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-_EARLY_PER_REF: Final = 16  # statuses kept for a reference whose reply has not arrived
-_EARLY_REFS: Final = 1024
-_CONFIRM_RETRY_S: Final = 0.002  # a status for a proxy still being stored: try again soon
-
-
-# ================================================================================ state
-
-
-@dataclass(slots=True, eq=False)
-class _Call:
-    """A request of this consumer waiting for its reply."""
-
-    robot: str
-    manager: str
-    reply: Any = None
-    lost: str | None = None
-
-
-@dataclass(slots=True, eq=False)
-class _Proxy:
-    """A loaded proxy: a reference this robot holds on another robot."""
-
-    robot: str
-    manager: str
-    reference_id: str
-    local_id: str  # the proxy resource in the local registrar
-    queue: list[tuple[Status, str]] = field(default_factory=list)
-    confirmed: bool = False  # the local registrar has stored it (statuses can be delivered)
-    retry_at: float = math.inf
-    gone: bool = False
-
-
-@dataclass(slots=True, eq=False)
-class _Release:
-    """A release of this consumer waiting for its acknowledgement."""
-
-    msg: Any
-    robot: str
-    tries: int
-    next_send: float
-
-
-class _ProxyServer(ResourceServer[RemoteRequest, RemoteResponse]):
-    """The ``"remote"`` server: its resources are references held on other robots."""
-
-    name: ClassVar[str] = REMOTE_SERVER
-    request_type: ClassVar[type[Any]] = RemoteRequest
-    response_type: ClassVar[type[Any]] = RemoteResponse
-
-    def __init__(self, owner: RemoteResources) -> None:
-        self._owner = owner
-
-    def on_load(self, request: RemoteRequest, ctx: LoadContext) -> RemoteResponse:
-        return self._owner._load(request, ctx)
-
-    def on_unload(self, request: RemoteRequest, response: RemoteResponse) -> None:
-        self._owner._unload(request, response)
-
-    def on_restore(self, resource: ResourceInfo) -> tuple[Status, str] | None:
-        # The remote reference outlived this registrar's process: give it back, and tell
-        # the consumers that their link to it is gone.
-        response: RemoteResponse = resource.response
-        self._owner._release_remote(resource.request.robot, "", response.reference_id)
-        return Status.FATAL, f"remote resource on robot '{response.robot}' lost on restart"
-
-
-# ================================================================================ the service
-
 
 @final
 class RemoteResources(Closing):
@@ -172,6 +80,12 @@ class RemoteResources(Closing):
     :meth:`close` stops them and releases the references held for remote consumers; the RIS,
     the fleet link and the transport stay the caller's to close (after this).
 
+    The work is done by two parts that share one :class:`~temoto.fleet.service.ServiceCore`
+    (lock, counters, clock): the consumer side (``temoto.fleet._consumer``: the proxy server,
+    requests, status delivery, releases) and the provider side (``temoto.fleet._provider``).
+    This object routes the messages of the channel and the RIS's robot events to them, and
+    runs the timer thread that resends releases and sweeps forgotten state.
+
     Args:
         link: Sends and receives authenticated fleet messages.
         registrar: This robot's registrar (its name is this manager's name).
@@ -180,11 +94,12 @@ class RemoteResources(Closing):
         timeout_s: How long a request waits for its reply.
         release_tries: How many times a release is sent without acknowledgement.
         workers: Threads serving remote requests and releases (loads may block).
-        clock: Monotonic clock in seconds.
+        clock: Where time is read (default: :class:`~temoto.clock.MonotonicClock`).
 
     Raises:
         ValueError: A bad duration or count, a RIS of another registrar, or a server named
             ``"remote"`` is registered already.
+        TypeError: If ``clock`` is not a :class:`~temoto.clock.Clock`.
         TransportError: If the link's transport is closed.
     """
 
@@ -198,38 +113,40 @@ class RemoteResources(Closing):
         timeout_s: float = 10.0,
         release_tries: int = 10,
         workers: int = 4,
-        clock: Callable[[], float] = time.monotonic,
+        clock: Clock | None = None,
     ) -> None:
         if ris.manager != registrar.name:
             raise ValueError(f"the RIS serves registrar '{ris.manager}', not '{registrar.name}'")
         for what, count in (("release_tries", release_tries), ("workers", workers)):
             if isinstance(count, bool) or not isinstance(count, int) or count < 1:
                 raise ValueError(f"{what} must be an int >= 1, got {count!r}")
-        self._link = link
+        self._core = core = ServiceCore(link, RESOURCE_STATS, clock)
         self._registrar = registrar
         self._ris = ris
         self.manager = registrar.name
         self.resend_s = check_seconds("resend_s", resend_s)
         self.timeout_s = check_seconds("timeout_s", timeout_s)
         self.release_tries = release_tries
-        self._clock = clock
-        self._lock = threading.Lock()
-        self._changed = threading.Condition(self._lock)
-        self._wake = threading.Condition(self._lock)
-        # Guarded by _lock.
-        self._closed = False
-        self._counts = dict.fromkeys(RESOURCE_STATS, 0)
-        self._ids = itertools.count(1)
-        self._boot = f"{round(time.time() * 1000):x}"
-        self._waiting: dict[str, _Call] = {}
-        self._given_up: collections.OrderedDict[str, None] = collections.OrderedDict()
-        self._proxies: dict[tuple[str, str], _Proxy] = {}
-        self._early: dict[tuple[str, str], tuple[float, list[tuple[Status, str]]]] = {}
-        self._releases: dict[str, _Release] = {}
-        self._parked: dict[str, list[str]] = {}  # robot -> references to release when heard
-        self._provider = Provider(self)
-        registrar.register(_ProxyServer(self))
+        self._lock = core.lock
+        self._wake = core.condition()  # the timer's: a new deadline, or closing
         self._calls = CallQueue("temoto-fleet-resources-calls", "a remote status delivery")
+        self._consumer = Consumer(
+            core,
+            registrar,
+            ris,
+            send=self._send,
+            calls=self._calls,
+            wake=self._wake,
+            resend_s=self.resend_s,
+            timeout_s=self.timeout_s,
+            release_tries=release_tries,
+        )
+        self._provider = Provider(core, registrar, ris, send=self._send, submit=self._submit)
+        try:
+            registrar.register(ProxyServer(self._consumer))
+        except BaseException:
+            self._calls.close()
+            raise
         self._pool = ThreadPoolExecutor(workers, thread_name_prefix="temoto-fleet-resources-work")
         self._sub: Subscription | None = None
         try:
@@ -245,14 +162,13 @@ class RemoteResources(Closing):
         self._timer.start()
 
     def __repr__(self) -> str:
-        state = "closed" if self._closed else "open"
+        state = "closed" if self._core.closed else "open"
         return f"<RemoteResources manager={self.manager!r} {state}>"
 
     @property
     def stats(self) -> dict[str, int]:
         """A copy of the counters, one per name in :data:`RESOURCE_STATS`."""
-        with self._lock:
-            return dict(self._counts)
+        return self._core.stats()
 
     def held(self) -> dict[str, str]:
         """The references this provider holds for remote consumers.
@@ -389,124 +305,6 @@ class RemoteResources(Closing):
             on_status=on_status,
         )
 
-    # --- consumer side: the proxy server's hooks (the loading / releasing thread) -------------
-
-    def _load(self, request: RemoteRequest, ctx: LoadContext) -> RemoteResponse:
-        robot = request.robot
-        info = self._ris.robot_info(robot)
-        if info is None:
-            raise NoProviderError(
-                f"robot '{robot}' is not known (no adverts heard from it)",
-                server=request.server,
-                robot=robot,
-            )
-        offered = info.servers.get(request.server)
-        if offered is None:
-            raise NoProviderError(
-                f"robot '{robot}' does not offer server '{request.server}'",
-                server=request.server,
-                robot=robot,
-            )
-        wanted, has = request.request_type, offered.request_type
-        if wanted and has and wanted != has:
-            raise TypeError(
-                f"server '{request.server}' of robot '{robot}' takes {has} requests, not {wanted}"
-            )
-        msg = new(resource_request_t)
-        msg.provider, msg.consumer, msg.server = info.manager, self.manager, request.server
-        msg.request, msg.client = request.request_json, ctx.resource_id
-        msg.priority, msg.exclusive = request.priority, request.exclusive
-        call = _Call(robot, info.manager)
-        with self._lock:
-            self._check_open()
-            msg.request_id = f"{self.manager}/{self._boot}.{next(self._ids)}"
-            self._waiting[msg.request_id] = call
-        deadline = self._clock() + self.timeout_s
-        try:
-            reply = self._wait_reply(msg, call, deadline)
-        finally:
-            with self._lock:
-                del self._waiting[msg.request_id]
-                if call.reply is None:
-                    remember(self._given_up, msg.request_id, None)
-        if reply.code != OK:
-            raise remote_error(
-                reply.message or f"robot '{robot}' refused the request", reply.errors, robot
-            )
-        key = (info.manager, reply.reference_id)
-        proxy = _Proxy(robot, info.manager, reply.reference_id, ctx.resource_id)
-        with self._lock:
-            early = self._early.pop(key, None)
-            if early is not None:
-                proxy.queue.extend(early[1])
-            self._proxies[key] = proxy
-            if proxy.queue:
-                proxy.retry_at = self._clock()
-                self._wake.notify()
-        return RemoteResponse(robot, reply.reference_id, reply.resource_id, reply.response)
-
-    def _wait_reply(self, msg: Any, call: _Call, deadline: float) -> Any:
-        """Send the request until its reply comes; the reply, or raise."""
-        while True:
-            self._send(msg, "requests_sent")
-            next_send = self._clock() + self.resend_s
-            with self._lock:
-                while True:
-                    if call.reply is not None:
-                        self._counts["replies_received"] += 1
-                        return call.reply
-                    if self._closed:
-                        raise ResourceClosedError("the remote resources are closed")
-                    if call.lost is not None:
-                        raise TransportError(
-                            f"robot '{call.robot}' was lost before it answered the request"
-                            f" for server '{msg.server}': {call.lost}"
-                        )
-                    now = self._clock()
-                    if now >= deadline:
-                        self._counts["timeouts"] += 1
-                        raise TransportTimeoutError(
-                            f"robot '{call.robot}' did not answer the request for server"
-                            f" '{msg.server}' within {self.timeout_s:g} s"
-                        )
-                    if now >= next_send:
-                        break
-                    self._changed.wait(min(next_send, deadline) - now)
-
-    def _unload(self, request: RemoteRequest, response: RemoteResponse) -> None:
-        manager = ""
-        with self._lock:
-            for key, proxy in list(self._proxies.items()):
-                if proxy.reference_id == response.reference_id and proxy.robot == response.robot:
-                    manager = proxy.manager
-                    proxy.gone = True
-                    del self._proxies[key]
-        self._release_remote(request.robot, manager, response.reference_id)
-
-    def _release_remote(self, robot: str, manager: str, reference_id: str) -> None:
-        """Send a release (not locked); the timer resends it until acknowledged."""
-        if not manager:
-            info = self._ris.robot_info(robot)
-            if info is None:  # e.g. restored before the robot was heard: when it is
-                with self._lock:
-                    self._parked.setdefault(robot, []).append(reference_id)
-                return
-            manager = info.manager
-        msg = new(resource_release_t)
-        msg.provider, msg.consumer, msg.reference_id = manager, self.manager, reference_id
-        # A robot that is not heard gets one try: if it comes back, it sees us alive.
-        tries = self.release_tries if self._ris.robot_info(robot) is not None else 1
-        with self._lock:
-            if self._closed:
-                tries = 1
-            msg.request_id = f"{self.manager}/{self._boot}.{next(self._ids)}"
-            if tries > 1:
-                self._releases[msg.request_id] = _Release(
-                    msg, robot, tries - 1, self._clock() + self.resend_s
-                )
-                self._wake.notify()
-        self._send(msg, "releases_sent")
-
     # --- provider jobs ------------------------------------------------------------------------
 
     def _submit(self, job: Callable[[], None]) -> None:
@@ -525,12 +323,12 @@ class RemoteResources(Closing):
             "resource_release_t": self._on_release,
             "resource_status_t": self._on_status,
         }
-        msg = decode_or_count(opened, handlers, self._counts, self._lock)
+        msg = self._core.decode(opened, handlers)
         if msg is None:
             return
         if not msg.provider or not msg.consumer:
             with self._lock:
-                self._counts["unexpected"] += 1
+                self._core.count("unexpected")
             return
         handlers[opened.type](msg)
 
@@ -543,121 +341,24 @@ class RemoteResources(Closing):
             self._provider.on_release(msg)
 
     def _on_reply(self, msg: Any) -> None:
-        if msg.consumer != self.manager:
-            return
-        late = robot = ""
-        with self._lock:
-            call = self._waiting.get(msg.request_id)
-            if call is not None:
-                if call.manager != msg.provider or msg.code not in (OK, ERROR):
-                    self._counts["unexpected"] += 1
-                elif call.reply is None:
-                    call.reply = msg
-                    self._changed.notify_all()
-                else:
-                    self._counts["duplicates"] += 1
-                return
-            release = self._releases.pop(msg.request_id, None)
-            if release is not None:
-                if msg.code != OK:
-                    logger.warning("release on %r: %s", release.robot, msg.message)
-                return
-            if msg.request_id in self._given_up and msg.code == OK and msg.reference_id:
-                del self._given_up[msg.request_id]
-                late = msg.reference_id
-                robot = next((r.robot for r in self._ris.robots() if r.manager == msg.provider), "")
-            else:
-                self._counts["duplicates"] += 1
-        if late:  # the request timed out here but was served there: give it back
-            self._release_remote(robot, msg.provider, late)
+        if msg.consumer == self.manager:
+            self._consumer.on_reply(msg)
 
     def _on_status(self, msg: Any) -> None:
-        if msg.consumer != self.manager:
-            return
-        status = STATUSES.get(msg.status)
-        with self._lock:
-            if self._closed:
-                return
-            if status is None or not msg.reference_id:
-                self._counts["unexpected"] += 1
-                return
-            self._counts["statuses_received"] += 1
-            key = (msg.provider, msg.reference_id)
-            proxy = self._proxies.get(key)
-            if proxy is None:
-                self._keep_early(key, status, msg.message)
-                return
-            proxy.queue.append((status, f"robot '{proxy.robot}': {msg.message}"))
-            flush = len(proxy.queue) == 1 and proxy.retry_at == math.inf
-        if flush:
-            self._calls.put(lambda: self._flush(proxy))
-
-    def _keep_early(self, key: tuple[str, str], status: Status, message: str) -> None:
-        """A status of a reference whose reply has not arrived (yet). Locked."""
-        if not any(c.manager == key[0] for c in self._waiting.values()):
-            self._counts["unexpected"] += 1  # nothing is being requested there
-            return
-        entry = self._early.get(key)
-        if entry is None:
-            if len(self._early) >= _EARLY_REFS:
-                self._counts["unexpected"] += 1
-                return
-            entry = self._early[key] = (self._clock() + self.timeout_s, [])
-            self._wake.notify()
-        if len(entry[1]) < _EARLY_PER_REF:
-            robot = next((c.robot for c in self._waiting.values() if c.manager == key[0]), "")
-            entry[1].append((status, f"robot '{robot}': {message}"))
-
-    # --- status delivery (the calls thread) ---------------------------------------------------
-
-    def _flush(self, proxy: _Proxy) -> None:
-        """Deliver a proxy's queued statuses once the local registrar has stored it."""
-        if not proxy.confirmed:
-            try:
-                stored = bool(self._registrar.info(proxy.local_id).references)
-            except ResourceError:  # the load was rolled back, or it is unloaded
-                stored, proxy.gone = False, True
-            with self._lock:
-                if proxy.gone:
-                    proxy.queue.clear()
-                    proxy.retry_at = math.inf
-                    return
-                if not stored:  # on_load returned, the registrar is storing it: soon
-                    proxy.retry_at = self._clock() + _CONFIRM_RETRY_S
-                    self._wake.notify()
-                    return
-                proxy.confirmed = True
-        with self._lock:
-            items, proxy.queue = proxy.queue, []
-            proxy.retry_at = math.inf
-        for status, message in items:
-            try:
-                self._registrar.send_status(proxy.local_id, status, message)
-            except ResourceError as err:
-                logger.debug("status for %s not delivered: %s", proxy.local_id, err)
+        if msg.consumer == self.manager:
+            self._consumer.on_status(msg)
 
     # --- robots joining and leaving (the RIS's calls thread) ----------------------------------
 
     def _on_robot_lost(self, info: RobotInfo, reason: str) -> None:
-        releases: list[str] = []
-        flushes: list[_Proxy] = []
         with self._lock:
-            if self._closed:
+            if self._core.closed:
                 return
             # provider side: what it held here is given back
             releases = self._provider.consumer_lost(info)
-            self._counts["released_for_lost"] += len(releases)
+            self._core.count("released_for_lost", len(releases))
             # consumer side: what it provided here has failed
-            message = f"robot '{info.robot}' was lost: {reason}"
-            for proxy in self._proxies.values():
-                if proxy.manager == info.manager:
-                    proxy.queue.append((Status.FATAL, message))
-                    self._counts["lost_fatal"] += 1
-                    flushes.append(proxy)
-            for call in self._waiting.values():
-                if call.manager == info.manager:
-                    call.lost = reason
-                    self._changed.notify_all()
+            flushes = self._consumer.provider_lost(info, reason)
         if releases:
             logger.warning(
                 "robot '%s' was lost (%s): releasing the %d references held for it",
@@ -668,77 +369,49 @@ class RemoteResources(Closing):
         for ref in releases:
             self._submit(functools.partial(self._provider.release_local, ref))
         for proxy in flushes:
-            self._calls.put(functools.partial(self._flush, proxy))
+            self._consumer.flush_later(proxy)
 
     def _on_joined(self, info: RobotInfo) -> None:
         with self._lock:
             self._provider.consumer_joined(info)
-            parked = self._parked.pop(info.robot, [])
+            parked = self._consumer.take_parked(info.robot)
         for reference_id in parked:
-            self._release_remote(info.robot, info.manager, reference_id)
+            self._consumer.release_remote(info.robot, info.manager, reference_id)
 
     # --- the timer thread ---------------------------------------------------------------------
 
     def _run_timer(self) -> None:
         """Resends releases, retries status deliveries, sweeps forgotten state."""
+        core = self._core
         while True:
             sends: list[Any] = []
-            flushes: list[_Proxy] = []
+            flushes: list[Proxy] = []
             orphans: list[str] = []
             with self._lock:
-                if self._closed:
+                if core.closed:
                     return
-                now = self._clock()
-                wake = now + self._ris.period_s
-                for request_id, release in list(self._releases.items()):
-                    if now >= release.next_send:
-                        sends.append(release.msg)
-                        release.tries -= 1
-                        release.next_send = now + self.resend_s
-                        if release.tries <= 0:
-                            del self._releases[request_id]
-                            continue
-                    wake = min(wake, release.next_send)
-                for proxy in self._proxies.values():
-                    if now >= proxy.retry_at:
-                        proxy.retry_at = math.inf
-                        flushes.append(proxy)
-                    wake = min(wake, proxy.retry_at)
-                for key, (until, _) in list(self._early.items()):
-                    if now >= until:
-                        del self._early[key]
-                    else:
-                        wake = min(wake, until)
+                now = core.now()
+                sends, flushes, wake = self._consumer.due(now, now + self._ris.period_s)
                 orphans = self._provider.sweep(now)
-                self._counts["released_for_lost"] += len(orphans)
+                core.count("released_for_lost", len(orphans))
                 if not (sends or flushes or orphans):
-                    self._wake.wait(max(0.0, wake - now))
+                    core.wait(self._wake, max(0.0, wake - now))
                     continue
             for msg in sends:
                 self._send(msg, "releases_sent")
             for proxy in flushes:
-                self._calls.put(functools.partial(self._flush, proxy))
+                self._consumer.flush_later(proxy)
             for ref in orphans:
                 self._submit(functools.partial(self._provider.release_local, ref))
 
     # --- internals ----------------------------------------------------------------------------
 
-    def _check_open(self) -> None:
-        if self._closed:
-            raise ResourceClosedError("the remote resources are closed")
-
     def _send(self, msg: Any, counter: str) -> None:
         """Not locked: encode and send; a failure is counted and logged, never raised."""
         try:
-            name, payload = codec.encode(msg)
-            self._link.send(RESOURCE_CHANNEL, name, payload)
+            self._core.send(RESOURCE_CHANNEL, msg, counter)
         except (TransportError, ValueError) as err:
-            with self._lock:
-                self._counts["send_errors"] += 1
             logger.warning("remote resources %r: cannot send: %s", self.manager, err)
-            return
-        with self._lock:
-            self._counts[counter] += 1
 
     def close(self) -> None:
         """Stop: fail waiting loads, release what remote consumers hold here, join threads.
@@ -750,13 +423,11 @@ class RemoteResources(Closing):
             Nothing.
         """
         with self._lock:
-            if self._closed:
+            if self._core.closed:
                 return
-            self._closed = True
-            pending = [r.msg for r in self._releases.values()]
-            self._releases.clear()
+            self._core.closed = True
+            pending = self._consumer.close()
             held = self._provider.take_all()
-            self._changed.notify_all()
             self._wake.notify()
         self._cancel_ris()
         if self._sub is not None:

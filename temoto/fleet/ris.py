@@ -34,24 +34,17 @@ import logging
 import math
 import secrets
 import threading
-import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Final, final
 
 from temoto.errors import TransportError
-from temoto.fleet._common import (
-    CallQueue,
-    Closing,
-    check_name,
-    check_seconds,
-    decode_or_count,
-    new,
-)
+from temoto.fleet.common import CallQueue, Closing, check_name, check_seconds, new
+from temoto.fleet.service import ServiceCore
 from temoto.lcm_types import ris_advert_t, ris_request_t, ris_server_t, ris_withdraw_t
-from temoto.transport import codec
 
 if TYPE_CHECKING:
+    from temoto.clock import Clock
     from temoto.core.registrar import Registrar
     from temoto.transport.auth import FleetLink, Opened
     from temoto.transport.base import Subscription
@@ -164,12 +157,13 @@ class ResourceInfoSync(Closing):
         missed: A robot not heard for this many of its advertised periods is lost.
         share: The servers to advertise (default: every registered server but ``"remote"``,
             looked up at every advert, so servers registered later are advertised too).
-        clock: Monotonic clock in seconds (silences, periods).
-        wall_clock: Seconds since the epoch (the first ``seq``).
+        clock: Where time is read: monotonic seconds (silences, periods) and the epoch
+            seconds of the first ``seq`` (default: :class:`~temoto.clock.MonotonicClock`).
 
     Raises:
         ValueError: If ``robot`` is empty, ``period_s`` is not a positive number or
             ``missed`` is less than 1.
+        TypeError: If ``clock`` is not a :class:`~temoto.clock.Clock`.
         TransportError: If the link's transport is closed.
     """
 
@@ -182,10 +176,9 @@ class ResourceInfoSync(Closing):
         period_s: float = 1.0,
         missed: int = 3,
         share: Sequence[str] | None = None,
-        clock: Callable[[], float] = time.monotonic,
-        wall_clock: Callable[[], float] = time.time,
+        clock: Clock | None = None,
     ) -> None:
-        self._link = link
+        self._core = core = ServiceCore(link, RIS_STATS, clock)
         self._registrar = registrar
         self._robot = check_name("robot", robot)
         self.manager = check_name("the registrar's name", registrar.name)
@@ -194,18 +187,15 @@ class ResourceInfoSync(Closing):
             raise ValueError(f"missed must be an int >= 1, got {missed!r}")
         self.missed = missed
         self._share = None if share is None else tuple(check_name("a server", s) for s in share)
-        self._clock = clock
-        self._lock = threading.Lock()
-        self._wake = threading.Condition(self._lock)
-        # Guarded by _lock.
-        self._closed = False
+        self._lock = core.lock
+        self._wake = core.condition()
+        # Guarded by _lock (and core.closed).
         self._robots: dict[str, RobotInfo] = {}
         # robot -> boot id of a start that withdrew as a whole (it shut down): an advert of that
         # start still in flight must not bring it back; a new start has a new boot id
         self._withdrawn: dict[str, str] = {}
         self._subscribers: list[_Subscriber] = []
-        self._counts = dict.fromkeys(RIS_STATS, 0)
-        self._seq = round(wall_clock() * 1e6)
+        self._seq = round(core.wall() * 1e6)
         #: This start's boot id, carried by every advert.
         self.boot = f"{self._seq:x}-{secrets.token_hex(4)}"
         self._offer: tuple[ServerInfo, ...] | None = None
@@ -226,7 +216,7 @@ class ResourceInfoSync(Closing):
         self._send(ask, "requests_sent")
 
     def __repr__(self) -> str:
-        state = "closed" if self._closed else "open"
+        state = "closed" if self._core.closed else "open"
         return f"<ResourceInfoSync robot={self._robot!r} manager={self.manager!r} {state}>"
 
     # --- queries ------------------------------------------------------------------------------
@@ -239,8 +229,7 @@ class ResourceInfoSync(Closing):
     @property
     def stats(self) -> dict[str, int]:
         """A copy of the counters, one per name in :data:`RIS_STATS`."""
-        with self._lock:
-            counts = dict(self._counts)
+        counts = self._core.stats()
         counts["callback_errors"] += self._calls.errors
         return counts
 
@@ -372,9 +361,9 @@ class ResourceInfoSync(Closing):
             Nothing.
         """
         with self._lock:
-            if self._closed:
+            if self._core.closed:
                 return
-            self._closed = True
+            self._core.closed = True
             self._wake.notify()
         self._send_withdraw([])
         if self._sub is not None:
@@ -427,17 +416,12 @@ class ResourceInfoSync(Closing):
     def _send(self, msg: Any, counter: str) -> None:
         """Not locked: encode and send; a failure is counted and logged, never raised."""
         try:
-            name, payload = codec.encode(msg)
-            self._link.send(RIS_CHANNEL, name, payload)
+            self._core.send(RIS_CHANNEL, msg, counter)
         except (TransportError, ValueError) as err:
             with self._lock:
-                self._counts["send_errors"] += 1
-                closed = self._closed
+                closed = self._core.closed
             log = logger.debug if closed else logger.warning
             log("RIS %r: cannot send: %s", self._robot, err)
-            return
-        with self._lock:
-            self._counts[counter] += 1
 
     # --- the timer thread ---------------------------------------------------------------------
 
@@ -445,15 +429,15 @@ class ResourceInfoSync(Closing):
         """Adverts every period; silences checked at every robot's deadline."""
         while True:
             with self._lock:
-                if self._closed:
+                if self._core.closed:
                     return
-                now = self._clock()
+                now = self._core.now()
                 due = now >= self._next_advert
                 if due:
                     self._next_advert = now + self.period_s
                 wake = min(self._next_advert, self._check_silences(now))
                 if not due:
-                    self._wake.wait(max(0.0, wake - now))
+                    self._core.wait(self._wake, max(0.0, wake - now))
                     continue
             self._send(self._advert(), "adverts_sent")
 
@@ -471,7 +455,7 @@ class ResourceInfoSync(Closing):
     def _lose(self, robot: str, reason: str) -> None:
         """Forget a robot and report it lost (lock held)."""
         info = self._robots.pop(robot)
-        self._counts["lost"] += 1
+        self._core.count("lost")
         logger.info("RIS %r: robot %r was lost: %s", self._robot, robot, reason)
         for sub in list(self._subscribers):
             if sub.on_lost is not None:
@@ -500,7 +484,7 @@ class ResourceInfoSync(Closing):
             "ris_request_t": self._on_request,
             "ris_withdraw_t": self._on_withdraw,
         }
-        msg = decode_or_count(opened, handlers, self._counts, self._lock)
+        msg = self._core.decode(opened, handlers)
         if msg is not None:
             handlers[opened.type](msg)
 
@@ -514,7 +498,7 @@ class ResourceInfoSync(Closing):
             and robot != self._robot
         )
         if not ok:
-            self._counts["unexpected"] += 1
+            self._core.count("unexpected")
         return ok
 
     def _on_advert(self, msg: Any) -> None:
@@ -526,17 +510,17 @@ class ResourceInfoSync(Closing):
                 break
             servers[item.name] = ServerInfo(item.name, item.request_type, item.offer)
         with self._lock:
-            if self._closed or not self._valid_source(robot, msg.manager):
+            if self._core.closed or not self._valid_source(robot, msg.manager):
                 return
             period_ms: int = msg.period_ms
             bad = not 0 < period_ms <= _MAX_PERIOD_MS or len(servers) != len(msg.servers)
             if bad or (robot not in self._robots and len(self._robots) >= _MAX_ROBOTS):
-                self._counts["unexpected"] += 1
+                self._core.count("unexpected")
                 return
             old = self._robots.get(robot)
             boot: str = msg.boot
             if self._withdrawn.get(robot) == boot:
-                self._counts["stale"] += 1  # sent before its withdraw, heard after it
+                self._core.count("stale")  # sent before its withdraw, heard after it
                 return
             self._withdrawn.pop(robot, None)
             if old is not None and boot != old.boot:
@@ -544,18 +528,18 @@ class ResourceInfoSync(Closing):
                 self._lose(robot, "restarted")
                 old = None
             if old is not None and msg.seq < old.seq:
-                self._counts["stale"] += 1
+                self._core.count("stale")
                 return
-            self._counts["adverts_received"] += 1
+            self._core.count("adverts_received")
             info = RobotInfo(
-                robot, msg.manager, servers, period_ms / 1000, self._clock(), msg.seq, boot
+                robot, msg.manager, servers, period_ms / 1000, self._core.now(), msg.seq, boot
             )
             self._robots[robot] = info
             self._wake.notify()  # its silence deadline may be the next one
             if old is not None and old.servers != servers:
                 self._changed(info)
             if old is None:
-                self._counts["joined"] += 1
+                self._core.count("joined")
                 logger.info(
                     "RIS %r: robot %r joined (%d servers)", self._robot, robot, len(info.servers)
                 )
@@ -565,16 +549,16 @@ class ResourceInfoSync(Closing):
 
     def _on_request(self, msg: Any) -> None:
         with self._lock:
-            if self._closed:
+            if self._core.closed:
                 return
             if not msg.requester or msg.requester == self._robot:
-                self._counts["unexpected"] += 1
+                self._core.count("unexpected")
                 return
-            self._counts["requests_received"] += 1
+            self._core.count("requests_received")
             if msg.manager not in ("", self.manager):
                 return
             # At once, but one answer per gap: a flood of requests gets no flood of adverts.
-            answer = max(self._clock(), self._next_answer)
+            answer = max(self._core.now(), self._next_answer)
             if answer < self._next_advert:
                 self._next_advert = answer
                 self._next_answer = answer + min(self.period_s / 10, _ANSWER_GAP_S)
@@ -583,9 +567,9 @@ class ResourceInfoSync(Closing):
     def _on_withdraw(self, msg: Any) -> None:
         robot: str = msg.robot
         with self._lock:
-            if self._closed or not self._valid_source(robot, msg.manager):
+            if self._core.closed or not self._valid_source(robot, msg.manager):
                 return
-            self._counts["withdraws_received"] += 1
+            self._core.count("withdraws_received")
             info = self._robots.get(robot)
             if info is None or info.manager != msg.manager:
                 return

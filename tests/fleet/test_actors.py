@@ -15,6 +15,7 @@ from typing import Any
 import pytest
 from _ris_helpers import Got  # the fleet tests' shared callback recorder
 
+from temoto.clock import ManualClock
 from temoto.core.states import Result
 from temoto.errors import FleetError, StateError
 from temoto.fleet import HANDSHAKE_CHANNEL, NOTIFY_CHANNEL, STATS, FleetActorLink
@@ -772,6 +773,60 @@ def test_an_actor_never_heard_is_lost_after_silence_s(fleet: Fleet) -> None:
     assert time.monotonic() - t0 >= 0.2
     assert not threading.Event().wait(0.3)
     assert lost.calls == [("Ghost", "not heard for 0.2 s")]  # once
+
+
+def test_silences_are_measured_on_the_injected_clock(fleet: Fleet) -> None:
+    clock = ManualClock()
+    (a,) = fleet.links("A", silence_s=0.2, clock=clock)
+    lost = Got()
+    a.watch(["Ghost"], lost)
+    assert lost.quiet_for(1, 0.6)  # three silences of real time: the clock has not moved
+    clock.advance(0.19)
+    assert lost.quiet_for(1, 0.1)
+    clock.advance(0.01)  # wakes the timer, which waits on the clock
+    assert lost.wait_for(1) == [("Ghost", "not heard for 0.2 s")]
+
+
+def test_a_handshake_times_out_on_the_injected_clock(fleet: Fleet) -> None:
+    clock = ManualClock()
+    (a,) = fleet.links("A", clock=clock)
+    errors: list[BaseException] = []
+
+    def shake() -> None:
+        try:
+            a.handshake("g", "s", ["A", "Ghost"], timeout=60.0)
+        except BaseException as err:
+            errors.append(err)
+
+    thread = threading.Thread(target=shake, name="test-handshake")
+    thread.start()
+    for _ in range(200):  # a minute of clock time per step, until the call gave up
+        clock.advance(60.0)
+        thread.join(0.05)
+        if not thread.is_alive():
+            break
+    assert not thread.is_alive()
+    assert len(errors) == 1
+    assert isinstance(errors[0], FleetError)
+    assert "timed out after 60 s" in str(errors[0])
+
+
+def test_close_lingers_in_real_time_on_a_manual_clock(fleet: Fleet) -> None:
+    a = fleet.link("A", clock=ManualClock())
+    b = fleet.link("B")
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    a.end("g", "s1")  # a run that just finished: close() repeats its END for linger_s
+    closing = threading.Thread(target=a.close, name="test-close")
+    t0 = time.monotonic()
+    closing.start()
+    closing.join(WAIT_S)  # the virtual clock never moves: close must not wait for it
+    assert not closing.is_alive()
+    assert time.monotonic() - t0 >= 0.25
+
+
+def test_a_plain_function_is_refused_as_a_clock(fleet: Fleet) -> None:
+    with pytest.raises(TypeError, match=r"temoto\.clock\.Clock.*MonotonicClock"):
+        FleetActorLink(fleet.fleet_link("A"), "A", clock=time.monotonic)  # type: ignore[arg-type]
 
 
 def test_a_leave_of_the_fleet_is_lost_at_once(fleet: Fleet) -> None:

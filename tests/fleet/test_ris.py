@@ -13,6 +13,7 @@ from typing import Any, ClassVar
 import pytest
 from _ris_helpers import WAIT_S, Fleet, Got
 
+from temoto.clock import ManualClock
 from temoto.core.registrar import LoadContext, Registrar, ResourceServer
 from temoto.fleet.ris import RIS_CHANNEL, RIS_STATS, ResourceInfoSync, RobotInfo
 from temoto.lcm_types import handshake_t, ris_advert_t, ris_request_t, ris_server_t, ris_withdraw_t
@@ -234,16 +235,8 @@ def test_a_robot_that_keeps_advertising_is_never_lost(fleet: Fleet) -> None:
     assert b.ris.stats["adverts_received"] >= 5
 
 
-class FakeClock:
-    def __init__(self) -> None:
-        self.now = 1000.0
-
-    def __call__(self) -> float:
-        return self.now
-
-
 def test_silences_are_measured_on_the_injected_clock(fleet: Fleet) -> None:
-    clock = FakeClock()
+    clock = ManualClock(start=1000.0)
     registrar = Registrar("A")
     fleet.stack.callback(registrar.close)
     ris = fleet.stack.enter_context(
@@ -254,15 +247,21 @@ def test_silences_are_measured_on_the_injected_clock(fleet: Fleet) -> None:
     raw = fleet.raw("ghost", RIS_CHANNEL)
     raw.send(advert("ghost", period_ms=1000))
     wait_known(ris, "ghost")
-    clock.now += 2.9
-    ris.refresh()  # wakes the timer, which checks the silences
-    raw.wait_type("ris_advert_t")  # the refresh's advert: the check has run
+    clock.advance(2.9)
+    ris.refresh()  # an advert: the timer has looked at the silences after the advance
+    raw.wait_type("ris_advert_t")
     assert lost.calls == []
-    clock.now += 0.2
-    ris.refresh()
+    clock.advance(0.2)  # wakes the timer, which waits on the clock: no refresh needed
     ((info, reason),) = lost.wait_for(1)
     assert info.robot == "ghost"
     assert reason == "no adverts for 3 periods"
+
+
+def test_a_plain_function_is_refused_as_a_clock(fleet: Fleet) -> None:
+    registrar = Registrar("A")
+    fleet.stack.callback(registrar.close)
+    with pytest.raises(TypeError, match=r"temoto\.clock\.Clock.*MonotonicClock"):
+        ResourceInfoSync(fleet.link("A"), registrar, "A", clock=time.monotonic)  # type: ignore[arg-type]
 
 
 # ================================================================ bad messages
