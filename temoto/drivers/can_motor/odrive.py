@@ -56,16 +56,25 @@ import time
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Final, Self
+from typing import Any, ClassVar, Final
 
 import can
 
 from temoto.clock import Clock
 from temoto.drivers.base import DriverState, detect_links
 from temoto.drivers.can_motor import cansimple as cs
-from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits, open_bus
+from temoto.drivers.can_motor._common import (
+    LINK_HINT,
+    JointLimits,
+    check_limits,
+    open_bus,
+    read_limits,
+    read_link,
+    read_members,
+)
 from temoto.drivers.can_motor._driver import CanMotorDriver
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
+from temoto.drivers.profile import Field, ProfileReader, custom, number
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import FaultWindow, StreamAge
 from temoto.errors import (
@@ -99,21 +108,6 @@ DUPLICATE_FACTOR: Final = 1.5
 DUPLICATE_PERIODS: Final = 20
 #: Well-formed heartbeats a node must send while :meth:`ODriveDriver.detect` listens.
 DETECT_MIN_BEATS: Final = 2
-_KEYS: Final = frozenset(
-    {
-        "driver",
-        "link",
-        "nodes",
-        "heartbeat_period",
-        "encoder_period",
-        "init_timeout",
-        "timeout_periods",
-        "command_period",
-        "watchdog_timeout",
-        "safe_state",
-        "sim",
-    }
-)
 _NODE_KEYS: Final = frozenset(
     {
         "node_id",
@@ -285,6 +279,17 @@ class ODriveDriver(CanMotorDriver):
 
     kind = "odrive_can"
     safe_states = ("idle", "hold")
+    profile_fields: ClassVar[Mapping[str, Field[Any]]] = {
+        "link": custom(read_link, hint=LINK_HINT),
+        "nodes": custom(lambda r, v, k: _read_nodes(r, v, k), hint="the ODrive axes on the bus"),
+        "heartbeat_period": number(0.1),
+        "encoder_period": number(0.01),
+        "init_timeout": number(1.0),
+        "timeout_periods": number(3.0),
+        "command_period": number(0.05),
+        "watchdog_timeout": number(0.0, low=0, low_open=False, describe="0 (not used) or positive"),
+        "sim": custom(lambda r, v, k: dict(r.mapping(v, k)), {}, init=False),
+    }
 
     def __init__(
         self,
@@ -344,68 +349,39 @@ class ODriveDriver(CanMotorDriver):
     # ---- profile ---------------------------------------------------------------------------
 
     @classmethod
-    def from_profile(
-        cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
-    ) -> Self:
-        """Build the driver from its profile entry (see ``docs/driver-can.md``).
+    def profile_settings(cls, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+        """Constructor arguments from a checked entry (see ``docs/driver-can.md``).
+
+        Checks ``command_period`` against ``watchdog_timeout`` and the ``sim`` rates against
+        the supervised periods, and warns of ``safe_state: hold`` without a watchdog.
 
         Args:
-            name: The device's name.
-            config: The entry (``driver``, when present, must name this driver).
-            clock: The robot's clock.
-            where: The entry's key path, for messages.
+            values: The entry's checked values (:meth:`read_profile`).
+            where: The entry's place for messages.
 
         Returns:
-            The driver (``UNCONFIGURED``).
+            The keyword arguments.
 
         Raises:
-            ProfileError: A bad entry; the message names the key path.
+            ProfileError: Keys that contradict each other (the message names the key).
         """
-        p = Profile(where)
-        cfg = p.entry(config, _KEYS, cls.kind)
-        link = p.link(cfg)
-        nodes: list[ODriveNode] = []
-        members = p.members(
-            cfg, "nodes", _NODE_KEYS, "node_id", (0, cs.MAX_NODE_ID), id_word="node id"
-        )
-        for path, node, node_id, joint in members:
-            gear = p.number(node, "gear_ratio", path, 1.0)
-            nodes.append(ODriveNode(node_id, joint, gear, p.limits(node, path)))
-        hb = p.number(cfg, "heartbeat_period", "", 0.1)
-        encoder = p.number(cfg, "encoder_period", "", 0.01)
-        init = p.number(cfg, "init_timeout", "", 1.0)
-        periods = p.number(cfg, "timeout_periods", "", 3.0)
-        command = p.number(cfg, "command_period", "", 0.05)
-        watchdog = p.number(cfg, "watchdog_timeout", "", 0.0, positive=False)
-        if watchdog < 0:
-            raise p.fail("watchdog_timeout", f"must be 0 (not used) or positive, got {watchdog}")
+        reader = ProfileReader.at(where)
+        kwargs = super().profile_settings(values, where)
+        watchdog, command = kwargs["watchdog_timeout"], kwargs["command_period"]
         if watchdog > 0 and command > watchdog / 2:
-            raise p.fail(
+            reader.fail(
                 "command_period",
                 f"must be at most half the watchdog_timeout ({watchdog} s), got {command}",
             )
-        sim_rates(p, cfg, hb, encoder)  # checked here, used by simulate()
-        safe = cls.safe_state_from(cfg, where)
-        if safe == "hold" and watchdog == 0:
+        # checked here, used by simulate()
+        sim_rates(reader, values["sim"], kwargs["heartbeat_period"], kwargs["encoder_period"])
+        if values["safe_state"] == "hold" and watchdog == 0:
             logger.warning(
                 "%s.safe_state: hold without watchdog_timeout: the axes stay armed at 0 rev/s"
                 " after TeMoto exits; enable the ODrives' watchdog (docs/driver-can.md)",
                 where,
             )
-        driver = cls(
-            name,
-            link=link,
-            nodes=nodes,
-            clock=clock,
-            heartbeat_period=hb,
-            init_timeout=init,
-            timeout_periods=periods,
-            encoder_period=encoder,
-            command_period=command,
-            watchdog_timeout=watchdog,
-        )
-        driver.safe_state = safe
-        return driver
+        return kwargs
 
     @classmethod
     def simulate(
@@ -434,7 +410,9 @@ class ODriveDriver(CanMotorDriver):
 
         driver = cls.from_profile(name, config, clock=clock, where=name)
         driver.shutdown()
-        rates = sim_rates(Profile(name), config, driver.heartbeat_period, driver.encoder_period)
+        rates = sim_rates(
+            ProfileReader(name), config.get("sim"), driver.heartbeat_period, driver.encoder_period
+        )
         sim = SimODrive(
             driver.link,
             [n.node_id for n in driver.nodes],
@@ -893,6 +871,8 @@ class ODriveDriver(CanMotorDriver):
         return None
 
 
+_SIM_MS: Final = number(0.0, low=0, low_open=False, describe="0 (off) or a number of ms")
+
 #: The cyclic messages the driver supervises, and the key that states each one's period.
 _SUPERVISED: Final = {
     "heartbeat_msg_rate_ms": "heartbeat_period",
@@ -901,7 +881,7 @@ _SUPERVISED: Final = {
 
 
 def sim_rates(
-    p: Profile, cfg: Mapping[str, Any], heartbeat_period: float, encoder_period: float
+    p: ProfileReader, raw: object, heartbeat_period: float, encoder_period: float
 ) -> dict[str, float]:
     """The simulated ODrives' cyclic message rates from an entry's ``sim`` mapping.
 
@@ -915,7 +895,7 @@ def sim_rates(
 
     Args:
         p: The entry's profile reader (for messages).
-        cfg: The entry.
+        raw: The entry's ``sim`` value (None when absent).
         heartbeat_period: The driver's ``heartbeat_period``, s.
         encoder_period: The driver's ``encoder_period``, s.
 
@@ -928,7 +908,6 @@ def sim_rates(
     """
     from temoto.drivers.can_motor.sim import CYCLIC_RATES
 
-    raw = cfg.get("sim")
     rates = {
         "heartbeat_msg_rate_ms": heartbeat_period * 1000.0,
         "encoder_msg_rate_ms": encoder_period * 1000.0,
@@ -936,16 +915,14 @@ def sim_rates(
     if raw is None:
         return rates
     sim = p.mapping(raw, "sim")
-    for key, value in sim.items():
+    for key in sim:
         if key not in CYCLIC_RATES:
-            raise p.fail(
+            p.fail(
                 f"sim.{key}",
                 f"unknown; the simulator's settings are the ODrive's cyclic message rates:"
                 f" {', '.join(CYCLIC_RATES)}",
             )
-        ms = p.number(sim, key, "sim", 0.0, positive=False)
-        if ms < 0:
-            raise p.fail(f"sim.{key}", f"must be 0 (off) or a number of ms, got {value!r}")
+        ms = p.field(sim, key, _SIM_MS, "sim")
         driver_key = _SUPERVISED.get(key)
         if driver_key is not None and not math.isclose(ms, rates[key]):
             why = (
@@ -954,12 +931,24 @@ def sim_rates(
                 else f"differs from {driver_key} ({rates[key] / 1000.0:g} s), which the"
                 " driver expects them at"
             )
-            raise p.fail(
+            p.fail(
                 f"sim.{key}",
                 f"{why}: leave it out, or set {driver_key} (the device's {key} / 1000)",
             )
         rates[key] = ms
     return rates
+
+
+def _read_nodes(reader: ProfileReader, value: object, key: str) -> list[ODriveNode]:
+    """The ``nodes`` of an entry: each a node id, a joint, a gear ratio and limits."""
+    nodes: list[ODriveNode] = []
+    members = read_members(
+        reader, value, key, _NODE_KEYS, "node_id", (0, cs.MAX_NODE_ID), id_word="node id"
+    )
+    for path, node, node_id, joint in members:
+        gear = reader.field(node, "gear_ratio", number(1.0), path)
+        nodes.append(ODriveNode(node_id, joint, gear, read_limits(reader, node, path)))
+    return nodes
 
 
 def _state_name(state: int) -> str:
@@ -972,7 +961,7 @@ def _state_name(state: int) -> str:
 def _link(index: int, link: object) -> dict[str, Any]:
     """A link to look at, checked as :meth:`ODriveDriver.from_profile` checks ``link``."""
     try:
-        return Profile(f"links[{index}]").link({"link": link})
+        return read_link(ProfileReader(), link, f"links[{index}]")
     except ProfileError as err:
         raise ValueError(
             f"{ODriveDriver.kind} detect: links[{index}] is not a python-can bus mapping with"

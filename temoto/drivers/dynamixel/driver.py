@@ -62,16 +62,33 @@ import math
 import os
 import threading
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any, ClassVar, Final, Self
 
 from temoto.clock import Clock
-from temoto.drivers.base import Driver, DriverState, detect_links
+from temoto.drivers.base import Driver, DriverState
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
-from temoto.drivers.dynamixel import _sdk
+from temoto.drivers.dynamixel import _sdk, timing
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel import protocol as p
+from temoto.drivers.dynamixel.detect import DETECT_BAUD_RATES, detect
+from temoto.drivers.dynamixel.servos import (
+    COMMAND_MODE,
+    MODES,
+    POSITION_MODES,
+    ServoConfig,
+    ServoStatus,
+)
+from temoto.drivers.dynamixel.settings import BAUD_RATES, PROFILE_FIELDS, settings
 from temoto.drivers.dynamixel.sim import SimDynamixelChain
+from temoto.drivers.dynamixel.timing import (
+    DEFAULT_BUS_WATCHDOG,
+    FACTORY_RETURN_DELAY,
+    latency_timer,
+    poll_cycle_time,
+    return_delay_units,
+    watchdog_units,
+)
+from temoto.drivers.profile import Field
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import FaultWindow, StreamAge
 from temoto.errors import (
@@ -81,7 +98,6 @@ from temoto.errors import (
     DriverTimeoutError,
     DriverUnavailableError,
     DynamixelHardwareError,
-    ProfileError,
     StateError,
 )
 
@@ -102,242 +118,15 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: Baud rates both the X series and dynamixel-sdk's port handler support.
-BAUD_RATES: Final = frozenset({9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000})
-#: The baud rates :meth:`DynamixelDriver.detect` tries on a link without ``?baud=``, most
-#: common first: the X series' factory setting, then the usual setting of an arm.
-DETECT_BAUD_RATES: Final = (57600, 1_000_000, 115200, 2_000_000, 3_000_000, 4_000_000, 9600)
-#: The joint limits (rad) in detect's entries: the single turn of position mode (ticks 0 to
-#: 4095, about ±π), rounded inward; ±π itself ends one tick beyond it.
-_DETECT_LIMIT: Final = 3.14
 #: The ``reply_timeout`` :meth:`DynamixelDriver.simulate` gives a driver on a simulated chain.
 SIM_REPLY_TIMEOUT: Final = 0.1
 #: ``safe_state`` values: ``torque_off`` (the default) writes Torque Enable = 0 to every servo;
 #: ``hold`` keeps torque and sets each goal to where the servo is (goal velocity/current 0).
 SAFE_STATES: Final = ("torque_off", "hold")
-#: The Bus Watchdog time (s) when the profile sets none: this, or three poll periods rounded up
-#: to the watchdog's 20 ms unit when that is longer (off when that exceeds its 2.54 s).
-DEFAULT_BUS_WATCHDOG: Final = 0.5
-#: The Return Delay Time (s) of a servo as it leaves the factory (register 9 = 250 x 2 µs): what
-#: the poll-rate estimate assumes when the profile sets no ``return_delay_time``.
-FACTORY_RETURN_DELAY: Final = 250 * ct.RETURN_DELAY_UNIT
-#: Where Linux lists USB serial adapters; each has a ``latency_timer`` file (ms).
-USB_SERIAL_SYSFS: Final = "/sys/bus/usb-serial/devices"
-_BITS_PER_BYTE: Final = 10  # start bit, 8 data bits, stop bit
-_INSTRUCTION_BYTES: Final = 10  # header 4, id, length 2, instruction, CRC 2
-_STATUS_BYTES: Final = 11  # header 4, id, length 2, instruction 0x55, error, CRC 2
 _SAFE_BUS_WAIT: Final = 0.5  # real s make_safe waits for a transaction of another thread
-#: Profile ``mode`` values → Operating Mode.
-MODES: Final[Mapping[str, ct.OperatingMode]] = {
-    "current": ct.OperatingMode.CURRENT,
-    "velocity": ct.OperatingMode.VELOCITY,
-    "position": ct.OperatingMode.POSITION,
-    "extended_position": ct.OperatingMode.EXTENDED_POSITION,
-    "current_based_position": ct.OperatingMode.CURRENT_BASED_POSITION,
-}
-_POSITION_MODES: Final = frozenset(
-    {
-        ct.OperatingMode.POSITION,
-        ct.OperatingMode.EXTENDED_POSITION,
-        ct.OperatingMode.CURRENT_BASED_POSITION,
-    }
-)
-_COMMAND_MODE: Final[Mapping[ct.OperatingMode, ControlMode]] = {
-    ct.OperatingMode.CURRENT: ControlMode.EFFORT,
-    ct.OperatingMode.VELOCITY: ControlMode.VELOCITY,
-    **dict.fromkeys(_POSITION_MODES, ControlMode.POSITION),
-}
 _PING_TRIES: Final = 3
 _TRIES: Final = 3  # attempts of a single READ or WRITE (they are idempotent)
 _REBOOT_WAIT_TRIES: Final = 20  # pings (each up to ~34 ms real) while a servo restarts
-_TOP_KEYS: Final = frozenset(
-    {
-        "driver",
-        "sim",
-        "link",
-        "baud",
-        "poll_rate",
-        "status_every",
-        "timeout_polls",
-        "reply_timeout",
-        "servos",
-        "safe_state",
-        "bus_watchdog",
-        "return_delay_time",
-    }
-)
-_SERVO_KEYS: Final = frozenset(
-    {
-        "id",
-        "joint",
-        "model",
-        "mode",
-        "min_position",
-        "max_position",
-        "velocity_limit",
-        "effort_limit",
-        "gear",
-        "offset",
-        "torque_constant",
-    }
-)
-
-
-class _FieldError(ValueError):
-    """A bad :class:`ServoConfig` value; ``key`` names the field (for profile key paths)."""
-
-    def __init__(self, key: str, message: str) -> None:
-        super().__init__(message)
-        self.key = key
-
-
-@dataclass(frozen=True, slots=True)
-class ServoConfig:
-    """One servo of a chain (joint side values in SI units).
-
-    Attributes:
-        id: Its id on the chain (0 to 252).
-        joint: The joint it moves.
-        model: Its model name (``XM430-W350``); PING must report this model.
-        mode: The operating mode (``position``, ``extended_position``,
-            ``current_based_position``, ``velocity``, ``current``).
-        min_position: The lowest joint position a command may ask for (rad); by default (NaN)
-            the end of the servo's single turn (tick 0 or 4095, after gear and offset).
-        max_position: The highest (rad); by default the other end of the single turn.
-        velocity_limit: The largest joint speed a command may ask for (rad/s), or None.
-        effort_limit: The largest joint effort a command may ask for (N·m), or None.
-        gear: Motor turns per joint turn (negative reverses the direction).
-        offset: Joint position (rad) at the servo's middle position (tick 2048).
-        torque_constant: N·m per A of the motor, or None for the model's value.
-        write_limits: Write the limits to the servo's Min/Max Position Limit registers at
-            configure (only in ``position`` mode, the one mode where the servo applies them).
-
-    Raises:
-        ValueError: A value out of range.
-    """
-
-    id: int
-    joint: str
-    model: str
-    mode: str = "position"
-    min_position: float = math.nan
-    max_position: float = math.nan
-    velocity_limit: float | None = None
-    effort_limit: float | None = None
-    gear: float = 1.0
-    offset: float = 0.0
-    torque_constant: float | None = None
-    write_limits: bool = False
-
-    def __post_init__(self) -> None:
-        if not 0 <= self.id <= p.MAX_ID:
-            raise _FieldError("id", f"id must be 0..{p.MAX_ID}, got {self.id}")
-        if not self.joint:
-            raise _FieldError("joint", "joint must be a non-empty name")
-        if self.model not in ct.MODELS:
-            known = ", ".join(ct.MODELS)
-            raise _FieldError("model", f"unknown model {self.model!r} (known: {known})")
-        if self.mode not in MODES:
-            raise _FieldError("mode", f"unknown mode {self.mode!r} (known: {', '.join(MODES)})")
-        if MODES[self.mode] not in ct.MODELS[self.model].modes or (
-            self.mode == "current" and ct.MODELS[self.model].current_unit is None
-        ):
-            raise _FieldError("mode", f"{self.model} has no {self.mode} mode")
-        if not (math.isfinite(self.gear) and self.gear != 0):
-            raise _FieldError("gear", f"gear must be finite and non-zero, got {self.gear}")
-        if not math.isfinite(self.offset):
-            raise _FieldError("offset", f"offset must be finite, got {self.offset}")
-        ends = sorted((self.position(0), self.position(4095)))
-        if math.isnan(self.min_position):  # the default: the servo's single turn
-            object.__setattr__(self, "min_position", ends[0])
-        if math.isnan(self.max_position):
-            object.__setattr__(self, "max_position", ends[1])
-        lo, hi = self.min_position, self.max_position
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-            raise _FieldError(
-                "max_position", f"need finite min_position < max_position, got {lo}, {hi}"
-            )
-        if MODES[self.mode] is ct.OperatingMode.POSITION:
-            for key, bound in (("min_position", lo), ("max_position", hi)):
-                if not 0 <= self.ticks(bound) <= 4095:
-                    raise _FieldError(
-                        key,
-                        f"{bound} rad is outside the servo's single turn in position mode"
-                        " (use extended_position)",
-                    )
-        for key in ("velocity_limit", "effort_limit", "torque_constant"):
-            value = getattr(self, key)
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise _FieldError(key, f"{key} must be positive, got {value}")
-
-    @property
-    def spec(self) -> ct.Model:
-        """The model's data."""
-        return ct.MODELS[self.model]
-
-    @property
-    def operating_mode(self) -> ct.OperatingMode:
-        """The Operating Mode register's value."""
-        return MODES[self.mode]
-
-    def limit_ticks(self) -> tuple[int, int]:
-        """(Min Position Limit, Max Position Limit) register values for the joint limits."""
-        a, b = self.ticks(self.min_position), self.ticks(self.max_position)
-        return max(min(a, b), 0), min(max(a, b), 4095)
-
-    def ticks(self, position: float) -> int:
-        """Joint radians → Goal Position ticks."""
-        return round((position - self.offset) * self.gear / ct.RAD_PER_TICK) + ct.POSITION_CENTER
-
-    def position(self, ticks: int) -> float:
-        """Present Position ticks → joint radians."""
-        return (ticks - ct.POSITION_CENTER) * ct.RAD_PER_TICK / self.gear + self.offset
-
-    def velocity(self, units: int) -> float:
-        """Present Velocity units → joint rad/s."""
-        return units * ct.RAD_S_PER_UNIT / self.gear
-
-    def velocity_units(self, velocity: float) -> int:
-        """Joint rad/s → Goal/Profile Velocity units."""
-        return round(velocity * self.gear / ct.RAD_S_PER_UNIT)
-
-    def _newton_metres_per_unit(self) -> float:
-        spec = self.spec
-        if spec.current_unit is None:  # XL430/XC430: Present Load, 0.1 % of the stall torque
-            return 0.001 * spec.stall_torque * abs(self.gear)
-        kt = self.torque_constant or spec.torque_constant
-        return spec.current_unit * kt * abs(self.gear)
-
-    def effort(self, units: int) -> float:
-        """Present Current (or Load) units → joint N·m (the gear's sign included)."""
-        return units * self._newton_metres_per_unit() * (1 if self.gear > 0 else -1)
-
-    def current_units(self, effort: float) -> int:
-        """Joint N·m → Goal Current units."""
-        return round(effort / self._newton_metres_per_unit() * (1 if self.gear > 0 else -1))
-
-
-@dataclass(frozen=True, slots=True)
-class ServoStatus:
-    """The slow readings of one servo.
-
-    Attributes:
-        id: The servo.
-        joint: Its joint.
-        temperature: °C.
-        voltage: Input volts.
-        hardware_error: The Hardware Error Status register.
-        errors: Its bits by name (``overheating``, ...).
-        stamp: Clock seconds of the reading.
-    """
-
-    id: int
-    joint: str
-    temperature: float
-    voltage: float
-    hardware_error: int
-    errors: tuple[str, ...]
-    stamp: float
 
 
 class DynamixelDriver(Driver):
@@ -396,8 +185,8 @@ class DynamixelDriver(Driver):
             raise ValueError(f"reply_timeout must be in (0, 1] s, got {reply_timeout}")
         if status_every < 1 or timeout_polls < 1:
             raise ValueError("status_every and timeout_polls must be at least 1")
-        self.watchdog_units = _watchdog_units(bus_watchdog, 1.0 / poll_rate)
-        self.return_delay_units = _return_delay_units(return_delay_time)
+        self.watchdog_units = watchdog_units(bus_watchdog, 1.0 / poll_rate)
+        self.return_delay_units = return_delay_units(return_delay_time)
         self.port = port
         self.baud = baud
         self.servos: tuple[ServoConfig, ...] = tuple(servos)
@@ -449,36 +238,51 @@ class DynamixelDriver(Driver):
         return {
             s.joint: (s.min_position, s.max_position)
             for s in self.servos
-            if s.operating_mode in _POSITION_MODES
+            if s.operating_mode in POSITION_MODES
         }
 
     # ---- profile ------------------------------------------------------------------------------
+
+    profile_fields: ClassVar[Mapping[str, Field[Any]]] = PROFILE_FIELDS
+
+    @classmethod
+    def profile_settings(cls, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+        """Constructor arguments from a checked entry (see ``docs/driver-dynamixel.md``).
+
+        Args:
+            values: The entry's checked values: ``link``, ``baud``, ``poll_rate``,
+                ``status_every``, ``timeout_polls``, ``reply_timeout``, ``bus_watchdog``,
+                ``return_delay_time``, ``servos`` (``sim`` is the simulator's).
+            where: The entry's place for messages.
+
+        Returns:
+            The keyword arguments (``port`` and ``baud`` from the link).
+
+        Raises:
+            ProfileError: Keys that contradict each other (the message names the key).
+        """
+        return settings(values, super().profile_settings(values, where), where)
 
     @classmethod
     def from_profile(
         cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
     ) -> Self:
-        """A driver from a profile's device entry (see ``docs/driver-dynamixel.md``).
+        """A driver from a profile's device entry (see :meth:`Driver.from_profile`).
 
         Args:
             name: The device's name.
-            config: Its entry: ``link``, ``baud``, ``poll_rate``, ``status_every``,
-                ``timeout_polls``, ``reply_timeout``, ``safe_state``, ``bus_watchdog``,
-                ``return_delay_time``, ``servos`` (and ``driver``/``sim``, which are not read).
+            config: Its entry (:meth:`profile_settings` lists the keys).
             clock: The robot's clock.
-            where: The entry's key path, for messages.
+            where: The entry's place for messages.
 
         Returns:
             The driver (``UNCONFIGURED``). A warning is logged when ``poll_rate`` cannot be
-            met on the wire (:func:`poll_cycle_time`).
+            met on the wire (:func:`~temoto.drivers.dynamixel.timing.poll_cycle_time`).
 
         Raises:
             ProfileError: An invalid entry; the message starts with the key path.
         """
-        kwargs = _parse_profile(config, where)
-        safe_state = cls.safe_state_from(config, where)
-        driver = cls(name, clock=clock, **kwargs)
-        driver.safe_state = safe_state
+        driver = super().from_profile(name, config, clock=clock, where=where)
         driver._warn_if_too_fast(where)
         return driver
 
@@ -536,8 +340,8 @@ class DynamixelDriver(Driver):
         Raises:
             ProfileError: An invalid entry.
         """
-        kwargs = _parse_profile(config, name)
-        servos: Sequence[ServoConfig] = kwargs["servos"]
+        values = cls.read_profile(config, name)
+        servos: Sequence[ServoConfig] = cls.profile_settings(values, name)["servos"]
         sim = SimDynamixelChain({s.id: s.model for s in servos}, clock=clock, name=name)
         out = dict(config)
         out["link"] = f"serial:{sim.path}"
@@ -579,14 +383,7 @@ class DynamixelDriver(Driver):
             ValueError: ``timeout`` is not a positive finite number of seconds, or a link is not
                 a serial link (raised before any port is opened; the message names the link).
         """
-        urls = detect_links(links, timeout, _serial_links)
-        plans = [_detect_plan(url) for url in urls]  # every link checked before any is opened
-        entries: list[dict[str, Any]] = []
-        for path, bauds in plans:
-            entry = _detect_chain(path, bauds, timeout)
-            if entry is not None:
-                entries.append(entry)
-        return entries
+        return detect(links, timeout)
 
     # ---- capability -------------------------------------------------------------------------
 
@@ -644,7 +441,7 @@ class DynamixelDriver(Driver):
             servo = self._by_joint.get(cmd.joint)
             if servo is None:
                 raise ValueError(f"{self.name}: no joint {cmd.joint!r}")
-            wanted = _COMMAND_MODE[servo.operating_mode]
+            wanted = COMMAND_MODE[servo.operating_mode]
             if cmd.mode is not wanted:
                 raise ValueError(
                     f"{self.name}: joint {cmd.joint} is in {servo.mode} mode and takes"
@@ -735,7 +532,7 @@ class DynamixelDriver(Driver):
             self._raise_alerts(errors)
             holds: dict[int, bytes] = {}
             for servo in self.servos:
-                if servo.operating_mode in _POSITION_MODES:
+                if servo.operating_mode in POSITION_MODES:
                     holds[servo.id] = data[servo.id][6:10]  # present position → goal
             if holds:
                 self._check_tx(self._writer(ct.GOAL_POSITION).write(holds))
@@ -756,7 +553,7 @@ class DynamixelDriver(Driver):
         """Each servo's goal that keeps it where a fast read found it (velocity/current 0)."""
         goals: dict[int, tuple[ct.Register, bytes]] = {}
         for servo in self.servos:
-            if servo.operating_mode in _POSITION_MODES:
+            if servo.operating_mode in POSITION_MODES:
                 goals[servo.id] = (ct.GOAL_POSITION, bytes(fast[servo.id][6:10]))
             elif servo.mode == "velocity":
                 goals[servo.id] = (ct.GOAL_VELOCITY, p.to_le(0, 4))
@@ -1266,73 +1063,13 @@ _VELOCITY_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Velocity Lim
 _CURRENT_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Current Limit")
 
 
-# ---- timing, watchdog and adapter checks --------------------------------------------------------
-
-
-def poll_cycle_time(
-    servos: int,
-    baud: int,
-    return_delay: float = FACTORY_RETURN_DELAY,
-    status_every: int = 10,
-    bus_watchdog: bool = True,
-) -> float:
-    """Seconds one poll cycle of the driver takes on the wire (an estimate, a lower bound).
-
-    Each byte is 10 bits (start, 8 data, stop); an instruction packet is 10 bytes plus its
-    parameters, a status packet 11 plus its data (byte stuffing ignored). Per cycle the driver
-    sends one SYNC_READ of 10 bytes (``14 + n`` bytes out, ``n`` replies of 21 bytes, each after
-    the servo's Return Delay Time) and one SYNC_WRITE of the goals (``14 + 5 n`` bytes; 4-byte
-    goals), and every ``status_every`` cycles SYNC_READs of 3 bytes (voltage, temperature),
-    1 byte (hardware error) and, with the Bus Watchdog on, 1 byte (its register)::
-
-        bytes  = (14 + n + 21 n) + (14 + 5 n)
-                 + [(14 + n + 14 n) + (14 + n + 12 n) (+ (14 + n + 12 n))] / status_every
-        reads  = n + [2 n (+ n)] / status_every
-        time   = 10 * bytes / baud + reads * return_delay
-
-    A USB adapter adds its latency (the FTDI latency timer: 16 ms by default, 1 ms when set;
-    see ``docs/driver-dynamixel.md``) to every read, which this leaves out.
-
-    Args:
-        servos: Servos on the chain.
-        baud: Bits per second.
-        return_delay: The servos' Return Delay Time (s).
-        status_every: Polls per status read.
-        bus_watchdog: Whether the status read includes the Bus Watchdog register.
-
-    Returns:
-        Seconds.
-    """
-    n = servos
-    fast = (_INSTRUCTION_BYTES + 4 + n) + n * (_STATUS_BYTES + 10)
-    goals = _INSTRUCTION_BYTES + 4 + 5 * n
-    status_reads = [3, 1, 1] if bus_watchdog else [3, 1]
-    status = sum((_INSTRUCTION_BYTES + 4 + n) + n * (_STATUS_BYTES + size) for size in status_reads)
-    wire = fast + goals + status / status_every
-    replies = n + len(status_reads) * n / status_every
-    return _BITS_PER_BYTE * wire / baud + replies * return_delay
-
-
-def latency_timer(port: str) -> int | None:
-    """The USB serial adapter's latency timer (ms) of a serial device, where Linux lists it.
-
-    Args:
-        port: The serial device (``/dev/ttyUSB0``; a symlink such as ``/dev/serial/by-id/...``
-            is followed).
-
-    Returns:
-        The value of ``/sys/bus/usb-serial/devices/<tty>/latency_timer``, or None when there is
-        no such file (not Linux, not a USB serial adapter, a pseudo-terminal) or it is unreadable.
-    """
-    tty = os.path.basename(os.path.realpath(port))
-    try:
-        with open(os.path.join(USB_SERIAL_SYSFS, tty, "latency_timer"), encoding="ascii") as f:
-            return int(f.read().strip())
-    except (OSError, ValueError):
-        return None
-
-
 def _check_latency_timer(name: str, port: str) -> None:
+    """Log a warning when the USB serial adapter of ``port`` has a latency timer above 1 ms.
+
+    Args:
+        name: The device, for the message.
+        port: The serial device.
+    """
     value = latency_timer(port)
     if value is not None and value > 1:
         tty = os.path.basename(os.path.realpath(port))
@@ -1343,290 +1080,6 @@ def _check_latency_timer(name: str, port: str) -> None:
             name,
             port,
             value,
-            USB_SERIAL_SYSFS,
+            timing.USB_SERIAL_SYSFS,
             tty,
         )
-
-
-def _watchdog_units(seconds: float | None, period: float) -> int:
-    """Bus Watchdog register units (20 ms) for a time in seconds (None: the default).
-
-    Raises:
-        ValueError: Not 0 and not within 0.02..2.54 s, or shorter than two poll periods.
-    """
-    unit = ct.BUS_WATCHDOG_UNIT
-    if seconds is None:
-        units = math.ceil(max(DEFAULT_BUS_WATCHDOG, 3 * period) / unit - 1e-9)
-        return units if units <= ct.BUS_WATCHDOG_MAX else 0
-    if not math.isfinite(seconds) or seconds < 0:
-        raise ValueError(f"bus_watchdog must be 0 (off) or 0.02..2.54 s, got {seconds}")
-    if seconds == 0:
-        return 0
-    units = math.ceil(seconds / unit - 1e-9)
-    if not 1 <= units <= ct.BUS_WATCHDOG_MAX:
-        raise ValueError(f"bus_watchdog must be 0 (off) or 0.02..2.54 s, got {seconds}")
-    if units * unit < 2 * period:
-        raise ValueError(
-            f"bus_watchdog {units * unit:g} s is shorter than two poll periods"
-            f" ({2 * period:g} s): the servos would stop between two polls"
-        )
-    return units
-
-
-def _return_delay_units(seconds: float | None) -> int | None:
-    """Return Delay Time register units (2 µs) for a time in seconds (None: not written).
-
-    Raises:
-        ValueError: Not within 0..508 µs.
-    """
-    if seconds is None:
-        return None
-    units = round(seconds / ct.RETURN_DELAY_UNIT) if math.isfinite(seconds) else -1
-    if not 0 <= units <= ct.RETURN_DELAY_MAX or seconds < 0:
-        raise ValueError(f"return_delay_time must be 0 to 0.000508 s, got {seconds}")
-    return units
-
-
-# ---- detection ----------------------------------------------------------------------------------
-
-
-def _detect_plan(link: Any) -> tuple[str, tuple[int, ...]]:
-    """The serial device of a link to look at, and the baud rates to try there.
-
-    Raises:
-        ValueError: Not a serial link (the message names it).
-    """
-    try:
-        path, baud = _parse_link(link, f"link {link!r}")
-    except ProfileError as err:
-        raise ValueError(str(err)) from None
-    return path, DETECT_BAUD_RATES if baud is None else (baud,)
-
-
-def _detect_chain(path: str, bauds: Sequence[int], timeout: float) -> dict[str, Any] | None:
-    """Broadcast-PING ``path`` at each baud rate until servos answer; their entry, or None."""
-    for baud in bauds:
-        port = _sdk.SdkPort(path, baud)
-        try:
-            port.open()
-        except OSError as err:
-            logger.warning("dynamixel detect: skipping %s: cannot open it: %s", path, err)
-            return None  # at another baud rate neither
-        except ValueError as err:
-            logger.warning("dynamixel detect: %s: %s", path, err)
-            continue
-        try:
-            found, result = port.broadcast_ping(timeout)
-        finally:
-            port.close()
-        if found:
-            return _detected(path, baud, found)
-        logger.debug(
-            "dynamixel detect: %s at %d baud: no servo answered: %s",
-            path,
-            baud,
-            port.result_text(result),
-        )
-    return None
-
-
-def _detected(path: str, baud: int, found: Mapping[int, tuple[int, int]]) -> dict[str, Any] | None:
-    """The profile entry of the servos that answered (None if none is a known model)."""
-    servos: list[dict[str, Any]] = []
-    for dxl_id, (number, firmware) in sorted(found.items()):
-        if not 0 <= dxl_id <= p.MAX_ID:
-            logger.warning(
-                "dynamixel detect: %s: a status packet from id %d: left out", path, dxl_id
-            )
-            continue
-        model = ct.MODELS_BY_NUMBER.get(number)
-        if model is None:
-            logger.warning(
-                "dynamixel detect: %s at %d baud: servo %d has model number %d, which the"
-                " driver does not know (known: %s): left out",
-                path,
-                baud,
-                dxl_id,
-                number,
-                ", ".join(f"{m.name} = {m.number}" for m in ct.MODELS.values()),
-            )
-            continue
-        logger.info(
-            "dynamixel detect: %s at %d baud: servo %d is %s (firmware %d)",
-            path,
-            baud,
-            dxl_id,
-            model.name,
-            firmware,
-        )
-        servos.append(
-            {
-                "id": dxl_id,
-                "joint": f"joint_{dxl_id}",
-                "model": model.name,
-                "mode": "position",
-                "min_position": -_DETECT_LIMIT,
-                "max_position": _DETECT_LIMIT,
-            }
-        )
-    if not servos:
-        return None
-    return {"driver": "dynamixel", "link": f"serial:{path}?baud={baud}", "servos": servos}
-
-
-# ---- profile parsing ----------------------------------------------------------------------------
-
-
-def _parse_profile(config: Mapping[str, Any], where: str) -> dict[str, Any]:
-    """Validate a device entry; keyword arguments for :class:`DynamixelDriver`."""
-    if not isinstance(config, Mapping):
-        raise ProfileError(f"{where}: a device entry must be a mapping")
-    unknown = sorted(set(config) - _TOP_KEYS)
-    if unknown:
-        raise ProfileError(
-            f"{where}.{unknown[0]}: unknown key (known: {', '.join(sorted(_TOP_KEYS))})"
-        )
-    if config.get("driver", "dynamixel") != "dynamixel":
-        raise ProfileError(f"{where}.driver: must be 'dynamixel', got {config['driver']!r}")
-    if "link" not in config:
-        raise ProfileError(f"{where}.link: missing (e.g. 'serial:/dev/ttyUSB0?baud=57600')")
-    port, link_baud = _parse_link(config["link"], f"{where}.link")
-    baud = config.get("baud", link_baud if link_baud is not None else 57600)
-    if not isinstance(baud, int) or isinstance(baud, bool) or baud not in BAUD_RATES:
-        raise ProfileError(f"{where}.baud: must be one of {sorted(BAUD_RATES)}, got {baud!r}")
-    if link_baud is not None and baud != link_baud:
-        raise ProfileError(f"{where}.baud: {baud} contradicts the link's baud={link_baud}")
-    out: dict[str, Any] = {"port": port, "baud": baud}
-    rate = config.get("poll_rate", 50.0)
-    if not _number(rate) or not 0 < rate <= 1000:
-        raise ProfileError(f"{where}.poll_rate: must be a number in (0, 1000] Hz, got {rate!r}")
-    out["poll_rate"] = float(rate)
-    reply = config.get("reply_timeout", 0.034)
-    if not _number(reply) or not 0 < reply <= 1:
-        raise ProfileError(f"{where}.reply_timeout: must be a number in (0, 1] s, got {reply!r}")
-    out["reply_timeout"] = float(reply)
-    for key, default in (("status_every", 10), ("timeout_polls", 3)):
-        value = config.get(key, default)
-        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-            raise ProfileError(f"{where}.{key}: must be an integer >= 1, got {value!r}")
-        out[key] = value
-    if "bus_watchdog" in config:
-        value = config["bus_watchdog"]
-        try:
-            if not _number(value):
-                raise ValueError(f"must be a number of seconds, got {value!r}")
-            _watchdog_units(float(value), 1.0 / out["poll_rate"])
-        except ValueError as err:
-            raise ProfileError(f"{where}.bus_watchdog: {err}") from None
-        out["bus_watchdog"] = float(value)
-    if "return_delay_time" in config:
-        value = config["return_delay_time"]
-        try:
-            if not _number(value):
-                raise ValueError(f"must be a number of seconds, got {value!r}")
-            _return_delay_units(float(value))
-        except ValueError as err:
-            raise ProfileError(f"{where}.return_delay_time: {err}") from None
-        out["return_delay_time"] = float(value)
-    servos = config.get("servos")
-    if not isinstance(servos, Sequence) or isinstance(servos, str) or not servos:
-        raise ProfileError(f"{where}.servos: must be a non-empty list of servos")
-    parsed: list[ServoConfig] = []
-    ids: dict[int, int] = {}
-    joints: dict[str, int] = {}
-    for i, entry in enumerate(servos):
-        at = f"{where}.servos[{i}]"
-        servo = _parse_servo(entry, at)
-        if servo.id in ids:
-            raise ProfileError(f"{at}.id: duplicate id {servo.id} (also servos[{ids[servo.id]}])")
-        if servo.joint in joints:
-            raise ProfileError(
-                f"{at}.joint: duplicate joint {servo.joint!r} (also servos[{joints[servo.joint]}])"
-            )
-        ids[servo.id] = i
-        joints[servo.joint] = i
-        parsed.append(servo)
-    out["servos"] = parsed
-    return out
-
-
-def _parse_servo(entry: Any, at: str) -> ServoConfig:
-    if not isinstance(entry, Mapping):
-        raise ProfileError(f"{at}: a servo must be a mapping")
-    unknown = sorted(set(entry) - _SERVO_KEYS)
-    if unknown:
-        known = ", ".join(sorted(_SERVO_KEYS))
-        raise ProfileError(f"{at}.{unknown[0]}: unknown key (known: {known})")
-    for key in ("id", "joint", "model"):
-        if key not in entry:
-            raise ProfileError(f"{at}.{key}: missing")
-    dxl_id = entry["id"]
-    if not isinstance(dxl_id, int) or isinstance(dxl_id, bool) or not 0 <= dxl_id <= p.MAX_ID:
-        raise ProfileError(f"{at}.id: must be an integer 0..{p.MAX_ID}, got {dxl_id!r}")
-    if not isinstance(entry["joint"], str) or not entry["joint"]:
-        raise ProfileError(f"{at}.joint: must be a non-empty string")
-    model = entry["model"]
-    if model not in ct.MODELS:
-        raise ProfileError(f"{at}.model: unknown model {model!r} (known: {', '.join(ct.MODELS)})")
-    mode = entry.get("mode", "position")
-    if mode not in MODES:
-        raise ProfileError(f"{at}.mode: unknown mode {mode!r} (known: {', '.join(MODES)})")
-    floats: dict[str, float] = {}
-    for key in (
-        "min_position",
-        "max_position",
-        "velocity_limit",
-        "effort_limit",
-        "gear",
-        "offset",
-        "torque_constant",
-    ):
-        if key in entry:
-            if not _number(entry[key]) or not math.isfinite(entry[key]):
-                raise ProfileError(f"{at}.{key}: must be a finite number, got {entry[key]!r}")
-            floats[key] = float(entry[key])
-    limits = mode == "position" and ("min_position" in floats or "max_position" in floats)
-    try:
-        return ServoConfig(
-            id=dxl_id,
-            joint=entry["joint"],
-            model=model,
-            mode=mode,
-            write_limits=limits,
-            **floats,
-        )
-    except _FieldError as err:
-        raise ProfileError(f"{at}.{err.key}: {err}") from err
-
-
-def _parse_link(link: Any, at: str) -> tuple[str, int | None]:
-    if not isinstance(link, str) or not link:
-        raise ProfileError(f"{at}: must be a string like 'serial:/dev/ttyUSB0?baud=57600'")
-    rest = link
-    if ":" in link.split("/", 1)[0]:
-        scheme, _, rest = link.partition(":")
-        if scheme != "serial":
-            raise ProfileError(f"{at}: a Dynamixel chain needs a serial link, not {scheme!r}")
-    path, _, query = rest.partition("?")
-    if not path.startswith("/"):
-        raise ProfileError(f"{at}: the serial device must be an absolute path, got {path!r}")
-    baud: int | None = None
-    for part in filter(None, query.split("&")):
-        key, _, value = part.partition("=")
-        if key != "baud":
-            raise ProfileError(f"{at}: unknown link option {key!r} (known: baud)")
-        if not value.isdigit():
-            raise ProfileError(f"{at}: baud must be an integer, got {value!r}")
-        baud = int(value)
-        if baud not in BAUD_RATES:
-            raise ProfileError(f"{at}: baud must be one of {sorted(BAUD_RATES)}, got {baud}")
-    return path, baud
-
-
-def _serial_links() -> list[Any]:
-    """``serial:`` links of every serial port pyserial lists."""
-    return [f"serial:{path}" for path in _sdk.serial_ports()]
-
-
-def _number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)

@@ -61,24 +61,25 @@ from __future__ import annotations
 
 import collections
 import contextlib
-import importlib
 import logging
 import math
 import socket
 import threading
 import time
 from collections.abc import Callable, Mapping, Sequence
-from typing import Any, ClassVar, Final, Self
-from urllib.parse import parse_qs
+from typing import Any, ClassVar, Final
 
 from temoto.clock import Clock
-from temoto.drivers.base import Driver, DriverState, detect_links
+from temoto.drivers.base import Driver, DriverState
 from temoto.drivers.capabilities import GeoPoint, MissionItem, MissionProgress, VehicleTelemetry
 from temoto.drivers.mavlink import missions
 from temoto.drivers.mavlink import protocol as p
+from temoto.drivers.mavlink.detect import detect
 from temoto.drivers.mavlink.link import Link, LinkSpec, open_link, parse_link
 from temoto.drivers.mavlink.protocol import Codec, Message
-from temoto.drivers.mavlink.sim import DEFAULT_RATES, PARAMETERS, SimVehicle
+from temoto.drivers.mavlink.settings import PROFILE_FIELDS, failsafe_params, read_sim
+from temoto.drivers.mavlink.sim import SimVehicle
+from temoto.drivers.profile import Field, ProfileReader
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import FaultWindow, StreamAge
 from temoto.errors import (
@@ -88,7 +89,6 @@ from temoto.errors import (
     DriverTimeoutError,
     MavlinkCommandError,
     MavlinkMissionError,
-    ProfileError,
     StateError,
 )
 
@@ -116,64 +116,10 @@ _SAFE_MODES: Final[Mapping[str, str]] = {
     "land": "LAND",
     "rtl": "RTL",
 }
-#: ``gcs_failsafe`` keys → (ArduPilot parameter, low, high, integer); ranges from the
-#: ArduCopter parameter documentation (FS_GCS_ENABLE values 0..7, FS_GCS_TIMEOUT 2..120 s).
-_FAILSAFE_KEYS: Final[Mapping[str, tuple[str, float, float, bool]]] = {
-    "enable": ("FS_GCS_ENABLE", 0, 7, True),
-    "timeout": ("FS_GCS_TIMEOUT", 2, 120, False),
-}
 #: The parameter naming the GCS system id whose heartbeats the failsafe watches (the older
 #: name, and the one newer ArduPilot firmware uses).
 _GCS_SYSID_PARAMS: Final = ("SYSID_MYGCS", "MAV_GCS_SYSID")
 _TEXT_QUIET: Final = 0.1  # once a refusal's text came: seconds without another end the wait
-
-#: Profile keys → (default, check); None marks the required key.
-_KEYS: Final = frozenset(
-    {
-        "driver",
-        "link",
-        "system_id",
-        "component_id",
-        "gcs_system_id",
-        "gcs_component_id",
-        "heartbeat_period",
-        "heartbeat_timeout",
-        "init_timeout",
-        "command_timeout",
-        "command_retries",
-        "mission_timeout",
-        "mission_retries",
-        "stream_rate",
-        "status_texts",
-        "safe_state",
-        "gcs_failsafe",
-        "sim",
-    }
-)
-#: Baud rates :meth:`MavlinkDriver.detect` tries on a serial link without ``?baud=``, in order.
-_DETECT_BAUDS: Final = (57600, 115200, 921600)
-#: Where a ground station listens (autopilots and telemetry radios send there): detect's UDP
-#: candidate when no links are given.
-_DETECT_UDP: Final = "udpin:0.0.0.0:14550"
-_AUTOPILOT_COMPONENT: Final = 1  # MAV_COMP_ID_AUTOPILOT1, the driver's default component_id
-_SIM_KEYS: Final = frozenset(
-    {
-        "home",
-        "battery",
-        "cells",
-        "min_arm_battery",
-        "speed",
-        "climb_rate",
-        "descent_rate",
-        "tau",
-        "rtl_altitude",
-        "drain_idle",
-        "drain_flight",
-        "step_rate",
-        "rates",
-        "params",
-    }
-)
 
 
 class MavlinkDriver(Driver):
@@ -280,7 +226,7 @@ class MavlinkDriver(Driver):
         self.mission_retries = mission_retries
         self.stream_rate = float(stream_rate)
         #: ArduPilot parameter → value, set at configure (from ``gcs_failsafe``).
-        self.failsafe_params: dict[str, float] = _failsafe_params(gcs_failsafe)
+        self.failsafe_params: dict[str, float] = failsafe_params(gcs_failsafe)
         timeout = self.failsafe_params.get("FS_GCS_TIMEOUT")
         if timeout is not None and self.heartbeat_period > timeout / 2:
             raise ValueError(
@@ -352,75 +298,10 @@ class MavlinkDriver(Driver):
 
     # ---- profile -----------------------------------------------------------------------------
 
-    @classmethod
-    def from_profile(
-        cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
-    ) -> Self:
-        """Build a driver from its profile entry (without touching the vehicle).
-
-        Args:
-            name: The device's name.
-            config: The entry's settings (``link`` and the optional keys of the class; see
-                ``docs/driver-mavlink.md``); ``driver``, if still there, must be ``mavlink``
-                (so an entry from :meth:`detect` is accepted as it is).
-            clock: The robot's clock.
-            where: The entry's place for messages (``file: devices.quad``).
-
-        Returns:
-            The driver (``UNCONFIGURED``).
-
-        Raises:
-            ProfileError: A missing, unknown or bad key (the message names its path).
-        """
-        unknown = sorted(set(config) - _KEYS)
-        if unknown:
-            raise ProfileError(
-                f"{where}.{unknown[0]}: unknown key (known: {', '.join(sorted(_KEYS))})"
-            )
-        if "link" not in config:
-            raise ProfileError(
-                f"{where}.link: missing: where the vehicle is, e.g. udpin:127.0.0.1:14550"
-            )
-        kwargs: dict[str, Any] = {}
-        safe_state = cls.safe_state_from(config, where)
-        for key, value in config.items():
-            if key == "sim":
-                _sim_kwargs(value, f"{where}.sim")  # checked here, used by simulate()
-                continue
-            if key == "safe_state":
-                continue
-            if key == "gcs_failsafe":
-                try:
-                    _failsafe_params(value)
-                except ValueError as err:
-                    raise ProfileError(f"{where}.{err}") from None
-                kwargs[key] = value
-                continue
-            if key == "driver":
-                if value != cls.kind:
-                    raise ProfileError(f"{where}.driver: must be {cls.kind!r}, got {value!r}")
-                continue
-            if key == "link" and not isinstance(value, str):
-                raise ProfileError(f"{where}.link: must be text like udpin:127.0.0.1:14550")
-            number = isinstance(value, int | float) and not isinstance(value, bool)
-            if key not in ("link", "system_id") and not number:
-                raise ProfileError(f"{where}.{key}: must be a number, got {value!r}")
-            if key == "system_id" and not (number or value is None):
-                raise ProfileError(f"{where}.{key}: must be a number, got {value!r}")
-            if key in _INT_KEYS and isinstance(value, float):
-                raise ProfileError(f"{where}.{key}: must be an integer, got {value!r}")
-            kwargs[key] = value
-        try:
-            parse_link(kwargs["link"])
-        except ValueError as err:
-            raise ProfileError(f"{where}.link: {err}") from None
-        try:
-            driver = cls(name, clock=clock, **kwargs)
-        except ValueError as err:
-            key = next((k for k in kwargs if str(err).startswith(k)), "")
-            raise ProfileError(f"{where}{'.' + key if key else ''}: {err}") from None
-        driver.safe_state = safe_state
-        return driver
+    #: The keys of a profile entry (:mod:`~temoto.drivers.mavlink.settings`); an entry from
+    #: :meth:`detect` is accepted as it is. The constructor checks the keys that depend on
+    #: each other (``heartbeat_period`` against the GCS failsafe's timeout).
+    profile_fields: ClassVar[Mapping[str, Field[Any]]] = PROFILE_FIELDS
 
     @classmethod
     def simulate(
@@ -444,7 +325,7 @@ class MavlinkDriver(Driver):
         Raises:
             ProfileError: A bad ``sim`` mapping.
         """
-        sim_kwargs = _sim_kwargs(config.get("sim", {}), f"{name}.sim")
+        sim_kwargs = read_sim(ProfileReader(name), config.get("sim", {}), "sim")
         port = _free_udp_port()
         system_id = config.get("system_id")
         sim = SimVehicle(
@@ -499,12 +380,7 @@ class MavlinkDriver(Driver):
                 in a scheme the link module knows (raised before any link is opened).
             DriverUnavailableError: A serial link, but pyserial is not installed.
         """
-        urls = detect_links(links, timeout, lambda: [*_serial_candidates(), _DETECT_UDP])
-        plans = [_detect_plan(url) for url in urls]  # every link checked before any is opened
-        entries: list[dict[str, Any]] = []
-        for plan in plans:
-            entries.extend(_detected(cls.kind, *_sweep(plan, timeout)))
-        return entries
+        return detect(cls.kind, links, timeout)
 
     # ---- lifecycle hooks ---------------------------------------------------------------------
 
@@ -1782,251 +1658,6 @@ def _free_udp_port() -> int:
         sock.bind(("127.0.0.1", 0))
         port: int = sock.getsockname()[1]
         return port
-
-
-#: (system id, component id) → (MAV_TYPE, MAV_AUTOPILOT) of each vehicle heard, first first.
-_Heard = dict[tuple[int, int], tuple[int, int]]
-
-
-def _serial_candidates() -> list[str]:
-    """``serial:<device>`` for every port pyserial lists (none without pyserial)."""
-    try:
-        list_ports = importlib.import_module("serial.tools.list_ports")
-    except ImportError:
-        logger.info("mavlink detect: pyserial is not installed: no serial ports to look at")
-        return []
-    return [f"serial:{port.device}" for port in sorted(list_ports.comports(), key=_device)]
-
-
-def _device(port: Any) -> str:
-    return str(port.device)
-
-
-def _detect_plan(url: Any) -> list[tuple[LinkSpec, str]]:
-    """The links to listen on for one URL (one per baud rate to try) and how each is shown.
-
-    Raises:
-        ValueError: Not a link URL (the message names it).
-    """
-    spec = parse_link(url)  # ValueError names the URL
-    if spec.scheme != "serial" or "baud" in parse_qs(url.partition("?")[2]):
-        return [(spec, url)]
-    tries = [LinkSpec("serial", device=spec.device, baud=baud) for baud in _DETECT_BAUDS]
-    return [(each, str(each)) for each in tries]
-
-
-def _sweep(plan: list[tuple[LinkSpec, str]], timeout: float) -> tuple[str, _Heard]:
-    """Listen on each try of one link until a valid HEARTBEAT arrives.
-
-    Returns:
-        How the link that heard it is shown, and the vehicles heard ("" and none if no try
-        heard a heartbeat).
-    """
-    for spec, shown in plan:
-        heard = _listen(spec, timeout)
-        if heard is None:
-            break  # it cannot be opened: at another baud rate neither
-        valid, vehicles = heard
-        if valid:
-            return shown, vehicles
-    return "", {}
-
-
-def _listen(spec: LinkSpec, timeout: float) -> tuple[bool, _Heard] | None:
-    """Listen on one link for ``timeout`` real seconds, sending nothing.
-
-    Returns:
-        None if the link cannot be opened; else whether any valid HEARTBEAT arrived, and the
-        vehicles heard.
-    """
-    try:
-        link = open_link(spec)
-    except OSError as err:
-        logger.warning("mavlink detect: skipping %s: cannot open it: %s", spec, err)
-        return None
-    codec = Codec(255, 190)  # only its parser is used: detect never encodes or sends
-    valid = False
-    vehicles: _Heard = {}
-    others: set[tuple[int, int]] = set()
-    deadline = time.monotonic() + timeout
-    try:
-        while (remaining := deadline - time.monotonic()) > 0:
-            try:
-                data = link.read(remaining)
-            except OSError as err:
-                logger.warning("mavlink detect: %s failed while listening: %s", spec, err)
-                break
-            messages = codec.decode_datagram(data) if link.datagrams else codec.decode(data)
-            for msg in messages if data else []:
-                if msg.name != "HEARTBEAT":
-                    continue
-                valid = True
-                ids = (msg.src_system, msg.src_component)
-                kind, autopilot = msg.get_int("type"), msg.get_int("autopilot")
-                vehicle = kind != p.MAV_TYPE_GCS and autopilot != p.MAV_AUTOPILOT_INVALID
-                if vehicle and msg.src_system >= 1:
-                    vehicles.setdefault(ids, (kind, autopilot))
-                elif ids not in others:
-                    others.add(ids)
-                    logger.debug(
-                        "mavlink detect: %s: system %d component %d is not a vehicle: %s, %s",
-                        spec,
-                        *ids,
-                        _type_name(kind),
-                        _autopilot_name(autopilot),
-                    )
-    finally:
-        link.close()
-    if not valid:
-        logger.debug(
-            "mavlink detect: %s: no valid heartbeat in %g s (%d bad frames)",
-            spec,
-            timeout,
-            codec.bad_frames,
-        )
-    return valid, vehicles
-
-
-def _detected(kind: str, link: str, vehicles: _Heard) -> list[dict[str, Any]]:
-    """One profile entry per system heard on ``link`` (logged)."""
-    systems: dict[int, list[int]] = {}
-    for (system, component), (mav_type, autopilot) in vehicles.items():
-        logger.info(
-            "mavlink detect: %s: system %d component %d: %s, %s",
-            link,
-            system,
-            component,
-            _type_name(mav_type),
-            _autopilot_name(autopilot),
-        )
-        if autopilot != p.MAV_AUTOPILOT_ARDUPILOTMEGA and system not in systems:
-            logger.warning(
-                "mavlink detect: %s: system %d is not an ArduPilot (%s); the driver flies"
-                " ArduPilot only and configure will refuse it",
-                link,
-                system,
-                _autopilot_name(autopilot),
-            )
-        systems.setdefault(system, []).append(component)
-    return [
-        {
-            "driver": kind,
-            "link": link,
-            "system_id": system,
-            "component_id": (
-                _AUTOPILOT_COMPONENT if _AUTOPILOT_COMPONENT in components else components[0]
-            ),
-        }
-        for system, components in systems.items()
-    ]
-
-
-def _type_name(mav_type: int) -> str:
-    return p._enum_name("MAV_TYPE", mav_type)
-
-
-def _autopilot_name(autopilot: int) -> str:
-    return p._enum_name("MAV_AUTOPILOT", autopilot)
-
-
-def _sim_kwargs(raw: Any, where: str) -> dict[str, Any]:
-    """The ``sim`` mapping of a profile entry as SimVehicle keywords (checked)."""
-    if not isinstance(raw, Mapping):
-        raise ProfileError(f"{where}: must be a mapping of simulator settings")
-    unknown = sorted(set(raw) - _SIM_KEYS)
-    if unknown:
-        raise ProfileError(
-            f"{where}.{unknown[0]}: unknown key (known: {', '.join(sorted(_SIM_KEYS))})"
-        )
-    out: dict[str, Any] = {}
-    for key, value in raw.items():
-        if key == "home":
-            ok = isinstance(value, list | tuple) and len(value) == 3
-            ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-            if not ok or not (-90 <= value[0] <= 90 and -180 <= value[1] <= 180):
-                raise ProfileError(
-                    f"{where}.home: must be [lat, lon, altitude AMSL], got {value!r}"
-                )
-            out[key] = tuple(float(v) for v in value)
-        elif key == "rates":
-            if not isinstance(value, Mapping):
-                raise ProfileError(f"{where}.rates: must map message names to Hz")
-            for msg, hz in value.items():
-                if str(msg).upper() not in DEFAULT_RATES:
-                    raise ProfileError(
-                        f"{where}.rates.{msg}: not a simulated stream"
-                        f" (streams: {', '.join(DEFAULT_RATES)})"
-                    )
-                if isinstance(hz, bool) or not isinstance(hz, int | float) or not hz >= 0:
-                    raise ProfileError(f"{where}.rates.{msg}: must be a rate in Hz, got {hz!r}")
-            out[key] = {str(k): float(v) for k, v in value.items()}
-        elif key == "params":
-            if not isinstance(value, Mapping):
-                raise ProfileError(f"{where}.params: must map parameter names to numbers")
-            for param, number in value.items():
-                if param not in PARAMETERS:
-                    raise ProfileError(
-                        f"{where}.params.{param}: not a simulated parameter"
-                        f" (known: {', '.join(PARAMETERS)})"
-                    )
-                finite = isinstance(number, int | float) and math.isfinite(number)
-                if isinstance(number, bool) or not finite:
-                    raise ProfileError(f"{where}.params.{param}: must be a number, got {number!r}")
-            out[key] = {str(k): float(v) for k, v in value.items()}
-        else:
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ProfileError(f"{where}.{key}: must be a number, got {value!r}")
-            if not math.isfinite(value) or value < 0 or (value == 0 and key in _POSITIVE):
-                raise ProfileError(f"{where}.{key}: out of range: {value!r}")
-            if key == "battery" and value > 100:
-                raise ProfileError(f"{where}.battery: must be 0..100 %, got {value!r}")
-            out[key] = int(value) if key == "cells" else float(value)
-    return out
-
-
-_INT_KEYS: Final = frozenset(
-    {
-        "system_id",
-        "component_id",
-        "gcs_system_id",
-        "gcs_component_id",
-        "command_retries",
-        "mission_retries",
-        "status_texts",
-    }
-)
-_POSITIVE: Final = frozenset({"cells", "speed", "climb_rate", "descent_rate", "tau", "step_rate"})
-
-
-def _failsafe_params(raw: Any) -> dict[str, float]:
-    """The ArduPilot parameters a ``gcs_failsafe`` mapping sets (checked).
-
-    Raises:
-        ValueError: Not a mapping, an unknown key, or a value out of ArduPilot's range (the
-            message starts with the key path, ``gcs_failsafe.enable: ...``).
-    """
-    if raw is None:
-        return {}
-    if not isinstance(raw, Mapping):
-        raise ValueError(
-            f"gcs_failsafe: must be a mapping like {{enable: 5, timeout: 5}}, got {raw!r}"
-        )
-    out: dict[str, float] = {}
-    for key, value in raw.items():
-        if key not in _FAILSAFE_KEYS:
-            known = ", ".join(_FAILSAFE_KEYS)
-            raise ValueError(f"gcs_failsafe.{key}: unknown key (known: {known})")
-        param, low, high, integer = _FAILSAFE_KEYS[key]
-        number = isinstance(value, int | float) and not isinstance(value, bool)
-        if integer and number and isinstance(value, float) and not value.is_integer():
-            number = False
-        if not (number and math.isfinite(value) and low <= value <= high):
-            kind = "an integer" if integer else "a number"
-            raise ValueError(
-                f"gcs_failsafe.{key}: must be {kind} {low:g}..{high:g} ({param}), got {value!r}"
-            )
-        out[param] = float(value)
-    return out
 
 
 def _same(a: float, b: float) -> bool:
