@@ -47,10 +47,8 @@ Units: the ODrive speaks motor turns; joints are radians on the output side of
 from __future__ import annotations
 
 import contextlib
-import itertools
 import logging
 import math
-import statistics
 import threading
 import time
 from collections import deque
@@ -61,18 +59,18 @@ from typing import Any, ClassVar, Final
 import can
 
 from temoto.clock import Clock
-from temoto.drivers.base import DriverState, detect_links
+from temoto.drivers.base import DriverState
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor._common import (
     LINK_HINT,
     JointLimits,
     check_limits,
-    open_bus,
     read_limits,
     read_link,
     read_members,
 )
 from temoto.drivers.can_motor._driver import CanMotorDriver
+from temoto.drivers.can_motor.detect import DETECT_MIN_BEATS, detect
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.profile import Field, ProfileReader, custom, number
 from temoto.drivers.sim import Simulator
@@ -83,7 +81,6 @@ from temoto.errors import (
     DriverOperationError,
     DriverTimeoutError,
     MotorFaultError,
-    ProfileError,
     StateError,
 )
 
@@ -106,8 +103,6 @@ SAFE_CONFIRM: Final = 0.1
 DUPLICATE_FACTOR: Final = 1.5
 #: Over how many of its periods a stream's rate is counted.
 DUPLICATE_PERIODS: Final = 20
-#: Well-formed heartbeats a node must send while :meth:`ODriveDriver.detect` listens.
-DETECT_MIN_BEATS: Final = 2
 _NODE_KEYS: Final = frozenset(
     {
         "node_id",
@@ -466,21 +461,7 @@ class ODriveDriver(CanMotorDriver):
                 sequence, or a link is not a mapping with ``interface`` and ``channel`` (named
                 by its index).
         """
-        if links is not None and (
-            isinstance(links, str | bytes | Mapping) or not isinstance(links, Sequence)
-        ):
-            raise ValueError(
-                f"{cls.kind} detect: links must be a sequence of link mappings, got {links!r}"
-            )
-        found = detect_links(links, timeout, _available_links)
-        candidates = [_link(i, link) for i, link in enumerate(found)]
-        entries: list[dict[str, Any]] = []
-        for link in candidates:
-            seen = _listen(link, timeout)
-            if seen:
-                nodes = [{"node_id": n, "joint": f"joint_{n}"} for n in sorted(seen)]
-                entries.append({"driver": cls.kind, "link": dict(link), "nodes": nodes})
-        return entries
+        return detect(cls.kind, links, timeout)
 
     # ---- lifecycle -------------------------------------------------------------------------
 
@@ -592,7 +573,7 @@ class ODriveDriver(CanMotorDriver):
         confirmed = self._confirm(None if hold else cs.AxisState.IDLE)
         done: list[str] = []
         for axis, ok in zip(self._axes, confirmed, strict=True):
-            state = _state_name(axis.state)
+            state = cs.state_name(axis.state)
             if hold:
                 what = f"hold 0 rev/s ({state})" if ok else "hold 0 rev/s sent (unconfirmed)"
             else:
@@ -856,7 +837,7 @@ class ODriveDriver(CanMotorDriver):
             if self._armed and axis.state != cs.AxisState.CLOSED_LOOP_CONTROL:
                 return DriverOperationError(
                     f"{self.name}: {axis.label()}: the axis left CLOSED_LOOP_CONTROL (now"
-                    f" {_state_name(axis.state)}) without an error bit; recover() to go on"
+                    f" {cs.state_name(axis.state)}) without an error bit; recover() to go on"
                 )
             for stream, rate in (
                 ("heartbeats", axis.hb_rate),
@@ -949,124 +930,6 @@ def _read_nodes(reader: ProfileReader, value: object, key: str) -> list[ODriveNo
         gear = reader.field(node, "gear_ratio", number(1.0), path)
         nodes.append(ODriveNode(node_id, joint, gear, read_limits(reader, node, path)))
     return nodes
-
-
-def _state_name(state: int) -> str:
-    try:
-        return cs.AxisState(state).name
-    except ValueError:
-        return str(state)
-
-
-def _link(index: int, link: object) -> dict[str, Any]:
-    """A link to look at, checked as :meth:`ODriveDriver.from_profile` checks ``link``."""
-    try:
-        return read_link(ProfileReader(), link, f"links[{index}]")
-    except ProfileError as err:
-        raise ValueError(
-            f"{ODriveDriver.kind} detect: links[{index}] is not a python-can bus mapping with"
-            f" interface and channel (e.g. {{interface: socketcan, channel: can0}}): {link!r}"
-        ) from err
-
-
-def _available_links() -> list[dict[str, Any]]:
-    """What python-can can open here (a configuration not in profile form is skipped).
-
-    python-can imports every interface module to ask it, and each one that lacks its vendor
-    library logs a WARNING on the ``can`` logger (a dozen on a machine without them); those
-    are not shown: that logger is quieted to ERROR for the call.
-    """
-    quiet = logging.getLogger("can")
-    level = quiet.level
-    quiet.setLevel(logging.ERROR)
-    try:
-        configs = can.detect_available_configs()
-    finally:
-        quiet.setLevel(level)
-    links: list[dict[str, Any]] = []
-    for index, config in enumerate(configs):
-        try:
-            links.append(_link(index, config))
-        except ValueError as err:
-            logger.debug("%s", err)
-    return links
-
-
-def _listen(link: dict[str, Any], timeout: float) -> dict[int, cs.Heartbeat]:
-    """The newest heartbeat of each ODrive node heard on ``link`` within ``timeout`` s.
-
-    A node counts when at least :data:`DETECT_MIN_BEATS` well-formed heartbeats
-    (:func:`~temoto.drivers.can_motor.cansimple.heartbeat_problem`) came from it, more than
-    malformed frames on its heartbeat id, with a median gap of 1 ms or more between their
-    frame timestamps (a cyclic message, not a burst). What each node tells is logged: INFO
-    for a clean axis, WARNING for one with error bits, INFO for an id that was heard but not
-    counted, and why.
-    """
-    what = f"{ODriveDriver.kind} detect"
-    try:
-        bus = open_bus(link, what)
-    except DriverError as err:
-        logger.warning("%s: skipping %s: %s", what, link, err)
-        return {}
-    beats: dict[int, list[float]] = {}
-    newest: dict[int, cs.Heartbeat] = {}
-    bad: dict[int, tuple[int, str]] = {}
-    try:
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                msg = bus.recv(timeout=left)
-            except (can.CanError, OSError) as err:
-                logger.warning("%s: receiving on %s failed, stopped listening: %s", what, link, err)
-                break
-            if msg is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-                continue  # a remote Heartbeat is some host's request, not a node's beat
-            if msg.arbitration_id > 0x7FF:
-                continue
-            node, cmd = cs.split_id(msg.arbitration_id)
-            if cmd != cs.Cmd.HEARTBEAT:
-                continue
-            why = cs.heartbeat_problem(msg.data)
-            if why is not None:
-                count, _ = bad.get(node, (0, ""))
-                bad[node] = (count + 1, why)
-                continue
-            beats.setdefault(node, []).append(msg.timestamp)
-            newest[node] = cs.decode_heartbeat(msg.data)
-    finally:
-        bus.shutdown()
-    seen: dict[int, cs.Heartbeat] = {}
-    for node in sorted(set(beats) | set(bad)):
-        times = beats.get(node, [])
-        malformed, why = bad.get(node, (0, ""))
-        gaps = [b - a for a, b in itertools.pairwise(times)]
-        reason = None
-        if len(times) < DETECT_MIN_BEATS:
-            reason = f"{len(times)} well-formed heartbeat(s), {DETECT_MIN_BEATS} needed"
-        elif malformed >= len(times):
-            reason = f"{malformed} malformed frames on its heartbeat id ({why})"
-        elif statistics.median(gaps) < 0.001:
-            reason = "heartbeats less than 1 ms apart: not a cyclic heartbeat"
-        if reason is not None:
-            extra = f" (and {malformed} malformed: {why})" if malformed and times else ""
-            logger.info(
-                "%s: id 0x%03x on %s not listed: %s%s", what, node << 5 | 1, link, reason, extra
-            )
-            continue
-        seen[node] = beat = newest[node]
-        errors = " | ".join(cs.error_names(beat.axis_error)) or "none"
-        logger.log(
-            logging.WARNING if beat.axis_error else logging.INFO,
-            "%s: node %d on %s: axis state %s, axis errors %s, procedure result %d%s",
-            what,
-            node,
-            link,
-            _state_name(beat.axis_state),
-            errors,
-            beat.procedure_result,
-            " (clear the errors before use: Clear_Errors, or recover())" if beat.axis_error else "",
-        )
-    return seen
 
 
 def _motor_fault(name: str, axis: _Axis) -> MotorFaultError:
