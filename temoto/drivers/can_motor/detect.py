@@ -29,7 +29,7 @@ __all__ = ["DETECT_MIN_BEATS", "detect"]
 #: logging configurations that name it keep working.
 logger = logging.getLogger("temoto.drivers.can_motor.odrive")
 
-#: Well-formed heartbeats a node must send while :meth:`ODriveDriver.detect` listens.
+#: Well-formed heartbeats a node must send while :func:`detect` listens.
 DETECT_MIN_BEATS: Final = 2
 
 
@@ -37,6 +37,20 @@ def detect(kind: str, links: Sequence[Any] | None, timeout: float) -> list[dict[
     """The ODrive axes heartbeating on CAN buses, as profile device entries.
 
     See :meth:`~temoto.drivers.can_motor.odrive.ODriveDriver.detect`, which calls this.
+
+    Listens only: each link's bus is opened, read for ``timeout`` real seconds and closed
+    again, and no frame is sent (no RTR request either), so nothing moves. A node is an
+    ODrive axis when at least :data:`DETECT_MIN_BEATS` well-formed CANSimple heartbeats
+    (command 0x01, standard id, 8 data bytes whose axis state, procedure result and flags
+    are defined values: :func:`~temoto.drivers.can_motor.cansimple.heartbeat_problem`)
+    arrive from it, outnumbering the malformed frames on its id, with a median gap of at
+    least 1 ms between their timestamps (cyclic, not a burst); so an
+    MIT-mode command frame to motor 0x41 is not node 2. Each listed node's axis state and
+    error bits are logged, at WARNING when it has errors (clear them before use), at INFO
+    otherwise; an id heard but not listed is logged at INFO with the reason. The entries
+    themselves stay as a profile takes them. Only the ODrives' cyclic heartbeats are
+    seen: an axis whose ``heartbeat_msg_rate_ms`` is 0, or slower than half of
+    ``timeout``, may be missed.
 
     Args:
         kind: The driver's name (each entry's ``driver``).
