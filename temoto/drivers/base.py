@@ -14,7 +14,10 @@ the device answers again the driver calls :meth:`Driver.report_recovered` (or so
 :meth:`Driver.recover`): it returns to the state it was in. The Robot Manager turns those
 reports into registrar statuses (FATAL, then OK) for every consumer of the robot.
 
-``__init__`` stores configuration only and never touches hardware.
+``__init__`` stores configuration only and never touches hardware. A driver is built from its
+profile entry by :meth:`Driver.from_profile`, from the keys it declares in
+:attr:`Driver.profile_fields` (:mod:`temoto.drivers.profile`); :meth:`Driver.simulate` gives
+the simulator that serves an entry, and :meth:`Driver.detect` the devices a driver can reach.
 
 **Safe state** (``docs/safety.md``). Every driver declares the states it can leave its device
 in when TeMoto lets go of it (:attr:`Driver.safe_states`, the first is the default; a profile
