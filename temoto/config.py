@@ -22,8 +22,6 @@ no device has a joint 'left'``).
 
 from __future__ import annotations
 
-import math
-import re
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -32,7 +30,9 @@ from typing import Any, Final
 import yaml
 
 from temoto.clock import Clock, MonotonicClock
-from temoto.drivers import Actuator, Driver, Vehicle, driver_class
+from temoto.drivers import Actuator, Vehicle, driver_class
+from temoto.drivers import profile as fields
+from temoto.drivers.profile import Field, ProfileReader, custom, flag, number, text
 from temoto.errors import PluginError, ProfileError
 
 __all__ = [
@@ -45,8 +45,16 @@ __all__ = [
     "parse_profile",
 ]
 
-_NAME: Final = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,62}$")
-_TOP_KEYS: Final = frozenset({"robot", "description", "sim", "devices", "features"})
+#: The keys of a profile document.
+_TOP_FIELDS: Final[Mapping[str, Field[Any]]] = {
+    "robot": fields.name(),
+    "description": text("", empty=True),
+    "sim": flag(False),
+    "devices": custom(lambda p, value, key: value, {}),
+    "features": custom(lambda p, value, key: value, {}),
+}
+_DRIVER: Final = text(hint="name the driver (e.g. odrive_can, dynamixel)")
+_POSITION: Final = number(low=None)  # a joint position in a pose (rad)
 
 
 @dataclass(frozen=True, slots=True)
@@ -221,19 +229,13 @@ def parse_profile(raw: object, *, file: str = "", clock: Clock | None = None) ->
     Raises:
         ProfileError: Anything is wrong (the message names the key path).
     """
-    p = _Checker(file or None)
-    doc = p.mapping(raw, "")
-    p.no_unknown(doc, _TOP_KEYS, "")
-    robot = p.name(doc.get("robot"), "robot")
-    description = doc.get("description", "")
-    if not isinstance(description, str):
-        p.fail("description", "must be text")
-    sim = doc.get("sim", False)
-    if not isinstance(sim, bool):
-        p.fail("sim", "must be true or false")
-    devices = _devices(p, doc.get("devices", {}), clock or MonotonicClock())
-    features = p.mapping(doc.get("features", {}), "features")
-    p.no_unknown(features, frozenset({"navigation", "manipulation", "flight"}), "features")
+    p = ProfileReader(file=file or None)
+    doc = p.mapping(raw)
+    top = p.fields(doc, _TOP_FIELDS)
+    robot, description, sim = top["robot"], top["description"], top["sim"]
+    devices = _devices(p, top["devices"], clock or MonotonicClock())
+    features = p.mapping(top["features"], "features")
+    p.known(features, ("navigation", "manipulation", "flight"), "features")
     nav = arm = flight = None
     if "navigation" in features:
         nav = _drive(p, features["navigation"], devices)
@@ -244,51 +246,7 @@ def parse_profile(raw: object, *, file: str = "", clock: Clock | None = None) ->
     return Profile(robot, description, sim, devices, nav, arm, flight, file)
 
 
-class _Checker:
-    """Raises ProfileErrors that name the file and the key path."""
-
-    def __init__(self, file: str | None) -> None:
-        self.file = file
-
-    def fail(self, path: str, message: str) -> None:
-        raise ProfileError(message, file=self.file, path=path)
-
-    def mapping(self, value: object, path: str) -> dict[str, Any]:
-        if not isinstance(value, dict) or not all(isinstance(k, str) for k in value):
-            raise ProfileError(
-                "must be a mapping with text keys", file=self.file, path=path or "(top)"
-            )
-        return value
-
-    def no_unknown(self, value: Mapping[str, Any], known: frozenset[str], path: str) -> None:
-        unknown = sorted(set(value) - known)
-        if unknown:
-            where = f"{path}.{unknown[0]}" if path else unknown[0]
-            self.fail(where, f"unknown key (known: {', '.join(sorted(known))})")
-
-    def name(self, value: object, path: str) -> str:
-        if not isinstance(value, str) or not _NAME.match(value):
-            raise ProfileError(
-                f"must be a name (a letter, then letters, digits, _ . -; at most 63): {value!r}",
-                file=self.file,
-                path=path,
-            )
-        return value
-
-    def number(
-        self, value: object, path: str, *, default: float | None = None, positive: bool = True
-    ) -> float:
-        if value is None and default is not None:
-            return default
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ProfileError(f"must be a number, got {value!r}", file=self.file, path=path)
-        if not math.isfinite(value) or (positive and value <= 0):
-            kind = "a positive" if positive else "a finite"
-            raise ProfileError(f"must be {kind} number, got {value!r}", file=self.file, path=path)
-        return float(value)
-
-
-def _devices(p: _Checker, raw: object, clock: Clock) -> dict[str, DeviceSpec]:
+def _devices(p: ProfileReader, raw: object, clock: Clock) -> dict[str, DeviceSpec]:
     devices = p.mapping(raw, "devices")
     out: dict[str, DeviceSpec] = {}
     owner: dict[str, str] = {}
@@ -296,16 +254,14 @@ def _devices(p: _Checker, raw: object, clock: Clock) -> dict[str, DeviceSpec]:
         path = f"devices.{name}"
         p.name(name, path)
         config = p.mapping(value, path)
-        kind = config.get("driver")
-        if not isinstance(kind, str) or not kind:
-            p.fail(f"{path}.driver", "missing: name the driver (e.g. odrive_can, dynamixel)")
+        kind = p.field(config, "driver", _DRIVER, path)
         try:
-            cls = driver_class(str(kind))
+            cls = driver_class(kind)
         except PluginError as err:
-            raise ProfileError(str(err), file=p.file, path=f"{path}.driver") from err
+            raise p.error(f"{path}.driver", str(err)) from err
         settings = {k: v for k, v in config.items() if k != "driver"}
         where = f"{p.file}: {path}" if p.file else path
-        driver: Driver = cls.from_profile(name, settings, clock=clock, where=where)  # type: ignore[attr-defined]
+        driver = cls.from_profile(name, settings, clock=clock, where=where)
         try:
             joints = tuple(driver.joint_names) if isinstance(driver, Actuator) else ()
             limits = dict(getattr(driver, "joint_limits", {}))
@@ -316,29 +272,31 @@ def _devices(p: _Checker, raw: object, clock: Clock) -> dict[str, DeviceSpec]:
                 p.fail(path, f"joint '{joint}' is also on device '{owner[joint]}'")
             owner[joint] = name
         vehicle = isinstance(driver, Vehicle)
-        out[name] = DeviceSpec(name, str(kind), settings, joints, vehicle, limits)
+        out[name] = DeviceSpec(name, kind, settings, joints, vehicle, limits)
     return out
 
 
-def _joint(p: _Checker, value: object, path: str, devices: Mapping[str, DeviceSpec]) -> str:
+def _joint(p: ProfileReader, value: object, path: str, devices: Mapping[str, DeviceSpec]) -> str:
     if not isinstance(value, str) or not any(value in d.joints for d in devices.values()):
         known = sorted(j for d in devices.values() for j in d.joints)
         p.fail(path, f"no device has a joint {value!r} (joints: {', '.join(known) or 'none'})")
     return str(value)
 
 
-def _device(p: _Checker, value: object, path: str, devices: Mapping[str, DeviceSpec]) -> DeviceSpec:
+def _device(
+    p: ProfileReader, value: object, path: str, devices: Mapping[str, DeviceSpec]
+) -> DeviceSpec:
     if not isinstance(value, str) or value not in devices:
         p.fail(path, f"no device {value!r} (devices: {', '.join(devices) or 'none'})")
     return devices[str(value)]
 
 
-def _drive(p: _Checker, raw: object, devices: Mapping[str, DeviceSpec]) -> DriveFeature:
+def _drive(p: ProfileReader, raw: object, devices: Mapping[str, DeviceSpec]) -> DriveFeature:
     path = "features.navigation"
     cfg = p.mapping(raw, path)
     keys = {"type", "left_wheel", "right_wheel", "wheel_radius", "wheel_separation"}
     keys |= {"max_speed", "max_turn_rate", "tolerance"}
-    p.no_unknown(cfg, frozenset(keys), path)
+    p.known(cfg, frozenset(keys), path)
     if cfg.get("type") != "differential_drive":
         p.fail(f"{path}.type", "must be differential_drive")
     left = _joint(p, cfg.get("left_wheel"), f"{path}.left_wheel", devices)
@@ -348,18 +306,18 @@ def _drive(p: _Checker, raw: object, devices: Mapping[str, DeviceSpec]) -> Drive
     return DriveFeature(
         left,
         right,
-        p.number(cfg.get("wheel_radius"), f"{path}.wheel_radius"),
-        p.number(cfg.get("wheel_separation"), f"{path}.wheel_separation"),
-        p.number(cfg.get("max_speed"), f"{path}.max_speed", default=0.5),
-        p.number(cfg.get("max_turn_rate"), f"{path}.max_turn_rate", default=1.5),
-        p.number(cfg.get("tolerance"), f"{path}.tolerance", default=0.05),
+        p.field(cfg, "wheel_radius", number(), path),
+        p.field(cfg, "wheel_separation", number(), path),
+        p.field(cfg, "max_speed", number(0.5), path),
+        p.field(cfg, "max_turn_rate", number(1.5), path),
+        p.field(cfg, "tolerance", number(0.05), path),
     )
 
 
-def _arm(p: _Checker, raw: object, devices: Mapping[str, DeviceSpec]) -> ArmFeature:
+def _arm(p: ProfileReader, raw: object, devices: Mapping[str, DeviceSpec]) -> ArmFeature:
     path = "features.manipulation"
     cfg = p.mapping(raw, path)
-    p.no_unknown(cfg, frozenset({"type", "device", "joints", "poses", "tolerance"}), path)
+    p.known(cfg, frozenset({"type", "device", "joints", "poses", "tolerance"}), path)
     if cfg.get("type") != "arm":
         p.fail(f"{path}.type", "must be arm")
     device = _device(p, cfg.get("device"), f"{path}.device", devices)
@@ -373,33 +331,32 @@ def _arm(p: _Checker, raw: object, devices: Mapping[str, DeviceSpec]) -> ArmFeat
     for pose, values in p.mapping(cfg.get("poses", {}), f"{path}.poses").items():
         where = f"{path}.poses.{pose}"
         p.name(pose, where)
-        table = p.mapping(values, where)
-        for joint, value in table.items():
+        table: dict[str, float] = {}
+        given = p.mapping(values, where)
+        for joint in given:
             if joint not in joints:
                 p.fail(f"{where}.{joint}", f"not a joint of the arm ({', '.join(joints)})")
-            table[joint] = p.number(value, f"{where}.{joint}", positive=False)
+            table[joint] = position = p.field(given, joint, _POSITION, where)
             if joint in device.limits:
                 low, high = device.limits[joint]
-                if not low <= table[joint] <= high:
+                if not low <= position <= high:
                     p.fail(
                         f"{where}.{joint}",
-                        f"{table[joint]:g} rad is outside the joint's limits"
+                        f"{position:g} rad is outside the joint's limits"
                         f" [{low:.4g}, {high:.4g}] (devices.{device.name})",
                     )
-        poses[pose] = dict(table)
-    tolerance = p.number(cfg.get("tolerance"), f"{path}.tolerance", default=0.02)
+        poses[pose] = table
+    tolerance = p.field(cfg, "tolerance", number(0.02), path)
     return ArmFeature(device.name, tuple(joints), poses, tolerance)
 
 
-def _flight(p: _Checker, raw: object, devices: Mapping[str, DeviceSpec]) -> FlightFeature:
+def _flight(p: ProfileReader, raw: object, devices: Mapping[str, DeviceSpec]) -> FlightFeature:
     path = "features.flight"
     cfg = p.mapping(raw, path)
-    p.no_unknown(cfg, frozenset({"type", "device", "tolerance"}), path)
+    p.known(cfg, frozenset({"type", "device", "tolerance"}), path)
     if cfg.get("type") != "vehicle":
         p.fail(f"{path}.type", "must be vehicle")
     device = _device(p, cfg.get("device"), f"{path}.device", devices)
     if not device.vehicle:
         p.fail(f"{path}.device", f"device '{device.name}' ({device.driver}) is not a vehicle")
-    return FlightFeature(
-        device.name, p.number(cfg.get("tolerance"), f"{path}.tolerance", default=1.0)
-    )
+    return FlightFeature(device.name, p.field(cfg, "tolerance", number(1.0), path))

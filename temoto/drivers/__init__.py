@@ -7,7 +7,9 @@ shared lifecycle (:mod:`temoto.drivers.base`) and capability verbs in SI units
 side of the same wire protocol, so the production driver is what every test runs.
 
 Importing this package imports no device library; :func:`driver_class` imports a driver (and
-its library) on first use.
+its library) on first use. A driver reads its profile entry with the one profile reader,
+:mod:`temoto.drivers.profile`, from the fields it declares (:meth:`Driver.from_profile`); each
+driver package finds its devices in a ``detect`` module of its own.
 """
 
 from __future__ import annotations

@@ -14,7 +14,10 @@ the device answers again the driver calls :meth:`Driver.report_recovered` (or so
 :meth:`Driver.recover`): it returns to the state it was in. The Robot Manager turns those
 reports into registrar statuses (FATAL, then OK) for every consumer of the robot.
 
-``__init__`` stores configuration only and never touches hardware.
+``__init__`` stores configuration only and never touches hardware. A driver is built from its
+profile entry by :meth:`Driver.from_profile`, from the keys it declares in
+:attr:`Driver.profile_fields` (:mod:`temoto.drivers.profile`); :meth:`Driver.simulate` gives
+the simulator that serves an entry, and :meth:`Driver.detect` the devices a driver can reach.
 
 **Safe state** (``docs/safety.md``). Every driver declares the states it can leave its device
 in when TeMoto lets go of it (:attr:`Driver.safe_states`, the first is the default; a profile
@@ -44,11 +47,13 @@ from types import TracebackType
 from typing import Any, ClassVar, Final, Self
 
 from temoto.clock import Clock, MonotonicClock
+from temoto.drivers.profile import Field, ProfileReader, choice
+from temoto.drivers.sim import Simulator
 from temoto.errors import (
     DriverError,
     DriverInitError,
     DriverOperationError,
-    ProfileError,
+    DriverUnavailableError,
     StateError,
 )
 
@@ -128,6 +133,10 @@ class Driver(ABC):
     #: The safe states this driver can leave its device in (``safe_state:`` in a profile);
     #: the first is the default. Each driver documents what each one sends.
     safe_states: ClassVar[tuple[str, ...]] = ("idle",)
+
+    #: The keys of a profile entry besides ``driver`` and ``safe_state``
+    #: (:mod:`temoto.drivers.profile`); :meth:`from_profile` reads them.
+    profile_fields: ClassVar[Mapping[str, Field[Any]]] = {}
 
     #: Real seconds :meth:`make_safe` waits for a transition running on another thread before
     #: it sends anyway (a driver stuck in ``configure`` must not delay the safe state).
@@ -228,11 +237,118 @@ class Driver(ABC):
         Raises:
             ProfileError: The value is not one of them (the message names the key path).
         """
-        value = config.get("safe_state", cls.safe_states[0])
-        if value not in cls.safe_states:
-            known = ", ".join(cls.safe_states)
-            raise ProfileError(f"{where}.safe_state: must be one of {known}, got {value!r}")
-        return str(value)
+        field = cls.profile_schema()["safe_state"]
+        return str(ProfileReader.at(where).field(config, "safe_state", field))
+
+    # ---- profiles --------------------------------------------------------------------------
+
+    @classmethod
+    def profile_schema(cls) -> dict[str, Field[Any]]:
+        """Every key a profile entry of this driver may have, with how it is read.
+
+        :attr:`profile_fields` plus ``safe_state`` (one of :attr:`safe_states`, the first by
+        default). ``driver`` is always allowed too (it must name this driver).
+
+        Returns:
+            key → :class:`~temoto.drivers.profile.Field`.
+        """
+        safe = choice(cls.safe_states, cls.safe_states[0], init=False)
+        return {**cls.profile_fields, "safe_state": safe}
+
+    @classmethod
+    def read_profile(cls, config: Mapping[str, Any], where: str) -> dict[str, Any]:
+        """Check a profile entry against :meth:`profile_schema` (without building a driver).
+
+        Args:
+            config: The entry (``driver``, when present, must name this driver).
+            where: The entry's place for messages (``robot.yaml: devices.base``).
+
+        Returns:
+            Every declared key with its checked value or its default.
+
+        Raises:
+            ProfileError: The first problem; the message names the file and the key path.
+        """
+        return ProfileReader.at(where).entry(config, cls.profile_schema(), cls.kind)
+
+    @classmethod
+    def profile_settings(cls, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+        """The constructor's keyword arguments from checked profile values.
+
+        The default passes every field declared with ``init=True`` as it is; a driver
+        overrides it to convert values (a list of mappings into its node type) or to check
+        keys against each other, raising through ``ProfileReader.at(where)``.
+
+        Args:
+            values: What :meth:`read_profile` returned.
+            where: The entry's place for messages.
+
+        Returns:
+            Keyword arguments for ``cls(name, clock=..., **kwargs)``.
+
+        Raises:
+            ProfileError: Keys that are fine alone but not together.
+        """
+        schema = cls.profile_schema()
+        return {k: v for k, v in values.items() if k in schema and schema[k].init}
+
+    @classmethod
+    def from_profile(
+        cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
+    ) -> Self:
+        """Build the driver from its profile entry, without touching the device.
+
+        The template: :meth:`read_profile` checks the entry, :meth:`profile_settings` turns it
+        into constructor arguments, the constructor runs (a ``ValueError`` it raises becomes a
+        :class:`~temoto.errors.ProfileError` naming the key its message starts with), and
+        ``safe_state`` is set.
+
+        Args:
+            name: The device's name.
+            config: Its profile entry (see the driver's ``docs/driver-*.md``).
+            clock: The robot's clock.
+            where: The entry's place for messages (``robot.yaml: devices.base``).
+
+        Returns:
+            The driver (``UNCONFIGURED``).
+
+        Raises:
+            ProfileError: A missing, unknown or bad key; the message names its path.
+        """
+        values = cls.read_profile(config, where)
+        kwargs = cls.profile_settings(values, where)
+        try:
+            driver = cls(name, clock=clock, **kwargs)
+        except ValueError as err:
+            key = next((k for k in kwargs if str(err).startswith(k)), "")
+            raise ProfileReader.at(where).error(key, str(err)) from None
+        driver.safe_state = values["safe_state"]
+        return driver
+
+    @classmethod
+    def simulate(
+        cls, name: str, config: Mapping[str, Any], *, clock: Clock
+    ) -> tuple[Simulator, dict[str, Any]]:
+        """A simulator (not started) serving this profile entry, and the entry to drive it.
+
+        Start the simulator (or enter it as a context manager) before configuring the driver
+        built from the returned entry, and close it after shutting the driver down.
+
+        Args:
+            name: The device's name.
+            config: Its profile entry (checked as :meth:`from_profile` checks it).
+            clock: The clock the simulator steps on.
+
+        Returns:
+            ``(simulator, entry)``: the entry's ``link`` reaches the simulator.
+
+        Raises:
+            ProfileError: A bad entry.
+            DriverUnavailableError: The driver has no simulator (the default).
+        """
+        raise DriverUnavailableError(
+            f"{name}: driver {cls.kind or cls.__name__!r} has no simulator (sim: true needs one)"
+        )
 
     # ---- transitions -----------------------------------------------------------------------
 

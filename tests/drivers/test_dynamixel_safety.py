@@ -23,6 +23,7 @@ from contract import eventually
 from temoto.clock import Clock, ManualClock, MonotonicClock
 from temoto.drivers import ControlMode, DriverState, JointCommand
 from temoto.drivers.dynamixel import driver as dxl_driver
+from temoto.drivers.dynamixel import timing as dxl_timing
 from temoto.drivers.dynamixel.driver import DynamixelDriver, poll_cycle_time
 from temoto.drivers.dynamixel.sim import SimDynamixelChain
 from temoto.errors import DriverOperationError, DriverTimeoutError, ProfileError
@@ -584,7 +585,7 @@ def test_the_usb_latency_timer_is_checked(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
     caplog.set_level(logging.WARNING, logger="temoto.drivers.dynamixel.driver")
-    monkeypatch.setattr(dxl_driver, "USB_SERIAL_SYSFS", str(tmp_path))
+    monkeypatch.setattr(dxl_timing, "USB_SERIAL_SYSFS", str(tmp_path))
     clock = MonotonicClock()
     sim, entry = DynamixelDriver.simulate("arm", config(1), clock=clock)
     with sim:

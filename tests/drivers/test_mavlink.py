@@ -441,7 +441,10 @@ def test_from_profile_reads_every_key() -> None:
         ({"link": "serial:"}, "devices.quad.link: serial: needs a device"),
         ({"link": "serial:/dev/x?baud=fast"}, "devices.quad.link: serial: baud"),
         ({"link": "udp:127.0.0.1:1", "speed": 3}, "devices.quad.speed: unknown key"),
-        ({"link": "udp:127.0.0.1:1", "system_id": 0}, "devices.quad.system_id: system_id must"),
+        (
+            {"link": "udp:127.0.0.1:1", "system_id": 0},
+            "devices.quad.system_id: must be an integer 1..255",
+        ),
         ({"link": "udp:127.0.0.1:1", "system_id": 1.5}, "devices.quad.system_id: must be an int"),
         ({"link": "udp:127.0.0.1:1", "heartbeat_timeout": -1}, "devices.quad.heartbeat_timeout"),
         ({"link": "udp:127.0.0.1:1", "init_timeout": "5"}, "devices.quad.init_timeout: must be"),

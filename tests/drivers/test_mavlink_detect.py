@@ -19,7 +19,7 @@ from pymavlink.dialects.v20 import ardupilotmega as mav
 from temoto.clock import MonotonicClock
 from temoto.drivers import DriverState
 from temoto.drivers.mavlink import MavlinkDriver, SimVehicle
-from temoto.drivers.mavlink import driver as driver_module
+from temoto.drivers.mavlink import detect as detect_module
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.link import Link, LinkSpec
 
@@ -142,7 +142,7 @@ def fake_links(monkeypatch: pytest.MonkeyPatch) -> dict[str, Any]:
         state["opened"].append(link)
         return link
 
-    monkeypatch.setattr(driver_module, "open_link", open_link)
+    monkeypatch.setattr(detect_module, "open_link", open_link)
     return state
 
 
@@ -181,7 +181,7 @@ def test_detect_sends_nothing(
     sim, settings = quad
     opened: list[Link] = []
     writes: list[bytes] = []
-    real_open = driver_module.open_link
+    real_open = detect_module.open_link
 
     def spying_open(spec: LinkSpec) -> Link:
         link = real_open(spec)
@@ -195,7 +195,7 @@ def test_detect_sends_nothing(
         opened.append(link)
         return link
 
-    monkeypatch.setattr(driver_module, "open_link", spying_open)
+    monkeypatch.setattr(detect_module, "open_link", spying_open)
     assert len(MavlinkDriver.detect([settings["link"]], timeout=TIMEOUT)) == 1
     assert len(opened) == 1
     assert writes == []

@@ -1,302 +1,128 @@
-"""What the CAN motor drivers share: profile checks, opening the bus, joint limits."""
+"""What the CAN motor drivers share: the profile reader's CAN parts, the bus, joint limits."""
 
 from __future__ import annotations
 
 import math
-import re
-from collections.abc import Iterator, Mapping, Sequence
+from collections.abc import Iterator, Mapping
 from dataclasses import dataclass
 from typing import Any, Final
 
 import can
 
-from temoto.errors import DriverInitError, DriverUnavailableError, ProfileError
+from temoto.drivers.profile import ProfileReader, integer, name, number
+from temoto.errors import DriverInitError, DriverUnavailableError
 
-__all__ = ["JointLimits", "Profile", "check_limits", "open_bus"]
+__all__ = [
+    "LINK_HINT",
+    "JointLimits",
+    "check_limits",
+    "open_bus",
+    "read_limits",
+    "read_link",
+    "read_members",
+]
 
-_NAME: Final = re.compile(r"^[A-Za-z][A-Za-z0-9_.-]{0,62}$")
 _LINK_SCALARS: Final = (str, int, float, bool)
 
 
-class Profile:
-    """Reads one device entry and raises ``ProfileError("<where>.<key>: ...")``.
+#: The ``link`` of a CAN entry when it is missing: what to write.
+LINK_HINT: Final = "e.g. {interface: socketcan, channel: can0}"
+
+
+def read_link(reader: ProfileReader, value: object, key: str = "link") -> dict[str, Any]:
+    """A ``link`` mapping: python-can ``Bus`` keyword arguments.
 
     Args:
-        where: The entry's own key path (``sim_rover.yaml: devices.base``).
+        reader: Where errors are raised.
+        value: The value.
+        key: Its key path.
+
+    Returns:
+        The keyword arguments (``interface`` and ``channel`` at least).
+
+    Raises:
+        ProfileError: Not a mapping of scalars with an interface and a channel.
     """
+    link = dict(reader.mapping(value, key))
+    for part in ("interface", "channel"):
+        item = link.get(part)
+        if not isinstance(item, str | int) or isinstance(item, bool) or item == "":
+            reader.fail(f"{key}.{part}", f"missing or not a text/number: {item!r}")
+    for part, item in link.items():
+        if not isinstance(item, _LINK_SCALARS):
+            reader.fail(f"{key}.{part}", f"must be a scalar, got {item!r}")
+    return link
 
-    def __init__(self, where: str) -> None:
-        self.where = where
 
-    def fail(self, path: str, message: str) -> ProfileError:
-        """The error for ``path`` (raise it).
+def read_members(
+    reader: ProfileReader,
+    value: object,
+    key: str,
+    keys: frozenset[str],
+    id_key: str,
+    id_range: tuple[int, int],
+    *,
+    id_word: str = "id",
+    reserved: Mapping[int, str] | None = None,
+) -> Iterator[tuple[str, Mapping[str, Any], int, str]]:
+    """The motors of a bus entry, each checked: known keys, a unique id, a unique joint.
 
-        Args:
-            path: The key path below the entry (``nodes[1].node_id``).
-            message: What is wrong.
+    Args:
+        reader: Where errors are raised.
+        value: The list (``nodes``, ``motors``).
+        key: Its key.
+        keys: The keys a member may have.
+        id_key: The member's bus id key (``node_id``, ``motor_id``).
+        id_range: The lowest and highest id allowed.
+        id_word: How messages call the id (``node id``).
+        reserved: Ids taken by something else, with what takes them (``host_id``).
 
-        Returns:
-            The error.
-        """
-        where = f"{self.where}.{path}" if path else self.where
-        return ProfileError(f"{where}: {message}")
+    Yields:
+        ``(path, member, id, joint)`` for each member, in order.
 
-    def mapping(self, value: object, path: str) -> Mapping[str, Any]:
-        """``value`` as a mapping with text keys.
+    Raises:
+        ProfileError: The first problem, naming its key path.
+    """
+    ids: dict[int, str] = dict(reserved or {})
+    joints: dict[str, str] = {}
+    bus_id_field = integer(low=id_range[0], high=id_range[1])
+    for i, member in enumerate(reader.items(value, key)):
+        path = f"{key}[{i}]"
+        reader.known(member, keys, path)
+        bus_id = reader.field(member, id_key, bus_id_field, path)
+        if bus_id in ids:
+            reader.fail(f"{path}.{id_key}", f"duplicate {id_word} {bus_id} ({ids[bus_id]})")
+        joint = reader.field(member, "joint", _JOINT, path)
+        if joint in joints:
+            reader.fail(f"{path}.joint", f"duplicate joint {joint!r} ({joints[joint]})")
+        ids[bus_id], joints[joint] = path, path
+        yield path, member, bus_id, joint
 
-        Args:
-            value: The value.
-            path: Its key path.
 
-        Returns:
-            The mapping.
+def read_limits(reader: ProfileReader, cfg: Mapping[str, Any], path: str) -> JointLimits:
+    """The joint-side limits of one node or motor.
 
-        Raises:
-            ProfileError: Not a mapping.
-        """
-        if not isinstance(value, Mapping) or not all(isinstance(k, str) for k in value):
-            raise self.fail(path, f"must be a mapping with text keys, got {value!r}")
-        return value
+    Args:
+        reader: Where errors are raised.
+        cfg: The node's mapping.
+        path: Its key path.
 
-    def known(self, value: Mapping[str, Any], keys: frozenset[str], path: str) -> None:
-        """Raise for the first key of ``value`` not in ``keys``.
+    Returns:
+        The limits.
 
-        Args:
-            value: The mapping.
-            keys: The allowed keys.
-            path: Its key path ("" for the entry itself).
+    Raises:
+        ProfileError: A bad number, or ``position_min >= position_max``.
+    """
+    lo = reader.field(cfg, "position_min", number(-math.inf, low=None), path)
+    hi = reader.field(cfg, "position_max", number(math.inf, low=None), path)
+    if lo >= hi:
+        reader.fail(f"{path}.position_min", f"must be below position_max ({lo} >= {hi})")
+    vel = reader.field(cfg, "velocity_limit", number(math.inf), path)
+    torque = reader.field(cfg, "torque_limit", number(math.inf), path)
+    return JointLimits(lo, hi, vel, torque)
 
-        Raises:
-            ProfileError: An unknown key (named, with the known ones).
-        """
-        unknown = sorted(set(value) - keys)
-        if unknown:
-            where = f"{path}.{unknown[0]}" if path else unknown[0]
-            raise self.fail(where, f"unknown key (known: {', '.join(sorted(keys))})")
 
-    def entry(self, config: object, keys: frozenset[str], kind: str) -> Mapping[str, Any]:
-        """A device entry checked as a whole: a mapping, known keys, its own ``driver``.
-
-        Args:
-            config: The entry.
-            keys: The keys the driver knows.
-            kind: The driver's name.
-
-        Returns:
-            The entry.
-
-        Raises:
-            ProfileError: Not a mapping, an unknown key, or another driver named.
-        """
-        cfg = self.mapping(config, "")
-        self.known(cfg, keys, "")
-        self.driver(cfg, kind)
-        return cfg
-
-    def driver(self, cfg: Mapping[str, Any], kind: str) -> None:
-        """Check the entry's optional ``driver`` key: it may only name this driver.
-
-        A profile's loader takes ``driver`` out before the driver reads the entry; an entry
-        from :meth:`~temoto.drivers.base.Driver.detect` still has it.
-
-        Args:
-            cfg: The entry.
-            kind: The driver's name.
-
-        Raises:
-            ProfileError: ``driver`` names another driver.
-        """
-        if cfg.get("driver", kind) != kind:
-            raise self.fail("driver", f"must be {kind!r} for this driver, got {cfg['driver']!r}")
-
-    def number(
-        self,
-        cfg: Mapping[str, Any],
-        key: str,
-        path: str,
-        default: float,
-        *,
-        positive: bool = True,
-    ) -> float:
-        """An optional number.
-
-        Args:
-            cfg: The mapping holding it.
-            key: Its key.
-            path: The mapping's key path.
-            default: When it is absent.
-            positive: Whether it must be > 0.
-
-        Returns:
-            The value or the default.
-
-        Raises:
-            ProfileError: Not a (positive) finite number.
-        """
-        full = f"{path}.{key}" if path else key
-        value = cfg.get(key)
-        if value is None:
-            return default
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise self.fail(full, f"must be a finite number, got {value!r}")
-        if not math.isfinite(value):
-            raise self.fail(full, f"must be a finite number, got {value!r}")
-        if positive and value <= 0:
-            raise self.fail(full, f"must be positive, got {value!r}")
-        return float(value)
-
-    def integer(self, cfg: Mapping[str, Any], key: str, path: str, lo: int, hi: int) -> int:
-        """A required integer in ``lo..hi``.
-
-        Args:
-            cfg: The mapping holding it.
-            key: Its key.
-            path: The mapping's key path.
-            lo: Smallest allowed.
-            hi: Largest allowed.
-
-        Returns:
-            The value.
-
-        Raises:
-            ProfileError: Missing, not an integer or out of range.
-        """
-        full = f"{path}.{key}" if path else key
-        value = cfg.get(key)
-        if value is None:
-            raise self.fail(full, "missing")
-        if isinstance(value, bool) or not isinstance(value, int) or not lo <= value <= hi:
-            raise self.fail(full, f"must be an integer {lo}..{hi}, got {value!r}")
-        return value
-
-    def name(self, cfg: Mapping[str, Any], key: str, path: str) -> str:
-        """A required name (a joint's).
-
-        Args:
-            cfg: The mapping holding it.
-            key: Its key.
-            path: The mapping's key path.
-
-        Returns:
-            The name.
-
-        Raises:
-            ProfileError: Missing or not a name.
-        """
-        full = f"{path}.{key}" if path else key
-        value = cfg.get(key)
-        if value is None:
-            raise self.fail(full, "missing: every node needs a joint name")
-        if not isinstance(value, str) or not _NAME.match(value):
-            raise self.fail(
-                full, f"must be a name (a letter, then letters, digits, _.-): {value!r}"
-            )
-        return value
-
-    def link(self, cfg: Mapping[str, Any]) -> dict[str, Any]:
-        """The ``link`` mapping: python-can ``Bus`` keyword arguments.
-
-        Args:
-            cfg: The device entry.
-
-        Returns:
-            The keyword arguments (``interface`` and ``channel`` at least).
-
-        Raises:
-            ProfileError: Missing, or not a mapping of scalars with an interface and channel.
-        """
-        if "link" not in cfg:
-            raise self.fail("link", "missing: e.g. {interface: socketcan, channel: can0}")
-        link = dict(self.mapping(cfg["link"], "link"))
-        for key in ("interface", "channel"):
-            value = link.get(key)
-            if not isinstance(value, str | int) or isinstance(value, bool) or value == "":
-                raise self.fail(f"link.{key}", f"missing or not a text/number: {value!r}")
-        for key, value in link.items():
-            if not isinstance(value, _LINK_SCALARS):
-                raise self.fail(f"link.{key}", f"must be a scalar, got {value!r}")
-        return link
-
-    def items(self, cfg: Mapping[str, Any], key: str) -> Sequence[Mapping[str, Any]]:
-        """A required non-empty list of mappings (``nodes``, ``motors``).
-
-        Args:
-            cfg: The device entry.
-            key: The list's key.
-
-        Returns:
-            The mappings.
-
-        Raises:
-            ProfileError: Missing, empty or not a list of mappings.
-        """
-        raw = cfg.get(key)
-        if not isinstance(raw, list | tuple) or not raw:
-            raise self.fail(key, f"must be a non-empty list, got {raw!r}")
-        return [self.mapping(item, f"{key}[{i}]") for i, item in enumerate(raw)]
-
-    def members(
-        self,
-        cfg: Mapping[str, Any],
-        key: str,
-        keys: frozenset[str],
-        id_key: str,
-        id_range: tuple[int, int],
-        *,
-        id_word: str = "id",
-        reserved: Mapping[int, str] | None = None,
-    ) -> Iterator[tuple[str, Mapping[str, Any], int, str]]:
-        """The motors of a bus entry, each checked: known keys, a unique id, a unique joint.
-
-        Args:
-            cfg: The device entry.
-            key: The list's key (``nodes``, ``motors``).
-            keys: The keys a member may have.
-            id_key: The member's bus id key (``node_id``, ``motor_id``).
-            id_range: The lowest and highest id allowed.
-            id_word: How messages call the id (``node id``).
-            reserved: Ids taken by something else, with what takes them (``host_id``).
-
-        Yields:
-            ``(path, member, id, joint)`` for each member, in order.
-
-        Raises:
-            ProfileError: The first problem, naming its key path.
-        """
-        ids: dict[int, str] = dict(reserved or {})
-        joints: dict[str, str] = {}
-        for i, member in enumerate(self.items(cfg, key)):
-            path = f"{key}[{i}]"
-            self.known(member, keys, path)
-            bus_id = self.integer(member, id_key, path, *id_range)
-            if bus_id in ids:
-                raise self.fail(f"{path}.{id_key}", f"duplicate {id_word} {bus_id} ({ids[bus_id]})")
-            joint = self.name(member, "joint", path)
-            if joint in joints:
-                raise self.fail(f"{path}.joint", f"duplicate joint {joint!r} ({joints[joint]})")
-            ids[bus_id], joints[joint] = path, path
-            yield path, member, bus_id, joint
-
-    def limits(self, cfg: Mapping[str, Any], path: str) -> JointLimits:
-        """The joint-side limits of one node or motor.
-
-        Args:
-            cfg: The node's mapping.
-            path: Its key path.
-
-        Returns:
-            The limits.
-
-        Raises:
-            ProfileError: A bad number, or ``position_min >= position_max``.
-        """
-        lo = self.number(cfg, "position_min", path, -math.inf, positive=False)
-        hi = self.number(cfg, "position_max", path, math.inf, positive=False)
-        if lo >= hi:
-            raise self.fail(f"{path}.position_min", f"must be below position_max ({lo} >= {hi})")
-        vel = self.number(cfg, "velocity_limit", path, math.inf)
-        torque = self.number(cfg, "torque_limit", path, math.inf)
-        return JointLimits(lo, hi, vel, torque)
+_JOINT: Final = name(hint="every node needs a joint name")
 
 
 @dataclass(frozen=True, slots=True)

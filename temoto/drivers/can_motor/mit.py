@@ -42,16 +42,24 @@ import threading
 import time
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any, Final, Self
+from typing import Any, ClassVar, Final
 
 import can
 
 from temoto.clock import Clock
 from temoto.drivers.base import DriverState
 from temoto.drivers.can_motor import mitmode as mm
-from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits
+from temoto.drivers.can_motor._common import (
+    LINK_HINT,
+    JointLimits,
+    check_limits,
+    read_limits,
+    read_link,
+    read_members,
+)
 from temoto.drivers.can_motor._driver import CanMotorDriver
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
+from temoto.drivers.profile import Field, ProfileReader, custom, integer, number
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import BAD_FRAMES_WINDOW, FaultWindow, StreamAge
 from temoto.errors import (
@@ -75,19 +83,6 @@ BAD_REPLIES_LIMIT: Final = 2
 DUPLICATE_LIMIT: Final = 5
 _ZERO_TORQUE: Final = mm.MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
 
-_KEYS: Final = frozenset(
-    {
-        "driver",
-        "link",
-        "motors",
-        "poll_rate",
-        "timeout_periods",
-        "host_id",
-        "init_timeout",
-        "can_timeout",
-        "safe_state",
-    }
-)
 _MOTOR_KEYS: Final = frozenset(
     {
         "motor_id",
@@ -192,6 +187,15 @@ class MitMotorDriver(CanMotorDriver):
 
     kind = "mit_can"
     safe_states = ("zero_torque",)
+    profile_fields: ClassVar[Mapping[str, Field[Any]]] = {
+        "link": custom(read_link, hint=LINK_HINT),
+        "host_id": integer(0, low=0, high=0x7FF),
+        "motors": custom(lambda r, v, k: v, hint="the motors on the bus"),  # read with host_id
+        "poll_rate": number(100.0),
+        "timeout_periods": integer(3, low=1, high=1000),
+        "init_timeout": number(0.5),
+        "can_timeout": number(0.0, low=0, low_open=False, describe="0 (not used) or positive"),
+    }
 
     def __init__(
         self,
@@ -245,76 +249,64 @@ class MitMotorDriver(CanMotorDriver):
     # ---- profile ---------------------------------------------------------------------------
 
     @classmethod
-    def from_profile(
-        cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
-    ) -> Self:
-        """Build the driver from its profile entry (see ``docs/driver-can.md``).
+    def profile_settings(cls, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+        """Constructor arguments from a checked entry (see ``docs/driver-can.md``).
+
+        Reads the motors (their ids must differ from ``host_id``) and checks ``can_timeout``
+        against the poll period.
 
         Args:
-            name: The device's name.
-            config: The entry (``driver``, when present, must name this driver).
-            clock: The robot's clock.
-            where: The entry's key path, for messages.
+            values: The entry's checked values (:meth:`read_profile`).
+            where: The entry's place for messages.
 
         Returns:
-            The driver (``UNCONFIGURED``).
+            The keyword arguments.
 
         Raises:
-            ProfileError: A bad entry; the message names the key path.
+            ProfileError: A bad motor, or keys that contradict each other (named).
         """
-        p = Profile(where)
-        cfg = p.entry(config, _KEYS, cls.kind)
-        link = p.link(cfg)
-        host = p.integer(cfg, "host_id", "", 0, 0x7FF) if "host_id" in cfg else 0
+        reader = ProfileReader.at(where)
+        kwargs = super().profile_settings(values, where)
+        host = kwargs["host_id"]
         motors: list[MitMotor] = []
-        members = p.members(
-            cfg, "motors", _MOTOR_KEYS, "motor_id", (1, 0xFF), reserved={host: "host_id"}
+        members = read_members(
+            reader,
+            kwargs["motors"],
+            "motors",
+            _MOTOR_KEYS,
+            "motor_id",
+            (1, 0xFF),
+            reserved={host: "host_id"},
         )
         for path, raw, motor_id, joint in members:
             model = raw.get("model", "AK80-9")
             if model not in mm.MODELS:
-                raise p.fail(
+                reader.fail(
                     f"{path}.model", f"unknown model {model!r} (known: {', '.join(mm.MODELS)})"
                 )
             base = mm.MODELS[model]
             ranges = mm.MitRanges(
-                p.number(raw, "p_max", path, base.p_max),
-                p.number(raw, "v_max", path, base.v_max),
-                p.number(raw, "t_max", path, base.t_max),
+                reader.field(raw, "p_max", number(base.p_max), path),
+                reader.field(raw, "v_max", number(base.v_max), path),
+                reader.field(raw, "t_max", number(base.t_max), path),
             )
-            kp = p.number(raw, "kp", path, 20.0)
-            kd = p.number(raw, "kd", path, 1.0)
+            kp = reader.field(raw, "kp", number(20.0), path)
+            kd = reader.field(raw, "kd", number(1.0), path)
             if kp > ranges.kp_max:
-                raise p.fail(f"{path}.kp", f"must be at most {ranges.kp_max}")
+                reader.fail(f"{path}.kp", f"must be at most {ranges.kp_max}")
             if kd > ranges.kd_max:
-                raise p.fail(f"{path}.kd", f"must be at most {ranges.kd_max}")
-            gear = p.number(raw, "gear_ratio", path, 1.0)
-            motors.append(MitMotor(motor_id, joint, ranges, gear, kp, kd, p.limits(raw, path)))
-        rate = p.number(cfg, "poll_rate", "", 100.0)
-        periods = p.integer(cfg, "timeout_periods", "", 1, 1000) if "timeout_periods" in cfg else 3
-        init = p.number(cfg, "init_timeout", "", 0.5)
-        timeout = p.number(cfg, "can_timeout", "", 0.0, positive=False)
-        if timeout < 0:
-            raise p.fail("can_timeout", f"must be 0 (not used) or positive, got {timeout}")
+                reader.fail(f"{path}.kd", f"must be at most {ranges.kd_max}")
+            gear = reader.field(raw, "gear_ratio", number(1.0), path)
+            limits = read_limits(reader, raw, path)
+            motors.append(MitMotor(motor_id, joint, ranges, gear, kp, kd, limits))
+        kwargs["motors"] = motors
+        rate, timeout = kwargs["poll_rate"], kwargs["can_timeout"]
         if timeout > 0 and 1.0 / rate > timeout / 2:
-            raise p.fail(
+            reader.fail(
                 "can_timeout",
                 f"must be at least two poll periods (2/{rate:g} s), got {timeout}",
             )
-        safe = cls.safe_state_from(cfg, where)
-        driver = cls(
-            name,
-            link=link,
-            motors=motors,
-            clock=clock,
-            poll_rate=rate,
-            timeout_periods=periods,
-            host_id=host,
-            init_timeout=init,
-            can_timeout=timeout,
-        )
-        driver.safe_state = safe
-        return driver
+        return kwargs
 
     @classmethod
     def simulate(

@@ -12,7 +12,7 @@ While ``ACTIVE`` the supervisor re-sends every axis's newest set-point each
 ``command_period`` (not only when it changes), so the ODrive's axis watchdog
 (``watchdog_timeout``) can be enabled on the device: if TeMoto dies, the axes disarm.
 
-**Safe state** (``safe_state:``): ``idle`` (default) sends ``Set_Axis_State(IDLE)`` to every
+**Safe state** (``safe_state:``): ``idle`` (default) sends ``SetAxisCache_State(IDLE)`` to every
 axis; ``hold`` commands zero velocity (``VELOCITY_CONTROL``, input 0 rev/s) and leaves each axis
 in the state it is in (an armed axis stays in ``CLOSED_LOOP_CONTROL``; the zero set-point keeps
 being sent, feeding the watchdog). Both are confirmed by a heartbeat requested at once, waited
@@ -47,34 +47,41 @@ Units: the ODrive speaks motor turns; joints are radians on the output side of
 from __future__ import annotations
 
 import contextlib
-import itertools
 import logging
 import math
-import statistics
 import threading
 import time
-from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass, field
-from typing import Any, Final, Self
+from typing import Any, ClassVar, Final
 
 import can
 
 from temoto.clock import Clock
-from temoto.drivers.base import DriverState, detect_links
+from temoto.drivers.base import DriverState
 from temoto.drivers.can_motor import cansimple as cs
-from temoto.drivers.can_motor._common import JointLimits, Profile, check_limits, open_bus
+from temoto.drivers.can_motor._common import (
+    LINK_HINT,
+    check_limits,
+    read_link,
+)
 from temoto.drivers.can_motor._driver import CanMotorDriver
+from temoto.drivers.can_motor.detect import DETECT_MIN_BEATS, detect
+from temoto.drivers.can_motor.odrive_axes import (
+    DUPLICATE_FACTOR,
+    DUPLICATE_PERIODS,
+    AxisCache,
+    ODriveNode,
+    motor_fault,
+)
+from temoto.drivers.can_motor.odrive_settings import read_nodes, sim_rates
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
+from temoto.drivers.profile import Field, ProfileReader, custom, number
 from temoto.drivers.sim import Simulator
-from temoto.drivers.supervision import FaultWindow, StreamAge
 from temoto.errors import (
     DriverError,
     DriverInitError,
     DriverOperationError,
     DriverTimeoutError,
-    MotorFaultError,
-    ProfileError,
     StateError,
 )
 
@@ -90,176 +97,13 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-TAU: Final = 2.0 * math.pi
 #: Real seconds :meth:`ODriveDriver.make_safe` waits for the heartbeats that confirm it.
 SAFE_CONFIRM: Final = 0.1
-#: A stream arriving at more than this many times its configured rate is two devices.
-DUPLICATE_FACTOR: Final = 1.5
-#: Over how many of its periods a stream's rate is counted.
-DUPLICATE_PERIODS: Final = 20
-#: Well-formed heartbeats a node must send while :meth:`ODriveDriver.detect` listens.
-DETECT_MIN_BEATS: Final = 2
-_KEYS: Final = frozenset(
-    {
-        "driver",
-        "link",
-        "nodes",
-        "heartbeat_period",
-        "encoder_period",
-        "init_timeout",
-        "timeout_periods",
-        "command_period",
-        "watchdog_timeout",
-        "safe_state",
-        "sim",
-    }
-)
-_NODE_KEYS: Final = frozenset(
-    {
-        "node_id",
-        "joint",
-        "gear_ratio",
-        "position_min",
-        "position_max",
-        "velocity_limit",
-        "torque_limit",
-    }
-)
 _MODES: Final = {
     ControlMode.POSITION: cs.ControlMode.POSITION_CONTROL,
     ControlMode.VELOCITY: cs.ControlMode.VELOCITY_CONTROL,
     ControlMode.EFFORT: cs.ControlMode.TORQUE_CONTROL,
 }
-#: Error bits behind the simulator's (and the Robot Manager's) hardware-error kinds.
-_KINDS: Final = (
-    (cs.AxisError.MOTOR_OVER_TEMP | cs.AxisError.INVERTER_OVER_TEMP, "overheat"),
-    (
-        cs.AxisError.CURRENT_LIMIT_VIOLATION
-        | cs.AxisError.DC_BUS_OVER_CURRENT
-        | cs.AxisError.DC_BUS_OVER_REGEN_CURRENT,
-        "overload",
-    ),
-    (cs.AxisError.DC_BUS_OVER_VOLTAGE | cs.AxisError.DC_BUS_UNDER_VOLTAGE, "voltage"),
-)
-
-
-@dataclass(frozen=True, slots=True)
-class ODriveNode:
-    """One axis of a device entry.
-
-    Attributes:
-        node_id: CANSimple node id (0..63).
-        joint: The joint it moves.
-        gear_ratio: Motor turns per joint turn (> 0).
-        limits: Joint-side limits of set-points.
-    """
-
-    node_id: int
-    joint: str
-    gear_ratio: float = 1.0
-    limits: JointLimits = field(default_factory=JointLimits)
-
-
-class _Rate:
-    """Arrivals of one cyclic stream, for the duplicate-node check (one writer)."""
-
-    __slots__ = ("asked", "limit", "period", "since", "times", "window")
-
-    def __init__(self, period: float) -> None:
-        self.period = period
-        self.window = period * DUPLICATE_PERIODS
-        self.limit = DUPLICATE_FACTOR * DUPLICATE_PERIODS + 2
-        self.times: deque[float] = deque()
-        self.asked = 0  # replies still due to the driver's own requests (not counted)
-        self.since: float | None = None  # when the rate went over the limit
-
-    def ask(self) -> None:
-        self.asked = min(self.asked + 1, 4)
-
-    def add(self, now: float) -> None:
-        if self.asked:
-            self.asked -= 1
-            return
-        self.times.append(now)
-
-    def excess(self, now: float) -> float | None:
-        """The rate as a multiple of the configured one, when it is a duplicate's.
-
-        Only when it stayed over the limit for a whole window: a backlog of frames handled in
-        a burst after a pause of our process (or of the receive thread) fills one window, not
-        two; a second device keeps it full.
-        """
-        times = self.times
-        while times and times[0] <= now - self.window:
-            times.popleft()
-        if len(times) <= self.limit:
-            self.since = None
-            return None
-        if self.since is None:
-            self.since = now
-        if now - self.since < self.window:
-            return None
-        return len(times) / DUPLICATE_PERIODS
-
-    def clear(self) -> None:
-        self.times.clear()
-        self.asked = 0
-        self.since = None
-
-
-class _Axis:
-    """The receive thread's cache of one node (plain attributes: one writer)."""
-
-    __slots__ = (
-        "bad",
-        "beats",
-        "enc",
-        "enc_age",
-        "enc_rate",
-        "error",
-        "hb_rate",
-        "hb_stamp",
-        "held",
-        "ids",
-        "malformed",
-        "mode",
-        "node",
-        "rad",
-        "stale",
-        "stale_checks",
-        "state",
-        "torque",
-    )
-
-    def __init__(self, node: ODriveNode, heartbeat_period: float, encoder_period: float) -> None:
-        self.node = node
-        self.rad = TAU / node.gear_ratio  # motor rev → joint rad
-        self.ids = {cmd: cs.arbitration_id(node.node_id, cmd) for cmd in cs.Cmd}
-        self.enc_age = StreamAge(f"{self.label()} encoder estimates", encoder_period)
-        self.hb_rate = _Rate(heartbeat_period)
-        self.enc_rate = _Rate(encoder_period)
-        self.malformed = FaultWindow()
-        self.reset()
-
-    def reset(self) -> None:
-        self.hb_stamp: float | None = None
-        self.beats = 0  # heartbeats received
-        self.state = int(cs.AxisState.UNDEFINED)
-        self.error = 0
-        self.enc: tuple[float, float, float] | None = None  # pos rev, vel rev/s, stamp
-        self.torque = 0.0
-        self.mode: ControlMode | None = None
-        self.bad: str | None = None  # why too many frames were malformed
-        self.held: tuple[int, bytes] | None = None  # the set-point re-sent while active
-        self.stale: str | None = None  # why the estimates are stale (two checks in a row)
-        self.stale_checks = 0
-        self.enc_age.reset()
-        self.hb_rate.clear()
-        self.enc_rate.clear()
-        self.malformed.clear()
-
-    def label(self) -> str:
-        return f"node {self.node.node_id} ({self.node.joint})"
 
 
 class ODriveDriver(CanMotorDriver):
@@ -285,6 +129,17 @@ class ODriveDriver(CanMotorDriver):
 
     kind = "odrive_can"
     safe_states = ("idle", "hold")
+    profile_fields: ClassVar[Mapping[str, Field[Any]]] = {
+        "link": custom(read_link, hint=LINK_HINT),
+        "nodes": custom(lambda r, v, k: read_nodes(r, v, k), hint="the ODrive axes on the bus"),
+        "heartbeat_period": number(0.1),
+        "encoder_period": number(0.01),
+        "init_timeout": number(1.0),
+        "timeout_periods": number(3.0),
+        "command_period": number(0.05),
+        "watchdog_timeout": number(0.0, low=0, low_open=False, describe="0 (not used) or positive"),
+        "sim": custom(lambda r, v, k: dict(r.mapping(v, k)), {}, init=False),
+    }
 
     def __init__(
         self,
@@ -334,9 +189,9 @@ class ODriveDriver(CanMotorDriver):
         self._holding = False  # ... also in FAULT: the safe state "hold" is applied
         self._due_feed = -math.inf
         self._held_lock = threading.Lock()  # a held set-point and its sending, together
-        self._axes = [_Axis(n, heartbeat_period, encoder_period) for n in self.nodes]
+        self._axes = [AxisCache(n, heartbeat_period, encoder_period) for n in self.nodes]
         self._by_joint = {a.node.joint: a for a in self._axes}
-        self._rx: dict[int, tuple[_Axis, int]] = {}
+        self._rx: dict[int, tuple[AxisCache, int]] = {}
         for axis in self._axes:
             for cmd in (cs.Cmd.HEARTBEAT, cs.Cmd.GET_ENCODER_ESTIMATES, cs.Cmd.GET_TORQUES):
                 self._rx[axis.ids[cmd]] = (axis, cmd)
@@ -344,68 +199,39 @@ class ODriveDriver(CanMotorDriver):
     # ---- profile ---------------------------------------------------------------------------
 
     @classmethod
-    def from_profile(
-        cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
-    ) -> Self:
-        """Build the driver from its profile entry (see ``docs/driver-can.md``).
+    def profile_settings(cls, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+        """Constructor arguments from a checked entry (see ``docs/driver-can.md``).
+
+        Checks ``command_period`` against ``watchdog_timeout`` and the ``sim`` rates against
+        the supervised periods, and warns of ``safe_state: hold`` without a watchdog.
 
         Args:
-            name: The device's name.
-            config: The entry (``driver``, when present, must name this driver).
-            clock: The robot's clock.
-            where: The entry's key path, for messages.
+            values: The entry's checked values (:meth:`read_profile`).
+            where: The entry's place for messages.
 
         Returns:
-            The driver (``UNCONFIGURED``).
+            The keyword arguments.
 
         Raises:
-            ProfileError: A bad entry; the message names the key path.
+            ProfileError: Keys that contradict each other (the message names the key).
         """
-        p = Profile(where)
-        cfg = p.entry(config, _KEYS, cls.kind)
-        link = p.link(cfg)
-        nodes: list[ODriveNode] = []
-        members = p.members(
-            cfg, "nodes", _NODE_KEYS, "node_id", (0, cs.MAX_NODE_ID), id_word="node id"
-        )
-        for path, node, node_id, joint in members:
-            gear = p.number(node, "gear_ratio", path, 1.0)
-            nodes.append(ODriveNode(node_id, joint, gear, p.limits(node, path)))
-        hb = p.number(cfg, "heartbeat_period", "", 0.1)
-        encoder = p.number(cfg, "encoder_period", "", 0.01)
-        init = p.number(cfg, "init_timeout", "", 1.0)
-        periods = p.number(cfg, "timeout_periods", "", 3.0)
-        command = p.number(cfg, "command_period", "", 0.05)
-        watchdog = p.number(cfg, "watchdog_timeout", "", 0.0, positive=False)
-        if watchdog < 0:
-            raise p.fail("watchdog_timeout", f"must be 0 (not used) or positive, got {watchdog}")
+        reader = ProfileReader.at(where)
+        kwargs = super().profile_settings(values, where)
+        watchdog, command = kwargs["watchdog_timeout"], kwargs["command_period"]
         if watchdog > 0 and command > watchdog / 2:
-            raise p.fail(
+            reader.fail(
                 "command_period",
                 f"must be at most half the watchdog_timeout ({watchdog} s), got {command}",
             )
-        sim_rates(p, cfg, hb, encoder)  # checked here, used by simulate()
-        safe = cls.safe_state_from(cfg, where)
-        if safe == "hold" and watchdog == 0:
+        # checked here, used by simulate()
+        sim_rates(reader, values["sim"], kwargs["heartbeat_period"], kwargs["encoder_period"])
+        if values["safe_state"] == "hold" and watchdog == 0:
             logger.warning(
                 "%s.safe_state: hold without watchdog_timeout: the axes stay armed at 0 rev/s"
                 " after TeMoto exits; enable the ODrives' watchdog (docs/driver-can.md)",
                 where,
             )
-        driver = cls(
-            name,
-            link=link,
-            nodes=nodes,
-            clock=clock,
-            heartbeat_period=hb,
-            init_timeout=init,
-            timeout_periods=periods,
-            encoder_period=encoder,
-            command_period=command,
-            watchdog_timeout=watchdog,
-        )
-        driver.safe_state = safe
-        return driver
+        return kwargs
 
     @classmethod
     def simulate(
@@ -434,7 +260,9 @@ class ODriveDriver(CanMotorDriver):
 
         driver = cls.from_profile(name, config, clock=clock, where=name)
         driver.shutdown()
-        rates = sim_rates(Profile(name), config, driver.heartbeat_period, driver.encoder_period)
+        rates = sim_rates(
+            ProfileReader(name), config.get("sim"), driver.heartbeat_period, driver.encoder_period
+        )
         sim = SimODrive(
             driver.link,
             [n.node_id for n in driver.nodes],
@@ -454,19 +282,8 @@ class ODriveDriver(CanMotorDriver):
     ) -> list[dict[str, Any]]:
         """The ODrive axes heartbeating on CAN buses, as profile device entries.
 
-        Listens only: each link's bus is opened, read for ``timeout`` real seconds and closed
-        again, and no frame is sent (no RTR request either), so nothing moves. A node is an
-        ODrive axis when at least :data:`DETECT_MIN_BEATS` well-formed CANSimple heartbeats
-        (command 0x01, standard id, 8 data bytes whose axis state, procedure result and flags
-        are defined values: :func:`~temoto.drivers.can_motor.cansimple.heartbeat_problem`)
-        arrive from it, outnumbering the malformed frames on its id, with a median gap of at
-        least 1 ms between their timestamps (cyclic, not a burst); so an
-        MIT-mode command frame to motor 0x41 is not node 2. Each listed node's axis state and
-        error bits are logged, at WARNING when it has errors (clear them before use), at INFO
-        otherwise; an id heard but not listed is logged at INFO with the reason. The entries
-        themselves stay as a profile takes them. Only the ODrives' cyclic heartbeats are
-        seen: an axis whose ``heartbeat_msg_rate_ms`` is 0, or slower than half of
-        ``timeout``, may be missed.
+        Listens only, sending nothing, so nothing moves; which nodes count as ODrive axes
+        (and what is logged of each) is told by :func:`~temoto.drivers.can_motor.detect.detect`.
 
         Each entry is ``{driver: odrive_can, link: {...}, nodes: [{node_id: <id>, joint:
         joint_<id>}, ...]}`` (node ids sorted); everything else takes :meth:`from_profile`'s
@@ -488,21 +305,7 @@ class ODriveDriver(CanMotorDriver):
                 sequence, or a link is not a mapping with ``interface`` and ``channel`` (named
                 by its index).
         """
-        if links is not None and (
-            isinstance(links, str | bytes | Mapping) or not isinstance(links, Sequence)
-        ):
-            raise ValueError(
-                f"{cls.kind} detect: links must be a sequence of link mappings, got {links!r}"
-            )
-        found = detect_links(links, timeout, _available_links)
-        candidates = [_link(i, link) for i, link in enumerate(found)]
-        entries: list[dict[str, Any]] = []
-        for link in candidates:
-            seen = _listen(link, timeout)
-            if seen:
-                nodes = [{"node_id": n, "joint": f"joint_{n}"} for n in sorted(seen)]
-                entries.append({"driver": cls.kind, "link": dict(link), "nodes": nodes})
-        return entries
+        return detect(cls.kind, links, timeout)
 
     # ---- lifecycle -------------------------------------------------------------------------
 
@@ -572,7 +375,7 @@ class ODriveDriver(CanMotorDriver):
     def on_make_safe(self) -> str:
         """Apply :attr:`safe_state` to every axis; confirm by heartbeat, briefly.
 
-        ``idle``: ``Set_Axis_State(IDLE)``. ``hold``: ``Set_Controller_Mode(VELOCITY_CONTROL)``
+        ``idle``: ``SetAxisCache_State(IDLE)``. ``hold``: ``Set_Controller_Mode(VELOCITY_CONTROL)``
         and ``Set_Input_Vel(0)``, kept being sent (an axis in ``IDLE`` stays there). Every
         axis is sent its frames even when one fails; a heartbeat is then requested and waited
         for at most :data:`SAFE_CONFIRM` real seconds (a device that does not answer is not
@@ -614,7 +417,7 @@ class ODriveDriver(CanMotorDriver):
         confirmed = self._confirm(None if hold else cs.AxisState.IDLE)
         done: list[str] = []
         for axis, ok in zip(self._axes, confirmed, strict=True):
-            state = _state_name(axis.state)
+            state = cs.state_name(axis.state)
             if hold:
                 what = f"hold 0 rev/s ({state})" if ok else "hold 0 rev/s sent (unconfirmed)"
             else:
@@ -718,7 +521,7 @@ class ODriveDriver(CanMotorDriver):
             DriverOperationError: The bus refused a frame.
         """
         self.require_active("command")
-        plan: list[tuple[_Axis, JointCommand]] = []
+        plan: list[tuple[AxisCache, JointCommand]] = []
         for c in commands:
             axis = self._by_joint.get(c.joint)
             if axis is None:
@@ -818,7 +621,7 @@ class ODriveDriver(CanMotorDriver):
         else:
             axis.torque = cs.F32X2.unpack(data)[1]
 
-    def _malformed(self, axis: _Axis, what: str, why: str, now: float) -> None:
+    def _malformed(self, axis: AxisCache, what: str, why: str, now: float) -> None:
         """Count one malformed frame; too many within the window make a fault."""
         text = f"{axis.label()}: malformed {what} frame ({why})"
         bad = self._count_malformed(
@@ -870,7 +673,7 @@ class ODriveDriver(CanMotorDriver):
                     f"{self.name}: {axis.label()}: no heartbeat within {limit:g} s"
                 )
             if axis.error:
-                return _motor_fault(self.name, axis)
+                return motor_fault(self.name, axis)
             if axis.bad is not None:
                 return DriverOperationError(f"{self.name}: {axis.bad}")
             if axis.stale is not None:
@@ -878,7 +681,7 @@ class ODriveDriver(CanMotorDriver):
             if self._armed and axis.state != cs.AxisState.CLOSED_LOOP_CONTROL:
                 return DriverOperationError(
                     f"{self.name}: {axis.label()}: the axis left CLOSED_LOOP_CONTROL (now"
-                    f" {_state_name(axis.state)}) without an error bit; recover() to go on"
+                    f" {cs.state_name(axis.state)}) without an error bit; recover() to go on"
                 )
             for stream, rate in (
                 ("heartbeats", axis.hb_rate),
@@ -891,201 +694,3 @@ class ODriveDriver(CanMotorDriver):
                         f" configured rate: two devices answer as node {axis.node.node_id}?"
                     )
         return None
-
-
-#: The cyclic messages the driver supervises, and the key that states each one's period.
-_SUPERVISED: Final = {
-    "heartbeat_msg_rate_ms": "heartbeat_period",
-    "encoder_msg_rate_ms": "encoder_period",
-}
-
-
-def sim_rates(
-    p: Profile, cfg: Mapping[str, Any], heartbeat_period: float, encoder_period: float
-) -> dict[str, float]:
-    """The simulated ODrives' cyclic message rates from an entry's ``sim`` mapping.
-
-    ``sim`` maps the ODrive's ``axis.config.can`` rate settings
-    (:data:`~temoto.drivers.can_motor.sim.CYCLIC_RATES`: ``torques_msg_rate_ms``,
-    ``iq_msg_rate_ms``, ...) to milliseconds, 0 for off. The heartbeats and the encoder
-    estimates are supervised by the driver, which expects them every ``heartbeat_period`` and
-    ``encoder_period``: those two rates follow the driver's keys, and a ``sim`` value for them
-    that differs (0 above all: the driver would find the axes dead or their estimates stale)
-    is refused.
-
-    Args:
-        p: The entry's profile reader (for messages).
-        cfg: The entry.
-        heartbeat_period: The driver's ``heartbeat_period``, s.
-        encoder_period: The driver's ``encoder_period``, s.
-
-    Returns:
-        ``{name: ms}`` for every rate, the supervised two included.
-
-    Raises:
-        ProfileError: ``sim`` is not a mapping, names an unknown rate, has a value that is
-            not a number of ms >= 0, or turns off (or changes) a supervised stream.
-    """
-    from temoto.drivers.can_motor.sim import CYCLIC_RATES
-
-    raw = cfg.get("sim")
-    rates = {
-        "heartbeat_msg_rate_ms": heartbeat_period * 1000.0,
-        "encoder_msg_rate_ms": encoder_period * 1000.0,
-    }
-    if raw is None:
-        return rates
-    sim = p.mapping(raw, "sim")
-    for key, value in sim.items():
-        if key not in CYCLIC_RATES:
-            raise p.fail(
-                f"sim.{key}",
-                f"unknown; the simulator's settings are the ODrive's cyclic message rates:"
-                f" {', '.join(CYCLIC_RATES)}",
-            )
-        ms = p.number(sim, key, "sim", 0.0, positive=False)
-        if ms < 0:
-            raise p.fail(f"sim.{key}", f"must be 0 (off) or a number of ms, got {value!r}")
-        driver_key = _SUPERVISED.get(key)
-        if driver_key is not None and not math.isclose(ms, rates[key]):
-            why = (
-                "0 turns them off, but the driver supervises them"
-                if ms == 0
-                else f"differs from {driver_key} ({rates[key] / 1000.0:g} s), which the"
-                " driver expects them at"
-            )
-            raise p.fail(
-                f"sim.{key}",
-                f"{why}: leave it out, or set {driver_key} (the device's {key} / 1000)",
-            )
-        rates[key] = ms
-    return rates
-
-
-def _state_name(state: int) -> str:
-    try:
-        return cs.AxisState(state).name
-    except ValueError:
-        return str(state)
-
-
-def _link(index: int, link: object) -> dict[str, Any]:
-    """A link to look at, checked as :meth:`ODriveDriver.from_profile` checks ``link``."""
-    try:
-        return Profile(f"links[{index}]").link({"link": link})
-    except ProfileError as err:
-        raise ValueError(
-            f"{ODriveDriver.kind} detect: links[{index}] is not a python-can bus mapping with"
-            f" interface and channel (e.g. {{interface: socketcan, channel: can0}}): {link!r}"
-        ) from err
-
-
-def _available_links() -> list[dict[str, Any]]:
-    """What python-can can open here (a configuration not in profile form is skipped).
-
-    python-can imports every interface module to ask it, and each one that lacks its vendor
-    library logs a WARNING on the ``can`` logger (a dozen on a machine without them); those
-    are not shown: that logger is quieted to ERROR for the call.
-    """
-    quiet = logging.getLogger("can")
-    level = quiet.level
-    quiet.setLevel(logging.ERROR)
-    try:
-        configs = can.detect_available_configs()
-    finally:
-        quiet.setLevel(level)
-    links: list[dict[str, Any]] = []
-    for index, config in enumerate(configs):
-        try:
-            links.append(_link(index, config))
-        except ValueError as err:
-            logger.debug("%s", err)
-    return links
-
-
-def _listen(link: dict[str, Any], timeout: float) -> dict[int, cs.Heartbeat]:
-    """The newest heartbeat of each ODrive node heard on ``link`` within ``timeout`` s.
-
-    A node counts when at least :data:`DETECT_MIN_BEATS` well-formed heartbeats
-    (:func:`~temoto.drivers.can_motor.cansimple.heartbeat_problem`) came from it, more than
-    malformed frames on its heartbeat id, with a median gap of 1 ms or more between their
-    frame timestamps (a cyclic message, not a burst). What each node tells is logged: INFO
-    for a clean axis, WARNING for one with error bits, INFO for an id that was heard but not
-    counted, and why.
-    """
-    what = f"{ODriveDriver.kind} detect"
-    try:
-        bus = open_bus(link, what)
-    except DriverError as err:
-        logger.warning("%s: skipping %s: %s", what, link, err)
-        return {}
-    beats: dict[int, list[float]] = {}
-    newest: dict[int, cs.Heartbeat] = {}
-    bad: dict[int, tuple[int, str]] = {}
-    try:
-        deadline = time.monotonic() + timeout
-        while (left := deadline - time.monotonic()) > 0:
-            try:
-                msg = bus.recv(timeout=left)
-            except (can.CanError, OSError) as err:
-                logger.warning("%s: receiving on %s failed, stopped listening: %s", what, link, err)
-                break
-            if msg is None or msg.is_error_frame or msg.is_remote_frame or msg.is_extended_id:
-                continue  # a remote Heartbeat is some host's request, not a node's beat
-            if msg.arbitration_id > 0x7FF:
-                continue
-            node, cmd = cs.split_id(msg.arbitration_id)
-            if cmd != cs.Cmd.HEARTBEAT:
-                continue
-            why = cs.heartbeat_problem(msg.data)
-            if why is not None:
-                count, _ = bad.get(node, (0, ""))
-                bad[node] = (count + 1, why)
-                continue
-            beats.setdefault(node, []).append(msg.timestamp)
-            newest[node] = cs.decode_heartbeat(msg.data)
-    finally:
-        bus.shutdown()
-    seen: dict[int, cs.Heartbeat] = {}
-    for node in sorted(set(beats) | set(bad)):
-        times = beats.get(node, [])
-        malformed, why = bad.get(node, (0, ""))
-        gaps = [b - a for a, b in itertools.pairwise(times)]
-        reason = None
-        if len(times) < DETECT_MIN_BEATS:
-            reason = f"{len(times)} well-formed heartbeat(s), {DETECT_MIN_BEATS} needed"
-        elif malformed >= len(times):
-            reason = f"{malformed} malformed frames on its heartbeat id ({why})"
-        elif statistics.median(gaps) < 0.001:
-            reason = "heartbeats less than 1 ms apart: not a cyclic heartbeat"
-        if reason is not None:
-            extra = f" (and {malformed} malformed: {why})" if malformed and times else ""
-            logger.info(
-                "%s: id 0x%03x on %s not listed: %s%s", what, node << 5 | 1, link, reason, extra
-            )
-            continue
-        seen[node] = beat = newest[node]
-        errors = " | ".join(cs.error_names(beat.axis_error)) or "none"
-        logger.log(
-            logging.WARNING if beat.axis_error else logging.INFO,
-            "%s: node %d on %s: axis state %s, axis errors %s, procedure result %d%s",
-            what,
-            node,
-            link,
-            _state_name(beat.axis_state),
-            errors,
-            beat.procedure_result,
-            " (clear the errors before use: Clear_Errors, or recover())" if beat.axis_error else "",
-        )
-    return seen
-
-
-def _motor_fault(name: str, axis: _Axis) -> MotorFaultError:
-    names = cs.error_names(axis.error)
-    kinds = [kind for bits, kind in _KINDS if axis.error & bits]
-    what = f" ({', '.join(kinds)})" if kinds else ""
-    return MotorFaultError(
-        f"{name}: {axis.label()}: axis error {' | '.join(names)}{what}",
-        node_id=axis.node.node_id,
-        error=axis.error,
-    )

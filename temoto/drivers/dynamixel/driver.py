@@ -53,35 +53,51 @@ Units: position ``(ticks - 2048) x 2π/4096 / gear + offset`` rad; velocity
 model's current unit and torque constant from :mod:`~temoto.drivers.dynamixel.control_table`
 (XL430, 2XL430 and XC430 report load in 0.1 % of their stall torque instead of current, and
 have no Current Limit to read).
+
+Modules, one concept each: the port, the poll thread and supervision
+(:mod:`~temoto.drivers.dynamixel._chain`, the class this one is built on), a servo's settings
+and units (:mod:`~temoto.drivers.dynamixel.servos`), the profile's keys
+(:mod:`~temoto.drivers.dynamixel.settings`), wire timing and the adapter's latency timer
+(:mod:`~temoto.drivers.dynamixel.timing`) and detection (:mod:`~temoto.drivers.dynamixel.detect`);
+their public names are importable from here too.
 """
 
 from __future__ import annotations
 
 import logging
-import math
 import os
-import threading
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
 from typing import Any, ClassVar, Final, Self
 
 from temoto.clock import Clock
-from temoto.drivers.base import Driver, DriverState, detect_links
-from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
-from temoto.drivers.dynamixel import _sdk
+from temoto.drivers.base import DriverState
+from temoto.drivers.capabilities import ControlMode, JointCommand, JointStates
+from temoto.drivers.dynamixel import _sdk, timing
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel import protocol as p
+from temoto.drivers.dynamixel._chain import ServoChain
+from temoto.drivers.dynamixel.detect import DETECT_BAUD_RATES, detect
+from temoto.drivers.dynamixel.servos import (
+    COMMAND_MODE,
+    MODES,
+    POSITION_MODES,
+    ServoConfig,
+    ServoStatus,
+)
+from temoto.drivers.dynamixel.settings import BAUD_RATES, PROFILE_FIELDS, settings
 from temoto.drivers.dynamixel.sim import SimDynamixelChain
+from temoto.drivers.dynamixel.timing import (
+    DEFAULT_BUS_WATCHDOG,
+    FACTORY_RETURN_DELAY,
+    latency_timer,
+    poll_cycle_time,
+)
+from temoto.drivers.profile import Field
 from temoto.drivers.sim import Simulator
-from temoto.drivers.supervision import FaultWindow, StreamAge
 from temoto.errors import (
-    DriverError,
     DriverInitError,
     DriverOperationError,
-    DriverTimeoutError,
     DriverUnavailableError,
-    DynamixelHardwareError,
-    ProfileError,
     StateError,
 )
 
@@ -102,245 +118,16 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: Baud rates both the X series and dynamixel-sdk's port handler support.
-BAUD_RATES: Final = frozenset({9600, 57600, 115200, 1_000_000, 2_000_000, 3_000_000, 4_000_000})
-#: The baud rates :meth:`DynamixelDriver.detect` tries on a link without ``?baud=``, most
-#: common first: the X series' factory setting, then the usual setting of an arm.
-DETECT_BAUD_RATES: Final = (57600, 1_000_000, 115200, 2_000_000, 3_000_000, 4_000_000, 9600)
-#: The joint limits (rad) in detect's entries: the single turn of position mode (ticks 0 to
-#: 4095, about ±π), rounded inward; ±π itself ends one tick beyond it.
-_DETECT_LIMIT: Final = 3.14
 #: The ``reply_timeout`` :meth:`DynamixelDriver.simulate` gives a driver on a simulated chain.
 SIM_REPLY_TIMEOUT: Final = 0.1
 #: ``safe_state`` values: ``torque_off`` (the default) writes Torque Enable = 0 to every servo;
 #: ``hold`` keeps torque and sets each goal to where the servo is (goal velocity/current 0).
 SAFE_STATES: Final = ("torque_off", "hold")
-#: The Bus Watchdog time (s) when the profile sets none: this, or three poll periods rounded up
-#: to the watchdog's 20 ms unit when that is longer (off when that exceeds its 2.54 s).
-DEFAULT_BUS_WATCHDOG: Final = 0.5
-#: The Return Delay Time (s) of a servo as it leaves the factory (register 9 = 250 x 2 µs): what
-#: the poll-rate estimate assumes when the profile sets no ``return_delay_time``.
-FACTORY_RETURN_DELAY: Final = 250 * ct.RETURN_DELAY_UNIT
-#: Where Linux lists USB serial adapters; each has a ``latency_timer`` file (ms).
-USB_SERIAL_SYSFS: Final = "/sys/bus/usb-serial/devices"
-_BITS_PER_BYTE: Final = 10  # start bit, 8 data bits, stop bit
-_INSTRUCTION_BYTES: Final = 10  # header 4, id, length 2, instruction, CRC 2
-_STATUS_BYTES: Final = 11  # header 4, id, length 2, instruction 0x55, error, CRC 2
 _SAFE_BUS_WAIT: Final = 0.5  # real s make_safe waits for a transaction of another thread
-#: Profile ``mode`` values → Operating Mode.
-MODES: Final[Mapping[str, ct.OperatingMode]] = {
-    "current": ct.OperatingMode.CURRENT,
-    "velocity": ct.OperatingMode.VELOCITY,
-    "position": ct.OperatingMode.POSITION,
-    "extended_position": ct.OperatingMode.EXTENDED_POSITION,
-    "current_based_position": ct.OperatingMode.CURRENT_BASED_POSITION,
-}
-_POSITION_MODES: Final = frozenset(
-    {
-        ct.OperatingMode.POSITION,
-        ct.OperatingMode.EXTENDED_POSITION,
-        ct.OperatingMode.CURRENT_BASED_POSITION,
-    }
-)
-_COMMAND_MODE: Final[Mapping[ct.OperatingMode, ControlMode]] = {
-    ct.OperatingMode.CURRENT: ControlMode.EFFORT,
-    ct.OperatingMode.VELOCITY: ControlMode.VELOCITY,
-    **dict.fromkeys(_POSITION_MODES, ControlMode.POSITION),
-}
-_PING_TRIES: Final = 3
-_TRIES: Final = 3  # attempts of a single READ or WRITE (they are idempotent)
 _REBOOT_WAIT_TRIES: Final = 20  # pings (each up to ~34 ms real) while a servo restarts
-_TOP_KEYS: Final = frozenset(
-    {
-        "driver",
-        "sim",
-        "link",
-        "baud",
-        "poll_rate",
-        "status_every",
-        "timeout_polls",
-        "reply_timeout",
-        "servos",
-        "safe_state",
-        "bus_watchdog",
-        "return_delay_time",
-    }
-)
-_SERVO_KEYS: Final = frozenset(
-    {
-        "id",
-        "joint",
-        "model",
-        "mode",
-        "min_position",
-        "max_position",
-        "velocity_limit",
-        "effort_limit",
-        "gear",
-        "offset",
-        "torque_constant",
-    }
-)
 
 
-class _FieldError(ValueError):
-    """A bad :class:`ServoConfig` value; ``key`` names the field (for profile key paths)."""
-
-    def __init__(self, key: str, message: str) -> None:
-        super().__init__(message)
-        self.key = key
-
-
-@dataclass(frozen=True, slots=True)
-class ServoConfig:
-    """One servo of a chain (joint side values in SI units).
-
-    Attributes:
-        id: Its id on the chain (0 to 252).
-        joint: The joint it moves.
-        model: Its model name (``XM430-W350``); PING must report this model.
-        mode: The operating mode (``position``, ``extended_position``,
-            ``current_based_position``, ``velocity``, ``current``).
-        min_position: The lowest joint position a command may ask for (rad); by default (NaN)
-            the end of the servo's single turn (tick 0 or 4095, after gear and offset).
-        max_position: The highest (rad); by default the other end of the single turn.
-        velocity_limit: The largest joint speed a command may ask for (rad/s), or None.
-        effort_limit: The largest joint effort a command may ask for (N·m), or None.
-        gear: Motor turns per joint turn (negative reverses the direction).
-        offset: Joint position (rad) at the servo's middle position (tick 2048).
-        torque_constant: N·m per A of the motor, or None for the model's value.
-        write_limits: Write the limits to the servo's Min/Max Position Limit registers at
-            configure (only in ``position`` mode, the one mode where the servo applies them).
-
-    Raises:
-        ValueError: A value out of range.
-    """
-
-    id: int
-    joint: str
-    model: str
-    mode: str = "position"
-    min_position: float = math.nan
-    max_position: float = math.nan
-    velocity_limit: float | None = None
-    effort_limit: float | None = None
-    gear: float = 1.0
-    offset: float = 0.0
-    torque_constant: float | None = None
-    write_limits: bool = False
-
-    def __post_init__(self) -> None:
-        if not 0 <= self.id <= p.MAX_ID:
-            raise _FieldError("id", f"id must be 0..{p.MAX_ID}, got {self.id}")
-        if not self.joint:
-            raise _FieldError("joint", "joint must be a non-empty name")
-        if self.model not in ct.MODELS:
-            known = ", ".join(ct.MODELS)
-            raise _FieldError("model", f"unknown model {self.model!r} (known: {known})")
-        if self.mode not in MODES:
-            raise _FieldError("mode", f"unknown mode {self.mode!r} (known: {', '.join(MODES)})")
-        if MODES[self.mode] not in ct.MODELS[self.model].modes or (
-            self.mode == "current" and ct.MODELS[self.model].current_unit is None
-        ):
-            raise _FieldError("mode", f"{self.model} has no {self.mode} mode")
-        if not (math.isfinite(self.gear) and self.gear != 0):
-            raise _FieldError("gear", f"gear must be finite and non-zero, got {self.gear}")
-        if not math.isfinite(self.offset):
-            raise _FieldError("offset", f"offset must be finite, got {self.offset}")
-        ends = sorted((self.position(0), self.position(4095)))
-        if math.isnan(self.min_position):  # the default: the servo's single turn
-            object.__setattr__(self, "min_position", ends[0])
-        if math.isnan(self.max_position):
-            object.__setattr__(self, "max_position", ends[1])
-        lo, hi = self.min_position, self.max_position
-        if not (math.isfinite(lo) and math.isfinite(hi) and lo < hi):
-            raise _FieldError(
-                "max_position", f"need finite min_position < max_position, got {lo}, {hi}"
-            )
-        if MODES[self.mode] is ct.OperatingMode.POSITION:
-            for key, bound in (("min_position", lo), ("max_position", hi)):
-                if not 0 <= self.ticks(bound) <= 4095:
-                    raise _FieldError(
-                        key,
-                        f"{bound} rad is outside the servo's single turn in position mode"
-                        " (use extended_position)",
-                    )
-        for key in ("velocity_limit", "effort_limit", "torque_constant"):
-            value = getattr(self, key)
-            if value is not None and not (math.isfinite(value) and value > 0):
-                raise _FieldError(key, f"{key} must be positive, got {value}")
-
-    @property
-    def spec(self) -> ct.Model:
-        """The model's data."""
-        return ct.MODELS[self.model]
-
-    @property
-    def operating_mode(self) -> ct.OperatingMode:
-        """The Operating Mode register's value."""
-        return MODES[self.mode]
-
-    def limit_ticks(self) -> tuple[int, int]:
-        """(Min Position Limit, Max Position Limit) register values for the joint limits."""
-        a, b = self.ticks(self.min_position), self.ticks(self.max_position)
-        return max(min(a, b), 0), min(max(a, b), 4095)
-
-    def ticks(self, position: float) -> int:
-        """Joint radians → Goal Position ticks."""
-        return round((position - self.offset) * self.gear / ct.RAD_PER_TICK) + ct.POSITION_CENTER
-
-    def position(self, ticks: int) -> float:
-        """Present Position ticks → joint radians."""
-        return (ticks - ct.POSITION_CENTER) * ct.RAD_PER_TICK / self.gear + self.offset
-
-    def velocity(self, units: int) -> float:
-        """Present Velocity units → joint rad/s."""
-        return units * ct.RAD_S_PER_UNIT / self.gear
-
-    def velocity_units(self, velocity: float) -> int:
-        """Joint rad/s → Goal/Profile Velocity units."""
-        return round(velocity * self.gear / ct.RAD_S_PER_UNIT)
-
-    def _newton_metres_per_unit(self) -> float:
-        spec = self.spec
-        if spec.current_unit is None:  # XL430/XC430: Present Load, 0.1 % of the stall torque
-            return 0.001 * spec.stall_torque * abs(self.gear)
-        kt = self.torque_constant or spec.torque_constant
-        return spec.current_unit * kt * abs(self.gear)
-
-    def effort(self, units: int) -> float:
-        """Present Current (or Load) units → joint N·m (the gear's sign included)."""
-        return units * self._newton_metres_per_unit() * (1 if self.gear > 0 else -1)
-
-    def current_units(self, effort: float) -> int:
-        """Joint N·m → Goal Current units."""
-        return round(effort / self._newton_metres_per_unit() * (1 if self.gear > 0 else -1))
-
-
-@dataclass(frozen=True, slots=True)
-class ServoStatus:
-    """The slow readings of one servo.
-
-    Attributes:
-        id: The servo.
-        joint: Its joint.
-        temperature: °C.
-        voltage: Input volts.
-        hardware_error: The Hardware Error Status register.
-        errors: Its bits by name (``overheating``, ...).
-        stamp: Clock seconds of the reading.
-    """
-
-    id: int
-    joint: str
-    temperature: float
-    voltage: float
-    hardware_error: int
-    errors: tuple[str, ...]
-    stamp: float
-
-
-class DynamixelDriver(Driver):
+class DynamixelDriver(ServoChain):
     """One chain of DYNAMIXEL X-series servos (see the module docstring); an ``Actuator``.
 
     Args:
@@ -366,119 +153,57 @@ class DynamixelDriver(Driver):
     kind: ClassVar[str] = "dynamixel"
     safe_states: ClassVar[tuple[str, ...]] = SAFE_STATES
 
-    def __init__(
-        self,
-        name: str,
-        *,
-        port: str,
-        servos: Sequence[ServoConfig],
-        baud: int = 57600,
-        poll_rate: float = 50.0,
-        status_every: int = 10,
-        timeout_polls: int = 3,
-        reply_timeout: float = 0.034,
-        bus_watchdog: float | None = None,
-        return_delay_time: float | None = None,
-        clock: Clock | None = None,
-    ) -> None:
-        super().__init__(name, clock=clock)
-        if not servos:
-            raise ValueError("a chain needs at least one servo")
-        if len({s.id for s in servos}) != len(servos):
-            raise ValueError("servo ids must be unique")
-        if len({s.joint for s in servos}) != len(servos):
-            raise ValueError("joint names must be unique")
-        if baud not in BAUD_RATES:
-            raise ValueError(f"baud must be one of {sorted(BAUD_RATES)}, got {baud}")
-        if not (math.isfinite(poll_rate) and 0 < poll_rate <= 1000):
-            raise ValueError(f"poll_rate must be in (0, 1000] Hz, got {poll_rate}")
-        if not (math.isfinite(reply_timeout) and 0 < reply_timeout <= 1):
-            raise ValueError(f"reply_timeout must be in (0, 1] s, got {reply_timeout}")
-        if status_every < 1 or timeout_polls < 1:
-            raise ValueError("status_every and timeout_polls must be at least 1")
-        self.watchdog_units = _watchdog_units(bus_watchdog, 1.0 / poll_rate)
-        self.return_delay_units = _return_delay_units(return_delay_time)
-        self.port = port
-        self.baud = baud
-        self.servos: tuple[ServoConfig, ...] = tuple(servos)
-        self.period = 1.0 / poll_rate
-        self.status_every = status_every
-        self.timeout_polls = timeout_polls
-        self.reply_timeout = reply_timeout
-        self._by_joint = {s.joint: s for s in self.servos}
-        self._by_id = {s.id: s for s in self.servos}
-        self._ids = [s.id for s in self.servos]
-        self._bus = threading.RLock()  # one transaction on the wire at a time
-        self._sdk: _sdk.SdkPort | None = None
-        self._fast: _sdk.SyncReader | None = None
-        self._slow: _sdk.SyncReader | None = None
-        self._errors: _sdk.SyncReader | None = None
-        self._torques: _sdk.SyncReader | None = None
-        self._writers: dict[int, _sdk.SyncWriter] = {}
-        self._limits: dict[int, tuple[int, int]] = {}  # id → (velocity limit, current limit)
-        self._cache = threading.Lock()
-        self._states: JointStates | None = None
-        self._status: dict[int, ServoStatus] = {}
-        self._poller: threading.Thread | None = None
-        self._stop = threading.Event()
-        self._wake = threading.Condition()
-        self._failures = 0
-        self._comm_fault = False
-        self._hw_fault = False
-        self._watchdogs: _sdk.SyncReader | None = None
-        #: Each servo's goal register and value, written every poll while ACTIVE.
-        self._goals: dict[int, tuple[ct.Register, bytes]] = {}
-        # A good poll is due every period; one whose replies time out takes a reply timeout
-        # more (real time, so as many seconds of the clock as pass meanwhile: three times
-        # as many on a ScaledClock(3)), so the age limit allows for that: a lost reply is
-        # not a fault.
-        real_rate = self.clock.real_seconds(1.0)
-        reply_clock_s = reply_timeout / real_rate if real_rate > 0 else reply_timeout
-        self._feedback = StreamAge(f"{name} present position", self.period + reply_clock_s)
-        self._bad_packets = FaultWindow()
-        self._last_failure = ""
-
-    @property
-    def bus_watchdog(self) -> float:
-        """The Bus Watchdog time armed at :meth:`activate` (s; 0: off)."""
-        return self.watchdog_units * ct.BUS_WATCHDOG_UNIT
-
     @property
     def joint_limits(self) -> Mapping[str, tuple[float, float]]:
         """(min, max) position (rad) of every joint in a position mode."""
         return {
             s.joint: (s.min_position, s.max_position)
             for s in self.servos
-            if s.operating_mode in _POSITION_MODES
+            if s.operating_mode in POSITION_MODES
         }
 
     # ---- profile ------------------------------------------------------------------------------
+
+    profile_fields: ClassVar[Mapping[str, Field[Any]]] = PROFILE_FIELDS
+
+    @classmethod
+    def profile_settings(cls, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+        """Constructor arguments from a checked entry (see ``docs/driver-dynamixel.md``).
+
+        Args:
+            values: The entry's checked values: ``link``, ``baud``, ``poll_rate``,
+                ``status_every``, ``timeout_polls``, ``reply_timeout``, ``bus_watchdog``,
+                ``return_delay_time``, ``servos`` (``sim`` is the simulator's).
+            where: The entry's place for messages.
+
+        Returns:
+            The keyword arguments (``port`` and ``baud`` from the link).
+
+        Raises:
+            ProfileError: Keys that contradict each other (the message names the key).
+        """
+        return settings(values, super().profile_settings(values, where), where)
 
     @classmethod
     def from_profile(
         cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
     ) -> Self:
-        """A driver from a profile's device entry (see ``docs/driver-dynamixel.md``).
+        """A driver from a profile's device entry (see :meth:`Driver.from_profile`).
 
         Args:
             name: The device's name.
-            config: Its entry: ``link``, ``baud``, ``poll_rate``, ``status_every``,
-                ``timeout_polls``, ``reply_timeout``, ``safe_state``, ``bus_watchdog``,
-                ``return_delay_time``, ``servos`` (and ``driver``/``sim``, which are not read).
+            config: Its entry (:meth:`profile_settings` lists the keys).
             clock: The robot's clock.
-            where: The entry's key path, for messages.
+            where: The entry's place for messages.
 
         Returns:
             The driver (``UNCONFIGURED``). A warning is logged when ``poll_rate`` cannot be
-            met on the wire (:func:`poll_cycle_time`).
+            met on the wire (:func:`~temoto.drivers.dynamixel.timing.poll_cycle_time`).
 
         Raises:
             ProfileError: An invalid entry; the message starts with the key path.
         """
-        kwargs = _parse_profile(config, where)
-        safe_state = cls.safe_state_from(config, where)
-        driver = cls(name, clock=clock, **kwargs)
-        driver.safe_state = safe_state
+        driver = super().from_profile(name, config, clock=clock, where=where)
         driver._warn_if_too_fast(where)
         return driver
 
@@ -536,8 +261,8 @@ class DynamixelDriver(Driver):
         Raises:
             ProfileError: An invalid entry.
         """
-        kwargs = _parse_profile(config, name)
-        servos: Sequence[ServoConfig] = kwargs["servos"]
+        values = cls.read_profile(config, name)
+        servos: Sequence[ServoConfig] = cls.profile_settings(values, name)["servos"]
         sim = SimDynamixelChain({s.id: s.model for s in servos}, clock=clock, name=name)
         out = dict(config)
         out["link"] = f"serial:{sim.path}"
@@ -579,17 +304,9 @@ class DynamixelDriver(Driver):
             ValueError: ``timeout`` is not a positive finite number of seconds, or a link is not
                 a serial link (raised before any port is opened; the message names the link).
         """
-        urls = detect_links(links, timeout, _serial_links)
-        plans = [_detect_plan(url) for url in urls]  # every link checked before any is opened
-        entries: list[dict[str, Any]] = []
-        for path, bauds in plans:
-            entry = _detect_chain(path, bauds, timeout)
-            if entry is not None:
-                entries.append(entry)
-        return entries
+        return detect(links, timeout)
 
     # ---- capability -------------------------------------------------------------------------
-
     @property
     def joint_names(self) -> tuple[str, ...]:
         """The joints of the chain, in profile order."""
@@ -644,7 +361,7 @@ class DynamixelDriver(Driver):
             servo = self._by_joint.get(cmd.joint)
             if servo is None:
                 raise ValueError(f"{self.name}: no joint {cmd.joint!r}")
-            wanted = _COMMAND_MODE[servo.operating_mode]
+            wanted = COMMAND_MODE[servo.operating_mode]
             if cmd.mode is not wanted:
                 raise ValueError(
                     f"{self.name}: joint {cmd.joint} is in {servo.mode} mode and takes"
@@ -688,7 +405,6 @@ class DynamixelDriver(Driver):
                             self._goals[dxl_id] = (reg, raw)
 
     # ---- lifecycle hooks ----------------------------------------------------------------------
-
     def on_configure(self) -> None:
         """Open the port, check every servo, set its mode, read once and start polling."""
         self._stop_polling()
@@ -735,7 +451,7 @@ class DynamixelDriver(Driver):
             self._raise_alerts(errors)
             holds: dict[int, bytes] = {}
             for servo in self.servos:
-                if servo.operating_mode in _POSITION_MODES:
+                if servo.operating_mode in POSITION_MODES:
                     holds[servo.id] = data[servo.id][6:10]  # present position → goal
             if holds:
                 self._check_tx(self._writer(ct.GOAL_POSITION).write(holds))
@@ -751,32 +467,6 @@ class DynamixelDriver(Driver):
             if self.watchdog_units:
                 for servo in self.servos:
                     self._write(servo.id, ct.BUS_WATCHDOG, self.watchdog_units, "bus watchdog")
-
-    def _hold_goals(self, fast: Mapping[int, bytes]) -> dict[int, tuple[ct.Register, bytes]]:
-        """Each servo's goal that keeps it where a fast read found it (velocity/current 0)."""
-        goals: dict[int, tuple[ct.Register, bytes]] = {}
-        for servo in self.servos:
-            if servo.operating_mode in _POSITION_MODES:
-                goals[servo.id] = (ct.GOAL_POSITION, bytes(fast[servo.id][6:10]))
-            elif servo.mode == "velocity":
-                goals[servo.id] = (ct.GOAL_VELOCITY, p.to_le(0, 4))
-            else:
-                goals[servo.id] = (ct.GOAL_CURRENT, p.to_le(0, 2))
-        return goals
-
-    def _write_goals(self, goals: Mapping[int, tuple[ct.Register, bytes]]) -> int:
-        """One SYNC_WRITE per goal register; the first failing result (or success)."""
-        by_register: dict[int, dict[int, bytes]] = {}
-        registers: dict[int, ct.Register] = {}
-        for dxl_id, (reg, value) in goals.items():
-            by_register.setdefault(reg.address, {})[dxl_id] = value
-            registers[reg.address] = reg
-        outcome = _sdk.COMM_SUCCESS
-        for address, values in by_register.items():
-            result = self._writer(registers[address]).write(values)
-            if result != _sdk.COMM_SUCCESS and outcome == _sdk.COMM_SUCCESS:
-                outcome = result
-        return outcome
 
     def on_deactivate(self) -> None:
         """Turn torque off."""
@@ -867,7 +557,6 @@ class DynamixelDriver(Driver):
         self._goals = {}
 
     # ---- bring-up -----------------------------------------------------------------------------
-
     def _bring_up(self, servo: ServoConfig) -> None:
         port = self._port()
         model = self._ping(servo.id)
@@ -927,412 +616,18 @@ class DynamixelDriver(Driver):
             )
             self._write(servo.id, reg, value, what)
 
-    def _ping(self, dxl_id: int, tries: int = _PING_TRIES) -> int:
-        port = self._port()
-        result = _sdk.COMM_TX_FAIL
-        for _ in range(tries):
-            model, result, _ = port.ping(dxl_id)
-            if result == _sdk.COMM_SUCCESS:
-                return model
-        joint = self._by_id[dxl_id].joint
-        raise DriverInitError(
-            f"{self.name}: servo {dxl_id} ({joint}) does not answer PING on {self.port}:"
-            f" {port.result_text(result)}"
-        )
-
-    # ---- polling ------------------------------------------------------------------------------
-
-    def _start_polling(self) -> None:
-        self._stop.clear()
-        self._poller = threading.Thread(target=self._run, name=f"temoto-dxl-{self.name}")
-        self._poller.start()
-
-    def _stop_polling(self) -> None:
-        thread, self._poller = self._poller, None
-        if thread is None:
-            return
-        with self._wake:
-            self._stop.set()
-            self._wake.notify_all()
-        thread.join(10.0)
-
-    def _run(self) -> None:
-        count = 0
-        deadline = self.clock.monotonic()
-        while not self._stop.is_set():
-            count += 1
-            try:
-                self._check_stale()
-                good = self._poll_fast()
-                self._feed_goals()
-                if good and count % self.status_every == 0:
-                    self._poll_status()
-            except Exception:  # keep polling; a bug must not silently end the thread
-                logger.exception("%s: poll failed", self.name)
-            deadline += self.period
-            with self._wake:
-                if self._stop.is_set():
-                    break
-                remaining = deadline - self.clock.monotonic()
-                if remaining > 0:
-                    self.clock.wait(self._wake, remaining)
-                else:
-                    deadline = self.clock.monotonic()  # late: do not try to catch up
-
-    @property
-    def feedback_max_age(self) -> float:
-        """Clock seconds without a good poll after which the present position is stale.
-
-        :data:`~temoto.drivers.supervision.STALE_PERIODS` (3) times a poll period plus one
-        ``reply_timeout`` (the time a poll whose reply is lost takes on top of its period: real
-        seconds, counted here in seconds of the driver's clock).
-        """
-        return self._feedback.max_age
-
-    def _check_stale(self) -> None:
-        """Report a fault when the present-position stream is older than its limit."""
-        now = self.clock.monotonic()
-        age = self._feedback.age(now)
-        if self._feedback.last is None or age <= self._feedback.max_age:
-            return
-        if self.state not in (DriverState.INACTIVE, DriverState.ACTIVE):
-            return
-        last = f"; last poll: {self._last_failure}" if self._last_failure else ""
-        self._comm_fault = True
-        self.report_fault(
-            DriverTimeoutError(
-                f"{self.name}: present position stale: no good poll for {age:.3f} s (limit"
-                f" {self._feedback.max_age:.3f} s at {1.0 / self.period:g} Hz){last}"
-            )
-        )
-
-    def _feed_goals(self) -> None:
-        """While ACTIVE, write every servo's newest goal again (the Bus Watchdog's feed)."""
-        if self.state is not DriverState.ACTIVE:
-            return
-        with self._bus:
-            if not self._goals or self._sdk is None or self.state is not DriverState.ACTIVE:
-                return
-            result = self._write_goals(self._goals)
-        if result != _sdk.COMM_SUCCESS:
-            logger.debug("%s: goal feed: %s", self.name, self._port().result_text(result))
-
-    def _poll_fast(self) -> bool:
-        """One SyncRead of the chain; faults and recovery follow from it. True if it worked.
-
-        A reply with a bad CRC or garbage is counted in a sliding window (a fault only when
-        :data:`~temoto.drivers.supervision.BAD_FRAMES_LIMIT` fall within
-        :data:`~temoto.drivers.supervision.BAD_FRAMES_WINDOW`); a poll without replies counts
-        towards ``timeout_polls`` in a row.
-        """
-        with self._bus:
-            reader = self._fast
-            if reader is None:
-                return False
-            result, data, errors = reader.read()
-        stamp = self.clock.monotonic()
-        if result != _sdk.COMM_SUCCESS:
-            self._last_failure = self._port().result_text(result) if self._sdk else str(result)
-            if result == _sdk.COMM_RX_CORRUPT:
-                full = self._bad_packets.add(stamp)
-                window = self._bad_packets
-                logger.info(
-                    "%s: a bad status packet (%d within %g s, %d in all): %s",
-                    self.name,
-                    window.recent(stamp),
-                    window.window,
-                    window.total,
-                    self._last_failure,
-                )
-                if full:
-                    self._comm_fault = True
-                    self.report_fault(
-                        DriverOperationError(
-                            f"{self.name}: {window.recent(stamp)} bad status packets within"
-                            f" {window.window:g} s (CRC errors or garbage): {self._last_failure}"
-                        )
-                    )
-                return False
-            self._failures += 1
-            if self._failures >= self.timeout_polls:
-                self._comm_fault = True
-                self.report_fault(self._comm_error(f"{self._failures} polls in a row", result))
-            return False
-        self._failures = 0
-        self._last_failure = ""
-        self._feedback.feed(stamp)
-        joints: dict[str, JointState] = {}
-        for servo in self.servos:
-            raw = data[servo.id]
-            current = p.from_le(raw[0:2], signed=True)
-            velocity = p.from_le(raw[2:6], signed=True)
-            position = p.from_le(raw[6:10], signed=True)
-            joints[servo.joint] = JointState(
-                servo.joint,
-                servo.position(position),
-                servo.velocity(velocity),
-                servo.effort(current),
-                stamp,
-            )
-        with self._cache:
-            self._states = JointStates(stamp, joints)
-        if any(e & p.ALERT_BIT for e in errors.values()):
-            self._poll_status()
-        elif self._comm_fault and not self._hw_fault:
-            self._comm_fault = False
-            self._after_link_came_back()
-        return True
-
-    def _after_link_came_back(self) -> None:
-        was_active = self.state is DriverState.FAULT and self._before_fault is DriverState.ACTIVE
-        if was_active:
-            with self._bus:
-                result, data, _ = self._reader("torques").read()
-            if result != _sdk.COMM_SUCCESS:
-                self._comm_fault = True
-                return
-            off = [i for i in self._ids if data[i][0] == 0]
-            if off:
-                self.report_fault(
-                    DriverOperationError(
-                        f"{self.name}: servo(s) {', '.join(map(str, off))} lost torque while"
-                        " unreachable (power cycled?); recover() and activate() again"
-                    )
-                )
-                return
-            expired = self._expired_watchdogs()
-            if expired:
-                try:
-                    self._rearm(expired)
-                except DriverError as err:
-                    self.report_fault(err)
-                    return
-                self.report_recovered(
-                    f"the chain answers again; the Bus Watchdog had stopped servo"
-                    f" {', '.join(map(str, expired))}: it holds where it stopped"
-                )
-                return
-        self.report_recovered("the chain answers again")
-
-    def _rearm(self, expired: Sequence[int]) -> None:
-        """Clear expired Bus Watchdogs, hold those servos where they stopped, arm again."""
-        with self._bus:
-            for dxl_id in expired:
-                self._write(dxl_id, ct.BUS_WATCHDOG, 0, "bus watchdog clear")
-            result, data, _ = self._reader("fast").read()
-            if result != _sdk.COMM_SUCCESS:
-                raise self._comm_error("read after the bus watchdog", result)
-            holds = self._hold_goals(data)
-            for dxl_id in expired:
-                self._goals[dxl_id] = holds[dxl_id]
-            self._check_tx(self._write_goals({i: holds[i] for i in expired}))
-            for dxl_id in expired:
-                self._write(dxl_id, ct.BUS_WATCHDOG, self.watchdog_units, "bus watchdog")
-
-    def _expired_watchdogs(self) -> list[int]:
-        """The servos whose Bus Watchdog reads -1 (expired); empty when off or unreadable."""
-        if not self.watchdog_units:
-            return []
-        with self._bus:
-            reader = self._watchdogs
-            if reader is None:
-                return []
-            result, data, _ = reader.read()
-        if result != _sdk.COMM_SUCCESS:
-            return []
-        return [i for i in self._ids if p.from_le(data[i], signed=True) < 0]
-
-    def _poll_status(self) -> None:
-        """Read voltage, temperature and hardware error status; report hardware errors."""
-        with self._bus:
-            if self._slow is None or self._errors is None:
-                return
-            result, slow, _ = self._slow.read()
-            result2, bits, _ = self._errors.read() if result == _sdk.COMM_SUCCESS else (0, {}, {})
-        if result != _sdk.COMM_SUCCESS or result2 != _sdk.COMM_SUCCESS:
-            return  # the fast poll counts communication failures
-        expired = self._expired_watchdogs()
-        if expired and self.state is DriverState.ACTIVE:
-            self._hw_fault = True  # stays until recover()
-            self.report_fault(
-                DriverOperationError(
-                    f"{self.name}: the Bus Watchdog of servo {', '.join(map(str, expired))}"
-                    f" expired (no instruction for over {self.bus_watchdog:g} s): stopped, goals"
-                    " refused; recover() and activate() again"
-                )
-            )
-        stamp = self.clock.monotonic()
-        status: dict[int, ServoStatus] = {}
-        failing: list[tuple[int, int]] = []
-        for servo in self.servos:
-            value = bits[servo.id][0]
-            status[servo.id] = ServoStatus(
-                servo.id,
-                servo.joint,
-                float(slow[servo.id][2]),
-                p.from_le(slow[servo.id][0:2]) * ct.VOLT_PER_UNIT,
-                value,
-                p.decode_hardware_error(value),
-                stamp,
-            )
-            if value:
-                failing.append((servo.id, value))
-        with self._cache:
-            self._status = status
-        if failing:
-            self._hw_fault = True
-            self.report_fault(self._hardware_error(*failing[0], also=failing[1:]))
-
-    # ---- helpers ------------------------------------------------------------------------------
-
-    def _port(self) -> _sdk.SdkPort:
-        if self._sdk is None:
-            raise StateError(f"{self.name}: the port is not open")
-        return self._sdk
-
-    def _reader(self, which: str) -> _sdk.SyncReader:
-        reader = {"fast": self._fast, "torques": self._torques}[which]
-        if reader is None:
-            raise StateError(f"{self.name}: not configured")
-        return reader
-
-    def _writer(self, reg: ct.Register) -> _sdk.SyncWriter:
-        writer = self._writers.get(reg.address)
-        if writer is None:
-            writer = self._port().sync_writer(reg.address, reg.size)
-            self._writers[reg.address] = writer
-        return writer
-
-    def _check_tx(self, result: int) -> None:
-        if result != _sdk.COMM_SUCCESS:
-            raise self._comm_error("SyncWrite", result)
-
-    def _read(self, dxl_id: int, reg: ct.Register, what: str, alert_ok: bool = False) -> int:
-        for _ in range(_TRIES):
-            value, result, error = self._port().read(dxl_id, reg.address, reg.size)
-            if result == _sdk.COMM_SUCCESS:
-                break
-        self._check_reply(dxl_id, what, result, error & ~p.ALERT_BIT if alert_ok else error)
-        if reg.signed and value >= 1 << (8 * reg.size - 1):
-            value -= 1 << (8 * reg.size)
-        return value
-
-    def _write(self, dxl_id: int, reg: ct.Register, value: int, what: str) -> None:
-        for _ in range(_TRIES):
-            result, error = self._port().write(dxl_id, reg.address, reg.size, value)
-            if result == _sdk.COMM_SUCCESS:
-                break
-        self._check_reply(dxl_id, what, result, error)
-
-    def _check_reply(self, dxl_id: int, what: str, result: int, error: int) -> None:
-        if result != _sdk.COMM_SUCCESS:
-            raise self._comm_error(f"{what} of servo {dxl_id}", result)
-        if error & p.ALERT_BIT:
-            bits, result, _ = self._port().read(dxl_id, ct.HARDWARE_ERROR_STATUS.address, 1)
-            raise self._hardware_error(dxl_id, bits if result == _sdk.COMM_SUCCESS else 0)
-        if error:
-            number = error & 0x7F
-            name = p.ErrorNumber(number).name if number <= 7 else str(number)
-            raise DriverOperationError(f"{self.name}: servo {dxl_id} refused {what}: {name}")
-
-    def _raise_alerts(self, errors: Mapping[int, int]) -> None:
-        for dxl_id, error in errors.items():
-            if error & p.ALERT_BIT:
-                bits, result, _ = self._port().read(dxl_id, ct.HARDWARE_ERROR_STATUS.address, 1)
-                raise self._hardware_error(dxl_id, bits if result == _sdk.COMM_SUCCESS else 0)
-
-    def _comm_error(self, what: str, result: int) -> DriverError:
-        text = self._sdk.result_text(result) if self._sdk is not None else str(result)
-        message = f"{self.name}: {what}: {text}"
-        if result == _sdk.COMM_RX_TIMEOUT:
-            return DriverTimeoutError(f"{message} (no reply)")
-        return DriverOperationError(message)
-
-    def _hardware_error(
-        self, dxl_id: int, bits: int, also: Sequence[tuple[int, int]] = ()
-    ) -> DynamixelHardwareError:
-        servo = self._by_id[dxl_id]
-        names = ", ".join(p.decode_hardware_error(bits)) or "alert bit"
-        more = "".join(f"; servo {i}: {', '.join(p.decode_hardware_error(b))}" for i, b in also)
-        return DynamixelHardwareError(
-            f"{self.name}: servo {dxl_id} ({servo.joint}) hardware error: {names}{more}"
-            " (recover() reboots it)",
-            servo_id=dxl_id,
-            error=bits,
-        )
-
 
 _VELOCITY_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Velocity Limit")
 _CURRENT_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Current Limit")
 
 
-# ---- timing, watchdog and adapter checks --------------------------------------------------------
-
-
-def poll_cycle_time(
-    servos: int,
-    baud: int,
-    return_delay: float = FACTORY_RETURN_DELAY,
-    status_every: int = 10,
-    bus_watchdog: bool = True,
-) -> float:
-    """Seconds one poll cycle of the driver takes on the wire (an estimate, a lower bound).
-
-    Each byte is 10 bits (start, 8 data, stop); an instruction packet is 10 bytes plus its
-    parameters, a status packet 11 plus its data (byte stuffing ignored). Per cycle the driver
-    sends one SYNC_READ of 10 bytes (``14 + n`` bytes out, ``n`` replies of 21 bytes, each after
-    the servo's Return Delay Time) and one SYNC_WRITE of the goals (``14 + 5 n`` bytes; 4-byte
-    goals), and every ``status_every`` cycles SYNC_READs of 3 bytes (voltage, temperature),
-    1 byte (hardware error) and, with the Bus Watchdog on, 1 byte (its register)::
-
-        bytes  = (14 + n + 21 n) + (14 + 5 n)
-                 + [(14 + n + 14 n) + (14 + n + 12 n) (+ (14 + n + 12 n))] / status_every
-        reads  = n + [2 n (+ n)] / status_every
-        time   = 10 * bytes / baud + reads * return_delay
-
-    A USB adapter adds its latency (the FTDI latency timer: 16 ms by default, 1 ms when set;
-    see ``docs/driver-dynamixel.md``) to every read, which this leaves out.
-
-    Args:
-        servos: Servos on the chain.
-        baud: Bits per second.
-        return_delay: The servos' Return Delay Time (s).
-        status_every: Polls per status read.
-        bus_watchdog: Whether the status read includes the Bus Watchdog register.
-
-    Returns:
-        Seconds.
-    """
-    n = servos
-    fast = (_INSTRUCTION_BYTES + 4 + n) + n * (_STATUS_BYTES + 10)
-    goals = _INSTRUCTION_BYTES + 4 + 5 * n
-    status_reads = [3, 1, 1] if bus_watchdog else [3, 1]
-    status = sum((_INSTRUCTION_BYTES + 4 + n) + n * (_STATUS_BYTES + size) for size in status_reads)
-    wire = fast + goals + status / status_every
-    replies = n + len(status_reads) * n / status_every
-    return _BITS_PER_BYTE * wire / baud + replies * return_delay
-
-
-def latency_timer(port: str) -> int | None:
-    """The USB serial adapter's latency timer (ms) of a serial device, where Linux lists it.
-
-    Args:
-        port: The serial device (``/dev/ttyUSB0``; a symlink such as ``/dev/serial/by-id/...``
-            is followed).
-
-    Returns:
-        The value of ``/sys/bus/usb-serial/devices/<tty>/latency_timer``, or None when there is
-        no such file (not Linux, not a USB serial adapter, a pseudo-terminal) or it is unreadable.
-    """
-    tty = os.path.basename(os.path.realpath(port))
-    try:
-        with open(os.path.join(USB_SERIAL_SYSFS, tty, "latency_timer"), encoding="ascii") as f:
-            return int(f.read().strip())
-    except (OSError, ValueError):
-        return None
-
-
 def _check_latency_timer(name: str, port: str) -> None:
+    """Log a warning when the USB serial adapter of ``port`` has a latency timer above 1 ms.
+
+    Args:
+        name: The device, for the message.
+        port: The serial device.
+    """
     value = latency_timer(port)
     if value is not None and value > 1:
         tty = os.path.basename(os.path.realpath(port))
@@ -1343,290 +638,6 @@ def _check_latency_timer(name: str, port: str) -> None:
             name,
             port,
             value,
-            USB_SERIAL_SYSFS,
+            timing.USB_SERIAL_SYSFS,
             tty,
         )
-
-
-def _watchdog_units(seconds: float | None, period: float) -> int:
-    """Bus Watchdog register units (20 ms) for a time in seconds (None: the default).
-
-    Raises:
-        ValueError: Not 0 and not within 0.02..2.54 s, or shorter than two poll periods.
-    """
-    unit = ct.BUS_WATCHDOG_UNIT
-    if seconds is None:
-        units = math.ceil(max(DEFAULT_BUS_WATCHDOG, 3 * period) / unit - 1e-9)
-        return units if units <= ct.BUS_WATCHDOG_MAX else 0
-    if not math.isfinite(seconds) or seconds < 0:
-        raise ValueError(f"bus_watchdog must be 0 (off) or 0.02..2.54 s, got {seconds}")
-    if seconds == 0:
-        return 0
-    units = math.ceil(seconds / unit - 1e-9)
-    if not 1 <= units <= ct.BUS_WATCHDOG_MAX:
-        raise ValueError(f"bus_watchdog must be 0 (off) or 0.02..2.54 s, got {seconds}")
-    if units * unit < 2 * period:
-        raise ValueError(
-            f"bus_watchdog {units * unit:g} s is shorter than two poll periods"
-            f" ({2 * period:g} s): the servos would stop between two polls"
-        )
-    return units
-
-
-def _return_delay_units(seconds: float | None) -> int | None:
-    """Return Delay Time register units (2 µs) for a time in seconds (None: not written).
-
-    Raises:
-        ValueError: Not within 0..508 µs.
-    """
-    if seconds is None:
-        return None
-    units = round(seconds / ct.RETURN_DELAY_UNIT) if math.isfinite(seconds) else -1
-    if not 0 <= units <= ct.RETURN_DELAY_MAX or seconds < 0:
-        raise ValueError(f"return_delay_time must be 0 to 0.000508 s, got {seconds}")
-    return units
-
-
-# ---- detection ----------------------------------------------------------------------------------
-
-
-def _detect_plan(link: Any) -> tuple[str, tuple[int, ...]]:
-    """The serial device of a link to look at, and the baud rates to try there.
-
-    Raises:
-        ValueError: Not a serial link (the message names it).
-    """
-    try:
-        path, baud = _parse_link(link, f"link {link!r}")
-    except ProfileError as err:
-        raise ValueError(str(err)) from None
-    return path, DETECT_BAUD_RATES if baud is None else (baud,)
-
-
-def _detect_chain(path: str, bauds: Sequence[int], timeout: float) -> dict[str, Any] | None:
-    """Broadcast-PING ``path`` at each baud rate until servos answer; their entry, or None."""
-    for baud in bauds:
-        port = _sdk.SdkPort(path, baud)
-        try:
-            port.open()
-        except OSError as err:
-            logger.warning("dynamixel detect: skipping %s: cannot open it: %s", path, err)
-            return None  # at another baud rate neither
-        except ValueError as err:
-            logger.warning("dynamixel detect: %s: %s", path, err)
-            continue
-        try:
-            found, result = port.broadcast_ping(timeout)
-        finally:
-            port.close()
-        if found:
-            return _detected(path, baud, found)
-        logger.debug(
-            "dynamixel detect: %s at %d baud: no servo answered: %s",
-            path,
-            baud,
-            port.result_text(result),
-        )
-    return None
-
-
-def _detected(path: str, baud: int, found: Mapping[int, tuple[int, int]]) -> dict[str, Any] | None:
-    """The profile entry of the servos that answered (None if none is a known model)."""
-    servos: list[dict[str, Any]] = []
-    for dxl_id, (number, firmware) in sorted(found.items()):
-        if not 0 <= dxl_id <= p.MAX_ID:
-            logger.warning(
-                "dynamixel detect: %s: a status packet from id %d: left out", path, dxl_id
-            )
-            continue
-        model = ct.MODELS_BY_NUMBER.get(number)
-        if model is None:
-            logger.warning(
-                "dynamixel detect: %s at %d baud: servo %d has model number %d, which the"
-                " driver does not know (known: %s): left out",
-                path,
-                baud,
-                dxl_id,
-                number,
-                ", ".join(f"{m.name} = {m.number}" for m in ct.MODELS.values()),
-            )
-            continue
-        logger.info(
-            "dynamixel detect: %s at %d baud: servo %d is %s (firmware %d)",
-            path,
-            baud,
-            dxl_id,
-            model.name,
-            firmware,
-        )
-        servos.append(
-            {
-                "id": dxl_id,
-                "joint": f"joint_{dxl_id}",
-                "model": model.name,
-                "mode": "position",
-                "min_position": -_DETECT_LIMIT,
-                "max_position": _DETECT_LIMIT,
-            }
-        )
-    if not servos:
-        return None
-    return {"driver": "dynamixel", "link": f"serial:{path}?baud={baud}", "servos": servos}
-
-
-# ---- profile parsing ----------------------------------------------------------------------------
-
-
-def _parse_profile(config: Mapping[str, Any], where: str) -> dict[str, Any]:
-    """Validate a device entry; keyword arguments for :class:`DynamixelDriver`."""
-    if not isinstance(config, Mapping):
-        raise ProfileError(f"{where}: a device entry must be a mapping")
-    unknown = sorted(set(config) - _TOP_KEYS)
-    if unknown:
-        raise ProfileError(
-            f"{where}.{unknown[0]}: unknown key (known: {', '.join(sorted(_TOP_KEYS))})"
-        )
-    if config.get("driver", "dynamixel") != "dynamixel":
-        raise ProfileError(f"{where}.driver: must be 'dynamixel', got {config['driver']!r}")
-    if "link" not in config:
-        raise ProfileError(f"{where}.link: missing (e.g. 'serial:/dev/ttyUSB0?baud=57600')")
-    port, link_baud = _parse_link(config["link"], f"{where}.link")
-    baud = config.get("baud", link_baud if link_baud is not None else 57600)
-    if not isinstance(baud, int) or isinstance(baud, bool) or baud not in BAUD_RATES:
-        raise ProfileError(f"{where}.baud: must be one of {sorted(BAUD_RATES)}, got {baud!r}")
-    if link_baud is not None and baud != link_baud:
-        raise ProfileError(f"{where}.baud: {baud} contradicts the link's baud={link_baud}")
-    out: dict[str, Any] = {"port": port, "baud": baud}
-    rate = config.get("poll_rate", 50.0)
-    if not _number(rate) or not 0 < rate <= 1000:
-        raise ProfileError(f"{where}.poll_rate: must be a number in (0, 1000] Hz, got {rate!r}")
-    out["poll_rate"] = float(rate)
-    reply = config.get("reply_timeout", 0.034)
-    if not _number(reply) or not 0 < reply <= 1:
-        raise ProfileError(f"{where}.reply_timeout: must be a number in (0, 1] s, got {reply!r}")
-    out["reply_timeout"] = float(reply)
-    for key, default in (("status_every", 10), ("timeout_polls", 3)):
-        value = config.get(key, default)
-        if not isinstance(value, int) or isinstance(value, bool) or value < 1:
-            raise ProfileError(f"{where}.{key}: must be an integer >= 1, got {value!r}")
-        out[key] = value
-    if "bus_watchdog" in config:
-        value = config["bus_watchdog"]
-        try:
-            if not _number(value):
-                raise ValueError(f"must be a number of seconds, got {value!r}")
-            _watchdog_units(float(value), 1.0 / out["poll_rate"])
-        except ValueError as err:
-            raise ProfileError(f"{where}.bus_watchdog: {err}") from None
-        out["bus_watchdog"] = float(value)
-    if "return_delay_time" in config:
-        value = config["return_delay_time"]
-        try:
-            if not _number(value):
-                raise ValueError(f"must be a number of seconds, got {value!r}")
-            _return_delay_units(float(value))
-        except ValueError as err:
-            raise ProfileError(f"{where}.return_delay_time: {err}") from None
-        out["return_delay_time"] = float(value)
-    servos = config.get("servos")
-    if not isinstance(servos, Sequence) or isinstance(servos, str) or not servos:
-        raise ProfileError(f"{where}.servos: must be a non-empty list of servos")
-    parsed: list[ServoConfig] = []
-    ids: dict[int, int] = {}
-    joints: dict[str, int] = {}
-    for i, entry in enumerate(servos):
-        at = f"{where}.servos[{i}]"
-        servo = _parse_servo(entry, at)
-        if servo.id in ids:
-            raise ProfileError(f"{at}.id: duplicate id {servo.id} (also servos[{ids[servo.id]}])")
-        if servo.joint in joints:
-            raise ProfileError(
-                f"{at}.joint: duplicate joint {servo.joint!r} (also servos[{joints[servo.joint]}])"
-            )
-        ids[servo.id] = i
-        joints[servo.joint] = i
-        parsed.append(servo)
-    out["servos"] = parsed
-    return out
-
-
-def _parse_servo(entry: Any, at: str) -> ServoConfig:
-    if not isinstance(entry, Mapping):
-        raise ProfileError(f"{at}: a servo must be a mapping")
-    unknown = sorted(set(entry) - _SERVO_KEYS)
-    if unknown:
-        known = ", ".join(sorted(_SERVO_KEYS))
-        raise ProfileError(f"{at}.{unknown[0]}: unknown key (known: {known})")
-    for key in ("id", "joint", "model"):
-        if key not in entry:
-            raise ProfileError(f"{at}.{key}: missing")
-    dxl_id = entry["id"]
-    if not isinstance(dxl_id, int) or isinstance(dxl_id, bool) or not 0 <= dxl_id <= p.MAX_ID:
-        raise ProfileError(f"{at}.id: must be an integer 0..{p.MAX_ID}, got {dxl_id!r}")
-    if not isinstance(entry["joint"], str) or not entry["joint"]:
-        raise ProfileError(f"{at}.joint: must be a non-empty string")
-    model = entry["model"]
-    if model not in ct.MODELS:
-        raise ProfileError(f"{at}.model: unknown model {model!r} (known: {', '.join(ct.MODELS)})")
-    mode = entry.get("mode", "position")
-    if mode not in MODES:
-        raise ProfileError(f"{at}.mode: unknown mode {mode!r} (known: {', '.join(MODES)})")
-    floats: dict[str, float] = {}
-    for key in (
-        "min_position",
-        "max_position",
-        "velocity_limit",
-        "effort_limit",
-        "gear",
-        "offset",
-        "torque_constant",
-    ):
-        if key in entry:
-            if not _number(entry[key]) or not math.isfinite(entry[key]):
-                raise ProfileError(f"{at}.{key}: must be a finite number, got {entry[key]!r}")
-            floats[key] = float(entry[key])
-    limits = mode == "position" and ("min_position" in floats or "max_position" in floats)
-    try:
-        return ServoConfig(
-            id=dxl_id,
-            joint=entry["joint"],
-            model=model,
-            mode=mode,
-            write_limits=limits,
-            **floats,
-        )
-    except _FieldError as err:
-        raise ProfileError(f"{at}.{err.key}: {err}") from err
-
-
-def _parse_link(link: Any, at: str) -> tuple[str, int | None]:
-    if not isinstance(link, str) or not link:
-        raise ProfileError(f"{at}: must be a string like 'serial:/dev/ttyUSB0?baud=57600'")
-    rest = link
-    if ":" in link.split("/", 1)[0]:
-        scheme, _, rest = link.partition(":")
-        if scheme != "serial":
-            raise ProfileError(f"{at}: a Dynamixel chain needs a serial link, not {scheme!r}")
-    path, _, query = rest.partition("?")
-    if not path.startswith("/"):
-        raise ProfileError(f"{at}: the serial device must be an absolute path, got {path!r}")
-    baud: int | None = None
-    for part in filter(None, query.split("&")):
-        key, _, value = part.partition("=")
-        if key != "baud":
-            raise ProfileError(f"{at}: unknown link option {key!r} (known: baud)")
-        if not value.isdigit():
-            raise ProfileError(f"{at}: baud must be an integer, got {value!r}")
-        baud = int(value)
-        if baud not in BAUD_RATES:
-            raise ProfileError(f"{at}: baud must be one of {sorted(BAUD_RATES)}, got {baud}")
-    return path, baud
-
-
-def _serial_links() -> list[Any]:
-    """``serial:`` links of every serial port pyserial lists."""
-    return [f"serial:{path}" for path in _sdk.serial_ports()]
-
-
-def _number(value: Any) -> bool:
-    return isinstance(value, int | float) and not isinstance(value, bool)

@@ -54,41 +54,41 @@ Flight modes are ArduCopter's (``GUIDED``, ``LOITER``, ``RTL``, ``LAND``, ...);
 ``MAV_CMD_NAV_RETURN_TO_LAUNCH``.
 
 :meth:`MavlinkDriver.detect` finds vehicles by listening only: it opens each link, parses the
-HEARTBEATs that arrive within its timeout and sends nothing at all.
+HEARTBEATs that arrive within its timeout and sends nothing at all
+(:mod:`~temoto.drivers.mavlink.detect`).
+
+The class is built in layers, one concept per module: the link, its threads, supervision and
+commands (:mod:`~temoto.drivers.mavlink._session`), the parameter protocol
+(:mod:`~temoto.drivers.mavlink._parameters`), mission transfers
+(:mod:`~temoto.drivers.mavlink._mission_transfer`), and here the profile, the vehicle's verbs
+and its safe state. The profile's keys are declared in :mod:`~temoto.drivers.mavlink.settings`.
 """
 
 from __future__ import annotations
 
-import collections
-import contextlib
-import importlib
 import logging
 import math
 import socket
 import threading
-import time
-from collections.abc import Callable, Mapping, Sequence
-from typing import Any, ClassVar, Final, Self
-from urllib.parse import parse_qs
+from collections.abc import Mapping, Sequence
+from typing import Any, ClassVar, Final
 
 from temoto.clock import Clock
-from temoto.drivers.base import Driver, DriverState, detect_links
-from temoto.drivers.capabilities import GeoPoint, MissionItem, MissionProgress, VehicleTelemetry
-from temoto.drivers.mavlink import missions
+from temoto.drivers.base import DriverState
+from temoto.drivers.capabilities import GeoPoint, MissionProgress, VehicleTelemetry
 from temoto.drivers.mavlink import protocol as p
-from temoto.drivers.mavlink.link import Link, LinkSpec, open_link, parse_link
-from temoto.drivers.mavlink.protocol import Codec, Message
-from temoto.drivers.mavlink.sim import DEFAULT_RATES, PARAMETERS, SimVehicle
+from temoto.drivers.mavlink._mission_transfer import MissionClient
+from temoto.drivers.mavlink.detect import detect
+from temoto.drivers.mavlink.link import open_link
+from temoto.drivers.mavlink.settings import PROFILE_FIELDS, read_sim
+from temoto.drivers.mavlink.sim import SimVehicle
+from temoto.drivers.profile import Field, ProfileReader
 from temoto.drivers.sim import Simulator
-from temoto.drivers.supervision import FaultWindow, StreamAge
+from temoto.drivers.supervision import StreamAge
 from temoto.errors import (
-    DriverError,
     DriverInitError,
-    DriverOperationError,
     DriverTimeoutError,
     MavlinkCommandError,
-    MavlinkMissionError,
-    ProfileError,
     StateError,
 )
 
@@ -96,8 +96,6 @@ __all__ = ["MavlinkDriver"]
 
 logger = logging.getLogger(__name__)
 
-_POLL: Final = 0.05  # real seconds per socket read (also how often waiters re-check)
-_UNKNOWN_VOLTAGE: Final = 65535
 #: Streams asked for in configure: message → share of ``stream_rate`` (capped at 2 Hz if < 1).
 _STREAMS: Final[Mapping[str, float]] = {
     "GLOBAL_POSITION_INT": 1.0,
@@ -106,7 +104,6 @@ _STREAMS: Final[Mapping[str, float]] = {
     "BATTERY_STATUS": 0.2,
     "EXTENDED_SYS_STATE": 0.2,
 }
-_SEVERITY_LEVEL: Final = {0: 50, 1: 50, 2: 50, 3: 40, 4: 30, 5: 20, 6: 20, 7: 10}
 #: The streams whose age is supervised (when the vehicle accepted their interval).
 _SUPERVISED: Final = ("GLOBAL_POSITION_INT", "ATTITUDE")
 #: Safe state → the ArduCopter mode it sets in the air.
@@ -116,67 +113,9 @@ _SAFE_MODES: Final[Mapping[str, str]] = {
     "land": "LAND",
     "rtl": "RTL",
 }
-#: ``gcs_failsafe`` keys → (ArduPilot parameter, low, high, integer); ranges from the
-#: ArduCopter parameter documentation (FS_GCS_ENABLE values 0..7, FS_GCS_TIMEOUT 2..120 s).
-_FAILSAFE_KEYS: Final[Mapping[str, tuple[str, float, float, bool]]] = {
-    "enable": ("FS_GCS_ENABLE", 0, 7, True),
-    "timeout": ("FS_GCS_TIMEOUT", 2, 120, False),
-}
-#: The parameter naming the GCS system id whose heartbeats the failsafe watches (the older
-#: name, and the one newer ArduPilot firmware uses).
-_GCS_SYSID_PARAMS: Final = ("SYSID_MYGCS", "MAV_GCS_SYSID")
-_TEXT_QUIET: Final = 0.1  # once a refusal's text came: seconds without another end the wait
-
-#: Profile keys → (default, check); None marks the required key.
-_KEYS: Final = frozenset(
-    {
-        "driver",
-        "link",
-        "system_id",
-        "component_id",
-        "gcs_system_id",
-        "gcs_component_id",
-        "heartbeat_period",
-        "heartbeat_timeout",
-        "init_timeout",
-        "command_timeout",
-        "command_retries",
-        "mission_timeout",
-        "mission_retries",
-        "stream_rate",
-        "status_texts",
-        "safe_state",
-        "gcs_failsafe",
-        "sim",
-    }
-)
-#: Baud rates :meth:`MavlinkDriver.detect` tries on a serial link without ``?baud=``, in order.
-_DETECT_BAUDS: Final = (57600, 115200, 921600)
-#: Where a ground station listens (autopilots and telemetry radios send there): detect's UDP
-#: candidate when no links are given.
-_DETECT_UDP: Final = "udpin:0.0.0.0:14550"
-_AUTOPILOT_COMPONENT: Final = 1  # MAV_COMP_ID_AUTOPILOT1, the driver's default component_id
-_SIM_KEYS: Final = frozenset(
-    {
-        "home",
-        "battery",
-        "cells",
-        "min_arm_battery",
-        "speed",
-        "climb_rate",
-        "descent_rate",
-        "tau",
-        "rtl_altitude",
-        "drain_idle",
-        "drain_flight",
-        "step_rate",
-        "rates",
-        "params",
-    }
-)
 
 
-class MavlinkDriver(Driver):
+class MavlinkDriver(MissionClient):
     """An ArduPilot Copter over MAVLink 2 (implements :class:`~temoto.drivers.Vehicle`).
 
     Args:
@@ -212,215 +151,15 @@ class MavlinkDriver(Driver):
     #: ``loiter`` (default), ``brake``, ``land``, ``rtl``: the ArduCopter mode set in the air.
     safe_states: ClassVar[tuple[str, ...]] = tuple(_SAFE_MODES)
 
-    #: Seconds (clock) after a FAILED or DENIED ack during which the vehicle's STATUSTEXTs are
-    #: attached to the error (ArduPilot sends the reason after the ack).
-    STATUS_TEXT_WINDOW: ClassVar[float] = 0.5
-
     #: Seconds (clock) :meth:`make_safe` waits for the vehicle to confirm its mode.
     SAFE_CONFIRM_WAIT: ClassVar[float] = 0.3
 
-    def __init__(
-        self,
-        name: str,
-        *,
-        link: str,
-        clock: Clock | None = None,
-        system_id: int | None = None,
-        component_id: int = 1,
-        gcs_system_id: int = 255,
-        gcs_component_id: int = 190,
-        heartbeat_period: float = 1.0,
-        heartbeat_timeout: float = 3.0,
-        init_timeout: float = 5.0,
-        command_timeout: float = 1.0,
-        command_retries: int = 2,
-        mission_timeout: float = 1.5,
-        mission_retries: int = 5,
-        stream_rate: float = 10.0,
-        status_texts: int = 20,
-        gcs_failsafe: Mapping[str, float] | None = None,
-    ) -> None:
-        super().__init__(name, clock=clock)
-        self.link_spec: LinkSpec = parse_link(link)
-        for key, ident, low in (
-            ("system_id", system_id, 1),
-            ("component_id", component_id, 0),
-            ("gcs_system_id", gcs_system_id, 1),
-            ("gcs_component_id", gcs_component_id, 0),
-        ):
-            if ident is not None and (
-                isinstance(ident, bool) or not isinstance(ident, int) or not low <= ident <= 255
-            ):
-                raise ValueError(f"{key} must be an integer {low}..255, got {ident!r}")
-        for key, value in (
-            ("heartbeat_period", heartbeat_period),
-            ("heartbeat_timeout", heartbeat_timeout),
-            ("init_timeout", init_timeout),
-            ("command_timeout", command_timeout),
-            ("mission_timeout", mission_timeout),
-        ):
-            if not (math.isfinite(value) and value > 0):
-                raise ValueError(f"{key} must be a positive number of seconds, got {value!r}")
-        if not (isinstance(command_retries, int) and 0 <= command_retries <= 10):
-            raise ValueError(f"command_retries must be an integer 0..10, got {command_retries!r}")
-        if not (isinstance(mission_retries, int) and 0 <= mission_retries <= 20):
-            raise ValueError(f"mission_retries must be an integer 0..20, got {mission_retries!r}")
-        if not (math.isfinite(stream_rate) and 0 <= stream_rate <= 1000):
-            raise ValueError(f"stream_rate must be 0..1000 Hz, got {stream_rate!r}")
-        if not (isinstance(status_texts, int) and status_texts >= 1):
-            raise ValueError(f"status_texts must be a positive integer, got {status_texts!r}")
-        self.system_id = system_id
-        self.component_id = component_id
-        self.heartbeat_period = float(heartbeat_period)
-        self.heartbeat_timeout = float(heartbeat_timeout)
-        self.init_timeout = float(init_timeout)
-        self.command_timeout = float(command_timeout)
-        self.command_retries = command_retries
-        self.mission_timeout = float(mission_timeout)
-        self.mission_retries = mission_retries
-        self.stream_rate = float(stream_rate)
-        #: ArduPilot parameter → value, set at configure (from ``gcs_failsafe``).
-        self.failsafe_params: dict[str, float] = _failsafe_params(gcs_failsafe)
-        timeout = self.failsafe_params.get("FS_GCS_TIMEOUT")
-        if timeout is not None and self.heartbeat_period > timeout / 2:
-            raise ValueError(
-                f"heartbeat_period must be at most half the GCS failsafe timeout ({timeout:g} s),"
-                f" got {self.heartbeat_period:g}: one lost heartbeat must not trigger it"
-            )
-        self._gcs_ids = (gcs_system_id, gcs_component_id)
-        self._codec = Codec(gcs_system_id, gcs_component_id)
-        self._link: Link | None = None
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
-        self._cond = threading.Condition()  # the cache and the acks; notified on every read
-        self._watch = threading.Condition()  # wakes the heartbeat thread
-        self._command_lock = threading.Lock()
-        self._param_lock = threading.Lock()  # one public parameter exchange at a time
-        self._mission_lock = threading.Lock()  # one mission transfer at a time
-        self._mission_listeners: list[Callable[[MissionProgress], None]] = []
-        self._eval_lock = threading.Lock()
-        self._texts: collections.deque[str] = collections.deque(maxlen=status_texts)
-        self._ages: dict[str, StreamAge] = {}
-        self._bad_window = FaultWindow()
-        self._reset()
-
-    def _reset(self) -> None:
-        self._target: int | None = self.system_id
-        self._last_hb: float | None = None
-        self._last_msg = self.clock.monotonic()
-        self._autopilot = p.MAV_AUTOPILOT_INVALID
-        self._armed = False
-        self._custom_mode = 0
-        self._position = (0.0, 0.0, 0.0)
-        self._attitude = (0.0, 0.0, 0.0)
-        self._voltage = math.nan
-        self._remaining = -1
-        self._home: tuple[float, float, float] | None = None
-        self._landed_state = 0
-        #: When this driver last asked the vehicle to arm or take off (clock seconds): until a
-        #: newer heartbeat arrives, "disarmed" and "landed" are not to be trusted.
-        self._moved_at: float | None = None
-        self._landed_at: float | None = None  # when EXTENDED_SYS_STATE last said
-        self._unhealthy: tuple[str, ...] = ()
-        self._bad_at_hb = 0  # the vehicle's bad frames when its newest heartbeat came
-        self._vehicle_bad = 0  # bad frames from the vehicle's address (or a serial line)
-        self._acks: dict[int, tuple[int, int]] = {}  # command → (result, arrival number)
-        self._ack_count = 0
-        self._text_count = 0
-        self._mine = False  # the current FAULT was reported by this driver's watch
-        self._texts.clear()
-        self._received = 0
-        self._params: dict[str, tuple[float, int]] = {}  # name → (value, MAV_PARAM_TYPE)
-        self._param_count = 0  # PARAM_VALUE arrivals
-        self._param_seen: dict[str, int] = {}  # name → arrival number of its newest value
-        #: name → MAV_PARAM_ERROR of a PARAM_ERROR about it (newer ArduPilot answers an unknown
-        #: name or a bad value so; older ones stay silent), since its exchange began.
-        self._param_errors: dict[str, int] = {}
-        #: Mission-transfer messages for this GCS: (arrival number, message), newest last.
-        self._mission_rx: collections.deque[tuple[int, Message]] = collections.deque(maxlen=64)
-        self._mission_seq = 0
-        self._mission_total = 0  # items of the mission this driver uploaded or downloaded
-        self._progress = MissionProgress()
-        self._notify: list[tuple[Callable[[MissionProgress], None], MissionProgress]] = []
-        self._ages.clear()
-        self._stale: StreamAge | None = None  # the stream whose staleness is the fault
-        self._bad_window.clear()
-        self._drained_at: float | None = None  # clock time the link was last read empty
-        self._beat_now = False  # send a heartbeat at once (the vehicle's address is new)
-        self._foreign = 0  # bad frames from addresses other than the vehicle's
-        self._foreign_seen: set[Any] = set()
-
     # ---- profile -----------------------------------------------------------------------------
 
-    @classmethod
-    def from_profile(
-        cls, name: str, config: Mapping[str, Any], *, clock: Clock, where: str
-    ) -> Self:
-        """Build a driver from its profile entry (without touching the vehicle).
-
-        Args:
-            name: The device's name.
-            config: The entry's settings (``link`` and the optional keys of the class; see
-                ``docs/driver-mavlink.md``); ``driver``, if still there, must be ``mavlink``
-                (so an entry from :meth:`detect` is accepted as it is).
-            clock: The robot's clock.
-            where: The entry's place for messages (``file: devices.quad``).
-
-        Returns:
-            The driver (``UNCONFIGURED``).
-
-        Raises:
-            ProfileError: A missing, unknown or bad key (the message names its path).
-        """
-        unknown = sorted(set(config) - _KEYS)
-        if unknown:
-            raise ProfileError(
-                f"{where}.{unknown[0]}: unknown key (known: {', '.join(sorted(_KEYS))})"
-            )
-        if "link" not in config:
-            raise ProfileError(
-                f"{where}.link: missing: where the vehicle is, e.g. udpin:127.0.0.1:14550"
-            )
-        kwargs: dict[str, Any] = {}
-        safe_state = cls.safe_state_from(config, where)
-        for key, value in config.items():
-            if key == "sim":
-                _sim_kwargs(value, f"{where}.sim")  # checked here, used by simulate()
-                continue
-            if key == "safe_state":
-                continue
-            if key == "gcs_failsafe":
-                try:
-                    _failsafe_params(value)
-                except ValueError as err:
-                    raise ProfileError(f"{where}.{err}") from None
-                kwargs[key] = value
-                continue
-            if key == "driver":
-                if value != cls.kind:
-                    raise ProfileError(f"{where}.driver: must be {cls.kind!r}, got {value!r}")
-                continue
-            if key == "link" and not isinstance(value, str):
-                raise ProfileError(f"{where}.link: must be text like udpin:127.0.0.1:14550")
-            number = isinstance(value, int | float) and not isinstance(value, bool)
-            if key not in ("link", "system_id") and not number:
-                raise ProfileError(f"{where}.{key}: must be a number, got {value!r}")
-            if key == "system_id" and not (number or value is None):
-                raise ProfileError(f"{where}.{key}: must be a number, got {value!r}")
-            if key in _INT_KEYS and isinstance(value, float):
-                raise ProfileError(f"{where}.{key}: must be an integer, got {value!r}")
-            kwargs[key] = value
-        try:
-            parse_link(kwargs["link"])
-        except ValueError as err:
-            raise ProfileError(f"{where}.link: {err}") from None
-        try:
-            driver = cls(name, clock=clock, **kwargs)
-        except ValueError as err:
-            key = next((k for k in kwargs if str(err).startswith(k)), "")
-            raise ProfileError(f"{where}{'.' + key if key else ''}: {err}") from None
-        driver.safe_state = safe_state
-        return driver
+    #: The keys of a profile entry (:mod:`~temoto.drivers.mavlink.settings`); an entry from
+    #: :meth:`detect` is accepted as it is. The constructor checks the keys that depend on
+    #: each other (``heartbeat_period`` against the GCS failsafe's timeout).
+    profile_fields: ClassVar[Mapping[str, Field[Any]]] = PROFILE_FIELDS
 
     @classmethod
     def simulate(
@@ -444,7 +183,7 @@ class MavlinkDriver(Driver):
         Raises:
             ProfileError: A bad ``sim`` mapping.
         """
-        sim_kwargs = _sim_kwargs(config.get("sim", {}), f"{name}.sim")
+        sim_kwargs = read_sim(ProfileReader(name), config.get("sim", {}), "sim")
         port = _free_udp_port()
         system_id = config.get("system_id")
         sim = SimVehicle(
@@ -459,7 +198,6 @@ class MavlinkDriver(Driver):
         return sim, settings
 
     # ---- discovery ---------------------------------------------------------------------------
-
     @classmethod
     def detect(
         cls, links: Sequence[Any] | None = None, *, timeout: float = 2.5
@@ -499,15 +237,9 @@ class MavlinkDriver(Driver):
                 in a scheme the link module knows (raised before any link is opened).
             DriverUnavailableError: A serial link, but pyserial is not installed.
         """
-        urls = detect_links(links, timeout, lambda: [*_serial_candidates(), _DETECT_UDP])
-        plans = [_detect_plan(url) for url in urls]  # every link checked before any is opened
-        entries: list[dict[str, Any]] = []
-        for plan in plans:
-            entries.extend(_detected(cls.kind, *_sweep(plan, timeout)))
-        return entries
+        return detect(cls.kind, links, timeout)
 
     # ---- lifecycle hooks ---------------------------------------------------------------------
-
     def on_configure(self) -> None:
         """Open the link, start the threads, wait for a heartbeat, ask for streams.
 
@@ -541,21 +273,6 @@ class MavlinkDriver(Driver):
         self._request_streams()
         self._configure_failsafe()
 
-    def on_shutdown(self) -> None:
-        """Stop and join the threads, close the link."""
-        self._stop.set()
-        with self._watch:
-            self._watch.notify_all()
-        with self._cond:
-            self._cond.notify_all()
-        for thread in self._threads:
-            if thread is not threading.current_thread():
-                thread.join()
-        self._threads = []
-        if self._link is not None:
-            self._link.close()
-            self._link = None
-
     def _request_streams(self) -> None:
         """Ask for the telemetry streams; supervise those the vehicle accepted."""
         if self.stream_rate <= 0:
@@ -570,568 +287,7 @@ class MavlinkDriver(Driver):
                     self._ages[msg] = age
         self._best_effort(p.MAV_CMD_REQUEST_MESSAGE, p.MSG_ID["HOME_POSITION"])
 
-    def _best_effort(self, command: int, *params: float) -> bool:
-        try:
-            self._send_command(command, params, retries=0, texts=False)
-        except DriverError as err:
-            logger.info("driver %s: %s", self.name, err)
-            return False
-        return True
-
-    # ---- parameters (only what configure needs; the full protocol is not here) ---------------
-
-    def _configure_failsafe(self) -> None:
-        """Set the GCS failsafe parameters and check that the failsafe watches this driver.
-
-        Raises:
-            DriverInitError: The vehicle kept another value, or watches another GCS system id.
-            DriverTimeoutError: No PARAM_VALUE came back.
-        """
-        if not self.failsafe_params:
-            return
-        for name, value in self.failsafe_params.items():
-            self._set_param(name, value)
-        watched: float | None = None
-        for name in _GCS_SYSID_PARAMS:
-            got = self._read_param(name, retries=0)
-            if got is not None:
-                watched = got[0]
-                break
-        own = self._gcs_ids[0]
-        if watched is None:
-            logger.warning(
-                "driver %s: the vehicle did not say which GCS system id its failsafe watches"
-                " (%s); it must be %d, this driver's gcs_system_id",
-                self.name,
-                " or ".join(_GCS_SYSID_PARAMS),
-                own,
-            )
-        elif round(watched) != own:
-            raise DriverInitError(
-                f"{self.name}: the vehicle's GCS failsafe watches system {round(watched)}"
-                f" ({'/'.join(_GCS_SYSID_PARAMS)}), not this driver's gcs_system_id {own}:"
-                " it would not notice this driver stopping; set one to the other"
-            )
-
-    def _read_param(self, name: str, *, retries: int | None = None) -> tuple[float, int] | None:
-        """Ask for one parameter (PARAM_REQUEST_READ): its value and type, or None."""
-        tries = 1 + (self.command_retries if retries is None else retries)
-        return self._param_exchange("PARAM_REQUEST_READ", name, tries, param_index=-1)
-
-    def _set_param(self, name: str, value: float) -> None:
-        """Set one parameter (PARAM_SET) and check the PARAM_VALUE echo.
-
-        Raises:
-            DriverInitError: The vehicle has no such parameter or kept another value.
-            DriverTimeoutError: No PARAM_VALUE.
-        """
-        current = self._read_param(name)
-        if current is None:
-            raise DriverTimeoutError(
-                f"{self.name}: no PARAM_VALUE for {name} (does this firmware have it?)"
-            )
-        if _same(current[0], value):
-            logger.info("driver %s: %s is %g already", self.name, name, value)
-            return
-        tries = 1 + self.command_retries
-        got = self._param_exchange(
-            "PARAM_SET", name, tries, param_value=value, param_type=current[1]
-        )
-        if got is None:
-            raise DriverTimeoutError(
-                f"{self.name}: no PARAM_VALUE after setting {name} in {tries} tries"
-                f" of {self.command_timeout:g} s"
-            )
-        if not _same(got[0], value):
-            raise DriverInitError(
-                f"{self.name}: the vehicle kept {name} = {got[0]:g} (asked for {value:g})"
-            )
-        logger.info("driver %s: %s %g -> %g", self.name, name, current[0], value)
-
-    def _param_exchange(
-        self, message: str, name: str, tries: int, **fields: Any
-    ) -> tuple[float, int] | None:
-        """Send ``message`` about parameter ``name`` until a PARAM_VALUE of it answers.
-
-        Up to ``tries`` sends, each waiting ``command_timeout``; the answer's value and type,
-        or None (also at once when a PARAM_ERROR about it came: :attr:`_param_errors`).
-        """
-        with self._cond:
-            target = self._target or 1
-            self._param_errors.pop(name, None)
-        for _ in range(tries):
-            with self._cond:
-                start = self._param_count
-            self._write(
-                self._codec.encode(
-                    message,
-                    target_system=target,
-                    target_component=self.component_id,
-                    param_id=name.encode(),
-                    **fields,
-                )
-            )
-            got = self._await_param(name, start)
-            if got is not None:
-                return got
-            with self._cond:
-                if name in self._param_errors:
-                    break  # the vehicle answered: asking again changes nothing
-        return None
-
-    def _await_param(self, name: str, after: int) -> tuple[float, int] | None:
-        def arrived() -> bool:
-            return self._param_seen.get(name, 0) > after or name in self._param_errors
-
-        if not self._await(arrived, self.command_timeout):
-            return None
-        with self._cond:
-            if self._param_seen.get(name, 0) > after:
-                return self._params[name]
-        return None
-
-    def _param_failure(self, name: str, what: str) -> DriverError:
-        """The error of a parameter exchange that got no PARAM_VALUE (after its retries)."""
-        with self._cond:
-            error = self._param_errors.get(name)
-        if error is not None:
-            return DriverOperationError(
-                f"{self.name}: {what} {name}: the vehicle answered PARAM_ERROR"
-                f" {p._enum_name('MAV_PARAM_ERROR', error)}"
-            )
-        tries = 1 + self.command_retries
-        hint = " (does this firmware have it?)" if what == "reading" else ""
-        return DriverTimeoutError(
-            f"{self.name}: no PARAM_VALUE for {name} in {tries} tries of"
-            f" {self.command_timeout:g} s ({what}){hint}"
-        )
-
-    # ---- parameters (public) ------------------------------------------------------------------
-
-    def get_param(self, name: str) -> float | int:
-        """Read one parameter of the vehicle (``PARAM_REQUEST_READ`` → ``PARAM_VALUE``).
-
-        Sent up to ``1 + command_retries`` times, each waiting ``command_timeout``. The value
-        is typed by the answer's ``MAV_PARAM_TYPE``: an ``int`` for the integer types (which
-        ArduPilot sends as a float holding the integer, its "C cast" encoding), a ``float``
-        for ``REAL32``.
-
-        Args:
-            name: The parameter's name (``WPNAV_SPEED``; at most 16 characters).
-
-        Returns:
-            The value.
-
-        Raises:
-            ValueError: Not a parameter name.
-            StateError: The driver is not configured.
-            DriverTimeoutError: No PARAM_VALUE of it (a name the firmware does not have goes
-                unanswered too; the message says so).
-        """
-        self._check_param_name(name)
-        self._require_link("get_param")
-        with self._param_lock:
-            got = self._read_param(name)
-        if got is None:
-            raise self._param_failure(name, "reading")
-        return missions.typed_param_value(*got)
-
-    def set_param(self, name: str, value: float) -> float | int:
-        """Set one parameter of the vehicle (``PARAM_SET`` → the ``PARAM_VALUE`` echo).
-
-        The parameter is read first for its type (unless this driver has seen it); an integer
-        type takes only integers in its range, and no more than 2**24 in size (ArduPilot carries
-        every value as a float32). ``PARAM_SET`` is sent up to ``1 + command_retries`` times,
-        each waiting ``command_timeout`` for the echo; a value equal to the current one is
-        not sent again.
-
-        Args:
-            name: The parameter's name (at most 16 characters).
-            value: The new value.
-
-        Returns:
-            The value the vehicle reports it now holds.
-
-        Raises:
-            ValueError: Not a parameter name, or a value its type cannot hold.
-            StateError: The driver is not configured.
-            DriverTimeoutError: No PARAM_VALUE came back (for the read or the set).
-            DriverOperationError: The vehicle kept another value.
-        """
-        self._check_param_name(name)
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise ValueError(f"{name}: a parameter value must be a number, got {value!r}")
-        if not math.isfinite(value):
-            raise ValueError(f"{name}: a parameter value must be finite, got {value!r}")
-        self._require_link("set_param")
-        tries = 1 + self.command_retries
-        with self._param_lock:
-            with self._cond:
-                known = self._params.get(name)
-            current = known if known is not None else self._read_param(name)
-            if current is None:
-                raise self._param_failure(name, "reading")
-            param_type = current[1]
-            missions.check_param_value(name, value, param_type)
-            if known is not None or not _same(current[0], value):
-                got = self._param_exchange(
-                    "PARAM_SET", name, tries, param_value=float(value), param_type=param_type
-                )
-                if got is None:
-                    raise self._param_failure(name, "setting")
-                current = got
-        if not _same(current[0], value):
-            raise DriverOperationError(
-                f"{self.name}: the vehicle kept {name} = {current[0]:g} (asked for {value:g})"
-            )
-        logger.info("driver %s: %s = %g", self.name, name, current[0])
-        return missions.typed_param_value(*current)
-
-    def _check_param_name(self, name: str) -> None:
-        if not (
-            isinstance(name, str) and 0 < len(name) <= p.PARAM_ID_LEN and name.isascii()
-        ) or any(c.isspace() or c == "\x00" for c in name):
-            raise ValueError(
-                f"{self.name}: a parameter name is 1..{p.PARAM_ID_LEN} ASCII characters without"
-                f" spaces, got {name!r}"
-            )
-
-    def _require_link(self, what: str) -> None:
-        if self._link is None or self.state in (DriverState.UNCONFIGURED, DriverState.FINALIZED):
-            raise StateError(f"{self.name}: {what} needs a configured driver ({self.state.value})")
-
-    # ---- missions -----------------------------------------------------------------------------
-
-    def upload_mission(self, items: Sequence[MissionItem]) -> None:
-        """Replace the vehicle's mission (the MAVLink mission protocol, MISSION_INT).
-
-        Sends ``MISSION_COUNT`` and answers each ``MISSION_REQUEST_INT`` (and the older
-        ``MISSION_REQUEST``) with the ``MISSION_ITEM_INT`` asked for, until the vehicle's
-        ``MISSION_ACK``. ArduPilot keeps its home position as item 0, so the items go as
-        1..n after a placeholder item 0 (the home position when known). Each step waits
-        ``mission_timeout``; with nothing heard, the last message is sent again, up to
-        ``mission_retries`` times; a request for an earlier item is answered again, and a
-        ``MAV_MISSION_INVALID_SEQUENCE`` ack (ArduPilot's answer to a stray copy of an item)
-        does not end the upload. Positions go in ``MAV_FRAME_GLOBAL_RELATIVE_ALT``
-        (altitudes above home).
-
-        Args:
-            items: The mission (see :class:`~temoto.drivers.capabilities.MissionItem`).
-
-        Raises:
-            ValueError: No items, too many, or not MissionItems.
-            StateError: The driver is not configured.
-            MavlinkMissionError: The vehicle's MISSION_ACK refused it (the message names the
-                ``MAV_MISSION_RESULT``, and the item the vehicle asked for last).
-            DriverTimeoutError: A step went unanswered (the message names it).
-        """
-        mission = list(items)
-        if not mission:
-            raise ValueError(f"{self.name}: a mission needs at least one item")
-        for index, item in enumerate(mission, 1):
-            if not isinstance(item, MissionItem):
-                raise ValueError(
-                    f"{self.name}: mission item {index} is not a MissionItem: {type(item).__name__}"
-                )
-        if len(mission) >= 0xFFFF:
-            raise ValueError(f"{self.name}: {len(mission)} items: too many for MAVLink")
-        self._require_link("upload_mission")
-        with self._mission_lock:
-            target = self._target_ids()
-            with self._cond:
-                home = self._home
-            frames = [self._item_frame(0, missions.home_fields(home), target)]
-            frames += [
-                self._item_frame(seq, missions.item_fields(item), target)
-                for seq, item in enumerate(mission, 1)
-            ]
-            count = len(frames)
-            last = self._codec.encode(
-                "MISSION_COUNT",
-                target_system=target[0],
-                target_component=target[1],
-                count=count,
-                mission_type=p.MAV_MISSION_TYPE_MISSION,
-            )
-            with self._cond:
-                seen = self._mission_seq
-                self._mission_total = 0
-            self._write(last)
-            step = "MISSION_REQUEST for item 0 after MISSION_COUNT"
-            asked = -1  # the highest item the vehicle asked for
-            tries = 0
-            while True:
-                got = self._await_mission(seen, missions.upload_answer)
-                if got is None:
-                    tries += 1
-                    if tries > self.mission_retries:
-                        raise DriverTimeoutError(
-                            f"{self.name}: mission upload: no {step} in"
-                            f" {1 + self.mission_retries} tries of {self.mission_timeout:g} s"
-                        )
-                    self._write(last)
-                    continue
-                seen, msg = got
-                if msg.name == "MISSION_ACK":
-                    result = msg.get_int("type")
-                    if result == p.MAV_MISSION_INVALID_SEQUENCE:
-                        # ArduPilot's answer to a copy of an item it did not ask for (ours
-                        # after a lost or doubled request): the upload goes on.
-                        logger.debug("driver %s: mission upload: %s", self.name, msg.fields)
-                        continue
-                    if result != p.MAV_MISSION_ACCEPTED:
-                        where = f" at item {asked}" if asked >= 0 else ""
-                        raise MavlinkMissionError(
-                            f"{self.name}: mission upload refused{where}:"
-                            f" {p.mission_result_name(result)}",
-                            result=result,
-                        )
-                    if asked < count - 1:
-                        raise DriverOperationError(
-                            f"{self.name}: mission upload: the vehicle accepted after item"
-                            f" {asked} of {count - 1}: it does not hold the whole mission"
-                        )
-                    break
-                seq = msg.get_int("seq")
-                if not 0 <= seq < count:
-                    raise DriverOperationError(
-                        f"{self.name}: mission upload: the vehicle asked for item {seq},"
-                        f" the mission has 0..{count - 1}"
-                    )
-                tries = 0  # progress: each step has its own retries
-                asked = max(asked, seq)
-                last = frames[seq]
-                self._write(last)
-                step = (
-                    "MISSION_ACK after the last item"
-                    if seq == count - 1
-                    else f"MISSION_REQUEST for item {seq + 1}"
-                )
-            with self._cond:
-                self._mission_total = len(mission)
-                self._progress = MissionProgress(total=len(mission))
-        logger.info("driver %s: mission of %d items uploaded", self.name, len(mission))
-
-    def download_mission(self) -> list[MissionItem]:
-        """The vehicle's mission (``MISSION_REQUEST_LIST``, then each ``MISSION_REQUEST_INT``).
-
-        Item 0, ArduPilot's home position, is left out. Each step waits ``mission_timeout``
-        and is sent again up to ``mission_retries`` times; the transfer ends with a
-        ``MISSION_ACK`` (accepted) to the vehicle.
-
-        Returns:
-            The items, first first.
-
-        Raises:
-            StateError: The driver is not configured.
-            DriverOperationError: An item this driver cannot represent (its command or frame is
-                named), or the vehicle refused the transfer.
-            DriverTimeoutError: A step went unanswered (the message names it).
-        """
-        self._require_link("download_mission")
-        with self._mission_lock:
-            target = self._target_ids()
-            ids = {"target_system": target[0], "target_component": target[1]}
-            request = self._codec.encode(
-                "MISSION_REQUEST_LIST", **ids, mission_type=p.MAV_MISSION_TYPE_MISSION
-            )
-            with self._cond:
-                seen = self._mission_seq
-            got = self._mission_step(request, seen, missions.count_answer, "MISSION_COUNT")
-            seen, msg = got
-            count = msg.get_int("count")
-            raw: list[Message] = []
-            for seq in range(count):
-                request = self._codec.encode(
-                    "MISSION_REQUEST_INT", **ids, seq=seq, mission_type=p.MAV_MISSION_TYPE_MISSION
-                )
-                seen, msg = self._mission_step(
-                    request, seen, missions.item_answer(seq), f"MISSION_ITEM_INT {seq} of {count}"
-                )
-                raw.append(msg)
-            self._write(
-                self._codec.encode(
-                    "MISSION_ACK",
-                    **ids,
-                    type=p.MAV_MISSION_ACCEPTED,
-                    mission_type=p.MAV_MISSION_TYPE_MISSION,
-                )
-            )
-            with self._cond:
-                home = self._home
-        items = [missions.decoded_item(self.name, msg, home) for msg in raw[1:]]
-        with self._cond:
-            self._mission_total = len(items)
-        return items
-
-    def clear_mission(self) -> None:
-        """Delete the vehicle's mission (``MISSION_CLEAR_ALL`` → ``MISSION_ACK``).
-
-        Raises:
-            StateError: The driver is not configured.
-            MavlinkMissionError: The vehicle refused (its ``MAV_MISSION_RESULT`` named).
-            DriverTimeoutError: No MISSION_ACK.
-        """
-        self._require_link("clear_mission")
-        with self._mission_lock:
-            target = self._target_ids()
-            request = self._codec.encode(
-                "MISSION_CLEAR_ALL",
-                target_system=target[0],
-                target_component=target[1],
-                mission_type=p.MAV_MISSION_TYPE_MISSION,
-            )
-            with self._cond:
-                seen = self._mission_seq
-            _, msg = self._mission_step(
-                request, seen, missions.ack_answer, "MISSION_ACK to MISSION_CLEAR_ALL"
-            )
-            result = msg.get_int("type")
-            if result != p.MAV_MISSION_ACCEPTED:
-                raise MavlinkMissionError(
-                    f"{self.name}: mission clear refused: {p.mission_result_name(result)}",
-                    result=result,
-                )
-            with self._cond:
-                self._mission_total = 0
-                self._progress = MissionProgress()
-
-    def start_mission(self) -> None:
-        """Fly the vehicle's mission, as ArduCopter expects it.
-
-        ArduCopter starts a freshly uploaded mission at item 1, and otherwise resumes it at its
-        current item (``MIS_RESTART`` 0, the default; ``MAV_CMD_MISSION_START``'s first and
-        last item must be 0).
-
-        On the ground and disarmed: GUIDED (ArduCopter does not arm in AUTO unless
-        ``AUTO_OPTIONS`` allows it), arm, then
-        ``MAV_CMD_MISSION_START``, which switches to AUTO and starts the mission with the
-        motors running (ArduCopter's AUTO refuses a landed, armed start whose first item is not
-        a take-off: "Auto: Missing Takeoff Cmd"). Armed (flying, or on the ground):
-        ``MAV_CMD_MISSION_START`` alone. Returns when the vehicle accepted, not when it flew.
-
-        Raises:
-            StateError: The driver is not ``ACTIVE``.
-            MavlinkCommandError: A step was refused (the message carries the vehicle's words).
-            DriverTimeoutError: No acknowledgement.
-        """
-        self.require_active("start_mission")
-        with self._cond:
-            armed = self._armed
-        if not armed:
-            if p.mode_name(self._custom_mode) != "GUIDED":
-                self.set_mode("GUIDED")
-            self.arm()
-        self._moved_at = self.clock.monotonic()
-        with self._cond:
-            self._progress = MissionProgress(total=self._mission_total)
-        self._send_command(p.MAV_CMD_MISSION_START, (0.0, 0.0))
-
-    @property
-    def mission_progress(self) -> MissionProgress:
-        """The newest mission progress (``MISSION_CURRENT``, ``MISSION_ITEM_REACHED``).
-
-        Items are counted as :meth:`upload_mission` took them (1..n; ArduPilot's home item 0
-        is not one).
-        """
-        with self._cond:
-            return self._progress
-
-    def add_mission_listener(self, listener: Callable[[MissionProgress], None]) -> None:
-        """Call ``listener`` with each new mission progress (on the receive thread: be quick).
-
-        Args:
-            listener: Takes the :class:`~temoto.drivers.capabilities.MissionProgress`.
-        """
-        with self._cond:
-            self._mission_listeners.append(listener)
-
-    def _target_ids(self) -> tuple[int, int]:
-        with self._cond:
-            return (self._target or 1, self.component_id)
-
-    def _item_frame(self, seq: int, fields: dict[str, Any], target: tuple[int, int]) -> bytes:
-        return self._codec.encode(
-            "MISSION_ITEM_INT",
-            target_system=target[0],
-            target_component=target[1],
-            seq=seq,
-            current=0,
-            autocontinue=1,
-            mission_type=p.MAV_MISSION_TYPE_MISSION,
-            **fields,
-        )
-
-    def _mission_step(
-        self, request: bytes, seen: int, accept: Callable[[Message], bool], step: str
-    ) -> tuple[int, Message]:
-        """Send ``request`` until an accepted answer (retries); a refusing MISSION_ACK raises."""
-        for _ in range(1 + self.mission_retries):
-            self._write(request)
-            got = self._await_mission(seen, lambda msg: accept(msg) or msg.name == "MISSION_ACK")
-            if got is None:
-                continue
-            if got[1].name == "MISSION_ACK" and not accept(got[1]):
-                result = got[1].get_int("type")
-                raise MavlinkMissionError(
-                    f"{self.name}: the vehicle ended the transfer waiting for {step}:"
-                    f" {p.mission_result_name(result)}",
-                    result=result,
-                )
-            return got
-        raise DriverTimeoutError(
-            f"{self.name}: no {step} in {1 + self.mission_retries} tries of"
-            f" {self.mission_timeout:g} s"
-        )
-
-    def _await_mission(
-        self, after: int, accept: Callable[[Message], bool]
-    ) -> tuple[int, Message] | None:
-        """The first mission-transfer message newer than ``after`` that ``accept`` takes."""
-        found: list[tuple[int, Message]] = []
-
-        def arrived() -> bool:
-            for number, msg in self._mission_rx:
-                if number > after and accept(msg):
-                    found.append((number, msg))
-                    return True
-            return False
-
-        return found[0] if self._await(arrived, self.mission_timeout) else None
-
-    def _absorb_mission(self, msg: Message) -> list[Callable[[MissionProgress], None]]:
-        """A mission message (lock held); the listeners to call when progress changed."""
-        name = msg.name
-        if name in missions.TRANSFER_MESSAGES:
-            if msg.fields.get("target_system", 0) not in (0, self._codec.system_id):
-                return []
-            if msg.fields.get("mission_type", 0) != p.MAV_MISSION_TYPE_MISSION:
-                return []
-            self._mission_seq += 1
-            self._mission_rx.append((self._mission_seq, msg))
-            return []
-        old = self._progress
-        if name == "MISSION_CURRENT":
-            total = msg.fields.get("total", 0)
-            # MISSION_CURRENT.total leaves out a home item 0 (on the last item, seq == total)
-            known = self._mission_total or (total if 0 < total < 0xFFFF else 0)
-            finished = old.finished or (
-                msg.fields.get("mission_state", 0) == p.MISSION_STATE_COMPLETE
-            )
-            new = MissionProgress(msg.get_int("seq"), known, old.reached, finished)
-        else:  # MISSION_ITEM_REACHED
-            seq = msg.get_int("seq")
-            total = old.total
-            new = MissionProgress(
-                max(old.current, seq), total, seq, old.finished or (total > 0 and seq >= total)
-            )
-        if new == old:
-            return []
-        self._progress = new
-        return list(self._mission_listeners)
-
     # ---- safe state --------------------------------------------------------------------------
-
     def on_make_safe(self) -> str:
         """Nothing on the ground; in the air, the safe state's flight mode (see the module).
 
@@ -1228,7 +384,6 @@ class MavlinkDriver(Driver):
         return got[0] if self._await(confirmed, self.SAFE_CONFIRM_WAIT) else None
 
     # ---- Vehicle -----------------------------------------------------------------------------
-
     def arm(self) -> None:
         """Arm the motors (waits for the acknowledgement).
 
@@ -1371,410 +526,36 @@ class MavlinkDriver(Driver):
             home = self._home
         return None if home is None else GeoPoint(home[0], home[1], 0.0)
 
-    @property
-    def messages_received(self) -> int:
-        """Valid messages received since configure (from any system)."""
-        return self._received
+    def start_mission(self) -> None:
+        """Fly the vehicle's mission, as ArduCopter expects it.
 
-    @property
-    def foreign_frames(self) -> int:
-        """Bad frames since configure from addresses other than the vehicle's (never a fault)."""
-        return self._foreign
+        ArduCopter starts a freshly uploaded mission at item 1, and otherwise resumes it at its
+        current item (``MIS_RESTART`` 0, the default; ``MAV_CMD_MISSION_START``'s first and
+        last item must be 0).
 
-    @property
-    def bad_frames(self) -> int:
-        """Frames dropped since configure (bad CRC, unknown message id)."""
-        return self._codec.bad_frames
+        On the ground and disarmed: GUIDED (ArduCopter does not arm in AUTO unless
+        ``AUTO_OPTIONS`` allows it), arm, then
+        ``MAV_CMD_MISSION_START``, which switches to AUTO and starts the mission with the
+        motors running (ArduCopter's AUTO refuses a landed, armed start whose first item is not
+        a take-off: "Auto: Missing Takeoff Cmd"). Armed (flying, or on the ground):
+        ``MAV_CMD_MISSION_START`` alone. Returns when the vehicle accepted, not when it flew.
 
-    # ---- commands ----------------------------------------------------------------------------
-
-    def _send_command(
-        self,
-        command: int,
-        params: tuple[float, ...],
-        *,
-        retries: int | None = None,
-        frame: int | None = None,
-        position: tuple[int, int, float] | None = None,
-        texts: bool = True,
-    ) -> None:
-        """Send a command until acknowledged (COMMAND_INT when ``position`` is given).
-
-        A refusal's error carries the STATUSTEXTs that arrived since the command was sent;
-        after a FAILED or DENIED ack (and ``texts``), those arriving within
-        :attr:`STATUS_TEXT_WINDOW` are waited for.
+        Raises:
+            StateError: The driver is not ``ACTIVE``.
+            MavlinkCommandError: A step was refused (the message carries the vehicle's words).
+            DriverTimeoutError: No acknowledgement.
         """
-        tries = 1 + (self.command_retries if retries is None else retries)
-        values = [*params, *([0.0] * (7 - len(params)))]
-        with self._command_lock:
-            with self._cond:
-                target = self._target or 1
-                start_acks, start_texts = self._ack_count, self._text_count
-            for attempt in range(tries):
-                if position is None:
-                    frame_bytes = self._codec.encode(
-                        "COMMAND_LONG",
-                        target_system=target,
-                        target_component=self.component_id,
-                        command=command,
-                        confirmation=attempt,
-                        param1=values[0],
-                        param2=values[1],
-                        param3=values[2],
-                        param4=values[3],
-                        param5=values[4],
-                        param6=values[5],
-                        param7=values[6],
-                    )
-                else:
-                    frame_bytes = self._codec.encode(
-                        "COMMAND_INT",
-                        target_system=target,
-                        target_component=self.component_id,
-                        frame=frame or 0,
-                        command=command,
-                        current=0,
-                        autocontinue=0,
-                        param1=values[0],
-                        param2=values[1],
-                        param3=values[2],
-                        param4=values[3],
-                        x=position[0],
-                        y=position[1],
-                        z=position[2],
-                    )
-                self._write(frame_bytes)
-                result = self._await_ack(command, start_acks, self.command_timeout)
-                if result is None:
-                    continue
-                if result == p.MAV_RESULT_ACCEPTED:
-                    return
-                if texts and result in (p.MAV_RESULT_FAILED, p.MAV_RESULT_DENIED):
-                    self._await_texts(start_texts)
-                with self._cond:
-                    count = self._text_count - start_texts
-                    news = list(self._texts)[-count:] if count > 0 else []
-                said = f" (vehicle: {'; '.join(news)})" if news else ""
-                raise MavlinkCommandError(
-                    f"{self.name}: {p.command_name(command)} refused:"
-                    f" {p.result_name(result)}{said}",
-                    command=command,
-                    result=result,
-                )
-        raise DriverTimeoutError(
-            f"{self.name}: no COMMAND_ACK for {p.command_name(command)} in {tries} tries"
-            f" of {self.command_timeout:g} s"
-        )
-
-    def _await_texts(self, after: int) -> None:
-        """Wait for the STATUSTEXTs that follow a refusal (bounded by STATUS_TEXT_WINDOW).
-
-        Ends when no text came within the window, or :data:`_TEXT_QUIET` seconds after the
-        newest one (ArduPilot may send several "PreArm:" lines).
-        """
-        deadline = self.clock.monotonic() + self.STATUS_TEXT_WINDOW
-        seen = after
-        while (left := deadline - self.clock.monotonic()) > 0:
-            wait = left if seen == after else min(left, _TEXT_QUIET)
-            if not self._await(lambda n=seen: self._text_count > n, wait):  # type: ignore[misc]
-                return
-            with self._cond:
-                seen = self._text_count
-
-    def _await_ack(self, command: int, after: int, timeout: float) -> int | None:
-        """The result of the first final ack of ``command`` newer than arrival ``after``."""
-        got: list[int] = []
-
-        def acked() -> bool:
-            ack = self._acks.get(command)
-            if ack is None or ack[1] <= after:
-                return False
-            if ack[0] == p.MAV_RESULT_IN_PROGRESS:
-                return False  # the vehicle is still at it; the final ack comes later
-            got.append(ack[0])
-            return True
-
-        return got[0] if self._await(acked, timeout) else None
-
-    def _await(self, pred: Callable[[], bool], timeout: float) -> bool:
-        """Wait (cache lock taken) until ``pred()``, for ``timeout`` clock seconds.
-
-        The wait also ends after ``clock.real_seconds(timeout)`` real seconds, so a virtual
-        clock nobody advances cannot hang a command forever.
-        """
-        deadline = self.clock.monotonic() + timeout
-        real_deadline = time.monotonic() + self.clock.real_seconds(timeout) + _POLL
+        self.require_active("start_mission")
         with self._cond:
-            while not pred():
-                now = self.clock.monotonic()
-                if now >= deadline or time.monotonic() >= real_deadline or self._stop.is_set():
-                    return False
-                self.clock.wait(self._cond, deadline - now)
-        return True
-
-    def _write(self, frame: bytes) -> bool:
-        link = self._link
-        if link is None:
-            raise StateError(f"{self.name}: the link is closed")
-        try:
-            return link.write(frame)
-        except OSError as err:
-            raise DriverOperationError(f"{self.name}: sending failed: {err}") from err
-
-    # ---- threads -----------------------------------------------------------------------------
-
-    def _rx_loop(self) -> None:
-        link = self._link
-        assert link is not None
-        while not self._stop.is_set():
-            try:
-                data, sender = link.receive(_POLL)
-            except OSError as err:
-                if self._stop.is_set():
-                    break
-                self._evaluate(DriverOperationError(f"{self.name}: the link failed: {err}"))
-                self._stop.wait(_POLL)
-                continue
-            now = self.clock.monotonic()
-            if not data:
-                self._drained_at = now
-                with self._cond:
-                    self._cond.notify_all()  # waiters re-check their real-time guards
-                continue
-            bad_before = self._codec.bad_frames
-            if link.datagrams:
-                messages = self._codec.decode_datagram(data)
-            else:
-                messages = self._codec.decode(data)
-            bad = self._codec.bad_frames - bad_before
-            self._received += len(messages)
-            check = False
-            with self._cond:
-                for msg in messages:
-                    check |= self._absorb(msg, now)
-                target = self._target
-                ours = any(
-                    m.src_system == target and m.src_component == self.component_id
-                    for m in messages
-                )
-                if ours and link.accept_peer(sender):
-                    logger.info("driver %s: the vehicle is at %s", self.name, sender)
-                    self._beat_now = True  # greet it at once: its GCS failsafe starts then
-                if bad:
-                    check |= self._count_bad(bad, sender, link.peer, ours, now)
-                if not link.pending():
-                    self._drained_at = now
-                self._cond.notify_all()
-                notify, self._notify = self._notify, []
-            for listener, progress in notify:
-                try:
-                    listener(progress)
-                except Exception:
-                    logger.exception("driver %s: a mission listener raised", self.name)
-            if self._beat_now:
-                with self._watch:
-                    self._watch.notify_all()
-            if check:
-                self._evaluate()
-
-    def _count_bad(self, bad: int, sender: Any, peer: Any, ours: bool, now: float) -> bool:
-        """Count bad frames (lock held): the vehicle's go to the fault window, others' not.
-
-        Returns:
-            True when the vehicle's bad frames may have made a fault.
-        """
-        if sender is None or ours or sender == peer:
-            self._vehicle_bad += bad
-            fault = False
-            for _ in range(bad):
-                fault = self._bad_window.add(now)
-            return fault
-        self._foreign += bad
-        if sender not in self._foreign_seen:
-            self._foreign_seen.add(sender)
-            logger.warning(
-                "driver %s: malformed datagrams from %s (not the vehicle): counted and dropped",
-                self.name,
-                sender,
-            )
-        return False
-
-    def _absorb(self, msg: Message, now: float) -> bool:
-        """Update the cache (lock held); True if health may have changed."""
-        if self._target is None:
-            if msg.name != "HEARTBEAT" or msg.get_int("autopilot") == p.MAV_AUTOPILOT_INVALID:
-                return False
-            if msg.get_int("type") == p.MAV_TYPE_GCS:
-                return False
-            self._target = msg.src_system
-        if msg.src_system != self._target:
-            return False
-        self._last_msg = max(self._last_msg, now)
-        name = msg.name
-        age = self._ages.get(name)
-        changed = False
-        if age is not None:
-            age.feed(now)
-            if self._stale is age:
-                self._stale = None
-                changed = True
-        if name == "HEARTBEAT":
-            if msg.src_component != self.component_id:
-                return False
-            self._last_hb = now
-            self._bad_at_hb = self._vehicle_bad
-            self._autopilot = msg.get_int("autopilot")
-            self._armed = bool(msg.get_int("base_mode") & p.MAV_MODE_FLAG_SAFETY_ARMED)
-            self._custom_mode = msg.get_int("custom_mode")
-            return True
-        if name == "GLOBAL_POSITION_INT":
-            self._position = (
-                msg.get_int("lat") / 1e7,
-                msg.get_int("lon") / 1e7,
-                msg.get_int("relative_alt") / 1000.0,
-            )
-        elif name == "ATTITUDE":
-            self._attitude = (msg.get_float("roll"), msg.get_float("pitch"), msg.get_float("yaw"))
-        elif name == "SYS_STATUS":
-            millivolts = msg.get_int("voltage_battery")
-            self._voltage = math.nan if millivolts == _UNKNOWN_VOLTAGE else millivolts / 1000.0
-            self._remaining = msg.get_int("battery_remaining")
-            enabled = msg.get_int("onboard_control_sensors_present") & msg.get_int(
-                "onboard_control_sensors_enabled"
-            )
-            bad = enabled & ~msg.get_int("onboard_control_sensors_health")
-            unhealthy = tuple(sorted(n for n, bit in p.SENSOR_BITS.items() if bad & bit))
-            changed |= unhealthy != self._unhealthy
-            self._unhealthy = unhealthy
-            return changed
-        elif name == "STATUSTEXT":
-            text = msg.get_text("text")
-            self._texts.append(text)
-            self._text_count += 1
-            level = _SEVERITY_LEVEL.get(msg.get_int("severity"), logging.INFO)
-            logger.log(level, "vehicle %s: %s", self.name, text)
-        elif name == "COMMAND_ACK":
-            if msg.fields.get("target_system", 0) in (0, self._codec.system_id):
-                self._ack_count += 1
-                self._acks[msg.get_int("command")] = (msg.get_int("result"), self._ack_count)
-        elif name == "HOME_POSITION":
-            self._home = (
-                msg.get_int("latitude") / 1e7,
-                msg.get_int("longitude") / 1e7,
-                msg.get_int("altitude") / 1000.0,
-            )
-        elif name == "EXTENDED_SYS_STATE":
-            self._landed_state = msg.get_int("landed_state")
-            self._landed_at = now
-        elif name in missions.MISSION_MESSAGES:
-            for listener in self._absorb_mission(msg):
-                self._notify.append((listener, self._progress))
-        elif name == "PARAM_ERROR":
-            if msg.fields.get("target_system", 0) in (0, self._codec.system_id):
-                self._param_errors[msg.get_text("param_id")] = msg.get_int("error")
-        elif name == "PARAM_VALUE":
-            param = msg.get_text("param_id")
-            self._params[param] = (msg.get_float("param_value"), msg.get_int("param_type"))
-            self._param_count += 1
-            self._param_seen[param] = self._param_count
-        return changed
-
-    def _watch_loop(self) -> None:
-        next_hb = self.clock.monotonic()
-        check = min(0.1, self.heartbeat_timeout / 10)
-        wake: float | None = None
-        while not self._stop.is_set():
-            now = self.clock.monotonic()
-            with self._cond:
-                periods = [age.period for age in self._ages.values()]
-            shortest = min(periods, default=check)
-            # A late wake-up means this process was not running: the streams' gaps may be
-            # ours, not the vehicle's; judge them at the next, punctual, round.
-            punctual = wake is None or now - wake <= shortest
-            if now >= next_hb or self._beat_now:
-                self._beat_now = False
-                next_hb = now + self.heartbeat_period
-                with contextlib.suppress(DriverError, StateError):  # rx loop reports the link
-                    self._write(
-                        self._codec.encode(
-                            "HEARTBEAT",
-                            type=p.MAV_TYPE_GCS,
-                            autopilot=p.MAV_AUTOPILOT_INVALID,
-                            base_mode=0,
-                            custom_mode=0,
-                            system_status=p.MAV_STATE_ACTIVE,
-                            mavlink_version=3,
-                        )
-                    )
-            self._evaluate(streams=punctual)
-            with self._watch:
-                if self._stop.is_set():
-                    break
-                timeout = max(min(next_hb - now, check, shortest), 0.0)
-                wake = now + timeout
-                self.clock.wait(self._watch, timeout)
-
-    def _evaluate(self, link_error: DriverError | None = None, *, streams: bool = False) -> None:
-        """Report a fault, or the recovery from one this driver reported.
-
-        Args:
-            link_error: The link failed.
-            streams: Judge the streams' ages now (the watch thread, when it woke on time).
-                A stream is stale when it was overdue both at a moment the link had been
-                read empty (data waiting in the socket never counts as missing) and when
-                another message of the vehicle arrived (the vehicle talks, but not this
-                stream; a vehicle that says nothing at all is the heartbeat timeout's case).
-        """
-        now = self.clock.monotonic()
+            armed = self._armed
+        if not armed:
+            if p.mode_name(self._custom_mode) != "GUIDED":
+                self.set_mode("GUIDED")
+            self.arm()
+        self._moved_at = self.clock.monotonic()
         with self._cond:
-            last_hb, unhealthy = self._last_hb, self._unhealthy
-            corrupt = self._vehicle_bad > self._bad_at_hb
-            drained, talked = self._drained_at, self._last_msg
-            if streams and drained is not None and self._stale is None:
-                for age in self._ages.values():
-                    seen = min(drained, talked)
-                    if age.last is not None and seen - age.last > age.max_age:
-                        self._stale = age
-                        break
-            stale = self._stale
-            window = self._bad_window
-            bursts = window.recent(now) >= window.limit
-        error: DriverError | None = link_error
-        if error is None and bursts:
-            error = DriverOperationError(
-                f"{self.name}: corrupt frames (bad CRC): {window.limit} or more within"
-                f" {window.window:g} s"
-            )
-        elif error is None and (last_hb is None or now - last_hb > self.heartbeat_timeout):
-            if corrupt:
-                error = DriverOperationError(
-                    f"{self.name}: only corrupt frames (bad CRC), no valid heartbeat within"
-                    f" {self.heartbeat_timeout:g} s"
-                )
-            else:
-                error = DriverTimeoutError(
-                    f"{self.name}: no heartbeat within {self.heartbeat_timeout:g} s"
-                )
-        elif error is None and stale is not None:
-            error = DriverTimeoutError(
-                f"{self.name}: {stale.name} stale: none for over {stale.max_age:g} s"
-                f" (expected every {stale.period:g} s)"
-            )
-        elif error is None and unhealthy:
-            error = DriverOperationError(
-                f"{self.name}: hardware error: unhealthy {', '.join(unhealthy)}"
-            )
-        with self._eval_lock:
-            state = self.state
-            if error is not None:
-                if state in (DriverState.INACTIVE, DriverState.ACTIVE) or (
-                    state is DriverState.FAULT and self._mine
-                ):
-                    self._mine = True
-                    self.report_fault(error)
-            elif self._mine and state is DriverState.FAULT:
-                self._mine = False
-                self.report_recovered(f"{self.name}: the vehicle answers and is healthy")
+            self._progress = MissionProgress(total=self._mission_total)
+        self._send_command(p.MAV_CMD_MISSION_START, (0.0, 0.0))
 
 
 def _free_udp_port() -> int:
@@ -1782,253 +563,3 @@ def _free_udp_port() -> int:
         sock.bind(("127.0.0.1", 0))
         port: int = sock.getsockname()[1]
         return port
-
-
-#: (system id, component id) → (MAV_TYPE, MAV_AUTOPILOT) of each vehicle heard, first first.
-_Heard = dict[tuple[int, int], tuple[int, int]]
-
-
-def _serial_candidates() -> list[str]:
-    """``serial:<device>`` for every port pyserial lists (none without pyserial)."""
-    try:
-        list_ports = importlib.import_module("serial.tools.list_ports")
-    except ImportError:
-        logger.info("mavlink detect: pyserial is not installed: no serial ports to look at")
-        return []
-    return [f"serial:{port.device}" for port in sorted(list_ports.comports(), key=_device)]
-
-
-def _device(port: Any) -> str:
-    return str(port.device)
-
-
-def _detect_plan(url: Any) -> list[tuple[LinkSpec, str]]:
-    """The links to listen on for one URL (one per baud rate to try) and how each is shown.
-
-    Raises:
-        ValueError: Not a link URL (the message names it).
-    """
-    spec = parse_link(url)  # ValueError names the URL
-    if spec.scheme != "serial" or "baud" in parse_qs(url.partition("?")[2]):
-        return [(spec, url)]
-    tries = [LinkSpec("serial", device=spec.device, baud=baud) for baud in _DETECT_BAUDS]
-    return [(each, str(each)) for each in tries]
-
-
-def _sweep(plan: list[tuple[LinkSpec, str]], timeout: float) -> tuple[str, _Heard]:
-    """Listen on each try of one link until a valid HEARTBEAT arrives.
-
-    Returns:
-        How the link that heard it is shown, and the vehicles heard ("" and none if no try
-        heard a heartbeat).
-    """
-    for spec, shown in plan:
-        heard = _listen(spec, timeout)
-        if heard is None:
-            break  # it cannot be opened: at another baud rate neither
-        valid, vehicles = heard
-        if valid:
-            return shown, vehicles
-    return "", {}
-
-
-def _listen(spec: LinkSpec, timeout: float) -> tuple[bool, _Heard] | None:
-    """Listen on one link for ``timeout`` real seconds, sending nothing.
-
-    Returns:
-        None if the link cannot be opened; else whether any valid HEARTBEAT arrived, and the
-        vehicles heard.
-    """
-    try:
-        link = open_link(spec)
-    except OSError as err:
-        logger.warning("mavlink detect: skipping %s: cannot open it: %s", spec, err)
-        return None
-    codec = Codec(255, 190)  # only its parser is used: detect never encodes or sends
-    valid = False
-    vehicles: _Heard = {}
-    others: set[tuple[int, int]] = set()
-    deadline = time.monotonic() + timeout
-    try:
-        while (remaining := deadline - time.monotonic()) > 0:
-            try:
-                data = link.read(remaining)
-            except OSError as err:
-                logger.warning("mavlink detect: %s failed while listening: %s", spec, err)
-                break
-            messages = codec.decode_datagram(data) if link.datagrams else codec.decode(data)
-            for msg in messages if data else []:
-                if msg.name != "HEARTBEAT":
-                    continue
-                valid = True
-                ids = (msg.src_system, msg.src_component)
-                kind, autopilot = msg.get_int("type"), msg.get_int("autopilot")
-                vehicle = kind != p.MAV_TYPE_GCS and autopilot != p.MAV_AUTOPILOT_INVALID
-                if vehicle and msg.src_system >= 1:
-                    vehicles.setdefault(ids, (kind, autopilot))
-                elif ids not in others:
-                    others.add(ids)
-                    logger.debug(
-                        "mavlink detect: %s: system %d component %d is not a vehicle: %s, %s",
-                        spec,
-                        *ids,
-                        _type_name(kind),
-                        _autopilot_name(autopilot),
-                    )
-    finally:
-        link.close()
-    if not valid:
-        logger.debug(
-            "mavlink detect: %s: no valid heartbeat in %g s (%d bad frames)",
-            spec,
-            timeout,
-            codec.bad_frames,
-        )
-    return valid, vehicles
-
-
-def _detected(kind: str, link: str, vehicles: _Heard) -> list[dict[str, Any]]:
-    """One profile entry per system heard on ``link`` (logged)."""
-    systems: dict[int, list[int]] = {}
-    for (system, component), (mav_type, autopilot) in vehicles.items():
-        logger.info(
-            "mavlink detect: %s: system %d component %d: %s, %s",
-            link,
-            system,
-            component,
-            _type_name(mav_type),
-            _autopilot_name(autopilot),
-        )
-        if autopilot != p.MAV_AUTOPILOT_ARDUPILOTMEGA and system not in systems:
-            logger.warning(
-                "mavlink detect: %s: system %d is not an ArduPilot (%s); the driver flies"
-                " ArduPilot only and configure will refuse it",
-                link,
-                system,
-                _autopilot_name(autopilot),
-            )
-        systems.setdefault(system, []).append(component)
-    return [
-        {
-            "driver": kind,
-            "link": link,
-            "system_id": system,
-            "component_id": (
-                _AUTOPILOT_COMPONENT if _AUTOPILOT_COMPONENT in components else components[0]
-            ),
-        }
-        for system, components in systems.items()
-    ]
-
-
-def _type_name(mav_type: int) -> str:
-    return p._enum_name("MAV_TYPE", mav_type)
-
-
-def _autopilot_name(autopilot: int) -> str:
-    return p._enum_name("MAV_AUTOPILOT", autopilot)
-
-
-def _sim_kwargs(raw: Any, where: str) -> dict[str, Any]:
-    """The ``sim`` mapping of a profile entry as SimVehicle keywords (checked)."""
-    if not isinstance(raw, Mapping):
-        raise ProfileError(f"{where}: must be a mapping of simulator settings")
-    unknown = sorted(set(raw) - _SIM_KEYS)
-    if unknown:
-        raise ProfileError(
-            f"{where}.{unknown[0]}: unknown key (known: {', '.join(sorted(_SIM_KEYS))})"
-        )
-    out: dict[str, Any] = {}
-    for key, value in raw.items():
-        if key == "home":
-            ok = isinstance(value, list | tuple) and len(value) == 3
-            ok = ok and all(isinstance(v, int | float) and not isinstance(v, bool) for v in value)
-            if not ok or not (-90 <= value[0] <= 90 and -180 <= value[1] <= 180):
-                raise ProfileError(
-                    f"{where}.home: must be [lat, lon, altitude AMSL], got {value!r}"
-                )
-            out[key] = tuple(float(v) for v in value)
-        elif key == "rates":
-            if not isinstance(value, Mapping):
-                raise ProfileError(f"{where}.rates: must map message names to Hz")
-            for msg, hz in value.items():
-                if str(msg).upper() not in DEFAULT_RATES:
-                    raise ProfileError(
-                        f"{where}.rates.{msg}: not a simulated stream"
-                        f" (streams: {', '.join(DEFAULT_RATES)})"
-                    )
-                if isinstance(hz, bool) or not isinstance(hz, int | float) or not hz >= 0:
-                    raise ProfileError(f"{where}.rates.{msg}: must be a rate in Hz, got {hz!r}")
-            out[key] = {str(k): float(v) for k, v in value.items()}
-        elif key == "params":
-            if not isinstance(value, Mapping):
-                raise ProfileError(f"{where}.params: must map parameter names to numbers")
-            for param, number in value.items():
-                if param not in PARAMETERS:
-                    raise ProfileError(
-                        f"{where}.params.{param}: not a simulated parameter"
-                        f" (known: {', '.join(PARAMETERS)})"
-                    )
-                finite = isinstance(number, int | float) and math.isfinite(number)
-                if isinstance(number, bool) or not finite:
-                    raise ProfileError(f"{where}.params.{param}: must be a number, got {number!r}")
-            out[key] = {str(k): float(v) for k, v in value.items()}
-        else:
-            if isinstance(value, bool) or not isinstance(value, int | float):
-                raise ProfileError(f"{where}.{key}: must be a number, got {value!r}")
-            if not math.isfinite(value) or value < 0 or (value == 0 and key in _POSITIVE):
-                raise ProfileError(f"{where}.{key}: out of range: {value!r}")
-            if key == "battery" and value > 100:
-                raise ProfileError(f"{where}.battery: must be 0..100 %, got {value!r}")
-            out[key] = int(value) if key == "cells" else float(value)
-    return out
-
-
-_INT_KEYS: Final = frozenset(
-    {
-        "system_id",
-        "component_id",
-        "gcs_system_id",
-        "gcs_component_id",
-        "command_retries",
-        "mission_retries",
-        "status_texts",
-    }
-)
-_POSITIVE: Final = frozenset({"cells", "speed", "climb_rate", "descent_rate", "tau", "step_rate"})
-
-
-def _failsafe_params(raw: Any) -> dict[str, float]:
-    """The ArduPilot parameters a ``gcs_failsafe`` mapping sets (checked).
-
-    Raises:
-        ValueError: Not a mapping, an unknown key, or a value out of ArduPilot's range (the
-            message starts with the key path, ``gcs_failsafe.enable: ...``).
-    """
-    if raw is None:
-        return {}
-    if not isinstance(raw, Mapping):
-        raise ValueError(
-            f"gcs_failsafe: must be a mapping like {{enable: 5, timeout: 5}}, got {raw!r}"
-        )
-    out: dict[str, float] = {}
-    for key, value in raw.items():
-        if key not in _FAILSAFE_KEYS:
-            known = ", ".join(_FAILSAFE_KEYS)
-            raise ValueError(f"gcs_failsafe.{key}: unknown key (known: {known})")
-        param, low, high, integer = _FAILSAFE_KEYS[key]
-        number = isinstance(value, int | float) and not isinstance(value, bool)
-        if integer and number and isinstance(value, float) and not value.is_integer():
-            number = False
-        if not (number and math.isfinite(value) and low <= value <= high):
-            kind = "an integer" if integer else "a number"
-            raise ValueError(
-                f"gcs_failsafe.{key}: must be {kind} {low:g}..{high:g} ({param}), got {value!r}"
-            )
-        out[param] = float(value)
-    return out
-
-
-def _same(a: float, b: float) -> bool:
-    """Parameter values equal as a float32 carries them."""
-    return abs(a - b) <= 1e-5 * max(1.0, abs(b))

@@ -19,7 +19,7 @@ from __future__ import annotations
 import contextlib
 import logging
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
@@ -138,9 +138,19 @@ class _StreamsToGcs(Protocol):
 class _Device:
     driver: Driver
     sim: Simulator | None
-    remove_listener: Any = None
+    remove_listener: Callable[[], None] | None = None
     faulted: bool = False  # a FATAL was sent and no OK since
     settings: Mapping[str, Any] | None = None  # the entry the driver got (simulated devices)
+
+    def close(self) -> None:
+        """Stop listening, shut the driver down (its safe state first), close its simulator."""
+        if self.remove_listener is not None:
+            self.remove_listener()
+        try:
+            self.driver.shutdown()
+        finally:
+            if self.sim is not None:
+                self.sim.close()
 
 
 class Robot:
@@ -378,7 +388,7 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         for robot in robots:
             robot.close()
         for device in devices:
-            _close_device(device)
+            device.close()
 
     # ---- devices (called by the "driver" server) ---------------------------------------------
 
@@ -386,7 +396,7 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         if request.robot != self.profile.robot or request.device not in self.profile.devices:
             raise ResourceNotFoundError(f"robot '{request.robot}' has no device '{request.device}'")
         spec = self.profile.devices[request.device]
-        cls: Any = driver_class(spec.driver)
+        cls = driver_class(spec.driver)
         where = f"{self.profile.source}: devices.{spec.name}"
         config: Mapping[str, Any] = spec.config
         sim: Simulator | None = None
@@ -396,8 +406,9 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
                 for host, port in self.sim_gcs:
                     sim.add_gcs(host, port)
             sim.start()
+        driver: Driver | None = None
         try:
-            driver: Driver = cls.from_profile(spec.name, config, clock=self.clock, where=where)
+            driver = cls.from_profile(spec.name, config, clock=self.clock, where=where)
             device = _Device(driver, sim, settings=dict(config) if sim is not None else None)
             resource_id = ctx.resource_id
             driver.configure()
@@ -406,7 +417,7 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
                 lambda health: self._on_health(device, resource_id, health)
             )
         except BaseException:
-            if "driver" in locals():
+            if driver is not None:
                 driver.shutdown()
             if sim is not None:
                 sim.close()
@@ -419,7 +430,7 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         with self._lock:
             device = self._devices.pop(request.device, None)
         if device is not None:
-            _close_device(device)
+            device.close()
 
     def make_safe(self, reason: str = "") -> list[str]:
         """Put every open device of this manager in its safe state now (``docs/safety.md``).
@@ -486,18 +497,8 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             self.registrar.send_status(resource_id, Status.OK, f"{driver.name}: recovered")
 
 
-def _spawn(name: str, target: Any, *args: Any) -> None:
+def _spawn(name: str, target: Callable[..., object], *args: object) -> None:
     threading.Thread(target=target, args=args, name=name, daemon=True).start()
-
-
-def _close_device(device: _Device) -> None:
-    if device.remove_listener is not None:
-        device.remove_listener()
-    try:
-        device.driver.shutdown()
-    finally:
-        if device.sim is not None:
-            device.sim.close()
 
 
 #: What the consumers of a robot or device restored from the catalog are told.
