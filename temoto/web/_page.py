@@ -24,7 +24,7 @@ from __future__ import annotations
 from functools import cache
 from importlib.resources import files
 
-__all__ = ["CSS", "JS", "MODES", "STATES", "css", "js", "page"]
+__all__ = ["MODES", "STATES", "css", "js", "page"]
 
 #: Node states in legend order, with their fill and text colours.
 STATES: tuple[tuple[str, str, str], ...] = (
