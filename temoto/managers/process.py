@@ -273,20 +273,18 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         if log_dir is not None and inherit_output:
             raise ValueError("give log_dir or inherit_output, not both")
         self.registrar = registrar
-        self.grace = float(grace)
-        self.kill_timeout = float(kill_timeout)
         self.log_dir = Path(log_dir) if log_dir is not None else None
         self.inherit_output = bool(inherit_output)
-        self.die_with_manager = bool(die_with_manager)
         self._lock = threading.Lock()
         # Readable once hurry() is called: ends every grace period then and from then on.
         self._hurry_fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
         weakref.finalize(self, os.close, self._hurry_fd)
+        # Holds grace, kill_timeout and die_with_manager (the properties below read it).
         self._stopper = GroupStopper(
-            self.grace,
-            self.kill_timeout,
+            float(grace),
+            float(kill_timeout),
             self._hurry_fd,
-            unguard=self.die_with_manager,
+            unguard=bool(die_with_manager),
             origin=self.name,
         )
         _MANAGERS.add(self)
@@ -298,6 +296,33 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         except BaseException:
             self._monitor.close()
             raise
+
+    @property
+    def grace(self) -> float:
+        """Seconds between SIGTERM and SIGKILL when stopping."""
+        return self._stopper.grace
+
+    @grace.setter
+    def grace(self, value: float) -> None:
+        self._stopper.grace = float(value)
+
+    @property
+    def kill_timeout(self) -> float:
+        """Seconds to wait for a SIGKILLed process to disappear before giving up."""
+        return self._stopper.kill_timeout
+
+    @kill_timeout.setter
+    def kill_timeout(self, value: float) -> None:
+        self._stopper.kill_timeout = float(value)
+
+    @property
+    def die_with_manager(self) -> bool:
+        """Whether the processes are stopped when this OS process dies (however it dies)."""
+        return self._stopper.unguard
+
+    @die_with_manager.setter
+    def die_with_manager(self, value: bool) -> None:
+        self._stopper.unguard = bool(value)
 
     # --------------------------------------------------------------------- hooks
 
