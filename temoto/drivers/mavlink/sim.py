@@ -94,6 +94,7 @@ from temoto.drivers.mavlink.link import LinkSpec, UdpLink
 from temoto.drivers.mavlink.sim_commands import CommandHandler
 from temoto.drivers.mavlink.sim_params import PARAMETERS
 from temoto.drivers.mavlink.sim_state import _HW_TEXT, DEFAULT_RATES, STREAM_GROUPS
+from temoto.drivers.mavlink.sim_state import EARTH_RADIUS as EARTH_RADIUS
 
 __all__ = ["DEFAULT_RATES", "PARAMETERS", "STREAM_GROUPS", "SimVehicle"]
 
