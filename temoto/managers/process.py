@@ -18,7 +18,6 @@ from __future__ import annotations
 import contextlib
 import logging
 import os
-import selectors
 import shutil
 import signal
 import subprocess
@@ -42,12 +41,21 @@ from temoto.errors import (
     ResourceError,
     StateError,
 )
+from temoto.managers._process_stop import (
+    DEAD_STATES,
+    TOKEN_VARIABLE,
+    GroupStopper,
+    ProcessRecord,
+    describe_exit,
+    open_if_same,
+    signal_group,
+    wait_readable,
+)
 from temoto.managers._procmon import (
     ProcessMonitor,
     guard_group,
     process_start_time,
     process_state,
-    processes_with_environ,
     spawn,
     unguard_group,
 )
@@ -62,13 +70,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: States of /proc/<pid>/stat that mean "no longer running".
-_DEAD_STATES = frozenset({"Z", "X", "x"})
-
-#: Environment variable holding each started process's spawn token (inherited by whatever it
-#: starts): it finds the processes of a load interrupted by a crash, and left-overs of a process
-#: that died while the manager was down.
-TOKEN_VARIABLE = "TEMOTO_PROCESS_TOKEN"
 
 #: Every ProcessManager of this OS process, for :func:`hurry_all` (weakly: no lifetime effect).
 _MANAGERS: weakref.WeakSet[ProcessManager] = weakref.WeakSet()
@@ -206,93 +207,6 @@ class ProcessResponse:
 # ============================================================================ the server
 
 
-@dataclass(eq=False)
-class _Proc:
-    """What the manager knows about one process it started or adopted."""
-
-    pid: int
-    pgid: int
-    start_time: int
-    executable: str
-    resource_id: str
-    child: bool
-    stopping: bool = False
-    exit: tuple[int | None, int | None] | None = None
-
-
-def _describe_exit(
-    pid: int, executable: str, returncode: int | None, sig: int | None, child: bool
-) -> str:
-    who = f"process {pid} ({executable})"
-    if returncode is not None:
-        return f"{who} exited with code {returncode}"
-    if sig is not None:
-        try:
-            name = signal.Signals(sig).name
-        except ValueError:
-            name = f"signal {sig}"
-        return f"{who} was killed by signal {name}"
-    if child:
-        return f"{who} exited (status unknown: it was reaped elsewhere)"
-    return f"{who} exited (status unknown: not a child of this manager)"
-
-
-def _wait_readable(fds: Iterable[int], timeout: float | None, hurry: int = -1) -> set[int]:
-    """Block until every fd is readable or ``timeout`` passes; returns the readable ones.
-
-    ``hurry``, if given, is an fd that ends the wait early when it is readable.
-    """
-    ready: set[int] = set()
-    deadline = None if timeout is None else time.monotonic() + timeout
-    with selectors.DefaultSelector() as sel:
-        for fd in fds:
-            sel.register(fd, selectors.EVENT_READ)
-        if hurry >= 0:
-            sel.register(hurry, selectors.EVENT_READ, "hurry")
-        while len(sel.get_map()) > (hurry >= 0):
-            left = None if deadline is None else max(0.0, deadline - time.monotonic())
-            events = sel.select(left)
-            if not events:
-                break
-            if any(key.data == "hurry" for key, _ in events):
-                ready.update(key.fd for key, _ in events if key.data != "hurry")
-                break
-            for key, _ in events:
-                ready.add(key.fd)
-                sel.unregister(key.fd)
-    return ready
-
-
-def _token_processes(token: str) -> list[tuple[int, int]]:
-    """Live processes (pid, start time) whose environment holds ``TEMOTO_PROCESS_TOKEN=token``."""
-    found: list[tuple[int, int]] = []
-    for pid in processes_with_environ(f"{TOKEN_VARIABLE}={token}".encode()):
-        start = process_start_time(pid)
-        if start is not None and process_state(pid) not in _DEAD_STATES:
-            found.append((pid, start))
-    return found
-
-
-def _group_members(pgid: int) -> list[tuple[int, int]]:
-    """Live processes (pid, start time) whose process group is ``pgid``, from ``/proc``."""
-    members: list[tuple[int, int]] = []
-    for name in os.listdir("/proc"):
-        if not name.isdigit():
-            continue
-        try:
-            with open(f"/proc/{name}/stat", "rb") as f:
-                data = f.read()
-        except OSError:
-            continue
-        fields = data.rpartition(b")")[2].split()
-        # fields[0] is field 3 (state), fields[2] field 5 (pgrp), fields[19] field 22.
-        if len(fields) < 20 or fields[0].decode() in _DEAD_STATES:
-            continue
-        if int(fields[2]) == pgid:
-            members.append((int(name), int(fields[19])))
-    return members
-
-
 class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
     """The ``"process"`` resource server: starts, watches and stops processes.
 
@@ -359,17 +273,22 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         if log_dir is not None and inherit_output:
             raise ValueError("give log_dir or inherit_output, not both")
         self.registrar = registrar
-        self.grace = float(grace)
-        self.kill_timeout = float(kill_timeout)
         self.log_dir = Path(log_dir) if log_dir is not None else None
         self.inherit_output = bool(inherit_output)
-        self.die_with_manager = bool(die_with_manager)
         self._lock = threading.Lock()
         # Readable once hurry() is called: ends every grace period then and from then on.
         self._hurry_fd = os.eventfd(0, os.EFD_CLOEXEC | os.EFD_NONBLOCK)
         weakref.finalize(self, os.close, self._hurry_fd)
+        # Holds grace, kill_timeout and die_with_manager (the properties below read it).
+        self._stopper = GroupStopper(
+            float(grace),
+            float(kill_timeout),
+            self._hurry_fd,
+            unguard=bool(die_with_manager),
+            origin=self.name,
+        )
         _MANAGERS.add(self)
-        self._procs: dict[int, _Proc] = {}
+        self._procs: dict[int, ProcessRecord] = {}
         self._closed = False
         self._monitor = ProcessMonitor(name="temoto-procmon")
         try:
@@ -377,6 +296,33 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         except BaseException:
             self._monitor.close()
             raise
+
+    @property
+    def grace(self) -> float:
+        """Seconds between SIGTERM and SIGKILL when stopping."""
+        return self._stopper.grace
+
+    @grace.setter
+    def grace(self, value: float) -> None:
+        self._stopper.grace = float(value)
+
+    @property
+    def kill_timeout(self) -> float:
+        """Seconds to wait for a SIGKILLed process to disappear before giving up."""
+        return self._stopper.kill_timeout
+
+    @kill_timeout.setter
+    def kill_timeout(self, value: float) -> None:
+        self._stopper.kill_timeout = float(value)
+
+    @property
+    def die_with_manager(self) -> bool:
+        """Whether the processes are stopped when this OS process dies (however it dies)."""
+        return self._stopper.unguard
+
+    @die_with_manager.setter
+    def die_with_manager(self, value: bool) -> None:
+        self._stopper.unguard = bool(value)
 
     # --------------------------------------------------------------------- hooks
 
@@ -440,7 +386,7 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
             if start_time is None:  # pragma: no cover - impossible for an unreaped child
                 raise OSError(f"process {pid} vanished right after it was started")
             ctx.checkpoint({"token": token, "pid": pid, "pgid": pid, "start_time": start_time})
-            record = _Proc(pid, pid, start_time, request.executable, ctx.resource_id, True)
+            record = ProcessRecord(pid, pid, start_time, request.executable, ctx.resource_id, True)
             if self.die_with_manager:
                 guard_group(pid, f"{TOKEN_VARIABLE}={token}", self.grace)
             with self._lock:
@@ -449,7 +395,7 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         except BaseException:
             with self._lock:
                 self._procs.pop(pid, None)
-            self._kill_at_once(pid)
+            self._stopper.kill_at_once(pid)
             if self.die_with_manager:
                 unguard_group(pid)
             raise
@@ -480,11 +426,11 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
             # Not ours in this run: it died while the manager was down (reported on restore).
             # Its pid and group id may belong to others by now; what it started is found by
             # its token.
-            self._stop_leftovers(response.token, f"left-overs of process {response.pid}")
+            self._stopper.stop_leftovers(response.token, f"left-overs of process {response.pid}")
             return
         try:
             pidfd = self._monitor.detach(record.pid)  # None: its exit was already reported
-            self._stop(record, pidfd)
+            self._stopper.stop(record, pidfd)
         finally:
             with self._lock:
                 self._procs.pop(record.pid, None)
@@ -545,17 +491,17 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
             except (KeyError, TypeError, ValueError):
                 logger.warning("abandoned load of %s: unusable checkpoint %r", request, progress)
             else:
-                pidfd = self._open_if_same(pid, start)
+                pidfd = open_if_same(pid, start)
                 if pidfd is not None:
                     logger.warning(
                         "stopping process %d (%s): its load was interrupted",
                         pid,
                         request.executable,
                     )
-                    record = _Proc(pid, pgid, start, request.executable, "", False, True)
-                    self._stop(record, pidfd)
+                    record = ProcessRecord(pid, pgid, start, request.executable, "", False, True)
+                    self._stopper.stop(record, pidfd)
         if isinstance(token, str) and token:
-            self._stop_leftovers(token, f"interrupted load of {request.executable}")
+            self._stopper.stop_leftovers(token, f"interrupted load of {request.executable}")
 
     # --------------------------------------------------------------------- lifecycle
 
@@ -603,7 +549,7 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
                 record.stopping = True
         if not records:
             return []
-        pidfds: dict[int, _Proc] = {}
+        pidfds: dict[int, ProcessRecord] = {}
         for record in records:
             pidfd = self._monitor.detach(record.pid)
             if pidfd is not None:
@@ -612,13 +558,13 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         termed: set[int] = set()  # the groups that got SIGTERM here
         try:
             for pidfd, record in pidfds.items():
-                if not _wait_readable([pidfd], 0):
-                    self._signal_group(record.pgid, signal.SIGTERM)
+                if not wait_readable([pidfd], 0):
+                    signal_group(record.pgid, signal.SIGTERM)
                     termed.add(record.pgid)
-            left = set(pidfds) - _wait_readable(pidfds, self.grace, self._hurry_fd)
+            left = set(pidfds) - wait_readable(pidfds, self.grace, self._hurry_fd)
             for pidfd in left:
-                self._signal_group(pidfds[pidfd].pgid, signal.SIGKILL)
-            stuck = left - _wait_readable(left, self.kill_timeout)
+                signal_group(pidfds[pidfd].pgid, signal.SIGKILL)
+            stuck = left - wait_readable(left, self.kill_timeout)
             for pidfd, record in pidfds.items():
                 if record.child and pidfd not in stuck:
                     with contextlib.suppress(ChildProcessError):
@@ -628,7 +574,7 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
                 os.close(pidfd)
         for record in records:
             sent = signal.SIGTERM if record.pgid in termed else None
-            self._stop_members(record, deadline, sent)
+            self._stopper.stop_members(record, deadline, sent)
             if self.die_with_manager:
                 unguard_group(record.pgid)
             with self._lock:
@@ -708,7 +654,7 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
                 return
             record.exit = (returncode, sig)
             stopping = record.stopping
-        message = _describe_exit(pid, record.executable, returncode, sig, record.child)
+        message = describe_exit(pid, record.executable, returncode, sig, record.child)
         if stopping:
             logger.debug("%s while being stopped", message)
             return
@@ -720,9 +666,11 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
 
     def _adopt(self, response: ProcessResponse, resource_id: str, executable: str) -> bool:
         pid = response.pid
-        if process_start_time(pid) != response.start_time or process_state(pid) in _DEAD_STATES:
+        if process_start_time(pid) != response.start_time or process_state(pid) in DEAD_STATES:
             return False
-        record = _Proc(pid, response.pgid, response.start_time, executable, resource_id, False)
+        record = ProcessRecord(
+            pid, response.pgid, response.start_time, executable, resource_id, False
+        )
         if self.die_with_manager and response.token:
             guard_group(response.pgid, f"{TOKEN_VARIABLE}={response.token}", self.grace)
         with self._lock:
@@ -741,141 +689,6 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
                 self._procs.pop(pid, None)
             return False
         return True
-
-    @staticmethod
-    def _open_if_same(pid: int, start_time: int) -> int | None:
-        """A pidfd for ``pid`` if it still runs with ``start_time``, else None."""
-        try:
-            fd = os.pidfd_open(pid)
-        except ProcessLookupError:
-            return None
-        if process_start_time(pid) != start_time or process_state(pid) in _DEAD_STATES:
-            os.close(fd)
-            return None
-        return fd
-
-    def _stop(self, record: _Proc, pidfd: int | None) -> None:
-        """SIGTERM the group, wait for the leader up to ``grace``, SIGKILL the rest; reap."""
-        deadline = time.monotonic() + self.grace
-        sent: int | None = None  # the last signal sent to the group
-        try:
-            if pidfd is not None and not _wait_readable([pidfd], 0):
-                self._signal_group(record.pgid, signal.SIGTERM)
-                sent = signal.SIGTERM
-                if not _wait_readable([pidfd], self.grace, self._hurry_fd):
-                    logger.warning(
-                        "process %d (%s) ignored SIGTERM for %.3g s: sending SIGKILL",
-                        record.pid,
-                        record.executable,
-                        self.grace,
-                    )
-                    self._signal_group(record.pgid, signal.SIGKILL)
-                    sent = signal.SIGKILL
-                    if not _wait_readable([pidfd], self.kill_timeout):
-                        raise ResourceError(
-                            f"process {record.pid} ({record.executable}) survived SIGKILL for"
-                            f" {self.kill_timeout:g} s",
-                            origin=self.name,
-                        )
-            if pidfd is not None:
-                with contextlib.suppress(ChildProcessError):
-                    os.waitid(os.P_PIDFD, pidfd, os.WEXITED | os.WNOHANG)
-        finally:
-            if pidfd is not None:
-                os.close(pidfd)
-        if sent is None:
-            deadline = time.monotonic() + self.grace
-        self._stop_members(record, deadline, sent)
-        if self.die_with_manager:
-            unguard_group(record.pgid)
-        logger.info("stopped process %d (%s)", record.pid, record.executable)
-
-    def _stop_members(self, record: _Proc, deadline: float, sent: int | None) -> None:
-        """Stop what is left of the leader's process group (grandchildren).
-
-        ``sent`` is the signal the group already got (None, SIGTERM or SIGKILL); ``deadline``
-        ends the grace period of SIGTERM.
-        """
-        try:
-            os.killpg(record.pgid, 0)  # cheap: is anyone left in the group?
-        except ProcessLookupError:
-            return
-        except PermissionError:
-            pass
-        self._stop_processes(
-            _group_members(record.pgid), deadline, sent, f"process group {record.pgid}", record.pgid
-        )
-
-    def _stop_processes(
-        self,
-        members: list[tuple[int, int]],
-        deadline: float,
-        sent: int | None,
-        what: str,
-        pgid: int | None = None,
-    ) -> None:
-        """Stop processes given as (pid, start time): SIGTERM, wait until ``deadline``, SIGKILL.
-
-        ``sent`` is the signal they already got (None, SIGTERM or SIGKILL); ``pgid``, if given,
-        is their group, SIGKILLed as a whole too.
-        """
-        fds: dict[int, int] = {}
-        try:
-            for pid, start in members:
-                fd = self._open_if_same(pid, start)
-                if fd is not None:
-                    fds[fd] = pid
-            if not fds:
-                return
-            if sent is None:
-                for fd in fds:
-                    with contextlib.suppress(ProcessLookupError):
-                        signal.pidfd_send_signal(fd, signal.SIGTERM)
-            left = set(fds)
-            if sent != signal.SIGKILL:
-                left -= _wait_readable(fds, max(0.0, deadline - time.monotonic()), self._hurry_fd)
-            if left:
-                if sent != signal.SIGKILL:
-                    logger.warning(
-                        "%s: %d process(es) still running after SIGTERM: SIGKILL", what, len(left)
-                    )
-                for fd in left:
-                    with contextlib.suppress(ProcessLookupError):
-                        signal.pidfd_send_signal(fd, signal.SIGKILL)
-                if pgid is not None:
-                    # Members forked after the scan are reached through the group id, which
-                    # their living siblings keep from being reused.
-                    self._signal_group(pgid, signal.SIGKILL)
-                stuck = left - _wait_readable(left, self.kill_timeout)
-                if stuck:
-                    raise ResourceError(
-                        f"{what}: {sorted(fds[f] for f in stuck)} survived SIGKILL for"
-                        f" {self.kill_timeout:g} s",
-                        origin=self.name,
-                    )
-        finally:
-            for fd in fds:
-                os.close(fd)
-
-    def _stop_leftovers(self, token: str, what: str) -> None:
-        """Stop every process that carries the spawn token (and is not dead yet)."""
-        if not token:
-            return
-        members = _token_processes(token)
-        if members:
-            logger.warning("%s: stopping %s", what, sorted(pid for pid, _ in members))
-            self._stop_processes(members, time.monotonic() + self.grace, None, what)
-
-    @staticmethod
-    def _signal_group(pgid: int, sig: int) -> None:
-        with contextlib.suppress(ProcessLookupError):
-            os.killpg(pgid, sig)
-
-    def _kill_at_once(self, pid: int) -> None:
-        """Undo a spawn whose load failed after the process started: SIGKILL and reap."""
-        self._signal_group(pid, signal.SIGKILL)
-        with contextlib.suppress(ChildProcessError):
-            os.waitpid(pid, 0)
 
 
 # ============================================================================ the client

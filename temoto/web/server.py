@@ -73,8 +73,8 @@ def _page_bytes(mode: str) -> tuple[bytes, str]:
 
     policy = (
         "default-src 'none'; "
-        f"script-src 'sha256-{digest(_page.JS)}'; "
-        f"style-src 'sha256-{digest(_page.CSS)}'; "
+        f"script-src 'sha256-{digest(_page.js())}'; "
+        f"style-src 'sha256-{digest(_page.css())}'; "
         "connect-src 'self'; img-src data:; base-uri 'none'; form-action 'none'; "
         "frame-ancestors 'none'"
     )

@@ -28,8 +28,9 @@ from temoto.managers import (
     ProcessRequest,
     ProcessResponse,
 )
+from temoto.managers._process_stop import group_members as _group_members
 from temoto.managers._procmon import process_start_time, process_state
-from temoto.managers.process import TOKEN_VARIABLE, _group_members, hurry_all
+from temoto.managers.process import TOKEN_VARIABLE, hurry_all
 from temoto.testing import child_command
 
 GRACE = 0.3

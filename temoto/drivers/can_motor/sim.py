@@ -30,16 +30,17 @@ frame (the special frames do not count) arrived for that long, its command is ze
 (p, v, kp, kd, t_ff = 0: no torque); it stays in motor mode.
 
 The bus may be ``virtual`` (one process) or ``udp_multicast`` (across processes).
+
+Code: the motion models are in :mod:`~temoto.drivers.can_motor.sim_model`, the bus, threads and
+shared faults in :mod:`~temoto.drivers.can_motor.sim_bus`; this module is the two devices'
+protocols.
 """
 
 from __future__ import annotations
 
-import logging
 import math
 import threading
-from abc import abstractmethod
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
 from typing import Any, ClassVar, Final
 
 import can
@@ -47,8 +48,13 @@ import can
 from temoto.clock import Clock
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor import mitmode as mit
-from temoto.drivers.can_motor._common import open_bus
-from temoto.drivers.sim import Simulator
+from temoto.drivers.can_motor.sim_bus import CanDeviceSim
+from temoto.drivers.can_motor.sim_model import (
+    TORQUE_CONSTANT,
+    VEL_LIMIT_TOLERANCE,
+    AxisModel,
+    MitModel,
+)
 
 __all__ = [
     "CYCLIC_RATES",
@@ -60,16 +66,17 @@ __all__ = [
     "SimODrive",
 ]
 
-logger = logging.getLogger(__name__)
 
-_RX_POLL: Final = 0.05  # real seconds between stop-flag checks of a receive thread
 _HW_BITS: Final = {
     "overheat": cs.AxisError.MOTOR_OVER_TEMP,
     "overload": cs.AxisError.CURRENT_LIMIT_VIOLATION,
     "voltage": cs.AxisError.DC_BUS_UNDER_VOLTAGE,
 }
+
 _MIT_CODES: Final = {"overheat": 1, "overload": 2, "voltage": 4}
+
 _ZERO: Final = mit.MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
+
 
 #: ODrive 0.6's cyclic messages: each ``axis.config.can`` rate setting → (the message, its
 #: default period in ms; 0 = not sent). The defaults are the firmware's: heartbeats every
@@ -85,324 +92,17 @@ CYCLIC_RATES: Final[Mapping[str, tuple[cs.Cmd, int]]] = {
     "torques_msg_rate_ms": (cs.Cmd.GET_TORQUES, 0),
     "powers_msg_rate_ms": (cs.Cmd.GET_POWERS, 0),
 }
-#: N·m per A: ODrive's default ``motor.config.torque_constant``, turning a current limit into
-#: a torque limit and a torque into Iq.
-TORQUE_CONSTANT: Final = 0.04
-#: ``controller.config.vel_limit_tolerance``'s default: an axis faster than this many times its
-#: velocity limit disarms with ``VELOCITY_LIMIT_VIOLATION`` (``enable_overspeed_error``).
-VEL_LIMIT_TOLERANCE: Final = 1.2
+
 _BUS_VOLTAGE: Final = 24.0  # V
+
 _PHASE_RESISTANCE: Final = 0.1  # Ω: the copper losses in the electrical power
+
 _TEMPERATURES: Final = (40.0, 35.0)  # FET, motor, °C
+
 _VERSION: Final = bytes([2, 0, 0, 0, 0, 6, 10, 0])  # protocol 2, hardware 0.0.0, firmware 0.6.10
 
 
-@dataclass
-class AxisModel:
-    """One simulated ODrive axis (motor side: rev, rev/s, N·m).
-
-    The motor's torque works against viscous ``damping`` only, so in torque control the speed
-    settles at ``torque / damping`` and holding a speed takes ``damping * speed``.
-
-    **Limits**, as ``Set_Limits`` sets them (``controller.config.vel_limit`` and the motor's
-    current limit) and as the ODrive documents them: the velocity set-point, the position
-    loop's velocity and (``enable_torque_mode_vel_limit``) the speed in torque control are
-    clamped to ``vel_limit``; the torque is clamped to ``current_limit * torque_constant``, so
-    a speed that needs more torque than that is not reached. An axis that is found faster than
-    :data:`VEL_LIMIT_TOLERANCE` times ``vel_limit`` (a limit lowered below the present speed)
-    disarms with ``VELOCITY_LIMIT_VIOLATION``, as with ``enable_overspeed_error``.
-
-    Attributes:
-        node_id: Its CANSimple node id.
-        time_constant: Seconds of the first-order response.
-        vel_limit: rev/s.
-        damping: N·m per rev/s.
-        current_limit: A (infinite: not limited until ``Set_Limits``).
-        torque_constant: N·m per A.
-    """
-
-    node_id: int
-    time_constant: float = 0.05
-    vel_limit: float = 50.0
-    damping: float = 0.1
-    current_limit: float = math.inf
-    torque_constant: float = TORQUE_CONSTANT
-    pos: float = 0.0
-    vel: float = 0.0
-    state: int = cs.AxisState.IDLE
-    error: int = 0
-    control_mode: int = cs.ControlMode.POSITION_CONTROL
-    input_mode: int = cs.InputMode.PASSTHROUGH
-    input_pos: float = 0.0
-    input_vel: float = 0.0
-    input_torque: float = 0.0
-    stamp: float | None = None
-    commands: int = 0  # set-points received (for tests)
-    fed: float = -math.inf  # the watchdog's last feed, clock seconds
-
-    def step(self, now: float) -> None:
-        """Advance the model to ``now`` (clock seconds)."""
-        if self.stamp is None or now <= self.stamp:
-            self.stamp = now if self.stamp is None else self.stamp
-            return
-        dt, self.stamp = now - self.stamp, now
-        decay = math.exp(-dt / self.time_constant)
-        if self.state != cs.AxisState.CLOSED_LOOP_CONTROL:
-            self.vel *= decay  # coasting
-            self.pos += self.vel * dt
-            return
-        if abs(self.vel) > VEL_LIMIT_TOLERANCE * self.vel_limit:  # overspeed: disarm
-            self.error |= cs.AxisError.VELOCITY_LIMIT_VIOLATION
-            self.state = cs.AxisState.IDLE
-            self.vel *= decay
-            self.pos += self.vel * dt
-            return
-        # the fastest the axis may go: its velocity limit, and the speed its torque limit holds
-        fastest = min(self.vel_limit, self.torque_limit / self.damping)
-        if self.control_mode == cs.ControlMode.POSITION_CONTROL:
-            target = self.input_pos + (self.pos - self.input_pos) * decay
-            vel = (target - self.pos) / dt
-            vel = max(-fastest, min(fastest, vel))
-            self.pos += vel * dt
-            self.vel = vel
-            return
-        if self.control_mode == cs.ControlMode.VELOCITY_CONTROL:
-            goal = self.input_vel
-        else:
-            goal = self._torque_command() / self.damping
-        goal = max(-fastest, min(fastest, goal))
-        new = goal + (self.vel - goal) * decay
-        self.pos += 0.5 * (self.vel + new) * dt
-        self.vel = new
-
-    @property
-    def torque_limit(self) -> float:
-        """The largest torque the current limit allows, N·m."""
-        return self.current_limit * self.torque_constant
-
-    def _torque_command(self) -> float:
-        limit = self.torque_limit
-        return max(-limit, min(limit, self.input_torque))
-
-    def set_limits(self, vel_limit: float, current_limit: float) -> None:
-        """Apply ``Set_Limits`` (rev/s, A); a value that is not finite and positive is ignored.
-
-        Args:
-            vel_limit: The velocity limit, rev/s.
-            current_limit: The current limit, A.
-        """
-        if math.isfinite(vel_limit) and vel_limit > 0:
-            self.vel_limit = vel_limit
-        if math.isfinite(current_limit) and current_limit > 0:
-            self.current_limit = current_limit
-
-    @property
-    def torque(self) -> float:
-        """The torque estimate, N·m."""
-        if self.state != cs.AxisState.CLOSED_LOOP_CONTROL:
-            return 0.0
-        if self.control_mode == cs.ControlMode.TORQUE_CONTROL:
-            return self._torque_command()
-        return self.damping * self.vel
-
-    @property
-    def torque_target(self) -> float:
-        """The torque the controller aims at, N·m (``Get_Torques``' ``Torque_Target``)."""
-        if self.state != cs.AxisState.CLOSED_LOOP_CONTROL:
-            return 0.0
-        if self.control_mode == cs.ControlMode.TORQUE_CONTROL:
-            return self._torque_command()
-        return self.torque
-
-
-@dataclass
-class MitModel:
-    """One simulated MIT-mode motor (output side: rad, rad/s, N·m).
-
-    The motor's torque ``kp (p_des - p) + kd (v_des - v) + t_ff`` works against viscous
-    ``damping`` (none by default) with no inertia, which makes the position a first-order
-    system with the time constant ``(kd + damping) / kp``.
-
-    Attributes:
-        motor_id: Its CAN id.
-        ranges: Its field ranges.
-        damping: N·m per rad/s.
-    """
-
-    motor_id: int
-    ranges: mit.MitRanges = field(default_factory=mit.MitRanges)
-    damping: float = 0.0
-    enabled: bool = False
-    pos: float = 0.0
-    vel: float = 0.0
-    torque: float = 0.0
-    command: mit.MitCommand = field(default_factory=lambda: mit.MitCommand(0, 0, 0, 0, 0))
-    error: int = 0
-    temperature: int = 30
-    stamp: float | None = None
-    commands: int = 0
-    fed: float = -math.inf  # the CAN timeout's last reset (a command frame), clock seconds
-    timeouts: int = 0  # times the CAN timeout zeroed the command (for tests)
-
-    def step(self, now: float) -> None:
-        """Advance the model to ``now`` (clock seconds)."""
-        if self.stamp is None or now <= self.stamp:
-            self.stamp = now if self.stamp is None else self.stamp
-            return
-        dt, self.stamp = now - self.stamp, now
-        if not self.enabled:
-            self.vel *= math.exp(-dt * 20.0)
-            self.pos += self.vel * dt
-            self.torque = 0.0
-            return
-        c = self.command
-        friction = self.damping + c.kd
-        if c.kp > 0:
-            goal = c.p + (c.kd * c.v + c.t) / c.kp
-            decay = math.exp(-dt * c.kp / friction) if friction > 0 else 0.0
-            new = goal + (self.pos - goal) * decay
-            vel = (new - self.pos) / dt
-        elif friction > 0:
-            vel = (c.kd * c.v + c.t) / friction
-        else:  # a free motor under a constant torque runs up to its limit
-            vel = math.copysign(self.ranges.v_max, c.t) if c.t else 0.0
-        limit = self.ranges.v_max
-        vel = max(-limit, min(limit, vel))
-        self.pos = max(-self.ranges.p_max, min(self.ranges.p_max, self.pos + vel * dt))
-        self.vel = vel
-        torque = c.kp * (c.p - self.pos) + c.kd * (c.v - vel) + c.t
-        self.torque = max(-self.ranges.t_max, min(self.ranges.t_max, torque))
-
-
-class _CanSim(Simulator):
-    """A python-can bus, a receive thread and a clock-driven tick thread."""
-
-    FAULTS: ClassVar[frozenset[str]] = frozenset(
-        {"silence", "corrupt", "hardware_error", "link_loss"}
-    )
-    _KIND: ClassVar[str] = "can"
-
-    def __init__(self, link: Mapping[str, Any], clock: Clock, tick: float) -> None:
-        super().__init__()
-        self.link = dict(link)
-        self.clock = clock
-        self.tick = tick
-        self._cond = threading.Condition()
-        self._stop = False
-        self._bus: can.BusABC | None = None
-        self._threads: list[threading.Thread] = []
-        self._send_lock = threading.Lock()
-
-    def __repr__(self) -> str:
-        return f"<{type(self).__name__} on {self.link.get('channel')!r}>"
-
-    def start(self) -> None:
-        """Open the bus and start answering.
-
-        Raises:
-            RuntimeError: Already started.
-            DriverInitError: The bus cannot be opened.
-        """
-        if self._bus is not None:
-            raise RuntimeError(f"{self!r} is already started")
-        self._bus = open_bus(self.link, repr(self))
-        self._stop = False
-        channel = self.link.get("channel")
-        self._threads = [
-            threading.Thread(target=self._rx_loop, name=f"temoto-sim-{self._KIND}-{channel}-rx"),
-            threading.Thread(
-                target=self._tick_loop, name=f"temoto-sim-{self._KIND}-{channel}-tick"
-            ),
-        ]
-        for thread in self._threads:
-            thread.start()
-
-    def close(self) -> None:
-        """Stop, join the threads and close the bus (idempotent)."""
-        with self._cond:
-            self._stop = True
-            self._cond.notify_all()
-        for thread in self._threads:
-            thread.join()
-        self._threads = []
-        if self._bus is not None:
-            self._bus.shutdown()
-            self._bus = None
-
-    # ---- faults ----------------------------------------------------------------------------
-
-    def _faulted(self, name: str, node: int) -> bool:
-        params = self.fault(name)
-        if params is None:
-            return False
-        which = params.get("node")
-        return which is None or which == node
-
-    def _mute(self, node: int) -> bool:
-        return self.fault("link_loss") is not None or self._faulted("silence", node)
-
-    def send(self, arbitration_id: int, data: bytes, node: int) -> None:
-        """Send a frame from ``node`` (unless muted; truncated when corrupting)."""
-        if self._mute(node):
-            return
-        if data and self._faulted("corrupt", node):
-            data = data[: max(1, len(data) // 2 - 1)]
-        msg = can.Message(arbitration_id=arbitration_id, data=data, is_extended_id=False)
-        bus = self._bus
-        if bus is None:
-            return
-        try:
-            with self._send_lock:
-                bus.send(msg)
-        except can.CanError as err:
-            logger.debug("%r: send failed: %s", self, err)
-
-    # ---- threads ---------------------------------------------------------------------------
-
-    def _rx_loop(self) -> None:
-        bus = self._bus
-        assert bus is not None
-        while not self._stop:
-            try:
-                msg = bus.recv(_RX_POLL)
-            except can.CanError as err:  # pragma: no cover - a broken backend
-                logger.warning("%r: receive failed: %s", self, err)
-                continue
-            if msg is None or msg.is_error_frame or self.fault("link_loss") is not None:
-                continue
-            try:
-                self.on_frame(msg)
-            except Exception:  # a simulator never dies of one bad frame
-                logger.exception("%r: handling %s failed", self, msg)
-
-    def _tick_loop(self) -> None:
-        due = self.clock.monotonic()
-        while True:
-            with self._cond:
-                while not self._stop:
-                    left = due - self.clock.monotonic()
-                    if left <= 0:
-                        break
-                    self.clock.wait(self._cond, left)
-                if self._stop:
-                    return
-            now = self.clock.monotonic()
-            try:
-                self.on_tick(now)
-            except Exception:
-                logger.exception("%r: tick failed", self)
-            due = max(due + self.tick, now)
-
-    @abstractmethod
-    def on_frame(self, msg: can.Message) -> None:
-        """Handle one received frame (on the receive thread)."""
-
-    @abstractmethod
-    def on_tick(self, now: float) -> None:
-        """Step the models and send what is due (on the tick thread)."""
-
-
-class SimODrive(_CanSim):
+class SimODrive(CanDeviceSim):
     """ODrive axes answering CANSimple on a python-can bus.
 
     The cyclic messages are sent at the rates of ODrive 0.6's ``axis.config.can.*_msg_rate_ms``
@@ -429,7 +129,7 @@ class SimODrive(_CanSim):
             an unknown rate name.
     """
 
-    FAULTS: ClassVar[frozenset[str]] = _CanSim.FAULTS | {"no_heartbeat", "no_encoder"}
+    FAULTS: ClassVar[frozenset[str]] = CanDeviceSim.FAULTS | {"no_heartbeat", "no_encoder"}
     _KIND: ClassVar[str] = "odrive"
 
     def __init__(
@@ -624,7 +324,7 @@ class SimODrive(_CanSim):
 _DEVICE_SENDS: Final = frozenset(cmd for cmd, _ in CYCLIC_RATES.values())
 
 
-class SimMitMotor(_CanSim):
+class SimMitMotor(CanDeviceSim):
     """MIT-mode motors answering on a python-can bus (one reply per received frame).
 
     Args:

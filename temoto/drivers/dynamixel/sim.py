@@ -92,13 +92,16 @@ Faults (:meth:`~temoto.drivers.sim.Simulator.inject`; ``device=<id>`` limits ``s
 * ``link_loss`` -- no bytes in either direction (the pseudo-terminal itself stays, because its
   path must stay valid for the reconnect; an adapter whose device node disappears is not
   modelled).
+
+Code: this module is the pseudo-terminal, the serving thread, fault injection and the
+inspection methods; :mod:`~temoto.drivers.dynamixel.sim_instructions` (:class:`ServoChain`)
+carries out the instructions and :mod:`~temoto.drivers.dynamixel.sim_servo` models one servo.
 """
 
 from __future__ import annotations
 
 import contextlib
 import logging
-import math
 import os
 import select
 import termios
@@ -106,184 +109,27 @@ import threading
 import tty
 import warnings
 from collections.abc import Iterable, Mapping
-from dataclasses import dataclass, field
-from typing import Any, ClassVar, Final
+from typing import ClassVar, Final
 
-from temoto.clock import Clock, MonotonicClock
+from temoto.clock import Clock
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel import protocol as p
-from temoto.drivers.sim import Simulator
+from temoto.drivers.dynamixel.sim_instructions import ServoChain
+from temoto.drivers.dynamixel.sim_servo import BAUD_BY_CODE, GENERIC_REGISTERS
 
 __all__ = ["SimDynamixelChain"]
 
 logger = logging.getLogger(__name__)
 
-_TAU: Final = 0.05  # s, time constant of position and velocity tracking
-_SUBSTEP: Final = 0.001  # s, largest integration step
-_SNAP_AFTER: Final = 1.0  # s, a longer step settles at once
-_TICKS_S_PER_UNIT: Final = 0.229 * 4096.0 / 60.0  # velocity unit in ticks per second
-_LOAD_FULL: Final = 1000  # Present Load of a model without a current sensor: 0.1 % units
-_PWM_FULL: Final = 885
-_EXTENDED_GOAL: Final = 1_048_575  # |Goal Position| in the multi-turn modes (e-Manual)
-_CLEAR_MULTI_TURN: Final = bytes([0x01, 0x44, 0x58, 0x4C, 0x22])
-_TORQUE_ON_BY_GOAL: Final = 0x08  # Drive Mode bit 3 (firmware v45 on; v46 on the XL330)
-_E = p.ErrorNumber
-_I = p.Instruction
-
-#: Baud Rate register (8) values → bits per second (X series).
-_BAUD_BY_CODE: Final[Mapping[int, int]] = {
-    0: 9600,
-    1: 57600,
-    2: 115200,
-    3: 1_000_000,
-    4: 2_000_000,
-    5: 3_000_000,
-    6: 4_000_000,
-    7: 4_500_000,
-}
-_CODE_BY_BAUD: Final[Mapping[int, int]] = {baud: code for code, baud in _BAUD_BY_CODE.items()}
 #: ``termios`` speed constants → bits per second (those this platform has).
 _LINE_SPEEDS: Final[Mapping[int, int]] = {
     getattr(termios, f"B{baud}"): baud
-    for baud in _BAUD_BY_CODE.values()
+    for baud in BAUD_BY_CODE.values()
     if hasattr(termios, f"B{baud}")
 }
 
-_KIND_BITS: Final[Mapping[str, int]] = {
-    "overheat": p.HardwareError.OVERHEATING,
-    "overload": p.HardwareError.OVERLOAD,
-    "voltage": p.HardwareError.INPUT_VOLTAGE,
-}
-_GOAL_NAMES: Final = frozenset(r.name for r in ct.GOAL_REGISTERS)
-_POSITION_MODES: Final = frozenset(
-    {
-        ct.OperatingMode.POSITION,
-        ct.OperatingMode.EXTENDED_POSITION,
-        ct.OperatingMode.CURRENT_BASED_POSITION,
-    }
-)
-#: Instructions answered at Status Return Level 1 (PING is answered at every level).
-_READS: Final = frozenset(
-    {_I.READ, _I.SYNC_READ, _I.BULK_READ, _I.FAST_SYNC_READ, _I.FAST_BULK_READ}
-)
-#: Models without Fast Sync/Bulk Read (e-Manual: "2XL/2XC Not Supported").
-_NO_FAST_READ: Final = frozenset({"2XL430-W250"})
-_GENERIC: Final = {r.address: r for r in ct.REGISTERS}
 
-
-class _Reject(Exception):
-    """An instruction a servo refuses: answered with this error number."""
-
-    def __init__(self, number: int) -> None:
-        super().__init__(number)
-        self.number = number
-
-
-class _Layout:
-    """A model's control table, indexed for the simulator (one per model, shared)."""
-
-    def __init__(self, model: ct.Model) -> None:
-        self.model = model
-        self.size = model.table_end
-        self.by_name: dict[str, ct.Register] = {r.name: r for r in model.registers}
-        self.by_address: dict[int, ct.Register] = {r.address: r for r in model.registers}
-        self.owner: list[ct.Register | None] = [None] * self.size
-        for reg in model.registers:
-            for at in range(reg.address, reg.address + reg.size):
-                self.owner[at] = reg
-        #: Indirect Data address → its Indirect Address register.
-        self.indirect: dict[int, ct.Register] = {
-            reg.default: reg for reg in model.registers if reg.name.startswith("Indirect Address")
-        }
-
-
-_LAYOUTS: dict[str, _Layout] = {}
-
-
-def _layout(model: ct.Model) -> _Layout:
-    found = _LAYOUTS.get(model.name)
-    if found is None:
-        found = _LAYOUTS[model.name] = _Layout(model)
-    return found
-
-
-@dataclass
-class _Servo:
-    """One simulated servo: its control table and the continuous state behind it."""
-
-    start_id: int
-    model: ct.Model
-    layout: _Layout = field(init=False)
-    table: bytearray = field(init=False)
-    position: float = float(ct.POSITION_CENTER)  # ticks
-    velocity: float = 0.0  # ticks/s
-    current: float = 0.0  # current units (or load, 0.1 %)
-    heard: float = 0.0  # clock time of the newest instruction packet meant for it
-    booted: float = 0.0  # clock time of the last (re)boot: Realtime Tick counts from it
-    halted: bool = False  # stopped by its Bus Watchdog; until torque off or a new goal
-    registered: tuple[int, bytes] | None = None  # a REG_WRITE waiting for ACTION
-
-    def __post_init__(self) -> None:
-        self.layout = _layout(self.model)
-        self.table = bytearray(self.layout.size)
-        for reg in self.model.registers:
-            self.put(reg, reg.default)
-        self.set("ID", self.start_id)
-
-    @property
-    def id(self) -> int:
-        """The id it answers to now (its ID register)."""
-        return self.table[7]
-
-    def reg(self, name: str) -> ct.Register | None:
-        return self.layout.by_name.get(name)
-
-    def get(self, reg: ct.Register) -> int:
-        at = reg.address
-        return int.from_bytes(self.table[at : at + reg.size], "little", signed=reg.signed)
-
-    def put(self, reg: ct.Register, value: int) -> None:
-        self.table[reg.address : reg.address + reg.size] = p.to_le(value, reg.size)
-
-    def value(self, name: str, default: int = 0) -> int:
-        """A register's value by name (``default`` if the model has no such register)."""
-        reg = self.layout.by_name.get(name)
-        if reg is None:
-            return default
-        at = reg.address
-        return int.from_bytes(self.table[at : at + reg.size], "little", signed=reg.signed)
-
-    def set(self, name: str, value: int) -> None:
-        """Set a register by name (nothing if the model has no such register)."""
-        reg = self.layout.by_name.get(name)
-        if reg is not None:
-            self.put(reg, value)
-
-    def resolve(self, address: int) -> int:
-        """The address a byte access really goes to (an Indirect Data byte: its target)."""
-        pointer = self.layout.indirect.get(address)
-        if pointer is None:
-            return address
-        target = self.get(pointer)
-        if target in self.layout.indirect or not 0 <= target < self.layout.size:
-            return address  # points at Indirect Data (or nowhere): the byte itself
-        return target
-
-    @property
-    def torque(self) -> bool:
-        return self.value("Torque Enable") == 1
-
-    @property
-    def hardware_error(self) -> int:
-        return self.value("Hardware Error Status")
-
-    @property
-    def current_limit(self) -> int:
-        """The Current Limit, or 100.0 % for a model that reports load."""
-        return self.value("Current Limit", _LOAD_FULL)
-
-
-class SimDynamixelChain(Simulator):
+class SimDynamixelChain(ServoChain):
     """A chain of simulated X-series servos on a pseudo-terminal (see the module docstring).
 
     Args:
@@ -312,47 +158,13 @@ class SimDynamixelChain(Simulator):
         name: str = "dxl",
         baud: int | None = None,
     ) -> None:
-        super().__init__()
-        if not servos:
-            raise ValueError("a chain needs at least one servo")
-        if baud is not None and baud not in _CODE_BY_BAUD:
-            raise ValueError(f"baud must be one of {sorted(_CODE_BY_BAUD)}, got {baud!r}")
-        chain: list[_Servo] = []
-        for dxl_id, model in sorted(servos.items()):
-            if not 0 <= dxl_id <= p.MAX_ID:
-                raise ValueError(f"servo id must be 0..{p.MAX_ID}, got {dxl_id}")
-            if model not in ct.MODELS:
-                known = ", ".join(ct.MODELS)
-                raise ValueError(f"servo {dxl_id}: unknown model {model!r} (known: {known})")
-            servo = _Servo(dxl_id, ct.MODELS[model])
-            if baud is not None:
-                if _CODE_BY_BAUD[baud] not in servo.model.baud_codes:
-                    raise ValueError(f"servo {dxl_id}: {model} has no {baud} baud")
-                servo.set("Baud Rate", _CODE_BY_BAUD[baud])
-            chain.append(servo)
+        super().__init__(servos, clock=clock, baud=baud)
         self.name = name
-        self.baud = baud
-        self.clock: Clock = clock or MonotonicClock()
-        self._servos = chain
-        self._state = threading.Lock()
-        self._last_step = self.clock.monotonic()
-        for servo in chain:
-            servo.booted = self._last_step
         self._reader = p.PacketReader()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
         self._closed = False
         self._corrupt_left: int | None = None  # corrupt replies still to send (replies=)
-        #: Packets heard, replies sent, bad packets dropped, REBOOTs, FACTORY_RESETs, and
-        #: accepted writes that touched the EEPROM area (a real servo's EEPROM wears with each).
-        self.stats: dict[str, int] = {
-            "packets": 0,
-            "replies": 0,
-            "bad_packets": 0,
-            "reboots": 0,
-            "factory_resets": 0,
-            "eeprom_writes": 0,
-        }
         self._master, self._slave = os.openpty()
         try:
             tty.setraw(self._slave)  # no echo, no line discipline, before anyone opens it
@@ -442,7 +254,7 @@ class SimDynamixelChain(Simulator):
         with self._state:
             self._step_locked()
             servo = self._servo(dxl_id)
-            reg = servo.layout.by_address.get(address) or _GENERIC.get(address)
+            reg = servo.layout.by_address.get(address) or GENERIC_REGISTERS.get(address)
             if reg is None and size is None:
                 raise KeyError(f"no register at {address}")
             signed = reg.signed if reg is not None else False
@@ -468,12 +280,6 @@ class SimDynamixelChain(Simulator):
             if reg.name == "Present Position":
                 servo.position = float(value)
 
-    def _servo(self, dxl_id: int) -> _Servo:
-        for servo in self._servos:
-            if servo.id == dxl_id:
-                return servo
-        raise KeyError(f"no servo answers to id {dxl_id}")
-
     # ---- faults ------------------------------------------------------------------------------
 
     def on_fault_changed(self, fault: str, active: bool) -> None:
@@ -489,28 +295,6 @@ class SimDynamixelChain(Simulator):
             with self._state:
                 for servo in self._targets(params):
                     self._raise_hardware_error(servo, str(params.get("kind", "overheat")))
-
-    def _targets(self, params: Mapping[str, Any]) -> list[_Servo]:
-        device = params.get("device")
-        if device is None:
-            return list(self._servos)
-        found = [s for s in self._servos if s.id == device]
-        if not found:
-            raise ValueError(f"no servo {device} in this chain")
-        return found
-
-    def _raise_hardware_error(self, servo: _Servo, kind: str) -> None:
-        self._step_locked()
-        servo.set("Hardware Error Status", servo.hardware_error | _KIND_BITS[kind])
-        servo.set("Torque Enable", 0)
-        if kind == "overheat":
-            servo.set("Present Temperature", servo.value("Temperature Limit") + 5)
-        elif kind == "voltage":
-            servo.set("Present Input Voltage", servo.value("Max Voltage Limit") + 10)
-
-    def _silent(self, dxl_id: int) -> bool:
-        params = self.fault("silence")
-        return params is not None and params.get("device", dxl_id) == dxl_id
 
     # ---- serving -----------------------------------------------------------------------------
 
@@ -556,12 +340,6 @@ class SimDynamixelChain(Simulator):
             return None
         return _LINE_SPEEDS.get(speed)
 
-    def _absent(self, servo: _Servo, line: int | None) -> bool:
-        """Whether ``servo`` misses a packet: silenced, at another baud rate or protocol."""
-        if self._silent(servo.id) or servo.value("Protocol Type", 2) != 2:
-            return True
-        return self.baud is not None and _BAUD_BY_CODE.get(servo.value("Baud Rate")) != line
-
     def _send(self, data: bytes) -> None:
         if self.fault("link_loss") is not None:
             return
@@ -582,508 +360,6 @@ class SimDynamixelChain(Simulator):
                 return
             view = view[sent:]
         self.stats["replies"] += 1
-
-    def _handle(self, packet: p.Packet, line: int | None = None) -> list[bytes]:
-        with self._state:
-            self._step_locked()
-            if packet.is_status:
-                return []
-            if packet.id == p.BROADCAST_ID:
-                self._hear(self._addressed(packet, line))
-                return self._broadcast(packet, line)
-            replies: list[bytes] = []
-            for servo in [s for s in self._servos if not self._absent(s, line)]:
-                if servo.id != packet.id:
-                    if servo.value("Secondary ID", 255) == packet.id:  # a group member
-                        self._hear((servo,))
-                        with contextlib.suppress(_Reject):  # no status packet, RAM only
-                            self._unicast(servo, packet, shadow=True)
-                    continue
-                self._hear((servo,))
-                answer_id, answers = servo.id, _answers(servo, packet.instruction)
-                try:
-                    params = self._unicast(servo, packet)
-                except _Reject as reject:
-                    params, number = b"", reject.number
-                else:
-                    number = 0
-                if answers:
-                    replies.append(self._status(servo, number, params, answer_id))
-            return replies
-
-    def _status(
-        self, servo: _Servo, number: int, params: bytes = b"", dxl_id: int | None = None
-    ) -> bytes:
-        alert = p.ALERT_BIT if servo.hardware_error else 0
-        return p.status_packet(servo.id if dxl_id is None else dxl_id, number | alert, params)
-
-    def _unicast(self, servo: _Servo, packet: p.Packet, *, shadow: bool = False) -> bytes:
-        """Carry out one instruction for one servo; the status packet's parameters.
-
-        ``shadow``: the packet is addressed to the servo's Secondary ID, through which only the
-        RAM area can be changed (and no status packet goes back).
-        """
-        inst, params = packet.instruction, packet.params
-        if inst == _I.PING:
-            return p.to_le(servo.value("Model Number"), 2) + bytes(
-                [servo.value("Firmware Version")]
-            )
-        if inst == _I.READ:
-            if len(params) != 4:
-                raise _Reject(_E.DATA_LENGTH)
-            return self._read(servo, p.from_le(params[:2]), p.from_le(params[2:]))
-        if inst == _I.WRITE:
-            if len(params) < 3:
-                raise _Reject(_E.DATA_LENGTH)
-            self._write(servo, p.from_le(params[:2]), params[2:], ram_only=shadow)
-        elif inst == _I.REG_WRITE:
-            if len(params) < 3:
-                raise _Reject(_E.DATA_LENGTH)
-            self._register(servo, p.from_le(params[:2]), params[2:], ram_only=shadow)
-        elif inst == _I.ACTION:
-            if servo.registered is None:
-                raise _Reject(_E.INSTRUCTION)
-            self._action(servo)
-        elif inst == _I.REBOOT:
-            self._reboot(servo)
-        elif inst == _I.FACTORY_RESET:
-            if shadow:
-                raise _Reject(_E.ACCESS)  # it rewrites the EEPROM area
-            if len(params) != 1:
-                raise _Reject(_E.DATA_LENGTH)
-            if params[0] not in (0xFF, 0x01, 0x02):
-                raise _Reject(_E.DATA_RANGE)
-            self._factory_reset(servo, params[0])
-        elif inst == _I.CLEAR:
-            self._clear(servo, params)
-        else:
-            raise _Reject(_E.INSTRUCTION)
-        return b""
-
-    def _broadcast(self, packet: p.Packet, line: int | None = None) -> list[bytes]:
-        inst, params = packet.instruction, packet.params
-        live = sorted((s for s in self._servos if not self._absent(s, line)), key=lambda s: s.id)
-        replies: list[bytes] = []
-        if inst == _I.PING:
-            for servo in live:  # in ascending id order, each after the one before
-                replies.append(self._status(servo, 0, self._unicast(servo, packet)))
-        elif inst == _I.SYNC_READ and len(params) >= 4:
-            address, length = p.from_le(params[:2]), p.from_le(params[2:4])
-            for dxl_id in params[4:]:
-                for found in (s for s in live if s.id == dxl_id):
-                    if _answers(found, inst):
-                        replies.append(self._reply_read(found, address, length))
-        elif inst == _I.SYNC_WRITE and len(params) >= 4:
-            address, length = p.from_le(params[:2]), p.from_le(params[2:4])
-            for at in range(4, len(params) - length, length + 1):
-                for found in (s for s in live if s.id == params[at]):
-                    self._quiet(self._write, found, address, params[at + 1 : at + 1 + length])
-        elif inst == _I.BULK_READ:
-            for at in range(0, len(params) - 4, 5):
-                for found in (s for s in live if s.id == params[at]):
-                    if _answers(found, inst):
-                        address = p.from_le(params[at + 1 : at + 3])
-                        length = p.from_le(params[at + 3 : at + 5])
-                        replies.append(self._reply_read(found, address, length))
-        elif inst in (_I.FAST_SYNC_READ, _I.FAST_BULK_READ):
-            reply = self._fast_read(packet, live)
-            if reply is not None:
-                replies.append(reply)
-        elif inst == _I.BULK_WRITE:
-            at = 0
-            while at + 5 <= len(params):
-                length = p.from_le(params[at + 3 : at + 5])
-                for found in (s for s in live if s.id == params[at]):
-                    address = p.from_le(params[at + 1 : at + 3])
-                    self._quiet(self._write, found, address, params[at + 5 : at + 5 + length])
-                at += 5 + length
-        elif inst in (_I.WRITE, _I.REG_WRITE) and len(params) >= 3:
-            act = self._write if inst == _I.WRITE else self._register
-            for servo in live:
-                self._quiet(act, servo, p.from_le(params[:2]), params[2:])
-        elif inst == _I.ACTION:
-            for servo in live:
-                if servo.registered is not None:
-                    with contextlib.suppress(_Reject):
-                        self._action(servo)
-        elif inst == _I.REBOOT:
-            for servo in live:
-                self._reboot(servo)
-        elif inst == _I.FACTORY_RESET and len(params) == 1 and params[0] in (0x01, 0x02):
-            for servo in live:  # the broadcast form of 0xFF (all) is ignored (firmware v42 on)
-                self._factory_reset(servo, params[0])
-        elif inst == _I.CLEAR:
-            for servo in live:
-                with contextlib.suppress(_Reject):
-                    self._clear(servo, params)
-        return replies
-
-    def _addressed(self, packet: p.Packet, line: int | None) -> list[_Servo]:
-        """The servos a broadcast instruction packet is meant for (those that hear it).
-
-        A SYNC or BULK packet is meant for the ids it lists; any other broadcast for every
-        servo. (The e-Manual counts "all instruction packets" as communication for the Bus
-        Watchdog; a packet that names only other servos is taken as not meant for this one.)
-        """
-        inst, params = packet.instruction, packet.params
-        ids: set[int] | None = None
-        if inst in (_I.SYNC_READ, _I.FAST_SYNC_READ):
-            ids = set(params[4:])
-        elif inst == _I.SYNC_WRITE and len(params) >= 4:
-            length = p.from_le(params[2:4])
-            ids = {params[at] for at in range(4, len(params), length + 1)}
-        elif inst in (_I.BULK_READ, _I.FAST_BULK_READ):
-            ids = {params[at] for at in range(0, len(params), 5)}
-        elif inst == _I.BULK_WRITE:
-            ids, at = set(), 0
-            while at + 5 <= len(params):
-                ids.add(params[at])
-                at += 5 + p.from_le(params[at + 3 : at + 5])
-        return [
-            s for s in self._servos if (ids is None or s.id in ids) and not self._absent(s, line)
-        ]
-
-    def _fast_read(self, packet: p.Packet, live: list[_Servo]) -> bytes | None:
-        """FAST_SYNC_READ / FAST_BULK_READ: one status packet the listed servos build together.
-
-        Each servo in turn appends its error, id, data and the CRC of the packet so far; the
-        last CRC is the packet's (e-Manual: no byte stuffing in this reply). A listed servo that
-        is absent, silent at this Status Return Level or of a model without the instruction
-        leaves the packet unfinished: nothing goes out, and the client times out.
-        """
-        params = packet.params
-        wanted: list[tuple[int, int, int]] = []
-        if packet.instruction == _I.FAST_SYNC_READ:
-            if len(params) < 5:
-                return None
-            address, length = p.from_le(params[:2]), p.from_le(params[2:4])
-            wanted = [(dxl_id, address, length) for dxl_id in params[4:]]
-        else:
-            for at in range(0, len(params) - 4, 5):
-                wanted.append(
-                    (
-                        params[at],
-                        p.from_le(params[at + 1 : at + 3]),
-                        p.from_le(params[at + 3 : at + 5]),
-                    )
-                )
-        parts: list[bytes] = []
-        for dxl_id, address, length in wanted:
-            found = next((s for s in live if s.id == dxl_id), None)
-            if (
-                found is None
-                or found.model.name in _NO_FAST_READ
-                or not _answers(found, packet.instruction)
-            ):
-                return None
-            try:
-                data, number = self._read(found, address, length), 0
-            except _Reject as reject:
-                data, number = bytes(length), reject.number
-            alert = p.ALERT_BIT if found.hardware_error else 0
-            parts.append(bytes([number | alert, dxl_id]) + data)
-        if not parts:
-            return None
-        size = 1 + sum(len(part) + 2 for part in parts)  # INST, then each part and its CRC
-        out = bytearray(p.HEADER + bytes([p.BROADCAST_ID]) + p.to_le(size, 2) + bytes([_I.STATUS]))
-        for part in parts:
-            out += part
-            out += p.to_le(p.crc16(out), 2)
-        return bytes(out)
-
-    def _reply_read(self, servo: _Servo, address: int, length: int) -> bytes:
-        try:
-            return self._status(servo, 0, self._read(servo, address, length))
-        except _Reject as reject:
-            return self._status(servo, reject.number)
-
-    @staticmethod
-    def _quiet(act: Any, servo: _Servo, address: int, data: bytes) -> None:
-        with contextlib.suppress(_Reject):  # sync, bulk and broadcast writes have no status
-            act(servo, address, data)
-
-    # ---- the control table -------------------------------------------------------------------
-
-    def _read(self, servo: _Servo, address: int, length: int) -> bytes:
-        if length < 1 or address + length > servo.layout.size:
-            raise _Reject(_E.ACCESS)
-        return bytes(servo.table[servo.resolve(a)] for a in range(address, address + length))
-
-    def _write(
-        self, servo: _Servo, address: int, data: bytes, *, dry: bool = False, ram_only: bool = False
-    ) -> None:
-        """Check a write as the servo does and (unless ``dry``) carry it out.
-
-        ``ram_only``: the EEPROM area is read-only (a write through the Secondary ID).
-        """
-        if not data:
-            raise _Reject(_E.DATA_LENGTH)
-        if address + len(data) > servo.layout.size:
-            raise _Reject(_E.ACCESS)
-        scratch = bytearray(servo.table)
-        touched: dict[int, ct.Register] = {}
-        covered: dict[int, int] = {}  # register address → bytes of it this write sets
-        for offset, byte in enumerate(data):
-            at = servo.resolve(address + offset)
-            reg = servo.layout.owner[at]
-            if reg is None:
-                continue  # a reserved byte: ignored
-            scratch[at] = byte
-            touched[reg.address] = reg
-            covered[reg.address] = covered.get(reg.address, 0) + 1
-        if not touched:
-            raise _Reject(_E.ACCESS)
-        watchdog_error = servo.value("Bus Watchdog") == ct.BUS_WATCHDOG_ERROR
-        for reg in touched.values():
-            if not reg.writable or (reg.torque_locked and servo.torque):
-                raise _Reject(_E.ACCESS)
-            if ram_only and reg.eeprom:
-                raise _Reject(_E.ACCESS)
-            if reg.name in _GOAL_NAMES and watchdog_error:
-                raise _Reject(_E.DATA_RANGE)  # goal values are read-only after it expired
-        if any(covered[at] < reg.size for at, reg in touched.items()):
-            raise _Reject(_E.DATA_LENGTH)  # only part of a register (2 bytes of a 4-byte one)
-
-        def new(reg: ct.Register) -> int:
-            return p.from_le(bytes(scratch[reg.address : reg.address + reg.size]), reg.signed)
-
-        def now(name: str, default: int = 0) -> int:
-            reg = servo.reg(name)
-            return default if reg is None else new(reg)
-
-        for reg in touched.values():
-            self._check(servo, reg, new(reg), now)
-        if dry:
-            return
-        if any(reg.eeprom for reg in touched.values()):
-            self.stats["eeprom_writes"] += 1
-        for reg in touched.values():
-            value = new(reg)
-            if reg.name == "Torque Enable" and value and servo.hardware_error:
-                continue  # a servo with a hardware error keeps its torque off
-            if (reg.name == "Torque Enable" and not value) or reg.name in _GOAL_NAMES:
-                servo.halted = False
-            if reg.name == "Homing Offset":  # Present Position = actual position + offset
-                servo.position += value - servo.get(reg)
-                servo.set("Present Position", round(servo.position))
-            servo.put(reg, value)
-        goal = any(reg.name in _GOAL_NAMES for reg in touched.values())
-        if goal and servo.value("Drive Mode") & _TORQUE_ON_BY_GOAL and not servo.hardware_error:
-            servo.set("Torque Enable", 1)  # Drive Mode bit 3: Torque On by Goal Update
-
-    def _check(self, servo: _Servo, reg: ct.Register, value: int, now: Any) -> None:
-        """Refuse ``value`` for ``reg`` as the e-Manual says (``now``: values after the write)."""
-        name = reg.name
-        mode = now("Operating Mode")
-        if name == "Operating Mode":
-            if value not in {int(m) for m in servo.model.modes}:
-                raise _Reject(_E.DATA_RANGE)
-        elif name == "Bus Watchdog":
-            if not 0 <= value <= ct.BUS_WATCHDOG_MAX:
-                raise _Reject(_E.DATA_RANGE)
-            if value and servo.value("Bus Watchdog") == ct.BUS_WATCHDOG_ERROR:
-                raise _Reject(_E.DATA_RANGE)  # only 0 clears the error
-        elif name == "Drive Mode":
-            if value & ~(reg.high or 0):
-                raise _Reject(_E.DATA_RANGE)  # a bit the model does not have
-        elif name == "Goal Position":
-            if mode == ct.OperatingMode.POSITION:
-                if not now("Min Position Limit") <= value <= now("Max Position Limit"):
-                    raise _Reject(_E.DATA_LIMIT)
-            elif abs(value) > _EXTENDED_GOAL:
-                raise _Reject(_E.DATA_RANGE)
-        elif name == "Goal Velocity":
-            if abs(value) > now("Velocity Limit"):
-                raise _Reject(_E.DATA_LIMIT)
-        elif name == "Goal Current":
-            if abs(value) > now("Current Limit"):
-                raise _Reject(_E.DATA_LIMIT)
-        elif name == "Goal PWM":
-            if abs(value) > now("PWM Limit", _PWM_FULL):
-                raise _Reject(_E.DATA_LIMIT)
-        elif reg.low is not None and reg.high is not None and not reg.low <= value <= reg.high:
-            raise _Reject(_E.DATA_RANGE)
-
-    def _register(
-        self, servo: _Servo, address: int, data: bytes, *, ram_only: bool = False
-    ) -> None:
-        """REG_WRITE: check now, hold until ACTION."""
-        self._write(servo, address, data, dry=True, ram_only=ram_only)
-        servo.registered = (address, bytes(data))
-        servo.set("Registered Instruction", 1)
-
-    def _action(self, servo: _Servo) -> None:
-        """ACTION: carry out the registered write."""
-        held, servo.registered = servo.registered, None
-        servo.set("Registered Instruction", 0)
-        if held is not None:
-            self._write(servo, *held)
-
-    def _reboot(self, servo: _Servo) -> None:
-        """REBOOT: the RAM area back to its initial values, the multi-turn count dropped."""
-        self.stats["reboots"] += 1
-        params = self.fault("hardware_error")
-        still = params is not None and params.get("device", servo.id) == servo.id
-        for reg in servo.model.registers:
-            if not reg.eeprom:
-                servo.put(reg, reg.default)
-        offset = servo.value("Homing Offset")
-        servo.position = float((round(servo.position) - offset) % 4096 + offset)
-        servo.set("Present Position", round(servo.position))
-        servo.set("Position Trajectory", round(servo.position))
-        servo.set("Goal Position", round(servo.position))
-        servo.halted = False
-        servo.velocity = 0.0
-        servo.current = 0.0
-        servo.registered = None
-        servo.booted = self.clock.monotonic()
-        if still and params is not None:
-            self._raise_hardware_error(servo, str(params.get("kind", "overheat")))
-        elif servo.value("Startup Configuration") & 0x01:
-            servo.set("Torque Enable", 1)  # Startup Torque On
-
-    def _factory_reset(self, servo: _Servo, option: int) -> None:
-        """FACTORY_RESET: every register to its factory value (but the ID / the baud rate)."""
-        self.stats["factory_resets"] += 1
-        keep = {"ID", "Baud Rate"} if option == 0x02 else {"ID"} if option == 0x01 else set()
-        servo.position -= servo.value("Homing Offset")  # back to 0 with the rest
-        for reg in servo.model.registers:
-            if reg.eeprom and reg.name not in keep:
-                servo.put(reg, reg.default)
-        self._reboot(servo)
-
-    def _clear(self, servo: _Servo, params: bytes) -> None:
-        """CLEAR 0x01: Present Position back within one turn (only while it stands still)."""
-        if len(params) != len(_CLEAR_MULTI_TURN):
-            raise _Reject(_E.DATA_LENGTH)
-        if params != _CLEAR_MULTI_TURN:
-            raise _Reject(_E.DATA_RANGE)
-        if servo.value("Moving") or abs(servo.velocity) > _TICKS_S_PER_UNIT:
-            raise _Reject(_E.RESULT_FAIL)
-        turns = math.floor((servo.position - servo.value("Homing Offset")) / 4096)
-        servo.position -= turns * 4096
-        for name in ("Present Position", "Position Trajectory"):
-            servo.set(name, round(servo.position))
-        if servo.value("Operating Mode") in _POSITION_MODES:  # keep standing where it is
-            servo.set("Goal Position", servo.value("Goal Position") - turns * 4096)
-
-    # ---- motion ------------------------------------------------------------------------------
-
-    def _step_locked(self) -> None:
-        now = self.clock.monotonic()
-        start = self._last_step
-        dt = now - start
-        self._last_step = now
-        if dt <= 0:
-            return
-        for servo in self._servos:
-            expiry = _watchdog_expiry(servo)
-            if expiry is not None and expiry < now:
-                _move(servo, max(expiry - start, 0.0))  # up to the moment it expired
-                _expire_watchdog(servo)
-                _move(servo, now - max(expiry, start))
-            else:
-                _move(servo, dt)
-            servo.set("Realtime Tick", int((now - servo.booted) * 1000) % 32768)
-
-    def _hear(self, servos: Iterable[_Servo]) -> None:
-        """An instruction packet for ``servos`` arrived now: their Bus Watchdogs restart."""
-        now = self.clock.monotonic()
-        for servo in servos:
-            servo.heard = now
-
-
-def _answers(servo: _Servo, inst: int) -> bool:
-    """Whether the servo sends a status packet for ``inst`` (its Status Return Level)."""
-    if inst == _I.PING:
-        return True
-    level = servo.value("Status Return Level", 2)
-    return level >= 2 or (level == 1 and inst in _READS)
-
-
-def _move(servo: _Servo, dt: float) -> None:
-    """Advance one servo's first-order model by ``dt`` seconds and refresh its registers."""
-    mode = servo.value("Operating Mode")
-    limit_units = max(servo.value("Velocity Limit"), 1)
-    current_limit = max(servo.current_limit, 1)
-    target = float(servo.value("Goal Position"))
-    if not servo.torque or servo.halted:
-        servo.velocity = 0.0
-        servo.current = 0.0
-        target = servo.position
-    else:
-        vmax = limit_units * _TICKS_S_PER_UNIT
-        if mode in _POSITION_MODES:
-            profile = servo.value("Profile Velocity")
-            if 0 < profile < limit_units:
-                vmax = profile * _TICKS_S_PER_UNIT
-            if mode == ct.OperatingMode.POSITION:
-                low = servo.value("Min Position Limit")
-                target = min(max(target, low), servo.value("Max Position Limit", 4095))
-            if dt >= _SNAP_AFTER:
-                servo.position, servo.velocity = target, 0.0
-            else:
-                steps = max(1, math.ceil(dt / _SUBSTEP))
-                h = dt / steps
-                for _ in range(steps):
-                    servo.velocity = min(max((target - servo.position) / _TAU, -vmax), vmax)
-                    servo.position += servo.velocity * h
-            share = (target - servo.position) / 512.0  # ~45° of error: the full share
-            servo.current = min(max(share, -1.0), 1.0) * 0.5 * current_limit
-        else:
-            if mode == ct.OperatingMode.VELOCITY:
-                goal_v = servo.value("Goal Velocity") * _TICKS_S_PER_UNIT
-            elif mode == ct.OperatingMode.PWM:  # crudely: the goal's share of full PWM
-                goal_v = servo.value("Goal PWM") / _PWM_FULL * vmax
-            else:  # current: the goal's share of the limit sets the speed
-                goal_v = servo.value("Goal Current") / current_limit * vmax
-            goal_v = min(max(goal_v, -vmax), vmax)
-            decay = 1.0 - math.exp(-dt / _TAU)
-            start_v = servo.velocity
-            servo.velocity += (goal_v - servo.velocity) * decay
-            servo.position += (start_v + servo.velocity) / 2.0 * dt
-            if mode == ct.OperatingMode.CURRENT:
-                servo.current = float(servo.value("Goal Current"))
-            else:
-                share = (goal_v - servo.velocity) / vmax + 0.05 * math.copysign(
-                    1.0 if servo.velocity else 0.0, servo.velocity
-                )
-                servo.current = min(max(share, -1.0), 1.0) * current_limit
-            target = servo.position
-    servo.position = min(max(servo.position, -(2.0**31) + 1), 2.0**31 - 1)
-    units = round(servo.velocity / _TICKS_S_PER_UNIT)
-    moving = abs(units) > servo.value("Moving Threshold", 10)
-    in_position = servo.torque and mode in _POSITION_MODES and abs(target - servo.position) < 1
-    pwm_limit = servo.value("PWM Limit", _PWM_FULL)
-    if mode == ct.OperatingMode.PWM and servo.torque and not servo.halted:
-        pwm = servo.value("Goal PWM")
-    else:
-        pwm = round(servo.current / current_limit * pwm_limit)
-    servo.set("Present Position", round(servo.position))
-    servo.set("Present Velocity", units)
-    servo.set("Present Current", min(max(round(servo.current), -32768), 32767))
-    servo.set("Present Load", min(max(round(servo.current), -_LOAD_FULL), _LOAD_FULL))
-    servo.set("Present PWM", min(max(pwm, -pwm_limit), pwm_limit))
-    servo.set("Velocity Trajectory", units)
-    servo.set("Position Trajectory", round(target))
-    servo.set("Moving", 1 if moving else 0)
-    servo.set("Moving Status", (1 if in_position else 0) | (2 if moving else 0))
-
-
-def _watchdog_expiry(servo: _Servo) -> float | None:
-    """When the servo's armed Bus Watchdog expires (None: off, expired, or torque off)."""
-    units = servo.value("Bus Watchdog")
-    if units <= 0 or not servo.torque:
-        return None
-    return servo.heard + units * ct.BUS_WATCHDOG_UNIT
-
-
-def _expire_watchdog(servo: _Servo) -> None:
-    """The Bus Watchdog expired: the servo stops where it is and reads -1 until cleared."""
-    servo.set("Bus Watchdog", ct.BUS_WATCHDOG_ERROR)
-    servo.halted = True
-    servo.velocity = 0.0
-    servo.current = 0.0
 
 
 def chain_from_ids(ids: Iterable[int], model: str = "XM430-W350") -> dict[int, str]:

@@ -22,6 +22,11 @@ Reliabilities are kept in memory, and with ``reliability_file`` also in a file (
 :mod:`temoto.managers.component.reliability`): read at construction, rewritten atomically after
 each operation that recorded outcomes (a start, a failover, a release), outside the manager's
 lock and after the substitute is started, one writer at a time.
+
+Code: :mod:`~temoto.managers.component.catalog` (:class:`ComponentCatalog`, the manager's base:
+descriptions, ranking, reliabilities and their file), this module (loading, starting a
+candidate, failover, the ``"component"`` hooks) and
+:mod:`~temoto.managers.component.pipeline_server` (:class:`PipelineServer`).
 """
 
 from __future__ import annotations
@@ -30,7 +35,7 @@ import functools
 import logging
 import queue
 import threading
-from collections.abc import Callable, Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -47,24 +52,18 @@ from temoto.core.registrar import (
 )
 from temoto.errors import (
     ComponentNotFoundError,
-    ConfigError,
     ResourceBrokenError,
     ResourceClosedError,
     ResourceError,
     ResourceLoadError,
 )
-from temoto.managers.component.description import (
-    ComponentDescription,
-    PipelineTemplate,
-    load_descriptions,
-)
+from temoto.managers.component.catalog import COMPONENT_STATS, Candidate, ComponentCatalog
+from temoto.managers.component.description import ComponentDescription
 from temoto.managers.component.messages import (
     ComponentRequest,
     ComponentResponse,
-    PipelineRequest,
-    PipelineResponse,
 )
-from temoto.managers.component.reliability import Reliability, load_outcomes, save_outcomes
+from temoto.managers.component.pipeline_server import PipelineServer
 from temoto.managers.process import ProcessRequest, ProcessResponse
 
 if TYPE_CHECKING:
@@ -82,42 +81,6 @@ logger = logging.getLogger(__name__)
 
 #: Environment variable naming the component a started process is (``robot/name``).
 COMPONENT_VARIABLE = "TEMOTO_COMPONENT"
-
-#: Counters in :attr:`ComponentManager.stats`.
-COMPONENT_STATS = (
-    "starts",
-    "start_failures",
-    "failures",
-    "failovers",
-    "exhausted",
-    "reliability_write_errors",
-)
-
-
-@dataclass(frozen=True)
-class Candidate:
-    """One way to provide a component type (a snapshot, for ranking).
-
-    Attributes:
-        description: The component's description.
-        robot: The robot hosting it.
-        local: Whether that is this manager's robot.
-        reliability: Its reliability when the snapshot was taken.
-    """
-
-    description: ComponentDescription
-    robot: str
-    local: bool
-    reliability: float
-
-    @property
-    def key(self) -> str:
-        """``robot/name``: the candidate's identity (and its reliability's key)."""
-        return f"{self.robot}/{self.description.name}"
-
-    def rank(self) -> tuple[int, float, bool, str]:
-        """Sort key, best first: priority, reliability, local before remote, key."""
-        return (-self.description.priority, -self.reliability, not self.local, self.key)
 
 
 @dataclass(eq=False)
@@ -137,7 +100,7 @@ class _Active:
     closing: bool = False
 
 
-class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
+class ComponentManager(ComponentCatalog, ResourceServer[ComponentRequest, ComponentResponse]):
     """The ``"component"`` server (and owner of the ``"pipeline"`` server).
 
     Creating it registers both servers. Components and templates come from description files
@@ -182,25 +145,11 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
         channel_prefix: str = "temoto",
         reliability_file: str | Path | None = None,
     ) -> None:
-        if window < 1:
-            raise ValueError(f"window must be >= 1, got {window}")
-        self._store = None if reliability_file is None else Path(reliability_file)
-        #: Restored outcomes of candidates not described yet (applied by :meth:`add`).
-        self._saved = {} if self._store is None else load_outcomes(self._store, window)
-        self._store_lock = threading.Lock()  # one writer of the file at a time
-        self._unsaved = 0  # outcomes recorded since the last successful write
-        self._store_failing = False  # in a streak of failed writes (guarded by _store_lock)
-        self.registrar = registrar
-        self.robot = robot or registrar.name
-        self.window = window
+        super().__init__(
+            registrar, robot=robot, ris=ris, window=window, reliability_file=reliability_file
+        )
         self.channel_prefix = channel_prefix
-        self._ris = ris
-        self._lock = threading.Lock()
-        self._components: dict[tuple[str, str], ComponentDescription] = {}
-        self._templates: dict[str, PipelineTemplate] = {}
-        self._reliability: dict[str, Reliability] = {}
         self._active: dict[str, _Active] = {}
-        self._counts = dict.fromkeys(COMPONENT_STATS, 0)
         self._closed = False
         for file in files:
             self.add_file(file)
@@ -217,277 +166,6 @@ class ComponentManager(ResourceServer[ComponentRequest, ComponentResponse]):
         except BaseException:
             self.shutdown()
             raise
-
-    # ------------------------------------------------------------------ descriptions
-
-    def add(
-        self,
-        components: Iterable[ComponentDescription] = (),
-        templates: Iterable[PipelineTemplate] = (),
-    ) -> None:
-        """Add components and templates, all or nothing.
-
-        Args:
-            components: Descriptions (a ``(robot, name)`` must be new).
-            templates: Templates (a name must be new).
-
-        Returns:
-            None.
-
-        Raises:
-            ConfigError: A duplicate; nothing was added.
-        """
-        comps = list(components)
-        temps = list(templates)
-        with self._lock:
-            seen: set[tuple[str, str]] = set()
-            for desc in comps:
-                key = (desc.robot or self.robot, desc.name)
-                if key in self._components or key in seen:
-                    raise ConfigError(
-                        f"component '{key[1]}' of robot '{key[0]}' is described twice",
-                        file=desc.source or None,
-                    )
-                seen.add(key)
-            names = [t.name for t in temps]
-            for tpl in temps:
-                if tpl.name in self._templates or names.count(tpl.name) > 1:
-                    raise ConfigError(
-                        f"template '{tpl.name}' is described twice", file=tpl.source or None
-                    )
-            for desc in comps:
-                robot = desc.robot or self.robot
-                self._components[(robot, desc.name)] = desc
-                cand = f"{robot}/{desc.name}"
-                if cand not in self._reliability:  # restored outcomes apply from the start
-                    history = self._saved.pop(cand, [])
-                    self._reliability[cand] = Reliability(desc.reliability, self.window, history)
-            for tpl in temps:
-                self._templates[tpl.name] = tpl
-
-    def add_file(self, path: str | Path) -> None:
-        """Read a description file and add what it describes (all or nothing).
-
-        Args:
-            path: A ``.yaml``/``.yml``/``.json`` file.
-
-        Returns:
-            None.
-
-        Raises:
-            ConfigError: Unreadable, malformed or duplicate (``PipelineError`` for a cyclic
-                or malformed template); nothing was added.
-        """
-        components, templates = load_descriptions(path)
-        self.add(components, templates)
-
-    def descriptions(self, type: str | None = None) -> list[ComponentDescription]:  # noqa: A002
-        """The known components (of one type, or all).
-
-        Args:
-            type: A component type, or None.
-
-        Returns:
-            Descriptions, sorted by robot and name.
-        """
-        with self._lock:
-            items = sorted(self._components.items())
-        return [d for _, d in items if type is None or d.type == type]
-
-    def types(self) -> list[str]:
-        """The known component types (local and remote descriptions), sorted."""
-        with self._lock:
-            return sorted({d.type for d in self._components.values()})
-
-    def template(self, name: str) -> PipelineTemplate:
-        """A pipeline template.
-
-        Args:
-            name: Its name.
-
-        Returns:
-            The template.
-
-        Raises:
-            ComponentNotFoundError: No template of that name.
-        """
-        with self._lock:
-            tpl = self._templates.get(name)
-            known = sorted(self._templates)
-        if tpl is None:
-            raise ComponentNotFoundError(
-                f"no pipeline template named '{name}' (known: {', '.join(known) or 'none'})",
-                origin=self.registrar.name,
-            )
-        return tpl
-
-    def templates(self) -> list[str]:
-        """Names of the known templates, sorted."""
-        with self._lock:
-            return sorted(self._templates)
-
-    # ------------------------------------------------------------------ ranking
-
-    def reliability(self, name: str, robot: str = "") -> float:
-        """A candidate's reliability (as this manager sees it).
-
-        Args:
-            name: The description name.
-            robot: Its robot ("" = this one).
-
-        Returns:
-            The value in [0, 1].
-
-        Raises:
-            ComponentNotFoundError: No such candidate.
-        """
-        key = f"{robot or self.robot}/{name}"
-        with self._lock:
-            rel = self._reliability.get(key)
-            if rel is None:
-                raise ComponentNotFoundError(f"no component '{key}'", origin=self.registrar.name)
-            return rel.value
-
-    def candidates(
-        self,
-        type: str,  # noqa: A002
-        *,
-        name: str = "",
-        local_only: bool = False,
-        exclude: Sequence[str] = (),
-    ) -> list[Candidate]:
-        """The available candidates for a type, best first (this is the failover order).
-
-        Best = higher priority, then higher reliability, then local before remote, then
-        ``robot/name``. Remote candidates count only if their robot is heard offering
-        ``"component"``.
-
-        Args:
-            type: The component type.
-            name: Only this description name ("" = all).
-            local_only: Only this robot's.
-            exclude: ``robot/name`` keys to leave out.
-
-        Returns:
-            Candidates.
-        """
-        remote_ok = self._remote_robots() if not local_only else set()
-        with self._lock:
-            found = []
-            for (robot, cname), desc in self._components.items():
-                if desc.type != type or (name and cname != name):
-                    continue
-                local = robot == self.robot
-                if not local and robot not in remote_ok:
-                    continue
-                key = f"{robot}/{cname}"
-                if key in exclude:
-                    continue
-                found.append(Candidate(desc, robot, local, self._reliability[key].value))
-        found.sort(key=Candidate.rank)
-        return found
-
-    def check_type(self, type: str, *, name: str = "", local_only: bool = False) -> None:  # noqa: A002
-        """Raise unless some candidate can provide the type now.
-
-        Args:
-            type: The component type.
-            name: Only this description name.
-            local_only: Only this robot's.
-
-        Returns:
-            None.
-
-        Raises:
-            ComponentNotFoundError: Unknown type, or no candidate available (the message says
-                which and why).
-        """
-        if self.candidates(type, name=name, local_only=local_only):
-            return
-        raise ComponentNotFoundError(
-            self._why_none(type, name, local_only), origin=self.registrar.name
-        )
-
-    def _why_none(self, type_: str, name: str, local_only: bool) -> str:
-        with self._lock:
-            of_type = [(r, n) for (r, n), d in self._components.items() if d.type == type_]
-            known = sorted({d.type for d in self._components.values()})
-        if not of_type:
-            return f"no component of type '{type_}' (known types: {', '.join(known) or 'none'})"
-        named = [(r, n) for r, n in of_type if not name or n == name]
-        if not named:
-            return f"no component '{name}' of type '{type_}'"
-        remote = sorted({r for r, _ in named if r != self.robot})
-        if local_only:
-            return f"no local component of type '{type_}' (others on: {', '.join(remote)})"
-        return (
-            f"no component of type '{type_}' is available: robot(s) {', '.join(remote)}"
-            " not heard offering 'component' (or no RIS / remote server here)"
-        )
-
-    def _remote_robots(self) -> set[str]:
-        if self._ris is None or "remote" not in self.registrar.servers():
-            return set()
-        return set(self._ris.providers(self.name))
-
-    def _rate(self, candidate: Candidate, outcome: float) -> float:
-        """Record an outcome (in memory; :meth:`_persist` writes the file afterwards)."""
-        with self._lock:
-            value = self._reliability[candidate.key].adjust(outcome)
-            if self._store is not None:
-                self._unsaved += 1
-            return value
-
-    def _persist(self) -> None:
-        """Write the reliability file if outcomes were recorded since the last write.
-
-        Called after an operation (start, failover, release), outside the manager's lock, by
-        whichever thread did it; ``_store_lock`` serialises writers, and the state is taken
-        inside it, so the last write holds the newest state. An ``OSError`` is counted and
-        logged, never raised (the next write retries).
-        """
-        if self._store is None or not self._unsaved:  # unlocked read: whoever rated persists
-            return
-        with self._store_lock:
-            with self._lock:
-                unsaved, self._unsaved = self._unsaved, 0
-                if not unsaved:
-                    return
-                state = dict(self._saved)
-                for key, rel in self._reliability.items():
-                    outcomes = rel.outcomes()
-                    if outcomes:
-                        state[key] = outcomes
-            try:
-                save_outcomes(self._store, self.window, state)
-            except OSError as err:
-                with self._lock:
-                    self._unsaved += unsaved
-                    self._counts["reliability_write_errors"] += 1
-                if not self._store_failing:
-                    self._store_failing = True
-                    logger.warning(
-                        "cannot write the reliability file %s (kept in memory; retried with "
-                        "the next outcome): %s",
-                        self._store,
-                        err,
-                    )
-                else:
-                    logger.debug("reliability file %s still not written: %s", self._store, err)
-                return
-            if self._store_failing:
-                self._store_failing = False
-                logger.info("reliability file %s written again", self._store)
-
-    @property
-    def stats(self) -> dict[str, int]:
-        """Counters (:data:`COMPONENT_STATS`), e.g. ``failovers``, ``reliability_write_errors``."""
-        with self._lock:
-            return dict(self._counts)
-
-    def _count(self, what: str) -> None:
-        with self._lock:
-            self._counts[what] += 1
 
     # ------------------------------------------------------------------ server hooks
 
@@ -835,126 +513,3 @@ def _fits(desc: ComponentDescription, request: ComponentRequest) -> bool:
         and inputs == set(desc.inputs)
         and params <= {n for n, _ in desc.parameters}
     )
-
-
-class PipelineServer(ResourceServer[PipelineRequest, PipelineResponse]):
-    """The ``"pipeline"`` server: components composed by a template (made by the manager).
-
-    Each segment is a ``"component"`` resource requested while the pipeline loads, so it is a
-    registrar dependency: released with the pipeline, and its statuses (WARNING on a
-    failover, FATAL when no substitute is left) reach the pipeline's consumers. Links are
-    channels the manager allocates; a substitute segment is started on the same channels,
-    which is how the pipeline is re-wired without restarting the other segments.
-
-    Args:
-        manager: The Component Manager.
-    """
-
-    name: ClassVar[str] = "pipeline"
-    request_type: ClassVar[type[Any]] = PipelineRequest
-    response_type: ClassVar[type[Any]] = PipelineResponse
-
-    def __init__(self, manager: ComponentManager) -> None:
-        self.manager = manager
-
-    def on_load(self, request: PipelineRequest, ctx: LoadContext) -> PipelineResponse:
-        """Check every segment's type, then request the segments producer first."""
-        manager = self.manager
-        template = manager.template(request.template)
-        order = template.order()
-        for seg in order:  # every type first: nothing is started for a request that cannot be
-            try:
-                manager.check_type(seg.type, local_only=request.local_only)
-            except ComponentNotFoundError as err:
-                raise ComponentNotFoundError(
-                    f"template '{template.name}' segment '{seg.name}': {err}",
-                    origin=manager.registrar.name,
-                ) from None
-        pinned = dict(request.outputs)
-        unknown = set(pinned) - {n for n, _ in template.outputs}
-        if unknown:
-            raise ComponentNotFoundError(
-                f"template '{template.name}' has no output(s) {', '.join(sorted(unknown))}",
-                origin=manager.registrar.name,
-            )
-        links: dict[str, str] = {}
-        for out, link in template.outputs:
-            links[link] = pinned.get(out) or manager._channel(ctx.resource_id, link)
-        for seg in order:
-            for _, link in seg.inputs:
-                links.setdefault(link, manager._channel(ctx.resource_id, link))
-        segments = []
-        for seg in order:
-            outputs = {
-                link.partition(".")[2]: ch
-                for link, ch in links.items()
-                if link.partition(".")[0] == seg.name
-            }
-            inputs = {inp: links[link] for inp, link in seg.inputs}
-            component = ComponentRequest(
-                seg.type,
-                outputs=tuple(outputs.items()),
-                inputs=tuple(inputs.items()),
-                parameters=seg.parameters,
-                local_only=request.local_only,
-                failover=request.failover,
-            )
-            res = manager.registrar.call(manager.name, component)  # a dependency
-            segments.append((seg.name, res.resource_id))
-        return PipelineResponse(
-            template.name,
-            tuple((out, links[link]) for out, link in template.outputs),
-            tuple(segments),
-            tuple(sorted(links.items())),
-        )
-
-    def on_unload(self, request: PipelineRequest, response: PipelineResponse) -> None:
-        """Nothing: the segments are dependencies, released by the registrar."""
-
-    def on_status(self, resource: ResourceInfo, status: Status, message: str) -> None:
-        """A segment failed for good (FATAL): the pipeline is failed too.
-
-        Its consumers already got the segment's FATAL; marking the pipeline failed keeps new
-        equal requests from sharing a pipeline with a dead segment (they load a fresh one).
-
-        Args:
-            resource: The pipeline.
-            status: The status (of the pipeline or, up the chain, of a segment).
-            message: What happened.
-        """
-        if status is Status.FATAL and not resource.failed:
-            try:
-                self.manager.registrar.send_status(
-                    resource.id, Status.FATAL, f"a segment failed: {message}"
-                )
-            except ResourceError as err:
-                logger.debug("pipeline %s is gone: %s", resource.id, err)
-
-    def on_restore(self, resource: ResourceInfo) -> tuple[Status, str] | None:
-        """After a restart: the pipeline is live only if every segment still is.
-
-        The registrar asks the segments (components) first; one that is gone or failed makes
-        the pipeline FATAL, so that it is never shared with nothing behind it.
-
-        Args:
-            resource: A restored pipeline.
-
-        Returns:
-            None if every segment is live (or the pipeline had failed before), else FATAL.
-        """
-        if resource.failed:
-            return None
-        response = resource.response
-        registrar = self.manager.registrar
-        for segment, uid in response.segments:
-            try:
-                failed = registrar.info(uid).failed
-            except ResourceError:
-                failed = True
-            if failed:
-                return (
-                    Status.FATAL,
-                    f"pipeline '{response.template}': segment '{segment}' did not survive the"
-                    " restart; request the pipeline again",
-                )
-        return None

@@ -29,13 +29,17 @@ Threads: ``temoto-context`` sends digests and state answers and forgets old tomb
 ``temoto-context-calls`` runs the change listeners (:meth:`ContextManager.listen`). Bad
 messages (undecodable, wrong type, invalid fields, our own robot's name) are counted in
 :attr:`ContextManager.stats` and dropped, never raised.
+
+Code: the synchronisation (sending, the timer, receiving and merging) is
+:mod:`~temoto.managers.context.sync` (:class:`~temoto.managers.context.sync.ContextSync`, a base
+of the manager); this module holds the manager's state, its local changes and queries, the
+listeners, the world store and the registrar server.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-import math
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
@@ -44,12 +48,11 @@ from typing import TYPE_CHECKING, Any, ClassVar, Final
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.core.registrar import LoadContext, Registrar, ResourceServer
-from temoto.errors import ContextError, TransportError
-from temoto.fleet._common import CallQueue, Closing, check_seconds, decode_or_count, new
-from temoto.lcm_types import context_digest_t, context_request_t, context_update_t
-from temoto.managers.context._wire import chunks, from_wire
+from temoto.errors import ContextError
+from temoto.fleet._common import CallQueue, Closing, check_seconds
 from temoto.managers.context.pose import Pose
 from temoto.managers.context.store import WorldStore
+from temoto.managers.context.sync import CONTEXT_CHANNEL, ContextSync
 from temoto.managers.context.tree import (
     ContextTree,
     Item,
@@ -58,11 +61,9 @@ from temoto.managers.context.tree import (
     check_item_name,
     encode_attributes,
 )
-from temoto.transport import codec
 
 if TYPE_CHECKING:
-    from temoto.transport.auth import FleetLink, Opened
-    from temoto.transport.base import Subscription
+    from temoto.transport.auth import FleetLink
 
 __all__ = [
     "CONTEXT_CHANNEL",
@@ -75,8 +76,6 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: Channel of ``context_update_t``, ``context_request_t`` and ``context_digest_t``.
-CONTEXT_CHANNEL: Final = "TEMOTO_CONTEXT"
 
 #: The counters of :attr:`ContextManager.stats`.
 CONTEXT_STATS: Final = (
@@ -98,11 +97,6 @@ CONTEXT_STATS: Final = (
     "callback_errors",  # listener callbacks that raised (logged)
     "tombstones_expired",
 )
-
-_TYPES: Final = ("context_update_t", "context_request_t", "context_digest_t")
-# Requests for our tree are answered at most this often (a flood gets no flood of trees).
-_ANSWER_GAP_S: Final = 0.05
-_MAX_PERIOD_MS: Final = 3_600_000
 
 
 @dataclass(frozen=True, slots=True)
@@ -156,7 +150,7 @@ class MaintainResponse:
     stamp_us: int
 
 
-class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing):
+class ContextManager(ContextSync, ResourceServer[MaintainRequest, MaintainResponse], Closing):
     """One robot's world model, kept equal to the fleet's (see the module docstring).
 
     Args:
@@ -200,7 +194,7 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
         self.period_s = check_seconds("period_s", period_s)
         self.tombstone_s = check_seconds("tombstone_s", tombstone_s)
         self._clock: Clock = clock or MonotonicClock()
-        self._link = link
+        self._init_sync(link)
         self._lock = threading.Lock()
         self._wake = threading.Condition(self._lock)
         # Guarded by _lock.
@@ -208,33 +202,15 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
         self._closed = False
         self._counts = dict.fromkeys(CONTEXT_STATS, 0)
         self._listeners: list[Callable[[Change], None]] = []
-        self._answer: set[str] = set()  # robots waiting for our tree ("" for everyone)
-        self._next_answer = -math.inf
-        self._ask: set[str] = set()  # robots whose tree we want
-        self._asked: dict[str, float] = {}  # robot -> when we last asked it
-        self._mismatch: dict[str, int] = {}  # robot -> digests in a row that differed
-        self._next_digest = -math.inf
         self._store: WorldStore | None = None
         if store is not None:
             self._restore(WorldStore(store))  # before anything runs: nothing to undo on error
         self._calls = CallQueue("temoto-context-calls", "a Context Manager listener")
-        self._sub: Subscription | None = None
-        self._timer: threading.Thread | None = None
-        if link is not None:
-            try:
-                self._sub = link.listen(
-                    CONTEXT_CHANNEL, self._on_message, queue_capacity=queue_capacity
-                )
-            except BaseException:
-                self._calls.close()
-                raise
-            self._timer = threading.Thread(
-                target=self._run_timer, name="temoto-context", daemon=True
-            )
-            self._timer.start()
-            ask = new(context_request_t)
-            ask.requester, ask.target = self._robot, ""
-            self._send(ask, "requests_sent")
+        try:
+            self._start_sync(queue_capacity)
+        except BaseException:
+            self._calls.close()
+            raise
         if registrar is not None:
             registrar.register(self)
 
@@ -663,158 +639,10 @@ class ContextManager(ResourceServer[MaintainRequest, MaintainResponse], Closing)
                 return
             self._closed = True
             self._wake.notify_all()
-        if self._sub is not None:
-            self._sub.unsubscribe()
-        if self._timer is not None and self._timer is not threading.current_thread():
-            self._timer.join()
+        self._stop_sync()
         self._calls.close(drain=True)
         if self._store is not None:
             self._store.close()
-
-    # ================================================================ sending
-
-    def _publish(self, records: Sequence[Record], requester: str, counter: str) -> None:
-        if self._link is None:
-            return
-        parts = list(chunks(records))
-        for index, part in enumerate(parts):
-            msg = new(context_update_t)
-            msg.robot, msg.requester = self._robot, requester
-            msg.chunk, msg.chunks, msg.items = index, len(parts), part
-            self._send(msg, counter)
-
-    def _send(self, msg: Any, counter: str) -> None:
-        """Encode and send; a failure is counted and logged, never raised (lock not held)."""
-        assert self._link is not None
-        try:
-            name, payload = codec.encode(msg)
-            self._link.send(CONTEXT_CHANNEL, name, payload)
-        except (TransportError, ValueError) as err:
-            with self._lock:
-                self._counts["send_errors"] += 1
-                closed = self._closed
-            (logger.debug if closed else logger.warning)(
-                "context %r: cannot send: %s", self._robot, err
-            )
-            return
-        with self._lock:
-            self._counts[counter] += 1
-
-    def _run_timer(self) -> None:
-        """Digests every period, state answers and requests when due, tombstone expiry."""
-        while True:
-            with self._lock:
-                if self._closed:
-                    return
-                now = self._clock.monotonic()
-                expired = self._tree.expire(now - self.tombstone_s)
-                self._counts["tombstones_expired"] += expired
-                digest = None
-                if now >= self._next_digest:
-                    self._next_digest = now + self.period_s
-                    digest = self._tree.digest()
-                answer: list[Record] | None = None
-                to = ""
-                if self._answer and now >= self._next_answer:
-                    to = next(iter(self._answer)) if len(self._answer) == 1 else "*"
-                    self._answer.clear()
-                    self._next_answer = now + min(_ANSWER_GAP_S, self.period_s / 10)
-                    answer = self._tree.records()
-                ask, self._ask = sorted(self._ask), set()
-                if digest is None and answer is None and not ask:
-                    wake = self._next_digest
-                    if self._answer:
-                        wake = min(wake, self._next_answer)
-                    self._clock.wait(self._wake, max(0.0, wake - now))
-                    continue
-            for robot in ask:
-                msg = new(context_request_t)
-                msg.requester, msg.target = self._robot, robot
-                self._send(msg, "requests_sent")
-            if answer is not None:
-                self._publish(answer, to, "states_sent")
-            if digest is not None:
-                msg = new(context_digest_t)
-                msg.robot, (msg.count, value) = self._robot, digest
-                msg.digest = value - (1 << 64) if value >= 1 << 63 else value
-                msg.period_ms = max(1, round(self.period_s * 1000))
-                self._send(msg, "digests_sent")
-
-    # ================================================================ receiving
-
-    def _on_message(self, opened: Opened) -> None:
-        msg = decode_or_count(opened, _TYPES, self._counts, self._lock)
-        if msg is None:
-            return
-        if opened.type == "context_update_t":
-            self._on_update(msg)
-        elif opened.type == "context_request_t":
-            self._on_request(msg)
-        else:
-            self._on_digest(msg)
-
-    def _foreign(self, robot: Any) -> bool:
-        """Whether a sender name is another robot's (lock held; counts if not)."""
-        ok = isinstance(robot, str) and bool(robot) and robot != self._robot
-        if not ok:
-            self._counts["unexpected"] += 1
-        return ok
-
-    def _on_update(self, msg: Any) -> None:
-        records: list[Record] = []
-        invalid = 0
-        for wire in msg.items:
-            try:
-                records.append(from_wire(wire))
-            except (ValueError, TypeError) as err:
-                invalid += 1
-                logger.debug("context: dropped a record from %r: %s", msg.robot, err)
-        applied: list[Record] = []
-        with self._lock:
-            if self._closed or not self._foreign(msg.robot):
-                return
-            self._counts["updates_received"] += 1
-            self._counts["records_invalid"] += invalid
-            now = self._clock.monotonic()
-            for record in records:
-                if self._tree.merge(record, now):
-                    applied.append(record)
-            self._counts["records_applied"] += len(applied)
-            self._counts["records_stale"] += len(records) - len(applied)
-            self._persist(applied)
-        self._notify(tuple(r.name for r in applied), msg.robot)
-
-    def _on_request(self, msg: Any) -> None:
-        with self._lock:
-            if self._closed or not self._foreign(msg.requester):
-                return
-            self._counts["requests_received"] += 1
-            if msg.target not in ("", self._robot):
-                return
-            self._answer.add(msg.requester)
-            self._wake.notify_all()
-
-    def _on_digest(self, msg: Any) -> None:
-        with self._lock:
-            if self._closed or not self._foreign(msg.robot):
-                return
-            if not 0 < msg.period_ms <= _MAX_PERIOD_MS or msg.count < 0:
-                self._counts["unexpected"] += 1
-                return
-            self._counts["digests_received"] += 1
-            count, value = self._tree.digest()
-            if (count, value) == (msg.count, msg.digest & ((1 << 64) - 1)):
-                self._mismatch.pop(msg.robot, None)
-                return
-            self._counts["digest_mismatches"] += 1
-            # A change may be on its way: ask only if the difference lasts a whole period.
-            seen = self._mismatch[msg.robot] = self._mismatch.get(msg.robot, 0) + 1
-            now = self._clock.monotonic()
-            if seen >= 2 and now >= self._asked.get(msg.robot, -math.inf) + self.period_s / 2:
-                self._asked[msg.robot] = now
-                self._mismatch.pop(msg.robot, None)
-                self._ask.add(msg.robot)
-                self._wake.notify_all()
 
 
 def _json_object(text: str) -> dict[str, Any]:

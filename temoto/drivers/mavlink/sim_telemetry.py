@@ -1,0 +1,428 @@
+"""The simulated ArduCopter's telemetry: the messages it sends, and how often.
+
+:class:`VehicleTelemetry` builds every message the vehicle sends from the shared state
+(HEARTBEAT, the position, attitude, battery, status and mission messages, AUTOPILOT_VERSION,
+PARAM_VALUE, STATUSTEXT) and paces the streams: each message of
+:data:`~temoto.drivers.mavlink.sim_state.DEFAULT_RATES` has a period, changed by
+``MAV_CMD_SET_MESSAGE_INTERVAL`` or :meth:`VehicleTelemetry.set_rate`; one call of
+:meth:`VehicleTelemetry._streams` per model step returns what is due, with the queued texts,
+the mission service's frames and the next few PARAM_VALUEs of a list download. No I/O: the
+vehicle sends what it returns. A layer of :class:`~temoto.drivers.mavlink.sim.SimVehicle` (see
+:mod:`~temoto.drivers.mavlink.sim_state`).
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Final
+
+from temoto.drivers.mavlink import protocol as p
+from temoto.drivers.mavlink.sim_state import DEFAULT_RATES, VehicleState
+
+__all__ = ["VehicleTelemetry"]
+
+_SENSORS: Final = (
+    "3D_GYRO",
+    "3D_ACCEL",
+    "3D_MAG",
+    "ABSOLUTE_PRESSURE",
+    "GPS",
+    "ANGULAR_RATE_CONTROL",
+    "ATTITUDE_STABILIZATION",
+    "YAW_POSITION",
+    "Z_ALTITUDE_CONTROL",
+    "XY_POSITION_CONTROL",
+    "MOTOR_OUTPUTS",
+    "BATTERY",
+    "PROPULSION",
+)
+
+_HW_SENSOR: Final = {"overheat": "MOTOR_OUTPUTS", "overload": "PROPULSION", "voltage": "BATTERY"}
+
+_UINT16_MAX: Final = 65535
+
+_PARAMS_PER_STEP: Final = 5  # PARAM_VALUEs of a list download per model step (ArduPilot: 5)
+
+_EKF_FLAGS: Final = 0x33F  # attitude, velocities, positions rel/abs, vertical, predicted
+
+
+class VehicleTelemetry(VehicleState):
+    """The messages the simulated vehicle sends (see the module docstring)."""
+
+    def set_rate(self, message: str, hz: float) -> None:
+        """Stream ``message`` at ``hz`` from now on (0 stops it), as the vehicle's own setting.
+
+        For fault injection: a stream that stops while the heartbeats go on.
+
+        Args:
+            message: One of :data:`DEFAULT_RATES`.
+            hz: The rate (≥ 0).
+
+        Raises:
+            ValueError: Not a simulated stream, or a negative rate.
+        """
+        name = message.upper()
+        if name not in DEFAULT_RATES or not (math.isfinite(hz) and hz >= 0):
+            raise ValueError(f"bad stream rate {message}={hz!r} (streams: {list(DEFAULT_RATES)})")
+        with self._lock:
+            self._periods[name] = 1.0 / hz if hz > 0 else math.inf
+            self._due[name] = 0.0
+
+    def rate(self, message: str) -> float:
+        """The rate a message is streamed at now, Hz (0: not streamed).
+
+        Args:
+            message: One of :data:`DEFAULT_RATES`.
+
+        Returns:
+            The rate.
+
+        Raises:
+            KeyError: Not a simulated stream.
+        """
+        with self._lock:
+            period = self._periods[message.upper()]
+        return 0.0 if period == math.inf else 1.0 / period
+
+    def _set_interval(self, msg_id: int, interval_us: float) -> int:
+        names = {v: k for k, v in p.MSG_ID.items()}
+        name = names.get(msg_id)
+        if name not in self._periods or name == "HEARTBEAT":
+            return p.MAV_RESULT_ACCEPTED if name is not None else p.MAV_RESULT_DENIED
+        if interval_us < 0:
+            self._periods[name] = math.inf
+        elif interval_us == 0:
+            hz = DEFAULT_RATES[name]
+            self._periods[name] = 1.0 / hz
+        else:
+            self._periods[name] = interval_us / 1e6
+        self._due[name] = 0.0
+        return p.MAV_RESULT_ACCEPTED
+
+    def _streams(self, now: float) -> list[bytes]:
+        frames: list[bytes] = []
+        for name, period in self._periods.items():
+            if period == math.inf or now < self._due[name]:
+                continue
+            if name == "HEARTBEAT" and self.fault("no_heartbeat") is not None:
+                continue
+            self._due[name] = max(self._due[name] + period, now)
+            frames.append(self._frame(name, now))
+        texts, self._texts = self._texts, []
+        frames.extend(self._text_frames(texts))
+        frames.extend(self._outbox)
+        self._outbox = []
+        frames.extend(self._mission.tick(now))
+        if self._param_cursor is not None:  # a PARAM_REQUEST_LIST being answered, paced
+            stop = min(self._param_cursor + _PARAMS_PER_STEP, len(self._names))
+            frames += [
+                self._param_value(self._names[i], i) for i in range(self._param_cursor, stop)
+            ]
+            self._param_cursor = stop if stop < len(self._names) else None
+        return frames
+
+    def _text_frames(self, texts: list[tuple[int, str]]) -> list[bytes]:
+        return [
+            self.codec.encode("STATUSTEXT", severity=sev, text=text.encode()[:50], id=0)
+            for sev, text in texts
+        ]
+
+    def _param_value(self, name: str, index: int) -> bytes:
+        return self.codec.encode(
+            "PARAM_VALUE",
+            param_id=name.encode(),
+            param_value=self._params[name],
+            param_type=self._ptypes[name],
+            param_count=len(self._names),
+            param_index=index if index >= 0 else _UINT16_MAX,
+        )
+
+    def _one_message(self, msg_id: int) -> bytes | None:
+        names = {v: k for k, v in p.MSG_ID.items()}
+        name = names.get(msg_id, "")
+        if name not in DEFAULT_RATES and name != "AUTOPILOT_VERSION":
+            return None
+        return self._frame(name, self.clock.monotonic())
+
+    def _frame(self, name: str, now: float) -> bytes:
+        boot_ms = int((now - self._t0) * 1000) & 0xFFFFFFFF
+        lat, lon, up = self._geo(self.pos)
+        amsl = self.home[2] + up
+        kind = self._hw_kind()
+        enc = self.codec.encode
+        if name == "HEARTBEAT":
+            base = (
+                p.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
+                | p.MAV_MODE_FLAG_STABILIZE_ENABLED
+                | p.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED  # ArduCopter sets it in every mode
+            )
+            if self.mode in ("GUIDED", "AUTO", "RTL", "LOITER", "POSHOLD", "BRAKE"):
+                base |= p.MAV_MODE_FLAG_GUIDED_ENABLED  # ArduCopter's modes with a position goal
+            if self.armed:
+                base |= p.MAV_MODE_FLAG_SAFETY_ARMED
+            # ArduCopter: STANDBY while landed (armed or not), ACTIVE in the air
+            status = p.MAV_STATE_ACTIVE if self.airborne else p.MAV_STATE_STANDBY
+            if kind is not None or self._gcs_failsafe or self._batt_failsafe:
+                status = p.MAV_STATE_CRITICAL  # ArduCopter: any failsafe triggered
+            return enc(
+                "HEARTBEAT",
+                type=p.MAV_TYPE_QUADROTOR,
+                autopilot=p.MAV_AUTOPILOT_ARDUPILOTMEGA,
+                base_mode=base,
+                custom_mode=p.COPTER_MODES[self.mode],
+                system_status=status,
+                mavlink_version=3,
+            )
+        if name == "GLOBAL_POSITION_INT":
+            hdg = round(math.degrees(self.yaw) % 360 * 100) % 36000
+            return enc(
+                "GLOBAL_POSITION_INT",
+                time_boot_ms=boot_ms,
+                lat=p.deg_e7(lat),
+                lon=p.deg_e7(lon),
+                alt=round(amsl * 1000),
+                relative_alt=round((up - self._home_up()) * 1000),
+                vx=round(self.vel[0] * 100),
+                vy=round(self.vel[1] * 100),
+                vz=round(-self.vel[2] * 100),
+                hdg=hdg,
+            )
+        if name == "ATTITUDE":
+            cos_y, sin_y = math.cos(self.yaw), math.sin(self.yaw)
+            forward = self.vel[0] * cos_y + self.vel[1] * sin_y
+            right = -self.vel[0] * sin_y + self.vel[1] * cos_y
+            yaw = math.atan2(sin_y, cos_y)
+            return enc(
+                "ATTITUDE",
+                time_boot_ms=boot_ms,
+                roll=0.03 * right,
+                pitch=-0.03 * forward,
+                yaw=yaw,
+                rollspeed=0.0,
+                pitchspeed=0.0,
+                yawspeed=0.0,
+            )
+        if name == "SYS_STATUS":
+            bits = 0
+            for sensor in _SENSORS:
+                bits |= p.SENSOR_BITS[sensor]
+            health = bits & ~p.SENSOR_BITS[_HW_SENSOR[kind]] if kind else bits
+            prearm = p.MAV_SYS_STATUS_PREARM_CHECK
+            enabled = bits | (prearm if self._p("ARMING_CHECK") != 0 else 0)
+            if self.armed or self._prearm_failure() is None:
+                health |= prearm  # MAVLink: always healthy when armed
+            return enc(
+                "SYS_STATUS",
+                onboard_control_sensors_present=bits | prearm,
+                onboard_control_sensors_enabled=enabled,
+                onboard_control_sensors_health=health,
+                load=250,
+                voltage_battery=round(self._voltage() * 1000),
+                current_battery=-1,
+                battery_remaining=round(self.battery),
+                drop_rate_comm=0,
+                errors_comm=0,
+                errors_count1=0,
+                errors_count2=0,
+                errors_count3=0,
+                errors_count4=0,
+            )
+        if name == "BATTERY_STATUS":
+            cell = round(self._voltage() / self._cells * 1000)
+            cells = [cell] * min(self._cells, 10) + [_UINT16_MAX] * (10 - min(self._cells, 10))
+            if kind == "voltage" or self.battery < 10 or self._batt_failsafe == 2:
+                charge = p.MAV_BATTERY_CHARGE_STATE_CRITICAL
+            elif self.battery < self._min_arm or self._batt_failsafe == 1:
+                charge = p.MAV_BATTERY_CHARGE_STATE_LOW
+            else:
+                charge = p.MAV_BATTERY_CHARGE_STATE_OK
+            faults = 0
+            if kind == "overheat":
+                faults = p.MAV_BATTERY_FAULT_OVER_TEMPERATURE
+            return enc(
+                "BATTERY_STATUS",
+                id=0,
+                battery_function=0,
+                type=p.MAV_BATTERY_TYPE_LIPO,
+                temperature=7000 if kind == "overheat" else 2500,
+                voltages=cells,
+                current_battery=-1,
+                current_consumed=round(self._consumed_mah()),
+                energy_consumed=-1,
+                battery_remaining=round(self.battery),
+                time_remaining=0,
+                charge_state=charge,
+                voltages_ext=[0, 0, 0, 0],
+                mode=0,
+                fault_bitmask=faults,
+            )
+        if name == "GPS_RAW_INT":
+            return enc(
+                "GPS_RAW_INT",
+                time_usec=boot_ms * 1000,
+                fix_type=3,
+                lat=p.deg_e7(lat),
+                lon=p.deg_e7(lon),
+                alt=round(amsl * 1000),
+                eph=80,
+                epv=120,
+                vel=round(math.hypot(self.vel[0], self.vel[1]) * 100),
+                cog=_UINT16_MAX,
+                satellites_visible=14,
+            )
+        if name == "EXTENDED_SYS_STATE":
+            landed = self._landed_state if self.airborne else p.MAV_LANDED_STATE_ON_GROUND
+            return enc("EXTENDED_SYS_STATE", vtol_state=0, landed_state=landed)
+        if name == "VFR_HUD":
+            return enc(
+                "VFR_HUD",
+                airspeed=math.hypot(self.vel[0], self.vel[1]),
+                groundspeed=math.hypot(self.vel[0], self.vel[1]),
+                heading=round(math.degrees(self.yaw)) % 360,
+                throttle=50 if self.airborne else 0,
+                alt=amsl,
+                climb=self.vel[2],
+            )
+        if name == "HOME_POSITION":
+            return enc(
+                "HOME_POSITION",
+                latitude=p.deg_e7(self.home[0]),
+                longitude=p.deg_e7(self.home[1]),
+                altitude=round(self.home[2] * 1000),
+                x=self._home_local()[0],  # home in the local frame (NED from the origin)
+                y=self._home_local()[1],
+                z=-self._home_up(),
+                q=[1.0, 0.0, 0.0, 0.0],
+                approach_x=0.0,
+                approach_y=0.0,
+                approach_z=0.0,
+                time_usec=boot_ms * 1000,
+            )
+        if name == "AUTOPILOT_VERSION":
+            caps = (
+                p.MAV_PROTOCOL_CAPABILITY_MAVLINK2
+                | p.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT
+                | p.MAV_PROTOCOL_CAPABILITY_MISSION_INT
+                | p.MAV_PROTOCOL_CAPABILITY_COMMAND_INT
+                | p.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
+                | p.MAV_PROTOCOL_CAPABILITY_MISSION_FENCE
+                | p.MAV_PROTOCOL_CAPABILITY_MISSION_RALLY
+            )
+            return enc(
+                "AUTOPILOT_VERSION",
+                capabilities=caps,
+                flight_sw_version=(4 << 24) | (5 << 16) | (0 << 8) | 255,
+                middleware_sw_version=0,
+                os_sw_version=0,
+                board_version=0,
+                flight_custom_version=b"temoto\x00\x00",
+                middleware_custom_version=b"\x00" * 8,
+                os_custom_version=b"\x00" * 8,
+                vendor_id=0,
+                product_id=0,
+                uid=self.codec.system_id,
+            )
+        return self._frame_more(name, now, boot_ms)
+
+    def _nav_target(self) -> list[float] | None:
+        if self._nav is not None and self._nav.get("target") is not None:
+            target: list[float] = self._nav["target"]
+            return target
+        return self._target if self.airborne else None
+
+    def _frame_more(self, name: str, now: float, boot_ms: int) -> bytes:
+        """The messages added for ground stations (issue 16)."""
+        enc = self.codec.encode
+        if name == "LOCAL_POSITION_NED":
+            return enc(
+                "LOCAL_POSITION_NED",
+                time_boot_ms=boot_ms,
+                x=self.pos[0],
+                y=self.pos[1],
+                z=-self.pos[2],
+                vx=self.vel[0],
+                vy=self.vel[1],
+                vz=-self.vel[2],
+            )
+        if name == "MISSION_CURRENT":
+            count = self._mission.count()
+            return enc(
+                "MISSION_CURRENT",
+                seq=self._mis_index,
+                total=count - 1 if count > 1 else _UINT16_MAX,
+                mission_state=self._mis_state,
+                mission_mode=1 if self.mode == "AUTO" else 2,
+            )
+        if name == "NAV_CONTROLLER_OUTPUT":
+            target = self._nav_target()
+            dist, bearing, alt_error = 0.0, 0, 0.0
+            if target is not None:
+                dist = math.hypot(target[0] - self.pos[0], target[1] - self.pos[1])
+                bearing = round(
+                    math.degrees(math.atan2(target[1] - self.pos[1], target[0] - self.pos[0]))
+                )
+                alt_error = target[2] - self.pos[2]
+            return enc(
+                "NAV_CONTROLLER_OUTPUT",
+                nav_roll=0.0,
+                nav_pitch=0.0,
+                nav_bearing=bearing,
+                target_bearing=bearing,
+                wp_dist=min(round(dist), _UINT16_MAX),
+                alt_error=alt_error,
+                aspd_error=0.0,
+                xtrack_error=0.0,
+            )
+        if name == "POWER_STATUS":
+            return enc("POWER_STATUS", Vcc=5000, Vservo=0, flags=p.MAV_POWER_STATUS_BRICK_VALID)
+        if name == "MEMINFO":
+            return enc("MEMINFO", brkval=0, freemem=_UINT16_MAX, freemem32=200_000)
+        if name == "RC_CHANNELS":
+            sticks = [1500, 1500, 1000, 1500] + [1000] * 12  # no pilot: throttle low
+            return enc(
+                "RC_CHANNELS",
+                time_boot_ms=boot_ms,
+                chancount=16,
+                **{f"chan{i + 1}_raw": value for i, value in enumerate(sticks)},
+                chan17_raw=_UINT16_MAX,
+                chan18_raw=_UINT16_MAX,
+                rssi=255,
+            )
+        if name == "SERVO_OUTPUT_RAW":
+            pwm = (1600 if self.airborne else 1100) if self.armed else 1000
+            return enc(
+                "SERVO_OUTPUT_RAW",
+                time_usec=(boot_ms * 1000) & 0xFFFFFFFF,
+                port=0,
+                **{f"servo{i}_raw": pwm if i <= 4 else 0 for i in range(1, 9)},
+            )
+        if name == "SYSTEM_TIME":
+            return enc(
+                "SYSTEM_TIME",
+                time_unix_usec=round(self.clock.time() * 1e6),
+                time_boot_ms=boot_ms,
+            )
+        if name == "EKF_STATUS_REPORT":
+            return enc(
+                "EKF_STATUS_REPORT",
+                flags=_EKF_FLAGS,
+                velocity_variance=0.02,
+                pos_horiz_variance=0.01,
+                pos_vert_variance=0.02,
+                compass_variance=0.01,
+                terrain_alt_variance=0.0,
+                airspeed_variance=0.0,
+            )
+        if name == "VIBRATION":
+            level = 3.0 if self.airborne else 0.05
+            return enc(
+                "VIBRATION",
+                time_usec=boot_ms * 1000,
+                vibration_x=level,
+                vibration_y=level,
+                vibration_z=level * 1.2,
+                clipping_0=0,
+                clipping_1=0,
+                clipping_2=0,
+            )
+        raise ValueError(f"the simulator does not send {name}")
