@@ -38,7 +38,8 @@ class SignalExit:
     """How a command reacts to SIGINT and SIGTERM (ARCHITECTURE.md §8 "Signals").
 
     Use it as a context manager around the command (main thread only); the previous handlers
-    are restored at the end.
+    are restored at the end, unless a signal came: then the command is ending, and later
+    signals keep being taken as "hurry" until the process exits.
 
     * The **first** signal sets :attr:`stop` and, if ``raise_first`` (and :attr:`raising`
       is still true), raises :class:`Interrupted` in the main thread; otherwise the command
@@ -82,6 +83,12 @@ class SignalExit:
         return self
 
     def __exit__(self, *exc: object) -> None:
+        if self.signum is not None:
+            # The command is ending because of a signal: the handler stays, so that a second
+            # Ctrl-C arriving while the interpreter winds down (after this block, before the
+            # exit) hurries instead of raising KeyboardInterrupt where nothing catches it.
+            self.raising = False
+            return
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)
 

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import pytest
 
+from temoto._cli_signals import SignalExit
 from temoto.testing import ProcessLeakCheck
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -350,3 +351,31 @@ def test_a_closed_output_pipe_is_no_traceback() -> None:
     _, err = proc.communicate(timeout=20)
     assert proc.returncode == 141, err
     assert err.decode() == ""
+
+
+# --- SignalExit after its block ----------------------------------------------------------------
+
+
+def test_a_signal_after_the_block_of_a_signalled_command_hurries_and_raises_nothing() -> None:
+    # A second Ctrl-C may land while the command winds down after its SignalExit block; the
+    # default handler would raise KeyboardInterrupt there (a traceback, a wrong exit status).
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    hurried: list[str] = []
+    try:
+        with SignalExit(hurry=(lambda: hurried.append("hurry"),)) as signals:
+            os.kill(os.getpid(), signal.SIGINT)
+            assert signals.stop.wait(5.0)
+        os.kill(os.getpid(), signal.SIGINT)  # after the block: taken, not raised
+        os.kill(os.getpid(), signal.SIGTERM)
+        assert hurried == ["hurry", "hurry"]
+        assert signals.exit_code == 130
+    finally:
+        for signum, handler in before.items():
+            signal.signal(signum, handler)
+
+
+def test_a_block_left_without_a_signal_restores_the_handlers() -> None:
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    with SignalExit():
+        assert signal.getsignal(signal.SIGINT) is not before[signal.SIGINT]
+    assert {s: signal.getsignal(s) for s in before} == before
