@@ -358,7 +358,7 @@ def _why_no_netns() -> str:
 
 
 NETNS_SCRIPT = r"""
-import json, signal, subprocess, sys, time, pathlib, yaml
+import json, os, signal, subprocess, sys, time, pathlib, yaml
 from temoto.clock import MonotonicClock
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor.odrive import ODriveDriver
@@ -373,7 +373,11 @@ try:
     out["endpoint"] = endpoint
     logger = subprocess.Popen([sys.executable, "-m", "can.logger", "-i", "udp_multicast",
                                "-c", endpoint["link"]["channel"], "-f", str(log)],
-                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+                              stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                              env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    # can.logger prints this once its bus is open: frames sent from now on are recorded
+    while not logger.stdout.readline().startswith("Can Logger"):
+        assert logger.poll() is None, logger.stderr.read()
     entry = yaml.safe_load(pathlib.Path(profile).read_text())["devices"]["base"]
     entry["link"] = endpoint["link"]  # the printed profile line
     entry["init_timeout"] = 3.0
