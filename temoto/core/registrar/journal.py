@@ -60,7 +60,7 @@ from temoto.errors import CatalogCorruptError, ResourceBusyError
 if sys.platform != "win32":
     import fcntl
 
-__all__ = ["FORMAT_VERSION", "MAGIC", "MAX_RECORD_BYTES", "FsyncPolicy", "Journal"]
+__all__ = ["FORMAT_VERSION", "MAGIC", "MAX_RECORD_BYTES", "FsyncPolicy", "Journal", "encode"]
 
 logger = logging.getLogger(__name__)
 
@@ -328,7 +328,7 @@ class Journal:
                 earlier write that failed and could not be undone).
             OSError: If the write fails (the partial frame, if any, is removed again).
         """
-        self._append(_encode(record))
+        self._append(encode(record))
 
     def append_text(self, text: str) -> None:
         """Append one record given as its JSON text (encoded by the caller from a layout).
@@ -421,7 +421,7 @@ class Journal:
         parts = [_HEADER]
         count = 0
         for count, record in enumerate(records, 1):
-            payload = _encode(record)
+            payload = encode(record)
             seq_bytes = count.to_bytes(8, "little")
             crc = zlib.crc32(payload, zlib.crc32(seq_bytes))
             parts += (_LEN_CRC.pack(len(payload), crc), seq_bytes, payload)
@@ -538,7 +538,19 @@ class Journal:
         )
 
 
-def _encode(record: Mapping[str, Any]) -> bytes:
+def encode(record: Mapping[str, Any]) -> bytes:
+    """A record's payload as :meth:`Journal.append` writes it: compact JSON, sorted keys, UTF-8.
+
+    Args:
+        record: A JSON-serialisable mapping with string keys.
+
+    Returns:
+        The bytes.
+
+    Raises:
+        TypeError: If the record cannot be serialised as JSON.
+        ValueError: If its JSON is larger than :data:`MAX_RECORD_BYTES`.
+    """
     if type(record) is not dict:
         if not isinstance(record, Mapping):
             raise TypeError(f"a journal record must be a mapping, not {type(record).__name__}")
