@@ -19,6 +19,7 @@ import itertools
 import secrets
 import threading
 from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
 from temoto.core._fast import RefBook
@@ -36,11 +37,12 @@ from temoto.errors import (
     CatalogCorruptError,
     ResourceBusyError,
     ResourceClosedError,
+    ResourceError,
     ResourceNotFoundError,
 )
 
 if TYPE_CHECKING:
-    from temoto.core.registrar.journal import Journal
+    from temoto.core.registrar.journal import FsyncPolicy, Journal
     from temoto.core.registrar.server import ResourceServer
 
 StatusCallback = Callable[[StatusUpdate], None]
@@ -181,6 +183,43 @@ class Ledger:
         self._released: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._boot = secrets.token_hex(3)
         self._counter = itertools.count(1)
+        self._pending: records.ReplayState | None = None  # restored, not yet rebuilt
+
+    @classmethod
+    def open(
+        cls,
+        name: str,
+        catalog: str | Path | None,
+        restore: bool,
+        fsync: FsyncPolicy,
+        fsync_interval: float,
+    ) -> Ledger:
+        """A ledger on a new or (with ``restore``) replayed catalog; see ``Registrar``.
+
+        Raises:
+            CatalogCorruptError: If ``restore`` finds a corrupt catalog (the file is untouched).
+            ResourceError: If a catalog exists and ``restore`` is false (it would be lost).
+        """
+        if catalog is None:
+            return cls(name, None)
+        path = Path(catalog)
+        if path.exists() and path.stat().st_size and not restore:
+            raise ResourceError(
+                f"catalog {path} exists: start with restore=True to take over its resources,"
+                " or remove it if they are gone",
+                origin=name,
+            )
+        from temoto.core.registrar.journal import Journal
+
+        journal = Journal(path, fsync=fsync, fsync_interval=fsync_interval)
+        written = journal.open()
+        ledger = cls(name, journal)
+        if restore:
+            state = records.replay(written, str(path))
+            ledger._pending = state if state.entries else None
+        elif written:
+            journal.rewrite([])
+        return ledger
 
     def write(self, record: records.Record) -> None:
         """Journal one record (nothing without a journal)."""
@@ -511,17 +550,22 @@ class Ledger:
             )
         return out
 
-    def rebuild(
-        self, state: records.ReplayState, servers: Mapping[str, ResourceServer[Any, Any]]
-    ) -> list[Entry]:
-        """Fill the empty tables from a replayed journal.
+    def rebuild_when_ready(
+        self, servers: Mapping[str, ResourceServer[Any, Any]]
+    ) -> list[Entry] | None:
+        """Once ``servers`` has every server the replayed catalog names, fill the tables.
 
         Returns:
-            The restored resources, in the journal's order.
+            The restored resources, in the journal's order; None if there is nothing to
+            restore (or not yet).
 
         Raises:
             CatalogCorruptError: A request or response cannot be rebuilt by its server's types.
         """
+        state = self._pending
+        if state is None or {e.server for e in state.entries.values()} - set(servers):
+            return None
+        self._pending = None
         name = str(self.journal.path) if self.journal is not None else "catalog"
         refs: list[Ref] = []
         for uid, raw in state.entries.items():

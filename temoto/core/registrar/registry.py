@@ -20,7 +20,6 @@ from __future__ import annotations
 import logging
 import threading
 from collections.abc import Callable, Mapping
-from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from temoto.core.registrar import records
@@ -44,6 +43,8 @@ from temoto.errors import (
 )
 
 if TYPE_CHECKING:
+    from pathlib import Path
+
     from temoto.core.registrar.server import ResourceServer
 
 __all__ = ["LoadContext", "Registrar"]
@@ -159,28 +160,8 @@ class Registrar:
         self._lock = threading.Lock()
         self._servers: dict[str, ResourceServer[Any, Any]] = {}
         self._tls = threading.local()
-        self._restored: records.ReplayState | None = None
         self._closed = False
-        journal = None
-        if catalog is not None:
-            path = Path(catalog)
-            if path.exists() and path.stat().st_size and not restore:
-                raise ResourceError(
-                    f"catalog {path} exists: start with restore=True to take over its resources,"
-                    " or remove it if they are gone",
-                    origin=name,
-                )
-            from temoto.core.registrar.journal import Journal
-
-            journal = Journal(path, fsync=fsync, fsync_interval=fsync_interval)
-            written = journal.open()
-            if restore:
-                self._restored = records.replay(written, str(path))
-                if not self._restored.entries:
-                    self._restored = None
-            elif written:
-                journal.rewrite([])
-        self._ledger = Ledger(name, journal)
+        self._ledger = Ledger.open(name, catalog, restore, fsync, fsync_interval)
 
     # ================================================================ servers
 
@@ -201,8 +182,9 @@ class Registrar:
             if server.name in self._servers:
                 raise ValueError(f"a server named '{server.name}' is already registered")
             self._servers[server.name] = server
-        if self._restored is not None:
-            self._restore_ready()
+            restored = self._ledger.rebuild_when_ready(self._servers)
+        if restored is not None:
+            settle(self, self._ledger, self._lock, restored, self._unload, self._transient)
 
     def servers(self) -> list[str]:
         """Names of the registered servers.
@@ -618,11 +600,7 @@ class Registrar:
         """
         with self._lock:
             ledger = self._ledger
-            entry = ledger.resolve(resource_id)
-            return [
-                ledger.info(ledger.entries[ledger.slot_refs[slot].uid])
-                for slot in ledger.book.dependencies(entry.slot)
-            ]
+            return [ledger.info(e) for e in ledger.dependencies(ledger.resolve(resource_id))]
 
     def references(self, client: str | None = None) -> list[Reference]:
         """References, of one consumer or all.
@@ -676,22 +654,9 @@ class Registrar:
                 )
             self._ledger.set_response(entry, response)
 
-    # ================================================================ restore
-
     def _compact(self) -> None:
         with self._lock:
             self._ledger.compact_if_due()
-
-    def _restore_ready(self) -> None:
-        """Once every server the catalog names is registered, rebuild and settle its state."""
-        assert self._restored is not None
-        state = self._restored
-        with self._lock:
-            if {e.server for e in state.entries.values()} - set(self._servers):
-                return
-            self._restored = None
-            restored = self._ledger.rebuild(state, self._servers)
-        settle(self, self._ledger, self._lock, restored, self._unload, self._transient)
 
     # ================================================================ closing
 
