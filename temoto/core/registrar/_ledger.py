@@ -339,7 +339,7 @@ class Ledger:
         ref, suspended = self.add_ref(entry, client, priority, exclusive, holder, on_status)
         journal = self.journal
         if journal is not None:
-            suspends = [r.id for r in suspended]
+            suspends = [r.id for r in suspended] if suspended else ()
             text = records.Ref.text(
                 ref.id, entry.uid, client, priority, exclusive, holder, False, suspends
             )
@@ -392,7 +392,9 @@ class Ledger:
         # one record, so a crash cannot leave only suspended references behind
         journal = self.journal
         if journal is not None:
-            journal.append_text(records.Unref.text(reference_id, [r.id for r in resumed]))
+            journal.append_text(
+                records.Unref.text(reference_id, [r.id for r in resumed] if resumed else ())
+            )
         if last and self.live.get((entry.server, entry.key)) == entry.uid:
             del self.live[(entry.server, entry.key)]
         return ref, entry, last, resumed

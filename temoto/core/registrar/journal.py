@@ -128,8 +128,7 @@ class Journal:
         self._open = False
         self._closing = False
         self._failure: BaseException | None = None
-        self._seq = 0
-        self._count = 0
+        self._seq = 0  # the last frame's sequence number: also the number of records
         self._size = 0
         self._written = 0  # appends made (monotonic across rewrites)
         self._synced = 0  # the value of _written that the last fsync covered
@@ -146,7 +145,7 @@ class Journal:
     @property
     def record_count(self) -> int:
         """Records in the file: those read by :meth:`open` (or :meth:`rewrite`) plus appended."""
-        return self._count
+        return self._seq
 
     @property
     def size(self) -> int:
@@ -254,7 +253,7 @@ class Journal:
             os.ftruncate(fd, end)
             if self._policy != "never":
                 os.fsync(fd)
-        self._seq = self._count = len(records)
+        self._seq = len(records)
         self._size = end
         return records
 
@@ -354,14 +353,12 @@ class Journal:
             if not self._open:
                 raise self._not_open()
             seq = self._seq + 1
-            seq_bytes = seq.to_bytes(8, "little")
-            crc = zlib.crc32(payload, zlib.crc32(seq_bytes))
-            frame = _LEN_CRC.pack(len(payload), crc) + seq_bytes + payload
+            crc = zlib.crc32(payload, zlib.crc32(seq.to_bytes(8, "little")))
+            frame = _FRAME.pack(len(payload), crc, seq) + payload
             done = os.write(self._fd, frame)  # raises only if nothing was written
             if done != len(frame):
                 self._write_rest(frame, done)
             self._seq = seq
-            self._count += 1
             self._size += len(frame)
             self._written += 1
             if self._policy == "group":
@@ -446,7 +443,7 @@ class Journal:
                 os.close(fd)
                 tmp.unlink(missing_ok=True)
                 raise
-            self._seq = self._count = count
+            self._seq = count
             self._size = len(data)
             os.close(old)
             if durable:
@@ -533,7 +530,7 @@ class Journal:
 
     def __repr__(self) -> str:
         return (
-            f"<Journal {str(self._path)!r} records={self._count} size={self._size} "
+            f"<Journal {str(self._path)!r} records={self._seq} size={self._size} "
             f"fsync={self._policy}>"
         )
 

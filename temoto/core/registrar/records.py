@@ -488,7 +488,7 @@ class Ref(Record):
             _json_str(ref_id),
             priority,
             _JSON_BOOL[suspended],
-            _json_list(suspends),
+            _json_list(suspends) if suspends else "[]",
             _json_str(uid),
         )
 
