@@ -265,7 +265,7 @@ class Ledger:
         """The load returned ``response`` (``plain``: as JSON data): its first reference."""
         entry.response = response
         entry.loading = False
-        ref, _ = self.add_ref(entry, client, priority, exclusive, holder, on_status)
+        ref, _ = self.add_ref(entry, client, priority, exclusive, holder, on_status, False)
         self.write(records.Load(entry.uid, plain, ref.fields()))
         return ref
 
@@ -279,8 +279,12 @@ class Ledger:
         exclusive: bool,
         holder: str,
         on_status: StatusCallback | None,
+        journaled: bool = True,
     ) -> tuple[Ref, tuple[Ref, ...] | list[Ref]]:
-        """Add a reference (not journaled), pre-empting lower-priority conflicting ones.
+        """Add a reference, pre-empting lower-priority conflicting ones.
+
+        Journaled as one ``ref`` record (with the ids it suspended) unless ``journaled`` is
+        false: the first reference of a load is part of the ``load`` record.
 
         Returns:
             The reference and the references it suspended.
@@ -288,66 +292,51 @@ class Ledger:
         Raises:
             ResourceBusyError: A conflicting reference of equal or higher priority holds it.
         """
-        conflicting: tuple[Ref, ...] | list[Ref] = _NONE
-        if exclusive or entry.exclusive:
-            conflicting = [
-                r for r in entry.refs.values() if not r.suspended and (r.exclusive or exclusive)
-            ]
-            if conflicting:
-                strongest = max(conflicting, key=lambda r: r.priority)
-                if strongest.priority >= priority:
-                    raise ResourceBusyError(
-                        f"resource {entry.uid} is held "
-                        f"{'exclusively ' if strongest.exclusive else ''}"
-                        f"by '{strongest.client}' with priority {strongest.priority}"
-                        f" (this request: priority {priority})",
-                        origin=self.name,
-                    )
-                for old in conflicting:
-                    old.suspended = True
-                entry.suspended += len(conflicting)
-        ref = Ref(
-            f"{self._boot}-{next(self._counter)}", entry.uid, client, priority, exclusive, holder
-        )
+        suspended: tuple[Ref, ...] | list[Ref] = _NONE
+        if exclusive or entry.exclusive:  # else nothing can conflict
+            suspended = self._pre_empt(entry, client, priority, exclusive)
+        uid = entry.uid
+        ref_id = f"{self._boot}-{next(self._counter)}"
+        ref = Ref(ref_id, uid, client, priority, exclusive, holder)
         if on_status is not None:
             ref.callbacks = (on_status,)
-        entry.refs[ref.id] = ref
+        entry.refs[ref_id] = ref
         if exclusive:
             entry.exclusive += 1
-        self.refs[ref.id] = ref
-        ref.slot = self.book.add_ref(entry.slot, self.entries[holder].slot if holder else -1)
-        self.slot_refs[ref.slot] = ref
-        return ref, conflicting
-
-    def reference(
-        self,
-        entry: Entry,
-        client: str,
-        priority: int,
-        exclusive: bool,
-        holder: str,
-        on_status: StatusCallback | None,
-    ) -> tuple[Ref, tuple[Ref, ...] | list[Ref]]:
-        """Add a reference to a loaded resource and journal it (one ``ref`` record).
-
-        Returns:
-            As :meth:`add_ref`.
-
-        Raises:
-            ResourceBusyError: As :meth:`add_ref`.
-        """
-        ref, suspended = self.add_ref(entry, client, priority, exclusive, holder, on_status)
+        self.refs[ref_id] = ref
+        ref.slot = slot = self.book.add_ref(entry.slot, self.entries[holder].slot if holder else -1)
+        self.slot_refs[slot] = ref
         journal = self.journal
-        if journal is not None:
+        if journaled and journal is not None:
             suspends = [r.id for r in suspended] if suspended else ()
             text = records.Ref.text(
-                ref.id, entry.uid, client, priority, exclusive, holder, False, suspends
+                ref_id, uid, client, priority, exclusive, holder, False, suspends
             )
             if text is None:  # not the layout's types: the encoder decides
                 journal.append(records.Ref(ref.fields(), tuple(suspends)).plain())
             else:
                 journal.append_text(text)
         return ref, suspended
+
+    def _pre_empt(self, entry: Entry, client: str, priority: int, exclusive: bool) -> list[Ref]:
+        """Suspend the active references that conflict with a new one, if it outranks them."""
+        conflicting = [
+            r for r in entry.refs.values() if not r.suspended and (r.exclusive or exclusive)
+        ]
+        if conflicting:
+            strongest = max(conflicting, key=lambda r: r.priority)
+            if strongest.priority >= priority:
+                raise ResourceBusyError(
+                    f"resource {entry.uid} is held "
+                    f"{'exclusively ' if strongest.exclusive else ''}"
+                    f"by '{strongest.client}' with priority {strongest.priority}"
+                    f" (this request: priority {priority})",
+                    origin=self.name,
+                )
+            for old in conflicting:
+                old.suspended = True
+            entry.suspended += len(conflicting)
+        return conflicting
 
     def unref(self, reference_id: str) -> tuple[Ref, Entry, bool, tuple[Ref, ...] | list[Ref]]:
         """Remove a reference and journal it (one ``unref`` record).

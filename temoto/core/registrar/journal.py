@@ -343,23 +343,24 @@ class Journal:
             ValueError: If the text is larger than :data:`MAX_RECORD_BYTES` (nothing written).
             RuntimeError, OSError: As :meth:`append`.
         """
-        payload = text.encode("utf-8")
-        if len(payload) > MAX_RECORD_BYTES:
-            raise ValueError(f"journal record is {len(payload)} bytes, over {MAX_RECORD_BYTES}")
-        self._append(payload)
+        self._append(text.encode("utf-8"))
 
     def _append(self, payload: bytes) -> None:
+        size = len(payload)
+        if size > MAX_RECORD_BYTES:
+            raise ValueError(f"journal record is {size} bytes, over {MAX_RECORD_BYTES}")
         with self._lock:
             if not self._open:
                 raise self._not_open()
             seq = self._seq + 1
             crc = zlib.crc32(payload, zlib.crc32(seq.to_bytes(8, "little")))
-            frame = _FRAME.pack(len(payload), crc, seq) + payload
+            frame = _FRAME.pack(size, crc, seq) + payload
+            size += _FRAME_HEAD
             done = os.write(self._fd, frame)  # raises only if nothing was written
-            if done != len(frame):
+            if done != size:
                 self._write_rest(frame, done)
             self._seq = seq
-            self._size += len(frame)
+            self._size += size
             self._written += 1
             if self._policy == "group":
                 if self._flusher is None:

@@ -300,7 +300,7 @@ class Registrar:
                         )
                     wait_for = entry.loaded
                 else:
-                    ref, pre_empted = ledger.reference(
+                    ref, pre_empted = ledger.add_ref(
                         entry, client, priority, exclusive, holder, on_status
                     )
                     result = Resource(ref.id, uid, server, entry.request, entry.response)
