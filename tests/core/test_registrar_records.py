@@ -145,6 +145,22 @@ def test_replay_refuses_an_unknown_operation_and_a_malformed_reference() -> None
         records.replay([{"op": ["begin"]}], "c")
 
 
+def test_a_refused_catalog_is_let_go_of(tmp_path: Path) -> None:
+    from temoto.core.registrar.journal import Journal
+    from temoto.errors import CatalogCorruptError
+
+    path = tmp_path / "c.tjl"
+    journal = Journal(path, fsync="never")
+    journal.open()
+    journal.append({"op": "unref", "id": "never-taken"})
+    journal.close()
+    with pytest.raises(CatalogCorruptError):
+        Registrar("rr", catalog=path, restore=True)
+    again = Journal(path, fsync="never")
+    assert len(again.open()) == 1  # not locked by the refused registrar, and untouched
+    again.close()
+
+
 # ------------------------------------------------------------------------ request keys
 
 

@@ -214,11 +214,15 @@ class Ledger:
         journal = Journal(path, fsync=fsync, fsync_interval=fsync_interval)
         written = journal.open()
         ledger = cls(name, journal)
-        if restore:
-            state = records.replay(written, str(path))
-            ledger._pending = state if state.entries else None
-        elif written:
-            journal.rewrite([])
+        try:
+            if restore:
+                state = records.replay(written, str(path))
+                ledger._pending = state if state.entries else None
+            elif written:
+                journal.rewrite([])
+        except BaseException:
+            journal.close()  # let go of the file (and its lock): a corrupt catalog stays as is
+            raise
         return ledger
 
     def write(self, record: records.Record) -> None:
