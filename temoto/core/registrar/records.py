@@ -30,8 +30,9 @@ order below)::
 A reference inside ``load`` (``ref`` and each of ``refs``) has the fields of ``ref`` without
 ``op`` and ``suspends``. A reference with a ``holder`` is a dependency of that resource; ``load``
 and ``ref`` append it to the holder's dependency list, a snapshot's ``refs`` do not (its
-``deps`` is the complete list). Replay is strict: an unknown ``op``, a missing key or a record
-that names an unknown resource or reference is :class:`~temoto.errors.CatalogCorruptError`.
+``deps`` is the complete list). Replay is strict: an unknown ``op``, a missing key (only
+``suspended``, ``suspends`` and ``resumes`` may be left out: false, empty) or a record that
+names an unknown resource or reference is :class:`~temoto.errors.CatalogCorruptError`.
 
 The two records written for every deduplicated request (``ref`` per call, ``unref`` per
 release) also have a precompiled layout (:meth:`Ref.text`, :meth:`Unref.text`): the very bytes
