@@ -238,6 +238,33 @@ def test_a_request_that_cannot_be_a_key_says_why() -> None:
         request_key(One(float("nan")))
 
 
+@pytest.mark.parametrize(
+    "value",
+    [{"a": float("nan")}, [float("inf")], {"k": object()}, {(1, 2): "tuple key"}, "loop"],
+    ids=["nan", "inf", "object", "tuple-key", "loop"],
+)
+def test_to_plain_refuses_what_json_dumps_refuses_with_the_same_exception(value: Any) -> None:
+    import json
+
+    from temoto.core.registrar.journal import encode
+    from temoto.core.registrar.messages import to_plain
+
+    if value == "loop":
+        value = []
+        value.append(value)
+    with pytest.raises((TypeError, ValueError)) as theirs:
+        json.dumps(value, allow_nan=False)
+    with pytest.raises(theirs.type):
+        to_plain(value)
+    if "nan" not in repr(value) and "inf" not in repr(value):  # the journal writes those
+        with pytest.raises(TypeError):  # the journal's payload: TypeError for all it refuses
+            encode({"v": value})
+    assert to_plain({"ok": [1, 2.5, None, "ü"], "b": {1: True}}) == {
+        "ok": [1, 2.5, None, "ü"],
+        "b": {1: True},
+    }
+
+
 # ------------------------------------------------------------------------ the books' counters
 
 

@@ -517,6 +517,10 @@ class Ledger:
 
     # ------------------------------------------------------------------------------ durability
 
+    def may_compact(self) -> bool:
+        """Whether the journal is long enough for :meth:`compact_if_due` to look (no lock)."""
+        return self.journal is not None and self.journal.record_count >= COMPACT_SLACK
+
     def compact_if_due(self) -> None:
         """Rewrite the journal as a snapshot if it holds far more records than the state."""
         journal = self.journal

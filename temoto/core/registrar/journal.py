@@ -55,6 +55,7 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
+from temoto.core.registrar._json import make_encoder
 from temoto.errors import CatalogCorruptError, ResourceBusyError
 
 if sys.platform != "win32":
@@ -78,7 +79,9 @@ _FRAME = struct.Struct("<IIQ")  # length, crc, seq
 _LEN_CRC = struct.Struct("<II")
 _FRAME_HEAD = _FRAME.size
 _READ_CHUNK = 1 << 20
-_ENCODER = json.JSONEncoder(ensure_ascii=False, sort_keys=True, separators=(",", ":"))
+_ENCODE = make_encoder(  # _ENCODE(record, 0)[0]: the payload's text
+    default=None, ensure_ascii=False, separators=(",", ":"), sort_keys=True, allow_nan=True
+)
 _POLICIES = ("group", "always", "never")
 
 
@@ -554,8 +557,8 @@ def encode(record: Mapping[str, Any]) -> bytes:
             raise TypeError(f"a journal record must be a mapping, not {type(record).__name__}")
         record = dict(record)
     try:
-        payload = _ENCODER.encode(record).encode("utf-8")
-    except ValueError as exc:  # a circular reference, or a lone surrogate in a string
+        payload = _ENCODE(record, 0)[0].encode("utf-8")
+    except (ValueError, RecursionError) as exc:  # a circular reference, a lone surrogate
         raise TypeError(f"journal record is not JSON-serialisable: {exc}") from exc
     if len(payload) > MAX_RECORD_BYTES:
         raise ValueError(f"journal record is {len(payload)} bytes, over {MAX_RECORD_BYTES}")

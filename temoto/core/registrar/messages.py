@@ -7,12 +7,13 @@ link (later) encodes them for other robots.
 from __future__ import annotations
 
 import dataclasses
-import json
 import operator
 from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any, Generic, TypeVar
+
+from temoto.core.registrar._json import make_encoder
 
 __all__ = [
     "Reference",
@@ -144,10 +145,14 @@ def to_plain(value: Any) -> Any:
 
     Raises:
         TypeError: If it holds something JSON cannot represent.
+        ValueError: If it holds a NaN or an infinity, or contains itself.
     """
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         value = dataclasses.asdict(value)
-    json.dumps(value, allow_nan=False)  # validates: raises TypeError / ValueError
+    try:
+        _CHECK(value, 0)  # validates: raises TypeError / ValueError, as json.dumps would
+    except RecursionError:
+        raise ValueError("Circular reference detected") from None
     return value
 
 
@@ -267,32 +272,11 @@ def _nested(value: Any) -> Any:
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
-def _make_encoder() -> Callable[[Any, int], list[str]]:
-    """One compact, sorted-key, ASCII-preserving JSON encoder made once, called per key.
-
-    ``json.dumps`` (and ``JSONEncoder.encode``) build the compiled encoder anew for every
-    call; this is that compiled encoder (``_json.make_encoder``), made once with the same
-    options, without the circular-reference bookkeeping (a cycle ends in RecursionError, which
-    the callers report as TypeError). Where the compiled encoder is missing, the pure one.
-    """
-    make = getattr(json.encoder, "c_make_encoder", None)  # absent from the typeshed stubs
-    if make is not None:
-        return make(  # type: ignore[no-any-return]
-            None,  # no circular-reference markers: shared by threads
-            _nested,
-            json.encoder.encode_basestring,
-            None,
-            ":",
-            ",",
-            True,  # sort_keys
-            False,  # skipkeys
-            False,  # allow_nan
-        )
-    encoder = json.JSONEncoder(
-        sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False, default=_nested
-    )
-    return lambda value, _level: [encoder.encode(value)]
-
-
 #: ``_CANONICAL(value, 0)[0]``: the canonical JSON text of ``value``.
-_CANONICAL = _make_encoder()
+_CANONICAL = make_encoder(
+    default=_nested, ensure_ascii=False, separators=(",", ":"), sort_keys=True, allow_nan=False
+)
+#: What ``json.dumps(value, allow_nan=False)`` checks: ``to_plain``'s test of JSON data.
+_CHECK = make_encoder(
+    default=None, ensure_ascii=True, separators=(", ", ": "), sort_keys=False, allow_nan=False
+)

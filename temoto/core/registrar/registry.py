@@ -655,8 +655,9 @@ class Registrar:
             self._ledger.set_response(entry, response)
 
     def _compact(self) -> None:
-        with self._lock:
-            self._ledger.compact_if_due()
+        if self._ledger.may_compact():  # a cheap look first: no lock for a short journal
+            with self._lock:
+                self._ledger.compact_if_due()
 
     # ================================================================ closing
 
