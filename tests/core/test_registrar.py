@@ -567,11 +567,14 @@ def test_the_ref_and_unref_layouts_write_the_encoders_very_bytes(
     from temoto.core.registrar import records
     from temoto.core.registrar.journal import encode
 
-    fields = records.RefFields("a-1", "u-1", client, priority, exclusive, holder, True)
-    record = records.Ref(fields, tuple(suspends))
-    text = records.Ref.text("a-1", "u-1", client, priority, exclusive, holder, True, suspends)
-    assert text is not None
-    assert text.encode("utf-8") == encode(record.plain()) == record.encode()
+    for suspended, pre_empted in ((True, suspends), (False, suspends), (False, [])):
+        fields = records.RefFields("a-1", "u-1", client, priority, exclusive, holder, suspended)
+        record = records.Ref(fields, tuple(pre_empted))
+        text = records.Ref.text(
+            "a-1", "u-1", client, priority, exclusive, holder, suspended, pre_empted
+        )
+        assert text is not None
+        assert text.encode("utf-8") == encode(record.plain()) == record.encode()
     unref = records.Unref(client, tuple(suspends))
     assert records.Unref.text(client, suspends).encode("utf-8") == encode(unref.plain())
     assert unref.encode() == encode({"op": "unref", "id": client, "resumes": suspends})

@@ -439,6 +439,11 @@ class Ref(Record):
         '{"client":%s,"exclusive":%s,"holder":%s,"id":%s,"op":"ref","priority":%d,'
         '"suspended":%s,"suspends":%s,"uid":%s}'
     )
+    #: The layout of an active reference that pre-empted nothing: every deduplicated call.
+    LAYOUT_ACTIVE: ClassVar[str] = (
+        '{"client":%s,"exclusive":%s,"holder":%s,"id":%s,"op":"ref","priority":%d,'
+        '"suspended":false,"suspends":[],"uid":%s}'
+    )
 
     def plain(self) -> dict[str, Any]:
         """See :meth:`Record.plain`."""
@@ -480,8 +485,21 @@ class Ref(Record):
             if ``priority`` is not an ``int`` or ``exclusive`` or ``suspended`` not a ``bool``
             (the layout would write them differently; use :meth:`encode`).
         """
-        if type(priority) is not int or type(exclusive) is not bool or type(suspended) is not bool:
+        if (
+            type(priority) is not int
+            or (exclusive is not False and exclusive is not True)
+            or (suspended is not False and suspended is not True)
+        ):
             return None
+        if suspended is False and not suspends:
+            return Ref.LAYOUT_ACTIVE % (
+                _json_str(client),
+                "true" if exclusive else "false",
+                _json_str(holder) if holder else '""',
+                _json_str(ref_id),
+                priority,
+                _json_str(uid),
+            )
         return Ref.LAYOUT % (
             _json_str(client),
             _JSON_BOOL[exclusive],
