@@ -42,7 +42,10 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
+
+if TYPE_CHECKING:
+    from temoto.core.registrar.records import ReplayedEntry
 
 ROOT = Path(__file__).resolve().parents[1]
 PROFILE = ROOT / "hw_profiles" / "sim_arm.yaml"
@@ -231,10 +234,10 @@ def marked_processes(needle: bytes) -> list[int]:
     return sorted(found)
 
 
-def journal_entries(catalog: Path) -> dict[str, dict[str, Any]]:
+def journal_entries(catalog: Path) -> dict[str, ReplayedEntry]:
     """The resources a registrar journal describes (read from a copy: the owner holds a lock)."""
-    from temoto.core.registrar._replay import replay
     from temoto.core.registrar.journal import Journal
+    from temoto.core.registrar.records import replay
 
     with tempfile.TemporaryDirectory() as tmp:
         copy = Path(tmp) / "copy.journal"
@@ -335,9 +338,9 @@ def crash_rounds(
                 current = {_boot(uid) for uid in entries if uid.startswith("pipeline:")}
                 outcome.ghosts = sorted(uid for uid in entries if _boot(uid) not in current)
                 pids = {
-                    int(e["response"]["pid"])
+                    int(e.response["pid"])
                     for uid, e in entries.items()
-                    if uid.startswith("process:") and e["loaded"] and _boot(uid) in current
+                    if uid.startswith("process:") and e.loaded and _boot(uid) in current
                 }
                 outcome.pipeline = len(others & pids)
                 outcome.extra = sorted(others - pids)

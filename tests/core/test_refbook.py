@@ -411,7 +411,7 @@ def test_registrar_book_matches_its_tables_and_empties() -> None:
     reg.register(Tree(reg))
     a = reg.call("tree", Req("a", ("b", "c")), client="x")
     d = reg.call("tree", Req("d", ("c", "b", "e")), client="y")
-    book = reg._book
+    book = reg._ledger.book
     assert (book.live_resources(), book.live_refs()) == (5, 7)
     assert [i.request.name for i in reg.dependencies(d.id)] == ["c", "b", "e"]
     assert [reg.info(r).request.name for r in reg.info(d.resource_id).dependencies] == [
@@ -455,9 +455,9 @@ def test_a_forgotten_resource_detaches_the_dependencies_it_could_not_release(
     with pytest.raises(ResourceLoadError, match="gave up"):
         reg.call("closer", Req("outer"))
     assert "releasing" in caplog.text  # the rollback logged the failed release
-    book = reg._book
+    book = reg._ledger.book
     (inner,) = reg.resources()
     (ref,) = inner.references
     assert (book.live_resources(), book.live_refs()) == (1, 1)
-    assert book.holder_of(reg._refs[ref.id].slot) == -1  # still counted, nobody's dependency
+    assert book.holder_of(reg._ledger.refs[ref.id].slot) == -1  # still counted, nobody's dependency
     assert reg.dependencies(inner.id) == []

@@ -564,25 +564,32 @@ def test_a_catalog_whose_records_do_not_fit_is_corrupt(tmp_path: Any) -> None:
 def test_the_ref_and_unref_layouts_write_the_encoders_very_bytes(
     client: str, holder: str, suspends: list[str], exclusive: bool, priority: int
 ) -> None:
-    from temoto.core.registrar import registry
-    from temoto.core.registrar.journal import _encode
+    from temoto.core.registrar import records
+    from temoto.core.registrar.journal import encode
 
-    ref = registry._Ref("a-1", "u-1", client, priority, exclusive, holder, True)
-    ref.suspends = suspends
-    record = {"op": "ref", **ref.record(), "suspends": ref.suspends}
-    text = registry._REF % (
-        registry._json_str(ref.client),
-        registry._JSON_BOOL[ref.exclusive],
-        registry._json_str(ref.holder),
-        registry._json_str(ref.id),
-        ref.priority,
-        registry._JSON_BOOL[ref.suspended],
-        registry._json_list(ref.suspends),
-        registry._json_str(ref.uid),
-    )
-    assert text.encode("utf-8") == _encode(record)
-    unref = registry._UNREF % (registry._json_str(client), registry._json_list(suspends))
-    assert unref.encode("utf-8") == _encode({"op": "unref", "id": client, "resumes": suspends})
+    for suspended, pre_empted in ((True, suspends), (False, suspends), (False, [])):
+        fields = records.RefFields("a-1", "u-1", client, priority, exclusive, holder, suspended)
+        record = records.Ref(fields, tuple(pre_empted))
+        text = records.Ref.text(
+            "a-1", "u-1", client, priority, exclusive, holder, suspended, pre_empted
+        )
+        assert text is not None
+        assert text.encode("utf-8") == encode(record.plain()) == record.encode()
+    unref = records.Unref(client, tuple(suspends))
+    assert records.Unref.text(client, suspends).encode("utf-8") == encode(unref.plain())
+    assert unref.encode() == encode({"op": "unref", "id": client, "resumes": suspends})
+
+
+def test_a_reference_of_other_types_than_the_layouts_is_written_by_the_encoder() -> None:
+    from temoto.core.registrar import records
+    from temoto.core.registrar.journal import encode
+
+    assert records.Ref.text("a", "u", "c", True, False, "", False, ()) is None  # bool priority
+    assert records.Ref.text("a", "u", "c", 1, 1, "", False, ()) is None  # int exclusive
+    fields = records.RefFields("a", "u", "c", True, 1, "")  # type: ignore[arg-type]
+    record = records.Ref(fields)
+    assert record.encode() == encode(record.plain())
+    assert b'"priority":true' in record.encode()
 
 
 def test_deduplicated_pairs_journal_what_a_restore_reads_back(tmp_path: Any) -> None:

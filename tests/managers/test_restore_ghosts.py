@@ -34,8 +34,8 @@ from temoto.core.registrar import (
     Status,
     StatusUpdate,
 )
-from temoto.core.registrar._replay import replay
 from temoto.core.registrar.journal import Journal
+from temoto.core.registrar.records import replay
 from temoto.instance import Instance
 from temoto.managers.component import ComponentManager
 from temoto.managers.component.messages import PipelineRequest

@@ -11,8 +11,7 @@ from typing import Any
 
 from temoto import Action, ActionCatalog, ActionEngine, parse_graph, parse_umrf
 from temoto.core.graph import UmrfGraph
-from temoto.core.registrar import Registrar
-from temoto.core.registrar.server import LoadContext, ResourceServer
+from temoto.core.registrar import LoadContext, Registrar, ResourceServer
 
 ROOT = Path(__file__).resolve().parents[2]
 ACTIONS = ROOT / "examples" / "actions" / "conformance"

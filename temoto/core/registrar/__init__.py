@@ -13,8 +13,8 @@ from temoto.core.registrar.messages import (
     Status,
     StatusUpdate,
 )
-from temoto.core.registrar.registry import Registrar
-from temoto.core.registrar.server import LoadContext, ResourceServer
+from temoto.core.registrar.registry import LoadContext, Registrar
+from temoto.core.registrar.server import ResourceServer
 
 __all__ = [
     "LoadContext",

@@ -55,12 +55,13 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
+from temoto.core.registrar._json import make_encoder
 from temoto.errors import CatalogCorruptError, ResourceBusyError
 
 if sys.platform != "win32":
     import fcntl
 
-__all__ = ["FORMAT_VERSION", "MAGIC", "MAX_RECORD_BYTES", "FsyncPolicy", "Journal"]
+__all__ = ["FORMAT_VERSION", "MAGIC", "MAX_RECORD_BYTES", "FsyncPolicy", "Journal", "encode"]
 
 logger = logging.getLogger(__name__)
 
@@ -78,7 +79,9 @@ _FRAME = struct.Struct("<IIQ")  # length, crc, seq
 _LEN_CRC = struct.Struct("<II")
 _FRAME_HEAD = _FRAME.size
 _READ_CHUNK = 1 << 20
-_ENCODER = json.JSONEncoder(ensure_ascii=False, sort_keys=True, separators=(",", ":"))
+_ENCODE = make_encoder(  # _ENCODE(record, 0)[0]: the payload's text
+    default=None, ensure_ascii=False, separators=(",", ":"), sort_keys=True, allow_nan=True
+)
 _POLICIES = ("group", "always", "never")
 
 
@@ -128,8 +131,7 @@ class Journal:
         self._open = False
         self._closing = False
         self._failure: BaseException | None = None
-        self._seq = 0
-        self._count = 0
+        self._seq = 0  # the last frame's sequence number: also the number of records
         self._size = 0
         self._written = 0  # appends made (monotonic across rewrites)
         self._synced = 0  # the value of _written that the last fsync covered
@@ -146,7 +148,7 @@ class Journal:
     @property
     def record_count(self) -> int:
         """Records in the file: those read by :meth:`open` (or :meth:`rewrite`) plus appended."""
-        return self._count
+        return self._seq
 
     @property
     def size(self) -> int:
@@ -254,7 +256,7 @@ class Journal:
             os.ftruncate(fd, end)
             if self._policy != "never":
                 os.fsync(fd)
-        self._seq = self._count = len(records)
+        self._seq = len(records)
         self._size = end
         return records
 
@@ -328,7 +330,7 @@ class Journal:
                 earlier write that failed and could not be undone).
             OSError: If the write fails (the partial frame, if any, is removed again).
         """
-        self._append(_encode(record))
+        self._append(encode(record))
 
     def append_text(self, text: str) -> None:
         """Append one record given as its JSON text (encoded by the caller from a layout).
@@ -344,25 +346,24 @@ class Journal:
             ValueError: If the text is larger than :data:`MAX_RECORD_BYTES` (nothing written).
             RuntimeError, OSError: As :meth:`append`.
         """
-        payload = text.encode("utf-8")
-        if len(payload) > MAX_RECORD_BYTES:
-            raise ValueError(f"journal record is {len(payload)} bytes, over {MAX_RECORD_BYTES}")
-        self._append(payload)
+        self._append(text.encode("utf-8"))
 
     def _append(self, payload: bytes) -> None:
+        size = len(payload)
+        if size > MAX_RECORD_BYTES:
+            raise ValueError(f"journal record is {size} bytes, over {MAX_RECORD_BYTES}")
         with self._lock:
             if not self._open:
                 raise self._not_open()
             seq = self._seq + 1
-            seq_bytes = seq.to_bytes(8, "little")
-            crc = zlib.crc32(payload, zlib.crc32(seq_bytes))
-            frame = _LEN_CRC.pack(len(payload), crc) + seq_bytes + payload
+            crc = zlib.crc32(payload, zlib.crc32(seq.to_bytes(8, "little")))
+            frame = _FRAME.pack(size, crc, seq) + payload
+            size += _FRAME_HEAD
             done = os.write(self._fd, frame)  # raises only if nothing was written
-            if done != len(frame):
+            if done != size:
                 self._write_rest(frame, done)
             self._seq = seq
-            self._count += 1
-            self._size += len(frame)
+            self._size += size
             self._written += 1
             if self._policy == "group":
                 if self._flusher is None:
@@ -421,7 +422,7 @@ class Journal:
         parts = [_HEADER]
         count = 0
         for count, record in enumerate(records, 1):
-            payload = _encode(record)
+            payload = encode(record)
             seq_bytes = count.to_bytes(8, "little")
             crc = zlib.crc32(payload, zlib.crc32(seq_bytes))
             parts += (_LEN_CRC.pack(len(payload), crc), seq_bytes, payload)
@@ -446,7 +447,7 @@ class Journal:
                 os.close(fd)
                 tmp.unlink(missing_ok=True)
                 raise
-            self._seq = self._count = count
+            self._seq = count
             self._size = len(data)
             os.close(old)
             if durable:
@@ -533,19 +534,31 @@ class Journal:
 
     def __repr__(self) -> str:
         return (
-            f"<Journal {str(self._path)!r} records={self._count} size={self._size} "
+            f"<Journal {str(self._path)!r} records={self._seq} size={self._size} "
             f"fsync={self._policy}>"
         )
 
 
-def _encode(record: Mapping[str, Any]) -> bytes:
+def encode(record: Mapping[str, Any]) -> bytes:
+    """A record's payload as :meth:`Journal.append` writes it: compact JSON, sorted keys, UTF-8.
+
+    Args:
+        record: A JSON-serialisable mapping with string keys.
+
+    Returns:
+        The bytes.
+
+    Raises:
+        TypeError: If the record cannot be serialised as JSON.
+        ValueError: If its JSON is larger than :data:`MAX_RECORD_BYTES`.
+    """
     if type(record) is not dict:
         if not isinstance(record, Mapping):
             raise TypeError(f"a journal record must be a mapping, not {type(record).__name__}")
         record = dict(record)
     try:
-        payload = _ENCODER.encode(record).encode("utf-8")
-    except ValueError as exc:  # a circular reference, or a lone surrogate in a string
+        payload = _ENCODE(record, 0)[0].encode("utf-8")
+    except (ValueError, RecursionError) as exc:  # a circular reference, a lone surrogate
         raise TypeError(f"journal record is not JSON-serialisable: {exc}") from exc
     if len(payload) > MAX_RECORD_BYTES:
         raise ValueError(f"journal record is {len(payload)} bytes, over {MAX_RECORD_BYTES}")

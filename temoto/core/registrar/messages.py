@@ -7,10 +7,13 @@ link (later) encodes them for other robots.
 from __future__ import annotations
 
 import dataclasses
-import json
+import operator
+from collections.abc import Callable
 from dataclasses import dataclass
 from enum import Enum
 from typing import Any, Generic, TypeVar
+
+from temoto.core.registrar._json import make_encoder
 
 __all__ = [
     "Reference",
@@ -20,6 +23,7 @@ __all__ = [
     "StatusUpdate",
     "canonical_json",
     "from_plain",
+    "request_key",
     "to_plain",
 ]
 
@@ -141,10 +145,14 @@ def to_plain(value: Any) -> Any:
 
     Raises:
         TypeError: If it holds something JSON cannot represent.
+        ValueError: If it holds a NaN or an infinity, or contains itself.
     """
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         value = dataclasses.asdict(value)
-    json.dumps(value, allow_nan=False)  # validates: raises TypeError / ValueError
+    try:
+        _CHECK(value, 0)  # validates: raises TypeError / ValueError, as json.dumps would
+    except RecursionError:
+        raise ValueError("Circular reference detected") from None
     return value
 
 
@@ -181,9 +189,40 @@ def canonical_json(value: Any) -> str:
         TypeError: If the value cannot be serialised (with what could not).
     """
     try:
-        return _CANONICAL.encode(_shallow(value))
-    except (TypeError, ValueError) as err:
-        raise TypeError(f"cannot serialise {type(value).__name__}: {err}") from None
+        return _CANONICAL(_shallow(value), 0)[0]
+    except (TypeError, ValueError, RecursionError) as err:
+        raise TypeError(f"cannot serialise {type(value).__name__}: {_reason(err)}") from None
+
+
+def request_key(value: Any) -> str:
+    """The registrar's key of a request: equal for two requests iff :func:`canonical_json` is.
+
+    For a dataclass it is the class's field names (sorted, as JSON) followed by a JSON array of
+    the field values in that order: one call of the compiled JSON encoder on a tuple, without
+    building a dict. Anything else gets its canonical JSON.
+
+    Args:
+        value: A request.
+
+    Returns:
+        The key.
+
+    Raises:
+        TypeError: If the value cannot be serialised (with what could not).
+    """
+    layout = _LAYOUTS.get(type(value))
+    try:
+        if layout is None:
+            if not dataclasses.is_dataclass(value) or isinstance(value, type):
+                return _CANONICAL(value, 0)[0]
+            layout = _layout(type(value))
+        return layout[0] + _CANONICAL(layout[1](value), 0)[0]
+    except (TypeError, ValueError, RecursionError) as err:
+        raise TypeError(f"cannot serialise {type(value).__name__}: {_reason(err)}") from None
+
+
+def _reason(err: BaseException) -> str:
+    return "a circular reference" if isinstance(err, RecursionError) else str(err)
 
 
 def _shallow(value: Any) -> Any:
@@ -197,8 +236,12 @@ def _shallow(value: Any) -> Any:
 
 
 #: Field names by dataclass: the layout of a request class, looked up once per class instead
-#: of asking ``dataclasses.fields`` for every key (the dedup path makes a key per call).
+#: of asking ``dataclasses.fields`` for every key.
 _FIELD_NAMES: dict[type, tuple[str, ...]] = {}
+
+#: Request-key layouts by dataclass: (the sorted field names as a JSON array, a getter of the
+#: field values in that order, as a tuple).
+_LAYOUTS: dict[type, tuple[str, Callable[[Any], tuple[Any, ...]]]] = {}
 
 
 def _field_names(cls: type) -> tuple[str, ...]:
@@ -207,13 +250,33 @@ def _field_names(cls: type) -> tuple[str, ...]:
     return names
 
 
+def _layout(cls: type) -> tuple[str, Callable[[Any], tuple[Any, ...]]]:
+    names = sorted(_FIELD_NAMES.get(cls) or _field_names(cls))
+    if names:
+        get = operator.attrgetter(*names)
+        getter = (lambda v: (get(v),)) if len(names) == 1 else get
+    else:
+        getter = _no_fields
+    layout = (_CANONICAL(names, 0)[0], getter)
+    _LAYOUTS[cls] = layout  # one entry per class; a racing thread writes an equal one
+    return layout
+
+
+def _no_fields(value: Any) -> tuple[Any, ...]:
+    return ()
+
+
 def _nested(value: Any) -> Any:
     if dataclasses.is_dataclass(value) and not isinstance(value, type):
         return _shallow(value)
     raise TypeError(f"{type(value).__name__} is not JSON serialisable")
 
 
-# One encoder for every key: json.dumps with options builds a new encoder per call.
-_CANONICAL = json.JSONEncoder(
-    sort_keys=True, separators=(",", ":"), ensure_ascii=False, allow_nan=False, default=_nested
+#: ``_CANONICAL(value, 0)[0]``: the canonical JSON text of ``value``.
+_CANONICAL = make_encoder(
+    default=_nested, ensure_ascii=False, separators=(",", ":"), sort_keys=True, allow_nan=False
+)
+#: What ``json.dumps(value, allow_nan=False)`` checks: ``to_plain``'s test of JSON data.
+_CHECK = make_encoder(
+    default=None, ensure_ascii=True, separators=(", ", ": "), sort_keys=False, allow_nan=False
 )

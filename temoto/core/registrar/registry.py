@@ -6,31 +6,25 @@ made while a resource loads become its dependencies; ``release`` of the last ref
 releases the dependencies, then unloads; ``send_status`` reaches every consumer, up the
 dependency chain. Every change is appended to the journal before the call returns.
 
-Reference counts and dependency lists live in a :class:`~temoto.core._fast.RefBook` (integer
-slots; compiled when the extension is built): each resource has a resource slot, each reference
-a reference slot, and the book decides when a release was the last one and which references a
-resource holds as dependencies, in acquisition order. Everything else (ids, clients,
-priorities, callbacks) stays in the ``_Entry``/``_Ref`` objects.
+The registrar runs the protocol: server hooks, the thread-local loading stack, status
+delivery, the restore after a crash. Its books (tables, reference counts, dependency lists) and
+the journal records of their changes are the :class:`~temoto.core.registrar._ledger.Ledger`'s;
+the records themselves are defined in :mod:`~temoto.core.registrar.records`.
 
-Locking: one lock guards the tables and the book. Server hooks and status callbacks run outside
-it, in the calling thread, so they may call the registrar again.
+Locking: one lock guards the ledger. Server hooks and status callbacks run outside it, in the
+calling thread, so they may call the registrar again.
 """
 
 from __future__ import annotations
 
-import collections
-import itertools
-import json.encoder
 import logging
-import secrets
 import threading
 from collections.abc import Callable, Mapping
-from dataclasses import dataclass, field
-from pathlib import Path
-from typing import TYPE_CHECKING, Any, Literal, TypeVar
+from typing import TYPE_CHECKING, Any, Literal
 
-from temoto.core._fast import RefBook
-from temoto.core.registrar._replay import ReplayState, replay
+from temoto.core.registrar import records
+from temoto.core.registrar._ledger import Entry, Ledger, Notices
+from temoto.core.registrar._restore import settle
 from temoto.core.registrar.messages import (
     Reference,
     Resource,
@@ -38,13 +32,10 @@ from temoto.core.registrar.messages import (
     Status,
     StatusUpdate,
     canonical_json,
-    from_plain,
+    request_key,
     to_plain,
 )
-from temoto.core.registrar.server import LoadContext, ResourceServer
 from temoto.errors import (
-    CatalogCorruptError,
-    ResourceBusyError,
     ResourceClosedError,
     ResourceError,
     ResourceLoadError,
@@ -52,91 +43,86 @@ from temoto.errors import (
 )
 
 if TYPE_CHECKING:
-    from temoto.core.registrar.journal import Journal
+    from pathlib import Path
 
-__all__ = ["Registrar"]
+    from temoto.core.registrar.server import ResourceServer
+
+__all__ = ["LoadContext", "Registrar"]
 
 logger = logging.getLogger(__name__)
 
-T = TypeVar("T")
 StatusCallback = Callable[[StatusUpdate], None]
 
-#: Compact the journal when it holds this many records more than the live state needs.
-COMPACT_SLACK = 20_000
-#: Remember this many released reference ids, to tell a double release from an unknown id.
-RELEASED_MEMORY = 10_000
 
-# Precompiled layouts of the journal records written for every deduplicated request (a "ref"
-# record per call, an "unref" per release): the very bytes the journal's encoder would give
-# (keys sorted, no spaces, UTF-8), without building a dict and walking it for each.
-_REF = (
-    '{"client":%s,"exclusive":%s,"holder":%s,"id":%s,"op":"ref","priority":%d,'
-    '"suspended":%s,"suspends":%s,"uid":%s}'
-)
-_UNREF = '{"id":%s,"op":"unref","resumes":%s}'
-_JSON_BOOL = {True: "true", False: "false"}
-_json_str = json.encoder.encode_basestring  # the encoder's own string quoting (C)
+class LoadContext:
+    """What a server's ``on_load`` gets besides the request.
 
+    Attributes:
+        registrar: The registrar.
+        resource_id: The id the resource will have (use it in later ``send_status`` calls).
+        server: The server's name.
+    """
 
-def _json_list(items: list[str]) -> str:
-    """A list of strings as the encoder writes it."""
-    return "[" + ",".join(map(_json_str, items)) + "]" if items else "[]"
+    __slots__ = ("registrar", "resource_id", "server")
 
+    def __init__(self, registrar: Registrar, resource_id: str, server: str) -> None:
+        self.registrar = registrar
+        self.resource_id = resource_id
+        self.server = server
 
-@dataclass(slots=True)
-class _Ref:
-    id: str
-    uid: str
-    client: str
-    priority: int
-    exclusive: bool
-    holder: str  # resource id that holds this reference as a dependency ("" for consumers)
-    suspended: bool = False
-    callbacks: list[StatusCallback] = field(default_factory=list)
-    suspends: list[str] = field(default_factory=list)
-    slot: int = -1  # reference slot in the registrar's RefBook (-1: not in the book)
+    def call(
+        self,
+        server: str,
+        request: Any,
+        *,
+        priority: int = 0,
+        exclusive: bool = False,
+        on_status: StatusCallback | None = None,
+    ) -> Resource[Any]:
+        """Request a sub-resource as a dependency of this resource, from any thread.
 
-    def snapshot(self) -> Reference:
-        return Reference(
-            self.id,
-            self.uid,
-            self.client,
-            self.priority,
-            self.exclusive,
-            self.suspended,
-            self.holder,
+        Calls made with ``registrar.call`` in the thread running ``on_load`` are recorded
+        automatically; use this one from other threads.
+
+        Args:
+            server: The sub-resource's server.
+            request: Its request.
+            priority: Priority of the reference.
+            exclusive: Whether it wants the sub-resource alone.
+            on_status: Extra callback for the sub-resource's status (the server's
+                ``on_status`` is called anyway).
+
+        Returns:
+            The reference.
+
+        Raises:
+            Everything ``Registrar.call`` raises.
+        """
+        return self.registrar.call(
+            server,
+            request,
+            priority=priority,
+            exclusive=exclusive,
+            on_status=on_status,
+            holder=self.resource_id,
         )
 
-    def record(self) -> dict[str, Any]:
-        return {
-            "id": self.id,
-            "uid": self.uid,
-            "client": self.client,
-            "priority": self.priority,
-            "exclusive": self.exclusive,
-            "holder": self.holder,
-            "suspended": self.suspended,
-        }
+    def checkpoint(self, progress: Mapping[str, Any]) -> None:
+        """Record how far the load got (e.g. a spawned pid) before it returns.
 
+        If the process dies before ``on_load`` returns, the restarted registrar hands this to
+        ``on_abandoned`` so the server can undo it (no orphaned process).
 
-@dataclass(slots=True)
-class _Entry:
-    uid: str
-    server: str
-    key: str
-    request: Any
-    response: Any = None
-    refs: dict[str, _Ref] = field(default_factory=dict)  # the count is the RefBook's
-    failed: bool = False
-    loading: bool = True
-    loaded: threading.Event = field(default_factory=threading.Event)
-    load_error: BaseException | None = None
-    loader: int = 0  # thread id running on_load
-    progress: dict[str, Any] | None = None
-    slot: int = -1  # resource slot in the registrar's RefBook (-1: not, or no longer, in it)
+        Args:
+            progress: JSON-serialisable data.
 
-    def active(self) -> list[_Ref]:
-        return [r for r in self.refs.values() if not r.suspended]
+        Returns:
+            None.
+
+        Raises:
+            TypeError: If the data cannot be serialised.
+        """
+        self.registrar.checkpoint(self.resource_id, progress)
 
 
 class Registrar:
@@ -173,36 +159,9 @@ class Registrar:
         self._transient = transient
         self._lock = threading.Lock()
         self._servers: dict[str, ResourceServer[Any, Any]] = {}
-        self._entries: dict[str, _Entry] = {}
-        self._live: dict[tuple[str, str], str] = {}
-        self._refs: dict[str, _Ref] = {}
-        self._book = RefBook()  # reference counts and dependency lists, by slot
-        self._slot_refs: dict[int, _Ref] = {}  # reference slot -> reference
-        self._released: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._tls = threading.local()
-        self._boot = secrets.token_hex(3)
-        self._counter = itertools.count(1)
-        self._journal: Journal | None = None
-        self._restored: ReplayState | None = None
         self._closed = False
-        if catalog is not None:
-            path = Path(catalog)
-            if path.exists() and path.stat().st_size and not restore:
-                raise ResourceError(
-                    f"catalog {path} exists: start with restore=True to take over its resources,"
-                    " or remove it if they are gone",
-                    origin=name,
-                )
-            from temoto.core.registrar.journal import Journal
-
-            self._journal = Journal(path, fsync=fsync, fsync_interval=fsync_interval)
-            records = self._journal.open()
-            if restore:
-                self._restored = replay(records, str(path))
-                if not self._restored.entries:
-                    self._restored = None
-            elif records:
-                self._journal.rewrite([])
+        self._ledger = Ledger.open(name, catalog, restore, fsync, fsync_interval)
 
     # ================================================================ servers
 
@@ -223,8 +182,9 @@ class Registrar:
             if server.name in self._servers:
                 raise ValueError(f"a server named '{server.name}' is already registered")
             self._servers[server.name] = server
-        if self._restored is not None:
-            self._restore_ready()
+            restored = self._ledger.rebuild_when_ready(self._servers)
+        if restored is not None:
+            settle(self, self._ledger, self._lock, restored, self._unload, self._transient)
 
     def servers(self) -> list[str]:
         """Names of the registered servers.
@@ -250,7 +210,17 @@ class Registrar:
         Raises:
             ResourceNotFoundError: No server has that name.
         """
-        return self._server(name)
+        server = self._servers.get(name)  # registration only adds: no lock needed to read
+        if server is None:
+            raise self._no_server(name)
+        return server
+
+    def _no_server(self, name: str) -> ResourceNotFoundError:
+        with self._lock:
+            known = sorted(self._servers)
+        return ResourceNotFoundError(
+            f"no server named '{name}' (servers: {', '.join(known) or 'none'})", origin=self.name
+        )
 
     # ================================================================ call / release
 
@@ -263,6 +233,7 @@ class Registrar:
         priority: int = 0,
         exclusive: bool = False,
         on_status: StatusCallback | None = None,
+        holder: str | None = None,
     ) -> Resource[Any]:
         """Request a resource: load it on first use, or add a reference to it.
 
@@ -272,60 +243,56 @@ class Registrar:
         Args:
             server: The server's name.
             request: An instance of the server's ``request_type``.
-            client: The consumer's name (for ``release_client`` and queries).
+            client: The consumer's name (for ``release_client`` and queries); for a
+                dependency, ``"<registrar>/<holder>"`` if empty.
             priority: Higher pre-empts lower on conflicting exclusive use.
             exclusive: Want the resource alone.
             on_status: Called with every status update for this reference.
+            holder: The id of a loading resource that takes the reference as a dependency
+                (``LoadContext.call`` passes its own); "" for none. None (default): the
+                resource whose ``on_load`` runs in this thread, if any.
 
         Returns:
             The reference (its id, the resource id, the response).
 
         Raises:
-            ResourceNotFoundError: Unknown server.
+            ResourceNotFoundError: Unknown server, or ``holder`` is not loading.
             TypeError: The request has the wrong type or cannot be serialised.
             ResourceBusyError: A conflicting consumer of equal or higher priority holds it.
             ResourceLoadError: The server (or a nested one) failed; chained to the cause.
+            ResourceClosedError: The registrar is closed.
         """
-        stack: list[str] = getattr(self._tls, "loading", [])
-        holder = stack[-1] if stack else ""
-        return self._call(server, request, client, priority, exclusive, on_status, holder=holder)
-
-    def _call(
-        self,
-        server: str,
-        request: Any,
-        client: str,
-        priority: int,
-        exclusive: bool,
-        on_status: StatusCallback | None,
-        *,
-        holder: str,
-    ) -> Resource[Any]:
-        srv = self._server(server)
+        if holder is None:
+            stack: list[str] | None = getattr(self._tls, "loading", None)
+            holder = stack[-1] if stack else ""
+        srv = self._servers.get(server)
+        if srv is None:
+            raise self._no_server(server)
         if not isinstance(request, srv.request_type):
             raise TypeError(
                 f"server '{server}' takes {srv.request_type.__name__} requests,"
                 f" not {type(request).__name__}"
             )
         try:
-            key = canonical_json(request)
+            key = request_key(request)
         except TypeError as err:
             raise TypeError(f"request for server '{server}' cannot be serialised: {err}") from None
         if holder and not client:
             client = f"{self.name}/{holder}"
+        ledger = self._ledger
         while True:
-            notices: list[tuple[list[StatusCallback], StatusUpdate]] = []
             with self._lock:
-                self._check_open()
-                if holder and holder not in self._entries:
+                if self._closed:
+                    raise self._closed_error()
+                if holder and holder not in ledger.entries:
                     raise ResourceNotFoundError(
                         f"no resource '{holder}' is loading", origin=self.name
                     )
-                uid = self._live.get((server, key))
+                uid = ledger.live.get((server, key))
                 if uid is None:
-                    entry = self._begin(server, key, request)
+                    entry = ledger.begin(server, key, request)
                     break
-                entry = self._entries[uid]
+                entry = ledger.entries[uid]
                 if entry.loading:
                     if entry.loader == threading.get_ident():
                         raise ResourceLoadError(
@@ -333,11 +300,14 @@ class Registrar:
                         )
                     wait_for = entry.loaded
                 else:
-                    ref = self._add_ref(
-                        entry, client, priority, exclusive, holder, on_status, notices
+                    ref, pre_empted = ledger.add_ref(
+                        entry, client, priority, exclusive, holder, on_status
                     )
-                    self._write_ref(ref)
-                    result = Resource(ref.id, entry.uid, server, entry.request, entry.response)
+                    result = Resource(ref.id, uid, server, entry.request, entry.response)
+                    if not pre_empted:
+                        return result
+                    message = f"pre-empted by '{client}' (priority {priority})"
+                    notices = ledger.notices(pre_empted, Status.WARNING, message, entry)
                     wait_for = None
             if wait_for is None:
                 self._deliver(notices)
@@ -345,19 +315,10 @@ class Registrar:
             wait_for.wait()  # someone else is loading the same request: share their result
         return self._load(srv, entry, client, priority, exclusive, on_status, holder)
 
-    def _begin(self, server: str, key: str, request: Any) -> _Entry:
-        uid = f"{server}:{self._boot}-{next(self._counter)}"
-        entry = _Entry(uid, server, key, request, loader=threading.get_ident())
-        entry.slot = self._book.new_resource()
-        self._entries[uid] = entry
-        self._live[(server, key)] = uid
-        self._write({"op": "begin", "uid": uid, "server": server, "request": to_plain(request)})
-        return entry
-
     def _load(
         self,
         srv: ResourceServer[Any, Any],
-        entry: _Entry,
+        entry: Entry,
         client: str,
         priority: int,
         exclusive: bool,
@@ -366,9 +327,8 @@ class Registrar:
     ) -> Resource[Any]:
         stack: list[str] = self._tls.__dict__.setdefault("loading", [])
         stack.append(entry.uid)
-        ctx = LoadContext(self, entry.uid, srv.name)
         try:
-            response = srv.on_load(entry.request, ctx)
+            response = srv.on_load(entry.request, LoadContext(self, entry.uid, srv.name))
             if not isinstance(response, srv.response_type):
                 raise TypeError(
                     f"on_load returned {type(response).__name__}, not {srv.response_type.__name__}"
@@ -377,77 +337,52 @@ class Registrar:
         except BaseException as err:
             stack.pop()
             error = ResourceLoadError(
-                f"server '{srv.name}' could not load {entry.key}: {err}", origin=self.name
+                f"server '{srv.name}' could not load {canonical_json(entry.request)}: {err}",
+                origin=self.name,
             )
             error.__cause__ = err
-            self._rollback(entry, error)
+            self._rollback(entry)
             if isinstance(err, Exception):
                 raise error from err
             raise
         stack.pop()
         with self._lock:
-            entry.response = response
-            entry.loading = False
-            ref = self._add_ref(entry, client, priority, exclusive, holder, on_status, [])
-            self._write({"op": "load", "uid": entry.uid, "response": plain, "ref": ref.record()})
+            ref = self._ledger.loaded(
+                entry, response, plain, client, priority, exclusive, holder, on_status
+            )
         entry.loaded.set()
-        self._maybe_compact()
+        self._compact()
         return Resource(ref.id, entry.uid, srv.name, entry.request, response)
 
-    def _rollback(self, entry: _Entry, error: BaseException) -> None:
+    def _rollback(self, entry: Entry) -> None:
         with self._lock:
-            deps = self._dep_ids(entry)
+            deps = self._ledger.dep_ids(entry)
         for dep in reversed(deps):
             try:
                 self.release(dep)
             except ResourceError:
                 logger.exception("rollback of %s: releasing %s failed", entry.uid, dep)
         with self._lock:
-            self._forget(entry)
-            entry.load_error = error
-            self._write({"op": "abandon", "uid": entry.uid})
+            self._ledger.forget(entry, records.Abandon)
         entry.loaded.set()
 
-    def _add_ref(
-        self,
-        entry: _Entry,
-        client: str,
-        priority: int,
-        exclusive: bool,
-        holder: str,
-        on_status: StatusCallback | None,
-        notices: list[tuple[list[StatusCallback], StatusUpdate]],
-    ) -> _Ref:
-        """Add a reference (lock held), pre-empting lower-priority conflicting ones."""
-        conflicting = [r for r in entry.active() if r.exclusive or exclusive]
-        if conflicting:
-            strongest = max(conflicting, key=lambda r: r.priority)
-            if strongest.priority >= priority:
-                raise ResourceBusyError(
-                    f"resource {entry.uid} is held {'exclusively ' if strongest.exclusive else ''}"
-                    f"by '{strongest.client}' with priority {strongest.priority}"
-                    f" (this request: priority {priority})",
-                    origin=self.name,
-                )
-            for ref in conflicting:
-                ref.suspended = True
-        ref = _Ref(
-            f"{self._boot}-{next(self._counter)}", entry.uid, client, priority, exclusive, holder
-        )
-        ref.suspends = [r.id for r in conflicting]  # journaled with the reference: one record
-        if on_status is not None:
-            ref.callbacks.append(on_status)
-        entry.refs[ref.id] = ref
-        self._refs[ref.id] = ref
-        ref.slot = self._book.add_ref(entry.slot, self._entries[holder].slot if holder else -1)
-        self._slot_refs[ref.slot] = ref
-        if conflicting:
-            message = f"pre-empted by '{client}' (priority {priority})"
-            for old in conflicting:
-                notices.append(
-                    (list(old.callbacks), self._update(old, Status.WARNING, message, entry))
-                )
-        return ref
+    def checkpoint(self, resource_id: str, progress: Mapping[str, Any]) -> None:
+        """Record how far a load got (``LoadContext.checkpoint`` of the resource's ``on_load``).
+
+        Args:
+            resource_id: The resource being loaded.
+            progress: JSON-serialisable data, handed to ``on_abandoned`` if the process dies
+                before the load returns.
+
+        Returns:
+            None.
+
+        Raises:
+            ResourceNotFoundError: No resource of that id is loading.
+            TypeError: If the data cannot be serialised.
+        """
+        with self._lock:
+            self._ledger.checkpoint(resource_id, progress)
 
     def release(self, reference_id: str) -> bool:
         """Release one reference; the last one unloads the resource (dependencies first).
@@ -459,55 +394,31 @@ class Registrar:
             True if the resource was unloaded.
 
         Raises:
-            ResourceClosedError: The reference was already released.
+            ResourceClosedError: The reference was already released, or the registrar is
+                closed.
             ResourceNotFoundError: No such reference.
         """
-        notices: list[tuple[list[StatusCallback], StatusUpdate]] = []
         with self._lock:
-            self._check_open()
-            ref = self._refs.pop(reference_id, None)
-            if ref is None:
-                if reference_id in self._released:
-                    raise ResourceClosedError(
-                        f"reference {reference_id} was already released", origin=self.name
-                    )
-                raise ResourceNotFoundError(f"no reference {reference_id}", origin=self.name)
-            self._released[reference_id] = None
-            if len(self._released) > RELEASED_MEMORY:
-                self._released.popitem(last=False)
-            entry = self._entries[ref.uid]
-            del entry.refs[reference_id]
-            del self._slot_refs[ref.slot]
-            last = self._book.release(ref.slot) == 0  # also unlinks it from its holder's list
-            ref.slot = -1
-            resumed = [] if last or entry.active() else list(entry.refs.values())
-            for other in resumed:
-                other.suspended = False
-            # one record, so a crash cannot leave only suspended references behind
-            if self._journal is not None:
-                self._journal.append_text(
-                    _UNREF % (_json_str(reference_id), _json_list([r.id for r in resumed]))
-                )
-            if resumed:
-                for other in resumed:
-                    update = self._update(other, Status.OK, "resource returned", entry)
-                    notices.append((list(other.callbacks), update))
-            if last and self._live.get((entry.server, entry.key)) == entry.uid:
-                del self._live[(entry.server, entry.key)]
-            deps = self._dep_ids(entry) if last else []
+            if self._closed:
+                raise self._closed_error()
+            _, entry, last, resumed = self._ledger.unref(reference_id)
+            if not (last or resumed):
+                return False
+            notices = self._ledger.notices(resumed, Status.OK, "resource returned", entry)
+            deps = self._ledger.dep_ids(entry) if last else []
         self._deliver(notices)
         if last:
             self._unload(entry, deps)
         return last
 
-    def _unload(self, entry: _Entry, deps: list[str] | None = None) -> None:
+    def _unload(self, entry: Entry, deps: list[str] | None = None) -> None:
         """Release a resource's dependencies (newest first), unload it, forget it.
 
         ``deps``: its dependency reference ids, if the caller read them under the lock.
         """
         if deps is None:
             with self._lock:
-                deps = self._dep_ids(entry)
+                deps = self._ledger.dep_ids(entry)
         for dep in reversed(deps):
             try:
                 self.release(dep)
@@ -520,26 +431,8 @@ class Registrar:
             except Exception:
                 logger.exception("server '%s' failed to unload %s", entry.server, entry.uid)
         with self._lock:
-            self._forget(entry)
-            self._write({"op": "unload", "uid": entry.uid})
-        self._maybe_compact()
-
-    def _forget(self, entry: _Entry) -> None:
-        """Drop a resource that has no references left (lock held)."""
-        if self._entries.get(entry.uid) is entry:
-            del self._entries[entry.uid]
-        if self._live.get((entry.server, entry.key)) == entry.uid:
-            del self._live[(entry.server, entry.key)]
-        if entry.slot >= 0:
-            try:
-                self._book.free_resource(entry.slot)
-            except ValueError:
-                # Dependencies whose release failed stay counted on their resources but are
-                # no longer anybody's: off the list, so the slot can be reused.
-                for slot in self._book.dependencies(entry.slot):
-                    self._book.detach(slot)
-                self._book.free_resource(entry.slot)
-            entry.slot = -1
+            self._ledger.forget(entry, records.Unload)
+        self._compact()
 
     def release_client(self, client: str) -> int:
         """Release every reference a consumer holds.
@@ -554,7 +447,8 @@ class Registrar:
             Nothing for references released meanwhile by others.
         """
         with self._lock:
-            ids = [r.id for r in self._refs.values() if r.client == client and not r.holder]
+            refs = self._ledger.refs.values()
+            ids = [r.id for r in refs if r.client == client and not r.holder]
         count = 0
         for ref_id in reversed(ids):
             try:
@@ -580,8 +474,9 @@ class Registrar:
             ResourceClosedError: The registrar is closed.
         """
         with self._lock:
-            self._check_open()
-            refs = [r.snapshot() for r in self._refs.values() if not r.holder]
+            if self._closed:
+                raise self._closed_error()
+            refs = [r.snapshot() for r in self._ledger.refs.values() if not r.holder]
         chosen = [r.id for r in refs if select is None or select(r)]
         count = 0
         for ref_id in reversed(chosen):
@@ -613,43 +508,15 @@ class Registrar:
         Raises:
             ResourceNotFoundError: Unknown id.
         """
-        hooks: list[tuple[ResourceServer[Any, Any], ResourceInfo]] = []
-        notices: list[tuple[list[StatusCallback], StatusUpdate]] = []
         with self._lock:
-            entry = self._resolve(resource_id)
-            if status is Status.FATAL and not entry.failed:
-                entry.failed = True
-                if self._live.get((entry.server, entry.key)) == entry.uid:
-                    del self._live[(entry.server, entry.key)]
-                self._write({"op": "failed", "uid": entry.uid})
-            elif (
-                status is Status.OK
-                and entry.failed
-                and (entry.server, entry.key) not in self._live
-                and not entry.loading
-            ):
-                # recovered (a device answers again): equal requests share it once more,
-                # unless a fresh one was loaded meanwhile
-                entry.failed = False
-                self._live[(entry.server, entry.key)] = entry.uid
-                self._write({"op": "recovered", "uid": entry.uid})
-            origin = entry.uid
-            seen = {entry.uid}
-            todo: collections.deque[tuple[_Entry, tuple[str, ...]]] = collections.deque(
-                [(entry, (entry.server,))]
-            )
-            while todo:
-                current, hops = todo.popleft()
-                server = self._servers.get(current.server)
-                if server is not None:
-                    hooks.append((server, self._info(current)))
-                for ref in list(current.refs.values()):
-                    update = StatusUpdate(ref.id, current.uid, status, message, origin, hops)
-                    notices.append((list(ref.callbacks), update))
-                    if ref.holder and ref.holder not in seen and ref.holder in self._entries:
-                        seen.add(ref.holder)
-                        up = self._entries[ref.holder]
-                        todo.append((up, (*hops, up.server)))
+            entry = self._ledger.resolve(resource_id)
+            if status is Status.FATAL:
+                self._ledger.fail(entry)
+            elif status is Status.OK:
+                self._ledger.recover(entry)  # a device answers again: shared once more
+            reached, notices = self._ledger.reach(entry, status, message)
+            servers = self._servers
+            hooks = [(servers[e.server], info) for e, info in reached if e.server in servers]
         for server, info in hooks:
             try:
                 server.on_status(info, status, message)
@@ -672,15 +539,12 @@ class Registrar:
             ResourceNotFoundError: Unknown reference.
         """
         with self._lock:
-            ref = self._refs.get(reference_id)
+            ref = self._ledger.refs.get(reference_id)
             if ref is None:
                 raise ResourceNotFoundError(f"no reference {reference_id}", origin=self.name)
-            ref.callbacks.append(on_status)
+            ref.callbacks = (*ref.callbacks, on_status)
 
-    def _update(self, ref: _Ref, status: Status, message: str, entry: _Entry) -> StatusUpdate:
-        return StatusUpdate(ref.id, entry.uid, status, message, entry.uid, (entry.server,))
-
-    def _deliver(self, notices: list[tuple[list[StatusCallback], StatusUpdate]]) -> None:
+    def _deliver(self, notices: Notices) -> None:
         for callbacks, update in notices:
             for callback in callbacks:
                 try:
@@ -703,7 +567,7 @@ class Registrar:
             ResourceNotFoundError: Unknown id.
         """
         with self._lock:
-            return self._info(self._resolve(resource_id))
+            return self._ledger.info(self._ledger.resolve(resource_id))
 
     def served(self, server: str) -> list[ResourceInfo]:
         """What a server currently serves (loaded resources, including failed ones).
@@ -717,13 +581,10 @@ class Registrar:
         Raises:
             ResourceNotFoundError: Unknown server.
         """
-        self._server(server)
+        self.server(server)
         with self._lock:
-            return [
-                self._info(e)
-                for e in self._entries.values()
-                if e.server == server and not e.loading
-            ]
+            entries = self._ledger.entries.values()
+            return [self._ledger.info(e) for e in entries if e.server == server and not e.loading]
 
     def dependencies(self, resource_id: str) -> list[ResourceInfo]:
         """The resources a resource depends on (directly).
@@ -738,11 +599,8 @@ class Registrar:
             ResourceNotFoundError: Unknown id.
         """
         with self._lock:
-            entry = self._resolve(resource_id)
-            return [
-                self._info(self._entries[self._slot_refs[slot].uid])
-                for slot in self._book.dependencies(entry.slot)
-            ]
+            ledger = self._ledger
+            return [ledger.info(e) for e in ledger.dependencies(ledger.resolve(resource_id))]
 
     def references(self, client: str | None = None) -> list[Reference]:
         """References, of one consumer or all.
@@ -757,9 +615,8 @@ class Registrar:
             Nothing.
         """
         with self._lock:
-            return [
-                r.snapshot() for r in self._refs.values() if client is None or r.client == client
-            ]
+            refs = self._ledger.refs.values()
+            return [r.snapshot() for r in refs if client is None or r.client == client]
 
     def resources(self) -> list[ResourceInfo]:
         """Every loaded resource.
@@ -771,7 +628,8 @@ class Registrar:
             Nothing.
         """
         with self._lock:
-            return [self._info(e) for e in self._entries.values() if not e.loading]
+            entries = self._ledger.entries.values()
+            return [self._ledger.info(e) for e in entries if not e.loading]
 
     def update_response(self, resource_id: str, response: Any) -> None:
         """Replace a resource's stored response (e.g. data known only after loading).
@@ -788,282 +646,23 @@ class Registrar:
             TypeError: Wrong type or not serialisable.
         """
         with self._lock:
-            entry = self._resolve(resource_id)
+            entry = self._ledger.resolve(resource_id)
             srv = self._servers[entry.server]
             if not isinstance(response, srv.response_type):
                 raise TypeError(
                     f"server '{entry.server}' responses are {srv.response_type.__name__}"
                 )
-            self._write({"op": "response", "uid": entry.uid, "response": to_plain(response)})
-            entry.response = response
+            self._ledger.set_response(entry, response)
 
-    # ================================================================ persistence
-
-    def _write(self, record: dict[str, Any]) -> None:
-        if self._journal is not None:
-            self._journal.append(record)
-
-    def _write_ref(self, ref: _Ref) -> None:
-        """Journal a new reference from the precompiled layout (the bytes the encoder gives)."""
-        journal = self._journal
-        if journal is None:
-            return
-        if type(ref.priority) is not int or type(ref.exclusive) is not bool:
-            # not the layout's types: let the encoder decide
-            self._write({"op": "ref", **ref.record(), "suspends": ref.suspends})
-            return
-        journal.append_text(
-            _REF
-            % (
-                _json_str(ref.client),
-                _JSON_BOOL[ref.exclusive],
-                _json_str(ref.holder),
-                _json_str(ref.id),
-                ref.priority,
-                _JSON_BOOL[ref.suspended],
-                _json_list(ref.suspends),
-                _json_str(ref.uid),
-            )
-        )
-
-    def _checkpoint(self, uid: str, progress: Mapping[str, Any]) -> None:
-        with self._lock:
-            entry = self._entries.get(uid)
-            if entry is None or not entry.loading:
-                raise ResourceNotFoundError(f"no resource {uid} is loading", origin=self.name)
-            entry.progress = to_plain(dict(progress))
-            self._write({"op": "progress", "uid": uid, "data": entry.progress})
-
-    def _maybe_compact(self) -> None:
-        journal = self._journal
-        if journal is None or journal.record_count < COMPACT_SLACK:
-            return
-        with self._lock:
-            live = len(self._entries) + len(self._refs)
-            if journal.record_count < COMPACT_SLACK + 2 * live:
-                return
-            journal.rewrite(self._snapshot_records())
-
-    def _snapshot_records(self) -> list[dict[str, Any]]:
-        """The live state as journal records (compaction)."""
-        records: list[dict[str, Any]] = []
-        entries = list(self._entries.values())
-        for entry in entries:
-            records.append(
-                {
-                    "op": "begin",
-                    "uid": entry.uid,
-                    "server": entry.server,
-                    "request": to_plain(entry.request),
-                }
-            )
-            if entry.progress is not None:
-                records.append({"op": "progress", "uid": entry.uid, "data": entry.progress})
-        for entry in entries:
-            if entry.loading:
-                records.append({"op": "deps", "uid": entry.uid, "deps": self._dep_ids(entry)})
-                continue
-            records.append(
-                {
-                    "op": "load",
-                    "uid": entry.uid,
-                    "response": to_plain(entry.response),
-                    "ref": None,
-                    "refs": [r.record() for r in entry.refs.values()],
-                    "deps": self._dep_ids(entry),
-                    "failed": entry.failed,
-                }
-            )
-        return records
-
-    def _restore_ready(self) -> None:
-        """Once every server the catalog names is registered, rebuild and settle its state."""
-        assert self._restored is not None
-        state = self._restored
-        with self._lock:
-            missing = {e["server"] for e in state.entries.values()} - set(self._servers)
-        if missing:
-            return
-        self._restored = None
-        name = self._journal_name()
-        refs: list[_Ref] = []
-        with self._lock:
-            for uid, raw in state.entries.items():
-                server = self._servers[raw["server"]]
-                try:
-                    request = from_plain(server.request_type, raw["request"])
-                    response = (
-                        from_plain(server.response_type, raw["response"]) if raw["loaded"] else None
-                    )
-                    key = canonical_json(request)
-                except TypeError as err:
-                    raise CatalogCorruptError(
-                        f"{name}: resource {uid} of server '{server.name}' cannot be rebuilt: {err}"
-                    ) from err
-                entry = _Entry(uid, server.name, key, request, response)
-                entry.loading = not raw["loaded"]
-                entry.failed = raw["failed"]
-                entry.progress = raw["progress"]
-                entry.slot = self._book.new_resource()
-                entry.loaded.set()
-                self._entries[uid] = entry
-                if not entry.failed and not entry.loading:
-                    self._live[(server.name, key)] = uid
-                for rec in raw["refs"].values():
-                    ref = _Ref(
-                        rec["id"],
-                        uid,
-                        rec["client"],
-                        rec["priority"],
-                        rec["exclusive"],
-                        rec["holder"],
-                        rec["suspended"],
-                    )
-                    entry.refs[ref.id] = ref
-                    self._refs[ref.id] = ref
-                    refs.append(ref)
-            # Into the book: dependencies first, in each holder's recorded order (the book
-            # lists them in acquisition order), then every other reference.
-            for uid, raw in state.entries.items():
-                holder = self._entries[uid]
-                for dep in raw["deps"]:
-                    held = self._refs.get(dep)
-                    if held is not None and held.slot < 0:
-                        self._book_ref(held, self._entries[held.uid], holder.slot)
-            for ref in refs:
-                if ref.slot < 0:
-                    self._book_ref(ref, self._entries[ref.uid], -1)
-            restored = list(self._entries.values())
-        logger.info("restored %d resources from %s", len(restored), name)
-        # Settle what the crash left, before any server is asked about its resources (a
-        # resource unloaded here is never reported on): a resource whose last reference had
-        # been released is unloaded; the references of consumers that died with the previous
-        # process are released; a half-done load is undone (its dependencies released, the
-        # server told to clean up).
-        for entry in restored:
+    def _compact(self) -> None:
+        if self._ledger.may_compact():  # a cheap look first: no lock for a short journal
             with self._lock:
-                if entry.slot < 0 or entry.loading or self._book.count(entry.slot):
-                    continue
-                if self._live.get((entry.server, entry.key)) == entry.uid:
-                    del self._live[(entry.server, entry.key)]
-            logger.warning("restore: %s had been released; unloading it", entry.uid)
-            self._unload(entry)
-        if self._transient is not None:
-            transient = self._transient
-            gone = self.release_consumers(lambda ref: transient(ref.client))
-            if gone:
-                logger.info("restore: released %d references of consumers that are gone", gone)
-        for entry in restored:
-            if entry.loading and entry.uid in self._entries:
-                logger.warning("restore: the load of %s was interrupted; undoing it", entry.uid)
-                with self._lock:
-                    deps = self._dep_ids(entry)
-                for dep in reversed(deps):
-                    if dep in self._refs:
-                        self.release(dep)
-                try:
-                    self._servers[entry.server].on_abandoned(entry.request, entry.progress)
-                except Exception:
-                    logger.exception("server '%s' failed to undo %s", entry.server, entry.uid)
-                with self._lock:
-                    self._forget(entry)
-                    self._write({"op": "abandon", "uid": entry.uid})
-        # Then each server re-checks what is left of its resources (re-adopts them, or reports
-        # them failed), dependencies before the resources holding them; a verdict is reported
-        # at once, so a holder's server sees its dependencies' failures.
-        with self._lock:
-            order = self._restore_order(restored)
-        for entry in order:
-            with self._lock:
-                if self._entries.get(entry.uid) is not entry or entry.loading:
-                    continue  # unloaded meanwhile (by an earlier hook's release): not reported
-                info = self._info(entry)
-            verdict = self._servers[entry.server].on_restore(info)
-            if verdict is not None and entry.uid in self._entries:
-                self.send_status(entry.uid, verdict[0], verdict[1])
+                self._ledger.compact_if_due()
 
-    def _restore_order(self, entries: list[_Entry]) -> list[_Entry]:
-        """Live ``entries``, each after the resources it depends on (lock held)."""
+    # ================================================================ closing
 
-        def deps(entry: _Entry) -> list[_Entry]:
-            if entry.slot < 0:
-                return []
-            found = (
-                self._entries.get(self._slot_refs[s].uid)
-                for s in self._book.dependencies(entry.slot)
-            )
-            return [e for e in found if e is not None]
-
-        order: list[_Entry] = []
-        seen: set[str] = set()
-        for root in entries:
-            if root.uid in seen or self._entries.get(root.uid) is not root:
-                continue
-            seen.add(root.uid)
-            stack = [(root, iter(deps(root)))]
-            while stack:
-                node, todo = stack[-1]
-                for dep in todo:
-                    if dep.uid not in seen:
-                        seen.add(dep.uid)
-                        stack.append((dep, iter(deps(dep))))
-                        break
-                else:
-                    stack.pop()
-                    order.append(node)
-        return order
-
-    def _journal_name(self) -> str:
-        return str(self._journal.path) if self._journal is not None else "catalog"
-
-    # ================================================================ helpers
-
-    def _server(self, name: str) -> ResourceServer[Any, Any]:
-        with self._lock:
-            server = self._servers.get(name)
-            known = sorted(self._servers)
-        if server is None:
-            raise ResourceNotFoundError(
-                f"no server named '{name}' (servers: {', '.join(known) or 'none'})",
-                origin=self.name,
-            )
-        return server
-
-    def _book_ref(self, ref: _Ref, entry: _Entry, holder: int) -> None:
-        """Enter a reference into the book (lock held); ``holder`` is a resource slot or -1."""
-        ref.slot = self._book.add_ref(entry.slot, holder)
-        self._slot_refs[ref.slot] = ref
-
-    def _dep_ids(self, entry: _Entry) -> list[str]:
-        """Ids of the references a resource holds as dependencies, oldest first (lock held)."""
-        if entry.slot < 0:
-            return []
-        return [self._slot_refs[slot].id for slot in self._book.dependencies(entry.slot)]
-
-    def _info(self, entry: _Entry) -> ResourceInfo:
-        """A snapshot of a resource (lock held)."""
-        return ResourceInfo(
-            entry.uid,
-            entry.server,
-            entry.request,
-            entry.response,
-            tuple(r.snapshot() for r in entry.refs.values()),
-            tuple(self._dep_ids(entry)),
-            entry.failed,
-        )
-
-    def _resolve(self, ident: str) -> _Entry:
-        entry = self._entries.get(ident)
-        if entry is None:
-            ref = self._refs.get(ident)
-            entry = self._entries.get(ref.uid) if ref is not None else None
-        if entry is None:
-            raise ResourceNotFoundError(f"no resource or reference '{ident}'", origin=self.name)
-        return entry
-
-    def _check_open(self) -> None:
-        if self._closed:
-            raise ResourceClosedError(f"registrar '{self.name}' is closed", origin=self.name)
+    def _closed_error(self) -> ResourceClosedError:
+        return ResourceClosedError(f"registrar '{self.name}' is closed", origin=self.name)
 
     def close(self) -> None:
         """Flush and close the catalog; resources stay recorded (nothing is unloaded).
@@ -1078,8 +677,8 @@ class Registrar:
             if self._closed:
                 return
             self._closed = True
-        if self._journal is not None:
-            self._journal.close()
+        if self._ledger.journal is not None:
+            self._ledger.journal.close()
 
     def __enter__(self) -> Registrar:
         return self

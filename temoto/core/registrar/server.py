@@ -1,91 +1,24 @@
-"""ResourceServer: the base class of resource managers, and the LoadContext of a load.
+"""ResourceServer: the base class of resource managers.
 
 A server loads and unloads one kind of resource. The registrar owns the lifecycle and calls
-the hooks; a server never calls its own hooks.
+the hooks; a server never calls its own hooks. The :class:`~temoto.core.registrar.LoadContext`
+its ``on_load`` gets is defined beside the registrar it serves (``registry.py``).
 """
 
 from __future__ import annotations
 
 from abc import ABC, abstractmethod
-from collections.abc import Callable, Mapping
+from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any, ClassVar, Generic, TypeVar
 
 if TYPE_CHECKING:
-    from temoto.core.registrar.messages import Resource, ResourceInfo, Status, StatusUpdate
-    from temoto.core.registrar.registry import Registrar
+    from temoto.core.registrar.messages import ResourceInfo, Status
+    from temoto.core.registrar.registry import LoadContext
 
-__all__ = ["LoadContext", "ResourceServer"]
+__all__ = ["ResourceServer"]
 
 Req = TypeVar("Req")
 Resp = TypeVar("Resp")
-
-
-class LoadContext:
-    """What a server's ``on_load`` gets besides the request.
-
-    Attributes:
-        registrar: The registrar.
-        resource_id: The id the resource will have (use it in later ``send_status`` calls).
-        server: The server's name.
-    """
-
-    __slots__ = ("_progress", "registrar", "resource_id", "server")
-
-    def __init__(self, registrar: Registrar, resource_id: str, server: str) -> None:
-        self.registrar = registrar
-        self.resource_id = resource_id
-        self.server = server
-        self._progress: dict[str, Any] | None = None
-
-    def call(
-        self,
-        server: str,
-        request: Any,
-        *,
-        priority: int = 0,
-        exclusive: bool = False,
-        on_status: Callable[[StatusUpdate], None] | None = None,
-    ) -> Resource[Any]:
-        """Request a sub-resource as a dependency of this resource, from any thread.
-
-        Calls made with ``registrar.call`` in the thread running ``on_load`` are recorded
-        automatically; use this one from other threads.
-
-        Args:
-            server: The sub-resource's server.
-            request: Its request.
-            priority: Priority of the reference.
-            exclusive: Whether it wants the sub-resource alone.
-            on_status: Extra callback for the sub-resource's status (the server's
-                ``on_status`` is called anyway).
-
-        Returns:
-            The reference.
-
-        Raises:
-            Everything ``Registrar.call`` raises.
-        """
-        return self.registrar._call(
-            server, request, "", priority, exclusive, on_status, holder=self.resource_id
-        )
-
-    def checkpoint(self, progress: Mapping[str, Any]) -> None:
-        """Record how far the load got (e.g. a spawned pid) before it returns.
-
-        If the process dies before ``on_load`` returns, the restarted registrar hands this to
-        ``on_abandoned`` so the server can undo it (no orphaned process).
-
-        Args:
-            progress: JSON-serialisable data.
-
-        Returns:
-            None.
-
-        Raises:
-            TypeError: If the data cannot be serialised.
-        """
-        self._progress = dict(progress)
-        self.registrar._checkpoint(self.resource_id, self._progress)
 
 
 class ResourceServer(ABC, Generic[Req, Resp]):
