@@ -295,8 +295,7 @@ def serve_profile(path: Path, args: argparse.Namespace, stack: ExitStack) -> lis
             group = groups.setdefault(str(link.get("channel")), _group(len(groups)))
             config["link"] = {"interface": "udp_multicast", "channel": group}
         try:
-            cls: Any = driver_class(spec.driver)
-            sim, settings = cls.simulate(name, config, clock=clock)
+            sim, settings = driver_class(spec.driver).simulate(name, config, clock=clock)
         except DriverError as err:  # a driver whose library is missing, a busy resource
             raise ConfigError(f"{path}: devices.{name}: {err}") from err
         if outs and hasattr(sim, "add_gcs"):
