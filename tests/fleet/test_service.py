@@ -14,7 +14,7 @@ import pytest
 import temoto.fleet
 from temoto.clock import ManualClock, MonotonicClock
 from temoto.errors import TransportError
-from temoto.fleet import _common, common
+from temoto.fleet import common
 from temoto.fleet.service import ServiceCore
 from temoto.lcm_types import ris_request_t
 from temoto.transport import FleetAuth, FleetLink, InProcessTransport, Opened, codec
@@ -94,12 +94,6 @@ def test_a_function_is_refused_as_a_clock_with_a_hint(link: FleetLink) -> None:
         ServiceCore(link, COUNTERS, time.monotonic)  # type: ignore[arg-type]
     with pytest.raises(TypeError, match=r"temoto\.clock\.Clock, got 3$"):
         common.check_clock("clock", 3)
-
-
-def test_the_private_helpers_module_is_an_alias_of_the_public_one() -> None:
-    for name in _common.__all__:
-        assert getattr(_common, name) is getattr(common, name)
-    assert set(_common.__all__) == set(common.__all__)
 
 
 # --- the shape of the package --------------------------------------------------------------

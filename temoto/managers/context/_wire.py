@@ -5,7 +5,7 @@ from __future__ import annotations
 from collections.abc import Iterator, Sequence
 from typing import Any, Final
 
-from temoto.fleet._common import new
+from temoto.fleet.common import new
 from temoto.lcm_types import context_item_t
 from temoto.managers.context.pose import Pose
 from temoto.managers.context.tree import Item, Record, Removal

@@ -49,7 +49,7 @@ from typing import TYPE_CHECKING, Any, ClassVar, Final
 from temoto.clock import Clock, MonotonicClock
 from temoto.core.registrar import LoadContext, Registrar, ResourceServer
 from temoto.errors import ContextError
-from temoto.fleet._common import CallQueue, Closing, check_seconds
+from temoto.fleet.common import CallQueue, Closing, check_seconds
 from temoto.managers.context.pose import Pose
 from temoto.managers.context.store import WorldStore
 from temoto.managers.context.sync import CONTEXT_CHANNEL, ContextSync

@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, Final
 
 from temoto.clock import Clock
 from temoto.errors import TransportError
-from temoto.fleet._common import decode_or_count, new
+from temoto.fleet.common import decode_or_count, new
 from temoto.lcm_types import context_digest_t, context_request_t, context_update_t
 from temoto.managers.context._wire import chunks, from_wire
 from temoto.managers.context.tree import ContextTree, Record
