@@ -86,9 +86,10 @@ from temoto._progress import ActionLogHandler, Progress
 from temoto.clock import MonotonicClock, ScaledClock
 from temoto.core import _fast
 from temoto.core.catalog import ActionCatalog, GraphIndex
+from temoto.core.documents import load_graph
 from temoto.core.dot import graph_to_dot, render
 from temoto.core.engine import ActionEngine
-from temoto.core.graph import UmrfGraph, load_graph
+from temoto.core.graph import UmrfGraph
 from temoto.core.instrument import Instrument, TraceInstrument
 from temoto.core.planning import Planner, graph_inputs_from_text
 from temoto.core.registrar import Registrar

@@ -35,8 +35,9 @@ from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import GraphRun, Node, NodeKind, Plan
 from temoto.core.action import NO_VALUES, Action, RunControl
 from temoto.core.catalog import ActionCatalog, GraphIndex
+from temoto.core.documents import dump_umrf, graph_from_document, graph_to_dict
 from temoto.core.executor import DeadlineTimer, WorkerPool
-from temoto.core.graph import UmrfGraph, graph_from_document, graph_to_dict
+from temoto.core.graph import UmrfGraph
 from temoto.core.instrument import Instrument
 from temoto.core.params import dump_parameter_tree
 from temoto.core.planning import Planner, graph_inputs
@@ -44,7 +45,6 @@ from temoto.core.registrar.registry import Registrar
 from temoto.core.remote import ActorLink
 from temoto.core.shared import SharedRuns
 from temoto.core.states import NODE_TRANSITIONS, GraphState, NodeState, Result
-from temoto.core.umrf import dump_umrf
 from temoto.errors import (
     ActionError,
     GraphNotFoundError,
