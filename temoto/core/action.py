@@ -48,7 +48,7 @@ from temoto.core.params import NO_VALUE, Parameter
 from temoto.core.registrar.messages import Resource, Status, StatusUpdate
 from temoto.core.states import Result
 from temoto.core.umrf import LogMessage
-from temoto.core.values import NO_INPUTS, NO_OUTPUTS, Inputs, Outputs
+from temoto.core.values import NO_INPUTS, NO_OUTPUTS, NO_VALUES, Inputs, Outputs
 from temoto.errors import ActionError, ResourceError, StopRequested
 
 if TYPE_CHECKING:
@@ -91,7 +91,7 @@ class Action(ABC):
     #: planned, per class).
     blocking: ClassVar[bool] = True
 
-    # Defaults live on the class: an instance stores only what the engine binds (see _bind),
+    # Defaults live on the class: an instance stores only what the engine binds (see initialize),
     # so creating one per node costs no __init__ call of ours.
     _control: RunControl | None = None
     _log: deque[LogMessage] | None = None  # made by the first log() call
@@ -140,23 +140,6 @@ class Action(ABC):
 
     # ---- engine binding (not for action authors) ---------------------------------------------
 
-    def _bind(
-        self,
-        control: RunControl,
-        name: str,
-        graph: str,
-        inputs: Mapping[str, Parameter],
-        outputs: Mapping[str, Parameter],
-        registrar: Registrar | None = None,
-    ) -> None:
-        self._control = control
-        self._name = name
-        self._graph = graph
-        self._input_params = inputs
-        self._output_params = outputs
-        if registrar is not None:
-            self._registrar = registrar
-
     @property
     def _client(self) -> str:
         """The client name this node's resources are requested under (``<graph>/<node>``)."""
@@ -197,7 +180,13 @@ class Action(ABC):
         Raises:
             Exception: Whatever ``on_init`` raises (the engine marks the node ERROR).
         """
-        self._bind(control, name, graph, inputs, outputs, registrar)
+        self._control = control
+        self._name = name
+        self._graph = graph
+        self._input_params = inputs
+        self._output_params = outputs
+        if registrar is not None:
+            self._registrar = registrar
         self.on_init()
 
     def run_once(
@@ -237,7 +226,8 @@ class Action(ABC):
             result = _R_ERROR
             error = ActionError(f"{self._name} failed: {err}", graph=self._graph, node=self._name)
             error.__cause__ = err
-        return result, self._outputs.take(), error
+        outputs = self._outputs
+        return result, (NO_VALUES if outputs is NO_OUTPUTS else outputs.take()), error
 
     def log_snapshot(self) -> tuple[LogMessage, ...]:
         """The runtime log as it is now, newest first; safe while the action logs. Framework call.
@@ -251,9 +241,6 @@ class Action(ABC):
         log = self._log
         # deque.copy() is one C call: safe while the action's thread appends
         return tuple(log.copy()) if log is not None else ()
-
-    #: The former name of :meth:`log_snapshot` (tests outside the core still call it).
-    _log_snapshot = log_snapshot
 
     @property
     def holds_resources(self) -> bool:

@@ -31,11 +31,13 @@ class RunControl:
         clock: The engine's clock.
     """
 
-    __slots__ = ("_cond", "broken", "clock", "paused", "stop")
+    __slots__ = ("broken", "clock", "condition", "paused", "stop")
 
     def __init__(self, clock: Clock) -> None:
         self.clock = clock
-        self._cond: threading.Condition | None = None  # made on first use (most runs never wait)
+        #: the condition variable, made on first use (most runs never wait): while it is None,
+        #: no helper waits, and the flags may be set without it
+        self.condition: threading.Condition | None = None
         self.stop = False
         self.paused = False
         #: failures of acquired resources, not yet raised (a list from the first one on)
@@ -44,12 +46,12 @@ class RunControl:
     @property
     def cond(self) -> threading.Condition:
         """The condition variable every helper waits on and every signal notifies."""
-        cond = self._cond
+        cond = self.condition
         if cond is None:
             with _COND_CREATION:
-                cond = self._cond
+                cond = self.condition
                 if cond is None:
-                    cond = self._cond = threading.Condition(threading.Lock())
+                    cond = self.condition = threading.Condition(threading.Lock())
         return cond
 
     def report_broken(self, update: StatusUpdate) -> None:
@@ -95,11 +97,11 @@ class RunControl:
         Raises:
             Nothing.
         """
-        if self._cond is None:  # no helper ever waited: nobody to race with between runs
+        if self.condition is None:  # no helper ever waited: nobody to race with between runs
             self.stop = False
             self.paused = False
             return
-        with self._cond:
+        with self.condition:
             self.stop = False
             self.paused = False
 

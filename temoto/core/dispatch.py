@@ -190,7 +190,8 @@ class EffectDispatcher(RunEvolution):
                     except Exception as err:
                         done.append((node, gen, None, _R_ERROR, NO_VALUES, _init_error(node, err)))
                         continue
-                done.append((node, gen, instance, *instance.run_once(values)))
+                result, outputs, error = instance.run_once(values)
+                done.append((node, gen, instance, result, outputs, error))
             todo.clear()
             fx.clear()
             with lock:

@@ -83,6 +83,11 @@ _E_RELEASE = EffectKind.RELEASE
 _E_CALL = EffectKind.CALL
 
 _ACTIVE = ACTIVE_NODE_STATES
+
+# A RUN effect is made once per action run: without the record's constructor (a Python
+# function), ``Effect(RUN, node, gen)`` is ``_new_effect(Effect, (RUN, node, gen, *_RUN_DETAIL))``.
+_new_effect = tuple.__new__
+_RUN_DETAIL = tuple(Effect._field_defaults[name] for name in Effect._fields[3:])
 _BUSY_GRAPH = BUSY_GRAPH_STATES
 _ENDED_GRAPH = ENDED_GRAPH_STATES
 
@@ -261,6 +266,8 @@ class RunEvolution:
                 control = child.control
                 if control is None:
                     child.control = RunControl(self.clock)
+                elif control.condition is None:  # RunControl.reset, nobody waits to race with
+                    control.stop = control.paused = False
                 else:
                     control.reset()
                 if child.fresh_instance:
@@ -268,7 +275,7 @@ class RunEvolution:
                     child.fresh_instance = False
                 child.state = _N_RUNNING
                 run.active += 1
-                fx.append(Effect(_E_RUN, child, child.gen))
+                fx.append(_new_effect(Effect, (_E_RUN, child, child.gen, *_RUN_DETAIL)))
                 continue
             if kind is _K_EXIT:
                 self._finish_run(run, result, fx)
@@ -302,7 +309,7 @@ class RunEvolution:
                 node.instance = None  # the old one is stuck in a run we gave up on
                 node.fresh_instance = False
             self._set_state(node, _N_RUNNING)
-            fx.append(Effect(_E_RUN, node, node.gen))
+            fx.append(_new_effect(Effect, (_E_RUN, node, node.gen, *_RUN_DETAIL)))
             return
         if node.kind is _K_REMOTE:
             self._set_state(node, _N_RUNNING)
