@@ -18,7 +18,7 @@ from typing import Any
 
 from temoto.core._runtime import Node, NodeKind
 from temoto.core.action import Action
-from temoto.core.effects import Effect, EffectKind
+from temoto.core.effects import Effect, EffectKind, Effects, Run
 from temoto.core.evolution import RunEvolution
 from temoto.core.executor import WorkerPool
 from temoto.core.registrar.registry import Registrar
@@ -41,7 +41,6 @@ _G_RUNNING = GraphState.RUNNING
 _R_ERROR = Result.ERROR
 _R_STOPPED = Result.STOPPED
 _K_EXIT = NodeKind.EXIT
-_E_RUN = EffectKind.RUN
 _E_HOOK = EffectKind.HOOK
 _E_FINISH_SPONTANEOUS = EffectKind.FINISH_SPONTANEOUS
 _E_RELEASE = EffectKind.RELEASE
@@ -65,26 +64,20 @@ class EffectDispatcher(RunEvolution):
     registrar: Registrar | None
     _pool: WorkerPool
 
-    def _dispatch(self, fx: list[Effect], *, closing: bool = False) -> None:
+    def _dispatch(self, fx: Effects, *, closing: bool = False) -> None:
         """Carry out effects (lock released): calls here, actions and hooks on workers.
 
         Ready actions leave as one batch: the inline ones together as one worker job that runs
         them back to back (:meth:`_run_batch`), each blocking one as a job of its own, all
         handed to the pool under one lock of its own (:meth:`WorkerPool.submit_many`).
         """
+        other = fx.other
         if self._releases:
             with self._lock:
-                fx = [*fx, *self._releases]
+                other = [*other, *self._releases]
                 self._releases.clear()
-        inline: list[tuple[Node, int]] = []
-        runs: list[tuple[Node, int]] = []
-        for effect in fx:
-            kind = effect.kind
-            node = effect.node
-            if kind is _E_RUN and node is not None:
-                (inline if node.inline else runs).append((node, effect.gen))
-                continue
-            if kind is _E_CALL:
+        for effect in other:
+            if effect.kind is _E_CALL:
                 try:
                     assert effect.call is not None
                     effect.call(*effect.args)
@@ -97,17 +90,24 @@ class EffectDispatcher(RunEvolution):
                 if not (closing or self._closed):  # shut down since the caller looked
                     raise
                 self._settle_closed(effect)
-        if not (inline or runs):
+        if not fx.runs:
             return
-        jobs: list[tuple[Any, ...]] = [(inline,)] if inline else []
-        jobs += [([run],) for run in runs]
+        inline: list[Run] = []
+        jobs: list[tuple[Any, ...]] = []
+        for run in fx.runs:
+            if run[0].inline:
+                inline.append(run)
+            else:
+                jobs.append(([run],))
+        if inline:
+            jobs.insert(0, (inline,))
         try:
             self._pool.submit_many(self._run_batch, jobs)
         except RuntimeError:
             if not (closing or self._closed):
                 raise
-            for node, gen in inline + runs:
-                self._settle_closed(Effect(_E_RUN, node, gen))
+            for node, gen in fx.runs:
+                self._settle_closed_run(node, gen)
 
     def _submit(self, effect: Effect) -> None:
         """Hand a HOOK, RELEASE or FINISH_SPONTANEOUS effect to a worker (RuntimeError: shut)."""
@@ -127,7 +127,7 @@ class EffectDispatcher(RunEvolution):
             raise ValueError(f"not an effect for a worker: {kind}")
 
     def _settle_closed(self, effect: Effect) -> None:
-        """The pool is shut down: settle an effect in this thread so no node stays active."""
+        """The pool is shut down: carry out an effect in this thread."""
         kind = effect.kind
         node = effect.node
         if kind is _E_RELEASE:
@@ -135,17 +135,18 @@ class EffectDispatcher(RunEvolution):
             _release_resources(effect.action)
             return
         assert node is not None
-        gen = effect.gen
-        if kind is _E_RUN:
-            fx: list[Effect] = []
-            with self._lock:
-                if node.gen == gen and node.active:
-                    self._on_finished(node, gen, _R_STOPPED, {}, None, fx)
-        elif kind is _E_HOOK:
-            self._call_hook(node, gen, effect.hook)
+        if kind is _E_HOOK:
+            self._call_hook(node, effect.gen, effect.hook)
         elif kind is _E_FINISH_SPONTANEOUS:
             assert effect.ending is not None
-            self._finish_spontaneous(node, gen, *effect.ending)
+            self._finish_spontaneous(node, effect.gen, *effect.ending)
+
+    def _settle_closed_run(self, node: Node, gen: int) -> None:
+        """The pool is shut down: a run that cannot start ends STOPPED, so no node stays active."""
+        fx = Effects()
+        with self._lock:
+            if node.gen == gen and node.active:
+                self._on_finished(node, gen, _R_STOPPED, {}, None, fx)
 
     def _run_batch(self, batch: list[tuple[Node, int]]) -> None:
         """Worker: run actions, evolve, and go on with what became ready, batch by batch.
@@ -162,8 +163,9 @@ class EffectDispatcher(RunEvolution):
         """
         lock = self._lock
         todo: list[_Todo] = []
-        rest: list[Effect] = []
-        fx: list[Effect] = []
+        rest = Effects()
+        fx = Effects()
+        runs = fx.runs
         # the round's lists are reused: fewer objects for the collector per action
         done: list[_Done] = []
         with lock:
@@ -172,7 +174,6 @@ class EffectDispatcher(RunEvolution):
             self._collect(fx, todo, rest)
         running = _N_RUNNING
         graph_running = _G_RUNNING
-        run_effect = _E_RUN
         while True:
             if rest or self._releases:  # an ended run's releases may be all there is
                 self._dispatch(rest, closing=self._closed)
@@ -227,23 +228,15 @@ class EffectDispatcher(RunEvolution):
                     self._propagate(node, result, outputs, fx)
                     if not run.active:
                         self._after_change(run, fx)
-                if len(fx) == 1:  # a chain: _collect's common case
-                    effect = fx[0]
-                    node_ = effect.node
-                    gen = effect.gen
-                    if (
-                        effect.kind is run_effect
-                        and node_ is not None
-                        and node_.inline
-                        and gen == node_.gen
-                        and node_.state is running
-                    ):
-                        data = node_.data
-                        todo.append((node_, gen, node_.instance, dict(data) if data else NO_VALUES))
+                if len(runs) == 1 and not fx.other:  # a chain: _collect's common case
+                    node, gen = runs[0]
+                    if node.inline and gen == node.gen and node.state is running:
+                        data = node.data
+                        todo.append((node, gen, node.instance, dict(data) if data else NO_VALUES))
                         continue
                 self._collect(fx, todo, rest)
 
-    def _prep(self, node: Node, gen: int, todo: list[_Todo], fx: list[Effect]) -> None:
+    def _prep(self, node: Node, gen: int, todo: list[_Todo], fx: Effects) -> None:
         """Lock held: queue a ready node's run with what it reads, unless it is stale."""
         if gen != node.gen or node.state not in _ACTIVE:
             return
@@ -252,25 +245,21 @@ class EffectDispatcher(RunEvolution):
             return
         todo.append((node, gen, node.instance, dict(node.data) if node.data else NO_VALUES))
 
-    def _collect(self, fx: list[Effect], todo: list[_Todo], rest: list[Effect]) -> None:
+    def _collect(self, fx: Effects, todo: list[_Todo], rest: Effects) -> None:
         """Lock held: split effects into runs for this thread (``todo``) and the rest.
 
         Inline runs are prepared here (a stale or stopped one may add effects, which are
         collected too); the first blocking run is kept only when no inline run is.
         """
-        blocking: list[Effect] = []
+        runs = fx.runs
+        blocking: list[Run] = []
         i = 0
         while True:
-            while i < len(fx):
-                effect = fx[i]
+            while i < len(runs):
+                node, gen = runs[i]
                 i += 1
-                node = effect.node
-                if effect.kind is not _E_RUN or node is None:
-                    rest.append(effect)
-                    continue
-                gen = effect.gen
                 if not node.inline:
-                    blocking.append(effect)
+                    blocking.append((node, gen))
                 elif gen == node.gen and node.state is _N_RUNNING:  # _prep's common case
                     data = node.data
                     todo.append((node, gen, node.instance, dict(data) if data else NO_VALUES))
@@ -278,10 +267,10 @@ class EffectDispatcher(RunEvolution):
                     self._prep(node, gen, todo, fx)
             if todo or not blocking:
                 break
-            first = blocking.pop(0)
-            assert first.node is not None
-            self._prep(first.node, first.gen, todo, fx)
-        rest += blocking
+            first, first_gen = blocking.pop(0)
+            self._prep(first, first_gen, todo, fx)
+        rest.runs += blocking
+        rest.other += fx.other
 
     def _call(self, node: Node, gen: int, instance: Action | None, values: dict[str, Any]) -> _Done:
         """No lock: one run of an action of a shared run (its instance made first if need be).
@@ -300,7 +289,7 @@ class EffectDispatcher(RunEvolution):
             result, error = self._shared.notify(node, result, outputs, error)
         return node, gen, instance, result, outputs, error
 
-    def _settle(self, done: _Done, fx: list[Effect]) -> None:
+    def _settle(self, done: _Done, fx: Effects) -> None:
         """Lock held: apply the end of an action run (evolution)."""
         node, gen, instance, result, outputs, error = done
         if instance is not None and gen == node.gen:
@@ -313,7 +302,8 @@ class EffectDispatcher(RunEvolution):
             and node.run.state is not _G_PAUSED
             and not node.restart
         ):
-            fx.append(Effect(_E_FINISH_SPONTANEOUS, node, gen, ending=(result, outputs, error)))
+            ending = (result, outputs, error)
+            fx.other.append(Effect(_E_FINISH_SPONTANEOUS, node, gen, ending=ending))
         else:
             self._on_finished(node, gen, result, outputs, error, fx)
 
@@ -358,14 +348,14 @@ class EffectDispatcher(RunEvolution):
         error: BaseException | None,
     ) -> None:
         """Worker: stop everything downstream of a spontaneous action, then propagate and re-run."""
-        fx: list[Effect] = []
+        fx = Effects()
         with self._lock:
             downstream = self._downstream(node)
             for other in downstream:
                 if other.active:
                     self._stop_node(other, fx)
         self._dispatch(fx, closing=self._closed)
-        fx = []
+        fx = Effects()
         with self._lock:
             self._quiet_waiters += 1
             try:
@@ -381,12 +371,10 @@ class EffectDispatcher(RunEvolution):
                 self._run_node(node, fx)
                 self._after_change(node.run, fx)
         # the re-run (or the first action that became ready) continues on this worker
-        nxt = next((e for e in fx if e.kind is _E_RUN), None)
-        if nxt is not None:
-            fx.remove(nxt)
+        nxt = fx.runs.pop(0) if fx.runs else None
         self._dispatch(fx, closing=self._closed)
-        if nxt is not None and nxt.node is not None:
-            self._run_batch([(nxt.node, nxt.gen)])
+        if nxt is not None:
+            self._run_batch([nxt])
 
     def _downstream(self, start: Node) -> list[Node]:
         seen = {start.name}
@@ -404,7 +392,7 @@ class EffectDispatcher(RunEvolution):
 
     def _stop_expired(self, node: Node, gen: int) -> None:
         """Timer thread: an action ignored its stop for ``stop_timeout``."""
-        fx: list[Effect] = []
+        fx = Effects()
         with self._lock:
             if node.gen != gen or node.state is not _N_STOPPING:
                 return

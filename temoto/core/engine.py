@@ -44,7 +44,7 @@ from temoto.core._runtime import GraphRun, Plan
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.dispatch import EffectDispatcher
 from temoto.core.documents import graph_from_document
-from temoto.core.effects import Effect
+from temoto.core.effects import Effect, Effects
 from temoto.core.executor import DeadlineTimer, WorkerPool
 from temoto.core.graph import UmrfGraph
 from temoto.core.instrument import Instrument
@@ -227,7 +227,7 @@ class ActionEngine(EffectDispatcher):
         else:
             model = graph_from_document(graph)
         run_name = name or model.name
-        fx: list[Effect] = []
+        fx = Effects()
         with collector_paused():  # a big graph is a burst of long-lived objects
             plan = self.plan(model)
             values = graph_inputs(plan.graph, params or {})
@@ -323,7 +323,7 @@ class ActionEngine(EffectDispatcher):
             TimeoutError: The stop did not complete in time.
         """
         run = self._get(name)
-        fx: list[Effect] = []
+        fx = Effects()
         with self._lock:
             self._stop_run(run, fx)
         self._dispatch(fx)
@@ -345,7 +345,7 @@ class ActionEngine(EffectDispatcher):
             StateError: The run is not RUNNING.
         """
         run = self._get(name)
-        fx: list[Effect] = []
+        fx = Effects()
         with self._lock:
             if run.state is not _G_RUNNING:
                 raise StateError(f"graph '{name}' is {run.state.value}, not RUNNING")
@@ -371,7 +371,7 @@ class ActionEngine(EffectDispatcher):
             KeyError: ``continue_from`` names no node of the graph.
         """
         run = self._get(name)
-        fx: list[Effect] = []
+        fx = Effects()
         with self._lock:
             if run.state not in (_G_PAUSED, _G_HALTED, _G_RUNNING):
                 raise StateError(f"graph '{name}' is {run.state.value}, not PAUSED or HALTED")
@@ -406,7 +406,7 @@ class ActionEngine(EffectDispatcher):
         run = self._get(name)
         with collector_paused():
             plan = self.plan(graph)
-        fx: list[Effect] = []
+        fx = Effects()
         with self._lock:
             if run.state not in (_G_RUNNING, _G_PAUSED, _G_HALTED):
                 raise StateError(
@@ -556,7 +556,7 @@ class ActionEngine(EffectDispatcher):
         Raises:
             Nothing.
         """
-        fx: list[Effect] = []
+        fx = Effects()
         with self._lock:
             if self._closed:
                 return

@@ -10,8 +10,8 @@ failed) and hands its result to a parent node when it is a sub-graph.
 
 Everything here is plain computation under the engine's lock: it never waits and never calls
 user code. What must happen outside the lock (run an action, call a hook, release resources,
-talk to the actor link) is appended to the effect list ``fx`` as an
-:class:`~temoto.core.effects.Effect` for the dispatcher (:mod:`temoto.core.dispatch`).
+talk to the actor link) goes into the :class:`~temoto.core.effects.Effects` ``fx`` for the
+dispatcher (:mod:`temoto.core.dispatch`).
 """
 
 from __future__ import annotations
@@ -26,7 +26,7 @@ from temoto.core._fast import P_BYPASS, P_IGNORE, P_LOOP, P_PAUSE, P_RUN, P_STOP
 from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import GraphRun, Node, NodeKind
 from temoto.core.control import RunControl
-from temoto.core.effects import Effect, EffectKind
+from temoto.core.effects import Effect, EffectKind, Effects
 from temoto.core.snapshot import snapshot
 from temoto.core.states import (
     ACTIVE_NODE_STATES,
@@ -76,18 +76,12 @@ _K_EXIT = NodeKind.EXIT
 _K_GRAPH = NodeKind.GRAPH
 _K_LOCAL = NodeKind.LOCAL
 _K_REMOTE = NodeKind.REMOTE
-_E_RUN = EffectKind.RUN
 _E_HOOK = EffectKind.HOOK
 _E_FINISH_SPONTANEOUS = EffectKind.FINISH_SPONTANEOUS
 _E_RELEASE = EffectKind.RELEASE
 _E_CALL = EffectKind.CALL
 
 _ACTIVE = ACTIVE_NODE_STATES
-
-# A RUN effect is made once per action run: without the record's constructor (a Python
-# function), ``Effect(RUN, node, gen)`` is ``_new_effect(Effect, (RUN, node, gen, *_RUN_DETAIL))``.
-_new_effect = tuple.__new__
-_RUN_DETAIL = tuple(Effect._field_defaults[name] for name in Effect._fields[3:])
 _BUSY_GRAPH = BUSY_GRAPH_STATES
 _ENDED_GRAPH = ENDED_GRAPH_STATES
 
@@ -157,7 +151,7 @@ class RunEvolution:
                 self._drop_instrument(inst)
 
     def _start_run(
-        self, run: GraphRun, values: dict[str, Any], result: Result, fx: list[Effect]
+        self, run: GraphRun, values: dict[str, Any], result: Result, fx: Effects
     ) -> None:
         run.state = _G_RUNNING
         # every local node's control is made now, with the graph's other long-lived objects,
@@ -181,7 +175,7 @@ class RunEvolution:
         result: Result,
         outputs: dict[str, Any],
         error: BaseException | None,
-        fx: list[Effect],
+        fx: Effects,
     ) -> None:
         """An action run ended (returned, raised, timed out, or its sub-graph ended)."""
         if gen != node.gen:
@@ -225,7 +219,7 @@ class RunEvolution:
             self._after_change(run, fx)
 
     def _propagate(
-        self, node: Node, result: Result, outputs: Mapping[str, Any], fx: list[Effect]
+        self, node: Node, result: Result, outputs: Mapping[str, Any], fx: Effects
     ) -> None:
         """Deliver a finished node's result and outputs to its children (REFERENCE §2.5).
 
@@ -275,7 +269,7 @@ class RunEvolution:
                     child.fresh_instance = False
                 child.state = _N_RUNNING
                 run.active += 1
-                fx.append(_new_effect(Effect, (_E_RUN, child, child.gen, *_RUN_DETAIL)))
+                fx.runs.append((child, child.gen))
                 continue
             if kind is _K_EXIT:
                 self._finish_run(run, result, fx)
@@ -291,7 +285,7 @@ class RunEvolution:
             if run.state is not _G_RUNNING:
                 return
 
-    def _run_node(self, node: Node, fx: list[Effect]) -> None:
+    def _run_node(self, node: Node, fx: Effects) -> None:
         if node.state in (_N_PAUSE_REQUESTED, _N_PAUSED) and node.run.state is _G_RUNNING:
             self._resume_node(node, fx)  # paused by a `pause` response: `run` resumes it
             return
@@ -309,12 +303,12 @@ class RunEvolution:
                 node.instance = None  # the old one is stuck in a run we gave up on
                 node.fresh_instance = False
             self._set_state(node, _N_RUNNING)
-            fx.append(_new_effect(Effect, (_E_RUN, node, node.gen, *_RUN_DETAIL)))
+            fx.runs.append((node, node.gen))
             return
         if node.kind is _K_REMOTE:
             self._set_state(node, _N_RUNNING)
             assert self._shared is not None
-            fx.append(Effect(_E_CALL, call=self._shared.expect, args=(node, node.gen)))
+            fx.other.append(Effect(_E_CALL, call=self._shared.expect, args=(node, node.gen)))
             return
         assert node.plan is not None
         self._set_state(node, _N_RUNNING)
@@ -335,7 +329,7 @@ class RunEvolution:
         node.clear_data()
         self._start_run(child, values, _R_TRUE, fx)
 
-    def _stop_node(self, node: Node, fx: list[Effect]) -> None:
+    def _stop_node(self, node: Node, fx: Effects) -> None:
         if node.state not in (_N_RUNNING, _N_PAUSE_REQUESTED, _N_PAUSED):
             return
         self._set_state(node, _N_STOPPING)
@@ -345,13 +339,13 @@ class RunEvolution:
             return
         if node.kind is _K_REMOTE:  # nothing runs here: stop waiting for its actor
             if node.remote_cancel is not None:
-                fx.append(Effect(_E_CALL, call=node.remote_cancel))
+                fx.other.append(Effect(_E_CALL, call=node.remote_cancel))
                 node.remote_cancel = None
             self._on_finished(node, node.gen, _R_STOPPED, {}, None, fx)
             return
         assert node.control is not None
         node.control.request_stop()
-        fx.append(Effect(_E_HOOK, node, node.gen, "on_stop"))
+        fx.other.append(Effect(_E_HOOK, node, node.gen, "on_stop"))
         node.stop_timer = self._timer.call_later(
             self.clock.real_seconds(self.stop_timeout), self._stop_expired, node, node.gen
         )
@@ -360,7 +354,7 @@ class RunEvolution:
             node.held = None
             self._on_finished(node, node.gen, result, outputs, error, fx)
 
-    def _pause_node(self, node: Node, fx: list[Effect]) -> None:
+    def _pause_node(self, node: Node, fx: Effects) -> None:
         if node.state is not _N_RUNNING:
             return
         if node.kind is _K_GRAPH:
@@ -376,9 +370,9 @@ class RunEvolution:
         assert node.control is not None
         self._set_state(node, _N_PAUSE_REQUESTED)
         node.control.set_paused(True)
-        fx.append(Effect(_E_HOOK, node, node.gen, "on_pause"))
+        fx.other.append(Effect(_E_HOOK, node, node.gen, "on_pause"))
 
-    def _resume_node(self, node: Node, fx: list[Effect]) -> None:
+    def _resume_node(self, node: Node, fx: Effects) -> None:
         if node.state not in (_N_PAUSE_REQUESTED, _N_PAUSED):
             return
         self._set_state(node, _N_RUNNING)
@@ -394,30 +388,30 @@ class RunEvolution:
             return
         assert node.control is not None
         node.control.set_paused(False)
-        fx.append(Effect(_E_HOOK, node, node.gen, "on_resume"))
+        fx.other.append(Effect(_E_HOOK, node, node.gen, "on_resume"))
         if node.held is not None:
             result, outputs, error = node.held
             node.held = None
             if node.spontaneous:
-                fx.append(
+                fx.other.append(
                     Effect(_E_FINISH_SPONTANEOUS, node, node.gen, ending=(result, outputs, error))
                 )
             else:
                 self._on_finished(node, node.gen, result, outputs, error, fx)
 
-    def _restart_node(self, node: Node, fx: list[Effect]) -> None:
+    def _restart_node(self, node: Node, fx: Effects) -> None:
         if node.active:
             node.restart = True
             self._stop_node(node, fx)
         else:
             self._run_node(node, fx)
 
-    def _pause_run(self, run: GraphRun, fx: list[Effect]) -> None:
+    def _pause_run(self, run: GraphRun, fx: Effects) -> None:
         run.state = _G_PAUSED
         for node in list(run.nodes.values()):
             self._pause_node(node, fx)
 
-    def _resume_run(self, run: GraphRun, continue_from: str | None, fx: list[Effect]) -> None:
+    def _resume_run(self, run: GraphRun, continue_from: str | None, fx: Effects) -> None:
         # The graph is RUNNING before any node is released, so a node finishing at once is
         # propagated (upstream releases nodes first and can drop that result).
         if run.state is _G_HALTED:
@@ -432,7 +426,7 @@ class RunEvolution:
             self._run_node(run.nodes[continue_from], fx)
         self._after_change(run, fx)
 
-    def _stop_run(self, run: GraphRun, fx: list[Effect]) -> None:
+    def _stop_run(self, run: GraphRun, fx: Effects) -> None:
         if run.state in (
             _G_FINISHED,
             _G_STOPPED,
@@ -447,7 +441,7 @@ class RunEvolution:
             self._stop_node(node, fx)
         self._after_change(run, fx)
 
-    def _after_change(self, run: GraphRun, fx: list[Effect]) -> None:
+    def _after_change(self, run: GraphRun, fx: Effects) -> None:
         if run.active:
             return
         if run.state is _G_STOPPING:
@@ -474,7 +468,7 @@ class RunEvolution:
                 logger.info("graph %s halted: nothing runs and its exit was not reached", run.name)
             self._end_run(run, _G_HALTED, _R_HALTED, fx)
 
-    def _finish_run(self, run: GraphRun, result: Result, fx: list[Effect]) -> None:
+    def _finish_run(self, run: GraphRun, result: Result, fx: Effects) -> None:
         run.outputs = dict(run.exit.data)
         self._end_run(run, _G_FINISHED, result, fx)
         # Actions still running are no longer needed: stop them (their results are ignored).
@@ -488,12 +482,12 @@ class RunEvolution:
         if instance is not None and instance.holds_resources:
             self._releases.append(Effect(_E_RELEASE, action=instance))
 
-    def _end_run(self, run: GraphRun, state: GraphState, result: Result, fx: list[Effect]) -> None:
+    def _end_run(self, run: GraphRun, state: GraphState, result: Result, fx: Effects) -> None:
         run.state = state
         run.result = result
         if run.peers:
             assert self._shared is not None
-            fx.append(Effect(_E_CALL, call=self._shared.end, args=(run,)))
+            fx.other.append(Effect(_E_CALL, call=self._shared.end, args=(run,)))
         releases = self._releases
         for node in run.nodes.values():  # _release_node for each idle one, inlined (all nodes)
             instance = node.instance
