@@ -1,7 +1,7 @@
 """Dispatch: carrying out the engine's effects, and the workers that run actions.
 
 One layer of the engine (see :mod:`temoto.core.engine`): :class:`EffectDispatcher` takes the
-effect lists evolution (:mod:`temoto.core.evolution`) produced under the lock and carries them
+effects evolution (:mod:`temoto.core.evolution`) produced under the lock and carries them
 out with the lock released. Ready actions go to the :class:`~temoto.core.executor.WorkerPool`
 as one batch; a worker runs an action (:meth:`Action.run_once
 <temoto.core.action.Action.run_once>`), takes the lock once to apply the results of its round

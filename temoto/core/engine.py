@@ -12,7 +12,7 @@ The engine is built in layers, one concept per module (``docs/engine.md``):
 * :mod:`temoto.core.dispatch`: carries out effects with the lock released; the workers that run
   actions (:meth:`Action.run_once <temoto.core.action.Action.run_once>`) and evolve the graph.
 * :mod:`temoto.core.evolution`: the evolution of a run under the lock (start, finish,
-  propagate, transfer, end), producing :class:`~temoto.core.effects.Effect` lists.
+  propagate, transfer, end), producing :class:`~temoto.core.effects.Effects`.
 * :mod:`temoto.core.shared`: the engine's side of graphs shared with other actors.
 
 Concurrency model:

@@ -87,7 +87,7 @@ _ENDED_GRAPH = ENDED_GRAPH_STATES
 
 
 class RunEvolution:
-    """The engine's state changes of runs and nodes (engine lock held), as effect lists.
+    """The engine's state changes of runs and nodes (engine lock held), as effects.
 
     A layer of :class:`~temoto.core.engine.ActionEngine`, which makes the state below in its
     ``__init__``; the dispatcher (:class:`~temoto.core.dispatch.EffectDispatcher`) subclasses
