@@ -420,6 +420,8 @@ class Action(ABC):
         stamp = int(self._ctl.clock.time() * 1000) if self._control is not None else 0
         if self._log is None:
             self._log = deque(maxlen=LOG_LENGTH)
+            if self._control is not None:
+                self._control.logged = True
         self._log.appendleft(LogMessage(stamp, str(message)))
         self.logger.info("%s", message)
 

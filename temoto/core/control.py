@@ -31,7 +31,7 @@ class RunControl:
         clock: The engine's clock.
     """
 
-    __slots__ = ("broken", "clock", "condition", "paused", "stop")
+    __slots__ = ("broken", "clock", "condition", "logged", "paused", "stop")
 
     def __init__(self, clock: Clock) -> None:
         self.clock = clock
@@ -42,6 +42,9 @@ class RunControl:
         self.paused = False
         #: failures of acquired resources, not yet raised (a list from the first one on)
         self.broken: list[StatusUpdate] | None = None
+        #: set when an action of this node first writes its runtime log (``Action.log``): until
+        #: then the engine need not copy the log at the end of each run
+        self.logged = False
 
     @property
     def cond(self) -> threading.Condition:

@@ -165,7 +165,7 @@ class EffectDispatcher(RunEvolution):
         todo: list[_Todo] = []
         rest = Effects()
         fx = Effects()
-        runs = fx.runs
+        runs, other = fx.runs, fx.other  # cleared in place each round
         # the round's lists are reused: fewer objects for the collector per action
         done: list[_Done] = []
         with lock:
@@ -175,7 +175,7 @@ class EffectDispatcher(RunEvolution):
         running = _N_RUNNING
         graph_running = _G_RUNNING
         while True:
-            if rest or self._releases:  # an ended run's releases may be all there is
+            if rest.runs or rest.other or self._releases:  # releases may be all there is
                 self._dispatch(rest, closing=self._closed)
                 rest.clear()
             if not todo:
@@ -194,7 +194,8 @@ class EffectDispatcher(RunEvolution):
                 result, outputs, error = instance.run_once(values)
                 done.append((node, gen, instance, result, outputs, error))
             todo.clear()
-            fx.clear()
+            runs.clear()
+            other.clear()
             with lock:
                 fast = not self._watchers and not self._feedback_on
                 for item in done:
@@ -215,9 +216,8 @@ class EffectDispatcher(RunEvolution):
                         continue
                     if node.instance is None:
                         node.instance = instance
-                    log = instance.log_snapshot()
-                    if log or node.log:
-                        node.log = log
+                    if node.log or node.control.logged:  # type: ignore[union-attr]  # set: LOCAL
+                        node.log = instance.log_snapshot()
                     if len(node.data) != len(node.native):
                         node.clear_data()
                     node.last_outputs = outputs
@@ -228,7 +228,7 @@ class EffectDispatcher(RunEvolution):
                     self._propagate(node, result, outputs, fx)
                     if not run.active:
                         self._after_change(run, fx)
-                if len(runs) == 1 and not fx.other:  # a chain: _collect's common case
+                if len(runs) == 1 and not other:  # a chain: _collect's common case
                     node, gen = runs[0]
                     if node.inline and gen == node.gen and node.state is running:
                         data = node.data
@@ -256,10 +256,11 @@ class EffectDispatcher(RunEvolution):
         i = 0
         while True:
             while i < len(runs):
-                node, gen = runs[i]
+                run = runs[i]
+                node, gen = run
                 i += 1
                 if not node.inline:
-                    blocking.append((node, gen))
+                    blocking.append(run)
                 elif gen == node.gen and node.state is _N_RUNNING:  # _prep's common case
                     data = node.data
                     todo.append((node, gen, node.instance, dict(data) if data else NO_VALUES))
