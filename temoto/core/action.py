@@ -339,6 +339,8 @@ class Action(ABC):
         )
         if self._resources is _NOTHING_HELD:
             self._resources = {}
+            if self._control is not None:
+                self._control.acquired = True
         self._resources[resource.id] = resource
         return resource
 

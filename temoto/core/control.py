@@ -31,7 +31,7 @@ class RunControl:
         clock: The engine's clock.
     """
 
-    __slots__ = ("broken", "clock", "condition", "logged", "paused", "stop")
+    __slots__ = ("acquired", "broken", "clock", "condition", "logged", "paused", "stop")
 
     def __init__(self, clock: Clock) -> None:
         self.clock = clock
@@ -45,6 +45,9 @@ class RunControl:
         #: set when an action of this node first writes its runtime log (``Action.log``): until
         #: then the engine need not copy the log at the end of each run
         self.logged = False
+        #: set when an action of this node first acquires a resource (``Action.acquire``):
+        #: until then the engine need not ask it what it holds when the run ends
+        self.acquired = False
 
     @property
     def cond(self) -> threading.Condition:

@@ -195,7 +195,8 @@ class EffectDispatcher(RunEvolution):
                 done.append((node, gen, instance, result, outputs, error))
             todo.clear()
             runs.clear()
-            other.clear()
+            if other:
+                other.clear()
             with lock:
                 fast = not self._watchers and not self._feedback_on
                 for item in done:
@@ -270,8 +271,10 @@ class EffectDispatcher(RunEvolution):
                 break
             first, first_gen = blocking.pop(0)
             self._prep(first, first_gen, todo, fx)
-        rest.runs += blocking
-        rest.other += fx.other
+        if blocking:
+            rest.runs += blocking
+        if fx.other:
+            rest.other += fx.other
 
     def _call(self, node: Node, gen: int, instance: Action | None, values: dict[str, Any]) -> _Done:
         """No lock: one run of an action of a shared run (its instance made first if need be).

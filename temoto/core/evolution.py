@@ -491,7 +491,14 @@ class RunEvolution:
         releases = self._releases
         for node in run.nodes.values():  # _release_node for each idle one, inlined (all nodes)
             instance = node.instance
-            if instance is not None and node.state not in _ACTIVE and instance.holds_resources:
+            control = node.control
+            if (
+                control is not None
+                and control.acquired
+                and instance is not None
+                and node.state not in _ACTIVE
+                and instance.holds_resources
+            ):
                 releases.append(Effect(_E_RELEASE, action=instance))
         if self._instruments:
             self._notify("graph_finished", run.name, result, self.clock.monotonic())
