@@ -163,21 +163,22 @@ class EffectDispatcher(RunEvolution):
         """
         lock = self._lock
         todo: list[_Todo] = []
-        rest = Effects()
+        # what evolution decides; after _collect, what this thread leaves to others
         fx = Effects()
-        runs, other = fx.runs, fx.other  # cleared in place each round
+        runs, other = fx.runs, fx.other  # emptied in place each round
         # the round's lists are reused: fewer objects for the collector per action
         done: list[_Done] = []
         with lock:
             for node, gen in batch:
                 self._prep(node, gen, todo, fx)
-            self._collect(fx, todo, rest)
+            self._collect(fx, todo)
         running = _N_RUNNING
         graph_running = _G_RUNNING
         while True:
-            if rest.runs or rest.other or self._releases:  # releases may be all there is
-                self._dispatch(rest, closing=self._closed)
-                rest.clear()
+            if runs or other or self._releases:  # an ended run's releases may be all there is
+                self._dispatch(fx, closing=self._closed)
+                runs.clear()
+                other.clear()
             if not todo:
                 return
             done.clear()
@@ -194,9 +195,6 @@ class EffectDispatcher(RunEvolution):
                 result, outputs, error = instance.run_once(values)
                 done.append((node, gen, instance, result, outputs, error))
             todo.clear()
-            runs.clear()
-            if other:
-                other.clear()
             with lock:
                 fast = not self._watchers and not self._feedback_on
                 for item in done:
@@ -234,8 +232,9 @@ class EffectDispatcher(RunEvolution):
                     if node.inline and gen == node.gen and node.state is running:
                         data = node.data
                         todo.append((node, gen, node.instance, dict(data) if data else NO_VALUES))
+                        runs.clear()
                         continue
-                self._collect(fx, todo, rest)
+                self._collect(fx, todo)
 
     def _prep(self, node: Node, gen: int, todo: list[_Todo], fx: Effects) -> None:
         """Lock held: queue a ready node's run with what it reads, unless it is stale."""
@@ -246,11 +245,12 @@ class EffectDispatcher(RunEvolution):
             return
         todo.append((node, gen, node.instance, dict(node.data) if node.data else NO_VALUES))
 
-    def _collect(self, fx: Effects, todo: list[_Todo], rest: Effects) -> None:
-        """Lock held: split effects into runs for this thread (``todo``) and the rest.
+    def _collect(self, fx: Effects, todo: list[_Todo]) -> None:
+        """Lock held: take the runs this thread goes on with (``todo``); ``fx`` keeps the rest.
 
         Inline runs are prepared here (a stale or stopped one may add effects, which are
-        collected too); the first blocking run is kept only when no inline run is.
+        collected too); the first blocking run is kept only when no inline run is. What is left
+        in ``fx`` (other blocking runs, every other effect) is for :meth:`_dispatch`.
         """
         runs = fx.runs
         blocking: list[Run] = []
@@ -271,10 +271,7 @@ class EffectDispatcher(RunEvolution):
                 break
             first, first_gen = blocking.pop(0)
             self._prep(first, first_gen, todo, fx)
-        if blocking:
-            rest.runs += blocking
-        if fx.other:
-            rest.other += fx.other
+        runs[:] = blocking
 
     def _call(self, node: Node, gen: int, instance: Action | None, values: dict[str, Any]) -> _Done:
         """No lock: one run of an action of a shared run (its instance made first if need be).
