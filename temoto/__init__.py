@@ -36,11 +36,12 @@ from temoto.build import (
 from temoto.clock import Clock, ManualClock, MonotonicClock, ScaledClock
 from temoto.core.action import Action
 from temoto.core.catalog import ActionCatalog, GraphIndex
+from temoto.core.documents import dump_graph, load_graph, load_umrf, parse_graph_text
 from temoto.core.engine import ActionEngine, GraphOutcome
-from temoto.core.graph import UmrfGraph, dump_graph, load_graph, parse_graph, parse_graph_text
+from temoto.core.graph import UmrfGraph, parse_graph
 from temoto.core.instrument import Instrument
 from temoto.core.states import GraphState, NodeState, Response, Result
-from temoto.core.umrf import Umrf, load_umrf, parse_umrf
+from temoto.core.umrf import Umrf, parse_umrf
 from temoto.core.validation import ValidationReport, validate_graph
 from temoto.errors import (
     ActionError,

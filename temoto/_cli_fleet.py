@@ -519,7 +519,7 @@ def _graph_arg(text: str, *, file_only: bool) -> tuple[dict[str, Any] | None, st
     """A graph file's document (and name), or a name."""
     path = Path(text)
     if path.is_file():
-        from temoto.core.graph import graph_to_dict, load_graph
+        from temoto.core.documents import graph_to_dict, load_graph
 
         graph = load_graph(path)  # checked here: a bad file fails before anything is sent
         return graph_to_dict(graph), graph.name

@@ -39,8 +39,9 @@ from temoto._cli_fleet import (
 from temoto._progress import ActionLogHandler, Progress
 from temoto.clock import MonotonicClock, ScaledClock
 from temoto.core.catalog import ActionCatalog, GraphIndex
+from temoto.core.documents import load_graph
 from temoto.core.engine import ActionEngine
-from temoto.core.graph import UmrfGraph, load_graph
+from temoto.core.graph import UmrfGraph
 from temoto.core.instrument import Instrument, TraceInstrument
 from temoto.core.planning import graph_inputs_from_text
 from temoto.core.registrar import Registrar

@@ -85,8 +85,9 @@ from temoto._cli_run import add_run, run_command
 from temoto._cli_sim import add_sim, sim_command
 from temoto.core import _fast
 from temoto.core.catalog import ActionCatalog, GraphIndex
+from temoto.core.documents import load_graph
 from temoto.core.dot import graph_to_dot, render
-from temoto.core.graph import UmrfGraph, load_graph
+from temoto.core.graph import UmrfGraph
 from temoto.core.planning import Planner
 from temoto.core.umrf import Umrf
 from temoto.core.validation import validate_graph

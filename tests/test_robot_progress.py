@@ -49,7 +49,7 @@ class _Run:
         self.clock = _CountingClock()
         self.control = RunControl(self.clock)
         self.action = _Probe()
-        self.action._bind(control=self.control, name="Probe_0", graph="g", inputs={}, outputs={})
+        self.action.initialize(self.control, "Probe_0", "g", {}, {})
         self.action._begin({"timeout": timeout} if timeout else {})
         self.motion = Motion("move")
         self.result: list[object] = []
@@ -78,7 +78,7 @@ class _Run:
         return self.result[0]
 
     def logs(self) -> list[str]:
-        return [m.message for m in reversed(self.action._log_snapshot())]
+        return [m.message for m in reversed(self.action.log_snapshot())]
 
 
 @pytest.fixture

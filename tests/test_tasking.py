@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 
 from temoto.actions.builtin import ROBOT_ACTIONS
+from temoto.core.documents import graph_from_document
 from temoto.core.engine import ActionEngine
-from temoto.core.graph import graph_from_document
 from temoto.errors import TaskParseError
 from temoto.tasking import RuleBasedTaskSource, TaskSource
 

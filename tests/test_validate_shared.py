@@ -15,7 +15,7 @@ import pytest
 
 from temoto.cli import main
 from temoto.core.catalog import ActionCatalog, GraphIndex
-from temoto.core.graph import load_graph
+from temoto.core.documents import load_graph
 from temoto.core.planning import Planner
 from temoto.core.umrf import Umrf
 from temoto.errors import ActionNotFoundError

@@ -16,9 +16,21 @@ from dataclasses import dataclass, field
 from enum import Enum
 from typing import TYPE_CHECKING, Any
 
-from temoto.core._fast import Evolution
+from temoto.core._fast import (
+    P_BYPASS,
+    P_IGNORE,
+    P_PAUSE,
+    P_RESTART,
+    P_RUN,
+    P_STOP,
+    R_ERROR,
+    R_FALSE,
+    R_STOPPED,
+    R_TRUE,
+    Evolution,
+)
 from temoto.core.params import Parameter
-from temoto.core.states import GraphState, NodeState, Response, Result
+from temoto.core.states import ACTIVE_NODE_STATES, GraphState, NodeState, Response, Result
 from temoto.core.umrf import ENTRY_NAME, EXIT_NAME, ParentRelation, Umrf
 
 if TYPE_CHECKING:
@@ -39,14 +51,21 @@ __all__ = [
 
 #: Result -> code of the evolution kernel (the order of the enum).
 RESULT_CODES: dict[Result, int] = {
-    Result.TRUE: 0,
-    Result.FALSE: 1,
-    Result.STOPPED: 2,
-    Result.ERROR: 3,
+    Result.TRUE: R_TRUE,
+    Result.FALSE: R_FALSE,
+    Result.STOPPED: R_STOPPED,
+    Result.ERROR: R_ERROR,
 }
-#: Response code of the evolution kernel -> Response (the order of the enum).
-RESPONSES: tuple[Response, ...] = tuple(Response)
-_RESPONSE_CODES = {r: i for i, r in enumerate(RESPONSES)}
+_RESPONSE_CODES: dict[Response, int] = {
+    Response.RUN: P_RUN,
+    Response.PAUSE: P_PAUSE,
+    Response.RESTART: P_RESTART,
+    Response.STOP: P_STOP,
+    Response.BYPASS: P_BYPASS,
+    Response.IGNORE: P_IGNORE,
+}
+#: Response code of the evolution kernel -> Response.
+RESPONSES: tuple[Response, ...] = tuple(sorted(_RESPONSE_CODES, key=_RESPONSE_CODES.__getitem__))
 _NO_CONDITIONS = (-1,) * len(RESULT_CODES)
 _NO_NAMES: frozenset[str] = frozenset()  # responses of a relation without written conditions
 
@@ -97,9 +116,7 @@ _UNINITIALIZED = NodeState.UNINITIALIZED
 _LOCAL = NodeKind.LOCAL
 _EXIT = NodeKind.EXIT
 
-_ACTIVE = frozenset(
-    {NodeState.RUNNING, NodeState.PAUSE_REQUESTED, NodeState.PAUSED, NodeState.STOPPING}
-)
+_ACTIVE = ACTIVE_NODE_STATES
 
 
 class Node:

@@ -37,17 +37,19 @@ inline action that does block holds up the inline actions queued behind it on it
 from __future__ import annotations
 
 import logging
-import threading
 from abc import ABC, abstractmethod
 from collections import deque
-from collections.abc import Callable, Iterator, Mapping
+from collections.abc import Callable, Mapping
 from types import MappingProxyType
-from typing import TYPE_CHECKING, Any, ClassVar, TypeVar
+from typing import TYPE_CHECKING, Any, ClassVar
 
-from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value
+from temoto.core.control import RunControl
+from temoto.core.params import NO_VALUE, Parameter
 from temoto.core.registrar.messages import Resource, Status, StatusUpdate
+from temoto.core.states import Result
 from temoto.core.umrf import LogMessage
-from temoto.errors import ResourceBrokenError, ResourceError, StopRequested
+from temoto.core.values import NO_INPUTS, NO_OUTPUTS, NO_VALUES, Inputs, Outputs
+from temoto.errors import ActionError, ResourceError, StopRequested
 
 if TYPE_CHECKING:
     from temoto.clock import Clock
@@ -58,313 +60,13 @@ __all__ = ["LOG_LENGTH", "Action", "Inputs", "Outputs", "RunControl"]
 #: How many runtime log messages a node keeps (newest first), as upstream.
 LOG_LENGTH = 10
 
-T = TypeVar("T")
 
+# results of on_run, as globals (a member lookup on the enum class costs several times more)
+_R_TRUE = Result.TRUE
+_R_FALSE = Result.FALSE
+_R_STOPPED = Result.STOPPED
+_R_ERROR = Result.ERROR
 
-#: Guards the lazy creation of RunControl condition variables (rare: once per waiting node).
-_COND_CREATION = threading.Lock()
-
-
-class RunControl:
-    """Stop and pause signals of one node, shared by the engine and the action's helpers.
-
-    One condition variable carries every signal, so helpers wait without polling. Engine
-    internal: actions use the helpers on :class:`Action`.
-
-    Args:
-        clock: The engine's clock.
-    """
-
-    __slots__ = ("_cond", "broken", "clock", "paused", "stop")
-
-    def __init__(self, clock: Clock) -> None:
-        self.clock = clock
-        self._cond: threading.Condition | None = None  # made on first use (most runs never wait)
-        self.stop = False
-        self.paused = False
-        #: failures of acquired resources, not yet raised (a list from the first one on)
-        self.broken: list[StatusUpdate] | None = None
-
-    @property
-    def cond(self) -> threading.Condition:
-        """The condition variable every helper waits on and every signal notifies."""
-        cond = self._cond
-        if cond is None:
-            with _COND_CREATION:
-                cond = self._cond
-                if cond is None:
-                    cond = self._cond = threading.Condition(threading.Lock())
-        return cond
-
-    def report_broken(self, update: StatusUpdate) -> None:
-        """An acquired resource failed: the next helper call raises ResourceBrokenError.
-
-        Args:
-            update: The failure.
-
-        Returns:
-            None.
-
-        Raises:
-            Nothing.
-        """
-        with self.cond:
-            if self.broken is None:
-                self.broken = []
-            self.broken.append(update)
-            self.cond.notify_all()
-
-    def raise_broken(self) -> None:
-        """Raise for the oldest unreported failure (the lock must be held).
-
-        Returns:
-            None.
-
-        Raises:
-            ResourceBrokenError: If an acquired resource failed.
-        """
-        if self.broken:
-            update = self.broken.pop(0)
-            raise ResourceBrokenError(
-                f"resource {update.resource_id} reported {update.status.value}: {update.message}",
-                origin=update.origin,
-            )
-
-    def reset(self) -> None:
-        """Clear the stop and pause flags before a new run.
-
-        Returns:
-            None.
-
-        Raises:
-            Nothing.
-        """
-        if self._cond is None:  # no helper ever waited: nobody to race with between runs
-            self.stop = False
-            self.paused = False
-            return
-        with self._cond:
-            self.stop = False
-            self.paused = False
-
-    def request_stop(self) -> None:
-        """Ask the running action to stop; wakes every helper.
-
-        Returns:
-            None.
-
-        Raises:
-            Nothing.
-        """
-        with self.cond:
-            self.stop = True
-            self.cond.notify_all()
-
-    def set_paused(self, paused: bool) -> None:
-        """Pause or resume the helpers.
-
-        Args:
-            paused: The new pause flag.
-
-        Returns:
-            None.
-
-        Raises:
-            Nothing.
-        """
-        with self.cond:
-            self.paused = paused
-            self.cond.notify_all()
-
-
-class Inputs(Mapping[str, Any]):
-    """The input values of one run (read-only), with typed getters.
-
-    Args:
-        values: Values by full parameter name (``pose::position::x``).
-        params: The action's input parameter definitions.
-    """
-
-    __slots__ = ("_params", "_values")
-
-    def __init__(self, values: Mapping[str, Any], params: Mapping[str, Parameter]) -> None:
-        self._values = dict(values)
-        self._params = params
-
-    def __getitem__(self, name: str) -> Any:
-        try:
-            return self._values[name]
-        except KeyError:
-            if name in self._params:
-                raise KeyError(f"input '{name}' holds no value in this run") from None
-            known = ", ".join(self._params) or "none"
-            raise KeyError(f"unknown input '{name}' (inputs: {known})") from None
-
-    def __iter__(self) -> Iterator[str]:
-        return iter(self._values)
-
-    def __len__(self) -> int:
-        return len(self._values)
-
-    def __repr__(self) -> str:
-        return f"Inputs({self._values!r})"
-
-    def _typed(self, name: str, kind: type[T], label: str) -> T:
-        value = self[name]
-        if not isinstance(value, kind):
-            raise TypeError(f"input '{name}' is not a {label}: {type(value).__name__}")
-        return value
-
-    def get_string(self, name: str) -> str:
-        """The value of a ``string`` input.
-
-        Args:
-            name: Parameter name.
-
-        Returns:
-            The string.
-
-        Raises:
-            KeyError: If the input is unknown or holds no value.
-            TypeError: If it is not a string.
-        """
-        return self._typed(name, str, "string")
-
-    def get_number(self, name: str) -> float:
-        """The value of a ``number`` input.
-
-        Args:
-            name: Parameter name.
-
-        Returns:
-            The number.
-
-        Raises:
-            KeyError: If the input is unknown or holds no value.
-            TypeError: If it is not a number.
-        """
-        value = self[name]
-        if isinstance(value, bool) or not isinstance(value, int | float):
-            raise TypeError(f"input '{name}' is not a number: {type(value).__name__}")
-        return float(value)
-
-    def get_bool(self, name: str) -> bool:
-        """The value of a ``bool`` input.
-
-        Args:
-            name: Parameter name.
-
-        Returns:
-            The boolean.
-
-        Raises:
-            KeyError: If the input is unknown or holds no value.
-            TypeError: If it is not a boolean.
-        """
-        return self._typed(name, bool, "bool")
-
-    def get_strings(self, name: str) -> list[str]:
-        """The value of a ``strings`` input (a copy).
-
-        Args:
-            name: Parameter name.
-
-        Returns:
-            The list.
-
-        Raises:
-            KeyError: If the input is unknown or holds no value.
-            TypeError: If it is not a list of strings.
-        """
-        return list(self._typed(name, list, "list"))
-
-    def get_numbers(self, name: str) -> list[float]:
-        """The value of a ``numbers`` input (a copy).
-
-        Args:
-            name: Parameter name.
-
-        Returns:
-            The list.
-
-        Raises:
-            KeyError: If the input is unknown or holds no value.
-            TypeError: If it is not a list.
-        """
-        return [float(v) for v in self._typed(name, list, "list")]
-
-    def get_bools(self, name: str) -> list[bool]:
-        """The value of a ``bools`` input (a copy).
-
-        Args:
-            name: Parameter name.
-
-        Returns:
-            The list.
-
-        Raises:
-            KeyError: If the input is unknown or holds no value.
-            TypeError: If it is not a list.
-        """
-        return list(self._typed(name, list, "list"))
-
-
-class Outputs:
-    """The output values an action sets during a run; checked against the description.
-
-    Args:
-        params: The action's output parameter definitions.
-    """
-
-    __slots__ = ("_params", "_values")
-
-    def __init__(self, params: Mapping[str, Parameter]) -> None:
-        self._params = params
-        self._values: dict[str, Any] = {}
-
-    def __setitem__(self, name: str, value: Any) -> None:
-        param = self._params.get(name)
-        if param is None:
-            known = ", ".join(self._params) or "none"
-            raise KeyError(f"unknown output '{name}' (outputs: {known})")
-        if param.type in NATIVE_TYPES:
-            try:
-                value = check_value(param.type, value)
-            except TypeError as err:
-                raise TypeError(f"output '{name}' ({param.type}): {err}") from None
-        self._values[name] = value
-
-    def __getitem__(self, name: str) -> Any:
-        return self._values[name]
-
-    def __contains__(self, name: object) -> bool:
-        return name in self._values
-
-    def __repr__(self) -> str:
-        return f"Outputs({self._values!r})"
-
-    def snapshot(self) -> dict[str, Any]:
-        """The values set so far.
-
-        Returns:
-            A copy, by name.
-
-        Raises:
-            Nothing.
-        """
-        return dict(self._values)
-
-    def _taken(self) -> dict[str, Any]:
-        """Engine: a copy of the values for the engine, which never mutates it."""
-        return dict(self._values) if self._values else NO_VALUES
-
-
-#: The engine's empty value dict, shared; never mutated.
-NO_VALUES: dict[str, Any] = {}
-
-#: What an action sees before its first run: no values, no writable outputs.
-_NO_INPUTS = Inputs({}, {})
-_NO_OUTPUTS = Outputs({})
 #: Shared by every action that holds no resource (never written: acquire makes its own dict).
 _NOTHING_HELD: dict[str, Any] = {}
 #: The parameter declarations of an unbound action: none.
@@ -389,15 +91,15 @@ class Action(ABC):
     #: planned, per class).
     blocking: ClassVar[bool] = True
 
-    # Defaults live on the class: an instance stores only what the engine binds (see _bind),
+    # Defaults live on the class: an instance stores only what the engine binds (see initialize),
     # so creating one per node costs no __init__ call of ours.
     _control: RunControl | None = None
     _log: deque[LogMessage] | None = None  # made by the first log() call
     _logger: logging.Logger | None = None
     _name = "Action"  # the class name until bound (set per subclass)
     _graph = ""
-    _inputs = _NO_INPUTS  # replaced by each run's own (_begin)
-    _outputs = _NO_OUTPUTS
+    _inputs = NO_INPUTS  # replaced by each run's own (_begin)
+    _outputs = NO_OUTPUTS
     _input_params: Mapping[str, Parameter] = _NO_PARAMS
     _output_params: Mapping[str, Parameter] = _NO_PARAMS
     _registrar: Registrar | None = None
@@ -438,23 +140,6 @@ class Action(ABC):
 
     # ---- engine binding (not for action authors) ---------------------------------------------
 
-    def _bind(
-        self,
-        control: RunControl,
-        name: str,
-        graph: str,
-        inputs: Mapping[str, Parameter],
-        outputs: Mapping[str, Parameter],
-        registrar: Registrar | None = None,
-    ) -> None:
-        self._control = control
-        self._name = name
-        self._graph = graph
-        self._input_params = inputs
-        self._output_params = outputs
-        if registrar is not None:
-            self._registrar = registrar
-
     @property
     def _client(self) -> str:
         """The client name this node's resources are requested under (``<graph>/<node>``)."""
@@ -463,18 +148,104 @@ class Action(ABC):
     def _begin(self, values: dict[str, Any]) -> None:
         """Engine: a run starts with these input values (the dict is handed over, not copied)."""
         if values or self._input_params:
-            inputs = Inputs.__new__(Inputs)
-            inputs._values = values
-            inputs._params = self._input_params
-            self._inputs = inputs
+            self._inputs = Inputs.over(values, self._input_params)
         else:  # nothing to read: share the empty view (fewer objects for the collector)
-            self._inputs = _NO_INPUTS
-        self._outputs = Outputs(self._output_params) if self._output_params else _NO_OUTPUTS
+            self._inputs = NO_INPUTS
+        self._outputs = Outputs(self._output_params) if self._output_params else NO_OUTPUTS
 
-    def _log_snapshot(self) -> tuple[LogMessage, ...]:
+    # ---- framework calls (the engine makes them; not overridden) -----------------------------
+
+    def initialize(
+        self,
+        control: RunControl,
+        name: str,
+        graph: str,
+        inputs: Mapping[str, Parameter],
+        outputs: Mapping[str, Parameter],
+        registrar: Registrar | None = None,
+    ) -> None:
+        """Bind this instance to its node, then call :meth:`on_init`. Framework call.
+
+        Args:
+            control: The node's stop and pause signals.
+            name: The node's full name (``<Name>_<instance_id>``).
+            graph: The graph run's name.
+            inputs: The node's input parameter definitions.
+            outputs: The node's output parameter definitions.
+            registrar: Where :meth:`acquire` requests resources, if anywhere.
+
+        Returns:
+            None.
+
+        Raises:
+            Exception: Whatever ``on_init`` raises (the engine marks the node ERROR).
+        """
+        self._control = control
+        self._name = name
+        self._graph = graph
+        self._input_params = inputs
+        self._output_params = outputs
+        if registrar is not None:
+            self._registrar = registrar
+        self.on_init()
+
+    def run_once(
+        self, values: dict[str, Any]
+    ) -> tuple[Result, dict[str, Any], BaseException | None]:
+        """One run of :meth:`on_run` with these input values. Framework call.
+
+        The values dict is handed over, not copied. ``True``/``False`` become ``Result.TRUE``/
+        ``Result.FALSE``; :class:`~temoto.errors.StopRequested` ``Result.STOPPED``; anything
+        raised, or a return value that is not a bool (a ``TypeError``), ``Result.ERROR`` with an
+        :class:`~temoto.errors.ActionError` naming the node and caused by the exception.
+
+        Args:
+            values: The run's input values, by name.
+
+        Returns:
+            ``(result, outputs, error)``: the outputs set during the run (also after a failure;
+            a shared empty dict if none, never to be mutated) and the error or None.
+
+        Raises:
+            Nothing: every exception of ``on_run`` becomes the ERROR result.
+        """
+        if values or self._input_params or self._output_params:
+            self._begin(values)  # else: the shared empty views it holds already
+        error: BaseException | None = None
+        try:
+            ok = self.on_run()
+            if ok is True:
+                result = _R_TRUE
+            elif ok is False:
+                result = _R_FALSE
+            else:
+                raise TypeError(f"on_run() must return True or False, not {type(ok).__name__}")
+        except StopRequested:
+            result = _R_STOPPED
+        except BaseException as err:
+            result = _R_ERROR
+            error = ActionError(f"{self._name} failed: {err}", graph=self._graph, node=self._name)
+            error.__cause__ = err
+        outputs = self._outputs
+        return result, (NO_VALUES if outputs is NO_OUTPUTS else outputs.take()), error
+
+    def log_snapshot(self) -> tuple[LogMessage, ...]:
+        """The runtime log as it is now, newest first; safe while the action logs. Framework call.
+
+        Returns:
+            The messages (at most :data:`LOG_LENGTH`).
+
+        Raises:
+            Nothing.
+        """
         log = self._log
         # deque.copy() is one C call: safe while the action's thread appends
         return tuple(log.copy()) if log is not None else ()
+
+    @property
+    def holds_resources(self) -> bool:
+        """Whether this node holds resources it acquired (framework read, cheap)."""
+        return bool(self._resources)
 
     # ---- what actions call ------------------------------------------------------------------
 
@@ -568,6 +339,8 @@ class Action(ABC):
         )
         if self._resources is _NOTHING_HELD:
             self._resources = {}
+            if self._control is not None:
+                self._control.acquired = True
         self._resources[resource.id] = resource
         return resource
 
@@ -610,8 +383,18 @@ class Action(ABC):
         if update.status in (Status.ERROR, Status.FATAL) and self._control is not None:
             self._control.report_broken(update)
 
-    def _release_resources(self) -> int:
-        """Engine: release everything this node holds (graph ended or node removed)."""
+    def release_resources(self) -> int:
+        """Release every resource this node holds (its graph ended, or it was removed).
+
+        Framework call; the engine makes it on a worker. Resources already released by their
+        owner or the registrar are skipped.
+
+        Returns:
+            How many were released.
+
+        Raises:
+            Nothing: release failures are skipped.
+        """
         held, self._resources = self._resources, _NOTHING_HELD
         if self._registrar is None:
             return 0
@@ -639,6 +422,8 @@ class Action(ABC):
         stamp = int(self._ctl.clock.time() * 1000) if self._control is not None else 0
         if self._log is None:
             self._log = deque(maxlen=LOG_LENGTH)
+            if self._control is not None:
+                self._control.logged = True
         self._log.appendleft(LogMessage(stamp, str(message)))
         self.logger.info("%s", message)
 

@@ -25,8 +25,9 @@ from pathlib import Path
 from types import ModuleType
 
 from temoto.core.action import Action
-from temoto.core.graph import UmrfGraph, load_graph
-from temoto.core.umrf import Umrf, load_umrf, snake_case
+from temoto.core.documents import load_graph, load_umrf
+from temoto.core.graph import UmrfGraph
+from temoto.core.umrf import Umrf, snake_case
 from temoto.errors import (
     ActionNotFoundError,
     ConfigError,

@@ -1,22 +1,18 @@
-"""The UMRF graph model: actions, entry and exit relations, signature; parse and serialise.
+"""The UMRF graph model: actions, entry and exit relations, signature; and its parser.
 
 This module only describes graphs; :mod:`temoto.core.validation` checks that a graph can run
 and :mod:`temoto.core.engine` runs it. :func:`parse_graph` is the only code that reads a raw
 graph document (current format; legacy documents are converted by :mod:`temoto.core.legacy`
-first, see :func:`load_graph`).
+first). Files, text and serialisation are :mod:`temoto.core.documents`
+(:func:`~temoto.core.documents.load_graph`, :func:`~temoto.core.documents.graph_to_dict`).
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
-from typing import Any
 
-from temoto.core._gc import collector_paused
-from temoto.core.params import Parameter
-from temoto.core.params import _kind as kind_of
+from temoto.core.params import Parameter, kind_of
 from temoto.core.states import GraphState
 from temoto.core.umrf import (
     ENTRY_NAME,
@@ -25,22 +21,13 @@ from temoto.core.umrf import (
     ParentRelation,
     Umrf,
     UmrfReader,
-    decode_json,
-    dump_parent,
-    dump_umrf,
-    load_json,
 )
 from temoto.errors import GraphDefinitionError
 
 __all__ = [
     "GraphSignature",
     "UmrfGraph",
-    "dump_graph",
-    "graph_from_document",
-    "graph_to_dict",
-    "load_graph",
     "parse_graph",
-    "parse_graph_text",
 ]
 
 _GRAPH_KEYS = frozenset(
@@ -148,17 +135,6 @@ class UmrfGraph:
                     outputs.setdefault(name, param)
         return GraphSignature(inputs, outputs)
 
-    def to_dict(self) -> dict[str, Any]:
-        """Serialise canonically (see :func:`graph_to_dict`).
-
-        Returns:
-            A JSON-ready dict.
-
-        Raises:
-            Nothing.
-        """
-        return graph_to_dict(self)
-
 
 def parse_graph(raw: object, *, file: str | None = None) -> UmrfGraph:
     """Parse a current-format graph document.
@@ -252,103 +228,3 @@ def parse_graph(raw: object, *, file: str | None = None) -> UmrfGraph:
         source=file,
         warnings=tuple(reader.warnings),
     )
-
-
-def parse_graph_text(text: str, *, file: str | None = None) -> UmrfGraph:
-    """Parse a graph from JSON text (either format).
-
-    Args:
-        text: JSON text.
-        file: Where it came from, for messages.
-
-    Returns:
-        The graph (legacy documents converted, with a warning).
-
-    Raises:
-        GraphDefinitionError: If the text is not JSON or not a valid graph.
-    """
-    with collector_paused():
-        raw = decode_json(text, file=file, error=GraphDefinitionError)
-        return graph_from_document(raw, file=file)
-
-
-def load_graph(path: str | Path) -> UmrfGraph:
-    """Read a graph file; legacy (pre-2023) documents are converted with a warning.
-
-    Args:
-        path: The file.
-
-    Returns:
-        The graph.
-
-    Raises:
-        GraphDefinitionError: If the file cannot be read, is not JSON, or is not a valid graph.
-    """
-    with collector_paused():
-        return graph_from_document(load_json(path, GraphDefinitionError), file=str(path))
-
-
-def graph_from_document(raw: object, *, file: str | None = None) -> UmrfGraph:
-    """Parse a decoded graph document of either format.
-
-    Args:
-        raw: The decoded JSON document.
-        file: Where it came from, for messages.
-
-    Returns:
-        The graph (legacy documents converted, with a warning).
-
-    Raises:
-        GraphDefinitionError: If it is not a valid graph.
-    """
-    from temoto.core import legacy  # only needed for old documents
-
-    if legacy.is_legacy_graph(raw):
-        return legacy.convert_graph(raw, file=file)
-    return parse_graph(raw, file=file)
-
-
-def graph_to_dict(graph: UmrfGraph, actions: list[dict[str, Any]] | None = None) -> dict[str, Any]:
-    """Serialise a graph in upstream's canonical form.
-
-    ``graph_state`` only if set and not UNINITIALIZED; ``graph_entry`` and ``graph_exit``
-    always (exit entries carry ``conditions`` only when some were written, which upstream
-    drops); ``actions`` sorted by full name.
-
-    Args:
-        graph: The graph.
-        actions: Pre-serialised actions (feedback snapshots with run-time states); default
-            is the graph's own actions.
-
-    Returns:
-        A JSON-ready dict that :func:`parse_graph` reads back to a graph with the same
-        meaning (actions sorted by full name, every condition written out).
-
-    Raises:
-        Nothing.
-    """
-    out: dict[str, Any] = {"graph_name": graph.name, "graph_description": graph.description}
-    if graph.state is not GraphState.UNINITIALIZED:
-        out["graph_state"] = graph.state.value
-    out["graph_entry"] = [{"name": r.name, "instance_id": r.instance_id} for r in graph.entry]
-    out["graph_exit"] = [dump_parent(r, conditions=bool(r.conditions)) for r in graph.exit]
-    if actions is None:
-        actions = [dump_umrf(a) for a in sorted(graph.actions, key=lambda a: a.full_name)]
-    out["actions"] = actions
-    return out
-
-
-def dump_graph(graph: UmrfGraph, *, indent: int | None = 2) -> str:
-    """Serialise a graph to JSON text (canonical form).
-
-    Args:
-        graph: The graph.
-        indent: JSON indentation, or None for one line.
-
-    Returns:
-        JSON text.
-
-    Raises:
-        Nothing.
-    """
-    return json.dumps(graph_to_dict(graph), indent=indent, ensure_ascii=False)

@@ -54,8 +54,7 @@ from dataclasses import dataclass, field
 from typing import Any, Final
 
 from temoto.core.graph import UmrfGraph, parse_graph
-from temoto.core.params import MAX_TREE_DEPTH
-from temoto.core.params import _kind as kind_of
+from temoto.core.params import MAX_TREE_DEPTH, kind_of
 from temoto.core.states import GraphState, NodeState
 from temoto.core.umrf import UmrfReader
 from temoto.errors import ConfigError, GraphDefinitionError, UmrfError

@@ -26,6 +26,7 @@ __all__ = [
     "ParameterSet",
     "check_value",
     "dump_parameter_tree",
+    "kind_of",
     "parse_parameter_tree",
     "values_equal",
 ]
@@ -204,7 +205,7 @@ class _TreeParser:
         self, raw: object, path: str, prefix: str, depth: int, out: dict[str, Parameter]
     ) -> None:
         if not isinstance(raw, dict):
-            raise self.fail(path, f"expected an object of parameters, got {_kind(raw)}")
+            raise self.fail(path, f"expected an object of parameters, got {kind_of(raw)}")
         if depth > MAX_TREE_DEPTH:
             raise self.fail(path, f"parameter namespaces nested deeper than {MAX_TREE_DEPTH}")
         for key, member in raw.items():
@@ -223,7 +224,7 @@ class _TreeParser:
         pvf_type = raw["pvf_type"]
         if not isinstance(pvf_type, str) or not pvf_type:
             raise self.fail(
-                f"{path}.pvf_type", f"expected a non-empty string, got {_kind(pvf_type)}"
+                f"{path}.pvf_type", f"expected a non-empty string, got {kind_of(pvf_type)}"
             )
         value: Any = NO_VALUE
         if "pvf_value" in raw:
@@ -235,7 +236,7 @@ class _TreeParser:
             items = raw["pvf_allowed_values"]
             apath = f"{path}.pvf_allowed_values"
             if not isinstance(items, list):
-                raise self.fail(apath, f"expected an array, got {_kind(items)}")
+                raise self.fail(apath, f"expected an array, got {kind_of(items)}")
             if pvf_type in NATIVE_TYPES:
                 elem_type = pvf_type if pvf_type in ("string", "number", "bool") else pvf_type[:-1]
                 allowed = tuple(
@@ -256,12 +257,12 @@ class _TreeParser:
         try:
             return check_value(pvf_type, raw)
         except TypeError as err:
-            raise self.fail(path, f"{err} for type '{pvf_type}', got {_kind(raw)}") from None
+            raise self.fail(path, f"{err} for type '{pvf_type}', got {kind_of(raw)}") from None
 
     def flag(self, raw: dict[str, Any], key: str, path: str) -> bool:
         value = raw.get(key, True)
         if not isinstance(value, bool):
-            raise self.fail(f"{path}.{key}", f"expected true or false, got {_kind(value)}")
+            raise self.fail(f"{path}.{key}", f"expected true or false, got {kind_of(value)}")
         return value
 
 
@@ -270,8 +271,21 @@ _LEAF_KEYS = frozenset(
 )
 
 
-def _kind(value: object) -> str:
-    """Describe a JSON value for an error message."""
+def kind_of(value: object) -> str:
+    """Describe a decoded JSON value for an error message ("string 'x'", "an array", ...).
+
+    Shared by every reader of UMRF documents, so their messages name values alike.
+
+    Args:
+        value: Any decoded JSON value.
+
+    Returns:
+        A short description: ``null``, ``true``/``false``, ``string '...'`` (cut at 40
+        characters), ``number 3``, ``NaN``, ``an array``, ``an object``, or the type's name.
+
+    Raises:
+        Nothing.
+    """
     if value is None:
         return "null"
     if isinstance(value, bool):

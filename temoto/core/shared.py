@@ -38,6 +38,7 @@ from collections.abc import Mapping
 from typing import TYPE_CHECKING, Any
 
 from temoto.core._runtime import GraphRun, Node, Plan
+from temoto.core.effects import Effects
 from temoto.core.remote import ActorLink, ActorLostError
 from temoto.core.states import GraphState, Result
 from temoto.errors import ActionError, FleetError
@@ -153,7 +154,7 @@ class SharedRuns:
             reason: Why, in the words every actor reports.
         """
         engine = self._engine
-        fx: list[Any] = []
+        fx = Effects()
         with engine._lock:
             if run.state in (GraphState.RUNNING, GraphState.PAUSED):
                 run.aborted = reason
@@ -174,7 +175,7 @@ class SharedRuns:
     def _peer_ended(self, run: GraphRun, actor: str, result: Result) -> None:
         """Link thread: a peer reached the end of the run; it ends here with its result."""
         engine = self._engine
-        fx: list[Any] = []
+        fx = Effects()
         with engine._lock:
             if run.state in (GraphState.RUNNING, GraphState.PAUSED):
                 logger.info(
@@ -288,7 +289,7 @@ class SharedRuns:
     ) -> None:
         """Link thread: another actor finished the action this node stands for."""
         engine = self._engine
-        fx: list[Any] = []
+        fx = Effects()
         with engine._lock:
             if node.gen != gen or not node.active:
                 return  # stopped meanwhile, or a notification for an earlier run of the node

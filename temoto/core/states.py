@@ -11,6 +11,9 @@ from enum import Enum
 from temoto.errors import StateError
 
 __all__ = [
+    "ACTIVE_NODE_STATES",
+    "BUSY_GRAPH_STATES",
+    "ENDED_GRAPH_STATES",
     "NODE_TRANSITIONS",
     "GraphState",
     "NodeState",
@@ -94,13 +97,28 @@ NODE_TRANSITIONS: dict[NodeState, frozenset[NodeState]] = {
 }
 
 #: States in which a node occupies (or is about to occupy) an executor, or holds a result.
-ACTIVE_NODE_STATES = frozenset({_S.RUNNING, _S.PAUSE_REQUESTED, _S.PAUSED, _S.STOPPING})
+ACTIVE_NODE_STATES: frozenset[NodeState] = frozenset(
+    {_S.RUNNING, _S.PAUSE_REQUESTED, _S.PAUSED, _S.STOPPING}
+)
+
+_G = GraphState
+
+#: States of a graph run that has not ended: a run of the same name cannot start.
+BUSY_GRAPH_STATES: frozenset[GraphState] = frozenset(
+    {_G.RUNNING, _G.PAUSED, _G.STOPPING, _G.CLEARING}
+)
+
+#: States of a graph run that has ended (its result is set; it may be started afresh).
+ENDED_GRAPH_STATES: frozenset[GraphState] = frozenset(
+    {_G.FINISHED, _G.STOPPED, _G.ERROR, _G.HALTED}
+)
 
 
-def check_node_transition(node: str, old: NodeState, new: NodeState) -> None:
+def check_node_transition(graph: str, node: str, old: NodeState, new: NodeState) -> None:
     """Raise if a node may not go from ``old`` to ``new``.
 
     Args:
+        graph: The node's graph run, for the message.
         node: The node's full name, for the message.
         old: The current state.
         new: The requested state.
@@ -109,4 +127,4 @@ def check_node_transition(node: str, old: NodeState, new: NodeState) -> None:
         StateError: If the transition is not in :data:`NODE_TRANSITIONS`.
     """
     if new not in NODE_TRANSITIONS[old]:
-        raise StateError(f"node {node}: illegal state change {old.value} -> {new.value}")
+        raise StateError(f"{graph}/{node}: illegal state change {old.value} -> {new.value}")

@@ -5,23 +5,22 @@ carries relations, literal values and a state; in a ``<snake_name>.umrf.json`` f
 action's module it describes the action's name, type and parameters.
 
 :func:`parse_umrf` is the only code that reads a raw action object; it raises
-:class:`~temoto.errors.ConfigError` subclasses that name the file and the key path.
+:class:`~temoto.errors.ConfigError` subclasses that name the file and the key path. Reading
+files and writing documents is :mod:`temoto.core.documents`' job.
 """
 
 from __future__ import annotations
 
-import json
 from collections.abc import Callable, Mapping
 from dataclasses import dataclass, field
-from pathlib import Path
 from typing import Any, Final
 
-from temoto.core.params import Parameter, dump_parameter_tree, parse_parameter_tree
-from temoto.core.params import _kind as kind_of
+from temoto.core.params import Parameter, kind_of, parse_parameter_tree
 from temoto.core.states import NodeState, Response, Result
 from temoto.errors import ConfigError, UmrfError
 
 __all__ = [
+    "CONDITION_RESULTS",
     "DEFAULT_CONDITIONS",
     "ENTRY_NAME",
     "EXIT_NAME",
@@ -31,9 +30,7 @@ __all__ = [
     "ParentRelation",
     "Remap",
     "Umrf",
-    "dump_umrf",
-    "load_json",
-    "load_umrf",
+    "UmrfReader",
     "parse_umrf",
     "snake_case",
 ]
@@ -53,8 +50,9 @@ EXIT_NAME: Final = "graph_exit"
 #: Instance ids are unsigned 32-bit integers (as upstream).
 MAX_INSTANCE_ID: Final = 2**32 - 1
 
-_CONDITION_RESULTS = (Result.TRUE, Result.FALSE, Result.STOPPED, Result.ERROR)
-_RESULT_NAMES = ", ".join(r.value for r in _CONDITION_RESULTS)
+#: The results a relation's conditions are written for, in upstream's order.
+CONDITION_RESULTS: Final = (Result.TRUE, Result.FALSE, Result.STOPPED, Result.ERROR)
+_RESULT_NAMES = ", ".join(r.value for r in CONDITION_RESULTS)
 _RESPONSE_NAMES = ", ".join(r.value for r in Response)
 
 ErrorFactory = Callable[..., ConfigError]
@@ -592,164 +590,3 @@ def parse_umrf(raw: object, *, file: str | None = None, warnings: list[str] | No
     if warnings is not None:
         warnings.extend(reader.warnings)
     return umrf
-
-
-def _reject_constant(name: str) -> Any:
-    raise ValueError(f"{name} is not valid JSON")
-
-
-def load_json(path: str | Path, error: ErrorFactory = ConfigError) -> Any:
-    """Read and decode a JSON file, turning every failure into a ConfigError.
-
-    Args:
-        path: The file.
-        error: The ConfigError subclass to raise.
-
-    Returns:
-        The decoded document.
-
-    Raises:
-        ConfigError: (the ``error`` subclass) if the file cannot be read or is not JSON.
-    """
-    file = str(path)
-    try:
-        text = Path(path).read_text(encoding="utf-8")
-    except UnicodeDecodeError as err:
-        raise error(f"not UTF-8 text ({err.reason} at byte {err.start})", file=file) from None
-    except OSError as err:
-        raise error(f"cannot read: {err.strerror or err}", file=file) from None
-    return decode_json(text, file=file, error=error)
-
-
-def decode_json(text: str, *, file: str | None = None, error: ErrorFactory = ConfigError) -> Any:
-    """Decode JSON text, turning every failure into a ConfigError.
-
-    Args:
-        text: The JSON text.
-        file: Where it came from, for messages.
-        error: The ConfigError subclass to raise.
-
-    Returns:
-        The decoded document.
-
-    Raises:
-        ConfigError: (the ``error`` subclass) if the text is not valid JSON.
-    """
-    try:
-        return json.loads(text, parse_constant=_reject_constant)
-    except json.JSONDecodeError as err:
-        raise error(
-            f"invalid JSON at line {err.lineno} column {err.colno}: {err.msg}", file=file
-        ) from None
-    except ValueError as err:
-        raise error(f"invalid JSON: {err}", file=file) from None
-    except RecursionError:
-        raise error("invalid JSON: nested too deeply", file=file) from None
-
-
-def load_umrf(path: str | Path, *, warnings: list[str] | None = None) -> Umrf:
-    """Read an action description file (``<snake_name>.umrf.json``).
-
-    Legacy (pre-2023) descriptions are converted, with a warning that says what changed.
-
-    Args:
-        path: The file.
-        warnings: A list that receives warnings.
-
-    Returns:
-        The description.
-
-    Raises:
-        UmrfError: If the file cannot be read or is invalid.
-    """
-    from temoto.core import legacy  # legacy is only needed for old files
-
-    raw = load_json(path, UmrfError)
-    if legacy.is_legacy_umrf(raw):
-        raw = legacy.convert_umrf(raw, file=str(path), warnings=warnings)
-    return parse_umrf(raw, file=str(path), warnings=warnings)
-
-
-def dump_umrf(action: Umrf, *, with_relations: bool = True) -> dict[str, Any]:
-    """Serialise an action in upstream's canonical form.
-
-    Args:
-        action: The action.
-        with_relations: Emit ``parents``/``children`` (graph nodes) or not (descriptions).
-
-    Returns:
-        A JSON-ready dict.
-
-    Raises:
-        Nothing.
-    """
-    out: dict[str, Any] = {
-        "name": action.name,
-        "instance_id": action.instance_id,
-        "description": action.description,
-        "type": action.type,
-        "state": action.state.value,
-    }
-    if action.actor:
-        out["actor"] = action.actor
-    if action.input_parameters:
-        out["input_parameters"] = dump_parameter_tree(action.input_parameters)
-    if action.output_parameters:
-        out["output_parameters"] = dump_parameter_tree(action.output_parameters)
-    if with_relations:
-        parents = [dump_parent(p) for p in action.parents]
-        if parents:
-            out["parents"] = parents
-        children = [dump_child(c) for c in action.children]
-        if children:
-            out["children"] = children
-    if action.gui_attributes is not None:
-        out["gui_attributes"] = action.gui_attributes
-    if action.runtime_messages:
-        out["runtime"] = {
-            "messages": [
-                {"timestamp": m.timestamp_ms, "message": m.message} for m in action.runtime_messages
-            ]
-        }
-    return out
-
-
-def dump_parent(rel: ParentRelation, *, conditions: bool = True) -> dict[str, Any]:
-    """Serialise a parent relation (all four conditions, in upstream's order).
-
-    Args:
-        rel: The relation.
-        conditions: Whether to emit conditions (``graph_exit`` entries omit them upstream).
-
-    Returns:
-        A JSON-ready dict.
-
-    Raises:
-        Nothing.
-    """
-    out: dict[str, Any] = {
-        "name": rel.name,
-        "instance_id": rel.instance_id,
-        "required": rel.required,
-    }
-    if conditions:
-        out["conditions"] = [f"{r.value} -> {rel.response(r).value}" for r in _CONDITION_RESULTS]
-    return out
-
-
-def dump_child(rel: ChildRelation) -> dict[str, Any]:
-    """Serialise a child relation.
-
-    Args:
-        rel: The relation.
-
-    Returns:
-        A JSON-ready dict.
-
-    Raises:
-        Nothing.
-    """
-    out: dict[str, Any] = {"name": rel.name, "instance_id": rel.instance_id}
-    if rel.remap:
-        out["remap"] = [{"from": r.from_, "to": r.to} for r in rel.remap]
-    return out

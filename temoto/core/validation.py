@@ -40,6 +40,7 @@ import json
 from collections.abc import Collection, Iterable, Mapping
 from dataclasses import dataclass, field
 
+from temoto.core._scc import strongly_connected
 from temoto.core.graph import UmrfGraph
 from temoto.core.params import Parameter
 from temoto.core.states import Response
@@ -496,7 +497,7 @@ class _Checker:
                 if edge.as_parent is not None and edge.as_parent.required:
                     succ[p].append(i)
         in_cycles: set[int] = set()
-        for comp in _strongly_connected(succ):
+        for comp in strongly_connected(succ):
             if len(comp) < 2:
                 continue
             comp.sort()
@@ -606,7 +607,7 @@ class _Checker:
             for b in found:
                 if b in local:
                     succ[local[b]].append(j)
-        comps = _strongly_connected(succ)
+        comps = strongly_connected(succ)
         comp_of = [0] * len(stuck)
         for num, comp in enumerate(comps):
             for j in comp:
@@ -664,62 +665,3 @@ class _Checker:
 
 def _required(edge: _Edge) -> bool:
     return edge.as_parent is not None and edge.as_parent.required
-
-
-def _strongly_connected(succ: list[list[int]]) -> list[list[int]]:
-    """Tarjan's strongly connected components, iterative (no recursion limit).
-
-    Args:
-        succ: Successor lists of nodes ``0..n-1``.
-
-    Returns:
-        The components (each a list of nodes), in reverse topological order.
-
-    Raises:
-        Nothing.
-    """
-    n = len(succ)
-    order = [-1] * n
-    low = [0] * n
-    on_stack = [False] * n
-    stack: list[int] = []
-    comps: list[list[int]] = []
-    counter = 0
-    for root in range(n):
-        if order[root] != -1:
-            continue
-        order[root] = low[root] = counter
-        counter += 1
-        stack.append(root)
-        on_stack[root] = True
-        work = [(root, 0)]
-        while work:
-            v, pos = work[-1]
-            edges = succ[v]
-            if pos < len(edges):
-                work[-1] = (v, pos + 1)
-                w = edges[pos]
-                if order[w] == -1:
-                    order[w] = low[w] = counter
-                    counter += 1
-                    stack.append(w)
-                    on_stack[w] = True
-                    work.append((w, 0))
-                elif on_stack[w] and order[w] < low[v]:
-                    low[v] = order[w]
-                continue
-            work.pop()
-            if work:
-                u = work[-1][0]
-                if low[v] < low[u]:
-                    low[u] = low[v]
-            if low[v] == order[v]:
-                comp: list[int] = []
-                while True:
-                    w = stack.pop()
-                    on_stack[w] = False
-                    comp.append(w)
-                    if w == v:
-                        break
-                comps.append(comp)
-    return comps

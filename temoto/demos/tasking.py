@@ -17,8 +17,8 @@ from typing import Final
 from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.clock import Clock, MonotonicClock, ScaledClock
 from temoto.config import load_profile
+from temoto.core.documents import graph_from_document
 from temoto.core.engine import ActionEngine
-from temoto.core.graph import graph_from_document
 from temoto.core.instrument import Instrument
 from temoto.core.registrar import Registrar
 from temoto.core.states import NodeState, Result

@@ -38,8 +38,9 @@ from dataclasses import dataclass
 from typing import Any, Final
 
 from temoto.clock import Clock, MonotonicClock
+from temoto.core.documents import graph_from_document
 from temoto.core.engine import ActionEngine
-from temoto.core.graph import UmrfGraph, graph_from_document
+from temoto.core.graph import UmrfGraph
 from temoto.core.instrument import Instrument
 from temoto.core.planning import graph_inputs_from_text
 from temoto.core.states import GraphState, NodeState, Result

@@ -376,7 +376,7 @@ def load_recording(path: str | Path, graph: str | Path | None = None) -> Recordi
     Raises:
         ConfigError: The file (or the graph file) cannot be read, or no reader knows it.
     """
-    from temoto.core.graph import graph_to_dict, load_graph
+    from temoto.core.documents import graph_to_dict, load_graph
 
     file = Path(path)
     suffix = file.suffix.lower()

@@ -105,7 +105,7 @@ def graph_picture(
     """The drawing of a graph in UMRF JSON form (a run's snapshot, or a graph file's dict).
 
     Args:
-        snapshot: The graph as :func:`~temoto.core.graph.graph_to_dict` writes it (with
+        snapshot: The graph as :func:`~temoto.core.documents.graph_to_dict` writes it (with
             run-time states and logs when it is a run's snapshot).
         held: Resources held, by node name.
         timeline: The run's timeline: each node's result is its newest span's.

@@ -18,7 +18,7 @@ from temoto import Action, ActionCatalog, ActionEngine, Result, ScaledClock, par
 from temoto.clock import Clock, MonotonicClock
 from temoto.core.action import LOG_LENGTH, Inputs, Outputs, RunControl
 from temoto.core.params import Parameter
-from temoto.errors import StopRequested
+from temoto.errors import ActionError, StopRequested
 
 WAIT = 10.0
 
@@ -36,13 +36,7 @@ def bound(
     """An action bound like the engine binds one, and its control."""
     control = RunControl(clock or MonotonicClock())
     action = Probe()
-    action._bind(
-        control=control,
-        name="Probe_0",
-        graph="g",
-        inputs=inputs or {},
-        outputs=outputs or {},
-    )
+    action.initialize(control, "Probe_0", "g", inputs or {}, outputs or {})
     return action, control
 
 
@@ -397,7 +391,7 @@ def test_log_keeps_ten_newest_first() -> None:
     action, _ = bound()
     for i in range(15):
         action.log(f"m{i}")
-    snap = action._log_snapshot()
+    snap = action.log_snapshot()
     assert LOG_LENGTH == 10
     assert [m.message for m in snap] == [f"m{i}" for i in range(14, 4, -1)]
     stamps = [m.timestamp_ms for m in snap]
@@ -409,7 +403,7 @@ def test_log_keeps_ten_newest_first() -> None:
 def test_log_converts_to_text() -> None:
     action, _ = bound()
     action.log(42)  # type: ignore[arg-type]
-    assert action._log_snapshot()[0].message == "42"
+    assert action.log_snapshot()[0].message == "42"
 
 
 def test_unbound_action_helpers_raise_clearly() -> None:
@@ -420,13 +414,86 @@ def test_unbound_action_helpers_raise_clearly() -> None:
     with pytest.raises(RuntimeError, match="not bound"):
         _ = action.stop_requested
     action.log("no engine")  # logging works without an engine (timestamp 0)
-    assert action._log_snapshot()[0].timestamp_ms == 0
+    assert action.log_snapshot()[0].timestamp_ms == 0
 
 
 def test_bound_names() -> None:
     action, _ = bound()
     assert action.name == "Probe_0"
     assert action.graph_name == "g"
+
+
+# ================================================================ one run (Action.run_once)
+
+
+class Scripted(Action):
+    """Returns (or raises) what the test sets, after writing an output and reading an input."""
+
+    outcome: Any = True
+
+    def on_run(self) -> bool:
+        self.outputs["echo"] = self.inputs.get_string("text")
+        if isinstance(self.outcome, BaseException):
+            raise self.outcome
+        return self.outcome  # type: ignore[no-any-return]
+
+
+def _scripted(outcome: Any) -> Scripted:
+    action = Scripted()
+    action.outcome = outcome
+    action.initialize(
+        RunControl(MonotonicClock()),
+        "Scripted_3",
+        "g",
+        {"text": Parameter("text", "string")},
+        {"echo": Parameter("echo", "string")},
+    )
+    return action
+
+
+@pytest.mark.parametrize(("outcome", "result"), [(True, Result.TRUE), (False, Result.FALSE)])
+def test_run_once_maps_the_return_value(outcome: bool, result: Result) -> None:
+    values = {"text": "hi"}
+    assert _scripted(outcome).run_once(values) == (result, {"echo": "hi"}, None)
+
+
+def test_run_once_a_stop_is_the_stopped_result_without_error() -> None:
+    result, outputs, error = _scripted(StopRequested("Scripted_3")).run_once({"text": "a"})
+    assert (result, outputs, error) == (Result.STOPPED, {"echo": "a"}, None)
+
+
+@pytest.mark.parametrize(
+    ("outcome", "message"),
+    [
+        (ValueError("bad input"), "Scripted_3 failed: bad input"),
+        (1, "Scripted_3 failed: on_run() must return True or False, not int"),
+        (None, "Scripted_3 failed: on_run() must return True or False, not NoneType"),
+    ],
+)
+def test_run_once_an_exception_or_a_non_bool_is_an_error_naming_the_node(
+    outcome: Any, message: str
+) -> None:
+    result, outputs, error = _scripted(outcome).run_once({"text": "x"})
+    assert result is Result.ERROR
+    assert outputs == {"echo": "x"}  # what was written before the failure is kept
+    assert isinstance(error, ActionError)
+    assert str(error).endswith(message)
+    assert (error.graph, error.node) == ("g", "Scripted_3")
+    assert type(error.__cause__) is (ValueError if isinstance(outcome, Exception) else TypeError)
+
+
+def test_run_once_without_outputs_gives_the_shared_empty_values() -> None:
+    action, _ = bound()
+    first = action.run_once({})
+    second = action.run_once({})
+    assert first == (Result.TRUE, {}, None)
+    assert first[1] is second[1]  # no dict made per run
+
+
+def test_holds_resources_and_release_resources_without_a_registrar() -> None:
+    action, _ = bound()
+    assert not action.holds_resources
+    assert action.release_resources() == 0
 
 
 # ================================================================ the helpers inside an engine

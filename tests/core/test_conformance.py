@@ -19,7 +19,7 @@ from typing import Any
 import pytest
 
 from temoto import ActionEngine, GraphState, Result, ScaledClock, load_graph, parse_graph
-from temoto.core.graph import graph_to_dict
+from temoto.core.documents import graph_to_dict
 from temoto.core.instrument import RecordingInstrument
 from temoto.errors import ActionNotFoundError, GraphDefinitionError, GraphInputError
 

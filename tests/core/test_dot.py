@@ -13,8 +13,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from temoto.core import dot as dot_module
+from temoto.core.documents import load_graph
 from temoto.core.dot import STATE_COLORS, graph_to_dot, quote, render
-from temoto.core.graph import load_graph, parse_graph
+from temoto.core.graph import parse_graph
 
 SHARED = Path(__file__).resolve().parents[2].parent / "shared"
 UPSTREAM = SHARED / "conformance" / "umrf" / "upstream"

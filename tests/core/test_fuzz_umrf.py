@@ -24,11 +24,12 @@ import pytest
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
+from temoto.core.documents import dump_umrf, graph_to_dict, load_umrf, parse_graph_text
 from temoto.core.dot import graph_to_dot
-from temoto.core.graph import UmrfGraph, graph_to_dict, parse_graph, parse_graph_text
+from temoto.core.graph import UmrfGraph, parse_graph
 from temoto.core.params import Parameter
 from temoto.core.states import NodeState, Result
-from temoto.core.umrf import Umrf, dump_umrf, load_umrf, parse_umrf
+from temoto.core.umrf import Umrf, parse_umrf
 from temoto.core.validation import validate_graph
 from temoto.errors import ConfigError, GraphDefinitionError
 

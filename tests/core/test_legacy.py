@@ -12,9 +12,10 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from temoto.core import legacy
-from temoto.core.graph import UmrfGraph, graph_to_dict, load_graph, parse_graph
+from temoto.core.documents import graph_to_dict, load_graph, load_umrf
+from temoto.core.graph import UmrfGraph, parse_graph
 from temoto.core.states import GraphState, NodeState, Response, Result
-from temoto.core.umrf import load_umrf, parse_umrf
+from temoto.core.umrf import parse_umrf
 from temoto.errors import GraphDefinitionError, UmrfError
 
 UPSTREAM = Path(

@@ -5,8 +5,8 @@ from __future__ import annotations
 from pathlib import Path
 
 from temoto.core.catalog import ActionCatalog
+from temoto.core.documents import load_graph
 from temoto.core.engine import ActionEngine
-from temoto.core.graph import load_graph
 from temoto.core.instrument import Instrument
 from temoto.core.states import NodeState, Result
 

@@ -12,7 +12,8 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from temoto.core.graph import UmrfGraph, load_graph, parse_graph
+from temoto.core.documents import load_graph
+from temoto.core.graph import UmrfGraph, parse_graph
 from temoto.core.params import Parameter
 from temoto.core.validation import Issue, ValidationReport, validate_graph
 from temoto.errors import GraphDefinitionError

@@ -24,7 +24,7 @@ from _demo import Demo, demo_engine, demo_graph
 
 from temoto import Result
 from temoto.cli import main
-from temoto.core.graph import dump_graph
+from temoto.core.documents import dump_graph
 from temoto.errors import ConfigError
 from temoto.testing.robots import FakeRobot
 from temoto.web import LiveView

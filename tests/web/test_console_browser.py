@@ -27,7 +27,7 @@ from test_console import record_rover
 from test_live_view_browser import require_chromium
 
 from temoto import Result
-from temoto.core.graph import dump_graph
+from temoto.core.documents import dump_graph
 from temoto.core.instrument import TraceInstrument
 from temoto.web import LiveView
 from temoto.web.replay import ReplayView, load_recording

@@ -17,6 +17,12 @@ Attributes:
     Evolution: The evolution kernel (:mod:`temoto.core._fast._evolution_py`).
     RefBook: The registrar's reference-count and dependency book
         (:mod:`temoto.core._fast._refbook_py`).
+    R_TRUE, R_FALSE, R_STOPPED, R_ERROR: The evolution kernel's result codes.
+    P_RUN, P_PAUSE, P_RESTART, P_STOP, P_BYPASS, P_IGNORE, P_LOOP: Its response codes.
+    SHIFT: A wave step is ``edge << SHIFT | response << 1 | ready``.
+
+The codes are plain integers, defined once in ``_evolution_py.py`` and read from the kernel
+module in use (the compiled one keeps them as module attributes).
 """
 
 from __future__ import annotations
@@ -27,7 +33,25 @@ import os
 import platform
 from typing import TYPE_CHECKING
 
-__all__ = ["BUILD", "COMPILED", "Evolution", "RefBook", "kernels"]
+__all__ = [
+    "BUILD",
+    "COMPILED",
+    "P_BYPASS",
+    "P_IGNORE",
+    "P_LOOP",
+    "P_PAUSE",
+    "P_RESTART",
+    "P_RUN",
+    "P_STOP",
+    "R_ERROR",
+    "R_FALSE",
+    "R_STOPPED",
+    "R_TRUE",
+    "SHIFT",
+    "Evolution",
+    "RefBook",
+    "kernels",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -62,22 +86,52 @@ def _load_compiled() -> tuple[object, ...] | None:
 
 
 if TYPE_CHECKING:
-    from temoto.core._fast._evolution_py import Evolution
+    from temoto.core._fast._evolution_py import (
+        P_BYPASS,
+        P_IGNORE,
+        P_LOOP,
+        P_PAUSE,
+        P_RESTART,
+        P_RUN,
+        P_STOP,
+        R_ERROR,
+        R_FALSE,
+        R_STOPPED,
+        R_TRUE,
+        SHIFT,
+        Evolution,
+    )
     from temoto.core._fast._refbook_py import RefBook
 
     COMPILED = False
 else:
     _compiled = _load_compiled()
     if _compiled is None:
-        from temoto.core._fast._evolution_py import Evolution
+        from temoto.core._fast import _evolution_py as _evolution
         from temoto.core._fast._refbook_py import RefBook
 
         COMPILED = False
     else:
-        Evolution = _compiled[0].Evolution
+        _evolution = _compiled[0]
         RefBook = _compiled[1].RefBook
         COMPILED = True
-    del _compiled
+    Evolution = _evolution.Evolution
+    # the kernel's codes, from the module in use (one definition: _evolution_py.py)
+    R_TRUE, R_FALSE, R_STOPPED, R_ERROR = (
+        _evolution.R_TRUE,
+        _evolution.R_FALSE,
+        _evolution.R_STOPPED,
+        _evolution.R_ERROR,
+    )
+    P_RUN, P_PAUSE, P_RESTART, P_STOP = (
+        _evolution.P_RUN,
+        _evolution.P_PAUSE,
+        _evolution.P_RESTART,
+        _evolution.P_STOP,
+    )
+    P_BYPASS, P_IGNORE, P_LOOP = _evolution.P_BYPASS, _evolution.P_IGNORE, _evolution.P_LOOP
+    SHIFT = _evolution.SHIFT
+    del _compiled, _evolution
 
 BUILD = "compiled" if COMPILED else "pure"
 

@@ -56,7 +56,7 @@ from temoto._progress import ActionLogHandler, Progress
 from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.clock import MonotonicClock
 from temoto.config import load_profile
-from temoto.core.graph import load_graph
+from temoto.core.documents import load_graph
 from temoto.core.states import NodeState, Result
 from temoto.drivers import make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError

@@ -1,0 +1,439 @@
+"""Dispatch: carrying out the engine's effects, and the workers that run actions.
+
+One layer of the engine (see :mod:`temoto.core.engine`): :class:`EffectDispatcher` takes the
+effects evolution (:mod:`temoto.core.evolution`) produced under the lock and carries them
+out with the lock released. Ready actions go to the :class:`~temoto.core.executor.WorkerPool`
+as one batch; a worker runs an action (:meth:`Action.run_once
+<temoto.core.action.Action.run_once>`), takes the lock once to apply the results of its round
+(evolution), and goes on itself with what became ready: every inline action, or else the first
+blocking one, so a chain continues on one thread without a hand-off. Hooks (``on_stop``,
+``on_pause``, ``on_resume``), resource releases and the end of spontaneous actions run on
+workers too; calls to the actor link are made in the dispatching thread.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any
+
+from temoto.core._runtime import Node, NodeKind
+from temoto.core.action import Action
+from temoto.core.effects import Effect, EffectKind, Effects, Run
+from temoto.core.evolution import RunEvolution
+from temoto.core.executor import WorkerPool
+from temoto.core.registrar.registry import Registrar
+from temoto.core.states import ACTIVE_NODE_STATES, GraphState, NodeState, Result
+from temoto.core.values import NO_VALUES
+from temoto.errors import ActionError
+
+__all__ = ["EffectDispatcher"]
+
+logger = logging.getLogger("temoto.core.engine")  # the engine's log lines keep their logger
+
+_N_ERROR = NodeState.ERROR
+_N_FINISHED = NodeState.FINISHED
+_N_PAUSE_REQUESTED = NodeState.PAUSE_REQUESTED
+_N_PAUSED = NodeState.PAUSED
+_N_RUNNING = NodeState.RUNNING
+_N_STOPPING = NodeState.STOPPING
+_G_PAUSED = GraphState.PAUSED
+_G_RUNNING = GraphState.RUNNING
+_R_ERROR = Result.ERROR
+_R_STOPPED = Result.STOPPED
+_K_EXIT = NodeKind.EXIT
+_E_HOOK = EffectKind.HOOK
+_E_FINISH_SPONTANEOUS = EffectKind.FINISH_SPONTANEOUS
+_E_RELEASE = EffectKind.RELEASE
+_E_CALL = EffectKind.CALL
+_ACTIVE = ACTIVE_NODE_STATES
+
+# a run prepared under the lock: (node, gen, its instance or None, input values)
+_Todo = tuple[Node, int, Action | None, dict[str, Any]]
+# a run's end, applied under the lock: (node, gen, instance, result, outputs, error)
+_Done = tuple[Node, int, Action | None, Result, dict[str, Any], BaseException | None]
+
+
+class EffectDispatcher(RunEvolution):
+    """Carries out effects (lock released) and runs actions on the engine's workers.
+
+    A layer of :class:`~temoto.core.engine.ActionEngine`, which makes the state in its
+    ``__init__``.
+    """
+
+    # made by ActionEngine.__init__
+    registrar: Registrar | None
+    _pool: WorkerPool
+
+    def _dispatch(self, fx: Effects, *, closing: bool = False) -> None:
+        """Carry out effects (lock released): calls here, actions and hooks on workers.
+
+        Ready actions leave as one batch: the inline ones together as one worker job that runs
+        them back to back (:meth:`_run_batch`), each blocking one as a job of its own, all
+        handed to the pool under one lock of its own (:meth:`WorkerPool.submit_many`).
+        """
+        other = fx.other
+        if self._releases:
+            with self._lock:
+                other = [*other, *self._releases]
+                self._releases.clear()
+        for effect in other:
+            if effect.kind is _E_CALL:
+                try:
+                    assert effect.call is not None
+                    effect.call(*effect.args)
+                except Exception:
+                    logger.exception("call to the actor link failed: %r", effect.call)
+                continue
+            try:
+                self._submit(effect)
+            except RuntimeError:
+                if not (closing or self._closed):  # shut down since the caller looked
+                    raise
+                self._settle_closed(effect)
+        if not fx.runs:
+            return
+        inline: list[Run] = []
+        jobs: list[tuple[Any, ...]] = []
+        for run in fx.runs:
+            if run[0].inline:
+                inline.append(run)
+            else:
+                jobs.append(([run],))
+        if inline:
+            jobs.insert(0, (inline,))
+        try:
+            self._pool.submit_many(self._run_batch, jobs)
+        except RuntimeError:
+            if not (closing or self._closed):
+                raise
+            for node, gen in fx.runs:
+                self._settle_closed_run(node, gen)
+
+    def _submit(self, effect: Effect) -> None:
+        """Hand a HOOK, RELEASE or FINISH_SPONTANEOUS effect to a worker (RuntimeError: shut)."""
+        kind = effect.kind
+        if kind is _E_RELEASE:
+            assert effect.action is not None
+            self._pool.submit(_release_resources, effect.action)
+            return
+        node = effect.node
+        assert node is not None
+        if kind is _E_HOOK:
+            self._pool.submit(self._call_hook, node, effect.gen, effect.hook)
+        elif kind is _E_FINISH_SPONTANEOUS:
+            assert effect.ending is not None
+            self._pool.submit(self._finish_spontaneous, node, effect.gen, *effect.ending)
+        else:
+            raise ValueError(f"not an effect for a worker: {kind}")
+
+    def _settle_closed(self, effect: Effect) -> None:
+        """The pool is shut down: carry out an effect in this thread."""
+        kind = effect.kind
+        node = effect.node
+        if kind is _E_RELEASE:
+            assert effect.action is not None
+            _release_resources(effect.action)
+            return
+        assert node is not None
+        if kind is _E_HOOK:
+            self._call_hook(node, effect.gen, effect.hook)
+        elif kind is _E_FINISH_SPONTANEOUS:
+            assert effect.ending is not None
+            self._finish_spontaneous(node, effect.gen, *effect.ending)
+
+    def _settle_closed_run(self, node: Node, gen: int) -> None:
+        """The pool is shut down: a run that cannot start ends STOPPED, so no node stays active."""
+        fx = Effects()
+        with self._lock:
+            if node.gen == gen and node.active:
+                self._on_finished(node, gen, _R_STOPPED, {}, None, fx)
+
+    def _run_batch(self, batch: list[tuple[Node, int]]) -> None:
+        """Worker: run actions, evolve, and go on with what became ready, batch by batch.
+
+        Each round runs the prepared actions back to back outside the lock, then takes the
+        lock once to apply every result (evolution) and to prepare the next round: the inline
+        actions that became ready, or, when none did, the first ready blocking action (a chain
+        continues on this thread without a hand-off). Further blocking actions go to other
+        workers. One lock per round, not per action.
+
+        The common end of a run (the current run of a RUNNING node that returned True or
+        False in a RUNNING graph, nobody observing transitions) is applied here directly;
+        it does what :meth:`_settle` and :meth:`_on_finished` do for that case.
+        """
+        lock = self._lock
+        todo: list[_Todo] = []
+        # what evolution decides; after _collect, what this thread leaves to others
+        fx = Effects()
+        runs, other = fx.runs, fx.other  # emptied in place each round
+        # the round's lists are reused: fewer objects for the collector per action
+        done: list[_Done] = []
+        with lock:
+            for node, gen in batch:
+                self._prep(node, gen, todo, fx)
+            self._collect(fx, todo)
+        running = _N_RUNNING
+        graph_running = _G_RUNNING
+        while True:
+            if runs or other or self._releases:  # an ended run's releases may be all there is
+                self._dispatch(fx, closing=self._closed)
+                runs.clear()
+                other.clear()
+            if not todo:
+                return
+            done.clear()
+            for node, gen, instance, values in todo:  # the actions, outside the lock
+                if node.run.peers:
+                    done.append(self._call(node, gen, instance, values))
+                    continue
+                if instance is None:
+                    try:
+                        instance = self._instantiate(node, gen)
+                    except Exception as err:
+                        done.append((node, gen, None, _R_ERROR, NO_VALUES, _init_error(node, err)))
+                        continue
+                result, outputs, error = instance.run_once(values)
+                done.append((node, gen, instance, result, outputs, error))
+            todo.clear()
+            with lock:
+                fast = not self._watchers and not self._feedback_on
+                for item in done:
+                    node, gen, instance, result, outputs, error = item
+                    run = node.run
+                    if not (
+                        fast
+                        and error is None
+                        and gen == node.gen
+                        and node.state is running
+                        and run.state is graph_running
+                        and not node.restart
+                        and not node.spontaneous
+                        and node.stop_timer is None
+                        and instance is not None
+                    ):
+                        self._settle(item, fx)
+                        continue
+                    if node.instance is None:
+                        node.instance = instance
+                    if node.log or node.control.logged:  # type: ignore[union-attr]  # set: LOCAL
+                        node.log = instance.log_snapshot()
+                    if len(node.data) != len(node.native):
+                        node.clear_data()
+                    node.last_outputs = outputs
+                    node.state = _N_FINISHED  # RUNNING -> FINISHED, in a RUNNING graph
+                    run.active -= 1
+                    if self._quiet_waiters:
+                        self._quiet.notify_all()
+                    self._propagate(node, result, outputs, fx)
+                    if not run.active:
+                        self._after_change(run, fx)
+                if len(runs) == 1 and not other:  # a chain: _collect's common case
+                    node, gen = runs[0]
+                    if node.inline and gen == node.gen and node.state is running:
+                        data = node.data
+                        todo.append((node, gen, node.instance, dict(data) if data else NO_VALUES))
+                        runs.clear()
+                        continue
+                self._collect(fx, todo)
+
+    def _prep(self, node: Node, gen: int, todo: list[_Todo], fx: Effects) -> None:
+        """Lock held: queue a ready node's run with what it reads, unless it is stale."""
+        if gen != node.gen or node.state not in _ACTIVE:
+            return
+        if node.state is _N_STOPPING:  # stopped before a worker got to it: do not start
+            self._on_finished(node, gen, _R_STOPPED, {}, None, fx)
+            return
+        todo.append((node, gen, node.instance, dict(node.data) if node.data else NO_VALUES))
+
+    def _collect(self, fx: Effects, todo: list[_Todo]) -> None:
+        """Lock held: take the runs this thread goes on with (``todo``); ``fx`` keeps the rest.
+
+        Inline runs are prepared here (a stale or stopped one may add effects, which are
+        collected too); the first blocking run is kept only when no inline run is. What is left
+        in ``fx`` (other blocking runs, every other effect) is for :meth:`_dispatch`.
+        """
+        runs = fx.runs
+        blocking: list[Run] = []
+        i = 0
+        while True:
+            while i < len(runs):
+                run = runs[i]
+                node, gen = run
+                i += 1
+                if not node.inline:
+                    blocking.append(run)
+                elif gen == node.gen and node.state is _N_RUNNING:  # _prep's common case
+                    data = node.data
+                    todo.append((node, gen, node.instance, dict(data) if data else NO_VALUES))
+                else:
+                    self._prep(node, gen, todo, fx)
+            if todo or not blocking:
+                break
+            first, first_gen = blocking.pop(0)
+            self._prep(first, first_gen, todo, fx)
+        runs[:] = blocking
+
+    def _call(self, node: Node, gen: int, instance: Action | None, values: dict[str, Any]) -> _Done:
+        """No lock: one run of an action of a shared run (its instance made first if need be).
+
+        An action of this actor tells the other actors how it ended
+        (:meth:`SharedRuns.notify <temoto.core.shared.SharedRuns.notify>`).
+        """
+        if instance is None:
+            try:
+                instance = self._instantiate(node, gen)
+            except Exception as err:
+                return node, gen, None, _R_ERROR, NO_VALUES, _init_error(node, err)
+        result, outputs, error = instance.run_once(values)
+        if node.run.peers and result is not _R_STOPPED and node.umrf.actor == self.actor:
+            assert self._shared is not None
+            result, error = self._shared.notify(node, result, outputs, error)
+        return node, gen, instance, result, outputs, error
+
+    def _settle(self, done: _Done, fx: Effects) -> None:
+        """Lock held: apply the end of an action run (evolution)."""
+        node, gen, instance, result, outputs, error = done
+        if instance is not None and gen == node.gen:
+            if node.instance is None:  # an inline node's first run (see _instantiate)
+                node.instance = instance
+            node.log = instance.log_snapshot()
+        if (
+            node.spontaneous
+            and gen == node.gen
+            and node.run.state is not _G_PAUSED
+            and not node.restart
+        ):
+            ending = (result, outputs, error)
+            fx.other.append(Effect(_E_FINISH_SPONTANEOUS, node, gen, ending=ending))
+        else:
+            self._on_finished(node, gen, result, outputs, error, fx)
+
+    def _instantiate(self, node: Node, gen: int) -> Action:
+        """No lock: make a node's action instance and initialise it (``on_init``).
+
+        A blocking node's instance is registered at once, so that ``on_stop`` and ``on_pause``
+        reach its first run; an inline node's is registered with its first result
+        (:meth:`_settle`), saving a lock per new node: its run does not wait for hooks.
+        """
+        assert node.cls is not None
+        assert node.control is not None
+        instance = node.cls()
+        instance.initialize(  # positional: one per node and run, on the hot path
+            node.control, node.name, node.run.name, node.inputs, node.outputs, self.registrar
+        )
+        if not node.inline:
+            with self._lock:
+                node.instance = instance
+        return instance
+
+    def _call_hook(self, node: Node, gen: int, hook: str) -> None:
+        with self._lock:
+            # a hook meant for an earlier run (e.g. on_stop before a restart) is dropped
+            instance = node.instance if node.gen == gen else None
+        if instance is not None:
+            try:
+                getattr(instance, hook)()
+            except Exception:
+                logger.exception("%s/%s: %s() raised", node.run.name, node.name, hook)
+        if hook == "on_pause":
+            with self._lock:
+                if node.gen == gen and node.state is _N_PAUSE_REQUESTED:
+                    self._set_state(node, _N_PAUSED)
+
+    def _finish_spontaneous(
+        self,
+        node: Node,
+        gen: int,
+        result: Result,
+        outputs: dict[str, Any],
+        error: BaseException | None,
+    ) -> None:
+        """Worker: stop everything downstream of a spontaneous action, then propagate and re-run."""
+        fx = Effects()
+        with self._lock:
+            downstream = self._downstream(node)
+            for other in downstream:
+                if other.active:
+                    self._stop_node(other, fx)
+        self._dispatch(fx, closing=self._closed)
+        fx = Effects()
+        with self._lock:
+            self._quiet_waiters += 1
+            try:
+                while any(n.active for n in downstream) and not self._closed and node.gen == gen:
+                    self._quiet.wait()
+            finally:
+                self._quiet_waiters -= 1
+            if node.gen != gen:
+                return
+            rerun = node.state is _N_RUNNING and node.run.state is _G_RUNNING and not self._closed
+            self._on_finished(node, gen, result, outputs, error, fx)
+            if rerun and node.state is _N_FINISHED and node.run.state is _G_RUNNING:
+                self._run_node(node, fx)
+                self._after_change(node.run, fx)
+        # the re-run (or the first action that became ready) continues on this worker
+        nxt = fx.runs.pop(0) if fx.runs else None
+        self._dispatch(fx, closing=self._closed)
+        if nxt is not None:
+            self._run_batch([nxt])
+
+    def _downstream(self, start: Node) -> list[Node]:
+        seen = {start.name}
+        out: list[Node] = []
+        todo = [start]
+        while todo:
+            node = todo.pop()
+            for child in node.run.children(node):
+                if child.kind is _K_EXIT or child.name in seen:
+                    continue
+                seen.add(child.name)
+                out.append(child)
+                todo.append(child)
+        return out
+
+    def _stop_expired(self, node: Node, gen: int) -> None:
+        """Timer thread: an action ignored its stop for ``stop_timeout``."""
+        fx = Effects()
+        with self._lock:
+            if node.gen != gen or node.state is not _N_STOPPING:
+                return
+            run = node.run
+            node.gen += 1  # its late return is ignored
+            node.fresh_instance = True
+            node.stop_timer = None
+            error = ActionError(
+                f"{node.name} did not stop within {self.stop_timeout} s; marked ERROR",
+                graph=run.name,
+                node=node.name,
+            )
+            node.error = error
+            run.errors.append(error)
+            run.stop_failed = True
+            logger.error("%s: %s", run.name, error)
+            self._set_state(node, _N_ERROR)
+            if node.restart:
+                node.restart = False
+                if run.state is _G_RUNNING:
+                    self._run_node(node, fx)
+            self._after_change(run, fx)
+        self._dispatch(fx, closing=self._closed)
+
+
+def _init_error(node: Node, err: Exception) -> ActionError:
+    """The error of a node whose action could not be made or initialised (``on_init``)."""
+    error = ActionError(
+        f"{node.name} could not be initialised: {err}", graph=node.run.name, node=node.name
+    )
+    error.__cause__ = err
+    return error
+
+
+def _release_resources(action: Action) -> None:
+    """Worker: release what a node's action acquired (RAII at graph end / node removal)."""
+    try:
+        count = action.release_resources()
+    except Exception:
+        logger.exception("releasing the resources of %s failed", action.name)
+        return
+    if count:
+        logger.debug("released %d resources of %s", count, action.name)
