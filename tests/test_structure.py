@@ -12,9 +12,8 @@ importing anything.
 - **Long modules.** A module of more than :data:`MAX_LINES` lines must say why in its
   docstring, on a line starting with :data:`LONG_MARKER` ("Long because ...").
 
-:data:`KNOWN_CYCLES` and :data:`KNOWN_LARGE` hold the offenders of the day outside
-``temoto/core/`` that are being fixed elsewhere; an entry that is no longer true fails too,
-so the lists only shrink.
+:data:`KNOWN_CYCLES` and :data:`KNOWN_LARGE` may hold offenders being fixed elsewhere (empty
+since issue 19); an entry that is no longer true fails too, so the lists only shrink.
 """
 
 from __future__ import annotations
@@ -35,31 +34,13 @@ LONG_MARKER = "Long because"
 #: Generated code (lcm-gen, ``tools/gen_lcm_types.py``): never edited by hand, so not checked.
 GENERATED = ("temoto.lcm_types",)
 
-#: Import cycles of the day outside ``temoto/core/`` (each a set of modules, with a comment
-#: saying where it is being fixed); the lead trims this when merging. None today.
+#: Import cycles allowed, each a set of modules with a comment saying why and where it is
+#: being fixed. None: keep it so.
 KNOWN_CYCLES: dict[frozenset[str], str] = {}
 
-#: Modules of the day above MAX_LINES without a reason, outside ``temoto/core/`` (except the
-#: registrar, which another part of issue 19 splits); the lead trims this when merging.
-KNOWN_LARGE: dict[str, str] = {
-    "temoto/_cli_fleet.py": "fleet CLI",
-    "temoto/_cli_sim.py": "simulator CLI",
-    "temoto/cli.py": "CLI (issue 19: handlers registered per sub-command)",
-    "temoto/core/registrar/registry.py": "registrar (issue 19: records from one definition)",
-    "temoto/drivers/can_motor/cansimple.py": "CAN simple protocol",
-    "temoto/drivers/can_motor/odrive.py": "ODrive driver",
-    "temoto/drivers/can_motor/sim.py": "CAN motor simulator",
-    "temoto/drivers/dynamixel/driver.py": "Dynamixel driver (issue 19: one profile reader)",
-    "temoto/drivers/dynamixel/sim.py": "Dynamixel simulator",
-    "temoto/drivers/mavlink/driver.py": "MAVLink driver (issue 19: one profile reader)",
-    "temoto/drivers/mavlink/sim.py": "MAVLink simulator",
-    "temoto/fleet/actors.py": "fleet actors (issue 19: one core object, Clock)",
-    "temoto/fleet/resources.py": "fleet resources (issue 19: one core object)",
-    "temoto/managers/component/manager.py": "component manager",
-    "temoto/managers/context/manager.py": "context manager",
-    "temoto/managers/process.py": "process manager",
-    "temoto/web/_page.py": "the live view's page",
-}
+#: Modules above MAX_LINES without a reason, each with a comment saying where it is being
+#: split. None: keep it so.
+KNOWN_LARGE: dict[str, str] = {}
 
 
 def module_name(path: Path, root: Path = ROOT) -> str:

@@ -621,18 +621,18 @@ def test_request_keys_of_a_dataclass_use_its_fields_in_order_of_name() -> None:
 def test_taking_and_dropping_a_shared_resource_forever_does_not_grow_the_journal_forever(
     tmp_path: Any, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    from temoto.core.registrar import _ledger, registry
+    from temoto.core.registrar import _ledger
 
     monkeypatch.setattr(_ledger, "COMPACT_SLACK", 200)
     path = tmp_path / "rr.catalog"
     rr, _, r2 = build(path)
     keep = rr.call("m2", Req("a"), client="keeper")  # holds it: later releases unload nothing
-    for _ in range(3 * registry.COMPACT_CHECK_RELEASES):
+    for _ in range(3 * _ledger.COMPACT_CHECK_RELEASES):
         rr.release(rr.call("m2", Req("a"), client="passer").id)
     journal = rr._ledger.journal
     assert journal is not None
     # 6,144 records were appended; compaction ran at each 1,024th release
-    assert journal.record_count < 2 * registry.COMPACT_CHECK_RELEASES + 200
+    assert journal.record_count < 2 * _ledger.COMPACT_CHECK_RELEASES + 200
     before = accounting(rr)
     rr.close()
     again, _, r2 = build(path, restore=True)

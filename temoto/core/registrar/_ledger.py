@@ -51,6 +51,10 @@ Notices = list[tuple[tuple[StatusCallback, ...], StatusUpdate]]
 
 #: Compact the journal when it holds this many records more than the live state needs.
 COMPACT_SLACK = 20_000
+#: Every this many releases that unload nothing, the journal's length is looked at (as after
+#: every load and unload), so taking and dropping a shared resource forever does not grow it
+#: forever.
+COMPACT_CHECK_RELEASES = 1024
 #: Remember this many released reference ids, to tell a double release from an unknown id.
 RELEASED_MEMORY = 10_000
 
@@ -183,6 +187,7 @@ class Ledger:
         self._released: collections.OrderedDict[str, None] = collections.OrderedDict()
         self._boot = secrets.token_hex(3)
         self._counter = itertools.count(1)
+        self._quiet_releases = 0  # releases that unloaded nothing since the last look
         self._pending: records.ReplayState | None = None  # restored, not yet rebuilt
 
     @classmethod
@@ -516,6 +521,14 @@ class Ledger:
         return reached, notices
 
     # ------------------------------------------------------------------------------ durability
+
+    def quiet_release(self) -> bool:
+        """Count a release that unloaded nothing; True every COMPACT_CHECK_RELEASES-th time."""
+        self._quiet_releases += 1
+        if self._quiet_releases < COMPACT_CHECK_RELEASES:
+            return False
+        self._quiet_releases = 0
+        return True
 
     def may_compact(self) -> bool:
         """Whether the journal is long enough for :meth:`compact_if_due` to look (no lock)."""

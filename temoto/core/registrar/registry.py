@@ -53,11 +53,6 @@ logger = logging.getLogger(__name__)
 
 StatusCallback = Callable[[StatusUpdate], None]
 
-#: Every this many releases that unload nothing, the journal's length is looked at (as after
-#: every load and unload), so taking and dropping a shared resource forever does not grow it
-#: forever.
-COMPACT_CHECK_RELEASES = 1024
-
 
 class LoadContext:
     """What a server's ``on_load`` gets besides the request.
@@ -167,10 +162,6 @@ class Registrar:
         self._tls = threading.local()
         self._closed = False
         self._ledger = Ledger.open(name, catalog, restore, fsync, fsync_interval)
-        # Releases that unloaded nothing since the journal's length was last looked at: a
-        # consumer that takes and drops a shared resource forever would otherwise grow the
-        # journal forever (compaction is otherwise looked at after loads and unloads only).
-        self._quiet_releases = 0
 
     # ================================================================ servers
 
@@ -412,12 +403,9 @@ class Registrar:
                 raise self._closed_error()
             _, entry, last, resumed = self._ledger.unref(reference_id)
             quiet = not (last or resumed)
-            if quiet:
-                self._quiet_releases += 1
-                if self._quiet_releases < COMPACT_CHECK_RELEASES:
-                    return False
-                self._quiet_releases = 0
-            else:
+            if quiet and not self._ledger.quiet_release():
+                return False
+            if not quiet:
                 notices = self._ledger.notices(resumed, Status.OK, "resource returned", entry)
                 deps = self._ledger.dep_ids(entry) if last else []
         if quiet:
