@@ -263,6 +263,28 @@ def _endpoints(url: str, what: str, text: str) -> tuple[str, ...]:
     return items
 
 
+def _open_hint(conf: Any) -> str:
+    """What to check when a session with this configuration could not open."""
+    try:
+        mode = json.loads(conf.get_json("mode"))
+        endpoints = json.loads(conf.get_json("connect/endpoints"))
+    except (ValueError, TypeError, AttributeError):  # a configuration Zenoh took but we cannot read
+        return ""
+    if isinstance(endpoints, dict):  # endpoints per mode of the session
+        endpoints = [e for listed in endpoints.values() for e in listed]
+    hints = []
+    if mode == "client":
+        hints.append("is a router running there? `temoto router` starts one")
+    if any(str(e).startswith(("tls/", "quic/")) for e in endpoints):
+        hints.append(
+            "for TLS, transport/link/tls/root_ca_certificate must be the CA that signed the"
+            " router's certificate, which must name the endpoint's host; for mutual TLS also"
+            " enable_mtls and this robot's connect_certificate and connect_private_key"
+            " (docs/zenoh.md)"
+        )
+    return f" ({'; '.join(hints)})" if hints else ""
+
+
 def _reason(err: BaseException) -> str:
     """A Zenoh error's message without the Rust source location it ends with."""
     return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(err)).strip()
@@ -321,10 +343,9 @@ class ZenohTransport(Transport):
         try:
             self._session: Any = zenoh.open(conf)
         except zenoh.ZError as err:
-            hint = ""
-            if parsed.mode == "client":
-                hint = " (is a router running there? `temoto router` starts one)"
-            raise TransportError(f"Zenoh cannot open {url!r}: {_reason(err)}{hint}") from err
+            raise TransportError(
+                f"Zenoh cannot open {url!r}: {_reason(err)}{_open_hint(conf)}"
+            ) from err
         self._zerror: type[Exception] = zenoh.ZError
         self._ring: Any = zenoh.handlers.RingChannel
         self._cond = threading.Condition()
