@@ -67,6 +67,7 @@ __all__ = [
     "ZenohTransport",
     "ZenohUrl",
     "channel_key",
+    "config_endpoints",
     "import_zenoh",
     "open_router",
     "parse_zenoh_url",
@@ -263,15 +264,41 @@ def _endpoints(url: str, what: str, text: str) -> tuple[str, ...]:
     return items
 
 
+def config_endpoints(path: str, which: str) -> list[str]:
+    """The endpoints a Zenoh configuration file names.
+
+    Args:
+        path: The configuration file.
+        which: ``"listen"`` or ``"connect"``.
+
+    Returns:
+        Its ``<which>/endpoints`` (those of every mode, when given per mode); empty when the
+        file cannot be read or names none.
+    """
+    try:
+        zenoh = import_zenoh()
+    except TransportError:
+        return []
+    try:
+        return _endpoints_of(zenoh.Config.from_file(path), which)
+    except (zenoh.ZError, ValueError, TypeError):
+        return []
+
+
+def _endpoints_of(conf: Any, which: str) -> list[str]:
+    endpoints = json.loads(conf.get_json(f"{which}/endpoints"))
+    if isinstance(endpoints, dict):  # endpoints per mode of the session
+        endpoints = [e for listed in endpoints.values() for e in listed]
+    return [str(e) for e in endpoints or ()]
+
+
 def _open_hint(conf: Any) -> str:
     """What to check when a session with this configuration could not open."""
     try:
         mode = json.loads(conf.get_json("mode"))
-        endpoints = json.loads(conf.get_json("connect/endpoints"))
+        endpoints = _endpoints_of(conf, "connect")
     except (ValueError, TypeError, AttributeError):  # a configuration Zenoh took but we cannot read
         return ""
-    if isinstance(endpoints, dict):  # endpoints per mode of the session
-        endpoints = [e for listed in endpoints.values() for e in listed]
     hints = []
     if mode == "client":
         hints.append("is a router running there? `temoto router` starts one")

@@ -241,7 +241,9 @@ def test_temoto_router_serves_tls_from_its_config_file(site: Site) -> None:
     )
     try:
         assert router.stdout is not None
-        assert f"the endpoints of {conf}" in router.stdout.readline()
+        line = router.stdout.readline()
+        assert f"the endpoints of {conf}" in line
+        assert "--fleet-url zenoh:ROBOT.json5 (a configuration that trusts its certificate" in line
         url = f"zenoh:{site.config('robot-tls.json5', 'robot.json5')}?prefix={prefix()}"
         with ZenohTransport(url) as a, ZenohTransport(url) as b:
             until_heard(a, b, "VIA_TLS")
