@@ -23,7 +23,7 @@ caller's thread), as with LCM. A message thus crosses one thread hand-off in the
 over LCM: a Python callback would be run by zenoh-python on a thread of its own (or, with
 ``indirect=False``, on Zenoh's network thread, waiting there for the GIL: a third of the
 throughput, and Zenoh dropped messages of a flood), and then be handed to ours, which cost about
-0.1 ms a message on loopback (docs/zenoh.md, "Latency").
+0.04 ms a message on loopback (bench/README.md, "Over Zenoh, second part").
 
 The URL (:func:`parse_zenoh_url`)::
 
@@ -469,8 +469,11 @@ class ZenohTransport(Transport):
             if self._stopping:
                 return
             for sample in samples:
-                for sub in self._by_key.get(str(sample.key_expr), ()):
-                    sub._offer(sample.payload.to_bytes(), self._ready)
+                subs = self._by_key.get(str(sample.key_expr))
+                if subs:
+                    data = sample.payload.to_bytes()
+                    for sub in subs:
+                        sub._offer(data, self._ready)
             self._cond.notify_all()  # whoever watches the queues
 
     def _remove(self, sub: ZenohSubscription) -> None:
