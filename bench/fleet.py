@@ -6,9 +6,9 @@ host's interfaces are never touched. Then the same for 3 actors and the flood ov
 each in another private namespace on loopback TCP: every process a client of a ``temoto
 router`` (``*_zenoh``), and Zenoh peers that connect to each other directly (``*_zenoh_peers``,
 like LCM's processes: no hop in the middle); skipped with a note when the zenoh extra is
-missing. Needs root, ``unshare`` and
-``ip``; otherwise the group is skipped with a note. All processes share the host's clock, so
-one-way times are differences of ``time.time()`` taken in different processes.
+missing. Needs root, ``unshare`` and ``ip``; otherwise the group is skipped with a note. All
+processes share the host's clock, so one-way times are differences of ``time.time()`` taken in
+different processes.
 """
 
 from __future__ import annotations
