@@ -41,6 +41,9 @@ DOC = Path(__file__).resolve().parents[2] / "docs" / "zenoh.md"
 DOC_DIR = "/etc/temoto/tls/"  # where the documented configurations keep the certificates
 DOC_HOST = "router.example.org:7447"
 DOC_LISTEN = "tls/0.0.0.0:7447"
+#: Longer than a failed open takes even on a loaded machine (well under a second when idle),
+#: and well short of the test's 60 s limit, so that a hang fails here, saying so.
+HANG_S = 3 * WAIT_S
 
 
 def doc_config(name: str) -> str:
@@ -215,7 +218,7 @@ def test_a_robot_that_does_not_trust_the_router_fails_at_once_saying_what_to_che
     started = time.monotonic()
     with pytest.raises(TransportError) as info:
         ZenohTransport(f"zenoh:{path}")
-    assert time.monotonic() - started < WAIT_S
+    assert time.monotonic() - started < HANG_S
     message = str(info.value)
     assert f"Zenoh cannot open 'zenoh:{path}'" in message
     assert f"tls/{host}:{tls_router.port}" in message
@@ -227,7 +230,7 @@ def test_a_plain_tcp_client_at_a_tls_endpoint_fails_after_its_timeout(tls_router
     started = time.monotonic()
     with pytest.raises(TransportError, match="is a router running there"):
         ZenohTransport(url)
-    assert time.monotonic() - started < WAIT_S
+    assert time.monotonic() - started < HANG_S
 
 
 def test_temoto_router_serves_tls_from_its_config_file(site: Site) -> None:
