@@ -60,7 +60,7 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     ),
     "fleet": (
         "fleet: handshake of 2/3/5 and 20 (full: 10/20/50) actor processes, notification latency,"
-        " throughput; 3 actors and throughput again over Zenoh",
+        " throughput; 3 actors and throughput again over Zenoh (through a router, then peers)",
         fleet.bench_fleet,
     ),
     "process": (

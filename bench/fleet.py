@@ -2,11 +2,13 @@
 
 Every actor is a separate process with its own LCM transport on ``udpm://`` (ttl 0), inside a
 private network namespace made by ``unshare -n`` (loopback up, multicast routed to it), so the
-host's interfaces are never touched. Then the same for 3 actors and the flood over Zenoh
-(``*_zenoh``): every process a client of a ``temoto router`` in another private namespace, on
-loopback TCP; skipped with a note when the zenoh extra is missing. Needs root, ``unshare`` and
-``ip``; otherwise the group is skipped with a note. All processes share the host's clock, so
-one-way times are differences of ``time.time()`` taken in different processes.
+host's interfaces are never touched. Then the same for 3 actors and the flood over Zenoh, twice,
+each in another private namespace on loopback TCP: every process a client of a ``temoto
+router`` (``*_zenoh``), and Zenoh peers that connect to each other directly (``*_zenoh_peers``,
+like LCM's processes: no hop in the middle); skipped with a note when the zenoh extra is
+missing. Needs root, ``unshare`` and ``ip``; otherwise the group is skipped with a note. All
+processes share the host's clock, so one-way times are differences of ``time.time()`` taken in
+different processes.
 """
 
 from __future__ import annotations
@@ -25,6 +27,13 @@ from bench.common import Results, median, percentile
 URL = "udpm://239.255.76.67:7667?ttl=0"
 ROUTER = "tcp/127.0.0.1:7447"
 ZENOH_URL = f"zenoh:{ROUTER}"
+# Zenoh peers: process i listens on port 7450 + i; the first waits, the others connect to it
+# and, told of each other by Zenoh's gossip, to each other (the RUNNER gives process i the URL
+# [min(i, 1)] with {port} filled in). Without a listener of its own on loopback a peer is not
+# reachable by the others (the default one, on [::]:0, is not advertised on loopback), and
+# the first one forwards nothing between them.
+PEER = "tcp/127.0.0.1:7450"
+ZENOH_PEER_URLS = [f"zenoh:?listen={PEER}", f"zenoh:{PEER}?mode=peer&listen=tcp/127.0.0.1:{{port}}"]
 KEY = "42" * 32
 
 # One actor process: build the link, say "ready", then per round wait for "go <t>", shake hands,
@@ -81,9 +90,10 @@ for line in sys.stdin:
         done = threading.Event()
         link.expect("bench", run, "Act_0", actors[0],
                     lambda r, o: (got.append(time.time()), done.set()))
+        t_expect = time.time()  # a notification that came before waited for this
         done.wait(10.0)
         out = {"hand": t_hand - t_go, "recv": got[0] if got else None, "sent": sent,
-               "got": got_hs}
+               "got": got_hs, "expect": t_expect}
     # the ring: actor i waits for Ring_{i-1} of actor i-1, then notifies Ring_i to all (as
     # the engine does for a node of a shared graph whose every node is on the next actor)
     if me == 0:
@@ -107,9 +117,11 @@ link.close()
 transport.close()
 """
 
-# Throughput: "send" publishes N sealed messages as fast as it can; "recv" counts them.
+# Throughput: "send" publishes N sealed messages as fast as it can; "recv" counts them. Before
+# that the sender probes until the receiver has heard one (and says "ready"): over Zenoh a
+# subscription reaches the publishers asynchronously, and the first messages were lost.
 FLOOD = r"""
-import sys, threading, time
+import select, sys, threading, time
 from temoto.transport import FleetAuth, FleetLink, key_from_text, open_transport
 role, url, key, n = sys.argv[1], sys.argv[2], sys.argv[3], int(sys.argv[4])
 transport = open_transport(url)
@@ -122,14 +134,22 @@ if role == "recv":
         last[0] = time.time()
         if count[0] >= n: done.set()
     link.listen("BENCH_FLOOD", on, queue_capacity=100000)
+    heard, probes = threading.Event(), [0]
+    def on_probe(msg):
+        probes[0] += 1
+        heard.set()
+    link.listen("BENCH_PROBE", on_probe)
+    heard.wait(60)
     print("ready", flush=True)
     seen = -1
     while not done.wait(0.5) and count[0] != seen:  # ends when all came, or none for 0.5 s
         seen = count[0]
-    print(count[0], first[0], last[0], link.stats.get("accepted", 0), flush=True)
+    print(count[0], first[0], last[0], link.stats.get("accepted", 0) - probes[0], flush=True)
 else:
     payload = b"x" * 200
     print("ready", flush=True)
+    while not select.select([sys.stdin], [], [], 0.01)[0]:
+        link.send("BENCH_PROBE", "bench_t", b"")
     sys.stdin.readline()
     t0 = time.time()
     for i in range(n):
@@ -147,6 +167,9 @@ spec = json.loads(sys.argv[1])
 def start(code, args):
     return subprocess.Popen([sys.executable, "-c", code, *args], stdin=subprocess.PIPE,
                             stdout=subprocess.PIPE, text=True)
+def url(i):  # one URL for all, or [the first process's, the others' with {port}]
+    urls = spec["url"]
+    return urls if isinstance(urls, str) else urls[min(i, 1)].format(port=7450 + i)
 router = None
 if spec.get("router"):  # Zenoh: every process is a client of this router
     router = subprocess.Popen([sys.executable, "-m", "temoto", "router", "--listen",
@@ -156,8 +179,8 @@ if spec.get("router"):  # Zenoh: every process is a client of this router
 result = {}
 for n in spec["sizes"]:
     actors = [f"actor_{i}" for i in range(n)]
-    procs = [start(spec["worker"], [a, json.dumps(actors), spec["url"], spec["key"]])
-             for a in actors]
+    procs = [start(spec["worker"], [a, json.dumps(actors), url(i), spec["key"]])
+             for i, a in enumerate(actors)]
     for p in procs:
         assert p.stdout.readline().strip() == "ready"
     rounds = []
@@ -171,10 +194,10 @@ for n in spec["sizes"]:
     for p in procs:
         p.wait(30)
     result[str(n)] = rounds
-recv = start(spec["flood"], ["recv", spec["url"], spec["key"], str(spec["flood_n"])])
-send = start(spec["flood"], ["send", spec["url"], spec["key"], str(spec["flood_n"])])
-assert recv.stdout.readline().strip() == "ready"
+recv = start(spec["flood"], ["recv", url(0), spec["key"], str(spec["flood_n"])])
+send = start(spec["flood"], ["send", url(1), spec["key"], str(spec["flood_n"])])
 assert send.stdout.readline().strip() == "ready"
+assert recv.stdout.readline().strip() == "ready"
 send.stdin.write("go\n"); send.stdin.flush()
 send_s = float(send.stdout.readline())
 count, first, last, accepted = recv.stdout.readline().split()
@@ -350,6 +373,7 @@ def bench_fleet(quick: bool) -> Results:
         ("<=", 1.0),
     )
     out.add("notify_latency_ms_p99", percentile(latencies, 99), "ms", "p99 of the same")
+    _add_ready_latency(out, data["3"], "", None)
     out.add(
         "notify_acked_ms",
         median(acked),
@@ -378,13 +402,41 @@ def bench_fleet(quick: bool) -> Results:
 
 
 def _bench_zenoh(out: Results, lcm_spec: dict[str, Any], rounds: int) -> None:
-    """The 3-actor handshake, notification latency and flood again, over Zenoh clients."""
+    """The 3-actor handshake, notification latency and flood again, over Zenoh, twice.
+
+    First through a ``temoto router`` (``*_zenoh``: every message crosses it, as between
+    subnets), then between peers connected directly (``*_zenoh_peers``: the same topology as
+    LCM's), each in a namespace of its own.
+    """
     if importlib.util.find_spec("zenoh") is None:
         out.notes.append("the zenoh extra is not installed: *_zenoh skipped")
         return
-    spec = {**lcm_spec, "sizes": [3], "rounds_of": {}, "url": ZENOH_URL, "router": ROUTER}
     # the issue's goal: within 2x of LCM, measured in the same run
     lcm = {m.name: m.value for m in out.metrics}
+    base = {**lcm_spec, "sizes": [3], "rounds_of": {}}
+    _bench_zenoh_run(
+        out,
+        lcm,
+        {**base, "url": ZENOH_URL, "router": ROUTER},
+        "_zenoh",
+        "3 actor processes, each a Zenoh client of a temoto router, loopback TCP, key on",
+        "sender -> router -> receiver",
+    )
+    _bench_zenoh_run(
+        out,
+        lcm,
+        {**base, "url": ZENOH_PEER_URLS},
+        "_zenoh_peers",
+        f"3 actor processes, Zenoh peers, each listening on loopback TCP; they connect to the"
+        f" first one's {PEER} and to each other, key on",
+        "sender -> receiver, no router",
+    )
+
+
+def _bench_zenoh_run(
+    out: Results, lcm: dict[str, float], spec: dict[str, Any], suffix: str, where: str, path: str
+) -> None:
+    """One Zenoh topology: its metrics are named ``<LCM metric><suffix>``."""
 
     def within_2x(name: str, bigger_is_better: bool = False) -> tuple[str, float] | None:
         if name not in lcm:
@@ -394,11 +446,12 @@ def _bench_zenoh(out: Results, lcm_spec: dict[str, Any], rounds: int) -> None:
     data = _run(spec)
     done = [rnd for rnd in data["3"] if all(w["hand"] is not None for w in rnd)]
     if len(done) < len(data["3"]):
-        out.notes.append(f"zenoh, 3 actors: {len(data['3']) - len(done)} handshakes timed out")
-    where = "3 actor processes, each a Zenoh client of a temoto router, loopback TCP, key on"
+        out.notes.append(
+            f"{suffix[1:]}, 3 actors: {len(data['3']) - len(done)} handshakes timed out"
+        )
     if done:
         out.add(
-            "handshake_3_actors_ms_zenoh",
+            f"handshake_3_actors_ms{suffix}",
             median([max(w["hand"] for w in rnd) * 1e3 for rnd in done]),
             "ms",
             f"as handshake_3_actors_ms over Zenoh ({where}); median of {len(done)} rounds",
@@ -407,22 +460,49 @@ def _bench_zenoh(out: Results, lcm_spec: dict[str, Any], rounds: int) -> None:
     latencies = [(w["recv"] - rnd[0]["send"]) * 1e3 for rnd in done for w in rnd[1:] if w["recv"]]
     if latencies:
         out.add(
-            "notify_latency_ms_zenoh",
+            f"notify_latency_ms{suffix}",
             median(latencies),
             "ms",
-            f"as notify_latency_ms over Zenoh ({where}: sender -> router -> receiver);"
-            f" median of {len(latencies)}",
+            f"as notify_latency_ms over Zenoh ({where}: {path}); median of {len(latencies)}",
             within_2x("notify_latency_ms"),
         )
-        out.add("notify_latency_ms_zenoh_p99", percentile(latencies, 99), "ms", "p99")
+        out.add(f"notify_latency_ms{suffix}_p99", percentile(latencies, 99), "ms", "p99")
+        _add_ready_latency(out, done, suffix, within_2x("notify_latency_ready_ms"))
     flood = data["flood"]
     out.add(
-        "fleet_msgs_per_s_zenoh",
+        f"fleet_msgs_per_s{suffix}",
         flood["received"] / max(flood["last"] - flood["first"], 1e-9),
         "1/s",
-        f"as fleet_msgs_per_s over Zenoh (two clients of a temoto router, loopback TCP):"
-        f" received {flood['received']:,} of {flood['sent']:,}, accepted"
-        f" {flood['accepted']:,}; the sender's rate"
-        f" {flood['sent'] / max(flood['send_s'], 1e-9):,.0f}/s",
+        f"as fleet_msgs_per_s over Zenoh ({path}, loopback TCP): received"
+        f" {flood['received']:,} of {flood['sent']:,}, accepted {flood['accepted']:,}; the"
+        f" sender's rate {flood['sent'] / max(flood['send_s'], 1e-9):,.0f}/s",
         within_2x("fleet_msgs_per_s", bigger_is_better=True),
     )
+
+
+def _add_ready_latency(
+    out: Results, rnds: list[list[dict[str, Any]]], suffix: str, goal: tuple[str, float] | None
+) -> None:
+    """``notify_latency_ready_ms<suffix>``: the notifications whose receiver was waiting.
+
+    notify_latency_ms also counts the time a receiver was still ending its own handshake when
+    the notification came (it waits for the receiver's expect()): the actors' handshakes end
+    up to a few ms apart on a loaded machine. This counts only receivers whose expect() was
+    registered before the sender's notify() began.
+    """
+    ready = [
+        (w["recv"] - rnd[0]["send"]) * 1e3
+        for rnd in rnds
+        for w in rnd[1:]
+        if w["recv"] and w["expect"] < rnd[0]["send"]
+    ]
+    total = sum(1 for rnd in rnds for w in rnd[1:] if w["recv"])
+    if ready:
+        out.add(
+            f"notify_latency_ready_ms{suffix}",
+            median(ready),
+            "ms",
+            f"as notify_latency_ms{suffix}, for the {len(ready)} of {total} receivers that were"
+            " waiting (their expect() registered) before notify() began; median",
+            goal,
+        )

@@ -64,6 +64,19 @@ def add_router(sub: Any) -> None:
     )
 
 
+def _join_url(listen: tuple[str, ...], config: str | None) -> str:
+    """What robots pass as --fleet-url to reach a router on these endpoints (or its file's)."""
+    endpoints = list(listen)
+    if not endpoints and config is not None:
+        from temoto.transport.zenoh import config_endpoints
+
+        endpoints = config_endpoints(config, "listen")
+    if any(e.startswith(("tls/", "quic/")) for e in endpoints):
+        return "zenoh:ROBOT.json5 (a configuration that trusts its certificate: docs/zenoh.md)"
+    first = endpoints[0].replace("0.0.0.0", "HOST") if endpoints else "tcp/HOST:PORT"
+    return f"zenoh:{first}"
+
+
 def router_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
     """Run ``temoto router`` until SIGINT or SIGTERM.
 
@@ -92,10 +105,9 @@ def router_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
             raise ConfigError(f"temoto router: {err}") from err
         try:
             where = ", ".join(listen) or f"the endpoints of {args.config}"
-            connect = listen[0].replace("0.0.0.0", "HOST") if listen else "tcp/HOST:PORT"
             stream.write(
                 f"temoto: Zenoh router {session.zid()} listening on {where};"
-                f" robots join with --fleet-url zenoh:{connect}\n"
+                f" robots join with --fleet-url {_join_url(listen, args.config)}\n"
             )
             stream.flush()
             while not signals.stop.wait(_WAIT_S):

@@ -8,18 +8,22 @@ check_channel`'s); the bytes travel unchanged, so the authenticated envelopes of
 :mod:`temoto.transport.auth` and everything above them work as over LCM.
 
 A transport declares **one** Zenoh subscriber, on ``<prefix>/**``, when its first subscription
-is made, and sorts what arrives by key expression. One subscriber because zenoh-python runs
-every subscriber's callback on a thread of its own: with a subscriber per channel, messages of
-one sender on two channels could be handled in another order than sent, which LCM never does.
-(Calling the callbacks on Zenoh's network threads instead keeps the order, but every message
-then waits there for the GIL: a third of the throughput, and Zenoh dropped messages of a
-flood.) The price is LCM's: every member receives every channel under its prefix.
+is made, and sorts what arrives by key expression. One subscriber because Zenoh keeps the order
+of one sender's messages within a subscriber: with a subscriber per channel, messages of one
+sender on two channels could be handled in another order than sent, which LCM never does. The
+price is LCM's: every member receives every channel under its prefix.
 
-The callback only queues the message for each subscription of its channel (bounded when
-``queue_capacity`` is given: the oldest is dropped), and one thread of ours, ``temoto-zenoh``,
-hands the queued messages to the handlers in arrival order: handlers never run on the
-publisher's thread (a ``put`` may call this session's callback on the caller's thread), as
-with LCM.
+The subscriber delivers into a Zenoh ring channel (:data:`RECEIVE_CHANNEL_CAPACITY`), and one
+thread of ours, ``temoto-zenoh``, takes the messages from it (waiting in Zenoh's ``recv``, which
+releases the GIL, as LCM's thread waits in ``handle_timeout``), moves everything that has
+arrived into the queues of the subscriptions of its channel (bounded when ``queue_capacity`` is
+given: the oldest is dropped), and hands them to the handlers in arrival order: handlers never
+run on the publisher's thread (a ``put`` delivers to this session's own subscriber on the
+caller's thread), as with LCM. A message thus crosses one thread hand-off in the receiver, as
+over LCM: a Python callback would be run by zenoh-python on a thread of its own (or, with
+``indirect=False``, on Zenoh's network thread, waiting there for the GIL: a third of the
+throughput, and Zenoh dropped messages of a flood), and then be handed to ours, which cost about
+0.04 ms a message on loopback (bench/README.md, "Over Zenoh, second part").
 
 The URL (:func:`parse_zenoh_url`)::
 
@@ -57,11 +61,13 @@ __all__ = [
     "DEFAULT_PREFIX",
     "DEFAULT_ROUTER_LISTEN",
     "INSTALL_HINT",
+    "RECEIVE_CHANNEL_CAPACITY",
     "ZENOH_SCHEME",
     "ZenohSubscription",
     "ZenohTransport",
     "ZenohUrl",
     "channel_key",
+    "config_endpoints",
     "import_zenoh",
     "open_router",
     "parse_zenoh_url",
@@ -76,6 +82,12 @@ DEFAULT_PREFIX: Final = "temoto"
 #: Seconds a client keeps trying to reach its routers when it opens, unless ``timeout=`` says.
 #: Robots may start before their router, and on a lossy link the first attempt may be lost.
 DEFAULT_CONNECT_TIMEOUT_S: Final = 5.0
+
+#: The most messages that wait in a transport's Zenoh channel while a handler runs; the thread
+#: moves them to the subscriptions' own queues before every handler call. When more arrive
+#: during one handler call the oldest are dropped (by Zenoh, uncounted). Zenoh allocates the
+#: channel as it fills, not up front.
+RECEIVE_CHANNEL_CAPACITY: Final = 65_536
 
 #: What to install for the Zenoh transport and ``temoto router``.
 INSTALL_HINT: Final = "pip install 'temoto[zenoh]' (the eclipse-zenoh package)"
@@ -252,6 +264,54 @@ def _endpoints(url: str, what: str, text: str) -> tuple[str, ...]:
     return items
 
 
+def config_endpoints(path: str, which: str) -> list[str]:
+    """The endpoints a Zenoh configuration file names.
+
+    Args:
+        path: The configuration file.
+        which: ``"listen"`` or ``"connect"``.
+
+    Returns:
+        Its ``<which>/endpoints`` (those of every mode, when given per mode); empty when the
+        file cannot be read or names none.
+    """
+    try:
+        zenoh = import_zenoh()
+    except TransportError:
+        return []
+    try:
+        return _endpoints_of(zenoh.Config.from_file(path), which)
+    except (zenoh.ZError, ValueError, TypeError):
+        return []
+
+
+def _endpoints_of(conf: Any, which: str) -> list[str]:
+    endpoints = json.loads(conf.get_json(f"{which}/endpoints"))
+    if isinstance(endpoints, dict):  # endpoints per mode of the session
+        endpoints = [e for listed in endpoints.values() for e in listed]
+    return [str(e) for e in endpoints or ()]
+
+
+def _open_hint(conf: Any) -> str:
+    """What to check when a session with this configuration could not open."""
+    try:
+        mode = json.loads(conf.get_json("mode"))
+        endpoints = _endpoints_of(conf, "connect")
+    except (ValueError, TypeError, AttributeError):  # a configuration Zenoh took but we cannot read
+        return ""
+    hints = []
+    if mode == "client":
+        hints.append("is a router running there? `temoto router` starts one")
+    if any(str(e).startswith(("tls/", "quic/")) for e in endpoints):
+        hints.append(
+            "for TLS, transport/link/tls/root_ca_certificate must be the CA that signed the"
+            " router's certificate, which must name the endpoint's host; for mutual TLS also"
+            " enable_mtls and this robot's connect_certificate and connect_private_key"
+            " (docs/zenoh.md)"
+        )
+    return f" ({'; '.join(hints)})" if hints else ""
+
+
 def _reason(err: BaseException) -> str:
     """A Zenoh error's message without the Rust source location it ends with."""
     return re.sub(r"\s+at \S+\.rs:\d+\.?", "", str(err)).strip()
@@ -310,16 +370,16 @@ class ZenohTransport(Transport):
         try:
             self._session: Any = zenoh.open(conf)
         except zenoh.ZError as err:
-            hint = ""
-            if parsed.mode == "client":
-                hint = " (is a router running there? `temoto router` starts one)"
-            raise TransportError(f"Zenoh cannot open {url!r}: {_reason(err)}{hint}") from err
+            raise TransportError(
+                f"Zenoh cannot open {url!r}: {_reason(err)}{_open_hint(conf)}"
+            ) from err
         self._zerror: type[Exception] = zenoh.ZError
+        self._ring: Any = zenoh.handlers.RingChannel
         self._cond = threading.Condition()
         # Guarded by _cond: the live subscriptions by key expression, the Zenoh subscriber
         # once declared, and one token per message waiting in a subscription's queue, in
         # arrival order (a full queue drops its oldest message and keeps its token count, as
-        # InProcessTransport does).
+        # InProcessTransport does). Only the thread fills the queues.
         self._by_key: dict[str, list[ZenohSubscription]] = {}
         self._zsub: Any = None
         self._ready: collections.deque[ZenohSubscription] = collections.deque()
@@ -366,11 +426,14 @@ class ZenohTransport(Transport):
             if self._zsub is None:
                 wildcard = f"{self.prefix}/**"
                 try:
-                    self._zsub = self._session.declare_subscriber(wildcard, self._on_sample)
+                    self._zsub = self._session.declare_subscriber(
+                        wildcard, self._ring(RECEIVE_CHANNEL_CAPACITY)
+                    )
                 except self._zerror as err:
                     raise TransportError(
                         f"Zenoh subscribe to {wildcard!r} failed: {_reason(err)}"
                     ) from err
+                self._cond.notify_all()  # the thread starts receiving
             self._by_key.setdefault(key, []).append(sub)
         return sub
 
@@ -380,30 +443,38 @@ class ZenohTransport(Transport):
             subs = [sub for subs in self._by_key.values() for sub in subs]
             self._by_key.clear()
             self._ready.clear()
+            zsub, self._zsub = self._zsub, None
             self._cond.notify_all()
         for sub in subs:
             sub._active = False
             sub._pending.clear()
+        try:
+            if zsub is not None:
+                zsub.undeclare()  # closes its channel: the thread's recv() returns
+        except self._zerror as err:
+            logger.warning("undeclaring the Zenoh subscriber: %s", _reason(err))
         if threading.current_thread() is not self._thread:
             self._thread.join()
         try:
-            self._session.close()  # undeclares every subscriber
+            self._session.close()
         except self._zerror as err:
             # Nothing to recover: the session is gone either way.
             logger.warning("closing the Zenoh session: %s", _reason(err))
 
     # --- internals ----------------------------------------------------------------------------
 
-    def _on_sample(self, sample: Any) -> None:
-        """Queue a message for the subscriptions of its channel (on zenoh-python's thread)."""
-        key = str(sample.key_expr)
-        data = sample.payload.to_bytes()
+    def _take(self, samples: list[Any]) -> None:
+        """Queue messages for the subscriptions of their channels, in arrival order."""
         with self._cond:
             if self._stopping:
                 return
-            for sub in self._by_key.get(key, ()):
-                sub._offer(data, self._ready)
-            self._cond.notify_all()  # the dispatcher, and whoever watches the queues
+            for sample in samples:
+                subs = self._by_key.get(str(sample.key_expr))
+                if subs:
+                    data = sample.payload.to_bytes()
+                    for sub in subs:
+                        sub._offer(data, self._ready)
+            self._cond.notify_all()  # whoever watches the queues
 
     def _remove(self, sub: ZenohSubscription) -> None:
         with self._cond:
@@ -412,20 +483,51 @@ class ZenohTransport(Transport):
                 subs.remove(sub)
                 if not subs:
                     del self._by_key[sub.key]
-            sub._pending.clear()  # its tokens stay in _ready; the dispatcher skips them
+            sub._pending.clear()  # its tokens stay in _ready; the thread skips them
 
     def _run(self) -> None:
-        while True:
-            with self._cond:
-                while not self._ready and not self._stopping:
-                    self._cond.wait()
-                if self._stopping:
-                    return
-                sub = self._ready.popleft()
-                if not sub._pending:
-                    continue
-                data = sub._pending.popleft()
-            self._deliver(sub, sub.channel, data)
+        with self._cond:
+            while self._zsub is None and not self._stopping:
+                self._cond.wait()
+            if self._zsub is None:
+                return
+            channel = self._zsub.handler
+        try:
+            while self._step(channel):
+                pass
+        except self._zerror:
+            if not self._stopping:  # not closed by us: the session ended under us
+                logger.error("the Zenoh subscriber of %r closed; receiving stopped", self.url)
+
+    def _step(self, channel: Any) -> bool:
+        """Take what Zenoh has (waiting for it when nothing is queued), hand one message on.
+
+        Returns:
+            False once the transport is closing.
+
+        Raises:
+            zenoh.ZError: When the channel has closed (the subscriber was undeclared).
+        """
+        with self._cond:
+            idle = not self._ready
+        # waits in Zenoh without the GIL when idle; then everything that has come meets the
+        # queues' bounds before the next handler runs
+        arrived = [channel.recv()] if idle else []
+        while (sample := channel.try_recv()) is not None:
+            arrived.append(sample)
+        if arrived:
+            self._take(arrived)
+        with self._cond:
+            if self._stopping:
+                return False
+            if not self._ready:
+                return True
+            sub = self._ready.popleft()
+            if not sub._pending:
+                return True
+            data = sub._pending.popleft()
+        self._deliver(sub, sub.channel, data)
+        return True
 
 
 #: Where ``temoto router`` listens unless told otherwise: Zenoh's own router port, every address.

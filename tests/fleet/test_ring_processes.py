@@ -12,6 +12,11 @@ With the first handshake format (issue 14) the first node's notification was not
 acknowledged within 5 s (every process was still decoding 50-entry JOINs): the run aborted
 everywhere, so this test ran 40 actors. `python -m bench --only fleet` measures the handshake
 and the ring apart (`handshake_50_actors_ms`, `ring_50_actors_ms`).
+
+Over Zenoh (issue 18) every process is a client of a `temoto router` in the namespace. That run
+took 22, 32 and 79 s here on 2026-11-27 (load averages 7 - 78; the LCM one 24 s at the same
+time), so, past the minute a test of the default run may take on a loaded machine, it runs only
+when ``TEMOTO_TEST_RING_ZENOH=1`` is set, with a limit of its own; ``-k zenoh`` selects it.
 """
 
 from __future__ import annotations
@@ -26,11 +31,11 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _transports import LCM_URL, ROUTER_CODE, ZENOH_URL, needs_zenoh
 
 ROOT = Path(__file__).resolve().parents[2]
 ACTIONS = ROOT / "examples" / "actions" / "conformance"
 KEY = "6b" * 32  # a fixed 32-byte fleet key, hex
-URL = "udpm://239.255.76.67:7667?ttl=0"
 N = 50
 # Every process has started and imported temoto well before this (2 cores, 50 processes).
 HANDSHAKE_S = 120.0
@@ -44,12 +49,17 @@ pytestmark = [
     ),
 ]
 
-# Runs inside the namespace: route multicast to loopback, start one process per actor, report.
-RUNNER = r"""
-import json, os, subprocess, sys
+# Runs inside the namespace: route multicast to loopback, start the router for a Zenoh URL and
+# one process per actor, report.
+RUNNER = (
+    ROUTER_CODE
+    + r"""
+import json, os, subprocess, sys, time
 subprocess.run(["ip", "link", "set", "lo", "up"], check=True)
 subprocess.run(["ip", "route", "replace", "224.0.0.0/4", "dev", "lo"], check=True)
 spec = json.loads(sys.argv[1])
+router = start_router(spec["url"])
+started = time.monotonic()
 procs = [
     subprocess.Popen(
         [sys.executable, "-m", "temoto", "run", spec["graph"], "--actions", spec["actions"],
@@ -66,8 +76,13 @@ for p in procs:
         p.kill()
         stdout, stderr = p.communicate()
     out.append({"code": p.returncode, "stdout": stdout[-1500:], "stderr": stderr[-1500:]})
-print(json.dumps(out))
+took = time.monotonic() - started
+stop_router(router)
+print(json.dumps({"took": took, "results": out}))
 """
+)
+
+RING_ZENOH = os.environ.get("TEMOTO_TEST_RING_ZENOH") == "1"
 
 
 def ring_graph(n: int) -> dict[str, Any]:
@@ -121,7 +136,26 @@ def ring_graph(n: int) -> dict[str, Any]:
     }
 
 
-def test_a_ring_through_50_actor_processes_ends_on_true_everywhere(tmp_path: Path) -> None:
+@pytest.mark.parametrize(
+    "url",
+    [
+        pytest.param(LCM_URL, id="lcm"),
+        pytest.param(
+            ZENOH_URL,
+            id="zenoh",
+            marks=[
+                needs_zenoh,
+                pytest.mark.skipif(
+                    not RING_ZENOH, reason="over a minute: set TEMOTO_TEST_RING_ZENOH=1"
+                ),
+                pytest.mark.timeout(HANDSHAKE_S + 180),
+            ],
+        ),
+    ],
+)
+def test_a_ring_through_50_actor_processes_ends_on_true_everywhere(
+    tmp_path: Path, url: str
+) -> None:
     graph = tmp_path / f"ring_{N}.graph.json"
     graph.write_text(json.dumps(ring_graph(N), indent=2))
     actors = [f"Actor {i}" for i in range(N)]
@@ -129,7 +163,7 @@ def test_a_ring_through_50_actor_processes_ends_on_true_everywhere(tmp_path: Pat
         "actors": actors,
         "graph": str(graph),
         "actions": str(ACTIONS),
-        "url": URL,
+        "url": url,
         "key": KEY,
         "extra": ["--handshake-timeout", str(HANDSHAKE_S), "--timeout", str(HANDSHAKE_S + 60)],
         "timeout": HANDSHAKE_S + 90,
@@ -144,8 +178,9 @@ def test_a_ring_through_50_actor_processes_ends_on_true_everywhere(tmp_path: Pat
         check=False,
     )
     assert proc.returncode == 0, proc.stderr
-    results = json.loads(proc.stdout)
+    report = json.loads(proc.stdout)
+    results, took = report["results"], f"{report['took']:.1f} s after the first spawn"
     failed = [(a, r) for a, r in zip(actors, results, strict=True) if r["code"] != 0]
-    assert not failed, f"{len(failed)} of {N} failed; first: {failed[0]}"
+    assert not failed, f"{len(failed)} of {N} failed ({took}); first: {failed[0]}"
     for actor, res in zip(actors, results, strict=True):
-        assert f"ring_{N}: on_true" in res["stdout"], (actor, res)
+        assert f"ring_{N}: on_true" in res["stdout"], (actor, res, took)

@@ -18,6 +18,7 @@ import pytest
 from temoto.errors import TransportError
 from temoto.testing.inbox import Inbox
 from temoto.transport import FleetAuth, FleetLink, Opened, ZenohTransport, open_transport
+from temoto.transport import zenoh as zenoh_module
 from temoto.transport.zenoh import (
     DEFAULT_PREFIX,
     ZenohSubscription,
@@ -272,14 +273,39 @@ def test_a_full_subscription_queue_drops_its_oldest_messages(
     for i in range(10):
         a.publish("BOUNDED", bytes([i]))
     assert isinstance(sub, ZenohSubscription)
-    with a._cond:  # every message has reached the queue (dropped or waiting)
-        assert a._cond.wait_for(lambda: sub.dropped + len(sub._pending) == 10, WAIT_S)
+    # a's own messages are in its Zenoh channel once publish() returns; the thread moves them
+    # all to the queue (which keeps the last 3) before it calls the next handler
     release.set()
     inbox.wait_for(3)
     a.publish("BOUNDED", b"\xff")
     inbox.wait_for(4)
     assert inbox.data == [b"\x07", b"\x08", b"\x09", b"\xff"]
     assert sub.dropped == 7
+
+
+def test_while_a_handler_runs_zenohs_channel_keeps_the_newest_messages(
+    router: str, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    monkeypatch.setattr(zenoh_module, "RECEIVE_CHANNEL_CAPACITY", 4)
+    with ZenohTransport(router) as a:
+        release, blocked = threading.Event(), threading.Event()
+
+        def stuck(channel: str, data: bytes) -> None:
+            blocked.set()
+            release.wait(WAIT_S)
+
+        a.subscribe("STUCK", stuck)
+        inbox = Inbox()
+        a.subscribe("ALL", inbox)  # no queue_capacity: no bound of its own
+        a.publish("STUCK", b"")
+        assert blocked.wait(WAIT_S)
+        for i in range(10):
+            a.publish("ALL", bytes([i]))
+        release.set()
+        inbox.wait_for(4)
+        a.publish("ALL", b"\xff")
+        inbox.wait_for(5)
+        assert inbox.data == [b"\x06", b"\x07", b"\x08", b"\x09", b"\xff"]
 
 
 def test_close_joins_the_thread_and_refuses_more_work(router: str) -> None:

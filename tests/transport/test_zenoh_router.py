@@ -141,7 +141,9 @@ def test_a_configuration_file_gives_the_router_its_endpoints(tmp_path: Path) -> 
     conf.write_text(f'{{ listen: {{ endpoints: ["{endpoint}"] }} }}\n')
     proc = start_router("--config", str(conf))
     try:
-        assert f"the endpoints of {conf}" in first_line(proc)
+        line = first_line(proc)
+        assert f"the endpoints of {conf}" in line
+        assert f"robots join with --fleet-url zenoh:{endpoint}" in line  # the file's endpoint
         url = f"zenoh:{endpoint}?prefix={prefix()}"
         with ZenohTransport(url) as a, ZenohTransport(url) as b:
             until_routed(a, b)
