@@ -1,0 +1,473 @@
+"""Per-boot sessions of a keyed fleet: hellos, key grants, AEAD envelopes (docs/security.md).
+
+Private to :mod:`temoto.transport.auth`, whose :class:`~temoto.transport.auth.FleetAuth` owns
+one :class:`SecureSession` when it has a fleet key or credentials. Not thread-safe: the caller
+holds a lock. Sans-IO: it never publishes; messages it wants sent (hellos, re-sent backlog)
+are queued and taken with :meth:`SecureSession.take_outgoing`.
+
+Every boot of a member makes an ephemeral X25519 key pair and a random sending key ``G`` with a
+random session id. Its hello (channel :data:`HELLO_CHANNEL`) carries the ephemeral public key
+and, for every peer whose ephemeral key it heard, a *grant*: ``G``, the session id and the
+sender's current sequence number (the *floor*), encrypted under a key derived from the two
+ephemeral keys. A hello is authenticated with the fleet key (HMAC-SHA256) or, with a roster,
+the sender's Ed25519 signature. A receiver opens data of a session only after a grant for its
+own current ephemeral key, and only above the floor: every message sealed before the receiver
+booted has a sequence number at or below the floor of any grant the receiver can read.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import os
+import struct
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Final
+
+from cryptography.exceptions import InvalidTag
+from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey, X25519PublicKey
+from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
+from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+from temoto.lcm_types import envelope_t
+from temoto.transport.identity import Credentials
+
+#: The channel of hellos.
+HELLO_CHANNEL: Final = "TEMOTO_KEYS"
+#: The ``type`` of a hello envelope.
+HELLO_TYPE: Final = "fleet_hello"
+#: The envelope version of keyed fleets.
+SECURE_VERSION: Final = 2
+#: Seconds between two hellos at least (a flood of undecryptable messages costs little).
+HELLO_MIN_S: Final = 0.05
+#: Messages sealed in a member's first seconds are re-sent to a peer met later in that time.
+BACKLOG_S: Final = 2.0
+_BACKLOG_MAX: Final = 256
+_TAG: Final = 16  # Poly1305 tag
+_RECIPIENT: Final = 4  # recipient tag
+_MAC: Final = 16  # per-recipient MAC (roster fleets)
+_HINT: Final = 8  # prefix of the recipient's ephemeral key in a grant
+_GRANT_PLAIN: Final = struct.Struct(">32sQQ")  # G, session id, floor
+_GRANT_SIZE: Final = 12 + _GRANT_PLAIN.size + _TAG
+_WINDOW: Final = 64
+_WINDOW_MASK: Final = (1 << _WINDOW) - 1
+_SALT: Final = b"temoto fleet v2"
+
+
+def _blob(*parts: bytes) -> bytes:
+    """Length-prefixed concatenation: no two tuples of parts give the same bytes."""
+    return b"".join(struct.pack(">I", len(p)) + p for p in parts)
+
+
+def _kdf(key: bytes, label: bytes, size: int = 32) -> bytes:
+    return hashlib.blake2b(label, key=key, digest_size=size).digest()
+
+
+def _s(text: str) -> bytes:
+    return text.encode("utf-8", "surrogatepass")
+
+
+@dataclass(slots=True)
+class _Pair:
+    """The keys this member shares with one boot of a peer (from both ephemeral keys)."""
+
+    e_pub: bytes
+    grant_out: ChaCha20Poly1305  # grants we send to it
+    grant_in: ChaCha20Poly1305  # grants it sends to us
+    mac_out: bytes  # our per-recipient MACs for it (roster fleets)
+    mac_in: bytes  # its MACs for us
+    tag_out: bytes  # it, as a recipient of our messages
+    tag_in: bytes  # we, as a recipient of its messages
+    first_floor: int | None = None  # floor of the first grant we sent it (our session)
+
+
+@dataclass(slots=True)
+class _Peer:
+    current: _Pair | None = None  # proven: it sent us a grant for our current key
+    candidate: _Pair | None = None  # heard in a hello, not yet proven
+    retired: set[bytes] = field(default_factory=set)  # older ephemeral keys of this name
+
+
+@dataclass(slots=True)
+class RxSession:
+    """A peer's sending session we can open: its key and our replay window."""
+
+    sender: str
+    aead: ChaCha20Poly1305
+    pair: _Pair
+    highest: int
+    bitmap: int
+
+
+@dataclass(slots=True)
+class Sealed:
+    """What :meth:`SecureSession.open_data` found (the caller builds ``Opened``)."""
+
+    type: str
+    payload: bytes
+    seq: int
+    session: int
+
+
+class SecureSession:
+    """The keyed part of one member's :class:`~temoto.transport.auth.FleetAuth`.
+
+    Args:
+        fleet: The fleet name.
+        sender: This member's name.
+        key: The shared fleet key (hellos carry its HMAC), or None with ``credentials``.
+        credentials: Identity and roster (hellos are signed; data carries a MAC per recipient).
+        clock: Seconds, for the hello rate limit and the backlog.
+    """
+
+    def __init__(
+        self,
+        fleet: str,
+        sender: str,
+        key: bytes | None,
+        credentials: Credentials | None,
+        clock: Callable[[], float],
+    ) -> None:
+        self.fleet = fleet
+        self.sender = sender
+        self._key = key
+        self.credentials = credentials
+        self._clock = clock
+        self._e = X25519PrivateKey.generate()
+        self.e_pub = self._e.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+        self._peers: dict[str, _Peer] = {}
+        self.rx: dict[tuple[str, int], RxSession] = {}
+        self._outgoing: list[tuple[str, bytes]] = []
+        self._urgent = True  # a hello that moves a handshake on: sent at once
+        self._dirty = False  # a hello that may help: sent at most every HELLO_MIN_S
+        self._want: set[str] = set()  # senders whose session we lack (their data came)
+        self._last_hello: float | None = None
+        self._born = clock()
+        self._backlog: list[tuple[int, str, str, bytes]] | None = []
+        self._rotate()
+
+    @property
+    def roster_mode(self) -> bool:
+        """Whether members have their own keys (per-recipient MACs, signed hellos)."""
+        return self.credentials is not None
+
+    def _rotate(self) -> None:
+        """A new sending key and session id; every peer gets a new grant."""
+        self._g = os.urandom(32)
+        self._aead = ChaCha20Poly1305(self._g)
+        self.session = int.from_bytes(os.urandom(8), "big") >> 1 or 1
+        self.seq = 0
+        for peer in self._peers.values():
+            for pair in (peer.current, peer.candidate):
+                if pair is not None:
+                    pair.first_floor = None
+        self._backlog = None if self._backlog is None else []
+        self._urgent = True
+
+    # --- roster -------------------------------------------------------------------------------
+
+    def forget(self, names: set[str]) -> None:
+        """Drop everything of members removed from the roster and rotate our sending key."""
+        for name in names:
+            self._peers.pop(name, None)
+        for key in [k for k in self.rx if k[0] in names]:
+            del self.rx[key]
+        self._rotate()
+
+    # --- hellos -------------------------------------------------------------------------------
+
+    def want_hello(self) -> None:
+        """Ask for a hello (sent with the next :meth:`take_outgoing` the rate limit allows)."""
+        self._dirty = True
+
+    def take_outgoing(self) -> list[tuple[str, bytes]]:
+        """The (channel, bytes) to publish now: a due hello first, then re-sent messages."""
+        now = self._clock()
+        if self._urgent or (
+            self._dirty
+            and (
+                self._last_hello is None
+                or now - self._last_hello >= HELLO_MIN_S
+                or now < self._last_hello
+            )
+        ):
+            self._urgent = self._dirty = False
+            self._last_hello = now
+            self._outgoing[:0] = [(HELLO_CHANNEL, self._hello(now))]
+        out, self._outgoing = self._outgoing, []
+        return out
+
+    def _pair(self, name: str, e_pub: bytes) -> _Pair:
+        shared = self._e.exchange(X25519PublicKey.from_public_bytes(e_pub))
+        me, it = (_s(self.sender), self.e_pub), (_s(name), e_pub)
+        lo, hi = sorted((me, it))
+        root = hashlib.blake2b(
+            _blob(_SALT, _s(self.fleet), *lo, *hi, shared), digest_size=32
+        ).digest()
+
+        def way(src: tuple[bytes, bytes], dst: tuple[bytes, bytes], what: bytes) -> bytes:
+            return _kdf(root, _blob(what, *src, *dst))
+
+        return _Pair(
+            e_pub=e_pub,
+            grant_out=ChaCha20Poly1305(way(me, it, b"grant")),
+            grant_in=ChaCha20Poly1305(way(it, me, b"grant")),
+            mac_out=way(me, it, b"mac"),
+            mac_in=way(it, me, b"mac"),
+            tag_out=way(me, it, b"tag")[:_RECIPIENT],
+            tag_in=way(it, me, b"tag")[:_RECIPIENT],
+        )
+
+    def _hello(self, now: float) -> bytes:
+        parts = [self.e_pub, struct.pack(">H", 0)]
+        count = 0
+        fresh: list[_Pair] = []
+        for name, peer in sorted(self._peers.items()):
+            for pair in {id(p): p for p in (peer.current, peer.candidate) if p}.values():
+                if pair.first_floor is None:
+                    pair.first_floor = self.seq
+                    fresh.append(pair)
+                nonce = os.urandom(12)
+                plain = _GRANT_PLAIN.pack(self._g, self.session, self.seq)
+                ad = _blob(_s(self.fleet), _s(self.sender), self.e_pub, _s(name), pair.e_pub)
+                grant = nonce + pair.grant_out.encrypt(nonce, plain, ad)
+                parts.append(_blob(_s(name)) + pair.e_pub[:_HINT] + grant)
+                count += 1
+        parts[1] = struct.pack(">H", count)
+        wants = sorted(self._want)
+        parts.append(struct.pack(">H", len(wants)))
+        parts += [_blob(_s(name)) for name in wants]
+        body = b"".join(parts)
+        env = self._envelope(HELLO_TYPE, body, 0)
+        unsigned: bytes = env.encode()
+        proof = self._prove(_s(HELLO_CHANNEL) + b"\0" + unsigned)
+        env.mac_size, env.mac = len(proof), proof
+        hello: bytes = env.encode()
+        self._resend_backlog(fresh, now)
+        return hello
+
+    def _prove(self, data: bytes) -> bytes:
+        if self.credentials is not None:
+            return self.credentials.identity.sign(data)
+        assert self._key is not None
+        return hmac.digest(self._key, data, "sha256")
+
+    def _check_proof(self, sender: str, proof: bytes, data: bytes) -> bool:
+        if self.credentials is not None:
+            return self.credentials.roster.verify(sender, proof, data)
+        assert self._key is not None
+        return hmac.compare_digest(hmac.digest(self._key, data, "sha256"), proof)
+
+    def open_hello(self, env: envelope_t, data: bytes) -> str | None:
+        """Take a hello in; returns a drop reason, or None when it was used."""
+        sender: str = env.sender
+        unsigned = data[: len(data) - 2 - env.mac_size] + b"\0\0"
+        if not self._check_proof(sender, env.mac, _s(HELLO_CHANNEL) + b"\0" + unsigned):
+            return "forged"
+        body: bytes = env.payload
+        try:
+            e_pub, grants, wants = _parse_hello(body)
+        except ValueError:
+            return "garbage"
+        if self.sender in wants:
+            self._urgent = True  # it lacks our grant (lost): give it again
+        peer = self._peers.setdefault(sender, _Peer())
+        if e_pub in peer.retired:
+            return "replayed"
+        pair = next((p for p in (peer.current, peer.candidate) if p and p.e_pub == e_pub), None)
+        if pair is None:
+            try:
+                pair = self._pair(sender, e_pub)
+            except ValueError:
+                return "garbage"
+            peer.candidate = pair
+            self._urgent = True  # it gets a grant from us
+        grant = next((g for h, g in grants.get(self.sender, ()) if h == self.e_pub[:_HINT]), None)
+        if grant is None:
+            self._dirty = True  # it does not know our current key: our hello tells it
+            return None
+        ad = _blob(_s(self.fleet), _s(sender), e_pub, _s(self.sender), self.e_pub)
+        try:
+            plain = pair.grant_in.decrypt(grant[:12], grant[12:], ad)
+        except InvalidTag:
+            return "forged"
+        g, session, floor = _GRANT_PLAIN.unpack(plain)
+        if peer.current is not pair:  # proven fresh: it knows our key of this boot
+            if peer.current is not None:
+                peer.retired.add(peer.current.e_pub)
+            peer.current = pair
+            if peer.candidate is pair:
+                peer.candidate = None
+        self._want.discard(sender)
+        if (sender, session) not in self.rx:
+            # Everything at or below the floor was sealed before this grant: refused.
+            self.rx[sender, session] = RxSession(
+                sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK
+            )
+        return None
+
+    # --- data ---------------------------------------------------------------------------------
+
+    def _envelope(self, type_name: str, payload: bytes, seq: int) -> envelope_t:
+        env = envelope_t()  # type: ignore[no-untyped-call]
+        env.version = SECURE_VERSION
+        env.fleet = self.fleet
+        env.sender = self.sender
+        env.seq = seq
+        env.stamp_us = self.session
+        env.type = type_name
+        env.payload_size = len(payload)
+        env.payload = payload
+        env.mac_size = 0
+        env.mac = b""
+        return env
+
+    def seal(self, channel: str, type_name: str, payload: bytes, only: _Pair | None = None) -> bytes:
+        """Encrypt and authenticate one message for every peer (or ``only`` one)."""
+        self.seq += 1
+        seq = self.seq
+        if self._backlog is not None and only is None:
+            if self._clock() - self._born <= BACKLOG_S and len(self._backlog) < _BACKLOG_MAX:
+                self._backlog.append((seq, channel, type_name, bytes(payload)))
+            else:
+                self._backlog = None
+        if self.roster_mode:
+            pairs = [only] if only is not None else self._recipients()
+            tags = b"".join(p.tag_out for p in pairs)
+        else:
+            pairs, tags = [], (only.tag_out if only is not None else b"")
+        ad = _ad(channel, self.fleet, self.sender, type_name, seq, self.session, tags)
+        sealed = self._aead.encrypt(seq.to_bytes(12, "big"), payload, ad)
+        cipher, tag = sealed[:-_TAG], sealed[-_TAG:]
+        if self.roster_mode:
+            digest = hashlib.blake2b(ad + sealed, digest_size=32).digest()
+            tags = b"".join(
+                p.tag_out + hashlib.blake2b(digest, key=p.mac_out, digest_size=_MAC).digest()
+                for p in pairs
+            )
+        env = self._envelope(type_name, cipher, seq)
+        env.mac_size, env.mac = _TAG + len(tags), tag + tags
+        out: bytes = env.encode()
+        return out
+
+    def _recipients(self) -> list[_Pair]:
+        return [
+            p
+            for peer in self._peers.values()
+            for p in {id(q): q for q in (peer.current, peer.candidate) if q}.values()
+        ]
+
+    def _resend_backlog(self, fresh: list[_Pair], now: float) -> None:
+        """Re-send our first messages to peers that get their first grant now (directed)."""
+        if not fresh or self._backlog is None:
+            return
+        if now - self._born > BACKLOG_S:
+            self._backlog = None
+            return
+        for pair in fresh:
+            floor = pair.first_floor
+            for seq, channel, type_name, payload in list(self._backlog):
+                if floor is not None and seq <= floor:
+                    self._outgoing.append(
+                        (channel, self.seal(channel, type_name, payload, only=pair))
+                    )
+
+    def open_data(self, channel: str, env: envelope_t) -> Sealed | str:
+        """Check and decrypt a data envelope; a :class:`Sealed` or a drop reason."""
+        sender: str = env.sender
+        session: int = env.stamp_us
+        rx = self.rx.get((sender, session))
+        if rx is None:
+            if len(self._want) < 1024:
+                self._want.add(sender)  # our next hello asks it for a grant
+            self._dirty = True
+            return "no_session"
+        mac: bytes = env.mac
+        if len(mac) < _TAG:
+            return "forged"
+        tag, tail = mac[:_TAG], mac[_TAG:]
+        step = _RECIPIENT + (_MAC if self.roster_mode else 0)
+        if len(tail) % step:
+            return "forged"
+        entries = [tail[i : i + step] for i in range(0, len(tail), step)]
+        tags = b"".join(e[:_RECIPIENT] for e in entries)
+        mine = next((e for e in entries if e[:_RECIPIENT] == rx.pair.tag_in), None)
+        if mine is None and (entries or self.roster_mode):
+            return "not_for_us"
+        seq: int = env.seq
+        type_name: str = env.type
+        ad = _ad(channel, self.fleet, sender, type_name, seq, session, tags)
+        sealed = bytes(env.payload) + tag
+        if self.roster_mode:
+            assert mine is not None
+            digest = hashlib.blake2b(ad + sealed, digest_size=32).digest()
+            want = hashlib.blake2b(digest, key=rx.pair.mac_in, digest_size=_MAC).digest()
+            if not hmac.compare_digest(want, mine[_RECIPIENT:]):
+                return "forged"
+        if not 0 < seq < 1 << 63:
+            return "forged"
+        try:
+            plain = rx.aead.decrypt(seq.to_bytes(12, "big"), sealed, ad)
+        except InvalidTag:
+            return "forged"
+        if not _admit(rx, seq):
+            return "replayed"
+        return Sealed(type_name, plain, seq, session)
+
+
+def _ad(channel: str, fleet: str, sender: str, type_name: str, seq: int, session: int, tags: bytes) -> bytes:
+    return _blob(
+        b"temoto-v2", _s(channel), _s(fleet), _s(sender), _s(type_name),
+        struct.pack(">QQ", seq, session), tags,
+    )  # fmt: skip
+
+
+def _parse_hello(body: bytes) -> tuple[bytes, dict[str, list[tuple[bytes, bytes]]], set[str]]:
+    """Ephemeral key, grants (recipient -> [(key hint, grant)]) and wants of a hello body."""
+    if len(body) < 34:
+        raise ValueError("short hello")
+    e_pub, (count,) = body[:32], struct.unpack_from(">H", body, 32)
+    at = 34
+    grants: dict[str, list[tuple[bytes, bytes]]] = {}
+    for _ in range(count):
+        if at + 4 > len(body):
+            raise ValueError("short hello")
+        (size,) = struct.unpack_from(">I", body, at)
+        end = at + 4 + size + _HINT + _GRANT_SIZE
+        if end > len(body):
+            raise ValueError("short hello")
+        name = body[at + 4 : at + 4 + size].decode("utf-8", "surrogatepass")
+        hint = body[at + 4 + size : at + 4 + size + _HINT]
+        grants.setdefault(name, []).append((hint, body[at + 4 + size + _HINT : end]))
+        at = end
+    if at + 2 > len(body):
+        raise ValueError("short hello")
+    (count,) = struct.unpack_from(">H", body, at)
+    at += 2
+    wants = set()
+    for _ in range(count):
+        if at + 4 > len(body):
+            raise ValueError("short hello")
+        (size,) = struct.unpack_from(">I", body, at)
+        if at + 4 + size > len(body):
+            raise ValueError("short hello")
+        wants.add(body[at + 4 : at + 4 + size].decode("utf-8", "surrogatepass"))
+        at += 4 + size
+    if at != len(body):
+        raise ValueError("trailing bytes")
+    return e_pub, grants, wants
+
+
+def _admit(rx: RxSession, seq: int) -> bool:
+    """The IPsec replay window (RFC 4303 §3.4.3); True if ``seq`` is new."""
+    if seq > rx.highest:
+        shift = seq - rx.highest
+        rx.bitmap = ((rx.bitmap << shift) | 1) & _WINDOW_MASK if shift < _WINDOW else 1
+        rx.highest = seq
+        return True
+    behind = rx.highest - seq
+    if behind >= _WINDOW or rx.bitmap >> behind & 1:
+        return False
+    rx.bitmap |= 1 << behind
+    return True
