@@ -21,6 +21,7 @@ import hashlib
 import hmac
 import os
 import struct
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Final
@@ -41,8 +42,10 @@ HELLO_TYPE: Final = "fleet_hello"
 SECURE_VERSION: Final = 2
 #: Seconds between two hellos at least (a flood of undecryptable messages costs little).
 HELLO_MIN_S: Final = 0.05
-#: Messages sealed in a member's first seconds are re-sent to a peer met later in that time.
+#: A peer that received messages of ours it could not open (no grant yet: the hellos were
+#: crossing) names them in its hello; we re-send them to it if they are at most this old.
 BACKLOG_S: Final = 2.0
+_MISSED_MAX: Final = 64
 _BACKLOG_MAX: Final = 256
 _TAG: Final = 16  # Poly1305 tag
 _RECIPIENT: Final = 4  # recipient tag
@@ -141,10 +144,12 @@ class SecureSession:
         self._outgoing: list[tuple[str, bytes]] = []
         self._urgent = True  # a hello that moves a handshake on: sent at once
         self._dirty = False  # a hello that may help: sent at most every HELLO_MIN_S
-        self._want: set[str] = set()  # senders whose session we lack (their data came)
+        # Per (sender, session) we lack: the sequence numbers we got and could not open.
+        self._missed: dict[tuple[str, int], list[int]] = {}
+        self._resend: list[tuple[_Pair, list[int]]] = []  # after the next hello
         self._last_hello: float | None = None
         self._born = clock()
-        self._backlog: list[tuple[int, str, str, bytes]] | None = []
+        self._backlog: deque[tuple[int, float, str, str, bytes]] = deque(maxlen=_BACKLOG_MAX)
         self._rotate()
 
     @property
@@ -162,7 +167,7 @@ class SecureSession:
             for pair in (peer.current, peer.candidate):
                 if pair is not None:
                     pair.first_floor = None
-        self._backlog = None if self._backlog is None else []
+        self._backlog.clear()
         self._urgent = True
 
     # --- roster -------------------------------------------------------------------------------
@@ -180,6 +185,14 @@ class SecureSession:
     def want_hello(self) -> None:
         """Ask for a hello (sent with the next :meth:`take_outgoing` the rate limit allows)."""
         self._dirty = True
+
+    def hello_due_in(self) -> float | None:
+        """Seconds until a held-back hello may go out (None: none is held back)."""
+        if not (self._dirty or self._urgent):
+            return None
+        if self._last_hello is None or self._urgent:
+            return 0.0
+        return max(0.0, self._last_hello + HELLO_MIN_S - self._clock())
 
     def take_outgoing(self) -> list[tuple[str, bytes]]:
         """The (channel, bytes) to publish now: a due hello first, then re-sent messages."""
@@ -235,16 +248,19 @@ class SecureSession:
                 parts.append(_blob(_s(name)) + pair.e_pub[:_HINT] + grant)
                 count += 1
         parts[1] = struct.pack(">H", count)
-        wants = sorted(self._want)
-        parts.append(struct.pack(">H", len(wants)))
-        parts += [_blob(_s(name)) for name in wants]
+        parts.append(struct.pack(">H", len(self._missed)))
+        for (name, session), seqs in list(self._missed.items()):
+            parts.append(_blob(_s(name)) + struct.pack(f">QH{len(seqs)}Q", session, len(seqs), *seqs))
+            if (name, session) in self.rx:  # asked once with the session known: done
+                del self._missed[name, session]
         body = b"".join(parts)
         env = self._envelope(HELLO_TYPE, body, 0)
         unsigned: bytes = env.encode()
         proof = self._prove(_s(HELLO_CHANNEL) + b"\0" + unsigned)
         env.mac_size, env.mac = len(proof), proof
         hello: bytes = env.encode()
-        self._resend_backlog(fresh, now)
+        resend, self._resend = self._resend, []
+        self._resend_backlog(resend, now)
         return hello
 
     def _prove(self, data: bytes) -> bytes:
@@ -270,8 +286,6 @@ class SecureSession:
             e_pub, grants, wants = _parse_hello(body)
         except ValueError:
             return "garbage"
-        if self.sender in wants:
-            self._urgent = True  # it lacks our grant (lost): give it again
         peer = self._peers.setdefault(sender, _Peer())
         if e_pub in peer.retired:
             return "replayed"
@@ -283,6 +297,10 @@ class SecureSession:
                 return "garbage"
             peer.candidate = pair
             self._urgent = True  # it gets a grant from us
+        missed = wants.get((self.sender, self.session))
+        if missed:  # it got messages of ours it could not open: our grant, then them again
+            self._urgent = True
+            self._resend.append((pair, missed))
         grant = next((g for h, g in grants.get(self.sender, ()) if h == self.e_pub[:_HINT]), None)
         if grant is None:
             self._dirty = True  # it does not know our current key: our hello tells it
@@ -299,12 +317,19 @@ class SecureSession:
             peer.current = pair
             if peer.candidate is pair:
                 peer.candidate = None
-        self._want.discard(sender)
         if (sender, session) not in self.rx:
             # Everything at or below the floor was sealed before this grant: refused.
-            self.rx[sender, session] = RxSession(
+            rx = self.rx[sender, session] = RxSession(
                 sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK
             )
+            # What we got and could not open, our next hello asks for again; the originals
+            # above the floor are refused from now on (at or below it they are anyway).
+            missed = self._missed.get((sender, session), [])
+            for seq in missed:
+                if seq > floor:
+                    _admit(rx, seq)
+            if missed:
+                self._urgent = True
         return None
 
     # --- data ---------------------------------------------------------------------------------
@@ -327,11 +352,8 @@ class SecureSession:
         """Encrypt and authenticate one message for every peer (or ``only`` one)."""
         self.seq += 1
         seq = self.seq
-        if self._backlog is not None and only is None:
-            if self._clock() - self._born <= BACKLOG_S and len(self._backlog) < _BACKLOG_MAX:
-                self._backlog.append((seq, channel, type_name, bytes(payload)))
-            else:
-                self._backlog = None
+        if only is None:
+            self._backlog.append((seq, self._clock(), channel, type_name, payload))
         if self.roster_mode:
             pairs = [only] if only is not None else self._recipients()
             tags = b"".join(p.tag_out for p in pairs)
@@ -358,17 +380,18 @@ class SecureSession:
             for p in {id(q): q for q in (peer.current, peer.candidate) if q}.values()
         ]
 
-    def _resend_backlog(self, fresh: list[_Pair], now: float) -> None:
-        """Re-send our first messages to peers that get their first grant now (directed)."""
-        if not fresh or self._backlog is None:
-            return
-        if now - self._born > BACKLOG_S:
-            self._backlog = None
-            return
-        for pair in fresh:
-            floor = pair.first_floor
-            for seq, channel, type_name, payload in list(self._backlog):
-                if floor is not None and seq <= floor:
+    def _resend_backlog(self, resend: list[tuple[_Pair, list[int]]], now: float) -> None:
+        """Re-send to peers the messages they got from us and could not open (no grant yet).
+
+        The copies are addressed to that peer alone (no other member gets a message twice),
+        and the peer refuses the originals from now on.
+        """
+        while self._backlog and now - self._backlog[0][1] > BACKLOG_S:
+            self._backlog.popleft()
+        for pair, missed in resend:
+            wanted = set(missed)
+            for seq, _, channel, type_name, payload in list(self._backlog):
+                if seq in wanted:
                     self._outgoing.append(
                         (channel, self.seal(channel, type_name, payload, only=pair))
                     )
@@ -379,8 +402,11 @@ class SecureSession:
         session: int = env.stamp_us
         rx = self.rx.get((sender, session))
         if rx is None:
-            if len(self._want) < 1024:
-                self._want.add(sender)  # our next hello asks it for a grant
+            missed = self._missed.get((sender, session))
+            if missed is None and len(self._missed) < _MISSED_MAX:
+                missed = self._missed[sender, session] = []
+            if missed is not None and len(missed) < _MISSED_MAX and 0 < env.seq < 1 << 63:
+                missed.append(env.seq)  # our next hello asks for a grant and these again
             self._dirty = True
             return "no_session"
         mac: bytes = env.mac
@@ -423,8 +449,11 @@ def _ad(channel: str, fleet: str, sender: str, type_name: str, seq: int, session
     )  # fmt: skip
 
 
-def _parse_hello(body: bytes) -> tuple[bytes, dict[str, list[tuple[bytes, bytes]]], set[str]]:
-    """Ephemeral key, grants (recipient -> [(key hint, grant)]) and wants of a hello body."""
+def _parse_hello(
+    body: bytes,
+) -> tuple[bytes, dict[str, list[tuple[bytes, bytes]]], dict[tuple[str, int], list[int]]]:
+    """Ephemeral key, grants (recipient -> [(key hint, grant)]) and what its sender missed
+    ((sender, session) -> sequence numbers) of a hello body."""
     if len(body) < 34:
         raise ValueError("short hello")
     e_pub, (count,) = body[:32], struct.unpack_from(">H", body, 32)
@@ -445,15 +474,20 @@ def _parse_hello(body: bytes) -> tuple[bytes, dict[str, list[tuple[bytes, bytes]
         raise ValueError("short hello")
     (count,) = struct.unpack_from(">H", body, at)
     at += 2
-    wants = set()
+    wants: dict[tuple[str, int], list[int]] = {}
     for _ in range(count):
         if at + 4 > len(body):
             raise ValueError("short hello")
         (size,) = struct.unpack_from(">I", body, at)
-        if at + 4 + size > len(body):
+        if at + 4 + size + 10 > len(body):
             raise ValueError("short hello")
-        wants.add(body[at + 4 : at + 4 + size].decode("utf-8", "surrogatepass"))
-        at += 4 + size
+        name = body[at + 4 : at + 4 + size].decode("utf-8", "surrogatepass")
+        session, n = struct.unpack_from(">QH", body, at + 4 + size)
+        at += 4 + size + 10
+        if n > _MISSED_MAX or at + 8 * n > len(body):
+            raise ValueError("bad hello")
+        wants[name, session] = list(struct.unpack_from(f">{n}Q", body, at))
+        at += 8 * n
     if at != len(body):
         raise ValueError("trailing bytes")
     return e_pub, grants, wants

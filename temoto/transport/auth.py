@@ -503,6 +503,18 @@ class FleetAuth:
             self._check_roster()
             return self._secure.take_outgoing()
 
+    def hello_due_in(self) -> float | None:
+        """Seconds until a held-back hello may be sent (keyed fleets; hellos are rate-limited).
+
+        Returns:
+            The delay after which :meth:`take_outgoing` will return it, or None when no hello
+            is held back.
+        """
+        if self._secure is None:
+            return None
+        with self._lock:
+            return self._secure.hello_due_in()
+
     def _check_roster(self) -> None:
         """Re-read a changed roster file; forget removed members at once. ``_lock`` held."""
         if self.credentials is None or self._secure is None:
@@ -729,6 +741,8 @@ class FleetLink:
         self._errors_lock = threading.Lock()
         self._log = _LogLimiter()
         self._hellos: Subscription | None = None
+        self._timer: threading.Timer | None = None
+        self._timer_lock = threading.Lock()
         if not auth.insecure:
             self._hellos = transport.subscribe(HELLO_CHANNEL, self._on_hello)
             self._flush()
@@ -745,6 +759,16 @@ class FleetLink:
             except Exception as err:  # closed meanwhile: the peers hear us no more anyway
                 logger.debug("fleet %r: could not publish on %r: %s", self.auth.fleet, channel, err)
                 return
+        due = self.auth.hello_due_in()
+        if due is None:
+            return
+        with self._timer_lock:  # one short-lived thread sends a held-back hello when it is due
+            if self._timer is not None and self._timer.is_alive():
+                return
+            self._timer = threading.Timer(due + 0.001, self._flush)
+            self._timer.name = "temoto-fleet-hello"
+            self._timer.daemon = True
+            self._timer.start()
 
     def __repr__(self) -> str:
         return f"<FleetLink {self.auth!r} on {self.transport!r}>"
