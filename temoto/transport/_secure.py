@@ -45,7 +45,7 @@ HELLO_MIN_S: Final = 0.05
 #: A peer that received messages of ours it could not open (no grant yet: the hellos were
 #: crossing) names them in its hello; we re-send them to it if they are at most this old.
 BACKLOG_S: Final = 2.0
-_MISSED_MAX: Final = 64
+_MISSED_MAX: Final = 256  # the last this many per sender session; as many senders at most
 _BACKLOG_MAX: Final = 256
 _TAG: Final = 16  # Poly1305 tag
 _RECIPIENT: Final = 4  # recipient tag
@@ -145,7 +145,7 @@ class SecureSession:
         self._urgent = True  # a hello that moves a handshake on: sent at once
         self._dirty = False  # a hello that may help: sent at most every HELLO_MIN_S
         # Per (sender, session) we lack: the sequence numbers we got and could not open.
-        self._missed: dict[tuple[str, int], list[int]] = {}
+        self._missed: dict[tuple[str, int], deque[int]] = {}
         self._resend: list[tuple[_Pair, list[int]]] = []  # after the next hello
         self._last_hello: float | None = None
         self._born = clock()
@@ -250,8 +250,11 @@ class SecureSession:
         parts[1] = struct.pack(">H", count)
         parts.append(struct.pack(">H", len(self._missed)))
         for (name, session), seqs in list(self._missed.items()):
-            parts.append(_blob(_s(name)) + struct.pack(f">QH{len(seqs)}Q", session, len(seqs), *seqs))
-            if (name, session) in self.rx:  # asked once with the session known: done
+            # Without its grant, ask for the grant only: copies would be refused like the
+            # originals. With it, ask once for what we could not open.
+            ask = seqs if (name, session) in self.rx else []
+            parts.append(_blob(_s(name)) + struct.pack(f">QH{len(ask)}Q", session, len(ask), *ask))
+            if ask:
                 del self._missed[name, session]
         body = b"".join(parts)
         env = self._envelope(HELLO_TYPE, body, 0)
@@ -298,9 +301,10 @@ class SecureSession:
             peer.candidate = pair
             self._urgent = True  # it gets a grant from us
         missed = wants.get((self.sender, self.session))
-        if missed:  # it got messages of ours it could not open: our grant, then them again
+        if missed is not None:  # it lacks our grant, or asks for what it could not open
             self._urgent = True
-            self._resend.append((pair, missed))
+            if missed:
+                self._resend.append((pair, missed))
         grant = next((g for h, g in grants.get(self.sender, ()) if h == self.e_pub[:_HINT]), None)
         if grant is None:
             self._dirty = True  # it does not know our current key: our hello tells it
@@ -324,12 +328,14 @@ class SecureSession:
             )
             # What we got and could not open, our next hello asks for again; the originals
             # above the floor are refused from now on (at or below it they are anyway).
-            missed = self._missed.get((sender, session), [])
+            missed = self._missed.get((sender, session), deque())
             for seq in missed:
                 if seq > floor:
                     _admit(rx, seq)
             if missed:
                 self._urgent = True
+            else:
+                self._missed.pop((sender, session), None)
         return None
 
     # --- data ---------------------------------------------------------------------------------
@@ -404,8 +410,8 @@ class SecureSession:
         if rx is None:
             missed = self._missed.get((sender, session))
             if missed is None and len(self._missed) < _MISSED_MAX:
-                missed = self._missed[sender, session] = []
-            if missed is not None and len(missed) < _MISSED_MAX and 0 < env.seq < 1 << 63:
+                missed = self._missed[sender, session] = deque(maxlen=_MISSED_MAX)
+            if missed is not None and 0 < env.seq < 1 << 63:
                 missed.append(env.seq)  # our next hello asks for a grant and these again
             self._dirty = True
             return "no_session"
