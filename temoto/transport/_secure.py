@@ -428,6 +428,8 @@ class SecureSession:
         if mine is None and (entries or self.roster_mode):
             return "not_for_us"
         seq: int = env.seq
+        if not 0 < seq < 1 << 63:
+            return "forged"
         type_name: str = env.type
         ad = _ad(channel, self.fleet, sender, type_name, seq, session, tags)
         sealed = bytes(env.payload) + tag
@@ -437,8 +439,6 @@ class SecureSession:
             want = hashlib.blake2b(digest, key=rx.pair.mac_in, digest_size=_MAC).digest()
             if not hmac.compare_digest(want, mine[_RECIPIENT:]):
                 return "forged"
-        if not 0 < seq < 1 << 63:
-            return "forged"
         try:
             plain = rx.aead.decrypt(seq.to_bytes(12, "big"), sealed, ad)
         except InvalidTag:
