@@ -186,6 +186,14 @@ class SecureSession:
         """Ask for a hello (sent with the next :meth:`take_outgoing` the rate limit allows)."""
         self._dirty = True
 
+    def peers(self) -> frozenset[str]:
+        """Names whose current boot granted us its session (we can open their messages)."""
+        return frozenset(
+            name
+            for (name, _), rx in self.rx.items()
+            if (peer := self._peers.get(name)) is not None and peer.current is rx.pair
+        )
+
     def hello_due_in(self) -> float | None:
         """Seconds until a held-back hello may go out (None: none is held back)."""
         if not (self._dirty or self._urgent):

@@ -58,7 +58,7 @@ import os
 import string
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, final
 
@@ -503,6 +503,15 @@ class FleetAuth:
             self._check_roster()
             return self._secure.take_outgoing()
 
+    @property
+    def peers(self) -> frozenset[str]:
+        """Members whose messages this member can open now (keyed fleets: they granted us
+        their session; empty for insecure fleets, which have no sessions)."""
+        if self._secure is None:
+            return frozenset()
+        with self._lock:
+            return self._secure.peers()
+
     def hello_due_in(self) -> float | None:
         """Seconds until a held-back hello may be sent (keyed fleets; hellos are rate-limited).
 
@@ -743,6 +752,7 @@ class FleetLink:
         self._hellos: Subscription | None = None
         self._timer: threading.Timer | None = None
         self._timer_lock = threading.Lock()
+        self._hello_seen = threading.Condition()
         if not auth.insecure:
             self._hellos = transport.subscribe(HELLO_CHANNEL, self._on_hello)
             self._flush()
@@ -750,6 +760,27 @@ class FleetLink:
     def _on_hello(self, channel: str, data: bytes) -> None:
         self.auth.open(channel, data)
         self._flush()
+        with self._hello_seen:
+            self._hello_seen.notify_all()
+
+    def wait_for_peers(self, names: Iterable[str], timeout: float) -> bool:
+        """Wait until this member can open the messages of every named member.
+
+        Sending needs no wait (what a peer could not open while the hellos crossed is re-sent
+        to it); this is for callers that must know the keys are agreed, e.g. tests.
+
+        Args:
+            names: The members.
+            timeout: Seconds to wait at most.
+
+        Returns:
+            True when they all granted us their session (always True for insecure fleets).
+        """
+        wanted = set(names)
+        if self.auth.insecure:
+            return True
+        with self._hello_seen:
+            return self._hello_seen.wait_for(lambda: wanted <= self.auth.peers, timeout)
 
     def _flush(self) -> None:
         """Publish what the auth wants sent (hellos, re-sent messages); never raises."""
