@@ -349,8 +349,9 @@ class FleetAuth:
     Args:
         fleet: The fleet name; envelopes of other fleets are dropped.
         sender: This member's id, unique in the fleet.
-        key: The shared fleet key (at least 32 bytes; see :func:`key_from_text`), or None
-            together with ``insecure=True`` or ``credentials``.
+        key: The shared fleet key (at least 32 bytes; see :func:`key_from_text`), or the
+            member's credentials (as ``credentials``), or None together with ``insecure=True``
+            or ``credentials``.
         insecure: Run without a key: seal without a mac and accept only envelopes without one.
             Anyone on the network can then forge, alter or replay messages; logged as a warning.
         window_s: Insecure fleets: largest accepted difference between a sender's stamp and our
@@ -372,7 +373,7 @@ class FleetAuth:
         self,
         fleet: str,
         sender: str,
-        key: bytes | None,
+        key: bytes | Credentials | None,
         *,
         insecure: bool = False,
         window_s: float = 30.0,
@@ -383,6 +384,10 @@ class FleetAuth:
         for what, name in (("fleet", fleet), ("sender", sender)):
             if not isinstance(name, str) or not name:
                 raise ValueError(f"the {what} name must be a non-empty string, got {name!r}")
+        if isinstance(key, Credentials):
+            if credentials is not None:
+                raise ValueError("credentials given twice")
+            key, credentials = None, key
         if credentials is not None:
             if key is not None or insecure:
                 raise ValueError("credentials exclude a fleet key and insecure=True")
@@ -511,6 +516,32 @@ class FleetAuth:
             return frozenset()
         with self._lock:
             return self._secure.peers()
+
+    def refusal(self, who: str, action: str, target: str) -> str | None:
+        """Why the fleet policy refuses ``who`` doing ``action`` on ``target``.
+
+        Only fleets with a roster have a policy (its ``permissions``); without one, or without
+        a roster (a shared fleet key or ``--insecure``: nobody is told apart), everything is
+        allowed.
+
+        Args:
+            who: The authenticated sender (:attr:`Opened.sender`).
+            action: One of :data:`~temoto.transport.identity.ACTIONS`, e.g. ``"graph.start"``.
+            target: The robot or resource server it concerns.
+
+        Returns:
+            None when allowed; else the reason, to answer and log.
+        """
+        if self.credentials is None:
+            return None
+        with self._lock:
+            self._check_roster()
+            roster = self.credentials.roster
+            policy = roster.policy
+        if policy is None or policy.allows(who, action, target):
+            return None
+        where = f" in {str(roster.path)!r}" if roster.path is not None else ""
+        return f"permission denied: {who!r} may not {action} on {target!r} (fleet policy{where})"
 
     def hello_due_in(self) -> float | None:
         """Seconds until a held-back hello may be sent (keyed fleets; hellos are rate-limited).

@@ -20,6 +20,13 @@ Roster file::
       robot_1: ed25519:...
     revoked:
       - {name: robot_2, key: "ed25519:..."}
+    permissions:            # optional: without it every member may do everything
+      - {who: [operator], may: ["graph.*"], targets: ["*"]}
+      - {who: ["*"], may: [resource.request], targets: [camera]}
+      - {who: [robot_1], may: [world.publish]}
+
+The permissions are the fleet policy (:class:`Policy`), in the roster so that a change reaches
+every member the way a revocation does. Actions: :data:`ACTIONS`.
 """
 
 from __future__ import annotations
@@ -33,11 +40,13 @@ from pathlib import Path
 from typing import Any, final
 
 __all__ = [
+    "ACTIONS",
     "IDENTITY_ENV",
     "KEY_PREFIX",
     "ROSTER_ENV",
     "Credentials",
     "Identity",
+    "Policy",
     "Roster",
     "RosterError",
     "public_key_from_text",
@@ -51,6 +60,97 @@ ROSTER_ENV = "TEMOTO_FLEET_ROSTER"
 #: How a key is written in the files: this prefix, then base64.
 KEY_PREFIX = "ed25519:"
 _KEY_BYTES = 32
+#: What a policy rule may grant: graph control on a robot (the target is the instance's actor
+#: name), a resource request (the target is the resource server), a world-model change (the
+#: target is the publishing robot).
+ACTIONS = (
+    "graph.start",
+    "graph.stop",
+    "graph.pause",
+    "graph.resume",
+    "graph.modify",
+    "resource.request",
+    "world.publish",
+)
+
+
+@dataclass(frozen=True)
+class Policy:
+    """Who may do what on which target: a list of allow rules; anything else is refused.
+
+    Each rule is ``(who, may, targets)``: patterns (``fnmatch``: ``*``, ``graph.*``) of member
+    names, of :data:`ACTIONS` and of targets.
+
+    Attributes:
+        rules: The rules.
+    """
+
+    rules: tuple[tuple[tuple[str, ...], tuple[str, ...], tuple[str, ...]], ...]
+
+    @classmethod
+    def from_data(cls, data: Any) -> Policy:
+        """Read the ``permissions`` list of a roster file.
+
+        Args:
+            data: The list of ``{who: [...], may: [...], targets: [...]}`` (``targets``
+                defaults to ``["*"]``).
+
+        Returns:
+            The policy.
+
+        Raises:
+            ValueError: If a rule is malformed or names no known action.
+        """
+        from fnmatch import fnmatchcase
+
+        if not isinstance(data, list):
+            raise ValueError("'permissions' must be a list of {who, may, targets} rules")
+        rules = []
+        for i, rule in enumerate(data):
+            if not isinstance(rule, dict) or set(rule) - {"who", "may", "targets"}:
+                raise ValueError(f"permissions[{i}]: a rule has the keys who, may and targets")
+            parts = []
+            for key in ("who", "may", "targets"):
+                value = rule.get(key, ["*"] if key == "targets" else None)
+                if isinstance(value, str):
+                    value = [value]
+                if not isinstance(value, list) or not value or not all(
+                    isinstance(v, str) and v for v in value
+                ):
+                    raise ValueError(f"permissions[{i}].{key}: a non-empty list of names")
+                parts.append(tuple(value))
+            for pattern in parts[1]:
+                if not any(fnmatchcase(action, pattern) for action in ACTIONS):
+                    raise ValueError(
+                        f"permissions[{i}].may: {pattern!r} matches no action"
+                        f" ({', '.join(ACTIONS)})"
+                    )
+            rules.append((parts[0], parts[1], parts[2]))
+        return cls(tuple(rules))
+
+    def to_data(self) -> list[dict[str, list[str]]]:
+        """The rules as a roster file writes them (the inverse of :meth:`from_data`)."""
+        return [{"who": list(w), "may": list(m), "targets": list(t)} for w, m, t in self.rules]
+
+    def allows(self, who: str, action: str, target: str) -> bool:
+        """Whether a rule lets ``who`` do ``action`` on ``target``.
+
+        Args:
+            who: The (authenticated) member.
+            action: One of :data:`ACTIONS`.
+            target: The robot or resource server.
+
+        Returns:
+            True if some rule matches all three.
+        """
+        from fnmatch import fnmatchcase
+
+        return any(
+            any(fnmatchcase(who, p) for p in names)
+            and any(fnmatchcase(action, p) for p in actions)
+            and any(fnmatchcase(target, p) for p in targets)
+            for names, actions, targets in self.rules
+        )
 
 
 class RosterError(ValueError):
@@ -241,6 +341,7 @@ class Roster:
         revoked: list[tuple[str, bytes]] | None = None,
         *,
         path: Path | None = None,
+        policy: Policy | None = None,
     ) -> None:
         for name, key in members.items():
             if not isinstance(name, str) or not name:
@@ -249,6 +350,8 @@ class Roster:
                 raise ValueError(f"member {name!r}: an Ed25519 public key has {_KEY_BYTES} bytes")
         self.members = dict(members)
         self.revoked = list(revoked or [])
+        #: The fleet policy; None: every member may do everything.
+        self.policy = policy
         self.path = path
         self._stamp = self._stat()
         self._verifiers: dict[bytes, Any] = {}
@@ -291,13 +394,19 @@ class Roster:
                 revoked.append((str(entry.get("name", "")), public_key_from_text(entry.get("key"))))
             except ValueError as err:
                 raise RosterError(f"the roster file {str(where)!r}: revoked: {err}") from None
+        policy = None
+        if data.get("permissions") is not None:
+            try:
+                policy = Policy.from_data(data["permissions"])
+            except ValueError as err:
+                raise RosterError(f"the roster file {str(where)!r}: {err}") from None
         bad = {key for _, key in revoked} & set(members.values())
         if bad:
             names = sorted(n for n, k in members.items() if k in bad)
             raise RosterError(
                 f"the roster file {str(where)!r}: {', '.join(map(repr, names))} use a revoked key"
             )
-        return cls(members, revoked, path=where)
+        return cls(members, revoked, path=where, policy=policy)
 
     def save(self, path: str | os.PathLike[str] | None = None) -> None:
         """Write the roster (atomically: running members never read half a file).
@@ -319,6 +428,17 @@ class Roster:
             f"  - {{name: {_yaml_str(n)}, key: {public_key_text(k)!r}}}".replace("'", '"')
             for n, k in self.revoked
         ]
+        if self.policy is not None:
+            import yaml
+
+            lines.append(
+                yaml.safe_dump(
+                    {"permissions": self.policy.to_data()},
+                    default_flow_style=None,
+                    sort_keys=False,
+                    width=100,
+                ).rstrip("\n")
+            )
         _write_atomically(where, "\n".join(lines) + "\n", 0o644)
         self.path = where
         self._stamp = self._stat()
@@ -350,8 +470,12 @@ class Roster:
             return False
         self._stamp = stamp
         fresh = Roster.load(self.path)
-        changed = fresh.members != self.members or fresh.revoked != self.revoked
-        self.members, self.revoked = fresh.members, fresh.revoked
+        changed = (fresh.members, fresh.revoked, fresh.policy) != (
+            self.members,
+            self.revoked,
+            self.policy,
+        )
+        self.members, self.revoked, self.policy = fresh.members, fresh.revoked, fresh.policy
         return changed
 
     def key_of(self, name: str) -> bytes | None:
