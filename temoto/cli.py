@@ -80,6 +80,7 @@ from temoto._cli_fleet import (
     serve,
     watch,
 )
+from temoto._cli_keys import add_keys, keys_command
 from temoto._cli_router import add_router, router_command
 from temoto._cli_sim import add_sim, sim_command
 from temoto._progress import ActionLogHandler, Progress
@@ -316,6 +317,7 @@ def _parser() -> argparse.ArgumentParser:
     add_sim(sub)
     add_router(sub)
     add_view(sub)
+    add_keys(sub)
     return top
 
 
@@ -380,6 +382,8 @@ def _command(args: argparse.Namespace) -> int:
             return router_command(args)
         if args.command == "view":
             return view_command(args)
+        if args.command == "keys":
+            return keys_command(args)
         return _actions(args)
     except (ConfigError, PluginError) as err:
         _error(err)

@@ -266,10 +266,10 @@ class SecureSession:
                 del self._missed[name, session]
         body = b"".join(parts)
         env = self._envelope(HELLO_TYPE, body, 0)
-        unsigned: bytes = env.encode()
+        unsigned: bytes = env.encode()  # type: ignore[no-untyped-call]
         proof = self._prove(_s(HELLO_CHANNEL) + b"\0" + unsigned)
         env.mac_size, env.mac = len(proof), proof
-        hello: bytes = env.encode()
+        hello: bytes = env.encode()  # type: ignore[no-untyped-call]
         resend, self._resend = self._resend, []
         self._resend_backlog(resend, now)
         return hello
@@ -336,11 +336,11 @@ class SecureSession:
             )
             # What we got and could not open, our next hello asks for again; the originals
             # above the floor are refused from now on (at or below it they are anyway).
-            missed = self._missed.get((sender, session), deque())
-            for seq in missed:
+            held = self._missed.get((sender, session), deque())
+            for seq in held:
                 if seq > floor:
                     _admit(rx, seq)
-            if missed:
+            if held:
                 self._urgent = True
             else:
                 self._missed.pop((sender, session), None)
@@ -362,7 +362,9 @@ class SecureSession:
         env.mac = b""
         return env
 
-    def seal(self, channel: str, type_name: str, payload: bytes, only: _Pair | None = None) -> bytes:
+    def seal(
+        self, channel: str, type_name: str, payload: bytes, only: _Pair | None = None
+    ) -> bytes:
         """Encrypt and authenticate one message for every peer (or ``only`` one)."""
         self.seq += 1
         seq = self.seq
@@ -384,7 +386,7 @@ class SecureSession:
             )
         env = self._envelope(type_name, cipher, seq)
         env.mac_size, env.mac = _TAG + len(tags), tag + tags
-        out: bytes = env.encode()
+        out: bytes = env.encode()  # type: ignore[no-untyped-call]
         return out
 
     def _recipients(self) -> list[_Pair]:
@@ -456,7 +458,9 @@ class SecureSession:
         return Sealed(type_name, plain, seq, session)
 
 
-def _ad(channel: str, fleet: str, sender: str, type_name: str, seq: int, session: int, tags: bytes) -> bytes:
+def _ad(
+    channel: str, fleet: str, sender: str, type_name: str, seq: int, session: int, tags: bytes
+) -> bytes:
     return _blob(
         b"temoto-v2", _s(channel), _s(fleet), _s(sender), _s(type_name),
         struct.pack(">QQ", seq, session), tags,
@@ -466,8 +470,11 @@ def _ad(channel: str, fleet: str, sender: str, type_name: str, seq: int, session
 def _parse_hello(
     body: bytes,
 ) -> tuple[bytes, dict[str, list[tuple[bytes, bytes]]], dict[tuple[str, int], list[int]]]:
-    """Ephemeral key, grants (recipient -> [(key hint, grant)]) and what its sender missed
-    ((sender, session) -> sequence numbers) of a hello body."""
+    """Ephemeral key, grants and what its sender missed, of a hello body.
+
+    Grants map a recipient to ``[(key hint, grant)]``; what was missed maps ``(sender,
+    session)`` to sequence numbers.
+    """
     if len(body) < 34:
         raise ValueError("short hello")
     e_pub, (count,) = body[:32], struct.unpack_from(">H", body, 32)

@@ -1,4 +1,4 @@
-r"""Fleet security: sealed envelopes, per-boot sessions, encryption (docs/fleet.md, docs/security.md).
+r"""Fleet security: sealed envelopes, per-boot sessions, encryption (docs/security.md).
 
 Every fleet message travels in an ``envelope_t`` (:mod:`temoto.lcm_types`). :meth:`FleetAuth.seal`
 wraps an inner message into one; :meth:`FleetAuth.open` checks a received one and returns its
@@ -452,8 +452,10 @@ class FleetAuth:
 
     @property
     def stats(self) -> dict[str, int]:
-        """A copy of the counters: ``accepted``, ``hello`` (hellos taken in) and one per reason
-        in :data:`DROP_REASONS`."""
+        """A copy of the counters: ``accepted``, ``hello`` and one per :data:`DROP_REASONS`.
+
+        ``hello``: the hellos taken in (keyed fleets).
+        """
         with self._lock:
             return dict(self._counts)
 
@@ -510,8 +512,10 @@ class FleetAuth:
 
     @property
     def peers(self) -> frozenset[str]:
-        """Members whose messages this member can open now (keyed fleets: they granted us
-        their session; empty for insecure fleets, which have no sessions)."""
+        """Members whose messages this member can open now.
+
+        Keyed fleets: they granted us their session; empty for insecure fleets (no sessions).
+        """
         if self._secure is None:
             return frozenset()
         with self._lock:

@@ -114,8 +114,10 @@ class Policy:
                 value = rule.get(key, ["*"] if key == "targets" else None)
                 if isinstance(value, str):
                     value = [value]
-                if not isinstance(value, list) or not value or not all(
-                    isinstance(v, str) and v for v in value
+                if (
+                    not isinstance(value, list)
+                    or not value
+                    or not all(isinstance(v, str) and v for v in value)
                 ):
                     raise ValueError(f"permissions[{i}].{key}: a non-empty list of names")
                 parts.append(tuple(value))
@@ -385,13 +387,16 @@ class Roster:
             try:
                 members[str(name)] = public_key_from_text(key)
             except ValueError as err:
-                raise RosterError(f"the roster file {str(where)!r}: member {name!r}: {err}") from None
+                raise RosterError(
+                    f"the roster file {str(where)!r}: member {name!r}: {err}"
+                ) from None
         revoked: list[tuple[str, bytes]] = []
         for entry in revoked_raw:
             try:
                 if not isinstance(entry, dict):
                     raise ValueError("each revoked entry must be {name: ..., key: ...}")
-                revoked.append((str(entry.get("name", "")), public_key_from_text(entry.get("key"))))
+                key = public_key_from_text(str(entry.get("key", "")))
+                revoked.append((str(entry.get("name", "")), key))
             except ValueError as err:
                 raise RosterError(f"the roster file {str(where)!r}: revoked: {err}") from None
         policy = None
@@ -422,7 +427,9 @@ class Roster:
             raise ValueError("this roster has no file: give a path")
         lines = ["# TeMoto fleet roster: members and their Ed25519 public keys (temoto keys ...)"]
         lines.append("members:" if self.members else "members: {}")
-        lines += [f"  {_yaml_str(n)}: {public_key_text(k)}" for n, k in sorted(self.members.items())]
+        lines += [
+            f"  {_yaml_str(n)}: {public_key_text(k)}" for n, k in sorted(self.members.items())
+        ]
         lines.append("revoked:" if self.revoked else "revoked: []")
         lines += [
             f"  - {{name: {_yaml_str(n)}, key: {public_key_text(k)!r}}}".replace("'", '"')

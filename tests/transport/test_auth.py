@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import base64
-import hashlib
-import hmac
 import logging
 import struct
 import threading
@@ -17,7 +15,6 @@ from hypothesis import strategies as st
 
 from temoto.lcm_types import envelope_t
 from temoto.transport import (
-    DROP_REASONS,
     KEY_ENV,
     FleetAuth,
     FleetLink,
