@@ -90,6 +90,24 @@ class _Peer:
     current: _Pair | None = None  # proven: it sent us a grant for our current key
     candidate: _Pair | None = None  # heard in a hello, not yet proven
     retired: set[bytes] = field(default_factory=set)  # older ephemeral keys of this name
+    # Our sequence numbers (floor, last] that an older boot of this name held a grant for:
+    # it may have opened them, so they are never re-sent to a later boot.
+    opened: list[tuple[int, int]] = field(default_factory=list)
+
+    def drop(self, pair: _Pair | None, seq: int) -> None:
+        """Remember what a pair we stop using could open."""
+        if pair is not None and pair.first_floor is not None:
+            self.opened.append((pair.first_floor, seq))
+            del self.opened[:-64]  # keep the newest; older ones are far out of the backlog
+
+    def could_open(self, seq: int, pair: _Pair) -> bool:
+        """Whether a boot of this name other than ``pair``'s may have opened ``seq``."""
+        live = [
+            (p.first_floor, seq)
+            for p in (self.current, self.candidate)
+            if p is not None and p is not pair and p.first_floor is not None
+        ]
+        return any(low < seq <= high for low, high in (*self.opened, *live))
 
 
 @dataclass(slots=True)
@@ -146,7 +164,7 @@ class SecureSession:
         self._dirty = False  # a hello that may help: sent at most every HELLO_MIN_S
         # Per (sender, session) we lack: the sequence numbers we got and could not open.
         self._missed: dict[tuple[str, int], deque[int]] = {}
-        self._resend: list[tuple[_Pair, list[int]]] = []  # after the next hello
+        self._resend: list[tuple[str, _Pair, list[int]]] = []  # after the next hello
         self._last_hello: float | None = None
         self._born = clock()
         self._backlog: deque[tuple[int, float, str, str, bytes]] = deque(maxlen=_BACKLOG_MAX)
@@ -164,6 +182,7 @@ class SecureSession:
         self.session = int.from_bytes(os.urandom(8), "big") >> 1 or 1
         self.seq = 0
         for peer in self._peers.values():
+            peer.opened.clear()  # about the old session's numbers
             for pair in (peer.current, peer.candidate):
                 if pair is not None:
                     pair.first_floor = None
@@ -306,13 +325,15 @@ class SecureSession:
                 pair = self._pair(sender, e_pub)
             except ValueError:
                 return "garbage"
+            if peer.candidate is not None and peer.candidate is not peer.current:
+                peer.drop(peer.candidate, self.seq)
             peer.candidate = pair
             self._urgent = True  # it gets a grant from us
         missed = wants.get((self.sender, self.session))
         if missed is not None:  # it lacks our grant, or asks for what it could not open
             self._urgent = True
             if missed:
-                self._resend.append((pair, missed))
+                self._resend.append((sender, pair, missed))
         grant = next((g for h, g in grants.get(self.sender, ()) if h == self.e_pub[:_HINT]), None)
         if grant is None:
             self._dirty = True  # it does not know our current key: our hello tells it
@@ -326,6 +347,7 @@ class SecureSession:
         if peer.current is not pair:  # proven fresh: it knows our key of this boot
             if peer.current is not None:
                 peer.retired.add(peer.current.e_pub)
+                peer.drop(peer.current, self.seq)
             peer.current = pair
             if peer.candidate is pair:
                 peer.candidate = None
@@ -396,18 +418,21 @@ class SecureSession:
             for p in {id(q): q for q in (peer.current, peer.candidate) if q}.values()
         ]
 
-    def _resend_backlog(self, resend: list[tuple[_Pair, list[int]]], now: float) -> None:
+    def _resend_backlog(self, resend: list[tuple[str, _Pair, list[int]]], now: float) -> None:
         """Re-send to peers the messages they got from us and could not open (no grant yet).
 
         The copies are addressed to that peer alone (no other member gets a message twice),
-        and the peer refuses the originals from now on.
+        and the peer refuses the originals from now on. A message that another boot of the
+        same member held a grant for is never re-sent: that boot may have opened it, and a
+        captured copy shown to a restarted member must not come back through us.
         """
         while self._backlog and now - self._backlog[0][1] > BACKLOG_S:
             self._backlog.popleft()
-        for pair, missed in resend:
+        for name, pair, missed in resend:
             wanted = set(missed)
+            peer = self._peers.get(name)
             for seq, _, channel, type_name, payload in list(self._backlog):
-                if seq in wanted:
+                if seq in wanted and not (peer is not None and peer.could_open(seq, pair)):
                     self._outgoing.append(
                         (channel, self.seal(channel, type_name, payload, only=pair))
                     )

@@ -359,8 +359,8 @@ class FleetAuth:
         clock: Wall clock in seconds since the epoch (injected by tests).
         credentials: This member's identity and the fleet roster, instead of a shared key:
             hellos are signed and every message carries a MAC per recipient.
-        roster_check_s: Seconds between two looks at the roster file (a changed roster takes
-            effect at the first message after that).
+        roster_check_s: Seconds between two looks at the roster file (default: at every
+            message, so a revocation takes effect at the next message).
 
     Raises:
         ValueError: If a name is empty, the key is missing without ``insecure=True``, given
@@ -379,7 +379,7 @@ class FleetAuth:
         window_s: float = 30.0,
         clock: Callable[[], float] = time.time,
         credentials: Credentials | None = None,
-        roster_check_s: float = 0.05,
+        roster_check_s: float = 0.0,
     ) -> None:
         for what, name in (("fleet", fleet), ("sender", sender)):
             if not isinstance(name, str) or not name:
