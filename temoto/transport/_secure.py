@@ -83,6 +83,7 @@ class _Pair:
     tag_out: bytes  # it, as a recipient of our messages
     tag_in: bytes  # we, as a recipient of its messages
     first_floor: int | None = None  # floor of the first grant we sent it (our session)
+    owed: bool = True  # our next hello carries a grant for it
 
 
 @dataclass(slots=True)
@@ -186,6 +187,7 @@ class SecureSession:
             for pair in (peer.current, peer.candidate):
                 if pair is not None:
                     pair.first_floor = None
+                    pair.owed = True
         self._backlog.clear()
         self._urgent = True
 
@@ -204,6 +206,9 @@ class SecureSession:
     def want_hello(self) -> None:
         """Ask for a hello (sent with the next :meth:`take_outgoing` the rate limit allows)."""
         self._dirty = True
+
+    def _rx_of(self, sender: str) -> list[RxSession]:
+        return [rx for (name, _), rx in self.rx.items() if name == sender]
 
     def peers(self) -> frozenset[str]:
         """Names whose current boot granted us its session (we can open their messages)."""
@@ -265,6 +270,9 @@ class SecureSession:
         fresh: list[_Pair] = []
         for name, peer in sorted(self._peers.items()):
             for pair in {id(p): p for p in (peer.current, peer.candidate) if p}.values():
+                if not pair.owed:  # granted already: hellos stay small in a large fleet
+                    continue
+                pair.owed = False
                 if pair.first_floor is None:
                     pair.first_floor = self.seq
                     fresh.append(pair)
@@ -306,20 +314,32 @@ class SecureSession:
         return hmac.compare_digest(hmac.digest(self._key, data, "sha256"), proof)
 
     def open_hello(self, env: envelope_t, data: bytes) -> str | None:
-        """Take a hello in; returns a drop reason, or None when it was used."""
+        """Take a hello in; returns a drop reason, or None when it was used (or of no use)."""
         sender: str = env.sender
-        unsigned = data[: len(data) - 2 - env.mac_size] + b"\0\0"
-        if not self._check_proof(sender, env.mac, _s(HELLO_CHANNEL) + b"\0" + unsigned):
-            return "forged"
         body: bytes = env.payload
         try:
             e_pub, grants, wants = _parse_hello(body)
         except ValueError:
             return "garbage"
+        grant = next((g for h, g in grants.get(self.sender, ()) if h == self.e_pub[:_HINT]), None)
+        missed = wants.get((self.sender, self.session), wants.get((self.sender, 0)))
+        peer = self._peers.get(sender)
+        pair = None
+        if peer is not None:
+            pair = next((p for p in (peer.current, peer.candidate) if p and p.e_pub == e_pub), None)
+        if (
+            pair is not None
+            and grant is None
+            and missed is None
+            and any(rx.pair is pair for rx in self._rx_of(sender))
+        ):
+            return None  # a hello for others from a peer we share keys with: nothing to do
+        unsigned = data[: len(data) - 2 - env.mac_size] + b"\0\0"
+        if not self._check_proof(sender, env.mac, _s(HELLO_CHANNEL) + b"\0" + unsigned):
+            return "forged"
         peer = self._peers.setdefault(sender, _Peer())
         if e_pub in peer.retired:
             return "replayed"
-        pair = next((p for p in (peer.current, peer.candidate) if p and p.e_pub == e_pub), None)
         if pair is None:
             try:
                 pair = self._pair(sender, e_pub)
@@ -329,14 +349,18 @@ class SecureSession:
                 peer.drop(peer.candidate, self.seq)
             peer.candidate = pair
             self._urgent = True  # it gets a grant from us
-        missed = wants.get((self.sender, self.session))
         if missed is not None:  # it lacks our grant, or asks for what it could not open
             self._urgent = True
+            pair.owed = True
             if missed:
                 self._resend.append((sender, pair, missed))
-        grant = next((g for h, g in grants.get(self.sender, ()) if h == self.e_pub[:_HINT]), None)
         if grant is None:
-            self._dirty = True  # it does not know our current key: our hello tells it
+            if not any(rx.pair is pair for rx in self._rx_of(sender)):
+                # it does not know our current key, or its grant was lost: our hello tells
+                # it our key and asks for a grant
+                self._dirty = True
+                if len(self._missed) < _MISSED_MAX:
+                    self._missed.setdefault((sender, 0), deque(maxlen=_MISSED_MAX))
             return None
         ad = _blob(_s(self.fleet), _s(sender), e_pub, _s(self.sender), self.e_pub)
         try:
@@ -351,6 +375,7 @@ class SecureSession:
             peer.current = pair
             if peer.candidate is pair:
                 peer.candidate = None
+        self._missed.pop((sender, 0), None)
         if (sender, session) not in self.rx:
             # Everything at or below the floor was sealed before this grant: refused.
             rx = self.rx[sender, session] = RxSession(

@@ -275,8 +275,14 @@ def decode(data: bytes) -> Any:
 
 
 def _resign_hello(hellos: list[bytes], claimed: str, signer: Identity) -> bytes:
-    """The operator's hello with mallory's signature (what a member can do with its own key)."""
+    """A hello as ``claimed`` announcing an ephemeral key of the signer's choice, signed with
+    the signer's own key: what a member would send to take another's place."""
+    from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey
+    from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
     env = next(e for e in map(decode, hellos) if e.sender == claimed)
+    mine = X25519PrivateKey.generate().public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+    env.payload = mine + bytes(env.payload)[32:]
     env.mac_size, env.mac = 0, b""
     env.mac = signer.sign(HELLO_CHANNEL.encode() + b"\0" + env.encode())
     env.mac_size = len(env.mac)
