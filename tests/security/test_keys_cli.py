@@ -1,4 +1,4 @@
-"""`temoto keys new|add|revoke|list`, the identity and roster files, and joining a fleet with them."""
+"""`temoto keys new|add|revoke|list`, identity and roster files, joining a fleet with them."""
 
 from __future__ import annotations
 
