@@ -218,6 +218,14 @@ class SecureSession:
             if (peer := self._peers.get(name)) is not None and peer.current is rx.pair
         )
 
+    @property
+    def pending(self) -> bool:
+        """Whether :meth:`take_outgoing` may have something.
+
+        Read without the lock: a thread that made something pending reads its own write.
+        """
+        return self._urgent or self._dirty or bool(self._outgoing) or bool(self._resend)
+
     def hello_due_in(self) -> float | None:
         """Seconds until a held-back hello may go out (None: none is held back)."""
         if not (self._dirty or self._urgent):

@@ -504,11 +504,12 @@ class FleetAuth:
         Returns:
             (channel, data) pairs, in order; empty for insecure fleets.
         """
-        if self._secure is None:
+        secure = self._secure
+        if secure is None or not secure.pending:  # the common case, without the lock
             return []
         with self._lock:
             self._check_roster()
-            return self._secure.take_outgoing()
+            return secure.take_outgoing()
 
     @property
     def peers(self) -> frozenset[str]:
@@ -554,10 +555,11 @@ class FleetAuth:
             The delay after which :meth:`take_outgoing` will return it, or None when no hello
             is held back.
         """
-        if self._secure is None:
+        secure = self._secure
+        if secure is None or not secure.pending:
             return None
         with self._lock:
-            return self._secure.hello_due_in()
+            return secure.hello_due_in()
 
     def _check_roster(self) -> None:
         """Re-read a changed roster file; forget removed members at once. ``_lock`` held."""
