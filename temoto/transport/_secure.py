@@ -330,7 +330,7 @@ class SecureSession:
         except ValueError:
             return "garbage"
         grant = next((g for h, g in grants.get(self.sender, ()) if h == self.e_pub[:_HINT]), None)
-        missed = wants.get((self.sender, self.session), wants.get((self.sender, 0)))
+        missed = wants.get((self.sender, self.session))
         peer = self._peers.get(sender)
         pair = None
         if peer is not None:
@@ -363,12 +363,8 @@ class SecureSession:
             if missed:
                 self._resend.append((sender, pair, missed))
         if grant is None:
-            if not any(rx.pair is pair for rx in self._rx_of(sender)):
-                # it does not know our current key, or its grant was lost: our hello tells
-                # it our key and asks for a grant
-                self._dirty = True
-                if len(self._missed) < _MISSED_MAX:
-                    self._missed.setdefault((sender, 0), deque(maxlen=_MISSED_MAX))
+            # Its grant for us comes when it has our key (from our hello) and it owes us one;
+            # if it sends us data before we have it, we ask for it then (open_data).
             return None
         ad = _blob(_s(self.fleet), _s(sender), e_pub, _s(self.sender), self.e_pub)
         try:
@@ -383,7 +379,6 @@ class SecureSession:
             peer.current = pair
             if peer.candidate is pair:
                 peer.candidate = None
-        self._missed.pop((sender, 0), None)
         if (sender, session) not in self.rx:
             # Everything at or below the floor was sealed before this grant: refused.
             rx = self.rx[sender, session] = RxSession(
