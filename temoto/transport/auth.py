@@ -395,8 +395,11 @@ class FleetAuth:
             if key is not None or insecure:
                 raise ValueError("credentials exclude a fleet key and insecure=True")
             if credentials.identity.name != sender:
-                raise ValueError(
-                    f"the identity is {credentials.identity.name!r}, not the sender {sender!r}"
+                from temoto.errors import ConfigError  # a ValueError the CLI reports in a line
+
+                raise ConfigError(
+                    f"the fleet identity names {credentials.identity.name!r}, but this member"
+                    f" is {sender!r} (--actor): give it its own identity file"
                 )
         elif key is None and not insecure:
             raise ValueError(

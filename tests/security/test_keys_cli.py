@@ -137,3 +137,16 @@ def test_the_cli_joins_with_an_identity_and_a_roster(
         fleet_key(args, "test")
     monkeypatch.setenv("TEMOTO_FLEET_ROSTER", str(tmp_path / "r"))
     assert isinstance(fleet_key(args, "test"), Credentials)
+
+
+def test_serving_with_another_member_s_identity_is_a_one_line_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    assert keys("new", "a", "-o", str(tmp_path / "a.id"), "--roster", str(tmp_path / "r")) == 0
+    capsys.readouterr()
+    argv = ["serve", "--actor", "B", "--fleet-url", "inproc://keys-cli-serve"]
+    argv += ["--fleet-identity", str(tmp_path / "a.id"), "--fleet-roster", str(tmp_path / "r")]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert "the fleet identity names 'a', but this member is 'B'" in err
+    assert "Traceback" not in err
