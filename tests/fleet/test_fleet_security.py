@@ -48,7 +48,7 @@ class Fleet:
     def channels(self) -> list[str]:
         """The data channels the members listen to (not the hellos')."""
         both = self.instance_transport.channels | self.cli_transport.channels
-        return sorted(both - {HELLO_CHANNEL})
+        return sorted(c for c in both if not c.startswith(HELLO_CHANNEL))
 
     def member(self, stack: ExitStack, name: str = "B") -> FleetAuth:
         """An authentic member on its own transport whose hellos crossed with both members'."""
