@@ -68,6 +68,9 @@ HELLO_MIN_S: Final = 0.05
 #: crossing) names them in its hello; we re-send them to it if they are at most this old.
 BACKLOG_S: Final = 2.0
 _MISSED_MAX: Final = 256  # the last this many per sender session; as many senders at most
+#: At most this many of the newest missed messages are asked for again at once: in a large fleet
+#: starting together, what the fleet protocols re-send anyway need not come twice.
+_RESEND_MAX: Final = 32
 _BACKLOG_MAX: Final = 256
 _TAG: Final = 16  # Poly1305 tag
 _RECIPIENT: Final = 4  # recipient tag
@@ -326,7 +329,7 @@ class SecureSession:
         for (name, session), seqs in list(self._missed.items()):
             # Without its grant, ask for the grant only: copies would be refused like the
             # originals. With it, ask once for what we could not open.
-            ask = list(seqs) if (name, session) in self.rx else []
+            ask = list(seqs)[-_RESEND_MAX:] if (name, session) in self.rx else []
             wants.setdefault(name, []).append(
                 _blob(_s(name)) + struct.pack(f">QH{len(ask)}Q", session, len(ask), *ask)
             )

@@ -238,7 +238,7 @@ def test_a_member_speaking_as_another_is_refused(bus: Bus, tmp_path: Path) -> No
     bus.transport().publish(HELLO_CHANNEL, forged_hello)
     # 2. mallory holds the operator's sending key (every member does, to decrypt) and rewrites
     # one of its commands: the operator's MAC for A, which mallory cannot make, no longer fits
-    captured = decode(spy.of(COMMAND_CHANNEL)[0])
+    captured = decode(spy.of(COMMAND_CHANNEL)[-1])  # sealed with an entry for A
     secure = mallory_link.auth._secure
     assert secure is not None
     rx = secure.rx["operator", captured.stamp_us]
