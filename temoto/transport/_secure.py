@@ -34,30 +34,8 @@ from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 from temoto.lcm_types import envelope_t
 from temoto.transport.identity import Credentials
 
-#: The channel of the hellos that announce a boot (every member listens to it); the hellos
-#: that grant keys to one member go to that member's own channel (:func:`keys_channel`).
+#: The channel of hellos.
 HELLO_CHANNEL: Final = "TEMOTO_KEYS"
-_CHANNEL_CHARS = frozenset("ABCDEFGHIJKLMNOPQRSTUVWXYZabcdefghijklmnopqrstuvwxyz0123456789_.:-")
-
-
-def keys_channel(member: str) -> str:
-    """The channel of the hellos addressed to one member.
-
-    ``TEMOTO_KEYS_<name>`` if the name is at most 40 characters of ``A-Z a-z 0-9 _ . : -``,
-    else ``TEMOTO_KEYS_`` and 16 hex digits of its BLAKE2b hash.
-
-    Args:
-        member: The member's name.
-
-    Returns:
-        The channel name.
-    """
-    if 0 < len(member) <= 40 and _CHANNEL_CHARS.issuperset(member):
-        return f"{HELLO_CHANNEL}_{member}"
-    digest = hashlib.blake2b(member.encode("utf-8", "surrogatepass"), digest_size=8).hexdigest()
-    return f"{HELLO_CHANNEL}_{digest}"
-
-
 #: The ``type`` of a hello envelope.
 HELLO_TYPE: Final = "fleet_hello"
 #: The envelope version of keyed fleets.
@@ -193,9 +171,6 @@ class SecureSession:
         self._resend: list[tuple[str, _Pair, list[int]]] = []  # after the next hello
         self._last_hello: float | None = None
         self._born = clock()
-        self._announce = True  # the next hello goes to everyone: a new boot (or key)
-        #: The channel of the hellos addressed to this member.
-        self.own_channel = keys_channel(sender)
         self._backlog: deque[tuple[int, float, str, str, bytes]] = deque(maxlen=_BACKLOG_MAX)
         self._rotate()
 
@@ -218,7 +193,6 @@ class SecureSession:
                     pair.owed = True
         self._backlog.clear()
         self._urgent = True
-        self._announce = True
 
     # --- roster -------------------------------------------------------------------------------
 
@@ -276,7 +250,7 @@ class SecureSession:
         ):
             self._urgent = self._dirty = False
             self._last_hello = now
-            self._outgoing[:0] = self._hellos(now)
+            self._outgoing[:0] = [(HELLO_CHANNEL, self._hello(now))]
         out, self._outgoing = self._outgoing, []
         return out
 
@@ -301,55 +275,41 @@ class SecureSession:
             tag_in=way(it, me, b"tag")[:_RECIPIENT],
         )
 
-    def _hellos(self, now: float) -> list[tuple[str, bytes]]:
-        """The hellos due, then re-sent messages.
-
-        One hello to everyone after a new boot or key, then one per member we owe a grant or
-        ask for one, on that member's own channel: a fleet of N members starting together
-        costs O(N^2) hello receptions, not O(N^3).
-        """
-        out = []
-        if self._announce:
-            self._announce = False
-            out.append((HELLO_CHANNEL, self._hello(HELLO_CHANNEL, [], [])))
-        grants: dict[str, list[bytes]] = {}
+    def _hello(self, now: float) -> bytes:
+        parts = [self.e_pub, struct.pack(">H", 0)]
+        count = 0
+        fresh: list[_Pair] = []
         for name, peer in sorted(self._peers.items()):
             for pair in {id(p): p for p in (peer.current, peer.candidate) if p}.values():
-                if not pair.owed:  # granted already
+                if not pair.owed:  # granted already: hellos stay small in a large fleet
                     continue
                 pair.owed = False
                 if pair.first_floor is None:
                     pair.first_floor = self.seq
+                    fresh.append(pair)
                 nonce = os.urandom(12)
                 plain = _GRANT_PLAIN.pack(self._g, self.session, self.seq)
                 ad = _blob(_s(self.fleet), _s(self.sender), self.e_pub, _s(name), pair.e_pub)
                 grant = nonce + pair.grant_out.encrypt(nonce, plain, ad)
-                grants.setdefault(name, []).append(_blob(_s(name)) + pair.e_pub[:_HINT] + grant)
-        wants: dict[str, list[bytes]] = {}
+                parts.append(_blob(_s(name)) + pair.e_pub[:_HINT] + grant)
+                count += 1
+        parts[1] = struct.pack(">H", count)
+        parts.append(struct.pack(">H", len(self._missed)))
         for (name, session), seqs in list(self._missed.items()):
             # Without its grant, ask for the grant only: copies would be refused like the
             # originals. With it, ask once for what we could not open.
             ask = list(seqs)[-_RESEND_MAX:] if (name, session) in self.rx else []
-            wants.setdefault(name, []).append(
-                _blob(_s(name)) + struct.pack(f">QH{len(ask)}Q", session, len(ask), *ask)
-            )
+            parts.append(_blob(_s(name)) + struct.pack(f">QH{len(ask)}Q", session, len(ask), *ask))
             if ask:
                 del self._missed[name, session]
-        for name in sorted(grants.keys() | wants.keys()):
-            channel = keys_channel(name)
-            out.append((channel, self._hello(channel, grants.get(name, []), wants.get(name, []))))
-        resend, self._resend = self._resend, []
-        self._resend_backlog(resend, now)
-        return out
-
-    def _hello(self, channel: str, grants: list[bytes], wants: list[bytes]) -> bytes:
-        parts = [self.e_pub, struct.pack(">H", len(grants)), *grants]
-        parts += [struct.pack(">H", len(wants)), *wants]
-        env = self._envelope(HELLO_TYPE, b"".join(parts), 0)
+        body = b"".join(parts)
+        env = self._envelope(HELLO_TYPE, body, 0)
         unsigned: bytes = env.encode()  # type: ignore[no-untyped-call]
-        proof = self._prove(_s(channel) + b"\0" + unsigned)
+        proof = self._prove(_s(HELLO_CHANNEL) + b"\0" + unsigned)
         env.mac_size, env.mac = len(proof), proof
         hello: bytes = env.encode()  # type: ignore[no-untyped-call]
+        resend, self._resend = self._resend, []
+        self._resend_backlog(resend, now)
         return hello
 
     def _prove(self, data: bytes) -> bytes:
@@ -364,7 +324,7 @@ class SecureSession:
         assert self._key is not None
         return hmac.compare_digest(hmac.digest(self._key, data, "sha256"), proof)
 
-    def open_hello(self, channel: str, env: envelope_t, data: bytes) -> str | None:
+    def open_hello(self, env: envelope_t, data: bytes) -> str | None:
         """Take a hello in; returns a drop reason, or None when it was used (or of no use)."""
         sender: str = env.sender
         body: bytes = env.payload
@@ -386,7 +346,7 @@ class SecureSession:
         ):
             return None  # a hello for others from a peer we share keys with: nothing to do
         unsigned = data[: len(data) - 2 - env.mac_size] + b"\0\0"
-        if not self._check_proof(sender, env.mac, _s(channel) + b"\0" + unsigned):
+        if not self._check_proof(sender, env.mac, _s(HELLO_CHANNEL) + b"\0" + unsigned):
             return "forged"
         peer = self._peers.setdefault(sender, _Peer())
         if e_pub in peer.retired:

@@ -556,14 +556,6 @@ class FleetAuth:
         where = f" in {str(roster.path)!r}" if roster.path is not None else ""
         return f"permission denied: {who!r} may not {action} on {target!r} (fleet policy{where})"
 
-    @property
-    def keys_channel(self) -> str | None:
-        """The channel of the hellos addressed to this member (None for insecure fleets).
-
-        A :class:`FleetLink` listens to it and to :data:`HELLO_CHANNEL`.
-        """
-        return None if self._secure is None else self._secure.own_channel
-
     def hello_due_in(self) -> float | None:
         """Seconds until a held-back hello may be sent (keyed fleets; hellos are rate-limited).
 
@@ -744,10 +736,8 @@ class FleetAuth:
             self._check_roster()
             if self.credentials is not None and self.credentials.roster.key_of(sender) is None:
                 return "unknown_member", sender, ""
-            if env.type == HELLO_TYPE and channel.startswith(HELLO_CHANNEL):
-                if channel not in (HELLO_CHANNEL, self._secure.own_channel):
-                    return "not_for_us", sender, ""  # another member's (a shared bus)
-                reason = self._secure.open_hello(channel, env, data)
+            if channel == HELLO_CHANNEL and env.type == HELLO_TYPE:
+                reason = self._secure.open_hello(env, data)
                 if reason is not None:
                     return reason, sender, ""
                 self._counts["hello"] += 1
@@ -810,15 +800,11 @@ class FleetLink:
         self._errors_lock = threading.Lock()
         self._log = _LogLimiter()
         self._hellos: Subscription | None = None
-        self._own_hellos: Subscription | None = None
         self._timer: threading.Timer | None = None
         self._timer_lock = threading.Lock()
         self._hello_seen = threading.Condition()
         if not auth.insecure:
             self._hellos = transport.subscribe(HELLO_CHANNEL, self._on_hello)
-            own = auth.keys_channel
-            if own is not None:
-                self._own_hellos = transport.subscribe(own, self._on_hello)
             self._flush()
 
     def _on_hello(self, channel: str, data: bytes) -> None:
