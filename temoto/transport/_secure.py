@@ -46,9 +46,9 @@ HELLO_MIN_S: Final = 0.05
 #: crossing) names them in its hello; we re-send them to it if they are at most this old.
 BACKLOG_S: Final = 2.0
 _MISSED_MAX: Final = 256  # the last this many per sender session; as many senders at most
-#: At most this many of the newest missed messages are asked for again at once: in a large fleet
-#: starting together, what the fleet protocols re-send anyway need not come twice.
-_RESEND_MAX: Final = 32
+#: At most this many of the newest missed messages are asked for again at once (all that are
+#: kept: a burst sent while the hellos cross arrives whole).
+_RESEND_MAX: Final = _MISSED_MAX
 _BACKLOG_MAX: Final = 256
 _TAG: Final = 16  # Poly1305 tag
 _RECIPIENT: Final = 4  # recipient tag
