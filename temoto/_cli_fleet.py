@@ -19,10 +19,13 @@ import time
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
-from typing import IO, Any, NamedTuple
+from typing import IO, TYPE_CHECKING, Any, NamedTuple
 
 from temoto._cli_signals import Interrupted, SignalExit, make_devices_safe
 from temoto.errors import ConfigError, GraphInputError
+
+if TYPE_CHECKING:
+    from temoto.transport.identity import Credentials
 
 __all__ = [
     "Interrupted",
@@ -69,6 +72,17 @@ def add_fleet_options(parser: argparse.ArgumentParser, description: str) -> None
         "--insecure",
         action="store_true",
         help="run without a fleet key: any host on the network could take part",
+    )
+    fleet.add_argument(
+        "--fleet-identity",
+        metavar="FILE",
+        help="this member's identity file (temoto keys new), instead of a shared fleet key;"
+        " default: $TEMOTO_FLEET_IDENTITY (docs/security.md)",
+    )
+    fleet.add_argument(
+        "--fleet-roster",
+        metavar="FILE",
+        help="the fleet's roster file, with --fleet-identity; default: $TEMOTO_FLEET_ROSTER",
     )
     fleet.add_argument(
         "--fleet-silence",
@@ -216,15 +230,33 @@ def close_recorder(recorder: Any) -> None:
     sys.stderr.write(f"temoto: recorded {count} message(s) to {recorder.path}\n")
 
 
-def fleet_key(args: argparse.Namespace, why: str) -> bytes | None:
-    """The fleet key from ``--fleet-key-file`` or the environment; None only with --insecure.
+def fleet_key(args: argparse.Namespace, why: str) -> bytes | Credentials | None:
+    """The fleet key, or the member's credentials; None only with --insecure.
+
+    The key comes from ``--fleet-key-file`` or ``$TEMOTO_FLEET_KEY``; the credentials from
+    ``--fleet-identity`` and ``--fleet-roster`` (or their environment variables), which win.
 
     Raises:
         GraphInputError: No key and no ``--insecure`` (``why`` says what needs it).
-        ConfigError: The key file cannot be read or holds no valid key.
+        ConfigError: The key file cannot be read or holds no valid key; an identity without a
+            roster; an unusable identity or roster.
     """
+    from temoto.transport import identity as ids
     from temoto.transport import key_from_env, key_from_text
 
+    identity = getattr(args, "fleet_identity", None) or os.environ.get(ids.IDENTITY_ENV)
+    roster = getattr(args, "fleet_roster", None) or os.environ.get(ids.ROSTER_ENV)
+    if identity or roster:
+        if not (identity and roster):
+            raise ConfigError(
+                "a fleet identity needs a roster and a roster an identity: give both"
+                " --fleet-identity and --fleet-roster"
+                f" (or ${ids.IDENTITY_ENV} and ${ids.ROSTER_ENV})"
+            )
+        try:
+            return ids.Credentials.load(identity, roster)
+        except ValueError as err:
+            raise ConfigError(str(err)) from None
     try:
         if args.fleet_key_file:
             text = Path(args.fleet_key_file).read_text().strip()
@@ -249,6 +281,8 @@ def fleet_link(args: argparse.Namespace, sender: str, why: str) -> Iterator[Any]
     from temoto.transport import FleetAuth, FleetLink, open_transport
 
     key = fleet_key(args, why)
+    if key is not None and not isinstance(key, bytes):
+        sender = key.identity.name  # a commander speaks as its identity
     transport = open_transport(args.fleet_url)
     try:
         yield FleetLink(transport, FleetAuth(args.fleet, sender, key, insecure=key is None))
@@ -330,7 +364,7 @@ def serve(args: argparse.Namespace) -> int:
 
 def _serve(
     args: argparse.Namespace,
-    key: bytes | None,
+    key: bytes | Credentials | None,
     state: StateFiles,
     transport: Any,
     recorder: Any,

@@ -80,6 +80,7 @@ from temoto._cli_fleet import (
     serve,
     watch,
 )
+from temoto._cli_keys import add_keys, keys_command
 from temoto._cli_router import add_router, router_command
 from temoto._cli_run import add_run, run_command
 from temoto._cli_sim import add_sim, sim_command
@@ -414,4 +415,5 @@ COMMANDS: tuple[Command, ...] = (
     Command("sim", add_sim, sim_command),
     Command("router", add_router, router_command),
     Command("view", add_view, view_command),
+    Command("keys", add_keys, keys_command),
 )

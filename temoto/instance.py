@@ -47,6 +47,7 @@ from temoto.transport.auth import FleetAuth, FleetLink
 from temoto.transport.base import Transport
 
 if TYPE_CHECKING:
+    from temoto.transport.identity import Credentials
     from temoto.web import LiveView
 
 __all__ = ["Instance"]
@@ -60,7 +61,8 @@ class Instance(Closing):
     Args:
         actor: The robot's (or station's) name: the engine's actor and the fleet sender id.
         transport: The fleet transport; the instance closes it (also when it cannot start).
-        key: The fleet key, or None with ``insecure=True``.
+        key: The fleet key, or this member's credentials (identity and roster,
+            docs/security.md), or None with ``insecure=True``.
         fleet: The fleet's name (part of every message's authentication).
         insecure: Run without a key (any host could command this instance; logged).
         actions: Folders of actions.
@@ -95,7 +97,7 @@ class Instance(Closing):
         actor: str,
         *,
         transport: Transport,
-        key: bytes | None,
+        key: bytes | Credentials | None,
         fleet: str = "temoto",
         insecure: bool = False,
         actions: Iterable[str | Path] = (),

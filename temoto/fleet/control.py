@@ -19,7 +19,10 @@ Every message is authenticated by the :class:`~temoto.transport.auth.FleetLink` 
 without the fleet key cannot start a graph: its commands are dropped and counted). A message
 that is well formed but meaningless (no targets, an unknown command) is counted and dropped; a
 command that fails (no such graph, an invalid graph, a graph already running) is answered with
-``ERROR`` and the engine's message.
+``ERROR`` and the engine's message. In a fleet with a roster, a command its sender may not give
+on this robot (``graph.start`` ... ``graph.modify`` in the roster's ``permissions``,
+docs/security.md) is answered with ``ERROR`` and the reason, logged at WARNING and counted as
+``refused``.
 """
 
 from __future__ import annotations
@@ -150,6 +153,7 @@ class GraphControlServer(Closing):
         "resent",  # re-sent commands answered from the kept reply
         "ignored",  # commands for other actors
         "failed",  # commands answered with ERROR
+        "refused",  # of those, refused by the fleet policy (docs/security.md)
         "feedback_sent",
         "decode_errors",
         "unexpected",  # well-formed but meaningless: wrong type, no targets, unknown command
@@ -249,19 +253,32 @@ class GraphControlServer(Closing):
             self._send_reply(kept)
             return
         try:
-            self._pool.submit(self._carry_out, msg)
+            self._pool.submit(self._carry_out, msg, opened.sender)
         except RuntimeError:  # closed meanwhile
             with self._lock:
                 self._running.discard(msg.request_id)
 
-    def _carry_out(self, msg: Any) -> None:
+    def _carry_out(self, msg: Any, sender: str) -> None:
         """Worker thread: run one command on the engine and answer it."""
         reply = new(graph_command_reply_t)
         reply.request_id, reply.actor = msg.request_id, self.actor
         reply.graph, reply.session = msg.graph, msg.session
         reply.code, reply.result, reply.message, reply.errors = _OK, "", "", "[]"
+        refusal = self._link.auth.refusal(sender, f"graph.{_NAMES[msg.command]}", self.actor)
+        if refusal is not None:  # the fleet policy (docs/security.md): answered and logged
+            reply.code, reply.message = _ERROR, refusal
+            reply.errors = json.dumps([f"PermissionError: {refusal}"])
+            logger.warning(
+                "actor %r: refused graph command %s from %r (%s): %s",
+                self.actor,
+                _NAMES[msg.command],
+                sender,
+                msg.request_id,
+                refusal,
+            )
         try:
-            reply.graph, reply.session, reply.result, reply.message = self._execute(msg)
+            if refusal is None:
+                reply.graph, reply.session, reply.result, reply.message = self._execute(msg)
         except (TemotoError, ValueError, TypeError, KeyError, TimeoutError) as err:
             text = err.args[0] if isinstance(err, KeyError) and err.args else str(err)
             reply.code, reply.message = _ERROR, text or type(err).__name__
@@ -280,6 +297,8 @@ class GraphControlServer(Closing):
                 self._replies.popitem(last=False)
             if reply.code == _ERROR:
                 self._counts["failed"] += 1
+            if refusal is not None:
+                self._counts["refused"] += 1
         self._send_reply(reply)
 
     def _execute(self, msg: Any) -> tuple[str, str, str, str]:

@@ -575,7 +575,10 @@ class Recorder(Instrument):
             message.update(sender="", type="", seq=0, stamp_us=0, signed=False)
         self.put(f"/fleet/{channel}", "temoto.FleetMessage", message)
         if message["type"] == "handshake_t" and channel == "TEMOTO_HANDSHAKE":
-            for actor in _handshake_actors(env.payload):
+            # A keyed fleet encrypts the payload (docs/security.md): every participant sends
+            # handshakes, so its name as a sender is enough; an insecure one names them all.
+            actors = [message["sender"], *_handshake_actors(env.payload)]
+            for actor in dict.fromkeys(a for a in actors if a):
                 self._listen_acks(actor)
 
 

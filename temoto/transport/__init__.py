@@ -1,14 +1,17 @@
 """Messaging between TeMoto instances: transports, and the authentication of fleet envelopes.
 
 Layering (docs/fleet.md): ``temoto.transport`` sits below ``temoto.fleet`` and imports only
-:mod:`temoto.errors` and the generated :mod:`temoto.lcm_types`; ``temoto.core`` never imports it.
+:mod:`temoto.errors` and the generated :mod:`temoto.lcm_types` (and ``cryptography`` and PyYAML,
+when a keyed fleet or a roster needs them); ``temoto.core`` never imports it.
 
 * :class:`Transport` moves bytes on named channels: :class:`LcmTransport` over LCM (multicast
   UDP between robots on one segment), :class:`ZenohTransport` over Zenoh (peers, or clients
   through routers, across subnets; docs/zenoh.md), :class:`InProcessTransport` between
   instances in one process (tests). :func:`open_transport` picks one from a URL.
-* :class:`FleetAuth` seals and checks the envelopes every fleet message travels in (HMAC-SHA256,
-  replay window, drop counters); :class:`FleetLink` runs it on a transport.
+* :class:`FleetAuth` seals and checks the envelopes every fleet message travels in (sessions
+  per boot, ChaCha20-Poly1305, replay window, drop counters; docs/security.md);
+  :class:`FleetLink` runs it on a transport and its hellos. Identities and the roster (a key
+  per member, permissions): :mod:`temoto.transport.identity`.
 * :mod:`temoto.transport.codec` encodes and decodes the inner messages.
 
 Importing this package opens nothing and imports neither the ``lcm`` nor the ``zenoh`` wheel.

@@ -1,8 +1,17 @@
-r"""Fleet authentication: sealed envelopes, HMAC-SHA256 and a replay window (docs/fleet.md).
+r"""Fleet security: sealed envelopes, per-boot sessions, encryption (docs/security.md).
 
 Every fleet message travels in an ``envelope_t`` (:mod:`temoto.lcm_types`). :meth:`FleetAuth.seal`
 wraps an inner message into one; :meth:`FleetAuth.open` checks a received one and returns its
-content, or None after counting why it was dropped. The checks, in order:
+content, or None after counting why it was dropped.
+
+A keyed fleet (a shared fleet key, or :class:`~temoto.transport.identity.Credentials`: an
+identity per member and a roster) writes envelope version 2: members exchange hellos on
+:data:`HELLO_CHANNEL` that give every peer a grant of this boot's sending key, bound to the
+peer's own boot (X25519), and every payload is encrypted with ChaCha20-Poly1305; with a roster
+each message also carries one MAC per recipient, so a member cannot speak as another. A message
+captured before a receiver restarted is refused by it whatever the clocks say (the argument is
+in docs/security.md). An ``--insecure`` fleet writes version 1 envelopes without a mac. The
+checks, in order:
 
 =================  ===============================================================================
 ``garbage``        not a canonically encoded envelope (wrong fingerprint, truncated, trailing bytes)
@@ -11,54 +20,60 @@ content, or None after counting why it was dropped. The checks, in order:
 ``self``           our own message, echoed back by multicast
 ``unsigned``       no mac, but this fleet has a key
 ``unexpected_mac`` a mac, but this fleet runs insecure (keyed and insecure fleets never mix)
-``forged``         the mac is wrong: another key, a changed byte, or another channel
-``stale``          the sender's stamp is more than ``window_s`` away from our clock
-``replayed``       a sequence number already seen, or too far below the highest seen
+``unknown_member`` a sender not (or no longer) in the roster: never added, or revoked
+``forged``         the mac, signature or AEAD tag is wrong: another key, a changed byte, another
+                   channel, or a member speaking as another
+``no_session``     a keyed sender whose session key we were not granted (yet): before the
+                   hellos crossed, or a message from before our restart; triggers our hello
+``not_for_us``     a message addressed to other members only
+``stale``          (insecure fleets) the sender's stamp is more than ``window_s`` from our clock
+``replayed``       a sequence number already seen, or too far below the highest seen, or a
+                   hello of a boot the sender has left
 =================  ===============================================================================
 
-Drops that mean a member cannot be heard (every reason but ``self``, the multicast echo, and
-``fleet``, another fleet on the same network, which are logged at DEBUG only) are logged at
+Drops that mean a member cannot be heard (every reason but ``self``, the multicast echo,
+``fleet``, another fleet on the same network, ``no_session`` and ``not_for_us``, normal while
+hellos cross, which are logged at DEBUG only) are logged at
 WARNING, naming the claimed sender and the reason: the first drop of each sender and reason at
 once, later ones as one summary line with counts at most every :data:`DROP_SUMMARY_S` seconds
 (written with the next drop after that interval, or by :meth:`FleetAuth.log_drop_summary` when
 the member stops). :attr:`FleetAuth.stats` always has the exact counts.
 
-The mac is ``HMAC-SHA256(key, channel + b"\0" + envelope encoded with an empty mac)``, so it
-covers the channel too: a captured message cannot be replayed on another channel. Replay
-protection follows IPsec (RFC 4303 §3.4.3): per sender, the highest sequence number seen and a
-bitmap of the 64 below it; reordering inside that window is accepted, a duplicate or anything
-older is not. A sender's numbers start at its boot time in microseconds and go up by one per
-message, so a restarted sender continues above its old numbers. The ``stamp_us`` check bounds
-how long a captured message stays usable against a receiver that lost its replay state
-(restarted, or forgot a sender not heard for ``10 * window_s``).
+Every check covers the channel too: a captured message cannot be replayed on another channel.
+Replay protection follows IPsec (RFC 4303 §3.4.3): per sender session, the highest sequence
+number seen and a bitmap of the 64 below it; reordering inside that window is accepted, a
+duplicate or anything older is not.
 
-:class:`FleetLink` wires a :class:`FleetAuth` to a :class:`~temoto.transport.base.Transport`.
+:class:`FleetLink` wires a :class:`FleetAuth` to a :class:`~temoto.transport.base.Transport`
+and runs the hellos.
 """
 
 from __future__ import annotations
 
 import base64
 import binascii
-import hashlib
-import hmac
 import logging
 import math
 import os
 import string
-import struct
 import threading
 import time
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
-from typing import final
+from typing import TYPE_CHECKING, final
 
 from temoto.lcm_types import envelope_t
 from temoto.transport.base import Subscription, Transport, _LogLimiter
+from temoto.transport.identity import Credentials, RosterError
+
+if TYPE_CHECKING:
+    from temoto.transport._secure import SecureSession
 
 __all__ = [
     "DROP_REASONS",
     "DROP_SUMMARY_S",
     "ENVELOPE_VERSION",
+    "HELLO_CHANNEL",
     "KEY_ENV",
     "MIN_KEY_BYTES",
     "REPLAY_WINDOW",
@@ -71,8 +86,10 @@ __all__ = [
 
 logger = logging.getLogger(__name__)
 
-#: The envelope format this code writes and accepts.
+#: The envelope format of insecure fleets (keyed fleets write version 2, docs/security.md).
 ENVELOPE_VERSION = 1
+#: The channel of the keyed fleets' hellos (session key grants).
+HELLO_CHANNEL = "TEMOTO_KEYS"
 #: The environment variable holding the fleet key (hex or base64).
 KEY_ENV = "TEMOTO_FLEET_KEY"
 #: The shortest key accepted, in bytes (the HMAC-SHA256 output size).
@@ -87,13 +104,16 @@ DROP_REASONS = (
     "self",
     "unsigned",
     "unexpected_mac",
+    "unknown_member",
     "forged",
+    "no_session",
+    "not_for_us",
     "stale",
     "replayed",
 )
 
 #: Drops that are normal on a shared network and logged at DEBUG only; the others at WARNING.
-_QUIET_REASONS = frozenset({"self", "fleet"})
+_QUIET_REASONS = frozenset({"self", "fleet", "no_session", "not_for_us"})
 #: Seconds between two summary lines of dropped messages (WARNING).
 DROP_SUMMARY_S = 10.0
 #: At most this many (sender, reason) pairs get a line of their own; any later pair (a stranger
@@ -104,9 +124,9 @@ _MAX_NAME_CHARS = 64
 #: A summary line lists at most this many (sender, reason) pairs.
 _MAX_SUMMARY_PAIRS = 8
 
-_MAC_SIZE = hashlib.sha256().digest_size
-_MAC_SIZE_FIELD = struct.pack(">h", _MAC_SIZE)
-_NO_MAC_FIELD = struct.pack(">h", 0)
+_SECURE_VERSION = 2
+#: Seconds between two looks at the roster file when sealing (opening looks every time).
+_SEAL_ROSTER_CHECK_S = 0.05
 _WINDOW_MASK = (1 << REPLAY_WINDOW) - 1
 # A sender not heard for this many windows is forgotten; its old messages are stale by then.
 _FORGET_AFTER_WINDOWS = 10
@@ -119,7 +139,10 @@ _EXPLAIN = {
     "self": "our own message",
     "unsigned": "no mac, but this fleet has a key",
     "unexpected_mac": "a mac, but this fleet runs insecure",
+    "unknown_member": "not a member of the roster",
     "forged": "wrong mac",
+    "no_session": "no session key granted by this sender (yet)",
+    "not_for_us": "addressed to other members",
     "stale": "stamp outside the time window",
     "replayed": "sequence number already seen or too old",
 }
@@ -131,10 +154,17 @@ _WARN_EXPLAIN = {
     "version": ("an unknown envelope version", "does the sender run another TeMoto version?"),
     "unsigned": ("no mac, but this fleet has a key", "does the sender run --insecure?"),
     "unexpected_mac": ("a mac, but this member runs --insecure", "the sender has a fleet key"),
+    "unknown_member": (
+        "not a member of the roster",
+        "never added, or revoked (temoto keys list ROSTER)",
+    ),
     "forged": (
         "wrong mac",
-        f"sealed with another fleet key (check {KEY_ENV} or --fleet-key-file), or changed",
+        f"sealed with another fleet key (check {KEY_ENV} or --fleet-key-file), changed, or a"
+        " member speaking as another",
     ),
+    "no_session": ("no session key granted", "the hellos have not crossed yet"),
+    "not_for_us": ("addressed to other members", "normal"),
     "stale": ("time stamp outside the window", "are the clocks synchronised (NTP)?"),
     "replayed": (
         "sequence number already seen or too old",
@@ -285,11 +315,12 @@ class Opened:
 
     Attributes:
         channel: The channel it came on.
-        sender: The sender's id.
+        sender: The sender's id (authenticated: with a roster, the member itself sent it).
         type: The inner message's type name (e.g. ``"handshake_t"``).
-        payload: The inner message, LCM-encoded.
+        payload: The inner message, LCM-encoded (decrypted).
         seq: The sender's sequence number.
-        stamp_us: The sender's wall clock when sealing, microseconds since the epoch.
+        stamp_us: Insecure fleets: the sender's wall clock when sealing, microseconds since
+            the epoch; keyed fleets: the sender's session id.
     """
 
     channel: str
@@ -313,19 +344,31 @@ class _Peer:
 class FleetAuth:
     """Seals outgoing and checks incoming envelopes of one fleet member.
 
+    A keyed member exchanges hellos before its peers can open its messages: a
+    :class:`FleetLink` does that; used alone, publish what :meth:`take_outgoing` returns after
+    every :meth:`seal` and :meth:`open`.
+
     Args:
         fleet: The fleet name; envelopes of other fleets are dropped.
         sender: This member's id, unique in the fleet.
-        key: The shared fleet key (at least 32 bytes; see :func:`key_from_text`), or None
-            together with ``insecure=True``.
+        key: The shared fleet key (at least 32 bytes; see :func:`key_from_text`), or the
+            member's credentials (as ``credentials``), or None together with ``insecure=True``
+            or ``credentials``.
         insecure: Run without a key: seal without a mac and accept only envelopes without one.
             Anyone on the network can then forge, alter or replay messages; logged as a warning.
-        window_s: Largest accepted difference between a sender's stamp and our clock.
+        window_s: Insecure fleets: largest accepted difference between a sender's stamp and our
+            clock.
         clock: Wall clock in seconds since the epoch (injected by tests).
+        credentials: This member's identity and the fleet roster, instead of a shared key:
+            hellos are signed and every message carries a MAC per recipient.
+        roster_check_s: Seconds between two looks at the roster file (default: at every
+            message opened, so a revocation takes effect at the next message; at most every
+            50 ms when sealing).
 
     Raises:
         ValueError: If a name is empty, the key is missing without ``insecure=True``, given
-            together with it, or too short, or ``window_s`` is not positive.
+            together with it or with credentials, or too short, the identity's name is not
+            ``sender``, or ``window_s`` is not positive.
         TypeError: If the key is not bytes.
     """
 
@@ -333,16 +376,32 @@ class FleetAuth:
         self,
         fleet: str,
         sender: str,
-        key: bytes | None,
+        key: bytes | Credentials | None,
         *,
         insecure: bool = False,
         window_s: float = 30.0,
         clock: Callable[[], float] = time.time,
+        credentials: Credentials | None = None,
+        roster_check_s: float = 0.0,
     ) -> None:
         for what, name in (("fleet", fleet), ("sender", sender)):
             if not isinstance(name, str) or not name:
                 raise ValueError(f"the {what} name must be a non-empty string, got {name!r}")
-        if key is None and not insecure:
+        if isinstance(key, Credentials):
+            if credentials is not None:
+                raise ValueError("credentials given twice")
+            key, credentials = None, key
+        if credentials is not None:
+            if key is not None or insecure:
+                raise ValueError("credentials exclude a fleet key and insecure=True")
+            if credentials.identity.name != sender:
+                from temoto.errors import ConfigError  # a ValueError the CLI reports in a line
+
+                raise ConfigError(
+                    f"the fleet identity names {credentials.identity.name!r}, but this member"
+                    f" is {sender!r} (--actor): give it its own identity file"
+                )
+        elif key is None and not insecure:
             raise ValueError(
                 f"no fleet key for fleet {fleet!r}: set {KEY_ENV} (hex or base64, at least "
                 f"{MIN_KEY_BYTES} bytes) or run insecure explicitly (--insecure)"
@@ -366,8 +425,16 @@ class FleetAuth:
         self._clock = clock
         self._seq_lock = threading.Lock()
         self._seq = round(clock() * 1e6) - 1  # the first message carries the boot time
-        self._lock = threading.Lock()  # guards _counts, _peers, _next_prune
-        self._counts = dict.fromkeys(("accepted", *DROP_REASONS), 0)
+        self._lock = threading.Lock()  # guards _counts, _peers, _next_prune, _secure
+        self._secure: SecureSession | None = None
+        self.credentials = credentials
+        self.roster_check_s = float(roster_check_s)
+        self._last_roster_check: float | None = None
+        if not insecure:
+            from temoto.transport._secure import SecureSession
+
+            self._secure = SecureSession(fleet, sender, key, credentials, clock)
+        self._counts = dict.fromkeys(("accepted", "hello", *DROP_REASONS), 0)
         self._peers: dict[str, _Peer] = {}
         self._next_prune = clock() + self.window_s
         self._log = _LogLimiter()  # the DEBUG lines of quiet drops
@@ -381,17 +448,20 @@ class FleetAuth:
             )
 
     def __repr__(self) -> str:
-        mode = "insecure" if self.insecure else "keyed"
+        mode = "insecure" if self.insecure else "roster" if self.credentials else "keyed"
         return f"<FleetAuth fleet={self.fleet!r} sender={self.sender!r} {mode}>"
 
     @property
     def insecure(self) -> bool:
         """Whether this member runs without a key."""
-        return self._key is None
+        return self._secure is None
 
     @property
     def stats(self) -> dict[str, int]:
-        """A copy of the counters: ``accepted`` and one per reason in :data:`DROP_REASONS`."""
+        """A copy of the counters: ``accepted``, ``hello`` and one per :data:`DROP_REASONS`.
+
+        ``hello``: the hellos taken in (keyed fleets).
+        """
         with self._lock:
             return dict(self._counts)
 
@@ -413,6 +483,12 @@ class FleetAuth:
         """
         if not isinstance(payload, bytes | bytearray):
             raise TypeError(f"payload must be bytes, got {type(payload).__name__}")
+        if self._secure is not None:
+            with self._lock:
+                # what we send matters less than what we take in: a removed member gets
+                # our new session key at most _SEAL_ROSTER_CHECK_S late, and opens nothing
+                self._check_roster(_SEAL_ROSTER_CHECK_S)
+                return self._secure.seal(channel, type_name, bytes(payload))
         with self._seq_lock:
             self._seq += 1
             seq = self._seq
@@ -428,10 +504,102 @@ class FleetAuth:
         env.mac_size = 0
         env.mac = b""
         body: bytes = env.encode()  # type: ignore[no-untyped-call]
-        if self._key is None:
-            return body
-        # The mac is the last field: swap the empty one (its int16 size, 0) for the real one.
-        return body[: -len(_NO_MAC_FIELD)] + _MAC_SIZE_FIELD + self._mac(channel, body)
+        return body
+
+    def take_outgoing(self) -> list[tuple[str, bytes]]:
+        """What this member must publish now: a due hello, re-sent first messages (keyed fleets).
+
+        Returns:
+            (channel, data) pairs, in order; empty for insecure fleets.
+        """
+        secure = self._secure
+        if secure is None or not secure.pending:  # the common case, without the lock
+            return []
+        with self._lock:
+            self._check_roster(_SEAL_ROSTER_CHECK_S)
+            return secure.take_outgoing()
+
+    @property
+    def peers(self) -> frozenset[str]:
+        """Members whose messages this member can open now.
+
+        Keyed fleets: they granted us their session; empty for insecure fleets (no sessions).
+        """
+        if self._secure is None:
+            return frozenset()
+        with self._lock:
+            return self._secure.peers()
+
+    def refusal(self, who: str, action: str, target: str) -> str | None:
+        """Why the fleet policy refuses ``who`` doing ``action`` on ``target``.
+
+        Only fleets with a roster have a policy (its ``permissions``); without one, or without
+        a roster (a shared fleet key or ``--insecure``: nobody is told apart), everything is
+        allowed.
+
+        Args:
+            who: The authenticated sender (:attr:`Opened.sender`).
+            action: One of :data:`~temoto.transport.identity.ACTIONS`, e.g. ``"graph.start"``.
+            target: The robot or resource server it concerns.
+
+        Returns:
+            None when allowed; else the reason, to answer and log.
+        """
+        if self.credentials is None:
+            return None
+        with self._lock:
+            self._check_roster()
+            roster = self.credentials.roster
+            policy = roster.policy
+        if policy is None or policy.allows(who, action, target):
+            return None
+        where = f" in {str(roster.path)!r}" if roster.path is not None else ""
+        return f"permission denied: {who!r} may not {action} on {target!r} (fleet policy{where})"
+
+    def hello_due_in(self) -> float | None:
+        """Seconds until a held-back hello may be sent (keyed fleets; hellos are rate-limited).
+
+        Returns:
+            The delay after which :meth:`take_outgoing` will return it, or None when no hello
+            is held back.
+        """
+        secure = self._secure
+        if secure is None or not secure.pending:
+            return None
+        with self._lock:
+            return secure.hello_due_in()
+
+    def _check_roster(self, every: float = 0.0) -> None:
+        """Re-read a changed roster file; forget removed members at once. ``_lock`` held.
+
+        Args:
+            every: Look at the file at most this often (and at most every ``roster_check_s``).
+        """
+        if self.credentials is None or self._secure is None:
+            return
+        now = self._clock()
+        last = self._last_roster_check
+        if last is not None and last <= now < last + max(every, self.roster_check_s):
+            return
+        self._last_roster_check = now
+        roster = self.credentials.roster
+        before = set(roster.members)
+        try:
+            changed = roster.refresh()
+        except RosterError as err:
+            logger.error("fleet %r: keeping the roster as it was: %s", self.fleet, err)
+            return
+        if not changed:
+            return
+        gone = before - set(roster.members)
+        gone |= {name for name, key in roster.revoked if roster.key_of(name) != key}
+        logger.warning(
+            "fleet %r: the roster changed (%d members); refusing %s from now on",
+            self.fleet,
+            len(roster.members),
+            ", ".join(map(repr, sorted(gone))) or "nobody new",
+        )
+        self._secure.forget(gone)
 
     # --- receiving ----------------------------------------------------------------------------
 
@@ -452,6 +620,8 @@ class FleetAuth:
         if isinstance(result, Opened):
             return result
         reason, sender, detail = result
+        if reason == "hello":
+            return None
         first, summary = False, None
         with self._lock:
             self._counts[reason] += 1
@@ -523,22 +693,23 @@ class FleetAuth:
         if not canonical:
             return "garbage", None, ""
         sender: str = env.sender
-        if env.version != ENVELOPE_VERSION:
-            return "version", sender, f" (version {env.version})"
+        version: int = env.version
+        if version not in (ENVELOPE_VERSION, _SECURE_VERSION):
+            return "version", sender, f" (version {version})"
         if env.fleet != self.fleet:
             return "fleet", sender, ""
         if sender == self.sender:
             return "self", sender, ""
         mac_size: int = env.mac_size
-        if self._key is None:
-            if mac_size != 0:
+        if self._secure is None:
+            if mac_size != 0 or version != ENVELOPE_VERSION:
                 return "unexpected_mac", sender, ""
-        elif mac_size == 0:
-            return "unsigned", sender, ""
+        elif version == ENVELOPE_VERSION:
+            if mac_size == 0:
+                return "unsigned", sender, ""
+            return "version", sender, " (version 1: an older TeMoto with a fleet key)"
         else:
-            body = data[: len(data) - len(_MAC_SIZE_FIELD) - mac_size] + _NO_MAC_FIELD
-            if mac_size != _MAC_SIZE or not hmac.compare_digest(self._mac(channel, body), env.mac):
-                return "forged", sender, ""
+            return self._check_secure(channel, env, data)
         now = self._clock()
         stamp_us: int = env.stamp_us
         skew = stamp_us / 1e6 - now
@@ -553,11 +724,29 @@ class FleetAuth:
                 self._prune(now)
         return Opened(channel, sender, env.type, env.payload, seq, stamp_us)
 
-    def _mac(self, channel: str, body: bytes) -> bytes:
-        assert self._key is not None
-        # surrogatepass: no str makes this raise, so open() cannot either.
-        prefix = channel.encode("utf-8", "surrogatepass") + b"\0"
-        return hmac.digest(self._key, prefix + body, "sha256")
+    def _check_secure(
+        self, channel: str, env: envelope_t, data: bytes
+    ) -> Opened | tuple[str, str | None, str]:
+        """The checks of a version 2 envelope (keyed fleets)."""
+        from temoto.transport._secure import HELLO_TYPE
+
+        assert self._secure is not None
+        sender: str = env.sender
+        with self._lock:
+            self._check_roster()
+            if self.credentials is not None and self.credentials.roster.key_of(sender) is None:
+                return "unknown_member", sender, ""
+            if channel == HELLO_CHANNEL and env.type == HELLO_TYPE:
+                reason = self._secure.open_hello(env, data)
+                if reason is not None:
+                    return reason, sender, ""
+                self._counts["hello"] += 1
+                return "hello", sender, ""
+            sealed = self._secure.open_data(channel, env)
+            if isinstance(sealed, str):
+                return sealed, sender, ""
+            self._counts["accepted"] += 1
+        return Opened(channel, sender, sealed.type, sealed.payload, sealed.seq, sealed.session)
 
     def _admit(self, sender: str, seq: int, now: float) -> bool:
         """Apply the replay window; called with ``_lock`` held. True if ``seq`` is new."""
@@ -591,11 +780,17 @@ class FleetAuth:
 class FleetLink:
     """Sends and receives authenticated fleet messages: a :class:`FleetAuth` on a transport.
 
-    The link owns neither: close the transport yourself.
+    The link owns neither: close the transport yourself. A keyed link listens to
+    :data:`HELLO_CHANNEL` from its construction and sends its first hello at once; the hellos
+    (and the first messages, re-sent to each peer met in the first seconds) go out with the
+    link's sends and receives.
 
     Args:
         transport: Where envelopes travel.
         auth: Seals outgoing and checks incoming envelopes.
+
+    Raises:
+        TransportError: If the transport is closed.
     """
 
     def __init__(self, transport: Transport, auth: FleetAuth) -> None:
@@ -604,6 +799,57 @@ class FleetLink:
         self._handler_errors = 0
         self._errors_lock = threading.Lock()
         self._log = _LogLimiter()
+        self._hellos: Subscription | None = None
+        self._timer: threading.Timer | None = None
+        self._timer_lock = threading.Lock()
+        self._hello_seen = threading.Condition()
+        if not auth.insecure:
+            self._hellos = transport.subscribe(HELLO_CHANNEL, self._on_hello)
+            self._flush()
+
+    def _on_hello(self, channel: str, data: bytes) -> None:
+        self.auth.open(channel, data)
+        self._flush()
+        with self._hello_seen:
+            self._hello_seen.notify_all()
+
+    def wait_for_peers(self, names: Iterable[str], timeout: float) -> bool:
+        """Wait until this member can open the messages of every named member.
+
+        Sending needs no wait (what a peer could not open while the hellos crossed is re-sent
+        to it); this is for callers that must know the keys are agreed, e.g. tests.
+
+        Args:
+            names: The members.
+            timeout: Seconds to wait at most.
+
+        Returns:
+            True when they all granted us their session (always True for insecure fleets).
+        """
+        wanted = set(names)
+        if self.auth.insecure:
+            return True
+        with self._hello_seen:
+            return self._hello_seen.wait_for(lambda: wanted <= self.auth.peers, timeout)
+
+    def _flush(self) -> None:
+        """Publish what the auth wants sent (hellos, re-sent messages); never raises."""
+        for channel, data in self.auth.take_outgoing():
+            try:
+                self.transport.publish(channel, data)
+            except Exception as err:  # closed meanwhile: the peers hear us no more anyway
+                logger.debug("fleet %r: could not publish on %r: %s", self.auth.fleet, channel, err)
+                return
+        due = self.auth.hello_due_in()
+        if due is None:
+            return
+        with self._timer_lock:  # one short-lived thread sends a held-back hello when it is due
+            if self._timer is not None and self._timer.is_alive():
+                return
+            self._timer = threading.Timer(due + 0.001, self._flush)
+            self._timer.name = "temoto-fleet-hello"
+            self._timer.daemon = True
+            self._timer.start()
 
     def __repr__(self) -> str:
         return f"<FleetLink {self.auth!r} on {self.transport!r}>"
@@ -628,7 +874,9 @@ class FleetLink:
             TypeError: If ``payload`` is not bytes.
             TransportError: If the transport is closed or sending failed.
         """
-        self.transport.publish(channel, self.auth.seal(channel, type_name, payload))
+        data = self.auth.seal(channel, type_name, payload)
+        self._flush()
+        self.transport.publish(channel, data)
 
     def listen(
         self,
@@ -657,6 +905,8 @@ class FleetLink:
 
         def on_data(rx_channel: str, data: bytes) -> None:
             opened = self.auth.open(rx_channel, data)
+            if not self.auth.insecure:
+                self._flush()
             if opened is None:
                 return
             try:

@@ -21,7 +21,7 @@ from hypothesis import strategies as st
 
 from temoto.fleet.control import GraphCommander
 from temoto.instance import Instance
-from temoto.transport.auth import DROP_REASONS, FleetAuth, FleetLink
+from temoto.transport.auth import DROP_REASONS, HELLO_CHANNEL, FleetAuth, FleetLink
 from temoto.transport.inprocess import InProcessTransport
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -46,7 +46,19 @@ class Fleet:
 
     @property
     def channels(self) -> list[str]:
-        return sorted(self.instance_transport.channels | self.cli_transport.channels)
+        """The data channels the members listen to (not the hellos')."""
+        both = self.instance_transport.channels | self.cli_transport.channels
+        return sorted(c for c in both if not c.startswith(HELLO_CHANNEL))
+
+    def member(self, stack: ExitStack, name: str = "B") -> FleetAuth:
+        """An authentic member on its own transport whose hellos crossed with both members'."""
+        link = FleetLink(
+            stack.enter_context(InProcessTransport(self.bus)), FleetAuth("temoto", name, KEY)
+        )
+        assert link.wait_for_peers(["A", "cli"], WAIT)
+        assert self.instance.link.wait_for_peers([name], WAIT)
+        assert self.cli_link.wait_for_peers([name], WAIT)
+        return link.auth
 
     def links(self) -> list[FleetLink]:
         return [self.instance.link, self.cli_link]
@@ -108,24 +120,31 @@ def test_every_attack_on_every_channel_is_dropped_and_counted(fleet: Fleet) -> N
     assert {"TEMOTO_HANDSHAKE", "TEMOTO_NOTIFY", "TEMOTO_GRAPH_CMD"} <= set(channels)
     assert {"TEMOTO_GRAPH_REPLY", "TEMOTO_GRAPH_FEEDBACK"} <= set(channels)
     assert {"TEMOTO_RIS", "TEMOTO_RESOURCE", "TEMOTO_CONTEXT"} <= set(channels)
-    member = FleetAuth("temoto", "B", KEY)  # an authentic member whose messages we capture
-    stranger = FleetAuth("temoto", "B", OTHER_KEY)
-    before = fleet.drops()
-    inner_before = decode_errors(fleet)
-    for channel in channels:
-        fleet.attacker.publish(channel, b"\x00" * 7 + b"garbage that is no envelope")
-        fleet.attacker.publish(channel, stranger.seal(channel, "graph_command_t", b"\x01\x02"))
-        captured = member.seal(channel, "graph_command_t", b"\x00\x01 not lcm")
-        fleet.attacker.publish(channel, captured)  # authentic: its inner message is garbage
-        fleet.attacker.publish(channel, captured)  # the same bytes again
-        tampered = bytearray(member.seal(channel, "graph_command_t", b"\x00\x01 not lcm"))
-        tampered[len(tampered) // 2] ^= 0x01
-        fleet.attacker.publish(channel, bytes(tampered))
-    fleet.quiet()
+    with ExitStack() as stack:
+        member = fleet.member(stack)  # an authentic member whose messages we capture
+        stranger = FleetAuth("temoto", "B", OTHER_KEY)
+        fleet.quiet()
+        before = fleet.drops()
+        inner_before = decode_errors(fleet)
+        for channel in channels:
+            fleet.attacker.publish(channel, b"\x00" * 7 + b"garbage that is no envelope")
+            fleet.attacker.publish(channel, stranger.seal(channel, "graph_command_t", b"\x01"))
+            captured = member.seal(channel, "graph_command_t", b"\x00\x01 not lcm")
+            fleet.attacker.publish(channel, captured)  # authentic: its inner message is garbage
+            fleet.attacker.publish(channel, captured)  # the same bytes again
+            tampered = bytearray(member.seal(channel, "graph_command_t", b"\x00\x01 not lcm"))
+            tampered[len(tampered) // 2] ^= 0x01
+            fleet.attacker.publish(channel, bytes(tampered))
+        # the hello channel, which both members listen to
+        ((_, stranger_hello),) = stranger.take_outgoing()
+        fleet.attacker.publish(HELLO_CHANNEL, b"\x00" * 7 + b"garbage that is no envelope")
+        fleet.attacker.publish(HELLO_CHANNEL, stranger_hello)
+        fleet.quiet()
     after = fleet.drops()
     n = len(channels)  # one member listens on each channel
-    assert after["garbage"] - before["garbage"] == n
-    assert after["forged"] - before["forged"] == 2 * n  # another key; a flipped bit
+    assert after["garbage"] - before["garbage"] == n + 2
+    assert after["forged"] - before["forged"] == n + 2  # a flipped bit; the stranger's hello
+    assert after["no_session"] - before["no_session"] >= n  # the stranger's data: no key for it
     assert after["replayed"] - before["replayed"] == n
     assert after["handler_error"] == 0
     assert decode_errors(fleet) - inner_before == n
@@ -149,6 +168,9 @@ def test_random_bytes_on_any_channel_never_crash_a_handler(data: bytes, pick: in
 
 def test_authentic_members_sending_nonsense_inner_messages_are_counted(fleet: Fleet) -> None:
     member = FleetLink(fleet.attacker, FleetAuth("temoto", "B", KEY))
+    assert fleet.instance.link.wait_for_peers(["B"], WAIT)
+    assert fleet.cli_link.wait_for_peers(["B"], WAIT)
+    fleet.quiet()
     before = decode_errors(fleet)
     for channel in fleet.channels:
         member.send(channel, "no_such_type_t", b"")

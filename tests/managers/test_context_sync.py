@@ -235,6 +235,10 @@ def test_bad_messages_are_counted_never_raised(bus: Bus) -> None:
     a = bus.robot("A")
     a.add("map", "map")
     raw = _raw(bus)
+    # keys agreed both ways: what R sends opens at once (so the flushes below see it handled)
+    assert raw.wait_for_peers(["A"], WAIT_S)
+    assert a._link is not None
+    assert a._link.wait_for_peers(["R"], WAIT_S)
     raw.send(CONTEXT_CHANNEL, "context_update_t", b"garbage")
     raw.send(CONTEXT_CHANNEL, *codec.encode(handshake_t()))
     raw.send(CONTEXT_CHANNEL, *codec.encode(_update("A", _item("spoof"))))  # our own name

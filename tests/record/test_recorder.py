@@ -192,13 +192,19 @@ def test_the_acknowledgement_channels_of_shared_runs_are_recorded(tmp_path: Path
     bus = "record-acks-test"
     transports = [InProcessTransport(bus) for _ in range(3)]
     try:
-        links = [
-            FleetActorLink(FleetLink(t, FleetAuth("temoto", name, bytes(32))), name)
+        fleet_links = [
+            FleetLink(t, FleetAuth("temoto", name, bytes(32)))
             for t, name in zip(transports[1:], ("A", "B c"), strict=True)
+        ]
+        links = [
+            FleetActorLink(link, name) for link, name in zip(fleet_links, ("A", "B c"), strict=True)
         ]
         with Recorder(path, flush_period_s=0.0) as recorder:
             recorder.listen(transports[0], ["Me"])
             own = FleetLink(transports[0], FleetAuth("temoto", "me", bytes(32)))
+            # keys agreed both ways first: nothing "me" sends is re-sent later (docs/security.md)
+            assert own.wait_for_peers(["A", "B c"], 5.0)
+            assert all(link.wait_for_peers(["me"], 5.0) for link in fleet_links)
             own.send(ack_channel("Me"), "action_ack_t", b"\x01")
             own.send(ack_channel("A"), "action_ack_t", b"\x02")  # A not named yet: not kept
             errors: list[BaseException] = []

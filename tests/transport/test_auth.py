@@ -3,8 +3,6 @@
 from __future__ import annotations
 
 import base64
-import hashlib
-import hmac
 import logging
 import struct
 import threading
@@ -17,7 +15,6 @@ from hypothesis import strategies as st
 
 from temoto.lcm_types import envelope_t
 from temoto.transport import (
-    DROP_REASONS,
     KEY_ENV,
     FleetAuth,
     FleetLink,
@@ -26,7 +23,7 @@ from temoto.transport import (
     key_from_env,
     key_from_text,
 )
-from temoto.transport.auth import REPLAY_WINDOW
+from temoto.transport.auth import HELLO_CHANNEL, REPLAY_WINDOW
 
 KEY = bytes(range(32))
 OTHER_KEY = bytes(range(1, 33))
@@ -48,14 +45,38 @@ def clock() -> FakeClock:
     return FakeClock()
 
 
+def exchange(*members: FleetAuth, clock: FakeClock | None = None) -> list[tuple[str, bytes]]:
+    """Deliver what each member wants published (hellos, re-sent copies) to every other member
+    until nothing is left; returns the data messages delivered (not hellos)."""
+    data: list[tuple[str, bytes]] = []
+    for _ in range(50):
+        moved = False
+        for member in members:
+            due = member.hello_due_in()
+            if due and clock is not None:
+                clock.t += due
+            for channel, out in member.take_outgoing():
+                moved = True
+                if channel != HELLO_CHANNEL:
+                    data.append((channel, out))
+                for other in members:
+                    if other is not member:
+                        other.open(channel, out)
+        if not moved:
+            return data
+    raise AssertionError("the hellos never settled")
+
+
 @pytest.fixture
 def alice(clock: FakeClock) -> FleetAuth:
     return FleetAuth("fleet", "alice", KEY, clock=clock)
 
 
 @pytest.fixture
-def bob(clock: FakeClock) -> FleetAuth:
-    return FleetAuth("fleet", "bob", KEY, clock=clock)
+def bob(clock: FakeClock, alice: FleetAuth) -> FleetAuth:
+    bob = FleetAuth("fleet", "bob", KEY, clock=clock)
+    exchange(alice, bob, clock=clock)
+    return bob
 
 
 def drops(auth: FleetAuth) -> dict[str, int]:
@@ -83,27 +104,31 @@ def decoded(data: bytes) -> Any:  # the generated class is untyped
 
 def test_a_sealed_message_is_accepted_with_its_content(alice: FleetAuth, bob: FleetAuth) -> None:
     data = alice.seal(CHANNEL, "action_ack_t", PAYLOAD)
+    before = bob.stats
     opened = bob.open(CHANNEL, data)
+    env = decoded(data)
     assert opened == Opened(
         channel=CHANNEL,
         sender="alice",
         type="action_ack_t",
         payload=PAYLOAD,
-        seq=round(T0 * 1e6),
-        stamp_us=round(T0 * 1e6),
+        seq=env.seq,
+        stamp_us=env.stamp_us,
     )
-    assert bob.stats == {"accepted": 1, **dict.fromkeys(DROP_REASONS, 0)}
+    assert bob.stats == {**before, "accepted": before["accepted"] + 1}
 
 
-def test_the_envelope_and_mac_follow_the_documented_format(alice: FleetAuth) -> None:
+def test_the_envelope_follows_the_documented_format(alice: FleetAuth, bob: FleetAuth) -> None:
     data = alice.seal(CHANNEL, "handshake_t", PAYLOAD)
     env = decoded(data)
-    assert (env.version, env.fleet, env.sender, env.type) == (1, "fleet", "alice", "handshake_t")
-    assert (env.payload, env.payload_size, env.mac_size) == (PAYLOAD, len(PAYLOAD), 32)
-    env.mac_size, env.mac = 0, b""
-    body: bytes = env.encode()
-    expected = hmac.new(KEY, CHANNEL.encode() + b"\0" + body, hashlib.sha256).digest()
-    assert decoded(data).mac == expected
+    assert (env.version, env.fleet, env.sender, env.type) == (2, "fleet", "alice", "handshake_t")
+    # the payload is encrypted (same size); the mac field holds the 16-byte Poly1305 tag
+    assert env.payload_size == len(PAYLOAD)
+    assert env.payload != PAYLOAD
+    assert PAYLOAD not in data
+    assert env.mac_size == 16
+    assert env.stamp_us > 0  # the sender's session id
+    assert env.seq >= 1
 
 
 def test_an_insecure_fleet_exchanges_unsigned_envelopes(clock: FakeClock) -> None:
@@ -121,21 +146,30 @@ def test_an_insecure_fleet_exchanges_unsigned_envelopes(clock: FakeClock) -> Non
 # --- forged and tampered ------------------------------------------------------------------------
 
 
-def test_a_message_sealed_with_another_key_is_forged(clock: FakeClock, bob: FleetAuth) -> None:
+def test_a_member_with_another_key_is_never_granted_a_session(
+    clock: FakeClock, bob: FleetAuth
+) -> None:
     mallory = FleetAuth("fleet", "alice", OTHER_KEY, clock=clock)
-    refused(bob, mallory.seal(CHANNEL, "t", PAYLOAD), "forged")
+    (channel, hello), *_ = mallory.take_outgoing()
+    refused(bob, hello, "forged", channel=channel)  # its hello: wrong mac
+    refused(bob, mallory.seal(CHANNEL, "t", PAYLOAD), "no_session")  # its data: no key for it
 
 
 def test_a_flipped_payload_byte_is_forged(alice: FleetAuth, bob: FleetAuth) -> None:
     data = alice.seal(CHANNEL, "t", PAYLOAD)
-    start = data.index(PAYLOAD)
+    start = data.index(decoded(data).payload)
     for index in (start, start + len(PAYLOAD) // 2, start + len(PAYLOAD) - 1):
         refused(bob, flip(data, index), "forged")
     assert bob.open(CHANNEL, data) is not None  # the original still passes
 
 
-@pytest.mark.parametrize("field", ["seq", "stamp_us", "type", "sender"])
-def test_a_changed_header_field_is_forged(alice: FleetAuth, bob: FleetAuth, field: str) -> None:
+@pytest.mark.parametrize(
+    ("field", "reason"),
+    [("seq", "forged"), ("stamp_us", "no_session"), ("type", "forged"), ("sender", "no_session")],
+)
+def test_a_changed_header_field_is_refused(
+    alice: FleetAuth, bob: FleetAuth, field: str, reason: str
+) -> None:
     data = alice.seal(CHANNEL, "notify_t", PAYLOAD)
     env = decoded(data)
     needle = {
@@ -146,18 +180,18 @@ def test_a_changed_header_field_is_forged(alice: FleetAuth, bob: FleetAuth, fiel
     }[field]
     # The last byte of a number (1 µs or one sequence number off), the first of a string.
     index = data.index(needle) + (len(needle) - 1 if field in ("seq", "stamp_us") else 0)
-    refused(bob, flip(data, index), "forged")
+    refused(bob, flip(data, index), reason)
 
 
 def test_a_changed_mac_byte_is_forged(alice: FleetAuth, bob: FleetAuth) -> None:
     data = alice.seal(CHANNEL, "t", PAYLOAD)
-    for index in (len(data) - 32, len(data) - 1):
+    for index in (len(data) - 16, len(data) - 1):
         refused(bob, flip(data, index, 0x80), "forged")
 
 
 def test_a_mac_of_the_wrong_size_is_forged(alice: FleetAuth, bob: FleetAuth) -> None:
     env = decoded(alice.seal(CHANNEL, "t", PAYLOAD))
-    env.mac_size, env.mac = 16, env.mac[:16]
+    env.mac_size, env.mac = 15, env.mac[:15]
     refused(bob, env.encode(), "forged")
 
 
@@ -168,7 +202,7 @@ def test_the_wrong_version_is_refused(alice: FleetAuth, bob: FleetAuth) -> None:
 
 def test_every_single_bit_flip_is_refused(alice: FleetAuth, bob: FleetAuth) -> None:
     data = alice.seal(CHANNEL, "t", PAYLOAD)
-    allowed = {"garbage", "version", "fleet", "forged"}
+    allowed = {"garbage", "version", "fleet", "forged", "no_session", "not_for_us"}
     for index in range(len(data)):
         for mask in (0x01, 0x80):
             before = bob.stats
@@ -225,23 +259,35 @@ def test_a_big_jump_forward_clears_the_window(alice: FleetAuth, bob: FleetAuth) 
     refused(bob, skipped[-2], "replayed")
 
 
-def test_a_restarted_sender_continues_above_its_old_numbers(
-    clock: FakeClock, bob: FleetAuth
-) -> None:
-    before = FleetAuth("fleet", "alice", KEY, clock=clock)
+def test_a_restarted_sender_continues_above_its_old_numbers(clock: FakeClock) -> None:
+    bob = FleetAuth("fleet", "bob", None, insecure=True, clock=clock)
+    before = FleetAuth("fleet", "alice", None, insecure=True, clock=clock)
     for _ in range(100):
         assert bob.open(CHANNEL, before.seal(CHANNEL, "t", b"")) is not None
     clock.t += 1.0  # the restart takes a second: far more microseconds than messages sent
-    after = FleetAuth("fleet", "alice", KEY, clock=clock)
+    after = FleetAuth("fleet", "alice", None, insecure=True, clock=clock)
     opened = bob.open(CHANNEL, after.seal(CHANNEL, "t", b""))
     assert opened is not None
     assert opened.seq == round(clock.t * 1e6)
 
 
+def test_a_restarted_keyed_sender_gets_a_new_session(clock: FakeClock, bob: FleetAuth) -> None:
+    before = FleetAuth("fleet", "alice", KEY, clock=clock)
+    exchange(before, bob, clock=clock)
+    old = before.seal(CHANNEL, "t", b"")
+    assert bob.open(CHANNEL, old) is not None
+    after = FleetAuth("fleet", "alice", KEY, clock=clock)
+    exchange(after, bob, clock=clock)
+    opened = bob.open(CHANNEL, after.seal(CHANNEL, "t", b""))
+    assert opened is not None
+    assert opened.stamp_us != decoded(old).stamp_us  # another session id
+    refused(bob, old, "replayed")
+
+
 def test_replay_state_is_kept_per_sender(clock: FakeClock, bob: FleetAuth) -> None:
-    # Both start at the same boot microsecond, so their sequence numbers are equal.
     carol = FleetAuth("fleet", "carol", KEY, clock=clock)
     dave = FleetAuth("fleet", "dave", KEY, clock=clock)
+    exchange(carol, dave, bob, clock=clock)
     from_carol, from_dave = carol.seal(CHANNEL, "t", b""), dave.seal(CHANNEL, "t", b"")
     assert decoded(from_carol).seq == decoded(from_dave).seq
     assert bob.open(CHANNEL, from_carol) is not None
@@ -249,20 +295,20 @@ def test_replay_state_is_kept_per_sender(clock: FakeClock, bob: FleetAuth) -> No
 
 
 def test_senders_not_heard_for_ten_windows_are_forgotten(clock: FakeClock) -> None:
-    bob = FleetAuth("fleet", "bob", KEY, window_s=1.0, clock=clock)
+    bob = FleetAuth("fleet", "bob", None, insecure=True, window_s=1.0, clock=clock)
     for i in range(50):
-        sender = FleetAuth("fleet", f"robot{i}", KEY, clock=clock)
+        sender = FleetAuth("fleet", f"robot{i}", None, insecure=True, clock=clock)
         assert bob.open(CHANNEL, sender.seal(CHANNEL, "t", b"")) is not None
     assert len(bob._peers) == 50
     clock.t += 10.5
-    late = FleetAuth("fleet", "late", KEY, clock=clock)
+    late = FleetAuth("fleet", "late", None, insecure=True, clock=clock)
     assert bob.open(CHANNEL, late.seal(CHANNEL, "t", b"")) is not None
     assert set(bob._peers) == {"late"}
 
 
-def test_a_forgotten_senders_old_message_is_stale_not_accepted(
-    clock: FakeClock, alice: FleetAuth, bob: FleetAuth
-) -> None:
+def test_a_forgotten_senders_old_message_is_stale_not_accepted(clock: FakeClock) -> None:
+    alice = FleetAuth("fleet", "alice", None, insecure=True, clock=clock)
+    bob = FleetAuth("fleet", "bob", None, insecure=True, clock=clock)
     data = alice.seal(CHANNEL, "t", b"")
     assert bob.open(CHANNEL, data) is not None
     clock.t += 10 * bob.window_s + 1
@@ -324,29 +370,37 @@ def test_our_own_message_echoed_back_is_refused(alice: FleetAuth) -> None:
 
 
 @pytest.mark.parametrize("skew_s", [-31.0, 31.0, -3600.0, 1e6])
-def test_a_stamp_outside_the_window_is_stale(
-    clock: FakeClock, bob: FleetAuth, skew_s: float
-) -> None:
+def test_an_insecure_stamp_outside_the_window_is_stale(clock: FakeClock, skew_s: float) -> None:
+    bob = FleetAuth("fleet", "bob", None, insecure=True, clock=clock)
     sender_clock = FakeClock(clock.t + skew_s)
-    skewed = FleetAuth("fleet", "alice", KEY, clock=sender_clock)
+    skewed = FleetAuth("fleet", "alice", None, insecure=True, clock=sender_clock)
     refused(bob, skewed.seal(CHANNEL, "t", PAYLOAD), "stale")
 
 
 @pytest.mark.parametrize("skew_s", [-29.0, 0.0, 29.0])
-def test_a_stamp_inside_the_window_is_accepted(
-    clock: FakeClock, bob: FleetAuth, skew_s: float
-) -> None:
-    skewed = FleetAuth("fleet", "alice", KEY, clock=FakeClock(clock.t + skew_s))
+def test_an_insecure_stamp_inside_the_window_is_accepted(clock: FakeClock, skew_s: float) -> None:
+    bob = FleetAuth("fleet", "bob", None, insecure=True, clock=clock)
+    skewed = FleetAuth("fleet", "alice", None, insecure=True, clock=FakeClock(clock.t + skew_s))
     assert bob.open(CHANNEL, skewed.seal(CHANNEL, "t", PAYLOAD)) is not None
 
 
-def test_a_captured_message_becomes_stale_as_time_passes(
-    clock: FakeClock, alice: FleetAuth
+@pytest.mark.parametrize("skew_s", [-1e6, -31.0, 0.0, 29.0, 1e6])
+def test_keyed_fleets_ignore_the_clocks(clock: FakeClock, bob: FleetAuth, skew_s: float) -> None:
+    skewed = FleetAuth("fleet", "carol", KEY, clock=FakeClock(clock.t + skew_s))
+    exchange(skewed, bob)
+    assert bob.open(CHANNEL, skewed.seal(CHANNEL, "t", PAYLOAD)) is not None
+
+
+def test_a_captured_message_never_opens_at_a_restarted_receiver(
+    clock: FakeClock, alice: FleetAuth, bob: FleetAuth
 ) -> None:
     data = alice.seal(CHANNEL, "t", PAYLOAD)
-    clock.t += 31.0
-    fresh_receiver = FleetAuth("fleet", "bob", KEY, clock=clock)  # a restart lost replay state
-    refused(fresh_receiver, data, "stale")
+    assert bob.open(CHANNEL, data) is not None
+    restarted = FleetAuth("fleet", "bob", KEY, clock=clock)  # lost its replay state
+    refused(restarted, data, "no_session")
+    exchange(alice, restarted, clock=clock)  # alice grants its session to the new boot
+    refused(restarted, data, "replayed")  # at or below the floor of that grant
+    assert restarted.open(CHANNEL, alice.seal(CHANNEL, "t", PAYLOAD)) is not None
 
 
 def test_an_unsigned_message_into_a_keyed_fleet_is_refused(
@@ -412,8 +466,9 @@ def test_an_insecure_member_warns_once_when_created(
 
 
 def test_sequence_numbers_start_at_boot_time_and_strictly_increase_across_threads(
-    clock: FakeClock, alice: FleetAuth
+    clock: FakeClock,
 ) -> None:
+    alice = FleetAuth("fleet", "alice", None, insecure=True, clock=clock)
     per_thread: dict[int, list[int]] = {}
     start = threading.Barrier(8)
 

@@ -59,8 +59,24 @@ def wrong_version(clock: FakeClock) -> bytes:
     return data
 
 
+def member(name: str, clock: FakeClock, bob: FleetAuth) -> FleetAuth:
+    """A member with the fleet key whose hellos crossed with bob's."""
+    auth = FleetAuth("fleet", name, KEY, clock=clock)
+    for _ in range(4):
+        for sender, receiver in ((auth, bob), (bob, auth)):
+            for channel, data in sender.take_outgoing():
+                receiver.open(channel, data)
+    return auth
+
+
+def tampered(auth: FleetAuth) -> bytes:
+    """A message of ``auth`` with its last byte (of the Poly1305 tag) changed."""
+    data = auth.seal(CHANNEL, "t", b"x")
+    return data[:-1] + bytes([data[-1] ^ 0x01])
+
+
 def replayed(clock: FakeClock, bob: FleetAuth) -> bytes:
-    data = FleetAuth("fleet", "alice", KEY, clock=clock).seal(CHANNEL, "t", b"x")
+    data = member("alice", clock, bob).seal(CHANNEL, "t", b"x")
     assert bob.open(CHANNEL, data) is not None  # the first copy passes
     return data
 
@@ -77,19 +93,37 @@ CASES: dict[str, tuple[Callable[[FakeClock, FleetAuth], bytes], str | None, str]
         "does the sender run --insecure?",
     ),
     "forged": (
-        lambda c, b: FleetAuth("fleet", "alice", OTHER_KEY, clock=c).seal(CHANNEL, "t", b"x"),
+        lambda c, b: tampered(member("alice", c, b)),
         "alice",
         "wrong mac; sealed with another fleet key",
     ),
-    "stale": (
-        lambda c, b: FleetAuth("fleet", "alice", KEY, clock=FakeClock(c.t - 45)).seal(
-            CHANNEL, "t", b"x"
-        ),
-        "alice",
-        "(-45.0 s from our clock, window ±30 s); are the clocks synchronised",
-    ),
     "replayed": (replayed, "alice", "already seen or too old"),
 }
+
+
+def test_a_stale_stamp_into_an_insecure_member_is_a_warning(
+    clock: FakeClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    insecure = FleetAuth("fleet", "bob", None, insecure=True, clock=clock)
+    old = FleetAuth("fleet", "alice", None, insecure=True, clock=FakeClock(clock.t - 45))
+    data = old.seal(CHANNEL, "t", b"x")
+    with caplog.at_level(logging.WARNING, logger="temoto.transport"):
+        caplog.clear()
+        assert insecure.open(CHANNEL, data) is None
+    (line,) = warnings(caplog)
+    assert "from 'alice': time stamp outside the window" in line
+    assert "(-45.0 s from our clock, window ±30 s); are the clocks synchronised" in line
+
+
+def test_a_hello_with_another_fleet_key_is_a_warning(
+    clock: FakeClock, bob: FleetAuth, caplog: pytest.LogCaptureFixture
+) -> None:
+    stranger = FleetAuth("fleet", "alice", OTHER_KEY, clock=clock)
+    ((channel, hello),) = stranger.take_outgoing()
+    with caplog.at_level(logging.WARNING, logger="temoto.transport"):
+        assert bob.open(channel, hello) is None
+    (line,) = warnings(caplog)
+    assert "on 'TEMOTO_KEYS' from 'alice': wrong mac; sealed with another fleet key" in line
 
 
 @pytest.mark.parametrize("reason", sorted(CASES))
@@ -121,18 +155,19 @@ def test_a_mac_into_an_insecure_member_is_a_warning(
 
 
 def test_the_table_covers_every_reason_that_warns() -> None:
-    quiet = {"self", "fleet", "unexpected_mac"}  # the last one has its own test above
-    assert set(CASES) == set(DROP_REASONS) - quiet
+    quiet = {"self", "fleet", "no_session", "not_for_us"}
+    own_tests = {"unexpected_mac", "stale", "unknown_member"}  # tests above, tests/security
+    assert set(CASES) == set(DROP_REASONS) - quiet - own_tests
 
 
 def test_repeats_are_summarised_with_counts_at_most_once_per_interval(
     clock: FakeClock, bob: FleetAuth, caplog: pytest.LogCaptureFixture
 ) -> None:
-    mallory = FleetAuth("fleet", "mallory", OTHER_KEY, clock=clock)
+    mallory = member("mallory", clock, bob)
 
     def drops(n: int, step: float) -> None:
         for _ in range(n):
-            bob.open(CHANNEL, mallory.seal(CHANNEL, "t", b"x"))
+            bob.open(CHANNEL, tampered(mallory))
             clock.t += step
 
     with caplog.at_level(logging.WARNING, logger="temoto.transport"):
@@ -158,17 +193,18 @@ def test_repeats_are_summarised_with_counts_at_most_once_per_interval(
 def test_each_sender_and_reason_gets_its_own_first_line(
     clock: FakeClock, bob: FleetAuth, caplog: pytest.LogCaptureFixture
 ) -> None:
-    carol = FleetAuth("fleet", "carol", OTHER_KEY, clock=clock)
-    dave = FleetAuth("fleet", "dave", OTHER_KEY, clock=clock)
-    old = FleetAuth("fleet", "carol", KEY, clock=FakeClock(clock.t - 100))
+    carol = member("carol", clock, bob)
+    dave = member("dave", clock, bob)
+    old = carol.seal(CHANNEL, "t", b"x")
+    assert bob.open(CHANNEL, old) is not None
     with caplog.at_level(logging.WARNING, logger="temoto.transport"):
-        for auth in (carol, dave, carol, dave, old, old):
-            bob.open(CHANNEL, auth.seal(CHANNEL, "t", b"x"))
+        for data in (tampered(carol), tampered(dave), tampered(carol), tampered(dave), old, old):
+            bob.open(CHANNEL, data)
     lines = warnings(caplog)
     assert len(lines) == 3, lines
     assert "from 'carol': wrong mac" in lines[0]
     assert "from 'dave': wrong mac" in lines[1]
-    assert "from 'carol': time stamp outside the window" in lines[2]
+    assert "from 'carol': sequence number already seen" in lines[2]
 
 
 def test_invented_sender_names_cannot_flood_the_log(
@@ -177,10 +213,11 @@ def test_invented_sender_names_cannot_flood_the_log(
     with caplog.at_level(logging.WARNING, logger="temoto.transport"):
         for i in range(_MAX_FIRST_LINES + 100):
             fake = FleetAuth("fleet", f"stranger-{i}", OTHER_KEY, clock=clock)
-            bob.open(CHANNEL, fake.seal(CHANNEL, "t", b"x"))
+            ((channel, hello),) = fake.take_outgoing()
+            bob.open(channel, hello)
         assert len(warnings(caplog)) == _MAX_FIRST_LINES
         clock.t += DROP_SUMMARY_S
-        bob.open(CHANNEL, fake.seal(CHANNEL, "t", b"x"))
+        bob.open(channel, hello)
     lines = warnings(caplog)
     assert len(lines) == _MAX_FIRST_LINES + 1
     assert "dropped 101 more messages" in lines[-1]
@@ -192,8 +229,9 @@ def test_a_long_claimed_name_is_cut_and_escaped(
 ) -> None:
     name = "evil\n" + "x" * 500
     fake = FleetAuth("fleet", name, OTHER_KEY, clock=clock)
+    ((channel, hello),) = fake.take_outgoing()
     with caplog.at_level(logging.WARNING, logger="temoto.transport"):
-        bob.open(CHANNEL, fake.seal(CHANNEL, "t", b"x"))
+        bob.open(channel, hello)
     (line,) = warnings(caplog)
     assert "\n" not in line
     assert "'evil\\nxxx" in line
@@ -203,11 +241,11 @@ def test_a_long_claimed_name_is_cut_and_escaped(
 def test_the_summary_of_the_last_drops_can_be_logged_at_the_end(
     clock: FakeClock, bob: FleetAuth, caplog: pytest.LogCaptureFixture
 ) -> None:
-    mallory = FleetAuth("fleet", "mallory", OTHER_KEY, clock=clock)
+    mallory = member("mallory", clock, bob)
     with caplog.at_level(logging.WARNING, logger="temoto.transport"):
         bob.log_drop_summary()  # nothing held back: nothing logged
         for _ in range(5):
-            bob.open(CHANNEL, mallory.seal(CHANNEL, "t", b"x"))
+            bob.open(CHANNEL, tampered(mallory))
         clock.t += 2
         bob.log_drop_summary()
         bob.log_drop_summary()  # said once

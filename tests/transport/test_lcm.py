@@ -166,5 +166,5 @@ def test_a_fleet_link_round_trip_over_lcm(memq: LcmTransport) -> None:
     assert done.wait(WAIT_S)
     flush(memq)
     assert [(o.sender, o.type, o.payload) for o in got] == [("alpha", "action_ack_t", b"inner")]
-    assert alpha.stats["self"] == 1
+    assert alpha.stats["self"] >= 1  # its notification echoed back (and its hellos)
     assert beta.stats["accepted"] == 1

@@ -37,7 +37,7 @@ import sys
 import threading
 import time
 from collections.abc import Sequence
-from typing import IO, Any
+from typing import IO, TYPE_CHECKING, Any
 
 from temoto._cli_fleet import (
     SignalExit,
@@ -61,6 +61,9 @@ from temoto.core.states import NodeState, Result
 from temoto.drivers import make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
 from temoto.managers.process import hurry_all
+
+if TYPE_CHECKING:
+    from temoto.transport.identity import Credentials
 
 __all__ = ["main"]
 
@@ -202,7 +205,7 @@ def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
     transport: Transport
     if args.local:
         transport = InProcessTransport(f"local-{profile.robot}-{secrets.token_hex(4)}")
-        key: bytes | None = secrets.token_bytes(32)  # nobody else is on this bus
+        key: bytes | Credentials | None = secrets.token_bytes(32)  # nobody else is on this bus
     else:
         key = fleet_key(args, f"robot '{profile.robot}'")
         transport = open_transport(args.fleet_url)
@@ -227,7 +230,7 @@ def _run_instance(
     started: tuple[float, MonotonicClock],
     inputs: tuple[Any, Any, Any],
     transport: Any,
-    key: bytes | None,
+    key: bytes | Credentials | None,
     recorder: Any,
 ) -> int:
     from temoto.instance import Instance

@@ -1,0 +1,584 @@
+"""Per-boot sessions of a keyed fleet: hellos, key grants, AEAD envelopes (docs/security.md).
+
+Private to :mod:`temoto.transport.auth`, whose :class:`~temoto.transport.auth.FleetAuth` owns
+one :class:`SecureSession` when it has a fleet key or credentials. Not thread-safe: the caller
+holds a lock. Sans-IO: it never publishes; messages it wants sent (hellos, re-sent backlog)
+are queued and taken with :meth:`SecureSession.take_outgoing`.
+
+Every boot of a member makes an ephemeral X25519 key pair and a random sending key ``G`` with a
+random session id. Its hello (channel :data:`HELLO_CHANNEL`) carries the ephemeral public key
+and, for every peer whose ephemeral key it heard, a *grant*: ``G``, the session id and the
+sender's current sequence number (the *floor*), encrypted under a key derived from the two
+ephemeral keys. A hello is authenticated with the fleet key (HMAC-SHA256) or, with a roster,
+the sender's Ed25519 signature. A receiver opens data of a session only after a grant for its
+own current ephemeral key, and only above the floor: every message sealed before the receiver
+booted has a sequence number at or below the floor of any grant the receiver can read.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import hmac
+import os
+import struct
+from collections import deque
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Final
+
+from cryptography.exceptions import InvalidTag
+from cryptography.hazmat.primitives.asymmetric.x25519 import X25519PrivateKey, X25519PublicKey
+from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
+from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
+
+from temoto.lcm_types import envelope_t
+from temoto.transport.identity import Credentials
+
+#: The channel of hellos.
+HELLO_CHANNEL: Final = "TEMOTO_KEYS"
+#: The ``type`` of a hello envelope.
+HELLO_TYPE: Final = "fleet_hello"
+#: The envelope version of keyed fleets.
+SECURE_VERSION: Final = 2
+#: Seconds between two hellos at least (a flood of undecryptable messages costs little).
+HELLO_MIN_S: Final = 0.05
+#: A peer that received messages of ours it could not open (no grant yet: the hellos were
+#: crossing) names them in its hello; we re-send them to it if they are at most this old.
+BACKLOG_S: Final = 2.0
+_MISSED_MAX: Final = 256  # the last this many per sender session; as many senders at most
+#: At most this many of the newest missed messages are asked for again at once (all that are
+#: kept: a burst sent while the hellos cross arrives whole).
+_RESEND_MAX: Final = _MISSED_MAX
+_BACKLOG_MAX: Final = 256
+_TAG: Final = 16  # Poly1305 tag
+_RECIPIENT: Final = 4  # recipient tag
+_MAC: Final = 16  # per-recipient MAC (roster fleets)
+_HINT: Final = 8  # prefix of the recipient's ephemeral key in a grant
+_GRANT_PLAIN: Final = struct.Struct(">32sQQ")  # G, session id, floor
+_GRANT_SIZE: Final = 12 + _GRANT_PLAIN.size + _TAG
+_WINDOW: Final = 64
+_WINDOW_MASK: Final = (1 << _WINDOW) - 1
+_SALT: Final = b"temoto fleet v2"
+
+
+def _blob(*parts: bytes) -> bytes:
+    """Length-prefixed concatenation: no two tuples of parts give the same bytes."""
+    return b"".join(struct.pack(">I", len(p)) + p for p in parts)
+
+
+def _kdf(key: bytes, label: bytes, size: int = 32) -> bytes:
+    return hashlib.blake2b(label, key=key, digest_size=size).digest()
+
+
+def _s(text: str) -> bytes:
+    return text.encode("utf-8", "surrogatepass")
+
+
+@dataclass(slots=True)
+class _Pair:
+    """The keys this member shares with one boot of a peer (from both ephemeral keys)."""
+
+    e_pub: bytes
+    grant_out: ChaCha20Poly1305  # grants we send to it
+    grant_in: ChaCha20Poly1305  # grants it sends to us
+    mac_out: bytes  # our per-recipient MACs for it (roster fleets)
+    mac_in: bytes  # its MACs for us
+    tag_out: bytes  # it, as a recipient of our messages
+    tag_in: bytes  # we, as a recipient of its messages
+    first_floor: int | None = None  # floor of the first grant we sent it (our session)
+    owed: bool = True  # our next hello carries a grant for it
+
+
+@dataclass(slots=True)
+class _Peer:
+    current: _Pair | None = None  # proven: it sent us a grant for our current key
+    candidate: _Pair | None = None  # heard in a hello, not yet proven
+    retired: set[bytes] = field(default_factory=set)  # older ephemeral keys of this name
+    # Our sequence numbers (floor, last] that an older boot of this name held a grant for:
+    # it may have opened them, so they are never re-sent to a later boot.
+    opened: list[tuple[int, int]] = field(default_factory=list)
+
+    def drop(self, pair: _Pair | None, seq: int) -> None:
+        """Remember what a pair we stop using could open."""
+        if pair is not None and pair.first_floor is not None:
+            self.opened.append((pair.first_floor, seq))
+            del self.opened[:-64]  # keep the newest; older ones are far out of the backlog
+
+    def could_open(self, seq: int, pair: _Pair) -> bool:
+        """Whether a boot of this name other than ``pair``'s may have opened ``seq``."""
+        live = [
+            (p.first_floor, seq)
+            for p in (self.current, self.candidate)
+            if p is not None and p is not pair and p.first_floor is not None
+        ]
+        return any(low < seq <= high for low, high in (*self.opened, *live))
+
+
+@dataclass(slots=True)
+class RxSession:
+    """A peer's sending session we can open: its key and our replay window."""
+
+    sender: str
+    aead: ChaCha20Poly1305
+    pair: _Pair
+    highest: int
+    bitmap: int
+
+
+@dataclass(slots=True)
+class Sealed:
+    """What :meth:`SecureSession.open_data` found (the caller builds ``Opened``)."""
+
+    type: str
+    payload: bytes
+    seq: int
+    session: int
+
+
+class SecureSession:
+    """The keyed part of one member's :class:`~temoto.transport.auth.FleetAuth`.
+
+    Args:
+        fleet: The fleet name.
+        sender: This member's name.
+        key: The shared fleet key (hellos carry its HMAC), or None with ``credentials``.
+        credentials: Identity and roster (hellos are signed; data carries a MAC per recipient).
+        clock: Seconds, for the hello rate limit and the backlog.
+    """
+
+    def __init__(
+        self,
+        fleet: str,
+        sender: str,
+        key: bytes | None,
+        credentials: Credentials | None,
+        clock: Callable[[], float],
+    ) -> None:
+        self.fleet = fleet
+        self.sender = sender
+        self._key = key
+        self.credentials = credentials
+        self._clock = clock
+        self._e = X25519PrivateKey.generate()
+        self.e_pub = self._e.public_key().public_bytes(Encoding.Raw, PublicFormat.Raw)
+        self._peers: dict[str, _Peer] = {}
+        self.rx: dict[tuple[str, int], RxSession] = {}
+        self._outgoing: list[tuple[str, bytes]] = []
+        self._urgent = True  # a hello that moves a handshake on: sent at once
+        self._dirty = False  # a hello that may help: sent at most every HELLO_MIN_S
+        # Per (sender, session) we lack: the sequence numbers we got and could not open.
+        self._missed: dict[tuple[str, int], deque[int]] = {}
+        self._resend: list[tuple[str, _Pair, list[int]]] = []  # after the next hello
+        self._last_hello: float | None = None
+        self._born = clock()
+        self._backlog: deque[tuple[int, float, str, str, bytes]] = deque(maxlen=_BACKLOG_MAX)
+        self._rotate()
+
+    @property
+    def roster_mode(self) -> bool:
+        """Whether members have their own keys (per-recipient MACs, signed hellos)."""
+        return self.credentials is not None
+
+    def _rotate(self) -> None:
+        """A new sending key and session id; every peer gets a new grant."""
+        self._g = os.urandom(32)
+        self._aead = ChaCha20Poly1305(self._g)
+        self.session = int.from_bytes(os.urandom(8), "big") >> 1 or 1
+        self.seq = 0
+        for peer in self._peers.values():
+            peer.opened.clear()  # about the old session's numbers
+            for pair in (peer.current, peer.candidate):
+                if pair is not None:
+                    pair.first_floor = None
+                    pair.owed = True
+        self._backlog.clear()
+        self._urgent = True
+
+    # --- roster -------------------------------------------------------------------------------
+
+    def forget(self, names: set[str]) -> None:
+        """Drop everything of members removed from the roster and rotate our sending key."""
+        for name in names:
+            self._peers.pop(name, None)
+        for key in [k for k in self.rx if k[0] in names]:
+            del self.rx[key]
+        self._rotate()
+
+    # --- hellos -------------------------------------------------------------------------------
+
+    def want_hello(self) -> None:
+        """Ask for a hello (sent with the next :meth:`take_outgoing` the rate limit allows)."""
+        self._dirty = True
+
+    def _rx_of(self, sender: str) -> list[RxSession]:
+        return [rx for (name, _), rx in self.rx.items() if name == sender]
+
+    def peers(self) -> frozenset[str]:
+        """Names whose current boot granted us its session (we can open their messages)."""
+        return frozenset(
+            name
+            for (name, _), rx in self.rx.items()
+            if (peer := self._peers.get(name)) is not None and peer.current is rx.pair
+        )
+
+    @property
+    def pending(self) -> bool:
+        """Whether :meth:`take_outgoing` may have something.
+
+        Read without the lock: a thread that made something pending reads its own write.
+        """
+        return self._urgent or self._dirty or bool(self._outgoing) or bool(self._resend)
+
+    def hello_due_in(self) -> float | None:
+        """Seconds until a held-back hello may go out (None: none is held back)."""
+        if not (self._dirty or self._urgent):
+            return None
+        if self._last_hello is None or self._urgent:
+            return 0.0
+        return max(0.0, self._last_hello + HELLO_MIN_S - self._clock())
+
+    def take_outgoing(self) -> list[tuple[str, bytes]]:
+        """The (channel, bytes) to publish now: a due hello first, then re-sent messages."""
+        now = self._clock()
+        if self._urgent or (
+            self._dirty
+            and (
+                self._last_hello is None
+                or now - self._last_hello >= HELLO_MIN_S
+                or now < self._last_hello
+            )
+        ):
+            self._urgent = self._dirty = False
+            self._last_hello = now
+            self._outgoing[:0] = [(HELLO_CHANNEL, self._hello(now))]
+        out, self._outgoing = self._outgoing, []
+        return out
+
+    def _pair(self, name: str, e_pub: bytes) -> _Pair:
+        shared = self._e.exchange(X25519PublicKey.from_public_bytes(e_pub))
+        me, it = (_s(self.sender), self.e_pub), (_s(name), e_pub)
+        lo, hi = sorted((me, it))
+        root = hashlib.blake2b(
+            _blob(_SALT, _s(self.fleet), *lo, *hi, shared), digest_size=32
+        ).digest()
+
+        def way(src: tuple[bytes, bytes], dst: tuple[bytes, bytes], what: bytes) -> bytes:
+            return _kdf(root, _blob(what, *src, *dst))
+
+        return _Pair(
+            e_pub=e_pub,
+            grant_out=ChaCha20Poly1305(way(me, it, b"grant")),
+            grant_in=ChaCha20Poly1305(way(it, me, b"grant")),
+            mac_out=way(me, it, b"mac"),
+            mac_in=way(it, me, b"mac"),
+            tag_out=way(me, it, b"tag")[:_RECIPIENT],
+            tag_in=way(it, me, b"tag")[:_RECIPIENT],
+        )
+
+    def _hello(self, now: float) -> bytes:
+        parts = [self.e_pub, struct.pack(">H", 0)]
+        count = 0
+        fresh: list[_Pair] = []
+        for name, peer in sorted(self._peers.items()):
+            for pair in {id(p): p for p in (peer.current, peer.candidate) if p}.values():
+                if not pair.owed:  # granted already: hellos stay small in a large fleet
+                    continue
+                pair.owed = False
+                if pair.first_floor is None:
+                    pair.first_floor = self.seq
+                    fresh.append(pair)
+                nonce = os.urandom(12)
+                plain = _GRANT_PLAIN.pack(self._g, self.session, self.seq)
+                ad = _blob(_s(self.fleet), _s(self.sender), self.e_pub, _s(name), pair.e_pub)
+                grant = nonce + pair.grant_out.encrypt(nonce, plain, ad)
+                parts.append(_blob(_s(name)) + pair.e_pub[:_HINT] + grant)
+                count += 1
+        parts[1] = struct.pack(">H", count)
+        parts.append(struct.pack(">H", len(self._missed)))
+        for (name, session), seqs in list(self._missed.items()):
+            # Without its grant, ask for the grant only: copies would be refused like the
+            # originals. With it, ask once for what we could not open.
+            ask = list(seqs)[-_RESEND_MAX:] if (name, session) in self.rx else []
+            parts.append(_blob(_s(name)) + struct.pack(f">QH{len(ask)}Q", session, len(ask), *ask))
+            if ask:
+                del self._missed[name, session]
+        body = b"".join(parts)
+        env = self._envelope(HELLO_TYPE, body, 0)
+        unsigned: bytes = env.encode()  # type: ignore[no-untyped-call]
+        proof = self._prove(_s(HELLO_CHANNEL) + b"\0" + unsigned)
+        env.mac_size, env.mac = len(proof), proof
+        hello: bytes = env.encode()  # type: ignore[no-untyped-call]
+        resend, self._resend = self._resend, []
+        self._resend_backlog(resend, now)
+        return hello
+
+    def _prove(self, data: bytes) -> bytes:
+        if self.credentials is not None:
+            return self.credentials.identity.sign(data)
+        assert self._key is not None
+        return hmac.digest(self._key, data, "sha256")
+
+    def _check_proof(self, sender: str, proof: bytes, data: bytes) -> bool:
+        if self.credentials is not None:
+            return self.credentials.roster.verify(sender, proof, data)
+        assert self._key is not None
+        return hmac.compare_digest(hmac.digest(self._key, data, "sha256"), proof)
+
+    def open_hello(self, env: envelope_t, data: bytes) -> str | None:
+        """Take a hello in; returns a drop reason, or None when it was used (or of no use)."""
+        sender: str = env.sender
+        body: bytes = env.payload
+        try:
+            e_pub, grants, wants = _parse_hello(body)
+        except ValueError:
+            return "garbage"
+        grant = next((g for h, g in grants.get(self.sender, ()) if h == self.e_pub[:_HINT]), None)
+        missed = wants.get((self.sender, self.session))
+        peer = self._peers.get(sender)
+        pair = None
+        if peer is not None:
+            pair = next((p for p in (peer.current, peer.candidate) if p and p.e_pub == e_pub), None)
+        if (
+            pair is not None
+            and grant is None
+            and missed is None
+            and any(rx.pair is pair for rx in self._rx_of(sender))
+        ):
+            return None  # a hello for others from a peer we share keys with: nothing to do
+        unsigned = data[: len(data) - 2 - env.mac_size] + b"\0\0"
+        if not self._check_proof(sender, env.mac, _s(HELLO_CHANNEL) + b"\0" + unsigned):
+            return "forged"
+        peer = self._peers.setdefault(sender, _Peer())
+        if e_pub in peer.retired:
+            return "replayed"
+        if pair is None:
+            try:
+                pair = self._pair(sender, e_pub)
+            except ValueError:
+                return "garbage"
+            if peer.candidate is not None and peer.candidate is not peer.current:
+                peer.drop(peer.candidate, self.seq)
+            peer.candidate = pair
+            self._urgent = True  # it gets a grant from us
+        if missed is not None:  # it lacks our grant, or asks for what it could not open
+            self._urgent = True
+            pair.owed = True
+            if missed:
+                self._resend.append((sender, pair, missed))
+        if grant is None:
+            # Its grant for us comes when it has our key (from our hello) and it owes us one;
+            # if it sends us data before we have it, we ask for it then (open_data).
+            return None
+        ad = _blob(_s(self.fleet), _s(sender), e_pub, _s(self.sender), self.e_pub)
+        try:
+            plain = pair.grant_in.decrypt(grant[:12], grant[12:], ad)
+        except InvalidTag:
+            return "forged"
+        g, session, floor = _GRANT_PLAIN.unpack(plain)
+        if peer.current is not pair:  # proven fresh: it knows our key of this boot
+            if peer.current is not None:
+                peer.retired.add(peer.current.e_pub)
+                peer.drop(peer.current, self.seq)
+            peer.current = pair
+            if peer.candidate is pair:
+                peer.candidate = None
+        if (sender, session) not in self.rx:
+            # Everything at or below the floor was sealed before this grant: refused.
+            rx = self.rx[sender, session] = RxSession(
+                sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK
+            )
+            # What we got and could not open, our next hello asks for again; the originals
+            # above the floor are refused from now on (at or below it they are anyway).
+            held = self._missed.get((sender, session), deque())
+            for seq in held:
+                if seq > floor:
+                    _admit(rx, seq)
+            if held:
+                self._urgent = True
+            else:
+                self._missed.pop((sender, session), None)
+        return None
+
+    # --- data ---------------------------------------------------------------------------------
+
+    def _envelope(self, type_name: str, payload: bytes, seq: int) -> envelope_t:
+        env = envelope_t()  # type: ignore[no-untyped-call]
+        env.version = SECURE_VERSION
+        env.fleet = self.fleet
+        env.sender = self.sender
+        env.seq = seq
+        env.stamp_us = self.session
+        env.type = type_name
+        env.payload_size = len(payload)
+        env.payload = payload
+        env.mac_size = 0
+        env.mac = b""
+        return env
+
+    def seal(
+        self, channel: str, type_name: str, payload: bytes, only: _Pair | None = None
+    ) -> bytes:
+        """Encrypt and authenticate one message for every peer (or ``only`` one)."""
+        self.seq += 1
+        seq = self.seq
+        if only is None:
+            self._backlog.append((seq, self._clock(), channel, type_name, payload))
+        if self.roster_mode:
+            pairs = [only] if only is not None else self._recipients()
+            tags = b"".join(p.tag_out for p in pairs)
+        else:
+            pairs, tags = [], (only.tag_out if only is not None else b"")
+        ad = _ad(channel, self.fleet, self.sender, type_name, seq, self.session, tags)
+        sealed = self._aead.encrypt(seq.to_bytes(12, "big"), payload, ad)
+        cipher, tag = sealed[:-_TAG], sealed[-_TAG:]
+        if self.roster_mode:
+            digest = hashlib.blake2b(ad + sealed, digest_size=32).digest()
+            tags = b"".join(
+                p.tag_out + hashlib.blake2b(digest, key=p.mac_out, digest_size=_MAC).digest()
+                for p in pairs
+            )
+        env = self._envelope(type_name, cipher, seq)
+        env.mac_size, env.mac = _TAG + len(tags), tag + tags
+        out: bytes = env.encode()  # type: ignore[no-untyped-call]
+        return out
+
+    def _recipients(self) -> list[_Pair]:
+        return [
+            p
+            for peer in self._peers.values()
+            for p in {id(q): q for q in (peer.current, peer.candidate) if q}.values()
+        ]
+
+    def _resend_backlog(self, resend: list[tuple[str, _Pair, list[int]]], now: float) -> None:
+        """Re-send to peers the messages they got from us and could not open (no grant yet).
+
+        The copies are addressed to that peer alone (no other member gets a message twice),
+        and the peer refuses the originals from now on. A message that another boot of the
+        same member held a grant for is never re-sent: that boot may have opened it, and a
+        captured copy shown to a restarted member must not come back through us.
+        """
+        while self._backlog and now - self._backlog[0][1] > BACKLOG_S:
+            self._backlog.popleft()
+        for name, pair, missed in resend:
+            wanted = set(missed)
+            peer = self._peers.get(name)
+            for seq, _, channel, type_name, payload in list(self._backlog):
+                if seq in wanted and not (peer is not None and peer.could_open(seq, pair)):
+                    self._outgoing.append(
+                        (channel, self.seal(channel, type_name, payload, only=pair))
+                    )
+
+    def open_data(self, channel: str, env: envelope_t) -> Sealed | str:
+        """Check and decrypt a data envelope; a :class:`Sealed` or a drop reason."""
+        sender: str = env.sender
+        session: int = env.stamp_us
+        rx = self.rx.get((sender, session))
+        if rx is None:
+            missed = self._missed.get((sender, session))
+            if missed is None and len(self._missed) < _MISSED_MAX:
+                missed = self._missed[sender, session] = deque(maxlen=_MISSED_MAX)
+            if missed is not None and 0 < env.seq < 1 << 63:
+                missed.append(env.seq)  # our next hello asks for a grant and these again
+            self._dirty = True
+            return "no_session"
+        mac: bytes = env.mac
+        if len(mac) < _TAG:
+            return "forged"
+        tag, tail = mac[:_TAG], mac[_TAG:]
+        step = _RECIPIENT + (_MAC if self.roster_mode else 0)
+        if len(tail) % step:
+            return "forged"
+        entries = [tail[i : i + step] for i in range(0, len(tail), step)]
+        tags = b"".join(e[:_RECIPIENT] for e in entries)
+        mine = next((e for e in entries if e[:_RECIPIENT] == rx.pair.tag_in), None)
+        if mine is None and (entries or self.roster_mode):
+            return "not_for_us"
+        seq: int = env.seq
+        if not 0 < seq < 1 << 63:
+            return "forged"
+        type_name: str = env.type
+        ad = _ad(channel, self.fleet, sender, type_name, seq, session, tags)
+        sealed = bytes(env.payload) + tag
+        if self.roster_mode:
+            assert mine is not None
+            digest = hashlib.blake2b(ad + sealed, digest_size=32).digest()
+            want = hashlib.blake2b(digest, key=rx.pair.mac_in, digest_size=_MAC).digest()
+            if not hmac.compare_digest(want, mine[_RECIPIENT:]):
+                return "forged"
+        try:
+            plain = rx.aead.decrypt(seq.to_bytes(12, "big"), sealed, ad)
+        except InvalidTag:
+            return "forged"
+        if not _admit(rx, seq):
+            return "replayed"
+        return Sealed(type_name, plain, seq, session)
+
+
+def _ad(
+    channel: str, fleet: str, sender: str, type_name: str, seq: int, session: int, tags: bytes
+) -> bytes:
+    return _blob(
+        b"temoto-v2", _s(channel), _s(fleet), _s(sender), _s(type_name),
+        struct.pack(">QQ", seq, session), tags,
+    )  # fmt: skip
+
+
+def _parse_hello(
+    body: bytes,
+) -> tuple[bytes, dict[str, list[tuple[bytes, bytes]]], dict[tuple[str, int], list[int]]]:
+    """Ephemeral key, grants and what its sender missed, of a hello body.
+
+    Grants map a recipient to ``[(key hint, grant)]``; what was missed maps ``(sender,
+    session)`` to sequence numbers.
+    """
+    if len(body) < 34:
+        raise ValueError("short hello")
+    e_pub, (count,) = body[:32], struct.unpack_from(">H", body, 32)
+    at = 34
+    grants: dict[str, list[tuple[bytes, bytes]]] = {}
+    for _ in range(count):
+        if at + 4 > len(body):
+            raise ValueError("short hello")
+        (size,) = struct.unpack_from(">I", body, at)
+        end = at + 4 + size + _HINT + _GRANT_SIZE
+        if end > len(body):
+            raise ValueError("short hello")
+        name = body[at + 4 : at + 4 + size].decode("utf-8", "surrogatepass")
+        hint = body[at + 4 + size : at + 4 + size + _HINT]
+        grants.setdefault(name, []).append((hint, body[at + 4 + size + _HINT : end]))
+        at = end
+    if at + 2 > len(body):
+        raise ValueError("short hello")
+    (count,) = struct.unpack_from(">H", body, at)
+    at += 2
+    wants: dict[tuple[str, int], list[int]] = {}
+    for _ in range(count):
+        if at + 4 > len(body):
+            raise ValueError("short hello")
+        (size,) = struct.unpack_from(">I", body, at)
+        if at + 4 + size + 10 > len(body):
+            raise ValueError("short hello")
+        name = body[at + 4 : at + 4 + size].decode("utf-8", "surrogatepass")
+        session, n = struct.unpack_from(">QH", body, at + 4 + size)
+        at += 4 + size + 10
+        if n > _MISSED_MAX or at + 8 * n > len(body):
+            raise ValueError("bad hello")
+        wants[name, session] = list(struct.unpack_from(f">{n}Q", body, at))
+        at += 8 * n
+    if at != len(body):
+        raise ValueError("trailing bytes")
+    return e_pub, grants, wants
+
+
+def _admit(rx: RxSession, seq: int) -> bool:
+    """The IPsec replay window (RFC 4303 §3.4.3); True if ``seq`` is new."""
+    if seq > rx.highest:
+        shift = seq - rx.highest
+        rx.bitmap = ((rx.bitmap << shift) | 1) & _WINDOW_MASK if shift < _WINDOW else 1
+        rx.highest = seq
+        return True
+    behind = rx.highest - seq
+    if behind >= _WINDOW or rx.bitmap >> behind & 1:
+        return False
+    rx.bitmap |= 1 << behind
+    return True
