@@ -8,6 +8,11 @@ default timeouts (5 s to acknowledge a notification). Needs root, `unshare` and 
 otherwise. Slow: 50 Python processes start on a 2-core machine (12-21 s on 2026-11-25, with
 the other jobs of the machine at a load of 14-18; most of it is the processes' start-up).
 
+With keyed sessions (issue 20: every process agrees a session key with the 49 others while
+the handshake runs) the LCM run took 95 s on an idle machine on 2026-11-27, against 24 s
+before: past the default minute, so it has a limit of its own, and runs in the compiled pass
+of ``make test`` only.
+
 With the first handshake format (issue 14) the first node's notification was not
 acknowledged within 5 s (every process was still decoding 50-entry JOINs): the run aborted
 everywhere, so this test ran 40 actors. `python -m bench --only fleet` measures the handshake
@@ -139,7 +144,17 @@ def ring_graph(n: int) -> dict[str, Any]:
 @pytest.mark.parametrize(
     "url",
     [
-        pytest.param(LCM_URL, id="lcm"),
+        pytest.param(
+            LCM_URL,
+            id="lcm",
+            marks=[
+                pytest.mark.skipif(
+                    os.environ.get("TEMOTO_NO_EXTENSIONS") == "1",
+                    reason="50 processes: run in the compiled pass only (no kernel in the way)",
+                ),
+                pytest.mark.timeout(HANDSHAKE_S + 180),
+            ],
+        ),
         pytest.param(
             ZENOH_URL,
             id="zenoh",
