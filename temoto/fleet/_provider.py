@@ -97,8 +97,14 @@ class Provider:
 
     # --- receiving (the transport's thread) ---------------------------------------------------
 
-    def on_request(self, msg: Any) -> None:
-        """A ``resource_request_t`` for this manager: answer from memory, or serve it."""
+    def on_request(self, msg: Any, sender: str = "") -> None:
+        """A ``resource_request_t`` for this manager: answer from memory, or serve it.
+
+        Args:
+            msg: The request.
+            sender: Its authenticated sender (``Opened.sender``), whom the fleet policy's
+                ``resource.request`` permission is checked for.
+        """
         send: Any = None
         with self._lock:
             if self._core.closed:
@@ -119,7 +125,7 @@ class Provider:
         if send is not None:
             self._send(send, "replies_sent")
         elif served is None:
-            self._submit(functools.partial(self._serve, msg))
+            self._submit(functools.partial(self._serve, msg, sender))
 
     def on_release(self, msg: Any) -> None:
         """A ``resource_release_t`` for this manager: acknowledge, then release (idempotent)."""
@@ -158,13 +164,16 @@ class Provider:
 
     # --- the worker threads -------------------------------------------------------------------
 
-    def _serve(self, msg: Any) -> None:
+    def _serve(self, msg: Any, sender: str = "") -> None:
         registrar = self._registrar
         consumer: str = msg.consumer
         request_id: str = msg.request_id
         reply = new(resource_reply_t)
         reply.request_id, reply.provider, reply.consumer = request_id, self.manager, consumer
         try:
+            refusal = self._core.link.auth.refusal(sender, "resource.request", msg.server)
+            if refusal is not None:  # the fleet policy (docs/security.md)
+                raise PermissionError(refusal)
             if msg.server == REMOTE_SERVER:
                 raise ValueError("requests are not forwarded further: ask the provider itself")
             # the registrar has no public accessor for a server's request type
@@ -191,7 +200,8 @@ class Provider:
             reply.errors = records_json(err, self.manager)
             with self._lock:
                 self._core.count("refused")
-            logger.info("remote request %s from %r refused: %s", request_id, consumer, err)
+            level = logging.WARNING if isinstance(err, PermissionError) else logging.INFO
+            logger.log(level, "remote request %s from %r refused: %s", request_id, consumer, err)
         else:
             reply.code = OK
             reply.reference_id, reply.resource_id = resource.id, resource.resource_id

@@ -330,21 +330,21 @@ class RemoteResources(Closing):
             with self._lock:
                 self._core.count("unexpected")
             return
-        handlers[opened.type](msg)
+        handlers[opened.type](msg, opened.sender)
 
-    def _on_request(self, msg: Any) -> None:
+    def _on_request(self, msg: Any, sender: str) -> None:
         if msg.provider == self.manager:  # else for another manager
-            self._provider.on_request(msg)
+            self._provider.on_request(msg, sender)
 
-    def _on_release(self, msg: Any) -> None:
+    def _on_release(self, msg: Any, sender: str = "") -> None:
         if msg.provider == self.manager:
             self._provider.on_release(msg)
 
-    def _on_reply(self, msg: Any) -> None:
+    def _on_reply(self, msg: Any, sender: str = "") -> None:
         if msg.consumer == self.manager:
             self._consumer.on_reply(msg)
 
-    def _on_status(self, msg: Any) -> None:
+    def _on_status(self, msg: Any, sender: str = "") -> None:
         if msg.consumer == self.manager:
             self._consumer.on_status(msg)
 

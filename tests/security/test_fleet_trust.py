@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import itertools
 import logging
+import sys
+import time
 from collections.abc import Iterator
 from contextlib import ExitStack
 from pathlib import Path
@@ -16,9 +18,11 @@ from typing import Any
 
 import pytest
 
+from temoto.errors import ResourceLoadError
 from temoto.fleet.control import COMMAND_CHANNEL, GraphCommander
 from temoto.instance import Instance
 from temoto.lcm_types import envelope_t
+from temoto.managers.process import ProcessRequest
 from temoto.transport.auth import HELLO_CHANNEL, FleetAuth, FleetLink
 from temoto.transport.identity import Credentials, Identity, Policy, Roster
 from temoto.transport.inprocess import InProcessTransport
@@ -310,6 +314,59 @@ def test_an_identity_without_permission_gets_a_reason(
     operator = bus.commander("operator", keys.creds("operator"))
     assert operator.command("start", ["A"], graph_json=relay_graph(), timeout=WAIT).ok
     assert mallory.command("stop", ["A"], graph="relay", timeout=WAIT).replies["A"].ok is False
+
+
+def eventually(check: Any, what: str) -> None:
+    deadline = time.monotonic() + WAIT
+    while not check():
+        assert time.monotonic() < deadline, what
+        time.sleep(0.01)
+
+
+RESOURCES_AND_WORLD = Policy.from_data(
+    [
+        {"who": ["operator"], "may": ["resource.request", "world.publish"], "targets": ["*"]},
+        {"who": ["*"], "may": ["world.publish"], "targets": ["nobody"]},
+    ]
+)
+
+
+def test_a_resource_request_without_permission_gets_a_reason(
+    bus: Bus, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    keys = Keys(tmp_path, RESOURCES_AND_WORLD)
+    a = bus.instance("A", keys.creds("A"))
+    mallory = bus.instance("mallory", keys.creds("mallory"))
+    operator = bus.instance("operator", keys.creds("operator"))
+    for member in (mallory, operator):  # every instance serves "process": A among them
+        eventually(lambda m=member: "A" in m.ris.providers("process"), "A's servers not heard")
+    request = ProcessRequest(sys.executable, ("-c", "import time; time.sleep(60)"))
+    with (
+        caplog.at_level(logging.WARNING, logger="temoto.fleet.resources"),
+        pytest.raises(ResourceLoadError, match="permission denied: 'mallory' may not"),
+    ):
+        mallory.resources.request("process", request, robot="A")
+    assert a.processes.running() == []  # nothing was started for mallory
+    assert any("refused" in r.getMessage() and "mallory" in r.getMessage() for r in caplog.records)
+    # the operator may: the same request loads on A
+    held = operator.resources.request("process", request, robot="A")
+    operator.registrar.release(held.id)
+
+
+def test_world_model_changes_without_permission_are_ignored(
+    bus: Bus, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    keys = Keys(tmp_path, RESOURCES_AND_WORLD)
+    a = bus.instance("A", keys.creds("A"))
+    mallory = bus.instance("mallory", keys.creds("mallory"))
+    operator = bus.instance("operator", keys.creds("operator"))
+    with caplog.at_level(logging.WARNING, logger="temoto.managers.context"):
+        mallory.context.add("crate", "object")
+        eventually(lambda: a.context.stats["updates_refused"] >= 1, "mallory's change taken")
+        operator.context.add("dock", "object")
+        eventually(lambda: any(i.name == "dock" for i in a.context.items()), "no dock on A")
+    assert not any(i.name == "crate" for i in a.context.items())
+    assert any("changes from 'mallory' ignored" in r.getMessage() for r in caplog.records)
 
 
 def test_a_revoked_key_is_refused_at_once(bus: Bus, tmp_path: Path) -> None:

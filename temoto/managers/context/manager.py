@@ -82,6 +82,7 @@ CONTEXT_STATS: Final = (
     "changes_sent",  # context_update_t with local changes
     "states_sent",  # context_update_t chunks answering a request
     "updates_received",  # context_update_t received (changes and state chunks)
+    "updates_refused",  # context_update_t from a member the fleet policy denies world.publish
     "records_applied",  # received records newer than ours
     "records_stale",  # received records not newer than ours (duplicates, late, lost races)
     "records_invalid",  # received records with invalid fields (dropped)

@@ -69,6 +69,7 @@ class ContextSync(ABC):
         self._ask: set[str] = set()  # robots whose tree we want
         self._asked: dict[str, float] = {}  # robot -> when we last asked it
         self._mismatch: dict[str, int] = {}  # robot -> digests in a row that differed
+        self._refused_senders: set[str] = set()  # members warned about (world.publish)
         self._next_digest = -math.inf
         self._sub: Subscription | None = None
         self._timer: threading.Thread | None = None
@@ -177,11 +178,31 @@ class ContextSync(ABC):
         if msg is None:
             return
         if opened.type == "context_update_t":
+            if self._refused(opened.sender):
+                return
             self._on_update(msg)
         elif opened.type == "context_request_t":
             self._on_request(msg)
         else:
             self._on_digest(msg)
+
+    def _refused(self, sender: str) -> bool:
+        """Whether the fleet policy denies ``sender`` changing this robot's world model.
+
+        The policy's ``world.publish`` on this robot (docs/security.md); a refusal is counted
+        and logged at WARNING, once per sender (a refused member keeps publishing every period).
+        """
+        assert self._link is not None
+        refusal = self._link.auth.refusal(sender, "world.publish", self._robot)
+        if refusal is None:
+            return False
+        with self._lock:
+            self._counts["updates_refused"] += 1
+            first = sender not in self._refused_senders
+            self._refused_senders.add(sender)
+        if first:
+            logger.warning("context: changes from %r ignored: %s", sender, refusal)
+        return True
 
     def _foreign(self, robot: Any) -> bool:
         """Whether a sender name is another robot's (lock held; counts if not)."""
