@@ -8,6 +8,7 @@ from :mod:`temoto._cli_fleet` because a local command needs none of the fleet st
 
 from __future__ import annotations
 
+import atexit
 import os
 import signal
 import sys
@@ -86,8 +87,12 @@ class SignalExit:
         if self.signum is not None:
             # The command is ending because of a signal: the handler stays, so that a second
             # Ctrl-C arriving while the interpreter winds down (after this block, before the
-            # exit) hurries instead of raising KeyboardInterrupt where nothing catches it.
+            # exit) hurries instead of raising KeyboardInterrupt where nothing catches it; and
+            # once the last Python code has run, later signals are ignored (the interpreter's
+            # finalisation resets a Python handler to the default action, which would kill the
+            # process by the signal instead of letting it exit with its status).
             self.raising = False
+            atexit.register(_ignore_late_signals)
             return
         for signum, handler in self._previous.items():
             signal.signal(signum, handler)
@@ -111,6 +116,13 @@ class SignalExit:
         self.hurried.set()
         for callback in self._hurry if self._hurry is not None else _default_hurry():
             callback()
+
+
+def _ignore_late_signals() -> None:
+    """At exit (after the interpreter's threads were joined): ignore SIGINT and SIGTERM."""
+    for signum in (signal.SIGINT, signal.SIGTERM):
+        with suppress(ValueError, OSError):  # not the main thread, or a platform without it
+            signal.signal(signum, signal.SIG_IGN)
 
 
 def _say(text: str) -> None:

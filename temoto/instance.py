@@ -43,8 +43,9 @@ from temoto.fleet.ris import ResourceInfoSync
 from temoto.managers.component import ComponentManager
 from temoto.managers.context import ContextManager
 from temoto.managers.process import ProcessManager
-from temoto.transport.auth import FleetAuth, FleetLink
+from temoto.transport.auth import FleetAuth
 from temoto.transport.base import Transport
+from temoto.transport.link import FleetLink
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials

@@ -379,3 +379,30 @@ def test_a_block_left_without_a_signal_restores_the_handlers() -> None:
     with SignalExit():
         assert signal.getsignal(signal.SIGINT) is not before[signal.SIGINT]
     assert {s: signal.getsignal(s) for s in before} == before
+
+
+LATE_SIGNAL = r"""
+import atexit, os, signal, sys
+from temoto._cli_signals import SignalExit
+
+def late():  # registered first, so it runs after SignalExit's own exit hook (last in, first out)
+    print("at exit:", signal.getsignal(signal.SIGINT) is signal.SIG_IGN, flush=True)
+    os.kill(os.getpid(), signal.SIGINT)  # a second Ctrl-C while the interpreter finishes
+
+atexit.register(late)
+with SignalExit() as signals:
+    os.kill(os.getpid(), signal.SIGINT)
+    signals.stop.wait(5)
+sys.exit(signals.exit_code)
+"""
+
+
+def test_a_signal_while_the_interpreter_finishes_leaves_the_exit_status_alone() -> None:
+    # Finalisation resets a Python signal handler to the default action: a second Ctrl-C then
+    # killed the process by SIGINT (status -2) instead of letting it exit 130.
+    proc = subprocess.run(
+        [sys.executable, "-c", LATE_SIGNAL], capture_output=True, text=True, timeout=30, cwd=ROOT
+    )
+    assert proc.stdout.splitlines()[-1] == "at exit: True", proc.stderr
+    assert proc.returncode == 130, proc.stderr
+    assert "Traceback" not in proc.stderr

@@ -90,8 +90,9 @@ from temoto.fleet._notify import Notices
 from temoto.fleet._supervision import Supervisor
 from temoto.fleet.common import Closing, check_name, check_seconds
 from temoto.fleet.service import ServiceCore
-from temoto.transport.auth import FleetLink, Opened
+from temoto.transport.auth import Opened
 from temoto.transport.base import Subscription
+from temoto.transport.link import FleetLink
 
 __all__ = [
     "ACK_CHANNEL_PREFIX",

@@ -15,7 +15,7 @@ commands travel as ``graph_command_t`` on ``TEMOTO_GRAPH_CMD``, addressed to tar
   datagram). A server answers a re-sent command (same ``request_id``) with the reply it gave,
   without running the command again; while the command still runs it stays silent.
 
-Every message is authenticated by the :class:`~temoto.transport.auth.FleetLink` (a host
+Every message is authenticated by the :class:`~temoto.transport.link.FleetLink` (a host
 without the fleet key cannot start a graph: its commands are dropped and counted). A message
 that is well formed but meaningless (no targets, an unknown command) is counted and dropped; a
 command that fails (no such graph, an invalid graph, a graph already running) is answered with
@@ -56,8 +56,9 @@ from temoto.errors import (
 from temoto.fleet.common import Closing, check_clock, decode_or_count, new
 from temoto.lcm_types import graph_command_reply_t, graph_command_t, graph_feedback_t, node_state_t
 from temoto.transport import codec
-from temoto.transport.auth import FleetLink, Opened
+from temoto.transport.auth import Opened
 from temoto.transport.base import Subscription
+from temoto.transport.link import FleetLink
 
 __all__ = [
     "COMMANDS",

@@ -55,8 +55,9 @@ from temoto.fleet.service import ServiceCore
 if TYPE_CHECKING:
     from temoto.clock import Clock
     from temoto.core.registrar import Registrar
-    from temoto.transport.auth import FleetLink, Opened
+    from temoto.transport.auth import Opened
     from temoto.transport.base import Subscription
+    from temoto.transport.link import FleetLink
 
 __all__ = [
     "RESOURCE_CHANNEL",

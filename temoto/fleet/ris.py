@@ -46,8 +46,9 @@ from temoto.lcm_types import ris_advert_t, ris_request_t, ris_server_t, ris_with
 if TYPE_CHECKING:
     from temoto.clock import Clock
     from temoto.core.registrar import Registrar
-    from temoto.transport.auth import FleetLink, Opened
+    from temoto.transport.auth import Opened
     from temoto.transport.base import Subscription
+    from temoto.transport.link import FleetLink
 
 __all__ = ["RIS_CHANNEL", "RIS_STATS", "ResourceInfoSync", "RobotInfo", "ServerInfo"]
 

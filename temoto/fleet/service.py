@@ -41,7 +41,8 @@ from temoto.fleet.common import check_clock, decode_or_count
 from temoto.transport import codec
 
 if TYPE_CHECKING:
-    from temoto.transport.auth import FleetLink, Opened
+    from temoto.transport.auth import Opened
+from temoto.transport.link import FleetLink
 
 __all__ = ["ServiceCore"]
 

@@ -24,7 +24,6 @@ from temoto.transport.auth import (
     DROP_REASONS,
     KEY_ENV,
     FleetAuth,
-    FleetLink,
     Opened,
     key_from_env,
     key_from_text,
@@ -32,6 +31,7 @@ from temoto.transport.auth import (
 from temoto.transport.base import Handler, Subscription, Transport, check_channel
 from temoto.transport.inprocess import InProcessTransport
 from temoto.transport.lcm import DEFAULT_LCM_URL, LcmTransport
+from temoto.transport.link import FleetLink
 from temoto.transport.zenoh import ZENOH_SCHEME, ZenohTransport
 
 __all__ = [

@@ -58,12 +58,22 @@ import os
 import string
 import threading
 import time
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Callable, Mapping
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, final
 
 from temoto.lcm_types import envelope_t
-from temoto.transport.base import Subscription, Transport, _LogLimiter
+from temoto.transport._drops import (
+    _EXPLAIN,
+    _QUIET_REASONS,
+    _WARN_EXPLAIN,
+    DROP_REASONS,
+    DROP_SUMMARY_S,
+    KEY_ENV,
+    _claimed,
+    _DropLog,
+)
+from temoto.transport.base import _LogLimiter
 from temoto.transport.identity import Credentials, RosterError
 
 if TYPE_CHECKING:
@@ -78,7 +88,6 @@ __all__ = [
     "MIN_KEY_BYTES",
     "REPLAY_WINDOW",
     "FleetAuth",
-    "FleetLink",
     "Opened",
     "key_from_env",
     "key_from_text",
@@ -90,40 +99,10 @@ logger = logging.getLogger(__name__)
 ENVELOPE_VERSION = 1
 #: The channel of the keyed fleets' hellos (session key grants).
 HELLO_CHANNEL = "TEMOTO_KEYS"
-#: The environment variable holding the fleet key (hex or base64).
-KEY_ENV = "TEMOTO_FLEET_KEY"
 #: The shortest key accepted, in bytes (the HMAC-SHA256 output size).
 MIN_KEY_BYTES = 32
 #: How many sequence numbers below the highest seen are still accepted once (reordering).
 REPLAY_WINDOW = 64
-#: Why :meth:`FleetAuth.open` drops a message, in the order it checks; keys of ``stats``.
-DROP_REASONS = (
-    "garbage",
-    "version",
-    "fleet",
-    "self",
-    "unsigned",
-    "unexpected_mac",
-    "unknown_member",
-    "forged",
-    "no_session",
-    "not_for_us",
-    "stale",
-    "replayed",
-)
-
-#: Drops that are normal on a shared network and logged at DEBUG only; the others at WARNING.
-_QUIET_REASONS = frozenset({"self", "fleet", "no_session", "not_for_us"})
-#: Seconds between two summary lines of dropped messages (WARNING).
-DROP_SUMMARY_S = 10.0
-#: At most this many (sender, reason) pairs get a line of their own; any later pair (a stranger
-#: inventing sender names) is only counted in the summaries.
-_MAX_FIRST_LINES = 64
-#: A claimed sender name is cut to this many characters in a log line.
-_MAX_NAME_CHARS = 64
-#: A summary line lists at most this many (sender, reason) pairs.
-_MAX_SUMMARY_PAIRS = 8
-
 _SECURE_VERSION = 2
 #: Seconds between two looks at the roster file when sealing (opening looks every time).
 _SEAL_ROSTER_CHECK_S = 0.05
@@ -131,121 +110,6 @@ _WINDOW_MASK = (1 << REPLAY_WINDOW) - 1
 # A sender not heard for this many windows is forgotten; its old messages are stale by then.
 _FORGET_AFTER_WINDOWS = 10
 _HEX_DIGITS = frozenset(string.hexdigits)
-
-_EXPLAIN = {
-    "garbage": "not an envelope",
-    "version": "unknown envelope version",
-    "fleet": "another fleet",
-    "self": "our own message",
-    "unsigned": "no mac, but this fleet has a key",
-    "unexpected_mac": "a mac, but this fleet runs insecure",
-    "unknown_member": "not a member of the roster",
-    "forged": "wrong mac",
-    "no_session": "no session key granted by this sender (yet)",
-    "not_for_us": "addressed to other members",
-    "stale": "stamp outside the time window",
-    "replayed": "sequence number already seen or too old",
-}
-
-
-#: What a WARNING says about each reason it logs: what was wrong, and what to check.
-_WARN_EXPLAIN = {
-    "garbage": ("not a well-formed envelope", "damaged, truncated, or another program's message"),
-    "version": ("an unknown envelope version", "does the sender run another TeMoto version?"),
-    "unsigned": ("no mac, but this fleet has a key", "does the sender run --insecure?"),
-    "unexpected_mac": ("a mac, but this member runs --insecure", "the sender has a fleet key"),
-    "unknown_member": (
-        "not a member of the roster",
-        "never added, or revoked (temoto keys list ROSTER)",
-    ),
-    "forged": (
-        "wrong mac",
-        f"sealed with another fleet key (check {KEY_ENV} or --fleet-key-file), changed, or a"
-        " member speaking as another",
-    ),
-    "no_session": ("no session key granted", "the hellos have not crossed yet"),
-    "not_for_us": ("addressed to other members", "normal"),
-    "stale": ("time stamp outside the window", "are the clocks synchronised (NTP)?"),
-    "replayed": (
-        "sequence number already seen or too old",
-        "a replayed message, or two members using this name",
-    ),
-}
-
-
-def _claimed(sender: str | None) -> str:
-    """A claimed sender name for a log line: quoted, escaped, cut (it is the sender's text)."""
-    if sender is None:
-        return "an unknown sender"
-    if len(sender) > _MAX_NAME_CHARS:
-        return repr(sender[:_MAX_NAME_CHARS]) + "..."
-    return repr(sender)
-
-
-class _DropLog:
-    """Decides which authentication drops are logged at WARNING, and summarises the rest.
-
-    The first drop of each (sender, reason) is logged at once (up to :data:`_MAX_FIRST_LINES`
-    pairs); later ones are counted and written as one summary line when a drop arrives at least
-    ``interval_s`` after the last line. Not thread-safe: the caller holds a lock.
-
-    Args:
-        interval_s: Seconds between two summary lines.
-    """
-
-    def __init__(self, interval_s: float) -> None:
-        self.interval_s = interval_s
-        self._first: set[tuple[str | None, str]] = set()
-        self._pending: dict[tuple[str | None, str], int] = {}
-        self._since: float | None = None  # when the current summary period began
-
-    def drop(self, sender: str | None, reason: str, now: float) -> tuple[bool, str | None]:
-        """Record one drop.
-
-        Args:
-            sender: The claimed sender, or None when unknown.
-            reason: Why it was dropped (one of :data:`DROP_REASONS`).
-            now: The current time in seconds.
-
-        Returns:
-            Whether this drop gets a line of its own, and a summary line to log now (or None).
-        """
-        key = (sender, reason)
-        if self._since is None or now < self._since:  # first drop, or the clock went back
-            self._since = now
-        if key not in self._first and len(self._first) < _MAX_FIRST_LINES:
-            self._first.add(key)
-            return True, None
-        self._pending[key] = self._pending.get(key, 0) + 1
-        if now - self._since < self.interval_s:
-            return False, None
-        return False, self.flush(now)
-
-    def flush(self, now: float) -> str | None:
-        """The summary of the drops held back so far (None if there are none); starts anew.
-
-        Args:
-            now: The current time in seconds.
-
-        Returns:
-            The summary line, or None.
-        """
-        if not self._pending:
-            return None
-        since = now if self._since is None else self._since
-        pairs = sorted(self._pending.items(), key=lambda item: -item[1])
-        total = sum(n for _, n in pairs)
-        shown = ", ".join(
-            f"{n} from {_claimed(who)} ({_WARN_EXPLAIN[why][0]})"
-            for (who, why), n in pairs[:_MAX_SUMMARY_PAIRS]
-        )
-        if len(pairs) > _MAX_SUMMARY_PAIRS:
-            rest = sum(n for _, n in pairs[_MAX_SUMMARY_PAIRS:])
-            shown += f" and {rest} from {len(pairs) - _MAX_SUMMARY_PAIRS} other senders/reasons"
-        line = f"dropped {total} more messages in the last {now - since:.0f} s: {shown}"
-        self._pending.clear()
-        self._since = now
-        return line
 
 
 def key_from_text(text: str) -> bytes:
@@ -774,157 +638,3 @@ class FleetAuth:
         for sender in [s for s, peer in self._peers.items() if peer.heard < horizon]:
             del self._peers[sender]
         self._next_prune = now + self.window_s
-
-
-@final
-class FleetLink:
-    """Sends and receives authenticated fleet messages: a :class:`FleetAuth` on a transport.
-
-    The link owns neither: close the transport yourself. A keyed link listens to
-    :data:`HELLO_CHANNEL` from its construction and sends its first hello at once; the hellos
-    (and the first messages, re-sent to each peer met in the first seconds) go out with the
-    link's sends and receives.
-
-    Args:
-        transport: Where envelopes travel.
-        auth: Seals outgoing and checks incoming envelopes.
-
-    Raises:
-        TransportError: If the transport is closed.
-    """
-
-    def __init__(self, transport: Transport, auth: FleetAuth) -> None:
-        self.transport = transport
-        self.auth = auth
-        self._handler_errors = 0
-        self._errors_lock = threading.Lock()
-        self._log = _LogLimiter()
-        self._hellos: Subscription | None = None
-        self._timer: threading.Timer | None = None
-        self._timer_lock = threading.Lock()
-        self._hello_seen = threading.Condition()
-        if not auth.insecure:
-            self._hellos = transport.subscribe(HELLO_CHANNEL, self._on_hello)
-            self._flush()
-
-    def _on_hello(self, channel: str, data: bytes) -> None:
-        self.auth.open(channel, data)
-        self._flush()
-        with self._hello_seen:
-            self._hello_seen.notify_all()
-
-    def wait_for_peers(self, names: Iterable[str], timeout: float) -> bool:
-        """Wait until this member can open the messages of every named member.
-
-        Sending needs no wait (what a peer could not open while the hellos crossed is re-sent
-        to it); this is for callers that must know the keys are agreed, e.g. tests.
-
-        Args:
-            names: The members.
-            timeout: Seconds to wait at most.
-
-        Returns:
-            True when they all granted us their session (always True for insecure fleets).
-        """
-        wanted = set(names)
-        if self.auth.insecure:
-            return True
-        with self._hello_seen:
-            return self._hello_seen.wait_for(lambda: wanted <= self.auth.peers, timeout)
-
-    def _flush(self) -> None:
-        """Publish what the auth wants sent (hellos, re-sent messages); never raises."""
-        for channel, data in self.auth.take_outgoing():
-            try:
-                self.transport.publish(channel, data)
-            except Exception as err:  # closed meanwhile: the peers hear us no more anyway
-                logger.debug("fleet %r: could not publish on %r: %s", self.auth.fleet, channel, err)
-                return
-        due = self.auth.hello_due_in()
-        if due is None:
-            return
-        with self._timer_lock:  # one short-lived thread sends a held-back hello when it is due
-            if self._timer is not None and self._timer.is_alive():
-                return
-            self._timer = threading.Timer(due + 0.001, self._flush)
-            self._timer.name = "temoto-fleet-hello"
-            self._timer.daemon = True
-            self._timer.start()
-
-    def __repr__(self) -> str:
-        return f"<FleetLink {self.auth!r} on {self.transport!r}>"
-
-    @property
-    def stats(self) -> dict[str, int]:
-        """The authentication counters (:attr:`FleetAuth.stats`) plus ``handler_error``."""
-        stats = self.auth.stats
-        stats["handler_error"] = self._handler_errors
-        return stats
-
-    def send(self, channel: str, type_name: str, payload: bytes) -> None:
-        """Seal an inner message and publish it.
-
-        Args:
-            channel: The channel.
-            type_name: The inner message's type name.
-            payload: The inner message, LCM-encoded.
-
-        Raises:
-            ValueError: If the channel name is invalid.
-            TypeError: If ``payload`` is not bytes.
-            TransportError: If the transport is closed or sending failed.
-        """
-        data = self.auth.seal(channel, type_name, payload)
-        self._flush()
-        self.transport.publish(channel, data)
-
-    def listen(
-        self,
-        channel: str,
-        handler: Callable[[Opened], None],
-        *,
-        queue_capacity: int | None = None,
-    ) -> Subscription:
-        """Call ``handler`` on the receive thread with every envelope on ``channel`` that passes.
-
-        Dropped envelopes are only counted (:attr:`stats`); what the handler raises is logged
-        and counted as ``handler_error``.
-
-        Args:
-            channel: The channel.
-            handler: Called with the opened envelope.
-            queue_capacity: See :meth:`Transport.subscribe`.
-
-        Returns:
-            The transport subscription; unsubscribe it to stop listening.
-
-        Raises:
-            ValueError: If the channel name or the capacity is invalid.
-            TransportError: If the transport is closed.
-        """
-
-        def on_data(rx_channel: str, data: bytes) -> None:
-            opened = self.auth.open(rx_channel, data)
-            if not self.auth.insecure:
-                self._flush()
-            if opened is None:
-                return
-            try:
-                handler(opened)
-            except Exception:
-                with self._errors_lock:
-                    self._handler_errors += 1
-                held = self._log.allow(rx_channel)
-                if held is not None:
-                    more = f" ({held} more since the last report)" if held else ""
-                    logger.exception(
-                        "fleet %r: handler %r of channel %r raised on a %r from %r%s",
-                        self.auth.fleet,
-                        handler,
-                        rx_channel,
-                        opened.type,
-                        opened.sender,
-                        more,
-                    )
-
-        return self.transport.subscribe(channel, on_data, queue_capacity=queue_capacity)

@@ -21,8 +21,9 @@ from temoto.fleet.control import (
 from temoto.instance import Instance
 from temoto.lcm_types import graph_command_t, graph_feedback_t
 from temoto.transport import codec
-from temoto.transport.auth import FleetAuth, FleetLink, Opened
+from temoto.transport.auth import FleetAuth, Opened
 from temoto.transport.inprocess import InProcessTransport
+from temoto.transport.link import FleetLink
 
 ROOT = Path(__file__).resolve().parents[2]
 ACTIONS = ROOT / "examples" / "actions" / "conformance"

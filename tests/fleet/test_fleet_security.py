@@ -21,8 +21,9 @@ from hypothesis import strategies as st
 
 from temoto.fleet.control import GraphCommander
 from temoto.instance import Instance
-from temoto.transport.auth import DROP_REASONS, HELLO_CHANNEL, FleetAuth, FleetLink
+from temoto.transport.auth import DROP_REASONS, HELLO_CHANNEL, FleetAuth
 from temoto.transport.inprocess import InProcessTransport
+from temoto.transport.link import FleetLink
 
 ROOT = Path(__file__).resolve().parents[2]
 ACTIONS = ROOT / "examples" / "actions" / "conformance"

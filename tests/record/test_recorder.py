@@ -25,7 +25,8 @@ from temoto.record import Recorder, read_messages, read_transitions
 from temoto.record.schemas import SCHEMAS
 from temoto.testing.robots import FakeRobot as Robot
 from temoto.transport import InProcessTransport
-from temoto.transport.auth import FleetAuth, FleetLink
+from temoto.transport.auth import FleetAuth
+from temoto.transport.link import FleetLink
 
 pytestmark = pytest.mark.timeout(30)
 

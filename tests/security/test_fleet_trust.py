@@ -23,9 +23,10 @@ from temoto.fleet.control import COMMAND_CHANNEL, GraphCommander
 from temoto.instance import Instance
 from temoto.lcm_types import envelope_t
 from temoto.managers.process import ProcessRequest
-from temoto.transport.auth import HELLO_CHANNEL, FleetAuth, FleetLink
+from temoto.transport.auth import HELLO_CHANNEL, FleetAuth
 from temoto.transport.identity import Credentials, Identity, Policy, Roster
 from temoto.transport.inprocess import InProcessTransport
+from temoto.transport.link import FleetLink
 
 ROOT = Path(__file__).resolve().parents[2]
 ACTIONS = ROOT / "examples" / "actions" / "conformance"

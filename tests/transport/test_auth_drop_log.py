@@ -13,7 +13,7 @@ import pytest
 
 from temoto.lcm_types import envelope_t
 from temoto.transport import DROP_REASONS, FleetAuth
-from temoto.transport.auth import _MAX_FIRST_LINES, DROP_SUMMARY_S
+from temoto.transport._drops import _MAX_FIRST_LINES, DROP_SUMMARY_S
 
 KEY = bytes(range(32))
 OTHER_KEY = bytes(range(1, 33))

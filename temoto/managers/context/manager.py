@@ -63,7 +63,7 @@ from temoto.managers.context.tree import (
 )
 
 if TYPE_CHECKING:
-    from temoto.transport.auth import FleetLink
+    from temoto.transport.link import FleetLink
 
 __all__ = [
     "CONTEXT_CHANNEL",

@@ -30,8 +30,9 @@ from temoto.managers.context.tree import ContextTree, Record
 from temoto.transport import codec
 
 if TYPE_CHECKING:
-    from temoto.transport.auth import FleetLink, Opened
+    from temoto.transport.auth import Opened
     from temoto.transport.base import Subscription
+    from temoto.transport.link import FleetLink
 
 __all__ = ["CONTEXT_CHANNEL", "ContextSync"]
 

@@ -1,0 +1,176 @@
+"""The fleet link: a :class:`~temoto.transport.auth.FleetAuth` on a transport (docs/fleet.md).
+
+:class:`FleetLink` seals what it sends and opens what it receives with its ``FleetAuth``, and
+carries a keyed fleet's hellos (docs/security.md) along with its own sends and receives. Kept
+apart from :mod:`temoto.transport.auth`, which decides what a byte string means and never
+touches a transport.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+from collections.abc import Callable, Iterable
+from typing import final
+
+from temoto.transport.auth import HELLO_CHANNEL, FleetAuth, Opened
+from temoto.transport.base import Subscription, Transport, _LogLimiter
+
+__all__ = ["FleetLink"]
+
+# The link's lines were logged under the auth module's name: log lines do not change.
+logger = logging.getLogger("temoto.transport.auth")
+
+
+@final
+class FleetLink:
+    """Sends and receives authenticated fleet messages: a :class:`FleetAuth` on a transport.
+
+    The link owns neither: close the transport yourself. A keyed link listens to
+    :data:`HELLO_CHANNEL` from its construction and sends its first hello at once; the hellos
+    (and the first messages, re-sent to each peer met in the first seconds) go out with the
+    link's sends and receives.
+
+    Args:
+        transport: Where envelopes travel.
+        auth: Seals outgoing and checks incoming envelopes.
+
+    Raises:
+        TransportError: If the transport is closed.
+    """
+
+    def __init__(self, transport: Transport, auth: FleetAuth) -> None:
+        self.transport = transport
+        self.auth = auth
+        self._handler_errors = 0
+        self._errors_lock = threading.Lock()
+        self._log = _LogLimiter()
+        self._hellos: Subscription | None = None
+        self._timer: threading.Timer | None = None
+        self._timer_lock = threading.Lock()
+        self._hello_seen = threading.Condition()
+        if not auth.insecure:
+            self._hellos = transport.subscribe(HELLO_CHANNEL, self._on_hello)
+            self._flush()
+
+    def _on_hello(self, channel: str, data: bytes) -> None:
+        self.auth.open(channel, data)
+        self._flush()
+        with self._hello_seen:
+            self._hello_seen.notify_all()
+
+    def wait_for_peers(self, names: Iterable[str], timeout: float) -> bool:
+        """Wait until this member can open the messages of every named member.
+
+        Sending needs no wait (what a peer could not open while the hellos crossed is re-sent
+        to it); this is for callers that must know the keys are agreed, e.g. tests.
+
+        Args:
+            names: The members.
+            timeout: Seconds to wait at most.
+
+        Returns:
+            True when they all granted us their session (always True for insecure fleets).
+        """
+        wanted = set(names)
+        if self.auth.insecure:
+            return True
+        with self._hello_seen:
+            return self._hello_seen.wait_for(lambda: wanted <= self.auth.peers, timeout)
+
+    def _flush(self) -> None:
+        """Publish what the auth wants sent (hellos, re-sent messages); never raises."""
+        for channel, data in self.auth.take_outgoing():
+            try:
+                self.transport.publish(channel, data)
+            except Exception as err:  # closed meanwhile: the peers hear us no more anyway
+                logger.debug("fleet %r: could not publish on %r: %s", self.auth.fleet, channel, err)
+                return
+        due = self.auth.hello_due_in()
+        if due is None:
+            return
+        with self._timer_lock:  # one short-lived thread sends a held-back hello when it is due
+            if self._timer is not None and self._timer.is_alive():
+                return
+            self._timer = threading.Timer(due + 0.001, self._flush)
+            self._timer.name = "temoto-fleet-hello"
+            self._timer.daemon = True
+            self._timer.start()
+
+    def __repr__(self) -> str:
+        return f"<FleetLink {self.auth!r} on {self.transport!r}>"
+
+    @property
+    def stats(self) -> dict[str, int]:
+        """The authentication counters (:attr:`FleetAuth.stats`) plus ``handler_error``."""
+        stats = self.auth.stats
+        stats["handler_error"] = self._handler_errors
+        return stats
+
+    def send(self, channel: str, type_name: str, payload: bytes) -> None:
+        """Seal an inner message and publish it.
+
+        Args:
+            channel: The channel.
+            type_name: The inner message's type name.
+            payload: The inner message, LCM-encoded.
+
+        Raises:
+            ValueError: If the channel name is invalid.
+            TypeError: If ``payload`` is not bytes.
+            TransportError: If the transport is closed or sending failed.
+        """
+        data = self.auth.seal(channel, type_name, payload)
+        self._flush()
+        self.transport.publish(channel, data)
+
+    def listen(
+        self,
+        channel: str,
+        handler: Callable[[Opened], None],
+        *,
+        queue_capacity: int | None = None,
+    ) -> Subscription:
+        """Call ``handler`` on the receive thread with every envelope on ``channel`` that passes.
+
+        Dropped envelopes are only counted (:attr:`stats`); what the handler raises is logged
+        and counted as ``handler_error``.
+
+        Args:
+            channel: The channel.
+            handler: Called with the opened envelope.
+            queue_capacity: See :meth:`Transport.subscribe`.
+
+        Returns:
+            The transport subscription; unsubscribe it to stop listening.
+
+        Raises:
+            ValueError: If the channel name or the capacity is invalid.
+            TransportError: If the transport is closed.
+        """
+
+        def on_data(rx_channel: str, data: bytes) -> None:
+            opened = self.auth.open(rx_channel, data)
+            if not self.auth.insecure:
+                self._flush()
+            if opened is None:
+                return
+            try:
+                handler(opened)
+            except Exception:
+                with self._errors_lock:
+                    self._handler_errors += 1
+                held = self._log.allow(rx_channel)
+                if held is not None:
+                    more = f" ({held} more since the last report)" if held else ""
+                    logger.exception(
+                        "fleet %r: handler %r of channel %r raised on a %r from %r%s",
+                        self.auth.fleet,
+                        handler,
+                        rx_channel,
+                        opened.type,
+                        opened.sender,
+                        more,
+                    )
+
+        return self.transport.subscribe(channel, on_data, queue_capacity=queue_capacity)
