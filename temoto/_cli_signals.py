@@ -141,14 +141,18 @@ def make_devices_safe(reason: str) -> None:
     """Put every device driven by this process in its safe state (``make_all_safe``).
 
     Drivers exist only if :mod:`temoto.drivers.base` was imported; it is not imported here
-    (that would cost 0.1 s for a command that has no devices). One line per device goes to
+    (that would cost 0.1 s for a command that has no devices), and a module another thread is
+    still importing has no driver yet. One line per device goes to
     standard error.
 
     Args:
         reason: Why (for the log).
     """
     base = sys.modules.get("temoto.drivers.base")
-    if base is None:
+    # None, or still being imported by another thread (an action's import at that moment):
+    # then no driver of it exists yet.
+    make_all_safe = getattr(base, "make_all_safe", None)
+    if make_all_safe is None:
         return
-    for driver, what in base.make_all_safe(reason):
+    for driver, what in make_all_safe(reason):
         sys.stderr.write(f"temoto: {driver.name}: {what}\n")

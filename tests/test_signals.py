@@ -406,3 +406,16 @@ def test_a_signal_while_the_interpreter_finishes_leaves_the_exit_status_alone() 
     assert proc.stdout.splitlines()[-1] == "at exit: True", proc.stderr
     assert proc.returncode == 130, proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_devices_are_made_safe_while_another_thread_imports_the_drivers(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A signal while an action's import of temoto.drivers.base is half done: the module is in
+    # sys.modules without make_all_safe yet (the serve command exited 1 with a traceback).
+    import types
+
+    from temoto._cli_signals import make_devices_safe
+
+    monkeypatch.setitem(sys.modules, "temoto.drivers.base", types.ModuleType("half-imported"))
+    make_devices_safe("a signal")  # nothing to make safe, and no AttributeError

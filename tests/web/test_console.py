@@ -578,4 +578,4 @@ def test_serve_v_prints_the_traceback_of_an_action_that_raised(tmp_path: Path) -
     assert "temoto: boom/TaTriggerResult_0: TaTriggerResult_0 failed:" in text, text
     assert "ta_trigger_result.py" in text  # the plugin's own file and line
     assert "raise RuntimeError" in text
-    assert proc.returncode == 0
+    assert proc.returncode == 0, text[-3000:]
