@@ -269,8 +269,9 @@ class SimVehicle(CommandHandler):
                 if peer not in self._peers:
                     self._peers.append(peer)
             for msg in self.codec.decode_datagram(data):
-                self.received[msg.name] = self.received.get(msg.name, 0) + 1
                 replies = self._handle(msg)
+                # counted once handled: a test that waits for the count sees its effect
+                self.received[msg.name] = self.received.get(msg.name, 0) + 1
                 self._send(replies)
 
     def _send(self, frames: list[bytes]) -> None:

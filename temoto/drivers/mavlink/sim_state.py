@@ -246,7 +246,7 @@ class VehicleState(Simulator):
         self._link: UdpLink | None = None  # SimVehicle's endpoint
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        #: Frames received and commands acknowledged, for tests and benchmarks.
+        #: Frames received (counted once handled) by message name, for tests and benchmarks.
         self.received: dict[str, int] = {}
         self.acks: list[tuple[int, int]] = []
         self._sync_mission_param()
