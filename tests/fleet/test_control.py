@@ -5,6 +5,7 @@ from __future__ import annotations
 import itertools
 import json
 import threading
+import time
 from collections.abc import Callable, Iterator
 from contextlib import ExitStack
 from pathlib import Path
@@ -234,7 +235,13 @@ def test_only_the_targets_act_and_each_answers(net: Net) -> None:
     assert a.engine.wait("relay", WAIT).value == "on_true"
     assert c.engine.wait("relay", WAIT).value == "on_true"
     assert "relay" not in b.engine.running_graphs()
+    # B opens the command once the hellos crossed (a keyed fleet), maybe after A and C answered
+    deadline = time.monotonic() + WAIT
+    while b.control.stats["ignored"] < 1:
+        assert time.monotonic() < deadline, b.control.stats
+        time.sleep(0.01)
     assert b.control.stats["ignored"] == 1
+    assert "relay" not in b.engine.running_graphs()
 
 
 def test_a_target_that_does_not_answer_is_reported_missing(net: Net) -> None:
@@ -309,8 +316,13 @@ def test_garbage_and_meaningless_commands_are_counted_not_raised(net: Net) -> No
     unknown = graph_command_t()
     unknown.request_id, unknown.command, unknown.targets, unknown.targets_count = "r3", 9, ["A"], 1
     raw.send(COMMAND_CHANNEL, *codec.encode(unknown))
-    # the instance still works, and what it dropped is counted
+    # the instance still works, and what it dropped is counted (in a keyed fleet the raw
+    # messages may open only once the hellos crossed, after the commander's start: waited for)
     assert net.commander().command("start", ["A"], graph_json=relay_graph()).ok
+    deadline = time.monotonic() + WAIT
+    while a.control.stats["decode_errors"] + a.control.stats["unexpected"] < 4:
+        assert time.monotonic() < deadline, a.control.stats
+        time.sleep(0.01)
     stats = a.control.stats
     assert stats["decode_errors"] == 1
     assert stats["unexpected"] == 3
