@@ -154,8 +154,13 @@ def test_the_page_follows_the_mobile_manipulation_mission(tmp_path: Path) -> Non
                     "document.querySelector('#svg .node[data-node=\"NavigateTo_0\"]')"
                     ".dispatchEvent(new MouseEvent('click', {bubbles: true}))"
                 )
-                held = browser.wait_for("document.querySelector('#resources li')?.textContent")
-                assert "robot" in held  # the action holds the robot
+                # the action holds the robot: shown once the snapshot after the acquisition came
+                # (the panel may first say "none", before the action acquired it)
+                held = browser.wait_for(
+                    "[...document.querySelectorAll('#resources li')]"
+                    ".map(li => li.textContent).find(t => t.includes('robot'))"
+                )
+                assert "robot" in held
                 browser.screenshot(shot)
                 assert engine.wait(run, timeout=60) is Result.TRUE
                 browser.wait_for(
