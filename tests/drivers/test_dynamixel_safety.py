@@ -164,6 +164,7 @@ class EManualChain:
         self._stop = threading.Event()
         self._buffer = b""
         self.goal_writes = 0  # SYNC_WRITEs of Goal Position
+        self.writes: list[tuple[int, int, bytes]] = []  # (id, address, data) of every WRITE
         self._thread = threading.Thread(target=self._serve, daemon=True)
         self._thread.start()
 
@@ -242,6 +243,7 @@ class EManualChain:
             size = int.from_bytes(params[2:4], "little")
             return [packet(dxl_id, b"\x55\x00" + bytes(servo.table[address : address + size]))]
         if inst == 0x03:  # WRITE
+            self.writes.append((dxl_id, int.from_bytes(params[0:2], "little"), bytes(params[2:])))
             error = servo.write(int.from_bytes(params[0:2], "little"), params[2:])
             servo.step(now)
             return [packet(dxl_id, b"\x55" + bytes([error]))]
@@ -313,6 +315,27 @@ def test_bus_watchdog_on_the_e_manual_emulator(emulator: tuple[EManualChain, Man
     driver.activate()
     eventually(lambda: True, 0.05, clock)
     hang_and_check_the_watchdog(driver, clock, chain.register, chain.path)
+
+
+def test_no_servo_has_torque_before_its_watchdog_is_armed(
+    emulator: tuple[EManualChain, ManualClock],
+) -> None:
+    # a SIGKILL may fall between any two writes of activate(): no moment may leave a servo
+    # torqued and unwatched (the watchdog only watches while torque is on, so arming first is
+    # harmless; a CI run once killed the command between servo 1's arming and servo 2's)
+    chain, clock = emulator
+    entry = config(bus_watchdog=0.1, link=f"serial:{chain.path}", reply_timeout=0.1)
+    with DynamixelDriver.from_profile("arm", entry, clock=clock, where="a") as driver:
+        driver.configure()
+        del chain.writes[:]
+        driver.activate()
+        writes = list(chain.writes)
+    for dxl_id in (1, 2, 3):
+        mine = [(address, data) for i, address, data in writes if i == dxl_id]
+        torque_on = mine.index((TORQUE, b"\x01"))
+        armed = [n for n, (address, data) in enumerate(mine) if address == WATCHDOG and data[0]]
+        assert armed, mine
+        assert armed[-1] < torque_on, mine
 
 
 def test_steady_goal_writes_keep_the_watchdog_fed(

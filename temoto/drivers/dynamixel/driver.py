@@ -441,7 +441,7 @@ class DynamixelDriver(ServoChain):
         self._start_polling()
 
     def on_activate(self) -> None:
-        """Clear the Bus Watchdog, hold where each servo is, turn torque on, arm the watchdog."""
+        """Clear the Bus Watchdog, hold where each servo is, arm the watchdog, turn torque on."""
         with self._bus:
             for servo in self.servos:  # 0 clears a Bus Watchdog error: goals writable again
                 self._write(servo.id, ct.BUS_WATCHDOG, 0, "bus watchdog clear")
@@ -462,11 +462,13 @@ class DynamixelDriver(ServoChain):
             if zero:
                 self._check_tx(self._writer(ct.GOAL_CURRENT).write(zero))
             self._goals = self._hold_goals(data)
-            for servo in self.servos:
-                self._write(servo.id, ct.TORQUE_ENABLE, 1, "torque on")
+            # armed before torque on (it only watches while torque is on, e-Manual address
+            # 98): a SIGKILL between two writes never leaves a torqued servo unwatched
             if self.watchdog_units:
                 for servo in self.servos:
                     self._write(servo.id, ct.BUS_WATCHDOG, self.watchdog_units, "bus watchdog")
+            for servo in self.servos:
+                self._write(servo.id, ct.TORQUE_ENABLE, 1, "torque on")
 
     def on_deactivate(self) -> None:
         """Turn torque off."""
