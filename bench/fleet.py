@@ -185,13 +185,15 @@ if spec.get("router"):  # Zenoh: every process is a client of this router
                                spec["router"]], stdin=subprocess.DEVNULL,
                               stdout=subprocess.PIPE, text=True)
     assert "listening on" in router.stdout.readline()
-result = {}
+result, took = {}, {}
 for n in spec["sizes"]:
+    t0 = time.monotonic()
     actors = [f"actor_{i}" for i in range(n)]
     procs = [start(spec["worker"], [a, json.dumps(actors), url(i), spec["key"]])
              for i, a in enumerate(actors)]
     for p in procs:
         assert p.stdout.readline().strip() == "ready"
+    t1 = time.monotonic()
     rounds = []
     for r in range(spec["rounds_of"].get(str(n), spec["rounds"])):
         t_go = time.time()
@@ -203,7 +205,9 @@ for n in spec["sizes"]:
     for p in procs:
         p.wait(30)
     result[str(n)] = rounds
+    took[f"{n} actors"] = [round(t1 - t0, 2), round(time.monotonic() - t1, 2)]
 for flood, key in spec.get("floods", {"flood": spec["key"]}).items():
+    t0 = time.monotonic()
     recv = start(spec["flood"], ["recv", url(0), key, str(spec["flood_n"])])
     send = start(spec["flood"], ["send", url(1), key, str(spec["flood_n"])])
     assert send.stdout.readline().strip() == "ready"
@@ -214,6 +218,8 @@ for flood, key in spec.get("floods", {"flood": spec["key"]}).items():
     send.wait(30); recv.wait(30)
     result[flood] = {"sent": spec["flood_n"], "send_s": send_s, "received": int(count),
                      "first": float(first), "last": float(last), "accepted": int(accepted)}
+    took[flood] = [0.0, round(time.monotonic() - t0, 2)]
+result["took"] = took
 if router is not None:
     router.terminate()
     router.wait(10)
@@ -282,6 +288,7 @@ def bench_fleet(quick: bool) -> Results:
         data = _run(spec)
     finally:
         shutil.rmtree(folder, ignore_errors=True)
+    _note_took(out, data, "LCM")
     for n in (2, 3, 5):  # a handshake that timed out (a loaded machine) is left out, and said
         done = [rnd for rnd in data[str(n)] if all(w["hand"] is not None for w in rnd)]
         if len(done) < len(data[str(n)]):
@@ -476,6 +483,7 @@ def _bench_zenoh_run(
         return (">=", lcm[name] / 2) if bigger_is_better else ("<=", lcm[name] * 2)
 
     data = _run(spec)
+    _note_took(out, data, suffix[1:])
     done = [rnd for rnd in data["3"] if all(w["hand"] is not None for w in rnd)]
     if len(done) < len(data["3"]):
         out.notes.append(
@@ -510,6 +518,13 @@ def _bench_zenoh_run(
         f" sender's rate {flood['sent'] / max(flood['send_s'], 1e-9):,.0f}/s",
         within_2x("fleet_msgs_per_s", bigger_is_better=True),
     )
+
+
+def _note_took(out: Results, data: dict[str, Any], label: str) -> None:
+    """Where a fleet run's time went: seconds to start each part's processes, then to run it."""
+    took = data.pop("took", {})
+    parts = ", ".join(f"{part} {start:g} + {run:g}" for part, (start, run) in took.items())
+    out.notes.append(f"{label} run, seconds (start + run): {parts}")
 
 
 def _add_ready_latency(
