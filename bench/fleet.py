@@ -155,7 +155,8 @@ if role == "recv":
     print(count[0], first[0], last[0], link.stats.get("accepted", 0) - probes[0], flush=True)
 else:
     payload = b"x" * 200
-    assert link.wait_for_peers(["recv"], 30.0)  # the hellos crossed: every message opens
+    if not link.wait_for_peers(["recv"], 30.0):  # the hellos crossed: every message opens
+        sys.exit(f"flood sender: no session with the receiver within 30 s ({url})")
     print("ready", flush=True)
     while not select.select([sys.stdin], [], [], 0.01)[0]:
         link.send("BENCH_PROBE", "bench_t", b"")
@@ -184,7 +185,8 @@ if spec.get("router"):  # Zenoh: every process is a client of this router
     router = subprocess.Popen([sys.executable, "-m", "temoto", "router", "--listen",
                                spec["router"]], stdin=subprocess.DEVNULL,
                               stdout=subprocess.PIPE, text=True)
-    assert "listening on" in router.stdout.readline()
+    line = router.stdout.readline()
+    assert "listening on" in line, f"the router did not start: {line!r}"
 result, took = {}, {}
 for n in spec["sizes"]:
     t0 = time.monotonic()
@@ -192,7 +194,8 @@ for n in spec["sizes"]:
     procs = [start(spec["worker"], [a, json.dumps(actors), url(i), spec["key"]])
              for i, a in enumerate(actors)]
     for p in procs:
-        assert p.stdout.readline().strip() == "ready"
+        line = p.stdout.readline().strip()
+        assert line == "ready", f"{n} actors: an actor did not start: {line!r}"
     t1 = time.monotonic()
     rounds = []
     for r in range(spec["rounds_of"].get(str(n), spec["rounds"])):
@@ -210,8 +213,10 @@ for flood, key in spec.get("floods", {"flood": spec["key"]}).items():
     t0 = time.monotonic()
     recv = start(spec["flood"], ["recv", url(0), key, str(spec["flood_n"])])
     send = start(spec["flood"], ["send", url(1), key, str(spec["flood_n"])])
-    assert send.stdout.readline().strip() == "ready"
-    assert recv.stdout.readline().strip() == "ready"
+    line = send.stdout.readline().strip()
+    assert line == "ready", f"{flood}: the sender did not start: {line!r}"
+    line = recv.stdout.readline().strip()
+    assert line == "ready", f"{flood}: the receiver heard no probe: {line!r}"
     send.stdin.write("go\n"); send.stdin.flush()
     send_s = float(send.stdout.readline())
     count, first, last, accepted = recv.stdout.readline().split()
