@@ -215,7 +215,7 @@ class EffectDispatcher(RunEvolution):
                         continue
                     if node.instance is None:
                         node.instance = instance
-                    if node.log or node.control.logged:  # type: ignore[union-attr]  # set: LOCAL
+                    if node.log or node.logged:
                         node.log = instance.log_snapshot()
                     if len(node.data) != len(node.native):
                         node.clear_data()
@@ -316,10 +316,9 @@ class EffectDispatcher(RunEvolution):
         (:meth:`_settle`), saving a lock per new node: its run does not wait for hooks.
         """
         assert node.cls is not None
-        assert node.control is not None
         instance = node.cls()
         instance.initialize(  # positional: one per node and run, on the hot path
-            node.control, node.name, node.run.name, node.inputs, node.outputs, self.registrar
+            node, node.name, node.run.name, node.inputs, node.outputs, self.registrar
         )
         if not node.inline:
             with self._lock:
