@@ -219,10 +219,23 @@ class RunEvolution:
         The evolution kernel computes the wave (responses, received parents, bypass chains);
         this carries out its steps: parameter transfer, input readiness, state changes.
         """
+        self._apply_wave(
+            node, result, outputs, node.run.evolution.propagate(node.idx, _RESULT_CODES[result]), fx
+        )
+
+    def _apply_wave(
+        self,
+        node: Node,
+        result: Result,
+        outputs: Mapping[str, Any],
+        steps: list[int],
+        fx: Effects,
+    ) -> None:
+        """Carry out the steps of the wave the kernel computed for ``node``'s result."""
         run = node.run
         edge_child = run.edge_child
         fast = not self._watchers and not self._feedback_on
-        for step in run.evolution.propagate(node.idx, _RESULT_CODES[result]):
+        for step in steps:
             edge = step >> SHIFT
             child = edge_child[edge]
             code = (step >> 1) & 7
