@@ -49,9 +49,10 @@ _E_RELEASE = EffectKind.RELEASE
 _E_CALL = EffectKind.CALL
 _ACTIVE = ACTIVE_NODE_STATES
 #: the low bits of a wave step (``edge << SHIFT | response << 1 | ready``), and their value for
-#: the response `run` to a child whose every required parent was received
+#: the response `run` to a child whose every required parent was received (or not yet)
 _STEP_LOW = (1 << SHIFT) - 1
 _RUN_READY = P_RUN << 1 | 1
+_RUN_WAITS = P_RUN << 1  # the same, to a child still waiting for a required parent
 
 # a run prepared under the lock: (node, gen, its instance or None, input values)
 _Todo = tuple[Node, int, Action | None, dict[str, Any]]
@@ -176,7 +177,11 @@ class EffectDispatcher(RunEvolution):
         done: list[_Done] = []
         with lock:
             for node, gen in batch:
-                self._prep(node, gen, todo, fx)
+                if gen == node.gen and node.state is _N_RUNNING:  # _prep's common case
+                    data = node.data
+                    todo.append((node, gen, node.instance, dict(data) if data else NO_VALUES))
+                else:
+                    self._prep(node, gen, todo, fx)
             self._collect(fx, todo)
         running = _N_RUNNING
         graph_running = _G_RUNNING
@@ -233,7 +238,15 @@ class EffectDispatcher(RunEvolution):
                     run.active -= 1
                     if self._quiet_waiters:
                         self._quiet.notify_all()
-                    self._propagate(node, result, outputs, fx)
+                    steps = run.evolution.propagate(node.idx, _RESULT_CODES[result])
+                    if len(steps) == 1 and steps[0] & _STEP_LOW == _RUN_WAITS:
+                        # a fan-in: the response `run` to a child that waits for other
+                        # parents; all _apply_wave would do is hand the outputs down
+                        edge = steps[0] >> SHIFT
+                        if outputs and run.edge_parent[edge] is node:
+                            _transfer(node, run.edge_child[edge], run.edge_remap[edge], outputs)
+                    else:
+                        self._apply_wave(node, result, outputs, steps, fx)
                     if not run.active:
                         self._after_change(run, fx)
                 if len(runs) == 1 and not other:  # a chain: _collect's common case
