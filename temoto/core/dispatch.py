@@ -43,6 +43,7 @@ _G_RUNNING = GraphState.RUNNING
 _R_ERROR = Result.ERROR
 _R_STOPPED = Result.STOPPED
 _K_EXIT = NodeKind.EXIT
+_K_LOCAL = NodeKind.LOCAL
 _E_HOOK = EffectKind.HOOK
 _E_FINISH_SPONTANEOUS = EffectKind.FINISH_SPONTANEOUS
 _E_RELEASE = EffectKind.RELEASE
@@ -269,11 +270,12 @@ class EffectDispatcher(RunEvolution):
     ) -> None:
         """Worker: :meth:`_run_batch`'s rounds of one action each, for as long as they last.
 
-        A chain of inline actions is a round per action: the action, then the lock once to
-        apply its result and to start the one child it made ready, which runs next on this
-        thread. That case is carried out here without the round's lists and records, and the
-        wave of the kernel is applied directly when it is one step that starts an idle inline
-        child (:meth:`_apply_wave` does everything else). Returns (lock released) as soon as a
+        A chain is a round per action: the action, then the lock once to apply its result
+        and to start the one child it made ready, which runs next on this thread (inline or
+        blocking: :meth:`_collect` keeps the first blocking run for this thread too). That
+        case is carried out here without the round's lists and records, and the wave of the
+        kernel is applied directly when it is one step that starts an idle local child
+        (:meth:`_apply_wave` does everything else). Returns (lock released) as soon as a
         round is anything else, leaving ``fx`` and ``todo`` as :meth:`_run_batch`'s round
         would have (``fx`` holds no effect on entry).
         """
@@ -332,7 +334,7 @@ class EffectDispatcher(RunEvolution):
                     if outputs and run.edge_parent[edge] is node:
                         _transfer(node, child, run.edge_remap[edge], outputs)
                     if not (
-                        child.inline
+                        child.kind is _K_LOCAL  # inline or blocking: it runs next, here
                         and child.state not in _ACTIVE
                         and (not child.required_inputs or child.inputs_ready())
                     ):
@@ -341,7 +343,7 @@ class EffectDispatcher(RunEvolution):
                 else:
                     self._apply_wave(node, result, outputs, steps, fx)
                 if child is not None:
-                    # _apply_wave's start of an idle local node (inline: LOCAL)
+                    # _apply_wave's start of an idle local node
                     child.gen += 1
                     child.held = None
                     if child.condition is None:  # RunControl.reset, nobody waits to race with
