@@ -622,6 +622,7 @@ class GraphRun:
         """
         for node in self.all_nodes():
             node.child_run = None
+            node.instance = None  # the action holds its node (its RunControl): a cycle
         self.nodes = {}
         self.order = []
         self.edge_start = [0]

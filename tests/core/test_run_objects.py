@@ -162,3 +162,18 @@ def test_a_run_whose_stop_failed_lends_no_node() -> None:
         eventually(lambda: len(stop_seen) == 2, what="both actions to return")
         assert sorted(stop_seen) == [False, True]  # the old run's action saw its stop
         assert isinstance(old_node, Node)
+
+
+def test_a_replaced_run_is_freed_without_the_cyclic_collector() -> None:
+    """A node and its action refer to each other (the action's RunControl is the node):
+    disposing of a replaced run must break that, or every node waits for a full collection."""
+    with engine_with(Tick) as (engine, _):
+        for _ in range(2):  # a new graph object each time: a new plan, so no reuse
+            g = build.graph(*[Tick] * N, name="replaced")
+            assert engine.wait(engine.start(g), WAIT) is Result.TRUE
+        with _collector_off():
+            gc.collect()
+            g = build.graph(*[Tick] * N, name="replaced")
+            assert engine.wait(engine.start(g), WAIT) is Result.TRUE  # disposes of the last one
+            garbage = gc.collect()
+        assert garbage < N // 10, garbage
