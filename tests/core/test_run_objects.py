@@ -15,7 +15,7 @@ import threading
 from collections.abc import Iterator
 from contextlib import contextmanager
 
-from test_engine import WAIT, engine_with, eventually
+from test_engine import WAIT, Upper, _upper_graphs, engine_with, eventually
 
 from temoto import Action, GraphState, NodeState, Result, build
 from temoto.build import action
@@ -177,3 +177,15 @@ def test_a_replaced_run_is_freed_without_the_cyclic_collector() -> None:
             assert engine.wait(engine.start(g), WAIT) is Result.TRUE  # disposes of the last one
             garbage = gc.collect()
         assert garbage < N // 10, garbage
+
+
+def test_a_graph_with_sub_graphs_runs_again_on_its_renewed_nodes() -> None:
+    leaf, mid, top = _upper_graphs()
+    with engine_with(Upper, graphs=[leaf, mid]) as (engine, rec):
+        for _ in range(3):
+            outcome = engine.run(top, timeout=WAIT)
+            assert outcome.result is Result.TRUE
+            assert outcome.outputs == {"out": "HI"}
+        assert rec.started("Top") == ["Mid_0", "Emit_0"] * 3
+        assert rec.started("Top__Mid__0__Leaf__0") == ["Upper_0"] * 3
+        assert engine.running_graphs()["Top__Mid__0"] is GraphState.FINISHED
