@@ -452,9 +452,9 @@ class GraphRun:
         plan: The plan it executes.
         parent_node: The node whose sub-graph this run is, if it is one.
         clock: The engine's clock (read by the actions' helpers); real time if omitted.
-        reuse: An ended run of the same plan that nobody needs any more (no active node, no
-            action left running after a failed stop, not shared): its node objects are taken
-            over, renewed (:meth:`Node.renew`), instead of made anew. A robot that runs the
+        reuse: An ended run of the same plan that nobody needs any more
+            (:meth:`can_lend_nodes`): its node objects are taken over, renewed
+            (:meth:`Node.renew`), instead of made anew. A robot that runs the
             same task again then makes no object per node: the garbage collector's scan of a
             new run's objects, which grows with the graph, is spared. The old run is disposed.
     """
@@ -597,6 +597,32 @@ class GraphRun:
             wiring.slot_required,
             exit_.idx,
             flags,
+        )
+
+    def can_lend_nodes(self, plan: Plan) -> bool:
+        """Whether a new run of ``plan`` may take over this ended run's nodes (``reuse``).
+
+        Only if nothing can still reach a node through this run's action instances: no node
+        is active, no action was given up on after a failed stop (it may still be running and
+        must keep seeing its stop), no action acquired a resource (the registrar may still
+        report on it, through the instance, until the release has run), and the run is not
+        shared with other actors (their link keeps it).
+
+        Args:
+            plan: The new run's plan (it must be this run's).
+
+        Returns:
+            True if the nodes may be renewed for the new run.
+
+        Raises:
+            Nothing.
+        """
+        return (
+            plan is self.plan
+            and not self.active
+            and not self.peers
+            and not self.stop_failed
+            and not any(node.acquired for node in self.nodes.values())
         )
 
     def _received_by_slot(self) -> dict[tuple[str, str], int]:

@@ -244,15 +244,7 @@ class ActionEngine(EffectDispatcher):
                 if old is not None and old.state in _BUSY_GRAPH:
                     raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
                 # an ended run of the same plan lends its nodes to the new one (GraphRun)
-                reuse = (
-                    old
-                    if old is not None
-                    and old.plan is plan
-                    and not old.active
-                    and not old.peers
-                    and not old.stop_failed  # an action of it may still run: keep its node
-                    else None
-                )
+                reuse = old if old is not None and old.can_lend_nodes(plan) else None
                 run = GraphRun(run_name, plan, clock=self.clock, reuse=reuse)
                 run.peers = peers
                 run.session = session

@@ -189,3 +189,28 @@ def test_a_graph_with_sub_graphs_runs_again_on_its_renewed_nodes() -> None:
         assert rec.started("Top") == ["Mid_0", "Emit_0"] * 3
         assert rec.started("Top__Mid__0__Leaf__0") == ["Upper_0"] * 3
         assert engine.running_graphs()["Top__Mid__0"] is GraphState.FINISHED
+
+
+def test_a_run_whose_action_acquired_a_resource_lends_no_node() -> None:
+    """The registrar may still report on the old run's resource through its action, whose
+    RunControl is its node: that node must not become a node of the next run."""
+    from test_registrar import Req, chain
+
+    rr, _, _ = chain()
+
+    @action
+    class Holder(Action):
+        def on_run(self) -> bool:
+            self.acquire("m2", Req("camera"))
+            return True
+
+    g = build.graph(Holder, Tick, name="holder")
+    with engine_with(Holder, Tick, registrar=rr) as (engine, _):
+        assert engine.wait(engine.start(g), WAIT) is Result.TRUE
+        old = engine._runs["holder"]
+        old_nodes = dict(old.nodes)
+        assert old_nodes["Holder_0"].acquired
+        assert engine.wait(engine.start(g), WAIT) is Result.TRUE
+        new = engine._runs["holder"]
+        assert all(new.nodes[name] is not node for name, node in old_nodes.items())
+        assert old_nodes["Holder_0"].run is old
