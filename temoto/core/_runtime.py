@@ -142,7 +142,7 @@ class Wiring:
     Node ``i`` of a run is ``names[i]``: ``graph_entry``, the actions in the graph's order,
     ``graph_exit``. The arrays are the kernel's (:class:`~temoto.core._fast.Evolution`);
     ``edge_parent`` is each edge's parent node, ``edge_remap`` its remap (output name -> input
-    name), ``slot_keys`` each slot's (child, parent) pair of names.
+    name), ``slot_parent`` each slot's parent name (:meth:`slot_keys` pairs it with the child's).
     """
 
     __slots__ = (
@@ -154,7 +154,7 @@ class Wiring:
         "edge_start",
         "names",
         "signature",
-        "slot_keys",
+        "slot_parent",
         "slot_required",
         "slot_start",
     )
@@ -174,13 +174,13 @@ class Wiring:
             parents.append(mine)
         parents.append({rel.full_name: rel for rel in graph.exit})
         slot_start = [0]
-        slot_keys: list[tuple[str, str]] = []
+        slot_parent: list[str] = []
         slot_of: dict[tuple[str, str], int] = {}
         required: list[int] = []
         for name, mine in zip(names, parents, strict=True):
             for parent, relation in mine.items():
                 slot_of[name, parent] = len(required)
-                slot_keys.append((name, parent))
+                slot_parent.append(parent)
                 required.append(1 if relation.required else 0)
             slot_start.append(len(required))
         exit_count: dict[str, int] = {}
@@ -226,7 +226,7 @@ class Wiring:
             edge_start.append(len(edge_child))
         self.names = names
         self.slot_start = slot_start
-        self.slot_keys = slot_keys
+        self.slot_parent = slot_parent
         self.slot_required = required
         self.edge_start = edge_start
         self.edge_parent = edge_parent
@@ -234,6 +234,23 @@ class Wiring:
         self.edge_slot = edge_slot
         self.edge_remap = edge_remap
         self.edge_response = edge_response
+
+    def slot_keys(self) -> list[tuple[str, str]]:
+        """The (child, parent) pair of names of every slot, in slot order.
+
+        Made on demand (a modification carries the received flags over by these keys), not
+        kept: a pair per relation would be as many more objects per plan.
+
+        Returns:
+            The pairs.
+
+        Raises:
+            Nothing.
+        """
+        names, start, parents = self.names, self.slot_start, self.slot_parent
+        return [
+            (names[c], parents[s]) for c in range(len(names)) for s in range(start[c], start[c + 1])
+        ]
 
 
 def wiring_of(plan: Plan) -> Wiring:
@@ -583,7 +600,7 @@ class GraphRun:
         self.edge_child = [order[i] for i in wiring.edge_child]
         self.edge_remap = wiring.edge_remap
         flags = (
-            [received.get(key, 0) for key in wiring.slot_keys]
+            [received.get(key, 0) for key in wiring.slot_keys()]
             if received
             else [0] * len(wiring.slot_required)
         )
@@ -630,7 +647,7 @@ class GraphRun:
         if not self.order:
             return {}
         flags = self.evolution.received_flags()
-        return dict(zip(self.wiring.slot_keys, flags, strict=True))
+        return dict(zip(self.wiring.slot_keys(), flags, strict=True))
 
     def dispose(self) -> None:
         """Break the reference cycles between a forgotten run and its nodes.
