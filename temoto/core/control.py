@@ -1,7 +1,9 @@
 """Stop and pause signals of one node: what the engine sets and an action's helpers wait on.
 
 Engine internal: actions use the helpers on :class:`~temoto.core.action.Action` (``sleep``,
-``wait_for``, ``wait_until_stopped``, ``stop_requested``).
+``wait_for``, ``wait_until_stopped``, ``stop_requested``). The engine's node
+(:class:`temoto.core._runtime.Node`) is a subclass: a node carries its action's signals
+itself, so it costs the garbage collector one object, not two.
 """
 
 from __future__ import annotations

@@ -16,10 +16,12 @@ from __future__ import annotations
 import logging
 from typing import Any
 
+from temoto.core._fast import P_RUN, SHIFT
+from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import Node, NodeKind
 from temoto.core.action import Action
 from temoto.core.effects import Effect, EffectKind, Effects, Run
-from temoto.core.evolution import RunEvolution
+from temoto.core.evolution import RunEvolution, _transfer
 from temoto.core.executor import WorkerPool
 from temoto.core.registrar.registry import Registrar
 from temoto.core.states import ACTIVE_NODE_STATES, GraphState, NodeState, Result
@@ -41,11 +43,17 @@ _G_RUNNING = GraphState.RUNNING
 _R_ERROR = Result.ERROR
 _R_STOPPED = Result.STOPPED
 _K_EXIT = NodeKind.EXIT
+_K_LOCAL = NodeKind.LOCAL
 _E_HOOK = EffectKind.HOOK
 _E_FINISH_SPONTANEOUS = EffectKind.FINISH_SPONTANEOUS
 _E_RELEASE = EffectKind.RELEASE
 _E_CALL = EffectKind.CALL
 _ACTIVE = ACTIVE_NODE_STATES
+#: the low bits of a wave step (``edge << SHIFT | response << 1 | ready``), and their value for
+#: the response `run` to a child whose every required parent was received (or not yet)
+_STEP_LOW = (1 << SHIFT) - 1
+_RUN_READY = P_RUN << 1 | 1
+_RUN_WAITS = P_RUN << 1  # the same, to a child still waiting for a required parent
 
 # a run prepared under the lock: (node, gen, its instance or None, input values)
 _Todo = tuple[Node, int, Action | None, dict[str, Any]]
@@ -170,7 +178,11 @@ class EffectDispatcher(RunEvolution):
         done: list[_Done] = []
         with lock:
             for node, gen in batch:
-                self._prep(node, gen, todo, fx)
+                if gen == node.gen and node.state is _N_RUNNING:  # _prep's common case
+                    data = node.data
+                    todo.append((node, gen, node.instance, dict(data) if data else NO_VALUES))
+                else:
+                    self._prep(node, gen, todo, fx)
             self._collect(fx, todo)
         running = _N_RUNNING
         graph_running = _G_RUNNING
@@ -181,6 +193,9 @@ class EffectDispatcher(RunEvolution):
                 other.clear()
             if not todo:
                 return
+            if len(todo) == 1 and not todo[0][0].run.peers:  # a chain: one action at a time
+                self._run_chain(*todo.pop(), fx, todo)
+                continue
             done.clear()
             for node, gen, instance, values in todo:  # the actions, outside the lock
                 if node.run.peers:
@@ -215,7 +230,7 @@ class EffectDispatcher(RunEvolution):
                         continue
                     if node.instance is None:
                         node.instance = instance
-                    if node.log or node.control.logged:  # type: ignore[union-attr]  # set: LOCAL
+                    if node.log or node.logged:
                         node.log = instance.log_snapshot()
                     if len(node.data) != len(node.native):
                         node.clear_data()
@@ -224,7 +239,15 @@ class EffectDispatcher(RunEvolution):
                     run.active -= 1
                     if self._quiet_waiters:
                         self._quiet.notify_all()
-                    self._propagate(node, result, outputs, fx)
+                    steps = run.evolution.propagate(node.idx, _RESULT_CODES[result])
+                    if len(steps) == 1 and steps[0] & _STEP_LOW == _RUN_WAITS:
+                        # a fan-in: the response `run` to a child that waits for other
+                        # parents; all _apply_wave would do is hand the outputs down
+                        edge = steps[0] >> SHIFT
+                        if outputs and run.edge_parent[edge] is node:
+                            _transfer(node, run.edge_child[edge], run.edge_remap[edge], outputs)
+                    else:
+                        self._apply_wave(node, result, outputs, steps, fx)
                     if not run.active:
                         self._after_change(run, fx)
                 if len(runs) == 1 and not other:  # a chain: _collect's common case
@@ -235,6 +258,131 @@ class EffectDispatcher(RunEvolution):
                         runs.clear()
                         continue
                 self._collect(fx, todo)
+
+    def _run_chain(
+        self,
+        node: Node,
+        gen: int,
+        instance: Action | None,
+        values: dict[str, Any],
+        fx: Effects,
+        todo: list[_Todo],
+    ) -> None:
+        """Worker: :meth:`_run_batch`'s rounds of one action each, for as long as they last.
+
+        A chain is a round per action: the action, then the lock once to apply its result
+        and to start the one child it made ready, which runs next on this thread (inline or
+        blocking: :meth:`_collect` keeps the first blocking run for this thread too). That
+        case is carried out here without the round's lists and records, and the wave of the
+        kernel is applied directly when it is one step that starts an idle local child
+        (:meth:`_apply_wave` does everything else). Returns (lock released) as soon as a
+        round is anything else, leaving ``fx`` and ``todo`` as :meth:`_run_batch`'s round
+        would have (``fx`` holds no effect on entry).
+        """
+        lock = self._lock
+        acquire, release = lock.acquire, lock.release
+        runs, other = fx.runs, fx.other
+        running = _N_RUNNING
+        graph_running = _G_RUNNING
+        while True:
+            if instance is None:
+                try:
+                    instance = self._instantiate(node, gen)
+                except Exception as err:
+                    with lock:
+                        self._settle(
+                            (node, gen, None, _R_ERROR, NO_VALUES, _init_error(node, err)), fx
+                        )
+                        self._collect(fx, todo)
+                    return
+            result, outputs, error = instance.run_once(values)
+            acquire()  # not `with lock`: its __enter__ and __exit__ cost as much again
+            try:
+                run = node.run
+                if not (
+                    error is None
+                    and gen == node.gen
+                    and node.state is running
+                    and run.state is graph_running
+                    and not self._watchers
+                    and not self._feedback_on
+                    and not node.restart
+                    and not node.spontaneous
+                    and node.stop_timer is None
+                ):
+                    self._settle((node, gen, instance, result, outputs, error), fx)
+                    self._collect(fx, todo)
+                    return
+                # what _run_batch does for a round's common end, for this one action
+                if node.instance is None:
+                    node.instance = instance
+                if node.log or node.logged:
+                    node.log = instance.log_snapshot()
+                if len(node.data) != len(node.native):
+                    node.clear_data()
+                node.last_outputs = outputs
+                node.state = _N_FINISHED  # RUNNING -> FINISHED, in a RUNNING graph
+                run.active -= 1
+                if self._quiet_waiters:
+                    self._quiet.notify_all()
+                steps = run.evolution.propagate(node.idx, _RESULT_CODES[result])
+                child = None
+                if len(steps) == 1 and steps[0] & _STEP_LOW == _RUN_READY:
+                    # one relation, whose response is `run`, to a child with every parent
+                    edge = steps[0] >> SHIFT
+                    child = run.edge_child[edge]
+                    if outputs and run.edge_parent[edge] is node:
+                        _transfer(node, child, run.edge_remap[edge], outputs)
+                    if not (
+                        child.kind is _K_LOCAL  # inline or blocking: it runs next, here
+                        and child.state not in _ACTIVE
+                        and (not child.required_inputs or child.inputs_ready())
+                    ):
+                        child = None
+                        self._apply_wave(node, result, NO_VALUES, steps, fx)  # done: transfer
+                else:
+                    self._apply_wave(node, result, outputs, steps, fx)
+                if child is not None:
+                    # _apply_wave's start of an idle local node
+                    child.gen += 1
+                    child.held = None
+                    if child.condition is None:  # RunControl.reset, nobody waits to race with
+                        child.stop = child.paused = False
+                    else:
+                        child.reset()
+                    if child.fresh_instance:
+                        child.instance = None  # the old one is stuck in a run we gave up on
+                        child.fresh_instance = False
+                    child.state = running
+                    run.active += 1
+                    data = child.data
+                    if other or self._releases:  # effects to dispatch first: back to the round
+                        todo.append(
+                            (child, child.gen, child.instance, dict(data) if data else NO_VALUES)
+                        )
+                        return
+                    node, gen, instance = child, child.gen, child.instance
+                    values = dict(data) if data else NO_VALUES
+                    continue
+                if not run.active:
+                    self._after_change(run, fx)
+                if len(runs) == 1 and not other:  # the next link of the chain, made by the wave
+                    child, child_gen = runs[0]
+                    if (
+                        child.inline
+                        and child_gen == child.gen
+                        and child.state is running
+                        and not child.run.peers  # (a sub-graph's end may reach a shared run)
+                    ):
+                        runs.clear()
+                        data = child.data
+                        node, gen, instance = child, child_gen, child.instance
+                        values = dict(data) if data else NO_VALUES
+                        continue
+                self._collect(fx, todo)
+                return
+            finally:
+                release()
 
     def _prep(self, node: Node, gen: int, todo: list[_Todo], fx: Effects) -> None:
         """Lock held: queue a ready node's run with what it reads, unless it is stale."""
@@ -316,10 +464,9 @@ class EffectDispatcher(RunEvolution):
         (:meth:`_settle`), saving a lock per new node: its run does not wait for hooks.
         """
         assert node.cls is not None
-        assert node.control is not None
         instance = node.cls()
         instance.initialize(  # positional: one per node and run, on the hot path
-            node.control, node.name, node.run.name, node.inputs, node.outputs, self.registrar
+            node, node.name, node.run.name, node.inputs, node.outputs, self.registrar
         )
         if not node.inline:
             with self._lock:

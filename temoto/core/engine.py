@@ -243,11 +243,13 @@ class ActionEngine(EffectDispatcher):
                 old = self._runs.get(run_name)
                 if old is not None and old.state in _BUSY_GRAPH:
                     raise StateError(f"graph '{run_name}' is already active ({old.state.value})")
-                run = GraphRun(run_name, plan)
+                # an ended run of the same plan lends its nodes to the new one (GraphRun)
+                reuse = old if old is not None and old.can_lend_nodes(plan) else None
+                run = GraphRun(run_name, plan, clock=self.clock, reuse=reuse)
                 run.peers = peers
                 run.session = session
                 self._runs[run_name] = run
-                if old is not None and not old.active:
+                if old is not None and reuse is None and not old.active:
                     old.dispose()  # its memory comes back now, not at a later full collection
                 self._start_run(run, values, result, fx)
             if len(run.nodes) >= YOUNG_COLLECT_AT_START:

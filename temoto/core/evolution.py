@@ -25,7 +25,6 @@ from typing import TYPE_CHECKING, Any
 from temoto.core._fast import P_BYPASS, P_IGNORE, P_LOOP, P_PAUSE, P_RUN, P_STOP, SHIFT
 from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import GraphRun, Node, NodeKind
-from temoto.core.control import RunControl
 from temoto.core.effects import Effect, EffectKind, Effects
 from temoto.core.snapshot import snapshot
 from temoto.core.states import (
@@ -154,13 +153,7 @@ class RunEvolution:
         self, run: GraphRun, values: dict[str, Any], result: Result, fx: Effects
     ) -> None:
         run.state = _G_RUNNING
-        # every local node's control is made now, with the graph's other long-lived objects,
-        # not one by one on the action path (a node added by `modify` gets its own at its run)
-        clock = self.clock
-        for node in run.nodes.values():
-            if node.control is None and node.kind is _K_LOCAL:
-                node.control = RunControl(clock)
-        run.started_at = clock.monotonic()
+        run.started_at = self.clock.monotonic()
         if self._instruments:
             self._notify("graph_started", run.name, run.started_at)
         entry = run.entry
@@ -226,10 +219,23 @@ class RunEvolution:
         The evolution kernel computes the wave (responses, received parents, bypass chains);
         this carries out its steps: parameter transfer, input readiness, state changes.
         """
+        self._apply_wave(
+            node, result, outputs, node.run.evolution.propagate(node.idx, _RESULT_CODES[result]), fx
+        )
+
+    def _apply_wave(
+        self,
+        node: Node,
+        result: Result,
+        outputs: Mapping[str, Any],
+        steps: list[int],
+        fx: Effects,
+    ) -> None:
+        """Carry out the steps of the wave the kernel computed for ``node``'s result."""
         run = node.run
         edge_child = run.edge_child
         fast = not self._watchers and not self._feedback_on
-        for step in run.evolution.propagate(node.idx, _RESULT_CODES[result]):
+        for step in steps:
             edge = step >> SHIFT
             child = edge_child[edge]
             code = (step >> 1) & 7
@@ -257,13 +263,10 @@ class RunEvolution:
                 # idle state may go to RUNNING (NODE_TRANSITIONS)
                 child.gen += 1
                 child.held = None
-                control = child.control
-                if control is None:
-                    child.control = RunControl(self.clock)
-                elif control.condition is None:  # RunControl.reset, nobody waits to race with
-                    control.stop = control.paused = False
+                if child.condition is None:  # RunControl.reset, nobody waits to race with
+                    child.stop = child.paused = False
                 else:
-                    control.reset()
+                    child.reset()
                 if child.fresh_instance:
                     child.instance = None  # the old one is stuck in a run we gave up on
                     child.fresh_instance = False
@@ -295,10 +298,7 @@ class RunEvolution:
         node.gen += 1
         node.held = None
         if node.kind is _K_LOCAL:
-            if node.control is None:
-                node.control = RunControl(self.clock)
-            else:
-                node.control.reset()
+            node.reset()  # the node is its action's RunControl
             if node.fresh_instance:
                 node.instance = None  # the old one is stuck in a run we gave up on
                 node.fresh_instance = False
@@ -313,7 +313,10 @@ class RunEvolution:
         assert node.plan is not None
         self._set_state(node, _N_RUNNING)
         child = GraphRun(
-            f"{run.name}__{node.umrf.name}__{node.umrf.instance_id}", node.plan, parent_node=node
+            f"{run.name}__{node.umrf.name}__{node.umrf.instance_id}",
+            node.plan,
+            parent_node=node,
+            clock=self.clock,
         )
         node.child_run = child
         old = self._runs.get(child.name)
@@ -343,8 +346,7 @@ class RunEvolution:
                 node.remote_cancel = None
             self._on_finished(node, node.gen, _R_STOPPED, {}, None, fx)
             return
-        assert node.control is not None
-        node.control.request_stop()
+        node.request_stop()
         fx.other.append(Effect(_E_HOOK, node, node.gen, "on_stop"))
         node.stop_timer = self._timer.call_later(
             self.clock.real_seconds(self.stop_timeout), self._stop_expired, node, node.gen
@@ -367,9 +369,8 @@ class RunEvolution:
             self._set_state(node, _N_PAUSE_REQUESTED)
             self._set_state(node, _N_PAUSED)
             return
-        assert node.control is not None
         self._set_state(node, _N_PAUSE_REQUESTED)
-        node.control.set_paused(True)
+        node.set_paused(True)
         fx.other.append(Effect(_E_HOOK, node, node.gen, "on_pause"))
 
     def _resume_node(self, node: Node, fx: Effects) -> None:
@@ -386,8 +387,7 @@ class RunEvolution:
                 node.held = None
                 self._on_finished(node, node.gen, result, outputs, error, fx)
             return
-        assert node.control is not None
-        node.control.set_paused(False)
+        node.set_paused(False)
         fx.other.append(Effect(_E_HOOK, node, node.gen, "on_resume"))
         if node.held is not None:
             result, outputs, error = node.held
@@ -491,10 +491,8 @@ class RunEvolution:
         releases = self._releases
         for node in run.nodes.values():  # _release_node for each idle one, inlined (all nodes)
             instance = node.instance
-            control = node.control
             if (
-                control is not None
-                and control.acquired
+                node.acquired
                 and instance is not None
                 and node.state not in _ACTIVE
                 and instance.holds_resources

@@ -16,7 +16,7 @@ from typing import Any
 import pytest
 from test_engine import WAIT, engine_with, eventually
 
-from temoto import Action, ActionCatalog, GraphState, Result, build
+from temoto import Action, ActionCatalog, GraphState, NodeState, Result, build
 from temoto.build import action
 from temoto.core.executor import WorkerPool
 from temoto.errors import ActionError
@@ -97,7 +97,44 @@ class NapInline(Action):
         return True
 
 
-CLASSES = (Quick, QuickRet, Count, Meet, NapInline)
+@action(inputs={"text": str}, outputs={"out": str})
+class Relay(Action):
+    """Inline: out = text + "!"."""
+
+    blocking = False
+
+    def on_run(self) -> bool:
+        _record(self.name)
+        self.outputs["out"] = self.inputs.get_string("text") + "!"
+        return True
+
+
+@action(outputs={"out": str})
+class Silent(Action):
+    """Inline: declares an output and never writes it."""
+
+    blocking = False
+
+    def on_run(self) -> bool:
+        _record(self.name)
+        return True
+
+
+@action
+class BadInit(Action):
+    """Inline, but its on_init raises."""
+
+    blocking = False
+
+    def on_init(self) -> None:
+        raise RuntimeError("no init today")
+
+    def on_run(self) -> bool:
+        _record(self.name)
+        return True
+
+
+CLASSES = (Quick, QuickRet, Count, Meet, NapInline, Relay, Silent, BadInit)
 
 
 def chain(name: str, cls: type[Action], length: int) -> Any:
@@ -231,6 +268,50 @@ def test_inline_results_and_errors_propagate_like_blocking_ones() -> None:
     assert "asked to fail (boom)" in str(outcome.errors[0])
     assert [name for _, name, _ in rec.failures] == ["QuickRet_1"]
     assert RUNS == []  # Quick_2 was bypassed by the error
+
+
+def test_an_inline_chain_hands_outputs_down_with_remaps() -> None:
+    b = build.GraphBuilder("relay")
+    first = b.add(Relay, text="a")
+    second, third = b.add(Relay), b.add(Relay)
+    b.link(first, second, remap={"out": "text"})
+    b.link(second, third, remap={"out": "text"})
+    b.entry(first)
+    b.exit(third)
+    with engine_with(*CLASSES) as (engine, _):
+        run = engine.start(b.build())
+        assert engine.wait(run, WAIT) is Result.TRUE
+        assert engine.outcome(run).outputs == {"out": "a!!!"}
+    assert [name for name, _ in RUNS] == ["Relay_0", "Relay_1", "Relay_2"]
+    assert len({thread for _, thread in RUNS}) == 1
+
+
+def test_an_inline_action_whose_on_init_raises_fails_in_a_chain() -> None:
+    g = build.graph(Quick, BadInit, build.node(Quick, instance=1), name="bad_init")
+    with engine_with(*CLASSES) as (engine, rec):
+        run = engine.start(g)
+        assert engine.wait(run, WAIT) is Result.ERROR
+        outcome = engine.outcome(run)
+        states = engine.node_states(run)
+    assert [name for name, _ in RUNS] == ["Quick_0"]  # Quick_1 was bypassed by the error
+    assert len(outcome.errors) == 1
+    assert "BadInit_0 could not be initialised: no init today" in str(outcome.errors[0])
+    assert [name for _, name, _ in rec.failures] == ["BadInit_0"]
+    assert states["BadInit_0"] is NodeState.ERROR
+
+
+def test_an_inline_child_missing_a_required_input_waits_and_the_graph_halts() -> None:
+    b = build.GraphBuilder("missing")
+    first, second = b.add(Silent), b.add(Relay)  # Silent leaves "out" unset
+    b.link(first, second, remap={"out": "text"})
+    b.entry(first)
+    b.exit(second)
+    with engine_with(*CLASSES) as (engine, _):
+        run = engine.start(b.build())
+        assert engine.wait(run, WAIT) is Result.HALTED
+        states = engine.node_states(run)
+    assert [name for name, _ in RUNS] == ["Silent_0"]
+    assert states == {"Silent_0": NodeState.FINISHED, "Relay_0": NodeState.UNINITIALIZED}
 
 
 def test_an_endless_inline_loop_can_be_paused_resumed_and_stopped() -> None:
