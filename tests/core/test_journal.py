@@ -55,6 +55,11 @@ def write_records(path: Path, records: list[dict[str, Any]]) -> list[int]:
     return ends
 
 
+def written(path: Path) -> bytes:
+    """The file's bytes without the zeros preallocated after the records (while it is open)."""
+    return path.read_bytes().rstrip(b"\0")
+
+
 def reopen(path: Path, **kwargs: Any) -> list[dict[str, Any]]:
     j = Journal(path, **kwargs)
     try:
@@ -70,14 +75,14 @@ def frame(seq: int, payload: bytes) -> bytes:
 
 
 class FsyncSpy:
-    """Stands in for os.fsync; records the synced file's size at each call."""
+    """Stands in for os.fsync; records the end of the records in the file at each call."""
 
     def __init__(self) -> None:
         self.sizes: list[int] = []
         self.cond = threading.Condition()
 
     def __call__(self, fd: int) -> None:
-        size = os.fstat(fd).st_size
+        size = len(os.pread(fd, os.fstat(fd).st_size, 0).rstrip(b"\0"))
         with self.cond:
             self.sizes.append(size)
             self.cond.notify_all()
@@ -104,13 +109,15 @@ def test_a_new_journal_is_just_a_header(path: Path, journal: Journal) -> None:
 
 def test_payloads_are_compact_sorted_utf8_json(path: Path, journal: Journal) -> None:
     journal.append({"b": "ü", "a": [1, 2]})
-    assert path.read_bytes()[HEADER_LEN + 16 :] == '{"a":[1,2],"b":"ü"}'.encode()
+    assert written(path)[HEADER_LEN + 16 :] == '{"a":[1,2],"b":"ü"}'.encode()
 
 
 def test_size_and_record_count_track_the_file(path: Path, journal: Journal) -> None:
     for record in RECORDS:
         journal.append(record)
     assert journal.record_count == len(RECORDS)
+    assert journal.size == len(written(path))
+    journal.close()
     assert journal.size == path.stat().st_size
 
 
@@ -176,11 +183,14 @@ def test_a_complete_last_frame_failing_its_crc_is_a_torn_tail(path: Path) -> Non
     assert j.recovered_tail_bytes == ends[3] - ends[2]
 
 
-def test_a_zeroed_tail_after_the_last_record_is_a_torn_tail(path: Path) -> None:
+def test_a_zeroed_tail_after_the_last_record_is_cut_off_as_preallocated_space(path: Path) -> None:
     ends = write_records(path, RECORDS)
     with path.open("ab") as f:
         f.write(bytes(4096))
-    assert reopen(path) == RECORDS
+    j = Journal(path, fsync="never")
+    assert j.open() == RECORDS
+    j.close()
+    assert j.recovered_tail_bytes == 0
     assert path.stat().st_size == ends[3]
 
 
@@ -303,7 +313,7 @@ def test_an_unserialisable_record_raises_type_error_and_writes_nothing(
     for bad in ({"x": object()}, {"x": {1, 2}}, circular, {"x": "\ud800"}, ["not", "a", "map"]):
         with pytest.raises(TypeError):
             journal.append(bad)  # type: ignore[arg-type]
-    assert journal.size == size == path.stat().st_size
+    assert journal.size == size == len(written(path))
     assert journal.record_count == 1
 
 
@@ -555,7 +565,7 @@ def test_every_record_reported_as_appended_survives_sigkill(tmp_path: Path) -> N
 
 def test_the_compact_encoding_matches_json_dumps(path: Path, journal: Journal) -> None:
     journal.append(RECORDS[1])
-    payload = path.read_bytes()[HEADER_LEN + 16 :]
+    payload = written(path)[HEADER_LEN + 16 :]
     expected = json.dumps(RECORDS[1], sort_keys=True, ensure_ascii=False, separators=(",", ":"))
     assert payload == expected.encode()
 
@@ -570,3 +580,83 @@ def test_append_text_writes_a_record_read_back_like_any_other(path: Path) -> Non
     assert j.size == size  # nothing written
     j.close()
     assert reopen(path) == [{"id": "a-1", "op": "unref", "resumes": ["b ✓"]}]
+
+
+# -- the mapped, preallocated file ---------------------------------------------------------------
+
+
+def test_the_file_is_preallocated_while_open_and_exact_once_closed(path: Path) -> None:
+    j = Journal(path, fsync="never")
+    j.open()
+    j.append(RECORDS[0])
+    assert path.stat().st_size >= j.size + 4096  # room for the next appends, zeros
+    assert path.read_bytes()[j.size :].count(0) == path.stat().st_size - j.size
+    j.close()
+    assert path.stat().st_size == j.size
+
+
+def test_preallocated_zeros_left_by_a_killed_process_are_not_a_torn_tail(
+    path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    j = Journal(path, fsync="never")
+    j.open()
+    for record in RECORDS:
+        j.append(record)
+    size = j.size
+    copy = path.with_name("killed.journal")
+    copy.write_bytes(path.read_bytes())  # what SIGKILL leaves: the records, then zeros
+    j.close()
+    assert copy.stat().st_size > size
+    k = Journal(copy, fsync="never")
+    with caplog.at_level(logging.WARNING):
+        assert k.open() == RECORDS
+    k.close()
+    assert k.recovered_tail_bytes == 0
+    assert not caplog.records
+    assert copy.read_bytes() == path.read_bytes()
+
+
+def test_a_frame_killed_while_copied_in_is_a_torn_tail(
+    path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    ends = write_records(path, RECORDS)
+    data = bytearray(path.read_bytes())
+    data[ends[2] : ends[2] + 16] = bytes(16)  # the payload was copied in, the head was not
+    path.write_bytes(bytes(data) + bytes(100_000))  # and the preallocated zeros after it
+    with caplog.at_level(logging.WARNING):
+        assert reopen(path) == RECORDS[:2]
+    assert "torn last record" in caplog.text
+    assert path.stat().st_size == ends[2]
+
+
+def test_appends_cross_the_preallocated_space_and_records_larger_than_it(path: Path) -> None:
+    big = {"blob": "x" * (3 << 20)}  # three times the preallocation step
+    records = [{"i": i, "pad": "y" * 300} for i in range(8000)]  # > 2 MiB in all
+    records[4000:4000] = [big]
+    j = Journal(path, fsync="never")
+    j.open()
+    for record in records:
+        j.append(record)
+    j.close()
+    assert reopen(path) == records
+
+
+def test_a_full_disk_refuses_the_append_and_writes_nothing(
+    path: Path, journal: Journal, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    journal.append(RECORDS[0])
+    size = journal.size
+
+    def full(fd: int, offset: int, length: int) -> None:
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(os, "posix_fallocate", full)
+    monkeypatch.setattr(os, "ftruncate", full)
+    with pytest.raises(OSError, match="No space"):
+        journal.append({"big": "z" * (2 << 20)})  # needs more than is allocated
+    assert journal.size == size
+    assert journal.record_count == 1
+    monkeypatch.undo()
+    journal.append(RECORDS[1])
+    journal.close()
+    assert reopen(path) == RECORDS[:2]

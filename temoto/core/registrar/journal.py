@@ -1,10 +1,17 @@
 """The registrar's durable catalog: an append-only, checksummed record log.
 
-Every change the registrar makes is one record (a JSON object) appended with a single
-``os.write`` on an ``O_APPEND`` descriptor before :meth:`Journal.append` returns, so it has
-reached the operating system and survives SIGKILL of the process. Against power loss the file is
-fsynced per the ``fsync`` policy: ``"group"`` (a background thread, at most every
-``fsync_interval`` seconds while there are unsynced records), ``"always"`` (before every
+Every change the registrar makes is one record (a JSON object) copied into the file's pages
+in the kernel's page cache before :meth:`Journal.append` returns, so it has reached the operating
+system and survives SIGKILL of the process. The copy goes through a shared memory mapping of the
+file (``mmap``, ``MAP_SHARED``): a store into it *is* the page cache, with no system call, so an
+append costs a memory copy and a CRC, and never waits for the disk or for a running fsync. The
+file is grown ahead of the appends, :data:`_PREALLOCATE` bytes (1 MiB) at a time, with
+``posix_fallocate``, so its blocks exist before they are written (a full disk is an ``OSError``
+from :meth:`Journal.append`, with nothing written, never a ``SIGBUS``); while the journal is
+open, the file on disk therefore ends in zeros after the last record, and :meth:`Journal.close`
+cuts them off. Against power loss the file is fsynced per the ``fsync`` policy (``os.fsync`` of
+the descriptor, which writes the mapped pages too): ``"group"`` (a background thread, at most
+every ``fsync_interval`` seconds while there are unsynced records), ``"always"`` (before every
 ``append`` returns) or ``"never"`` (tests and benchmarks; no ``os.fsync`` at all, not even when
 creating or compacting the file — only an explicit :meth:`Journal.flush` syncs).
 
@@ -19,12 +26,16 @@ Sequence numbers start at 1 in every file and grow by exactly 1 per frame.
 
 Reading (:meth:`Journal.open`) tells a *torn tail* from *corruption*:
 
+* Zeros after the last whole frame, up to the end of the file, are the unused preallocated
+  space a process that did not close its journal (SIGKILL) leaves behind: they are cut off
+  (logged at debug level; not a torn tail).
 * A torn tail is damage that a crash can leave: the last frame is incomplete or fails its CRC
   and no valid frame follows it anywhere in the rest of the file. It is cut off (the file is
   truncated to the end of the last whole frame), logged as a warning and reported in
-  :attr:`Journal.recovered_tail_bytes`. A file shorter than the header whose bytes are a
-  prefix of the header — including an empty file — is a torn header (a crash while the journal
-  was being created): it is replaced by a fresh header, with a warning, and holds no records.
+  :attr:`Journal.recovered_tail_bytes` (zeros after it included). A file shorter than the
+  header whose bytes are a prefix of the header — including an empty file — is a torn header (a
+  crash while the journal was being created): it is replaced by a fresh header, with a warning,
+  and holds no records.
 * Everything else is corruption and raises :class:`~temoto.errors.CatalogCorruptError` naming
   the file and the byte offset, leaving the file untouched: a wrong magic or version, a bad
   frame followed by a valid one, a sequence-number gap or repeat, a frame whose length is over
@@ -45,6 +56,7 @@ from __future__ import annotations
 
 import json
 import logging
+import mmap
 import os
 import struct
 import sys
@@ -77,12 +89,17 @@ MAX_RECORD_BYTES = 64 * 1024 * 1024
 _HEADER = MAGIC + bytes([FORMAT_VERSION])
 _FRAME = struct.Struct("<IIQ")  # length, crc, seq
 _LEN_CRC = struct.Struct("<II")
+_SEQ = struct.Struct("<Q")
 _FRAME_HEAD = _FRAME.size
 _READ_CHUNK = 1 << 20
 _ENCODE = make_encoder(  # _ENCODE(record, 0)[0]: the payload's text
     default=None, ensure_ascii=False, separators=(",", ":"), sort_keys=True, allow_nan=True
 )
 _POLICIES = ("group", "always", "never")
+#: Appends write into a shared mapping of the file; it is grown by at least this many bytes
+#: at a time (allocated on disk at once, so a full disk is an OSError, never a SIGBUS).
+_PREALLOCATE = 1 << 20
+_GRANULE = mmap.ALLOCATIONGRANULARITY
 
 
 class Journal:
@@ -128,9 +145,14 @@ class Journal:
         self._cond = threading.Condition(self._lock)
         self._sync_lock = threading.Lock()
         self._fd = -1
+        # The mapping appends write into: file bytes [_map_start, _map_end) of _fd. The file's
+        # size on disk is _allocated (>= _size; the bytes between are zeros).
+        self._map: mmap.mmap | None = None
+        self._map_start = 0
+        self._map_end = 0
+        self._allocated = 0
         self._open = False
         self._closing = False
-        self._failure: BaseException | None = None
         self._seq = 0  # the last frame's sequence number: also the number of records
         self._size = 0
         self._written = 0  # appends made (monotonic across rewrites)
@@ -152,7 +174,11 @@ class Journal:
 
     @property
     def size(self) -> int:
-        """The file's size in bytes, header included."""
+        """The end of the last record in the file, in bytes, header included.
+
+        This is the file's size once the journal is closed; while it is open, the file on
+        disk is longer (zeros preallocated for the next appends).
+        """
         return self._size
 
     # -- opening ------------------------------------------------------------------------------
@@ -190,11 +216,11 @@ class Journal:
         for _ in range(100):
             created = True
             try:
-                fd = os.open(self._path, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_EXCL, 0o644)
+                fd = os.open(self._path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
             except FileExistsError:
                 created = False
                 try:
-                    fd = os.open(self._path, os.O_RDWR | os.O_APPEND)
+                    fd = os.open(self._path, os.O_RDWR)
                 except FileNotFoundError:
                     continue
             try:
@@ -237,7 +263,7 @@ class Journal:
             if self._policy != "never":
                 os.fsync(fd)
                 _fsync_dir(self._path.parent)
-            self._size = len(_HEADER)
+            self._size = self._allocated = len(_HEADER)
             return []
         if data[: len(MAGIC)] != MAGIC:
             raise self._corrupt(0, "not a TeMoto journal (bad magic)")
@@ -245,19 +271,27 @@ class Journal:
         if version != FORMAT_VERSION:
             raise self._corrupt(len(MAGIC), f"unsupported journal format version {version}")
         records, end = self._parse(data)
-        self.recovered_tail_bytes = n - end
         if end < n:
-            logger.warning(
-                "journal %s: cut off a torn last record (%d bytes at byte %d)",
-                self._path,
-                n - end,
-                end,
-            )
+            if end >= _content_end(data):
+                logger.debug(
+                    "journal %s: cut off %d bytes of preallocated zeros at byte %d",
+                    self._path,
+                    n - end,
+                    end,
+                )
+            else:
+                self.recovered_tail_bytes = n - end
+                logger.warning(
+                    "journal %s: cut off a torn last record (%d bytes at byte %d)",
+                    self._path,
+                    n - end,
+                    end,
+                )
             os.ftruncate(fd, end)
             if self._policy != "never":
                 os.fsync(fd)
         self._seq = len(records)
-        self._size = end
+        self._size = self._allocated = end
         return records
 
     def _parse(self, data: bytes) -> tuple[list[dict[str, Any]], int]:
@@ -269,7 +303,8 @@ class Journal:
         records: list[dict[str, Any]] = []
         seq = 0
         off = len(_HEADER)
-        while off < n:
+        content = _content_end(data)  # zeros after it: preallocated space (or a torn tail)
+        while off < content:
             if n - off < _FRAME_HEAD:
                 problem = "an incomplete frame header"
             else:
@@ -290,7 +325,7 @@ class Journal:
                     seq = frame_seq
                     off = end
                     continue
-            later = _find_valid_frame(data, off + 1)
+            later = _find_valid_frame(data, off + 1, content)
             if later is not None:
                 raise self._corrupt(
                     off, f"{problem} (after record {seq}) followed by a valid frame at byte {later}"
@@ -326,9 +361,8 @@ class Journal:
         Raises:
             TypeError: If the record cannot be serialised as JSON (nothing is written).
             ValueError: If its JSON is larger than :data:`MAX_RECORD_BYTES` (nothing written).
-            RuntimeError: If the journal is not open (never opened, closed, or broken by an
-                earlier write that failed and could not be undone).
-            OSError: If the write fails (the partial frame, if any, is removed again).
+            RuntimeError: If the journal is not open (never opened, or closed).
+            OSError: If the file cannot be grown for it (a full disk); nothing is written.
         """
         self._append(encode(record))
 
@@ -352,18 +386,24 @@ class Journal:
         size = len(payload)
         if size > MAX_RECORD_BYTES:
             raise ValueError(f"journal record is {size} bytes, over {MAX_RECORD_BYTES}")
+        crc32 = zlib.crc32
         with self._lock:
             if not self._open:
                 raise self._not_open()
+            pos = self._size
+            end = pos + _FRAME_HEAD + size
+            if end > self._map_end:
+                self._grow(end)  # raises (nothing written) if the disk is full
             seq = self._seq + 1
-            crc = zlib.crc32(payload, zlib.crc32(seq.to_bytes(8, "little")))
-            frame = _FRAME.pack(size, crc, seq) + payload
-            size += _FRAME_HEAD
-            done = os.write(self._fd, frame)  # raises only if nothing was written
-            if done != size:
-                self._write_rest(frame, done)
+            at = pos - self._map_start
+            mapped = self._map
+            assert mapped is not None  # _grow mapped it
+            # The payload first, the frame head last: a process killed in between leaves a
+            # frame whose head is zeros, which fails its CRC (a torn tail).
+            mapped[at + _FRAME_HEAD : at + _FRAME_HEAD + size] = payload
+            _FRAME.pack_into(mapped, at, size, crc32(payload, crc32(_SEQ.pack(seq))), seq)
             self._seq = seq
-            self._size += size
+            self._size = end
             self._written += 1
             if self._policy == "group":
                 if self._flusher is None:
@@ -375,29 +415,32 @@ class Journal:
         if self._policy == "always":
             self._sync()
 
-    def _write_rest(self, frame: bytes, done: int) -> None:
-        """Finish a short write; if that fails, cut the partial frame off (caller holds _lock).
+    def _grow(self, end: int) -> None:
+        """Map a window of the file from the frame at ``_size`` past ``end`` (caller holds _lock).
 
-        A partial frame left in place would turn the next append into corruption (a bad frame
-        followed by a valid one), so if it cannot be removed the journal refuses further
-        appends.
+        The file is extended with its blocks allocated (``posix_fallocate``) before it is
+        mapped, so a full disk raises OSError here, with nothing written.
         """
-        try:
-            _write_all(self._fd, frame, done)
-        except BaseException as exc:
-            try:
-                os.ftruncate(self._fd, self._size)
-            except OSError:
-                logger.exception("journal %s: could not remove a partial record", self._path)
-                self._failure = exc
-                self._open = False
-            raise
+        start = self._size - self._size % _GRANULE
+        stop = max(end, self._size + _PREALLOCATE)
+        stop += -stop % _GRANULE
+        if stop > self._allocated:
+            _allocate(self._fd, self._allocated, stop - self._allocated)
+            self._allocated = stop
+        mapped = mmap.mmap(self._fd, stop - start, offset=start)
+        old, self._map = self._map, mapped
+        self._map_start, self._map_end = start, stop
+        if old is not None:
+            old.close()  # its pages stay in the page cache: fsync of the file writes them
+
+    def _unmap(self) -> None:
+        """Close the mapping (caller holds _lock, or no append can run any more)."""
+        mapped, self._map = self._map, None
+        self._map_start = self._map_end = 0
+        if mapped is not None:
+            mapped.close()
 
     def _not_open(self) -> RuntimeError:
-        if self._failure is not None:
-            err = RuntimeError(f"journal {self._path} is broken by an earlier failed write")
-            err.__cause__ = self._failure
-            return err
         state = "closed" if self._closing else "not open"
         return RuntimeError(f"journal {self._path} is {state}")
 
@@ -432,7 +475,7 @@ class Journal:
         with self._lock:
             if not self._open:
                 raise self._not_open()
-            fd = os.open(tmp, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_TRUNC, 0o644)
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
             try:
                 _lock_file(fd, tmp)
                 os.fchmod(fd, os.fstat(self._fd).st_mode & 0o7777)
@@ -441,6 +484,7 @@ class Journal:
                     os.fsync(fd)
                 with self._sync_lock:
                     os.replace(tmp, self._path)
+                    self._unmap()
                     old, self._fd = self._fd, fd
                     self._synced = self._written
             except BaseException:
@@ -448,7 +492,7 @@ class Journal:
                 tmp.unlink(missing_ok=True)
                 raise
             self._seq = count
-            self._size = len(data)
+            self._size = self._allocated = len(data)
             os.close(old)
             if durable:
                 _fsync_dir(self._path.parent)
@@ -521,11 +565,15 @@ class Journal:
             flusher = self._flusher
         if flusher is not None:
             flusher.join()
-        with self._sync_lock:
+        with self._lock, self._sync_lock:
             fd, self._fd = self._fd, -1
             if fd < 0:
                 return
             try:
+                self._unmap()
+                if self._allocated > self._size:  # the preallocated zeros
+                    os.ftruncate(fd, self._size)
+                    self._allocated = self._size
                 if self._policy != "never" and self._written > self._synced:
                     os.fsync(fd)
                     self._synced = self._written
@@ -565,18 +613,33 @@ def encode(record: Mapping[str, Any]) -> bytes:
     return payload
 
 
-def _find_valid_frame(data: bytes, start: int) -> int | None:
-    """The offset of the first frame at or after ``start`` whose CRC checks out, if any."""
+def _find_valid_frame(data: bytes, start: int, content: int) -> int | None:
+    """The offset of the first frame at or after ``start`` whose CRC checks out, if any.
+
+    ``content``: :func:`_content_end` of ``data`` (a frame has a non-zero sequence number, so
+    none starts in the zeros after it).
+    """
     view = memoryview(data)
     n = len(data)
     unpack = _FRAME.unpack_from
     crc32 = zlib.crc32
-    for off in range(start, n - _FRAME_HEAD + 1):
+    for off in range(start, min(n - _FRAME_HEAD + 1, content)):
         length, crc, seq = unpack(data, off)
         end = off + _FRAME_HEAD + length
         if seq and end <= n and length <= MAX_RECORD_BYTES and crc32(view[off + 8 : end]) == crc:
             return off
     return None
+
+
+def _content_end(data: bytes) -> int:
+    """The length of ``data`` without its trailing zero bytes."""
+    end = len(data)
+    while end:
+        start = max(0, end - 65536)
+        if data.count(0, start, end) != end - start:
+            return len(data[start:end].rstrip(b"\0")) + start
+        end = start
+    return 0
 
 
 def _read_all(fd: int) -> bytes:
@@ -586,11 +649,21 @@ def _read_all(fd: int) -> bytes:
     return b"".join(chunks)
 
 
-def _write_all(fd: int, data: bytes, done: int = 0) -> None:
-    """Write ``data[done:]``, looping on short writes."""
+def _write_all(fd: int, data: bytes) -> None:
+    """Write ``data`` at the start of the file ``fd``, looping on short writes."""
     view = memoryview(data)
+    done = 0
     while done < len(data):
-        done += os.write(fd, view[done:])
+        done += os.pwrite(fd, view[done:], done)
+
+
+def _allocate(fd: int, offset: int, length: int) -> None:
+    """Extend the file by ``length`` bytes at ``offset`` (its size), allocated on disk."""
+    allocate = getattr(os, "posix_fallocate", None)  # not on Windows or macOS
+    if allocate is None:
+        os.ftruncate(fd, offset + length)
+    else:
+        allocate(fd, offset, length)
 
 
 def _fsync_dir(directory: Path) -> None:
