@@ -382,6 +382,18 @@ class Journal:
         """
         self._append(text.encode("utf-8"))
 
+    def append_json(self, payload: bytes) -> None:
+        """Append one record given as its JSON text's UTF-8 bytes (see :meth:`append_text`).
+
+        Args:
+            payload: The record's JSON text, UTF-8.
+
+        Raises:
+            ValueError: If it is larger than :data:`MAX_RECORD_BYTES` (nothing written).
+            RuntimeError, OSError: As :meth:`append`.
+        """
+        self._append(payload)
+
     def _append(self, payload: bytes) -> None:
         size = len(payload)
         if size > MAX_RECORD_BYTES:
