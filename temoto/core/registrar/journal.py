@@ -136,6 +136,7 @@ class Journal:
             raise ValueError(f"fsync_interval must not be negative, not {fsync_interval!r}")
         self._path = Path(path)
         self._policy: FsyncPolicy = fsync
+        self._group = fsync == "group"
         self._interval = float(fsync_interval)
         self.recovered_tail_bytes = 0
         # _lock (the condition's lock) guards the descriptor's use for writing and every counter
@@ -400,29 +401,27 @@ class Journal:
             raise ValueError(f"journal record is {size} bytes, over {MAX_RECORD_BYTES}")
         crc32 = zlib.crc32
         with self._lock:
-            if not self._open:
-                raise self._not_open()
             pos = self._size
             end = pos + _FRAME_HEAD + size
-            if end > self._map_end:
-                self._grow(end)  # raises (nothing written) if the disk is full
+            if end > self._map_end:  # also when not open: then nothing is mapped
+                self._grow(end)  # raises (nothing written) if not open, or the disk is full
             seq = self._seq + 1
-            at = pos - self._map_start
+            start = self._map_start
             mapped = self._map
             assert mapped is not None  # _grow mapped it
             # The payload first, the frame head last: a process killed in between leaves a
             # frame whose head is zeros, which fails its CRC (a torn tail).
-            mapped[at + _FRAME_HEAD : at + _FRAME_HEAD + size] = payload
-            _FRAME.pack_into(mapped, at, size, crc32(payload, crc32(_SEQ.pack(seq))), seq)
+            mapped[pos + _FRAME_HEAD - start : end - start] = payload
+            _FRAME.pack_into(mapped, pos - start, size, crc32(payload, crc32(_SEQ.pack(seq))), seq)
             self._seq = seq
             self._size = end
             self._written += 1
-            if self._policy == "group":
-                if self._flusher is None:
-                    self._start_flusher()
-                elif self._flusher_waiting:
+            if self._group:
+                if self._flusher_waiting:
                     self._flusher_waiting = False
                     self._cond.notify()
+                elif self._flusher is None:
+                    self._start_flusher()
                 return
         if self._policy == "always":
             self._sync()
@@ -432,7 +431,13 @@ class Journal:
 
         The file is extended with its blocks allocated (``posix_fallocate``) before it is
         mapped, so a full disk raises OSError here, with nothing written.
+
+        Raises:
+            RuntimeError: If the journal is not open.
+            OSError: If the file cannot be extended or mapped.
         """
+        if not self._open:
+            raise self._not_open()
         start = self._size - self._size % _GRANULE
         stop = max(end, self._size + _PREALLOCATE)
         stop += -stop % _GRANULE
