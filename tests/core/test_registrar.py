@@ -707,3 +707,18 @@ def test_taking_and_dropping_a_shared_resource_forever_does_not_grow_the_journal
     assert [r.id for r in again.references()] == [keep.id]
     assert r2.loads == []
     again.close()
+
+
+def test_the_fast_resource_maker_makes_the_same_frozen_value() -> None:
+    import dataclasses
+
+    from temoto.core.registrar.messages import Resource, new_resource
+
+    made = new_resource("a-1", "m2:b-1", "m2", Req("x"), Resp("y"))
+    plain = Resource("a-1", "m2:b-1", "m2", Req("x"), Resp("y"))
+    assert type(made) is Resource
+    assert made == plain
+    assert hash(made) == hash(plain)
+    assert repr(made) == repr(plain)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        made.id = "other"  # type: ignore[misc]

@@ -32,6 +32,7 @@ from temoto.core.registrar.messages import (
     Status,
     StatusUpdate,
     canonical_json,
+    new_resource,
     request_key,
     to_plain,
 )
@@ -303,7 +304,7 @@ class Registrar:
                     ref, pre_empted = ledger.add_ref(
                         entry, client, priority, exclusive, holder, on_status
                     )
-                    result = Resource(ref.id, uid, server, entry.request, entry.response)
+                    result = new_resource(ref.id, uid, server, entry.request, entry.response)
                     if not pre_empted:
                         return result
                     message = f"pre-empted by '{client}' (priority {priority})"
