@@ -365,7 +365,7 @@ class Journal:
             RuntimeError: If the journal is not open (never opened, or closed).
             OSError: If the file cannot be grown for it (a full disk); nothing is written.
         """
-        self._append(encode(record))
+        self.append_json(encode(record))
 
     def append_text(self, text: str) -> None:
         """Append one record given as its JSON text (encoded by the caller from a layout).
@@ -381,7 +381,7 @@ class Journal:
             ValueError: If the text is larger than :data:`MAX_RECORD_BYTES` (nothing written).
             RuntimeError, OSError: As :meth:`append`.
         """
-        self._append(text.encode("utf-8"))
+        self.append_json(text.encode("utf-8"))
 
     def append_json(self, payload: bytes) -> None:
         """Append one record given as its JSON text's UTF-8 bytes (see :meth:`append_text`).
@@ -393,9 +393,6 @@ class Journal:
             ValueError: If it is larger than :data:`MAX_RECORD_BYTES` (nothing written).
             RuntimeError, OSError: As :meth:`append`.
         """
-        self._append(payload)
-
-    def _append(self, payload: bytes) -> None:
         size = len(payload)
         if size > MAX_RECORD_BYTES:
             raise ValueError(f"journal record is {size} bytes, over {MAX_RECORD_BYTES}")
