@@ -2,10 +2,11 @@
 
 Every measurement uses a fresh :class:`temoto.core.registrar.Registrar` with the catalog (the
 journal) **on** unless the metric says otherwise: a file in a temporary directory, default
-``fsync="group"`` (a background thread fsyncs at most every 100 ms; every record is still
-``os.write``-n before the call returns). The servers do nothing (no-op ``on_load`` /
-``on_unload``), so the numbers are the registrar's own cost. One warm-up round is discarded,
-``gc.collect()`` runs between rounds, the collector stays enabled while timing.
+``fsync="group"`` (a background thread fsyncs at most every 100 ms; every record is still in
+the kernel's page cache, copied into the journal's shared mapping, before the call returns).
+The servers do nothing (no-op ``on_load`` / ``on_unload``), so the
+numbers are the registrar's own cost. One warm-up round is discarded, ``gc.collect()`` runs
+between rounds, the collector stays enabled while timing.
 
 ``registrar_speedup`` times the registrar's bookkeeping kernel alone (``RefBook``, see
 ``temoto/core/_fast/_refbook_py.py``): the same fixed sequence of ``add_ref`` / ``release`` /
