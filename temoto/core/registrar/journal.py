@@ -9,11 +9,13 @@ file is grown ahead of the appends, :data:`_PREALLOCATE` bytes (1 MiB) at a time
 ``posix_fallocate``, so its blocks exist before they are written (a full disk is an ``OSError``
 from :meth:`Journal.append`, with nothing written, never a ``SIGBUS``); while the journal is
 open, the file on disk therefore ends in zeros after the last record, and :meth:`Journal.close`
-cuts them off. Against power loss the file is fsynced per the ``fsync`` policy (``os.fsync`` of
-the descriptor, which writes the mapped pages too): ``"group"`` (a background thread, at most
-every ``fsync_interval`` seconds while there are unsynced records), ``"always"`` (before every
-``append`` returns) or ``"never"`` (tests and benchmarks; no ``os.fsync`` at all, not even when
-creating or compacting the file — only an explicit :meth:`Journal.flush` syncs).
+cuts them off. (On a file system that cannot map files, each append is one ``os.pwrite`` into
+that space instead, logged once as a warning.) Against power loss the file is fsynced per the
+``fsync`` policy (``os.fsync`` of the descriptor, which writes the mapped pages too):
+``"group"`` (a background thread, at most every ``fsync_interval`` seconds while there are
+unsynced records), ``"always"`` (before every ``append`` returns) or ``"never"`` (tests and
+benchmarks; no ``os.fsync`` at all, not even when creating or compacting the file — only an
+explicit :meth:`Journal.flush` syncs).
 
 File format (all integers little-endian)::
 
@@ -152,6 +154,7 @@ class Journal:
         self._map_start = 0
         self._map_end = 0
         self._allocated = 0
+        self._mappable = True  # False once mmap failed: appends use os.pwrite
         self._open = False
         self._closing = False
         self._seq = 0  # the last frame's sequence number: also the number of records
@@ -181,6 +184,11 @@ class Journal:
         disk is longer (zeros preallocated for the next appends).
         """
         return self._size
+
+    @property
+    def unsynced(self) -> int:
+        """How many appends the last fsync did not cover (0: all of them are on disk)."""
+        return self._written - self._synced
 
     # -- opening ------------------------------------------------------------------------------
 
@@ -403,13 +411,16 @@ class Journal:
             if end > self._map_end:  # also when not open: then nothing is mapped
                 self._grow(end)  # raises (nothing written) if not open, or the disk is full
             seq = self._seq + 1
-            start = self._map_start
+            crc = crc32(payload, crc32(_SEQ.pack(seq)))
             mapped = self._map
-            assert mapped is not None  # _grow mapped it
-            # The payload first, the frame head last: a process killed in between leaves a
-            # frame whose head is zeros, which fails its CRC (a torn tail).
-            mapped[pos + _FRAME_HEAD - start : end - start] = payload
-            _FRAME.pack_into(mapped, pos - start, size, crc32(payload, crc32(_SEQ.pack(seq))), seq)
+            if mapped is None:  # the file cannot be mapped (see _grow)
+                _write_all(self._fd, _FRAME.pack(size, crc, seq) + payload, pos)
+            else:
+                # The payload first, the frame head last: a process killed in between leaves a
+                # frame whose head is zeros, which fails its CRC (a torn tail).
+                start = self._map_start
+                mapped[pos + _FRAME_HEAD - start : end - start] = payload
+                _FRAME.pack_into(mapped, pos - start, size, crc, seq)
             self._seq = seq
             self._size = end
             self._written += 1
@@ -427,7 +438,10 @@ class Journal:
         """Map a window of the file from the frame at ``_size`` past ``end`` (caller holds _lock).
 
         The file is extended with its blocks allocated (``posix_fallocate``) before it is
-        mapped, so a full disk raises OSError here, with nothing written.
+        mapped, so a full disk raises OSError here, with nothing written. On a file system that
+        cannot map files, nothing is mapped, and appends write each frame with ``os.pwrite``
+        (one system call, which has reached the operating system when it returns) into the
+        space allocated here.
 
         Raises:
             RuntimeError: If the journal is not open.
@@ -441,7 +455,17 @@ class Journal:
         if stop > self._allocated:
             _allocate(self._fd, self._allocated, stop - self._allocated)
             self._allocated = stop
-        mapped = mmap.mmap(self._fd, stop - start, offset=start)
+        mapped = None
+        if self._mappable:
+            try:
+                mapped = mmap.mmap(self._fd, stop - start, offset=start)
+            except OSError as err:  # a file system that cannot map files
+                self._mappable = False
+                logger.warning(
+                    "journal %s: the file cannot be mapped (%s); appending with pwrite",
+                    self._path,
+                    err,
+                )
         old, self._map = self._map, mapped
         self._map_start, self._map_end = start, stop
         if old is not None:
@@ -663,12 +687,12 @@ def _read_all(fd: int) -> bytes:
     return b"".join(chunks)
 
 
-def _write_all(fd: int, data: bytes) -> None:
-    """Write ``data`` at the start of the file ``fd``, looping on short writes."""
+def _write_all(fd: int, data: bytes, offset: int = 0) -> None:
+    """Write ``data`` at ``offset`` in the file ``fd``, looping on short writes."""
     view = memoryview(data)
     done = 0
     while done < len(data):
-        done += os.pwrite(fd, view[done:], done)
+        done += os.pwrite(fd, view[done:], offset + done)
 
 
 def _allocate(fd: int, offset: int, length: int) -> None:
