@@ -540,7 +540,7 @@ CHILD = """
 import os, sys
 sys.path.insert(0, sys.argv[1])
 from temoto.core.registrar.journal import Journal
-j = Journal(sys.argv[2], fsync=sys.argv[3], fsync_interval=0.005)
+j = Journal(sys.argv[2], fsync=sys.argv[3], fsync_interval=0.005, serialized=sys.argv[4] == "1")
 j.open()
 os.write(1, b"ready\\n")
 for i in range(10**7):
@@ -556,7 +556,7 @@ def test_every_record_reported_as_appended_survives_sigkill(tmp_path: Path) -> N
         path = tmp_path / f"kill-{run}.journal"
         policy = ("never", "group", "always")[run % 3]
         child = subprocess.Popen(
-            [sys.executable, "-c", CHILD, str(ROOT), str(path), policy],
+            [sys.executable, "-c", CHILD, str(ROOT), str(path), policy, str(run % 2)],
             stdout=subprocess.PIPE,
         )
         try:
@@ -699,3 +699,19 @@ def test_a_file_that_cannot_be_mapped_is_appended_to_with_pwrite(
     assert path.stat().st_size == j.size
     assert reopen(path) == [*RECORDS, {"big": "b" * (2 << 20)}]
     assert reopen(copy) == [*RECORDS, {"big": "b" * (2 << 20)}]
+
+
+def test_a_serialized_journal_wakes_its_flusher_after_every_idle_spell(path: Path) -> None:
+    j = Journal(path, fsync="group", fsync_interval=0.001, serialized=True)
+    j.open()
+    spy = FsyncSpy()  # only for its condition: os.fsync itself runs
+    written = []
+    for burst in range(40):
+        for i in range(burst % 4 + 1):
+            record = {"burst": burst, "i": i}
+            j.append(record)
+            written.append(record)
+        # the flusher was waiting (or about to): each burst must be synced without another
+        assert spy.wait_until(lambda: j.unsynced == 0, timeout=10.0), burst
+    j.close()
+    assert reopen(path) == written

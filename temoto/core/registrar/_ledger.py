@@ -223,7 +223,8 @@ class Ledger:
             )
         from temoto.core.registrar.journal import Journal
 
-        journal = Journal(path, fsync=fsync, fsync_interval=fsync_interval)
+        # serialized: the registrar calls the ledger, and so the journal, under its lock
+        journal = Journal(path, fsync=fsync, fsync_interval=fsync_interval, serialized=True)
         written = journal.open()
         ledger = cls(name, journal)
         try:

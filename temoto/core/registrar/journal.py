@@ -116,6 +116,10 @@ class Journal:
             while records are unsynced), ``"always"`` (fsync before each append returns) or
             ``"never"`` (no automatic fsync at all).
         fsync_interval: Seconds between group fsyncs.
+        serialized: The owner makes its calls of the append methods, :meth:`rewrite`,
+            :meth:`flush` and :meth:`close` one at a time (the registrar makes them all under
+            its own lock), so an append takes no lock of its own. False (default): any thread
+            may append at any time.
 
     Attributes:
         recovered_tail_bytes: How many bytes of a torn tail (or torn header) :meth:`open` cut
@@ -131,6 +135,7 @@ class Journal:
         *,
         fsync: FsyncPolicy = "group",
         fsync_interval: float = 0.1,
+        serialized: bool = False,
     ) -> None:
         if fsync not in _POLICIES:
             raise ValueError(f"fsync must be one of {', '.join(_POLICIES)}, not {fsync!r}")
@@ -139,6 +144,7 @@ class Journal:
         self._path = Path(path)
         self._policy: FsyncPolicy = fsync
         self._group = fsync == "group"
+        self._serialized = bool(serialized)
         self._interval = float(fsync_interval)
         self.recovered_tail_bytes = 0
         # _lock (the condition's lock) guards the descriptor's use for writing and every counter
@@ -404,35 +410,41 @@ class Journal:
         size = len(payload)
         if size > MAX_RECORD_BYTES:
             raise ValueError(f"journal record is {size} bytes, over {MAX_RECORD_BYTES}")
-        crc32 = zlib.crc32
-        with self._lock:
-            pos = self._size
-            end = pos + _FRAME_HEAD + size
-            if end > self._map_end:  # also when not open: then nothing is mapped
-                self._grow(end)  # raises (nothing written) if not open, or the disk is full
-            seq = self._seq + 1
-            crc = crc32(payload, crc32(_SEQ.pack(seq)))
-            mapped = self._map
-            if mapped is None:  # the file cannot be mapped (see _grow)
-                _write_all(self._fd, _FRAME.pack(size, crc, seq) + payload, pos)
-            else:
-                # The payload first, the frame head last: a process killed in between leaves a
-                # frame whose head is zeros, which fails its CRC (a torn tail).
-                start = self._map_start
-                mapped[pos + _FRAME_HEAD - start : end - start] = payload
-                _FRAME.pack_into(mapped, pos - start, size, crc, seq)
-            self._seq = seq
-            self._size = end
-            self._written += 1
-            if self._group:
-                if self._flusher_waiting:
-                    self._flusher_waiting = False
-                    self._cond.notify()
-                elif self._flusher is None:
-                    self._start_flusher()
-                return
-        if self._policy == "always":
+        if self._serialized:  # the owner's calls never overlap: no lock (see the class)
+            self._put(payload, size)
+        else:
+            with self._lock:
+                self._put(payload, size)
+        if self._group:
+            # After _written grew: the flusher sets _flusher_waiting before it looks at
+            # _written, under the lock it waits on, so one of the two sees the other.
+            if self._flusher_waiting:
+                self._wake_flusher()
+            elif self._flusher is None:
+                self._start_flusher()
+        elif self._policy == "always":
             self._sync()
+
+    def _put(self, payload: bytes, size: int) -> None:
+        """Write one frame after the last (the caller holds _lock, or is the serialized owner)."""
+        pos = self._size
+        end = pos + _FRAME_HEAD + size
+        if end > self._map_end:  # also when not open: then nothing is mapped
+            self._grow(end)  # raises (nothing written) if not open, or the disk is full
+        seq = self._seq + 1
+        crc = zlib.crc32(payload, zlib.crc32(_SEQ.pack(seq)))
+        mapped = self._map
+        if mapped is None:  # the file cannot be mapped (see _grow)
+            _write_all(self._fd, _FRAME.pack(size, crc, seq) + payload, pos)
+        else:
+            # The payload first, the frame head last: a process killed in between leaves a
+            # frame whose head is zeros, which fails its CRC (a torn tail).
+            start = self._map_start
+            mapped[pos + _FRAME_HEAD - start : end - start] = payload
+            _FRAME.pack_into(mapped, pos - start, size, crc, seq)
+        self._seq = seq
+        self._size = end
+        self._written += 1
 
     def _grow(self, end: int) -> None:
         """Map a window of the file from the frame at ``_size`` past ``end`` (caller holds _lock).
@@ -558,18 +570,29 @@ class Journal:
             self._synced = target
 
     def _start_flusher(self) -> None:
-        """Start the group-fsync thread (caller holds _lock)."""
-        self._flusher = threading.Thread(
-            target=self._flush_loop, name="temoto-journal-fsync", daemon=True
-        )
-        self._flusher.start()
+        """Start the group-fsync thread, unless another append just did."""
+        with self._lock:
+            if self._flusher is not None or self._closing:
+                return
+            self._flusher = threading.Thread(
+                target=self._flush_loop, name="temoto-journal-fsync", daemon=True
+            )
+            self._flusher.start()
+
+    def _wake_flusher(self) -> None:
+        with self._cond:
+            if self._flusher_waiting:
+                self._flusher_waiting = False
+                self._cond.notify()
 
     def _flush_loop(self) -> None:
         cond = self._cond
         while True:
             with cond:
-                while self._written <= self._synced and not self._closing:
-                    self._flusher_waiting = True
+                while not self._closing:
+                    self._flusher_waiting = True  # first, then look: see append_json
+                    if self._written > self._synced:
+                        break
                     cond.wait()
                 self._flusher_waiting = False
                 if self._closing:

@@ -679,12 +679,12 @@ class Registrar:
         Raises:
             Nothing.
         """
-        with self._lock:
+        with self._lock:  # the journal is serialized by this lock: closed under it too
             if self._closed:
                 return
             self._closed = True
-        if self._ledger.journal is not None:
-            self._ledger.journal.close()
+            if self._ledger.journal is not None:
+                self._ledger.journal.close()
 
     def __enter__(self) -> Registrar:
         return self
