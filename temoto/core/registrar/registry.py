@@ -11,8 +11,9 @@ delivery, the restore after a crash. Its books (tables, reference counts, depend
 the journal records of their changes are the :class:`~temoto.core.registrar._ledger.Ledger`'s;
 the records themselves are defined in :mod:`~temoto.core.registrar.records`.
 
-Locking: one lock guards the ledger. Server hooks and status callbacks run outside it, in the
-calling thread, so they may call the registrar again.
+Locking: one lock guards the ledger and its journal (opened ``serialized``: an append takes no
+lock of its own). Server hooks and status callbacks run outside it, in the calling thread, so
+they may call the registrar again.
 """
 
 from __future__ import annotations
