@@ -108,7 +108,8 @@ class Journal:
     """Append-only, checksummed record log; the registrar's durable catalog.
 
     The file format and the recovery rules are described in the module docstring. A journal is
-    used once: construct, :meth:`open`, :meth:`append` (from any thread), :meth:`close`.
+    used once: construct, :meth:`open`, :meth:`append` (from any thread, unless ``serialized``),
+    :meth:`close`.
 
     Args:
         path: The journal file. Its directory is created if missing.
