@@ -56,7 +56,6 @@ The kernel drops the lock when the process dies, however it dies.
 
 from __future__ import annotations
 
-import json
 import logging
 import mmap
 import os
@@ -69,6 +68,16 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
+from temoto.core.registrar._frames import (
+    FORMAT_VERSION,
+    FRAME,
+    FRAME_HEAD,
+    HEADER,
+    MAGIC,
+    MAX_RECORD_BYTES,
+    content_end,
+    parse,
+)
 from temoto.core.registrar._json import make_encoder
 from temoto.errors import CatalogCorruptError, ResourceBusyError
 
@@ -81,18 +90,8 @@ logger = logging.getLogger(__name__)
 
 FsyncPolicy = Literal["group", "always", "never"]
 
-#: The first eight bytes of every journal file.
-MAGIC = b"TEMOTOJ1"
-#: The format version byte that follows the magic.
-FORMAT_VERSION = 1
-#: The largest payload a frame may carry; longer ones are refused (append) or corrupt (open).
-MAX_RECORD_BYTES = 64 * 1024 * 1024
-
-_HEADER = MAGIC + bytes([FORMAT_VERSION])
-_FRAME = struct.Struct("<IIQ")  # length, crc, seq
 _LEN_CRC = struct.Struct("<II")
 _SEQ = struct.Struct("<Q")
-_FRAME_HEAD = _FRAME.size
 _READ_CHUNK = 1 << 20
 _ENCODE = make_encoder(  # _ENCODE(record, 0)[0]: the payload's text
     default=None, ensure_ascii=False, separators=(",", ":"), sort_keys=True, allow_nan=True
@@ -260,8 +259,8 @@ class Journal:
     def _load(self, fd: int, created: bool) -> list[dict[str, Any]]:
         data = _read_all(fd)
         n = len(data)
-        if n < len(_HEADER):
-            if not _HEADER.startswith(data):
+        if n < len(HEADER):
+            if not HEADER.startswith(data):
                 raise self._corrupt(0, "not a TeMoto journal (bad magic)")
             if created:
                 logger.debug("journal %s: created", self._path)
@@ -270,25 +269,25 @@ class Journal:
                     "journal %s: torn header (%d of %d bytes); starting a fresh journal",
                     self._path,
                     n,
-                    len(_HEADER),
+                    len(HEADER),
                 )
             self.recovered_tail_bytes = n
             if n:
                 os.ftruncate(fd, 0)
-            _write_all(fd, _HEADER)
+            _write_all(fd, HEADER)
             if self._policy != "never":
                 os.fsync(fd)
                 _fsync_dir(self._path.parent)
-            self._size = self._allocated = len(_HEADER)
+            self._size = self._allocated = len(HEADER)
             return []
         if data[: len(MAGIC)] != MAGIC:
             raise self._corrupt(0, "not a TeMoto journal (bad magic)")
         version = data[len(MAGIC)]
         if version != FORMAT_VERSION:
             raise self._corrupt(len(MAGIC), f"unsupported journal format version {version}")
-        records, end = self._parse(data)
+        records, end = parse(data, str(self._path))
         if end < n:
-            if end >= _content_end(data):
+            if end >= content_end(data):
                 logger.debug(
                     "journal %s: cut off %d bytes of preallocated zeros at byte %d",
                     self._path,
@@ -309,56 +308,6 @@ class Journal:
         self._seq = len(records)
         self._size = self._allocated = end
         return records
-
-    def _parse(self, data: bytes) -> tuple[list[dict[str, Any]], int]:
-        """Verify and decode the frames; return the records and the end of the last whole one."""
-        view = memoryview(data)
-        n = len(data)
-        unpack = _FRAME.unpack_from
-        crc32 = zlib.crc32
-        records: list[dict[str, Any]] = []
-        seq = 0
-        off = len(_HEADER)
-        content = _content_end(data)  # zeros after it: preallocated space (or a torn tail)
-        while off < content:
-            if n - off < _FRAME_HEAD:
-                problem = "an incomplete frame header"
-            else:
-                length, crc, frame_seq = unpack(data, off)
-                end = off + _FRAME_HEAD + length
-                if length > MAX_RECORD_BYTES and end <= n:
-                    raise self._corrupt(off, f"frame length {length} is over the limit")
-                if end > n:
-                    problem = f"an incomplete frame ({n - off} of {end - off} bytes)"
-                elif crc32(view[off + 8 : end]) != crc:
-                    problem = "a frame that fails its CRC"
-                else:
-                    if frame_seq != seq + 1:
-                        raise self._corrupt(
-                            off, f"sequence number {frame_seq} where {seq + 1} was expected"
-                        )
-                    records.append(self._decode(data[off + _FRAME_HEAD : end], off, frame_seq))
-                    seq = frame_seq
-                    off = end
-                    continue
-            later = _find_valid_frame(data, off + 1, content)
-            if later is not None:
-                raise self._corrupt(
-                    off, f"{problem} (after record {seq}) followed by a valid frame at byte {later}"
-                )
-            return records, off
-        return records, off
-
-    def _decode(self, payload: bytes, off: int, seq: int) -> dict[str, Any]:
-        try:
-            value = json.loads(payload.decode("utf-8"))
-        except ValueError as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
-            raise self._corrupt(off, f"record {seq} is not valid UTF-8 JSON: {exc}") from exc
-        if not isinstance(value, dict):
-            raise self._corrupt(
-                off, f"record {seq} is a JSON {type(value).__name__}, not an object"
-            )
-        return value
 
     def _corrupt(self, offset: int, message: str) -> CatalogCorruptError:
         return CatalogCorruptError(message, file=str(self._path), offset=offset)
@@ -429,20 +378,20 @@ class Journal:
     def _put(self, payload: bytes, size: int) -> None:
         """Write one frame after the last (the caller holds _lock, or is the serialized owner)."""
         pos = self._size
-        end = pos + _FRAME_HEAD + size
+        end = pos + FRAME_HEAD + size
         if end > self._map_end:  # also when not open: then nothing is mapped
             self._grow(end)  # raises (nothing written) if not open, or the disk is full
         seq = self._seq + 1
         crc = zlib.crc32(payload, zlib.crc32(_SEQ.pack(seq)))
         mapped = self._map
         if mapped is None:  # the file cannot be mapped (see _grow)
-            _write_all(self._fd, _FRAME.pack(size, crc, seq) + payload, pos)
+            _write_all(self._fd, FRAME.pack(size, crc, seq) + payload, pos)
         else:
             # The payload first, the frame head last: a process killed in between leaves a
             # frame whose head is zeros, which fails its CRC (a torn tail).
             start = self._map_start
-            mapped[pos + _FRAME_HEAD - start : end - start] = payload
-            _FRAME.pack_into(mapped, pos - start, size, crc, seq)
+            mapped[pos + FRAME_HEAD - start : end - start] = payload
+            FRAME.pack_into(mapped, pos - start, size, crc, seq)
         self._seq = seq
         self._size = end
         self._written += 1
@@ -513,7 +462,7 @@ class Journal:
             RuntimeError: If the journal is not open.
             OSError: If writing or renaming the new file fails (the journal is unchanged).
         """
-        parts = [_HEADER]
+        parts = [HEADER]
         count = 0
         for count, record in enumerate(records, 1):
             payload = encode(record)
@@ -673,35 +622,6 @@ def encode(record: Mapping[str, Any]) -> bytes:
     if len(payload) > MAX_RECORD_BYTES:
         raise ValueError(f"journal record is {len(payload)} bytes, over {MAX_RECORD_BYTES}")
     return payload
-
-
-def _find_valid_frame(data: bytes, start: int, content: int) -> int | None:
-    """The offset of the first frame at or after ``start`` whose CRC checks out, if any.
-
-    ``content``: :func:`_content_end` of ``data`` (a frame has a non-zero sequence number, so
-    none starts in the zeros after it).
-    """
-    view = memoryview(data)
-    n = len(data)
-    unpack = _FRAME.unpack_from
-    crc32 = zlib.crc32
-    for off in range(start, min(n - _FRAME_HEAD + 1, content)):
-        length, crc, seq = unpack(data, off)
-        end = off + _FRAME_HEAD + length
-        if seq and end <= n and length <= MAX_RECORD_BYTES and crc32(view[off + 8 : end]) == crc:
-            return off
-    return None
-
-
-def _content_end(data: bytes) -> int:
-    """The length of ``data`` without its trailing zero bytes."""
-    end = len(data)
-    while end:
-        start = max(0, end - 65536)
-        if data.count(0, start, end) != end - start:
-            return len(data[start:end].rstrip(b"\0")) + start
-        end = start
-    return 0
 
 
 def _read_all(fd: int) -> bytes:

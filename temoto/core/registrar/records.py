@@ -6,6 +6,10 @@ the object the journal writes) and its replay (:meth:`Record.apply`, what it doe
 being rebuilt). :data:`RECORDS` maps each ``op`` to its class; :func:`replay` reads a journal's
 records back through it.
 
+Long because every record is here, each with its encoder and its replay (and the two written
+for every deduplicated request with their precompiled layouts): in one module, writing and
+restoring cannot drift apart.
+
 Records (every one also has ``"op"``; keys are written sorted, so the bytes do not depend on the
 order below)::
 
