@@ -144,6 +144,33 @@ def dedup_pairs(n: int, catalog: bool) -> float:
     return n / dt
 
 
+def dedup_op_p50_us(n: int, catalog: bool) -> tuple[float, float]:
+    """Median µs of one call and of one release in ``n`` deduplicated pairs (as dedup_pairs).
+
+    Each call and each release is timed alone with ``perf_counter``; the timer's own median
+    cost (two reads back to back) is subtracted. For finding where a pair's time goes, not a
+    metric of the bench.
+    """
+    from time import perf_counter as pc
+
+    with _Registrar(catalog) as reg:
+        reg.register(NoopServer())
+        reg.call("bench_noop", BenchRequest("shared"), client="holder")
+        request = BenchRequest("shared")
+        call, release = reg.call, reg.release
+        calls, releases, timer = [0.0] * n, [0.0] * n, [0.0] * n
+        for i in range(n):
+            t0 = pc()
+            ref = call("bench_noop", request, client="bench")
+            t1 = pc()
+            release(ref.id)
+            t2 = pc()
+            timer[i] = pc() - t2
+            calls[i], releases[i] = t1 - t0, t2 - t1
+    own = median(timer)
+    return (median(calls) - own) * 1e6, (median(releases) - own) * 1e6
+
+
 def new_pairs(n: int, catalog: bool) -> float:
     """Pairs/s: each call loads a new resource (no-op server), its release unloads it."""
     requests = [BenchRequest("fresh", i) for i in range(n)]
