@@ -4,7 +4,8 @@ Every change the registrar makes is one record (a JSON object) copied into the f
 in the kernel's page cache before :meth:`Journal.append` returns, so it has reached the operating
 system and survives SIGKILL of the process. The copy goes through a shared memory mapping of the
 file (``mmap``, ``MAP_SHARED``): a store into it *is* the page cache, with no system call, so an
-append costs a memory copy and a CRC, and never waits for the disk or for a running fsync. The
+append costs a memory copy and a CRC (the kernel is entered only for the page fault of the first
+store into each page, and to grow the file), and it is not held up by a running fsync. The
 file is grown ahead of the appends, :data:`_PREALLOCATE` bytes (1 MiB) at a time, with
 ``posix_fallocate``, so its blocks exist before they are written (a full disk is an ``OSError``
 from :meth:`Journal.append`, with nothing written, never a ``SIGBUS``); while the journal is
