@@ -2,10 +2,11 @@
 
 Every measurement uses a fresh :class:`temoto.core.registrar.Registrar` with the catalog (the
 journal) **on** unless the metric says otherwise: a file in a temporary directory, default
-``fsync="group"`` (a background thread fsyncs at most every 100 ms; every record is still
-``os.write``-n before the call returns). The servers do nothing (no-op ``on_load`` /
-``on_unload``), so the numbers are the registrar's own cost. One warm-up round is discarded,
-``gc.collect()`` runs between rounds, the collector stays enabled while timing.
+``fsync="group"`` (a background thread fsyncs at most every 100 ms; every record is still in
+the kernel's page cache, copied into the journal's shared mapping, before the call returns).
+The servers do nothing (no-op ``on_load`` / ``on_unload``), so the
+numbers are the registrar's own cost. One warm-up round is discarded, ``gc.collect()`` runs
+between rounds, the collector stays enabled while timing.
 
 ``registrar_speedup`` times the registrar's bookkeeping kernel alone (``RefBook``, see
 ``temoto/core/_fast/_refbook_py.py``): the same fixed sequence of ``add_ref`` / ``release`` /
@@ -141,6 +142,33 @@ def dedup_pairs(n: int, catalog: bool) -> float:
             raise RuntimeError("dedup: references left over")
         reg.release(held.id)
     return n / dt
+
+
+def dedup_op_p50_us(n: int, catalog: bool) -> tuple[float, float]:
+    """Median µs of one call and of one release in ``n`` deduplicated pairs (as dedup_pairs).
+
+    Each call and each release is timed alone with ``perf_counter``; the timer's own median
+    cost (two reads back to back) is subtracted. For finding where a pair's time goes, not a
+    metric of the bench.
+    """
+    from time import perf_counter as pc
+
+    with _Registrar(catalog) as reg:
+        reg.register(NoopServer())
+        reg.call("bench_noop", BenchRequest("shared"), client="holder")
+        request = BenchRequest("shared")
+        call, release = reg.call, reg.release
+        calls, releases, timer = [0.0] * n, [0.0] * n, [0.0] * n
+        for i in range(n):
+            t0 = pc()
+            ref = call("bench_noop", request, client="bench")
+            t1 = pc()
+            release(ref.id)
+            t2 = pc()
+            timer[i] = pc() - t2
+            calls[i], releases[i] = t1 - t0, t2 - t1
+    own = median(timer)
+    return (median(calls) - own) * 1e6, (median(releases) - own) * 1e6
 
 
 def new_pairs(n: int, catalog: bool) -> float:

@@ -580,6 +580,73 @@ def test_the_ref_and_unref_layouts_write_the_encoders_very_bytes(
     assert unref.encode() == encode({"op": "unref", "id": client, "resumes": suspends})
 
 
+@pytest.mark.parametrize(
+    ("client", "holder", "exclusive", "priority"),
+    [
+        ("bench", "", False, 0),
+        ('Grüße "quoted"\\ / \n 日本語 \U0001f916', "r-9", True, -7),
+        ("", "x ✓", False, 2**40),
+    ],
+)
+def test_the_ref_layout_around_an_id_and_the_unref_payload_are_the_encoders_very_bytes(
+    client: str, holder: str, exclusive: bool, priority: int
+) -> None:
+    from temoto.core.registrar import records
+    from temoto.core.registrar.journal import encode
+
+    layout = records.Ref.layout("u-1 ✓", client, priority, exclusive, holder)
+    assert layout is not None
+    for ref_id in ("0a1b2c-1", "ffffff-123456789"):
+        fields = records.RefFields(ref_id, "u-1 ✓", client, priority, exclusive, holder)
+        assert layout[0] + ref_id.encode() + layout[1] == encode(records.Ref(fields).plain())
+    for ref_id in ("0a1b2c-1", 'a "quoted" ✓'):
+        assert records.Unref.payload(ref_id) == encode(records.Unref(ref_id).plain())
+    assert records.Ref.layout("u", "c", True, False, "") is None  # bool priority
+    assert records.Ref.layout("u", "c", 1, 1, "") is None  # int exclusive
+
+
+def test_references_of_more_clients_than_the_layout_cache_holds_replay_exactly(
+    tmp_path: Any, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from temoto.core.registrar import _ledger
+
+    monkeypatch.setattr(_ledger, "REF_LAYOUTS", 8)
+    path = tmp_path / "catalog.tjl"
+    rr, _, _ = build(path)
+    refs = [rr.call("m2", Req("shared"), client=f"c{i % 20}", priority=i % 3) for i in range(60)]
+    for ref in refs[::3]:
+        rr.release(ref.id)
+    before = accounting(rr)
+    rr.close()
+    again, _, _ = build(path, restore=True)
+    try:
+        assert accounting(again) == before
+        assert len(again.references()) == 40
+    finally:
+        again.close()
+
+
+def test_a_double_release_is_told_from_an_unknown_id_for_the_last_released_ids(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    from temoto.core.registrar import _ledger
+
+    monkeypatch.setattr(_ledger, "RELEASED_MEMORY", 10)
+    rr, _, _ = chain()
+    held = rr.call("m2", Req("a"), client="keeper")
+    ids = [rr.call("m2", Req("a"), client="passer").id for _ in range(35)]
+    for ref_id in ids:
+        rr.release(ref_id)
+    for ref_id in ids[-10:]:  # at least RELEASED_MEMORY of them are remembered
+        with pytest.raises(ResourceClosedError, match="already released"):
+            rr.release(ref_id)
+    with pytest.raises(ResourceNotFoundError):
+        rr.release(ids[0])  # at most twice as many: the oldest is forgotten
+    with pytest.raises(ResourceNotFoundError):
+        rr.release("no-such-id")
+    rr.release(held.id)
+
+
 def test_a_reference_of_other_types_than_the_layouts_is_written_by_the_encoder() -> None:
     from temoto.core.registrar import records
     from temoto.core.registrar.journal import encode
@@ -640,3 +707,18 @@ def test_taking_and_dropping_a_shared_resource_forever_does_not_grow_the_journal
     assert [r.id for r in again.references()] == [keep.id]
     assert r2.loads == []
     again.close()
+
+
+def test_the_fast_resource_maker_makes_the_same_frozen_value() -> None:
+    import dataclasses
+
+    from temoto.core.registrar.messages import Resource, new_resource
+
+    made = new_resource("a-1", "m2:b-1", "m2", Req("x"), Resp("y"))
+    plain = Resource("a-1", "m2:b-1", "m2", Req("x"), Resp("y"))
+    assert type(made) is Resource
+    assert made == plain
+    assert hash(made) == hash(plain)
+    assert repr(made) == repr(plain)
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        made.id = "other"  # type: ignore[misc]

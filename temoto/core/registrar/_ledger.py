@@ -55,8 +55,12 @@ COMPACT_SLACK = 20_000
 #: every load and unload), so taking and dropping a shared resource forever does not grow it
 #: forever.
 COMPACT_CHECK_RELEASES = 1024
-#: Remember this many released reference ids, to tell a double release from an unknown id.
+#: Remember at least this many released reference ids (at most twice as many), to tell a
+#: double release from an unknown id.
 RELEASED_MEMORY = 10_000
+#: Keep at most this many ``ref`` record layouts (one per resource, client, priority,
+#: exclusive, holder); all are dropped when there are more.
+REF_LAYOUTS = 4096
 
 _NONE: Final[tuple[Ref, ...]] = ()  # no references pre-empted, none resumed
 
@@ -184,7 +188,10 @@ class Ledger:
         self.refs: dict[str, Ref] = {}
         self.book = RefBook()
         self.slot_refs: dict[int, Ref] = {}
-        self._released: collections.OrderedDict[str, None] = collections.OrderedDict()
+        # released reference ids: the newest (up to RELEASED_MEMORY), and the generation before
+        self._released: set[str] = set()
+        self._released_before: set[str] = set()
+        self._ref_layouts: dict[tuple[str, str, int, bool, str], tuple[bytes, bytes]] = {}
         self._boot = secrets.token_hex(3)
         self._counter = itertools.count(1)
         self._quiet_releases = 0  # releases that unloaded nothing since the last look
@@ -216,7 +223,8 @@ class Ledger:
             )
         from temoto.core.registrar.journal import Journal
 
-        journal = Journal(path, fsync=fsync, fsync_interval=fsync_interval)
+        # serialized: the registrar calls the ledger, and so the journal, under its lock
+        journal = Journal(path, fsync=fsync, fsync_interval=fsync_interval, serialized=True)
         written = journal.open()
         ledger = cls(name, journal)
         try:
@@ -317,15 +325,35 @@ class Ledger:
         self.slot_refs[slot] = ref
         journal = self.journal
         if journaled and journal is not None:
-            suspends = [r.id for r in suspended] if suspended else ()
-            text = records.Ref.text(
-                ref_id, uid, client, priority, exclusive, holder, False, suspends
-            )
-            if text is None:  # not the layout's types: the encoder decides
-                journal.append(records.Ref(ref.fields(), tuple(suspends)).plain())
+            if not suspended and type(priority) is int and type(exclusive) is bool:
+                key = (uid, client, priority, exclusive, holder)
+                layout = self._ref_layouts.get(key)
+                if layout is None:
+                    layout = self._ref_layout(key)
+                journal.append_json(layout[0] + ref_id.encode() + layout[1])
             else:
-                journal.append_text(text)
+                self._write_ref(ref, suspended)
         return ref, suspended
+
+    def _ref_layout(self, key: tuple[str, str, int, bool, str]) -> tuple[bytes, bytes]:
+        layout = records.Ref.layout(*key)
+        assert layout is not None  # the caller checked the types
+        if len(self._ref_layouts) >= REF_LAYOUTS:
+            self._ref_layouts.clear()
+        self._ref_layouts[key] = layout
+        return layout
+
+    def _write_ref(self, ref: Ref, suspended: tuple[Ref, ...] | list[Ref]) -> None:
+        """Journal a ``ref`` record that pre-empted others, or whose fields are of other types."""
+        assert self.journal is not None
+        suspends = [r.id for r in suspended] if suspended else ()
+        text = records.Ref.text(
+            ref.id, ref.uid, ref.client, ref.priority, ref.exclusive, ref.holder, False, suspends
+        )
+        if text is None:  # not the layout's types: the encoder decides
+            self.journal.append(records.Ref(ref.fields(), tuple(suspends)).plain())
+        else:
+            self.journal.append_text(text)
 
     def _pre_empt(self, entry: Entry, client: str, priority: int, exclusive: bool) -> list[Ref]:
         """Suspend the active references that conflict with a new one, if it outranks them."""
@@ -362,15 +390,16 @@ class Ledger:
         """
         ref = self.refs.pop(reference_id, None)
         if ref is None:
-            if reference_id in self._released:
+            if reference_id in self._released or reference_id in self._released_before:
                 raise ResourceClosedError(
                     f"reference {reference_id} was already released", origin=self.name
                 )
             raise ResourceNotFoundError(f"no reference {reference_id}", origin=self.name)
         released = self._released
-        released[reference_id] = None
-        if len(released) > RELEASED_MEMORY:
-            released.popitem(last=False)
+        if len(released) >= RELEASED_MEMORY:
+            self._released_before = released
+            self._released = released = set()
+        released.add(reference_id)
         entry = self.entries[ref.uid]
         refs = entry.refs
         del refs[reference_id]
@@ -390,9 +419,10 @@ class Ledger:
         # one record, so a crash cannot leave only suspended references behind
         journal = self.journal
         if journal is not None:
-            journal.append_text(
-                records.Unref.text(reference_id, [r.id for r in resumed] if resumed else ())
-            )
+            if resumed:
+                journal.append_text(records.Unref.text(reference_id, [r.id for r in resumed]))
+            else:
+                journal.append_json(records.Unref.payload(reference_id))
         if last and self.live.get((entry.server, entry.key)) == entry.uid:
             del self.live[(entry.server, entry.key)]
         return ref, entry, last, resumed

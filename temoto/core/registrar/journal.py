@@ -1,12 +1,22 @@
 """The registrar's durable catalog: an append-only, checksummed record log.
 
-Every change the registrar makes is one record (a JSON object) appended with a single
-``os.write`` on an ``O_APPEND`` descriptor before :meth:`Journal.append` returns, so it has
-reached the operating system and survives SIGKILL of the process. Against power loss the file is
-fsynced per the ``fsync`` policy: ``"group"`` (a background thread, at most every
-``fsync_interval`` seconds while there are unsynced records), ``"always"`` (before every
-``append`` returns) or ``"never"`` (tests and benchmarks; no ``os.fsync`` at all, not even when
-creating or compacting the file — only an explicit :meth:`Journal.flush` syncs).
+Every change the registrar makes is one record (a JSON object) copied into the file's pages
+in the kernel's page cache before :meth:`Journal.append` returns, so it has reached the operating
+system and survives SIGKILL of the process. The copy goes through a shared memory mapping of the
+file (``mmap``, ``MAP_SHARED``): a store into it *is* the page cache, with no system call, so an
+append costs a memory copy and a CRC (the kernel is entered only for the page fault of the first
+store into each page, and to grow the file), and it is not held up by a running fsync. The
+file is grown ahead of the appends, :data:`_PREALLOCATE` bytes (1 MiB) at a time, with
+``posix_fallocate``, so its blocks exist before they are written (a full disk is an ``OSError``
+from :meth:`Journal.append`, with nothing written, never a ``SIGBUS``); while the journal is
+open, the file on disk therefore ends in zeros after the last record, and :meth:`Journal.close`
+cuts them off. (On a file system that cannot map files, each append is one ``os.pwrite`` into
+that space instead, logged once as a warning.) Against power loss the file is fsynced per the
+``fsync`` policy (``os.fsync`` of the descriptor, which writes the mapped pages too):
+``"group"`` (a background thread, at most every ``fsync_interval`` seconds while there are
+unsynced records), ``"always"`` (before every ``append`` returns) or ``"never"`` (tests and
+benchmarks; no ``os.fsync`` at all, not even when creating or compacting the file — only an
+explicit :meth:`Journal.flush` syncs).
 
 File format (all integers little-endian)::
 
@@ -19,12 +29,16 @@ Sequence numbers start at 1 in every file and grow by exactly 1 per frame.
 
 Reading (:meth:`Journal.open`) tells a *torn tail* from *corruption*:
 
+* Zeros after the last whole frame, up to the end of the file, are the unused preallocated
+  space a process that did not close its journal (SIGKILL) leaves behind: they are cut off
+  (logged at debug level; not a torn tail).
 * A torn tail is damage that a crash can leave: the last frame is incomplete or fails its CRC
   and no valid frame follows it anywhere in the rest of the file. It is cut off (the file is
   truncated to the end of the last whole frame), logged as a warning and reported in
-  :attr:`Journal.recovered_tail_bytes`. A file shorter than the header whose bytes are a
-  prefix of the header — including an empty file — is a torn header (a crash while the journal
-  was being created): it is replaced by a fresh header, with a warning, and holds no records.
+  :attr:`Journal.recovered_tail_bytes` (zeros after it included). A file shorter than the
+  header whose bytes are a prefix of the header — including an empty file — is a torn header (a
+  crash while the journal was being created): it is replaced by a fresh header, with a warning,
+  and holds no records.
 * Everything else is corruption and raises :class:`~temoto.errors.CatalogCorruptError` naming
   the file and the byte offset, leaving the file untouched: a wrong magic or version, a bad
   frame followed by a valid one, a sequence-number gap or repeat, a frame whose length is over
@@ -43,8 +57,8 @@ The kernel drops the lock when the process dies, however it dies.
 
 from __future__ import annotations
 
-import json
 import logging
+import mmap
 import os
 import struct
 import sys
@@ -55,6 +69,16 @@ from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import Any, Literal
 
+from temoto.core.registrar._frames import (
+    FORMAT_VERSION,
+    FRAME,
+    FRAME_HEAD,
+    HEADER,
+    MAGIC,
+    MAX_RECORD_BYTES,
+    content_end,
+    parse,
+)
 from temoto.core.registrar._json import make_encoder
 from temoto.errors import CatalogCorruptError, ResourceBusyError
 
@@ -67,29 +91,25 @@ logger = logging.getLogger(__name__)
 
 FsyncPolicy = Literal["group", "always", "never"]
 
-#: The first eight bytes of every journal file.
-MAGIC = b"TEMOTOJ1"
-#: The format version byte that follows the magic.
-FORMAT_VERSION = 1
-#: The largest payload a frame may carry; longer ones are refused (append) or corrupt (open).
-MAX_RECORD_BYTES = 64 * 1024 * 1024
-
-_HEADER = MAGIC + bytes([FORMAT_VERSION])
-_FRAME = struct.Struct("<IIQ")  # length, crc, seq
 _LEN_CRC = struct.Struct("<II")
-_FRAME_HEAD = _FRAME.size
+_SEQ = struct.Struct("<Q")
 _READ_CHUNK = 1 << 20
 _ENCODE = make_encoder(  # _ENCODE(record, 0)[0]: the payload's text
     default=None, ensure_ascii=False, separators=(",", ":"), sort_keys=True, allow_nan=True
 )
 _POLICIES = ("group", "always", "never")
+#: Appends write into a shared mapping of the file; it is grown by at least this many bytes
+#: at a time (allocated on disk at once, so a full disk is an OSError, never a SIGBUS).
+_PREALLOCATE = 1 << 20
+_GRANULE = mmap.ALLOCATIONGRANULARITY
 
 
 class Journal:
     """Append-only, checksummed record log; the registrar's durable catalog.
 
     The file format and the recovery rules are described in the module docstring. A journal is
-    used once: construct, :meth:`open`, :meth:`append` (from any thread), :meth:`close`.
+    used once: construct, :meth:`open`, :meth:`append` (from any thread, unless ``serialized``),
+    :meth:`close`.
 
     Args:
         path: The journal file. Its directory is created if missing.
@@ -97,6 +117,10 @@ class Journal:
             while records are unsynced), ``"always"`` (fsync before each append returns) or
             ``"never"`` (no automatic fsync at all).
         fsync_interval: Seconds between group fsyncs.
+        serialized: The owner makes its calls of the append methods, :meth:`rewrite`,
+            :meth:`flush` and :meth:`close` one at a time (the registrar makes them all under
+            its own lock), so an append takes no lock of its own. False (default): any thread
+            may append at any time.
 
     Attributes:
         recovered_tail_bytes: How many bytes of a torn tail (or torn header) :meth:`open` cut
@@ -112,6 +136,7 @@ class Journal:
         *,
         fsync: FsyncPolicy = "group",
         fsync_interval: float = 0.1,
+        serialized: bool = False,
     ) -> None:
         if fsync not in _POLICIES:
             raise ValueError(f"fsync must be one of {', '.join(_POLICIES)}, not {fsync!r}")
@@ -119,6 +144,8 @@ class Journal:
             raise ValueError(f"fsync_interval must not be negative, not {fsync_interval!r}")
         self._path = Path(path)
         self._policy: FsyncPolicy = fsync
+        self._group = fsync == "group"
+        self._serialized = bool(serialized)
         self._interval = float(fsync_interval)
         self.recovered_tail_bytes = 0
         # _lock (the condition's lock) guards the descriptor's use for writing and every counter
@@ -128,9 +155,15 @@ class Journal:
         self._cond = threading.Condition(self._lock)
         self._sync_lock = threading.Lock()
         self._fd = -1
+        # The mapping appends write into: file bytes [_map_start, _map_end) of _fd. The file's
+        # size on disk is _allocated (>= _size; the bytes between are zeros).
+        self._map: mmap.mmap | None = None
+        self._map_start = 0
+        self._map_end = 0
+        self._allocated = 0
+        self._mappable = True  # False once mmap failed: appends use os.pwrite
         self._open = False
         self._closing = False
-        self._failure: BaseException | None = None
         self._seq = 0  # the last frame's sequence number: also the number of records
         self._size = 0
         self._written = 0  # appends made (monotonic across rewrites)
@@ -152,8 +185,17 @@ class Journal:
 
     @property
     def size(self) -> int:
-        """The file's size in bytes, header included."""
+        """The end of the last record in the file, in bytes, header included.
+
+        This is the file's size once the journal is closed; while it is open, the file on
+        disk is longer (zeros preallocated for the next appends).
+        """
         return self._size
+
+    @property
+    def unsynced(self) -> int:
+        """How many appends the last fsync did not cover (0: all of them are on disk)."""
+        return self._written - self._synced
 
     # -- opening ------------------------------------------------------------------------------
 
@@ -190,11 +232,11 @@ class Journal:
         for _ in range(100):
             created = True
             try:
-                fd = os.open(self._path, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_EXCL, 0o644)
+                fd = os.open(self._path, os.O_RDWR | os.O_CREAT | os.O_EXCL, 0o644)
             except FileExistsError:
                 created = False
                 try:
-                    fd = os.open(self._path, os.O_RDWR | os.O_APPEND)
+                    fd = os.open(self._path, os.O_RDWR)
                 except FileNotFoundError:
                     continue
             try:
@@ -218,8 +260,8 @@ class Journal:
     def _load(self, fd: int, created: bool) -> list[dict[str, Any]]:
         data = _read_all(fd)
         n = len(data)
-        if n < len(_HEADER):
-            if not _HEADER.startswith(data):
+        if n < len(HEADER):
+            if not HEADER.startswith(data):
                 raise self._corrupt(0, "not a TeMoto journal (bad magic)")
             if created:
                 logger.debug("journal %s: created", self._path)
@@ -228,86 +270,45 @@ class Journal:
                     "journal %s: torn header (%d of %d bytes); starting a fresh journal",
                     self._path,
                     n,
-                    len(_HEADER),
+                    len(HEADER),
                 )
             self.recovered_tail_bytes = n
             if n:
                 os.ftruncate(fd, 0)
-            _write_all(fd, _HEADER)
+            _write_all(fd, HEADER)
             if self._policy != "never":
                 os.fsync(fd)
                 _fsync_dir(self._path.parent)
-            self._size = len(_HEADER)
+            self._size = self._allocated = len(HEADER)
             return []
         if data[: len(MAGIC)] != MAGIC:
             raise self._corrupt(0, "not a TeMoto journal (bad magic)")
         version = data[len(MAGIC)]
         if version != FORMAT_VERSION:
             raise self._corrupt(len(MAGIC), f"unsupported journal format version {version}")
-        records, end = self._parse(data)
-        self.recovered_tail_bytes = n - end
+        records, end = parse(data, str(self._path))
         if end < n:
-            logger.warning(
-                "journal %s: cut off a torn last record (%d bytes at byte %d)",
-                self._path,
-                n - end,
-                end,
-            )
+            if end >= content_end(data):
+                logger.debug(
+                    "journal %s: cut off %d bytes of preallocated zeros at byte %d",
+                    self._path,
+                    n - end,
+                    end,
+                )
+            else:
+                self.recovered_tail_bytes = n - end
+                logger.warning(
+                    "journal %s: cut off a torn last record (%d bytes at byte %d)",
+                    self._path,
+                    n - end,
+                    end,
+                )
             os.ftruncate(fd, end)
             if self._policy != "never":
                 os.fsync(fd)
         self._seq = len(records)
-        self._size = end
+        self._size = self._allocated = end
         return records
-
-    def _parse(self, data: bytes) -> tuple[list[dict[str, Any]], int]:
-        """Verify and decode the frames; return the records and the end of the last whole one."""
-        view = memoryview(data)
-        n = len(data)
-        unpack = _FRAME.unpack_from
-        crc32 = zlib.crc32
-        records: list[dict[str, Any]] = []
-        seq = 0
-        off = len(_HEADER)
-        while off < n:
-            if n - off < _FRAME_HEAD:
-                problem = "an incomplete frame header"
-            else:
-                length, crc, frame_seq = unpack(data, off)
-                end = off + _FRAME_HEAD + length
-                if length > MAX_RECORD_BYTES and end <= n:
-                    raise self._corrupt(off, f"frame length {length} is over the limit")
-                if end > n:
-                    problem = f"an incomplete frame ({n - off} of {end - off} bytes)"
-                elif crc32(view[off + 8 : end]) != crc:
-                    problem = "a frame that fails its CRC"
-                else:
-                    if frame_seq != seq + 1:
-                        raise self._corrupt(
-                            off, f"sequence number {frame_seq} where {seq + 1} was expected"
-                        )
-                    records.append(self._decode(data[off + _FRAME_HEAD : end], off, frame_seq))
-                    seq = frame_seq
-                    off = end
-                    continue
-            later = _find_valid_frame(data, off + 1)
-            if later is not None:
-                raise self._corrupt(
-                    off, f"{problem} (after record {seq}) followed by a valid frame at byte {later}"
-                )
-            return records, off
-        return records, off
-
-    def _decode(self, payload: bytes, off: int, seq: int) -> dict[str, Any]:
-        try:
-            value = json.loads(payload.decode("utf-8"))
-        except ValueError as exc:  # UnicodeDecodeError and JSONDecodeError are ValueErrors
-            raise self._corrupt(off, f"record {seq} is not valid UTF-8 JSON: {exc}") from exc
-        if not isinstance(value, dict):
-            raise self._corrupt(
-                off, f"record {seq} is a JSON {type(value).__name__}, not an object"
-            )
-        return value
 
     def _corrupt(self, offset: int, message: str) -> CatalogCorruptError:
         return CatalogCorruptError(message, file=str(self._path), offset=offset)
@@ -326,11 +327,10 @@ class Journal:
         Raises:
             TypeError: If the record cannot be serialised as JSON (nothing is written).
             ValueError: If its JSON is larger than :data:`MAX_RECORD_BYTES` (nothing written).
-            RuntimeError: If the journal is not open (never opened, closed, or broken by an
-                earlier write that failed and could not be undone).
-            OSError: If the write fails (the partial frame, if any, is removed again).
+            RuntimeError: If the journal is not open (never opened, or closed).
+            OSError: If the file cannot be grown for it (a full disk); nothing is written.
         """
-        self._append(encode(record))
+        self.append_json(encode(record))
 
     def append_text(self, text: str) -> None:
         """Append one record given as its JSON text (encoded by the caller from a layout).
@@ -346,58 +346,102 @@ class Journal:
             ValueError: If the text is larger than :data:`MAX_RECORD_BYTES` (nothing written).
             RuntimeError, OSError: As :meth:`append`.
         """
-        self._append(text.encode("utf-8"))
+        self.append_json(text.encode("utf-8"))
 
-    def _append(self, payload: bytes) -> None:
+    def append_json(self, payload: bytes) -> None:
+        """Append one record given as its JSON text's UTF-8 bytes (see :meth:`append_text`).
+
+        Args:
+            payload: The record's JSON text, UTF-8.
+
+        Raises:
+            ValueError: If it is larger than :data:`MAX_RECORD_BYTES` (nothing written).
+            RuntimeError, OSError: As :meth:`append`.
+        """
         size = len(payload)
         if size > MAX_RECORD_BYTES:
             raise ValueError(f"journal record is {size} bytes, over {MAX_RECORD_BYTES}")
-        with self._lock:
-            if not self._open:
-                raise self._not_open()
-            seq = self._seq + 1
-            crc = zlib.crc32(payload, zlib.crc32(seq.to_bytes(8, "little")))
-            frame = _FRAME.pack(size, crc, seq) + payload
-            size += _FRAME_HEAD
-            done = os.write(self._fd, frame)  # raises only if nothing was written
-            if done != size:
-                self._write_rest(frame, done)
-            self._seq = seq
-            self._size += size
-            self._written += 1
-            if self._policy == "group":
-                if self._flusher is None:
-                    self._start_flusher()
-                elif self._flusher_waiting:
-                    self._flusher_waiting = False
-                    self._cond.notify()
-                return
-        if self._policy == "always":
+        if self._serialized:  # the owner's calls never overlap: no lock (see the class)
+            self._put(payload, size)
+        else:
+            with self._lock:
+                self._put(payload, size)
+        if self._group:
+            # After _written grew: the flusher sets _flusher_waiting before it looks at
+            # _written, under the lock it waits on, so one of the two sees the other.
+            if self._flusher_waiting:
+                self._wake_flusher()
+            elif self._flusher is None:
+                self._start_flusher()
+        elif self._policy == "always":
             self._sync()
 
-    def _write_rest(self, frame: bytes, done: int) -> None:
-        """Finish a short write; if that fails, cut the partial frame off (caller holds _lock).
+    def _put(self, payload: bytes, size: int) -> None:
+        """Write one frame after the last (the caller holds _lock, or is the serialized owner)."""
+        pos = self._size
+        end = pos + FRAME_HEAD + size
+        if end > self._map_end:  # also when not open: then nothing is mapped
+            self._grow(end)  # raises (nothing written) if not open, or the disk is full
+        seq = self._seq + 1
+        crc = zlib.crc32(payload, zlib.crc32(_SEQ.pack(seq)))
+        mapped = self._map
+        if mapped is None:  # the file cannot be mapped (see _grow)
+            _write_all(self._fd, FRAME.pack(size, crc, seq) + payload, pos)
+        else:
+            # The payload first, the frame head last: a process killed in between leaves a
+            # frame whose head is zeros, which fails its CRC (a torn tail).
+            start = self._map_start
+            mapped[pos + FRAME_HEAD - start : end - start] = payload
+            FRAME.pack_into(mapped, pos - start, size, crc, seq)
+        self._seq = seq
+        self._size = end
+        self._written += 1
 
-        A partial frame left in place would turn the next append into corruption (a bad frame
-        followed by a valid one), so if it cannot be removed the journal refuses further
-        appends.
+    def _grow(self, end: int) -> None:
+        """Map a window of the file from the frame at ``_size`` past ``end`` (caller holds _lock).
+
+        The file is extended with its blocks allocated (``posix_fallocate``) before it is
+        mapped, so a full disk raises OSError here, with nothing written. On a file system that
+        cannot map files, nothing is mapped, and appends write each frame with ``os.pwrite``
+        (one system call, which has reached the operating system when it returns) into the
+        space allocated here.
+
+        Raises:
+            RuntimeError: If the journal is not open.
+            OSError: If the file cannot be extended or mapped.
         """
-        try:
-            _write_all(self._fd, frame, done)
-        except BaseException as exc:
+        if not self._open:
+            raise self._not_open()
+        start = self._size - self._size % _GRANULE
+        stop = max(end, self._size + _PREALLOCATE)
+        stop += -stop % _GRANULE
+        if stop > self._allocated:
+            _allocate(self._fd, self._allocated, stop - self._allocated)
+            self._allocated = stop
+        mapped = None
+        if self._mappable:
             try:
-                os.ftruncate(self._fd, self._size)
-            except OSError:
-                logger.exception("journal %s: could not remove a partial record", self._path)
-                self._failure = exc
-                self._open = False
-            raise
+                mapped = mmap.mmap(self._fd, stop - start, offset=start)
+            except OSError as err:  # a file system that cannot map files
+                self._mappable = False
+                logger.warning(
+                    "journal %s: the file cannot be mapped (%s); appending with pwrite",
+                    self._path,
+                    err,
+                )
+        old, self._map = self._map, mapped
+        self._map_start, self._map_end = start, stop
+        if old is not None:
+            old.close()  # its pages stay in the page cache: fsync of the file writes them
+
+    def _unmap(self) -> None:
+        """Close the mapping (caller holds _lock, or no append can run any more)."""
+        mapped, self._map = self._map, None
+        self._map_start = self._map_end = 0
+        if mapped is not None:
+            mapped.close()
 
     def _not_open(self) -> RuntimeError:
-        if self._failure is not None:
-            err = RuntimeError(f"journal {self._path} is broken by an earlier failed write")
-            err.__cause__ = self._failure
-            return err
         state = "closed" if self._closing else "not open"
         return RuntimeError(f"journal {self._path} is {state}")
 
@@ -419,7 +463,7 @@ class Journal:
             RuntimeError: If the journal is not open.
             OSError: If writing or renaming the new file fails (the journal is unchanged).
         """
-        parts = [_HEADER]
+        parts = [HEADER]
         count = 0
         for count, record in enumerate(records, 1):
             payload = encode(record)
@@ -432,7 +476,7 @@ class Journal:
         with self._lock:
             if not self._open:
                 raise self._not_open()
-            fd = os.open(tmp, os.O_RDWR | os.O_APPEND | os.O_CREAT | os.O_TRUNC, 0o644)
+            fd = os.open(tmp, os.O_RDWR | os.O_CREAT | os.O_TRUNC, 0o644)
             try:
                 _lock_file(fd, tmp)
                 os.fchmod(fd, os.fstat(self._fd).st_mode & 0o7777)
@@ -441,6 +485,7 @@ class Journal:
                     os.fsync(fd)
                 with self._sync_lock:
                     os.replace(tmp, self._path)
+                    self._unmap()
                     old, self._fd = self._fd, fd
                     self._synced = self._written
             except BaseException:
@@ -448,7 +493,7 @@ class Journal:
                 tmp.unlink(missing_ok=True)
                 raise
             self._seq = count
-            self._size = len(data)
+            self._size = self._allocated = len(data)
             os.close(old)
             if durable:
                 _fsync_dir(self._path.parent)
@@ -476,18 +521,29 @@ class Journal:
             self._synced = target
 
     def _start_flusher(self) -> None:
-        """Start the group-fsync thread (caller holds _lock)."""
-        self._flusher = threading.Thread(
-            target=self._flush_loop, name="temoto-journal-fsync", daemon=True
-        )
-        self._flusher.start()
+        """Start the group-fsync thread, unless another append just did."""
+        with self._lock:
+            if self._flusher is not None or self._closing:
+                return
+            self._flusher = threading.Thread(
+                target=self._flush_loop, name="temoto-journal-fsync", daemon=True
+            )
+            self._flusher.start()
+
+    def _wake_flusher(self) -> None:
+        with self._cond:
+            if self._flusher_waiting:
+                self._flusher_waiting = False
+                self._cond.notify()
 
     def _flush_loop(self) -> None:
         cond = self._cond
         while True:
             with cond:
-                while self._written <= self._synced and not self._closing:
-                    self._flusher_waiting = True
+                while not self._closing:
+                    self._flusher_waiting = True  # first, then look: see append_json
+                    if self._written > self._synced:
+                        break
                     cond.wait()
                 self._flusher_waiting = False
                 if self._closing:
@@ -521,11 +577,15 @@ class Journal:
             flusher = self._flusher
         if flusher is not None:
             flusher.join()
-        with self._sync_lock:
+        with self._lock, self._sync_lock:
             fd, self._fd = self._fd, -1
             if fd < 0:
                 return
             try:
+                self._unmap()
+                if self._allocated > self._size:  # the preallocated zeros
+                    os.ftruncate(fd, self._size)
+                    self._allocated = self._size
                 if self._policy != "never" and self._written > self._synced:
                     os.fsync(fd)
                     self._synced = self._written
@@ -565,20 +625,6 @@ def encode(record: Mapping[str, Any]) -> bytes:
     return payload
 
 
-def _find_valid_frame(data: bytes, start: int) -> int | None:
-    """The offset of the first frame at or after ``start`` whose CRC checks out, if any."""
-    view = memoryview(data)
-    n = len(data)
-    unpack = _FRAME.unpack_from
-    crc32 = zlib.crc32
-    for off in range(start, n - _FRAME_HEAD + 1):
-        length, crc, seq = unpack(data, off)
-        end = off + _FRAME_HEAD + length
-        if seq and end <= n and length <= MAX_RECORD_BYTES and crc32(view[off + 8 : end]) == crc:
-            return off
-    return None
-
-
 def _read_all(fd: int) -> bytes:
     chunks = []
     while chunk := os.read(fd, _READ_CHUNK):
@@ -586,11 +632,21 @@ def _read_all(fd: int) -> bytes:
     return b"".join(chunks)
 
 
-def _write_all(fd: int, data: bytes, done: int = 0) -> None:
-    """Write ``data[done:]``, looping on short writes."""
+def _write_all(fd: int, data: bytes, offset: int = 0) -> None:
+    """Write ``data`` at ``offset`` in the file ``fd``, looping on short writes."""
     view = memoryview(data)
+    done = 0
     while done < len(data):
-        done += os.write(fd, view[done:])
+        done += os.pwrite(fd, view[done:], offset + done)
+
+
+def _allocate(fd: int, offset: int, length: int) -> None:
+    """Extend the file by ``length`` bytes at ``offset`` (its size), allocated on disk."""
+    allocate = getattr(os, "posix_fallocate", None)  # not on Windows or macOS
+    if allocate is None:
+        os.ftruncate(fd, offset + length)
+    else:
+        allocate(fd, offset, length)
 
 
 def _fsync_dir(directory: Path) -> None:

@@ -6,6 +6,10 @@ the object the journal writes) and its replay (:meth:`Record.apply`, what it doe
 being rebuilt). :data:`RECORDS` maps each ``op`` to its class; :func:`replay` reads a journal's
 records back through it.
 
+Long because every record is here, each with its encoder and its replay (and the two written
+for every deduplicated request with their precompiled layouts): in one module, writing and
+restoring cannot drift apart.
+
 Records (every one also has ``"op"``; keys are written sorted, so the bytes do not depend on the
 order below)::
 
@@ -37,6 +41,9 @@ names an unknown resource or reference is :class:`~temoto.errors.CatalogCorruptE
 The two records written for every deduplicated request (``ref`` per call, ``unref`` per
 release) also have a precompiled layout (:meth:`Ref.text`, :meth:`Unref.text`): the very bytes
 :meth:`Record.plain` gives through the journal's encoder, formatted without building a dict.
+:meth:`Ref.layout` goes one step further for the registrar's own reference ids: the bytes of a
+reference's record before and after its id, made once per (resource, client, priority,
+exclusive, holder) and joined around each new id.
 """
 
 from __future__ import annotations
@@ -73,6 +80,7 @@ __all__ = [
 
 _json_str = json.encoder.encode_basestring  # the encoder's own string quoting (C)
 _JSON_BOOL = ("false", "true")  # indexed by a bool
+_UNREF_ALONE = b'{"id":%s,"op":"unref","resumes":[]}'  # Unref.LAYOUT_ALONE as bytes
 
 
 def _json_list(items: Iterable[str]) -> str:
@@ -445,9 +453,42 @@ class Ref(Record):
         '"suspended":false,"suspends":[],"uid":%s}'
     )
 
+    #: :data:`LAYOUT_ACTIVE` up to the id's characters, and from them on (see :meth:`layout`).
+    LAYOUT_HEAD: ClassVar[str] = '{"client":%s,"exclusive":%s,"holder":%s,"id":"'
+    LAYOUT_TAIL: ClassVar[str] = (
+        '","op":"ref","priority":%d,"suspended":false,"suspends":[],"uid":%s}'
+    )
+
     def plain(self) -> dict[str, Any]:
         """See :meth:`Record.plain`."""
         return {"op": "ref", **self.ref.plain(), "suspends": list(self.suspends)}
+
+    @staticmethod
+    def layout(
+        uid: str, client: str, priority: int, exclusive: bool, holder: str
+    ) -> tuple[bytes, bytes] | None:
+        """The record of an active reference that pre-empted nothing, around its id.
+
+        ``head + id.encode() + tail`` is :meth:`text`'s record (UTF-8) for an ``id`` whose
+        characters JSON writes as they are: ASCII letters, digits and ``-`` (the registrar's
+        ids: its boot token in hex, ``-``, a counter).
+
+        Args:
+            uid: The resource.
+            client: The consumer.
+            priority: Its priority.
+            exclusive: Whether it wants the resource alone.
+            holder: Its holder, or "".
+
+        Returns:
+            (head, tail), or None if ``priority`` is not an ``int`` or ``exclusive`` not a
+            ``bool`` (see :meth:`text`).
+        """
+        if type(priority) is not int or (exclusive is not False and exclusive is not True):
+            return None
+        head = Ref.LAYOUT_HEAD % (_json_str(client), _JSON_BOOL[exclusive], _json_str(holder))
+        tail = Ref.LAYOUT_TAIL % (priority, _json_str(uid))
+        return head.encode("utf-8"), tail.encode("utf-8")
 
     def encode(self) -> bytes:
         """See :meth:`Record.encode`; from :data:`LAYOUT` when the field types allow."""
@@ -543,6 +584,18 @@ class Unref(Record):
     def encode(self) -> bytes:
         """See :meth:`Record.encode`; from :data:`LAYOUT`."""
         return Unref.text(self.id, self.resumes).encode("utf-8")
+
+    @staticmethod
+    def payload(ref_id: str) -> bytes:
+        """The record of a release that resumed nothing, as the journal's bytes (UTF-8).
+
+        Args:
+            ref_id: The released reference.
+
+        Returns:
+            ``text(ref_id).encode("utf-8")``.
+        """
+        return _UNREF_ALONE % _json_str(ref_id).encode("utf-8")
 
     @staticmethod
     def text(ref_id: str, resumes: Iterable[str] = ()) -> str:

@@ -11,8 +11,9 @@ delivery, the restore after a crash. Its books (tables, reference counts, depend
 the journal records of their changes are the :class:`~temoto.core.registrar._ledger.Ledger`'s;
 the records themselves are defined in :mod:`~temoto.core.registrar.records`.
 
-Locking: one lock guards the ledger. Server hooks and status callbacks run outside it, in the
-calling thread, so they may call the registrar again.
+Locking: one lock guards the ledger and its journal (opened ``serialized``: an append takes no
+lock of its own). Server hooks and status callbacks run outside it, in the calling thread, so
+they may call the registrar again.
 """
 
 from __future__ import annotations
@@ -32,6 +33,7 @@ from temoto.core.registrar.messages import (
     Status,
     StatusUpdate,
     canonical_json,
+    new_resource,
     request_key,
     to_plain,
 )
@@ -303,7 +305,7 @@ class Registrar:
                     ref, pre_empted = ledger.add_ref(
                         entry, client, priority, exclusive, holder, on_status
                     )
-                    result = Resource(ref.id, uid, server, entry.request, entry.response)
+                    result = new_resource(ref.id, uid, server, entry.request, entry.response)
                     if not pre_empted:
                         return result
                     message = f"pre-empted by '{client}' (priority {priority})"
@@ -678,12 +680,12 @@ class Registrar:
         Raises:
             Nothing.
         """
-        with self._lock:
+        with self._lock:  # the journal is serialized by this lock: closed under it too
             if self._closed:
                 return
             self._closed = True
-        if self._ledger.journal is not None:
-            self._ledger.journal.close()
+            if self._ledger.journal is not None:
+                self._ledger.journal.close()
 
     def __enter__(self) -> Registrar:
         return self
