@@ -32,12 +32,11 @@ from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from temoto.lcm_types import envelope_t
+from temoto.transport._envelope import HELLO_TYPE, Writer
 from temoto.transport.identity import Credentials
 
 #: The channel of hellos.
 HELLO_CHANNEL: Final = "TEMOTO_KEYS"
-#: The ``type`` of a hello envelope.
-HELLO_TYPE: Final = "fleet_hello"
 #: The envelope version of keyed fleets.
 SECURE_VERSION: Final = 2
 #: Seconds between two hellos at least (a flood of undecryptable messages costs little).
@@ -59,6 +58,8 @@ _GRANT_SIZE: Final = 12 + _GRANT_PLAIN.size + _TAG
 _WINDOW: Final = 64
 _WINDOW_MASK: Final = (1 << _WINDOW) - 1
 _SALT: Final = b"temoto fleet v2"
+_AD_CACHE_MAX: Final = 1024  # (channel, sender, type) prefixes of the associated data
+_SEQ_SESSION: Final = struct.Struct(">IQQI")  # the ad's tail: 16, seq, session, len(tags)
 
 
 def _blob(*parts: bytes) -> bytes:
@@ -172,6 +173,8 @@ class SecureSession:
         self._last_hello: float | None = None
         self._born = clock()
         self._backlog: deque[tuple[int, float, str, str, bytes]] = deque(maxlen=_BACKLOG_MAX)
+        self._writer = Writer(SECURE_VERSION, fleet, sender)
+        self._ad_heads: dict[tuple[str, str, str], bytes] = {}
         self._rotate()
 
     @property
@@ -303,11 +306,9 @@ class SecureSession:
             if ask:
                 del self._missed[name, session]
         body = b"".join(parts)
-        env = self._envelope(HELLO_TYPE, body, 0)
-        unsigned: bytes = env.encode()  # type: ignore[no-untyped-call]
+        unsigned = self._writer.write(0, self.session, HELLO_TYPE, body, b"")
         proof = self._prove(_s(HELLO_CHANNEL) + b"\0" + unsigned)
-        env.mac_size, env.mac = len(proof), proof
-        hello: bytes = env.encode()  # type: ignore[no-untyped-call]
+        hello = unsigned[:-2] + struct.pack(">h", len(proof)) + proof
         resend, self._resend = self._resend, []
         self._resend_backlog(resend, now)
         return hello
@@ -401,19 +402,17 @@ class SecureSession:
 
     # --- data ---------------------------------------------------------------------------------
 
-    def _envelope(self, type_name: str, payload: bytes, seq: int) -> envelope_t:
-        env = envelope_t()  # type: ignore[no-untyped-call]
-        env.version = SECURE_VERSION
-        env.fleet = self.fleet
-        env.sender = self.sender
-        env.seq = seq
-        env.stamp_us = self.session
-        env.type = type_name
-        env.payload_size = len(payload)
-        env.payload = payload
-        env.mac_size = 0
-        env.mac = b""
-        return env
+    def _ad(
+        self, channel: str, sender: str, type_name: str, seq: int, session: int, tags: bytes
+    ) -> bytes:
+        """The associated data of a message: :func:`_ad`, its head cached per channel."""
+        key = (channel, sender, type_name)
+        head = self._ad_heads.get(key)
+        if head is None:
+            if len(self._ad_heads) >= _AD_CACHE_MAX:
+                self._ad_heads.clear()
+            head = self._ad_heads[key] = _ad_head(channel, self.fleet, sender, type_name)
+        return head + _SEQ_SESSION.pack(16, seq, session, len(tags)) + tags
 
     def seal(
         self, channel: str, type_name: str, payload: bytes, only: _Pair | None = None
@@ -428,7 +427,7 @@ class SecureSession:
             tags = b"".join(p.tag_out for p in pairs)
         else:
             pairs, tags = [], (only.tag_out if only is not None else b"")
-        ad = _ad(channel, self.fleet, self.sender, type_name, seq, self.session, tags)
+        ad = self._ad(channel, self.sender, type_name, seq, self.session, tags)
         sealed = self._aead.encrypt(seq.to_bytes(12, "big"), payload, ad)
         cipher, tag = sealed[:-_TAG], sealed[-_TAG:]
         if self.roster_mode:
@@ -437,10 +436,7 @@ class SecureSession:
                 p.tag_out + hashlib.blake2b(digest, key=p.mac_out, digest_size=_MAC).digest()
                 for p in pairs
             )
-        env = self._envelope(type_name, cipher, seq)
-        env.mac_size, env.mac = _TAG + len(tags), tag + tags
-        out: bytes = env.encode()  # type: ignore[no-untyped-call]
-        return out
+        return self._writer.write(seq, self.session, type_name, cipher, tag + tags)
 
     def _recipients(self) -> list[_Pair]:
         return [
@@ -482,24 +478,36 @@ class SecureSession:
             self._dirty = True
             return "no_session"
         mac: bytes = env.mac
+        roster = self.credentials is not None
         if len(mac) < _TAG:
             return "forged"
-        tag, tail = mac[:_TAG], mac[_TAG:]
-        step = _RECIPIENT + (_MAC if self.roster_mode else 0)
-        if len(tail) % step:
-            return "forged"
-        entries = [tail[i : i + step] for i in range(0, len(tail), step)]
-        tags = b"".join(e[:_RECIPIENT] for e in entries)
-        mine = next((e for e in entries if e[:_RECIPIENT] == rx.pair.tag_in), None)
-        if mine is None and (entries or self.roster_mode):
+        tag = mac[:_TAG]
+        mine = None
+        tags = b""
+        if len(mac) > _TAG:  # recipient entries (a roster fleet, or a copy re-sent to one peer)
+            tail = mac[_TAG:]
+            step = _RECIPIENT + _MAC if roster else _RECIPIENT
+            if len(tail) % step:
+                return "forged"
+            ours = rx.pair.tag_in
+            heads = []
+            for i in range(0, len(tail), step):
+                head = tail[i : i + _RECIPIENT]
+                heads.append(head)
+                if mine is None and head == ours:
+                    mine = tail[i : i + step]
+            tags = b"".join(heads)
+            if mine is None:
+                return "not_for_us"
+        elif roster:
             return "not_for_us"
         seq: int = env.seq
         if not 0 < seq < 1 << 63:
             return "forged"
         type_name: str = env.type
-        ad = _ad(channel, self.fleet, sender, type_name, seq, session, tags)
-        sealed = bytes(env.payload) + tag
-        if self.roster_mode:
+        ad = self._ad(channel, sender, type_name, seq, session, tags)
+        sealed = env.payload + tag
+        if roster:
             assert mine is not None
             digest = hashlib.blake2b(ad + sealed, digest_size=32).digest()
             want = hashlib.blake2b(digest, key=rx.pair.mac_in, digest_size=_MAC).digest()
@@ -517,10 +525,16 @@ class SecureSession:
 def _ad(
     channel: str, fleet: str, sender: str, type_name: str, seq: int, session: int, tags: bytes
 ) -> bytes:
+    """The associated data of a message: what its AEAD tag (and MACs) cover besides it."""
     return _blob(
         b"temoto-v2", _s(channel), _s(fleet), _s(sender), _s(type_name),
         struct.pack(">QQ", seq, session), tags,
     )  # fmt: skip
+
+
+def _ad_head(channel: str, fleet: str, sender: str, type_name: str) -> bytes:
+    """The first parts of :func:`_ad`, the same for every message of a sender on a channel."""
+    return _blob(b"temoto-v2", _s(channel), _s(fleet), _s(sender), _s(type_name))
 
 
 def _parse_hello(

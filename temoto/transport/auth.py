@@ -73,6 +73,8 @@ from temoto.transport._drops import (
     _claimed,
     _DropLog,
 )
+from temoto.transport._envelope import HELLO_TYPE, Writer
+from temoto.transport._envelope import parse as parse_envelope
 from temoto.transport.base import _LogLimiter
 from temoto.transport.identity import Credentials, RosterError
 
@@ -303,6 +305,7 @@ class FleetAuth:
         self._next_prune = clock() + self.window_s
         self._log = _LogLimiter()  # the DEBUG lines of quiet drops
         self._drop_log = _DropLog(DROP_SUMMARY_S)  # guarded by _lock
+        self._writer = Writer(ENVELOPE_VERSION, fleet, sender)
         if insecure:
             logger.warning(
                 "fleet %r runs INSECURE (no key): anyone on the network can forge, alter or "
@@ -356,19 +359,7 @@ class FleetAuth:
         with self._seq_lock:
             self._seq += 1
             seq = self._seq
-        env = envelope_t()  # type: ignore[no-untyped-call]
-        env.version = ENVELOPE_VERSION
-        env.fleet = self.fleet
-        env.sender = self.sender
-        env.seq = seq
-        env.stamp_us = round(self._clock() * 1e6)
-        env.type = type_name
-        env.payload_size = len(payload)
-        env.payload = bytes(payload)
-        env.mac_size = 0
-        env.mac = b""
-        body: bytes = env.encode()  # type: ignore[no-untyped-call]
-        return body
+        return self._writer.write(seq, round(self._clock() * 1e6), type_name, bytes(payload), b"")
 
     def take_outgoing(self) -> list[tuple[str, bytes]]:
         """What this member must publish now: a due hello, re-sent first messages (keyed fleets).
@@ -542,19 +533,11 @@ class FleetAuth:
             The content; or why it is dropped, from whom (None: unknown) and details for the
             log line (``""`` or ``" (...)"``).
         """
-        try:
-            env = envelope_t.decode(data)
-            # Only the canonical encoding is accepted: LCM's decoder ignores trailing bytes,
-            # reads short arrays without complaint (and its encoder writes them as short) and
-            # replaces bad UTF-8, none of which must leave a second spelling of a message.
-            canonical = (
-                len(env.payload) == env.payload_size
-                and len(env.mac) == env.mac_size
-                and env.encode() == data
-            )
-        except Exception:
-            return "garbage", None, ""
-        if not canonical:
+        # Only the canonical encoding is accepted: LCM's decoder ignores trailing bytes, reads
+        # short arrays without complaint and replaces bad UTF-8, none of which must leave a
+        # second spelling of a message.
+        env = parse_envelope(data)
+        if env is None:
             return "garbage", None, ""
         sender: str = env.sender
         version: int = env.version
@@ -592,8 +575,6 @@ class FleetAuth:
         self, channel: str, env: envelope_t, data: bytes
     ) -> Opened | tuple[str, str | None, str]:
         """The checks of a version 2 envelope (keyed fleets)."""
-        from temoto.transport._secure import HELLO_TYPE
-
         assert self._secure is not None
         sender: str = env.sender
         with self._lock:
