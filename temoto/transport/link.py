@@ -21,6 +21,12 @@ __all__ = ["FleetLink"]
 # The link's lines were logged under the auth module's name: log lines do not change.
 logger = logging.getLogger("temoto.transport.auth")
 
+#: Hellos that may wait for the receive thread. A member that starts with N others gets a
+#: hello from each of them at once, and LCM keeps 30 per subscription by default: with 50
+#: processes most hellos (and the grants in them) were dropped, which made every member ask
+#: for them again and again (docs/security.md).
+HELLO_QUEUE = 1024
+
 
 @final
 class FleetLink:
@@ -50,7 +56,9 @@ class FleetLink:
         self._timer_lock = threading.Lock()
         self._hello_seen = threading.Condition()
         if not auth.insecure:
-            self._hellos = transport.subscribe(HELLO_CHANNEL, self._on_hello)
+            self._hellos = transport.subscribe(
+                HELLO_CHANNEL, self._on_hello, queue_capacity=HELLO_QUEUE
+            )
             self._flush()
 
     def _on_hello(self, channel: str, data: bytes) -> None:
