@@ -137,6 +137,9 @@ class RxSession:
     pair: _Pair
     highest: int
     bitmap: int
+    floor: int  # of its grant: what it sealed at or below was sealed before the grant
+    # Sequence numbers at or below the floor that we asked for again (at most once each).
+    asked: set[int] = field(default_factory=set)
 
 
 @dataclass(slots=True)
@@ -440,7 +443,7 @@ class SecureSession:
         if (sender, session) not in self.rx:
             # Everything at or below the floor was sealed before this grant: refused.
             rx = self.rx[sender, session] = RxSession(
-                sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK
+                sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK, floor
             )
             pair.opens = True
             # What we got and could not open, our next hello asks for again; the originals
@@ -449,6 +452,8 @@ class SecureSession:
             for seq in held:
                 if seq > floor:
                     _admit(rx, seq)
+                else:
+                    rx.asked.add(seq)
             if held:
                 self._answer()
             else:
@@ -586,9 +591,32 @@ class SecureSession:
             plain = rx.aead.decrypt(seq.to_bytes(12, "big"), sealed, ad)
         except InvalidTag:
             return "forged"
+        if seq <= rx.floor and self._sealed_before_grant(rx, session, seq):
+            return "no_session"
         if not _admit(rx, seq):
             return "replayed"
         return Sealed(type_name, plain, seq, session)
+
+    def _sealed_before_grant(self, rx: RxSession, session: int, seq: int) -> bool:
+        """Ask for a copy of a message sealed before its sender's grant, which came first.
+
+        Its sender seals and publishes a message outside its lock, so a grant it sends
+        meanwhile (whose floor counts the message) can overtake it: the message then comes
+        after the grant, at or below the floor, and without this would be refused as replayed
+        and never re-sent. It is refused like every message at or below the floor, once asked
+        for again like those that came before the grant (the sender re-sends a copy only if no
+        other boot of ours could have opened it; docs/security.md).
+
+        Returns:
+            True if it is asked for (the first time it comes, while the sender may still hold
+            it); False if it is a replay.
+        """
+        if seq in rx.asked or rx.floor - seq >= _BACKLOG_MAX or len(rx.asked) >= _MISSED_MAX:
+            return False
+        rx.asked.add(seq)
+        self._missed.setdefault((rx.sender, session), deque(maxlen=_MISSED_MAX)).append(seq)
+        self._answer()
+        return True
 
 
 def _ad(
