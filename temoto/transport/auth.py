@@ -24,7 +24,8 @@ checks, in order:
 ``forged``         the mac, signature or AEAD tag is wrong: another key, a changed byte, another
                    channel, or a member speaking as another
 ``no_session``     a keyed sender whose session key we were not granted (yet): before the
-                   hellos crossed, or a message from before our restart; triggers our hello
+                   hellos crossed, or a message from before our restart; or one its sender
+                   sealed before the grant that overtook it (asked for once); triggers our hello
 ``not_for_us``     a message addressed to other members only
 ``stale``          (insecure fleets) the sender's stamp is more than ``window_s`` from our clock
 ``replayed``       a sequence number already seen, or too far below the highest seen, or a
