@@ -412,6 +412,19 @@ class FleetAuth:
         where = f" in {str(roster.path)!r}" if roster.path is not None else ""
         return f"permission denied: {who!r} may not {action} on {target!r} (fleet policy{where})"
 
+    def want_hello(self) -> None:
+        """Send a hello with the next :meth:`take_outgoing` the hello pace allows (keyed fleets).
+
+        For a member that waits to hear peers without sending anything: a hello of ours that
+        was lost (over Zenoh, one published before the router knew any subscriber) is sent
+        again, and a peer that hears it answers with its grant. Nothing for insecure fleets.
+        """
+        secure = self._secure
+        if secure is None:
+            return
+        with self._lock:
+            secure.want_hello()
+
     def hello_due_in(self) -> float | None:
         """Seconds until a held-back hello may be sent (keyed fleets; hellos are rate-limited).
 

@@ -6,6 +6,8 @@ message handed over by the test in the order it chooses (docs/security.md, "Sess
 
 from __future__ import annotations
 
+from typing import Any
+
 from temoto.transport.auth import HELLO_CHANNEL, FleetAuth
 from temoto.transport.inprocess import InProcessTransport
 from temoto.transport.link import HELLO_QUEUE, FleetLink
@@ -147,3 +149,29 @@ def test_a_link_keeps_the_hellos_of_a_fleet_starting_together() -> None:
         assert link._hellos.queue_capacity == HELLO_QUEUE >= 1024
     finally:
         transport.close()
+
+
+def test_members_whose_first_hellos_were_lost_still_agree_keys() -> None:
+    """Over Zenoh a hello published before the router knew a subscriber is lost; a member
+    that waits for its peers without sending anything must say hello again."""
+    transports = [InProcessTransport(bus="lost-hellos"), InProcessTransport(bus="lost-hellos")]
+    try:
+        for transport in transports:
+            publish = transport.publish
+            dropped: list[int] = []
+
+            def lossy(channel: str, data: bytes, publish: Any = publish, dropped: Any = dropped
+                      ) -> None:  # fmt: skip
+                if channel == HELLO_CHANNEL and not dropped:
+                    dropped.append(1)  # the first hello of each member is lost
+                    return
+                publish(channel, data)
+
+            transport.publish = lossy  # type: ignore[method-assign]
+        a = FleetLink(transports[0], FleetAuth("fleet", "a", KEY))
+        b = FleetLink(transports[1], FleetAuth("fleet", "b", KEY))
+        assert b.wait_for_peers(["a"], 10.0)
+        assert a.wait_for_peers(["b"], 10.0)
+    finally:
+        for transport in transports:
+            transport.close()
