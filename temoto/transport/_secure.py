@@ -611,10 +611,16 @@ class SecureSession:
             True if it is asked for (the first time it comes, while the sender may still hold
             it); False if it is a replay.
         """
-        if seq in rx.asked or rx.floor - seq >= _BACKLOG_MAX or len(rx.asked) >= _MISSED_MAX:
+        key = (rx.sender, session)
+        if (
+            seq in rx.asked
+            or rx.floor - seq >= _BACKLOG_MAX  # the sender keeps no more
+            or len(rx.asked) >= _MISSED_MAX
+            or (key not in self._missed and len(self._missed) >= _MISSED_MAX)
+        ):
             return False
         rx.asked.add(seq)
-        self._missed.setdefault((rx.sender, session), deque(maxlen=_MISSED_MAX)).append(seq)
+        self._missed.setdefault(key, deque(maxlen=_MISSED_MAX)).append(seq)
         self._answer()
         return True
 
