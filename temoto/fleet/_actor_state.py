@@ -216,6 +216,10 @@ class Ended:
     next_repeat: float = 0.0
     out_key: SessionKey | None = None  # (graph, run id) the decision is said for
     next_answer: float = 0.0  # answers to heartbeats of peers still in the run: rate-limited
+    # Peers that sent us a notification of the run after it ended here (they wait for our
+    # acknowledgement), by time.monotonic(); a peer's END or LEAVE removes it. Closing the link
+    # waits while they keep sending (FleetActorLink._linger).
+    speaking: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass(slots=True, eq=False)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import collections
 import itertools
 import json
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -230,6 +231,10 @@ class Notices(LinkPart):
         key: SessionKey = (msg.graph, msg.session)
         nid: str = msg.notification_id
         ended = self._ended.get(key)
+        if ended is not None and ended.decision is not None:
+            # it still waits for our acknowledgement of a run that ended here: an earlier one
+            # may not have reached it (real time: see FleetActorLink._linger)
+            ended.speaking[msg.actor] = time.monotonic()
         run = self._runs.get(key)
         if (run is not None and nid in run.seen) or (ended is not None and nid in ended.seen):
             self._core.count("duplicates")

@@ -144,6 +144,9 @@ class Supervisor(LinkPart):
             self._left.add(actor)
             runs = self._st.distinct_runs()
         else:
+            ended = self._ended.get((graph, session))
+            if ended is not None:
+                ended.speaking.pop(actor, None)
             run = self._runs.get((graph, session))
             if run is None and reason and (graph, session) not in self._ended:
                 run = self._st.new_run((graph, session), self._core.now())  # kept for a later watch
@@ -177,6 +180,9 @@ class Supervisor(LinkPart):
     def on_end(self, actor: str, key: SessionKey, result: str = "") -> None:
         """A peer's run finished: stop waiting for it in that run, take its result. Lock held."""
         run = self._runs.get(key)
+        ended = self._ended.get(key)
+        if ended is not None:
+            ended.speaking.pop(actor, None)  # it ended too: it needs no word from us
         if run is None and key not in self._ended:
             run = self._st.new_run(
                 key, self._core.now()

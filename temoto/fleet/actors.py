@@ -483,7 +483,12 @@ class FleetActorLink(Closing):
         """Before closing: repeat END or LEAVE for runs that just ended here; keep answering.
 
         For ``linger_s``, so a peer whose last notification we acknowledged (an
-        acknowledgement that may have been lost) is not left resending to nobody.
+        acknowledgement that may have been lost) is not left resending to nobody; then for as
+        long as a peer keeps sending notifications of such a run (it waits for our
+        acknowledgement, so ours, and our END, have not reached it), at most ``silence_s``,
+        after which it would find us lost anyway. Over a lossy TCP link (Zenoh) both can be
+        held up for seconds; a process that exited meanwhile took them along, and its peers
+        aborted the run it had ended (tests/fleet/test_zenoh_netns.py, 2 runs in 7).
         """
         with self._lock:
             if self._core.closed:
@@ -503,9 +508,24 @@ class FleetActorLink(Closing):
                 self._st.send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
             remaining = deadline - time.monotonic()
             if remaining <= 0:
-                return
+                break
             with self._lock:
                 self._changed.wait(min(self.resend_s, remaining))
+        # Peers that still send us notifications of such a run are acknowledged (and told
+        # END again, on their heartbeats) until they go quiet: answered, ended, or gone.
+        until = time.monotonic() + self.silence_s
+        with self._lock:
+            while not self._core.closed:
+                now = time.monotonic()
+                recent = now - 2 * self.heartbeat_s
+                if now >= until or not any(
+                    heard >= recent
+                    for e in self._ended.values()
+                    if e.decision is not None
+                    for heard in e.speaking.values()
+                ):
+                    return
+                self._changed.wait(min(self.heartbeat_s, until - now))
 
     # --- receiving (the transport's thread) ---------------------------------------------------
 

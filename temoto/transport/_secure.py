@@ -32,16 +32,26 @@ from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from temoto.lcm_types import envelope_t
+from temoto.transport._envelope import HELLO_TYPE, Writer
 from temoto.transport.identity import Credentials
 
 #: The channel of hellos.
 HELLO_CHANNEL: Final = "TEMOTO_KEYS"
-#: The ``type`` of a hello envelope.
-HELLO_TYPE: Final = "fleet_hello"
 #: The envelope version of keyed fleets.
 SECURE_VERSION: Final = 2
-#: Seconds between two hellos at least (a flood of undecryptable messages costs little).
+#: Seconds between two hellos at least (a flood of undecryptable messages costs little), in
+#: a fleet of up to :data:`_PEERS_PER_GAP` other members; a larger fleet waits longer, so that
+#: the hellos the whole fleet sends per second (each one read by every member) stay as many as
+#: that many members would send: 50 members send a hello every 0.25 s at most. Hellos that
+#: answer a new peer go out at once.
 HELLO_MIN_S: Final = 0.05
+_PEERS_PER_GAP: Final = 10
+#: A peer's grant is on its way for this long after our hello that gave the peer our key (it
+#: answers that hello with its own): its messages that come meanwhile do not make us ask for
+#: it, and a peer that asks for our grant within this time of our last one to it is not sent
+#: another. Every hello reaches the whole fleet; when N members start together, asking for
+#: grants that were in flight made hellos grow as N³ (docs/security.md).
+GRANT_WAIT_S: Final = 0.25
 #: A peer that received messages of ours it could not open (no grant yet: the hellos were
 #: crossing) names them in its hello; we re-send them to it if they are at most this old.
 BACKLOG_S: Final = 2.0
@@ -59,6 +69,8 @@ _GRANT_SIZE: Final = 12 + _GRANT_PLAIN.size + _TAG
 _WINDOW: Final = 64
 _WINDOW_MASK: Final = (1 << _WINDOW) - 1
 _SALT: Final = b"temoto fleet v2"
+_AD_CACHE_MAX: Final = 1024  # (channel, sender, type) prefixes of the associated data
+_SEQ_SESSION: Final = struct.Struct(">IQQI")  # the ad's tail: 16, seq, session, len(tags)
 
 
 def _blob(*parts: bytes) -> bytes:
@@ -87,6 +99,8 @@ class _Pair:
     tag_in: bytes  # we, as a recipient of its messages
     first_floor: int | None = None  # floor of the first grant we sent it (our session)
     owed: bool = True  # our next hello carries a grant for it
+    granted_at: float | None = None  # our clock when our last hello granted it our session
+    opens: bool = False  # it granted us a session of its (an RxSession holds this pair)
 
 
 @dataclass(slots=True)
@@ -123,6 +137,9 @@ class RxSession:
     pair: _Pair
     highest: int
     bitmap: int
+    floor: int  # of its grant: what it sealed at or below was sealed before the grant
+    # Sequence numbers at or below the floor that we asked for again (at most once each).
+    asked: set[int] = field(default_factory=set)
 
 
 @dataclass(slots=True)
@@ -165,13 +182,18 @@ class SecureSession:
         self.rx: dict[tuple[str, int], RxSession] = {}
         self._outgoing: list[tuple[str, bytes]] = []
         self._urgent = True  # a hello that moves a handshake on: sent at once
-        self._dirty = False  # a hello that may help: sent at most every HELLO_MIN_S
+        # A hello that may help (it asks for grants): sent from this time on (None: none is
+        # wanted), at most every HELLO_MIN_S.
+        self._wanted_at: float | None = None
         # Per (sender, session) we lack: the sequence numbers we got and could not open.
         self._missed: dict[tuple[str, int], deque[int]] = {}
-        self._resend: list[tuple[str, _Pair, list[int]]] = []  # after the next hello
+        self._resend: list[tuple[str, _Pair, list[int]]] = []  # with the next take_outgoing
         self._last_hello: float | None = None
         self._born = clock()
         self._backlog: deque[tuple[int, float, str, str, bytes]] = deque(maxlen=_BACKLOG_MAX)
+        self._writer = Writer(SECURE_VERSION, fleet, sender)
+        self._me = _blob(_s(sender))  # how hellos name us (grants for us, what we are asked)
+        self._ad_heads: dict[tuple[str, str, str], bytes] = {}
         self._rotate()
 
     @property
@@ -191,6 +213,7 @@ class SecureSession:
                 if pair is not None:
                     pair.first_floor = None
                     pair.owed = True
+                    pair.granted_at = None
         self._backlog.clear()
         self._urgent = True
 
@@ -206,12 +229,16 @@ class SecureSession:
 
     # --- hellos -------------------------------------------------------------------------------
 
-    def want_hello(self) -> None:
-        """Ask for a hello (sent with the next :meth:`take_outgoing` the rate limit allows)."""
-        self._dirty = True
+    def want_hello(self, at: float | None = None) -> None:
+        """Ask for a hello (sent with the first :meth:`take_outgoing` the rate limit allows).
 
-    def _rx_of(self, sender: str) -> list[RxSession]:
-        return [rx for (name, _), rx in self.rx.items() if name == sender]
+        Args:
+            at: Not before this time of the clock (default: now).
+        """
+        if at is None:
+            at = self._clock()
+        if self._wanted_at is None or at < self._wanted_at:
+            self._wanted_at = at
 
     def peers(self) -> frozenset[str]:
         """Names whose current boot granted us its session (we can open their messages)."""
@@ -227,30 +254,59 @@ class SecureSession:
 
         Read without the lock: a thread that made something pending reads its own write.
         """
-        return self._urgent or self._dirty or bool(self._outgoing) or bool(self._resend)
+        return (
+            self._urgent
+            or self._wanted_at is not None
+            or bool(self._outgoing)
+            or bool(self._resend)
+        )
 
     def hello_due_in(self) -> float | None:
         """Seconds until a held-back hello may go out (None: none is held back)."""
-        if not (self._dirty or self._urgent):
-            return None
-        if self._last_hello is None or self._urgent:
+        if self._urgent:
             return 0.0
-        return max(0.0, self._last_hello + HELLO_MIN_S - self._clock())
+        if self._wanted_at is None:
+            return None
+        now = self._clock()
+        due = self._wanted_at
+        if self._last_hello is not None and self._last_hello <= now:
+            due = max(due, self._last_hello + self._gap())
+        return max(0.0, due - now)
+
+    def _answer(self) -> None:
+        """Ask for a hello that moves a handshake on: at once in a small fleet.
+
+        In a large one it goes with the next hello the pace allows (:meth:`_gap`), so that the
+        members that start together are answered together, in a few hellos.
+        """
+        if len(self._peers) <= _PEERS_PER_GAP:
+            self._urgent = True
+        else:
+            self.want_hello()
+
+    def _gap(self) -> float:
+        """The least time between two hellos that do not answer a new peer."""
+        return HELLO_MIN_S * max(1.0, len(self._peers) / _PEERS_PER_GAP)
 
     def take_outgoing(self) -> list[tuple[str, bytes]]:
         """The (channel, bytes) to publish now: a due hello first, then re-sent messages."""
         now = self._clock()
         if self._urgent or (
-            self._dirty
+            self._wanted_at is not None
+            and self._wanted_at <= now
             and (
                 self._last_hello is None
-                or now - self._last_hello >= HELLO_MIN_S
+                or now - self._last_hello >= self._gap()
                 or now < self._last_hello
             )
         ):
-            self._urgent = self._dirty = False
+            self._urgent = False
+            self._wanted_at = None
             self._last_hello = now
             self._outgoing[:0] = [(HELLO_CHANNEL, self._hello(now))]
+        if self._resend:  # copies for peers that asked (they hold our grant: no hello needed)
+            resend, self._resend = self._resend, []
+            self._resend_backlog(resend, now)
         out, self._outgoing = self._outgoing, []
         return out
 
@@ -284,6 +340,7 @@ class SecureSession:
                 if not pair.owed:  # granted already: hellos stay small in a large fleet
                     continue
                 pair.owed = False
+                pair.granted_at = now
                 if pair.first_floor is None:
                     pair.first_floor = self.seq
                     fresh.append(pair)
@@ -303,14 +360,9 @@ class SecureSession:
             if ask:
                 del self._missed[name, session]
         body = b"".join(parts)
-        env = self._envelope(HELLO_TYPE, body, 0)
-        unsigned: bytes = env.encode()  # type: ignore[no-untyped-call]
+        unsigned = self._writer.write(0, self.session, HELLO_TYPE, body, b"")
         proof = self._prove(_s(HELLO_CHANNEL) + b"\0" + unsigned)
-        env.mac_size, env.mac = len(proof), proof
-        hello: bytes = env.encode()  # type: ignore[no-untyped-call]
-        resend, self._resend = self._resend, []
-        self._resend_backlog(resend, now)
-        return hello
+        return unsigned[:-2] + struct.pack(">h", len(proof)) + proof
 
     def _prove(self, data: bytes) -> bytes:
         if self.credentials is not None:
@@ -328,6 +380,13 @@ class SecureSession:
         """Take a hello in; returns a drop reason, or None when it was used (or of no use)."""
         sender: str = env.sender
         body: bytes = env.payload
+        if self._me not in body:  # no grant for us, nothing asked of us: of use only if new
+            peer = self._peers.get(sender)
+            if peer is not None and any(
+                p is not None and p.opens and p.e_pub == body[:32]
+                for p in (peer.current, peer.candidate)
+            ):
+                return None  # a hello for others from a peer we share keys with
         try:
             e_pub, grants, wants = _parse_hello(body)
         except ValueError:
@@ -338,12 +397,7 @@ class SecureSession:
         pair = None
         if peer is not None:
             pair = next((p for p in (peer.current, peer.candidate) if p and p.e_pub == e_pub), None)
-        if (
-            pair is not None
-            and grant is None
-            and missed is None
-            and any(rx.pair is pair for rx in self._rx_of(sender))
-        ):
+        if pair is not None and grant is None and missed is None and pair.opens:
             return None  # a hello for others from a peer we share keys with: nothing to do
         unsigned = data[: len(data) - 2 - env.mac_size] + b"\0\0"
         if not self._check_proof(sender, env.mac, _s(HELLO_CHANNEL) + b"\0" + unsigned):
@@ -359,12 +413,16 @@ class SecureSession:
             if peer.candidate is not None and peer.candidate is not peer.current:
                 peer.drop(peer.candidate, self.seq)
             peer.candidate = pair
-            self._urgent = True  # it gets a grant from us
-        if missed is not None:  # it lacks our grant, or asks for what it could not open
-            self._urgent = True
-            pair.owed = True
-            if missed:
-                self._resend.append((sender, pair, missed))
+            self._answer()  # it gets a grant from us
+        if missed:  # it asks for what it could not open before it had our grant
+            self._resend.append((sender, pair, missed))
+        elif missed is not None:  # it lacks our grant
+            now = self._clock()
+            sent = pair.granted_at
+            if not pair.owed and (sent is None or not sent <= now < sent + GRANT_WAIT_S):
+                pair.owed = True  # with our next hello, at the pace of the fleet's hellos
+                self.want_hello(now)
+            # else: our grant left a moment ago (it asked before that reached it)
         if grant is None:
             # Its grant for us comes when it has our key (from our hello) and it owes us one;
             # if it sends us data before we have it, we ask for it then (open_data).
@@ -385,35 +443,36 @@ class SecureSession:
         if (sender, session) not in self.rx:
             # Everything at or below the floor was sealed before this grant: refused.
             rx = self.rx[sender, session] = RxSession(
-                sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK
+                sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK, floor
             )
+            pair.opens = True
             # What we got and could not open, our next hello asks for again; the originals
             # above the floor are refused from now on (at or below it they are anyway).
             held = self._missed.get((sender, session), deque())
             for seq in held:
                 if seq > floor:
                     _admit(rx, seq)
+                else:
+                    rx.asked.add(seq)
             if held:
-                self._urgent = True
+                self._answer()
             else:
                 self._missed.pop((sender, session), None)
         return None
 
     # --- data ---------------------------------------------------------------------------------
 
-    def _envelope(self, type_name: str, payload: bytes, seq: int) -> envelope_t:
-        env = envelope_t()  # type: ignore[no-untyped-call]
-        env.version = SECURE_VERSION
-        env.fleet = self.fleet
-        env.sender = self.sender
-        env.seq = seq
-        env.stamp_us = self.session
-        env.type = type_name
-        env.payload_size = len(payload)
-        env.payload = payload
-        env.mac_size = 0
-        env.mac = b""
-        return env
+    def _ad(
+        self, channel: str, sender: str, type_name: str, seq: int, session: int, tags: bytes
+    ) -> bytes:
+        """The associated data of a message: :func:`_ad`, its head cached per channel."""
+        key = (channel, sender, type_name)
+        head = self._ad_heads.get(key)
+        if head is None:
+            if len(self._ad_heads) >= _AD_CACHE_MAX:
+                self._ad_heads.clear()
+            head = self._ad_heads[key] = _ad_head(channel, self.fleet, sender, type_name)
+        return head + _SEQ_SESSION.pack(16, seq, session, len(tags)) + tags
 
     def seal(
         self, channel: str, type_name: str, payload: bytes, only: _Pair | None = None
@@ -428,7 +487,7 @@ class SecureSession:
             tags = b"".join(p.tag_out for p in pairs)
         else:
             pairs, tags = [], (only.tag_out if only is not None else b"")
-        ad = _ad(channel, self.fleet, self.sender, type_name, seq, self.session, tags)
+        ad = self._ad(channel, self.sender, type_name, seq, self.session, tags)
         sealed = self._aead.encrypt(seq.to_bytes(12, "big"), payload, ad)
         cipher, tag = sealed[:-_TAG], sealed[-_TAG:]
         if self.roster_mode:
@@ -437,10 +496,7 @@ class SecureSession:
                 p.tag_out + hashlib.blake2b(digest, key=p.mac_out, digest_size=_MAC).digest()
                 for p in pairs
             )
-        env = self._envelope(type_name, cipher, seq)
-        env.mac_size, env.mac = _TAG + len(tags), tag + tags
-        out: bytes = env.encode()  # type: ignore[no-untyped-call]
-        return out
+        return self._writer.write(seq, self.session, type_name, cipher, tag + tags)
 
     def _recipients(self) -> list[_Pair]:
         return [
@@ -479,27 +535,53 @@ class SecureSession:
                 missed = self._missed[sender, session] = deque(maxlen=_MISSED_MAX)
             if missed is not None and 0 < env.seq < 1 << 63:
                 missed.append(env.seq)  # our next hello asks for a grant and these again
-            self._dirty = True
+            # Its grant is on its way if our key left a moment ago (it answers our hello):
+            # ask only if it has not come by then.
+            peer = self._peers.get(sender)
+            sent = None
+            if peer is not None:
+                sent = max(
+                    (
+                        p.granted_at
+                        for p in (peer.current, peer.candidate)
+                        if p is not None and p.granted_at is not None
+                    ),
+                    default=None,
+                )
+            now = self._clock()
+            self.want_hello(now if sent is None or sent > now else max(now, sent + GRANT_WAIT_S))
             return "no_session"
         mac: bytes = env.mac
+        roster = self.credentials is not None
         if len(mac) < _TAG:
             return "forged"
-        tag, tail = mac[:_TAG], mac[_TAG:]
-        step = _RECIPIENT + (_MAC if self.roster_mode else 0)
-        if len(tail) % step:
-            return "forged"
-        entries = [tail[i : i + step] for i in range(0, len(tail), step)]
-        tags = b"".join(e[:_RECIPIENT] for e in entries)
-        mine = next((e for e in entries if e[:_RECIPIENT] == rx.pair.tag_in), None)
-        if mine is None and (entries or self.roster_mode):
+        tag = mac[:_TAG]
+        mine = None
+        tags = b""
+        if len(mac) > _TAG:  # recipient entries (a roster fleet, or a copy re-sent to one peer)
+            tail = mac[_TAG:]
+            step = _RECIPIENT + _MAC if roster else _RECIPIENT
+            if len(tail) % step:
+                return "forged"
+            ours = rx.pair.tag_in
+            heads = []
+            for i in range(0, len(tail), step):
+                head = tail[i : i + _RECIPIENT]
+                heads.append(head)
+                if mine is None and head == ours:
+                    mine = tail[i : i + step]
+            tags = b"".join(heads)
+            if mine is None:
+                return "not_for_us"
+        elif roster:
             return "not_for_us"
         seq: int = env.seq
         if not 0 < seq < 1 << 63:
             return "forged"
         type_name: str = env.type
-        ad = _ad(channel, self.fleet, sender, type_name, seq, session, tags)
-        sealed = bytes(env.payload) + tag
-        if self.roster_mode:
+        ad = self._ad(channel, sender, type_name, seq, session, tags)
+        sealed = env.payload + tag
+        if roster:
             assert mine is not None
             digest = hashlib.blake2b(ad + sealed, digest_size=32).digest()
             want = hashlib.blake2b(digest, key=rx.pair.mac_in, digest_size=_MAC).digest()
@@ -509,18 +591,53 @@ class SecureSession:
             plain = rx.aead.decrypt(seq.to_bytes(12, "big"), sealed, ad)
         except InvalidTag:
             return "forged"
+        if seq <= rx.floor and self._sealed_before_grant(rx, session, seq):
+            return "no_session"
         if not _admit(rx, seq):
             return "replayed"
         return Sealed(type_name, plain, seq, session)
+
+    def _sealed_before_grant(self, rx: RxSession, session: int, seq: int) -> bool:
+        """Ask for a copy of a message sealed before its sender's grant, which came first.
+
+        Its sender seals and publishes a message outside its lock, so a grant it sends
+        meanwhile (whose floor counts the message) can overtake it: the message then comes
+        after the grant, at or below the floor, and without this would be refused as replayed
+        and never re-sent. It is refused like every message at or below the floor, once asked
+        for again like those that came before the grant (the sender re-sends a copy only if no
+        other boot of ours could have opened it; docs/security.md).
+
+        Returns:
+            True if it is asked for (the first time it comes, while the sender may still hold
+            it); False if it is a replay.
+        """
+        key = (rx.sender, session)
+        if (
+            seq in rx.asked
+            or rx.floor - seq >= _BACKLOG_MAX  # the sender keeps no more
+            or len(rx.asked) >= _MISSED_MAX
+            or (key not in self._missed and len(self._missed) >= _MISSED_MAX)
+        ):
+            return False
+        rx.asked.add(seq)
+        self._missed.setdefault(key, deque(maxlen=_MISSED_MAX)).append(seq)
+        self._answer()
+        return True
 
 
 def _ad(
     channel: str, fleet: str, sender: str, type_name: str, seq: int, session: int, tags: bytes
 ) -> bytes:
+    """The associated data of a message: what its AEAD tag (and MACs) cover besides it."""
     return _blob(
         b"temoto-v2", _s(channel), _s(fleet), _s(sender), _s(type_name),
         struct.pack(">QQ", seq, session), tags,
     )  # fmt: skip
+
+
+def _ad_head(channel: str, fleet: str, sender: str, type_name: str) -> bytes:
+    """The first parts of :func:`_ad`, the same for every message of a sender on a channel."""
+    return _blob(b"temoto-v2", _s(channel), _s(fleet), _s(sender), _s(type_name))
 
 
 def _parse_hello(

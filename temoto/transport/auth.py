@@ -24,7 +24,8 @@ checks, in order:
 ``forged``         the mac, signature or AEAD tag is wrong: another key, a changed byte, another
                    channel, or a member speaking as another
 ``no_session``     a keyed sender whose session key we were not granted (yet): before the
-                   hellos crossed, or a message from before our restart; triggers our hello
+                   hellos crossed, or a message from before our restart; or one its sender
+                   sealed before the grant that overtook it (asked for once); triggers our hello
 ``not_for_us``     a message addressed to other members only
 ``stale``          (insecure fleets) the sender's stamp is more than ``window_s`` from our clock
 ``replayed``       a sequence number already seen, or too far below the highest seen, or a
@@ -73,6 +74,8 @@ from temoto.transport._drops import (
     _claimed,
     _DropLog,
 )
+from temoto.transport._envelope import HELLO_TYPE, Writer
+from temoto.transport._envelope import parse as parse_envelope
 from temoto.transport.base import _LogLimiter
 from temoto.transport.identity import Credentials, RosterError
 
@@ -303,6 +306,7 @@ class FleetAuth:
         self._next_prune = clock() + self.window_s
         self._log = _LogLimiter()  # the DEBUG lines of quiet drops
         self._drop_log = _DropLog(DROP_SUMMARY_S)  # guarded by _lock
+        self._writer = Writer(ENVELOPE_VERSION, fleet, sender)
         if insecure:
             logger.warning(
                 "fleet %r runs INSECURE (no key): anyone on the network can forge, alter or "
@@ -356,19 +360,7 @@ class FleetAuth:
         with self._seq_lock:
             self._seq += 1
             seq = self._seq
-        env = envelope_t()  # type: ignore[no-untyped-call]
-        env.version = ENVELOPE_VERSION
-        env.fleet = self.fleet
-        env.sender = self.sender
-        env.seq = seq
-        env.stamp_us = round(self._clock() * 1e6)
-        env.type = type_name
-        env.payload_size = len(payload)
-        env.payload = bytes(payload)
-        env.mac_size = 0
-        env.mac = b""
-        body: bytes = env.encode()  # type: ignore[no-untyped-call]
-        return body
+        return self._writer.write(seq, round(self._clock() * 1e6), type_name, bytes(payload), b"")
 
     def take_outgoing(self) -> list[tuple[str, bytes]]:
         """What this member must publish now: a due hello, re-sent first messages (keyed fleets).
@@ -419,6 +411,19 @@ class FleetAuth:
             return None
         where = f" in {str(roster.path)!r}" if roster.path is not None else ""
         return f"permission denied: {who!r} may not {action} on {target!r} (fleet policy{where})"
+
+    def want_hello(self) -> None:
+        """Send a hello with the next :meth:`take_outgoing` the hello pace allows (keyed fleets).
+
+        For a member that waits to hear peers without sending anything: a hello of ours that
+        was lost (over Zenoh, one published before the router knew any subscriber) is sent
+        again, and a peer that hears it answers with its grant. Nothing for insecure fleets.
+        """
+        secure = self._secure
+        if secure is None:
+            return
+        with self._lock:
+            secure.want_hello()
 
     def hello_due_in(self) -> float | None:
         """Seconds until a held-back hello may be sent (keyed fleets; hellos are rate-limited).
@@ -542,19 +547,11 @@ class FleetAuth:
             The content; or why it is dropped, from whom (None: unknown) and details for the
             log line (``""`` or ``" (...)"``).
         """
-        try:
-            env = envelope_t.decode(data)
-            # Only the canonical encoding is accepted: LCM's decoder ignores trailing bytes,
-            # reads short arrays without complaint (and its encoder writes them as short) and
-            # replaces bad UTF-8, none of which must leave a second spelling of a message.
-            canonical = (
-                len(env.payload) == env.payload_size
-                and len(env.mac) == env.mac_size
-                and env.encode() == data
-            )
-        except Exception:
-            return "garbage", None, ""
-        if not canonical:
+        # Only the canonical encoding is accepted: LCM's decoder ignores trailing bytes, reads
+        # short arrays without complaint and replaces bad UTF-8, none of which must leave a
+        # second spelling of a message.
+        env = parse_envelope(data)
+        if env is None:
             return "garbage", None, ""
         sender: str = env.sender
         version: int = env.version
@@ -592,8 +589,6 @@ class FleetAuth:
         self, channel: str, env: envelope_t, data: bytes
     ) -> Opened | tuple[str, str | None, str]:
         """The checks of a version 2 envelope (keyed fleets)."""
-        from temoto.transport._secure import HELLO_TYPE
-
         assert self._secure is not None
         sender: str = env.sender
         with self._lock:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from collections.abc import Callable, Iterable
 from typing import final
 
@@ -20,6 +21,17 @@ __all__ = ["FleetLink"]
 
 # The link's lines were logged under the auth module's name: log lines do not change.
 logger = logging.getLogger("temoto.transport.auth")
+
+# wait_for_peers says hello again after this long without news, then twice as long, up to
+# the maximum.
+_HELLO_RETRY_S = 0.1
+_HELLO_RETRY_MAX_S = 1.0
+
+#: Hellos that may wait for the receive thread. A member that starts with N others gets a
+#: hello from each of them at once, and LCM keeps 30 per subscription by default: with 50
+#: processes most hellos (and the grants in them) were dropped, which made every member ask
+#: for them again and again (docs/security.md).
+HELLO_QUEUE = 1024
 
 
 @final
@@ -50,7 +62,9 @@ class FleetLink:
         self._timer_lock = threading.Lock()
         self._hello_seen = threading.Condition()
         if not auth.insecure:
-            self._hellos = transport.subscribe(HELLO_CHANNEL, self._on_hello)
+            self._hellos = transport.subscribe(
+                HELLO_CHANNEL, self._on_hello, queue_capacity=HELLO_QUEUE
+            )
             self._flush()
 
     def _on_hello(self, channel: str, data: bytes) -> None:
@@ -63,7 +77,10 @@ class FleetLink:
         """Wait until this member can open the messages of every named member.
 
         Sending needs no wait (what a peer could not open while the hellos crossed is re-sent
-        to it); this is for callers that must know the keys are agreed, e.g. tests.
+        to it); this is for callers that must know the keys are agreed, e.g. tests. While
+        nothing comes, this member says hello again (after 0.1 s, then twice as long each
+        time, up to 1 s): its first hello may have been lost, and a member that neither sends
+        nor hears anything would never be answered.
 
         Args:
             names: The members.
@@ -75,8 +92,24 @@ class FleetLink:
         wanted = set(names)
         if self.auth.insecure:
             return True
-        with self._hello_seen:
-            return self._hello_seen.wait_for(lambda: wanted <= self.auth.peers, timeout)
+        deadline = time.monotonic() + timeout
+        retry = _HELLO_RETRY_S
+        while True:
+            with self._hello_seen:
+                self._hello_seen.wait_for(
+                    lambda: wanted <= self.auth.peers,
+                    max(0.0, min(retry, deadline - time.monotonic())),
+                )
+            if wanted <= self.auth.peers:
+                return True
+            if time.monotonic() >= deadline:
+                return False
+            # Nothing came: our hellos may have been lost (over Zenoh, every one published
+            # before the router knew a subscriber), and a member that sends nothing and hears
+            # nothing would wait forever. Say hello again, less often each time.
+            self.auth.want_hello()
+            self._flush()
+            retry = min(retry * 2, _HELLO_RETRY_MAX_S)
 
     def _flush(self) -> None:
         """Publish what the auth wants sent (hellos, re-sent messages); never raises."""

@@ -739,6 +739,28 @@ def test_close_repeats_end_for_a_run_that_just_finished(fleet: Fleet) -> None:
     assert len(ends) >= 2  # at end, and again while closing
 
 
+def test_close_lingers_while_a_peer_still_resends_a_notification_of_the_ended_run(
+    fleet: Fleet,
+) -> None:
+    """Our acknowledgement (and END) did not reach it: over a lossy TCP link they can be held
+    up for seconds, and exiting took them along (test_zenoh_netns.py's 25 % loss run)."""
+    a, b = fleet.links("A", "B")
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    b.close()
+    a.end("g", "s1", result=Result.TRUE)
+    peer = fleet.fleet_link("B")  # B, still resending its notification of the run
+    assert peer.wait_for_peers(["A"], WAIT_S)
+    closing = threading.Thread(target=a.close, name="test-close")
+    closing.start()
+    msg = notification("B/g/s1/Move_1/1", "B", "Move_1", "on_true", "")
+    for _ in range(15):  # 1.5 s: past linger_s, resent 10 times as often as it must be
+        peer.send(NOTIFY_CHANNEL, *codec.encode(msg))
+        closing.join(0.1)
+    assert closing.is_alive(), "close() returned while a peer still waited for its answer"
+    closing.join(WAIT_S)  # the resends stopped (it got its answer): close returns
+    assert not closing.is_alive()
+
+
 def test_an_actor_that_falls_silent_is_lost_within_silence_s(fleet: Fleet) -> None:
     a, b = fleet.links("A", "B", silence_s=0.3)
     lost = Got()

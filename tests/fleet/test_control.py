@@ -235,12 +235,13 @@ def test_only_the_targets_act_and_each_answers(net: Net) -> None:
     assert a.engine.wait("relay", WAIT).value == "on_true"
     assert c.engine.wait("relay", WAIT).value == "on_true"
     assert "relay" not in b.engine.running_graphs()
-    # B opens the command once the hellos crossed (a keyed fleet), maybe after A and C answered
+    # B opens the command once the hellos crossed (a keyed fleet), maybe after A and C answered;
+    # it may see it more than once: the commander re-sends it every 0.25 s until A and C answer
     deadline = time.monotonic() + WAIT
     while b.control.stats["ignored"] < 1:
         assert time.monotonic() < deadline, b.control.stats
         time.sleep(0.01)
-    assert b.control.stats["ignored"] == 1
+    assert b.control.stats["commands"] == 0
     assert "relay" not in b.engine.running_graphs()
 
 

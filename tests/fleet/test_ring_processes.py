@@ -11,7 +11,9 @@ the other jobs of the machine at a load of 14-18; most of it is the processes' s
 With keyed sessions (issue 20: every process agrees a session key with the 49 others while
 the handshake runs) the LCM run took 95 s on an idle machine on 2026-11-27, against 24 s
 before: past the default minute, so it has a limit of its own, and runs in the compiled pass
-of ``make test`` only.
+of ``make test`` only. Most of it was a storm of hellos (docs/security.md, "How many hellos");
+without it the run took 29 s, beside 31 s with the HMAC envelopes of git 90291e4 (load
+average 42 - 47, 2026-11-27).
 
 With the first handshake format (issue 14) the first node's notification was not
 acknowledged within 5 s (every process was still decoding 50-entry JOINs): the run aborted
