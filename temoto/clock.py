@@ -194,6 +194,8 @@ class ManualClock:
         self._epoch = float(epoch) - float(start)
         self._lock = threading.Lock()
         self._waiting: list[threading.Condition] = []  # one entry per waiting thread
+        self._moves = 0  # how many times time moved
+        self._seen = threading.local()  # per thread: _moves when it last read the time
 
     def monotonic(self) -> float:
         """The current virtual time.
@@ -202,6 +204,7 @@ class ManualClock:
             Seconds.
         """
         with self._lock:
+            self._seen.moves = self._moves
             return self._now
 
     def time(self) -> float:
@@ -211,6 +214,7 @@ class ManualClock:
             Seconds since the epoch.
         """
         with self._lock:
+            self._seen.moves = self._moves
             return self._epoch + self._now
 
     def real_seconds(self, seconds: float) -> float:
@@ -240,6 +244,7 @@ class ManualClock:
             raise ValueError(f"a clock advances by a finite, non-negative duration: {seconds!r}")
         with self._lock:
             self._now += seconds
+            self._moves += 1
             now = self._now
             waiting = list({id(c): c for c in self._waiting}.values())
         for cond in waiting:
@@ -268,6 +273,12 @@ class ManualClock:
     def wait(self, cond: threading.Condition, seconds: float | None) -> bool:
         """Wait on a held condition until notified or until virtual time passes ``seconds``.
 
+        A caller computes ``seconds`` from its last reading of the clock; if time moved since
+        this thread last read it (an :meth:`advance` between the reading and this call, which
+        could not wake a thread that was not waiting yet), the wait returns at once, as a
+        spurious wake-up, so the caller reads the clock again instead of sleeping through the
+        step it missed.
+
         Args:
             cond: A condition whose lock the caller holds.
             seconds: Virtual seconds, or None to wait until notified.
@@ -279,6 +290,10 @@ class ManualClock:
             RuntimeError: If the caller does not hold the lock.
         """
         with self._lock:
+            seen = getattr(self._seen, "moves", self._moves)
+            self._seen.moves = self._moves
+            if seen != self._moves:  # time moved since this thread looked: look again
+                return True
             deadline = None if seconds is None else self._now + max(seconds, 0.0)
             if deadline is not None and self._now >= deadline:
                 return False

@@ -93,3 +93,49 @@ def test_a_zero_or_past_deadline_does_not_block() -> None:
     with cond:
         assert clock.wait(cond, 0.0) is False
         assert clock.wait(cond, -1.0) is False
+
+
+def test_a_step_between_reading_and_waiting_is_not_slept_through() -> None:
+    # a loop reads the time, computes how long to wait, then waits: a step taken in between
+    # woke nobody (nobody was waiting yet); the wait must not sleep until the step after it
+    # (a simulator's model loop missed a test's step this way and the test waited 5 s in CI)
+    clock = ManualClock()
+    cond = threading.Condition()
+    read, woke = threading.Event(), threading.Event()
+
+    def loop() -> None:
+        with cond:
+            now = clock.monotonic()
+            read.set()
+            stepped.wait(5.0)  # the test's step lands here, before the wait below
+            clock.wait(cond, 0.02 - (now - 0.0))
+            woke.set()
+
+    stepped = threading.Event()
+    worker = threading.Thread(target=loop, daemon=True)
+    worker.start()
+    assert read.wait(5.0)
+    clock.advance(0.0201)
+    stepped.set()
+    assert woke.wait(5.0), "the wait slept through the step it came after"
+    worker.join(5.0)
+
+
+def test_a_thread_that_saw_the_step_waits_for_the_next_one() -> None:
+    clock = ManualClock()
+    cond = threading.Condition()
+    clock.advance(1.0)
+    woke = threading.Event()
+
+    def loop() -> None:
+        with cond:
+            clock.monotonic()  # saw the step above
+            clock.wait(cond, 0.5)
+            woke.set()
+
+    worker = threading.Thread(target=loop, daemon=True)
+    worker.start()
+    assert not woke.wait(0.2)  # no step since it looked: it waits
+    clock.advance(0.5)
+    assert woke.wait(5.0)
+    worker.join(5.0)
