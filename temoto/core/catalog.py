@@ -395,26 +395,34 @@ def _import_class(entry: ActionEntry) -> type[Action]:
     return cls
 
 
+#: Action files are imported one at a time: a module is in ``sys.modules`` while its code runs,
+#: and a second importer must wait for the end of it, not take the half-made module (two
+#: engines of one process starting graphs with the same action got "defines no Action subclass").
+_FILE_IMPORT = threading.RLock()
+
+
 def _import_file(file: Path) -> ModuleType:
     digest = hashlib.sha1(str(file.parent).encode(), usedforsecurity=False).hexdigest()[:10]
     is_package = file.name == "__init__.py"
     stem = file.parent.name if is_package else file.stem
     modname = f"_temoto_action_{digest}_{stem}"
-    if modname in sys.modules:
-        return sys.modules[modname]
-    spec = importlib.util.spec_from_file_location(
-        modname, file, submodule_search_locations=[str(file.parent)] if is_package else None
-    )
-    if spec is None or spec.loader is None:
-        raise ImportError(f"cannot build an import spec for {file}")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[modname] = module
-    try:
-        spec.loader.exec_module(module)
-    except BaseException:
-        del sys.modules[modname]
-        raise
-    return module
+    with _FILE_IMPORT:
+        done = sys.modules.get(modname)
+        if done is not None:
+            return done
+        spec = importlib.util.spec_from_file_location(
+            modname, file, submodule_search_locations=[str(file.parent)] if is_package else None
+        )
+        if spec is None or spec.loader is None:
+            raise ImportError(f"cannot build an import spec for {file}")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[modname] = module
+        try:
+            spec.loader.exec_module(module)
+        except BaseException:
+            del sys.modules[modname]
+            raise
+        return module
 
 
 class GraphIndex:

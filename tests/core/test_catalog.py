@@ -9,6 +9,8 @@ from __future__ import annotations
 import importlib
 import json
 import sys
+import threading
+import time
 from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
@@ -169,6 +171,43 @@ def test_load_class_returns_the_class_once() -> None:
     assert issubclass(cls, Action)
     assert cls.__name__ == "TaGood"
     assert cat.load_class("TaGood") is cls
+
+
+def test_two_catalogs_importing_one_file_at_once_both_get_the_class(tmp_path: Path) -> None:
+    # the first importer's module is in sys.modules while its code runs: the second one must
+    # wait for it, not take the half-made module ("defines no Action subclass", seen when two
+    # engines of one process started graphs with the same action)
+    folder = tmp_path / "ta_slow_import"
+    folder.mkdir()
+    (folder / "ta_slow_import.umrf.json").write_text(
+        json.dumps({"name": "TaSlowImport", "type": "sync"})
+    )
+    (folder / "ta_slow_import.py").write_text(
+        "import time\n"
+        "from temoto import Action\n"
+        "time.sleep(0.5)  # the window the second importer falls into\n"
+        "class TaSlowImport(Action):\n"
+        "    def on_run(self) -> bool:\n"
+        "        return True\n"
+    )
+    got: dict[str, Any] = {}
+
+    def load(which: str) -> None:
+        try:
+            got[which] = catalog(tmp_path).load_class("TaSlowImport")
+        except Exception as err:
+            got[which] = err
+
+    first = threading.Thread(target=load, args=("first",))
+    first.start()
+    deadline = time.monotonic() + WAIT
+    while not imported_action_modules("ta_slow_import") and time.monotonic() < deadline:
+        time.sleep(0.005)  # the first import is under way
+    assert imported_action_modules("ta_slow_import")
+    load("second")
+    first.join(WAIT)
+    assert isinstance(got["first"], type), got
+    assert got["second"] is got["first"], got
 
 
 def test_missing_module_is_action_not_found_naming_expected_file() -> None:
