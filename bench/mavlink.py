@@ -65,7 +65,7 @@ def bench_mavlink(quick: bool) -> Results:
     except ImportError as err:  # pymavlink missing
         out.notes.append(f"mavlink_* skipped: {err}")
         return out
-    seconds = 2.0 if quick else 10.0
+    seconds = 1.0 if quick else 10.0  # quick: the run's 60 s
     port = _free_udp_port()
     sim = SimVehicle(
         "bench",

@@ -442,10 +442,10 @@ def temoto_series(quick: bool, ctx: _Ctx, out: Results) -> list[float]:
     """The TeMoto metrics; returns the plain-spawn samples (for the supervisord comparison)."""
     from temoto.managers import ProcessManager
 
-    kills = 15 if quick else 100
-    floors = 6 if quick else 100  # kills of the floor series (no TeMoto)
-    extra = 6 if quick else 50  # two-level failures, sleep children
-    relaunches = 8 if quick else 100
+    kills = 10 if quick else 100
+    floors = 4 if quick else 100  # kills of the floor series (no TeMoto)
+    extra = 4 if quick else 50  # two-level failures, sleep children
+    relaunches = 5 if quick else 100
     reg = Registrar("bench", catalog=ctx.tmp / "catalog.tjl")
     manager = ProcessManager(reg, log_dir=ctx.tmp / "logs", grace=2.0)
     reg.register(WrapServer(ctx))
@@ -598,7 +598,7 @@ def supervisord_series(quick: bool, ctx: _Ctx, out: Results, plain: list[float])
             " it is not a project dependency)"
         )
         return
-    kills = 3 if quick else 100  # each takes about a second: supervisord polls once a second
+    kills = 2 if quick else 100  # each takes about a second: supervisord polls once a second
     tmp = ctx.tmp / "supervisord"
     tmp.mkdir()
     touch = tmp / "child.pid"
