@@ -35,10 +35,8 @@ from temoto.lcm_types import envelope_t
 from temoto.transport._envelope import HELLO_TYPE, Writer
 from temoto.transport.identity import Credentials
 
-#: The channel of hellos.
-HELLO_CHANNEL: Final = "TEMOTO_KEYS"
-#: The envelope version of keyed fleets.
-SECURE_VERSION: Final = 2
+HELLO_CHANNEL: Final = "TEMOTO_KEYS"  #: The channel of hellos.
+SECURE_VERSION: Final = 2  #: The envelope version of keyed fleets.
 #: Seconds between two hellos at least (a flood of undecryptable messages costs little), in
 #: a fleet of up to :data:`_PEERS_PER_GAP` other members; a larger fleet waits longer, so that
 #: the hellos the whole fleet sends per second (each one read by every member) stay as many as
