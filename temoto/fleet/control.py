@@ -506,15 +506,21 @@ class GraphCommander(Closing):
     Args:
         link: The authenticated fleet link (its sender id names this commander).
         resend_s: A command is re-sent this often until every target answered.
+        clock: Where resends and command timeouts are timed (default: the monotonic clock);
+            a :class:`~temoto.clock.ManualClock` makes them virtual in tests and simulations.
 
     Raises:
         ValueError: ``resend_s`` is not positive.
+        TypeError: ``clock`` is not a :class:`~temoto.clock.Clock`.
     """
 
-    def __init__(self, link: FleetLink, *, resend_s: float = 0.25) -> None:
+    def __init__(
+        self, link: FleetLink, *, resend_s: float = 0.25, clock: Clock | None = None
+    ) -> None:
         if not resend_s > 0:
             raise ValueError("resend_s must be positive")
         self.resend_s = float(resend_s)
+        self._time: Clock = MonotonicClock() if clock is None else check_clock("clock", clock)
         self._link = link
         self._lock = threading.Lock()
         self._changed = threading.Condition(self._lock)
@@ -584,7 +590,8 @@ class GraphCommander(Closing):
         msg.graph, msg.session, msg.continue_from = graph, session, continue_from
         msg.graph_json = json.dumps(graph_json) if graph_json is not None else ""
         msg.params = json.dumps(dict(params)) if params else ""
-        deadline = time.monotonic() + timeout
+        now = self._time.monotonic
+        deadline = now() + timeout
         with self._lock:
             if self._closed:
                 raise FleetError("the commander is closed")
@@ -595,16 +602,16 @@ class GraphCommander(Closing):
                     self._link.send(COMMAND_CHANNEL, *codec.encode(msg))
                 except (TransportError, ValueError) as err:
                     raise FleetError(f"cannot send the command: {err}") from err
-                next_send = time.monotonic() + self.resend_s
+                next_send = now() + self.resend_s
                 with self._lock:
                     while len(got) < len(wanted) and not self._closed:
-                        now = time.monotonic()
-                        if now >= deadline or now >= next_send:
+                        t = now()
+                        if t >= deadline or t >= next_send:
                             break
-                        self._changed.wait(min(deadline, next_send) - now)
+                        self._time.wait(self._changed, min(deadline, next_send) - t)
                     if self._closed:
                         raise FleetError("the commander is closed")
-                    if len(got) >= len(wanted) or time.monotonic() >= deadline:
+                    if len(got) >= len(wanted) or now() >= deadline:
                         missing = tuple(t for t in wanted if t not in got)
                         return CommandOutcome(command, dict(got), missing)
         finally:

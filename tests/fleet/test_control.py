@@ -13,6 +13,7 @@ from typing import Any
 
 import pytest
 
+from temoto.clock import ManualClock
 from temoto.fleet.control import (
     COMMAND_CHANNEL,
     FEEDBACK_CHANNEL,
@@ -251,6 +252,41 @@ def test_a_target_that_does_not_answer_is_reported_missing(net: Net) -> None:
     assert not out.ok
     assert out.missing == ("Ghost",)
     assert out.replies["A"].ok
+
+
+def test_the_commanders_resends_and_timeout_run_on_its_clock(net: Net) -> None:
+    """On a ManualClock nothing is re-sent and nobody gives up until virtual time moves."""
+    clock = ManualClock()
+    sent: list[int] = []
+    listener = net.stack.enter_context(InProcessTransport(net.bus))
+    listener.subscribe(COMMAND_CHANNEL, lambda _ch, data: sent.append(len(data)))
+    commander = net.stack.enter_context(
+        GraphCommander(net.link("operator"), resend_s=1.0, clock=clock)
+    )
+    outcome: list[Any] = []
+    thread = threading.Thread(
+        target=lambda: outcome.append(commander.command("stop", ["Ghost"], graph="g", timeout=10)),
+        daemon=True,
+    )
+    thread.start()
+    deadline = time.monotonic() + WAIT
+    while not sent and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert len(sent) == 1
+    thread.join(0.3)  # real time passes; virtual time does not
+    assert thread.is_alive()
+    assert len(sent) == 1
+    for step in range(1, 10):
+        clock.advance(1.0)
+        while len(sent) < step + 1 and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert len(sent) == step + 1, f"no resend after {step} virtual seconds"
+    clock.advance(1.0)
+    thread.join(WAIT)
+    assert not thread.is_alive()
+    assert outcome[0].missing == ("Ghost",)
+    with pytest.raises(TypeError, match="Clock"):
+        GraphCommander(net.link("other"), clock=time.monotonic)  # type: ignore[arg-type]
 
 
 def test_a_shared_graph_started_remotely_on_every_actor_ends_on_true(net: Net) -> None:
