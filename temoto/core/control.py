@@ -11,6 +11,7 @@ from __future__ import annotations
 import threading
 from typing import TYPE_CHECKING
 
+from temoto.core._fast import ControlCore
 from temoto.errors import ResourceBrokenError
 
 if TYPE_CHECKING:
@@ -23,7 +24,7 @@ __all__ = ["RunControl"]
 _COND_CREATION = threading.Lock()
 
 
-class RunControl:
+class RunControl(ControlCore):
     """Stop and pause signals of one node, shared by the engine and the action's helpers.
 
     One condition variable carries every signal, so helpers wait without polling. Engine
@@ -33,7 +34,7 @@ class RunControl:
         clock: The engine's clock.
     """
 
-    __slots__ = ("acquired", "broken", "clock", "condition", "logged", "paused", "stop")
+    __slots__ = ()  # the fields are ControlCore's (a C struct in the compiled build)
 
     def __init__(self, clock: Clock) -> None:
         self.clock = clock
