@@ -15,7 +15,7 @@ import platform
 from setuptools import Extension, setup
 
 FAST_DIR = "temoto/core/_fast"
-FAST_MODULES: list[str] = ["evolution", "refbook", "node"]  # -> temoto.core._fast._<name>_c
+FAST_MODULES: list[str] = ["evolution", "refbook"]  # -> temoto.core._fast._<name>_c
 
 
 def _extensions() -> list[Extension]:

@@ -15,7 +15,7 @@ from collections.abc import Callable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from temoto.clock import MonotonicClock
-from temoto.core._fast import Evolution, NodeCore
+from temoto.core._fast import Evolution
 from temoto.core.control import RunControl
 from temoto.core.params import Parameter
 from temoto.core.plan import (
@@ -59,14 +59,41 @@ _EXIT = NodeKind.EXIT
 _ACTIVE = ACTIVE_NODE_STATES
 
 
-class Node(NodeCore, RunControl):
+class Node(RunControl):
     """One node of a graph run; it is also the node's :class:`RunControl`.
 
     The node carries its action's stop and pause signals itself (the action's helpers wait on
     them), so a node costs one object, not two, for the garbage collector to scan.
     """
 
-    __slots__ = ()  # the fields are NodeCore's (a C struct in the compiled build)
+    __slots__ = (
+        "child_run",
+        "cls",
+        "data",
+        "error",
+        "fresh_instance",
+        "gen",
+        "held",
+        "idx",
+        "inline",
+        "inputs",
+        "instance",
+        "kind",
+        "last_outputs",
+        "log",
+        "name",
+        "native",
+        "outputs",
+        "plan",
+        "remote_cancel",
+        "required_inputs",
+        "restart",
+        "run",
+        "spontaneous",
+        "state",
+        "stop_timer",
+        "umrf",
+    )
 
     def __init__(self, run: GraphRun, umrf: Umrf, resolved: ResolvedAction) -> None:
         # RunControl's fields, set here (no call of its __init__ per node)

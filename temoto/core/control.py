@@ -11,7 +11,6 @@ from __future__ import annotations
 import threading
 from typing import TYPE_CHECKING
 
-from temoto.core._fast import ControlCore
 from temoto.errors import ResourceBrokenError
 
 if TYPE_CHECKING:
@@ -24,7 +23,7 @@ __all__ = ["RunControl"]
 _COND_CREATION = threading.Lock()
 
 
-class RunControl(ControlCore):
+class RunControl:
     """Stop and pause signals of one node, shared by the engine and the action's helpers.
 
     One condition variable carries every signal, so helpers wait without polling. Engine
@@ -34,7 +33,7 @@ class RunControl(ControlCore):
         clock: The engine's clock.
     """
 
-    __slots__ = ()  # the fields are ControlCore's (a C struct in the compiled build)
+    __slots__ = ("acquired", "broken", "clock", "condition", "logged", "paused", "stop")
 
     def __init__(self, clock: Clock) -> None:
         self.clock = clock

@@ -16,7 +16,7 @@ from __future__ import annotations
 import logging
 from typing import Any
 
-from temoto.core._fast import P_RUN, SHIFT, run_chain
+from temoto.core._fast import P_RUN, SHIFT
 from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import Node, NodeKind
 from temoto.core.action import Action
@@ -53,9 +53,6 @@ _ACTIVE = ACTIVE_NODE_STATES
 #: `run` to a child whose every required parent was received (or not yet)
 _RUN_READY = P_RUN << 1 | 1
 _RUN_WAITS = P_RUN << 1  # the same, to a child still waiting for a required parent
-
-# what the node kernel's chain loop needs of the engine (run_chain's `k`), in its order
-_CHAIN_CONSTANTS: tuple[Any, ...] = ()  # set below, once _init_error is defined
 
 # a run prepared under the lock: (node, gen, its instance or None, input values)
 _Todo = tuple[Node, int, Action | None, dict[str, Any]]
@@ -286,11 +283,118 @@ class EffectDispatcher(RunEvolution):
         (:meth:`_apply_wave` does everything else). Returns (lock released) as soon as a
         round is anything else, leaving ``fx`` and ``todo`` as :meth:`_run_batch`'s round
         would have (``fx`` holds no effect on entry).
-
-        The loop is the node kernel's (:func:`temoto.core._fast.run_chain`): compiled, it
-        reads and writes the nodes' fields as C struct members.
         """
-        run_chain(self, node, gen, instance, values, fx, todo, _CHAIN_CONSTANTS)
+        lock = self._lock
+        acquire, release = lock.acquire, lock.release
+        runs, other = fx.runs, fx.other
+        running = _N_RUNNING
+        graph_running = _G_RUNNING
+        while True:
+            if instance is None:
+                try:
+                    instance = self._instantiate(node, gen)
+                except Exception as err:
+                    with lock:
+                        self._settle(
+                            (node, gen, None, _R_ERROR, NO_VALUES, _init_error(node, err)), fx
+                        )
+                        self._collect(fx, todo)
+                    return
+            result, outputs, error = instance.run_once(values)
+            acquire()  # not `with lock`: its __enter__ and __exit__ cost as much again
+            try:
+                run = node.run
+                if not (
+                    error is None
+                    and gen == node.gen
+                    and node.state is running
+                    and run.state is graph_running
+                    and not self._watchers
+                    and not self._feedback_on
+                    and not node.restart
+                    and not node.spontaneous
+                    and node.stop_timer is None
+                ):
+                    self._settle((node, gen, instance, result, outputs, error), fx)
+                    self._collect(fx, todo)
+                    return
+                # what _run_batch does for a round's common end, for this one action
+                if node.instance is None:
+                    node.instance = instance
+                if node.log or node.logged:
+                    node.log = instance.log_snapshot()
+                if len(node.data) != len(node.native):
+                    node.clear_data()
+                node.last_outputs = outputs
+                node.state = _N_FINISHED  # RUNNING -> FINISHED, in a RUNNING graph
+                run.active -= 1
+                if self._quiet_waiters:
+                    self._quiet.notify_all()
+                evolution = run.evolution
+                code = _RESULT_CODES[result]
+                step = evolution.advance(node.idx, code)  # the kernel's wave, if one step
+                child = None
+                if step >= 0 and step & 1:
+                    # one relation, whose response is `run`, to a child with every parent
+                    edge = step >> 1
+                    child = run.edge_child[edge]
+                    if outputs:
+                        _transfer(node, child, run.edge_remap[edge], outputs)
+                    if not (
+                        child.kind is _K_LOCAL  # inline or blocking: it runs next, here
+                        and child.state not in _ACTIVE
+                        and (not child.required_inputs or child.inputs_ready())
+                    ):
+                        child = None
+                        steps = [edge << SHIFT | _RUN_READY]
+                        self._apply_wave(node, result, NO_VALUES, steps, fx)  # done: transfer
+                elif step >= 0:  # one step to a child that waits for other parents
+                    edge = step >> 1
+                    steps = [edge << SHIFT | _RUN_WAITS]
+                    self._apply_wave(node, result, outputs, steps, fx)
+                else:
+                    self._apply_wave(node, result, outputs, evolution.propagate(node.idx, code), fx)
+                if child is not None:
+                    # _apply_wave's start of an idle local node
+                    child.gen += 1
+                    child.held = None
+                    if child.condition is None:  # RunControl.reset, nobody waits to race with
+                        child.stop = child.paused = False
+                    else:
+                        child.reset()
+                    if child.fresh_instance:
+                        child.instance = None  # the old one is stuck in a run we gave up on
+                        child.fresh_instance = False
+                    child.state = running
+                    run.active += 1
+                    data = child.data
+                    if other or self._releases:  # effects to dispatch first: back to the round
+                        todo.append(
+                            (child, child.gen, child.instance, dict(data) if data else NO_VALUES)
+                        )
+                        return
+                    node, gen, instance = child, child.gen, child.instance
+                    values = dict(data) if data else NO_VALUES
+                    continue
+                if not run.active:
+                    self._after_change(run, fx)
+                if len(runs) == 1 and not other:  # the next link of the chain, made by the wave
+                    child, child_gen = runs[0]
+                    if (
+                        child.inline
+                        and child_gen == child.gen
+                        and child.state is running
+                        and not child.run.peers  # (a sub-graph's end may reach a shared run)
+                    ):
+                        runs.clear()
+                        data = child.data
+                        node, gen, instance = child, child_gen, child.instance
+                        values = dict(data) if data else NO_VALUES
+                        continue
+                self._collect(fx, todo)
+                return
+            finally:
+                release()
 
     def _prep(self, node: Node, gen: int, todo: list[_Todo], fx: Effects) -> None:
         """Lock held: queue a ready node's run with what it reads, unless it is stale."""
@@ -372,7 +476,7 @@ class EffectDispatcher(RunEvolution):
         (:meth:`_settle`), saving a lock per new node: its run does not wait for hooks.
         """
         assert node.cls is not None
-        instance: Action = node.cls()
+        instance = node.cls()
         instance.initialize(  # positional: one per node and run, on the hot path
             node, node.name, node.run.name, node.inputs, node.outputs, self.registrar
         )
@@ -492,20 +596,3 @@ def _release_resources(action: Action) -> None:
         return
     if count:
         logger.debug("released %d resources of %s", count, action.name)
-
-
-_CHAIN_CONSTANTS = (
-    _N_RUNNING,
-    _N_FINISHED,
-    _G_RUNNING,
-    _K_LOCAL,
-    _ACTIVE,
-    _R_ERROR,
-    _RESULT_CODES,
-    NO_VALUES,
-    SHIFT,
-    _RUN_READY,
-    _RUN_WAITS,
-    _transfer,
-    _init_error,
-)

@@ -390,13 +390,13 @@ def test_selector_prefers_the_compiled_build_when_installed() -> None:
 
     built = all(
         importlib.util.find_spec(f"temoto.core._fast._{kernel}_c") is not None
-        for kernel in ("evolution", "refbook", "node")
+        for kernel in ("evolution", "refbook")
     )
     assert _selector({}).startswith("compiled" if built else "pure")
 
 
 def test_selector_honours_no_extensions() -> None:
-    assert _selector({"TEMOTO_NO_EXTENSIONS": "1"}) == "pure ['evolution', 'node', 'refbook']"
+    assert _selector({"TEMOTO_NO_EXTENSIONS": "1"}) == "pure ['evolution', 'refbook']"
     assert _selector({"TEMOTO_NO_EXTENSIONS": "1", "TEMOTO_REQUIRE_EXTENSIONS": "1"}).startswith(
         "pure"
     )

@@ -92,7 +92,7 @@ def test_a_build_without_a_c_compiler_succeeds_and_runs_pure(tmp_path: Path) -> 
     out = proc.stdout + proc.stderr
     assert proc.returncode == 0, out
     # setuptools warns about each optional extension it could not build, and goes on
-    for kernel in ("evolution", "refbook", "node"):
+    for kernel in ("evolution", "refbook"):
         assert f'building extension "temoto.core._fast._{kernel}_c" failed' in out, out
     assert not list((tree / "temoto" / "core" / "_fast").glob("*.so"))
     code = "import temoto\nfrom temoto.core import _fast\nprint(_fast.BUILD, temoto.__file__)\n"

@@ -17,9 +17,6 @@ Attributes:
     Evolution: The evolution kernel (:mod:`temoto.core._fast._evolution_py`).
     RefBook: The registrar's reference-count and dependency book
         (:mod:`temoto.core._fast._refbook_py`).
-    ControlCore, NodeCore: The fields of a node's signals and of a node, as one record (C
-        structs in the compiled build), and run_chain: the engine's chain loop over them
-        (:mod:`temoto.core._fast._node_py`).
     R_TRUE, R_FALSE, R_STOPPED, R_ERROR: The evolution kernel's result codes.
     P_RUN, P_PAUSE, P_RESTART, P_STOP, P_BYPASS, P_IGNORE, P_LOOP: Its response codes.
     SHIFT: A wave step is ``edge << SHIFT | response << 1 | ready``.
@@ -51,18 +48,15 @@ __all__ = [
     "R_STOPPED",
     "R_TRUE",
     "SHIFT",
-    "ControlCore",
     "Evolution",
-    "NodeCore",
     "RefBook",
     "kernels",
-    "run_chain",
 ]
 
 logger = logging.getLogger(__name__)
 
 #: The kernels; each has a ``_<name>_py.py`` source and a ``_<name>_c`` extension.
-KERNELS = ("evolution", "refbook", "node")
+KERNELS = ("evolution", "refbook")
 
 
 def _flag(name: str) -> bool:
@@ -107,7 +101,6 @@ if TYPE_CHECKING:
         SHIFT,
         Evolution,
     )
-    from temoto.core._fast._node_py import ControlCore, NodeCore, run_chain
     from temoto.core._fast._refbook_py import RefBook
 
     COMPILED = False
@@ -115,16 +108,12 @@ else:
     _compiled = _load_compiled()
     if _compiled is None:
         from temoto.core._fast import _evolution_py as _evolution
-        from temoto.core._fast._node_py import ControlCore, NodeCore, run_chain
         from temoto.core._fast._refbook_py import RefBook
 
         COMPILED = False
     else:
         _evolution = _compiled[0]
         RefBook = _compiled[1].RefBook
-        ControlCore = _compiled[2].ControlCore
-        NodeCore = _compiled[2].NodeCore
-        run_chain = _compiled[2].run_chain
         COMPILED = True
     Evolution = _evolution.Evolution
     # the kernel's codes, from the module in use (one definition: _evolution_py.py)
@@ -159,7 +148,7 @@ def kernels() -> dict[str, str]:
     import sys
 
     out: dict[str, str] = {}
-    for name, cls in (("evolution", Evolution), ("refbook", RefBook), ("node", NodeCore)):
+    for name, cls in (("evolution", Evolution), ("refbook", RefBook)):
         module = sys.modules[cls.__module__]
         out[name] = str(getattr(module, "__file__", "?"))
     return out
