@@ -244,7 +244,7 @@ class EffectDispatcher(RunEvolution):
                     if step >= 0 and not step & 1:
                         # a fan-in: the response `run` to a child that waits for other
                         # parents; all _apply_wave would do is hand the outputs down
-                        if outputs:
+                        if outputs:  # advance's edge is this node's own relation
                             edge = step >> 1
                             _transfer(node, run.edge_child[edge], run.edge_remap[edge], outputs)
                     elif step >= 0:
@@ -338,7 +338,7 @@ class EffectDispatcher(RunEvolution):
                     # one relation, whose response is `run`, to a child with every parent
                     edge = step >> 1
                     child = run.edge_child[edge]
-                    if outputs:
+                    if outputs:  # advance's edge is this node's own relation
                         _transfer(node, child, run.edge_remap[edge], outputs)
                     if not (
                         child.kind is _K_LOCAL  # inline or blocking: it runs next, here
