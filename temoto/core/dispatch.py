@@ -49,9 +49,8 @@ _E_FINISH_SPONTANEOUS = EffectKind.FINISH_SPONTANEOUS
 _E_RELEASE = EffectKind.RELEASE
 _E_CALL = EffectKind.CALL
 _ACTIVE = ACTIVE_NODE_STATES
-#: the low bits of a wave step (``edge << SHIFT | response << 1 | ready``), and their value for
-#: the response `run` to a child whose every required parent was received (or not yet)
-_STEP_LOW = (1 << SHIFT) - 1
+#: the low bits of a wave step (``edge << SHIFT | response << 1 | ready``) for the response
+#: `run` to a child whose every required parent was received (or not yet)
 _RUN_READY = P_RUN << 1 | 1
 _RUN_WAITS = P_RUN << 1  # the same, to a child still waiting for a required parent
 
@@ -239,14 +238,20 @@ class EffectDispatcher(RunEvolution):
                     run.active -= 1
                     if self._quiet_waiters:
                         self._quiet.notify_all()
-                    steps = run.evolution.propagate(node.idx, _RESULT_CODES[result])
-                    if len(steps) == 1 and steps[0] & _STEP_LOW == _RUN_WAITS:
+                    evolution = run.evolution
+                    code = _RESULT_CODES[result]
+                    step = evolution.advance(node.idx, code)  # the kernel's wave, if one step
+                    if step >= 0 and not step & 1:
                         # a fan-in: the response `run` to a child that waits for other
                         # parents; all _apply_wave would do is hand the outputs down
-                        edge = steps[0] >> SHIFT
-                        if outputs and run.edge_parent[edge] is node:
+                        if outputs:  # advance's edge is this node's own relation
+                            edge = step >> 1
                             _transfer(node, run.edge_child[edge], run.edge_remap[edge], outputs)
+                    elif step >= 0:
+                        steps = [(step >> 1) << SHIFT | _RUN_READY]
+                        self._apply_wave(node, result, outputs, steps, fx)
                     else:
+                        steps = evolution.propagate(node.idx, code)
                         self._apply_wave(node, result, outputs, steps, fx)
                     if not run.active:
                         self._after_change(run, fx)
@@ -325,13 +330,15 @@ class EffectDispatcher(RunEvolution):
                 run.active -= 1
                 if self._quiet_waiters:
                     self._quiet.notify_all()
-                steps = run.evolution.propagate(node.idx, _RESULT_CODES[result])
+                evolution = run.evolution
+                code = _RESULT_CODES[result]
+                step = evolution.advance(node.idx, code)  # the kernel's wave, if one step
                 child = None
-                if len(steps) == 1 and steps[0] & _STEP_LOW == _RUN_READY:
+                if step >= 0 and step & 1:
                     # one relation, whose response is `run`, to a child with every parent
-                    edge = steps[0] >> SHIFT
+                    edge = step >> 1
                     child = run.edge_child[edge]
-                    if outputs and run.edge_parent[edge] is node:
+                    if outputs:  # advance's edge is this node's own relation
                         _transfer(node, child, run.edge_remap[edge], outputs)
                     if not (
                         child.kind is _K_LOCAL  # inline or blocking: it runs next, here
@@ -339,9 +346,14 @@ class EffectDispatcher(RunEvolution):
                         and (not child.required_inputs or child.inputs_ready())
                     ):
                         child = None
+                        steps = [edge << SHIFT | _RUN_READY]
                         self._apply_wave(node, result, NO_VALUES, steps, fx)  # done: transfer
-                else:
+                elif step >= 0:  # one step to a child that waits for other parents
+                    edge = step >> 1
+                    steps = [edge << SHIFT | _RUN_WAITS]
                     self._apply_wave(node, result, outputs, steps, fx)
+                else:
+                    self._apply_wave(node, result, outputs, evolution.propagate(node.idx, code), fx)
                 if child is not None:
                     # _apply_wave's start of an idle local node
                     child.gen += 1

@@ -312,6 +312,52 @@ def test_both_builds_match_the_model(case: tuple[Topo, list[tuple[int, int]]]) -
         assert evo.received_flags() == builds[0].received_flags()
 
 
+@settings(max_examples=300, deadline=None, database=None)
+@given(topologies())
+def test_advance_is_propagate_for_one_run_step(
+    case: tuple[Topo, list[tuple[int, int]]],
+) -> None:
+    """``advance`` takes a wave that is one `run` step to a non-exit child, and nothing else:
+    where it declines, it changed nothing and ``propagate`` gives the model's wave."""
+    topo, calls = case
+    model = Model(topo)
+    builds = [topo.build(pure)]
+    compiled = _compiled()
+    if compiled is not None:
+        builds.append(topo.build(compiled))
+    for parent, result in calls:
+        expected = model.propagate(parent, result)
+        one_step = (
+            len(expected) == 1
+            and expected[0][1] == RUN
+            and topo.arrays()["edge_child"][expected[0][0]] != topo.exit_node
+            and sum(1 for p, _, _ in topo.edges if p == parent) == 1
+        )
+        for evo in builds:
+            edge = evo.advance(parent, result)
+            if one_step:
+                assert edge == expected[0][0] << 1 | expected[0][2]
+            else:
+                assert edge == -1
+                assert unpack(evo.propagate(parent, result)) == expected
+    for evo in builds:
+        for node in range(topo.n):
+            assert (evo.missing_parents(node) == 0) == model.ready(node)
+        assert evo.received_flags() == builds[0].received_flags()
+
+
+def test_advance_refuses_bad_calls(evolution_impl: ModuleType) -> None:
+    evo = chain(3).build(evolution_impl)
+    with pytest.raises(IndexError):
+        evo.advance(3, TRUE)
+    with pytest.raises(ValueError, match="result"):
+        evo.advance(0, 4)
+    assert evo.advance(0, TRUE) == 0 << 1 | 1  # the chain's first link: its child is ready
+    assert evo.advance(0, TRUE) == 0 << 1 | 1  # again: the parent stays received
+    assert evo.advance(1, STOPPED) == -1  # the response `ignore`: propagate's business
+    assert evo.advance(2, TRUE) == -1  # the last node has no relation
+
+
 def _compiled() -> ModuleType | None:
     try:
         from temoto.core._fast import _evolution_c  # type: ignore[attr-defined]

@@ -22,6 +22,9 @@ cdef class Evolution:
                    loop=int, ignore=int, exit_node=int)
     cpdef list propagate(self, int parent, int result)
 
+    @cython.locals(e=int, child=int, slot=int, n_results=int, run=int)
+    cpdef int advance(self, int parent, int result) except? -2
+
     cpdef int missing_parents(self, int node)
 
     @cython.locals(s=int, end=int)

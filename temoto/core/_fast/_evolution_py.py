@@ -337,6 +337,48 @@ class Evolution:
                 e += 1
         return out
 
+    def advance(self, parent: int, result: int) -> int:
+        """:meth:`propagate` for a wave of one `run` step: a chain's link, a fan-in's edge.
+
+        When ``parent`` has exactly one relation, its response to ``result`` is ``run`` and its
+        child is not the exit node, the wave is that one step: the parent is marked received
+        (as :meth:`propagate` does) and the step is returned as ``edge << 1 | ready``, with no
+        list made (``ready``: every required parent of the child has been received). In every
+        other case nothing changes and -1 is returned: the caller then calls
+        :meth:`propagate`, whose result is the same as if this method had not been called.
+
+        Args:
+            parent: The finished node.
+            result: Its result code.
+
+        Returns:
+            ``edge << 1 | ready`` for the one step, or -1.
+
+        Raises:
+            IndexError: Unknown node.
+            ValueError: Unknown result code.
+        """
+        if not 0 <= parent < self.n_nodes:
+            raise IndexError(f"node {parent} out of range")
+        if not 0 <= result < N_RESULTS:
+            raise ValueError(f"unknown result code {result}")
+        n_results = N_RESULTS  # the constants as locals: typed ints in the compiled build
+        run = P_RUN
+        e = self.edge_start[parent]
+        if self.edge_start[parent + 1] != e + 1:
+            return -1  # not one relation
+        if self.edge_response[e * n_results + result] != run:
+            return -1
+        child = self.edge_child[e]
+        if child == self.exit_node:
+            return -1
+        slot = self.edge_slot[e]
+        if not self.received[slot]:
+            self.received[slot] = 1
+            if self.slot_required[slot]:
+                self.missing[child] -= 1
+        return (e << 1) | (1 if self.missing[child] == 0 else 0)
+
     def missing_parents(self, node: int) -> int:
         """How many required parents of ``node`` were not received yet.
 
