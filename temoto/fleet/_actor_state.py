@@ -220,6 +220,9 @@ class Ended:
     # acknowledgement), by time.monotonic(); a peer's END or LEAVE removes it. Closing the link
     # waits while they keep sending (FleetActorLink._linger).
     speaking: dict[str, float] = field(default_factory=dict)
+    # The run id agreed in the handshake: READY answers to late JOINs carry it, or a peer that
+    # completes with one would agree on its own proposal and never hear our END under it.
+    run_id: str = ""
 
 
 @dataclass(slots=True, eq=False)

@@ -397,6 +397,7 @@ class Handshakes(LinkPart):
                 ended.next_answer = now + self.heartbeat_s / 2
             elif known and msg.phase == JOIN and ended is not None and ended.heard is not None:
                 reply = self.handshake_msg(READY, *key, ended.actors, ended.heard)
+                reply.run_id = ended.run_id  # the run id agreed: the late peer takes it too
             if msg.phase != JOIN:
                 return reply  # a READY of a run not started here: liveness only
             if run is None:

@@ -444,6 +444,7 @@ class FleetActorLink(Closing):
                         now,
                         now + self.resend_s,
                         key,
+                        run_id=run.run_id,
                     )
                     self._ended[key] = kept
                     self._ended[(run.graph, run.session)] = kept  # late JOINs name the session
