@@ -237,7 +237,9 @@ def test_every_actor_ends_with_one_outcome(example: dict[str, Any], delays: Dela
             transports[name] = transport
             link = links[name] = stack.enter_context(
                 FleetActorLink(
-                    fleet_links.setdefault(name, FleetLink(transport, FleetAuth("property", name, KEY))),
+                    fleet_links.setdefault(
+                        name, FleetLink(transport, FleetAuth("property", name, KEY))
+                    ),
                     name,
                     resend_s=RESEND_S,
                     silence_s=SILENCE_S,
