@@ -18,7 +18,7 @@ thesis §6.3.2) with the messages of ``temoto/lcm_types/defs`` on two channels:
     report left over from an earlier run of the same session never completes a new one. Once
     done, the actor freezes its heard list, says ``READY``, and keeps answering the JOINs of
     that run (a peer may complete later) until :meth:`~FleetActorLink.end`, and for
-    ``grace_s`` after it. A ``JOIN`` of a run this actor has not started yet is kept (a peer
+    ``grace_s`` after it, with READYs that carry the agreed run id. A ``JOIN`` of a run this actor has not started yet is kept (a peer
     may start earlier), for ``stray_s`` at most.
 
     ``LEAVE`` means that the sender gave up the run: its handshake timed out, or its link was
