@@ -14,6 +14,7 @@ import collections
 import math
 import secrets
 import struct
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -384,6 +385,10 @@ class Handshakes(LinkPart):
         if run is None or not run.local:
             ended = self._ended.get(key)
             known = ended is not None and actor in ended.actors
+            if known and ended is not None and ended.decision is not None:
+                # it still speaks of a run that ended here: our END or LEAVE has not reached
+                # it yet; closing the link waits for it (real time: FleetActorLink._linger)
+                ended.speaking[actor] = time.monotonic()
             if (
                 known
                 and msg.phase == READY

@@ -801,6 +801,26 @@ def test_close_lingers_while_a_peer_still_resends_a_notification_of_the_ended_ru
     assert not closing.is_alive()
 
 
+def test_close_lingers_while_a_peer_still_runs_the_ended_run(fleet: Fleet) -> None:
+    """Its heartbeats of the run say that our END has not reached it (every copy lost): closing
+    waits, answering each with END, until it goes quiet, so it ends with our result instead
+    of finding us lost after silence_s (the shared-run property, bounds in docs/fleet.md)."""
+    a, b = fleet.links("A", "B")
+    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    b.close()
+    a.end("g", "s1", result=Result.TRUE)
+    peer = fleet.fleet_link("B")  # B, still in the run: it sends its heartbeats of it
+    assert peer.wait_for_peers(["A"], WAIT_S)
+    closing = threading.Thread(target=a.close, name="test-close")
+    closing.start()
+    for _ in range(15):  # 1.5 s: past linger_s, a heartbeat every 0.1 s
+        peer.send(HANDSHAKE_CHANNEL, *codec.encode(handshake(2, "B")))
+        closing.join(0.1)
+    assert closing.is_alive(), "close() returned while a peer still ran the ended run"
+    closing.join(WAIT_S)  # the heartbeats stopped (it heard END): close returns
+    assert not closing.is_alive()
+
+
 def test_an_actor_that_falls_silent_is_lost_within_silence_s(fleet: Fleet) -> None:
     a, b = fleet.links("A", "B", silence_s=0.3)
     lost = Got()
