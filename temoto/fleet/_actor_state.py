@@ -217,8 +217,8 @@ class Ended:
     out_key: SessionKey | None = None  # (graph, run id) the decision is said for
     next_answer: float = 0.0  # answers to heartbeats of peers still in the run: rate-limited
     # Peers that still spoke of the run after it ended here, by time.monotonic(): a
-    # notification (they wait for our acknowledgement), a heartbeat or a JOIN (our END or
-    # LEAVE has not reached them); a peer's END or LEAVE removes it. Closing the link waits
+    # notification (they wait for our acknowledgement) or a heartbeat of it (our END or LEAVE
+    # has not reached them); a peer's END or LEAVE removes it. Closing the link waits
     # while they keep speaking (FleetActorLink._linger).
     speaking: dict[str, float] = field(default_factory=dict)
     # The run id agreed in the handshake: READY answers to late JOINs carry it, or a peer that

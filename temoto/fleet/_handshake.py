@@ -385,9 +385,16 @@ class Handshakes(LinkPart):
         if run is None or not run.local:
             ended = self._ended.get(key)
             known = ended is not None and actor in ended.actors
-            if known and ended is not None and ended.decision is not None:
-                # it still speaks of a run that ended here: our END or LEAVE has not reached
-                # it yet; closing the link waits for it (real time: FleetActorLink._linger)
+            if (
+                known
+                and ended is not None
+                and ended.decision is not None
+                and msg.phase == READY
+                and msg.run_id == ended.run_id
+            ):
+                # it still runs the run that ended here (not a new one of the same session):
+                # our END or LEAVE has not reached it yet; closing the link waits for it (real
+                # time: FleetActorLink._linger)
                 ended.speaking[actor] = time.monotonic()
             if (
                 known

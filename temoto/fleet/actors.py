@@ -486,8 +486,8 @@ class FleetActorLink(Closing):
         For ``linger_s``, so a peer whose last notification we acknowledged (an
         acknowledgement that may have been lost) is not left resending to nobody; then for as
         long as a peer keeps sending notifications of such a run (it waits for our
-        acknowledgement, so ours, and our END, have not reached it) or heartbeats or JOINs of
-        it (our END has not reached it; each is answered with it), at most ``silence_s``,
+        acknowledgement, so ours, and our END, have not reached it) or heartbeats of it (our
+        END has not reached it; each is answered with it), at most ``silence_s``,
         after which it would find us lost anyway. Over a lossy TCP link (Zenoh) both can be
         held up for seconds; a process that exited meanwhile took them along, and its peers
         aborted the run it had ended (tests/fleet/test_zenoh_netns.py, 2 runs in 7).

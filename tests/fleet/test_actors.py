@@ -806,15 +806,24 @@ def test_close_lingers_while_a_peer_still_runs_the_ended_run(fleet: Fleet) -> No
     waits, answering each with END, until it goes quiet, so it ends with our result instead
     of finding us lost after silence_s (the shared-run property, bounds in docs/fleet.md)."""
     a, b = fleet.links("A", "B")
-    assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
+    ids: list[str] = []
+    assert (
+        concurrently(
+            lambda: ids.append(a.handshake("g", "s1", ["A", "B"], WAIT_S)),
+            handshaking(b, ["A", "B"]),
+        )
+        == [None] * 2
+    )
     b.close()
-    a.end("g", "s1", result=Result.TRUE)
+    a.end("g", ids[0], result=Result.TRUE)
     peer = fleet.fleet_link("B")  # B, still in the run: it sends its heartbeats of it
     assert peer.wait_for_peers(["A"], WAIT_S)
+    heartbeat = handshake(2, "B")
+    heartbeat.run_id = ids[0]  # a heartbeat of that run (not of a new one of its session)
     closing = threading.Thread(target=a.close, name="test-close")
     closing.start()
     for _ in range(15):  # 1.5 s: past linger_s, a heartbeat every 0.1 s
-        peer.send(HANDSHAKE_CHANNEL, *codec.encode(handshake(2, "B")))
+        peer.send(HANDSHAKE_CHANNEL, *codec.encode(heartbeat))
         closing.join(0.1)
     assert closing.is_alive(), "close() returned while a peer still ran the ended run"
     closing.join(WAIT_S)  # the heartbeats stopped (it heard END): close returns
