@@ -216,10 +216,14 @@ class Ended:
     next_repeat: float = 0.0
     out_key: SessionKey | None = None  # (graph, run id) the decision is said for
     next_answer: float = 0.0  # answers to heartbeats of peers still in the run: rate-limited
-    # Peers that sent us a notification of the run after it ended here (they wait for our
-    # acknowledgement), by time.monotonic(); a peer's END or LEAVE removes it. Closing the link
-    # waits while they keep sending (FleetActorLink._linger).
+    # Peers that still spoke of the run after it ended here, by time.monotonic(): a
+    # notification (they wait for our acknowledgement) or a heartbeat of it (our END or LEAVE
+    # has not reached them); a peer's END or LEAVE removes it. Closing the link waits
+    # while they keep speaking (FleetActorLink._linger).
     speaking: dict[str, float] = field(default_factory=dict)
+    # The run id agreed in the handshake: READY answers to late JOINs carry it, or a peer that
+    # completes with one would agree on its own proposal and never hear our END under it.
+    run_id: str = ""
 
 
 @dataclass(slots=True, eq=False)

@@ -14,6 +14,7 @@ import collections
 import math
 import secrets
 import struct
+import time
 from collections.abc import Mapping, Sequence
 from typing import Any
 
@@ -386,6 +387,17 @@ class Handshakes(LinkPart):
             known = ended is not None and actor in ended.actors
             if (
                 known
+                and ended is not None
+                and ended.decision is not None
+                and msg.phase == READY
+                and msg.run_id == ended.run_id
+            ):
+                # it still runs the run that ended here (not a new one of the same session):
+                # our END or LEAVE has not reached it yet; closing the link waits for it (real
+                # time: FleetActorLink._linger)
+                ended.speaking[actor] = time.monotonic()
+            if (
+                known
                 and msg.phase == READY
                 and ended is not None
                 and ended.decision is not None
@@ -397,6 +409,7 @@ class Handshakes(LinkPart):
                 ended.next_answer = now + self.heartbeat_s / 2
             elif known and msg.phase == JOIN and ended is not None and ended.heard is not None:
                 reply = self.handshake_msg(READY, *key, ended.actors, ended.heard)
+                reply.run_id = ended.run_id  # the run id agreed: the late peer takes it too
             if msg.phase != JOIN:
                 return reply  # a READY of a run not started here: liveness only
             if run is None:

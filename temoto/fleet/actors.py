@@ -18,8 +18,8 @@ thesis §6.3.2) with the messages of ``temoto/lcm_types/defs`` on two channels:
     report left over from an earlier run of the same session never completes a new one. Once
     done, the actor freezes its heard list, says ``READY``, and keeps answering the JOINs of
     that run (a peer may complete later) until :meth:`~FleetActorLink.end`, and for
-    ``grace_s`` after it. A ``JOIN`` of a run this actor has not started yet is kept (a peer
-    may start earlier), for ``stray_s`` at most.
+    ``grace_s`` after it, with READYs that carry the agreed run id. A ``JOIN`` of a run this
+    actor has not started yet is kept (a peer may start earlier), for ``stray_s`` at most.
 
     ``LEAVE`` means that the sender gave up the run: its handshake timed out, or its link was
     closed while the run was active. A peer still in the handshake fails at once; a peer
@@ -444,6 +444,7 @@ class FleetActorLink(Closing):
                         now,
                         now + self.resend_s,
                         key,
+                        run_id=run.run_id,
                     )
                     self._ended[key] = kept
                     self._ended[(run.graph, run.session)] = kept  # late JOINs name the session
@@ -485,7 +486,8 @@ class FleetActorLink(Closing):
         For ``linger_s``, so a peer whose last notification we acknowledged (an
         acknowledgement that may have been lost) is not left resending to nobody; then for as
         long as a peer keeps sending notifications of such a run (it waits for our
-        acknowledgement, so ours, and our END, have not reached it), at most ``silence_s``,
+        acknowledgement, so ours, and our END, have not reached it) or heartbeats of it (our
+        END has not reached it; each is answered with it), at most ``silence_s``,
         after which it would find us lost anyway. Over a lossy TCP link (Zenoh) both can be
         held up for seconds; a process that exited meanwhile took them along, and its peers
         aborted the run it had ended (tests/fleet/test_zenoh_netns.py, 2 runs in 7).
@@ -511,8 +513,8 @@ class FleetActorLink(Closing):
                 break
             with self._lock:
                 self._changed.wait(min(self.resend_s, remaining))
-        # Peers that still send us notifications of such a run are acknowledged (and told
-        # END again, on their heartbeats) until they go quiet: answered, ended, or gone.
+        # Peers that still send us notifications or heartbeats of such a run are acknowledged
+        # and told END again until they go quiet: answered, ended, or gone.
         until = time.monotonic() + self.silence_s
         with self._lock:
             while not self._core.closed:

@@ -6,7 +6,7 @@ time, and checking that an envelope is canonical took a decode and a re-encode. 
 of the per-message work of a sealed message (the cipher itself is a few µs), so the hot path
 reads and writes the same bytes here with a few ``struct`` calls. The generated
 :class:`~temoto.lcm_types.envelope_t` stays the definition: the tests compare both on every
-field and on garbage.
+field and on garbage. :func:`parse_hello` reads the body of a keyed fleet's hello.
 """
 
 from __future__ import annotations
@@ -138,3 +138,56 @@ class Writer:
                 mac,
             )
         )
+
+
+def parse_hello(
+    body: bytes, hint_size: int, grant_size: int, max_asked: int
+) -> tuple[bytes, dict[str, list[tuple[bytes, bytes]]], dict[tuple[str, int], list[int]]]:
+    """Ephemeral key, grants and what its sender missed, of a keyed fleet's hello body.
+
+    The layout is :mod:`temoto.transport._secure`'s (it writes hellos): a 32-byte key; a count
+    and that many grants (a name, a key hint of ``hint_size`` bytes, a grant of
+    ``grant_size``); a count and that many asks (a name, a session, up to ``max_asked``
+    sequence numbers). Grants map a recipient to ``[(key hint, grant)]``; what was missed maps
+    ``(sender, session)`` to sequence numbers (none: only the grant is asked for).
+
+    Raises:
+        ValueError: The body is not such a hello.
+    """
+    if len(body) < 34:
+        raise ValueError("short hello")
+    e_pub, (count,) = body[:32], struct.unpack_from(">H", body, 32)
+    at = 34
+    grants: dict[str, list[tuple[bytes, bytes]]] = {}
+    for _ in range(count):
+        if at + 4 > len(body):
+            raise ValueError("short hello")
+        (size,) = struct.unpack_from(">I", body, at)
+        end = at + 4 + size + hint_size + grant_size
+        if end > len(body):
+            raise ValueError("short hello")
+        name = body[at + 4 : at + 4 + size].decode("utf-8", "surrogatepass")
+        hint = body[at + 4 + size : at + 4 + size + hint_size]
+        grants.setdefault(name, []).append((hint, body[at + 4 + size + hint_size : end]))
+        at = end
+    if at + 2 > len(body):
+        raise ValueError("short hello")
+    (count,) = struct.unpack_from(">H", body, at)
+    at += 2
+    wants: dict[tuple[str, int], list[int]] = {}
+    for _ in range(count):
+        if at + 4 > len(body):
+            raise ValueError("short hello")
+        (size,) = struct.unpack_from(">I", body, at)
+        if at + 4 + size + 10 > len(body):
+            raise ValueError("short hello")
+        name = body[at + 4 : at + 4 + size].decode("utf-8", "surrogatepass")
+        session, n = struct.unpack_from(">QH", body, at + 4 + size)
+        at += 4 + size + 10
+        if n > max_asked or at + 8 * n > len(body):
+            raise ValueError("bad hello")
+        wants[name, session] = list(struct.unpack_from(f">{n}Q", body, at))
+        at += 8 * n
+    if at != len(body):
+        raise ValueError("trailing bytes")
+    return e_pub, grants, wants

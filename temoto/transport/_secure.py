@@ -32,7 +32,7 @@ from cryptography.hazmat.primitives.ciphers.aead import ChaCha20Poly1305
 from cryptography.hazmat.primitives.serialization import Encoding, PublicFormat
 
 from temoto.lcm_types import envelope_t
-from temoto.transport._envelope import HELLO_TYPE, Writer
+from temoto.transport._envelope import HELLO_TYPE, Writer, parse_hello
 from temoto.transport.identity import Credentials
 
 HELLO_CHANNEL: Final = "TEMOTO_KEYS"  #: The channel of hellos.
@@ -53,6 +53,13 @@ GRANT_WAIT_S: Final = 0.25
 #: A peer that received messages of ours it could not open (no grant yet: the hellos were
 #: crossing) names them in its hello; we re-send them to it if they are at most this old.
 BACKLOG_S: Final = 2.0
+#: A peer whose hello we heard, and which we granted our session, but whose grant has not come
+#: this long after ours (times the hello pace of a large fleet: its answer may wait for it) is
+#: asked for it in each of our hellos, for :data:`ASK_FOR_S` after its last hello. A lost
+#: grant was not sent again while its peer sent us nothing we could not open: a member waiting
+#: for its peers (``FleetLink.wait_for_peers``, which says hello again) waited in vain.
+ASK_S: Final = 0.5
+ASK_FOR_S: Final = 30.0
 _MISSED_MAX: Final = 256  # the last this many per sender session; as many senders at most
 #: At most this many of the newest missed messages are asked for again at once (all that are
 #: kept: a burst sent while the hellos cross arrives whole).
@@ -99,6 +106,8 @@ class _Pair:
     owed: bool = True  # our next hello carries a grant for it
     granted_at: float | None = None  # our clock when our last hello granted it our session
     opens: bool = False  # it granted us a session of its (an RxSession holds this pair)
+    session: int = 0  # its session id, from its newest hello: what we ask it to grant
+    heard_at: float = 0.0  # our clock when that hello came
 
 
 @dataclass(slots=True)
@@ -308,6 +317,24 @@ class SecureSession:
         out, self._outgoing = self._outgoing, []
         return out
 
+    def _lacking(self, now: float) -> list[tuple[str, int]]:
+        """(name, session) of the peers heard lately whose grant we lack, to ask for.
+
+        Only those we granted ours :data:`ASK_S` (times the pace of a large fleet) ago or more:
+        their answer had time to come. Those asked for already (``_missed``) apart.
+        """
+        wait = ASK_S * max(1.0, self._gap() / HELLO_MIN_S)
+        return [
+            (name, pair.session)
+            for name, peer in sorted(self._peers.items())
+            for pair in {id(p): p for p in (peer.current, peer.candidate) if p}.values()
+            if not pair.opens
+            and now - pair.heard_at < ASK_FOR_S
+            and pair.granted_at is not None
+            and now - pair.granted_at >= wait
+            and (name, pair.session) not in self._missed
+        ]
+
     def _pair(self, name: str, e_pub: bytes) -> _Pair:
         shared = self._e.exchange(X25519PublicKey.from_public_bytes(e_pub))
         me, it = (_s(self.sender), self.e_pub), (_s(name), e_pub)
@@ -349,7 +376,10 @@ class SecureSession:
                 parts.append(_blob(_s(name)) + pair.e_pub[:_HINT] + grant)
                 count += 1
         parts[1] = struct.pack(">H", count)
-        parts.append(struct.pack(">H", len(self._missed)))
+        lacking = self._lacking(now)
+        parts.append(struct.pack(">H", len(self._missed) + len(lacking)))
+        for name, session in lacking:  # grants lost on the way: asked for again
+            parts.append(_blob(_s(name)) + struct.pack(">QH", session, 0))
         for (name, session), seqs in list(self._missed.items()):
             # Without its grant, ask for the grant only: copies would be refused like the
             # originals. With it, ask once for what we could not open.
@@ -386,7 +416,7 @@ class SecureSession:
             ):
                 return None  # a hello for others from a peer we share keys with
         try:
-            e_pub, grants, wants = _parse_hello(body)
+            e_pub, grants, wants = parse_hello(body, _HINT, _GRANT_SIZE, _MISSED_MAX)
         except ValueError:
             return "garbage"
         grant = next((g for h, g in grants.get(self.sender, ()) if h == self.e_pub[:_HINT]), None)
@@ -412,6 +442,7 @@ class SecureSession:
                 peer.drop(peer.candidate, self.seq)
             peer.candidate = pair
             self._answer()  # it gets a grant from us
+        pair.session, pair.heard_at = env.stamp_us, self._clock()
         if missed:  # it asks for what it could not open before it had our grant
             self._resend.append((sender, pair, missed))
         elif missed is not None:  # it lacks our grant
@@ -636,53 +667,6 @@ def _ad(
 def _ad_head(channel: str, fleet: str, sender: str, type_name: str) -> bytes:
     """The first parts of :func:`_ad`, the same for every message of a sender on a channel."""
     return _blob(b"temoto-v2", _s(channel), _s(fleet), _s(sender), _s(type_name))
-
-
-def _parse_hello(
-    body: bytes,
-) -> tuple[bytes, dict[str, list[tuple[bytes, bytes]]], dict[tuple[str, int], list[int]]]:
-    """Ephemeral key, grants and what its sender missed, of a hello body.
-
-    Grants map a recipient to ``[(key hint, grant)]``; what was missed maps ``(sender,
-    session)`` to sequence numbers.
-    """
-    if len(body) < 34:
-        raise ValueError("short hello")
-    e_pub, (count,) = body[:32], struct.unpack_from(">H", body, 32)
-    at = 34
-    grants: dict[str, list[tuple[bytes, bytes]]] = {}
-    for _ in range(count):
-        if at + 4 > len(body):
-            raise ValueError("short hello")
-        (size,) = struct.unpack_from(">I", body, at)
-        end = at + 4 + size + _HINT + _GRANT_SIZE
-        if end > len(body):
-            raise ValueError("short hello")
-        name = body[at + 4 : at + 4 + size].decode("utf-8", "surrogatepass")
-        hint = body[at + 4 + size : at + 4 + size + _HINT]
-        grants.setdefault(name, []).append((hint, body[at + 4 + size + _HINT : end]))
-        at = end
-    if at + 2 > len(body):
-        raise ValueError("short hello")
-    (count,) = struct.unpack_from(">H", body, at)
-    at += 2
-    wants: dict[tuple[str, int], list[int]] = {}
-    for _ in range(count):
-        if at + 4 > len(body):
-            raise ValueError("short hello")
-        (size,) = struct.unpack_from(">I", body, at)
-        if at + 4 + size + 10 > len(body):
-            raise ValueError("short hello")
-        name = body[at + 4 : at + 4 + size].decode("utf-8", "surrogatepass")
-        session, n = struct.unpack_from(">QH", body, at + 4 + size)
-        at += 4 + size + 10
-        if n > _MISSED_MAX or at + 8 * n > len(body):
-            raise ValueError("bad hello")
-        wants[name, session] = list(struct.unpack_from(f">{n}Q", body, at))
-        at += 8 * n
-    if at != len(body):
-        raise ValueError("trailing bytes")
-    return e_pub, grants, wants
 
 
 def _admit(rx: RxSession, seq: int) -> bool:

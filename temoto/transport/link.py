@@ -77,10 +77,12 @@ class FleetLink:
         """Wait until this member can open the messages of every named member.
 
         Sending needs no wait (what a peer could not open while the hellos crossed is re-sent
-        to it); this is for callers that must know the keys are agreed, e.g. tests. While
-        nothing comes, this member says hello again (after 0.1 s, then twice as long each
-        time, up to 1 s): its first hello may have been lost, and a member that neither sends
-        nor hears anything would never be answered.
+        to it); this is for callers that must know the keys are agreed, e.g. tests. Until
+        they did, this member says hello again (after 0.1 s, then twice as long each time, up
+        to 1 s): its first hello may have been lost, and a member that neither sends nor hears
+        anything would never be answered; and each hello asks the peers whose grant is missing
+        for it again (the grant may have been lost, and a quiet peer sends nothing that would
+        show it).
 
         Args:
             names: The members.

@@ -333,6 +333,46 @@ def test_a_peer_still_in_the_previous_run_does_not_complete_a_new_one(fleet: Fle
     assert errors == []
 
 
+def test_a_late_joiner_answered_after_the_run_ended_agrees_on_its_run_id(fleet: Fleet) -> None:
+    # A completes and ends its run while B, whose READYs were lost, still joins: A answers B's
+    # JOIN with the READY of the ended run. That READY must carry the run id agreed, or B agrees
+    # on its own proposal and never hears A's END under its id (it found A lost instead: the
+    # property test, 1 run in 8).
+    a = fleet.link("A")
+    b = Raw(fleet.fleet_link("B"), HANDSHAKE_CHANNEL)
+    agreed: list[str] = []
+    thread = threading.Thread(
+        target=lambda: agreed.append(a.handshake("g", "s1", ["A", "B"], WAIT_S)),
+        name="test-a",
+    )
+    thread.start()
+    try:
+        b.got.wait_until(lambda calls: any(m.actor == "A" for m in b.decoded()))
+        first = next(m for m in b.decoded() if m.actor == "A")
+        join = set_heard(handshake(1, "B"), ["A", "B"], {"A": first.stamp_us})
+        join.run_id = "s1@ffffffffffff"  # larger than A's proposal: A's is the run id
+        b.send(HANDSHAKE_CHANNEL, join)
+    finally:
+        thread.join(WAIT_S)
+    (run_id,) = agreed
+    assert run_id != join.run_id
+
+    def ready(m: Any) -> bool:
+        return bool(m.phase == 2 and m.actors and m.graph == "g")
+
+    b.got.wait_until(lambda calls: any(ready(m) for m in b.decoded()))  # A's own READY
+    a.end("g", run_id, result=Result.TRUE)
+    seen = len(b.got.calls)
+    late = set_heard(handshake(1, "B"), ["A", "B"], {"A": first.stamp_us})  # a newer JOIN
+    late.run_id = join.run_id
+    b.send(HANDSHAKE_CHANNEL, late)
+
+    b.got.wait_until(lambda calls: any(ready(m) for m in b.decoded()[seen:]))
+    answer = next(m for m in b.decoded()[seen:] if ready(m))
+    assert heard_of(answer) == {"B": join.stamp_us}  # its frozen heard list
+    assert answer.run_id == run_id
+
+
 def test_handshake_arguments(fleet: Fleet) -> None:
     (a,) = fleet.links("A")
     a.handshake("g", "s1", ["A"], 0.0)  # alone: nothing to wait for
@@ -758,6 +798,35 @@ def test_close_lingers_while_a_peer_still_resends_a_notification_of_the_ended_ru
         closing.join(0.1)
     assert closing.is_alive(), "close() returned while a peer still waited for its answer"
     closing.join(WAIT_S)  # the resends stopped (it got its answer): close returns
+    assert not closing.is_alive()
+
+
+def test_close_lingers_while_a_peer_still_runs_the_ended_run(fleet: Fleet) -> None:
+    """Its heartbeats of the run say that our END has not reached it (every copy lost): closing
+    waits, answering each with END, until it goes quiet, so it ends with our result instead
+    of finding us lost after silence_s (the shared-run property, bounds in docs/fleet.md)."""
+    a, b = fleet.links("A", "B")
+    ids: list[str] = []
+    assert (
+        concurrently(
+            lambda: ids.append(a.handshake("g", "s1", ["A", "B"], WAIT_S)),
+            handshaking(b, ["A", "B"]),
+        )
+        == [None] * 2
+    )
+    b.close()
+    a.end("g", ids[0], result=Result.TRUE)
+    peer = fleet.fleet_link("B")  # B, still in the run: it sends its heartbeats of it
+    assert peer.wait_for_peers(["A"], WAIT_S)
+    heartbeat = handshake(2, "B")
+    heartbeat.run_id = ids[0]  # a heartbeat of that run (not of a new one of its session)
+    closing = threading.Thread(target=a.close, name="test-close")
+    closing.start()
+    for _ in range(15):  # 1.5 s: past linger_s, a heartbeat every 0.1 s
+        peer.send(HANDSHAKE_CHANNEL, *codec.encode(heartbeat))
+        closing.join(0.1)
+    assert closing.is_alive(), "close() returned while a peer still ran the ended run"
+    closing.join(WAIT_S)  # the heartbeats stopped (it heard END): close returns
     assert not closing.is_alive()
 
 

@@ -16,6 +16,7 @@ KEY = bytes(range(32))
 T0 = 1_750_000_000.0
 CHANNEL = "TEMOTO_NOTIFY"
 GRANT_WAIT_S = 0.25  # temoto.transport._secure.GRANT_WAIT_S, as documented
+ASK_S = 0.5  # temoto.transport._secure.ASK_S
 
 
 class Clock:
@@ -172,6 +173,60 @@ def test_members_whose_first_hellos_were_lost_still_agree_keys() -> None:
         b = FleetLink(transports[1], FleetAuth("fleet", "b", KEY))
         assert b.wait_for_peers(["a"], 10.0)
         assert a.wait_for_peers(["b"], 10.0)
+    finally:
+        for transport in transports:
+            transport.close()
+
+
+def test_a_lost_grant_is_asked_for_again_though_its_peer_sends_nothing() -> None:
+    clock = Clock()
+    a, b = member("a", clock), member("b", clock)
+    ha0, hb0 = one_hello(a), one_hello(b)
+    b.open(HELLO_CHANNEL, ha0)
+    one_hello(b)  # b's grant for a: lost
+    a.open(HELLO_CHANNEL, hb0)
+    b.open(HELLO_CHANNEL, one_hello(a))  # a's grant for b
+    assert (a.peers, b.peers) == (frozenset(), {"a"})
+    assert hellos(b) == []  # b has nothing more to say, and sends a nothing it cannot open
+    clock.t += ASK_S - 0.1  # b's answer to a's grant may still be on its way: not asked for
+    a.want_hello()  # as FleetLink.wait_for_peers does, again and again
+    b.open(HELLO_CHANNEL, one_hello(a))
+    assert hellos(b) == []
+    for attempt in range(3):  # asked for in every hello of a's until it comes
+        clock.t += 0.1
+        a.want_hello()
+        b.open(HELLO_CHANNEL, one_hello(a))
+        again = one_hello(b)  # b grants its session again
+        if attempt == 2:
+            a.open(HELLO_CHANNEL, again)  # the first two were lost too
+        clock.t += GRANT_WAIT_S
+    assert a.peers == {"b"}
+    a.want_hello()
+    b.open(HELLO_CHANNEL, one_hello(a))
+    assert hellos(b) == []  # nothing is missing: nothing asked
+
+
+def test_a_member_whose_grant_was_lost_agrees_keys_while_its_peer_is_quiet() -> None:
+    """The peer's grant was lost and the peer has nothing to send: waiting for it must not
+    wait forever (under 25 % loss, 6 tries of 6 did not agree keys within 15 s)."""
+    transports = [InProcessTransport(bus="lost-grant"), InProcessTransport(bus="lost-grant")]
+    try:
+        publish = transports[1].publish
+        hellos_of_b: list[bytes] = []
+
+        def lossy(channel: str, data: bytes) -> None:
+            if channel == HELLO_CHANNEL:
+                hellos_of_b.append(data)
+                if len(hellos_of_b) == 2:
+                    return  # b's second hello, its answer to a's grant, carries b's: lost
+            publish(channel, data)
+
+        transports[1].publish = lossy  # type: ignore[method-assign]
+        a = FleetLink(transports[0], FleetAuth("fleet", "a", KEY))
+        b = FleetLink(transports[1], FleetAuth("fleet", "b", KEY))
+        assert b.wait_for_peers(["a"], 10.0)
+        assert a.wait_for_peers(["b"], 10.0)
+        assert len(hellos_of_b) >= 3  # b granted its session again, asked by a
     finally:
         for transport in transports:
             transport.close()
