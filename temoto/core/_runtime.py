@@ -79,7 +79,6 @@ class Node(RunControl):
         "inputs",
         "instance",
         "kind",
-        "last_outputs",
         "log",
         "name",
         "native",
@@ -89,6 +88,7 @@ class Node(RunControl):
         "required_inputs",
         "restart",
         "run",
+        "spent",
         "spontaneous",
         "state",
         "stop_timer",
@@ -113,6 +113,8 @@ class Node(RunControl):
         self.native: set[str] | frozenset[str] = _NO_NAMES
         self.gen = 0
         self.instance: Action | None = None
+        #: the previous run's instance, kept until this run's is made (see renew)
+        self.spent: Action | None = None
         self.fresh_instance = False
         self.held: tuple[Result, dict[str, Any], BaseException | None] | None = None
         self.restart = False
@@ -120,7 +122,6 @@ class Node(RunControl):
         self.child_run: GraphRun | None = None
         self.remote_cancel: Callable[[], None] | None = None  # stops waiting for a remote actor
         self.error: BaseException | None = None
-        self.last_outputs: dict[str, Any] = {}
         self.log: tuple[LogMessage, ...] = ()
         self.define(umrf, resolved)
 
@@ -192,10 +193,17 @@ class Node(RunControl):
         self.logged = False
         self.acquired = False
         self.state = _UNINITIALIZED
-        self.data = {}
+        self.data.clear()  # never handed out (runs get copies): no new dict per node and run
         self.native = _NO_NAMES
         self.gen += 1
-        self.instance = None
+        if self.instance is not None:
+            # Freed when this run makes the node's new instance (Dispatcher._instantiate), not
+            # now: an allocation and a free of a tracked object cancel out in the collector's
+            # count, so a repeated run that replaces its instances one by one adds nothing for
+            # it to scan (freed here, all at once, the new run's instances alone would trigger a
+            # young collection per 700 actions).
+            self.spent = self.instance
+            self.instance = None
         self.fresh_instance = False
         self.held = None
         self.restart = False
@@ -203,7 +211,6 @@ class Node(RunControl):
         self.child_run = None
         self.remote_cancel = None
         self.error = None
-        self.last_outputs = {}
         self.log = ()
 
     @property
@@ -259,7 +266,7 @@ class GraphRun:
             (:meth:`can_lend_nodes`): its node objects are taken over, renewed
             (:meth:`Node.renew`), instead of made anew. A robot that runs the
             same task again then makes no object per node: the garbage collector's scan of a
-            new run's objects, which grows with the graph, is spared. The old run is disposed.
+            new run's objects, which grows with the graph, is spared. The old run forgets them.
     """
 
     __slots__ = (
@@ -322,9 +329,9 @@ class GraphRun:
         if reuse is not None and reuse.plan is plan:
             # the ended run's nodes become this run's, as new (see Node.renew)
             entry, exit_, nodes = reuse.entry, reuse.exit, reuse.nodes
-            reuse.dispose()
             for node in (entry, exit_, *nodes.values()):
                 node.renew(self)
+            reuse.forget()
             self.entry, self.exit, self.nodes = entry, exit_, nodes
         else:
             self.entry = Node(self, Umrf(ENTRY_NAME, "sync"), ResolvedAction(NodeKind.ENTRY))
@@ -452,6 +459,20 @@ class GraphRun:
         for node in self.all_nodes():
             node.child_run = None
             node.instance = None  # the action holds its node (its RunControl): a cycle
+            node.spent = None
+        self.forget()
+
+    def forget(self) -> None:
+        """Drop this run's references to its nodes and edges (the nodes are left as they are).
+
+        Called by :meth:`dispose`, and for a run whose nodes a new run took over (``reuse``).
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
         self.nodes = {}
         self.order = []
         self.edge_start = [0]

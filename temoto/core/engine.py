@@ -65,8 +65,9 @@ _G_PAUSED = GraphState.PAUSED
 _G_RUNNING = GraphState.RUNNING
 _BUSY_GRAPH = BUSY_GRAPH_STATES
 
-#: A run of at least this many actions has its new objects collected (young generations only)
-#: before its first action starts (see :mod:`temoto.core._gc`).
+#: A run of at least this many new actions has its new objects collected (young generations
+#: only) before its first action starts (see :mod:`temoto.core._gc`); a run that reuses an ended
+#: run's nodes is not.
 YOUNG_COLLECT_AT_START = 1000
 
 
@@ -252,8 +253,10 @@ class ActionEngine(EffectDispatcher):
                 if old is not None and reuse is None and not old.active:
                     old.dispose()  # its memory comes back now, not at a later full collection
                 self._start_run(run, values, result, fx)
-            if len(run.nodes) >= YOUNG_COLLECT_AT_START:
-                pause.collect_young()  # outside the lock; before the first action
+            if reuse is None and len(run.nodes) >= YOUNG_COLLECT_AT_START:
+                # outside the lock; before the first action. A run that took over an ended
+                # run's nodes made few new objects: nothing for such a scan to do
+                pause.collect_young()
         if peers:
             assert self._shared is not None
             self._shared.watch(run)
