@@ -40,7 +40,7 @@ from typing import Any
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.core._gc import collector_paused
-from temoto.core._runtime import GraphRun, Plan
+from temoto.core._runtime import GraphRun, Plan, wiring_of
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.dispatch import EffectDispatcher
 from temoto.core.documents import graph_from_document
@@ -231,8 +231,9 @@ class ActionEngine(EffectDispatcher):
         fx = Effects()
         with collector_paused():  # a big graph is a burst of long-lived objects
             plan = self.plan(model)
-            values = graph_inputs(plan.graph, params or {})
-        peers = SharedRuns.peers(self.actor, plan)
+            wiring = wiring_of(plan)  # made once per plan: what start() needs of the graph
+            values = graph_inputs(plan.graph, params or {}, wiring.signature)
+        peers = SharedRuns.peers(self.actor, plan) if wiring.actors else ()
         session = run_name
         if peers:
             assert self._shared is not None  # the planner refuses remote actions without a link

@@ -17,10 +17,10 @@ from collections.abc import Iterator
 from contextlib import contextmanager
 
 import pytest
-from test_engine import WAIT, Upper, _upper_graphs, engine_with, eventually
+from test_engine import WAIT, Emit, Upper, _upper_graphs, engine_with, eventually
 
 from temoto import Action, ActionEngine, GraphState, NodeState, Result, build
-from temoto.build import action
+from temoto.build import Param, action
 from temoto.core._runtime import GraphRun, Node
 
 N = 300
@@ -180,6 +180,54 @@ def test_a_renewed_node_starts_like_a_new_one() -> None:
                 ("Stateful_1", "RUNNING", "FINISHED"),
             ]
         )
+
+
+@action(inputs={"value": Param(str, updatable=True)}, outputs={"out": str})
+class Keep(Action):
+    """out = value (a parent may overwrite its literal: updatable)."""
+
+    def on_run(self) -> bool:
+        self.outputs["out"] = self.inputs.get_string("value")
+        return True
+
+
+def test_a_renewed_node_is_a_new_node_in_every_field() -> None:
+    """The reuse path (renewal, no wiring again) leaves each node and the run as a new run of
+    the plan has them, also after a run in which a parent overwrote a literal input."""
+    g = build.graph(
+        build.node(Emit, value="from parent", remap={"out": "value"}),
+        build.node(Keep, value="literal"),
+        build.parallel(Tick, build.node(Keep, value="other", instance=1)),
+        name="renewed",
+    )
+    fields = [f for f in Node.__slots__ if f not in ("run", "gen", "spent", "instance")]
+    fields += ["stop", "paused", "broken", "logged", "acquired", "condition"]
+    with engine_with(Keep, Tick) as (engine, _):
+        plan = engine.plan(g)
+        assert engine.wait(engine.start(g), WAIT) is Result.TRUE
+        old = engine._runs["renewed"]
+        assert old.nodes["Keep_0"].data == {}  # the parent's value, dropped after the run
+        assert old.nodes["Keep_0"].native == frozenset()
+        renewed = GraphRun("renewed", plan, reuse=old)
+        new = GraphRun("new", plan)
+        for mine, theirs in zip(renewed.order, new.order, strict=True):
+            for field in fields:
+                assert getattr(mine, field) == getattr(theirs, field), (mine.name, field)
+            assert mine.run is renewed
+        assert renewed.nodes["Keep_0"].data == {"value": "literal"}
+        assert renewed.nodes["Keep_0"].native == {"value"}
+        assert [n.name for n in renewed.edge_parent] == [n.name for n in new.edge_parent]
+        assert [n.name for n in renewed.edge_child] == [n.name for n in new.edge_child]
+        assert renewed.edge_start == new.edge_start
+        assert renewed.edge_remap == new.edge_remap
+        assert renewed.evolution.received_flags() == new.evolution.received_flags()
+        assert all(
+            renewed.evolution.missing_parents(n.idx) == new.evolution.missing_parents(n.idx)
+            for n in new.order
+        )
+        assert old.nodes == {}
+        assert old.order == []
+        assert old.edge_child == []
 
 
 def test_a_run_whose_stop_failed_lends_no_node() -> None:
