@@ -12,9 +12,10 @@ Forcing that full collection right after construction instead (so it would not l
 middle of the graph's execution) was measured and rejected: on this VM it made the following
 execution slower, not faster (52 vs 18 us per action in a 10,000-action chain; the likely cause
 is that the memory it frees goes back to the system and is faulted in again). What the engine
-does instead for a large run is :meth:`Pause.collect_young`: the scan of the new objects that
-the first automatic collection would make anyway, done before the first action, with the
-collector's counters starting from zero. Measured on a 10,000-action chain: no full collection
+does instead for a large run of new nodes is :meth:`Pause.collect_young`: the scan of the new
+objects that the first automatic collection would make anyway, done before the first action,
+with the collector's counters starting from zero (a run that takes over an ended run's nodes
+makes few new objects and skips it). Measured on a 10,000-action chain: no full collection
 during the run any more (without it, one of 150-400 ms in half the runs), and 1-2 us per action
 of collector time in the run. It is made while automatic collection is still paused: made after
 it, the first allocation once the collector is back on triggers an automatic scan of the same

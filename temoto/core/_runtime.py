@@ -79,7 +79,6 @@ class Node(RunControl):
         "inputs",
         "instance",
         "kind",
-        "last_outputs",
         "log",
         "name",
         "native",
@@ -89,6 +88,7 @@ class Node(RunControl):
         "required_inputs",
         "restart",
         "run",
+        "spent",
         "spontaneous",
         "state",
         "stop_timer",
@@ -113,6 +113,8 @@ class Node(RunControl):
         self.native: set[str] | frozenset[str] = _NO_NAMES
         self.gen = 0
         self.instance: Action | None = None
+        #: the previous run's instance, kept until this run's is made (see renew)
+        self.spent: Action | None = None
         self.fresh_instance = False
         self.held: tuple[Result, dict[str, Any], BaseException | None] | None = None
         self.restart = False
@@ -120,7 +122,6 @@ class Node(RunControl):
         self.child_run: GraphRun | None = None
         self.remote_cancel: Callable[[], None] | None = None  # stops waiting for a remote actor
         self.error: BaseException | None = None
-        self.last_outputs: dict[str, Any] = {}
         self.log: tuple[LogMessage, ...] = ()
         self.define(umrf, resolved)
 
@@ -172,7 +173,8 @@ class Node(RunControl):
         Everything of the old run is forgotten (state, data, action instance, signals, log)
         except the generation counter, which moves on: anything still addressed to the old
         run's node (a hook, a late result) is stale and dropped, as for any earlier run.
-        The caller re-applies the definition (:meth:`define`, through ``GraphRun.wire``).
+        The definition stays, and the data is what :meth:`define` gives a new node: the
+        literals of its inputs.
 
         Args:
             run: The new run.
@@ -192,10 +194,27 @@ class Node(RunControl):
         self.logged = False
         self.acquired = False
         self.state = _UNINITIALIZED
-        self.data = {}
-        self.native = _NO_NAMES
+        data = self.data
+        data.clear()  # never handed out (runs get copies): no new dict per node and run
+        native: set[str] | frozenset[str] = _NO_NAMES
+        params = self.umrf.input_parameters
+        if params:  # the literals, as define() sets them for a new node
+            for name, param in params.items():
+                if param.has_value:
+                    data[name] = param.value
+                    if native is _NO_NAMES:
+                        native = set()
+                    native.add(name)  # type: ignore[union-attr]  # a set by now
+        self.native = native
         self.gen += 1
-        self.instance = None
+        if self.instance is not None:
+            # Freed when this run makes the node's new instance (Dispatcher._instantiate), not
+            # now: an allocation and a free of a tracked object cancel out in the collector's
+            # count, so a repeated run that replaces its instances one by one adds nothing for
+            # it to scan (freed here, all at once, the new run's instances alone would trigger a
+            # young collection per 700 actions).
+            self.spent = self.instance
+            self.instance = None
         self.fresh_instance = False
         self.held = None
         self.restart = False
@@ -203,7 +222,6 @@ class Node(RunControl):
         self.child_run = None
         self.remote_cancel = None
         self.error = None
-        self.last_outputs = {}
         self.log = ()
 
     @property
@@ -259,7 +277,7 @@ class GraphRun:
             (:meth:`can_lend_nodes`): its node objects are taken over, renewed
             (:meth:`Node.renew`), instead of made anew. A robot that runs the
             same task again then makes no object per node: the garbage collector's scan of a
-            new run's objects, which grows with the graph, is spared. The old run is disposed.
+            new run's objects, which grows with the graph, is spared. The old run forgets them.
     """
 
     __slots__ = (
@@ -316,29 +334,47 @@ class GraphRun:
         self.unwatch: Callable[[], None] | None = None  # stops watching them
         self.session = name  # a shared run's run id, agreed in the handshake
         self.aborted: str | None = None  # why a shared run was aborted, the same on every actor
-        self.nodes: dict[str, Node] = {}
         self.entry: Node
         self.exit: Node
+        self.nodes: dict[str, Node]
+        self.order: list[Node]  # node by kernel number
+        # Edges by kernel number, as parallel lists (no object per edge).
+        # Node ``i``'s outgoing edges are ``edge_start[i]`` to ``edge_start[i + 1]``.
+        self.edge_start: list[int]
+        self.edge_parent: list[Node]
+        self.edge_child: list[Node]
+        self.edge_remap: list[dict[str, str]]  # output name -> input name
+        self.wiring: Wiring
         if reuse is not None and reuse.plan is plan:
-            # the ended run's nodes become this run's, as new (see Node.renew)
-            entry, exit_, nodes = reuse.entry, reuse.exit, reuse.nodes
-            reuse.dispose()
-            for node in (entry, exit_, *nodes.values()):
+            # The ended run's nodes become this run's, as new (see Node.renew), and so do its
+            # numbering and relations, which depend on the plan only: what wire() would make
+            # again, node by node.
+            order = reuse.order
+            for node in order:
                 node.renew(self)
-            self.entry, self.exit, self.nodes = entry, exit_, nodes
+            self.entry, self.exit, self.nodes, self.order = (
+                reuse.entry,
+                reuse.exit,
+                reuse.nodes,
+                order,
+            )
+            self.edge_start, self.edge_parent = reuse.edge_start, reuse.edge_parent
+            self.edge_child, self.edge_remap = reuse.edge_child, reuse.edge_remap
+            self.wiring = reuse.wiring
+            reuse.forget()
+            self.evolution = self.wiring.kernel()
         else:
             self.entry = Node(self, Umrf(ENTRY_NAME, "sync"), ResolvedAction(NodeKind.ENTRY))
             self.exit = Node(self, Umrf(EXIT_NAME, "sync"), ResolvedAction(NodeKind.EXIT))
-        self.order: list[Node] = []  # node by kernel number
-        # Edges by kernel number, as parallel lists (no object per edge).
-        # Node ``i``'s outgoing edges are ``edge_start[i]`` to ``edge_start[i + 1]``.
-        self.edge_start: list[int] = [0]
-        self.edge_parent: list[Node] = []
-        self.edge_child: list[Node] = []
-        self.edge_remap: list[dict[str, str]] = []  # output name -> input name
-        self.evolution = Evolution(0, [0], [], [], [], [0], [])
-        self.wiring = wiring_of(plan)
-        self.wire(plan)
+            self.nodes = {}
+            self.order = []
+            self.edge_start = [0]
+            self.edge_parent = []
+            self.edge_child = []
+            self.edge_remap = []
+            self.evolution = Evolution(0, [0], [], [], [], [0], [])
+            self.wiring = wiring_of(plan)
+            self.wire(plan)
 
     def wire(self, plan: Plan) -> None:
         """(Re)build nodes and relations from a plan; surviving nodes keep their run state.
@@ -385,22 +421,8 @@ class GraphRun:
         self.edge_parent = [order[i] for i in wiring.edge_parent]
         self.edge_child = [order[i] for i in wiring.edge_child]
         self.edge_remap = wiring.edge_remap
-        flags = (
-            [received.get(key, 0) for key in wiring.slot_keys()]
-            if received
-            else [0] * len(wiring.slot_required)
-        )
-        self.evolution = Evolution(
-            len(order),
-            wiring.edge_start,
-            wiring.edge_child,
-            wiring.edge_slot,
-            wiring.edge_response,
-            wiring.slot_start,
-            wiring.slot_required,
-            exit_.idx,
-            flags,
-        )
+        flags = [received.get(key, 0) for key in wiring.slot_keys()] if received else None
+        self.evolution = wiring.kernel(flags)
 
     def can_lend_nodes(self, plan: Plan) -> bool:
         """Whether a new run of ``plan`` may take over this ended run's nodes (``reuse``).
@@ -452,6 +474,20 @@ class GraphRun:
         for node in self.all_nodes():
             node.child_run = None
             node.instance = None  # the action holds its node (its RunControl): a cycle
+            node.spent = None
+        self.forget()
+
+    def forget(self) -> None:
+        """Drop this run's references to its nodes and edges (the nodes are left as they are).
+
+        Called by :meth:`dispose`, and for a run whose nodes a new run took over (``reuse``).
+
+        Returns:
+            None.
+
+        Raises:
+            Nothing.
+        """
         self.nodes = {}
         self.order = []
         self.edge_start = [0]

@@ -233,7 +233,6 @@ class EffectDispatcher(RunEvolution):
                         node.log = instance.log_snapshot()
                     if len(node.data) != len(node.native):
                         node.clear_data()
-                    node.last_outputs = outputs
                     node.state = _N_FINISHED  # RUNNING -> FINISHED, in a RUNNING graph
                     run.active -= 1
                     if self._quiet_waiters:
@@ -325,7 +324,6 @@ class EffectDispatcher(RunEvolution):
                     node.log = instance.log_snapshot()
                 if len(node.data) != len(node.native):
                     node.clear_data()
-                node.last_outputs = outputs
                 node.state = _N_FINISHED  # RUNNING -> FINISHED, in a RUNNING graph
                 run.active -= 1
                 if self._quiet_waiters:
@@ -477,6 +475,7 @@ class EffectDispatcher(RunEvolution):
         """
         assert node.cls is not None
         instance = node.cls()
+        node.spent = None  # after the allocation: the collector's count sees a replacement
         instance.initialize(  # positional: one per node and run, on the hot path
             node, node.name, node.run.name, node.inputs, node.outputs, self.registrar
         )

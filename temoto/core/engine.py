@@ -40,7 +40,7 @@ from typing import Any
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.core._gc import collector_paused
-from temoto.core._runtime import GraphRun, Plan
+from temoto.core._runtime import GraphRun, Plan, wiring_of
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.dispatch import EffectDispatcher
 from temoto.core.documents import graph_from_document
@@ -65,8 +65,9 @@ _G_PAUSED = GraphState.PAUSED
 _G_RUNNING = GraphState.RUNNING
 _BUSY_GRAPH = BUSY_GRAPH_STATES
 
-#: A run of at least this many actions has its new objects collected (young generations only)
-#: before its first action starts (see :mod:`temoto.core._gc`).
+#: A run of at least this many new actions has its new objects collected (young generations
+#: only) before its first action starts (see :mod:`temoto.core._gc`); a run that reuses an ended
+#: run's nodes is not.
 YOUNG_COLLECT_AT_START = 1000
 
 
@@ -230,8 +231,9 @@ class ActionEngine(EffectDispatcher):
         fx = Effects()
         with collector_paused():  # a big graph is a burst of long-lived objects
             plan = self.plan(model)
-            values = graph_inputs(plan.graph, params or {})
-        peers = SharedRuns.peers(self.actor, plan)
+            wiring = wiring_of(plan)  # made once per plan: what start() needs of the graph
+            values = graph_inputs(plan.graph, params or {}, wiring.signature)
+        peers = SharedRuns.peers(self.actor, plan) if wiring.actors else ()
         session = run_name
         if peers:
             assert self._shared is not None  # the planner refuses remote actions without a link
@@ -252,8 +254,10 @@ class ActionEngine(EffectDispatcher):
                 if old is not None and reuse is None and not old.active:
                     old.dispose()  # its memory comes back now, not at a later full collection
                 self._start_run(run, values, result, fx)
-            if len(run.nodes) >= YOUNG_COLLECT_AT_START:
-                pause.collect_young()  # outside the lock; before the first action
+            if reuse is None and len(run.nodes) >= YOUNG_COLLECT_AT_START:
+                # outside the lock; before the first action. A run that took over an ended
+                # run's nodes made few new objects: nothing for such a scan to do
+                pause.collect_young()
         if peers:
             assert self._shared is not None
             self._shared.watch(run)

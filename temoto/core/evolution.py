@@ -184,7 +184,6 @@ class RunEvolution:
             node.stop_timer = None
         if len(node.data) != len(node.native):
             node.clear_data()
-        node.last_outputs = outputs
         if node.restart:
             node.restart = False
             self._set_state(node, _N_FINISHED)

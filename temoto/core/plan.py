@@ -24,6 +24,7 @@ from temoto.core._fast import (
     R_FALSE,
     R_STOPPED,
     R_TRUE,
+    Evolution,
 )
 from temoto.core.states import Response, Result
 from temoto.core.umrf import ENTRY_NAME, EXIT_NAME, ParentRelation
@@ -122,9 +123,14 @@ class Wiring:
     ``graph_exit``. The arrays are the kernel's (:class:`~temoto.core._fast.Evolution`);
     ``edge_parent`` is each edge's parent node, ``edge_remap`` its remap (output name -> input
     name), ``slot_parent`` each slot's parent name (:meth:`slot_keys` pairs it with the child's).
+    ``signature`` (the graph's external inputs and outputs) and ``actors`` (the actors its
+    actions name) are what starting a run reads of the graph, kept here so that a start of a
+    planned graph does no work per action for them.
     """
 
     __slots__ = (
+        "_kernel",
+        "actors",
         "edge_child",
         "edge_parent",
         "edge_remap",
@@ -139,7 +145,10 @@ class Wiring:
     )
 
     def __init__(self, graph: UmrfGraph) -> None:
+        self._kernel: Evolution | None = None  # the template of kernel(), made on first use
         self.signature = graph.signature()
+        #: the actors the graph's actions name (empty: a graph of this actor only)
+        self.actors = graph.actors
         names = [_ENTRY_FULL_NAME, *(umrf.full_name for umrf in graph.actions), _EXIT_FULL_NAME]
         index = {name: i for i, name in enumerate(names)}
         entry_names = {rel.full_name for rel in graph.entry}
@@ -213,6 +222,51 @@ class Wiring:
         self.edge_slot = edge_slot
         self.edge_remap = edge_remap
         self.edge_response = edge_response
+
+    def kernel(self, received: list[int] | None = None) -> Evolution:
+        """A new evolution kernel for a run of the plan (node ``i`` is ``names[i]``).
+
+        The first call builds a template (the kernel's constructor checks and converts every
+        array); every run's kernel is then :meth:`Evolution.fresh
+        <temoto.core._fast._evolution_py.Evolution.fresh>` of it, sharing the arrays.
+
+        Args:
+            received: The received flag of every slot, for a re-wired run that keeps what it
+                received; nothing received if omitted.
+
+        Returns:
+            The kernel.
+
+        Raises:
+            ValueError: ``received`` has not one flag per slot.
+        """
+        n = len(self.names)
+        if received is not None:
+            return Evolution(
+                n,
+                self.edge_start,
+                self.edge_child,
+                self.edge_slot,
+                self.edge_response,
+                self.slot_start,
+                self.slot_required,
+                n - 1,
+                received,
+            )
+        template = self._kernel
+        if template is None:
+            template = Evolution(
+                n,
+                self.edge_start,
+                self.edge_child,
+                self.edge_slot,
+                self.edge_response,
+                self.slot_start,
+                self.slot_required,
+                n - 1,
+            )
+            self._kernel = template
+        return template.fresh()
 
     def slot_keys(self) -> list[tuple[str, str]]:
         """The (child, parent) pair of names of every slot, in slot order.

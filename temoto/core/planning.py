@@ -25,7 +25,7 @@ from typing import TYPE_CHECKING, Any
 
 from temoto.core._runtime import NodeKind, Plan, ResolvedAction
 from temoto.core.catalog import ActionCatalog, GraphIndex
-from temoto.core.graph import UmrfGraph
+from temoto.core.graph import GraphSignature, UmrfGraph
 from temoto.core.params import NATIVE_TYPES, NO_VALUE, Parameter, check_value
 from temoto.core.umrf import Umrf
 from temoto.core.validation import validate_graph
@@ -261,9 +261,24 @@ def _merge(graph: UmrfGraph, umrf: Umrf, description: Umrf) -> Umrf:
     )
 
 
-def graph_inputs(graph: UmrfGraph, params: Mapping[str, Any]) -> dict[str, Any]:
-    """Check the values given for a graph's external inputs."""
-    inputs = graph.signature().inputs
+def graph_inputs(
+    graph: UmrfGraph, params: Mapping[str, Any], signature: GraphSignature | None = None
+) -> dict[str, Any]:
+    """Check the values given for a graph's external inputs.
+
+    Args:
+        graph: The graph.
+        params: The values, by input name.
+        signature: The graph's signature if the caller has it (a plan's wiring keeps it);
+            made from the graph otherwise.
+
+    Returns:
+        The values, checked (numbers and booleans as their native type).
+
+    Raises:
+        GraphInputError: An input is unknown, of the wrong type, or required and missing.
+    """
+    inputs = (signature if signature is not None else graph.signature()).inputs
     values: dict[str, Any] = {}
     for name, value in params.items():
         param = inputs.get(name)

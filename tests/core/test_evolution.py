@@ -346,6 +346,39 @@ def test_advance_is_propagate_for_one_run_step(
         assert evo.received_flags() == builds[0].received_flags()
 
 
+@settings(max_examples=200, deadline=None, database=None)
+@given(topologies(), topologies())
+def test_fresh_is_a_new_kernel_of_the_same_graph(
+    case: tuple[Topo, list[tuple[int, int]]], other: tuple[Topo, list[tuple[int, int]]]
+) -> None:
+    """``fresh()`` of a used kernel (a repeated run's) behaves as a newly built one, and the
+    two do not disturb each other (they share only the arrays no kernel writes)."""
+    topo, calls = case
+    later = [(p % topo.n, r) for p, r in other[1]]  # the new run's calls
+    impls = [pure]
+    compiled = _compiled()
+    if compiled is not None:
+        impls.append(compiled)
+    for impl in impls:
+        used = topo.build(impl)
+        for parent, result in calls:
+            used.propagate(parent, result)
+        flags = used.received_flags()
+        fresh = used.fresh()
+        assert type(fresh) is type(used)
+        assert fresh.n_nodes == used.n_nodes
+        assert fresh.exit_node == used.exit_node
+        new = topo.build(impl)
+        assert fresh.received_flags() == new.received_flags()
+        for parent, result in later:
+            assert fresh.propagate(parent, result) == new.propagate(parent, result)
+            assert fresh.advance(parent, result) == new.advance(parent, result)
+        for node in range(topo.n):
+            assert fresh.missing_parents(node) == new.missing_parents(node)
+            assert fresh.received_any(node) == new.received_any(node)
+        assert used.received_flags() == flags  # the used kernel's run state is its own
+
+
 def test_advance_refuses_bad_calls(evolution_impl: ModuleType) -> None:
     evo = chain(3).build(evolution_impl)
     with pytest.raises(IndexError):

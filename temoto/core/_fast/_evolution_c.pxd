@@ -25,6 +25,9 @@ cdef class Evolution:
     @cython.locals(e=int, child=int, slot=int, n_results=int, run=int)
     cpdef int advance(self, int parent, int result) except? -2
 
+    @cython.locals(new=Evolution, n=int, n_slots=int, c=int, s=int, end=int)
+    cpdef Evolution fresh(self)
+
     cpdef int missing_parents(self, int node)
 
     @cython.locals(s=int, end=int)

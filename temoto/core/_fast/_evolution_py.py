@@ -417,6 +417,45 @@ class Evolution:
             s += 1
         return False
 
+    def fresh(self) -> Evolution:
+        """A kernel of the same graph in which nothing was received yet: a new run's.
+
+        The graph's arrays (edges, slots, responses), which no kernel ever writes, are shared
+        with this one, already checked and converted; the run's state (received flags,
+        missing counts, bypass marks) is new. A repeated run of a plan starts from it without
+        the constructor's work per edge.
+
+        Returns:
+            The new kernel.
+
+        Raises:
+            Nothing.
+        """
+        new = Evolution.__new__(Evolution)
+        n = self.n_nodes
+        n_slots = self.slot_start[n]
+        new.n_nodes = n
+        new.edge_start = self.edge_start
+        new.edge_child = self.edge_child
+        new.edge_slot = self.edge_slot
+        new.edge_response = self.edge_response
+        new.slot_start = self.slot_start
+        new.slot_required = self.slot_required
+        new.received = array("b", bytes(n_slots))
+        new.missing = array("i", bytes(4 * n))
+        for c in range(n):
+            s = self.slot_start[c]
+            end = self.slot_start[c + 1]
+            while s < end:
+                if self.slot_required[s]:
+                    new.missing[c] += 1
+                s += 1
+        new.exit_node = self.exit_node
+        new.wave = 0
+        new.marks = array("i", bytes(4 * n))
+        new.queue = array("i", bytes(4 * (n + 1)))
+        return new
+
     def received_flags(self) -> bytes:
         """The received flag of every slot (to carry over into a re-wired run).
 
