@@ -366,12 +366,7 @@ class GraphRun:
         else:
             self.entry = Node(self, Umrf(ENTRY_NAME, "sync"), ResolvedAction(NodeKind.ENTRY))
             self.exit = Node(self, Umrf(EXIT_NAME, "sync"), ResolvedAction(NodeKind.EXIT))
-            self.nodes = {}
-            self.order = []
-            self.edge_start = [0]
-            self.edge_parent = []
-            self.edge_child = []
-            self.edge_remap = []
+            self.forget()  # no nodes or edges yet: wire() makes them
             self.evolution = Evolution(0, [0], [], [], [], [0], [])
             self.wiring = wiring_of(plan)
             self.wire(plan)

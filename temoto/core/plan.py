@@ -241,31 +241,21 @@ class Wiring:
             ValueError: ``received`` has not one flag per slot.
         """
         n = len(self.names)
+        shape = (
+            n,
+            self.edge_start,
+            self.edge_child,
+            self.edge_slot,
+            self.edge_response,
+            self.slot_start,
+            self.slot_required,
+            n - 1,
+        )
         if received is not None:
-            return Evolution(
-                n,
-                self.edge_start,
-                self.edge_child,
-                self.edge_slot,
-                self.edge_response,
-                self.slot_start,
-                self.slot_required,
-                n - 1,
-                received,
-            )
+            return Evolution(*shape, received)
         template = self._kernel
         if template is None:
-            template = Evolution(
-                n,
-                self.edge_start,
-                self.edge_child,
-                self.edge_slot,
-                self.edge_response,
-                self.slot_start,
-                self.slot_required,
-                n - 1,
-            )
-            self._kernel = template
+            template = self._kernel = Evolution(*shape)
         return template.fresh()
 
     def slot_keys(self) -> list[tuple[str, str]]:
