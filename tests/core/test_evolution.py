@@ -297,10 +297,7 @@ def topologies(draw: st.DrawFn) -> tuple[Topo, list[tuple[int, int]]]:
 def test_both_builds_match_the_model(case: tuple[Topo, list[tuple[int, int]]]) -> None:
     topo, calls = case
     model = Model(topo)
-    builds = [topo.build(pure)]
-    compiled = _compiled()
-    if compiled is not None:
-        builds.append(topo.build(compiled))
+    builds = _builds(topo)
     for parent, result in calls:
         expected = model.propagate(parent, result)
         for evo in builds:
@@ -321,10 +318,7 @@ def test_advance_is_propagate_for_one_run_step(
     where it declines, it changed nothing and ``propagate`` gives the model's wave."""
     topo, calls = case
     model = Model(topo)
-    builds = [topo.build(pure)]
-    compiled = _compiled()
-    if compiled is not None:
-        builds.append(topo.build(compiled))
+    builds = _builds(topo)
     for parent, result in calls:
         expected = model.propagate(parent, result)
         one_step = (
@@ -389,6 +383,12 @@ def test_advance_refuses_bad_calls(evolution_impl: ModuleType) -> None:
     assert evo.advance(0, TRUE) == 0 << 1 | 1  # again: the parent stays received
     assert evo.advance(1, STOPPED) == -1  # the response `ignore`: propagate's business
     assert evo.advance(2, TRUE) == -1  # the last node has no relation
+
+
+def _builds(topo: Topo) -> list[Any]:
+    """The topology's kernel in the pure build, and in the compiled one where it exists."""
+    compiled = _compiled()
+    return [topo.build(pure)] + ([topo.build(compiled)] if compiled is not None else [])
 
 
 def _compiled() -> ModuleType | None:
