@@ -33,7 +33,7 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from temoto.config import ArmFeature, DriveFeature
@@ -129,10 +129,11 @@ class DriveController:
         return motion
 
     def stop(self) -> None:
-        """Cancel the goal and command the wheels zero velocity now."""
+        """Cancel the goal and command the wheels zero velocity now (if they were not)."""
         with self._lock:
             old, self._motion, self._goal = self._motion, None, None
-            self._still()
+            if self._commanded != (0.0, 0.0):
+                self._still()
         if old is not None:
             old.cancel()
 
@@ -232,6 +233,8 @@ class ArmController:
     #: :meth:`estimate`: a slow Dynamixel X at a light load (the e-Manual gives 46-57 rpm,
     #: 4.8-6 rad/s, without load; position-mode profiles are often far slower).
     DEFAULT_JOINT_SPEED = 1.0
+    #: Longest age (s) of a reading that :meth:`here` moves on by its velocity.
+    EXTRAPOLATE_MAX = 0.05
 
     def __init__(
         self,
@@ -305,11 +308,39 @@ class ArmController:
         if old is not None:
             old.cancel()
 
-    def _still(self, joints: Mapping[str, float]) -> None:
-        """Lock held: position set-points = the joints' present positions, on the wire."""
+    def here(self, joints: Iterable[str]) -> dict[str, float]:
+        """Where the joints are now: the newest reading moved on by its velocity for its age.
+
+        The driver's reading is up to a poll period old (20 ms at 50 Hz: 0.1 rad at 5 rad/s);
+        a hold at that older position would send a moving joint back. The age counted is at
+        most :attr:`EXTRAPOLATE_MAX`, and the result stays within the joint's limits.
+
+        Args:
+            joints: The joints.
+
+        Returns:
+            Position (rad) by joint.
+        """
+        states = self._driver.read_state().joints
+        clock = getattr(self._driver, "clock", None)
+        now = clock.monotonic() if clock is not None else None
+        limits: Mapping[str, tuple[float, float]] = getattr(self._driver, "joint_limits", {})
+        out: dict[str, float] = {}
+        for j in joints:
+            state = states[j]
+            age = 0.0 if now is None else min(max(now - state.stamp, 0.0), self.EXTRAPOLATE_MAX)
+            position = state.position + state.velocity * age
+            if j in limits:
+                low, high = limits[j]
+                position = min(max(position, low), high)
+            out[j] = position
+        return out
+
+    def _still(self, joints: Iterable[str]) -> None:
+        """Lock held: position set-points = where the joints are now (:meth:`here`)."""
         try:
-            now = self.positions()
-            self._driver.command([JointCommand(j, ControlMode.POSITION, now[j]) for j in joints])
+            now = self.here(joints)
+            self._driver.command([JointCommand(j, ControlMode.POSITION, p) for j, p in now.items()])
         except Exception as err:  # a faulted device: the manager makes it safe
             logger.warning("arm: hold where it is not sent: %s", err)
 
