@@ -231,7 +231,7 @@ def bench_stop_to_still(quick: bool) -> Results:
         "arm": ("sim_arm.yaml", "arm", _graph("MoveJoints", {"pose": "reach"}), _Arm),
         "vehicle": ("sim_quad.yaml", "quad", {}, lambda: _vehicle),
     }
-    rounds = 2 if quick else 7
+    rounds = 1 if quick else 7
     still: dict[str, list[float]] = {k: [] for k in cases}
     rest: dict[str, list[float]] = {k: [] for k in cases}
     failed: dict[str, list[str]] = {k: [] for k in cases}

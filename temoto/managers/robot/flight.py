@@ -211,7 +211,7 @@ class FlightController:
             self._vehicle.land,
             modes={"LAND"},
             seen=seen,
-            resume_mode="GUIDED",
+            resume_mode="LAND",
         )
 
     def fly_mission(self, items: Sequence[MissionItem]) -> Motion:
