@@ -225,8 +225,8 @@ class ArmController:
     Args:
         feature: The profile's arm settings.
         driver: The device that moves the joints.
-        joint_speed: Each joint's speed limit (rad/s) where the profile gives one (the
-            servos' ``velocity_limit``), for :meth:`estimate`.
+        joint_speed: Each joint's speed limit (rad/s), for :meth:`estimate`; by default the
+            driver's servos' ``velocity_limit`` where the profile gives one.
     """
 
     #: Joint speed (rad/s) assumed for a joint without a limit in the profile, for
@@ -247,7 +247,13 @@ class ArmController:
         self._lock = threading.Lock()
         self._motion: Motion | None = None
         self._targets: dict[str, float] = {}
-        self.joint_speed = dict(joint_speed or {})
+        if joint_speed is None:  # the servos' velocity_limit of the profile, where given
+            joint_speed = {
+                str(servo.joint): float(servo.velocity_limit)
+                for servo in getattr(driver, "servos", ())
+                if getattr(servo, "velocity_limit", None)
+            }
+        self.joint_speed = dict(joint_speed)
 
     def positions(self) -> dict[str, float]:
         """The arm's joint positions (rad)."""

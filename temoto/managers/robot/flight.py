@@ -101,7 +101,7 @@ class FlightController:
 
     def estimate_takeoff(self, altitude: float) -> float:
         """Seconds to climb from here to ``altitude`` m at ``WPNAV_SPEED_UP``."""
-        alt = self.telemetry().position.alt
+        alt = float(self.telemetry().position.alt)
         return max(0.0, altitude - max(alt, 0.0)) / self.speeds()["WPNAV_SPEED_UP"]
 
     def estimate_fly_to(self, target: GeoPoint) -> float:
