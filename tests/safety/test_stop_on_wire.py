@@ -26,8 +26,10 @@ from temoto.testing.exitpaths import _SimHost
 ROOT = Path(__file__).resolve().parents[2]
 #: shoulder_pan (servo 1) from 0 to 2.5 rad: ~0.55 s at the XM430-W350's velocity limit.
 TARGET = 2.5
-#: Seconds between the wire and the host's report of it (it reads the registers every 2 ms).
-REPORT = 0.05
+#: Seconds between the wire and the host's report of it (it reads the registers every 2 ms;
+#: lenient: a loaded machine can hold either process back; a hold left to the 2 Hz control
+#: step, or never sent as before the fix, comes later than this or not at all).
+REPORT = 0.2
 
 GRAPH = {
     "graph_name": "pan",
