@@ -38,6 +38,7 @@ from typing import Any
 
 from temoto.config import ArmFeature, DriveFeature
 from temoto.drivers import Actuator, ControlMode, JointCommand
+from temoto.errors import StateError
 from temoto.managers.robot.flight import FlightController
 from temoto.managers.robot.motion import Motion
 
@@ -141,7 +142,9 @@ class DriveController:
         """Lock held: zero wheel velocity on the wire (sent even if it was sent before)."""
         try:
             self._send(0.0, 0.0)
-        except Exception as err:  # a faulted device: the manager makes it safe
+        except StateError as err:  # not ACTIVE (faulted, closed): the manager makes it safe
+            logger.info("drive: zero velocity not sent: %s", err)
+        except Exception as err:
             logger.warning("drive: zero velocity not sent: %s", err)
 
     def _halt(self, motion: Motion) -> None:
@@ -347,7 +350,9 @@ class ArmController:
         try:
             now = self.here(joints)
             self._driver.command([JointCommand(j, ControlMode.POSITION, p) for j, p in now.items()])
-        except Exception as err:  # a faulted device: the manager makes it safe
+        except StateError as err:  # not ACTIVE (faulted, closed): the manager makes it safe
+            logger.info("arm: hold where it is not sent: %s", err)
+        except Exception as err:
             logger.warning("arm: hold where it is not sent: %s", err)
 
     def _halt(self, motion: Motion) -> None:
