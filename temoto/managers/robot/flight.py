@@ -327,20 +327,29 @@ class FlightController:
         motion.finish(error)
 
     def step(self, dt: float) -> None:
-        """Control thread: check arrival and the vehicle's mode."""
-        with self._lock:
+        """Control thread: check arrival and the vehicle's mode.
+
+        Never waits for a stop, hold or resume that is talking to the vehicle (it holds the
+        lock while the mode change is acknowledged): that step is skipped, so the robot's other
+        features are still stepped.
+        """
+        if not self._lock.acquire(blocking=False):
+            return
+        try:
             motion, check = self._motion, self._check
             describe = self._describe
+            if motion is not None and motion.done:
+                self._motion = None
+                return
+        finally:
+            self._lock.release()
         if motion is None or check is None:
-            return
-        if motion.done:
-            with self._lock:
-                if self._motion is motion:
-                    self._motion = None
             return
         telemetry = self._vehicle.telemetry()
         error: StateError | None = None
-        with self._lock:
+        if not self._lock.acquire(blocking=False):
+            return
+        try:
             if self._motion is not motion:
                 return
             mode = str(telemetry.mode)
@@ -351,6 +360,11 @@ class FlightController:
                     self._motion = None
                     name = getattr(self._vehicle, "name", "vehicle")
                     error = StateError(f"{name}: the vehicle switched to {mode} (not commanded)")
+            reached = error is None and not motion.held and check(telemetry)
+            if reached:
+                self._motion = None
+        finally:
+            self._lock.release()
         if error is not None:
             logger.warning("%s: %s", motion.what, error)
             motion.finish(error)
@@ -358,9 +372,5 @@ class FlightController:
         motion.progress = (
             describe(telemetry) if describe is not None else f"alt {telemetry.position.alt:.1f} m"
         )
-        if not motion.held and check(telemetry):
-            with self._lock:
-                if self._motion is not motion:
-                    return
-                self._motion = None
+        if reached:
             motion.finish()
