@@ -17,11 +17,12 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+import yaml
 from _robots import robot_manager
 
 from temoto import ActionEngine, Result, ScaledClock
 from temoto.actions.builtin import ROBOT_ACTIONS
-from temoto.config import load_profile
+from temoto.config import Profile, load_profile, parse_profile
 from temoto.core.registrar import Registrar
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.managers.robot import RobotManager, RobotManagerClient
@@ -54,10 +55,10 @@ def graph(name: str, action: str, inputs: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def until(check: Callable[[], bool], what: str, timeout: float = WAIT) -> None:
+def until(check: Callable[[], bool], what: str | Callable[[], str], timeout: float = WAIT) -> None:
     deadline = time.monotonic() + timeout
     while not check():
-        assert time.monotonic() < deadline, what
+        assert time.monotonic() < deadline, what if isinstance(what, str) else what()
         time.sleep(0.002)
 
 
@@ -138,12 +139,20 @@ def test_a_paused_move_holds_the_arm_before_the_node_is_paused_and_resumes_to_th
 # ---- the base --------------------------------------------------------------------------------
 
 
+def _lenient_rover() -> Profile:
+    """The shipped rover with slower ODrive streams (heartbeats 4 Hz, encoder estimates 20 Hz).
+
+    Its simulator shares this process: on a loaded 2-core machine a 10 ms encoder stream can
+    miss its bound and fault the base, which is not what these tests are about.
+    """
+    doc = yaml.safe_load((PROFILES / "sim_rover.yaml").read_text())
+    doc["devices"]["base"].update(heartbeat_period=0.25, encoder_period=0.05)
+    return parse_profile(doc, file="sim_rover.yaml")
+
+
 @pytest.fixture
 def rover() -> Iterator[tuple[Registrar, RobotManager, Any]]:
-    with robot_manager("test-stop-rover", load_profile(PROFILES / "sim_rover.yaml"), rate_hz=2) as (
-        registrar,
-        manager,
-    ):
+    with robot_manager("test-stop-rover", _lenient_rover(), rate_hz=2) as (registrar, manager):
         watcher = RobotManagerClient(registrar).request(client="watcher")
         yield registrar, manager, manager.simulator("base")
         registrar.release(watcher.resource.id)
@@ -156,10 +165,13 @@ def _wheels(sim: Any) -> list[float]:
 def test_a_stopped_drive_has_its_wheels_at_zero_velocity_before_the_graph_is_stopped(
     rover: tuple[Registrar, RobotManager, Any],
 ) -> None:
-    registrar, _, sim = rover
+    registrar, manager, sim = rover
     with ActionEngine("sim_rover", actions=[ROBOT_ACTIONS], registrar=registrar) as engine:
         engine.start(graph("drive", "NavigateTo", {"x": 2.0, "y": 0.0}))
-        until(lambda: any(v != 0 for v in _wheels(sim)), "the wheels were not driven")
+        until(
+            lambda: any(v != 0 for v in _wheels(sim)),
+            lambda: f"the wheels were not driven: {manager.robot().health()}",
+        )
         time.sleep(0.02)
         assert engine.stop("drive", WAIT) is Result.STOPPED
         time.sleep(WIRE)
