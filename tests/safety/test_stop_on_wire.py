@@ -1,4 +1,7 @@
-"""A stopped arm is held where it is, seen on the wire from another process (issue 25).
+"""Motions end on the wire as they should, seen from the simulator's own process (issue 25).
+
+A stopped arm is held where it is; a vehicle whose GCS failsafe switched it to RTL ends the
+flight action with the reason, and is left in RTL.
 
 The arm's simulator runs in a process of its own (:mod:`temoto.testing.simhost`, over its
 pseudo-terminal); this process runs the Robot Manager (control loop at 2 Hz, so that a hold left
@@ -22,6 +25,15 @@ from temoto.config import parse_profile
 from temoto.core.registrar import Registrar
 from temoto.managers.robot import RobotManager, RobotManagerClient
 from temoto.testing.exitpaths import _SimHost
+
+
+def _close(host: _SimHost) -> None:
+    host.close()  # the host ends at the end of its input
+    host._reader.join(5)
+    for pipe in (host.proc.stdout, host.proc.stderr):
+        if pipe is not None:
+            pipe.close()
+
 
 ROOT = Path(__file__).resolve().parents[2]
 #: shoulder_pan (servo 1) from 0 to 2.5 rad: ~0.55 s at the XM430-W350's velocity limit.
@@ -96,8 +108,63 @@ def test_a_stopped_move_is_held_on_the_wire_before_the_graph_is_stopped() -> Non
             manager.shutdown()
     finally:
         registrar.close()
-        host.close()  # the host ends at the end of its input
-        host._reader.join(5)
-        for pipe in (host.proc.stdout, host.proc.stderr):
-            if pipe is not None:
-                pipe.close()
+        _close(host)
+
+
+def test_a_failsafe_rtl_after_a_link_outage_ends_the_flight_with_the_reason() -> None:
+    doc = yaml.safe_load((ROOT / "hw_profiles" / "sim_quad.yaml").read_text())
+    entry = doc["devices"]["quad"]
+    # ArduCopter's GCS failsafe after 2 s without our heartbeat (FS_GCS_TIMEOUT's minimum); the
+    # driver's own bound (5 s) is longer, so the outage below is no fault of the link
+    entry.update(gcs_failsafe={"enable": 1, "timeout": 2}, heartbeat_timeout=5.0)
+    host = _SimHost(entry, {})
+    registrar = Registrar("test-failsafe-wire")
+    try:
+        doc["sim"] = False
+        doc["devices"]["quad"] = dict(host.config)
+        manager = RobotManager(registrar, parse_profile(doc, file="sim_quad.yaml"))
+        try:
+            watcher = RobotManagerClient(registrar).request(client="watcher")
+            motion = watcher.takeoff(3.0)
+            assert motion.wait(30)
+            assert motion.error is None, motion.error
+            lat, lon = watcher.telemetry().position.lat, watcher.telemetry().position.lon
+            graph = {
+                "graph_name": "fly",
+                "graph_entry": [{"name": "FlyTo", "instance_id": 0}],
+                "graph_exit": [{"name": "FlyTo", "instance_id": 0}],
+                "actions": [
+                    {
+                        "name": "FlyTo",
+                        "instance_id": 0,
+                        "type": "sync",
+                        "input_parameters": {
+                            "lat": {"pvf_type": "number", "pvf_value": lat + 0.01},
+                            "lon": {"pvf_type": "number", "pvf_value": lon},
+                            "alt": {"pvf_type": "number", "pvf_value": 3.0},
+                        },
+                    }
+                ],
+            }
+            with ActionEngine("quad", actions=[ROBOT_ACTIONS], registrar=registrar) as engine:
+                engine.start(graph)
+                time.sleep(0.3)
+                # (a parameter: the simulator's receive loop tests the fault's parameters for
+                # truth, so a link_loss injected without any would still let datagrams in)
+                host.command("inject link_loss why=outage")
+                host.wait("safe", since=time.monotonic(), timeout=10)  # RTL, seen by the host
+                host.command("clear link_loss")
+                t_back = time.monotonic()
+                result = engine.wait("fly", 10)  # before the fix: RUNNING until killed
+                took = time.monotonic() - t_back
+                errors = [str(e) for e in engine.outcome("fly").errors]
+            assert result is Result.ERROR, errors
+            assert any("the vehicle switched to RTL (not commanded)" in e for e in errors), errors
+            assert took < 3.0, took  # a heartbeat period (1 s) or two after the link is back
+            assert host.states[-1]["state"]["mode"] in ("RTL", "LAND"), host.states[-1]
+            registrar.release(watcher.resource.id)
+        finally:
+            manager.shutdown()
+    finally:
+        registrar.close()
+        _close(host)
