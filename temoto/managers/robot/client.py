@@ -259,9 +259,8 @@ def follow(action: Action, motion: Motion, timeout: float | None = None) -> bool
     """Inside an action: wait for a motion (paused time does not count).
 
     Hold the motion in the action's ``on_pause`` and resume it in ``on_resume`` (the built-in
-    robot actions do). A stop cancels the motion (its devices are told to be still before this
-    returns) (and raises
-    :class:`~temoto.errors.StopRequested`); a fault of the robot raises
+    robot actions do). A stop cancels the motion, its devices told to be still before this
+    raises :class:`~temoto.errors.StopRequested`; a fault of the robot raises
     :class:`~temoto.errors.ResourceBrokenError` (and cancels it).
 
     Args:

@@ -83,7 +83,9 @@ class FlightController:
         """The vehicle's navigation speeds (m/s; ``LAND_ALT_LOW`` in m), read once.
 
         Read from the vehicle's parameters when it has them (``get_param``), else
-        :attr:`DEFAULT_SPEEDS`.
+        :attr:`DEFAULT_SPEEDS`; after one parameter that could not be read, the others are not
+        asked for (a vehicle that does not answer would hold up the first flight action for
+        every parameter's timeout).
         """
         if self._speeds is None:
             get = getattr(self._vehicle, "get_param", None)
@@ -94,7 +96,8 @@ class FlightController:
                     try:
                         value = float(get(name))
                     except Exception as err:
-                        logger.info("flight: %s not read (%s); using %g", name, err, default)
+                        logger.info("flight: %s not read (%s); ArduCopter's defaults", name, err)
+                        get = None
                 speeds[name] = max(value, 10.0) / 100.0
             self._speeds = speeds
         return self._speeds
