@@ -89,7 +89,7 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
         context.bench_context,
     ),
     "robot": (
-        "robot manager: start-to-ready and idle RSS, sim_mobile_manipulator (subprocesses)",
+        "robot manager: start-to-ready, idle RSS (subprocesses); stop -> still (in-process)",
         robot.bench_robot,
     ),
     "safety": (

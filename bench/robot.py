@@ -1,19 +1,44 @@
-"""Robot Manager: start-to-ready time and idle memory of a whole robot instance.
+"""Robot Manager: start-to-ready time and idle memory of a robot instance; stop to still.
 
 Each round starts ``python -m temoto.managers.robot --profile <profile> --local`` (serving, no
 mission) as a fresh process, measures from ``Popen`` to its "robot '<name>' ready" line (profile
 load, instance, simulators, drivers configured and activated, robot loaded), reads its VmRSS
 after it has idled for a second (half a second in quick mode), and stops it with SIGTERM.
+
+``stop_to_still_ms``, a graph's stop command -> every commanded device still.
+
+For each robot of the shipped simulated profiles (the rover's ODrive base, the Dynamixel arm,
+the MAVLink quadcopter in the air), a Robot Manager with its simulators in this process (real
+time, the control loop at 50 Hz) runs a one-node graph (NavigateTo 3 m, MoveJoints to pose
+'reach', FlyTo 2 km). While the device moves (the wheels above 5 rad/s, the arm 20 ms into its
+move, the vehicle above 5 m/s), ``engine.stop`` is called on another thread; this thread reads
+the simulator's state every 1 ms and takes the time from the stop call to the first reading
+in which every device of the robot is still:
+
+* base: every wheel below 0.24 rad/s (the Dynamixel Moving Threshold's default speed; 2 cm/s at
+  the rover's 8 cm wheel);
+* arm: every servo's Moving register 0 (the servo's own flag: under its Moving Threshold,
+  0.24 rad/s by default, ROBOTIS e-Manual, address 122);
+* vehicle: horizontal speed below 0.1 m/s.
+
+``stop_to_rest_command_ms`` is the part of it until the simulator holds the rest set-point
+(the wheels' input velocity 0, the arm's goal positions no longer the pose's, the vehicle in
+LOITER); the rest is the device slowing down (the simulators' motors
+and servos follow their set-points with a 50 ms time constant).
 """
 
 from __future__ import annotations
 
+import math
 import os
 import signal
 import subprocess
 import sys
+import threading
 import time
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from bench.common import Results, median
 
@@ -83,4 +108,167 @@ def bench_robot(quick: bool) -> Results:
         f"{how}: {idle}; min {min(rss):.1f}, max {max(rss):.1f}",
         ("<=", 60.0),
     )
+    stops = bench_stop_to_still(quick)
+    out.metrics.extend(stops.metrics)
+    out.notes.extend(stops.notes)
+    return out
+
+
+PROFILES = ROOT / "hw_profiles"
+
+#: The goal (issue 25): every commanded device still within 100 ms of the stop command.
+GOAL_MS = 100.0
+
+#: X-series control table (ROBOTIS e-Manual): Goal Position 116, Moving 122, Present Position
+#: 132.
+_GOAL, _MOVING, _PRESENT = 116, 122, 132
+
+
+def _graph(action: str, inputs: dict[str, Any]) -> dict[str, Any]:
+    node = {"name": action, "instance_id": 0}
+    params = {
+        k: {"pvf_type": "string" if isinstance(v, str) else "number", "pvf_value": v}
+        for k, v in inputs.items()
+    }
+    return {
+        "graph_name": "motion",
+        "graph_entry": [node],
+        "graph_exit": [node],
+        "actions": [{**node, "type": "sync", "input_parameters": params}],
+    }
+
+
+def _base(sim: Any) -> tuple[bool, bool, bool]:
+    vels = [abs(a.vel) * 2 * math.pi for a in sim.axes.values()]  # ODrive: rev/s; here rad/s
+    moving = max(vels) > 5.0
+    rest = all(a.input_vel == 0 for a in sim.axes.values())
+    return moving, rest, max(vels) < 0.24
+
+
+class _Arm:
+    """The arm's readings; the pose's goal of shoulder_lift (servo 2) noted while it moves."""
+
+    def __init__(self) -> None:
+        self.pose_goal: int | None = None
+
+    def __call__(self, sim: Any) -> tuple[bool, bool, bool]:
+        flags = [sim.read_register(i, _MOVING) for i in sim.ids]
+        goal = sim.read_register(2, _GOAL)
+        if self.pose_goal is None and any(flags):
+            self.pose_goal = goal
+        rest = self.pose_goal is not None and goal != self.pose_goal  # the hold arrived
+        return any(flags), rest, not any(flags)
+
+
+def _vehicle(sim: Any) -> tuple[bool, bool, bool]:
+    speed = math.hypot(sim.vel[0], sim.vel[1])
+    return speed > 5.0, sim.mode == "LOITER", speed < 0.1
+
+
+def _stop_once(
+    profile: str, device: str, graph: dict[str, Any], read: Callable[..., Any]
+) -> tuple[float, float]:
+    from temoto import ActionEngine
+    from temoto.actions.builtin import ROBOT_ACTIONS
+    from temoto.config import load_profile
+    from temoto.core.registrar import Registrar
+    from temoto.managers.robot import RobotManager, RobotManagerClient
+
+    registrar = Registrar(f"bench-{device}")
+    manager = RobotManager(registrar, load_profile(PROFILES / profile))
+    try:
+        watcher = RobotManagerClient(registrar).request(client="bench")
+        sim = manager.simulator(device)
+        if device == "quad":
+            motion = watcher.takeoff(5.0)
+            if not motion.wait(30) or motion.error is not None:
+                raise RuntimeError(f"the quad did not take off: {motion.error}")
+            lat, lon, _ = sim.home
+            graph = _graph("FlyTo", {"lat": lat + 2000 / 111_195.0, "lon": lon, "alt": 5.0})
+        with ActionEngine("bench", actions=[ROBOT_ACTIONS], registrar=registrar) as engine:
+            engine.start(graph)
+            deadline = time.monotonic() + 30
+            while not read(sim)[0]:
+                if time.monotonic() > deadline:
+                    raise RuntimeError(f"{device} did not move")
+                time.sleep(0.001)
+            if device == "arm":
+                time.sleep(0.02)
+            stopper = threading.Thread(
+                target=engine.stop, args=("motion", 30), name="temoto-bench-stop"
+            )
+            t0 = time.perf_counter()
+            stopper.start()
+            rest_at = still_at = None
+            while still_at is None or rest_at is None:
+                _, rest, still = read(sim)
+                now = time.perf_counter()
+                if rest and rest_at is None:
+                    rest_at = now
+                if still and still_at is None:
+                    still_at = now
+                if now - t0 > 10:
+                    raise RuntimeError(f"{device} not still 10 s after the stop")
+                time.sleep(0.001)
+            stopper.join()
+        registrar.release(watcher.resource.id)
+        return (still_at - t0) * 1000, (rest_at - t0) * 1000
+    finally:
+        manager.shutdown()
+        registrar.close()
+
+
+def bench_stop_to_still(quick: bool) -> Results:
+    """``stop_to_still_ms`` (the slowest robot's median) and per robot ``..._<robot>_ms``."""
+    out = Results()
+    cases = {
+        "base": (
+            "sim_rover.yaml",
+            "base",
+            _graph("NavigateTo", {"x": 3.0, "y": 0.0}),
+            lambda: _base,
+        ),
+        "arm": ("sim_arm.yaml", "arm", _graph("MoveJoints", {"pose": "reach"}), _Arm),
+        "vehicle": ("sim_quad.yaml", "quad", {}, lambda: _vehicle),
+    }
+    rounds = 1 if quick else 7
+    still: dict[str, list[float]] = {k: [] for k in cases}
+    rest: dict[str, list[float]] = {k: [] for k in cases}
+    failed: dict[str, list[str]] = {k: [] for k in cases}
+    for _ in range(rounds):
+        for name, (profile, device, graph, read) in cases.items():
+            for _attempt in range(3):  # a device that faulted under load: that round again
+                try:
+                    s, r = _stop_once(profile, device, graph, read())
+                except RuntimeError as err:
+                    failed[name].append(str(err))
+                    continue
+                still[name].append(s)
+                rest[name].append(r)
+                break
+    for name, errors in failed.items():
+        if errors:
+            out.notes.append(f"{name}: {len(errors)} round(s) again after: {errors[-1]}")
+    if not all(still.values()):
+        out.notes.append("stop_to_still_ms: a robot never completed a round; not measured")
+        return out
+    how = f"in-process simulators, real time, control loop 50 Hz, {rounds} stops each"
+    worst = max(median(v) for v in still.values())
+    out.add(
+        "stop_to_still_ms",
+        worst,
+        "ms",
+        f"engine.stop -> every device still (the slowest robot's median; {how})",
+        ("<=", GOAL_MS),
+    )
+    for name in cases:
+        s, r = still[name], rest[name]
+        out.add(
+            f"stop_to_still_{name}_ms",
+            median(s),
+            "ms",
+            f"min {min(s):.1f}, max {max(s):.1f}; rest set-point held after {median(r):.1f} ms"
+            f" (max {max(r):.1f})",
+        )
+        out.add(f"stop_to_rest_command_{name}_ms", median(r), "ms", f"max {max(r):.1f}")
     return out

@@ -8,11 +8,18 @@ from collections.abc import Iterator
 
 import pytest
 
-from temoto.actions.builtin.robot._common import PROGRESS_PERIOD, RobotAction
+from temoto.actions.builtin.robot._common import (
+    DEADLINE_FACTOR,
+    DEADLINE_SLACK,
+    PROGRESS_PERIOD,
+    RobotAction,
+)
+from temoto.actions.builtin.robot.navigate_to import NavigateTo
 from temoto.clock import ManualClock
 from temoto.core.action import RunControl
-from temoto.errors import StopRequested
+from temoto.errors import ActionError, StopRequested
 from temoto.managers.robot.features import Motion
+from temoto.testing.robots import FakeRobot
 
 
 class _Probe(RobotAction):
@@ -45,7 +52,8 @@ class _CountingClock(ManualClock):
 class _Run:
     """A probe bound to a manual clock, following ``motion`` in a thread."""
 
-    def __init__(self, timeout: float | None = None) -> None:
+    def __init__(self, timeout: float | None = None, estimate: float | None = None) -> None:
+        self.estimate = estimate
         self.clock = _CountingClock()
         self.control = RunControl(self.clock)
         self.action = _Probe()
@@ -58,7 +66,8 @@ class _Run:
 
     def _follow(self) -> None:
         try:
-            self.result.append(self.action.run_motion(lambda: self.motion))
+            estimate = None if self.estimate is None else (lambda: self.estimate or 0.0)
+            self.result.append(self.action.run_motion(lambda: self.motion, estimate))
         except (StopRequested, Exception) as err:
             self.result.append(err)
 
@@ -120,3 +129,30 @@ def test_a_stop_cancels_the_motion() -> None:
     run.control.request_stop()
     assert isinstance(run.end(), StopRequested)
     assert run.motion.done
+
+
+def test_a_missed_deadline_stops_the_motion_and_fails_with_the_reason() -> None:
+    run = _Run(estimate=1.0)  # the deadline: 1.5 * 1 s + 5 s = 6.5 s of clock time
+    deadline = DEADLINE_FACTOR * 1.0 + DEADLINE_SLACK
+    periods = int(deadline // PROGRESS_PERIOD)
+    for i in range(periods):
+        run.step(f"{periods - i} m left")
+    run.step("0.4 m left", goes_on=False)  # the last half period: the deadline
+    error = run.end()
+    assert isinstance(error, ActionError), error
+    assert str(error).startswith(f"_Probe: not move within {deadline:.1f} s (0.4 m left)"), error
+    assert run.motion.done
+    assert "timed out" in str(run.motion.error)
+
+
+def test_an_explicit_timeout_wins_over_the_deadline() -> None:
+    run = _Run(timeout=PROGRESS_PERIOD, estimate=100.0)
+    run.step("3 m left", goes_on=False)
+    assert run.end() is False
+
+
+def test_navigate_to_says_where_it_should_be_and_how_far_it_is() -> None:
+    action = NavigateTo()
+    robot = FakeRobot(step=0.0, y=0.5)
+    action._goal = (robot, 2.0, 0.5)  # type: ignore[assignment]
+    assert action.missed(Motion("navigate to (2, 0.5)")) == ("at (2, 0.5)", "2.0 m left")

@@ -12,7 +12,8 @@ included, apply), starts it, and prints JSON lines on standard output:
   whenever the device's state changes (read every :data:`PERIOD` seconds), and once at start.
 
 ``active`` says the device acts (every ODrive axis in CLOSED_LOOP_CONTROL, every MIT motor in
-motor mode, every Dynamixel servo's torque on, the vehicle armed); ``safe`` says it is in a
+motor mode, every Dynamixel servo's torque on, the vehicle armed; a Dynamixel chain's state
+also says which servos move and their goals, in ticks); ``safe`` says it is in a
 safe state as ``docs/safety.md`` defines them (every axis IDLE; every MIT motor out of motor
 mode or commanded zero torque; every servo's torque off or stopped by its Bus Watchdog; the
 vehicle disarmed, on the ground, or in a hold, land or return mode). This is what a person
@@ -69,6 +70,10 @@ def _mit(sim: Any) -> tuple[bool, bool, dict[str, Any]]:
     return all(enabled.values()), safe, {"motor_mode": enabled, "zero_torque": zero}
 
 
+#: The X series' Moving register (ROBOTIS e-Manual, XM430-W350 control table, address 122).
+_DXL_MOVING: Final = 122
+
+
 def _dynamixel(sim: Any) -> tuple[bool, bool, dict[str, Any]]:
     from temoto.drivers.dynamixel import control_table as ct
 
@@ -80,7 +85,11 @@ def _dynamixel(sim: Any) -> tuple[bool, bool, dict[str, Any]]:
     }
     active = all(torque.values()) and not any(expired.values())
     safe = all(not torque[i] or expired[i] for i in torque)
-    return active, safe, {"torque": torque, "watchdog_expired": expired}
+    # motion (the stop and pause tests): Moving (e-Manual, address 122) and the goal, in ticks
+    moving = {str(i): bool(sim.read_register(i, _DXL_MOVING)) for i in sim.ids}
+    goal = {str(i): sim.read_register(i, ct.GOAL_POSITION.address) for i in sim.ids}
+    state = {"torque": torque, "watchdog_expired": expired, "moving": moving, "goal": goal}
+    return active, safe, state
 
 
 def _mavlink(sim: Any) -> tuple[bool, bool, dict[str, Any]]:

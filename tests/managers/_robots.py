@@ -13,11 +13,11 @@ from temoto.managers.robot import RobotManager
 
 @contextmanager
 def robot_manager(
-    name: str, profile: Profile, clock: Clock | None = None
+    name: str, profile: Profile, clock: Clock | None = None, rate_hz: float = 50.0
 ) -> Iterator[tuple[Registrar, RobotManager]]:
     """A registrar named ``name`` serving ``profile``; every reference released at the end."""
     registrar = Registrar(name)
-    manager = RobotManager(registrar, profile, clock=clock)
+    manager = RobotManager(registrar, profile, clock=clock, rate_hz=rate_hz)
     try:
         yield registrar, manager
     finally:

@@ -8,6 +8,24 @@ control thread at a fixed rate on the robot's clock; a vehicle's commands are se
 A new goal for a feature replaces the one it had (the old motion fails with "superseded");
 :meth:`Motion.hold` stops where it is (a paused graph) and :meth:`Motion.resume` goes on;
 :meth:`Motion.cancel` stops for good.
+
+**Stop and hold act on the devices at once.** :meth:`Motion.cancel` and :meth:`Motion.hold`
+return only after the feature's devices were told to be still, on the caller's thread: the
+arm's position set-points become the joints' present positions, the base's wheels are
+commanded zero velocity, the vehicle is switched to LOITER (ArduCopter brakes to a stop and
+holds its position; the acknowledgement is awaited). The controller sends every set-point under
+its lock, so the control thread can never send the old goal's set-point after a stop or a hold.
+:meth:`Motion.resume` sends the goal again (the arm's targets; the vehicle's mode and target)
+and the motion goes on from where it is.
+
+**Own mode changes of a vehicle** (an ArduCopter failsafe's RTL or LAND, a pilot's mode
+switch) end its flight motion with an error naming the mode: the controller knows the modes it
+commanded and checks the vehicle's reported mode on every step.
+
+**Deadlines.** Each controller estimates how long a goal takes from the motion and its limits
+(:meth:`DriveController.estimate`, :meth:`ArmController.estimate`, the flight controller's
+``estimate_*``); the built-in robot actions add a margin to it (see
+:mod:`temoto.actions.builtin.robot._common`).
 """
 
 from __future__ import annotations
@@ -15,133 +33,18 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
-from temoto.config import ArmFeature, DriveFeature, FlightFeature
-from temoto.drivers import (
-    Actuator,
-    ControlMode,
-    GeoPoint,
-    JointCommand,
-    MissionItem,
-    MissionVehicle,
-    Vehicle,
-)
+from temoto.config import ArmFeature, DriveFeature
+from temoto.drivers import Actuator, ControlMode, JointCommand
 from temoto.errors import StateError
+from temoto.managers.robot.flight import FlightController
+from temoto.managers.robot.motion import Motion
 
 __all__ = ["ArmController", "DriveController", "FlightController", "Motion"]
 
 logger = logging.getLogger(__name__)
-
-_EARTH_RADIUS = 6_371_000.0  # m
-
-
-class Motion:
-    """One goal of one feature, and how it is going.
-
-    Args:
-        what: A description for messages (``navigate to (1.0, 2.0)``).
-    """
-
-    def __init__(self, what: str) -> None:
-        self.what = what
-        self._lock = threading.Lock()
-        self._done = threading.Event()
-        self._error: BaseException | None = None
-        self._held = False
-        self._superseded = False
-        self._listeners: list[Callable[[], None]] = []
-        self.progress = ""
-
-    def __repr__(self) -> str:
-        state = "done" if self.done else ("held" if self.held else "moving")
-        return f"<Motion {self.what} {state}>"
-
-    @property
-    def done(self) -> bool:
-        """Reached, failed or cancelled."""
-        return self._done.is_set()
-
-    @property
-    def error(self) -> BaseException | None:
-        """Why it did not reach its goal, or None."""
-        with self._lock:
-            return self._error
-
-    @property
-    def superseded(self) -> bool:
-        """Ended because a newer goal for the same feature replaced it."""
-        with self._lock:
-            return self._superseded
-
-    @property
-    def held(self) -> bool:
-        """Held where it is (see :meth:`hold`)."""
-        with self._lock:
-            return self._held
-
-    def add_listener(self, listener: Callable[[], None]) -> None:
-        """Call ``listener`` (no arguments) when the motion ends or makes progress.
-
-        Args:
-            listener: E.g. an action's ``wake``.
-        """
-        with self._lock:
-            self._listeners.append(listener)
-        if self.done:
-            listener()
-
-    def wait(self, timeout: float | None = None) -> bool:
-        """Block (real time) until it ends.
-
-        Args:
-            timeout: Real seconds, or None.
-
-        Returns:
-            Whether it ended.
-        """
-        return self._done.wait(timeout)
-
-    def hold(self) -> None:
-        """Stop where it is until :meth:`resume`."""
-        with self._lock:
-            self._held = True
-
-    def resume(self) -> None:
-        """Go on after :meth:`hold`."""
-        with self._lock:
-            self._held = False
-
-    def supersede(self) -> None:
-        """End it because a newer goal for the same feature replaced it."""
-        with self._lock:
-            if self._done.is_set():
-                return
-            self._superseded = True
-        self.cancel("superseded by a new goal")
-
-    def cancel(self, why: str = "cancelled") -> None:
-        """End it without reaching the goal.
-
-        Args:
-            why: Recorded as the error.
-        """
-        self.finish(StateError(f"{self.what}: {why}"))
-
-    def finish(self, error: BaseException | None = None) -> None:
-        """Controller: the goal was reached (or not, with ``error``). Idempotent."""
-        with self._lock:
-            if self._done.is_set():
-                return
-            self._error = error
-            self._done.set()
-            listeners = list(self._listeners)
-        for listener in listeners:
-            try:
-                listener()
-            except Exception:
-                logger.exception("a motion listener raised")
 
 
 def _clamp(value: float, limit: float) -> float:
@@ -186,6 +89,31 @@ class DriveController:
         with self._lock:
             return self._goal
 
+    def estimate(self, x: float, y: float, yaw: float | None = None) -> float:
+        """Seconds the base needs from where it is to ``(x, y)`` (and ``yaw``), at its limits.
+
+        The turn towards the goal at ``max_turn_rate``, the distance at ``max_speed``, the
+        proportional controller's approach from ``max_speed / K_LINEAR`` metres down to the
+        tolerance (``ln(d0 / tolerance) / K_LINEAR``), and the final turn to ``yaw``.
+
+        Returns:
+            The estimate, clock seconds.
+        """
+        f = self.feature
+        px, py, pyaw = self.pose()
+        dist = math.hypot(x - px, y - py)
+        seconds = 0.0
+        heading = pyaw
+        if dist > f.tolerance:
+            heading = math.atan2(y - py, x - px)
+            seconds += abs(_wrap(heading - pyaw)) / f.max_turn_rate
+            seconds += dist / f.max_speed
+            slow = min(dist, f.max_speed / self.K_LINEAR)
+            seconds += math.log(max(1.0, slow / f.tolerance)) / self.K_LINEAR
+        if yaw is not None:
+            seconds += abs(_wrap(yaw - heading)) / f.max_turn_rate
+        return seconds
+
     def navigate_to(self, x: float, y: float, yaw: float | None = None) -> Motion:
         """Drive to ``(x, y)`` (odometry frame), then turn to ``yaw`` if given.
 
@@ -194,7 +122,7 @@ class DriveController:
         """
         if not all(math.isfinite(v) for v in (x, y, 0.0 if yaw is None else yaw)):
             raise ValueError("a goal must be finite")
-        motion = Motion(f"navigate to ({x:g}, {y:g})")
+        motion = Motion(f"navigate to ({x:g}, {y:g})", self)
         with self._lock:
             old, self._motion, self._goal = self._motion, motion, (x, y, yaw)
         if old is not None:
@@ -202,14 +130,40 @@ class DriveController:
         return motion
 
     def stop(self) -> None:
-        """Cancel the goal and stop the wheels at the next step."""
+        """Cancel the goal and command the wheels zero velocity now (if they were not)."""
         with self._lock:
             old, self._motion, self._goal = self._motion, None, None
+            if self._commanded != (0.0, 0.0):
+                self._still()
         if old is not None:
             old.cancel()
 
+    def _still(self) -> None:
+        """Lock held: zero wheel velocity on the wire (sent even if it was sent before)."""
+        try:
+            self._send(0.0, 0.0)
+        except StateError as err:  # not ACTIVE (faulted, closed): the manager makes it safe
+            logger.info("drive: zero velocity not sent: %s", err)
+        except Exception as err:
+            logger.warning("drive: zero velocity not sent: %s", err)
+
+    def _halt(self, motion: Motion) -> None:
+        with self._lock:
+            if self._motion is not motion:
+                return
+            self._motion = self._goal = None
+            self._still()
+
+    def _hold(self, motion: Motion) -> None:
+        with self._lock:
+            if self._motion is motion:
+                self._still()
+
+    def _resume(self, motion: Motion) -> None:
+        """Nothing to send: the next step drives on from where the base is."""
+
     def step(self, dt: float) -> None:
-        """Control thread: update odometry, command the wheels."""
+        """Control thread: update odometry, command the wheels (under the lock)."""
         r = self.feature.wheel_radius
         sep = self.feature.wheel_separation
         left = self._left.read_state().joints[self.feature.left_wheel].position
@@ -233,10 +187,10 @@ class DriveController:
                 motion.progress = f"at ({self.x:.2f}, {self.y:.2f})"
             if reached:
                 self._motion = self._goal = None
-        wl = (v - w * sep / 2) / r
-        wr = (v + w * sep / 2) / r
-        if (wl, wr) != self._commanded:
-            self._send(wl, wr)
+            wl = (v - w * sep / 2) / r
+            wr = (v + w * sep / 2) / r
+            if (wl, wr) != self._commanded:
+                self._send(wl, wr)  # under the lock: a stop or hold cannot be overtaken
         if reached and motion is not None:
             motion.finish()
 
@@ -260,12 +214,12 @@ class DriveController:
         f = self.feature
         left = JointCommand(f.left_wheel, ControlMode.VELOCITY, wl)
         right = JointCommand(f.right_wheel, ControlMode.VELOCITY, wr)
+        self._commanded = (wl, wr)  # even if sending fails: the next step does not resend it
         if self._left is self._right:
             self._left.command([left, right])
         else:
             self._left.command([left])
             self._right.command([right])
-        self._commanded = (wl, wr)
 
 
 class ArmController:
@@ -274,20 +228,56 @@ class ArmController:
     Args:
         feature: The profile's arm settings.
         driver: The device that moves the joints.
+        joint_speed: Each joint's speed limit (rad/s), for :meth:`estimate`; by default the
+            driver's servos' ``velocity_limit`` where the profile gives one.
     """
 
-    def __init__(self, feature: ArmFeature, driver: Actuator) -> None:
+    #: Joint speed (rad/s) assumed for a joint without a limit in the profile, for
+    #: :meth:`estimate`: a slow Dynamixel X at a light load (the e-Manual gives 46-57 rpm,
+    #: 4.8-6 rad/s, without load; position-mode profiles are often far slower).
+    DEFAULT_JOINT_SPEED = 1.0
+    #: Longest age (s) of a reading that :meth:`here` moves on by its velocity.
+    EXTRAPOLATE_MAX = 0.05
+
+    def __init__(
+        self,
+        feature: ArmFeature,
+        driver: Actuator,
+        joint_speed: Mapping[str, float] | None = None,
+    ) -> None:
         self.feature = feature
         self._driver = driver
         self._lock = threading.Lock()
         self._motion: Motion | None = None
         self._targets: dict[str, float] = {}
-        self._sent_hold = False
+        if joint_speed is None:  # the servos' velocity_limit of the profile, where given
+            joint_speed = {
+                str(servo.joint): float(servo.velocity_limit)
+                for servo in getattr(driver, "servos", ())
+                if getattr(servo, "velocity_limit", None)
+            }
+        self.joint_speed = dict(joint_speed)
 
     def positions(self) -> dict[str, float]:
         """The arm's joint positions (rad)."""
         joints = self._driver.read_state().joints
         return {j: joints[j].position for j in self.feature.joints}
+
+    def estimate(self, targets: Mapping[str, float]) -> float:
+        """Seconds the slowest joint needs to reach its target at its speed limit.
+
+        Returns:
+            The estimate, clock seconds.
+        """
+        now = self.positions()
+        return max(
+            (
+                abs(float(v) - now.get(j, float(v)))
+                / self.joint_speed.get(j, self.DEFAULT_JOINT_SPEED)
+                for j, v in targets.items()
+            ),
+            default=0.0,
+        )
 
     def move_joints(self, targets: Mapping[str, float]) -> Motion:
         """Move joints to positions (rad); joints not named stay.
@@ -299,13 +289,12 @@ class ArmController:
         if unknown:
             raise ValueError(f"the arm has no joint {', '.join(unknown)}")
         commands = [JointCommand(j, ControlMode.POSITION, float(v)) for j, v in targets.items()]
-        motion = Motion("move " + ", ".join(f"{j}={v:.3g}" for j, v in targets.items()))
+        motion = Motion("move " + ", ".join(f"{j}={v:.3g}" for j, v in targets.items()), self)
         with self._lock:
             old, self._motion, self._targets = self._motion, motion, dict(targets)
-            self._sent_hold = False
+            self._driver.command(commands)
         if old is not None:
             old.supersede()
-        self._driver.command(commands)
         return motion
 
     def move_to_pose(self, pose: str) -> Motion:
@@ -320,14 +309,73 @@ class ArmController:
         return self.move_joints(self.feature.poses[pose])
 
     def stop(self) -> None:
-        """Cancel the goal (the joints hold their set-points)."""
+        """Cancel the goal; the joints hold where they are."""
         with self._lock:
             old, self._motion = self._motion, None
+            if old is not None and not old.done:
+                self._still(self._targets)
         if old is not None:
             old.cancel()
 
+    def here(self, joints: Iterable[str]) -> dict[str, float]:
+        """Where the joints are now: the newest reading moved on by its velocity for its age.
+
+        The driver's reading is up to a poll period old (20 ms at 50 Hz: 0.1 rad at 5 rad/s);
+        a hold at that older position would send a moving joint back. The age counted is at
+        most :attr:`EXTRAPOLATE_MAX`, and the result stays within the joint's limits.
+
+        Args:
+            joints: The joints.
+
+        Returns:
+            Position (rad) by joint.
+        """
+        states = self._driver.read_state().joints
+        clock = getattr(self._driver, "clock", None)
+        now = clock.monotonic() if clock is not None else None
+        limits: Mapping[str, tuple[float, float]] = getattr(self._driver, "joint_limits", {})
+        out: dict[str, float] = {}
+        for j in joints:
+            state = states[j]
+            age = 0.0 if now is None else min(max(now - state.stamp, 0.0), self.EXTRAPOLATE_MAX)
+            position = state.position + state.velocity * age
+            if j in limits:
+                low, high = limits[j]
+                position = min(max(position, low), high)
+            out[j] = position
+        return out
+
+    def _still(self, joints: Iterable[str]) -> None:
+        """Lock held: position set-points = where the joints are now (:meth:`here`)."""
+        try:
+            now = self.here(joints)
+            self._driver.command([JointCommand(j, ControlMode.POSITION, p) for j, p in now.items()])
+        except StateError as err:  # not ACTIVE (faulted, closed): the manager makes it safe
+            logger.info("arm: hold where it is not sent: %s", err)
+        except Exception as err:
+            logger.warning("arm: hold where it is not sent: %s", err)
+
+    def _halt(self, motion: Motion) -> None:
+        with self._lock:
+            if self._motion is not motion:
+                return
+            self._motion = None
+            self._still(self._targets)
+
+    def _hold(self, motion: Motion) -> None:
+        with self._lock:
+            if self._motion is motion:
+                self._still(self._targets)
+
+    def _resume(self, motion: Motion) -> None:
+        with self._lock:
+            if self._motion is motion:
+                self._driver.command(
+                    [JointCommand(j, ControlMode.POSITION, v) for j, v in self._targets.items()]
+                )
+
     def step(self, dt: float) -> None:
-        """Control thread: check arrival; hold where it is while held."""
+        """Control thread: check arrival (set-points are sent by the verbs, hold and resume)."""
         with self._lock:
             motion, targets = self._motion, dict(self._targets)
         if motion is None:
@@ -337,219 +385,16 @@ class ArmController:
                 if self._motion is motion:
                     self._motion = None
             return
-        now = self.positions()
         if motion.held:
-            if not self._sent_hold:
-                self._driver.command(
-                    [JointCommand(j, ControlMode.POSITION, now[j]) for j in targets]
-                )
-                self._sent_hold = True
             return
-        if self._sent_hold:  # resumed: the goal again
-            self._driver.command(
-                [JointCommand(j, ControlMode.POSITION, v) for j, v in targets.items()]
-            )
-            self._sent_hold = False
+        now = self.positions()
         worst = max((abs(now[j] - v) for j, v in targets.items()), default=0.0)
         motion.progress = f"{worst:.3f} rad to go"
         if worst <= self.feature.tolerance:
             with self._lock:
-                if self._motion is motion:
-                    self._motion = None
-            motion.finish()
-
-
-def _distance(a: GeoPoint, b: GeoPoint) -> float:
-    """Metres between two points (haversine over the ground, plus the altitude difference)."""
-    p1, p2 = math.radians(a.lat), math.radians(b.lat)
-    dp, dl = p2 - p1, math.radians(b.lon - a.lon)
-    h = math.sin(dp / 2) ** 2 + math.cos(p1) * math.cos(p2) * math.sin(dl / 2) ** 2
-    ground = 2 * _EARTH_RADIUS * math.asin(min(1.0, math.sqrt(h)))
-    return math.hypot(ground, b.alt - a.alt)
-
-
-class FlightController:
-    """A flying vehicle: take off, fly to, land, fly a mission; arrival checked on every step.
-
-    A held motion makes the vehicle LOITER; resumed, it goes on in GUIDED (a mission: in AUTO,
-    from the item it was at). A mission that ends without being done (stopped, timed out)
-    leaves the vehicle in LOITER, holding where it is, not flying the rest on its own.
-
-    Args:
-        feature: The profile's flight settings.
-        vehicle: The vehicle driver.
-    """
-
-    #: Altitude (m) below which a landing vehicle counts as down.
-    LANDED_ALT = 0.3
-
-    def __init__(self, feature: FlightFeature, vehicle: Vehicle) -> None:
-        self.feature = feature
-        self._vehicle = vehicle
-        self._lock = threading.Lock()
-        self._motion: Motion | None = None
-        self._check: Callable[[Any], bool] | None = None
-        self._resend: Callable[[], None] | None = None
-        self._resume_mode = "GUIDED"
-        self._describe: Callable[[Any], str] | None = None
-        self._holding = False
-
-    def telemetry(self) -> Any:
-        """The vehicle's newest telemetry."""
-        return self._vehicle.telemetry()
-
-    def takeoff(self, altitude: float, mode: str = "GUIDED") -> Motion:
-        """Switch to ``mode``, arm and climb to ``altitude`` m above home.
-
-        Raises:
-            ValueError: ``altitude`` is not positive.
-            DriverError: The vehicle refused (MavlinkCommandError) or did not answer.
-        """
-        if not (math.isfinite(altitude) and altitude > 0):
-            raise ValueError(f"a take-off altitude must be positive, got {altitude}")
-        self._vehicle.set_mode(mode)
-        if not self._vehicle.telemetry().armed:
-            self._vehicle.arm()
-        self._vehicle.takeoff(altitude)
-        target = altitude - self.feature.tolerance
-        return self._start(
-            f"take off to {altitude:g} m",
-            lambda t: t.position.alt >= target,
-            lambda: self._vehicle.takeoff(altitude),
-        )
-
-    def fly_to(self, target: GeoPoint) -> Motion:
-        """Fly to a position.
-
-        Raises:
-            DriverError: The vehicle refused or did not answer.
-        """
-        self._vehicle.goto(target)
-        tol = self.feature.tolerance
-        return self._start(
-            f"fly to ({target.lat:.6f}, {target.lon:.6f}, {target.alt:g} m)",
-            lambda t: _distance(t.position, target) <= tol,
-            lambda: self._vehicle.goto(target),
-        )
-
-    def land(self) -> Motion:
-        """Land where it is.
-
-        Raises:
-            DriverError: The vehicle refused or did not answer.
-        """
-        self._vehicle.land()
-        return self._start("land", lambda t: t.position.alt <= self.LANDED_ALT, self._vehicle.land)
-
-    def fly_mission(self, items: Sequence[MissionItem]) -> Motion:
-        """Upload a mission, start it (arming and taking off as the vehicle needs) and follow it.
-
-        The motion is reached when the vehicle reports its last item done (a mission that ends
-        with ``land`` or ``rtl``: also down, within :attr:`LANDED_ALT`); its progress says
-        ``item 2/5 (waypoint), alt 9.8 m``. Ended without being reached (cancelled, timed
-        out), it sets the vehicle to LOITER.
-
-        Args:
-            items: The mission.
-
-        Raises:
-            StateError: The vehicle cannot fly missions.
-            ValueError: No items.
-            DriverError: The vehicle refused the mission or its start, or did not answer.
-        """
-        vehicle = self._vehicle
-        if not isinstance(vehicle, MissionVehicle):
-            raise StateError(
-                f"the flight feature's vehicle ({type(vehicle).__name__}) cannot fly missions"
-            )
-        mission = list(items)
-        if not mission:
-            raise ValueError("a mission needs at least one item")
-        vehicle.upload_mission(mission)
-        vehicle.start_mission()
-        total = len(mission)
-        lands = mission[-1].kind in ("land", "rtl")
-
-        def done(telemetry: Any) -> bool:
-            progress = vehicle.mission_progress
-            down = telemetry.position.alt <= self.LANDED_ALT
-            if lands and progress.current >= total and down and not telemetry.armed:
-                return True  # landed at the end and disarmed, as ArduCopter does
-            return progress.finished and (not lands or down)
-
-        def describe(telemetry: Any) -> str:
-            at = vehicle.mission_progress.current
-            kind = f" ({mission[at - 1].kind})" if 1 <= at <= total else ""
-            return f"item {at}/{total}{kind}, alt {telemetry.position.alt:.1f} m"
-
-        motion = self._start(
-            f"fly a mission of {total} items", done, None, resume_mode="AUTO", describe=describe
-        )
-        motion.add_listener(lambda: self._hold_unfinished(motion))
-        return motion
-
-    def _hold_unfinished(self, motion: Motion) -> None:
-        """A mission that ended unreached (not superseded): LOITER, not the rest of it."""
-        if not motion.done or motion.error is None or motion.superseded:
-            return
-        try:
-            self._vehicle.set_mode("LOITER")
-        except Exception as err:
-            logger.warning("%s ended (%s); LOITER refused: %s", motion.what, motion.error, err)
-        else:
-            logger.info("%s ended (%s): vehicle LOITER", motion.what, motion.error)
-
-    def _start(
-        self,
-        what: str,
-        check: Callable[[Any], bool],
-        resend: Callable[[], None] | None,
-        *,
-        resume_mode: str = "GUIDED",
-        describe: Callable[[Any], str] | None = None,
-    ) -> Motion:
-        motion = Motion(what)
-        with self._lock:
-            old, self._motion, self._check, self._resend = self._motion, motion, check, resend
-            self._resume_mode, self._describe = resume_mode, describe
-            self._holding = False
-        if old is not None:
-            old.supersede()
-        return motion
-
-    def step(self, dt: float) -> None:
-        """Control thread: check arrival; loiter while held, go on when resumed."""
-        with self._lock:
-            motion, check, resend = self._motion, self._check, self._resend
-            resume_mode, describe = self._resume_mode, self._describe
-        if motion is None or check is None:
-            return
-        if motion.done:
-            with self._lock:
-                if self._motion is motion:
-                    self._motion = None
-            return
-        try:
-            if motion.held and not self._holding:
-                self._vehicle.set_mode("LOITER")
-                self._holding = True
-                return
-            if not motion.held and self._holding:
-                self._vehicle.set_mode(resume_mode)
-                if resend is not None:
-                    resend()
-                self._holding = False
-        except Exception as err:  # a refused mode change ends the motion with the reason
-            motion.finish(err)
-            return
-        telemetry = self._vehicle.telemetry()
-        motion.progress = (
-            describe(telemetry) if describe is not None else f"alt {telemetry.position.alt:.1f} m"
-        )
-        if not motion.held and check(telemetry):
-            with self._lock:
-                if self._motion is motion:
-                    self._motion = None
+                if self._motion is not motion or motion.held:
+                    return
+                self._motion = None
             motion.finish()
 
 

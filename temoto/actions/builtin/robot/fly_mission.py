@@ -101,6 +101,7 @@ class FlyMission(RobotAction):
     or timed out, it is left in LOITER (it does not fly the rest of the mission).
     """
 
+    feature = "flight"
     _robot: RobotHandle | None = None
 
     def on_run(self) -> bool:
@@ -111,7 +112,13 @@ class FlyMission(RobotAction):
         landing = ", then land" if mission[-1].kind == "land" else ""
         self.log(f"{robot.name}: flying a mission of {waypoints} waypoints{landing}")
         self._robot = robot
-        return self.run_motion(lambda: robot.fly_mission(mission))
+        return self.run_motion(
+            lambda: robot.fly_mission(mission), lambda: robot.estimate_mission(mission)
+        )
+
+    def missed(self, motion: Motion) -> tuple[str, str]:
+        """``done with its mission`` and ``item 3/6 (waypoint), alt 10.0 m``."""
+        return "done with its mission", motion.progress
 
     def progress(self, motion: Motion) -> str:
         """The item the vehicle is at, of how many, and its altitude."""

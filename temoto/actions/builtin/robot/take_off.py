@@ -10,6 +10,7 @@ from temoto.managers.robot.features import Motion
 class TakeOff(RobotAction):
     """Input ``altitude`` (m above home); ``robot``, ``timeout``. Progress: ``quad: 8.5/10 m``."""
 
+    feature = "flight"
     _goal: tuple[RobotHandle, float] | None = None
 
     def on_run(self) -> bool:
@@ -18,7 +19,16 @@ class TakeOff(RobotAction):
         altitude = self.inputs.get_number("altitude")
         self.log(f"{robot.name}: taking off to {altitude:g} m")
         self._goal = (robot, altitude)
-        return self.run_motion(lambda: robot.takeoff(altitude))
+        return self.run_motion(
+            lambda: robot.takeoff(altitude), lambda: robot.estimate_takeoff(altitude)
+        )
+
+    def missed(self, motion: Motion) -> tuple[str, str]:
+        """``at 10 m`` and ``alt 4.2 m``."""
+        if self._goal is None:
+            return super().missed(motion)
+        robot, altitude = self._goal
+        return f"at {altitude:g} m", f"alt {robot.telemetry().position.alt:.1f} m"
 
     def progress(self, motion: Motion) -> str:
         """The altitude against the goal's."""
