@@ -38,6 +38,7 @@ import enum
 import logging
 import math
 import threading
+import time
 import warnings
 import weakref
 from abc import ABC, abstractmethod
@@ -48,6 +49,7 @@ from typing import Any, ClassVar, Final, Self
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.drivers.profile import Field, ProfileReader, choice
+from temoto.drivers.recovery import RECOVERY_FIELD, RecoveryPolicy
 from temoto.drivers.sim import Simulator
 from temoto.errors import (
     DriverError,
@@ -154,6 +156,9 @@ class Driver(ABC):
         self._health = Health(name, self._state, False, "not configured", self.clock.monotonic())
         self._listeners: list[HealthListener] = []
         self._safe_state = type(self).safe_states[0]
+        #: What the Robot Manager does after a fault (``recovery:`` in a profile).
+        self.recovery = RecoveryPolicy()
+        self._made_safe: str | None = None  # what make_safe did, until the next activate
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name!r} {self.state.value}>"
@@ -247,13 +252,14 @@ class Driver(ABC):
         """Every key a profile entry of this driver may have, with how it is read.
 
         :attr:`profile_fields` plus ``safe_state`` (one of :attr:`safe_states`, the first by
-        default). ``driver`` is always allowed too (it must name this driver).
+        default) and ``recovery`` (:mod:`temoto.drivers.recovery`). ``driver`` is always
+        allowed too (it must name this driver).
 
         Returns:
             key → :class:`~temoto.drivers.profile.Field`.
         """
         safe = choice(cls.safe_states, cls.safe_states[0], init=False)
-        return {**cls.profile_fields, "safe_state": safe}
+        return {**cls.profile_fields, "safe_state": safe, "recovery": RECOVERY_FIELD}
 
     @classmethod
     def read_profile(cls, config: Mapping[str, Any], where: str) -> dict[str, Any]:
@@ -323,6 +329,7 @@ class Driver(ABC):
             key = next((k for k in kwargs if str(err).startswith(k)), "")
             raise ProfileReader.at(where).error(key, str(err)) from None
         driver.safe_state = values["safe_state"]
+        driver.recovery = values["recovery"]
         return driver
 
     @classmethod
@@ -386,6 +393,7 @@ class Driver(ABC):
                 error = _as_driver_error(err, DriverOperationError, f"{self.name}: activate")
                 self.report_fault(error)
                 raise error from err
+            self._made_safe = None
             self._set(DriverState.ACTIVE, "active")
 
     def deactivate(self) -> None:
@@ -469,6 +477,7 @@ class Driver(ABC):
                 now = self._state
                 if now is DriverState.FAULT:
                     self._before_fault = DriverState.INACTIVE  # recovery finds it safe, not acting
+            self._made_safe = done
             if now is DriverState.ACTIVE:
                 self._set(DriverState.INACTIVE, f"safe: {done}")
             logger.info("driver %s: safe (%s): %s", self.name, reason or "asked", done)
@@ -634,27 +643,82 @@ def live_drivers() -> list[Driver]:
     return list(_LIVE)
 
 
-def make_all_safe(reason: str = "") -> list[tuple[Driver, str]]:
-    """Put every configured driver of this process in its safe state (see ``make_safe``).
+#: Real seconds :func:`make_all_safe` waits for the devices' confirmations, all together
+#: (``docs/safety.md``: every device safe within 200 ms of a signal).
+SAFE_ALL_WAIT: Final = 0.2
 
-    Never raises: a driver that fails is logged and listed with the error's text.
+
+def make_all_safe(
+    reason: str = "", *, drivers: Sequence[Driver] | None = None, wait: float = SAFE_ALL_WAIT
+) -> list[tuple[Driver, str]]:
+    """Put every configured driver of this process in its safe state, all at once.
+
+    Each driver's :meth:`~Driver.make_safe` runs on a thread of its own
+    (``temoto-safe-<name>``), so every device is sent its safe state at once; their
+    confirmations are awaited together, for at most ``wait`` real seconds. A device that has
+    not confirmed by then is listed as such (its thread goes on and logs what it did). Never
+    raises: a driver that fails is logged and listed with the error's text, unless it was made
+    safe already and not activated since (then its line says so, not ``NOT SAFE``).
 
     Args:
         reason: Why (for the log lines).
+        drivers: The drivers (default: every live driver of the process, by name).
+        wait: Real seconds to wait for the confirmations, all together.
 
     Returns:
-        ``(driver, what was done)`` for each driver that holds a link.
+        ``(driver, what was done)`` for each driver that holds a link, in the drivers' order.
     """
-    done: list[tuple[Driver, str]] = []
-    for driver in live_drivers():
+    chosen = sorted(live_drivers(), key=lambda d: d.name) if drivers is None else list(drivers)
+    results: dict[int, str | None] = {}
+    lock = threading.Lock()
+
+    def safe_one(index: int, driver: Driver) -> None:
+        before = driver._made_safe
         try:
             what = driver.make_safe(reason)
         except Exception as err:  # one device's failure never stops the others' safe state
-            logger.error("driver %s: could not make it safe: %s", driver.name, err)
-            done.append((driver, f"NOT SAFE: {err}"))
+            if before is not None:
+                what = f"{before} (made safe before; sending it again failed: {err})"
+                logger.warning("driver %s: safe before; sending again failed: %s", driver.name, err)
+            else:
+                logger.error("driver %s: could not make it safe: %s", driver.name, err)
+                what = f"NOT SAFE: {err}"
+        with lock:
+            results[index] = what
+
+    threads = [
+        threading.Thread(target=safe_one, args=(i, d), name=f"temoto-safe-{d.name}", daemon=True)
+        for i, d in enumerate(chosen)
+    ]
+    for thread in threads:
+        thread.start()
+    deadline = time.monotonic() + wait
+    for thread in threads:
+        thread.join(max(deadline - time.monotonic(), 0.0))
+    done: list[tuple[Driver, str]] = []
+    with lock:
+        finished = dict(results)
+    for i, driver in enumerate(chosen):
+        if i in finished:
+            what = finished[i]
+            if what is None and driver._made_safe is not None:
+                what = driver._made_safe  # shut down meanwhile, which made it safe
+            if what is not None:
+                done.append((driver, what))
             continue
-        if what is not None:
-            done.append((driver, what))
+        if driver.state in (DriverState.UNCONFIGURED, DriverState.FINALIZED):
+            continue
+        health = driver.health()
+        why = health.message if health.state is DriverState.FAULT else "no answer yet"
+        prefix = f"{driver.name}: "
+        while why.startswith(prefix):
+            why = why[len(prefix) :]
+        done.append(
+            (
+                driver,
+                f"safe state {driver.safe_state} sent, not confirmed within {wait:g} s ({why})",
+            )
+        )
     return done
 
 

@@ -20,13 +20,21 @@ import contextlib
 import logging
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.config import Profile
 from temoto.core.registrar import LoadContext, Registrar, ResourceInfo, ResourceServer, Status
-from temoto.drivers import Actuator, Driver, DriverState, Health, Vehicle, driver_class
+from temoto.drivers import (
+    Actuator,
+    Driver,
+    DriverState,
+    Health,
+    Vehicle,
+    driver_class,
+    make_all_safe,
+)
 from temoto.drivers.sim import Simulator
 from temoto.errors import ResourceNotFoundError, StateError
 from temoto.managers.robot.features import (
@@ -136,14 +144,33 @@ class _StreamsToGcs(Protocol):
 
 @dataclass(eq=False)
 class _Device:
+    """An open device of the manager, and its recovery after a fault (``docs/safety.md``)."""
+
     driver: Driver
     sim: Simulator | None
     remove_listener: Callable[[], None] | None = None
-    faulted: bool = False  # a FATAL was sent and no OK since
     settings: Mapping[str, Any] | None = None  # the entry the driver got (simulated devices)
+    resource_id: str = ""
+    #: The recovery's condition: ``answered``, ``closing``, ``recovering`` and ``note`` change
+    #: under it.
+    cond: threading.Condition = field(default_factory=threading.Condition)
+    recovering: bool = False  # a recovery thread runs
+    answered: bool = False  # the driver said the device answers again (wakes the recovery)
+    closing: bool = False
+    gave_up: str = ""  # why the recovery gave up (the device stays out of service)
+    note: str = ""  # the recovery's state, for the live view
+    thread: threading.Thread | None = None
+
+    @property
+    def name(self) -> str:
+        """The device's name in the profile."""
+        return self.driver.name
 
     def close(self) -> None:
-        """Stop listening, shut the driver down (its safe state first), close its simulator."""
+        """Stop the recovery, stop listening, shut the driver down (its safe state first)."""
+        with self.cond:
+            self.closing = True
+            self.cond.notify_all()
         if self.remove_listener is not None:
             self.remove_listener()
         try:
@@ -151,6 +178,9 @@ class _Device:
         finally:
             if self.sim is not None:
                 self.sim.close()
+            thread = self.thread
+            if thread is not None and thread is not threading.current_thread():
+                thread.join(5.0)
 
 
 class Robot:
@@ -165,8 +195,10 @@ class Robot:
         devices: Mapping[str, Driver],
         clock: Clock,
         rate_hz: float,
+        annotate: Callable[[Health], Health] | None = None,
     ) -> None:
         self.name = profile.robot
+        self._annotate = annotate
         self.profile = profile
         self.clock = clock
         self.period = 1.0 / rate_hz
@@ -210,8 +242,13 @@ class Robot:
         return all(d.state is DriverState.ACTIVE for d in self._devices.values())
 
     def health(self) -> dict[str, Health]:
-        """Each device's health."""
-        return {name: d.health() for name, d in self._devices.items()}
+        """Each device's health, with its recovery's state (a try to come, given up).
+
+        Returns:
+            Device name → its health.
+        """
+        annotate = self._annotate or (lambda h: h)
+        return {name: annotate(d.health()) for name, d in self._devices.items()}
 
     def close(self) -> None:
         """Stop the control thread (the drivers are closed by their resources)."""
@@ -361,7 +398,7 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             ctx.call("driver", DriverRequest(name, device))
             with self._lock:
                 drivers[device] = self._devices[device].driver
-        robot = Robot(self.profile, drivers, self.clock, self.rate_hz)
+        robot = Robot(self.profile, drivers, self.clock, self.rate_hz, self._annotate)
         with self._lock:
             self._robots[name] = robot
         logger.info("robot %s ready (%s)", name, ", ".join(self.profile.features) or "no features")
@@ -409,12 +446,16 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         driver: Driver | None = None
         try:
             driver = cls.from_profile(spec.name, config, clock=self.clock, where=where)
-            device = _Device(driver, sim, settings=dict(config) if sim is not None else None)
-            resource_id = ctx.resource_id
+            device = _Device(
+                driver,
+                sim,
+                settings=dict(config) if sim is not None else None,
+                resource_id=ctx.resource_id,
+            )
             driver.configure()
             driver.activate()
             device.remove_listener = driver.add_health_listener(
-                lambda health: self._on_health(device, resource_id, health)
+                lambda health: self._on_health(device, health)
             )
         except BaseException:
             if driver is not None:
@@ -435,70 +476,185 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
     def make_safe(self, reason: str = "") -> list[str]:
         """Put every open device of this manager in its safe state now (``docs/safety.md``).
 
-        Never raises: a device that cannot be made safe is listed as ``NOT SAFE``.
+        All at once (:func:`~temoto.drivers.make_all_safe`): one thread per device, the
+        confirmations awaited together for at most ``SAFE_ALL_WAIT`` seconds. Never raises.
 
         Args:
             reason: Why (for the log).
 
         Returns:
-            One line per device, ``"<device>: <what was done>"``.
+            One line per device, ``"<device>: <what was done>"`` (also for a device that could
+            not be made safe or did not confirm in time: it says so, with the reason).
         """
         with self._lock:
-            devices = list(self._devices.values())
-        lines: list[str] = []
-        for device in devices:
-            try:
-                what = device.driver.make_safe(reason)
-            except Exception as err:  # the others are still made safe
-                what = f"NOT SAFE: {err}"
-            if what is not None:
-                lines.append(f"{device.driver.name}: {what}")
-        return lines
+            drivers = [d.driver for d in self._devices.values()]
+        return [f"{d.name}: {what}" for d, what in make_all_safe(reason, drivers=drivers)]
 
-    def _on_health(self, device: _Device, resource_id: str, health: Health) -> None:
-        """A driver's report: a fault is FATAL for every consumer and makes the device safe.
+    # ---- faults and their recovery -----------------------------------------------------------
 
-        Runs on the driver's thread, so the safe state and the reactivation after a recovery
-        (then OK for the consumers) run on threads of their own.
+    def _where(self, device: str) -> str:
+        """``robot <name>, device <device>``: how statuses name a device."""
+        return f"robot {self.profile.robot}, device {device}"
+
+    def _status(self, device: _Device, status: Status, text: str) -> None:
+        with contextlib.suppress(ResourceNotFoundError):  # released meanwhile
+            self.registrar.send_status(
+                device.resource_id,
+                status,
+                f"{self._where(device.name)}: {device_text(device.name, text)}",
+            )
+
+    def _on_health(self, device: _Device, health: Health) -> None:
+        """A driver's report: a fault is FATAL for every consumer and starts the recovery.
+
+        Runs on the driver's thread: the safe state and the recovery's tries (which may wait
+        for the device) run on a thread of their own, ``temoto-recover-<device>``, one per
+        fault; a fault while it runs (a failed try) is logged, not sent again.
         """
         if health.state is DriverState.FAULT:
-            first = not device.faulted
-            device.faulted = True
-            with contextlib.suppress(ResourceNotFoundError):  # released meanwhile
-                self.registrar.send_status(
-                    resource_id, Status.FATAL, f"{health.driver}: {health.message}"
-                )
-            if first:  # not on the driver's own thread: a safe state may wait for its replies
-                _spawn(f"temoto-safe-{health.driver}", self._fault_safe, device)
-        elif health.ok and device.faulted:
-            device.faulted = False
-            _spawn(f"temoto-reactivate-{health.driver}", self._reactivate, device, resource_id)
+            with device.cond:
+                if device.closing:
+                    return
+                start = not device.recovering and not device.gave_up
+                if start:
+                    device.recovering = True
+                    device.answered = False
+                    device.thread = threading.Thread(
+                        target=self._recover,
+                        args=(device, health.message),
+                        name=f"temoto-recover-{device.name}",
+                        daemon=True,
+                    )
+            if start and device.thread is not None:  # once per fault: later reports are logged
+                self._status(device, Status.FATAL, health.message)
+                device.thread.start()
+        elif health.ok:
+            with device.cond:
+                if device.recovering:
+                    device.answered = True
+                    device.cond.notify_all()
 
-    def _fault_safe(self, device: _Device) -> None:
+    def _recover(self, device: _Device, reason: str) -> None:
+        """Make a faulted device safe, then bring it back as its policy says (or give up)."""
+        driver = device.driver
+        policy = driver.recovery
+        name = driver.name
         try:
-            what = device.driver.make_safe("fault")
+            what = driver.make_safe("fault")
         except Exception as err:
-            logger.error("device %s: not safe after its fault: %s", device.driver.name, err)
+            logger.error("%s: not safe after its fault: %s", self._where(name), err)
         else:
             if what is not None:
-                logger.warning("device %s made safe after its fault: %s", device.driver.name, what)
-
-    def _reactivate(self, device: _Device, resource_id: str) -> None:
-        driver = device.driver
-        try:
-            if driver.state is DriverState.INACTIVE:
-                driver.activate()
-        except Exception as err:  # the driver reported the fault itself (FATAL again)
-            logger.warning("device %s: not active again after its recovery: %s", driver.name, err)
+                logger.warning("%s made safe after its fault: %s", self._where(name), what)
+        if not policy.enabled:
+            logger.warning(
+                "%s: FAULT: %s; recovery off: it stays out of service until the robot is loaded"
+                " again",
+                self._where(name),
+                device_text(name, reason),
+            )
+            with device.cond:
+                device.gave_up = "recovery off"
+                device.recovering = False
             return
-        if driver.state is not DriverState.ACTIVE:
-            return
-        with contextlib.suppress(ResourceNotFoundError):  # released meanwhile
-            self.registrar.send_status(resource_id, Status.OK, f"{driver.name}: recovered")
+        for attempt in range(1, policy.tries + 1):
+            delay = policy.delay(attempt)
+            with device.cond:
+                device.note = f"recovery try {attempt}/{policy.tries} in {delay:g} s"
+                deadline = self.clock.monotonic() + delay
+                while not device.closing and not device.answered:
+                    left = deadline - self.clock.monotonic()
+                    if left <= 0:
+                        break
+                    self.clock.wait(device.cond, left)
+                if device.closing:
+                    device.recovering = False
+                    return
+                answered, device.answered = device.answered, False
+                device.note = f"recovery try {attempt}/{policy.tries} running"
+            logger.warning(
+                "%s: recovery try %d/%d (%s): recover() and activate() (fault: %s)",
+                self._where(name),
+                attempt,
+                policy.tries,
+                "the device answers again" if answered else f"after {delay:g} s",
+                device_text(name, reason),
+            )
+            error = ""
+            try:
+                if driver.state is DriverState.FAULT:
+                    driver.recover()
+                if driver.state is DriverState.INACTIVE:
+                    driver.activate()
+            except Exception as err:  # the driver reported it (FATAL again); try again later
+                error = str(err)
+            if driver.state is DriverState.ACTIVE:
+                with device.cond:
+                    device.recovering = False
+                    device.note = ""
+                logger.warning(
+                    "%s: recovered on try %d/%d: active again",
+                    self._where(name),
+                    attempt,
+                    policy.tries,
+                )
+                self._status(device, Status.OK, f"recovered on try {attempt}/{policy.tries}")
+                return
+            if driver.state is DriverState.FINALIZED:
+                with device.cond:
+                    device.recovering = False
+                return
+            reason = error or driver.health().message
+            logger.warning(
+                "%s: recovery try %d/%d failed: %s",
+                self._where(name),
+                attempt,
+                policy.tries,
+                device_text(name, reason),
+            )
+        gave_up = f"gave up after {policy.tries} tries: {device_text(name, reason)}"
+        with device.cond:
+            device.gave_up = gave_up
+            device.recovering = False
+            device.note = ""
+        logger.error("%s: %s; it stays out of service", self._where(name), gave_up)
+        self._status(device, Status.FATAL, gave_up)
+
+    def _annotate(self, health: Health) -> Health:
+        """A device's health as the live view shows it: with its recovery's state."""
+        with self._lock:
+            device = self._devices.get(health.driver)
+        if device is None:
+            return health
+        with device.cond:
+            gave_up, note = device.gave_up, device.note
+        if gave_up:
+            off = gave_up == "recovery off"
+            message = f"recovery off: {health.message}" if off else gave_up
+            return replace(health, state=DriverState.FAULT, ok=False, message=message)
+        if note and not health.ok:
+            return replace(health, message=f"{health.message} ({note})")
+        return health
 
 
-def _spawn(name: str, target: Callable[..., object], *args: object) -> None:
-    threading.Thread(target=target, args=args, name=name, daemon=True).start()
+def device_text(device: str, text: str) -> str:
+    """``text`` without the ``<device>: `` prefixes a driver's messages start with.
+
+    A driver's errors name their device first (``base: node 1 (left_wheel): ...``); a line that
+    names the device itself (``robot r, device base: ...``) drops them, so no line reads
+    ``base: base:``.
+
+    Args:
+        device: The device's name.
+        text: A driver's message.
+
+    Returns:
+        The message without leading ``<device>: `` (all of them).
+    """
+    prefix = f"{device}: "
+    while text.startswith(prefix):
+        text = text[len(prefix) :]
+    return text
 
 
 #: What the consumers of a robot or device restored from the catalog are told.
