@@ -8,6 +8,11 @@ the time from the signal to the first state line in which the simulator sees the
 (every axis IDLE, motor mode off, torque off, a hold mode). The metric is the median over the
 runs of the slowest family of each round (signal -> last device safe). The CAN families need
 root and ``unshare``; without them they are left out with a note.
+
+``safe_stop_silent_links_ms`` (root only): the ODrive rover with two more devices, a six-servo
+Dynamixel arm and a MAVLink quad, whose links are cut (``link_loss``) just before SIGTERM: the
+time to the live ODrive safe (every device is made safe at once, so the silent ones, waiting
+for replies that never come, must not delay it; bound 200 ms).
 """
 
 from __future__ import annotations
@@ -24,10 +29,22 @@ from bench.common import Results, median
 GOAL_MS = 100.0
 
 
-def _one(family: str, path: str, netns: bool) -> float:
+def _silent_links() -> dict[str, object]:
+    """A six-servo Dynamixel arm and a MAVLink quad, whose links are cut before the signal."""
+    from temoto.testing.exitpaths import FAMILIES
+
+    arm = json.loads(json.dumps(FAMILIES["dynamixel"]["device"]))
+    servo = arm["servos"][0]
+    arm["servos"] = [{**servo, "id": i, "joint": f"joint{i}"} for i in range(1, 7)]
+    return {"arm": arm, "quad": dict(FAMILIES["mavlink"]["device"])}
+
+
+def _one(family: str, path: str, netns: bool, silent: dict[str, object] | None = None) -> float:
     argv = [sys.executable, "-m", "temoto.testing.exitpaths", family, path]
     if netns:
         argv.append("--netns")
+    if silent is not None:
+        argv += ["--silent", json.dumps(silent)]
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"exitpaths {family} {path}: {proc.stderr.strip()[-500:]}")
@@ -64,6 +81,16 @@ def bench_safety(quick: bool) -> Results:
     )
     for family, values in per_family.items():
         out.add(f"safe_stop_{family}_ms", median(values), "ms", f"{len(values)} runs")
+    if netns:  # the rover's ODrive with two more devices whose links are silent
+        silent = _silent_links()
+        runs = [_one("odrive", "sigterm", True, silent) for _ in range(rounds)]
+        out.add(
+            "safe_stop_silent_links_ms",
+            median(runs),
+            "ms",
+            f"SIGTERM -> the live ODrive safe, arm and quad links cut; {len(runs)} runs",
+            goal=("<=", 200.0),
+        )
     return out
 
 

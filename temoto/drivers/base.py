@@ -65,6 +65,7 @@ __all__ = [
     "Health",
     "HealthListener",
     "detect_links",
+    "device_text",
     "live_drivers",
     "make_all_safe",
 ]
@@ -502,7 +503,7 @@ class Driver(ABC):
                     return  # the same fault again: no new report
             else:
                 self._before_fault = self._state
-        logger.warning("driver %s: fault: %s", self.name, error)
+        logger.warning("driver %s: fault: %s", self.name, device_text(self.name, str(error)))
         self._set(DriverState.FAULT, str(error), error)
 
     def report_recovered(self, message: str = "the device answers again") -> None:
@@ -515,7 +516,7 @@ class Driver(ABC):
             if self._state is not DriverState.FAULT:
                 return
             back = self._before_fault
-        logger.info("driver %s: recovered: %s", self.name, message)
+        logger.info("driver %s: recovered: %s", self.name, device_text(self.name, message))
         self._set(back, message)
 
     # ---- discovery -------------------------------------------------------------------------
@@ -682,7 +683,7 @@ def make_all_safe(
                 logger.warning("driver %s: safe before; sending again failed: %s", driver.name, err)
             else:
                 logger.error("driver %s: could not make it safe: %s", driver.name, err)
-                what = f"NOT SAFE: {err}"
+                what = f"NOT SAFE: {device_text(driver.name, str(err))}"
         with lock:
             results[index] = what
 
@@ -710,9 +711,7 @@ def make_all_safe(
             continue
         health = driver.health()
         why = health.message if health.state is DriverState.FAULT else "no answer yet"
-        prefix = f"{driver.name}: "
-        while why.startswith(prefix):
-            why = why[len(prefix) :]
+        why = device_text(driver.name, why)
         done.append(
             (
                 driver,
@@ -720,6 +719,26 @@ def make_all_safe(
             )
         )
     return done
+
+
+def device_text(device: str, text: str) -> str:
+    """``text`` without the ``<device>: `` prefixes a driver's messages start with.
+
+    A driver's errors name their device first (``base: node 1 (left_wheel): ...``); a line that
+    names the device itself (``driver base: fault: ...``, ``robot r, device base: ...``) drops
+    them, so no line reads ``base: base:``.
+
+    Args:
+        device: The device's name.
+        text: A driver's message.
+
+    Returns:
+        The message without leading ``<device>: `` (all of them).
+    """
+    prefix = f"{device}: "
+    while text.startswith(prefix):
+        text = text[len(prefix) :]
+    return text
 
 
 atexit.register(make_all_safe, "interpreter exit")

@@ -60,3 +60,18 @@ def test_a_restart_with_a_state_dir_loads_the_robot_afresh(tmp_path: Path) -> No
         assert proc.returncode == 0, f"run {run}: {proc.stderr}"
         assert proc.stdout.splitlines()[-1].startswith("arm_poses: on_true in ")
     assert sorted(p.name for p in state.iterdir()) == ["registrar.journal", "world.journal"]
+
+
+def test_a_device_that_cannot_start_is_named_without_internal_json(tmp_path: Path) -> None:
+    dead = tmp_path / "dead_arm.yaml"
+    text = ARM.read_text().replace("sim: true", "sim: false")
+    dead.write_text(text.replace("serial:/dev/ttyUSB0?baud=1000000", "serial:/dev/null?baud=1000000"))
+    proc = robot("--profile", str(dead), "--mission", str(MISSION), "--local")
+    assert proc.returncode == 1, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert lines[0].startswith(
+        "temoto-robot: error: robot sim_arm, device arm: could not start: cannot open /dev/null: "
+    ), lines[0]
+    assert "{" not in lines[0]
+    assert "could not load" not in lines[0]

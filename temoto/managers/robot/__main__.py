@@ -206,8 +206,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             sys.stderr.write(f"temoto-robot: error: {err}\n")
             code = EXIT_INVALID
         except (DriverError, ResourceError, TransportError) as err:
-            sys.stderr.write(f"temoto-robot: error: {load_error_text(err)}\n")
-            code = EXIT_FAILED
+            inner = load_error(err)
+            sys.stderr.write(f"temoto-robot: error: {inner}\n")
+            code = EXIT_INVALID if isinstance(inner, ConfigError | PluginError) else EXIT_FAILED
     interrupts.join()  # the per-device lines of a signal are out before the exit
     signalled = interrupts.exit_code
     return code if signalled is None else signalled
@@ -374,19 +375,20 @@ def _mission(engine: Any, mission: Any, timeout: float | None, stop: threading.E
     return engine.outcome(name)
 
 
-def load_error_text(err: BaseException) -> str:
+def load_error(err: BaseException) -> BaseException:
     """What a failed load says, for people: the device's own error, no internal requests.
 
     A robot that cannot be loaded fails inside the registrar, which wraps the driver's error in
-    ``server 'robot' could not load {...}: server 'driver' could not load {...}: ...``; the
-    innermost error that is not such a wrapper names the device and what went wrong
-    (``arm: servo 1 (shoulder_pan) does not answer PING on /dev/ttyUSB0: ...``).
+    ``server 'robot' could not load {...}: ...``; the innermost error that is not such a
+    wrapper names the robot, the device and what went wrong (the manager's
+    ``robot sim_arm, device arm: could not start: servo 1 (shoulder_pan) does not answer PING
+    on /dev/ttyUSB0: ...``).
 
     Args:
         err: The error the command caught.
 
     Returns:
-        One line.
+        The innermost error (``err`` itself when it wraps nothing).
     """
     from temoto.errors import ResourceLoadError
 
@@ -397,11 +399,7 @@ def load_error_text(err: BaseException) -> str:
             break
         seen.add(id(inner))
         inner = inner.__cause__
-    if inner is err:
-        return str(err)
-    if isinstance(inner, DriverError):
-        return f"a device did not start: {inner}"
-    return str(inner)
+    return inner
 
 
 #: Real seconds between the mission's checks for a signal.

@@ -35,8 +35,16 @@ from temoto.drivers import (
     driver_class,
     make_all_safe,
 )
+from temoto.drivers.base import device_text
 from temoto.drivers.sim import Simulator
-from temoto.errors import ResourceNotFoundError, StateError
+from temoto.errors import (
+    ConfigError,
+    DriverError,
+    DriverInitError,
+    ResourceLoadError,
+    ResourceNotFoundError,
+    StateError,
+)
 from temoto.managers.robot.features import (
     ArmController,
     DriveController,
@@ -395,7 +403,10 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             )
         drivers: dict[str, Driver] = {}
         for device in self.profile.devices:
-            ctx.call("driver", DriverRequest(name, device))
+            try:
+                ctx.call("driver", DriverRequest(name, device))
+            except ResourceLoadError as err:
+                raise self._start_error(device, err) from err
             with self._lock:
                 drivers[device] = self._devices[device].driver
         robot = Robot(self.profile, drivers, self.clock, self.rate_hz, self._annotate)
@@ -403,6 +414,23 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             self._robots[name] = robot
         logger.info("robot %s ready (%s)", name, ", ".join(self.profile.features) or "no features")
         return RobotResponse(name, self.profile.features, tuple(self.profile.devices))
+
+    def _start_error(self, device: str, err: ResourceLoadError) -> Exception:
+        """What a device that could not start says: robot, device, the driver's own reason.
+
+        The registrar wraps the driver's error in ``server 'driver' could not load {...}``
+        (the request as JSON); people get ``robot <r>, device <d>: could not start: <why>``
+        instead, of the driver's error category (a profile error stays one: exit 2).
+        """
+        inner: BaseException = err
+        while isinstance(inner, ResourceLoadError) and inner.__cause__ is not None:
+            inner = inner.__cause__
+        if isinstance(inner, ConfigError):
+            return inner
+        text = f"{self._where(device)}: could not start: {device_text(device, str(inner))}"
+        if isinstance(inner, DriverError):
+            return DriverInitError(text)
+        return err if inner is err else ResourceLoadError(text, origin=err.origin)
 
     def on_unload(self, request: RobotRequest, response: RobotResponse) -> None:
         """Stop the robot's control loop (its drivers are released as dependencies)."""
@@ -635,26 +663,6 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         if note and not health.ok:
             return replace(health, message=f"{health.message} ({note})")
         return health
-
-
-def device_text(device: str, text: str) -> str:
-    """``text`` without the ``<device>: `` prefixes a driver's messages start with.
-
-    A driver's errors name their device first (``base: node 1 (left_wheel): ...``); a line that
-    names the device itself (``robot r, device base: ...``) drops them, so no line reads
-    ``base: base:``.
-
-    Args:
-        device: The device's name.
-        text: A driver's message.
-
-    Returns:
-        The message without leading ``<device>: `` (all of them).
-    """
-    prefix = f"{device}: "
-    while text.startswith(prefix):
-        text = text[len(prefix) :]
-    return text
 
 
 #: What the consumers of a robot or device restored from the catalog are told.
