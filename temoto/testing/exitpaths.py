@@ -446,8 +446,8 @@ def run_path(
         if others and not moving.wait(STEP_TIMEOUT):  # every device loaded: the mission runs
             raise TimeoutError("the mission's motion did not start")
         second: dict[str, float] = {}
-        for other in others.values():
-            other.command("inject link_loss")
+        for silent_host in others.values():
+            silent_host.command("inject link_loss")
         event_t = _take(path, robot, host, family, second)
         try:
             rc: int | None = robot.wait(STEP_TIMEOUT)
@@ -486,8 +486,8 @@ def run_path(
             robot.kill()
             robot.wait()
         host.close()
-        for other in others.values():
-            other.close()
+        for silent_host in others.values():
+            silent_host.close()
         shutil.rmtree(work, ignore_errors=True)
 
 
