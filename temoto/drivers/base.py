@@ -600,7 +600,8 @@ class Driver(ABC):
         with self._lock:
             state, health = self._state, self._health
         if state is not DriverState.ACTIVE:
-            why = f": {health.message}" if state is DriverState.FAULT else ""
+            fault = state is DriverState.FAULT
+            why = f": {device_text(self.name, health.message)}" if fault else ""
             raise StateError(f"{self.name}: cannot {verb} while {state.value}{why}")
 
     def _check(self, verb: str) -> None:
@@ -679,7 +680,8 @@ def make_all_safe(
             what = driver.make_safe(reason)
         except Exception as err:  # one device's failure never stops the others' safe state
             if before is not None:
-                what = f"{before} (made safe before; sending it again failed: {err})"
+                again = device_text(driver.name, str(err))
+                what = f"{before} (made safe before; sending it again failed: {again})"
                 logger.warning("driver %s: safe before; sending again failed: %s", driver.name, err)
             else:
                 logger.error("driver %s: could not make it safe: %s", driver.name, err)
@@ -691,11 +693,15 @@ def make_all_safe(
         threading.Thread(target=safe_one, args=(i, d), name=f"temoto-safe-{d.name}", daemon=True)
         for i, d in enumerate(chosen)
     ]
-    for thread in threads:
-        thread.start()
+    for index, thread in enumerate(threads):
+        try:
+            thread.start()
+        except RuntimeError:  # no new threads (interpreter shutdown): this one, here
+            safe_one(index, chosen[index])
     deadline = time.monotonic() + wait
     for thread in threads:
-        thread.join(max(deadline - time.monotonic(), 0.0))
+        if thread.ident is not None:
+            thread.join(max(deadline - time.monotonic(), 0.0))
     done: list[tuple[Driver, str]] = []
     with lock:
         finished = dict(results)
