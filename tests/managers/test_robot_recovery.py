@@ -98,6 +98,7 @@ def test_devices_whose_watchdogs_expired_in_a_pause_come_back(
     robot = RobotManagerClient(registrar).request(client="test", on_status=statuses)
     assert robot.healthy()
     sims = [manager.simulator("base"), manager.simulator("arm")]
+    drive = robot.navigate_to(100.0, 0.0)  # far away: under way when the pause comes
     pause(sims, clock, 2.0)  # twice the profile's 1 s watchdogs
     # the base's axes disarmed by their watchdog: the driver sees it once the link is back
     statuses.wait_for(lambda u: u.status is Status.FATAL, "FATAL")
@@ -109,6 +110,14 @@ def test_devices_whose_watchdogs_expired_in_a_pause_come_back(
             f"OK for {device}",
         )
     wait_until(robot.healthy, "the robot is not healthy after the recovery")
+    # the goal set before the fault ended with it: the recovered base holds where it is
+    assert drive.done
+    assert drive.error is not None
+    x0 = robot.pose()[0]
+    end = clock.monotonic() + 1.0
+    while clock.monotonic() < end:
+        time.sleep(0.02)
+    assert abs(robot.pose()[0] - x0) < 0.05, (x0, robot.pose())
     text = caplog.text
     for device in ("base", "arm"):
         assert f"robot sim_mobile_manipulator, device {device}: recovery try 1/5" in text

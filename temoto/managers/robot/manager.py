@@ -214,14 +214,18 @@ class Robot:
         self.drive: DriveController | None = None
         self.arm: ArmController | None = None
         self.flight: FlightController | None = None
+        #: The controllers that command each device (their goals end when it faults).
+        self._commanders: list[tuple[DriveController | ArmController, frozenset[str]]] = []
         if profile.navigation is not None:
             nav = profile.navigation
-            left = self._actuator(profile.joint_device(nav.left_wheel))
-            right = self._actuator(profile.joint_device(nav.right_wheel))
+            wheels = (profile.joint_device(nav.left_wheel), profile.joint_device(nav.right_wheel))
+            left, right = self._actuator(wheels[0]), self._actuator(wheels[1])
             self.drive = DriveController(nav, (left, right))
+            self._commanders.append((self.drive, frozenset(wheels)))
         if profile.manipulation is not None:
             arm = profile.manipulation
             self.arm = ArmController(arm, self._actuator(arm.device))
+            self._commanders.append((self.arm, frozenset({arm.device})))
         if profile.flight is not None:
             vehicle = self._devices[profile.flight.device]
             assert isinstance(vehicle, Vehicle)
@@ -257,6 +261,19 @@ class Robot:
         """
         annotate = self._annotate or (lambda h: h)
         return {name: annotate(d.health()) for name, d in self._devices.items()}
+
+    def device_faulted(self, device: str) -> None:
+        """End the goals of the features that command ``device`` (it faulted).
+
+        A recovered device then holds where it is: the control loop does not take up a goal
+        set before the fault (the action that set it was told FATAL).
+
+        Args:
+            device: The device's name.
+        """
+        for controller, devices in self._commanders:
+            if device in devices:
+                controller.stop()
 
     def close(self) -> None:
         """Stop the control thread (the drivers are closed by their resources)."""
@@ -554,6 +571,10 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
                         daemon=True,
                     )
             if start and device.thread is not None:  # once per fault: later reports are logged
+                with self._lock:
+                    robots = list(self._robots.values())
+                for robot in robots:
+                    robot.device_faulted(device.name)
                 self._status(device, Status.FATAL, health.message)
                 device.thread.start()
         elif health.ok:
