@@ -660,7 +660,8 @@ def make_all_safe(
     confirmations are awaited together, for at most ``wait`` real seconds. A device that has
     not confirmed by then is listed as such (its thread goes on and logs what it did). Never
     raises: a driver that fails is logged and listed with the error's text, unless it was made
-    safe already and not activated since (then its line says so, not ``NOT SAFE``).
+    safe and not activated since, before or meanwhile by another thread (its shutdown, say):
+    then its line says what was done, not ``NOT SAFE``.
 
     Args:
         reason: Why (for the log lines).
@@ -675,13 +676,16 @@ def make_all_safe(
     lock = threading.Lock()
 
     def safe_one(index: int, driver: Driver) -> None:
-        before = driver._made_safe
         try:
             what = driver.make_safe(reason)
         except Exception as err:  # one device's failure never stops the others' safe state
+            # a transition on another thread (a shutdown) may be making it safe: let it end
+            if driver._lifecycle.acquire(timeout=wait):
+                driver._lifecycle.release()
+            before = driver._made_safe  # made safe since its last activation, by any thread
             if before is not None:
                 again = device_text(driver.name, str(err))
-                what = f"{before} (made safe before; sending it again failed: {again})"
+                what = f"{before} (sending it again failed: {again})"
                 logger.warning("driver %s: safe before; sending again failed: %s", driver.name, err)
             else:
                 logger.error("driver %s: could not make it safe: %s", driver.name, err)

@@ -71,9 +71,7 @@ def test_a_device_made_safe_already_is_not_reported_not_safe() -> None:
         assert arm.make_safe("mission end") == "OFF"
         arm.fail = True  # the port is busy or closing: a second send fails
         done = {d.name: what for d, what in make_all_safe("SIGINT")}
-        assert done["arm"] == (
-            "OFF (made safe before; sending it again failed: make safe: OSError: Failed transmit)"
-        )
+        assert done["arm"] == ("OFF (sending it again failed: make safe: OSError: Failed transmit)")
     finally:
         arm.fail = False
         arm.shutdown()
@@ -87,3 +85,33 @@ def test_a_device_shut_down_meanwhile_gets_the_line_of_its_shutdown() -> None:
     assert [(d.name, what) for d, what in make_all_safe("SIGTERM", drivers=taken)] == [
         ("arm", "OFF")
     ]
+
+
+def test_a_device_its_shutdown_makes_safe_meanwhile_is_not_reported_not_safe() -> None:
+    (arm,) = started(Device("arm"))
+    failed, holding = threading.Event(), threading.Event()
+    real = arm.on_make_safe
+
+    def busy_port() -> str:  # the signal's send collides with the shutdown's on the port
+        if not failed.is_set():
+            failed.set()
+            raise OSError("Failed transmit")
+        return real()
+
+    arm.on_make_safe = busy_port  # type: ignore[method-assign]
+
+    def shutdown() -> None:
+        with arm._lifecycle:  # as Driver.shutdown holds it
+            holding.set()
+            failed.wait(5)
+            arm.make_safe("shutdown")
+
+    closer = threading.Thread(target=shutdown, name="test-shutdown")
+    closer.start()
+    assert holding.wait(5)
+    try:
+        lines = {d.name: what for d, what in make_all_safe("SIGTERM", drivers=[arm])}
+        assert lines["arm"] == "OFF (sending it again failed: make safe: OSError: Failed transmit)"
+    finally:
+        closer.join(5)
+        arm.shutdown()
