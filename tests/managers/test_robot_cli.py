@@ -10,6 +10,8 @@ import threading
 import time
 from pathlib import Path
 
+from temoto.record.reader import read_messages
+
 ROOT = Path(__file__).resolve().parents[2]
 ARM = ROOT / "hw_profiles" / "sim_arm.yaml"
 MISSION = ROOT / "examples" / "missions" / "arm_poses.graph.json"
@@ -83,12 +85,14 @@ def test_a_device_that_cannot_start_is_named_without_internal_json(tmp_path: Pat
 MOBILE = ROOT / "hw_profiles" / "sim_mobile_manipulator.yaml"
 
 
-def test_after_a_pause_of_the_process_every_device_comes_back() -> None:
+def test_after_a_pause_of_the_process_every_device_comes_back(tmp_path: Path) -> None:
     # SIGSTOP/SIGCONT of a serving robot (its simulators pause with it): the ODrive axes'
     # watchdogs (1 s) expire and the Dynamixel chain goes stale; the recovery brings both back
     env = {k: v for k, v in os.environ.items() if k != "TEMOTO_FLEET_KEY"}
+    record = tmp_path / "run.mcap"
+    argv = ["--profile", str(MOBILE), "--local", "--record", str(record)]
     proc = subprocess.Popen(
-        [sys.executable, "-m", "temoto.managers.robot", "--profile", str(MOBILE), "--local"],
+        [sys.executable, "-m", "temoto.managers.robot", *argv],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,
         text=True,
@@ -134,3 +138,12 @@ def test_after_a_pause_of_the_process_every_device_comes_back() -> None:
     assert "gave up" not in text
     assert "  base: left_wheel IDLE, right_wheel IDLE" in lines
     assert "  arm: 6 servos torque off" in lines
+    # the recording has the recovery's lines too
+    messages, complete = read_messages(record, {"/temoto/log"})
+    assert complete
+    logged = [m.data["message"] for m in messages]
+    for device in ("base", "arm"):
+        assert any(
+            t.startswith(f"robot sim_mobile_manipulator, device {device}: recovered on try")
+            for t in logged
+        ), logged
