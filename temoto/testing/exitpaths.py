@@ -440,7 +440,15 @@ def run_path(
         ]
         for reader in readers:
             reader.start()
-        active = host.wait("airborne" if family_name == "mavlink" else "acting")
+        try:
+            active = host.wait("airborne" if family_name == "mavlink" else "acting")
+        except TimeoutError as err:  # say what the robot command said
+            robot.kill()
+            robot.wait()
+            for reader in readers:
+                reader.join(5)
+            said = out.get("stderr", "")[-2000:]
+            raise TimeoutError(f"{err}; the robot command's stderr:\n{said}") from None
         if path == "double_sigint" and not stuck.wait(STEP_TIMEOUT):
             raise TimeoutError("the mission's Stuck action did not start")
         if others and not moving.wait(STEP_TIMEOUT):  # every device loaded: the mission runs

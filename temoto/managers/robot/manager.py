@@ -603,7 +603,7 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
                 device_text(name, reason),
             )
             with device.cond:
-                device.gave_up = "recovery off"
+                device.gave_up = f"recovery off: {device_text(name, reason)}"
                 device.recovering = False
             return
         for attempt in range(1, policy.tries + 1):
@@ -677,10 +677,8 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             return health
         with device.cond:
             gave_up, note = device.gave_up, device.note
-        if gave_up:
-            off = gave_up == "recovery off"
-            message = f"recovery off: {health.message}" if off else gave_up
-            return replace(health, state=DriverState.FAULT, ok=False, message=message)
+        if gave_up:  # out of service until loaded again, whatever the driver says now
+            return replace(health, state=DriverState.FAULT, ok=False, message=gave_up)
         if note and not health.ok:
             return replace(health, message=f"{health.message} ({note})")
         return health
