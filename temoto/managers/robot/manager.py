@@ -39,7 +39,6 @@ from temoto.drivers.base import device_text
 from temoto.drivers.sim import Simulator
 from temoto.errors import (
     ConfigError,
-    DriverError,
     DriverInitError,
     ResourceLoadError,
     ResourceNotFoundError,
@@ -173,6 +172,11 @@ class _Device:
     def name(self) -> str:
         """The device's name in the profile."""
         return self.driver.name
+
+    def closed(self) -> bool:
+        """Whether the device is being closed (released, the manager shutting down)."""
+        with self.cond:
+            return self.closing
 
     def close(self) -> None:
         """Stop the recovery, stop listening, shut the driver down (its safe state first)."""
@@ -436,8 +440,9 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         """What a device that could not start says: robot, device, the driver's own reason.
 
         The registrar wraps the driver's error in ``server 'driver' could not load {...}``
-        (the request as JSON); people get ``robot <r>, device <d>: could not start: <why>``
-        instead, of the driver's error category (a profile error stays one: exit 2).
+        (the request as JSON); people get a :class:`~temoto.errors.DriverInitError`
+        ``robot <r>, device <d>: could not start: <why>`` instead (a profile error stays one:
+        exit 2).
         """
         inner: BaseException = err
         while isinstance(inner, ResourceLoadError) and inner.__cause__ is not None:
@@ -445,9 +450,7 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         if isinstance(inner, ConfigError):
             return inner
         text = f"{self._where(device)}: could not start: {device_text(device, str(inner))}"
-        if isinstance(inner, DriverError):
-            return DriverInitError(text)
-        return err if inner is err else ResourceLoadError(text, origin=err.origin)
+        return DriverInitError(text)
 
     def on_unload(self, request: RobotRequest, response: RobotResponse) -> None:
         """Stop the robot's control loop (its drivers are released as dependencies)."""
@@ -633,10 +636,14 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             try:
                 if driver.state is DriverState.FAULT:
                     driver.recover()
-                if driver.state is DriverState.INACTIVE:
+                if driver.state is DriverState.INACTIVE and not device.closed():
                     driver.activate()
-            except Exception as err:  # the driver reported it (FATAL again); try again later
+            except Exception as err:  # logged below; the next try comes after its wait
                 error = str(err)
+            if device.closed():  # released meanwhile: its shutdown makes it safe
+                with device.cond:
+                    device.recovering = False
+                return
             if driver.state is DriverState.ACTIVE:
                 with device.cond:
                     device.recovering = False
