@@ -56,6 +56,8 @@ from temoto.errors import (
     DriverInitError,
     DriverOperationError,
     DriverUnavailableError,
+    DynamixelHardwareError,
+    MotorFaultError,
     StateError,
 )
 
@@ -576,6 +578,24 @@ class Driver(ABC):
         if self.state is DriverState.ACTIVE:
             self.on_deactivate()
         return self.safe_state
+
+    def needs_hands(self, error: BaseException | None) -> str:
+        """Why a fault must not be cleared without a person looking ("": it may be).
+
+        The Robot Manager's recovery (``recovery:`` in a profile) does not clear a device's
+        own hardware error (a servo overheating or overloaded, a motor controller's error
+        bits): re-arming it could harm the hardware. A driver allows the errors it knows to be
+        harmless to clear (an ODrive axis whose watchdog expired while its host paused).
+
+        Args:
+            error: The fault's error (or what a recovery try raised).
+
+        Returns:
+            The reason for people, or "" when the manager may recover the device.
+        """
+        if isinstance(error, DynamixelHardwareError | MotorFaultError):
+            return "the device reports a hardware error"
+        return ""
 
     def on_recover(self) -> None:
         """Reconnect after a fault (default: configure again from scratch)."""

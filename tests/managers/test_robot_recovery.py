@@ -219,3 +219,27 @@ def test_the_recovery_key_of_a_profile() -> None:
         "sim_arm.yaml: devices.arm.recovery: must be off, on or a mapping of tries, backoff,"
         " max_backoff; got 'sometimes'"
     )
+
+
+def test_a_hardware_error_is_not_cleared_automatically(caplog: pytest.LogCaptureFixture) -> None:
+    clock = ScaledClock(3)
+    prof = profile("sim_arm.yaml", clock)  # the default policy: 5 tries
+    caplog.set_level(logging.INFO, logger="temoto.managers.robot.manager")
+    with robot_manager("test-hardware", prof, clock) as (registrar, manager):
+        statuses = Statuses()
+        robot = RobotManagerClient(registrar).request(client="test", on_status=statuses)
+        manager.simulator("arm").inject("hardware_error", kind="overheat", device=3)
+        statuses.wait_for(lambda u: u.status is Status.FATAL, "FATAL")
+        wait_until(
+            lambda: "not recovered automatically" in caplog.text, "no line says it is not tried"
+        )
+        end = clock.monotonic() + 3.0  # longer than the first waits of the default policy
+        while clock.monotonic() < end:
+            time.sleep(0.02)
+        assert "recovery try" not in caplog.text  # an overheating servo is not re-armed
+        assert not robot.healthy()
+        health = manager.robot().health()["arm"]
+        assert health.state is DriverState.FAULT
+        assert health.message.startswith(
+            "not recovered automatically (the device reports a hardware error): "
+        ), health.message

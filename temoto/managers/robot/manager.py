@@ -569,7 +569,7 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
                     device.answered = False
                     device.thread = threading.Thread(
                         target=self._recover,
-                        args=(device, health.message),
+                        args=(device, health.message, health.error),
                         name=f"temoto-recover-{device.name}",
                         daemon=True,
                     )
@@ -586,7 +586,7 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
                     device.answered = True
                     device.cond.notify_all()
 
-    def _recover(self, device: _Device, reason: str) -> None:
+    def _recover(self, device: _Device, reason: str, fault: BaseException | None) -> None:
         """Make a faulted device safe, then bring it back as its policy says (or give up)."""
         driver = device.driver
         policy = driver.recovery
@@ -598,15 +598,17 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         else:
             if what is not None:
                 logger.warning("%s made safe after its fault: %s", self._where(name), what)
-        if not policy.enabled:
+        hands = driver.needs_hands(fault)
+        if not policy.enabled or hands:
+            why = "recovery off" if not policy.enabled else f"not recovered automatically ({hands})"
             logger.warning(
-                "%s: FAULT: %s; recovery off: it stays out of service until the robot is loaded"
-                " again",
+                "%s: FAULT: %s; %s: it stays out of service until the robot is loaded again",
                 self._where(name),
                 device_text(name, reason),
+                why,
             )
             with device.cond:
-                device.gave_up = f"recovery off: {device_text(name, reason)}"
+                device.gave_up = f"{why}: {device_text(name, reason)}"
                 device.recovering = False
             return
         for attempt in range(1, policy.tries + 1):
@@ -640,6 +642,11 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
                     driver.activate()
             except Exception as err:  # logged below; the next try comes after its wait
                 error = str(err)
+                hands = driver.needs_hands(err)
+                if hands:  # the device reports a hardware error now: no more tries
+                    gave_up = f"not recovered automatically ({hands}): {device_text(name, error)}"
+                    self._give_up(device, gave_up)
+                    return
             if device.closed():  # released meanwhile: its shutdown makes it safe
                 with device.cond:
                     device.recovering = False
@@ -668,12 +675,15 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
                 policy.tries,
                 device_text(name, reason),
             )
-        gave_up = f"gave up after {policy.tries} tries: {device_text(name, reason)}"
+        self._give_up(device, f"gave up after {policy.tries} tries: {device_text(name, reason)}")
+
+    def _give_up(self, device: _Device, gave_up: str) -> None:
+        """The recovery ends without the device: say so loudly (log and consumers)."""
         with device.cond:
             device.gave_up = gave_up
             device.recovering = False
             device.note = ""
-        logger.error("%s: %s; it stays out of service", self._where(name), gave_up)
+        logger.error("%s: %s; it stays out of service", self._where(device.name), gave_up)
         self._status(device, Status.FATAL, gave_up)
 
     def _annotate(self, health: Health) -> Health:
