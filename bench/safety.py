@@ -13,6 +13,11 @@ root and ``unshare``; without them they are left out with a note.
 Dynamixel arm and a MAVLink quad, whose links are cut (``link_loss``) just before SIGTERM: the
 time to the live ODrive safe (every device is made safe at once, so the silent ones, waiting
 for replies that never come, must not delay it; bound 200 ms).
+
+``recover_after_pause_ms``: the mobile manipulator serving (``sim: true``), its process stopped
+for 1.5 s (SIGSTOP, then SIGCONT; its simulators pause with it, so the ODrive axes' and the
+Dynamixel servos' 1 s watchdogs expire): the time from SIGCONT to the last device's
+``recovered on try`` line (the Robot Manager's recovery policy, its default).
 """
 
 from __future__ import annotations
@@ -91,7 +96,69 @@ def bench_safety(quick: bool) -> Results:
             f"SIGTERM -> the live ODrive safe, arm and quad links cut; {len(runs)} runs",
             goal=("<=", 200.0),
         )
+    pauses = [_recovery_after_pause() for _ in range(rounds)]
+    out.add(
+        "recover_after_pause_ms",
+        median(pauses),
+        "ms",
+        f"SIGCONT after a 1.5 s SIGSTOP of a serving robot -> every device recovered; {len(pauses)}"
+        " runs",
+    )
     return out
+
+
+#: The serving robot of ``recover_after_pause_ms`` (its simulators pause with it).
+_PAUSED_PROFILE = "hw_profiles/sim_mobile_manipulator.yaml"
+
+
+def _recovery_after_pause() -> float:
+    """Milliseconds from SIGCONT to the last device's ``recovered on try`` line on stderr."""
+    import signal
+    import threading
+    import time
+    from pathlib import Path
+
+    profile = Path(__file__).resolve().parents[1] / _PAUSED_PROFILE
+    env = {k: v for k, v in os.environ.items() if k != "TEMOTO_FLEET_KEY"}
+    argv = [sys.executable, "-m", "temoto.managers.robot", "--profile", str(profile), "--local"]
+    proc = subprocess.Popen(
+        argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env
+    )
+    lines: list[tuple[float, str]] = []
+
+    def read() -> None:
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            lines.append((time.monotonic(), line))
+
+    reader = threading.Thread(target=read, name="bench-robot-stderr")
+    reader.start()
+    try:
+        deadline = time.monotonic() + 60.0
+        while not any("serving" in line for _, line in lines):
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise RuntimeError(f"the robot did not serve: {''.join(text for _, text in lines)}")
+            time.sleep(0.05)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGSTOP)
+        time.sleep(1.5)  # longer than the profile's 1 s watchdogs
+        proc.send_signal(signal.SIGCONT)
+        t0 = time.monotonic()
+        while sum("recovered on try" in line for _, line in list(lines)) < 2:
+            if time.monotonic() > t0 + 30.0:
+                raise RuntimeError(f"not recovered: {''.join(text for _, text in lines)[-1500:]}")
+            time.sleep(0.01)
+        return (max(t for t, line in lines if "recovered on try" in line) - t0) * 1000.0
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        reader.join(5)
+        if proc.stderr is not None:
+            proc.stderr.close()
 
 
 def bench_stale(quick: bool) -> Results:
