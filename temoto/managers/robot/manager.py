@@ -190,8 +190,9 @@ class _Device:
         finally:
             if self.sim is not None:
                 self.sim.close()
-            thread = self.thread
-            if thread is not None and thread is not threading.current_thread():
+            thread = self.thread  # one not started yet ends at once: it sees ``closing``
+            mine = thread is threading.current_thread()
+            if thread is not None and thread.ident is not None and not mine:
                 thread.join(5.0)
 
 
@@ -591,6 +592,10 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         driver = device.driver
         policy = driver.recovery
         name = driver.name
+        if device.closed():  # released before this thread ran: its shutdown made it safe
+            with device.cond:
+                device.recovering = False
+            return
         try:
             what = driver.make_safe("fault")
         except Exception as err:
