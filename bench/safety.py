@@ -8,6 +8,16 @@ the time from the signal to the first state line in which the simulator sees the
 (every axis IDLE, motor mode off, torque off, a hold mode). The metric is the median over the
 runs of the slowest family of each round (signal -> last device safe). The CAN families need
 root and ``unshare``; without them they are left out with a note.
+
+``safe_stop_silent_links_ms`` (root only): the ODrive rover with two more devices, a six-servo
+Dynamixel arm and a MAVLink quad, whose links are cut (``link_loss``) just before SIGTERM: the
+time to the live ODrive safe (every device is made safe at once, so the silent ones, waiting
+for replies that never come, must not delay it; bound 200 ms).
+
+``recover_after_pause_ms``: the mobile manipulator serving (``sim: true``), its process stopped
+for 1.5 s (SIGSTOP, then SIGCONT; its simulators pause with it, so the ODrive axes' and the
+Dynamixel servos' 1 s watchdogs expire): the time from SIGCONT to the last device's
+``recovered on try`` line (the Robot Manager's recovery policy, its default).
 """
 
 from __future__ import annotations
@@ -24,10 +34,22 @@ from bench.common import Results, median
 GOAL_MS = 100.0
 
 
-def _one(family: str, path: str, netns: bool) -> float:
+def _silent_links() -> dict[str, object]:
+    """A six-servo Dynamixel arm and a MAVLink quad, whose links are cut before the signal."""
+    from temoto.testing.exitpaths import FAMILIES
+
+    arm = json.loads(json.dumps(FAMILIES["dynamixel"]["device"]))
+    servo = arm["servos"][0]
+    arm["servos"] = [{**servo, "id": i, "joint": f"joint{i}"} for i in range(1, 7)]
+    return {"arm": arm, "quad": dict(FAMILIES["mavlink"]["device"])}
+
+
+def _one(family: str, path: str, netns: bool, silent: dict[str, object] | None = None) -> float:
     argv = [sys.executable, "-m", "temoto.testing.exitpaths", family, path]
     if netns:
         argv.append("--netns")
+    if silent is not None:
+        argv += ["--silent", json.dumps(silent)]
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=120, check=False)
     if proc.returncode != 0:
         raise RuntimeError(f"exitpaths {family} {path}: {proc.stderr.strip()[-500:]}")
@@ -64,7 +86,79 @@ def bench_safety(quick: bool) -> Results:
     )
     for family, values in per_family.items():
         out.add(f"safe_stop_{family}_ms", median(values), "ms", f"{len(values)} runs")
+    if netns:  # the rover's ODrive with two more devices whose links are silent
+        silent = _silent_links()
+        runs = [_one("odrive", "sigterm", True, silent) for _ in range(rounds)]
+        out.add(
+            "safe_stop_silent_links_ms",
+            median(runs),
+            "ms",
+            f"SIGTERM -> the live ODrive safe, arm and quad links cut; {len(runs)} runs",
+            goal=("<=", 200.0),
+        )
+    pauses = [_recovery_after_pause() for _ in range(rounds)]
+    out.add(
+        "recover_after_pause_ms",
+        median(pauses),
+        "ms",
+        f"SIGCONT after a 1.5 s SIGSTOP of a serving robot -> every device recovered; {len(pauses)}"
+        " runs",
+    )
     return out
+
+
+#: The serving robot of ``recover_after_pause_ms`` (its simulators pause with it).
+_PAUSED_PROFILE = "hw_profiles/sim_mobile_manipulator.yaml"
+
+
+def _recovery_after_pause() -> float:
+    """Milliseconds from SIGCONT to the last device's ``recovered on try`` line on stderr."""
+    import signal
+    import threading
+    import time
+    from pathlib import Path
+
+    profile = Path(__file__).resolve().parents[1] / _PAUSED_PROFILE
+    env = {k: v for k, v in os.environ.items() if k != "TEMOTO_FLEET_KEY"}
+    argv = [sys.executable, "-m", "temoto.managers.robot", "--profile", str(profile), "--local"]
+    proc = subprocess.Popen(
+        argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, env=env
+    )
+    lines: list[tuple[float, str]] = []
+
+    def read() -> None:
+        assert proc.stderr is not None
+        for line in proc.stderr:
+            lines.append((time.monotonic(), line))
+
+    reader = threading.Thread(target=read, name="bench-robot-stderr")
+    reader.start()
+    try:
+        deadline = time.monotonic() + 60.0
+        while not any("serving" in line for _, line in lines):
+            if time.monotonic() > deadline or proc.poll() is not None:
+                raise RuntimeError(f"the robot did not serve: {''.join(text for _, text in lines)}")
+            time.sleep(0.05)
+        time.sleep(0.5)
+        proc.send_signal(signal.SIGSTOP)
+        time.sleep(1.5)  # longer than the profile's 1 s watchdogs
+        proc.send_signal(signal.SIGCONT)
+        t0 = time.monotonic()
+        while sum("recovered on try" in line for _, line in list(lines)) < 2:
+            if time.monotonic() > t0 + 30.0:
+                raise RuntimeError(f"not recovered: {''.join(text for _, text in lines)[-1500:]}")
+            time.sleep(0.01)
+        return (max(t for t, line in lines if "recovered on try" in line) - t0) * 1000.0
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        try:
+            proc.wait(20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+        reader.join(5)
+        if proc.stderr is not None:
+            proc.stderr.close()
 
 
 def bench_stale(quick: bool) -> Results:

@@ -38,6 +38,7 @@ import enum
 import logging
 import math
 import threading
+import time
 import warnings
 import weakref
 from abc import ABC, abstractmethod
@@ -48,12 +49,15 @@ from typing import Any, ClassVar, Final, Self
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.drivers.profile import Field, ProfileReader, choice
+from temoto.drivers.recovery import RECOVERY_FIELD, RecoveryPolicy
 from temoto.drivers.sim import Simulator
 from temoto.errors import (
     DriverError,
     DriverInitError,
     DriverOperationError,
     DriverUnavailableError,
+    DynamixelHardwareError,
+    MotorFaultError,
     StateError,
 )
 
@@ -63,6 +67,7 @@ __all__ = [
     "Health",
     "HealthListener",
     "detect_links",
+    "device_text",
     "live_drivers",
     "make_all_safe",
 ]
@@ -154,6 +159,9 @@ class Driver(ABC):
         self._health = Health(name, self._state, False, "not configured", self.clock.monotonic())
         self._listeners: list[HealthListener] = []
         self._safe_state = type(self).safe_states[0]
+        #: What the Robot Manager does after a fault (``recovery:`` in a profile).
+        self.recovery = RecoveryPolicy()
+        self._made_safe: str | None = None  # what make_safe did, until the next activate
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} {self.name!r} {self.state.value}>"
@@ -247,13 +255,14 @@ class Driver(ABC):
         """Every key a profile entry of this driver may have, with how it is read.
 
         :attr:`profile_fields` plus ``safe_state`` (one of :attr:`safe_states`, the first by
-        default). ``driver`` is always allowed too (it must name this driver).
+        default) and ``recovery`` (:mod:`temoto.drivers.recovery`). ``driver`` is always
+        allowed too (it must name this driver).
 
         Returns:
             key → :class:`~temoto.drivers.profile.Field`.
         """
         safe = choice(cls.safe_states, cls.safe_states[0], init=False)
-        return {**cls.profile_fields, "safe_state": safe}
+        return {**cls.profile_fields, "safe_state": safe, "recovery": RECOVERY_FIELD}
 
     @classmethod
     def read_profile(cls, config: Mapping[str, Any], where: str) -> dict[str, Any]:
@@ -323,6 +332,7 @@ class Driver(ABC):
             key = next((k for k in kwargs if str(err).startswith(k)), "")
             raise ProfileReader.at(where).error(key, str(err)) from None
         driver.safe_state = values["safe_state"]
+        driver.recovery = values["recovery"]
         return driver
 
     @classmethod
@@ -386,6 +396,7 @@ class Driver(ABC):
                 error = _as_driver_error(err, DriverOperationError, f"{self.name}: activate")
                 self.report_fault(error)
                 raise error from err
+            self._made_safe = None
             self._set(DriverState.ACTIVE, "active")
 
     def deactivate(self) -> None:
@@ -469,6 +480,7 @@ class Driver(ABC):
                 now = self._state
                 if now is DriverState.FAULT:
                     self._before_fault = DriverState.INACTIVE  # recovery finds it safe, not acting
+            self._made_safe = done
             if now is DriverState.ACTIVE:
                 self._set(DriverState.INACTIVE, f"safe: {done}")
             logger.info("driver %s: safe (%s): %s", self.name, reason or "asked", done)
@@ -493,7 +505,7 @@ class Driver(ABC):
                     return  # the same fault again: no new report
             else:
                 self._before_fault = self._state
-        logger.warning("driver %s: fault: %s", self.name, error)
+        logger.warning("driver %s: fault: %s", self.name, device_text(self.name, str(error)))
         self._set(DriverState.FAULT, str(error), error)
 
     def report_recovered(self, message: str = "the device answers again") -> None:
@@ -506,7 +518,7 @@ class Driver(ABC):
             if self._state is not DriverState.FAULT:
                 return
             back = self._before_fault
-        logger.info("driver %s: recovered: %s", self.name, message)
+        logger.info("driver %s: recovered: %s", self.name, device_text(self.name, message))
         self._set(back, message)
 
     # ---- discovery -------------------------------------------------------------------------
@@ -567,6 +579,24 @@ class Driver(ABC):
             self.on_deactivate()
         return self.safe_state
 
+    def needs_hands(self, error: BaseException | None) -> str:
+        """Why a fault must not be cleared without a person looking ("": it may be).
+
+        The Robot Manager's recovery (``recovery:`` in a profile) does not clear a device's
+        own hardware error (a servo overheating or overloaded, a motor controller's error
+        bits): re-arming it could harm the hardware. A driver allows the errors it knows to be
+        harmless to clear (an ODrive axis whose watchdog expired while its host paused).
+
+        Args:
+            error: The fault's error (or what a recovery try raised).
+
+        Returns:
+            The reason for people, or "" when the manager may recover the device.
+        """
+        if isinstance(error, DynamixelHardwareError | MotorFaultError):
+            return "the device reports a hardware error"
+        return ""
+
     def on_recover(self) -> None:
         """Reconnect after a fault (default: configure again from scratch)."""
         self._quietly(self.on_shutdown)
@@ -590,7 +620,8 @@ class Driver(ABC):
         with self._lock:
             state, health = self._state, self._health
         if state is not DriverState.ACTIVE:
-            why = f": {health.message}" if state is DriverState.FAULT else ""
+            fault = state is DriverState.FAULT
+            why = f": {device_text(self.name, health.message)}" if fault else ""
             raise StateError(f"{self.name}: cannot {verb} while {state.value}{why}")
 
     def _check(self, verb: str) -> None:
@@ -634,28 +665,110 @@ def live_drivers() -> list[Driver]:
     return list(_LIVE)
 
 
-def make_all_safe(reason: str = "") -> list[tuple[Driver, str]]:
-    """Put every configured driver of this process in its safe state (see ``make_safe``).
+#: Real seconds :func:`make_all_safe` waits for the devices' confirmations, all together
+#: (``docs/safety.md``: every device safe within 200 ms of a signal).
+SAFE_ALL_WAIT: Final = 0.2
 
-    Never raises: a driver that fails is logged and listed with the error's text.
+
+def make_all_safe(
+    reason: str = "", *, drivers: Sequence[Driver] | None = None, wait: float = SAFE_ALL_WAIT
+) -> list[tuple[Driver, str]]:
+    """Put every configured driver of this process in its safe state, all at once.
+
+    Each driver's :meth:`~Driver.make_safe` runs on a thread of its own
+    (``temoto-safe-<name>``), so every device is sent its safe state at once; their
+    confirmations are awaited together, for at most ``wait`` real seconds. A device that has
+    not confirmed by then is listed as such (its thread goes on and logs what it did). Never
+    raises: a driver that fails is logged and listed with the error's text, unless it was made
+    safe and not activated since, before or meanwhile by another thread (its shutdown, say):
+    then its line says what was done, not ``NOT SAFE``.
 
     Args:
         reason: Why (for the log lines).
+        drivers: The drivers (default: every live driver of the process, by name).
+        wait: Real seconds to wait for the confirmations, all together.
 
     Returns:
-        ``(driver, what was done)`` for each driver that holds a link.
+        ``(driver, what was done)`` for each driver that holds a link, in the drivers' order.
     """
-    done: list[tuple[Driver, str]] = []
-    for driver in live_drivers():
+    chosen = sorted(live_drivers(), key=lambda d: d.name) if drivers is None else list(drivers)
+    results: dict[int, str | None] = {}
+    lock = threading.Lock()
+
+    def safe_one(index: int, driver: Driver) -> None:
         try:
             what = driver.make_safe(reason)
         except Exception as err:  # one device's failure never stops the others' safe state
-            logger.error("driver %s: could not make it safe: %s", driver.name, err)
-            done.append((driver, f"NOT SAFE: {err}"))
+            # a transition on another thread (a shutdown) may be making it safe: let it end
+            if driver._lifecycle.acquire(timeout=wait):
+                driver._lifecycle.release()
+            before = driver._made_safe  # made safe since its last activation, by any thread
+            if before is not None:
+                again = device_text(driver.name, str(err))
+                what = f"{before} (sending it again failed: {again})"
+                logger.warning("driver %s: safe before; sending again failed: %s", driver.name, err)
+            else:
+                logger.error("driver %s: could not make it safe: %s", driver.name, err)
+                what = f"NOT SAFE: {device_text(driver.name, str(err))}"
+        with lock:
+            results[index] = what
+
+    threads = [
+        threading.Thread(target=safe_one, args=(i, d), name=f"temoto-safe-{d.name}", daemon=True)
+        for i, d in enumerate(chosen)
+    ]
+    for index, thread in enumerate(threads):
+        try:
+            thread.start()
+        except RuntimeError:  # no new threads (interpreter shutdown): this one, here
+            safe_one(index, chosen[index])
+    deadline = time.monotonic() + wait
+    for thread in threads:
+        if thread.ident is not None:
+            thread.join(max(deadline - time.monotonic(), 0.0))
+    done: list[tuple[Driver, str]] = []
+    with lock:
+        finished = dict(results)
+    for i, driver in enumerate(chosen):
+        if i in finished:
+            what = finished[i]
+            if what is None and driver._made_safe is not None:
+                what = driver._made_safe  # shut down meanwhile, which made it safe
+            if what is not None:
+                done.append((driver, what))
             continue
-        if what is not None:
-            done.append((driver, what))
+        if driver.state in (DriverState.UNCONFIGURED, DriverState.FINALIZED):
+            continue
+        health = driver.health()
+        why = health.message if health.state is DriverState.FAULT else "no answer yet"
+        why = device_text(driver.name, why)
+        done.append(
+            (
+                driver,
+                f"safe state {driver.safe_state} sent, not confirmed within {wait:g} s ({why})",
+            )
+        )
     return done
+
+
+def device_text(device: str, text: str) -> str:
+    """``text`` without the ``<device>: `` prefixes a driver's messages start with.
+
+    A driver's errors name their device first (``base: node 1 (left_wheel): ...``); a line that
+    names the device itself (``driver base: fault: ...``, ``robot r, device base: ...``) drops
+    them, so no line reads ``base: base:``.
+
+    Args:
+        device: The device's name.
+        text: A driver's message.
+
+    Returns:
+        The message without leading ``<device>: `` (all of them).
+    """
+    prefix = f"{device}: "
+    while text.startswith(prefix):
+        text = text[len(prefix) :]
+    return text
 
 
 atexit.register(make_all_safe, "interpreter exit")

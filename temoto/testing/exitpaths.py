@@ -362,7 +362,11 @@ def _marked(mark: str) -> list[int]:
 
 
 def run_path(
-    family_name: str, path: str, *, entry: Mapping[str, Any] | None = None
+    family_name: str,
+    path: str,
+    *,
+    entry: Mapping[str, Any] | None = None,
+    silent: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, Any]:
     """Take one exit path and report what the device saw (see the module docstring).
 
@@ -370,6 +374,9 @@ def run_path(
         family_name: A key of :data:`FAMILIES`.
         path: One of :data:`PATHS`.
         entry: The device entry to use instead of the family's (watchdog settings, say).
+        silent: More devices of the robot, by name → entry, each with its simulator in a
+            process of its own; their links are cut (``link_loss``: nothing in, nothing out)
+            just before the path is taken, so the robot makes them safe with silent links.
 
     Returns:
         The result mapping.
@@ -386,9 +393,13 @@ def run_path(
     env = {**os.environ, "TEMOTO_EXITPATH_MARK": mark}
     env.pop("TEMOTO_FLEET_KEY", None)
     work = Path(tempfile.mkdtemp(prefix="temoto-exitpath-"))
-    host = _SimHost(device, {k: v for k, v in env.items() if k != "TEMOTO_EXITPATH_MARK"})
+    host_env = {k: v for k, v in env.items() if k != "TEMOTO_EXITPATH_MARK"}
+    host = _SimHost(device, host_env)
+    others: dict[str, _SimHost] = {}
     robot: subprocess.Popen[str] | None = None
     try:
+        for other, other_entry in (silent or {}).items():
+            others[other] = _SimHost(other_entry, host_env)
         actions = work / "actions"
         actions.mkdir()
         for name, text in _ACTIONS.items():
@@ -396,7 +407,7 @@ def run_path(
         profile = {
             "robot": f"exit_{family_name}",
             "sim": False,
-            "devices": {"device": host.config},
+            "devices": {"device": host.config, **{n: h.config for n, h in others.items()}},
             "features": family["features"],
         }
         (work / "profile.json").write_text(json.dumps(profile))
@@ -421,16 +432,30 @@ def run_path(
         )
         out: dict[str, str] = {}
         stuck = threading.Event()
+        moving = threading.Event()
+        marks = {"Stuck_0 RUNNING": stuck, f"{family['long'][0]}_0 RUNNING": moving}
         readers = [
-            threading.Thread(target=_slurp, args=(robot.stdout, out, "stdout", stuck), daemon=True),
-            threading.Thread(target=_slurp, args=(robot.stderr, out, "stderr", None), daemon=True),
+            threading.Thread(target=_slurp, args=(robot.stdout, out, "stdout", marks), daemon=True),
+            threading.Thread(target=_slurp, args=(robot.stderr, out, "stderr", {}), daemon=True),
         ]
         for reader in readers:
             reader.start()
-        active = host.wait("airborne" if family_name == "mavlink" else "acting")
+        try:
+            active = host.wait("airborne" if family_name == "mavlink" else "acting")
+        except TimeoutError as err:  # say what the robot command said
+            robot.kill()
+            robot.wait()
+            for reader in readers:
+                reader.join(5)
+            said = out.get("stderr", "")[-2000:]
+            raise TimeoutError(f"{err}; the robot command's stderr:\n{said}") from None
         if path == "double_sigint" and not stuck.wait(STEP_TIMEOUT):
             raise TimeoutError("the mission's Stuck action did not start")
+        if others and not moving.wait(STEP_TIMEOUT):  # every device loaded: the mission runs
+            raise TimeoutError("the mission's motion did not start")
         second: dict[str, float] = {}
+        for silent_host in others.values():
+            silent_host.command("inject link_loss")
         event_t = _take(path, robot, host, family, second)
         try:
             rc: int | None = robot.wait(STEP_TIMEOUT)
@@ -469,18 +494,22 @@ def run_path(
             robot.kill()
             robot.wait()
         host.close()
+        for silent_host in others.values():
+            silent_host.close()
         shutil.rmtree(work, ignore_errors=True)
 
 
 def _slurp(
-    stream: IO[str] | None, out: dict[str, str], key: str, stuck: threading.Event | None
+    stream: IO[str] | None, out: dict[str, str], key: str, marks: Mapping[str, threading.Event]
 ) -> None:
+    """Read a stream to its end into ``out[key]``; set each event when its text is seen."""
     assert stream is not None
     lines = []
     for line in stream:
         lines.append(line)
-        if stuck is not None and "Stuck_0 RUNNING" in line:
-            stuck.set()
+        for text, event in marks.items():
+            if text in line:
+                event.set()
     out[key] = "".join(lines)
 
 
@@ -539,13 +568,19 @@ def main(argv: Sequence[str] | None = None) -> int:
     parser.add_argument("family", choices=sorted(FAMILIES))
     parser.add_argument("path", choices=PATHS)
     parser.add_argument("--entry", help="the device entry as JSON (instead of the family's)")
+    parser.add_argument(
+        "--silent",
+        help="more devices as JSON ({name: entry}), their links cut just before the path",
+    )
     parser.add_argument("--netns", action="store_true", help="run inside unshare -n (root)")
     args = parser.parse_args(argv)
     if args.netns:
         rest = [args.family, args.path] + (["--entry", args.entry] if args.entry else [])
+        rest += ["--silent", args.silent] if args.silent else []
         return _in_netns(rest)
     entry = json.loads(args.entry) if args.entry else None
-    result = run_path(args.family, args.path, entry=entry)
+    silent = json.loads(args.silent) if args.silent else None
+    result = run_path(args.family, args.path, entry=entry, silent=silent)
     sys.stdout.write(json.dumps(result) + "\n")
     return 0
 

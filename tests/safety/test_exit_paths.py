@@ -41,11 +41,18 @@ def _why_not() -> str:
     return ""
 
 
-def run(family: str, path: str, entry: dict[str, Any] | None = None) -> dict[str, Any]:
+def run(
+    family: str,
+    path: str,
+    entry: dict[str, Any] | None = None,
+    silent: dict[str, Any] | None = None,
+) -> dict[str, Any]:
     """One exit path, in a private network namespace."""
     argv = [sys.executable, "-m", "temoto.testing.exitpaths", family, path, "--netns"]
     if entry is not None:
         argv += ["--entry", json.dumps(entry)]
+    if silent is not None:
+        argv += ["--silent", json.dumps(silent)]
     proc = subprocess.run(argv, capture_output=True, text=True, timeout=90, check=False)
     assert proc.returncode == 0, proc.stderr[-3000:]
     result: dict[str, Any] = json.loads(proc.stdout.strip().splitlines()[-1])
@@ -98,3 +105,30 @@ def test_after_a_sigkill_the_devices_watchdog_makes_it_safe(family: str) -> None
     assert result["safe_t"] is not None, story
     assert result["safe_ms"] <= (bound + WATCHDOG_SLACK_S) * 1000.0, story
     assert result["safe_ms"] >= 0.0, story
+
+
+def _six_servo_arm() -> dict[str, Any]:
+    """The Dynamixel family's arm with six servos (each unanswered torque-off costs a reply)."""
+    entry = json.loads(json.dumps(FAMILIES["dynamixel"]["device"]))
+    servo = entry["servos"][0]
+    entry["servos"] = [{**servo, "id": i, "joint": f"joint{i}"} for i in range(1, 7)]
+    return entry
+
+
+@pytest.mark.skipif(bool(_why_not()), reason=_why_not() or "ok")
+def test_sigterm_makes_every_device_safe_at_once_with_two_links_silent() -> None:
+    # the rover's ODrive acts; the arm's and the quad's links are cut just before SIGTERM:
+    # their safe states wait for replies that never come, which must not delay the base
+    silent = {"arm": _six_servo_arm(), "quad": dict(FAMILIES["mavlink"]["device"])}
+    result = run("odrive", "sigterm", silent=silent)
+    story = _story(result)
+    assert result["rc"] == 143, story
+    assert not result["traceback"], story
+    assert result["leftovers"] == [], story
+    assert result["safe_t"] is not None, story
+    assert result["safe_ms"] <= SIGNAL_BOUND_MS, story
+    lines = [line.strip() for line in result["stderr"].splitlines() if line.startswith("  ")]
+    named = {line.partition(": ")[0]: line for line in lines}
+    assert set(named) >= {"arm", "device", "quad"}, story  # one line per device, always
+    assert named["device"].startswith("device: left_wheel IDLE"), story
+    assert "NOT SAFE" not in result["stderr"], story

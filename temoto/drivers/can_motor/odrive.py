@@ -82,6 +82,7 @@ from temoto.errors import (
     DriverInitError,
     DriverOperationError,
     DriverTimeoutError,
+    MotorFaultError,
     StateError,
 )
 
@@ -450,6 +451,18 @@ class ODriveDriver(CanMotorDriver):
                 # real time: never held up by a paused test clock
                 self._cond.wait(min(left, max(ask_again - time.monotonic(), 0.001)))
         return fine()
+
+    def needs_hands(self, error: BaseException | None) -> str:
+        """An axis error other than ``WATCHDOG_TIMER_EXPIRED`` needs a person (see the base).
+
+        An expired watchdog (the host stopped sending set-points: a paused process, a stall)
+        only disarmed the axis; ``Clear_Errors`` and arming again are what the ODrive
+        documentation prescribes (``axis.config.enable_watchdog``, ``watchdog_timeout``).
+        """
+        watchdog = int(cs.AxisError.WATCHDOG_TIMER_EXPIRED)
+        if isinstance(error, MotorFaultError) and error.error and not error.error & ~watchdog:
+            return ""
+        return super().needs_hands(error)
 
     def on_recover(self) -> None:
         """Clear the nodes' errors (``Clear_Errors``) and wait until they report none.

@@ -58,7 +58,7 @@ from temoto.clock import MonotonicClock
 from temoto.config import load_profile
 from temoto.core.documents import load_graph
 from temoto.core.states import NodeState, Result
-from temoto.drivers import make_all_safe
+from temoto.drivers import Driver, live_drivers, make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
 from temoto.managers.process import hurry_all
 
@@ -73,6 +73,9 @@ EXIT_INVALID = 2
 
 #: The registrar client this command holds the robot as.
 CLIENT = "robot-manager"
+
+#: Real seconds the command waits at its end for a signal's per-device lines.
+_LINES_WAIT = 2.0
 
 logger = logging.getLogger("temoto.robot")
 
@@ -97,6 +100,7 @@ class _SafeOnSignal:
         #: recording; what they raise is ignored.
         self.before_exit: list[Any] = []
         self.signals = SignalExit(first=(self._first,), hurry=(hurry_all, self._again))
+        self._threads: list[threading.Thread] = []
 
     @property
     def exit_code(self) -> int | None:
@@ -111,12 +115,27 @@ class _SafeOnSignal:
         self._spawn(self.signals.signum or signal.SIGINT, True)
 
     def _spawn(self, signum: int, urgent: bool) -> None:
-        threading.Thread(
-            target=self._make_safe, args=(signum, urgent), name="temoto-safe", daemon=True
-        ).start()
+        # the drivers as they are at the signal (the handler runs before the main thread goes
+        # on to close the robot): a device shut down meanwhile still gets its line
+        drivers = sorted(live_drivers(), key=lambda d: d.name)
+        thread = threading.Thread(
+            target=self._make_safe,
+            args=(signum, urgent, drivers),
+            name="temoto-safe",
+            daemon=True,
+        )
+        self._threads.append(thread)
+        thread.start()
 
-    def _make_safe(self, signum: int, urgent: bool) -> None:
-        lines = [f"{d.name}: {what}" for d, what in make_all_safe(signal.Signals(signum).name)]
+    def join(self, timeout: float = _LINES_WAIT) -> None:
+        """Wait (at most ``timeout`` real seconds) until every signal's lines are written."""
+        deadline = time.monotonic() + timeout
+        for thread in list(self._threads):
+            thread.join(max(deadline - time.monotonic(), 0.0))
+
+    def _make_safe(self, signum: int, urgent: bool, drivers: list[Driver]) -> None:
+        reason = signal.Signals(signum).name
+        lines = [f"{d.name}: {what}" for d, what in make_all_safe(reason, drivers=drivers)]
         self.err.writelines(f"  {line}\n" for line in lines)
         self.err.flush()
         if urgent:
@@ -187,8 +206,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             sys.stderr.write(f"temoto-robot: error: {err}\n")
             code = EXIT_INVALID
         except (DriverError, ResourceError, TransportError) as err:
-            sys.stderr.write(f"temoto-robot: error: {err}\n")
-            code = EXIT_FAILED
+            inner = load_error(err)
+            sys.stderr.write(f"temoto-robot: error: {inner}\n")
+            code = EXIT_INVALID if isinstance(inner, ConfigError | PluginError) else EXIT_FAILED
+    interrupts.join()  # the per-device lines of a signal are out before the exit
     signalled = interrupts.exit_code
     return code if signalled is None else signalled
 
@@ -352,6 +373,33 @@ def _mission(engine: Any, mission: Any, timeout: float | None, stop: threading.E
             engine.stop(name)
             break
     return engine.outcome(name)
+
+
+def load_error(err: BaseException) -> BaseException:
+    """What a failed load says, for people: the device's own error, no internal requests.
+
+    A robot that cannot be loaded fails inside the registrar, which wraps the driver's error in
+    ``server 'robot' could not load {...}: ...``; the innermost error that is not such a
+    wrapper names the robot, the device and what went wrong (the manager's
+    ``robot sim_arm, device arm: could not start: servo 1 (shoulder_pan) does not answer PING
+    on /dev/ttyUSB0: ...``).
+
+    Args:
+        err: The error the command caught.
+
+    Returns:
+        The innermost error (``err`` itself when it wraps nothing).
+    """
+    from temoto.errors import ResourceLoadError
+
+    inner: BaseException = err
+    seen: set[int] = set()
+    while isinstance(inner, ResourceLoadError) and inner.__cause__ is not None:
+        if id(inner) in seen:
+            break
+        seen.add(id(inner))
+        inner = inner.__cause__
+    return inner
 
 
 #: Real seconds between the mission's checks for a signal.

@@ -20,15 +20,30 @@ import contextlib
 import logging
 import threading
 from collections.abc import Callable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field, replace
 from typing import Any, ClassVar, Protocol, runtime_checkable
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.config import Profile
 from temoto.core.registrar import LoadContext, Registrar, ResourceInfo, ResourceServer, Status
-from temoto.drivers import Actuator, Driver, DriverState, Health, Vehicle, driver_class
+from temoto.drivers import (
+    Actuator,
+    Driver,
+    DriverState,
+    Health,
+    Vehicle,
+    driver_class,
+    make_all_safe,
+)
+from temoto.drivers.base import device_text
 from temoto.drivers.sim import Simulator
-from temoto.errors import ResourceNotFoundError, StateError
+from temoto.errors import (
+    ConfigError,
+    DriverInitError,
+    ResourceLoadError,
+    ResourceNotFoundError,
+    StateError,
+)
 from temoto.managers.robot.features import (
     ArmController,
     DriveController,
@@ -136,14 +151,38 @@ class _StreamsToGcs(Protocol):
 
 @dataclass(eq=False)
 class _Device:
+    """An open device of the manager, and its recovery after a fault (``docs/safety.md``)."""
+
     driver: Driver
     sim: Simulator | None
     remove_listener: Callable[[], None] | None = None
-    faulted: bool = False  # a FATAL was sent and no OK since
     settings: Mapping[str, Any] | None = None  # the entry the driver got (simulated devices)
+    resource_id: str = ""
+    #: The recovery's condition: ``answered``, ``closing``, ``recovering`` and ``note`` change
+    #: under it.
+    cond: threading.Condition = field(default_factory=threading.Condition)
+    recovering: bool = False  # a recovery thread runs
+    answered: bool = False  # the driver said the device answers again (wakes the recovery)
+    closing: bool = False
+    gave_up: str = ""  # why the recovery gave up (the device stays out of service)
+    note: str = ""  # the recovery's state, for the live view
+    thread: threading.Thread | None = None
+
+    @property
+    def name(self) -> str:
+        """The device's name in the profile."""
+        return self.driver.name
+
+    def closed(self) -> bool:
+        """Whether the device is being closed (released, the manager shutting down)."""
+        with self.cond:
+            return self.closing
 
     def close(self) -> None:
-        """Stop listening, shut the driver down (its safe state first), close its simulator."""
+        """Stop the recovery, stop listening, shut the driver down (its safe state first)."""
+        with self.cond:
+            self.closing = True
+            self.cond.notify_all()
         if self.remove_listener is not None:
             self.remove_listener()
         try:
@@ -151,6 +190,10 @@ class _Device:
         finally:
             if self.sim is not None:
                 self.sim.close()
+            thread = self.thread  # one not started yet ends at once: it sees ``closing``
+            mine = thread is threading.current_thread()
+            if thread is not None and thread.ident is not None and not mine:
+                thread.join(5.0)
 
 
 class Robot:
@@ -165,8 +208,10 @@ class Robot:
         devices: Mapping[str, Driver],
         clock: Clock,
         rate_hz: float,
+        annotate: Callable[[Health], Health] | None = None,
     ) -> None:
         self.name = profile.robot
+        self._annotate = annotate
         self.profile = profile
         self.clock = clock
         self.period = 1.0 / rate_hz
@@ -174,14 +219,18 @@ class Robot:
         self.drive: DriveController | None = None
         self.arm: ArmController | None = None
         self.flight: FlightController | None = None
+        #: The controllers that command each device (their goals end when it faults).
+        self._commanders: list[tuple[DriveController | ArmController, frozenset[str]]] = []
         if profile.navigation is not None:
             nav = profile.navigation
-            left = self._actuator(profile.joint_device(nav.left_wheel))
-            right = self._actuator(profile.joint_device(nav.right_wheel))
+            wheels = (profile.joint_device(nav.left_wheel), profile.joint_device(nav.right_wheel))
+            left, right = self._actuator(wheels[0]), self._actuator(wheels[1])
             self.drive = DriveController(nav, (left, right))
+            self._commanders.append((self.drive, frozenset(wheels)))
         if profile.manipulation is not None:
             arm = profile.manipulation
             self.arm = ArmController(arm, self._actuator(arm.device))
+            self._commanders.append((self.arm, frozenset({arm.device})))
         if profile.flight is not None:
             vehicle = self._devices[profile.flight.device]
             assert isinstance(vehicle, Vehicle)
@@ -210,8 +259,26 @@ class Robot:
         return all(d.state is DriverState.ACTIVE for d in self._devices.values())
 
     def health(self) -> dict[str, Health]:
-        """Each device's health."""
-        return {name: d.health() for name, d in self._devices.items()}
+        """Each device's health, with its recovery's state (a try to come, given up).
+
+        Returns:
+            Device name → its health.
+        """
+        annotate = self._annotate or (lambda h: h)
+        return {name: annotate(d.health()) for name, d in self._devices.items()}
+
+    def device_faulted(self, device: str) -> None:
+        """End the goals of the features that command ``device`` (it faulted).
+
+        A recovered device then holds where it is: the control loop does not take up a goal
+        set before the fault (the action that set it was told FATAL).
+
+        Args:
+            device: The device's name.
+        """
+        for controller, devices in self._commanders:
+            if device in devices:
+                controller.stop()
 
     def close(self) -> None:
         """Stop the control thread (the drivers are closed by their resources)."""
@@ -358,14 +425,33 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             )
         drivers: dict[str, Driver] = {}
         for device in self.profile.devices:
-            ctx.call("driver", DriverRequest(name, device))
+            try:
+                ctx.call("driver", DriverRequest(name, device))
+            except ResourceLoadError as err:
+                raise self._start_error(device, err) from err
             with self._lock:
                 drivers[device] = self._devices[device].driver
-        robot = Robot(self.profile, drivers, self.clock, self.rate_hz)
+        robot = Robot(self.profile, drivers, self.clock, self.rate_hz, self._annotate)
         with self._lock:
             self._robots[name] = robot
         logger.info("robot %s ready (%s)", name, ", ".join(self.profile.features) or "no features")
         return RobotResponse(name, self.profile.features, tuple(self.profile.devices))
+
+    def _start_error(self, device: str, err: ResourceLoadError) -> Exception:
+        """What a device that could not start says: robot, device, the driver's own reason.
+
+        The registrar wraps the driver's error in ``server 'driver' could not load {...}``
+        (the request as JSON); people get a :class:`~temoto.errors.DriverInitError`
+        ``robot <r>, device <d>: could not start: <why>`` instead (a profile error stays one:
+        exit 2).
+        """
+        inner: BaseException = err
+        while isinstance(inner, ResourceLoadError) and inner.__cause__ is not None:
+            inner = inner.__cause__
+        if isinstance(inner, ConfigError):
+            return inner
+        text = f"{self._where(device)}: could not start: {device_text(device, str(inner))}"
+        return DriverInitError(text)
 
     def on_unload(self, request: RobotRequest, response: RobotResponse) -> None:
         """Stop the robot's control loop (its drivers are released as dependencies)."""
@@ -409,12 +495,16 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         driver: Driver | None = None
         try:
             driver = cls.from_profile(spec.name, config, clock=self.clock, where=where)
-            device = _Device(driver, sim, settings=dict(config) if sim is not None else None)
-            resource_id = ctx.resource_id
+            device = _Device(
+                driver,
+                sim,
+                settings=dict(config) if sim is not None else None,
+                resource_id=ctx.resource_id,
+            )
             driver.configure()
             driver.activate()
             device.remove_listener = driver.add_health_listener(
-                lambda health: self._on_health(device, resource_id, health)
+                lambda health: self._on_health(device, health)
             )
         except BaseException:
             if driver is not None:
@@ -435,70 +525,185 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
     def make_safe(self, reason: str = "") -> list[str]:
         """Put every open device of this manager in its safe state now (``docs/safety.md``).
 
-        Never raises: a device that cannot be made safe is listed as ``NOT SAFE``.
+        All at once (:func:`~temoto.drivers.make_all_safe`): one thread per device, the
+        confirmations awaited together for at most ``SAFE_ALL_WAIT`` seconds. Never raises.
 
         Args:
             reason: Why (for the log).
 
         Returns:
-            One line per device, ``"<device>: <what was done>"``.
+            One line per device, ``"<device>: <what was done>"`` (also for a device that could
+            not be made safe or did not confirm in time: it says so, with the reason).
         """
         with self._lock:
-            devices = list(self._devices.values())
-        lines: list[str] = []
-        for device in devices:
-            try:
-                what = device.driver.make_safe(reason)
-            except Exception as err:  # the others are still made safe
-                what = f"NOT SAFE: {err}"
-            if what is not None:
-                lines.append(f"{device.driver.name}: {what}")
-        return lines
+            drivers = [d.driver for d in self._devices.values()]
+        return [f"{d.name}: {what}" for d, what in make_all_safe(reason, drivers=drivers)]
 
-    def _on_health(self, device: _Device, resource_id: str, health: Health) -> None:
-        """A driver's report: a fault is FATAL for every consumer and makes the device safe.
+    # ---- faults and their recovery -----------------------------------------------------------
 
-        Runs on the driver's thread, so the safe state and the reactivation after a recovery
-        (then OK for the consumers) run on threads of their own.
+    def _where(self, device: str) -> str:
+        """``robot <name>, device <device>``: how statuses name a device."""
+        return f"robot {self.profile.robot}, device {device}"
+
+    def _status(self, device: _Device, status: Status, text: str) -> None:
+        with contextlib.suppress(ResourceNotFoundError):  # released meanwhile
+            self.registrar.send_status(
+                device.resource_id,
+                status,
+                f"{self._where(device.name)}: {device_text(device.name, text)}",
+            )
+
+    def _on_health(self, device: _Device, health: Health) -> None:
+        """A driver's report: a fault is FATAL for every consumer and starts the recovery.
+
+        Runs on the driver's thread: the safe state and the recovery's tries (which may wait
+        for the device) run on a thread of their own, ``temoto-recover-<device>``, one per
+        fault; a fault while it runs (a failed try) is logged, not sent again.
         """
         if health.state is DriverState.FAULT:
-            first = not device.faulted
-            device.faulted = True
-            with contextlib.suppress(ResourceNotFoundError):  # released meanwhile
-                self.registrar.send_status(
-                    resource_id, Status.FATAL, f"{health.driver}: {health.message}"
-                )
-            if first:  # not on the driver's own thread: a safe state may wait for its replies
-                _spawn(f"temoto-safe-{health.driver}", self._fault_safe, device)
-        elif health.ok and device.faulted:
-            device.faulted = False
-            _spawn(f"temoto-reactivate-{health.driver}", self._reactivate, device, resource_id)
+            with device.cond:
+                if device.closing:
+                    return
+                start = not device.recovering and not device.gave_up
+                if start:
+                    device.recovering = True
+                    device.answered = False
+                    device.thread = threading.Thread(
+                        target=self._recover,
+                        args=(device, health.message, health.error),
+                        name=f"temoto-recover-{device.name}",
+                        daemon=True,
+                    )
+            if start and device.thread is not None:  # once per fault: later reports are logged
+                with self._lock:
+                    robots = list(self._robots.values())
+                for robot in robots:
+                    robot.device_faulted(device.name)
+                self._status(device, Status.FATAL, health.message)
+                device.thread.start()
+        elif health.ok:
+            with device.cond:
+                if device.recovering:
+                    device.answered = True
+                    device.cond.notify_all()
 
-    def _fault_safe(self, device: _Device) -> None:
+    def _recover(self, device: _Device, reason: str, fault: BaseException | None) -> None:
+        """Make a faulted device safe, then bring it back as its policy says (or give up)."""
+        driver = device.driver
+        policy = driver.recovery
+        name = driver.name
+        if device.closed():  # released before this thread ran: its shutdown made it safe
+            with device.cond:
+                device.recovering = False
+            return
         try:
-            what = device.driver.make_safe("fault")
+            what = driver.make_safe("fault")
         except Exception as err:
-            logger.error("device %s: not safe after its fault: %s", device.driver.name, err)
+            logger.error("%s: not safe after its fault: %s", self._where(name), err)
         else:
             if what is not None:
-                logger.warning("device %s made safe after its fault: %s", device.driver.name, what)
-
-    def _reactivate(self, device: _Device, resource_id: str) -> None:
-        driver = device.driver
-        try:
-            if driver.state is DriverState.INACTIVE:
-                driver.activate()
-        except Exception as err:  # the driver reported the fault itself (FATAL again)
-            logger.warning("device %s: not active again after its recovery: %s", driver.name, err)
+                logger.warning("%s made safe after its fault: %s", self._where(name), what)
+        hands = driver.needs_hands(fault)
+        if not policy.enabled or hands:
+            why = "recovery off" if not policy.enabled else f"not recovered automatically ({hands})"
+            logger.warning(
+                "%s: FAULT: %s; %s: it stays out of service until the robot is loaded again",
+                self._where(name),
+                device_text(name, reason),
+                why,
+            )
+            with device.cond:
+                device.gave_up = f"{why}: {device_text(name, reason)}"
+                device.recovering = False
             return
-        if driver.state is not DriverState.ACTIVE:
-            return
-        with contextlib.suppress(ResourceNotFoundError):  # released meanwhile
-            self.registrar.send_status(resource_id, Status.OK, f"{driver.name}: recovered")
+        for attempt in range(1, policy.tries + 1):
+            delay = policy.delay(attempt)
+            with device.cond:
+                device.note = f"recovery try {attempt}/{policy.tries} in {delay:g} s"
+                deadline = self.clock.monotonic() + delay
+                while not device.closing and not device.answered:
+                    left = deadline - self.clock.monotonic()
+                    if left <= 0:
+                        break
+                    self.clock.wait(device.cond, left)
+                if device.closing:
+                    device.recovering = False
+                    return
+                answered, device.answered = device.answered, False
+                device.note = f"recovery try {attempt}/{policy.tries} running"
+            logger.warning(
+                "%s: recovery try %d/%d (%s): recover() and activate() (fault: %s)",
+                self._where(name),
+                attempt,
+                policy.tries,
+                "the device answers again" if answered else f"after {delay:g} s",
+                device_text(name, reason),
+            )
+            error = ""
+            try:
+                if driver.state is DriverState.FAULT:
+                    driver.recover()
+                if driver.state is DriverState.INACTIVE and not device.closed():
+                    driver.activate()
+            except Exception as err:  # logged below; the next try comes after its wait
+                error = str(err)
+                hands = driver.needs_hands(err)
+                if hands:  # the device reports a hardware error now: no more tries
+                    gave_up = f"not recovered automatically ({hands}): {device_text(name, error)}"
+                    self._give_up(device, gave_up)
+                    return
+            if device.closed():  # released meanwhile: its shutdown makes it safe
+                with device.cond:
+                    device.recovering = False
+                return
+            if driver.state is DriverState.ACTIVE:
+                with device.cond:
+                    device.recovering = False
+                    device.note = ""
+                logger.warning(
+                    "%s: recovered on try %d/%d: active again",
+                    self._where(name),
+                    attempt,
+                    policy.tries,
+                )
+                self._status(device, Status.OK, f"recovered on try {attempt}/{policy.tries}")
+                return
+            if driver.state is DriverState.FINALIZED:
+                with device.cond:
+                    device.recovering = False
+                return
+            reason = error or driver.health().message
+            logger.warning(
+                "%s: recovery try %d/%d failed: %s",
+                self._where(name),
+                attempt,
+                policy.tries,
+                device_text(name, reason),
+            )
+        self._give_up(device, f"gave up after {policy.tries} tries: {device_text(name, reason)}")
 
+    def _give_up(self, device: _Device, gave_up: str) -> None:
+        """The recovery ends without the device: say so loudly (log and consumers)."""
+        with device.cond:
+            device.gave_up = gave_up
+            device.recovering = False
+            device.note = ""
+        logger.error("%s: %s; it stays out of service", self._where(device.name), gave_up)
+        self._status(device, Status.FATAL, gave_up)
 
-def _spawn(name: str, target: Callable[..., object], *args: object) -> None:
-    threading.Thread(target=target, args=args, name=name, daemon=True).start()
+    def _annotate(self, health: Health) -> Health:
+        """A device's health as the live view shows it: with its recovery's state."""
+        with self._lock:
+            device = self._devices.get(health.driver)
+        if device is None:
+            return health
+        with device.cond:
+            gave_up, note = device.gave_up, device.note
+        if gave_up:  # out of service until loaded again, whatever the driver says now
+            return replace(health, state=DriverState.FAULT, ok=False, message=gave_up)
+        if note and not health.ok:
+            return replace(health, message=f"{health.message} ({note})")
+        return health
 
 
 #: What the consumers of a robot or device restored from the catalog are told.
