@@ -3,12 +3,15 @@
 Lifecycle (STYLE §3.5):
 
 * ``configure`` opens the port at the baud rate (and warns when the USB adapter's latency timer
-  is above 1 ms), PINGs every servo, checks its model number (a mismatch is a
-  :class:`~temoto.errors.DriverInitError` naming the servo), reboots a servo that reports a
-  hardware error (logged), turns torque off, checks the firmware has a Bus Watchdog (v38 on)
-  when one is configured, writes the EEPROM registers the profile sets -- Operating Mode,
-  Return Delay Time, Min/Max Position Limit -- each only when it differs, reads the Velocity
-  and Current Limit registers, reads the state once and starts the poll thread;
+  is above 1 ms), then checks every servo before it writes anything to any of them (PING and
+  READ only): one servo per id (a second status packet to a PING, or replies to PING garbled
+  every time, is "duplicate servo id N"), its model number, its firmware (a Bus Watchdog needs
+  v38 on when one is configured), its Hardware Error Status and its Velocity and Current Limit
+  registers; every problem goes into one :class:`~temoto.errors.DriverInitError` naming each
+  servo. Only then it reboots a servo that reported a hardware error (logged), turns torque
+  off, writes the EEPROM registers the profile sets -- Operating Mode, Return Delay Time,
+  Min/Max Position Limit -- each only when it differs, reads the state once and starts the
+  poll thread;
 * ``activate`` clears the Bus Watchdog (0: goals writable again), holds where each servo is
   (goal position = present position, goal velocity and goal current = 0), turns torque on and
   arms the Bus Watchdog; ``deactivate`` turns torque off;
@@ -27,11 +30,12 @@ The poll thread (``temoto-dxl-<name>``) SyncReads present current, velocity and 
 the chain every ``1 / poll_rate`` seconds of the driver's clock, writes every servo's newest goal
 again while ``ACTIVE`` (so the servos' Bus Watchdog sees steady set-points and stops them when
 this process dies or hangs), and every ``status_every`` polls also reads Present Input Voltage,
-Present Temperature, Hardware Error Status and the Bus Watchdog. Supervision: a reply with a bad
-CRC or garbage is logged and counted, and a fault only when 5 fall within 1 s
-(:class:`~temoto.drivers.supervision.FaultWindow`); ``timeout_polls`` polls in a row without
-replies are a :class:`~temoto.errors.DriverTimeoutError`; the present-position stream is stale
-(a :class:`~temoto.errors.DriverTimeoutError` naming it) when no good poll came for 3 x (poll
+Present Temperature, Hardware Error Status and the Bus Watchdog. Supervision: every status
+packet with a bad CRC or garbage is logged and counted (each packet, not each poll), and a
+fault only when 5 fall within 1 s (:class:`~temoto.drivers.supervision.FaultWindow`);
+``timeout_polls`` polls in a row without replies are a
+:class:`~temoto.errors.DriverTimeoutError`; the present-position stream is stale (a
+:class:`~temoto.errors.DriverTimeoutError` naming it) when no good poll came for 3 x (poll
 period + ``reply_timeout``) clock seconds (:class:`~temoto.drivers.supervision.StreamAge`,
 checked by the poll thread and by :meth:`DynamixelDriver.read_state`). The first good poll after
 a communication fault reports recovery (unless a servo lost torque meanwhile, which stays a
@@ -129,6 +133,8 @@ _IDENTIFY_TRIES: Final = 3  # PINGs of each servo at configure
 #: Real seconds to listen after a servo's status packet for a second one (two servos on one
 #: id); bounded by ``reply_timeout``.
 _DUPLICATE_SETTLE: Final = 0.02
+#: PINGs answered twice before a servo id counts as duplicate (a late reply can follow once).
+_DUPLICATE_CONFIRM: Final = 2
 
 
 class DynamixelDriver(ServoChain):
@@ -608,9 +614,11 @@ class DynamixelDriver(ServoChain):
         problems: list[str] = []
         errors: dict[int, int] = {}
         for servo in self.servos:
-            problem = self._check_identity(servo)
+            problem, answered = self._check_identity(servo)
             if problem:
                 problems.append(problem)
+                if not answered:
+                    break  # a silent servo: likely the chain; do not wait for each one
                 continue
             errors[servo.id] = self._read(servo.id, ct.HARDWARE_ERROR_STATUS, alert_ok=True)
             problems += self._check_settings(servo)
@@ -620,40 +628,60 @@ class DynamixelDriver(ServoChain):
             )
         return errors
 
-    def _check_identity(self, servo: ServoConfig) -> str:
-        """PING one servo: '' when exactly one servo of the profile's model answers its id."""
+    def _check_identity(self, servo: ServoConfig) -> tuple[str, bool]:
+        """PING one servo: ('', True) when exactly one servo of the profile's model answers.
+
+        A second status packet to the PING must come again on the next PING to count (a late
+        reply to an earlier instruction can follow a reply once); garbled replies must come on
+        every try.
+
+        Returns:
+            (the problem or '', whether the servo answered at all).
+        """
         port = self._port()
         settle = min(self.reply_timeout, _DUPLICATE_SETTLE)
-        garbled = 0
+        garbled = doubled = 0
+        reason = ""
         for _ in range(_IDENTIFY_TRIES):
             model, result, _ = port.ping(servo.id)
-            extra = port.leftover(settle)
-            if result == _sdk.COMM_SUCCESS:
-                duplicate, sure = _duplicate_reply(servo.id, extra)
-                if sure:
-                    return f"duplicate servo id {servo.id} ({servo.joint}): {duplicate}"
-                if duplicate:  # garbage after the reply: a collision, or noise; ask again
-                    garbled += 1
-                    continue
-                if model != servo.spec.number:
-                    found = ct.MODELS_BY_NUMBER.get(model)
-                    name = found.name if found else "an unknown model"
-                    return (
-                        f"servo {servo.id} ({servo.joint}) is {name} (model number {model}),"
-                        f" the profile says {servo.model} ({servo.spec.number})"
-                    )
-                return ""
-            garbled += result == _sdk.COMM_RX_CORRUPT
+            if result == _sdk.COMM_RX_CORRUPT:
+                garbled += 1
+                port.leftover(settle)  # the rest of a collision, before the next try
+                continue
+            if result != _sdk.COMM_SUCCESS:
+                continue
+            reason, sure = _duplicate_reply(servo.id, port.leftover(settle))
+            if sure:
+                doubled += 1
+                if doubled >= _DUPLICATE_CONFIRM:
+                    return f"duplicate servo id {servo.id} ({servo.joint}): {reason}", True
+                continue
+            if reason:  # garbage after the reply: a collision, or noise; ask again
+                garbled += 1
+                continue
+            if model != servo.spec.number:
+                found = ct.MODELS_BY_NUMBER.get(model)
+                name = found.name if found else "an unknown model"
+                return (
+                    f"servo {servo.id} ({servo.joint}) is {name} (model number {model}),"
+                    f" the profile says {servo.model} ({servo.spec.number})"
+                ), True
+            return "", True
         if garbled == _IDENTIFY_TRIES:
             return (
                 f"duplicate servo id {servo.id} ({servo.joint})? every reply to PING was garbled"
                 f" ({garbled} of {_IDENTIFY_TRIES}): two servos answering at once, or a noisy"
                 " line"
-            )
+            ), True
+        if doubled or garbled:
+            return (
+                f"servo {servo.id} ({servo.joint}): no clean reply to PING in"
+                f" {_IDENTIFY_TRIES} tries ({doubled} doubled, {garbled} garbled)"
+            ), True
         return (
             f"servo {servo.id} ({servo.joint}): {port.result_text(result)} to PING on"
             f" {self.port} ({_IDENTIFY_TRIES} tries)"
-        )
+        ), False
 
     def _check_settings(self, servo: ServoConfig) -> list[str]:
         """The profile's settings against what one servo has (READ only); the problems.
@@ -743,6 +771,9 @@ _VELOCITY_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Velocity Lim
 _CURRENT_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Current Limit")
 
 
+_PING_REPLY: Final = 3  # parameter bytes of a status packet answering PING
+
+
 def _duplicate_reply(dxl_id: int, extra: bytes) -> tuple[str, bool]:
     """Why the bytes that followed a servo's reply to PING mean two servos on one id.
 
@@ -757,7 +788,12 @@ def _duplicate_reply(dxl_id: int, extra: bytes) -> tuple[str, bool]:
     if not extra:
         return "", False
     packets = list(p.PacketReader().feed(extra))
-    mine = [x for x in packets if isinstance(x, p.Packet) and x.is_status and x.id == dxl_id]
+    mine = [  # a reply to PING: model number and firmware, no error
+        x
+        for x in packets
+        if isinstance(x, p.Packet) and x.is_status and x.id == dxl_id
+        if len(x.params) == _PING_REPLY and not x.error
+    ]
     if mine:
         models = [p.from_le(x.params[:2]) for x in mine if len(x.params) >= 2]
         names = ", ".join(
