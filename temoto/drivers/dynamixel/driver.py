@@ -689,14 +689,14 @@ class DynamixelDriver(ServoChain):
         The alert bit is ignored here: a servo with a hardware error is rebooted afterwards.
         """
         problems: list[str] = []
-        if self.watchdog_units:
-            firmware = self._read(servo.id, ct.FIRMWARE_VERSION, alert_ok=True)
-            if firmware < ct.BUS_WATCHDOG_FIRMWARE:
-                problems.append(
-                    f"servo {servo.id} ({servo.joint}) has firmware {firmware}, which has no Bus"
-                    f" Watchdog (v{ct.BUS_WATCHDOG_FIRMWARE} on): update it (DYNAMIXEL Wizard)"
-                    " or set bus_watchdog: 0"
-                )
+        firmware = self._read(servo.id, ct.FIRMWARE_VERSION, alert_ok=True)
+        logger.debug("%s: servo %d (%s): %s, firmware v%d", *self._who(servo), firmware)
+        if self.watchdog_units and firmware < ct.BUS_WATCHDOG_FIRMWARE:
+            problems.append(
+                f"servo {servo.id} ({servo.joint}) has firmware {firmware}, which has no Bus"
+                f" Watchdog (v{ct.BUS_WATCHDOG_FIRMWARE} on): update it (DYNAMIXEL Wizard)"
+                " or set bus_watchdog: 0"
+            )
         velocity_limit = self._read(servo.id, _VELOCITY_LIMIT, alert_ok=True)
         current_limit = 0  # a model that reports load has no Current Limit (nor current mode)
         if servo.spec.register(_CURRENT_LIMIT.name) is not None:
@@ -721,6 +721,9 @@ class DynamixelDriver(ServoChain):
                     " the register (DYNAMIXEL Wizard)"
                 )
         return problems
+
+    def _who(self, servo: ServoConfig) -> tuple[str, int, str, str]:
+        return self.name, servo.id, servo.joint, servo.model
 
     def _bring_up(self, servo: ServoConfig, error_bits: int) -> None:
         """Reboot a servo with an old hardware error, torque off, write the EEPROM settings."""

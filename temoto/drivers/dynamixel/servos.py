@@ -154,8 +154,9 @@ class ServoConfig:
             )
         if self.effort_limit is not None and self.effort_limit > self.max_effort:
             reg = self.spec.register("Current Limit")
+            unit = (self.spec.current_unit or 0) * 1000
             what = (
-                f"Current Limit (38) at most {reg.high} units"
+                f"Current Limit (38) at most {reg.high} x {unit:g} mA"
                 if reg is not None and reg.high is not None
                 else "100 % of its stall torque (it has no current sensor)"
             )
