@@ -267,8 +267,9 @@ def test_hold_with_the_watchdog_on_loads() -> None:
         (rover(max_speed=3.0), "features.navigation.max_speed"),
         (variant(devices__arm__safe_state=None), "devices.arm.safe_state"),
         (variant(devices__arm__safe_state="hold", devices__arm__bus_watchdog=0), "safe_state"),
+        (variant(devices__arm__servos__0__velocity_limit=30.0), "servos[0].velocity_limit"),
     ],
-    ids=["speed", "null", "hold"],
+    ids=["speed", "null", "hold", "model_limit"],
 )
 def test_the_robot_command_exits_2_with_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], doc: dict[str, Any], key: str
