@@ -195,7 +195,7 @@ def test_two_servos_on_one_id_are_found_before_torque_on() -> None:
 def test_replies_to_ping_garbled_every_time_say_duplicate() -> None:
     with on_chain({1: "XM430-W350"}, entry(1)) as (sim, driver):
         sim.inject("corrupt")  # as two servos answering at once look on a real bus
-        with pytest.raises(DriverInitError, match=r"duplicate servo id 1 \(j1\)\? every reply"):
+        with pytest.raises(DriverInitError, match=r"duplicate servo id 1 \(j1\)\? its replies"):
             driver.configure()
 
 

@@ -135,6 +135,7 @@ _IDENTIFY_TRIES: Final = 3  # PINGs of each servo at configure
 _DUPLICATE_SETTLE: Final = 0.02
 #: PINGs answered twice before a servo id counts as duplicate (a late reply can follow once).
 _DUPLICATE_CONFIRM: Final = 2
+_GARBLED: Final = "garbled"  # _check_identity: only garbled replies (reported together)
 
 
 class DynamixelDriver(ServoChain):
@@ -613,8 +614,12 @@ class DynamixelDriver(ServoChain):
         """
         problems: list[str] = []
         errors: dict[int, int] = {}
+        garbled: list[ServoConfig] = []
         for servo in self.servos:
             problem, answered = self._check_identity(servo)
+            if problem == _GARBLED:
+                garbled.append(servo)
+                continue
             if problem:
                 problems.append(problem)
                 if not answered:
@@ -622,6 +627,20 @@ class DynamixelDriver(ServoChain):
                 continue
             errors[servo.id] = self._read(servo.id, ct.HARDWARE_ERROR_STATUS, alert_ok=True)
             problems += self._check_settings(servo)
+        if len(garbled) == 1:
+            servo = garbled[0]
+            problems.insert(
+                0,
+                f"duplicate servo id {servo.id} ({servo.joint})? its replies to PING were"
+                f" garbled ({_IDENTIFY_TRIES} tries): two servos answering at once, or a noisy"
+                " line",
+            )
+        elif garbled:
+            problems.insert(
+                0,
+                f"the replies to PING of servos {', '.join(str(s.id) for s in garbled)} were"
+                " garbled: a noisy line or a wrong baud rate (or duplicate servo ids)",
+            )
         if problems:
             raise DriverInitError(
                 f"{self.name}: {'; '.join(problems)} (nothing was written to any servo)"
@@ -633,10 +652,10 @@ class DynamixelDriver(ServoChain):
 
         A second status packet to the PING must come again on the next PING to count (a late
         reply to an earlier instruction can follow a reply once); garbled replies must come on
-        every try.
+        every try that was answered, at least twice.
 
         Returns:
-            (the problem or '', whether the servo answered at all).
+            (the problem, :data:`_GARBLED`, or '', whether the servo answered at all).
         """
         port = self._port()
         settle = min(self.reply_timeout, _DUPLICATE_SETTLE)
@@ -667,12 +686,8 @@ class DynamixelDriver(ServoChain):
                     f" the profile says {servo.model} ({servo.spec.number})"
                 ), True
             return "", True
-        if garbled == _IDENTIFY_TRIES:
-            return (
-                f"duplicate servo id {servo.id} ({servo.joint})? every reply to PING was garbled"
-                f" ({garbled} of {_IDENTIFY_TRIES}): two servos answering at once, or a noisy"
-                " line"
-            ), True
+        if garbled >= _DUPLICATE_CONFIRM and not doubled:  # the other tries: no reply
+            return _GARBLED, True
         if doubled or garbled:
             return (
                 f"servo {servo.id} ({servo.joint}): no clean reply to PING in"
