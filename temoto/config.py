@@ -22,6 +22,8 @@ no device has a joint 'left'``).
 
 from __future__ import annotations
 
+import logging
+import math
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -54,6 +56,11 @@ _TOP_FIELDS: Final[Mapping[str, Field[Any]]] = {
     "features": custom(lambda p, value, key: value, {}),
 }
 _DRIVER: Final = text(hint="name the driver (e.g. odrive_can, dynamixel)")
+#: A device key read here, not by its driver: ``true`` accepts ``safe_state: hold`` on a device
+#: whose own watchdog is off (the device then stays powered and holding after TeMoto dies).
+HOLD_WITHOUT_WATCHDOG: Final = "hold_without_watchdog"
+
+logger = logging.getLogger(__name__)
 _POSITION: Final = number(low=None)  # a joint position in a pose (rad)
 
 
@@ -69,6 +76,8 @@ class DeviceSpec:
         vehicle: Whether it is a vehicle.
         limits: (min, max) position (rad) of the joints whose driver declares limits (its
             ``joint_limits`` mapping); named poses are checked against them.
+        velocity_limits: The largest speed (rad/s) of the joints whose driver declares one (its
+            ``joint_velocity_limits`` mapping); navigation speeds are checked against them.
     """
 
     name: str
@@ -77,6 +86,7 @@ class DeviceSpec:
     joints: tuple[str, ...]
     vehicle: bool
     limits: Mapping[str, tuple[float, float]] = field(default_factory=dict)
+    velocity_limits: Mapping[str, float] = field(default_factory=dict)
 
 
 @dataclass(frozen=True, slots=True)
@@ -259,20 +269,45 @@ def _devices(p: ProfileReader, raw: object, clock: Clock) -> dict[str, DeviceSpe
             cls = driver_class(kind)
         except PluginError as err:
             raise p.error(f"{path}.driver", str(err)) from err
-        settings = {k: v for k, v in config.items() if k != "driver"}
+        if "safe_state" in config and config["safe_state"] is None:
+            p.fail(
+                f"{path}.safe_state",
+                f"is null: write one of {', '.join(cls.safe_states)}, or leave the key out for"
+                f" the default ({cls.safe_states[0]})",
+            )
+        unwatched = p.field(config, HOLD_WITHOUT_WATCHDOG, flag(False), path)
+        skip = {"driver", HOLD_WITHOUT_WATCHDOG}
+        settings = {k: v for k, v in config.items() if k not in skip}
         where = f"{p.file}: {path}" if p.file else path
         driver = cls.from_profile(name, settings, clock=clock, where=where)
         try:
             joints = tuple(driver.joint_names) if isinstance(driver, Actuator) else ()
             limits = dict(getattr(driver, "joint_limits", {}))
+            speeds = dict(getattr(driver, "joint_velocity_limits", {}))
+            watchdog = getattr(driver, "device_watchdog", None)
+            safe_state = driver.safe_state
         finally:
             driver.shutdown()  # never configured: nothing to close, but it is finished
+        if safe_state == "hold" and watchdog is not None and not watchdog > 0:
+            if not unwatched:
+                p.fail(
+                    f"{path}.safe_state",
+                    "hold needs the device's own watchdog (it is off here): if TeMoto dies,"
+                    " the device stays powered on its last set-point; switch the watchdog on"
+                    " (dynamixel: bus_watchdog; odrive_can: watchdog_timeout), or set"
+                    f" {HOLD_WITHOUT_WATCHDOG}: true to accept that",
+                )
+            logger.warning(
+                "%s.safe_state: hold without the device's watchdog (%s: true)",
+                where,
+                HOLD_WITHOUT_WATCHDOG,
+            )
         for joint in joints:
             if joint in owner:
                 p.fail(path, f"joint '{joint}' is also on device '{owner[joint]}'")
             owner[joint] = name
         vehicle = isinstance(driver, Vehicle)
-        out[name] = DeviceSpec(name, kind, settings, joints, vehicle, limits)
+        out[name] = DeviceSpec(name, kind, settings, joints, vehicle, limits, speeds)
     return out
 
 
@@ -303,7 +338,7 @@ def _drive(p: ProfileReader, raw: object, devices: Mapping[str, DeviceSpec]) -> 
     right = _joint(p, cfg.get("right_wheel"), f"{path}.right_wheel", devices)
     if left == right:
         p.fail(f"{path}.right_wheel", "must differ from left_wheel")
-    return DriveFeature(
+    feature = DriveFeature(
         left,
         right,
         p.field(cfg, "wheel_radius", number(), path),
@@ -312,6 +347,50 @@ def _drive(p: ProfileReader, raw: object, devices: Mapping[str, DeviceSpec]) -> 
         p.field(cfg, "max_turn_rate", number(1.5), path),
         p.field(cfg, "tolerance", number(0.05), path),
     )
+    _check_wheel_speeds(p, feature, devices, path)
+    return feature
+
+
+def _check_wheel_speeds(
+    p: ProfileReader, f: DriveFeature, devices: Mapping[str, DeviceSpec], path: str
+) -> None:
+    """Refuse navigation speeds the wheels' velocity limits cannot give.
+
+    A wheel turning at ``w`` rad/s moves its side at ``w x wheel_radius`` m/s; the controller
+    drives at up to ``max_speed`` while it steers at up to ``max_turn_rate`` (the outer wheel
+    then needs ``max_speed + max_turn_rate x wheel_separation / 2``). A command beyond a
+    wheel's limit is refused by its driver, and the motion never ends.
+
+    Raises:
+        ProfileError: ``max_speed`` or ``max_turn_rate`` beyond the slower wheel's limit.
+    """
+    limits: list[tuple[float, str]] = []
+    for joint in (f.left_wheel, f.right_wheel):
+        for spec in devices.values():
+            limit = spec.velocity_limits.get(joint, math.inf)
+            if joint in spec.joints and math.isfinite(limit):
+                limits.append((limit, f"devices.{spec.name} joint {joint}"))
+    if not limits:
+        return
+    wheel, source = min(limits)
+    top = wheel * f.wheel_radius
+    half = f.wheel_separation / 2
+    said = f"{wheel:g} rad/s x wheel_radius {f.wheel_radius:g} m = {top:.3g} m/s ({source})"
+    if f.max_speed > top:
+        p.fail(f"{path}.max_speed", f"{f.max_speed:g} m/s is beyond the wheels' {said}")
+    if f.max_turn_rate * half > top:
+        p.fail(
+            f"{path}.max_turn_rate",
+            f"{f.max_turn_rate:g} rad/s needs {f.max_turn_rate * half:.3g} m/s at each wheel,"
+            f" beyond the wheels' {said}",
+        )
+    if f.max_speed + f.max_turn_rate * half > top:
+        p.fail(
+            f"{path}.max_speed",
+            f"{f.max_speed:g} m/s while turning at max_turn_rate {f.max_turn_rate:g} rad/s needs"
+            f" {f.max_speed + f.max_turn_rate * half:.3g} m/s at the outer wheel, beyond the"
+            f" wheels' {said}",
+        )
 
 
 def _arm(p: ProfileReader, raw: object, devices: Mapping[str, DeviceSpec]) -> ArmFeature:

@@ -144,3 +144,143 @@ def test_the_robot_command_exits_2_on_a_pose_beyond_the_limits(tmp_path: Path) -
     path = tmp_path / "arm.yaml"
     path.write_text(yaml.safe_dump(doc))
     assert main(["--profile", str(path), "--local"]) == 2
+
+
+# ---- profile-wide rules (issue 25) --------------------------------------------------------------
+
+ROVER = yaml.safe_load((ROOT / "hw_profiles" / "sim_rover.yaml").read_text())
+
+
+def rover(**nav: Any) -> dict[str, Any]:
+    doc: dict[str, Any] = yaml.safe_load(yaml.safe_dump(ROVER))
+    doc["features"]["navigation"].update(nav)
+    return doc
+
+
+@pytest.mark.parametrize(
+    ("nav", "key", "what"),
+    [
+        # the wheels: 20 rad/s x 0.08 m = 1.6 m/s; half the separation 0.21 m
+        ({"max_speed": 2.0}, "max_speed", "2 m/s is beyond the wheels' 20 rad/s"),
+        ({"max_turn_rate": 8.0}, "max_turn_rate", "needs 1.68 m/s at each wheel"),
+        ({"max_speed": 1.5}, "max_speed", "needs 1.92 m/s at the outer wheel"),
+    ],
+)
+def test_navigation_faster_than_the_wheels_is_refused(
+    nav: dict[str, Any], key: str, what: str
+) -> None:
+    with pytest.raises(ProfileError) as err:
+        parse_profile(rover(**nav), file="rover.yaml")
+    message = str(err.value)
+    assert message.startswith(f"rover.yaml: features.navigation.{key}: "), message
+    assert what in message, message
+    assert "devices.base joint left_wheel" in message, message
+    assert "\n" not in message
+
+
+def test_navigation_within_the_wheels_loads() -> None:
+    profile = parse_profile(rover(max_speed=1.15, max_turn_rate=2.0), file="rover.yaml")
+    assert profile.navigation is not None
+    assert profile.devices["base"].velocity_limits == {"left_wheel": 20.0, "right_wheel": 20.0}
+
+
+def test_dynamixel_wheels_are_checked_against_their_model() -> None:
+    # no velocity_limit: the XM430-W350's Velocity Limit (44) can be set to at most
+    # 1023 x 0.229 rev/min = 24.53 rad/s, so 2.45 m/s on 0.1 m wheels
+    servos = [
+        {"id": 1, "joint": "left", "model": "XM430-W350", "mode": "velocity"},
+        {"id": 2, "joint": "right", "model": "XM430-W350", "mode": "velocity"},
+    ]
+    doc = {
+        "robot": "dxl_rover",
+        "devices": {"base": {"driver": "dynamixel", "link": "/dev/null", "servos": servos}},
+        "features": {
+            "navigation": {
+                "type": "differential_drive",
+                "left_wheel": "left",
+                "right_wheel": "right",
+                "wheel_radius": 0.1,
+                "wheel_separation": 0.3,
+                "max_speed": 2.5,
+                "max_turn_rate": 1.0,
+            }
+        },
+    }
+    with pytest.raises(ProfileError, match=r"navigation\.max_speed: 2\.5 m/s is beyond .*2\.45"):
+        parse_profile(doc, file="dxl.yaml")
+    doc["features"]["navigation"]["max_speed"] = 2.0
+    assert parse_profile(doc, file="dxl.yaml").navigation is not None
+
+
+def test_a_null_safe_state_is_refused_not_defaulted() -> None:
+    with pytest.raises(ProfileError) as err:
+        parse_profile(variant(devices__arm__safe_state=None), file="arm.yaml")
+    message = str(err.value)
+    assert message.startswith("arm.yaml: devices.arm.safe_state: is null"), message
+    assert "torque_off, hold" in message
+
+
+@pytest.mark.parametrize(
+    ("doc", "device"),
+    [
+        (variant(devices__arm__safe_state="hold", devices__arm__bus_watchdog=0), "arm"),
+        (
+            {
+                **rover(),
+                "devices": {
+                    "base": {
+                        **ROVER["devices"]["base"],
+                        "safe_state": "hold",
+                        "watchdog_timeout": 0,
+                    }
+                },
+            },
+            "base",
+        ),
+    ],
+    ids=["dynamixel", "odrive"],
+)
+def test_hold_without_a_device_watchdog_must_be_acknowledged(
+    doc: dict[str, Any], device: str
+) -> None:
+    with pytest.raises(ProfileError) as err:
+        parse_profile(doc, file="p.yaml")
+    message = str(err.value)
+    assert message.startswith(f"p.yaml: devices.{device}.safe_state: hold needs"), message
+    assert "hold_without_watchdog: true" in message
+    doc["devices"][device]["hold_without_watchdog"] = True
+    profile = parse_profile(doc, file="p.yaml")
+    assert "hold_without_watchdog" not in profile.devices[device].config  # not the driver's key
+    doc["devices"][device]["hold_without_watchdog"] = "yes"
+    with pytest.raises(ProfileError, match=rf"devices\.{device}\.hold_without_watchdog: "):
+        parse_profile(doc, file="p.yaml")
+
+
+def test_hold_with_the_watchdog_on_loads() -> None:
+    profile = parse_profile(variant(devices__arm__safe_state="hold"), file="arm.yaml")
+    assert profile.devices["arm"].config["safe_state"] == "hold"
+
+
+@pytest.mark.parametrize(
+    ("doc", "key"),
+    [
+        (rover(max_speed=3.0), "features.navigation.max_speed"),
+        (variant(devices__arm__safe_state=None), "devices.arm.safe_state"),
+        (variant(devices__arm__safe_state="hold", devices__arm__bus_watchdog=0), "safe_state"),
+        (variant(devices__arm__servos__0__velocity_limit=30.0), "servos[0].velocity_limit"),
+    ],
+    ids=["speed", "null", "hold", "model_limit"],
+)
+def test_the_robot_command_exits_2_with_one_line(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], doc: dict[str, Any], key: str
+) -> None:
+    from temoto.managers.robot.__main__ import main
+
+    doc["sim"] = False
+    path = tmp_path / "robot.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    assert main(["--profile", str(path), "--local"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith(f"temoto-robot: error: {path}: "), err
+    assert key in err, err
+    assert "\n" not in err, err

@@ -9,6 +9,7 @@ from typing import Any
 
 import pytest
 from contract import DriverContract, Rig, eventually
+from dxl_polled import follow
 
 from temoto.clock import Clock, ManualClock, MonotonicClock
 from temoto.drivers import (
@@ -153,7 +154,7 @@ def test_velocity_and_effort_modes_on_a_manual_clock() -> None:
             driver.configure()
             driver.activate()
             driver.command([JointCommand("wheel", cmd, 2.0 if mode == "velocity" else 0.5)])
-            eventually(lambda c=check: c(driver.read_state().joints["wheel"]), 30.0, clock)
+            follow(driver, clock, lambda c=check: c(driver.read_state().joints["wheel"]), 30.0)
             with pytest.raises(ValueError, match="too"):
                 driver.command([JointCommand("wheel", cmd, 1e3)])
 

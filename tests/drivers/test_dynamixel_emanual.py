@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from typing import Any
 
 import pytest
-from contract import eventually
+from dxl_polled import follow
 
 from temoto.clock import ManualClock
 from temoto.drivers import ControlMode, JointCommand
@@ -734,7 +734,7 @@ def test_the_driver_brings_up_new_models_on_the_simulator(
             got = getattr(driver.read_state().joints["j"], field)
             return bool(abs(got - command) < 0.02 * max(abs(command), 1.0))
 
-        eventually(reached, 30.0, clock, step=0.05)
+        follow(driver, clock, reached, 30.0)
         status = driver.servo_status()[4]
         assert status.voltage == pytest.approx(ct.MODELS[model].nominal_voltage)
         driver.deactivate()

@@ -528,7 +528,7 @@ def test_a_silent_chain_goes_stale_even_with_many_timeout_polls() -> None:
         sim.inject("silence")
         eventually(lambda: driver.state is DriverState.FAULT, 3.0, clock)
         assert "present position stale" in driver.health().message
-        assert "There is no status packet" in driver.health().message  # the last poll's error
+        assert "servos 1, 2, 3: no status packet reading" in driver.health().message  # last poll
 
 
 def test_one_bad_packet_is_counted_a_burst_is_a_fault(

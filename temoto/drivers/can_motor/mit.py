@@ -347,6 +347,11 @@ class MitMotorDriver(CanMotorDriver):
         """The joints, in profile order."""
         return tuple(m.joint for m in self.motors)
 
+    @property
+    def joint_velocity_limits(self) -> Mapping[str, float]:
+        """Each joint's ``velocity_limit`` (rad/s; infinite when the profile sets none)."""
+        return {m.joint: m.limits.velocity for m in self.motors}
+
     def on_configure(self) -> None:
         """Open the bus and wait for every motor to answer (it stays out of motor mode).
 

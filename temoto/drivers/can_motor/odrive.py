@@ -315,6 +315,16 @@ class ODriveDriver(CanMotorDriver):
         """The joints, in profile order."""
         return tuple(n.joint for n in self.nodes)
 
+    @property
+    def joint_velocity_limits(self) -> Mapping[str, float]:
+        """Each joint's ``velocity_limit`` (rad/s; infinite when the profile sets none)."""
+        return {n.joint: n.limits.velocity for n in self.nodes}
+
+    @property
+    def device_watchdog(self) -> float:
+        """Seconds of the axes' own watchdog (``watchdog_timeout``; 0: off)."""
+        return self.watchdog_timeout
+
     def on_configure(self) -> None:
         """Open the bus and wait for every node's heartbeat and encoder estimate.
 

@@ -43,13 +43,35 @@ from temoto.errors import (
     StateError,
 )
 
-__all__ = ["ServoChain"]
+__all__ = ["ServoChain", "register_label"]
 
 #: The logger of :mod:`temoto.drivers.dynamixel.driver`: this layer's log lines were logged there
 #: before the driver was split by concept, and logging configurations that name it still work.
 logger = logging.getLogger("temoto.drivers.dynamixel.driver")
 
 _PING_TRIES: Final = 3
+
+
+def register_label(address: int, length: int) -> str:
+    """The registers ``length`` bytes from ``address`` cover, for messages.
+
+    Args:
+        address: The first address.
+        length: Bytes.
+
+    Returns:
+        ``Present Position (132)`` for one register, ``Present Current, Present Velocity,
+        Present Position (126..135)`` for a span, ``address 200 (4 bytes)`` for unnamed bytes.
+    """
+    names = [r.name for r in ct.REGISTERS if address <= r.address < address + length]
+    if not names:
+        return f"address {address} ({length} bytes)"
+    first = next(r for r in ct.REGISTERS if r.name == names[0])
+    if len(names) == 1 and first.address == address and first.size == length:
+        return f"{names[0]} ({address})"
+    return f"{', '.join(names)} ({address}..{address + length - 1})"
+
+
 _TRIES: Final = 3  # attempts of a single READ or WRITE (they are idempotent)
 
 
@@ -172,8 +194,8 @@ class ServoChain(Driver):
                 return model
         joint = self._by_id[dxl_id].joint
         raise DriverInitError(
-            f"{self.name}: servo {dxl_id} ({joint}) does not answer PING on {self.port}:"
-            f" {port.result_text(result)}"
+            f"{self.name}: servo {dxl_id} ({joint}): {port.result_text(result)} to PING"
+            f" on {self.port} ({tries} tries)"
         )
 
     # ---- polling ------------------------------------------------------------------------------
@@ -265,33 +287,45 @@ class ServoChain(Driver):
             if reader is None:
                 return False
             result, data, errors = reader.read()
+            failed, bad = dict(reader.failed), reader.bad_packets
         stamp = self.clock.monotonic()
         if result != _sdk.COMM_SUCCESS:
-            self._last_failure = self._port().result_text(result) if self._sdk else str(result)
-            if result == _sdk.COMM_RX_CORRUPT:
-                full = self._bad_packets.add(stamp)
+            self._last_failure = self._sync_failure(reader.address, reader.length, failed, result)
+            full = False
+            for _ in range(bad):  # each bad status packet counts, not the poll
+                full = self._bad_packets.add(stamp) or full
+            if bad:
                 window = self._bad_packets
                 logger.info(
-                    "%s: a bad status packet (%d within %g s, %d in all): %s",
+                    "%s: %s (%d within %g s, %d in all)",
                     self.name,
+                    "a bad status packet" if bad == 1 else f"{bad} bad status packets",
                     window.recent(stamp),
                     window.window,
                     window.total,
-                    self._last_failure,
                 )
                 if full:
                     self._comm_fault = True
                     self.report_fault(
                         DriverOperationError(
                             f"{self.name}: {window.recent(stamp)} bad status packets within"
-                            f" {window.window:g} s (CRC errors or garbage): {self._last_failure}"
+                            f" {window.window:g} s (CRC errors or garbage); last:"
+                            f" {self._last_failure}"
                         )
                     )
-                return False
+                    return False
+            if failed and all(code == _sdk.COMM_RX_CORRUPT for code in failed.values()):
+                return False  # replies came, garbled: the window above decides
             self._failures += 1
             if self._failures >= self.timeout_polls:
                 self._comm_fault = True
-                self.report_fault(self._comm_error(f"{self._failures} polls in a row", result))
+                timeout = result == _sdk.COMM_RX_TIMEOUT
+                kind: type[DriverError] = DriverTimeoutError if timeout else DriverOperationError
+                self.report_fault(
+                    kind(
+                        f"{self.name}: {self._failures} polls in a row failed: {self._last_failure}"
+                    )
+                )
             return False
         self._failures = 0
         self._last_failure = ""
@@ -356,11 +390,11 @@ class ServoChain(Driver):
                 self._write(dxl_id, ct.BUS_WATCHDOG, 0, "bus watchdog clear")
             result, data, _ = self._reader("fast").read()
             if result != _sdk.COMM_SUCCESS:
-                raise self._comm_error("read after the bus watchdog", result)
+                raise self._sync_error(self._reader("fast"), result, "read after the bus watchdog")
             holds = self._hold_goals(data)
             for dxl_id in expired:
                 self._goals[dxl_id] = holds[dxl_id]
-            self._check_tx(self._write_goals({i: holds[i] for i in expired}))
+            self._check_tx(self._write_goals({i: holds[i] for i in expired}), "hold goals")
             for dxl_id in expired:
                 self._write(dxl_id, ct.BUS_WATCHDOG, self.watchdog_units, "bus watchdog")
 
@@ -437,37 +471,43 @@ class ServoChain(Driver):
             self._writers[reg.address] = writer
         return writer
 
-    def _check_tx(self, result: int) -> None:
+    def _check_tx(self, result: int, what: str = "SyncWrite") -> None:
         if result != _sdk.COMM_SUCCESS:
-            raise self._comm_error("SyncWrite", result)
+            raise self._comm_error(what, result)
 
-    def _read(self, dxl_id: int, reg: ct.Register, what: str, alert_ok: bool = False) -> int:
+    def _read(self, dxl_id: int, reg: ct.Register, what: str = "", alert_ok: bool = False) -> int:
+        """READ one register of one servo (retried); errors name the servo and the register."""
         for _ in range(_TRIES):
             value, result, error = self._port().read(dxl_id, reg.address, reg.size)
             if result == _sdk.COMM_SUCCESS:
                 break
-        self._check_reply(dxl_id, what, result, error & ~p.ALERT_BIT if alert_ok else error)
+        action = f"reading {register_label(reg.address, reg.size)}"
+        self._check_reply(dxl_id, action, result, error & ~p.ALERT_BIT if alert_ok else error)
         if reg.signed and value >= 1 << (8 * reg.size - 1):
             value -= 1 << (8 * reg.size)
         return value
 
-    def _write(self, dxl_id: int, reg: ct.Register, value: int, what: str) -> None:
+    def _write(self, dxl_id: int, reg: ct.Register, value: int, what: str = "") -> None:
+        """WRITE one register of one servo (retried); errors name the servo and the register."""
         for _ in range(_TRIES):
             result, error = self._port().write(dxl_id, reg.address, reg.size, value)
             if result == _sdk.COMM_SUCCESS:
                 break
-        self._check_reply(dxl_id, what, result, error)
+        action = f"writing {register_label(reg.address, reg.size)} = {value}"
+        self._check_reply(dxl_id, action, result, error)
 
-    def _check_reply(self, dxl_id: int, what: str, result: int, error: int) -> None:
+    def _check_reply(self, dxl_id: int, action: str, result: int, error: int) -> None:
         if result != _sdk.COMM_SUCCESS:
-            raise self._comm_error(f"{what} of servo {dxl_id}", result)
+            raise self._comm_error(f"servo {dxl_id}: {self._words(result)} {action}", None)
         if error & p.ALERT_BIT:
             bits, result, _ = self._port().read(dxl_id, ct.HARDWARE_ERROR_STATUS.address, 1)
             raise self._hardware_error(dxl_id, bits if result == _sdk.COMM_SUCCESS else 0)
         if error:
             number = error & 0x7F
             name = p.ErrorNumber(number).name if number <= 7 else str(number)
-            raise DriverOperationError(f"{self.name}: servo {dxl_id} refused {what}: {name}")
+            raise DriverOperationError(
+                f"{self.name}: servo {dxl_id} refused {action}: {name} error"
+            )
 
     def _raise_alerts(self, errors: Mapping[int, int]) -> None:
         for dxl_id, error in errors.items():
@@ -475,11 +515,49 @@ class ServoChain(Driver):
                 bits, result, _ = self._port().read(dxl_id, ct.HARDWARE_ERROR_STATUS.address, 1)
                 raise self._hardware_error(dxl_id, bits if result == _sdk.COMM_SUCCESS else 0)
 
-    def _comm_error(self, what: str, result: int) -> DriverError:
-        text = self._sdk.result_text(result) if self._sdk is not None else str(result)
-        message = f"{self.name}: {what}: {text}"
-        if result == _sdk.COMM_RX_TIMEOUT:
-            return DriverTimeoutError(f"{message} (no reply)")
+    def _words(self, result: int) -> str:
+        return _sdk.RESULT_WORDS.get(result, f"dynamixel-sdk result {result}")
+
+    def _sync_failure(
+        self, address: int, length: int, failed: Mapping[int, int], result: int
+    ) -> str:
+        """What went wrong in a SYNC_READ, naming the servos and the registers.
+
+        Returns:
+            ``servo 3: no status packet reading Present Position (132)``, with every failing
+            servo (``servos 3, 4: ...; servo 5: ...``), or the whole read's failure.
+        """
+        span = register_label(address, length)
+        if not failed:
+            return f"{self._words(result)} for SYNC_READ of {span}"
+        by_code: dict[int, list[int]] = {}
+        for dxl_id, code in failed.items():
+            by_code.setdefault(code, []).append(dxl_id)
+        return "; ".join(
+            f"servo{'s' if len(ids) > 1 else ''} {', '.join(map(str, ids))}:"
+            f" {self._words(code)} reading {span}"
+            for code, ids in by_code.items()
+        )
+
+    def _sync_error(self, reader: _sdk.SyncReader, result: int, what: str = "") -> DriverError:
+        """A typed error for a failed SYNC_READ (its text from :meth:`_sync_failure`)."""
+        text = self._sync_failure(reader.address, reader.length, reader.failed, result)
+        return self._comm_error(f"{what}: {text}" if what else text, result)
+
+    def _comm_error(self, what: str, result: int | None) -> DriverError:
+        """``<device>: <what>`` as a DriverTimeoutError (no reply) or DriverOperationError.
+
+        Args:
+            what: The failure, naming the servo and the register.
+            result: The result code, or None when ``what`` already says it (a timeout is then
+                recognised by its words).
+        """
+        if result is not None and result != _sdk.COMM_SUCCESS and self._words(result) not in what:
+            what = f"{what}: {self._words(result)}"
+        message = f"{self.name}: {what}"
+        timeout = _sdk.RESULT_WORDS[_sdk.COMM_RX_TIMEOUT]
+        if result == _sdk.COMM_RX_TIMEOUT or (result is None and timeout in what):
+            return DriverTimeoutError(message)
         return DriverOperationError(message)
 
     def _hardware_error(

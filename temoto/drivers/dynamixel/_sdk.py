@@ -15,6 +15,7 @@ discovery) is read here too.
 from __future__ import annotations
 
 import time
+from collections.abc import Mapping
 from typing import Any, Final, cast
 
 import dynamixel_sdk as _dxl  # type: ignore[import-untyped]  # no type hints: wrapped here
@@ -25,6 +26,7 @@ __all__ = [
     "COMM_RX_TIMEOUT",
     "COMM_SUCCESS",
     "COMM_TX_FAIL",
+    "RESULT_WORDS",
     "SdkPort",
     "SyncReader",
     "SyncWriter",
@@ -35,6 +37,20 @@ COMM_SUCCESS: Final[int] = cast("int", _dxl.COMM_SUCCESS)
 COMM_TX_FAIL: Final[int] = cast("int", _dxl.COMM_TX_FAIL)
 COMM_RX_TIMEOUT: Final[int] = cast("int", _dxl.COMM_RX_TIMEOUT)
 COMM_RX_CORRUPT: Final[int] = cast("int", _dxl.COMM_RX_CORRUPT)
+
+#: Our words for dynamixel-sdk's result codes (its own read "[TxRxResult] There is no status
+#: packet!"); messages put the servo and the register around them.
+RESULT_WORDS: Final[Mapping[int, str]] = {
+    COMM_SUCCESS: "success",
+    cast("int", _dxl.COMM_PORT_BUSY): "the port is busy (another transaction)",
+    COMM_TX_FAIL: "could not send the instruction packet",
+    cast("int", _dxl.COMM_RX_FAIL): "could not receive the status packet",
+    cast("int", _dxl.COMM_TX_ERROR): "bad instruction packet",
+    cast("int", _dxl.COMM_RX_WAITING): "status packet incomplete",
+    COMM_RX_TIMEOUT: "no status packet",
+    COMM_RX_CORRUPT: "corrupt status packet",
+    cast("int", _dxl.COMM_NOT_AVAILABLE): "not available",
+}
 
 
 class SdkPort:
@@ -86,8 +102,36 @@ class SdkPort:
             self._port.closePort()
 
     def result_text(self, result: int) -> str:
-        """The SDK's words for a result code."""
-        return str(self._ph.getTxRxResult(result)) or f"result {result}"
+        """Words for a result code (:data:`RESULT_WORDS`; not the SDK's ``[TxRxResult]`` text)."""
+        return RESULT_WORDS.get(result, f"dynamixel-sdk result {result}")
+
+    def leftover(self, settle: float) -> bytes:
+        """The bytes that arrive within ``settle`` real seconds after a transaction.
+
+        dynamixel-sdk reads exactly one status packet per unicast instruction and flushes the
+        input before the next one, so a second status packet for the same id -- two servos
+        answering one id -- is never seen by it. This reads what follows the first one.
+
+        Args:
+            settle: Real seconds to listen after the last byte received.
+
+        Returns:
+            The bytes (empty when nothing followed).
+        """
+        port = self._port
+        got = bytearray()
+        quiet_until = time.monotonic() + settle
+        while time.monotonic() < quiet_until:
+            try:
+                chunk = bytes(port.readPort(4096))
+            except OSError:
+                break
+            if chunk:
+                got += chunk
+                quiet_until = time.monotonic() + settle
+            else:
+                time.sleep(0.001)
+        return bytes(got)
 
     def _guard(self, call: Any, *args: Any) -> Any:
         try:
@@ -201,6 +245,11 @@ class SyncReader:
         self._port = port
         self.length = length
         self.ids = list(ids)
+        self.address = address
+        #: After :meth:`read`: the result code of each servo whose reply failed.
+        self.failed: dict[int, int] = {}
+        #: After :meth:`read`: how many of its replies were corrupt.
+        self.bad_packets = 0
         self._group: Any = _dxl.GroupSyncRead(port._port, port._ph, address, length)
         for dxl_id in self.ids:
             self._group.addParam(dxl_id)
@@ -208,9 +257,15 @@ class SyncReader:
     def read(self) -> tuple[int, dict[int, bytes], dict[int, int]]:
         """Send the SYNC_READ and collect every reply.
 
+        A servo whose reply is missing or corrupt does not stop the others' being read: after
+        the call :attr:`failed` holds each failing servo's result code, and :attr:`bad_packets`
+        how many replies were corrupt (each one counts, not the read).
+
         Returns:
             (result, data by id, status error byte by id); the first failing reply's result.
         """
+        self.failed = {}
+        self.bad_packets = 0
         result = self._port._guard(self._group.txPacket)
         if result is None:
             return COMM_TX_FAIL, {}, {}
@@ -218,16 +273,23 @@ class SyncReader:
             return int(result), {}, {}
         data: dict[int, bytes] = {}
         errors: dict[int, int] = {}
+        first = COMM_SUCCESS
         ph, raw = self._port._ph, self._port._port
         for dxl_id in self.ids:
             out = self._port._guard(ph.readRx, raw, dxl_id, self.length)
-            if out is None:
-                return COMM_TX_FAIL, data, errors
-            if int(out[1]) != COMM_SUCCESS:
-                return int(out[1]), data, errors
+            code = COMM_TX_FAIL if out is None else int(out[1])
+            if code != COMM_SUCCESS:
+                self.failed[dxl_id] = code
+                self.bad_packets += code == COMM_RX_CORRUPT
+                if first == COMM_SUCCESS:
+                    first = code
+                if code == COMM_TX_FAIL:  # the port broke: nothing more will come
+                    break
+                continue
+            assert out is not None
             data[dxl_id] = bytes(out[0])
             errors[dxl_id] = int(out[2])
-        return COMM_SUCCESS, data, errors
+        return first, data, errors
 
 
 class SyncWriter:

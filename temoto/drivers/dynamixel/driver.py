@@ -3,12 +3,15 @@
 Lifecycle (STYLE §3.5):
 
 * ``configure`` opens the port at the baud rate (and warns when the USB adapter's latency timer
-  is above 1 ms), PINGs every servo, checks its model number (a mismatch is a
-  :class:`~temoto.errors.DriverInitError` naming the servo), reboots a servo that reports a
-  hardware error (logged), turns torque off, checks the firmware has a Bus Watchdog (v38 on)
-  when one is configured, writes the EEPROM registers the profile sets -- Operating Mode,
-  Return Delay Time, Min/Max Position Limit -- each only when it differs, reads the Velocity
-  and Current Limit registers, reads the state once and starts the poll thread;
+  is above 1 ms), then checks every servo before it writes anything to any of them (PING and
+  READ only): one servo per id (a second status packet to a PING, or replies to PING garbled
+  every time, is "duplicate servo id N"), its model number, its firmware (a Bus Watchdog needs
+  v38 on when one is configured), its Hardware Error Status and its Velocity and Current Limit
+  registers; every problem goes into one :class:`~temoto.errors.DriverInitError` naming each
+  servo. Only then it reboots a servo that reported a hardware error (logged), turns torque
+  off, writes the EEPROM registers the profile sets -- Operating Mode, Return Delay Time,
+  Min/Max Position Limit -- each only when it differs, reads the state once and starts the
+  poll thread;
 * ``activate`` clears the Bus Watchdog (0: goals writable again), holds where each servo is
   (goal position = present position, goal velocity and goal current = 0), turns torque on and
   arms the Bus Watchdog; ``deactivate`` turns torque off;
@@ -27,11 +30,12 @@ The poll thread (``temoto-dxl-<name>``) SyncReads present current, velocity and 
 the chain every ``1 / poll_rate`` seconds of the driver's clock, writes every servo's newest goal
 again while ``ACTIVE`` (so the servos' Bus Watchdog sees steady set-points and stops them when
 this process dies or hangs), and every ``status_every`` polls also reads Present Input Voltage,
-Present Temperature, Hardware Error Status and the Bus Watchdog. Supervision: a reply with a bad
-CRC or garbage is logged and counted, and a fault only when 5 fall within 1 s
-(:class:`~temoto.drivers.supervision.FaultWindow`); ``timeout_polls`` polls in a row without
-replies are a :class:`~temoto.errors.DriverTimeoutError`; the present-position stream is stale
-(a :class:`~temoto.errors.DriverTimeoutError` naming it) when no good poll came for 3 x (poll
+Present Temperature, Hardware Error Status and the Bus Watchdog. Supervision: every status
+packet with a bad CRC or garbage is logged and counted (each packet, not each poll), and a
+fault only when 5 fall within 1 s (:class:`~temoto.drivers.supervision.FaultWindow`);
+``timeout_polls`` polls in a row without replies are a
+:class:`~temoto.errors.DriverTimeoutError`; the present-position stream is stale (a
+:class:`~temoto.errors.DriverTimeoutError` naming it) when no good poll came for 3 x (poll
 period + ``reply_timeout``) clock seconds (:class:`~temoto.drivers.supervision.StreamAge`,
 checked by the poll thread and by :meth:`DynamixelDriver.read_state`). The first good poll after
 a communication fault reports recovery (unless a servo lost torque meanwhile, which stays a
@@ -75,7 +79,7 @@ from temoto.drivers.capabilities import ControlMode, JointCommand, JointStates
 from temoto.drivers.dynamixel import _sdk, timing
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel import protocol as p
-from temoto.drivers.dynamixel._chain import ServoChain
+from temoto.drivers.dynamixel._chain import ServoChain, register_label
 from temoto.drivers.dynamixel.detect import DETECT_BAUD_RATES, detect
 from temoto.drivers.dynamixel.servos import (
     COMMAND_MODE,
@@ -125,6 +129,13 @@ SIM_REPLY_TIMEOUT: Final = 0.1
 SAFE_STATES: Final = ("torque_off", "hold")
 _SAFE_BUS_WAIT: Final = 0.5  # real s make_safe waits for a transaction of another thread
 _REBOOT_WAIT_TRIES: Final = 20  # pings (each up to ~34 ms real) while a servo restarts
+_IDENTIFY_TRIES: Final = 3  # PINGs of each servo at configure
+#: Real seconds to listen after a servo's status packet for a second one (two servos on one
+#: id); bounded by ``reply_timeout``.
+_DUPLICATE_SETTLE: Final = 0.02
+#: PINGs answered twice before a servo id counts as duplicate (a late reply can follow once).
+_DUPLICATE_CONFIRM: Final = 2
+_GARBLED: Final = "garbled"  # _check_identity: only garbled replies (reported together)
 
 
 class DynamixelDriver(ServoChain):
@@ -161,6 +172,19 @@ class DynamixelDriver(ServoChain):
             for s in self.servos
             if s.operating_mode in POSITION_MODES
         }
+
+    @property
+    def joint_velocity_limits(self) -> Mapping[str, float]:
+        """The largest speed of every joint (rad/s; the profile checks navigation against it).
+
+        Its ``velocity_limit``, or else the most its model's Velocity Limit (44) can be set to.
+        """
+        return {s.joint: s.speed_limit for s in self.servos}
+
+    @property
+    def device_watchdog(self) -> float:
+        """Seconds of the servos' own watchdog (the Bus Watchdog; 0: off)."""
+        return self.bus_watchdog
 
     # ---- profile ------------------------------------------------------------------------------
 
@@ -399,7 +423,7 @@ class DynamixelDriver(ServoChain):
                     result = self._writer(reg).write(goals[reg.address])
                     if result != _sdk.COMM_SUCCESS:
                         text = self._port().result_text(result)
-                        raise DriverOperationError(f"{self.name}: SyncWrite of {reg.name}: {text}")
+                        raise DriverOperationError(f"{self.name}: {_sync_write(reg)}: {text}")
                     if reg is not ct.PROFILE_VELOCITY:
                         for dxl_id, raw in goals[reg.address].items():
                             self._goals[dxl_id] = (reg, raw)
@@ -423,8 +447,9 @@ class DynamixelDriver(ServoChain):
             _check_latency_timer(self.name, self.port)
         with self._bus:
             self._goals = {}
+            errors = self._identify()  # PING and READ only: nothing written yet
             for servo in self.servos:
-                self._bring_up(servo)
+                self._bring_up(servo, errors[servo.id])
             self._fast = port.sync_reader(*ct.FAST_READ, self._ids)
             self._slow = port.sync_reader(*ct.STATUS_READ, self._ids)
             self._errors = port.sync_reader(ct.HARDWARE_ERROR_STATUS.address, 1, self._ids)
@@ -447,20 +472,26 @@ class DynamixelDriver(ServoChain):
                 self._write(servo.id, ct.BUS_WATCHDOG, 0, "bus watchdog clear")
             result, data, errors = self._reader("fast").read()
             if result != _sdk.COMM_SUCCESS:
-                raise self._comm_error("read before torque on", result)
+                raise self._sync_error(self._reader("fast"), result, "read before torque on")
             self._raise_alerts(errors)
             holds: dict[int, bytes] = {}
             for servo in self.servos:
                 if servo.operating_mode in POSITION_MODES:
                     holds[servo.id] = data[servo.id][6:10]  # present position → goal
             if holds:
-                self._check_tx(self._writer(ct.GOAL_POSITION).write(holds))
+                self._check_tx(
+                    self._writer(ct.GOAL_POSITION).write(holds), _sync_write(ct.GOAL_POSITION)
+                )
             zero = {s.id: p.to_le(0, 4) for s in self.servos if s.mode == "velocity"}
             if zero:
-                self._check_tx(self._writer(ct.GOAL_VELOCITY).write(zero))
+                self._check_tx(
+                    self._writer(ct.GOAL_VELOCITY).write(zero), _sync_write(ct.GOAL_VELOCITY)
+                )
             zero = {s.id: p.to_le(0, 2) for s in self.servos if s.mode == "current"}
             if zero:
-                self._check_tx(self._writer(ct.GOAL_CURRENT).write(zero))
+                self._check_tx(
+                    self._writer(ct.GOAL_CURRENT).write(zero), _sync_write(ct.GOAL_CURRENT)
+                )
             self._goals = self._hold_goals(data)
             # armed before torque on (it only watches while torque is on, e-Manual address
             # 98): a SIGKILL between two writes never leaves a torqued servo unwatched
@@ -510,7 +541,10 @@ class DynamixelDriver(ServoChain):
             dict.fromkeys(self._ids, b"\x00")
         )
         if result != _sdk.COMM_SUCCESS:
-            raise DriverOperationError(f"{self.name}: torque off: {port.result_text(result)}")
+            raise DriverOperationError(
+                f"{self.name}: torque off: {_sync_write(ct.TORQUE_ENABLE)}:"
+                f" {port.result_text(result)}"
+            )
         reader = self._torques or port.sync_reader(ct.TORQUE_ENABLE.address, 1, self._ids)
         result, data, _ = reader.read()
         if result == _sdk.COMM_SUCCESS and not any(data[i][0] for i in self._ids):
@@ -534,7 +568,8 @@ class DynamixelDriver(ServoChain):
         result, data, _ = reader.read()
         if result != _sdk.COMM_SUCCESS:
             raise DriverOperationError(
-                f"{self.name}: hold: cannot read the present positions: {port.result_text(result)}"
+                f"{self.name}: hold: cannot read the present positions: "
+                + self._sync_failure(*ct.FAST_READ, reader.failed, result)
             )
         result = self._write_goals(self._hold_goals(data))
         if result != _sdk.COMM_SUCCESS:
@@ -559,40 +594,171 @@ class DynamixelDriver(ServoChain):
         self._goals = {}
 
     # ---- bring-up -----------------------------------------------------------------------------
-    def _bring_up(self, servo: ServoConfig) -> None:
-        port = self._port()
-        model = self._ping(servo.id)
-        if model != servo.spec.number:
-            found = ct.MODELS_BY_NUMBER.get(model)
-            raise DriverInitError(
-                f"{self.name}: servo {servo.id} ({servo.joint}) is"
-                f" {found.name if found else f'model {model}'}, the profile says {servo.model}"
+    def _identify(self) -> dict[int, int]:
+        """Check every servo before anything is written to any of them (PING and READ only).
+
+        Each servo is PINGed (a second status packet, or replies to PING garbled every time,
+        mean two servos answer its id), its model number compared with the profile's, its
+        firmware checked for a Bus Watchdog when one is configured, and its Velocity and
+        Current Limit registers read (velocity and current modes: the profile's limit must not
+        exceed them). Every problem found is reported together.
+
+        Returns:
+            Each servo's Hardware Error Status (non-zero: reboot it before use).
+
+        Raises:
+            DriverInitError: A servo is missing, duplicated, of another model, has old firmware
+                or settings the servo refuses; the message names each and says that nothing
+                was written.
+            DriverError: A read failed (naming the servo and the register).
+        """
+        problems: list[str] = []
+        errors: dict[int, int] = {}
+        garbled: list[ServoConfig] = []
+        for servo in self.servos:
+            problem, answered = self._check_identity(servo)
+            if problem == _GARBLED:
+                garbled.append(servo)
+                continue
+            if problem:
+                problems.append(problem)
+                if not answered:
+                    break  # a silent servo: likely the chain; do not wait for each one
+                continue
+            errors[servo.id] = self._read(servo.id, ct.HARDWARE_ERROR_STATUS, alert_ok=True)
+            problems += self._check_settings(servo)
+        if len(garbled) == 1:
+            servo = garbled[0]
+            problems.insert(
+                0,
+                f"duplicate servo id {servo.id} ({servo.joint})? its replies to PING were"
+                f" garbled ({_IDENTIFY_TRIES} tries): two servos answering at once, or a noisy"
+                " line",
             )
-        bits = self._read(servo.id, ct.HARDWARE_ERROR_STATUS, "hardware error", alert_ok=True)
-        if bits:
+        elif garbled:
+            problems.insert(
+                0,
+                f"the replies to PING of servos {', '.join(str(s.id) for s in garbled)} were"
+                " garbled: a noisy line or a wrong baud rate (or duplicate servo ids)",
+            )
+        if problems:
+            raise DriverInitError(
+                f"{self.name}: {'; '.join(problems)} (nothing was written to any servo)"
+            )
+        return errors
+
+    def _check_identity(self, servo: ServoConfig) -> tuple[str, bool]:
+        """PING one servo: ('', True) when exactly one servo of the profile's model answers.
+
+        A second status packet to the PING must come again on the next PING to count (a late
+        reply to an earlier instruction can follow a reply once); garbled replies must come on
+        every try that was answered, at least twice.
+
+        Returns:
+            (the problem, :data:`_GARBLED`, or '', whether the servo answered at all).
+        """
+        port = self._port()
+        settle = min(self.reply_timeout, _DUPLICATE_SETTLE)
+        garbled = doubled = 0
+        reason = ""
+        for _ in range(_IDENTIFY_TRIES):
+            model, result, _ = port.ping(servo.id)
+            if result == _sdk.COMM_RX_CORRUPT:
+                garbled += 1
+                port.leftover(settle)  # the rest of a collision, before the next try
+                continue
+            if result != _sdk.COMM_SUCCESS:
+                continue
+            reason, sure = _duplicate_reply(servo.id, port.leftover(settle))
+            if sure:
+                doubled += 1
+                if doubled >= _DUPLICATE_CONFIRM:
+                    return f"duplicate servo id {servo.id} ({servo.joint}): {reason}", True
+                continue
+            if reason:  # garbage after the reply: a collision, or noise; ask again
+                garbled += 1
+                continue
+            if model != servo.spec.number:
+                found = ct.MODELS_BY_NUMBER.get(model)
+                name = found.name if found else "an unknown model"
+                return (
+                    f"servo {servo.id} ({servo.joint}) is {name} (model number {model}),"
+                    f" the profile says {servo.model} ({servo.spec.number})"
+                ), True
+            return "", True
+        if garbled >= _DUPLICATE_CONFIRM and not doubled:  # the other tries: no reply
+            return _GARBLED, True
+        if doubled or garbled:
+            return (
+                f"servo {servo.id} ({servo.joint}): no clean reply to PING in"
+                f" {_IDENTIFY_TRIES} tries ({doubled} doubled, {garbled} garbled)"
+            ), True
+        return (
+            f"servo {servo.id} ({servo.joint}): {port.result_text(result)} to PING on"
+            f" {self.port} ({_IDENTIFY_TRIES} tries)"
+        ), False
+
+    def _check_settings(self, servo: ServoConfig) -> list[str]:
+        """The profile's settings against what one servo has (READ only); the problems.
+
+        The alert bit is ignored here: a servo with a hardware error is rebooted afterwards.
+        """
+        problems: list[str] = []
+        firmware = self._read(servo.id, ct.FIRMWARE_VERSION, alert_ok=True)
+        logger.debug("%s: servo %d (%s): %s, firmware v%d", *self._who(servo), firmware)
+        if self.watchdog_units and firmware < ct.BUS_WATCHDOG_FIRMWARE:
+            problems.append(
+                f"servo {servo.id} ({servo.joint}) has firmware {firmware}, which has no Bus"
+                f" Watchdog (v{ct.BUS_WATCHDOG_FIRMWARE} on): update it (DYNAMIXEL Wizard)"
+                " or set bus_watchdog: 0"
+            )
+        velocity_limit = self._read(servo.id, _VELOCITY_LIMIT, alert_ok=True)
+        current_limit = 0  # a model that reports load has no Current Limit (nor current mode)
+        if servo.spec.register(_CURRENT_LIMIT.name) is not None:
+            current_limit = self._read(servo.id, _CURRENT_LIMIT, alert_ok=True)
+        self._limits[servo.id] = (velocity_limit, current_limit)
+        if servo.mode == "velocity" and servo.velocity_limit is not None:
+            units = abs(servo.velocity_units(servo.velocity_limit))
+            if units > velocity_limit:
+                problems.append(
+                    f"servo {servo.id} ({servo.joint}): velocity_limit {servo.velocity_limit:g}"
+                    f" rad/s is {units} units, above its Velocity Limit (44) of {velocity_limit}"
+                    f" ({abs(servo.velocity(velocity_limit)):.3g} rad/s): lower velocity_limit"
+                    " or raise the register (DYNAMIXEL Wizard)"
+                )
+        if servo.mode == "current" and servo.effort_limit is not None:
+            units = abs(servo.current_units(servo.effort_limit))
+            if units > current_limit:
+                problems.append(
+                    f"servo {servo.id} ({servo.joint}): effort_limit {servo.effort_limit:g} N·m"
+                    f" is {units} units, above its Current Limit (38) of {current_limit}"
+                    f" ({abs(servo.effort(current_limit)):.3g} N·m): lower effort_limit or raise"
+                    " the register (DYNAMIXEL Wizard)"
+                )
+        return problems
+
+    def _who(self, servo: ServoConfig) -> tuple[str, int, str, str]:
+        return self.name, servo.id, servo.joint, servo.model
+
+    def _bring_up(self, servo: ServoConfig, error_bits: int) -> None:
+        """Reboot a servo with an old hardware error, torque off, write the EEPROM settings."""
+        port = self._port()
+        if error_bits:
             logger.warning(
                 "%s: servo %d (%s) reports %s: rebooting it",
                 self.name,
                 servo.id,
                 servo.joint,
-                ", ".join(p.decode_hardware_error(bits)),
+                ", ".join(p.decode_hardware_error(error_bits)),
             )
             result, _ = port.reboot(servo.id)
             if result != _sdk.COMM_SUCCESS:
-                raise self._comm_error(f"reboot of servo {servo.id}", result)
+                raise self._comm_error(f"servo {servo.id}: REBOOT", result)
             self._ping(servo.id, tries=_REBOOT_WAIT_TRIES)
-            bits = self._read(servo.id, ct.HARDWARE_ERROR_STATUS, "hardware error", alert_ok=True)
+            bits = self._read(servo.id, ct.HARDWARE_ERROR_STATUS, alert_ok=True)
             if bits:
                 raise self._hardware_error(servo.id, bits)
-        self._write(servo.id, ct.TORQUE_ENABLE, 0, "torque off")
-        if self.watchdog_units:
-            firmware = self._read(servo.id, ct.FIRMWARE_VERSION, "firmware version")
-            if firmware < ct.BUS_WATCHDOG_FIRMWARE:
-                raise DriverInitError(
-                    f"{self.name}: servo {servo.id} ({servo.joint}) has firmware {firmware},"
-                    f" which has no Bus Watchdog (v{ct.BUS_WATCHDOG_FIRMWARE} on): update it"
-                    " (DYNAMIXEL Wizard) or set bus_watchdog: 0"
-                )
+        self._write(servo.id, ct.TORQUE_ENABLE, 0)
         # EEPROM registers (torque is off now): written only when they differ.
         self._set_eeprom(servo, ct.OPERATING_MODE, servo.operating_mode, "operating mode")
         if self.return_delay_units is not None:
@@ -603,11 +769,6 @@ class DynamixelDriver(ServoChain):
             low, high = servo.limit_ticks()
             self._set_eeprom(servo, ct.MIN_POSITION_LIMIT, low, "min position limit")
             self._set_eeprom(servo, ct.MAX_POSITION_LIMIT, high, "max position limit")
-        velocity_limit = self._read(servo.id, _VELOCITY_LIMIT, "velocity limit")
-        current_limit = 0  # a model that reports load has no Current Limit (nor current mode)
-        if servo.spec.register(_CURRENT_LIMIT.name) is not None:
-            current_limit = self._read(servo.id, _CURRENT_LIMIT, "current limit")
-        self._limits[servo.id] = (velocity_limit, current_limit)
 
     def _set_eeprom(self, servo: ServoConfig, reg: ct.Register, value: int, what: str) -> None:
         """Write an EEPROM register only when it differs (spares the EEPROM's write cycles)."""
@@ -619,8 +780,48 @@ class DynamixelDriver(ServoChain):
             self._write(servo.id, reg, value, what)
 
 
+def _sync_write(reg: ct.Register) -> str:
+    """``SYNC_WRITE of Goal Position (116)``: what a failed SYNC_WRITE was, for messages."""
+    return f"SYNC_WRITE of {register_label(reg.address, reg.size)}"
+
+
 _VELOCITY_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Velocity Limit")
 _CURRENT_LIMIT: Final = next(r for r in ct.REGISTERS if r.name == "Current Limit")
+
+
+_PING_REPLY: Final = 3  # parameter bytes of a status packet answering PING
+
+
+def _duplicate_reply(dxl_id: int, extra: bytes) -> tuple[str, bool]:
+    """Why the bytes that followed a servo's reply to PING mean two servos on one id.
+
+    Args:
+        dxl_id: The id PINGed.
+        extra: What arrived after the status packet dynamixel-sdk took.
+
+    Returns:
+        (reason, sure): a second status packet from the id is sure; garbage may be a collision
+        or noise; ('', False) when nothing (or only another id's packet) followed.
+    """
+    if not extra:
+        return "", False
+    packets = list(p.PacketReader().feed(extra))
+    mine = [  # a reply to PING: model number and firmware, no error
+        x
+        for x in packets
+        if isinstance(x, p.Packet) and x.is_status and x.id == dxl_id
+        if len(x.params) == _PING_REPLY and not x.error
+    ]
+    if mine:
+        models = [p.from_le(x.params[:2]) for x in mine if len(x.params) >= 2]
+        names = ", ".join(
+            ct.MODELS_BY_NUMBER[m].name if m in ct.MODELS_BY_NUMBER else f"model {m}"
+            for m in models
+        )
+        return f"{1 + len(mine)} status packets answered one PING (also {names})", True
+    if any(isinstance(x, p.PacketError) for x in packets) or not packets:
+        return f"{len(extra)} garbled bytes followed its reply to PING", False
+    return "", False
 
 
 def _check_latency_timer(name: str, port: str) -> None:

@@ -15,7 +15,8 @@ Error Status register says which), bits 0 to 6 are the error number of this inst
 (:class:`ErrorNumber`).
 
 Everything here is a function of bytes to values and back, tested against the ROBOTIS e-Manual
-examples; the simulator and the tests use it, the driver leaves the wire to dynamixel-sdk.
+examples; the simulator and the tests use it, the driver leaves the wire to dynamixel-sdk (it
+only parses here what follows a reply to PING, to find two servos on one id).
 """
 
 from __future__ import annotations

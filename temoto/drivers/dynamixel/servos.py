@@ -141,6 +141,30 @@ class ServoConfig:
             value = getattr(self, key)
             if value is not None and not (math.isfinite(value) and value > 0):
                 raise ServoFieldError(key, f"{key} must be positive, got {value}")
+        # The model's table (ROBOTIS e-Manual, each model's control table): Velocity Limit (44)
+        # ranges 0..1023 (0..2047 on the XL330) in 0.229 rev/min, Current Limit (38) 0..its
+        # model's maximum (1193 on the XM430-W350, in 2.69 mA).
+        if self.velocity_limit is not None and self.velocity_limit > self.max_velocity:
+            reg = self.spec.register("Velocity Limit")
+            raise ServoFieldError(
+                "velocity_limit",
+                f"{self.velocity_limit:g} rad/s is above what a {self.model} can be set to:"
+                f" Velocity Limit (44) at most {reg.high if reg else '?'} x 0.229 rev/min ="
+                f" {self.max_velocity:.4g} rad/s at the joint (gear {self.gear:g})",
+            )
+        if self.effort_limit is not None and self.effort_limit > self.max_effort:
+            reg = self.spec.register("Current Limit")
+            unit = (self.spec.current_unit or 0) * 1000
+            what = (
+                f"Current Limit (38) at most {reg.high} x {unit:g} mA"
+                if reg is not None and reg.high is not None
+                else "100 % of its stall torque (it has no current sensor)"
+            )
+            raise ServoFieldError(
+                "effort_limit",
+                f"{self.effort_limit:g} N·m is above what a {self.model} can give: {what} ="
+                f" {self.max_effort:.4g} N·m at the joint (gear {self.gear:g})",
+            )
 
     @property
     def spec(self) -> ct.Model:
@@ -151,6 +175,34 @@ class ServoConfig:
     def operating_mode(self) -> ct.OperatingMode:
         """The Operating Mode register's value."""
         return MODES[self.mode]
+
+    @property
+    def max_velocity(self) -> float:
+        """The largest joint speed the model's Velocity Limit (44) allows (rad/s).
+
+        The register's largest value (the e-Manual's Range column) in 0.229 rev/min units,
+        through the gear.
+        """
+        reg = self.spec.register("Velocity Limit")
+        high = reg.high if reg is not None and reg.high is not None else 0
+        return high * ct.RAD_S_PER_UNIT / abs(self.gear)
+
+    @property
+    def max_effort(self) -> float:
+        """The largest joint effort the model allows (N·m).
+
+        Current Limit (38)'s largest value through the current unit, the torque constant and
+        the gear; for a model without a current sensor its stall torque through the gear.
+        """
+        reg = self.spec.register("Current Limit")
+        if self.spec.current_unit is None or reg is None or reg.high is None:
+            return self.spec.stall_torque * abs(self.gear)
+        return abs(self.effort(reg.high))
+
+    @property
+    def speed_limit(self) -> float:
+        """The joint's largest speed: ``velocity_limit``, or else :attr:`max_velocity` (rad/s)."""
+        return self.velocity_limit if self.velocity_limit is not None else self.max_velocity
 
     def limit_ticks(self) -> tuple[int, int]:
         """(Min Position Limit, Max Position Limit) register values for the joint limits."""
