@@ -313,7 +313,7 @@ def test_one_bad_frame_is_counted_several_make_a_fault(
     run_until(clock, lambda: d.state is DriverState.FAULT, 1.0)
     error = d.health().error
     assert isinstance(error, DriverOperationError)
-    assert "corrupt frames (bad CRC): 5 or more within 1 s" in str(error)
+    assert "corrupt frames (bad CRC) from the vehicle's address: 5 or more within 1 s" in str(error)
     run_until(clock, lambda: d.state is DriverState.ACTIVE, 2.0)
 
 

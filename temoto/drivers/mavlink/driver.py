@@ -154,6 +154,11 @@ class MavlinkDriver(MissionClient):
     #: Seconds (clock) :meth:`make_safe` waits for the vehicle to confirm its mode.
     SAFE_CONFIRM_WAIT: ClassVar[float] = 0.3
 
+    #: Clock seconds ``configure`` listens from the vehicle's first heartbeat before it ends,
+    #: so that a second vehicle using the same system id (whose heartbeat also comes once a
+    #: second) is heard before anything can arm: ArduPilot's heartbeat period.
+    DUPLICATE_LISTEN: ClassVar[float] = 1.0
+
     # ---- profile -----------------------------------------------------------------------------
 
     #: The keys of a profile entry (:mod:`~temoto.drivers.mavlink.settings`); an entry from
@@ -265,13 +270,38 @@ class MavlinkDriver(MissionClient):
                 f"{self.name}: no heartbeat from a vehicle on {self.link_spec}"
                 f" within {self.init_timeout:g} s"
             )
+        with self._cond:
+            first_hb = self._last_hb
         if self._autopilot != p.MAV_AUTOPILOT_ARDUPILOTMEGA:
             raise DriverInitError(
                 f"{self.name}: system {self._target} is not an ArduPilot autopilot"
                 f" (MAV_AUTOPILOT {self._autopilot}); only ArduCopter modes are supported"
             )
+        self._check_duplicate()
         self._request_streams()
+        self._check_duplicate()
         self._configure_failsafe()
+        # a second vehicle with the same ids heartbeats once a second too: listen that long
+        # (the requests above usually took it) before anything can arm
+        assert first_hb is not None
+        left = first_hb + self.DUPLICATE_LISTEN - self.clock.monotonic()
+        if left > 0:
+            self._await(lambda: self._duplicate is not None, left)
+        self._check_duplicate()
+
+    def _check_duplicate(self) -> None:
+        """Raise if a second vehicle answers with the autopilot's ids.
+
+        Raises:
+            DriverInitError: ``duplicate system id N: ...``.
+        """
+        with self._cond:
+            duplicate = self._duplicate
+        if duplicate is not None:
+            raise DriverInitError(
+                f"{duplicate}; nothing was sent to arm or move. Give each vehicle its own"
+                " SYSID_THISMAV, or point this link at one vehicle only"
+            )
 
     def _request_streams(self) -> None:
         """Ask for the telemetry streams; supervise those the vehicle accepted."""
@@ -344,6 +374,7 @@ class MavlinkDriver(MissionClient):
         """
         with self._cond:
             target = self._target or 1
+        self._note_mode(p.mode_number(mode))
         return self._write(
             self._codec.encode(
                 "COMMAND_LONG",
@@ -421,6 +452,7 @@ class MavlinkDriver(MissionClient):
         """
         number = p.mode_number(mode)
         self.require_active("set_mode")
+        self._note_mode(number)
         self._send_command(
             p.MAV_CMD_DO_SET_MODE, (float(p.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(number))
         )
@@ -464,6 +496,7 @@ class MavlinkDriver(MissionClient):
             raise TypeError(f"goto needs a GeoPoint, got {type(target).__name__}")
         self.require_active("goto")
         flags = float(p.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE)
+        self._note_mode(p.mode_number("GUIDED"))  # the change-mode flag: GUIDED
         self._send_command(
             p.MAV_CMD_DO_REPOSITION,
             (-1.0, flags, 0.0, math.nan),
@@ -480,6 +513,7 @@ class MavlinkDriver(MissionClient):
             DriverTimeoutError: No acknowledgement.
         """
         self.require_active("land")
+        self._note_mode(p.mode_number("LAND"))  # ArduCopter lands in its LAND mode
         self._send_command(p.MAV_CMD_NAV_LAND, (0.0, 0.0, 0.0, math.nan))
 
     def return_to_launch(self) -> None:
@@ -491,6 +525,7 @@ class MavlinkDriver(MissionClient):
             DriverTimeoutError: No acknowledgement.
         """
         self.require_active("return_to_launch")
+        self._note_mode(p.mode_number("RTL"))
         self._send_command(p.MAV_CMD_NAV_RETURN_TO_LAUNCH, ())
 
     def telemetry(self) -> VehicleTelemetry:
@@ -555,6 +590,7 @@ class MavlinkDriver(MissionClient):
         self._moved_at = self.clock.monotonic()
         with self._cond:
             self._progress = MissionProgress(total=self._mission_total)
+        self._note_mode(p.mode_number("AUTO"))  # MISSION_START switches to AUTO
         self._send_command(p.MAV_CMD_MISSION_START, (0.0, 0.0))
 
 
