@@ -615,9 +615,11 @@ class Session(Driver):
             if step < 256 - SEQ_REORDER:  # a reordered frame does not move the count back
                 self._last_seq = msg.seq
             self._last_frame = msg
-        if self._vehicle_at is not None and not self._backlog:
+        if self._vehicle_at is not None and now - self._vehicle_at > LINK_GAP:
+            for age in self._ages.values():
+                age.feed(now)  # the whole link was out, not a stream: judge them from now on
             gap = now - self._vehicle_at
-            if gap > LINK_GAP:
+            if not self._backlog:
                 self._link_gaps += 1
                 logger.warning(
                     "%s: no message from the autopilot (%s) for %.1f s: the link is back"

@@ -1,0 +1,128 @@
+"""The vehicle's own mode changes, link gaps, and components that are not the autopilot (issue 25).
+
+Against SimVehicle (its GCS failsafe, its ``link_loss``) on a virtual clock, and raw frames from
+pymavlink-free senders built with the driver's own codec under other component ids.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import logging
+import socket
+
+import pytest
+from test_mavlink import HOME, configure, run_until
+from test_mavlink_safety import rig, take_off
+
+from temoto.clock import ManualClock
+from temoto.drivers import DriverState
+from temoto.drivers.mavlink import MavlinkDriver
+from temoto.drivers.mavlink import protocol as p
+
+
+class _Shut:
+    """``contextlib.closing`` for a driver: shut down however the test ends."""
+
+    def __init__(self, driver: MavlinkDriver) -> None:
+        self.driver = driver
+
+    def close(self) -> None:
+        self.driver.shutdown()
+
+
+@pytest.fixture
+def clock() -> ManualClock:
+    return ManualClock()
+
+
+def test_a_gcs_failsafe_during_a_short_outage_is_seen_within_a_heartbeat(
+    clock: ManualClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Issue 25: a 2 s outage, shorter than heartbeat_timeout (3 s); the vehicle went RTL."""
+    sim, d = rig(clock, sim={"params": {"FS_GCS_ENABLE": 1, "FS_GCS_TIMEOUT": 2}})
+    with sim, contextlib.closing(_Shut(d)):
+        configure(d, clock)
+        d.activate()
+        take_off(d, clock, 3.0)
+        assert d.telemetry().mode == "GUIDED"
+        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink.driver")
+        sim.inject("link_loss")
+        run_until(clock, lambda: sim.mode == "RTL", 2.0 + 1.0)  # FS_GCS_TIMEOUT, then RTL
+        sim.clear("link_loss")
+        took = run_until(clock, lambda: d.telemetry().mode == "RTL", 2.0)
+        assert took <= 1.0 + 0.1  # one heartbeat period of the vehicle (and a model step)
+        assert "stale" not in caplog.text  # the link, not a stream, was out
+        assert "quad: the vehicle switched GUIDED -> RTL (not commanded" in caplog.text
+        gaps = [r for r in caplog.records if "no message from the autopilot" in r.message]
+        assert gaps
+        assert gaps[0].levelno == logging.WARNING
+        said = gaps[0].message
+        assert "quad: no message from the autopilot (system 1, component 1) for " in said
+        assert d.link_gaps == 1
+        change = d.last_mode_change
+        assert change is not None
+        assert (change.old, change.new, change.commanded) == ("GUIDED", "RTL", False)
+        assert d.uncommanded_mode_changes == 1
+
+
+def test_a_commanded_mode_change_is_no_warning(
+    clock: ManualClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    sim, d = rig(clock)
+    with sim, contextlib.closing(_Shut(d)):
+        configure(d, clock)
+        d.activate()
+        take_off(d, clock, 3.0)
+        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink.driver")
+        d.set_mode("LOITER")
+        run_until(clock, lambda: d.telemetry().mode == "LOITER", 1.5)
+        change = d.last_mode_change
+        assert change is not None
+        assert (change.old, change.new, change.commanded) == ("GUIDED", "LOITER", True)
+        assert "quad: the vehicle switched GUIDED -> LOITER" in caplog.text
+        assert not [r for r in caplog.records if r.levelno >= logging.WARNING]
+        assert d.uncommanded_mode_changes == 0
+        d.shutdown()
+
+
+def test_another_component_of_the_system_is_ignored_and_counted(
+    clock: ManualClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    """A companion (component 100) saying "on ground" at the goal changes nothing we trust."""
+    sim, d = rig(clock)
+    with sim, contextlib.closing(_Shut(d)):
+        configure(d, clock)
+        d.activate()
+        take_off(d, clock, 3.0)
+        run_until(clock, lambda: d._landed_state == p.MAV_LANDED_STATE_IN_AIR, 2.0)
+        caplog.set_level(logging.WARNING, logger="temoto.drivers.mavlink.driver")
+        companion = p.Codec(1, 100)
+        frames = [
+            companion.encode("EXTENDED_SYS_STATE", vtol_state=0,
+                             landed_state=p.MAV_LANDED_STATE_ON_GROUND),
+            companion.encode("GLOBAL_POSITION_INT", time_boot_ms=0, lat=int(HOME[0] * 1e7),
+                             lon=int((HOME[1] + 0.01) * 1e7), alt=0, relative_alt=0, vx=0,
+                             vy=0, vz=0, hdg=0),
+            companion.encode("HEARTBEAT", type=p.MAV_TYPE_QUADROTOR,
+                             autopilot=p.MAV_AUTOPILOT_ARDUPILOTMEGA, base_mode=0,
+                             custom_mode=p.mode_number("LAND"), system_status=3,
+                             mavlink_version=3),
+        ]  # fmt: skip
+        with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as other:
+            for _ in range(10):
+                for frame in frames:
+                    other.sendto(frame, ("127.0.0.1", int(d.link_spec.port)))
+                    sim.send_raw(frame)  # also from the vehicle's own address
+                clock.advance(0.02)
+            run_until(clock, lambda: d.ignored_messages.get("system 1 component 100") == 60, 2.0)
+        t = d.telemetry()
+        assert t.position.alt > 2.0
+        assert abs(t.position.lon - HOME[1]) < 0.001
+        assert t.mode == "GUIDED"
+        assert d._landed_state == p.MAV_LANDED_STATE_IN_AIR
+        warned = [r for r in caplog.records if "component 100" in r.message]
+        assert len(warned) == 1  # once per source, then rate-limited
+        assert "only the autopilot (system 1, component 1) is trusted" in warned[0].message
+        assert d.make_safe("test") == "vehicle LOITER"
+        assert d.state is DriverState.INACTIVE
+        d.shutdown()
