@@ -18,6 +18,7 @@ from temoto.clock import ManualClock
 from temoto.drivers import DriverState
 from temoto.drivers.mavlink import MavlinkDriver
 from temoto.drivers.mavlink import protocol as p
+from temoto.errors import ProfileError
 
 
 class _Shut:
@@ -126,3 +127,39 @@ def test_another_component_of_the_system_is_ignored_and_counted(
         assert d.make_safe("test") == "vehicle LOITER"
         assert d.state is DriverState.INACTIVE
         d.shutdown()
+
+
+# ---- profile checks against ArduPilot (issue 25, item 6) -----------------------------------
+
+
+@pytest.mark.parametrize(
+    ("keys", "said"),
+    [
+        ({"safe_state": None}, "devices.quad.safe_state: empty (null)"),
+        ({"heartbeat_timeout": None}, "devices.quad.heartbeat_timeout: empty (null)"),
+        ({"heartbeat_timeout": 1.0}, "devices.quad.heartbeat_timeout: must be a number in [2"),
+        ({"heartbeat_timeout": 600}, "devices.quad.heartbeat_timeout: must be a number in [2"),
+        ({"heartbeat_period": 1.5}, "devices.quad.heartbeat_period: must be a number in (0, 1]"),
+        ({"init_timeout": 0.5}, "devices.quad.init_timeout: must be a number >= 1 s"),
+        ({"stream_rate": 100}, "devices.quad.stream_rate: must be a number in [0, 50]"),
+        ({"component_id": 0}, "devices.quad.component_id: must be an integer 1..255"),
+        ({"system_id": 255}, "devices.quad.gcs_system_id: gcs_system_id must differ"),
+        (
+            {"gcs_failsafe": {"timeout": 2}},  # heartbeat_timeout 3 by default
+            "devices.quad.heartbeat_timeout: heartbeat_timeout must be at most the GCS failsafe",
+        ),
+        ({"gcs_failsafe": {"timeout": 150}}, "devices.quad.gcs_failsafe.timeout: must be a"),
+    ],
+)
+def test_a_profile_against_ardupilot_names_the_key(keys: dict[str, object], said: str) -> None:
+    config = {"link": "udpin:127.0.0.1:0", **keys}
+    with pytest.raises(ProfileError) as info:
+        MavlinkDriver.from_profile("quad", config, clock=ManualClock(), where="devices.quad")
+    assert said in str(info.value)
+    assert "\n" not in str(info.value)
+
+
+def test_null_keys_that_mean_something_are_accepted() -> None:
+    config = {"link": "udpin:127.0.0.1:0", "system_id": None, "gcs_failsafe": None}
+    d = MavlinkDriver.from_profile("quad", config, clock=ManualClock(), where="devices.quad")
+    assert (d.system_id, d.failsafe_params, d.safe_state) == (None, {}, "loiter")

@@ -49,12 +49,9 @@ _POLL: Final = 0.05  # real seconds per socket read (also how often waiters re-c
 _UNKNOWN_VOLTAGE: Final = 65535
 _SEVERITY_LEVEL: Final = {0: 50, 1: 50, 2: 50, 3: 40, 4: 30, 5: 20, 6: 20, 7: 10}
 _TEXT_QUIET: Final = 0.1  # once a refusal's text came: seconds without another end the wait
-#: ArduPilot sends its HEARTBEAT once a second (GCS_MAVLINK's 1 Hz send), whatever streams were
-#: asked for: a vehicle that said nothing for longer than this had a gap in its link.
-VEHICLE_HEARTBEAT_PERIOD: Final = 1.0
 #: Clock seconds without any message of the autopilot after which its next one is a link gap
 #: (logged at WARNING, counted in ``link_gaps``): one and a half of its heartbeat periods.
-LINK_GAP: Final = 1.5 * VEHICLE_HEARTBEAT_PERIOD
+LINK_GAP: Final = 1.5 * p.VEHICLE_HEARTBEAT_PERIOD
 #: Real seconds the receive thread may go without running (it reads every ``_POLL``) before
 #: what it reads next is taken as a backlog queued while this process did not run.
 _PAUSE: Final = 0.5
@@ -65,6 +62,9 @@ SEQ_JUMPS: Final = 3
 #: A step back by at most this much is a reordering (a UDP network, or a sender whose threads
 #: send what they packed out of order), not a second sender.
 SEQ_REORDER: Final = 16
+#: Real seconds, at least, the receive thread may go without coming round before the watch
+#: reports it stuck (``heartbeat_timeout`` when that is longer in real seconds).
+_STUCK: Final = 2.0
 #: Clock seconds between two WARNING lines about the same ignored source.
 _IGNORED_LOG_EVERY: Final = 60.0
 
@@ -171,6 +171,12 @@ class Session(Driver):
                 f"heartbeat_period must be at most half the GCS failsafe timeout ({timeout:g} s),"
                 f" got {self.heartbeat_period:g}: one lost heartbeat must not trigger it"
             )
+        if timeout is not None and self.heartbeat_timeout > timeout:
+            raise ValueError(
+                f"heartbeat_timeout must be at most the GCS failsafe timeout"
+                f" (gcs_failsafe.timeout, {timeout:g} s), got {self.heartbeat_timeout:g}: a link"
+                " outage long enough to set off the vehicle's failsafe must be a fault here too"
+            )
         self._gcs_ids = (gcs_system_id, gcs_component_id)
         self._codec = Codec(gcs_system_id, gcs_component_id)
         self._link: Link | None = None
@@ -246,6 +252,7 @@ class Session(Driver):
         self._ignored_logged: dict[str, float] = {}  # source → clock time of its last line
         self._link_gaps = 0
         self._backlog = False  # reading what queued while this process did not run
+        self._rx_turn = time.monotonic()  # real time the receive thread last came round
         # ---- flight modes: what the vehicle did, and what this driver asked for ----
         self._mode_seen = False
         self._commanded: dict[int, float] = {}  # mode number → clock time this driver asked
@@ -483,7 +490,7 @@ class Session(Driver):
                         self.name,
                         turn - last_turn,
                     )
-                last_turn = turn
+                last_turn = self._rx_turn = turn
             except OSError as err:
                 if self._stop.is_set():
                     break
@@ -746,7 +753,7 @@ class Session(Driver):
     def _mode_changed(self, old: int, new: int, now: float) -> None:
         """The autopilot's HEARTBEAT shows another mode (lock held): record it, say it."""
         asked = self._commanded.get(new)
-        window = (1 + self.command_retries) * self.command_timeout + 2 * VEHICLE_HEARTBEAT_PERIOD
+        window = (1 + self.command_retries) * self.command_timeout + 2 * p.VEHICLE_HEARTBEAT_PERIOD
         commanded = asked is not None and now - asked <= window
         change = ModeChange(p.mode_name(old), p.mode_name(new), now, commanded)
         self._mode_change = change
@@ -858,6 +865,8 @@ class Session(Driver):
             window = self._bad_window
             bursts = window.recent(now) >= window.limit
             source = self._autopilot_name()
+            rx_turn = self._rx_turn
+        stuck = max(self.clock.real_seconds(self.heartbeat_timeout), _STUCK)
         # a heartbeat is overdue only when it was at a moment the link had been read empty:
         # datagrams queued while this process did not run are no gap on the wire
         seen = now if drained is None else min(now, drained)
@@ -868,6 +877,13 @@ class Session(Driver):
             error = DriverOperationError(
                 f"{self.name}: corrupt frames (bad CRC) from the vehicle's address:"
                 f" {window.limit} or more within {window.window:g} s"
+            )
+        elif error is None and streams and time.monotonic() - rx_turn > stuck:
+            # real seconds: the receive thread comes round every _POLL whatever the clock
+            error = DriverOperationError(
+                f"{self.name}: the link to the autopilot ({source}) was not read for"
+                f" {time.monotonic() - rx_turn:.1f} s: the receive thread is stuck or this"
+                " process is starved"
             )
         elif error is None and (last_hb is None or seen - last_hb > self.heartbeat_timeout):
             if corrupt:

@@ -82,7 +82,7 @@ from temoto.drivers.mavlink.detect import detect
 from temoto.drivers.mavlink.link import open_link
 from temoto.drivers.mavlink.settings import PROFILE_FIELDS, read_sim
 from temoto.drivers.mavlink.sim import SimVehicle
-from temoto.drivers.profile import Field, ProfileReader
+from temoto.drivers.profile import REQUIRED, Field, ProfileReader
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import StreamAge
 from temoto.errors import (
@@ -165,6 +165,35 @@ class MavlinkDriver(MissionClient):
     #: :meth:`detect` is accepted as it is. The constructor checks the keys that depend on
     #: each other (``heartbeat_period`` against the GCS failsafe's timeout).
     profile_fields: ClassVar[Mapping[str, Field[Any]]] = PROFILE_FIELDS
+
+    @classmethod
+    def read_profile(cls, config: Mapping[str, Any], where: str) -> dict[str, Any]:
+        """Check a profile entry; also refuse an empty (null) value of a key with a default.
+
+        ``safe_state:`` with nothing after it would otherwise silently be ``loiter``; only
+        ``system_id`` and ``gcs_failsafe``, whose absence means something, may be null.
+
+        Args:
+            config: The entry.
+            where: The entry's place for messages.
+
+        Returns:
+            The checked values (see :meth:`~temoto.drivers.base.Driver.read_profile`).
+
+        Raises:
+            ProfileError: The first problem; the message names the file and the key path.
+        """
+        if isinstance(config, Mapping):
+            schema = cls.profile_schema()
+            for key, value in config.items():
+                field = schema.get(key)
+                if value is None and field is not None and field.default not in (None, REQUIRED):
+                    default = field.default
+                    told = f" (its default is {default!r})" if not isinstance(default, dict) else ""
+                    raise ProfileReader.at(where).error(
+                        key, f"empty (null): give a value or leave the key out{told}"
+                    )
+        return super().read_profile(config, where)
 
     @classmethod
     def simulate(

@@ -46,6 +46,9 @@ MAV_AUTOPILOT_INVALID: Final[int] = int(_dialect.MAV_AUTOPILOT_INVALID)
 #: common.xml MAV_COMPONENT: "System flight controller component ("autopilot"). Only one
 #: autopilot is expected in a particular system." ArduPilot sends as this component.
 MAV_COMP_ID_AUTOPILOT1: Final[int] = int(_dialect.MAV_COMP_ID_AUTOPILOT1)
+#: Seconds between ArduPilot's HEARTBEATs: it sends one a second on every link, whatever
+#: streams were asked for (the MAVLink heartbeat microservice's recommended 1 Hz).
+VEHICLE_HEARTBEAT_PERIOD: Final = 1.0
 
 MAV_MODE_FLAG_CUSTOM_MODE_ENABLED: Final[int] = int(_dialect.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
 MAV_MODE_FLAG_SAFETY_ARMED: Final[int] = int(_dialect.MAV_MODE_FLAG_SAFETY_ARMED)
