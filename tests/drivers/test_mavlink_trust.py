@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import os
 import queue
 import signal
 import socket
@@ -256,3 +257,69 @@ def test_the_robot_command_names_a_duplicate_system_id(port: int) -> None:
         assert emu.commands(p.MAV_CMD_COMPONENT_ARM_DISARM) == []
     finally:
         emu.close()
+
+
+#: The driver in a process of its own: configure, activate, print every health report.
+_DRIVER_CHILD = """
+import json, sys, time
+from temoto.clock import MonotonicClock
+from temoto.drivers.mavlink import MavlinkDriver
+d = MavlinkDriver.from_profile("quad", json.loads(sys.argv[1]), clock=MonotonicClock(),
+                               where="devices.quad")
+def said(h):
+    print(json.dumps({"t": time.monotonic(), "state": h.state.value, "message": h.message}),
+          flush=True)
+d.add_health_listener(said)
+d.configure()
+d.activate()
+print(json.dumps({"ready": True}), flush=True)
+sys.stdin.read()
+d.shutdown()
+"""
+
+
+def test_a_paused_driver_process_reads_its_backlog_without_a_false_fault() -> None:
+    """SIGSTOP of the driver's process for longer than heartbeat_timeout; the wire had no gap."""
+    from temoto.testing.exitpaths import _SimHost
+
+    entry = {"driver": "mavlink", "link": "udpin:0.0.0.0:14550", "heartbeat_timeout": 2.0}
+    host = _SimHost(entry, dict(os.environ))
+    try:
+        config = {k: v for k, v in host.config.items() if k != "driver"}
+        child = subprocess.Popen(
+            [sys.executable, "-c", _DRIVER_CHILD, json.dumps(config)],
+            stdin=subprocess.PIPE,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        try:
+            assert child.stdout is not None
+            lines = []
+            while True:
+                line = child.stdout.readline()
+                assert line, f"the driver did not start: {lines}"
+                lines.append(line)
+                if '"ready"' in line:
+                    break
+            time.sleep(0.5)
+            child.send_signal(signal.SIGSTOP)
+            time.sleep(3.0)  # > heartbeat_timeout (2 s); the vehicle goes on sending
+            child.send_signal(signal.SIGCONT)
+            time.sleep(1.5)
+            out, err = child.communicate("", timeout=STEP)
+        finally:
+            if child.poll() is None:
+                child.kill()
+                child.communicate()
+        story = "".join(lines) + out + "\nstderr:\n" + err[-3000:]
+        assert child.returncode == 0, story
+        assert '"fault"' not in out, story
+        assert "this process did not run for 3." in err, story
+        assert "no message from the autopilot" not in err, story  # the gap was ours
+    finally:
+        host.close()
+        host._reader.join(5)
+        for stream in (host.proc.stdin, host.proc.stdout, host.proc.stderr):
+            if stream is not None:
+                stream.close()
