@@ -407,14 +407,14 @@ class Session(Driver):
                     news = list(self._texts)[-count:] if count > 0 else []
                 said = f" (vehicle: {'; '.join(news)})" if news else ""
                 raise MavlinkCommandError(
-                    f"{self.name}: {p.command_name(command)} refused:"
-                    f" {p.result_name(result)}{said}",
+                    f"{self.name}: {p.command_name(command)} refused by the autopilot"
+                    f" ({self._autopilot_name()}): {p.result_name(result)}{said}",
                     command=command,
                     result=result,
                 )
         raise DriverTimeoutError(
-            f"{self.name}: no COMMAND_ACK for {p.command_name(command)} in {tries} tries"
-            f" of {self.command_timeout:g} s"
+            f"{self.name}: no COMMAND_ACK for {p.command_name(command)} from the autopilot"
+            f" ({self._autopilot_name()}) in {tries} tries of {self.command_timeout:g} s"
         )
 
     def _await_texts(self, after: int) -> None:

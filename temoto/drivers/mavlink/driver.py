@@ -23,6 +23,14 @@ configured it
 * trusts nothing on the wire: each UDP datagram is parsed on its own, and a ``udpin`` link
   replies only to the address the target vehicle's valid frames (its system and component id)
   come from; garbage from other addresses is counted and never a fault;
+* trusts only the autopilot (component ``component_id``, MAV_COMP_ID_AUTOPILOT1 = 1, of the
+  vehicle's system): other components' and systems' messages are ignored and counted
+  (``ignored_messages``); a second sender of the autopilot's ids (another address, or sequence
+  numbers going back) is a fault "duplicate system id N", heard in ``configure`` before
+  anything can arm;
+* notices the vehicle's own mode changes from every HEARTBEAT (``telemetry().mode``; a WARNING
+  and ``last_mode_change`` when this driver had not asked for the mode) and gaps in its
+  messages shorter than ``heartbeat_timeout`` (a WARNING naming the gap, ``link_gaps``);
 * sends commands as COMMAND_LONG (COMMAND_INT for positions), resending up to
   ``command_retries`` times when no COMMAND_ACK arrives within ``command_timeout``; a result
   other than ``MAV_RESULT_ACCEPTED`` raises :class:`~temoto.errors.MavlinkCommandError` with the
@@ -295,9 +303,10 @@ class MavlinkDriver(MissionClient):
         for thread in self._threads:
             thread.start()
         if not self._await(lambda: self._last_hb is not None, self.init_timeout):
+            system = "any system" if self.system_id is None else f"system {self.system_id}"
             raise DriverTimeoutError(
-                f"{self.name}: no heartbeat from a vehicle on {self.link_spec}"
-                f" within {self.init_timeout:g} s"
+                f"{self.name}: no HEARTBEAT from an autopilot ({system}, component"
+                f" {self.component_id}) on {self.link_spec} within {self.init_timeout:g} s"
             )
         with self._cond:
             first_hb = self._last_hb
