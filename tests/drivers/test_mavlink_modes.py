@@ -16,7 +16,7 @@ from test_mavlink_safety import rig, take_off
 
 from temoto.clock import ManualClock
 from temoto.drivers import DriverState
-from temoto.drivers.mavlink import MavlinkDriver
+from temoto.drivers.mavlink import MavlinkDriver, ModeChange
 from temoto.drivers.mavlink import protocol as p
 from temoto.errors import ProfileError
 
@@ -44,6 +44,8 @@ def test_a_gcs_failsafe_during_a_short_outage_is_seen_within_a_heartbeat(
     with sim, contextlib.closing(_Shut(d)):
         configure(d, clock)
         d.activate()
+        heard: list[ModeChange] = []
+        d.add_mode_listener(heard.append)
         take_off(d, clock, 3.0)
         assert d.telemetry().mode == "GUIDED"
         caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink.driver")
@@ -66,6 +68,8 @@ def test_a_gcs_failsafe_during_a_short_outage_is_seen_within_a_heartbeat(
         assert change is not None
         assert (change.old, change.new, change.commanded) == ("GUIDED", "RTL", False)
         assert d.uncommanded_mode_changes == 1
+        assert heard[-1] == change  # listeners hear it as it comes
+        assert [(c.new, c.commanded) for c in heard] == [("GUIDED", True), ("RTL", False)]
 
 
 def test_a_commanded_mode_change_is_no_warning(

@@ -188,6 +188,7 @@ class Session(Driver):
         self._param_lock = threading.Lock()  # one public parameter exchange at a time
         self._mission_lock = threading.Lock()  # one mission transfer at a time
         self._mission_listeners: list[Callable[[MissionProgress], None]] = []
+        self._mode_listeners: list[Callable[[ModeChange], None]] = []
         self._eval_lock = threading.Lock()
         self._texts: collections.deque[str] = collections.deque(maxlen=status_texts)
         self._ages: dict[str, StreamAge] = {}
@@ -257,6 +258,7 @@ class Session(Driver):
         self._mode_seen = False
         self._commanded: dict[int, float] = {}  # mode number → clock time this driver asked
         self._mode_change: ModeChange | None = None
+        self._mode_notify: list[ModeChange] = []  # changes whose listeners are still to call
         self._uncommanded = 0
 
     def on_shutdown(self) -> None:
@@ -327,6 +329,16 @@ class Session(Driver):
     def uncommanded_mode_changes(self) -> int:
         """Mode changes since configure that this driver had not asked for."""
         return self._uncommanded
+
+    def add_mode_listener(self, listener: Callable[[ModeChange], None]) -> None:
+        """Call ``listener`` with each flight-mode change (on the receive thread: be quick).
+
+        Args:
+            listener: Gets the :class:`ModeChange` (``commanded`` False: a failsafe, the pilot
+                or another ground station changed the mode).
+        """
+        with self._cond:
+            self._mode_listeners.append(listener)
 
     def _autopilot_name(self) -> str:
         """``system 1, component 1`` (the system once known)."""
@@ -530,11 +542,19 @@ class Session(Driver):
                     self._backlog = False
                 self._cond.notify_all()
                 notify, self._notify = self._notify, []
+                changes, self._mode_notify = self._mode_notify, []
+                mode_listeners = list(self._mode_listeners) if changes else []
             for listener, progress in notify:
                 try:
                     listener(progress)
                 except Exception:
                     logger.exception("driver %s: a mission listener raised", self.name)
+            for change in changes:
+                for on_change in mode_listeners:
+                    try:
+                        on_change(change)
+                    except Exception:
+                        logger.exception("driver %s: a mode listener raised", self.name)
             if self._beat_now:
                 with self._watch:
                     self._watch.notify_all()
@@ -757,6 +777,7 @@ class Session(Driver):
         commanded = asked is not None and now - asked <= window
         change = ModeChange(p.mode_name(old), p.mode_name(new), now, commanded)
         self._mode_change = change
+        self._mode_notify.append(change)
         if commanded:
             logger.info("%s: the vehicle switched %s -> %s", self.name, change.old, change.new)
             return
