@@ -891,6 +891,8 @@ class Session(Driver):
         # a heartbeat is overdue only when it was at a moment the link had been read empty:
         # datagrams queued while this process did not run are no gap on the wire
         seen = now if drained is None else min(now, drained)
+        if streams and now - seen > self.heartbeat_timeout:
+            seen = now  # never read empty for that long on time: the receiver is behind
         error: DriverError | None = link_error
         if error is None and duplicate is not None:
             error = DriverOperationError(duplicate)
