@@ -159,7 +159,7 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
         "device": {
             "driver": "mavlink",
             "link": "udpin:0.0.0.0:14550",
-            "heartbeat_timeout": 1.0,
+            "heartbeat_timeout": 2.0,  # the least the driver takes (2 of ArduPilot's heartbeats)
             "command_timeout": 1.0,
             "stream_rate": 10,
             "gcs_failsafe": {"enable": 1, "timeout": 2.0},

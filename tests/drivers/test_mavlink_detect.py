@@ -393,3 +393,18 @@ def test_a_vehicle_on_a_real_serial_port(monkeypatch: pytest.MonkeyPatch) -> Non
             "component_id": 1,
         }
     ]
+
+
+def test_two_vehicles_with_one_system_id_are_named_a_duplicate(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    port = free_port()
+    link = f"udpin:127.0.0.1:{port}"
+    with (
+        sending(port, [quad_heartbeat(1)]),
+        sending(port, [quad_heartbeat(1)]),
+        caplog.at_level(logging.WARNING, logger="temoto.drivers.mavlink.driver"),
+    ):
+        found = MavlinkDriver.detect(link, timeout=TIMEOUT)
+    assert [(e["system_id"], e["component_id"]) for e in found] == [(1, 1)]
+    assert f"mavlink detect: {link}: duplicate system id 1: component 1 heartbeats" in caplog.text

@@ -208,8 +208,8 @@ def test_a_vehicle_watching_another_gcs_is_refused(clock: ManualClock) -> None:
         ({"gcs_failsafe": {"timeout": 1}}, "devices.quad.gcs_failsafe.timeout: must be a number"),
         ({"gcs_failsafe": {"action": 1}}, "devices.quad.gcs_failsafe.action: unknown key"),
         (
-            {"gcs_failsafe": {"timeout": 3}, "heartbeat_period": 2},
-            "devices.quad.heartbeat_period: heartbeat_period must be at most half",
+            {"gcs_failsafe": {"timeout": 3}, "heartbeat_period": 2},  # half ArduPilot's least
+            "devices.quad.heartbeat_period: must be a number in (0, 1] s",
         ),
         ({"sim": {"params": {"FOO": 1}}}, "devices.quad.sim.params.FOO: not a simulated"),
     ],
@@ -313,7 +313,7 @@ def test_one_bad_frame_is_counted_several_make_a_fault(
     run_until(clock, lambda: d.state is DriverState.FAULT, 1.0)
     error = d.health().error
     assert isinstance(error, DriverOperationError)
-    assert "corrupt frames (bad CRC): 5 or more within 1 s" in str(error)
+    assert "corrupt frames (bad CRC) from the vehicle's address: 5 or more within 1 s" in str(error)
     run_until(clock, lambda: d.state is DriverState.ACTIVE, 2.0)
 
 

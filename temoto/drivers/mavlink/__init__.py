@@ -13,7 +13,8 @@ Importing this package imports pymavlink (``pip install 'temoto[mavlink]'``).
 
 from __future__ import annotations
 
+from temoto.drivers.mavlink._session import ModeChange
 from temoto.drivers.mavlink.driver import MavlinkDriver
 from temoto.drivers.mavlink.sim import SimVehicle
 
-__all__ = ["MavlinkDriver", "SimVehicle"]
+__all__ = ["MavlinkDriver", "ModeChange", "SimVehicle"]

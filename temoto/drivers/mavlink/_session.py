@@ -19,6 +19,7 @@ import math
 import threading
 import time
 from collections.abc import Callable, Mapping
+from dataclasses import dataclass
 from typing import Any, ClassVar, Final
 
 from temoto.clock import Clock
@@ -38,7 +39,7 @@ from temoto.errors import (
     StateError,
 )
 
-__all__ = ["Session"]
+__all__ = ["LINK_GAP", "ModeChange", "Session"]
 
 #: The logger of :mod:`temoto.drivers.mavlink.driver`: this layer's log lines were logged there
 #: before the driver was split by concept, and logging configurations that name it still work.
@@ -48,6 +49,42 @@ _POLL: Final = 0.05  # real seconds per socket read (also how often waiters re-c
 _UNKNOWN_VOLTAGE: Final = 65535
 _SEVERITY_LEVEL: Final = {0: 50, 1: 50, 2: 50, 3: 40, 4: 30, 5: 20, 6: 20, 7: 10}
 _TEXT_QUIET: Final = 0.1  # once a refusal's text came: seconds without another end the wait
+#: Clock seconds without any message of the autopilot after which its next one is a link gap
+#: (logged at WARNING, counted in ``link_gaps``): one and a half of its heartbeat periods.
+LINK_GAP: Final = 1.5 * p.VEHICLE_HEARTBEAT_PERIOD
+#: Real seconds the receive thread may go without running (it reads every ``_POLL``) before
+#: what it reads next is taken as a backlog queued while this process did not run.
+_PAUSE: Final = 0.5
+#: The autopilot's sequence number going back by more than :data:`SEQ_REORDER` this many times
+#: within ``heartbeat_timeout`` means two senders use its ids: a duplicate system id. (A number
+#: that stays the same is not counted: some senders never advance it.)
+SEQ_JUMPS: Final = 3
+#: A step back by at most this much is a reordering (a UDP network, or a sender whose threads
+#: send what they packed out of order), not a second sender.
+SEQ_REORDER: Final = 16
+#: Real seconds, at least, the receive thread may go without coming round before the watch
+#: reports it stuck (``heartbeat_timeout`` when that is longer in real seconds).
+_STUCK: Final = 2.0
+#: Clock seconds between two WARNING lines about the same ignored source.
+_IGNORED_LOG_EVERY: Final = 60.0
+
+
+@dataclass(frozen=True, slots=True)
+class ModeChange:
+    """A flight-mode change the autopilot's HEARTBEAT showed.
+
+    Attributes:
+        old: The mode before (``GUIDED``).
+        new: The mode after (``RTL``).
+        stamp: Clock seconds of the heartbeat that showed it.
+        commanded: Whether this driver had asked for ``new`` shortly before (otherwise the
+            vehicle changed by itself: a failsafe, a pilot's switch, another ground station).
+    """
+
+    old: str
+    new: str
+    stamp: float
+    commanded: bool
 
 
 class Session(Driver):
@@ -111,6 +148,11 @@ class Session(Driver):
             raise ValueError(f"stream_rate must be 0..1000 Hz, got {stream_rate!r}")
         if not (isinstance(status_texts, int) and status_texts >= 1):
             raise ValueError(f"status_texts must be a positive integer, got {status_texts!r}")
+        if system_id is not None and system_id == gcs_system_id:
+            raise ValueError(
+                f"gcs_system_id must differ from the vehicle's system_id ({system_id}): the"
+                " vehicle would take this ground station's messages for its own"
+            )
         self.system_id = system_id
         self.component_id = component_id
         self.heartbeat_period = float(heartbeat_period)
@@ -129,6 +171,12 @@ class Session(Driver):
                 f"heartbeat_period must be at most half the GCS failsafe timeout ({timeout:g} s),"
                 f" got {self.heartbeat_period:g}: one lost heartbeat must not trigger it"
             )
+        if timeout is not None and self.heartbeat_timeout > timeout:
+            raise ValueError(
+                f"heartbeat_timeout must be at most the GCS failsafe timeout"
+                f" (gcs_failsafe.timeout, {timeout:g} s), got {self.heartbeat_timeout:g}: a link"
+                " outage long enough to set off the vehicle's failsafe must be a fault here too"
+            )
         self._gcs_ids = (gcs_system_id, gcs_component_id)
         self._codec = Codec(gcs_system_id, gcs_component_id)
         self._link: Link | None = None
@@ -140,10 +188,12 @@ class Session(Driver):
         self._param_lock = threading.Lock()  # one public parameter exchange at a time
         self._mission_lock = threading.Lock()  # one mission transfer at a time
         self._mission_listeners: list[Callable[[MissionProgress], None]] = []
+        self._mode_listeners: list[Callable[[ModeChange], None]] = []
         self._eval_lock = threading.Lock()
         self._texts: collections.deque[str] = collections.deque(maxlen=status_texts)
         self._ages: dict[str, StreamAge] = {}
         self._bad_window = FaultWindow()
+        self._seq_jumps = FaultWindow(SEQ_JUMPS, self.heartbeat_timeout)
         self._reset()
 
     def _reset(self) -> None:
@@ -191,6 +241,25 @@ class Session(Driver):
         self._beat_now = False  # send a heartbeat at once (the vehicle's address is new)
         self._foreign = 0  # bad frames from addresses other than the vehicle's
         self._foreign_seen: set[Any] = set()
+        # ---- trust: only the autopilot (system _target, component component_id) ----
+        self._vehicle_addr: Any = None  # where the autopilot's frames come from (UDP links)
+        self._vehicle_at: float | None = None  # clock time of the autopilot's newest message
+        self._last_seq: int | None = None
+        self._last_frame: Message | None = None
+        self._seq_jumps.clear()
+        self._duplicate: str | None = None  # why two vehicles answer as this one
+        self._duplicate_at = -math.inf
+        self._ignored: dict[str, int] = {}  # source → messages ignored (not the autopilot)
+        self._ignored_logged: dict[str, float] = {}  # source → clock time of its last line
+        self._link_gaps = 0
+        self._backlog = False  # reading what queued while this process did not run
+        self._rx_turn = time.monotonic()  # real time the receive thread last came round
+        # ---- flight modes: what the vehicle did, and what this driver asked for ----
+        self._mode_seen = False
+        self._commanded: dict[int, float] = {}  # mode number → clock time this driver asked
+        self._mode_change: ModeChange | None = None
+        self._mode_notify: list[ModeChange] = []  # changes whose listeners are still to call
+        self._uncommanded = 0
 
     def on_shutdown(self) -> None:
         """Stop and join the threads, close the link."""
@@ -233,6 +302,53 @@ class Session(Driver):
     def bad_frames(self) -> int:
         """Frames dropped since configure (bad CRC, unknown message id)."""
         return self._codec.bad_frames
+
+    @property
+    def ignored_messages(self) -> dict[str, int]:
+        """Valid messages ignored since configure, by source: everything not the autopilot's.
+
+        Keys read ``system 1 component 100`` (another component of the vehicle's system, or
+        another system) or ``system 1 component 1 at 127.0.0.1:5760`` (a second sender using
+        the autopilot's ids: a duplicate system id).
+        """
+        with self._cond:
+            return dict(self._ignored)
+
+    @property
+    def link_gaps(self) -> int:
+        """Gaps in the autopilot's messages longer than :data:`LINK_GAP` since configure."""
+        return self._link_gaps
+
+    @property
+    def last_mode_change(self) -> ModeChange | None:
+        """The newest flight-mode change the autopilot's HEARTBEAT showed, or None."""
+        with self._cond:
+            return self._mode_change
+
+    @property
+    def uncommanded_mode_changes(self) -> int:
+        """Mode changes since configure that this driver had not asked for."""
+        return self._uncommanded
+
+    def add_mode_listener(self, listener: Callable[[ModeChange], None]) -> None:
+        """Call ``listener`` with each flight-mode change (on the receive thread: be quick).
+
+        Args:
+            listener: Gets the :class:`ModeChange` (``commanded`` False: a failsafe, the pilot
+                or another ground station changed the mode).
+        """
+        with self._cond:
+            self._mode_listeners.append(listener)
+
+    def _autopilot_name(self) -> str:
+        """``system 1, component 1`` (the system once known)."""
+        system = "?" if self._target is None else str(self._target)
+        return f"system {system}, component {self.component_id}"
+
+    def _note_mode(self, number: int) -> None:
+        """Record that this driver asked for flight mode ``number`` (now)."""
+        with self._cond:
+            self._commanded[number] = self.clock.monotonic()
 
     # ---- commands ----------------------------------------------------------------------------
     def _send_command(
@@ -303,14 +419,14 @@ class Session(Driver):
                     news = list(self._texts)[-count:] if count > 0 else []
                 said = f" (vehicle: {'; '.join(news)})" if news else ""
                 raise MavlinkCommandError(
-                    f"{self.name}: {p.command_name(command)} refused:"
-                    f" {p.result_name(result)}{said}",
+                    f"{self.name}: {p.command_name(command)} refused by the autopilot"
+                    f" ({self._autopilot_name()}): {p.result_name(result)}{said}",
                     command=command,
                     result=result,
                 )
         raise DriverTimeoutError(
-            f"{self.name}: no COMMAND_ACK for {p.command_name(command)} in {tries} tries"
-            f" of {self.command_timeout:g} s"
+            f"{self.name}: no COMMAND_ACK for {p.command_name(command)} from the autopilot"
+            f" ({self._autopilot_name()}) in {tries} tries of {self.command_timeout:g} s"
         )
 
     def _await_texts(self, after: int) -> None:
@@ -372,9 +488,21 @@ class Session(Driver):
     def _rx_loop(self) -> None:
         link = self._link
         assert link is not None
+        last_turn = time.monotonic()
         while not self._stop.is_set():
             try:
                 data, sender = link.receive(_POLL)
+                turn = time.monotonic()
+                if turn - last_turn > _PAUSE and not self._stop.is_set():
+                    # what waits in the socket queued while we did not run: its gaps are ours
+                    self._backlog = True
+                    logger.warning(
+                        "%s: this process did not run for %.1f s (paused or overloaded):"
+                        " reading what the vehicle sent meanwhile",
+                        self.name,
+                        turn - last_turn,
+                    )
+                last_turn = self._rx_turn = turn
             except OSError as err:
                 if self._stop.is_set():
                     break
@@ -384,6 +512,7 @@ class Session(Driver):
             now = self.clock.monotonic()
             if not data:
                 self._drained_at = now
+                self._backlog = False
                 with self._cond:
                     self._cond.notify_all()  # waiters re-check their real-time guards
                 continue
@@ -396,13 +525,13 @@ class Session(Driver):
             self._received += len(messages)
             check = False
             with self._cond:
+                duplicate_at = self._duplicate_at
+                ours = False
                 for msg in messages:
-                    check |= self._absorb(msg, now)
-                target = self._target
-                ours = any(
-                    m.src_system == target and m.src_component == self.component_id
-                    for m in messages
-                )
+                    if self._trusted(msg, sender, now):
+                        ours = True
+                        check |= self._absorb(msg, now)
+                check |= self._duplicate_at != duplicate_at
                 if ours and link.accept_peer(sender):
                     logger.info("driver %s: the vehicle is at %s", self.name, sender)
                     self._beat_now = True  # greet it at once: its GCS failsafe starts then
@@ -410,13 +539,22 @@ class Session(Driver):
                     check |= self._count_bad(bad, sender, link.peer, ours, now)
                 if not link.pending():
                     self._drained_at = now
+                    self._backlog = False
                 self._cond.notify_all()
                 notify, self._notify = self._notify, []
+                changes, self._mode_notify = self._mode_notify, []
+                mode_listeners = list(self._mode_listeners) if changes else []
             for listener, progress in notify:
                 try:
                     listener(progress)
                 except Exception:
                     logger.exception("driver %s: a mission listener raised", self.name)
+            for change in changes:
+                for on_change in mode_listeners:
+                    try:
+                        on_change(change)
+                    except Exception:
+                        logger.exception("driver %s: a mode listener raised", self.name)
             if self._beat_now:
                 with self._watch:
                     self._watch.notify_all()
@@ -445,16 +583,121 @@ class Session(Driver):
             )
         return False
 
-    def _absorb(self, msg: Message, now: float) -> bool:
-        """Update the cache (lock held); True if health may have changed."""
+    def _trusted(self, msg: Message, sender: Any, now: float) -> bool:
+        """Whether ``msg`` is the autopilot's (lock held); others are counted and ignored.
+
+        The autopilot is component ``component_id`` (MAV_COMP_ID_AUTOPILOT1, 1, by default) of
+        system ``system_id``, or, without a ``system_id``, of the system of the first
+        HEARTBEAT from that component whose ``autopilot`` is not ``MAV_AUTOPILOT_INVALID`` and
+        whose ``type`` is not ``MAV_TYPE_GCS``. On a UDP link its frames must come from the
+        address its first frame came from: the same ids from another address while that one
+        is still heard (within ``heartbeat_timeout``) are a second vehicle, a duplicate system
+        id (after a silence as long, the vehicle is taken to have moved). On every link, its
+        sequence number going back :data:`SEQ_JUMPS` times within ``heartbeat_timeout`` (two
+        senders' counters interleaving) is a duplicate system id too. An exact repeat of the
+        previous frame (a link that delivers twice) is dropped without counting.
+        """
         if self._target is None:
-            if msg.name != "HEARTBEAT" or msg.get_int("autopilot") == p.MAV_AUTOPILOT_INVALID:
-                return False
-            if msg.get_int("type") == p.MAV_TYPE_GCS:
-                return False
+            if (
+                msg.name != "HEARTBEAT"
+                or msg.src_component != self.component_id
+                or msg.get_int("autopilot") == p.MAV_AUTOPILOT_INVALID
+                or msg.get_int("type") == p.MAV_TYPE_GCS
+            ):
+                return False  # no vehicle chosen yet: nothing to compare with
             self._target = msg.src_system
-        if msg.src_system != self._target:
+        if msg.src_system != self._target or msg.src_component != self.component_id:
+            self._ignore(msg, f"system {msg.src_system} component {msg.src_component}", now)
             return False
+        if sender is not None and sender != self._vehicle_addr:
+            if self._vehicle_addr is None:
+                self._vehicle_addr = sender
+            elif self._vehicle_at is not None and now - self._vehicle_at <= self.heartbeat_timeout:
+                where = f"{_address(sender)} and {_address(self._vehicle_addr)}"
+                self._duplicate_seen(f"the autopilot's messages come from {where}", now)
+                source = f"system {msg.src_system} component {msg.src_component}"
+                self._ignore(msg, f"{source} at {_address(sender)}", now)
+                return False
+            else:
+                logger.warning(
+                    "%s: the autopilot (%s) now sends from %s (was %s, silent for %.1f s)",
+                    self.name,
+                    self._autopilot_name(),
+                    _address(sender),
+                    _address(self._vehicle_addr),
+                    math.inf if self._vehicle_at is None else now - self._vehicle_at,
+                )
+                self._vehicle_addr = sender
+                self._last_seq = None
+        if msg.seq >= 0:
+            step = 1 if self._last_seq is None else (msg.seq - self._last_seq) & 0xFF
+            if step == 0 and msg == self._last_frame:
+                return False  # the same frame delivered twice
+            if 128 < step < 256 - SEQ_REORDER and self._seq_jumps.add(now):
+                self._duplicate_seen(
+                    f"the autopilot's sequence numbers went back {SEQ_JUMPS} times within"
+                    f" {self.heartbeat_timeout:g} s, as two senders' interleave",
+                    now,
+                )
+            if step < 256 - SEQ_REORDER:  # a reordered frame does not move the count back
+                self._last_seq = msg.seq
+            self._last_frame = msg
+        if self._vehicle_at is not None and now - self._vehicle_at > LINK_GAP:
+            for age in self._ages.values():
+                age.feed(now)  # the whole link was out, not a stream: judge them from now on
+            gap = now - self._vehicle_at
+            if not self._backlog:
+                self._link_gaps += 1
+                logger.warning(
+                    "%s: no message from the autopilot (%s) for %.1f s: the link is back"
+                    " (the vehicle may have changed its mode meanwhile)",
+                    self.name,
+                    self._autopilot_name(),
+                    gap,
+                )
+        self._vehicle_at = now
+        return True
+
+    def _duplicate_seen(self, what: str, now: float) -> None:
+        """Evidence of a second vehicle using the autopilot's ids (lock held)."""
+        if self._duplicate is None:
+            logger.error("%s: duplicate system id %s: %s", self.name, self._target, what)
+        self._duplicate = f"{self.name}: duplicate system id {self._target}: {what}"
+        self._duplicate_at = now
+
+    def _ignore(self, msg: Message, source: str, now: float) -> None:
+        """Count a message that is not the autopilot's; say so, rate-limited (lock held)."""
+        count = self._ignored.get(source, 0) + 1
+        self._ignored[source] = count
+        if msg.name == "STATUSTEXT":
+            logger.info("%s: %s says: %s", self.name, source, msg.get_text("text"))
+        if msg.src_system != self._target:
+            if count == 1:
+                logger.info(
+                    "%s: %s is not the vehicle (system %s): its messages are ignored",
+                    self.name,
+                    source,
+                    self._target,
+                )
+            return
+        last = self._ignored_logged.get(source)
+        if last is None or now - last >= _IGNORED_LOG_EVERY:
+            self._ignored_logged[source] = now
+            logger.warning(
+                "%s: ignored %s from %s: only the autopilot (%s) is trusted (%d ignored so far)",
+                self.name,
+                msg.name,
+                source,
+                self._autopilot_name(),
+                count,
+            )
+
+    def _absorb(self, msg: Message, now: float) -> bool:
+        """Update the cache with one of the autopilot's messages (lock held).
+
+        Returns:
+            True if health may have changed.
+        """
         self._last_msg = max(self._last_msg, now)
         name = msg.name
         age = self._ages.get(name)
@@ -465,13 +708,15 @@ class Session(Driver):
                 self._stale = None
                 changed = True
         if name == "HEARTBEAT":
-            if msg.src_component != self.component_id:
-                return False
             self._last_hb = now
             self._bad_at_hb = self._vehicle_bad
             self._autopilot = msg.get_int("autopilot")
             self._armed = bool(msg.get_int("base_mode") & p.MAV_MODE_FLAG_SAFETY_ARMED)
-            self._custom_mode = msg.get_int("custom_mode")
+            mode = msg.get_int("custom_mode")
+            if self._mode_seen and mode != self._custom_mode:
+                self._mode_changed(self._custom_mode, mode, now)
+            self._mode_seen = True
+            self._custom_mode = mode
             return True
         if name == "GLOBAL_POSITION_INT":
             self._position = (
@@ -524,6 +769,27 @@ class Session(Driver):
             self._param_count += 1
             self._param_seen[param] = self._param_count
         return changed
+
+    def _mode_changed(self, old: int, new: int, now: float) -> None:
+        """The autopilot's HEARTBEAT shows another mode (lock held): record it, say it."""
+        asked = self._commanded.get(new)
+        window = (1 + self.command_retries) * self.command_timeout + 2 * p.VEHICLE_HEARTBEAT_PERIOD
+        commanded = asked is not None and now - asked <= window
+        change = ModeChange(p.mode_name(old), p.mode_name(new), now, commanded)
+        self._mode_change = change
+        self._mode_notify.append(change)
+        if commanded:
+            logger.info("%s: the vehicle switched %s -> %s", self.name, change.old, change.new)
+            return
+        self._uncommanded += 1
+        logger.warning(
+            "%s: the vehicle switched %s -> %s (not commanded by this driver: a failsafe, the"
+            " pilot or another ground station; HEARTBEAT of %s)",
+            self.name,
+            change.old,
+            change.new,
+            self._autopilot_name(),
+        )
 
     def _absorb_mission(self, msg: Message) -> list[Callable[[MissionProgress], None]]:
         """A mission message (lock held); the listeners to call when progress changed."""
@@ -604,6 +870,9 @@ class Session(Driver):
         """
         now = self.clock.monotonic()
         with self._cond:
+            if self._duplicate is not None and now - self._duplicate_at > self.heartbeat_timeout:
+                self._duplicate = None  # the second sender has been silent long enough
+            duplicate = self._duplicate
             last_hb, unhealthy = self._last_hb, self._unhealthy
             corrupt = self._vehicle_bad > self._bad_at_hb
             drained, talked = self._drained_at, self._last_msg
@@ -616,30 +885,49 @@ class Session(Driver):
             stale = self._stale
             window = self._bad_window
             bursts = window.recent(now) >= window.limit
+            source = self._autopilot_name()
+            rx_turn = self._rx_turn
+        stuck = max(self.clock.real_seconds(self.heartbeat_timeout), _STUCK)
+        # a heartbeat is overdue only when it was at a moment the link had been read empty:
+        # datagrams queued while this process did not run are no gap on the wire
+        seen = now if drained is None else min(now, drained)
+        if streams and now - seen > self.heartbeat_timeout:
+            seen = now  # never read empty for that long on time: the receiver is behind
         error: DriverError | None = link_error
-        if error is None and bursts:
+        if error is None and duplicate is not None:
+            error = DriverOperationError(duplicate)
+        elif error is None and bursts:
             error = DriverOperationError(
-                f"{self.name}: corrupt frames (bad CRC): {window.limit} or more within"
-                f" {window.window:g} s"
+                f"{self.name}: corrupt frames (bad CRC) from the vehicle's address:"
+                f" {window.limit} or more within {window.window:g} s"
             )
-        elif error is None and (last_hb is None or now - last_hb > self.heartbeat_timeout):
+        elif error is None and streams and time.monotonic() - rx_turn > stuck:
+            # real seconds: the receive thread comes round every _POLL whatever the clock
+            error = DriverOperationError(
+                f"{self.name}: the link to the autopilot ({source}) was not read for"
+                f" {time.monotonic() - rx_turn:.1f} s: the receive thread is stuck or this"
+                " process is starved"
+            )
+        elif error is None and (last_hb is None or seen - last_hb > self.heartbeat_timeout):
             if corrupt:
                 error = DriverOperationError(
                     f"{self.name}: only corrupt frames (bad CRC), no valid heartbeat within"
-                    f" {self.heartbeat_timeout:g} s"
+                    f" {self.heartbeat_timeout:g} s from the autopilot ({source})"
                 )
             else:
                 error = DriverTimeoutError(
-                    f"{self.name}: no heartbeat within {self.heartbeat_timeout:g} s"
+                    f"{self.name}: no heartbeat within {self.heartbeat_timeout:g} s from the"
+                    f" autopilot ({source})"
                 )
         elif error is None and stale is not None:
             error = DriverTimeoutError(
                 f"{self.name}: {stale.name} stale: none for over {stale.max_age:g} s"
-                f" (expected every {stale.period:g} s)"
+                f" (expected every {stale.period:g} s) from the autopilot ({source})"
             )
         elif error is None and unhealthy:
             error = DriverOperationError(
                 f"{self.name}: hardware error: unhealthy {', '.join(unhealthy)}"
+                f" (SYS_STATUS of the autopilot, {source})"
             )
         with self._eval_lock:
             state = self.state
@@ -652,3 +940,10 @@ class Session(Driver):
             elif self._mine and state is DriverState.FAULT:
                 self._mine = False
                 self.report_recovered(f"{self.name}: the vehicle answers and is healthy")
+
+
+def _address(addr: Any) -> str:
+    """``127.0.0.1:14550`` for a (host, port) address."""
+    if isinstance(addr, tuple) and len(addr) >= 2:
+        return f"{addr[0]}:{addr[1]}"
+    return str(addr)

@@ -122,11 +122,13 @@ def _listen(spec: LinkSpec, timeout: float) -> tuple[bool, _Heard] | None:
     valid = False
     vehicles: _Heard = {}
     others: set[tuple[int, int]] = set()
+    senders: dict[tuple[int, int], Any] = {}  # a vehicle's ids → the first address heard
+    twins: set[tuple[int, int]] = set()
     deadline = time.monotonic() + timeout
     try:
         while (remaining := deadline - time.monotonic()) > 0:
             try:
-                data = link.read(remaining)
+                data, sender = link.receive(remaining)
             except OSError as err:
                 logger.warning("mavlink detect: %s failed while listening: %s", spec, err)
                 break
@@ -140,6 +142,18 @@ def _listen(spec: LinkSpec, timeout: float) -> tuple[bool, _Heard] | None:
                 vehicle = kind != p.MAV_TYPE_GCS and autopilot != p.MAV_AUTOPILOT_INVALID
                 if vehicle and msg.src_system >= 1:
                     vehicles.setdefault(ids, (kind, autopilot))
+                    first = senders.setdefault(ids, sender)
+                    if sender != first and ids not in twins:
+                        twins.add(ids)
+                        logger.warning(
+                            "mavlink detect: %s: duplicate system id %d: component %d"
+                            " heartbeats from %s and from %s (two vehicles with one id;"
+                            " configure will refuse it)",
+                            spec,
+                            *ids,
+                            _address(first),
+                            _address(sender),
+                        )
                 elif ids not in others:
                     others.add(ids)
                     logger.debug(
@@ -201,3 +215,10 @@ def _type_name(mav_type: int) -> str:
 
 def _autopilot_name(autopilot: int) -> str:
     return p._enum_name("MAV_AUTOPILOT", autopilot)
+
+
+def _address(addr: Any) -> str:
+    """``127.0.0.1:14550`` for a (host, port) address."""
+    if isinstance(addr, tuple) and len(addr) >= 2:
+        return f"{addr[0]}:{addr[1]}"
+    return str(addr)

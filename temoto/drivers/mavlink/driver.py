@@ -23,6 +23,14 @@ configured it
 * trusts nothing on the wire: each UDP datagram is parsed on its own, and a ``udpin`` link
   replies only to the address the target vehicle's valid frames (its system and component id)
   come from; garbage from other addresses is counted and never a fault;
+* trusts only the autopilot (component ``component_id``, MAV_COMP_ID_AUTOPILOT1 = 1, of the
+  vehicle's system): other components' and systems' messages are ignored and counted
+  (``ignored_messages``); a second sender of the autopilot's ids (another address, or sequence
+  numbers going back) is a fault "duplicate system id N", heard in ``configure`` before
+  anything can arm;
+* notices the vehicle's own mode changes from every HEARTBEAT (``telemetry().mode``; a WARNING
+  and ``last_mode_change`` when this driver had not asked for the mode) and gaps in its
+  messages shorter than ``heartbeat_timeout`` (a WARNING naming the gap, ``link_gaps``);
 * sends commands as COMMAND_LONG (COMMAND_INT for positions), resending up to
   ``command_retries`` times when no COMMAND_ACK arrives within ``command_timeout``; a result
   other than ``MAV_RESULT_ACCEPTED`` raises :class:`~temoto.errors.MavlinkCommandError` with the
@@ -82,7 +90,7 @@ from temoto.drivers.mavlink.detect import detect
 from temoto.drivers.mavlink.link import open_link
 from temoto.drivers.mavlink.settings import PROFILE_FIELDS, read_sim
 from temoto.drivers.mavlink.sim import SimVehicle
-from temoto.drivers.profile import Field, ProfileReader
+from temoto.drivers.profile import REQUIRED, Field, ProfileReader
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import StreamAge
 from temoto.errors import (
@@ -154,12 +162,46 @@ class MavlinkDriver(MissionClient):
     #: Seconds (clock) :meth:`make_safe` waits for the vehicle to confirm its mode.
     SAFE_CONFIRM_WAIT: ClassVar[float] = 0.3
 
+    #: Clock seconds ``configure`` listens from the vehicle's first heartbeat before it ends,
+    #: so that a second vehicle using the same system id (whose heartbeat also comes once a
+    #: second) is heard before anything can arm: ArduPilot's heartbeat period.
+    DUPLICATE_LISTEN: ClassVar[float] = 1.0
+
     # ---- profile -----------------------------------------------------------------------------
 
     #: The keys of a profile entry (:mod:`~temoto.drivers.mavlink.settings`); an entry from
     #: :meth:`detect` is accepted as it is. The constructor checks the keys that depend on
     #: each other (``heartbeat_period`` against the GCS failsafe's timeout).
     profile_fields: ClassVar[Mapping[str, Field[Any]]] = PROFILE_FIELDS
+
+    @classmethod
+    def read_profile(cls, config: Mapping[str, Any], where: str) -> dict[str, Any]:
+        """Check a profile entry; also refuse an empty (null) value of a key with a default.
+
+        ``safe_state:`` with nothing after it would otherwise silently be ``loiter``; only
+        ``system_id`` and ``gcs_failsafe``, whose absence means something, may be null.
+
+        Args:
+            config: The entry.
+            where: The entry's place for messages.
+
+        Returns:
+            The checked values (see :meth:`~temoto.drivers.base.Driver.read_profile`).
+
+        Raises:
+            ProfileError: The first problem; the message names the file and the key path.
+        """
+        if isinstance(config, Mapping):
+            schema = cls.profile_schema()
+            for key, value in config.items():
+                field = schema.get(key)
+                if value is None and field is not None and field.default not in (None, REQUIRED):
+                    default = field.default
+                    told = f" (its default is {default!r})" if not isinstance(default, dict) else ""
+                    raise ProfileReader.at(where).error(
+                        key, f"empty (null): give a value or leave the key out{told}"
+                    )
+        return super().read_profile(config, where)
 
     @classmethod
     def simulate(
@@ -261,17 +303,43 @@ class MavlinkDriver(MissionClient):
         for thread in self._threads:
             thread.start()
         if not self._await(lambda: self._last_hb is not None, self.init_timeout):
+            system = "any system" if self.system_id is None else f"system {self.system_id}"
             raise DriverTimeoutError(
-                f"{self.name}: no heartbeat from a vehicle on {self.link_spec}"
-                f" within {self.init_timeout:g} s"
+                f"{self.name}: no HEARTBEAT from an autopilot ({system}, component"
+                f" {self.component_id}) on {self.link_spec} within {self.init_timeout:g} s"
             )
+        with self._cond:
+            first_hb = self._last_hb
         if self._autopilot != p.MAV_AUTOPILOT_ARDUPILOTMEGA:
             raise DriverInitError(
                 f"{self.name}: system {self._target} is not an ArduPilot autopilot"
                 f" (MAV_AUTOPILOT {self._autopilot}); only ArduCopter modes are supported"
             )
+        self._check_duplicate()
         self._request_streams()
+        self._check_duplicate()
         self._configure_failsafe()
+        # a second vehicle with the same ids heartbeats once a second too: listen that long
+        # (the requests above usually took it) before anything can arm
+        assert first_hb is not None
+        left = first_hb + self.DUPLICATE_LISTEN - self.clock.monotonic()
+        if left > 0:
+            self._await(lambda: self._duplicate is not None, left)
+        self._check_duplicate()
+
+    def _check_duplicate(self) -> None:
+        """Raise if a second vehicle answers with the autopilot's ids.
+
+        Raises:
+            DriverInitError: ``duplicate system id N: ...``.
+        """
+        with self._cond:
+            duplicate = self._duplicate
+        if duplicate is not None:
+            raise DriverInitError(
+                f"{duplicate}; nothing was sent to arm or move. Give each vehicle its own"
+                " SYSID_THISMAV, or point this link at one vehicle only"
+            )
 
     def _request_streams(self) -> None:
         """Ask for the telemetry streams; supervise those the vehicle accepted."""
@@ -344,6 +412,7 @@ class MavlinkDriver(MissionClient):
         """
         with self._cond:
             target = self._target or 1
+        self._note_mode(p.mode_number(mode))
         return self._write(
             self._codec.encode(
                 "COMMAND_LONG",
@@ -421,6 +490,7 @@ class MavlinkDriver(MissionClient):
         """
         number = p.mode_number(mode)
         self.require_active("set_mode")
+        self._note_mode(number)
         self._send_command(
             p.MAV_CMD_DO_SET_MODE, (float(p.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED), float(number))
         )
@@ -464,6 +534,7 @@ class MavlinkDriver(MissionClient):
             raise TypeError(f"goto needs a GeoPoint, got {type(target).__name__}")
         self.require_active("goto")
         flags = float(p.MAV_DO_REPOSITION_FLAGS_CHANGE_MODE)
+        self._note_mode(p.mode_number("GUIDED"))  # the change-mode flag: GUIDED
         self._send_command(
             p.MAV_CMD_DO_REPOSITION,
             (-1.0, flags, 0.0, math.nan),
@@ -480,6 +551,7 @@ class MavlinkDriver(MissionClient):
             DriverTimeoutError: No acknowledgement.
         """
         self.require_active("land")
+        self._note_mode(p.mode_number("LAND"))  # ArduCopter lands in its LAND mode
         self._send_command(p.MAV_CMD_NAV_LAND, (0.0, 0.0, 0.0, math.nan))
 
     def return_to_launch(self) -> None:
@@ -491,6 +563,7 @@ class MavlinkDriver(MissionClient):
             DriverTimeoutError: No acknowledgement.
         """
         self.require_active("return_to_launch")
+        self._note_mode(p.mode_number("RTL"))
         self._send_command(p.MAV_CMD_NAV_RETURN_TO_LAUNCH, ())
 
     def telemetry(self) -> VehicleTelemetry:
@@ -555,6 +628,7 @@ class MavlinkDriver(MissionClient):
         self._moved_at = self.clock.monotonic()
         with self._cond:
             self._progress = MissionProgress(total=self._mission_total)
+        self._note_mode(p.mode_number("AUTO"))  # MISSION_START switches to AUTO
         self._send_command(p.MAV_CMD_MISSION_START, (0.0, 0.0))
 
 

@@ -43,6 +43,12 @@ MAV_TYPE_QUADROTOR: Final[int] = int(_dialect.MAV_TYPE_QUADROTOR)
 MAV_TYPE_GCS: Final[int] = int(_dialect.MAV_TYPE_GCS)
 MAV_AUTOPILOT_ARDUPILOTMEGA: Final[int] = int(_dialect.MAV_AUTOPILOT_ARDUPILOTMEGA)
 MAV_AUTOPILOT_INVALID: Final[int] = int(_dialect.MAV_AUTOPILOT_INVALID)
+#: common.xml MAV_COMPONENT: "System flight controller component ("autopilot"). Only one
+#: autopilot is expected in a particular system." ArduPilot sends as this component.
+MAV_COMP_ID_AUTOPILOT1: Final[int] = int(_dialect.MAV_COMP_ID_AUTOPILOT1)
+#: Seconds between ArduPilot's HEARTBEATs: it sends one a second on every link, whatever
+#: streams were asked for (the MAVLink heartbeat microservice's recommended 1 Hz).
+VEHICLE_HEARTBEAT_PERIOD: Final = 1.0
 
 MAV_MODE_FLAG_CUSTOM_MODE_ENABLED: Final[int] = int(_dialect.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED)
 MAV_MODE_FLAG_SAFETY_ARMED: Final[int] = int(_dialect.MAV_MODE_FLAG_SAFETY_ARMED)
@@ -290,6 +296,7 @@ class Message:
         src_system: The sender's system id.
         src_component: The sender's component id.
         fields: Field name → value (ints, floats, ``str`` for char arrays, lists for arrays).
+        seq: The frame's sequence number (0..255, counted per sender; -1 when unknown).
     """
 
     name: str
@@ -297,6 +304,7 @@ class Message:
     src_system: int
     src_component: int
     fields: Mapping[str, Any]
+    seq: int = -1
 
     def get_int(self, field: str) -> int:
         """A field as an ``int``.
@@ -394,7 +402,11 @@ class Codec:
         try:
             with self._tx_lock:
                 msg = encoder(**fields)
-                return bytes(msg.pack(self._tx))
+                frame = bytes(msg.pack(self._tx))
+                # pymavlink's pack() leaves the count alone (its send() advances it): MAVLink's
+                # sequence number counts each sender's frames, and receivers rely on it
+                self._tx.seq = (self._tx.seq + 1) % 256
+                return frame
         except (TypeError, ValueError, OverflowError, _dialect.MAVError) as err:
             raise ValueError(f"cannot encode {name.upper()}: {err}") from err
         except Exception as err:  # struct.error and friends from the generated packers
@@ -446,7 +458,12 @@ class Codec:
             fields = {f: _field_value(getattr(raw, f)) for f in raw.get_fieldnames()}
             out.append(
                 Message(
-                    name, int(raw.get_msgId()), raw.get_srcSystem(), raw.get_srcComponent(), fields
+                    name,
+                    int(raw.get_msgId()),
+                    raw.get_srcSystem(),
+                    raw.get_srcComponent(),
+                    fields,
+                    int(raw.get_seq()),
                 )
             )
         return out

@@ -14,6 +14,7 @@ import math
 from collections.abc import Mapping
 from typing import Any, Final
 
+from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.link import parse_link
 from temoto.drivers.mavlink.sim import DEFAULT_RATES, PARAMETERS
 from temoto.drivers.profile import Field, ProfileReader, custom, integer, number
@@ -172,17 +173,26 @@ def _read_failsafe(reader: ProfileReader, value: Any, key: str) -> Mapping[str, 
 PROFILE_FIELDS: Final[Mapping[str, Field[Any]]] = {
     "link": custom(_read_link, hint=LINK_HINT),
     "system_id": integer(None, low=1, high=255),
-    "component_id": integer(1, low=0, high=255),
+    # component 0 is MAV_COMP_ID_ALL (common.xml: broadcast), nobody's own id
+    "component_id": integer(p.MAV_COMP_ID_AUTOPILOT1, low=1, high=255),
     "gcs_system_id": integer(255, low=1, high=255),
-    "gcs_component_id": integer(190, low=0, high=255),
-    "heartbeat_period": number(1.0, unit="s"),
-    "heartbeat_timeout": number(3.0, unit="s"),
-    "init_timeout": number(5.0, unit="s"),
+    "gcs_component_id": integer(190, low=1, high=255),
+    # at most half of ArduPilot's shortest FS_GCS_TIMEOUT (2 s; the constructor checks it
+    # against gcs_failsafe.timeout when that is set)
+    "heartbeat_period": number(1.0, high=1.0, unit="s"),
+    # ArduPilot heartbeats once a second: a lost one (2 s) must not be a fault; no longer
+    # than ArduPilot's longest FS_GCS_TIMEOUT (120 s)
+    "heartbeat_timeout": number(
+        3.0, low=2.0 * p.VEHICLE_HEARTBEAT_PERIOD, low_open=False, high=120.0, unit="s"
+    ),
+    # at least one of ArduPilot's heartbeat periods, or the first one may not have come
+    "init_timeout": number(5.0, low=p.VEHICLE_HEARTBEAT_PERIOD, low_open=False, unit="s"),
     "command_timeout": number(1.0, unit="s"),
     "command_retries": integer(2, low=0, high=10),
     "mission_timeout": number(1.5, unit="s"),
     "mission_retries": integer(5, low=0, high=20),
-    "stream_rate": number(10.0, low=0, low_open=False, high=1000, unit="Hz"),
+    # ArduPilot's stream rates (SRn_* parameters) go up to 50 Hz
+    "stream_rate": number(10.0, low=0, low_open=False, high=50, unit="Hz"),
     "status_texts": integer(20, low=1),
     "gcs_failsafe": custom(_read_failsafe, None),
     "sim": custom(read_sim, {}, init=False),  # checked here, used by simulate()

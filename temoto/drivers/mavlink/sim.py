@@ -263,7 +263,9 @@ class SimVehicle(CommandHandler):
                 if self._stop.is_set():
                     return
                 raise
-            if not data or self.fault("silence") is not None or self.fault("link_loss"):
+            if not data or self.fault("silence") is not None:
+                continue
+            if self.fault("link_loss") is not None:  # lost both ways: the GCS failsafe counts
                 continue
             with self._lock:
                 if peer not in self._peers:
