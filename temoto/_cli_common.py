@@ -7,12 +7,16 @@ standard error only).
 from __future__ import annotations
 
 import argparse
+import errno
 import math
+import os
 import signal
+import stat
 import sys
 from pathlib import Path
 from typing import IO, Any
 
+from temoto._files import check_regular
 from temoto.errors import ConfigError
 
 __all__ = [
@@ -54,10 +58,23 @@ def open_output(path: str | Path) -> IO[str]:
         The open file (text, UTF-8).
 
     Raises:
-        ConfigError: It cannot be written (no such folder, no permission), in one line.
+        ConfigError: It cannot be written (no such folder, no permission, a FIFO or a device
+            rather than a regular file), in one line.
     """
+    if str(path) == os.devnull:  # the one device worth writing to: output thrown away
+        return open(os.devnull, "w", encoding="utf-8")
     try:
-        return open(path, "w", encoding="utf-8")
+        check_regular(path, missing_ok=True)
+        # O_NONBLOCK: a FIFO put there since the check fails (ENXIO) instead of blocking
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NONBLOCK, 0o666)
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise OSError(errno.EINVAL, "not a regular file")
+            os.set_blocking(fd, True)
+            return open(fd, "w", encoding="utf-8")
+        except BaseException:
+            os.close(fd)
+            raise
     except OSError as err:
         raise ConfigError(f"{path}: cannot write: {err.strerror or err}") from None
 

@@ -21,7 +21,8 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, NamedTuple
 
-from temoto._cli_signals import Interrupted, SignalExit, make_devices_safe
+from temoto._cli_signals import FORCE_EXIT_S, Interrupted, SignalExit, make_devices_safe
+from temoto._files import read_regular_text
 from temoto.errors import ConfigError, GraphInputError
 
 if TYPE_CHECKING:
@@ -259,7 +260,7 @@ def fleet_key(args: argparse.Namespace, why: str) -> bytes | Credentials | None:
             raise ConfigError(str(err)) from None
     try:
         if args.fleet_key_file:
-            text = Path(args.fleet_key_file).read_text().strip()
+            text = read_regular_text(args.fleet_key_file).strip()
             key: bytes | None = key_from_text(text)
         else:
             key = key_from_env()
@@ -349,7 +350,7 @@ def serve(args: argparse.Namespace) -> int:
 
     key = fleet_key(args, f"instance '{args.actor}'")
     state = state_files(args)
-    with SignalExit() as signals:
+    with SignalExit(force_exit=FORCE_EXIT_S) as signals:
         transport = open_transport(args.fleet_url)
         try:
             recorder = open_recorder(args, "temoto serve", args.actor, transport)

@@ -83,6 +83,7 @@ from temoto._cli_fleet import (
 from temoto._cli_keys import add_keys, keys_command
 from temoto._cli_router import add_router, router_command
 from temoto._cli_run import add_run, run_command
+from temoto._cli_signals import FORCE_EXIT_S
 from temoto._cli_sim import add_sim, sim_command
 from temoto.core import _fast
 from temoto.core.catalog import ActionCatalog, GraphIndex
@@ -359,7 +360,7 @@ def _demo(args: argparse.Namespace) -> int:
     # The first signal raises KeyboardInterrupt (Interrupted) inside the demonstration, which
     # cleans up on its way out as it does for Ctrl-C; its processes are stopped by then.
     try:
-        with SignalExit(raise_first=True) as signals:
+        with SignalExit(raise_first=True, force_exit=FORCE_EXIT_S) as signals:
             try:
                 report = run_demo(args.number, sys.stdout, speed=args.speed)
             finally:

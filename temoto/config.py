@@ -29,6 +29,7 @@ from typing import Any, Final
 
 import yaml
 
+from temoto._files import read_regular_text
 from temoto.clock import Clock, MonotonicClock
 from temoto.drivers import Actuator, Vehicle, driver_class
 from temoto.drivers import profile as fields
@@ -195,7 +196,7 @@ def load_profile(path: str | Path, *, clock: Clock | None = None) -> Profile:
     """
     file = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = read_regular_text(path)
     except OSError as err:
         raise ProfileError(f"cannot read: {err.strerror or err}", file=file) from None
     try:

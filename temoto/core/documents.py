@@ -14,6 +14,7 @@ import json
 from pathlib import Path
 from typing import Any
 
+from temoto._files import read_regular_text
 from temoto.core._gc import collector_paused
 from temoto.core.graph import UmrfGraph, parse_graph
 from temoto.core.params import dump_parameter_tree
@@ -62,7 +63,7 @@ def load_json(path: str | Path, error: ErrorFactory = ConfigError) -> Any:
     """
     file = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = read_regular_text(path)
     except UnicodeDecodeError as err:
         raise error(f"not UTF-8 text ({err.reason} at byte {err.start})", file=file) from None
     except OSError as err:
