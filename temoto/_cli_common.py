@@ -26,6 +26,8 @@ __all__ = [
     "EXIT_TRUE",
     "add_paths",
     "error",
+    "factor",
+    "non_empty",
     "not_negative",
     "open_output",
     "positive",
@@ -37,6 +39,8 @@ EXIT_TRUE = 0
 EXIT_OTHER_RESULT = 1
 EXIT_INVALID = 2
 EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE
+#: The longest error line printed; the rest is counted, not shown.
+MAX_ERROR_CHARS = 1000
 
 
 def error(err: BaseException | str) -> None:
@@ -45,7 +49,10 @@ def error(err: BaseException | str) -> None:
     Args:
         err: The error, or its text.
     """
-    sys.stderr.write(f"temoto: error: {err}\n")
+    text = str(err)
+    if len(text) > MAX_ERROR_CHARS:  # a value quoted whole (a YAML alias bomb: 8 MB)
+        text = f"{text[:MAX_ERROR_CHARS]}... ({len(text) - MAX_ERROR_CHARS} characters more)"
+    sys.stderr.write(f"temoto: error: {text}\n")
 
 
 def open_output(path: str | Path) -> IO[str]:
@@ -123,6 +130,24 @@ def seconds(text: str, *, zero: bool) -> float:
         bound = "at least 0" if zero else "more than 0"
         raise argparse.ArgumentTypeError(f"{text!r}: must be {bound} seconds")
     return value
+
+
+def factor(text: str) -> float:
+    """``--speed`` and the like: a finite number more than 0 (not ``inf``, ``nan``, 0, -1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number more than 0")
+    return value
+
+
+def non_empty(text: str) -> str:
+    """``--actor`` and the like: a name that is not empty (nor only blanks)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("must not be empty")
+    return text
 
 
 def positive(text: str) -> float:

@@ -21,6 +21,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, NamedTuple
 
+from temoto._cli_common import non_empty, not_negative, positive
 from temoto._cli_signals import FORCE_EXIT_S, Interrupted, SignalExit, make_devices_safe
 from temoto._files import read_regular_text
 from temoto.errors import ConfigError, GraphInputError
@@ -302,7 +303,9 @@ def add_serve(sub: Any, paths: Any) -> None:
         description="Run a TeMoto instance (engine, registrar, process manager, fleet link)"
         " until SIGINT or SIGTERM; `temoto graph start|stop|... --target ACTOR` command it.",
     )
-    serve_p.add_argument("--actor", required=True, help="this instance's actor (robot) name")
+    serve_p.add_argument(
+        "--actor", required=True, type=non_empty, help="this instance's actor (robot) name"
+    )
     serve_p.add_argument(  # also after the command (SUPPRESS: `temoto -v serve` is kept)
         "-v",
         "--verbose",
@@ -321,14 +324,14 @@ def add_serve(sub: Any, paths: Any) -> None:
     )
     serve_p.add_argument(
         "--stop-timeout",
-        type=float,
+        type=not_negative,
         default=5.0,
         metavar="SECONDS",
         help="how long an action may take to stop (default 5)",
     )
     serve_p.add_argument(
         "--feedback-period",
-        type=float,
+        type=positive,
         default=1.0,
         metavar="SECONDS",
         help="publish every run's state this often (default 1)",

@@ -20,11 +20,12 @@ Commands:
   that ignores its stop delays the exit by ``--stop-timeout`` once, not more). ``temoto -v
   run`` also prints the Python traceback of each action that raised (its plugin's lines).
 * ``temoto validate FILE... [--actions DIR]... [--graphs DIR]... [--actor NAME]``: checks graphs
-  (and, given action or graph folders, that their actions resolve); exit 2 on the first invalid
-  file. A shared graph needs no fleet link: without ``--actor`` the actions of every actor are
-  checked where they resolve here, those that do not are named as left to their actor (a note,
-  not an error); with ``--actor NAME`` the actions of NAME (and those without an actor) must
-  resolve and the other actors' are not looked at.
+  (and, given action or graph folders, that their actions resolve); every file is checked and
+  reported (``FILE: ok (...)`` or an error line); exit 2 if any is invalid. A shared graph needs
+  no fleet link: without ``--actor`` the actions of every actor are checked where they resolve
+  here, those that do not are named as left to their actor (a note, not an error); with
+  ``--actor NAME`` the actions of NAME (and those without an actor) must resolve and the other
+  actors' are not looked at.
 * ``temoto graph dot FILE [-o OUT] [--format svg|png|pdf]``: Graphviz DOT of a graph, or an
   image when ``-o`` is given and Graphviz's ``dot`` is installed.
 * ``temoto actions [--actions DIR]... [--no-builtin]``: lists the known actions and where they
@@ -66,6 +67,7 @@ from temoto._cli_common import (
     EXIT_TRUE,
     add_paths,
     error,
+    factor,
     open_output,
     signal_name,
 )
@@ -172,7 +174,7 @@ def _add_demo(sub: Any) -> None:
     demo.add_argument("number", type=int, choices=range(1, 6), metavar="N", help="1 to 5")
     demo.add_argument(
         "--speed",
-        type=float,
+        type=factor,
         default=1.0,
         metavar="F",
         help="run the robots' clocks F times faster than real time (default 1)",
@@ -222,14 +224,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     Raises:
         SystemExit: On ``--help``/``--version`` and argument errors (status 2).
     """
-    args = _parser().parse_args(argv)
-    level = logging.WARNING - 10 * min(args.verbose, 2)
-    if getattr(args, "progress", False):
-        level = min(level, logging.INFO)
-    logging.basicConfig(
-        level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
-    )
+    args: argparse.Namespace | None = None
     try:
+        args = _parser().parse_args(argv)
+        level = logging.WARNING - 10 * min(args.verbose, 2)
+        if getattr(args, "progress", False):
+            level = min(level, logging.INFO)
+        logging.basicConfig(
+            level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
+        )
         code = _command(args)
         sys.stdout.flush()  # here, where a closed pipe is caught, not at interpreter exit
         return code
@@ -244,6 +247,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         # a command without a signal handler of its own (watch, detect, validate, ...): Ctrl-C
         # ends it quietly, devices made safe like everywhere else
         make_devices_safe("SIGINT")
+        if args is not None and args.command == "serve":
+            return EXIT_TRUE  # a service stopped as asked, even while it was starting
         return 128 + signal.SIGINT
 
 
@@ -260,44 +265,60 @@ def _command(args: argparse.Namespace) -> int:
 
 
 def _validate(args: argparse.Namespace) -> int:
+    """``temoto validate``: every file is checked and reported (an error line or ``ok``)."""
     planning = bool(args.actions or args.graphs)
     catalog = ActionCatalog(args.actions) if planning else None
     graphs = GraphIndex(args.graphs) if planning else None
+    code = EXIT_TRUE
     for file in args.files:
-        graph = load_graph(file)
-        report = validate_graph(graph)
-        report.raise_for_errors(file)
-        actors = sorted({a.actor for a in graph.actions if a.actor})
-        if args.actor and actors and args.actor not in actors:
-            raise GraphDefinitionError(
-                f"graph '{graph.name}' has no actions for actor '{args.actor}' (its actors:"
-                f" {', '.join(repr(a) for a in actors)})",
-                file=file,
-            )
-        elsewhere: list[tuple[Umrf, str]] = []
-        if catalog is not None and graphs is not None:
-            # without --actor, every actor's actions are checked where they resolve here
-            planner = Planner(
-                args.actor,
-                catalog,
-                graphs,
-                remote=True,
-                elsewhere=None if args.actor else _collect(elsewhere),
-            )
-            try:
-                planner.plan(graph)
-            except ActionNotFoundError as err:  # its message names the graph, not the file
-                error(f"{file}: {err}")
-                return EXIT_INVALID
-        for issue in report.warnings:
-            sys.stdout.write(f"{file}: warning: {issue}\n")
-        for umrf, why in elsewhere:
-            sys.stdout.write(
-                f"{file}: note: '{umrf.full_name}' is left to actor '{umrf.actor}': {why} here\n"
-            )
-        checked = _validated(graph, actors, args.actor, len(elsewhere) if planning else None)
-        sys.stdout.write(f"{file}: ok ({checked})\n")
-    return 0
+        try:
+            if not _validate_file(args, file, catalog, graphs):
+                code = EXIT_INVALID
+        except (ConfigError, PluginError) as err:
+            error(err)
+            code = EXIT_INVALID
+    return code
+
+
+def _validate_file(
+    args: argparse.Namespace, file: str, catalog: ActionCatalog | None, graphs: GraphIndex | None
+) -> bool:
+    """Check one file for ``temoto validate``; False if it is invalid (its error printed)."""
+    planning = catalog is not None
+    graph = load_graph(file)
+    report = validate_graph(graph)
+    report.raise_for_errors(file)
+    actors = sorted({a.actor for a in graph.actions if a.actor})
+    if args.actor and actors and args.actor not in actors:
+        raise GraphDefinitionError(
+            f"graph '{graph.name}' has no actions for actor '{args.actor}' (its actors:"
+            f" {', '.join(repr(a) for a in actors)})",
+            file=file,
+        )
+    elsewhere: list[tuple[Umrf, str]] = []
+    if catalog is not None and graphs is not None:
+        # without --actor, every actor's actions are checked where they resolve here
+        planner = Planner(
+            args.actor,
+            catalog,
+            graphs,
+            remote=True,
+            elsewhere=None if args.actor else _collect(elsewhere),
+        )
+        try:
+            planner.plan(graph)
+        except ActionNotFoundError as err:  # its message names the graph, not the file
+            error(f"{file}: {err}")
+            return False
+    for issue in report.warnings:
+        sys.stdout.write(f"{file}: warning: {issue}\n")
+    for umrf, why in elsewhere:
+        sys.stdout.write(
+            f"{file}: note: '{umrf.full_name}' is left to actor '{umrf.actor}': {why} here\n"
+        )
+    checked = _validated(graph, actors, args.actor, len(elsewhere) if planning else None)
+    sys.stdout.write(f"{file}: ok ({checked})\n")
+    return True
 
 
 def _collect(into: list[tuple[Umrf, str]]) -> Callable[[Umrf, str], None]:
