@@ -98,6 +98,7 @@ from temoto.core.validation import validate_graph
 from temoto.errors import (
     ActionNotFoundError,
     ConfigError,
+    DriverUnavailableError,
     GraphDefinitionError,
     PluginError,
     TransportError,
@@ -262,6 +263,50 @@ def _command(args: argparse.Namespace) -> int:
     except TransportError as err:  # the fleet: no route, no handshake, a lost actor
         error(err)
         return EXIT_OTHER_RESULT
+    except Exception as err:
+        missing = _missing_extra(err)
+        if missing is None:
+            raise
+        error(missing)
+        return EXIT_INVALID
+
+
+#: The optional modules of ``pyproject.toml``'s extras: top-level module -> extra.
+EXTRA_OF_MODULE = {
+    "can": "can",
+    "msgpack": "can",
+    "dynamixel_sdk": "dynamixel",
+    "serial": "robot",  # pyserial: both dynamixel and mavlink
+    "pymavlink": "mavlink",
+    "zenoh": "zenoh",
+}
+
+
+def _missing_extra(err: BaseException) -> str | None:
+    """One line naming the extra to install, if ``err`` comes from one that is missing.
+
+    Args:
+        err: What a command raised.
+
+    Returns:
+        The line, or None if ``err`` is no missing optional dependency.
+    """
+    seen: set[int] = set()
+    cause: BaseException | None = err
+    while cause is not None and id(cause) not in seen:
+        seen.add(id(cause))
+        if isinstance(cause, DriverUnavailableError):
+            return str(cause)  # names the extra, or the missing port or simulator
+        if isinstance(cause, ModuleNotFoundError):
+            top = (cause.name or "").split(".")[0]
+            extra = EXTRA_OF_MODULE.get(top)
+            if extra is not None:
+                return (
+                    f"this needs the Python module '{top}', which is not installed:"
+                    f" pip install 'temoto[{extra}]'"
+                )
+        cause = cause.__cause__ or cause.__context__
+    return None
 
 
 def _validate(args: argparse.Namespace) -> int:
@@ -404,6 +449,24 @@ def _demo(args: argparse.Namespace) -> int:
     return EXIT_TRUE if report.ok else EXIT_OTHER_RESULT
 
 
+def _add_examples(sub: Any) -> None:
+    ex = sub.add_parser(
+        "examples",
+        help="copy the examples and hardware profiles the docs use into a folder",
+        description="Copy examples/ and hw_profiles/ (as in the repository) into DIR, so that"
+        " the commands of the README and docs/ run from DIR with an installed wheel.",
+    )
+    ex.add_argument("dir", metavar="DIR", help="the folder (made if missing)")
+
+
+def _examples(args: argparse.Namespace) -> int:
+    from temoto.examples import copy_examples
+
+    for folder in copy_examples(args.dir):
+        sys.stdout.write(f"wrote {folder}\n")
+    return 0
+
+
 def _actions(args: argparse.Namespace) -> int:
     from temoto.actions.builtin import BUILTIN_ACTIONS
 
@@ -438,4 +501,5 @@ COMMANDS: tuple[Command, ...] = (
     Command("router", add_router, router_command),
     Command("view", add_view, view_command),
     Command("keys", add_keys, keys_command),
+    Command("examples", _add_examples, _examples),
 )
