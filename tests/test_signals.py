@@ -108,8 +108,8 @@ BUSY_GRAPH = {
 
 #: A program that holds a Process Manager: it loads, from a thread that then ends, a shell that
 #: starts a grandchild and prints its pid; then it prints "ready" and waits to be killed.
-MANAGER_PARENT = """
-import sys, threading, time
+MANAGER_PARENT = r"""
+import os, sys, threading, time
 from temoto.core.registrar import Registrar
 from temoto.managers import ProcessManager
 from temoto.managers.process import ProcessRequest
@@ -120,7 +120,9 @@ shell = "sleep 300 & echo grandchild $!; sleep 300"
 
 def load():
     ref = registrar.call("process", ProcessRequest("sh", ("-c", shell)), client="c")
-    print("child", ref.response.pid, flush=True)
+    # one write(2) of a whole line: the grandchild writes to the same pipe, and print()'s
+    # pieces could interleave with its line ("childgrandchild 6643", " 6641")
+    os.write(1, f"child {ref.response.pid}\n".encode())
 
 loader = threading.Thread(target=load)
 loader.start()
@@ -319,18 +321,23 @@ def test_children_and_grandchildren_die_with_a_sigkilled_manager(
     leaks: ProcessLeakCheck,
 ) -> None:
     parent = Command(["-c", textwrap.dedent(MANAGER_PARENT)])
-    child = int(parent.wait_for("child ").split()[1])
-    grandchild = int(parent.wait_for("grandchild ").split()[1])
-    parent.wait_for("ready")
-    # Alive after the thread that loaded the child ended (the parent-death signal is tied to
-    # the forking thread, so that thread must not be the caller's).
-    assert {child, grandchild} <= set(leaks.leftovers())
-    os.kill(parent.proc.pid, signal.SIGKILL)
-    # Not communicate(): a child left alive would hold the output pipe open.
-    assert parent.proc.wait(5) == -signal.SIGKILL
     try:
+        child = int(parent.wait_for("child ").split()[1])
+        grandchild = int(parent.wait_for("grandchild ").split()[1])
+        parent.wait_for("ready")
+        # Alive after the thread that loaded the child ended (the parent-death signal is tied
+        # to the forking thread, so that thread must not be the caller's).
+        assert {child, grandchild} <= set(leaks.leftovers())
+        os.kill(parent.proc.pid, signal.SIGKILL)
+        # Not communicate(): a child left alive would hold the output pipe open.
+        assert parent.proc.wait(5) == -signal.SIGKILL
         assert none_left(leaks) == []
     finally:
+        # on every way out, also a failed wait above: no process or pipe is left for the
+        # garbage collector to warn about in a later test (a ResourceWarning is an error)
+        if parent.proc.poll() is None:
+            parent.proc.kill()
+            parent.proc.wait()
         for stream in (parent.proc.stdout, parent.proc.stderr):
             if stream is not None:
                 stream.close()
