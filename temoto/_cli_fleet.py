@@ -353,7 +353,7 @@ def serve(args: argparse.Namespace) -> int:
 
     key = fleet_key(args, f"instance '{args.actor}'")
     state = state_files(args)
-    with SignalExit(force_exit=FORCE_EXIT_S) as signals:
+    with SignalExit(force_exit=FORCE_EXIT_S, force_exit_code=EXIT_OK) as signals:
         transport = open_transport(args.fleet_url)
         try:
             recorder = open_recorder(args, "temoto serve", args.actor, transport)

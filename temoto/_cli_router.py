@@ -98,7 +98,7 @@ def router_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
     if not listen and args.config is None:
         listen = (DEFAULT_LISTEN,)
     stream = sys.stdout if out is None else out
-    with SignalExit(force_exit=FORCE_EXIT_S) as signals:
+    with SignalExit(force_exit=FORCE_EXIT_S, force_exit_code=0) as signals:
         try:
             session = open_router(listen, connect=tuple(args.connect), config_file=args.config)
         except (ValueError, TransportError) as err:

@@ -23,7 +23,7 @@ __all__ = ["FORCE_EXIT_S", "Interrupted", "SignalExit", "make_devices_safe"]
 #: How long a command may take to end after a second signal before it exits by force
 #: (``SignalExit(force_exit=...)``): the hurried clean-up (devices safe, processes killed
 #: without grace) takes well under a second; a command stuck in a blocking call never ends.
-FORCE_EXIT_S = 3.0
+FORCE_EXIT_S = 10.0
 
 
 class Interrupted(KeyboardInterrupt):
@@ -65,6 +65,8 @@ class SignalExit:
             this many seconds later, even if its main thread is stuck (in a blocking call, on
             a run that cannot end), devices made safe first; a third signal exits at once.
             None (the default): signals never end the process by force.
+        force_exit_code: The status of that exit (default :attr:`exit_code`; ``temoto serve``
+            exits 0 on a signal).
     """
 
     def __init__(
@@ -74,6 +76,7 @@ class SignalExit:
         hurry: tuple[Callable[[], None], ...] | None = None,
         first: tuple[Callable[[int], None], ...] = (),
         force_exit: float | None = None,
+        force_exit_code: int | None = None,
     ) -> None:
         self.raise_first = raise_first
         self._first = first
@@ -85,6 +88,7 @@ class SignalExit:
         self._hurry = hurry
         self._previous: dict[int, Any] = {}
         self._force_exit = force_exit
+        self._force_exit_code = force_exit_code
         self._exit_timer: threading.Thread | None = None
 
     @property
@@ -128,7 +132,7 @@ class SignalExit:
         if not self.hurried.is_set():
             _say(f"temoto: {name} again: stopping at once\n")
         if self._force_exit is not None:
-            code = 128 + self.signum
+            code = 128 + self.signum if self._force_exit_code is None else self._force_exit_code
             if self._exit_timer is not None:  # a third signal: no more waiting
                 _say(f"temoto: {name}: exiting now\n")
                 os._exit(code)

@@ -111,7 +111,7 @@ def sim_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
             " --profile FILE, not both"
         )
     printer = _Printer(bool(getattr(args, "json", False)), out)
-    with SignalExit(force_exit=FORCE_EXIT_S) as signals, ExitStack() as stack:
+    with SignalExit(force_exit=FORCE_EXIT_S, force_exit_code=0) as signals, ExitStack() as stack:
         if kind is None:
             served = serve_profile(Path(str(profile)), args, stack)
         else:

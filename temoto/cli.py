@@ -39,7 +39,9 @@ Signals (ARCHITECTURE.md §8): SIGINT (Ctrl-C) or SIGTERM during ``temoto run`` 
 cleanly (its actions get their stop request), makes every device of this process safe, stops
 the processes it started, prints the result (``on_stopped``) and exits 130 (SIGINT) or 143
 (SIGTERM); ``temoto demo`` does the same. ``temoto serve`` stopped by either exits 0. A
-second signal skips the waits (action stops, process grace periods) but still cleans up. No
+second signal skips the waits (action stops, process grace periods) but still cleans up; a
+command still not ended 10 s after it (stuck in a blocking call) exits anyway, devices made safe
+first, and a third signal exits at once. No
 traceback in any case. A closed standard output (``temoto actions | head``) ends the command
 quietly with status 141 (128 + SIGPIPE, as a program killed by SIGPIPE reports).
 
