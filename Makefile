@@ -4,6 +4,10 @@ PY ?= python3
 VENV = .venv
 BIN = $(VENV)/bin
 STAMP = $(VENV)/.installed
+# `make run` needs only the drivers of its robot (the [robot] extra), not [dev]'s test and lint
+# tools; [dev] includes [robot], so the [dev] install satisfies this stamp too.
+RUN_STAMP = $(VENV)/.installed-run
+BUILD_INPUTS = pyproject.toml setup.py $(wildcard temoto/core/_fast/*.py temoto/core/_fast/*.pxd)
 
 # The main job: the simulated mobile manipulator (ODrive base + Dynamixel arm, simulators
 # in-process) runs a mission: drive to a shelf, reach, drive back, arm home.
@@ -16,10 +20,17 @@ PYTEST_ARGS ?=
 install: $(STAMP)
 
 # Reinstall (editable, rebuilding the Cython extensions) whenever the build inputs change.
-$(STAMP): pyproject.toml setup.py $(wildcard temoto/core/_fast/*.py temoto/core/_fast/*.pxd)
+$(STAMP): $(BUILD_INPUTS)
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install --quiet --upgrade pip
 	$(BIN)/python -m pip install -e '.[dev]'
+	touch $@ $(RUN_STAMP)
+
+$(RUN_STAMP): $(BUILD_INPUTS)
+	test -x $(BIN)/python || $(PY) -m venv $(VENV)
+	$(BIN)/python -m pip install --quiet --upgrade pip
+	@echo "make run: installing TeMoto with the [robot] extra into $(VENV) (make test adds [dev])"
+	$(BIN)/python -m pip install --quiet -e '.[robot]'
 	touch $@
 
 # System tools of the network tests (tests/fleet/test_netns_fleet.py), of the live view's
@@ -44,7 +55,8 @@ sysdeps:
 		echo "sysdeps: missing$$missing (as root: apt-get install$$missing); the network tests skip (fail under CI)"; \
 	fi
 
-run: install
+run: $(RUN_STAMP)
+	@$(BIN)/python -m temoto --version
 	$(RUN_CMD)
 
 lint: install

@@ -11,8 +11,11 @@ from __future__ import annotations
 
 import os
 import platform
+import shutil
+from pathlib import Path
 
 from setuptools import Extension, setup
+from setuptools.command.build_py import build_py
 
 FAST_DIR = "temoto/core/_fast"
 FAST_MODULES: list[str] = ["evolution", "refbook"]  # -> temoto.core._fast._<name>_c
@@ -45,4 +48,28 @@ def _extensions() -> list[Extension]:
     return extensions
 
 
-setup(ext_modules=_extensions())
+#: Folders of the repository the docs use, shipped in the wheel as ``temoto/_examples/<name>``
+#: (``temoto examples DIR`` copies them out; in a clone, ``temoto.examples`` finds them here).
+EXAMPLE_DIRS = ("examples", "hw_profiles")
+
+
+class BuildWithExamples(build_py):
+    """build_py that also copies :data:`EXAMPLE_DIRS` into the built package (not editable)."""
+
+    def run(self) -> None:
+        """Build the package, then copy the example folders into it."""
+        super().run()
+        if self.editable_mode:
+            return
+        target = Path(self.build_lib) / "temoto" / "_examples"
+        for name in EXAMPLE_DIRS:
+            if Path(name).is_dir():
+                shutil.copytree(
+                    name,
+                    target / name,
+                    dirs_exist_ok=True,
+                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"),
+                )
+
+
+setup(ext_modules=_extensions(), cmdclass={"build_py": BuildWithExamples})

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import sys
 
-from temoto.cli import main
-
 if __name__ == "__main__":
+    try:
+        from temoto.cli import main
+    except KeyboardInterrupt:  # a Ctrl-C during the imports: no traceback (status 130)
+        sys.exit(130)
     sys.exit(main())

@@ -7,12 +7,16 @@ standard error only).
 from __future__ import annotations
 
 import argparse
+import errno
 import math
+import os
 import signal
+import stat
 import sys
 from pathlib import Path
 from typing import IO, Any
 
+from temoto._files import check_regular
 from temoto.errors import ConfigError
 
 __all__ = [
@@ -22,6 +26,8 @@ __all__ = [
     "EXIT_TRUE",
     "add_paths",
     "error",
+    "factor",
+    "non_empty",
     "not_negative",
     "open_output",
     "positive",
@@ -33,6 +39,8 @@ EXIT_TRUE = 0
 EXIT_OTHER_RESULT = 1
 EXIT_INVALID = 2
 EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE
+#: The longest error line printed; the rest is counted, not shown.
+MAX_ERROR_CHARS = 1000
 
 
 def error(err: BaseException | str) -> None:
@@ -41,7 +49,10 @@ def error(err: BaseException | str) -> None:
     Args:
         err: The error, or its text.
     """
-    sys.stderr.write(f"temoto: error: {err}\n")
+    text = str(err)
+    if len(text) > MAX_ERROR_CHARS:  # a value quoted whole (a YAML alias bomb: 8 MB)
+        text = f"{text[:MAX_ERROR_CHARS]}... ({len(text) - MAX_ERROR_CHARS} characters more)"
+    sys.stderr.write(f"temoto: error: {text}\n")
 
 
 def open_output(path: str | Path) -> IO[str]:
@@ -54,10 +65,23 @@ def open_output(path: str | Path) -> IO[str]:
         The open file (text, UTF-8).
 
     Raises:
-        ConfigError: It cannot be written (no such folder, no permission), in one line.
+        ConfigError: It cannot be written (no such folder, no permission, a FIFO or a device
+            rather than a regular file), in one line.
     """
+    if str(path) == os.devnull:  # the one device worth writing to: output thrown away
+        return open(os.devnull, "w", encoding="utf-8")
     try:
-        return open(path, "w", encoding="utf-8")
+        check_regular(path, missing_ok=True)
+        # O_NONBLOCK: a FIFO put there since the check fails (ENXIO) instead of blocking
+        fd = os.open(path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC | os.O_NONBLOCK, 0o666)
+        try:
+            if not stat.S_ISREG(os.fstat(fd).st_mode):
+                raise OSError(errno.EINVAL, "not a regular file")
+            os.set_blocking(fd, True)
+            return open(fd, "w", encoding="utf-8")
+        except BaseException:
+            os.close(fd)
+            raise
     except OSError as err:
         raise ConfigError(f"{path}: cannot write: {err.strerror or err}") from None
 
@@ -106,6 +130,24 @@ def seconds(text: str, *, zero: bool) -> float:
         bound = "at least 0" if zero else "more than 0"
         raise argparse.ArgumentTypeError(f"{text!r}: must be {bound} seconds")
     return value
+
+
+def factor(text: str) -> float:
+    """``--speed`` and the like: a finite number more than 0 (not ``inf``, ``nan``, 0, -1)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r}: must be a finite number more than 0")
+    return value
+
+
+def non_empty(text: str) -> str:
+    """``--actor`` and the like: a name that is not empty (nor only blanks)."""
+    if not text.strip():
+        raise argparse.ArgumentTypeError("must not be empty")
+    return text
 
 
 def positive(text: str) -> float:

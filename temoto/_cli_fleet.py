@@ -21,7 +21,9 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, NamedTuple
 
-from temoto._cli_signals import Interrupted, SignalExit, make_devices_safe
+from temoto._cli_common import non_empty, not_negative, positive
+from temoto._cli_signals import FORCE_EXIT_S, Interrupted, SignalExit, make_devices_safe
+from temoto._files import read_regular_text
 from temoto.errors import ConfigError, GraphInputError
 
 if TYPE_CHECKING:
@@ -259,7 +261,7 @@ def fleet_key(args: argparse.Namespace, why: str) -> bytes | Credentials | None:
             raise ConfigError(str(err)) from None
     try:
         if args.fleet_key_file:
-            text = Path(args.fleet_key_file).read_text().strip()
+            text = read_regular_text(args.fleet_key_file).strip()
             key: bytes | None = key_from_text(text)
         else:
             key = key_from_env()
@@ -301,7 +303,9 @@ def add_serve(sub: Any, paths: Any) -> None:
         description="Run a TeMoto instance (engine, registrar, process manager, fleet link)"
         " until SIGINT or SIGTERM; `temoto graph start|stop|... --target ACTOR` command it.",
     )
-    serve_p.add_argument("--actor", required=True, help="this instance's actor (robot) name")
+    serve_p.add_argument(
+        "--actor", required=True, type=non_empty, help="this instance's actor (robot) name"
+    )
     serve_p.add_argument(  # also after the command (SUPPRESS: `temoto -v serve` is kept)
         "-v",
         "--verbose",
@@ -320,14 +324,14 @@ def add_serve(sub: Any, paths: Any) -> None:
     )
     serve_p.add_argument(
         "--stop-timeout",
-        type=float,
+        type=not_negative,
         default=5.0,
         metavar="SECONDS",
         help="how long an action may take to stop (default 5)",
     )
     serve_p.add_argument(
         "--feedback-period",
-        type=float,
+        type=positive,
         default=1.0,
         metavar="SECONDS",
         help="publish every run's state this often (default 1)",
@@ -349,7 +353,7 @@ def serve(args: argparse.Namespace) -> int:
 
     key = fleet_key(args, f"instance '{args.actor}'")
     state = state_files(args)
-    with SignalExit() as signals:
+    with SignalExit(force_exit=FORCE_EXIT_S, force_exit_code=EXIT_OK) as signals:
         transport = open_transport(args.fleet_url)
         try:
             recorder = open_recorder(args, "temoto serve", args.actor, transport)

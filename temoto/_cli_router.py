@@ -91,14 +91,14 @@ def router_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
         ConfigError: A malformed endpoint, an unusable configuration file, an address in use,
             or eclipse-zenoh missing.
     """
-    from temoto._cli_fleet import SignalExit
+    from temoto._cli_signals import FORCE_EXIT_S, SignalExit
     from temoto.transport.zenoh import open_router
 
     listen = tuple(args.listen) if args.listen else ()
     if not listen and args.config is None:
         listen = (DEFAULT_LISTEN,)
     stream = sys.stdout if out is None else out
-    with SignalExit() as signals:
+    with SignalExit(force_exit=FORCE_EXIT_S, force_exit_code=0) as signals:
         try:
             session = open_router(listen, connect=tuple(args.connect), config_file=args.config)
         except (ValueError, TransportError) as err:

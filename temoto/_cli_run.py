@@ -36,6 +36,7 @@ from temoto._cli_fleet import (
     make_devices_safe,
     open_recorder,
 )
+from temoto._cli_signals import FORCE_EXIT_S
 from temoto._progress import ActionLogHandler, Progress
 from temoto.clock import MonotonicClock, ScaledClock
 from temoto.core.catalog import ActionCatalog, GraphIndex
@@ -200,7 +201,7 @@ def run_command(args: argparse.Namespace) -> int:
     Returns:
         The exit status (ARCHITECTURE.md §8).
     """
-    with SignalExit() as signals:
+    with SignalExit(force_exit=FORCE_EXIT_S) as signals:
         graph = load_graph(args.graph)
         opened = _open_fleet(args, graph)
         link, transport, auth = opened if opened is not None else (None, None, None)
@@ -288,7 +289,14 @@ def _run_graph(
                     stop_sent = time.monotonic()
                     with contextlib.suppress(TimeoutError):
                         engine.stop(name, timeout=0)
-                    _wait_run(engine, name, None, signals.hurried)
+                    # the engine cannot end the run (a fault of its own): give up on it, so
+                    # that --timeout always ends the command
+                    ended = _wait_run(engine, name, args.stop_timeout + 5.0, signals.hurried)
+                    if not ended and not signals.hurried.is_set():
+                        sys.stderr.write(
+                            f"temoto: the graph did not stop within"
+                            f" {args.stop_timeout + 5.0:g} s; giving up on it\n"
+                        )
                     # the run's actions had their --stop-timeout from here on: not twice
                     grace = max(0.1, args.stop_timeout - (time.monotonic() - stop_sent))
                 outcome = engine.outcome(name)

@@ -13,11 +13,17 @@ import os
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 from contextlib import suppress
 from typing import Any
 
-__all__ = ["Interrupted", "SignalExit", "make_devices_safe"]
+__all__ = ["FORCE_EXIT_S", "Interrupted", "SignalExit", "make_devices_safe"]
+
+#: How long a command may take to end after a second signal before it exits by force
+#: (``SignalExit(force_exit=...)``): the hurried clean-up (devices safe, processes killed
+#: without grace) takes well under a second; a command stuck in a blocking call never ends.
+FORCE_EXIT_S = 10.0
 
 
 class Interrupted(KeyboardInterrupt):
@@ -54,6 +60,13 @@ class SignalExit:
         hurry: Callbacks for the second signal (must be safe in a signal handler).
         first: Callbacks for the first signal, with its number (must be safe in a signal
             handler: start a thread, set a flag), called before anything is raised.
+        force_exit: For a command's process only (never in a library or a test process):
+            after the second signal, the process exits with :attr:`exit_code` at the latest
+            this many seconds later, even if its main thread is stuck (in a blocking call, on
+            a run that cannot end), devices made safe first; a third signal exits at once.
+            None (the default): signals never end the process by force.
+        force_exit_code: The status of that exit (default :attr:`exit_code`; ``temoto serve``
+            exits 0 on a signal).
     """
 
     def __init__(
@@ -62,6 +75,8 @@ class SignalExit:
         raise_first: bool = False,
         hurry: tuple[Callable[[], None], ...] | None = None,
         first: tuple[Callable[[int], None], ...] = (),
+        force_exit: float | None = None,
+        force_exit_code: int | None = None,
     ) -> None:
         self.raise_first = raise_first
         self._first = first
@@ -72,6 +87,9 @@ class SignalExit:
         self.hurried = threading.Event()
         self._hurry = hurry
         self._previous: dict[int, Any] = {}
+        self._force_exit = force_exit
+        self._force_exit_code = force_exit_code
+        self._exit_timer: threading.Thread | None = None
 
     @property
     def exit_code(self) -> int | None:
@@ -113,9 +131,32 @@ class SignalExit:
             return
         if not self.hurried.is_set():
             _say(f"temoto: {name} again: stopping at once\n")
+        if self._force_exit is not None:
+            code = 128 + self.signum if self._force_exit_code is None else self._force_exit_code
+            if self._exit_timer is not None:  # a third signal: no more waiting
+                _say(f"temoto: {name}: exiting now\n")
+                os._exit(code)
+            self._exit_timer = threading.Thread(
+                target=_exit_later,
+                args=(self._force_exit, code),
+                name="temoto-signal-exit",
+                daemon=True,  # it ends the process; nothing is left to join it
+            )
+            self._exit_timer.start()
         self.hurried.set()
         for callback in self._hurry if self._hurry is not None else _default_hurry():
             callback()
+
+
+def _exit_later(delay: float, code: int) -> None:
+    """End the process ``delay`` seconds from now, devices made safe first (``force_exit``)."""
+    time.sleep(delay)
+    _say(f"temoto: still not stopped {delay:g} s after the second signal: exiting\n")
+    with suppress(Exception):
+        make_devices_safe("the command did not stop after a second signal")
+    with suppress(Exception):
+        sys.stdout.flush()
+    os._exit(code)
 
 
 def _ignore_late_signals() -> None:

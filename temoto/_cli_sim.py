@@ -101,7 +101,7 @@ def sim_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
         ConfigError: Invalid input (a bad profile, neither or both of KIND and --profile).
         BrokenPipeError: The reader of the output went away (the simulators are closed).
     """
-    from temoto._cli_fleet import SignalExit
+    from temoto._cli_signals import FORCE_EXIT_S, SignalExit
 
     kind = getattr(args, "sim_kind", None)
     profile = getattr(args, "profile", None)
@@ -111,7 +111,7 @@ def sim_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
             " --profile FILE, not both"
         )
     printer = _Printer(bool(getattr(args, "json", False)), out)
-    with SignalExit() as signals, ExitStack() as stack:
+    with SignalExit(force_exit=FORCE_EXIT_S, force_exit_code=0) as signals, ExitStack() as stack:
         if kind is None:
             served = serve_profile(Path(str(profile)), args, stack)
         else:

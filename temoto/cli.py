@@ -20,11 +20,12 @@ Commands:
   that ignores its stop delays the exit by ``--stop-timeout`` once, not more). ``temoto -v
   run`` also prints the Python traceback of each action that raised (its plugin's lines).
 * ``temoto validate FILE... [--actions DIR]... [--graphs DIR]... [--actor NAME]``: checks graphs
-  (and, given action or graph folders, that their actions resolve); exit 2 on the first invalid
-  file. A shared graph needs no fleet link: without ``--actor`` the actions of every actor are
-  checked where they resolve here, those that do not are named as left to their actor (a note,
-  not an error); with ``--actor NAME`` the actions of NAME (and those without an actor) must
-  resolve and the other actors' are not looked at.
+  (and, given action or graph folders, that their actions resolve); every file is checked and
+  reported (``FILE: ok (...)`` or an error line); exit 2 if any is invalid. A shared graph needs
+  no fleet link: without ``--actor`` the actions of every actor are checked where they resolve
+  here, those that do not are named as left to their actor (a note, not an error); with
+  ``--actor NAME`` the actions of NAME (and those without an actor) must resolve and the other
+  actors' are not looked at.
 * ``temoto graph dot FILE [-o OUT] [--format svg|png|pdf]``: Graphviz DOT of a graph, or an
   image when ``-o`` is given and Graphviz's ``dot`` is installed.
 * ``temoto actions [--actions DIR]... [--no-builtin]``: lists the known actions and where they
@@ -38,7 +39,9 @@ Signals (ARCHITECTURE.md §8): SIGINT (Ctrl-C) or SIGTERM during ``temoto run`` 
 cleanly (its actions get their stop request), makes every device of this process safe, stops
 the processes it started, prints the result (``on_stopped``) and exits 130 (SIGINT) or 143
 (SIGTERM); ``temoto demo`` does the same. ``temoto serve`` stopped by either exits 0. A
-second signal skips the waits (action stops, process grace periods) but still cleans up. No
+second signal skips the waits (action stops, process grace periods) but still cleans up; a
+command still not ended 10 s after it (stuck in a blocking call) exits anyway, devices made safe
+first, and a third signal exits at once. No
 traceback in any case. A closed standard output (``temoto actions | head``) ends the command
 quietly with status 141 (128 + SIGPIPE, as a program killed by SIGPIPE reports).
 
@@ -66,6 +69,7 @@ from temoto._cli_common import (
     EXIT_TRUE,
     add_paths,
     error,
+    factor,
     open_output,
     signal_name,
 )
@@ -83,6 +87,7 @@ from temoto._cli_fleet import (
 from temoto._cli_keys import add_keys, keys_command
 from temoto._cli_router import add_router, router_command
 from temoto._cli_run import add_run, run_command
+from temoto._cli_signals import FORCE_EXIT_S
 from temoto._cli_sim import add_sim, sim_command
 from temoto.core import _fast
 from temoto.core.catalog import ActionCatalog, GraphIndex
@@ -95,6 +100,7 @@ from temoto.core.validation import validate_graph
 from temoto.errors import (
     ActionNotFoundError,
     ConfigError,
+    DriverUnavailableError,
     GraphDefinitionError,
     PluginError,
     TransportError,
@@ -171,7 +177,7 @@ def _add_demo(sub: Any) -> None:
     demo.add_argument("number", type=int, choices=range(1, 6), metavar="N", help="1 to 5")
     demo.add_argument(
         "--speed",
-        type=float,
+        type=factor,
         default=1.0,
         metavar="F",
         help="run the robots' clocks F times faster than real time (default 1)",
@@ -221,14 +227,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     Raises:
         SystemExit: On ``--help``/``--version`` and argument errors (status 2).
     """
-    args = _parser().parse_args(argv)
-    level = logging.WARNING - 10 * min(args.verbose, 2)
-    if getattr(args, "progress", False):
-        level = min(level, logging.INFO)
-    logging.basicConfig(
-        level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
-    )
+    args: argparse.Namespace | None = None
     try:
+        args = _parser().parse_args(argv)
+        level = logging.WARNING - 10 * min(args.verbose, 2)
+        if getattr(args, "progress", False):
+            level = min(level, logging.INFO)
+        logging.basicConfig(
+            level=level, format="%(levelname)s %(name)s: %(message)s", stream=sys.stderr
+        )
         code = _command(args)
         sys.stdout.flush()  # here, where a closed pipe is caught, not at interpreter exit
         return code
@@ -243,6 +250,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         # a command without a signal handler of its own (watch, detect, validate, ...): Ctrl-C
         # ends it quietly, devices made safe like everywhere else
         make_devices_safe("SIGINT")
+        if args is not None and args.command == "serve":
+            return EXIT_TRUE  # a service stopped as asked, even while it was starting
         return 128 + signal.SIGINT
 
 
@@ -256,47 +265,107 @@ def _command(args: argparse.Namespace) -> int:
     except TransportError as err:  # the fleet: no route, no handshake, a lost actor
         error(err)
         return EXIT_OTHER_RESULT
+    except Exception as err:
+        missing = _missing_extra(err)
+        if missing is None:
+            raise
+        error(missing)
+        return EXIT_INVALID
+
+
+#: The optional modules of ``pyproject.toml``'s extras: top-level module -> extra.
+EXTRA_OF_MODULE = {
+    "can": "can",
+    "msgpack": "can",
+    "dynamixel_sdk": "dynamixel",
+    "serial": "robot",  # pyserial: both dynamixel and mavlink
+    "pymavlink": "mavlink",
+    "zenoh": "zenoh",
+}
+
+
+def _missing_extra(err: BaseException) -> str | None:
+    """One line naming the extra to install, if ``err`` comes from one that is missing.
+
+    Args:
+        err: What a command raised.
+
+    Returns:
+        The line, or None if ``err`` is no missing optional dependency.
+    """
+    seen: set[int] = set()
+    cause: BaseException | None = err
+    while cause is not None and id(cause) not in seen:
+        seen.add(id(cause))
+        if isinstance(cause, DriverUnavailableError):
+            return str(cause)  # names the extra, or the missing port or simulator
+        if isinstance(cause, ModuleNotFoundError):
+            top = (cause.name or "").split(".")[0]
+            extra = EXTRA_OF_MODULE.get(top)
+            if extra is not None:
+                return (
+                    f"this needs the Python module '{top}', which is not installed:"
+                    f" pip install 'temoto[{extra}]'"
+                )
+        cause = cause.__cause__ or cause.__context__
+    return None
 
 
 def _validate(args: argparse.Namespace) -> int:
+    """``temoto validate``: every file is checked and reported (an error line or ``ok``)."""
     planning = bool(args.actions or args.graphs)
     catalog = ActionCatalog(args.actions) if planning else None
     graphs = GraphIndex(args.graphs) if planning else None
+    code = EXIT_TRUE
     for file in args.files:
-        graph = load_graph(file)
-        report = validate_graph(graph)
-        report.raise_for_errors(file)
-        actors = sorted({a.actor for a in graph.actions if a.actor})
-        if args.actor and actors and args.actor not in actors:
-            raise GraphDefinitionError(
-                f"graph '{graph.name}' has no actions for actor '{args.actor}' (its actors:"
-                f" {', '.join(repr(a) for a in actors)})",
-                file=file,
-            )
-        elsewhere: list[tuple[Umrf, str]] = []
-        if catalog is not None and graphs is not None:
-            # without --actor, every actor's actions are checked where they resolve here
-            planner = Planner(
-                args.actor,
-                catalog,
-                graphs,
-                remote=True,
-                elsewhere=None if args.actor else _collect(elsewhere),
-            )
-            try:
-                planner.plan(graph)
-            except ActionNotFoundError as err:  # its message names the graph, not the file
-                error(f"{file}: {err}")
-                return EXIT_INVALID
-        for issue in report.warnings:
-            sys.stdout.write(f"{file}: warning: {issue}\n")
-        for umrf, why in elsewhere:
-            sys.stdout.write(
-                f"{file}: note: '{umrf.full_name}' is left to actor '{umrf.actor}': {why} here\n"
-            )
-        checked = _validated(graph, actors, args.actor, len(elsewhere) if planning else None)
-        sys.stdout.write(f"{file}: ok ({checked})\n")
-    return 0
+        try:
+            if not _validate_file(args, file, catalog, graphs):
+                code = EXIT_INVALID
+        except (ConfigError, PluginError) as err:
+            error(err)
+            code = EXIT_INVALID
+    return code
+
+
+def _validate_file(
+    args: argparse.Namespace, file: str, catalog: ActionCatalog | None, graphs: GraphIndex | None
+) -> bool:
+    """Check one file for ``temoto validate``; False if it is invalid (its error printed)."""
+    planning = catalog is not None
+    graph = load_graph(file)
+    report = validate_graph(graph)
+    report.raise_for_errors(file)
+    actors = sorted({a.actor for a in graph.actions if a.actor})
+    if args.actor and actors and args.actor not in actors:
+        raise GraphDefinitionError(
+            f"graph '{graph.name}' has no actions for actor '{args.actor}' (its actors:"
+            f" {', '.join(repr(a) for a in actors)})",
+            file=file,
+        )
+    elsewhere: list[tuple[Umrf, str]] = []
+    if catalog is not None and graphs is not None:
+        # without --actor, every actor's actions are checked where they resolve here
+        planner = Planner(
+            args.actor,
+            catalog,
+            graphs,
+            remote=True,
+            elsewhere=None if args.actor else _collect(elsewhere),
+        )
+        try:
+            planner.plan(graph)
+        except ActionNotFoundError as err:  # its message names the graph, not the file
+            error(f"{file}: {err}")
+            return False
+    for issue in report.warnings:
+        sys.stdout.write(f"{file}: warning: {issue}\n")
+    for umrf, why in elsewhere:
+        sys.stdout.write(
+            f"{file}: note: '{umrf.full_name}' is left to actor '{umrf.actor}': {why} here\n"
+        )
+    checked = _validated(graph, actors, args.actor, len(elsewhere) if planning else None)
+    sys.stdout.write(f"{file}: ok ({checked})\n")
+    return True
 
 
 def _collect(into: list[tuple[Umrf, str]]) -> Callable[[Umrf, str], None]:
@@ -359,7 +428,7 @@ def _demo(args: argparse.Namespace) -> int:
     # The first signal raises KeyboardInterrupt (Interrupted) inside the demonstration, which
     # cleans up on its way out as it does for Ctrl-C; its processes are stopped by then.
     try:
-        with SignalExit(raise_first=True) as signals:
+        with SignalExit(raise_first=True, force_exit=FORCE_EXIT_S) as signals:
             try:
                 report = run_demo(args.number, sys.stdout, speed=args.speed)
             finally:
@@ -380,6 +449,24 @@ def _demo(args: argparse.Namespace) -> int:
     if signals.exit_code is not None:  # the signal came after the demonstration had ended
         return signals.exit_code
     return EXIT_TRUE if report.ok else EXIT_OTHER_RESULT
+
+
+def _add_examples(sub: Any) -> None:
+    ex = sub.add_parser(
+        "examples",
+        help="copy the examples and hardware profiles the docs use into a folder",
+        description="Copy examples/ and hw_profiles/ (as in the repository) into DIR, so that"
+        " the commands of the README and docs/ run from DIR with an installed wheel.",
+    )
+    ex.add_argument("dir", metavar="DIR", help="the folder (made if missing)")
+
+
+def _examples(args: argparse.Namespace) -> int:
+    from temoto.examples import copy_examples
+
+    for folder in copy_examples(args.dir):
+        sys.stdout.write(f"wrote {folder}\n")
+    return 0
 
 
 def _actions(args: argparse.Namespace) -> int:
@@ -416,4 +503,5 @@ COMMANDS: tuple[Command, ...] = (
     Command("router", add_router, router_command),
     Command("view", add_view, view_command),
     Command("keys", add_keys, keys_command),
+    Command("examples", _add_examples, _examples),
 )

@@ -31,6 +31,8 @@ from typing import Any, Final
 
 import yaml
 
+from temoto._files import read_regular_text
+from temoto._yaml import safe_load_strict
 from temoto.clock import Clock, MonotonicClock
 from temoto.drivers import Actuator, Vehicle, driver_class
 from temoto.drivers import profile as fields
@@ -205,11 +207,11 @@ def load_profile(path: str | Path, *, clock: Clock | None = None) -> Profile:
     """
     file = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = read_regular_text(path)
     except OSError as err:
         raise ProfileError(f"cannot read: {err.strerror or err}", file=file) from None
     try:
-        raw = yaml.safe_load(text)
+        raw = safe_load_strict(text)
     except yaml.YAMLError as err:
         raise _yaml_error(err, file) from None
     return parse_profile(raw, file=file, clock=clock)

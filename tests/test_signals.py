@@ -108,8 +108,8 @@ BUSY_GRAPH = {
 
 #: A program that holds a Process Manager: it loads, from a thread that then ends, a shell that
 #: starts a grandchild and prints its pid; then it prints "ready" and waits to be killed.
-MANAGER_PARENT = """
-import sys, threading, time
+MANAGER_PARENT = r"""
+import os, sys, threading, time
 from temoto.core.registrar import Registrar
 from temoto.managers import ProcessManager
 from temoto.managers.process import ProcessRequest
@@ -120,7 +120,9 @@ shell = "sleep 300 & echo grandchild $!; sleep 300"
 
 def load():
     ref = registrar.call("process", ProcessRequest("sh", ("-c", shell)), client="c")
-    print("child", ref.response.pid, flush=True)
+    # one write(2) of a whole line: the grandchild writes to the same pipe, and print()'s
+    # pieces could interleave with its line ("childgrandchild 6643", " 6641")
+    os.write(1, f"child {ref.response.pid}\n".encode())
 
 loader = threading.Thread(target=load)
 loader.start()
@@ -148,6 +150,28 @@ def none_left(check: ProcessLeakCheck, within: float = 3.0) -> list[int]:
     return left
 
 
+#: The commands a test started, ended and closed after it by :func:`_end_commands`.
+_STARTED: list[subprocess.Popen[bytes]] = []
+
+
+@pytest.fixture(autouse=True)
+def _end_commands() -> Iterator[None]:
+    """After each test, also a failed one: no command left running, no pipe left open.
+
+    A test failing before it waited for its command left both to the garbage collector, whose
+    ResourceWarning then failed a later test (test_structure's import check, issue 27).
+    """
+    yield
+    while _STARTED:
+        proc = _STARTED.pop()
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        for stream in (proc.stdout, proc.stderr):
+            if stream is not None:
+                stream.close()
+
+
 class Command:
     """A ``temoto`` command in a subprocess, its standard output read line by line."""
 
@@ -159,6 +183,7 @@ class Command:
             env={**os.environ, **(env or {})},
             cwd=ROOT,
         )
+        _STARTED.append(self.proc)
         self.lines: list[str] = []
         self._buf = b""
 
@@ -319,18 +344,23 @@ def test_children_and_grandchildren_die_with_a_sigkilled_manager(
     leaks: ProcessLeakCheck,
 ) -> None:
     parent = Command(["-c", textwrap.dedent(MANAGER_PARENT)])
-    child = int(parent.wait_for("child ").split()[1])
-    grandchild = int(parent.wait_for("grandchild ").split()[1])
-    parent.wait_for("ready")
-    # Alive after the thread that loaded the child ended (the parent-death signal is tied to
-    # the forking thread, so that thread must not be the caller's).
-    assert {child, grandchild} <= set(leaks.leftovers())
-    os.kill(parent.proc.pid, signal.SIGKILL)
-    # Not communicate(): a child left alive would hold the output pipe open.
-    assert parent.proc.wait(5) == -signal.SIGKILL
     try:
+        child = int(parent.wait_for("child ").split()[1])
+        grandchild = int(parent.wait_for("grandchild ").split()[1])
+        parent.wait_for("ready")
+        # Alive after the thread that loaded the child ended (the parent-death signal is tied
+        # to the forking thread, so that thread must not be the caller's).
+        assert {child, grandchild} <= set(leaks.leftovers())
+        os.kill(parent.proc.pid, signal.SIGKILL)
+        # Not communicate(): a child left alive would hold the output pipe open.
+        assert parent.proc.wait(5) == -signal.SIGKILL
         assert none_left(leaks) == []
     finally:
+        # on every way out, also a failed wait above: no process or pipe is left for the
+        # garbage collector to warn about in a later test (a ResourceWarning is an error)
+        if parent.proc.poll() is None:
+            parent.proc.kill()
+            parent.proc.wait()
         for stream in (parent.proc.stdout, parent.proc.stderr):
             if stream is not None:
                 stream.close()

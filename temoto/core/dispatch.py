@@ -38,8 +38,10 @@ _N_PAUSE_REQUESTED = NodeState.PAUSE_REQUESTED
 _N_PAUSED = NodeState.PAUSED
 _N_RUNNING = NodeState.RUNNING
 _N_STOPPING = NodeState.STOPPING
+_G_ERROR = GraphState.ERROR
 _G_PAUSED = GraphState.PAUSED
 _G_RUNNING = GraphState.RUNNING
+_G_STOPPING = GraphState.STOPPING
 _R_ERROR = Result.ERROR
 _R_STOPPED = Result.STOPPED
 _K_EXIT = NodeKind.EXIT
@@ -156,6 +158,44 @@ class EffectDispatcher(RunEvolution):
                 self._on_finished(node, gen, _R_STOPPED, {}, None, fx)
 
     def _run_batch(self, batch: list[tuple[Node, int]]) -> None:
+        """Worker: run a batch (:meth:`_run_rounds`); an error of the engine ends its runs.
+
+        An action's own errors never get here (they are the node's result); what does is a
+        fault of the engine itself (a bug, a ``RecursionError``, ``MemoryError``). Left to the
+        pool, it was logged and the run never ended: now the top-level run of every node of the
+        batch ends ``on_error`` with the reason (:meth:`_job_failed`).
+        """
+        try:
+            self._run_rounds(batch)
+        except Exception as err:
+            self._job_failed(batch, err)
+
+    def _job_failed(self, batch: list[tuple[Node, int]], err: Exception) -> None:
+        """End ``on_error`` the top-level runs of a batch whose worker job raised ``err``."""
+        logger.error("engine error in a worker job: %s: %s", type(err).__name__, err, exc_info=err)
+        fx = Effects()
+        with self._lock:
+            ended: set[int] = set()
+            for node, _gen in batch:
+                run = node.run
+                while run.parent_node is not None:
+                    run = run.parent_node.run
+                if id(run) in ended or run.state not in (_G_RUNNING, _G_PAUSED, _G_STOPPING):
+                    continue
+                ended.add(id(run))
+                reason = ActionError(
+                    f"engine error while running {node.name}: {type(err).__name__}: {err}",
+                    graph=run.name,
+                    node=node.name,
+                )
+                run.errors.append(reason)
+                self._end_run(run, _G_ERROR, _R_ERROR, fx)
+        try:
+            self._dispatch(fx, closing=True)
+        except Exception:
+            logger.exception("engine error: cannot carry out the end of the failed runs")
+
+    def _run_rounds(self, batch: list[tuple[Node, int]]) -> None:
         """Worker: run actions, evolve, and go on with what became ready, batch by batch.
 
         Each round runs the prepared actions back to back outside the lock, then takes the

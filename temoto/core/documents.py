@@ -11,9 +11,11 @@ upstream's canonical form. It imports the three others, and none of them imports
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from typing import Any
 
+from temoto._files import read_regular_text
 from temoto.core._gc import collector_paused
 from temoto.core.graph import UmrfGraph, parse_graph
 from temoto.core.params import dump_parameter_tree
@@ -62,7 +64,7 @@ def load_json(path: str | Path, error: ErrorFactory = ConfigError) -> Any:
     """
     file = str(path)
     try:
-        text = Path(path).read_text(encoding="utf-8")
+        text = read_regular_text(path)
     except UnicodeDecodeError as err:
         raise error(f"not UTF-8 text ({err.reason} at byte {err.start})", file=file) from None
     except OSError as err:
@@ -82,10 +84,11 @@ def decode_json(text: str, *, file: str | None = None, error: ErrorFactory = Con
         The decoded document.
 
     Raises:
-        ConfigError: (the ``error`` subclass) if the text is not valid JSON.
+        ConfigError: (the ``error`` subclass) if the text is not valid JSON, or holds a lone
+            UTF-16 surrogate (an escape in D800-DFFF without its pair: no character).
     """
     try:
-        return json.loads(text, parse_constant=_reject_constant)
+        doc = json.loads(text, parse_constant=_reject_constant)
     except json.JSONDecodeError as err:
         raise error(
             f"invalid JSON at line {err.lineno} column {err.colno}: {err.msg}", file=file
@@ -94,6 +97,44 @@ def decode_json(text: str, *, file: str | None = None, error: ErrorFactory = Con
         raise error(f"invalid JSON: {err}", file=file) from None
     except RecursionError:
         raise error("invalid JSON: nested too deeply", file=file) from None
+    if _SURROGATE_ESCAPE.search(text):
+        where = _lone_surrogate(doc, "")
+        if where is not None:
+            raise error(
+                "a lone UTF-16 surrogate (\\ud800-\\udfff without its pair) is no character",
+                file=file,
+                path=where,
+            )
+    return doc
+
+
+#: a JSON escape of a UTF-16 surrogate: the only way one gets into a decoded document
+_SURROGATE_ESCAPE = re.compile(r"\\u[dD][89a-fA-F]")
+
+
+def _lone_surrogate(value: Any, path: str) -> str | None:
+    """The key path of the first string (key or value) holding a lone surrogate, or None."""
+    if isinstance(value, str):
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:
+            return path
+        return None
+    if isinstance(value, dict):
+        for key, item in value.items():
+            inner = f"{path}.{key}" if path else str(key)
+            found = _lone_surrogate(key, path or "(a key)")
+            if found is not None:
+                return found
+            found = _lone_surrogate(item, inner)
+            if found is not None:
+                return found
+    elif isinstance(value, list):
+        for i, item in enumerate(value):
+            found = _lone_surrogate(item, f"{path}[{i}]")
+            if found is not None:
+                return found
+    return None
 
 
 def load_umrf(path: str | Path, *, warnings: list[str] | None = None) -> Umrf:

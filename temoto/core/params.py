@@ -257,6 +257,14 @@ class _TreeParser:
         try:
             return check_value(pvf_type, raw)
         except TypeError as err:
+            if NATIVE_TYPES[pvf_type][1] and isinstance(raw, list | tuple):  # the wrong element
+                for i, item in enumerate(raw):
+                    try:
+                        check_value(pvf_type[:-1], item)
+                    except (TypeError, KeyError) as bad:
+                        raise self.fail(
+                            f"{path}[{i}]", f"{bad} for type '{pvf_type}', got {kind_of(item)}"
+                        ) from None
             raise self.fail(path, f"{err} for type '{pvf_type}', got {kind_of(raw)}") from None
 
     def flag(self, raw: dict[str, Any], key: str, path: str) -> bool:

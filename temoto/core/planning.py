@@ -34,10 +34,15 @@ from temoto.errors import ActionNotFoundError, GraphDefinitionError, GraphInputE
 if TYPE_CHECKING:
     from temoto.core.action import Action
 
-__all__ = ["Planner", "graph_inputs"]
+__all__ = ["MAX_SUBGRAPH_DEPTH", "Planner", "graph_inputs"]
 
 logger = logging.getLogger(__name__)
 
+
+#: How deep sub-graphs may be nested (a graph using a graph using a graph ...): the engine ends
+#: a sub-graph's run by ending its parent's node, one call inside the other, so a deeper chain
+#: would exhaust Python's recursion limit in a worker and leave the run without an end.
+MAX_SUBGRAPH_DEPTH = 100
 
 #: How many plans a planner remembers (by graph object; see :meth:`Planner.plan`).
 PLAN_CACHE_SIZE = 64
@@ -95,7 +100,8 @@ class Planner:
 
         Raises:
             GraphDefinitionError: The graph cannot run (all problems listed), names other actors,
-                or uses itself as a sub-graph.
+                uses itself as a sub-graph, or nests sub-graphs more than
+                :data:`MAX_SUBGRAPH_DEPTH` deep.
             ActionNotFoundError, PluginConflictError, PluginLoadError: An action cannot be
                 loaded.
         """
@@ -176,6 +182,13 @@ class Planner:
                 return _merge(graph, umrf, description), how
         sub = self.graphs.find_subgraph(umrf)
         if sub is not None:
+            if len(stack) > MAX_SUBGRAPH_DEPTH:
+                shown = [*stack[:3], "...", *stack[-2:], sub.name]
+                raise GraphDefinitionError(
+                    f"sub-graphs nested more than {MAX_SUBGRAPH_DEPTH} deep (the limit):"
+                    f" {' -> '.join(shown)}",
+                    file=graph.source,
+                )
             if sub.name in stack:
                 chain = " -> ".join((*stack, sub.name))
                 raise GraphDefinitionError(

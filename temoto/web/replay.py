@@ -32,6 +32,7 @@ from http import HTTPStatus
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, final
 
+from temoto._files import read_regular_text
 from temoto.errors import ConfigError
 from temoto.web.server import Site
 from temoto.web.view import graph_picture
@@ -153,7 +154,7 @@ def read_trace(path: Path) -> Recording:
     """
     file = str(path)
     try:
-        text = path.read_text(encoding="utf-8")
+        text = read_regular_text(path)
     except OSError as err:
         raise ConfigError(f"cannot read: {err.strerror or err}", file=file) from None
     name = ""

@@ -1,0 +1,140 @@
+"""Issue 27, item 4: every command and code block of the newcomer's docs runs.
+
+A doctest-like runner over README.md, docs/umrf-guide.md and docs/python-api.md: each fenced
+``sh`` block runs with bash (``set -e``: every command of it must succeed) from the repository's
+root, each ``python`` block as a script of its own (``json`` blocks are excerpts). A block
+that needs hardware, a long time, the network or a package outside ``[dev]`` says so just
+above its fence::
+
+    <!-- docs-test: skip needs a CAN interface -->
+
+and is reported as skipped with that reason (``pytest -ra`` lists them). ``<!-- docs-test:
+exit N -->`` expects exit status N instead of 0; ``<!-- docs-test: traceback -->`` allows
+the traceback a block shows on purpose. The commands' ``.venv/bin/temoto`` and
+``.venv/bin/python`` run this interpreter (a bare ``temoto``, not on the PATH of a fresh
+clone, fails), so the test checks the tree
+under test, not an installation. A command must leave nothing behind in the repository.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import shlex
+import signal
+import subprocess
+import sys
+from pathlib import Path
+from typing import NamedTuple
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+DOCS = ("README.md", "docs/umrf-guide.md", "docs/python-api.md")
+MARK = re.compile(r"<!--\s*docs-test:\s*(skip|exit|traceback)\s*(.*?)\s*-->")
+ASSIGNMENT = re.compile(r"^[A-Z_][A-Z0-9_]*=\S+$")
+FENCE = re.compile(r"^```(\w*)\s*$")
+BOUND = 120.0  # seconds a block may take on a loaded machine
+
+
+class Block(NamedTuple):
+    doc: str
+    line: int  # of the opening fence, counted from 1
+    lang: str
+    text: str
+    skip: str  # the reason, or ""
+    exit: int
+    traceback: bool  # the block shows one on purpose (`temoto -v run`: an action's)
+
+
+def blocks(doc: str) -> list[Block]:
+    """The fenced blocks of a document, with the marks above them."""
+    lines = (ROOT / doc).read_text(encoding="utf-8").splitlines()
+    found = []
+    i = 0
+    while i < len(lines):
+        m = FENCE.match(lines[i])
+        if m is None:
+            i += 1
+            continue
+        start, lang = i, m.group(1)
+        i += 1
+        body = []
+        while i < len(lines) and not lines[i].startswith("```"):
+            body.append(lines[i])
+            i += 1
+        i += 1
+        skip, code, shows = "", 0, False
+        j = start - 1
+        while j >= 0 and (not lines[j].strip() or MARK.search(lines[j])):
+            mark = MARK.search(lines[j])
+            if mark is not None:
+                if mark.group(1) == "skip":
+                    skip = mark.group(2) or "marked"
+                elif mark.group(1) == "traceback":
+                    shows = True
+                else:
+                    code = int(mark.group(2))
+            j -= 1
+        found.append(Block(doc, start + 1, lang, "\n".join(body) + "\n", skip, code, shows))
+    return found
+
+
+ALL = [b for doc in DOCS for b in blocks(doc) if b.lang in ("sh", "python")]
+
+
+def _shell(text: str) -> str:
+    """A block's commands, with the venv's programs replaced by this interpreter."""
+    py = shlex.quote(sys.executable)
+    RUN = {"temoto": f"{py} -m temoto", "python": py}  # noqa: N806
+    out = []
+    for line in text.splitlines():
+        line = re.sub(r"(?<![\w/.])\.venv/bin/(temoto|python)\b", lambda m: RUN[m.group(1)], line)
+        out.append(line)
+    return "set -e\n" + "\n".join(out) + "\n"
+
+
+def _top_level() -> set[str]:
+    return {p.name for p in ROOT.iterdir() if p.name not in ("__pycache__",)}
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(2 * BOUND)
+@pytest.mark.parametrize("block", ALL, ids=[f"{b.doc}:{b.line}" for b in ALL])
+def test_a_doc_block_runs(block: Block) -> None:
+    if block.skip:
+        pytest.skip(f"{block.doc}:{block.line}: {block.skip}")
+    before = _top_level()
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    if block.lang == "sh":
+        # the shell variables set by the document's earlier blocks (E=examples/umrf-guide)
+        earlier = [b for b in ALL if b.doc == block.doc and b.lang == "sh" and b.line < block.line]
+        assigned = [line for b in earlier for line in b.text.splitlines() if ASSIGNMENT.match(line)]
+        argv = ["bash", "-c", "\n".join(assigned) + "\n" + _shell(block.text)]
+    else:
+        argv = [sys.executable, "-c", block.text]
+    proc = subprocess.Popen(
+        argv,
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        cwd=ROOT,
+        env=env,
+        start_new_session=True,  # a command that outlives the bound is killed with its group
+    )
+    try:
+        _, err = proc.communicate(timeout=BOUND)
+    finally:
+        if proc.poll() is None:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    where = f"{block.doc}:{block.line}"
+    assert proc.returncode == block.exit, f"{where}: exit {proc.returncode}\n{err[-3000:]}"
+    assert block.traceback or "Traceback" not in err, f"{where}\n{err[-3000:]}"
+    left = _top_level() - before
+    assert not left, f"{where} left {sorted(left)} in the repository"
+
+
+def test_the_runner_finds_the_blocks_and_their_marks() -> None:
+    assert len(ALL) > 20
+    assert any(b.skip for b in ALL)
