@@ -57,7 +57,7 @@ from temoto.drivers.can_motor._common import (
     read_link,
     read_members,
 )
-from temoto.drivers.can_motor._driver import CanMotorDriver
+from temoto.drivers.can_motor._driver import GAP_PERIODS, CanMotorDriver
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.profile import Field, ProfileReader, custom, integer, number
 from temoto.drivers.sim import Simulator
@@ -137,6 +137,7 @@ class _Motor:
         "outstanding",
         "replies",
         "reply",
+        "seq",
         "temperature",
         "unanswered",
         "unasked",
@@ -151,6 +152,7 @@ class _Motor:
     def reset(self) -> None:
         self.reply: tuple[float, float, float, float] | None = None  # p, v, t, stamp
         self.replies = 0
+        self.seq = 0  # the receive thread's frame number of the newest reply
         #: frames sent and not answered yet (a motor answers every frame, in order), forgotten
         #: when the supervisor finds the motor silent
         self.outstanding = 0
@@ -222,12 +224,15 @@ class MitMotorDriver(CanMotorDriver):
                 f"the poll period 1/{poll_rate} s must be at most half the can_timeout"
                 f" ({can_timeout} s)"
             )
+        period = 1.0 / poll_rate
         super().__init__(
             name,
             link=link,
             clock=clock,
             init_timeout=init_timeout,
-            supervise_period=1.0 / poll_rate,
+            supervise_period=period,
+            # a gap longer than the motors' CAN timeout may have zeroed their commands
+            gap_limit=min(GAP_PERIODS * period, can_timeout or math.inf),
         )
         self.motors = tuple(motors)
         self.poll_rate = poll_rate
@@ -237,6 +242,8 @@ class MitMotorDriver(CanMotorDriver):
         #: Malformed replies received since the driver was made.
         self._bad_window = FaultWindow(BAD_REPLIES_LIMIT, BAD_FRAMES_WINDOW)
         self._bad: str | None = None  # why the bus's replies are a fault, until a good one
+        #: Why a gap in the loop outlasted the motors' CAN timeout (a fault until recover()).
+        self._expired: str | None = None
         self._cache = [_Motor(m, 1.0 / poll_rate, timeout_periods) for m in self.motors]
         self._by_id = {c.motor.motor_id: c for c in self._cache}
         self._by_joint = {c.motor.joint: c for c in self._cache}
@@ -358,6 +365,7 @@ class MitMotorDriver(CanMotorDriver):
             c.reset()
         self._latched = False
         self._bad = None
+        self._expired = None
         self._bad_window.clear()
         self._open()
         with self._held_lock:
@@ -438,6 +446,7 @@ class MitMotorDriver(CanMotorDriver):
             self.on_configure()
             return
         self._bad = None
+        self._expired = None
         self._bad_window.clear()
         for c in self._cache:
             c.unasked.clear()
@@ -523,7 +532,8 @@ class MitMotorDriver(CanMotorDriver):
                     f" range ±{top} (motor side)"
                 )
             plan.append((c, mm.encode_command(fields, m.ranges)))
-        self._hold(dict(plan), send=True)
+        wait = self._check_gap(self.clock.monotonic())  # after a gap: held, sent once judged
+        self._hold(dict(plan), send=not wait)
 
     def read_state(self) -> JointStates:
         """The newest reply of every motor (the cache; no bus traffic).
@@ -566,6 +576,7 @@ class MitMotorDriver(CanMotorDriver):
         reply = mm.decode_reply(data, c.motor.ranges)
         was_fine = c.unanswered <= self.timeout_periods and self._bad is None and not c.error
         c.reply = (reply.p, reply.v, reply.t, now)
+        c.seq = self._rx_count
         c.age.feed(now)
         c.temperature = reply.temperature
         c.error = reply.error or 0
@@ -591,14 +602,41 @@ class MitMotorDriver(CanMotorDriver):
     def _on_period(self, now: float) -> None:
         if self._bus is None:
             return
+        waiting = self._resync is not None
         for c in self._cache:
             c.unanswered += 1
             with contextlib.suppress(DriverError), self._held_lock:  # a broken bus shows as
                 if c.unanswered > self.timeout_periods:  # missing replies; the motor is
                     c.outstanding = 0  # silent: what it was sent is lost, not pending
-                self._send_to(c, c.held)
+                frame = c.held
+                if waiting and mm.special(frame) is None:  # a set-point waits for feedback:
+                    frame = self._brake(c)  # the poll that asks for it only damps
+                self._send_to(c, frame)
+
+    @staticmethod
+    def _brake(c: _Motor) -> bytes:
+        """The poll while a gap is judged: v = 0 with the motor's ``kd`` (kp, t_ff 0)."""
+        m = c.motor
+        return mm.encode_command(mm.MitCommand(0.0, 0.0, 0.0, m.kd, 0.0), m.ranges)
+
+    def _on_gap(self, now: float, gap: float) -> None:
+        if self.can_timeout <= 0 or gap <= self.can_timeout:
+            return
+        driving = [c.label() for c in self._cache if mm.special(c.held) is None]
+        if driving:
+            self._expired = (
+                f"the driver's loop stalled for {gap:.3f} s, longer than the motors' can_timeout"
+                f" ({self.can_timeout:g} s): {', '.join(driving)} zeroed their commands;"
+                " recover() and activate() to go on"
+            )
+
+    def _fresh(self, mark: int) -> bool:
+        return all(c.seq > mark for c in self._cache)
 
     def _problem(self, now: float) -> DriverError | None:
+        if self._expired is not None:
+            return DriverTimeoutError(f"{self.name}: {self._expired}")
+        seen = self._link_seen(now)
         for c in self._cache:
             if c.unanswered > self.timeout_periods:
                 return DriverTimeoutError(
@@ -613,7 +651,7 @@ class MitMotorDriver(CanMotorDriver):
                     node_id=c.motor.motor_id,
                     error=c.error,
                 )
-            stale = c.age.stale(min(now, self._rx_seen))
+            stale = c.age.stale(seen)
             if stale is not None:
                 return DriverTimeoutError(f"{self.name}: {stale}")
             if c.unasked.recent(now) >= DUPLICATE_LIMIT:

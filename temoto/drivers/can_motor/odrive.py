@@ -99,6 +99,10 @@ logger = logging.getLogger(__name__)
 
 #: Real seconds :meth:`ODriveDriver.make_safe` waits for the heartbeats that confirm it.
 SAFE_CONFIRM: Final = 0.1
+#: Clock seconds after a stream's stale moment the supervisor wakes to judge it.
+_AFTER: Final = 1e-4
+#: Stream periods between the two looks that find a stream stale.
+_SECOND_LOOK: Final = 0.25
 _MODES: Final = {
     ControlMode.POSITION: cs.ControlMode.POSITION_CONTROL,
     ControlMode.VELOCITY: cs.ControlMode.VELOCITY_CONTROL,
@@ -528,14 +532,18 @@ class ODriveDriver(CanMotorDriver):
                 raise ValueError(f"{self.name}: no joint {c.joint!r} (joints: {self.joint_names})")
             check_limits(c.joint, axis.node.limits, c.mode.value, c.value)
             plan.append((axis, c))
+        wait = self._check_gap(self.clock.monotonic())  # after a gap: held, sent once judged
         with self._held_lock:  # no re-send of an older set-point can follow this one
             for axis, c in plan:
                 mode = c.mode
                 if axis.mode is not mode:
-                    self._send(
-                        axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
-                        cs.encode_set_controller_mode(_MODES[mode], cs.InputMode.PASSTHROUGH),
-                    )
+                    if wait:
+                        axis.mode_due = True
+                    else:
+                        self._send(
+                            axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
+                            cs.encode_set_controller_mode(_MODES[mode], cs.InputMode.PASSTHROUGH),
+                        )
                     axis.mode = mode
                 if mode is ControlMode.POSITION:
                     data = cs.INPUT_POS.pack(c.value / axis.rad, 0, 0)
@@ -546,7 +554,8 @@ class ODriveDriver(CanMotorDriver):
                 else:
                     torque = c.value / axis.node.gear_ratio
                     axis.held = (axis.ids[cs.Cmd.SET_INPUT_TORQUE], cs.F32_PAD.pack(torque))
-                self._send(*axis.held)
+                if not wait:
+                    self._send(*axis.held)
 
     def read_state(self) -> JointStates:
         """The newest estimate of every joint (the receive thread's cache; no bus traffic).
@@ -601,7 +610,7 @@ class ODriveDriver(CanMotorDriver):
             axis.enc = (pos, vel, now)
             axis.enc_age.feed(now)
             axis.enc_rate.add(now)
-            axis.stale_checks = 0
+            axis.stale_at = None
             if axis.stale is not None:
                 axis.stale = None
                 self._evaluate()
@@ -613,6 +622,7 @@ class ODriveDriver(CanMotorDriver):
                 axis.bad = None
                 axis.malformed.clear()
             axis.error, axis.state, axis.hb_stamp = error, state, now
+            axis.hb_seq = self._rx_count
             axis.beats += 1
             axis.hb_rate.add(now)
             self._notify()
@@ -634,25 +644,13 @@ class ODriveDriver(CanMotorDriver):
     def _on_period(self, now: float) -> None:
         """Judge the encoder streams' age; re-send the held set-points every ``command_period``.
 
-        A stream is stale when, as of the receive thread's last look at the bus, its newest
-        estimate is older than 3 ``encoder_period``, at two supervisor checks in a row.
-        The set-points feed the watchdog.
-
-        Not in ``FAULT`` (unless the safe state ``hold`` was applied): a driver that lost
-        its device or its data stops feeding, so the device's watchdog disarms the axes if
-        nobody makes them safe.
+        The set-points feed the watchdog. Not while a gap in the loop is judged (the devices'
+        feedback after it decides first), and not in ``FAULT`` (unless the safe state ``hold``
+        was applied): a driver that lost its device or its data stops feeding, so the
+        device's watchdog disarms the axes if nobody makes them safe.
         """
-        seen = min(now, self._rx_seen)
-        for axis in self._axes:
-            why = axis.enc_age.stale(seen)
-            if why is None:
-                axis.stale_checks = 0
-                axis.stale = None
-            else:  # stale at two supervisor checks in a row: a fault
-                axis.stale_checks += 1
-                if axis.stale_checks >= 2:
-                    axis.stale = why
-        if not self._feeding or now < self._due_feed:
+        self._judge_streams(now)
+        if not self._feeding or now < self._due_feed or self._resync is not None:
             return
         if not self._holding and self.state is DriverState.FAULT:
             return
@@ -665,10 +663,73 @@ class ODriveDriver(CanMotorDriver):
                     except DriverError as err:  # the link's state shows in the replies
                         logger.debug("driver %s: re-send failed: %s", self.name, err)
 
+    def _judge_streams(self, now: float) -> None:
+        """Mark each axis's encoder stream stale or fresh, as of the link as last seen.
+
+        A stream is stale when its newest estimate is older than 3 ``encoder_period`` as of
+        :meth:`_link_seen`, at two looks a quarter of a period apart (the supervisor wakes for
+        both: :meth:`_deadline`), so a receive thread that was slow to take a frame, or a
+        frame a little late, is not a fault.
+        """
+        seen = self._link_seen(now)
+        for axis in self._axes:
+            why = axis.enc_age.stale(seen)
+            if why is None:
+                axis.stale = axis.stale_at = None
+            elif axis.stale is None:
+                if axis.stale_at is None:
+                    axis.stale_at = now
+                elif now - axis.stale_at >= axis.enc_age.period * _SECOND_LOOK:
+                    axis.stale = why
+
+    def _deadline(self) -> float:
+        if not self._supervising:
+            return math.inf
+        ends = [
+            a.enc_age.last + a.enc_age.max_age + _AFTER
+            if a.stale_at is None
+            else a.stale_at + a.enc_age.period * _SECOND_LOOK
+            for a in self._axes
+            if a.enc_age.last is not None and a.stale is None
+        ]
+        return min(ends, default=math.inf)
+
+    def _on_deadline(self, now: float) -> None:
+        self._judge_streams(now)
+
+    def _fresh(self, mark: int) -> bool:
+        return all(a.hb_seq > mark for a in self._axes)
+
+    def _ask_feedback(self, now: float) -> None:
+        with contextlib.suppress(DriverError, StateError):
+            self._request_status()
+
+    def _resume(self) -> None:
+        """Send the held set-points (and a mode set while they waited) after a gap."""
+        with self._held_lock:
+            if not self._feeding:
+                return
+            for axis in self._axes:
+                try:
+                    if axis.mode_due and axis.mode is not None:
+                        self._send(
+                            axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
+                            cs.encode_set_controller_mode(
+                                _MODES[axis.mode], cs.InputMode.PASSTHROUGH
+                            ),
+                        )
+                    axis.mode_due = False
+                    if axis.held is not None:
+                        self._send(*axis.held)
+                except DriverError as err:
+                    logger.debug("driver %s: re-send failed: %s", self.name, err)
+            self._due_feed = self.clock.monotonic() + self.command_period
+
     def _problem(self, now: float) -> DriverError | None:
         limit = self.timeout_periods * self.heartbeat_period
+        seen = self._link_seen(now)  # heartbeats queued during a pause are not missing
         for axis in self._axes:
-            if axis.hb_stamp is None or now - axis.hb_stamp > limit:
+            if axis.hb_stamp is None or seen - axis.hb_stamp > limit:
                 return DriverTimeoutError(
                     f"{self.name}: {axis.label()}: no heartbeat within {limit:g} s"
                 )
@@ -677,6 +738,12 @@ class ODriveDriver(CanMotorDriver):
             if axis.bad is not None:
                 return DriverOperationError(f"{self.name}: {axis.bad}")
             if axis.stale is not None:
+                bad = axis.malformed.recent(now)
+                if bad:  # what arrives is corrupt: that is the fault, not silence
+                    return DriverOperationError(
+                        f"{self.name}: {axis.stale}; {bad} malformed frames from the node within"
+                        f" {axis.malformed.window:g} s"
+                    )
                 return DriverTimeoutError(f"{self.name}: {axis.stale}")
             if self._armed and axis.state != cs.AxisState.CLOSED_LOOP_CONTROL:
                 return DriverOperationError(

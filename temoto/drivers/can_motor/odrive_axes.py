@@ -138,13 +138,15 @@ class AxisCache:
         "hb_rate",
         "hb_stamp",
         "held",
+        "hb_seq",
         "ids",
         "malformed",
         "mode",
+        "mode_due",
         "node",
         "rad",
         "stale",
-        "stale_checks",
+        "stale_at",
         "state",
         "torque",
     )
@@ -163,15 +165,17 @@ class AxisCache:
         """Forget everything received (a new configure)."""
         self.hb_stamp: float | None = None
         self.beats = 0  # heartbeats received
+        self.hb_seq = 0  # the receive thread's frame number of the newest heartbeat
         self.state = int(cs.AxisState.UNDEFINED)
         self.error = 0
         self.enc: tuple[float, float, float] | None = None  # pos rev, vel rev/s, stamp
         self.torque = 0.0
         self.mode: ControlMode | None = None
+        self.mode_due = False  # ``mode`` was set while set-points waited (a gap): not sent yet
         self.bad: str | None = None  # why too many frames were malformed
         self.held: tuple[int, bytes] | None = None  # the set-point re-sent while active
-        self.stale: str | None = None  # why the estimates are stale (two checks in a row)
-        self.stale_checks = 0
+        self.stale: str | None = None  # why the estimates are stale (two looks)
+        self.stale_at: float | None = None  # clock time of the first look that found them so
         self.enc_age.reset()
         self.hb_rate.clear()
         self.enc_rate.clear()
