@@ -74,7 +74,11 @@ def bench_stale(quick: bool) -> Results:
     :class:`~temoto.drivers.can_motor.sim.SimODrive` on python-can's ``virtual`` bus in this
     process, encoder estimates every 10 ms; the simulator's ``no_encoder`` fault stops them and
     the time to the driver's FAULT report is taken (goal: within 3 stream periods, 30 ms).
+    Each injection waits a random fraction of a stream period first (seeded): a stream stops
+    at any moment of its period, while the bench's loop would otherwise inject at one phase
+    (just after a frame: right after ``activate`` returns on a reply).
     """
+    import random
     import threading
     import time
 
@@ -104,8 +108,10 @@ def bench_stale(quick: bool) -> Results:
         with driver:
             driver.configure()
             driver.activate()
+            phase = random.Random(25)
             for _ in range(rounds):
                 faulted.clear()
+                time.sleep(phase.uniform(0.0, period))
                 t0 = time.monotonic()
                 sim.inject("no_encoder")
                 if not faulted.wait(2.0):

@@ -43,8 +43,10 @@ __all__ = ["CanMotorDriver"]
 logger = logging.getLogger(__name__)
 
 _RX_POLL: Final = 0.05  # real seconds between stop-flag checks of the receive thread
-#: Supervisor periods a wake may be late by before it is a gap in the driver's loop.
+#: Supervisor periods a wake may be late by before it is a gap in the driver's loop ...
 GAP_PERIODS: Final = 3.0
+#: ... and clock seconds, at least (a busy core delays a wake by tens of ms, no more).
+GAP_MIN: Final = 0.05
 
 
 class CanMotorDriver(Driver):
@@ -57,7 +59,7 @@ class CanMotorDriver(Driver):
         init_timeout: Clock seconds a device may take to answer in configure / activate.
         supervise_period: Clock seconds between supervisor wake-ups.
         gap_limit: Clock seconds between two supervisor wakes that make a gap (default
-            :data:`GAP_PERIODS` supervisor periods).
+            :data:`GAP_PERIODS` supervisor periods, at least :data:`GAP_MIN`).
     """
 
     def __init__(
@@ -89,7 +91,9 @@ class CanMotorDriver(Driver):
         self._rx_seen = -float("inf")
         self._rx_idle = False  # the receive thread waits on an empty queue
         self._rx_count = 0  # frames handled (numbers feedback: fresh after a gap or not)
-        self.gap_limit = GAP_PERIODS * supervise_period if gap_limit is None else gap_limit
+        if gap_limit is None:
+            gap_limit = max(GAP_PERIODS * supervise_period, GAP_MIN)
+        self.gap_limit = gap_limit
         self._gap_lock = threading.Lock()
         self._loop_at: float | None = None  # clock time of the supervisor's latest wake
         #: While not None: the clock time a gap in the loop was found; no set-point goes out

@@ -57,7 +57,7 @@ from temoto.drivers.can_motor._common import (
     read_link,
     read_members,
 )
-from temoto.drivers.can_motor._driver import GAP_PERIODS, CanMotorDriver
+from temoto.drivers.can_motor._driver import GAP_MIN, GAP_PERIODS, CanMotorDriver
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.profile import Field, ProfileReader, custom, integer, number
 from temoto.drivers.sim import Simulator
@@ -232,7 +232,7 @@ class MitMotorDriver(CanMotorDriver):
             init_timeout=init_timeout,
             supervise_period=period,
             # a gap longer than the motors' CAN timeout may have zeroed their commands
-            gap_limit=min(GAP_PERIODS * period, can_timeout or math.inf),
+            gap_limit=min(max(GAP_PERIODS * period, GAP_MIN), can_timeout or math.inf),
         )
         self.motors = tuple(motors)
         self.poll_rate = poll_rate

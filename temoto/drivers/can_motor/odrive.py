@@ -102,7 +102,7 @@ SAFE_CONFIRM: Final = 0.1
 #: Clock seconds after a stream's stale moment the supervisor wakes to judge it.
 _AFTER: Final = 1e-4
 #: Stream periods between the two looks that find a stream stale.
-_SECOND_LOOK: Final = 0.25
+_SECOND_LOOK: Final = 0.1
 _MODES: Final = {
     ControlMode.POSITION: cs.ControlMode.POSITION_CONTROL,
     ControlMode.VELOCITY: cs.ControlMode.VELOCITY_CONTROL,
@@ -667,7 +667,7 @@ class ODriveDriver(CanMotorDriver):
         """Mark each axis's encoder stream stale or fresh, as of the link as last seen.
 
         A stream is stale when its newest estimate is older than 3 ``encoder_period`` as of
-        :meth:`_link_seen`, at two looks a quarter of a period apart (the supervisor wakes for
+        :meth:`_link_seen`, at two looks a tenth of a period apart (the supervisor wakes for
         both: :meth:`_deadline`), so a receive thread that was slow to take a frame, or a
         frame a little late, is not a fault.
         """
