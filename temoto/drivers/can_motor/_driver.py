@@ -17,9 +17,10 @@ late), no set-point goes out until every device sent feedback *after* the receiv
 what queued during the gap; the driver then judges that feedback (:meth:`_problem`) and either
 reports the fault or resumes the held set-points (``docs/driver-can.md``, "Pauses").
 
-Health is derived in one place (:meth:`CanMotorDriver._evaluate`): a problem becomes :meth:`~temoto.drivers.base.Driver.report_fault`; when every device is fine
-again the driver reports itself recovered, except after a motor fault, which stays latched
-until :meth:`~temoto.drivers.base.Driver.recover` cleared it on the device.
+Health is derived in one place (:meth:`CanMotorDriver._evaluate`): a problem becomes
+:meth:`~temoto.drivers.base.Driver.report_fault`; when every device is fine again the driver
+reports itself recovered, except after a motor fault, which stays latched until
+:meth:`~temoto.drivers.base.Driver.recover` cleared it on the device.
 """
 
 from __future__ import annotations
