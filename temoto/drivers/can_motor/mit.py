@@ -126,6 +126,29 @@ class MitMotor:
     limits: JointLimits = field(default_factory=JointLimits)
 
 
+def _past_field(c: _Motor, data: bytes | bytearray, p: float) -> str | None:
+    """Why a reply's position is past the ±p_max field (at its end, or wrapped), or None.
+
+    The CubeMars manual gives the field's range, not what a motor past it sends: a firmware
+    that clamps reports the end of the field, one that converts without clamping wraps to the
+    other end. A jump of more than ``p_max`` between two replies cannot be motion (it would take
+    ``p_max * poll_rate`` rad/s, far beyond every model's ``v_max``), so it is a wrap.
+    """
+    top = c.motor.ranges.p_max
+    raw = data[1] << 8 | data[2]
+    if raw in (0, 0xFFFF):
+        return (
+            f"reported position {p:+.2f} rad is at the end of the MIT position field"
+            f" (±{top:g} rad, p_max of its model)"
+        )
+    if c.reply is not None and abs(p - c.reply[0]) > top:
+        return (
+            f"reported position jumped from {c.reply[0]:+.2f} to {p:+.2f} rad: it wrapped past"
+            f" the end of the MIT position field (±{top:g} rad, p_max of its model)"
+        )
+    return None
+
+
 class _Motor:
     """The receive thread's cache of one motor."""
 
@@ -137,6 +160,7 @@ class _Motor:
         "outstanding",
         "replies",
         "reply",
+        "saturated",
         "seq",
         "temperature",
         "unanswered",
@@ -159,6 +183,8 @@ class _Motor:
         self.unanswered = 0
         self.error = 0
         self.temperature: int | None = None
+        #: Why the reported position is no longer the motor's (past the field's end), or None.
+        self.saturated: str | None = None
         self.held = mm.CMD_EXIT
         self.age.reset()
         self.unasked.clear()
@@ -450,6 +476,7 @@ class MitMotorDriver(CanMotorDriver):
         self._bad_window.clear()
         for c in self._cache:
             c.unasked.clear()
+            c.saturated = None  # judged again from the replies to the pings
         self._hold(dict.fromkeys(self._cache, mm.CMD_EXIT))
         self._ping(mm.CMD_EXIT)
         problem = self._problem(self.clock.monotonic())
@@ -575,6 +602,13 @@ class MitMotorDriver(CanMotorDriver):
             return
         reply = mm.decode_reply(data, c.motor.ranges)
         was_fine = c.unanswered <= self.timeout_periods and self._bad is None and not c.error
+        if c.saturated is None:
+            c.saturated = _past_field(c, data, reply.p)
+            if c.saturated is not None:
+                was_fine = False
+                with self._held_lock:  # its feedback is worthless: it is told to stop
+                    if mm.special(c.held) is None:
+                        c.held = self._brake(c)
         c.reply = (reply.p, reply.v, reply.t, now)
         c.seq = self._rx_count
         c.age.feed(now)
@@ -642,6 +676,11 @@ class MitMotorDriver(CanMotorDriver):
                 return DriverTimeoutError(
                     f"{self.name}: {c.label()}: no reply to {c.unanswered - 1} polls in a row"
                     f" ({self.timeout_periods / self.poll_rate:g} s)"
+                )
+            if c.saturated is not None:
+                return DriverOperationError(
+                    f"{self.name}: {c.label()}: {c.saturated}; its true position is unknown and"
+                    " it was told to stop (v = 0); set its zero (or turn it back) and recover()"
                 )
             if c.error:
                 what = mm.ERROR_CODES.get(c.error, f"error code {c.error}")
