@@ -488,6 +488,7 @@ def test_mit_can_timeout_zeroes_the_command_when_the_host_dies(clock: ManualCloc
     sim, cfg = MitMotorDriver.simulate("arm", mit_config(ch, can_timeout=timeout), clock=clock)
     assert isinstance(sim, SimMitMotor)
     assert sim.can_timeout == timeout
+    sim.motors[1].damping = 1.0  # 3 N·m: 3 rad/s, not a free run past the ±12.5 rad field
     driver = MitMotorDriver.from_profile("arm", cfg, clock=clock, where="devices.arm")
     with sim:
         try:
