@@ -293,7 +293,7 @@ def test_an_axis_dropping_to_idle_is_a_fault_until_recovered(
     got = faults(driver)
     active(driver)
     sim.axes[2].state = cs.AxisState.IDLE  # no error bit: e.g. someone else sent IDLE
-    eventually(lambda: bool(got), 2 * HB, clock)
+    eventually(lambda: bool(got), 3 * HB, clock)  # two heartbeats: not a second device's one
     error = got[0].error
     assert isinstance(error, DriverOperationError)
     assert "node 2 (right)" in str(error)
@@ -347,16 +347,17 @@ def test_two_devices_on_one_node_id_are_reported(clock: ManualClock) -> None:
         {"interface": "virtual", "channel": ch}, [1], clock, heartbeat_period=HB, encoder_period=ENC
     )
     got = faults(driver)
-    with sim, impostor:
+    with sim:
         try:
-            active(driver)
-            eventually(lambda: bool(got), 2 * HB * 20, clock)
+            active(driver)  # the second device comes after arming (before: see test_duplicates)
+            with impostor:
+                eventually(lambda: bool(got), 2 * HB * 20, clock)
         finally:
             driver.shutdown()
     error = got[0].error
     assert isinstance(error, DriverOperationError)
     assert "two devices answer as node 1" in str(error)
-    assert "x the configured rate" in str(error)
+    assert "duplicate ODrive node 1" in str(error)  # not "the axis left CLOSED_LOOP_CONTROL"
 
 
 # ---- ODrive: detect --------------------------------------------------------------------------
@@ -546,10 +547,11 @@ def test_two_mit_motors_on_one_id_are_reported(clock: ManualClock) -> None:
     impostor = SimMitMotor({"interface": "virtual", "channel": ch}, [1], clock)
     driver = MitMotorDriver.from_profile("arm", cfg, clock=clock, where="devices.arm")
     got = faults(driver)
-    with sim, impostor:
+    with sim:
         try:
-            active(driver)
-            eventually(lambda: bool(got), 2.0, clock)
+            active(driver)  # the second motor comes after (before: see test_duplicates)
+            with impostor:
+                eventually(lambda: bool(got), 2.0, clock)
         finally:
             driver.shutdown()
     error = got[0].error

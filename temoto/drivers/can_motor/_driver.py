@@ -27,6 +27,7 @@ from __future__ import annotations
 
 import logging
 import threading
+import time
 from abc import abstractmethod
 from collections.abc import Callable, Mapping
 from typing import Any, Final
@@ -48,6 +49,11 @@ _RX_POLL: Final = 0.05  # real seconds between stop-flag checks of the receive t
 GAP_PERIODS: Final = 3.0
 #: ... and clock seconds, at least (a busy core delays a wake by tens of ms, no more).
 GAP_MIN: Final = 0.05
+#: Real seconds configure and activate listen for a second device's answers after the first
+#: device answered every probe (two devices on one bus answer within microseconds).
+DUPLICATE_LISTEN: Final = 0.05
+#: Probes (requests every device answers) sent to each id to find a second device on it.
+DUPLICATE_PROBES: Final = 6
 
 
 class CanMotorDriver(Driver):
@@ -321,6 +327,16 @@ class CanMotorDriver(Driver):
                     left = min(left, next_nudge - now)
                 self.clock.wait(self._cond, left)
         return True
+
+    def _listen_real(self, seconds: float) -> None:
+        """Let the receive thread take answers for ``seconds`` of real time.
+
+        Real time, like the safe state's confirmation: the clock of a test may stand still.
+        """
+        deadline = time.monotonic() + seconds
+        with self._cond:
+            while (left := deadline - time.monotonic()) > 0 and not self._stop.is_set():
+                self._cond.wait(left)
 
     # ---- health ----------------------------------------------------------------------------
 

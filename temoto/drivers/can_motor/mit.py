@@ -57,7 +57,13 @@ from temoto.drivers.can_motor._common import (
     read_link,
     read_members,
 )
-from temoto.drivers.can_motor._driver import GAP_MIN, GAP_PERIODS, CanMotorDriver
+from temoto.drivers.can_motor._driver import (
+    DUPLICATE_LISTEN,
+    DUPLICATE_PROBES,
+    GAP_MIN,
+    GAP_PERIODS,
+    CanMotorDriver,
+)
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.profile import Field, ProfileReader, custom, integer, number
 from temoto.drivers.sim import Simulator
@@ -161,6 +167,7 @@ class _Motor:
         "replies",
         "reply",
         "saturated",
+        "sent",
         "seq",
         "temperature",
         "unanswered",
@@ -177,6 +184,7 @@ class _Motor:
         self.reply: tuple[float, float, float, float] | None = None  # p, v, t, stamp
         self.replies = 0
         self.seq = 0  # the receive thread's frame number of the newest reply
+        self.sent = 0  # frames sent to it
         #: frames sent and not answered yet (a motor answers every frame, in order), forgotten
         #: when the supervisor finds the motor silent
         self.outstanding = 0
@@ -405,13 +413,56 @@ class MitMotorDriver(CanMotorDriver):
             raise DriverInitError(
                 f"{self.name}: no reply within {self.init_timeout} s from {', '.join(silent)}"
             )
+        self._refuse_duplicates()
         problem = self._problem(self.clock.monotonic())
         if problem is not None:
             raise problem
         self._supervising = True
 
+    def _refuse_duplicates(self) -> None:
+        """Refuse a motor id that two motors answer, before any enters motor mode.
+
+        Each motor is sent *exit motor mode* :data:`DUPLICATE_PROBES` times; once every motor
+        answered them all, the driver listens :data:`DUPLICATE_LISTEN` real seconds more. A
+        motor answers each frame once: more replies than frames (those outstanding before
+        included) are a second motor on the id.
+
+        Raises:
+            DriverInitError: Two motors answer as one id (named: "duplicate MIT motor id").
+        """
+        with self._held_lock:
+            before = {c: (c.replies, c.sent, c.outstanding) for c in self._cache}
+            for _ in range(DUPLICATE_PROBES):
+                for c in self._cache:
+                    self._send_to(c, mm.CMD_EXIT)
+        self._wait_for(
+            lambda: all(c.replies - r >= DUPLICATE_PROBES for c, (r, _, _) in before.items()),
+            self.init_timeout,
+        )
+        self._listen_real(DUPLICATE_LISTEN)
+        for c, (replies, sent, outstanding) in before.items():
+            got, asked = c.replies - replies, c.sent - sent + outstanding
+            if got > asked:
+                motor = c.motor.motor_id
+                raise DriverInitError(
+                    f"{self.name}: duplicate MIT motor id {motor} ({c.motor.joint}): {got}"
+                    f" replies to {asked} frames: two motors answer as id {motor}; give one of"
+                    " them another id. None entered motor mode."
+                )
+
     def on_activate(self) -> None:
-        """Enter motor mode and hold the current position."""
+        """Enter motor mode and hold the current position.
+
+        First makes sure no motor id is answered by two motors (both would enter motor mode).
+
+        Raises:
+            DriverInitError: Two motors answer as one id.
+            DriverError: A motor did not answer.
+        """
+        with self._held_lock:  # out of motor mode while the probes go out
+            for c in self._cache:
+                c.held = mm.CMD_EXIT
+        self._refuse_duplicates()
         self._hold(dict.fromkeys(self._cache, mm.CMD_ENTER))  # the polls now re-send ENTER
         self._ping(mm.CMD_ENTER)
         for c in self._cache:
@@ -500,6 +551,7 @@ class MitMotorDriver(CanMotorDriver):
         """Send a frame to one motor, counted until it answers (``_held_lock`` held)."""
         self._send(c.motor.motor_id, frame)
         c.outstanding += 1
+        c.sent += 1
 
     def _ping(self, frame: bytes) -> None:
         """Send ``frame`` to every motor and wait for each to answer it.
@@ -697,7 +749,7 @@ class MitMotorDriver(CanMotorDriver):
                 return DriverOperationError(
                     f"{self.name}: {c.label()}: more replies than frames sent"
                     f" ({c.unasked.recent(now)} unasked within 1 s): two motors answer as id"
-                    f" {c.motor.motor_id}?"
+                    f" {c.motor.motor_id}? (duplicate MIT motor id {c.motor.motor_id})"
                 )
         if self._bad is not None:
             return DriverOperationError(f"{self.name}: {self._bad}")

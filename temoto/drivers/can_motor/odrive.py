@@ -64,7 +64,11 @@ from temoto.drivers.can_motor._common import (
     check_limits,
     read_link,
 )
-from temoto.drivers.can_motor._driver import CanMotorDriver
+from temoto.drivers.can_motor._driver import (
+    DUPLICATE_LISTEN,
+    DUPLICATE_PROBES,
+    CanMotorDriver,
+)
 from temoto.drivers.can_motor.detect import DETECT_MIN_BEATS, detect
 from temoto.drivers.can_motor.odrive_axes import (
     DUPLICATE_FACTOR,
@@ -101,6 +105,9 @@ logger = logging.getLogger(__name__)
 SAFE_CONFIRM: Final = 0.1
 #: Clock seconds after a stream's stale moment the supervisor wakes to judge it.
 _AFTER: Final = 1e-4
+#: Heartbeat periods an armed axis must stay out of CLOSED_LOOP_CONTROL to be a fault (a
+#: second device on its node id would send a CLOSED_LOOP_CONTROL heartbeat meanwhile).
+_OFF_PERIODS: Final = 1.5
 #: Stream periods between the two looks that find a stream stale.
 _SECOND_LOOK: Final = 0.1
 _MODES: Final = {
@@ -108,6 +115,23 @@ _MODES: Final = {
     ControlMode.VELOCITY: cs.ControlMode.VELOCITY_CONTROL,
     ControlMode.EFFORT: cs.ControlMode.TORQUE_CONTROL,
 }
+
+
+def _alternating(recent: Iterable[tuple[int, int, int]]) -> str | None:
+    """Why these heartbeats come from two devices (A, B, A with no state asked), or None."""
+    runs: list[tuple[int, int]] = []
+    asked: set[int] = set()
+    for state, error, requests in recent:
+        asked.add(requests)
+        if not runs or runs[-1] != (state, error):
+            runs.append((state, error))
+    if len(asked) > 1 or len(set(runs)) == len(runs):
+        return None
+    (s0, e0), (s1, e1) = runs[0], next(r for r in runs if r != runs[0])
+    return (
+        f"its heartbeats alternate between {cs.state_name(s0)} (error {e0:#x})"
+        f" and {cs.state_name(s1)} (error {e1:#x})"
+    )
 
 
 class ODriveDriver(CanMotorDriver):
@@ -193,6 +217,7 @@ class ODriveDriver(CanMotorDriver):
         self._holding = False  # ... also in FAULT: the safe state "hold" is applied
         self._due_feed = -math.inf
         self._held_lock = threading.Lock()  # a held set-point and its sending, together
+        self._state_requests = 0  # Set_Axis_State frames sent (a heartbeat's change asked for)
         self._axes = [AxisCache(n, heartbeat_period, encoder_period) for n in self.nodes]
         self._by_joint = {a.node.joint: a for a in self._axes}
         self._rx: dict[int, tuple[AxisCache, int]] = {}
@@ -341,16 +366,65 @@ class ODriveDriver(CanMotorDriver):
             raise DriverInitError(
                 f"{self.name}: no heartbeat within {self.init_timeout} s from {', '.join(silent)}"
             )
+        self._refuse_duplicates()
         problem = self._problem(self.clock.monotonic())
         if problem is not None:
             raise problem
         self._supervising = True
 
+    def _refuse_duplicates(self) -> None:
+        """Refuse a node id that two devices answer, before anything is armed.
+
+        Each node is asked for its heartbeat :data:`DUPLICATE_PROBES` times at once (RTR);
+        once every node answered them all, the driver listens :data:`DUPLICATE_LISTEN` real
+        seconds more. One device answers each request once, plus the cyclic heartbeats of the
+        time it took and the answers to earlier requests still due; two devices answer every
+        request twice, so at least twice the probes (and more than one device's most) are a
+        second device on the id.
+
+        Raises:
+            DriverInitError: Two devices answer as one node (named: "duplicate ODrive node").
+        """
+        start = self.clock.monotonic()
+        before = [(a.beats, a.hb_rate.asked) for a in self._axes]  # asked: answers still due
+        for _ in range(DUPLICATE_PROBES):
+            for axis in self._axes:
+                axis.hb_rate.ask()
+                self._send(axis.ids[cs.Cmd.HEARTBEAT], b"", remote=True)
+        self._wait_for(
+            lambda: all(
+                a.beats - n >= DUPLICATE_PROBES
+                for a, (n, _) in zip(self._axes, before, strict=True)
+            ),
+            self.init_timeout,
+        )
+        self._listen_real(DUPLICATE_LISTEN)
+        elapsed = self.clock.monotonic() - start
+        cyclic = math.floor(elapsed / self.heartbeat_period) + 1  # the most one device sent
+        for axis, (n, due) in zip(self._axes, before, strict=True):
+            got = axis.beats - n
+            most = max(2 * DUPLICATE_PROBES - 1, DUPLICATE_PROBES + cyclic + due)
+            if got > most:
+                node = axis.node.node_id
+                raise DriverInitError(
+                    f"{self.name}: duplicate ODrive node {node} ({axis.node.joint}):"
+                    f" {got} heartbeats answered {DUPLICATE_PROBES} requests in {elapsed:.3f} s"
+                    f" (one device sends at most {most}): two devices answer as node {node};"
+                    " give one of them another node id. Nothing was armed."
+                )
+
     def on_activate(self) -> None:
         """Hold position, enter ``CLOSED_LOOP_CONTROL`` on every axis and wait for it.
 
-        From then on the supervisor re-sends each axis's set-point every ``command_period``.
+        First makes sure no node id is answered by two devices (a second device that came
+        since configure would be armed too). From then on the supervisor re-sends each axis's
+        set-point every ``command_period``.
+
+        Raises:
+            DriverInitError: Two devices answer as one node.
+            DriverError: An axis did not reach ``CLOSED_LOOP_CONTROL``.
         """
+        self._refuse_duplicates()
         with self._held_lock:
             for axis in self._axes:
                 pos = axis.enc[0] if axis.enc is not None else 0.0
@@ -410,6 +484,7 @@ class ODriveDriver(CanMotorDriver):
                         self._send(*axis.held)
                     else:
                         axis.held = None
+                        self._state_requests += 1
                         self._send(
                             axis.ids[cs.Cmd.SET_AXIS_STATE],
                             cs.encode_set_axis_state(cs.AxisState.IDLE),
@@ -467,7 +542,8 @@ class ODriveDriver(CanMotorDriver):
             return
         for axis in self._axes:
             self._send(axis.ids[cs.Cmd.CLEAR_ERRORS], cs.encode_clear_errors())
-            axis.bad = None
+            axis.bad = axis.dup = None
+            axis.recent.clear()
             axis.malformed.clear()
             axis.hb_rate.clear()
             axis.enc_rate.clear()
@@ -494,6 +570,7 @@ class ODriveDriver(CanMotorDriver):
             self._send(axis.ids[cs.Cmd.GET_ENCODER_ESTIMATES], b"", remote=True)
 
     def _request_state(self, state: cs.AxisState) -> None:
+        self._state_requests += 1
         for axis in self._axes:
             self._send(axis.ids[cs.Cmd.SET_AXIS_STATE], cs.encode_set_axis_state(state))
         self._request_status()
@@ -623,6 +700,14 @@ class ODriveDriver(CanMotorDriver):
                 axis.malformed.clear()
             axis.error, axis.state, axis.hb_stamp = error, state, now
             axis.hb_seq = self._rx_count
+            if state == cs.AxisState.CLOSED_LOOP_CONTROL:
+                axis.off_since = None
+            elif axis.off_since is None:
+                axis.off_since = now
+            axis.recent.append((state, error, self._state_requests))
+            if axis.dup is None:
+                axis.dup = _alternating(axis.recent)
+                changed = changed or axis.dup is not None
             axis.beats += 1
             axis.hb_rate.add(now)
             self._notify()
@@ -745,7 +830,19 @@ class ODriveDriver(CanMotorDriver):
                         f" {axis.malformed.window:g} s"
                     )
                 return DriverTimeoutError(f"{self.name}: {axis.stale}")
-            if self._armed and axis.state != cs.AxisState.CLOSED_LOOP_CONTROL:
+            if axis.dup is not None:
+                node = axis.node.node_id
+                return DriverOperationError(
+                    f"{self.name}: {axis.label()}: {axis.dup}: two devices answer as node {node}"
+                    f" (duplicate ODrive node {node}); recovering would arm both: give one of"
+                    " them another node id"
+                )
+            off = axis.off_since
+            if (
+                self._armed
+                and off is not None
+                and seen - off > _OFF_PERIODS * self.heartbeat_period
+            ):
                 return DriverOperationError(
                     f"{self.name}: {axis.label()}: the axis left CLOSED_LOOP_CONTROL (now"
                     f" {cs.state_name(axis.state)}) without an error bit; recover() to go on"
@@ -759,5 +856,6 @@ class ODriveDriver(CanMotorDriver):
                     return DriverOperationError(
                         f"{self.name}: {axis.label()}: {stream} arrive at {excess:.1f}x the"
                         f" configured rate: two devices answer as node {axis.node.node_id}?"
+                        f" (duplicate ODrive node {axis.node.node_id})"
                     )
         return None

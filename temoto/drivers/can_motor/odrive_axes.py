@@ -131,6 +131,7 @@ class AxisCache:
     __slots__ = (
         "bad",
         "beats",
+        "dup",
         "enc",
         "enc_age",
         "enc_rate",
@@ -144,7 +145,9 @@ class AxisCache:
         "mode",
         "mode_due",
         "node",
+        "off_since",
         "rad",
+        "recent",
         "stale",
         "stale_at",
         "state",
@@ -166,6 +169,11 @@ class AxisCache:
         self.hb_stamp: float | None = None
         self.beats = 0  # heartbeats received
         self.hb_seq = 0  # the receive thread's frame number of the newest heartbeat
+        #: The newest heartbeats' (state, error, the driver's state-request count).
+        self.recent: deque[tuple[int, int, int]] = deque(maxlen=6)
+        self.dup: str | None = None  # why two devices answer as this node
+        #: Clock time of the first of the heartbeats in a row out of CLOSED_LOOP_CONTROL.
+        self.off_since: float | None = None
         self.state = int(cs.AxisState.UNDEFINED)
         self.error = 0
         self.enc: tuple[float, float, float] | None = None  # pos rev, vel rev/s, stamp
