@@ -77,7 +77,14 @@ from temoto.errors import (
     StateError,
 )
 
-__all__ = ["BAD_REPLIES_LIMIT", "DUPLICATE_LIMIT", "SAFE_CONFIRM", "MitMotor", "MitMotorDriver"]
+__all__ = [
+    "BAD_REPLIES_LIMIT",
+    "CAN_TIMEOUT_MAX",
+    "DUPLICATE_LIMIT",
+    "SAFE_CONFIRM",
+    "MitMotor",
+    "MitMotorDriver",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -87,6 +94,9 @@ SAFE_CONFIRM: Final = 0.1
 BAD_REPLIES_LIMIT: Final = 2
 #: Unasked replies from one motor within a second that mean two motors share its id.
 DUPLICATE_LIMIT: Final = 5
+#: The longest CAN timeout the AK firmware takes, seconds: its setup menu's ``CAN Timeout
+#: (cycles)`` is 0..100000 cycles of the 40 kHz current loop (``docs/driver-can.md``).
+CAN_TIMEOUT_MAX: Final = 2.5
 _ZERO_TORQUE: Final = mm.MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
 
 _MOTOR_KEYS: Final = frozenset(
@@ -130,6 +140,51 @@ class MitMotor:
     kp: float = 20.0
     kd: float = 1.0
     limits: JointLimits = field(default_factory=JointLimits)
+
+
+def _check_model(
+    reader: ProfileReader,
+    path: str,
+    model: str,
+    ranges: mm.MitRanges,
+    gear: float,
+    limits: JointLimits,
+) -> None:
+    """Refuse joint limits the motor's MIT fields cannot carry (its model's table).
+
+    A joint's position, velocity and torque reach the motor multiplied (torque: divided) by
+    ``gear_ratio``; beyond ±p_max, ±v_max or ±t_max the field clamps, so such a limit would
+    let commands through that the motor cannot be sent.
+
+    Raises:
+        ProfileError: The first limit beyond its field (naming the key, the model and the field).
+    """
+    what = f"the {model}'s"
+    geared = "" if gear == 1 else f" (gear_ratio {gear:g})"
+    reach = max(abs(limits.position_min), abs(limits.position_max))
+    if math.isfinite(reach) and reach * gear > ranges.p_max:
+        key = (
+            "position_max"
+            if abs(limits.position_max) >= abs(limits.position_min)
+            else "position_min"
+        )
+        value = getattr(limits, key)
+        reader.fail(
+            f"{path}.{key}",
+            f"{value:g} rad{geared} is beyond {what} position field ±{ranges.p_max:g} rad (p_max)",
+        )
+    if math.isfinite(limits.velocity) and limits.velocity * gear > ranges.v_max:
+        reader.fail(
+            f"{path}.velocity_limit",
+            f"{limits.velocity:g} rad/s{geared} is above {what} velocity range"
+            f" ±{ranges.v_max:g} rad/s (v_max)",
+        )
+    if math.isfinite(limits.torque) and limits.torque / gear > ranges.t_max:
+        reader.fail(
+            f"{path}.torque_limit",
+            f"{limits.torque:g} N·m{geared} is above {what} torque range ±{ranges.t_max:g} N·m"
+            " (t_max)",
+        )
 
 
 def _past_field(c: _Motor, data: bytes | bytearray, p: float) -> str | None:
@@ -258,6 +313,10 @@ class MitMotorDriver(CanMotorDriver):
                 f"the poll period 1/{poll_rate} s must be at most half the can_timeout"
                 f" ({can_timeout} s)"
             )
+        if can_timeout > CAN_TIMEOUT_MAX:
+            raise ValueError(
+                f"can_timeout {can_timeout} s is above the firmware's maximum {CAN_TIMEOUT_MAX} s"
+            )
         period = 1.0 / poll_rate
         super().__init__(
             name,
@@ -339,9 +398,16 @@ class MitMotorDriver(CanMotorDriver):
                 reader.fail(f"{path}.kd", f"must be at most {ranges.kd_max}")
             gear = reader.field(raw, "gear_ratio", number(1.0), path)
             limits = read_limits(reader, raw, path)
+            _check_model(reader, path, model, ranges, gear, limits)
             motors.append(MitMotor(motor_id, joint, ranges, gear, kp, kd, limits))
         kwargs["motors"] = motors
         rate, timeout = kwargs["poll_rate"], kwargs["can_timeout"]
+        if timeout > CAN_TIMEOUT_MAX:
+            reader.fail(
+                "can_timeout",
+                f"{timeout:g} s is above the motors' firmware maximum {CAN_TIMEOUT_MAX:g} s"
+                " (CAN timeout 0..100000 cycles of the 40 kHz loop)",
+            )
         if timeout > 0 and 1.0 / rate > timeout / 2:
             reader.fail(
                 "can_timeout",

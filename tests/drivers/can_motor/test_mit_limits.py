@@ -9,9 +9,12 @@ one line naming the file and the key.
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import time
 import uuid
 from collections.abc import Callable
+from pathlib import Path
 from typing import Any
 
 import can
@@ -23,7 +26,7 @@ from temoto.drivers.can_motor import mitmode as mm
 from temoto.drivers.can_motor.mit import MitMotorDriver
 from temoto.drivers.can_motor.sim import SimMitMotor
 from temoto.drivers.capabilities import ControlMode, JointCommand
-from temoto.errors import DriverOperationError
+from temoto.errors import DriverOperationError, ProfileError
 
 
 def config(ch: str, **extra: Any) -> dict[str, Any]:
@@ -89,3 +92,101 @@ def test_a_wheel_past_the_position_field_is_a_fault_and_is_stopped(past: str) ->
     assert after, "the motor is no longer polled"
     assert all(abs(v) < 0.05 for v in after), f"still driven after the fault: {after[:5]}"
     assert sim.motors[1].pos > 12.5  # the motor itself turned on past the field
+
+
+# ---- the profile against the model's table ---------------------------------------------------
+
+
+def refused(extra: dict[str, Any], motor: dict[str, Any] | None = None) -> str:
+    entry = config("c", **extra)
+    if motor is not None:
+        entry["motors"] = [{"motor_id": 1, "joint": "shoulder", "model": "AK80-9", **motor}]
+    with pytest.raises(ProfileError) as info:
+        MitMotorDriver.from_profile(
+            "arm", entry, clock=ManualClock(), where="arm.yaml: devices.arm"
+        )
+    return str(info.value)
+
+
+def test_a_can_timeout_above_the_firmware_maximum_is_refused() -> None:
+    text = refused({"can_timeout": 5.0})
+    assert text.startswith("arm.yaml: devices.arm.can_timeout: 5 s is above")
+    assert "maximum 2.5 s" in text
+    assert "\n" not in text
+
+
+@pytest.mark.parametrize(
+    ("motor", "key", "words"),
+    [
+        (
+            {"velocity_limit": 80.0},
+            "velocity_limit",
+            "80 rad/s is above the AK80-9's velocity range ±50",
+        ),
+        (
+            {"position_min": -20.0, "position_max": 20.0},
+            "position_max",
+            "20 rad is beyond the AK80-9's position field ±12.5",
+        ),
+        ({"position_min": -20.0, "position_max": 1.0}, "position_min", "-20 rad is beyond"),
+        ({"torque_limit": 40.0}, "torque_limit", "40 N·m is above the AK80-9's torque range ±18"),
+        (
+            {"velocity_limit": 30.0, "gear_ratio": 2.0},
+            "velocity_limit",
+            "30 rad/s (gear_ratio 2) is above",
+        ),
+    ],
+)
+def test_joint_limits_beyond_the_model_s_fields_are_refused(
+    motor: dict[str, Any], key: str, words: str
+) -> None:
+    text = refused({}, motor)
+    assert text.startswith(f"arm.yaml: devices.arm.motors[0].{key}: "), text
+    assert words in text
+    assert "\n" not in text
+
+
+def test_limits_within_the_fields_and_a_2_5_s_timeout_are_taken() -> None:
+    entry = config("c", can_timeout=2.5)
+    entry["motors"] = [
+        {
+            "motor_id": 1,
+            "joint": "shoulder",
+            "model": "AK80-9",
+            "position_min": -12.5,
+            "position_max": 12.5,
+            "velocity_limit": 50.0,
+            "torque_limit": 18.0,
+        }
+    ]
+    driver = MitMotorDriver.from_profile("arm", entry, clock=ManualClock(), where="arm.yaml")
+    driver.shutdown()
+
+
+def test_the_robot_command_exits_2_with_one_line(tmp_path: Path) -> None:
+    ch = f"mit-profile-{uuid.uuid4().hex[:8]}"
+    profile = tmp_path / "arm.yaml"
+    profile.write_text(
+        "robot: arm_mit\n"
+        "sim: true\n"
+        "devices:\n"
+        "  arm:\n"
+        "    driver: mit_can\n"
+        f"    link: {{interface: virtual, channel: {ch}}}\n"
+        "    motors:\n"
+        "      - {motor_id: 1, joint: shoulder, model: AK80-9}\n"
+        "      - {motor_id: 2, joint: elbow, model: AK80-9, torque_limit: 40}\n"
+    )
+    proc = subprocess.run(
+        [sys.executable, "-m", "temoto.managers.robot", "--profile", str(profile), "--local"],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr[-2000:]
+    lines = proc.stderr.strip().splitlines()
+    assert len(lines) == 1, proc.stderr
+    assert f"{profile}" in lines[0]
+    assert "devices.arm.motors[1].torque_limit" in lines[0]
+    assert "Traceback" not in proc.stderr
