@@ -183,7 +183,7 @@ def test_odrive_make_safe_does_not_wait_for_a_dead_device(
 
 
 def test_odrive_hold_commands_zero_velocity_and_stays_armed(clock: ManualClock) -> None:
-    driver, sim, _ = odrive_rig(clock, safe_state="hold")
+    driver, sim, _ = odrive_rig(clock, safe_state="hold", watchdog_timeout=WATCHDOG)
     with sim:
         try:
             active(driver)
@@ -430,6 +430,7 @@ def test_odrive_profile_keys_are_checked() -> None:
     odrive_bad({"watchdog_timeout": -1}, "watchdog_timeout", "0 .not used. or positive")
     odrive_bad({"watchdog_timeout": 0.08}, "command_period", "half the watchdog_timeout")
     odrive_bad({"command_period": 0}, "command_period", "positive")
+    odrive_bad({"safe_state": "hold"}, "safe_state", "hold needs watchdog_timeout")
     driver = ODriveDriver.from_profile(
         "base",
         odrive_config("c", safe_state="hold", watchdog_timeout=0.5),

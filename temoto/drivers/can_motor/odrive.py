@@ -231,8 +231,8 @@ class ODriveDriver(CanMotorDriver):
     def profile_settings(cls, values: Mapping[str, Any], where: str) -> dict[str, Any]:
         """Constructor arguments from a checked entry (see ``docs/driver-can.md``).
 
-        Checks ``command_period`` against ``watchdog_timeout`` and the ``sim`` rates against
-        the supervised periods, and warns of ``safe_state: hold`` without a watchdog.
+        Checks ``command_period`` against ``watchdog_timeout``, the ``sim`` rates against the
+        supervised periods, and refuses ``safe_state: hold`` without a watchdog.
 
         Args:
             values: The entry's checked values (:meth:`read_profile`).
@@ -255,10 +255,10 @@ class ODriveDriver(CanMotorDriver):
         # checked here, used by simulate()
         sim_rates(reader, values["sim"], kwargs["heartbeat_period"], kwargs["encoder_period"])
         if values["safe_state"] == "hold" and watchdog == 0:
-            logger.warning(
-                "%s.safe_state: hold without watchdog_timeout: the axes stay armed at 0 rev/s"
-                " after TeMoto exits; enable the ODrives' watchdog (docs/driver-can.md)",
-                where,
+            reader.fail(
+                "safe_state",
+                "hold needs watchdog_timeout (the ODrives' axis watchdog): without it the axes"
+                " stay armed at 0 rev/s after TeMoto exits; set watchdog_timeout, or use idle",
             )
         return kwargs
 
