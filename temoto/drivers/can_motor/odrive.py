@@ -399,6 +399,8 @@ class ODriveDriver(CanMotorDriver):
             self.init_timeout,
         )
         self._listen_real(DUPLICATE_LISTEN)
+        for axis in self._axes:  # the probe's answers are not the cyclic rate: count anew
+            axis.hb_rate.clear()
         elapsed = self.clock.monotonic() - start
         cyclic = math.floor(elapsed / self.heartbeat_period) + 1  # the most one device sent
         for axis, (n, due) in zip(self._axes, before, strict=True):
