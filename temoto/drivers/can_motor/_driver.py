@@ -47,7 +47,7 @@ logger = logging.getLogger(__name__)
 _RX_POLL: Final = 0.05  # real seconds between stop-flag checks of the receive thread
 #: Supervisor periods a wake may be late by before it is a gap in the driver's loop ...
 GAP_PERIODS: Final = 3.0
-#: ... and clock seconds, at least (a busy core delays a wake by tens of ms, no more).
+#: ... and real seconds, at least (a busy core delays a wake by tens of ms, no more).
 GAP_MIN: Final = 0.05
 #: Real seconds configure and activate listen for a second device's answers after the first
 #: device answered every probe (two devices on one bus answer within microseconds).
@@ -66,7 +66,7 @@ class CanMotorDriver(Driver):
         init_timeout: Clock seconds a device may take to answer in configure / activate.
         supervise_period: Clock seconds between supervisor wake-ups.
         gap_limit: Clock seconds between two supervisor wakes that make a gap (default
-            :data:`GAP_PERIODS` supervisor periods, at least :data:`GAP_MIN`).
+            :data:`GAP_PERIODS` supervisor periods, at least :data:`GAP_MIN` real seconds).
     """
 
     def __init__(
@@ -97,9 +97,11 @@ class CanMotorDriver(Driver):
         #: stale as of then (or now, while it waits: :meth:`_link_seen`).
         self._rx_seen = -float("inf")
         self._rx_idle = False  # the receive thread waits on an empty queue
+        self._seen_hi = -float("inf")  # the latest _link_seen answer: it never goes back
         self._rx_count = 0  # frames handled (numbers feedback: fresh after a gap or not)
+        floor = GAP_MIN / self.clock.real_seconds(1.0)  # GAP_MIN real seconds, on the clock
         if gap_limit is None:
-            gap_limit = max(GAP_PERIODS * supervise_period, GAP_MIN)
+            gap_limit = max(GAP_PERIODS * supervise_period, floor)
         self.gap_limit = gap_limit
         self._gap_lock = threading.Lock()
         self._loop_at: float | None = None  # clock time of the supervisor's latest wake
@@ -118,6 +120,7 @@ class CanMotorDriver(Driver):
         self._bus = open_bus(self.link, f"{self.name}")
         self._stop.clear()
         self._loop_at = None
+        self._seen_hi = -float("inf")
         self._end_resync()
         self._threads = [
             threading.Thread(target=self._rx_loop, name=f"temoto-can-{self.name}-rx"),
@@ -195,11 +198,13 @@ class CanMotorDriver(Driver):
         """The clock time as of which the receive thread has handled everything on the link.
 
         Now while it waits on an empty queue (and no gap in the loop is being judged), else the
-        time it last found the queue empty.
+        time it last found the queue empty; never earlier than an answer given before (the
+        supervisor's and the receive thread's judgements agree).
         """
-        if self._rx_idle and self._resync is None:
-            return now
-        return min(now, self._rx_seen)
+        seen = now if self._rx_idle and self._resync is None else min(now, self._rx_seen)
+        if seen > self._seen_hi:  # each answer was true when given: later ones never go back
+            self._seen_hi = seen
+        return self._seen_hi
 
     def _sup_loop(self) -> None:
         due = last = self.clock.monotonic()
@@ -207,7 +212,8 @@ class CanMotorDriver(Driver):
             with self._cond:
                 while not self._stop.is_set():
                     wake = due
-                    deadline = self._deadline()
+                    # no stream is judged stale while a gap is (the link is seen as before it)
+                    deadline = self._deadline() if self._resync is None else due
                     if deadline < due:  # never sooner than an eighth of a period after the last
                         wake = max(deadline, last + self.supervise_period / 8)
                     left = wake - self.clock.monotonic()

@@ -46,7 +46,7 @@ from typing import Any, ClassVar, Final
 
 import can
 
-from temoto.clock import Clock
+from temoto.clock import Clock, MonotonicClock
 from temoto.drivers.base import DriverState
 from temoto.drivers.can_motor import mitmode as mm
 from temoto.drivers.can_motor._common import (
@@ -325,7 +325,10 @@ class MitMotorDriver(CanMotorDriver):
             init_timeout=init_timeout,
             supervise_period=period,
             # a gap longer than the motors' CAN timeout may have zeroed their commands
-            gap_limit=min(max(GAP_PERIODS * period, GAP_MIN), can_timeout or math.inf),
+            gap_limit=min(
+                max(GAP_PERIODS * period, GAP_MIN / (clock or MonotonicClock()).real_seconds(1.0)),
+                can_timeout or math.inf,
+            ),
         )
         self.motors = tuple(motors)
         self.poll_rate = poll_rate

@@ -81,6 +81,7 @@ from temoto.drivers.can_motor.odrive_settings import read_nodes, sim_rates
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.profile import Field, ProfileReader, custom, number
 from temoto.drivers.sim import Simulator
+from temoto.drivers.supervision import stale_periods
 from temoto.errors import (
     DriverError,
     DriverInitError,
@@ -218,7 +219,10 @@ class ODriveDriver(CanMotorDriver):
         self._due_feed = -math.inf
         self._held_lock = threading.Lock()  # a held set-point and its sending, together
         self._state_requests = 0  # Set_Axis_State frames sent (a heartbeat's change asked for)
-        self._axes = [AxisCache(n, heartbeat_period, encoder_period) for n in self.nodes]
+        self._asked_at = -math.inf  # the latest status request while a gap was judged
+        in_process = self.link.get("interface") == "virtual"  # a simulator in our process
+        stale = stale_periods(encoder_period, self.clock.real_seconds(1.0), in_process=in_process)
+        self._axes = [AxisCache(n, heartbeat_period, encoder_period, stale) for n in self.nodes]
         self._by_joint = {a.node.joint: a for a in self._axes}
         self._rx: dict[int, tuple[AxisCache, int]] = {}
         for axis in self._axes:
@@ -788,6 +792,9 @@ class ODriveDriver(CanMotorDriver):
         return all(a.hb_seq > mark for a in self._axes)
 
     def _ask_feedback(self, now: float) -> None:
+        if now - self._asked_at < self.supervise_period:
+            return  # once a period is enough
+        self._asked_at = now
         with contextlib.suppress(DriverError, StateError):
             self._request_status()
 

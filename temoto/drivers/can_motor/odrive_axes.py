@@ -16,7 +16,7 @@ from typing import Final
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor._common import JointLimits
 from temoto.drivers.capabilities import ControlMode
-from temoto.drivers.supervision import FaultWindow, StreamAge
+from temoto.drivers.supervision import STALE_PERIODS, FaultWindow, StreamAge
 from temoto.errors import MotorFaultError
 
 __all__ = [
@@ -126,6 +126,7 @@ class AxisCache:
         node: The node's settings.
         heartbeat_period: Its heartbeat period (s).
         encoder_period: Its encoder estimates' period (s).
+        stale_periods: Periods without an estimate that make them stale.
     """
 
     __slots__ = (
@@ -154,11 +155,17 @@ class AxisCache:
         "torque",
     )
 
-    def __init__(self, node: ODriveNode, heartbeat_period: float, encoder_period: float) -> None:
+    def __init__(
+        self,
+        node: ODriveNode,
+        heartbeat_period: float,
+        encoder_period: float,
+        stale_periods: float = STALE_PERIODS,
+    ) -> None:
         self.node = node
         self.rad = TAU / node.gear_ratio  # motor rev → joint rad
         self.ids = {cmd: cs.arbitration_id(node.node_id, cmd) for cmd in cs.Cmd}
-        self.enc_age = StreamAge(f"{self.label()} encoder estimates", encoder_period)
+        self.enc_age = StreamAge(f"{self.label()} encoder estimates", encoder_period, stale_periods)
         self.hb_rate = StreamRate(heartbeat_period)
         self.enc_rate = StreamRate(encoder_period)
         self.malformed = FaultWindow()
