@@ -799,7 +799,14 @@ class ODriveDriver(CanMotorDriver):
             self._request_status()
 
     def _resume(self) -> None:
-        """Send the held set-points (and a mode set while they waited) after a gap."""
+        """Send the held set-points (and a mode set while they waited) after a gap.
+
+        The streams' rates are counted anew: the backlog drained after the gap came in a burst
+        (spread over more than a window when the receiver is slow), not at the devices' rate.
+        """
+        for axis in self._axes:
+            axis.hb_rate.clear()
+            axis.enc_rate.clear()
         with self._held_lock:
             if not self._feeding:
                 return
