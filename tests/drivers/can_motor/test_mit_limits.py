@@ -32,7 +32,7 @@ from temoto.errors import DriverOperationError, ProfileError
 def config(ch: str, **extra: Any) -> dict[str, Any]:
     return {
         "link": {"interface": "virtual", "channel": ch},
-        "poll_rate": 50.0,
+        "poll_rate": 20.0,
         "init_timeout": 0.5,
         "motors": [
             {"motor_id": 1, "joint": "left_wheel", "model": "AK80-9"},
@@ -49,6 +49,11 @@ def until(pred: Callable[[], bool], clock: ManualClock, seconds: float) -> None:
         assert clock.monotonic() < end, "did not happen in time"
         clock.advance(0.005)
         time.sleep(0.002)  # the simulator's and the driver's threads keep up on a loaded machine
+
+
+def field(h: Health) -> bool:
+    """A fault report about the position field (not a slow reply on a loaded machine)."""
+    return h.state is DriverState.FAULT and "MIT position field" in str(h.error)
 
 
 @pytest.mark.parametrize("past", ["saturate", "wrap"])
@@ -71,10 +76,10 @@ def test_a_wheel_past_the_position_field_is_a_fault_and_is_stopped(past: str) ->
             driver.configure()
             driver.activate()
             driver.command([JointCommand("left_wheel", ControlMode.VELOCITY, 3.0)])
-            until(lambda: driver.state is DriverState.FAULT, clock, 2.0)
+            until(lambda: any(field(h) for h in got), clock, 2.0)
             while wire.recv(0) is not None:  # what went out up to the fault
                 pass
-            for _ in range(20):  # 0.1 s more: the polls go on
+            for _ in range(40):  # 0.2 s more: the polls go on
                 clock.advance(0.005)
                 time.sleep(0.002)
             after = []
@@ -83,7 +88,7 @@ def test_a_wheel_past_the_position_field_is_a_fault_and_is_stopped(past: str) ->
                     after.append(mm.decode_command(bytes(msg.data), mm.MODELS["AK80-9"]).v)
         finally:
             driver.shutdown()
-    error = next(h.error for h in got if h.state is DriverState.FAULT)
+    error = next(h.error for h in got if field(h))
     assert isinstance(error, DriverOperationError)
     text = str(error)
     assert "motor 1 (left_wheel)" in text
