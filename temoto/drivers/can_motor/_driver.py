@@ -12,9 +12,10 @@ stale as of that look, or as of now while the receive thread is waiting on an em
 receive thread has not lost its streams, and a stream that really stopped is seen at once.
 
 **Gaps in the driver's own loop** (a process pause, a GC, a busy core): when the supervisor
-wakes more than ``gap_limit`` clock seconds after its previous wake (or ``command`` finds it so
-late), no set-point goes out until every device sent feedback *after* the receive thread drained
-what queued during the gap; the driver then judges that feedback (:meth:`_problem`) and either
+wakes more than ``gap_limit`` clock seconds (and at least :data:`GAP_MIN` real seconds, or the
+gap limit if shorter) after its previous wake (or ``command`` finds it so late), no set-point
+goes out until every device sent feedback *after* the receive thread drained what queued
+during the gap; the driver then judges that feedback (:meth:`_problem`) and either
 reports the fault or resumes the held set-points (``docs/driver-can.md``, "Pauses").
 
 Health is derived in one place (:meth:`CanMotorDriver._evaluate`): a problem becomes
@@ -105,6 +106,10 @@ class CanMotorDriver(Driver):
         self.gap_limit = gap_limit
         self._gap_lock = threading.Lock()
         self._loop_at: float | None = None  # clock time of the supervisor's latest wake
+        self._loop_real = 0.0  # ... and its real time (time.monotonic)
+        #: Real seconds that must have passed too for a gap (a clock of a test may race ahead
+        #: of the threads without any pause of the process).
+        self._gap_real = min(GAP_MIN, self.clock.real_seconds(gap_limit))
         #: While not None: the clock time a gap in the loop was found; no set-point goes out
         #: until fresh feedback was judged (:meth:`_resync_step`).
         self._resync: float | None = None
@@ -248,9 +253,12 @@ class CanMotorDriver(Driver):
         Returns:
             Whether a gap is being judged (no set-point may go out).
         """
+        real = time.monotonic()
         with self._gap_lock:
             last = self._loop_at
-            if last is not None and now - last > self.gap_limit and self._resync is None:
+            late = last is not None and now - last > self.gap_limit
+            if late and real - self._loop_real > self._gap_real and self._resync is None:
+                assert last is not None
                 gap = now - last
                 self.gaps += 1
                 self.gap_longest = max(self.gap_longest, gap)
@@ -265,7 +273,7 @@ class CanMotorDriver(Driver):
                 )
                 self._on_gap(now, gap)
             if supervisor:
-                self._loop_at = now
+                self._loop_at, self._loop_real = now, real
             return self._resync is not None
 
     def _end_resync(self) -> None:

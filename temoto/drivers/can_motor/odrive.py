@@ -109,6 +109,8 @@ _AFTER: Final = 1e-4
 #: Heartbeat periods an armed axis must stay out of CLOSED_LOOP_CONTROL to be a fault (a
 #: second device on its node id would send a CLOSED_LOOP_CONTROL heartbeat meanwhile).
 _OFF_PERIODS: Final = 1.5
+#: Answers to requests from before the duplicate probe that may still come during it.
+_LATE_ANSWERS: Final = 2
 #: Stream periods between the two looks that find a stream stale.
 _SECOND_LOOK: Final = 0.1
 _MODES: Final = {
@@ -379,26 +381,27 @@ class ODriveDriver(CanMotorDriver):
     def _refuse_duplicates(self) -> None:
         """Refuse a node id that two devices answer, before anything is armed.
 
-        Each node is asked for its heartbeat :data:`DUPLICATE_PROBES` times at once (RTR);
-        once every node answered them all, the driver listens :data:`DUPLICATE_LISTEN` real
-        seconds more. One device answers each request once, plus the cyclic heartbeats of the
-        time it took and the answers to earlier requests still due; two devices answer every
-        request twice, so at least twice the probes (and more than one device's most) are a
-        second device on the id.
+        After :data:`DUPLICATE_LISTEN` real seconds for the answers to earlier requests, each
+        node is asked for its heartbeat :data:`DUPLICATE_PROBES` times at once (RTR); once
+        every node answered them all, the driver listens :data:`DUPLICATE_LISTEN` real seconds
+        more. One device answers each request once, plus the cyclic heartbeats of the time it
+        took and a few late answers to earlier requests; two devices answer every request
+        twice, so at least twice the probes, and more than one device's most, are a second
+        device on the id.
 
         Raises:
             DriverInitError: Two devices answer as one node (named: "duplicate ODrive node").
         """
+        self._listen_real(DUPLICATE_LISTEN)  # answers to earlier requests come in first
         start = self.clock.monotonic()
-        before = [(a.beats, a.hb_rate.asked) for a in self._axes]  # asked: answers still due
+        before = [a.beats for a in self._axes]
         for _ in range(DUPLICATE_PROBES):
             for axis in self._axes:
                 axis.hb_rate.ask()
                 self._send(axis.ids[cs.Cmd.HEARTBEAT], b"", remote=True)
         self._wait_for(
             lambda: all(
-                a.beats - n >= DUPLICATE_PROBES
-                for a, (n, _) in zip(self._axes, before, strict=True)
+                a.beats - n >= DUPLICATE_PROBES for a, n in zip(self._axes, before, strict=True)
             ),
             self.init_timeout,
         )
@@ -407,9 +410,9 @@ class ODriveDriver(CanMotorDriver):
             axis.hb_rate.clear()
         elapsed = self.clock.monotonic() - start
         cyclic = math.floor(elapsed / self.heartbeat_period) + 1  # the most one device sent
-        for axis, (n, due) in zip(self._axes, before, strict=True):
+        for axis, n in zip(self._axes, before, strict=True):
             got = axis.beats - n
-            most = max(2 * DUPLICATE_PROBES - 1, DUPLICATE_PROBES + cyclic + due)
+            most = max(2 * DUPLICATE_PROBES - 1, DUPLICATE_PROBES + cyclic + _LATE_ANSWERS)
             if got > most:
                 node = axis.node.node_id
                 raise DriverInitError(
