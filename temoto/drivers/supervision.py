@@ -15,10 +15,28 @@ import math
 from collections import deque
 from typing import Final
 
-__all__ = ["BAD_FRAMES_LIMIT", "BAD_FRAMES_WINDOW", "STALE_PERIODS", "FaultWindow", "StreamAge"]
+__all__ = [
+    "BAD_FRAMES_LIMIT",
+    "BAD_FRAMES_WINDOW",
+    "STALE_PERIODS",
+    "STALE_REAL_FLOOR",
+    "STALE_REAL_FLOOR_IN_PROCESS",
+    "FaultWindow",
+    "StreamAge",
+    "stale_periods",
+]
 
 #: Stream periods without data before a stream is stale.
 STALE_PERIODS: Final = 3.0
+#: Real seconds without data a stream is allowed in any case: a thread of a Python process
+#: cannot be promised the CPU more often than a few of the GIL's 5 ms switch intervals on a
+#: loaded machine. Equal to 3 periods of a 10 ms stream at real time, so it matters only for
+#: faster streams or clocks running faster than real time.
+STALE_REAL_FLOOR: Final = 0.03
+#: The same for a device in our own process (a simulator on python-can's ``virtual`` bus,
+#: which exists only inside one process): its sending threads compete with ours for the
+#: cores and the GIL; at a load average of 9 on 2 cores one was seen silent for 101 ms.
+STALE_REAL_FLOOR_IN_PROCESS: Final = 0.2
 #: Bad frames within :data:`BAD_FRAMES_WINDOW` seconds that make a fault.
 BAD_FRAMES_LIMIT: Final = 5
 #: Seconds of the bad-frame window.
@@ -29,6 +47,21 @@ def _positive(name: str, value: float) -> float:
     if not (isinstance(value, int | float) and value > 0 and math.isfinite(value)):
         raise ValueError(f"{name} must be a positive number, got {value!r}")
     return float(value)
+
+
+def stale_periods(period: float, real_per_clock: float, *, in_process: bool = False) -> float:
+    """How many periods make a stream stale: :data:`STALE_PERIODS`, or more for the floor.
+
+    Args:
+        period: The stream's period, clock seconds.
+        real_per_clock: Real seconds per clock second (``clock.real_seconds(1.0)``).
+        in_process: The device runs in our process (:data:`STALE_REAL_FLOOR_IN_PROCESS`).
+
+    Returns:
+        ``max(STALE_PERIODS, floor / real_per_clock / period)``.
+    """
+    floor = STALE_REAL_FLOOR_IN_PROCESS if in_process else STALE_REAL_FLOOR
+    return max(STALE_PERIODS, floor / real_per_clock / period)
 
 
 class StreamAge:

@@ -158,7 +158,8 @@ def test_odrive_idle_from_fault_is_sent_anyway(
     driver, sim, _ = odrive
     active(driver)
     sim.inject("no_encoder", node=2)
-    eventually(lambda: state(driver) is DriverState.FAULT, 10 * ENC, clock)
+    limit = driver._axes[1].enc_age.max_age  # at least 0.2 s for a simulator in this process
+    eventually(lambda: state(driver) is DriverState.FAULT, limit + 5 * ENC, clock)
     assert driver.make_safe("fault") == "left IDLE, right IDLE"
     assert sim.axes[1].state == sim.axes[2].state == cs.AxisState.IDLE
     seen: set[DriverState] = set()
@@ -183,7 +184,7 @@ def test_odrive_make_safe_does_not_wait_for_a_dead_device(
 
 
 def test_odrive_hold_commands_zero_velocity_and_stays_armed(clock: ManualClock) -> None:
-    driver, sim, _ = odrive_rig(clock, safe_state="hold")
+    driver, sim, _ = odrive_rig(clock, safe_state="hold", watchdog_timeout=WATCHDOG)
     with sim:
         try:
             active(driver)
@@ -275,8 +276,9 @@ def test_stale_encoder_estimates_with_heartbeats_going_on(
     got = faults(driver)
     active(driver)
     sim.inject("no_encoder", node=1)
-    # 3 periods, then stale at two supervisor checks in a row
-    took = eventually(lambda: bool(got), 3 * ENC + 3 * driver.supervise_period, clock)
+    # 3 periods (at least 0.2 s for a simulator in this process), then a second look
+    limit = driver._axes[0].enc_age.max_age
+    took = eventually(lambda: bool(got), limit + 3 * driver.supervise_period, clock)
     assert took > 2 * ENC
     error = got[0].error
     assert isinstance(error, DriverTimeoutError)
@@ -293,7 +295,7 @@ def test_an_axis_dropping_to_idle_is_a_fault_until_recovered(
     got = faults(driver)
     active(driver)
     sim.axes[2].state = cs.AxisState.IDLE  # no error bit: e.g. someone else sent IDLE
-    eventually(lambda: bool(got), 2 * HB, clock)
+    eventually(lambda: bool(got), 3 * HB, clock)  # two heartbeats: not a second device's one
     error = got[0].error
     assert isinstance(error, DriverOperationError)
     assert "node 2 (right)" in str(error)
@@ -347,16 +349,17 @@ def test_two_devices_on_one_node_id_are_reported(clock: ManualClock) -> None:
         {"interface": "virtual", "channel": ch}, [1], clock, heartbeat_period=HB, encoder_period=ENC
     )
     got = faults(driver)
-    with sim, impostor:
+    with sim:
         try:
-            active(driver)
-            eventually(lambda: bool(got), 2 * HB * 20, clock)
+            active(driver)  # the second device comes after arming (before: see test_duplicates)
+            with impostor:
+                eventually(lambda: bool(got), 2 * HB * 20, clock)
         finally:
             driver.shutdown()
     error = got[0].error
     assert isinstance(error, DriverOperationError)
     assert "two devices answer as node 1" in str(error)
-    assert "x the configured rate" in str(error)
+    assert "duplicate ODrive node 1" in str(error)  # not "the axis left CLOSED_LOOP_CONTROL"
 
 
 # ---- ODrive: detect --------------------------------------------------------------------------
@@ -429,6 +432,7 @@ def test_odrive_profile_keys_are_checked() -> None:
     odrive_bad({"watchdog_timeout": -1}, "watchdog_timeout", "0 .not used. or positive")
     odrive_bad({"watchdog_timeout": 0.08}, "command_period", "half the watchdog_timeout")
     odrive_bad({"command_period": 0}, "command_period", "positive")
+    odrive_bad({"safe_state": "hold"}, "safe_state", "hold needs watchdog_timeout")
     driver = ODriveDriver.from_profile(
         "base",
         odrive_config("c", safe_state="hold", watchdog_timeout=0.5),
@@ -488,6 +492,7 @@ def test_mit_can_timeout_zeroes_the_command_when_the_host_dies(clock: ManualCloc
     sim, cfg = MitMotorDriver.simulate("arm", mit_config(ch, can_timeout=timeout), clock=clock)
     assert isinstance(sim, SimMitMotor)
     assert sim.can_timeout == timeout
+    sim.motors[1].damping = 1.0  # 3 N·m: 3 rad/s, not a free run past the ±12.5 rad field
     driver = MitMotorDriver.from_profile("arm", cfg, clock=clock, where="devices.arm")
     with sim:
         try:
@@ -545,10 +550,11 @@ def test_two_mit_motors_on_one_id_are_reported(clock: ManualClock) -> None:
     impostor = SimMitMotor({"interface": "virtual", "channel": ch}, [1], clock)
     driver = MitMotorDriver.from_profile("arm", cfg, clock=clock, where="devices.arm")
     got = faults(driver)
-    with sim, impostor:
+    with sim:
         try:
-            active(driver)
-            eventually(lambda: bool(got), 2.0, clock)
+            active(driver)  # the second motor comes after (before: see test_duplicates)
+            with impostor:
+                eventually(lambda: bool(got), 2.0, clock)
         finally:
             driver.shutdown()
     error = got[0].error

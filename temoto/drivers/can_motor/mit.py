@@ -46,7 +46,7 @@ from typing import Any, ClassVar, Final
 
 import can
 
-from temoto.clock import Clock
+from temoto.clock import Clock, MonotonicClock
 from temoto.drivers.base import DriverState
 from temoto.drivers.can_motor import mitmode as mm
 from temoto.drivers.can_motor._common import (
@@ -57,7 +57,13 @@ from temoto.drivers.can_motor._common import (
     read_link,
     read_members,
 )
-from temoto.drivers.can_motor._driver import CanMotorDriver
+from temoto.drivers.can_motor._driver import (
+    DUPLICATE_LISTEN,
+    DUPLICATE_PROBES,
+    GAP_MIN,
+    GAP_PERIODS,
+    CanMotorDriver,
+)
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.profile import Field, ProfileReader, custom, integer, number
 from temoto.drivers.sim import Simulator
@@ -71,7 +77,14 @@ from temoto.errors import (
     StateError,
 )
 
-__all__ = ["BAD_REPLIES_LIMIT", "DUPLICATE_LIMIT", "SAFE_CONFIRM", "MitMotor", "MitMotorDriver"]
+__all__ = [
+    "BAD_REPLIES_LIMIT",
+    "CAN_TIMEOUT_MAX",
+    "DUPLICATE_LIMIT",
+    "SAFE_CONFIRM",
+    "MitMotor",
+    "MitMotorDriver",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -81,6 +94,9 @@ SAFE_CONFIRM: Final = 0.1
 BAD_REPLIES_LIMIT: Final = 2
 #: Unasked replies from one motor within a second that mean two motors share its id.
 DUPLICATE_LIMIT: Final = 5
+#: The longest CAN timeout the AK firmware takes, seconds: its setup menu's ``CAN Timeout
+#: (cycles)`` is 0..100000 cycles of the 40 kHz current loop (``docs/driver-can.md``).
+CAN_TIMEOUT_MAX: Final = 2.5
 _ZERO_TORQUE: Final = mm.MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
 
 _MOTOR_KEYS: Final = frozenset(
@@ -126,6 +142,74 @@ class MitMotor:
     limits: JointLimits = field(default_factory=JointLimits)
 
 
+def _check_model(
+    reader: ProfileReader,
+    path: str,
+    model: str,
+    ranges: mm.MitRanges,
+    gear: float,
+    limits: JointLimits,
+) -> None:
+    """Refuse joint limits the motor's MIT fields cannot carry (its model's table).
+
+    A joint's position, velocity and torque reach the motor multiplied (torque: divided) by
+    ``gear_ratio``; beyond ±p_max, ±v_max or ±t_max the field clamps, so such a limit would
+    let commands through that the motor cannot be sent.
+
+    Raises:
+        ProfileError: The first limit beyond its field (naming the key, the model and the field).
+    """
+    what = f"the {model}'s"
+    geared = "" if gear == 1 else f" (gear_ratio {gear:g})"
+    reach = max(abs(limits.position_min), abs(limits.position_max))
+    if math.isfinite(reach) and reach * gear > ranges.p_max:
+        key = (
+            "position_max"
+            if abs(limits.position_max) >= abs(limits.position_min)
+            else "position_min"
+        )
+        value = getattr(limits, key)
+        reader.fail(
+            f"{path}.{key}",
+            f"{value:g} rad{geared} is beyond {what} position field ±{ranges.p_max:g} rad (p_max)",
+        )
+    if math.isfinite(limits.velocity) and limits.velocity * gear > ranges.v_max:
+        reader.fail(
+            f"{path}.velocity_limit",
+            f"{limits.velocity:g} rad/s{geared} is above {what} velocity range"
+            f" ±{ranges.v_max:g} rad/s (v_max)",
+        )
+    if math.isfinite(limits.torque) and limits.torque / gear > ranges.t_max:
+        reader.fail(
+            f"{path}.torque_limit",
+            f"{limits.torque:g} N·m{geared} is above {what} torque range ±{ranges.t_max:g} N·m"
+            " (t_max)",
+        )
+
+
+def _past_field(c: _Motor, data: bytes | bytearray, p: float) -> str | None:
+    """Why a reply's position is past the ±p_max field (at its end, or wrapped), or None.
+
+    The CubeMars manual gives the field's range, not what a motor past it sends: a firmware
+    that clamps reports the end of the field, one that converts without clamping wraps to the
+    other end. A jump of more than ``p_max`` between two replies cannot be motion (it would take
+    ``p_max * poll_rate`` rad/s, far beyond every model's ``v_max``), so it is a wrap.
+    """
+    top = c.motor.ranges.p_max
+    raw = data[1] << 8 | data[2]
+    if raw in (0, 0xFFFF):
+        return (
+            f"reported position {p:+.2f} rad is at the end of the MIT position field"
+            f" (±{top:g} rad, p_max of its model)"
+        )
+    if c.reply is not None and abs(p - c.reply[0]) > top:
+        return (
+            f"reported position jumped from {c.reply[0]:+.2f} to {p:+.2f} rad: it wrapped past"
+            f" the end of the MIT position field (±{top:g} rad, p_max of its model)"
+        )
+    return None
+
+
 class _Motor:
     """The receive thread's cache of one motor."""
 
@@ -137,6 +221,9 @@ class _Motor:
         "outstanding",
         "replies",
         "reply",
+        "saturated",
+        "sent",
+        "seq",
         "temperature",
         "unanswered",
         "unasked",
@@ -151,12 +238,16 @@ class _Motor:
     def reset(self) -> None:
         self.reply: tuple[float, float, float, float] | None = None  # p, v, t, stamp
         self.replies = 0
+        self.seq = 0  # the receive thread's frame number of the newest reply
+        self.sent = 0  # frames sent to it
         #: frames sent and not answered yet (a motor answers every frame, in order), forgotten
         #: when the supervisor finds the motor silent
         self.outstanding = 0
         self.unanswered = 0
         self.error = 0
         self.temperature: int | None = None
+        #: Why the reported position is no longer the motor's (past the field's end), or None.
+        self.saturated: str | None = None
         self.held = mm.CMD_EXIT
         self.age.reset()
         self.unasked.clear()
@@ -222,12 +313,22 @@ class MitMotorDriver(CanMotorDriver):
                 f"the poll period 1/{poll_rate} s must be at most half the can_timeout"
                 f" ({can_timeout} s)"
             )
+        if can_timeout > CAN_TIMEOUT_MAX:
+            raise ValueError(
+                f"can_timeout {can_timeout} s is above the firmware's maximum {CAN_TIMEOUT_MAX} s"
+            )
+        period = 1.0 / poll_rate
         super().__init__(
             name,
             link=link,
             clock=clock,
             init_timeout=init_timeout,
-            supervise_period=1.0 / poll_rate,
+            supervise_period=period,
+            # a gap longer than the motors' CAN timeout may have zeroed their commands
+            gap_limit=min(
+                max(GAP_PERIODS * period, GAP_MIN / (clock or MonotonicClock()).real_seconds(1.0)),
+                can_timeout or math.inf,
+            ),
         )
         self.motors = tuple(motors)
         self.poll_rate = poll_rate
@@ -237,6 +338,8 @@ class MitMotorDriver(CanMotorDriver):
         #: Malformed replies received since the driver was made.
         self._bad_window = FaultWindow(BAD_REPLIES_LIMIT, BAD_FRAMES_WINDOW)
         self._bad: str | None = None  # why the bus's replies are a fault, until a good one
+        #: Why a gap in the loop outlasted the motors' CAN timeout (a fault until recover()).
+        self._expired: str | None = None
         self._cache = [_Motor(m, 1.0 / poll_rate, timeout_periods) for m in self.motors]
         self._by_id = {c.motor.motor_id: c for c in self._cache}
         self._by_joint = {c.motor.joint: c for c in self._cache}
@@ -298,9 +401,16 @@ class MitMotorDriver(CanMotorDriver):
                 reader.fail(f"{path}.kd", f"must be at most {ranges.kd_max}")
             gear = reader.field(raw, "gear_ratio", number(1.0), path)
             limits = read_limits(reader, raw, path)
+            _check_model(reader, path, model, ranges, gear, limits)
             motors.append(MitMotor(motor_id, joint, ranges, gear, kp, kd, limits))
         kwargs["motors"] = motors
         rate, timeout = kwargs["poll_rate"], kwargs["can_timeout"]
+        if timeout > CAN_TIMEOUT_MAX:
+            reader.fail(
+                "can_timeout",
+                f"{timeout:g} s is above the motors' firmware maximum {CAN_TIMEOUT_MAX:g} s"
+                " (CAN timeout 0..100000 cycles of the 40 kHz loop)",
+            )
         if timeout > 0 and 1.0 / rate > timeout / 2:
             reader.fail(
                 "can_timeout",
@@ -363,6 +473,7 @@ class MitMotorDriver(CanMotorDriver):
             c.reset()
         self._latched = False
         self._bad = None
+        self._expired = None
         self._bad_window.clear()
         self._open()
         with self._held_lock:
@@ -376,13 +487,56 @@ class MitMotorDriver(CanMotorDriver):
             raise DriverInitError(
                 f"{self.name}: no reply within {self.init_timeout} s from {', '.join(silent)}"
             )
+        self._refuse_duplicates()
         problem = self._problem(self.clock.monotonic())
         if problem is not None:
             raise problem
         self._supervising = True
 
+    def _refuse_duplicates(self) -> None:
+        """Refuse a motor id that two motors answer, before any enters motor mode.
+
+        Each motor is sent *exit motor mode* :data:`DUPLICATE_PROBES` times; once every motor
+        answered them all, the driver listens :data:`DUPLICATE_LISTEN` real seconds more. A
+        motor answers each frame once: more replies than frames (those outstanding before
+        included) are a second motor on the id.
+
+        Raises:
+            DriverInitError: Two motors answer as one id (named: "duplicate MIT motor id").
+        """
+        with self._held_lock:
+            before = {c: (c.replies, c.sent, c.outstanding) for c in self._cache}
+            for _ in range(DUPLICATE_PROBES):
+                for c in self._cache:
+                    self._send_to(c, mm.CMD_EXIT)
+        self._wait_for(
+            lambda: all(c.replies - r >= DUPLICATE_PROBES for c, (r, _, _) in before.items()),
+            self.init_timeout,
+        )
+        self._listen_real(DUPLICATE_LISTEN)
+        for c, (replies, sent, outstanding) in before.items():
+            got, asked = c.replies - replies, c.sent - sent + outstanding
+            if got > asked:
+                motor = c.motor.motor_id
+                raise DriverInitError(
+                    f"{self.name}: duplicate MIT motor id {motor} ({c.motor.joint}): {got}"
+                    f" replies to {asked} frames: two motors answer as id {motor}; give one of"
+                    " them another id. None entered motor mode."
+                )
+
     def on_activate(self) -> None:
-        """Enter motor mode and hold the current position."""
+        """Enter motor mode and hold the current position.
+
+        First makes sure no motor id is answered by two motors (both would enter motor mode).
+
+        Raises:
+            DriverInitError: Two motors answer as one id.
+            DriverError: A motor did not answer.
+        """
+        with self._held_lock:  # out of motor mode while the probes go out
+            for c in self._cache:
+                c.held = mm.CMD_EXIT
+        self._refuse_duplicates()
         self._hold(dict.fromkeys(self._cache, mm.CMD_ENTER))  # the polls now re-send ENTER
         self._ping(mm.CMD_ENTER)
         for c in self._cache:
@@ -443,9 +597,11 @@ class MitMotorDriver(CanMotorDriver):
             self.on_configure()
             return
         self._bad = None
+        self._expired = None
         self._bad_window.clear()
         for c in self._cache:
             c.unasked.clear()
+            c.saturated = None  # judged again from the replies to the pings
         self._hold(dict.fromkeys(self._cache, mm.CMD_EXIT))
         self._ping(mm.CMD_EXIT)
         problem = self._problem(self.clock.monotonic())
@@ -469,6 +625,7 @@ class MitMotorDriver(CanMotorDriver):
         """Send a frame to one motor, counted until it answers (``_held_lock`` held)."""
         self._send(c.motor.motor_id, frame)
         c.outstanding += 1
+        c.sent += 1
 
     def _ping(self, frame: bytes) -> None:
         """Send ``frame`` to every motor and wait for each to answer it.
@@ -528,7 +685,8 @@ class MitMotorDriver(CanMotorDriver):
                     f" range ±{top} (motor side)"
                 )
             plan.append((c, mm.encode_command(fields, m.ranges)))
-        self._hold(dict(plan), send=True)
+        wait = self._check_gap(self.clock.monotonic())  # after a gap: held, sent once judged
+        self._hold(dict(plan), send=not wait)
 
     def read_state(self) -> JointStates:
         """The newest reply of every motor (the cache; no bus traffic).
@@ -570,7 +728,15 @@ class MitMotorDriver(CanMotorDriver):
             return
         reply = mm.decode_reply(data, c.motor.ranges)
         was_fine = c.unanswered <= self.timeout_periods and self._bad is None and not c.error
+        if c.saturated is None:
+            c.saturated = _past_field(c, data, reply.p)
+            if c.saturated is not None:
+                was_fine = False
+                with self._held_lock:  # its feedback is worthless: it is told to stop
+                    if mm.special(c.held) is None:
+                        c.held = self._brake(c)
         c.reply = (reply.p, reply.v, reply.t, now)
+        c.seq = self._rx_count
         c.age.feed(now)
         c.temperature = reply.temperature
         c.error = reply.error or 0
@@ -596,19 +762,51 @@ class MitMotorDriver(CanMotorDriver):
     def _on_period(self, now: float) -> None:
         if self._bus is None:
             return
+        waiting = self._resync is not None
         for c in self._cache:
             c.unanswered += 1
             with contextlib.suppress(DriverError), self._held_lock:  # a broken bus shows as
                 if c.unanswered > self.timeout_periods:  # missing replies; the motor is
                     c.outstanding = 0  # silent: what it was sent is lost, not pending
-                self._send_to(c, c.held)
+                frame = c.held
+                if waiting and mm.special(frame) is None:  # a set-point waits for feedback:
+                    frame = self._brake(c)  # the poll that asks for it only damps
+                self._send_to(c, frame)
+
+    @staticmethod
+    def _brake(c: _Motor) -> bytes:
+        """The poll while a gap is judged: v = 0 with the motor's ``kd`` (kp, t_ff 0)."""
+        m = c.motor
+        return mm.encode_command(mm.MitCommand(0.0, 0.0, 0.0, m.kd, 0.0), m.ranges)
+
+    def _on_gap(self, now: float, gap: float) -> None:
+        if self.can_timeout <= 0 or gap <= self.can_timeout:
+            return
+        driving = [c.label() for c in self._cache if mm.special(c.held) is None]
+        if driving:
+            self._expired = (
+                f"the driver's loop stalled for {gap:.3f} s, longer than the motors' can_timeout"
+                f" ({self.can_timeout:g} s): {', '.join(driving)} zeroed their commands;"
+                " recover() and activate() to go on"
+            )
+
+    def _fresh(self, mark: int) -> bool:
+        return all(c.seq > mark for c in self._cache)
 
     def _problem(self, now: float) -> DriverError | None:
+        if self._expired is not None:
+            return DriverTimeoutError(f"{self.name}: {self._expired}")
+        seen = self._link_seen(now)
         for c in self._cache:
             if c.unanswered > self.timeout_periods:
                 return DriverTimeoutError(
                     f"{self.name}: {c.label()}: no reply to {c.unanswered - 1} polls in a row"
                     f" ({self.timeout_periods / self.poll_rate:g} s)"
+                )
+            if c.saturated is not None:
+                return DriverOperationError(
+                    f"{self.name}: {c.label()}: {c.saturated}; its true position is unknown and"
+                    " it was told to stop (v = 0); set its zero (or turn it back) and recover()"
                 )
             if c.error:
                 what = mm.ERROR_CODES.get(c.error, f"error code {c.error}")
@@ -618,14 +816,14 @@ class MitMotorDriver(CanMotorDriver):
                     node_id=c.motor.motor_id,
                     error=c.error,
                 )
-            stale = c.age.stale(min(now, self._rx_seen))
+            stale = c.age.stale(seen)
             if stale is not None:
                 return DriverTimeoutError(f"{self.name}: {stale}")
             if c.unasked.recent(now) >= DUPLICATE_LIMIT:
                 return DriverOperationError(
                     f"{self.name}: {c.label()}: more replies than frames sent"
                     f" ({c.unasked.recent(now)} unasked within 1 s): two motors answer as id"
-                    f" {c.motor.motor_id}?"
+                    f" {c.motor.motor_id}? (duplicate MIT motor id {c.motor.motor_id})"
                 )
         if self._bad is not None:
             return DriverOperationError(f"{self.name}: {self._bad}")

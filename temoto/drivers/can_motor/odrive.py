@@ -64,7 +64,11 @@ from temoto.drivers.can_motor._common import (
     check_limits,
     read_link,
 )
-from temoto.drivers.can_motor._driver import CanMotorDriver
+from temoto.drivers.can_motor._driver import (
+    DUPLICATE_LISTEN,
+    DUPLICATE_PROBES,
+    CanMotorDriver,
+)
 from temoto.drivers.can_motor.detect import DETECT_MIN_BEATS, detect
 from temoto.drivers.can_motor.odrive_axes import (
     DUPLICATE_FACTOR,
@@ -77,6 +81,7 @@ from temoto.drivers.can_motor.odrive_settings import read_nodes, sim_rates
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.profile import Field, ProfileReader, custom, number
 from temoto.drivers.sim import Simulator
+from temoto.drivers.supervision import stale_periods
 from temoto.errors import (
     DriverError,
     DriverInitError,
@@ -100,11 +105,37 @@ logger = logging.getLogger(__name__)
 
 #: Real seconds :meth:`ODriveDriver.make_safe` waits for the heartbeats that confirm it.
 SAFE_CONFIRM: Final = 0.1
+#: Clock seconds after a stream's stale moment the supervisor wakes to judge it.
+_AFTER: Final = 1e-4
+#: Heartbeat periods an armed axis must stay out of CLOSED_LOOP_CONTROL to be a fault (a
+#: second device on its node id would send a CLOSED_LOOP_CONTROL heartbeat meanwhile).
+_OFF_PERIODS: Final = 1.5
+#: Answers to requests from before the duplicate probe that may still come during it.
+_LATE_ANSWERS: Final = 2
+#: Stream periods between the two looks that find a stream stale.
+_SECOND_LOOK: Final = 0.1
 _MODES: Final = {
     ControlMode.POSITION: cs.ControlMode.POSITION_CONTROL,
     ControlMode.VELOCITY: cs.ControlMode.VELOCITY_CONTROL,
     ControlMode.EFFORT: cs.ControlMode.TORQUE_CONTROL,
 }
+
+
+def _alternating(recent: Iterable[tuple[int, int, int]]) -> str | None:
+    """Why these heartbeats come from two devices (A, B, A with no state asked), or None."""
+    runs: list[tuple[int, int]] = []
+    asked: set[int] = set()
+    for state, error, requests in recent:
+        asked.add(requests)
+        if not runs or runs[-1] != (state, error):
+            runs.append((state, error))
+    if len(asked) > 1 or len(set(runs)) == len(runs):
+        return None
+    (s0, e0), (s1, e1) = runs[0], next(r for r in runs if r != runs[0])
+    return (
+        f"its heartbeats alternate between {cs.state_name(s0)} (error {e0:#x})"
+        f" and {cs.state_name(s1)} (error {e1:#x})"
+    )
 
 
 class ODriveDriver(CanMotorDriver):
@@ -190,7 +221,11 @@ class ODriveDriver(CanMotorDriver):
         self._holding = False  # ... also in FAULT: the safe state "hold" is applied
         self._due_feed = -math.inf
         self._held_lock = threading.Lock()  # a held set-point and its sending, together
-        self._axes = [AxisCache(n, heartbeat_period, encoder_period) for n in self.nodes]
+        self._state_requests = 0  # Set_Axis_State frames sent (a heartbeat's change asked for)
+        self._asked_at = -math.inf  # the latest status request while a gap was judged
+        in_process = self.link.get("interface") == "virtual"  # a simulator in our process
+        stale = stale_periods(encoder_period, self.clock.real_seconds(1.0), in_process=in_process)
+        self._axes = [AxisCache(n, heartbeat_period, encoder_period, stale) for n in self.nodes]
         self._by_joint = {a.node.joint: a for a in self._axes}
         self._rx: dict[int, tuple[AxisCache, int]] = {}
         for axis in self._axes:
@@ -203,8 +238,8 @@ class ODriveDriver(CanMotorDriver):
     def profile_settings(cls, values: Mapping[str, Any], where: str) -> dict[str, Any]:
         """Constructor arguments from a checked entry (see ``docs/driver-can.md``).
 
-        Checks ``command_period`` against ``watchdog_timeout`` and the ``sim`` rates against
-        the supervised periods, and warns of ``safe_state: hold`` without a watchdog.
+        Checks ``command_period`` against ``watchdog_timeout``, the ``sim`` rates against the
+        supervised periods, and refuses ``safe_state: hold`` without a watchdog.
 
         Args:
             values: The entry's checked values (:meth:`read_profile`).
@@ -227,10 +262,10 @@ class ODriveDriver(CanMotorDriver):
         # checked here, used by simulate()
         sim_rates(reader, values["sim"], kwargs["heartbeat_period"], kwargs["encoder_period"])
         if values["safe_state"] == "hold" and watchdog == 0:
-            logger.warning(
-                "%s.safe_state: hold without watchdog_timeout: the axes stay armed at 0 rev/s"
-                " after TeMoto exits; enable the ODrives' watchdog (docs/driver-can.md)",
-                where,
+            reader.fail(
+                "safe_state",
+                "hold needs watchdog_timeout (the ODrives' axis watchdog): without it the axes"
+                " stay armed at 0 rev/s after TeMoto exits; set watchdog_timeout, or use idle",
             )
         return kwargs
 
@@ -348,16 +383,68 @@ class ODriveDriver(CanMotorDriver):
             raise DriverInitError(
                 f"{self.name}: no heartbeat within {self.init_timeout} s from {', '.join(silent)}"
             )
+        self._refuse_duplicates()
         problem = self._problem(self.clock.monotonic())
         if problem is not None:
             raise problem
         self._supervising = True
 
+    def _refuse_duplicates(self) -> None:
+        """Refuse a node id that two devices answer, before anything is armed.
+
+        After :data:`DUPLICATE_LISTEN` real seconds for the answers to earlier requests, each
+        node is asked for its heartbeat :data:`DUPLICATE_PROBES` times at once (RTR); once
+        every node answered them all, the driver listens :data:`DUPLICATE_LISTEN` real seconds
+        more. One device answers each request once, plus the cyclic heartbeats of the time it
+        took and a few late answers to earlier requests; two devices answer every request
+        twice, so at least twice the probes, and more than one device's most, are a second
+        device on the id.
+
+        Raises:
+            DriverInitError: Two devices answer as one node (named: "duplicate ODrive node").
+        """
+        self._listen_real(DUPLICATE_LISTEN)  # answers to earlier requests come in first
+        start = self.clock.monotonic()
+        before = [a.beats for a in self._axes]
+        for _ in range(DUPLICATE_PROBES):
+            for axis in self._axes:
+                axis.hb_rate.ask()
+                self._send(axis.ids[cs.Cmd.HEARTBEAT], b"", remote=True)
+        self._wait_for(
+            lambda: all(
+                a.beats - n >= DUPLICATE_PROBES for a, n in zip(self._axes, before, strict=True)
+            ),
+            self.init_timeout,
+        )
+        self._listen_real(DUPLICATE_LISTEN)
+        for axis in self._axes:  # the probe's answers are not the cyclic rate: count anew
+            axis.hb_rate.clear()
+        elapsed = self.clock.monotonic() - start
+        cyclic = math.floor(elapsed / self.heartbeat_period) + 1  # the most one device sent
+        for axis, n in zip(self._axes, before, strict=True):
+            got = axis.beats - n
+            most = max(2 * DUPLICATE_PROBES - 1, DUPLICATE_PROBES + cyclic + _LATE_ANSWERS)
+            if got > most:
+                node = axis.node.node_id
+                raise DriverInitError(
+                    f"{self.name}: duplicate ODrive node {node} ({axis.node.joint}):"
+                    f" {got} heartbeats answered {DUPLICATE_PROBES} requests in {elapsed:.3f} s"
+                    f" (one device sends at most {most}): two devices answer as node {node};"
+                    " give one of them another node id. Nothing was armed."
+                )
+
     def on_activate(self) -> None:
         """Hold position, enter ``CLOSED_LOOP_CONTROL`` on every axis and wait for it.
 
-        From then on the supervisor re-sends each axis's set-point every ``command_period``.
+        First makes sure no node id is answered by two devices (a second device that came
+        since configure would be armed too). From then on the supervisor re-sends each axis's
+        set-point every ``command_period``.
+
+        Raises:
+            DriverInitError: Two devices answer as one node.
+            DriverError: An axis did not reach ``CLOSED_LOOP_CONTROL``.
         """
+        self._refuse_duplicates()
         with self._held_lock:
             for axis in self._axes:
                 pos = axis.enc[0] if axis.enc is not None else 0.0
@@ -417,6 +504,7 @@ class ODriveDriver(CanMotorDriver):
                         self._send(*axis.held)
                     else:
                         axis.held = None
+                        self._state_requests += 1
                         self._send(
                             axis.ids[cs.Cmd.SET_AXIS_STATE],
                             cs.encode_set_axis_state(cs.AxisState.IDLE),
@@ -486,7 +574,8 @@ class ODriveDriver(CanMotorDriver):
             return
         for axis in self._axes:
             self._send(axis.ids[cs.Cmd.CLEAR_ERRORS], cs.encode_clear_errors())
-            axis.bad = None
+            axis.bad = axis.dup = None
+            axis.recent.clear()
             axis.malformed.clear()
             axis.hb_rate.clear()
             axis.enc_rate.clear()
@@ -513,6 +602,7 @@ class ODriveDriver(CanMotorDriver):
             self._send(axis.ids[cs.Cmd.GET_ENCODER_ESTIMATES], b"", remote=True)
 
     def _request_state(self, state: cs.AxisState) -> None:
+        self._state_requests += 1
         for axis in self._axes:
             self._send(axis.ids[cs.Cmd.SET_AXIS_STATE], cs.encode_set_axis_state(state))
         self._request_status()
@@ -551,14 +641,18 @@ class ODriveDriver(CanMotorDriver):
                 raise ValueError(f"{self.name}: no joint {c.joint!r} (joints: {self.joint_names})")
             check_limits(c.joint, axis.node.limits, c.mode.value, c.value)
             plan.append((axis, c))
+        wait = self._check_gap(self.clock.monotonic())  # after a gap: held, sent once judged
         with self._held_lock:  # no re-send of an older set-point can follow this one
             for axis, c in plan:
                 mode = c.mode
                 if axis.mode is not mode:
-                    self._send(
-                        axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
-                        cs.encode_set_controller_mode(_MODES[mode], cs.InputMode.PASSTHROUGH),
-                    )
+                    if wait:
+                        axis.mode_due = True
+                    else:
+                        self._send(
+                            axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
+                            cs.encode_set_controller_mode(_MODES[mode], cs.InputMode.PASSTHROUGH),
+                        )
                     axis.mode = mode
                 if mode is ControlMode.POSITION:
                     data = cs.INPUT_POS.pack(c.value / axis.rad, 0, 0)
@@ -569,7 +663,8 @@ class ODriveDriver(CanMotorDriver):
                 else:
                     torque = c.value / axis.node.gear_ratio
                     axis.held = (axis.ids[cs.Cmd.SET_INPUT_TORQUE], cs.F32_PAD.pack(torque))
-                self._send(*axis.held)
+                if not wait:
+                    self._send(*axis.held)
 
     def read_state(self) -> JointStates:
         """The newest estimate of every joint (the receive thread's cache; no bus traffic).
@@ -624,7 +719,7 @@ class ODriveDriver(CanMotorDriver):
             axis.enc = (pos, vel, now)
             axis.enc_age.feed(now)
             axis.enc_rate.add(now)
-            axis.stale_checks = 0
+            axis.stale_at = None
             if axis.stale is not None:
                 axis.stale = None
                 self._evaluate()
@@ -636,6 +731,15 @@ class ODriveDriver(CanMotorDriver):
                 axis.bad = None
                 axis.malformed.clear()
             axis.error, axis.state, axis.hb_stamp = error, state, now
+            axis.hb_seq = self._rx_count
+            if state == cs.AxisState.CLOSED_LOOP_CONTROL:
+                axis.off_since = None
+            elif axis.off_since is None:
+                axis.off_since = now
+            axis.recent.append((state, error, self._state_requests))
+            if axis.dup is None:
+                axis.dup = _alternating(axis.recent)
+                changed = changed or axis.dup is not None
             axis.beats += 1
             axis.hb_rate.add(now)
             self._notify()
@@ -657,25 +761,13 @@ class ODriveDriver(CanMotorDriver):
     def _on_period(self, now: float) -> None:
         """Judge the encoder streams' age; re-send the held set-points every ``command_period``.
 
-        A stream is stale when, as of the receive thread's last look at the bus, its newest
-        estimate is older than 3 ``encoder_period``, at two supervisor checks in a row.
-        The set-points feed the watchdog.
-
-        Not in ``FAULT`` (unless the safe state ``hold`` was applied): a driver that lost
-        its device or its data stops feeding, so the device's watchdog disarms the axes if
-        nobody makes them safe.
+        The set-points feed the watchdog. Not while a gap in the loop is judged (the devices'
+        feedback after it decides first), and not in ``FAULT`` (unless the safe state ``hold``
+        was applied): a driver that lost its device or its data stops feeding, so the
+        device's watchdog disarms the axes if nobody makes them safe.
         """
-        seen = min(now, self._rx_seen)
-        for axis in self._axes:
-            why = axis.enc_age.stale(seen)
-            if why is None:
-                axis.stale_checks = 0
-                axis.stale = None
-            else:  # stale at two supervisor checks in a row: a fault
-                axis.stale_checks += 1
-                if axis.stale_checks >= 2:
-                    axis.stale = why
-        if not self._feeding or now < self._due_feed:
+        self._judge_streams(now)
+        if not self._feeding or now < self._due_feed or self._resync is not None:
             return
         if not self._holding and self.state is DriverState.FAULT:
             return
@@ -688,10 +780,83 @@ class ODriveDriver(CanMotorDriver):
                     except DriverError as err:  # the link's state shows in the replies
                         logger.debug("driver %s: re-send failed: %s", self.name, err)
 
+    def _judge_streams(self, now: float) -> None:
+        """Mark each axis's encoder stream stale or fresh, as of the link as last seen.
+
+        A stream is stale when its newest estimate is older than 3 ``encoder_period`` as of
+        :meth:`_link_seen`, at two looks a tenth of a period apart (the supervisor wakes for
+        both: :meth:`_deadline`), so a receive thread that was slow to take a frame, or a
+        frame a little late, is not a fault.
+        """
+        seen = self._link_seen(now)
+        for axis in self._axes:
+            why = axis.enc_age.stale(seen)
+            if why is None:
+                axis.stale = axis.stale_at = None
+            elif axis.stale is None:
+                if axis.stale_at is None:
+                    axis.stale_at = now
+                elif now - axis.stale_at >= axis.enc_age.period * _SECOND_LOOK:
+                    axis.stale = why
+
+    def _deadline(self) -> float:
+        if not self._supervising:
+            return math.inf
+        ends = [
+            a.enc_age.last + a.enc_age.max_age + _AFTER
+            if a.stale_at is None
+            else a.stale_at + a.enc_age.period * _SECOND_LOOK
+            for a in self._axes
+            if a.enc_age.last is not None and a.stale is None
+        ]
+        return min(ends, default=math.inf)
+
+    def _on_deadline(self, now: float) -> None:
+        self._judge_streams(now)
+
+    def _fresh(self, mark: int) -> bool:
+        return all(a.hb_seq > mark for a in self._axes)
+
+    def _ask_feedback(self, now: float) -> None:
+        if now - self._asked_at < self.supervise_period:
+            return  # once a period is enough
+        self._asked_at = now
+        with contextlib.suppress(DriverError, StateError):
+            self._request_status()
+
+    def _resume(self) -> None:
+        """Send the held set-points (and a mode set while they waited) after a gap.
+
+        The streams' rates are counted anew: the backlog drained after the gap came in a burst
+        (spread over more than a window when the receiver is slow), not at the devices' rate.
+        """
+        for axis in self._axes:
+            axis.hb_rate.clear()
+            axis.enc_rate.clear()
+        with self._held_lock:
+            if not self._feeding:
+                return
+            for axis in self._axes:
+                try:
+                    if axis.mode_due and axis.mode is not None:
+                        self._send(
+                            axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
+                            cs.encode_set_controller_mode(
+                                _MODES[axis.mode], cs.InputMode.PASSTHROUGH
+                            ),
+                        )
+                    axis.mode_due = False
+                    if axis.held is not None:
+                        self._send(*axis.held)
+                except DriverError as err:
+                    logger.debug("driver %s: re-send failed: %s", self.name, err)
+            self._due_feed = self.clock.monotonic() + self.command_period
+
     def _problem(self, now: float) -> DriverError | None:
         limit = self.timeout_periods * self.heartbeat_period
+        seen = self._link_seen(now)  # heartbeats queued during a pause are not missing
         for axis in self._axes:
-            if axis.hb_stamp is None or now - axis.hb_stamp > limit:
+            if axis.hb_stamp is None or seen - axis.hb_stamp > limit:
                 return DriverTimeoutError(
                     f"{self.name}: {axis.label()}: no heartbeat within {limit:g} s"
                 )
@@ -700,8 +865,26 @@ class ODriveDriver(CanMotorDriver):
             if axis.bad is not None:
                 return DriverOperationError(f"{self.name}: {axis.bad}")
             if axis.stale is not None:
+                bad = axis.malformed.recent(now)
+                if bad:  # what arrives is corrupt: that is the fault, not silence
+                    return DriverOperationError(
+                        f"{self.name}: {axis.stale}; {bad} malformed frames from the node within"
+                        f" {axis.malformed.window:g} s"
+                    )
                 return DriverTimeoutError(f"{self.name}: {axis.stale}")
-            if self._armed and axis.state != cs.AxisState.CLOSED_LOOP_CONTROL:
+            if axis.dup is not None:
+                node = axis.node.node_id
+                return DriverOperationError(
+                    f"{self.name}: {axis.label()}: {axis.dup}: two devices answer as node {node}"
+                    f" (duplicate ODrive node {node}); recovering would arm both: give one of"
+                    " them another node id"
+                )
+            off = axis.off_since
+            if (
+                self._armed
+                and off is not None
+                and seen - off > _OFF_PERIODS * self.heartbeat_period
+            ):
                 return DriverOperationError(
                     f"{self.name}: {axis.label()}: the axis left CLOSED_LOOP_CONTROL (now"
                     f" {cs.state_name(axis.state)}) without an error bit; recover() to go on"
@@ -715,5 +898,6 @@ class ODriveDriver(CanMotorDriver):
                     return DriverOperationError(
                         f"{self.name}: {axis.label()}: {stream} arrive at {excess:.1f}x the"
                         f" configured rate: two devices answer as node {axis.node.node_id}?"
+                        f" (duplicate ODrive node {axis.node.node_id})"
                     )
         return None

@@ -16,7 +16,7 @@ from typing import Final
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor._common import JointLimits
 from temoto.drivers.capabilities import ControlMode
-from temoto.drivers.supervision import FaultWindow, StreamAge
+from temoto.drivers.supervision import STALE_PERIODS, FaultWindow, StreamAge
 from temoto.errors import MotorFaultError
 
 __all__ = [
@@ -126,34 +126,46 @@ class AxisCache:
         node: The node's settings.
         heartbeat_period: Its heartbeat period (s).
         encoder_period: Its encoder estimates' period (s).
+        stale_periods: Periods without an estimate that make them stale.
     """
 
     __slots__ = (
         "bad",
         "beats",
+        "dup",
         "enc",
         "enc_age",
         "enc_rate",
         "error",
         "hb_rate",
+        "hb_seq",
         "hb_stamp",
         "held",
         "ids",
         "malformed",
         "mode",
+        "mode_due",
         "node",
+        "off_since",
         "rad",
+        "recent",
         "stale",
-        "stale_checks",
+        "stale_at",
         "state",
         "torque",
     )
 
-    def __init__(self, node: ODriveNode, heartbeat_period: float, encoder_period: float) -> None:
+    def __init__(
+        self,
+        node: ODriveNode,
+        heartbeat_period: float,
+        encoder_period: float,
+        stale_periods: float = STALE_PERIODS,
+    ) -> None:
         self.node = node
         self.rad = TAU / node.gear_ratio  # motor rev → joint rad
         self.ids = {cmd: cs.arbitration_id(node.node_id, cmd) for cmd in cs.Cmd}
-        self.enc_age = StreamAge(f"{self.label()} encoder estimates", encoder_period)
+        self.enc_age = StreamAge(f"{self.label()} encoder estimates", encoder_period, stale_periods)
         self.hb_rate = StreamRate(heartbeat_period)
         self.enc_rate = StreamRate(encoder_period)
         self.malformed = FaultWindow()
@@ -163,15 +175,22 @@ class AxisCache:
         """Forget everything received (a new configure)."""
         self.hb_stamp: float | None = None
         self.beats = 0  # heartbeats received
+        self.hb_seq = 0  # the receive thread's frame number of the newest heartbeat
+        #: The newest heartbeats' (state, error, the driver's state-request count).
+        self.recent: deque[tuple[int, int, int]] = deque(maxlen=6)
+        self.dup: str | None = None  # why two devices answer as this node
+        #: Clock time of the first of the heartbeats in a row out of CLOSED_LOOP_CONTROL.
+        self.off_since: float | None = None
         self.state = int(cs.AxisState.UNDEFINED)
         self.error = 0
         self.enc: tuple[float, float, float] | None = None  # pos rev, vel rev/s, stamp
         self.torque = 0.0
         self.mode: ControlMode | None = None
+        self.mode_due = False  # ``mode`` was set while set-points waited (a gap): not sent yet
         self.bad: str | None = None  # why too many frames were malformed
         self.held: tuple[int, bytes] | None = None  # the set-point re-sent while active
-        self.stale: str | None = None  # why the estimates are stale (two checks in a row)
-        self.stale_checks = 0
+        self.stale: str | None = None  # why the estimates are stale (two looks)
+        self.stale_at: float | None = None  # clock time of the first look that found them so
         self.enc_age.reset()
         self.hb_rate.clear()
         self.enc_rate.clear()

@@ -335,9 +335,13 @@ class SimMitMotor(CanDeviceSim):
         tick: Seconds between model steps.
         long_replies: Send 8-byte replies (temperature and error code) instead of 6.
         can_timeout: The firmware's CAN timeout, seconds (0 = off). See the module docstring.
+        past_p_max: What a reply says of a position past the ±p_max field: ``"saturate"``
+            (the field's end, as a clamping firmware sends) or ``"wrap"`` (the other end, as a
+            conversion without clamping gives). The motor itself turns on either way.
 
     Raises:
-        ValueError: No motors, a duplicate motor id or a negative timeout.
+        ValueError: No motors, a duplicate motor id, a negative timeout or an unknown
+            ``past_p_max``.
     """
 
     _KIND: ClassVar[str] = "mit"
@@ -352,9 +356,13 @@ class SimMitMotor(CanDeviceSim):
         tick: float = 0.01,
         long_replies: bool = True,
         can_timeout: float = 0.0,
+        past_p_max: str = "saturate",
     ) -> None:
         if not (can_timeout >= 0 and math.isfinite(can_timeout)):
             raise ValueError(f"can_timeout must be >= 0 s, got {can_timeout!r}")
+        if past_p_max not in ("saturate", "wrap"):
+            raise ValueError(f"past_p_max must be 'saturate' or 'wrap', got {past_p_max!r}")
+        self.past_p_max = past_p_max
         super().__init__(link, clock, min(tick, can_timeout / 10) if can_timeout > 0 else tick)
         self.can_timeout = can_timeout
         models = [m if isinstance(m, MitModel) else MitModel(m) for m in motors]
@@ -406,9 +414,12 @@ class SimMitMotor(CanDeviceSim):
             else:
                 return  # not a frame this motor understands: no reply
             self.frames_received += 1
-            reply = mit.MitReply(
+            pos, top = motor.pos, motor.ranges.p_max
+            if self.past_p_max == "wrap" and abs(pos) > top:
+                pos = (pos + top) % (2 * top) - top
+            reply = mit.MitReply(  # encode_reply clamps: a position past the field saturates
                 motor.motor_id,
-                motor.pos,
+                pos,
                 motor.vel,
                 motor.torque,
                 motor.temperature if self.long_replies else None,

@@ -197,7 +197,7 @@ class MitModel:
             vel = math.copysign(self.ranges.v_max, c.t) if c.t else 0.0
         limit = self.ranges.v_max
         vel = max(-limit, min(limit, vel))
-        self.pos = max(-self.ranges.p_max, min(self.ranges.p_max, self.pos + vel * dt))
+        self.pos += vel * dt  # the shaft turns on past the reply's ±p_max field
         self.vel = vel
         torque = c.kp * (c.p - self.pos) + c.kd * (c.v - vel) + c.t
         self.torque = max(-self.ranges.t_max, min(self.ranges.t_max, torque))

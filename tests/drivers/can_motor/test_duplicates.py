@@ -1,0 +1,103 @@
+"""Two devices on one id are refused before anything is armed (issue 25, item 5).
+
+A second ODrive answering as node 1, or a second MIT motor answering as id 1, present from
+the start: ``configure`` refuses with a message that says "duplicate", and the wire (watched by a
+listener) shows that no axis was told a state and no motor entered motor mode.
+"""
+
+from __future__ import annotations
+
+import uuid
+
+import can
+import pytest
+
+from temoto.clock import ManualClock
+from temoto.drivers.can_motor import cansimple as cs
+from temoto.drivers.can_motor import mitmode as mm
+from temoto.drivers.can_motor.mit import MitMotorDriver
+from temoto.drivers.can_motor.odrive import ODriveDriver
+from temoto.drivers.can_motor.sim import SimMitMotor, SimODrive
+from temoto.errors import DriverInitError
+
+
+def drain(bus: can.BusABC) -> list[can.Message]:
+    out = []
+    while (msg := bus.recv(0)) is not None:
+        out.append(msg)
+    return out
+
+
+def odrive_entry(ch: str) -> dict[str, object]:
+    return {
+        "link": {"interface": "virtual", "channel": ch},
+        "heartbeat_period": 0.1,
+        "encoder_period": 0.01,
+        "init_timeout": 0.5,
+        "nodes": [{"node_id": 1, "joint": "left"}, {"node_id": 2, "joint": "right"}],
+    }
+
+
+def test_a_second_odrive_node_1_is_refused_before_arming() -> None:
+    clock = ManualClock()
+    ch = f"dup-odrive-{uuid.uuid4().hex[:8]}"
+    link = {"interface": "virtual", "channel": ch}
+    driver = ODriveDriver.from_profile("base", odrive_entry(ch), clock=clock, where="devices.base")
+    with (
+        SimODrive(link, [1, 2], clock),
+        SimODrive(link, [1], clock),
+        can.Bus(interface="virtual", channel=ch) as wire,
+    ):
+        try:
+            with pytest.raises(DriverInitError, match="duplicate ODrive node 1") as info:
+                driver.configure()
+        finally:
+            driver.shutdown()
+        frames = drain(wire)
+    assert "(left)" in str(info.value)
+    assert "Nothing was armed" in str(info.value)
+    kinds = {cs.split_id(m.arbitration_id)[1] for m in frames}
+    assert cs.Cmd.SET_AXIS_STATE not in kinds
+
+
+def test_one_odrive_per_node_is_not_a_duplicate() -> None:
+    clock = ManualClock()
+    ch = f"dup-odrive-{uuid.uuid4().hex[:8]}"
+    driver = ODriveDriver.from_profile("base", odrive_entry(ch), clock=clock, where="devices.base")
+    with SimODrive({"interface": "virtual", "channel": ch}, [1, 2], clock):
+        try:
+            driver.configure()
+            driver.activate()
+        finally:
+            driver.shutdown()
+
+
+def test_a_second_mit_motor_1_is_refused_before_motor_mode() -> None:
+    clock = ManualClock()
+    ch = f"dup-mit-{uuid.uuid4().hex[:8]}"
+    link = {"interface": "virtual", "channel": ch}
+    entry = {
+        "link": link,
+        "poll_rate": 10.0,
+        "init_timeout": 0.5,
+        "motors": [
+            {"motor_id": 1, "joint": "shoulder", "model": "AK80-9"},
+            {"motor_id": 2, "joint": "elbow", "model": "AK80-9"},
+        ],
+    }
+    driver = MitMotorDriver.from_profile("arm", entry, clock=clock, where="devices.arm")
+    with (
+        SimMitMotor(link, [1, 2], clock),
+        SimMitMotor(link, [1], clock),
+        can.Bus(interface="virtual", channel=ch) as wire,
+    ):
+        try:
+            with pytest.raises(DriverInitError, match="duplicate MIT motor id 1") as info:
+                driver.configure()
+        finally:
+            driver.shutdown()
+        frames = drain(wire)
+    assert "(shoulder)" in str(info.value)
+    sent = [bytes(m.data) for m in frames if m.arbitration_id in (1, 2)]
+    assert sent
+    assert mm.CMD_ENTER not in sent

@@ -1,0 +1,233 @@
+"""A pause of the driver's process: no stale set-point goes out, no false fault (issue 25, item 5).
+
+The pause is injected: the simulator runs on a clock of its own, which goes on while the
+driver's clock stands still and its receive thread is held at a gate (so frames queue on the bus
+as they do in a socket while a process is stopped). The driver's clock then jumps over the pause
+and the supervisor wakes *before* the receive thread is let go: the order of a SIGCONT that
+schedules the supervisor first. A listener on the bus records the wire.
+"""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+import uuid
+from collections.abc import Iterator
+from typing import Any
+
+import can
+import pytest
+
+from temoto.clock import ManualClock
+from temoto.drivers import DriverState, Health
+from temoto.drivers.can_motor import cansimple as cs
+from temoto.drivers.can_motor import mitmode as mm
+from temoto.drivers.can_motor.mit import MitMotorDriver
+from temoto.drivers.can_motor.odrive import ODriveDriver
+from temoto.drivers.capabilities import ControlMode, JointCommand
+from temoto.drivers.sim import Simulator
+
+PAUSE = 0.5  # clock seconds the driver stands still
+STEP = 0.005
+_SET_POINTS = {cs.Cmd.SET_INPUT_POS, cs.Cmd.SET_INPUT_VEL, cs.Cmd.SET_INPUT_TORQUE}
+
+
+class Rig:
+    """A driver on one clock, its simulator on another, a gate on the driver's receiver."""
+
+    def __init__(
+        self, driver: Any, sim: Simulator, ch: str, dclock: ManualClock, sclock: ManualClock
+    ):
+        self.driver, self.sim, self.ch = driver, sim, ch
+        self.dclock, self.sclock = dclock, sclock
+        self.gate = threading.Event()
+        self.gate.set()
+        self.health: list[Health] = []
+        driver.add_health_listener(self.health.append)
+
+    def gated(self) -> None:
+        bus = self.driver._bus
+        real = bus.recv
+
+        def recv(timeout: float | None = None) -> can.Message | None:
+            self.gate.wait()
+            return real(timeout)
+
+        bus.recv = recv
+
+    def both(self, seconds: float) -> None:
+        """Both clocks move together (the process runs)."""
+        end = self.dclock.monotonic() + seconds
+        while self.dclock.monotonic() < end:
+            self.sclock.advance(STEP)
+            self.dclock.advance(STEP)
+            time.sleep(0.003)  # slower than real time: the simulator's threads keep up
+
+    def pause(self, listener: can.BusABC) -> list[can.Message]:
+        """The driver's process stops for PAUSE; returns what the wire carried meanwhile."""
+        self.gate.clear()
+        time.sleep(0.1)  # the receiver finishes its current look and stops at the gate
+        end = self.sclock.monotonic() + PAUSE
+        while self.sclock.monotonic() < end:  # the devices go on
+            self.sclock.advance(STEP)
+            time.sleep(0.0005)
+        return drain(listener)
+
+    def resume(self, *then: JointCommand) -> None:
+        """SIGCONT: the supervisor (and the application) run before the receiver."""
+        self.dclock.advance(PAUSE)
+        if then:
+            self.driver.command(list(then))
+        time.sleep(0.1)
+        self.gate.set()
+
+    def faults(self) -> list[str]:
+        return [str(h.error) for h in self.health if h.state is DriverState.FAULT]
+
+
+def drain(bus: can.BusABC) -> list[can.Message]:
+    out = []
+    while (msg := bus.recv(0)) is not None:
+        out.append(msg)
+    return out
+
+
+@pytest.fixture
+def clocks() -> tuple[ManualClock, ManualClock]:
+    return ManualClock(), ManualClock()
+
+
+def odrive_rig(dclock: ManualClock, sclock: ManualClock) -> tuple[Rig, can.BusABC]:
+    ch = f"pause-odrive-{uuid.uuid4().hex[:8]}"
+    cfg = {
+        "link": {"interface": "virtual", "channel": ch},
+        "heartbeat_period": 0.1,
+        "encoder_period": 0.01,
+        "command_period": 0.05,
+        "watchdog_timeout": 1.0,
+        "init_timeout": 0.5,
+        "nodes": [{"node_id": 1, "joint": "left"}, {"node_id": 2, "joint": "right"}],
+    }
+    sim, cfg = ODriveDriver.simulate("base", cfg, clock=sclock)
+    driver = ODriveDriver.from_profile("base", cfg, clock=dclock, where="devices.base")
+    return Rig(driver, sim, ch, dclock, sclock), can.Bus(interface="virtual", channel=ch)
+
+
+@pytest.fixture
+def odrive(clocks: tuple[ManualClock, ManualClock]) -> Iterator[tuple[Rig, can.BusABC]]:
+    rig, listener = odrive_rig(*clocks)
+    with rig.sim, listener:
+        try:
+            yield rig, listener
+        finally:
+            rig.driver.shutdown()
+
+
+def test_odrive_pause_with_heartbeats_flowing_sends_nothing_stale_and_no_fault(
+    odrive: tuple[Rig, can.BusABC],
+) -> None:
+    rig, listener = odrive
+    driver = rig.driver
+    driver.configure()
+    driver.activate()
+    driver.command([JointCommand("left", ControlMode.VELOCITY, 1.0)])
+    rig.both(0.2)
+    rig.gated()
+    during = rig.pause(listener)
+    beats = [m for m in during if cs.split_id(m.arbitration_id)[1] == cs.Cmd.HEARTBEAT]
+    assert len(beats) >= 8  # the heartbeats never stopped on the wire
+    rig.resume(JointCommand("left", ControlMode.VELOCITY, 2.0))
+    rig.both(0.2)
+    after = drain(listener)
+    kinds = [cs.split_id(m.arbitration_id)[1] for m in after]
+    first_beat = kinds.index(cs.Cmd.HEARTBEAT)
+    sent = [i for i, k in enumerate(kinds) if k in _SET_POINTS]
+    assert sent, f"the set-points never resumed: {driver.state}, faults {rig.faults()}"
+    assert sent[0] > first_beat, "a set-point went out before any feedback after the pause"
+    assert rig.faults() == []  # 0.5 s < the 1 s watchdog: the heartbeats show it
+    assert driver.state is DriverState.ACTIVE
+    left = [m for m in after if m.arbitration_id == cs.arbitration_id(1, cs.Cmd.SET_INPUT_VEL)]
+    vel, _ = cs.decode_set_input_vel(bytes(left[-1].data))
+    assert math.isclose(vel, 2.0 / (2 * math.pi), rel_tol=1e-6)  # the newest, once judged
+    assert driver.gaps >= 1
+
+
+def mit_rig(dclock: ManualClock, sclock: ManualClock, can_timeout: float) -> tuple[Rig, can.BusABC]:
+    ch = f"pause-mit-{uuid.uuid4().hex[:8]}"
+    cfg = {
+        "link": {"interface": "virtual", "channel": ch},
+        "poll_rate": 20.0,
+        "init_timeout": 0.5,
+        "can_timeout": can_timeout,
+        "motors": [
+            {"motor_id": 1, "joint": "left", "model": "AK80-9"},
+            {"motor_id": 2, "joint": "right", "model": "AK80-9"},
+        ],
+    }
+    sim, cfg = MitMotorDriver.simulate("base", cfg, clock=sclock)
+    driver = MitMotorDriver.from_profile("base", cfg, clock=dclock, where="devices.base")
+    return Rig(driver, sim, ch, dclock, sclock), can.Bus(interface="virtual", channel=ch)
+
+
+def set_points(frames: list[can.Message]) -> list[tuple[int, float]]:
+    """(index, velocity) of every MIT command frame to motor 1 (rad/s)."""
+    out = []
+    for i, m in enumerate(frames):
+        data = bytes(m.data)
+        if m.arbitration_id == 1 and mm.special(data) is None:
+            out.append((i, mm.decode_command(data, mm.MODELS["AK80-9"]).v))
+    return out
+
+
+@pytest.mark.parametrize("can_timeout", [0.0, 2.0])
+def test_mit_pause_shorter_than_the_can_timeout_resumes_after_fresh_replies(
+    clocks: tuple[ManualClock, ManualClock], can_timeout: float
+) -> None:
+    rig, listener = mit_rig(*clocks, can_timeout=can_timeout)
+    driver = rig.driver
+    with rig.sim, listener:
+        try:
+            driver.configure()
+            driver.activate()
+            driver.command([JointCommand("left", ControlMode.VELOCITY, 2.99)])
+            rig.both(0.2)
+            rig.gated()
+            rig.pause(listener)
+            rig.resume()
+            rig.both(0.5)
+            after = drain(listener)
+        finally:
+            driver.shutdown()
+    polls = set_points(after)
+    first_reply = next(i for i, m in enumerate(after) if m.arbitration_id == 0)
+    stale = [i for i, v in polls if abs(v - 2.99) < 0.05]
+    assert stale, "the set-point never resumed"
+    assert stale[0] > first_reply, "the held set-point went out before a reply after the pause"
+    assert all(abs(v) < 0.05 for i, v in polls if i < first_reply)  # only damping polls
+    assert rig.faults() == []
+
+
+def test_mit_pause_longer_than_the_can_timeout_is_a_fault_and_sends_nothing_stale(
+    clocks: tuple[ManualClock, ManualClock],
+) -> None:
+    rig, listener = mit_rig(*clocks, can_timeout=0.2)
+    driver = rig.driver
+    with rig.sim, listener:
+        try:
+            driver.configure()
+            driver.activate()
+            driver.command([JointCommand("left", ControlMode.VELOCITY, 2.99)])
+            rig.both(0.2)
+            rig.gated()
+            rig.pause(listener)
+            rig.resume()
+            rig.both(0.3)
+            after = drain(listener)
+        finally:
+            driver.shutdown()
+    assert [v for _, v in set_points(after) if abs(v - 2.99) < 0.05] == []
+    faults = rig.faults()
+    assert faults, "the expired CAN timeout was not reported"
+    assert "can_timeout (0.2 s)" in faults[0]
+    assert "motor 1 (left)" in faults[0]
