@@ -221,6 +221,8 @@ class Robot:
         self.flight: FlightController | None = None
         #: The controllers that command each device (their goals end when it faults).
         self._commanders: list[tuple[DriveController | ArmController, frozenset[str]]] = []
+        #: Every controller with the devices it needs (stepped only while they are all active).
+        self._steps: list[tuple[DriveController | ArmController | FlightController, frozenset[str]]]
         if profile.navigation is not None:
             nav = profile.navigation
             wheels = (profile.joint_device(nav.left_wheel), profile.joint_device(nav.right_wheel))
@@ -231,10 +233,12 @@ class Robot:
             arm = profile.manipulation
             self.arm = ArmController(arm, self._actuator(arm.device))
             self._commanders.append((self.arm, frozenset({arm.device})))
+        self._steps = list(self._commanders)
         if profile.flight is not None:
             vehicle = self._devices[profile.flight.device]
             assert isinstance(vehicle, Vehicle)
             self.flight = FlightController(profile.flight, vehicle)
+            self._steps.append((self.flight, frozenset({profile.flight.device})))
         self._cond = threading.Condition()
         self._stopping = False
         self._errors_logged = 0
@@ -292,7 +296,6 @@ class Robot:
             self._thread.join(5.0)
 
     def _loop(self) -> None:
-        controllers = [c for c in (self.drive, self.arm, self.flight) if c is not None]
         next_step = self.clock.monotonic()
         while True:
             with self._cond:
@@ -307,8 +310,13 @@ class Robot:
             now = self.clock.monotonic()
             if next_step < now - self.period:  # fell behind (a slow step): do not catch up
                 next_step = now + self.period
-            if not self.healthy():
-                continue  # a faulted device: its consumers were told; nothing to command
+            # A controller whose devices are not all active commands nothing (their consumers
+            # were told); the others go on (a faulted arm does not stop the base's goal).
+            controllers = [
+                c
+                for c, needs in self._steps
+                if all(self._devices[d].state is DriverState.ACTIVE for d in needs)
+            ]
             for err in controllers_step(controllers, self.period):
                 self._errors_logged += 1
                 if self._errors_logged <= 10 or self._errors_logged % 1000 == 0:
