@@ -260,4 +260,3 @@ class LiveRecorder(Recorder):
             self._fail(err)
         else:
             self._counts[topic] = self._counts.get(topic, 0) + 1
-

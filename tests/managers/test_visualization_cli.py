@@ -1,0 +1,97 @@
+"""``--foxglove`` on the robot command: the live server seen by an independent client.
+
+A subprocess runs ``python -m temoto.managers.robot`` on the simulated arm; the client of
+``_fgclient.py`` (the protocol from its specification, on ``websockets``) connects to the port
+it prints. Each test starts a process (~2-4 s).
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from _fgclient import FoxgloveClient
+
+pytest.importorskip("foxglove")
+pytest.importorskip("websockets")
+
+ROOT = Path(__file__).resolve().parents[2]
+ARM = ROOT / "hw_profiles" / "sim_arm.yaml"
+
+
+def _env(**extra: str) -> dict[str, str]:
+    env = {k: v for k, v in os.environ.items() if k != "TEMOTO_FLEET_KEY"}
+    env.update(extra)
+    return env
+
+
+def test_the_robot_command_serves_its_telemetry_live_to_foxglove() -> None:
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "temoto.managers.robot",
+            "--profile",
+            str(ARM),
+            "--local",
+            "--foxglove",
+            "0",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
+    try:
+        assert proc.stderr is not None
+        url = ""
+        for line in proc.stderr:
+            if line.startswith("temoto: foxglove on "):
+                url = line.split()[-1]
+                break
+        assert url.startswith("ws://127.0.0.1:"), "no foxglove line"
+        with FoxgloveClient(url) as client:
+            client.wait(lambda c: "/sim_arm/joint_states" in c.topics(), timeout=20)
+            assert client.topics()["/sim_arm/health"] == "temoto.RobotHealth"
+            sub = client.subscribe("/sim_arm/joint_states")
+            joints = client.first_message(sub).payload
+            assert joints["name"][:2] == ["shoulder_pan", "shoulder_lift"]
+            assert joints["position"] == pytest.approx([0.0] * 6, abs=0.05)  # the sim starts at 0
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stderr is not None:
+            proc.stderr.close()
+
+
+def test_without_the_sdk_the_robot_command_names_the_extra(tmp_path: Path) -> None:
+    (tmp_path / "foxglove.py").write_text("raise ImportError('foxglove-sdk is not installed')\n")
+    path = os.pathsep.join([str(tmp_path), os.environ.get("PYTHONPATH", "")])
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "temoto.managers.robot",
+            "--profile",
+            str(ARM),
+            "--local",
+            "--foxglove",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=_env(PYTHONPATH=path),
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if "foxglove" in line]
+    assert len(lines) == 1, proc.stderr
+    assert "pip install 'temoto[foxglove]'" in lines[0]
+    assert "Traceback" not in proc.stderr
