@@ -95,3 +95,45 @@ def test_without_the_sdk_the_robot_command_names_the_extra(tmp_path: Path) -> No
     assert len(lines) == 1, proc.stderr
     assert "pip install 'temoto[foxglove]'" in lines[0]
     assert "Traceback" not in proc.stderr
+
+
+def test_temoto_serve_serves_its_fleet_traffic_live_to_foxglove() -> None:
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "temoto",
+            "serve",
+            "--actor",
+            "a",
+            "--fleet-url",
+            "inproc://viz",
+            "--insecure",
+            "--foxglove",
+            "0",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(),
+    )
+    try:
+        assert proc.stderr is not None
+        url = next(
+            (ln.split()[-1] for ln in proc.stderr if ln.startswith("temoto: foxglove on ")), ""
+        )
+        assert url.startswith("ws://127.0.0.1:"), "no foxglove line"
+        with FoxgloveClient(url) as client:
+            client.wait(lambda c: "/fleet/TEMOTO_RIS" in c.topics(), timeout=20)
+            assert client.server_info["name"] == "temoto a"
+            assert client.topics()["/fleet/TEMOTO_RIS"] == "temoto.FleetMessage"
+            advert = client.first_message(client.subscribe("/fleet/TEMOTO_RIS")).payload
+            assert (advert["channel"], advert["sender"]) == ("TEMOTO_RIS", "a")
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stderr is not None:
+            proc.stderr.close()
