@@ -1,8 +1,8 @@
 """The Visualization Manager and the live Foxglove server, seen by an independent client.
 
-The client (``_fgclient.py``) speaks the Foxglove WebSocket protocol from its specification on
-the ``websockets`` package, not through the SDK the server uses. The robot is the simulated
-Dynamixel arm (``hw_profiles/sim_arm.yaml``), in-process.
+The client (:mod:`temoto.testing.foxglove_client`) speaks the Foxglove WebSocket protocol
+from its specification on the ``websockets`` package, not through the SDK the server uses.
+The robot is the simulated Dynamixel arm (``hw_profiles/sim_arm.yaml``), in-process.
 """
 
 from __future__ import annotations
@@ -16,7 +16,6 @@ from pathlib import Path
 from typing import Any
 
 import pytest
-from _fgclient import FoxgloveClient
 from _robots import robot_manager
 
 from temoto import ActionEngine, Result
@@ -27,6 +26,7 @@ from temoto.errors import ConfigError
 from temoto.managers.robot import RobotManager, RobotManagerClient
 from temoto.managers.visualization import DisplayRequest, VisualizationManager
 from temoto.managers.visualization.foxglove import FoxgloveServer, LiveRecorder
+from temoto.testing.foxglove_client import FoxgloveClient
 
 pytest.importorskip("foxglove")
 pytest.importorskip("websockets")

@@ -1,8 +1,8 @@
 """``--foxglove`` on the robot command: the live server seen by an independent client.
 
-A subprocess runs ``python -m temoto.managers.robot`` on the simulated arm; the client of
-``_fgclient.py`` (the protocol from its specification, on ``websockets``) connects to the port
-it prints. Each test starts a process (~2-4 s).
+A subprocess runs the robot command (or ``temoto serve``); the client of
+:mod:`temoto.testing.foxglove_client` (the protocol from its specification, on
+``websockets``) connects to the port it prints. Each test starts a process (~2-4 s).
 """
 
 from __future__ import annotations
@@ -14,7 +14,8 @@ import sys
 from pathlib import Path
 
 import pytest
-from _fgclient import FoxgloveClient
+
+from temoto.testing.foxglove_client import FoxgloveClient
 
 pytest.importorskip("foxglove")
 pytest.importorskip("websockets")
