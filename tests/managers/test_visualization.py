@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import builtins
 import logging
+import os
+import signal
 import threading
 import time
 from collections.abc import Iterator
@@ -79,6 +81,10 @@ def test_a_display_request_is_checked_and_named_from_what_it_shows() -> None:
         DisplayRequest("robot", "arm")
     with pytest.raises(ValueError, match=r"shown as temoto\.JointStates, not foxglove\.Grid"):
         DisplayRequest("robot", "joints", kind="foxglove.Grid")
+    with pytest.raises(ValueError, match="needs a target"):
+        DisplayRequest("component")
+    sensor = DisplayRequest("component", target="range_sensor", candidate="lidar_2d")
+    assert sensor.topic == "/display/component_range_sensor_lidar_2d_data/data"
     with pytest.raises(ValueError, match="rate_hz must be positive"):
         DisplayRequest("robot", "pose", rate_hz=0)
 
@@ -122,9 +128,11 @@ def test_the_live_server_carries_the_recordings_topics_and_values(
             assert (channel["encoding"], channel["schemaEncoding"]) == ("json", "jsonschema")
             sub = client.subscribe("/sim_arm/joint_states")
             joints = client.first_message(sub).payload
-            expected = robot.joint_positions()
-            assert joints["name"] == list(expected)
-            assert joints["position"] == pytest.approx(list(expected.values()), abs=0.01)
+            # sampled after the motion reached "reach" (within the profile's tolerance, 0.03 rad)
+            reach = {"shoulder_pan": 0.6, "shoulder_lift": 0.8, "elbow": -1.0, "wrist_pitch": 0.4}
+            reach |= {"wrist_roll": 0.0, "gripper": 0.8}
+            assert joints["name"] == list(robot.joint_positions())
+            assert joints["position"] == pytest.approx([reach[n] for n in joints["name"]], abs=0.04)
             assert set(joints["timestamp"]) == {"sec", "nsec"}
             # a late subscriber gets the last value at once (the log was put before it came)
             log = client.first_message(client.subscribe("/temoto/log")).payload
@@ -244,4 +252,76 @@ def test_show_display_holds_a_display_for_its_node(server: FoxgloveServer) -> No
         assert "/display/ops/log" not in server.topics()
     finally:
         manager.shutdown()
+        registrar.close()
+
+
+def test_a_failed_sensors_display_is_unadvertised_and_the_next_ones_advertised(
+    server: FoxgloveServer,
+) -> None:
+    # Demonstration 1 as the thesis has it: the operator's display shows one range sensor; when
+    # that sensor fails, its display fails with it and is released, and the next one's loaded.
+    from temoto.demos.sensor_redundancy import SENSORS
+    from temoto.managers import ProcessManager
+    from temoto.managers.component import ComponentManager
+
+    registrar = Registrar("test-viz-sensors")
+    processes = ProcessManager(registrar)
+    components = ComponentManager(registrar, files=[SENSORS])
+    manager = VisualizationManager(registrar, server)
+    statuses: list[StatusUpdate] = []
+    cond = threading.Condition()
+
+    def on_status(update: StatusUpdate) -> None:
+        with cond:
+            statuses.append(update)
+            cond.notify_all()
+
+    try:
+        with FoxgloveClient(server.url) as client:
+            client.wait(lambda c: bool(c.server_info))
+            shown: list[str] = []
+            ref = None
+            for sensor in ("lidar_3d", "depth_camera"):
+                request = DisplayRequest("component", target="range_sensor", candidate=sensor)
+                ref = registrar.call("display", request, client="operator", on_status=on_status)
+                client.wait(lambda c, t=request.topic: t in c.topics())
+                assert client.topics()[request.topic] == "temoto.ComponentData"
+                message = client.first_message(client.subscribe(request.topic)).payload
+                assert message["component"] == sensor
+                assert message["data"].startswith(sensor)
+                shown.append(sensor)
+                if sensor == "depth_camera":
+                    break
+                (component,) = registrar.dependencies(ref.resource_id)
+                os.kill(component.response.pid, signal.SIGKILL)
+                with cond:
+                    assert cond.wait_for(
+                        lambda: any(u.status is Status.FATAL for u in statuses), WAIT
+                    ), statuses
+                t_release = time.monotonic()
+                registrar.release(ref.id)
+                client.wait(lambda c, t=request.topic: t not in c.topics())
+                gone = next(
+                    t
+                    for t, op, topic in client.events
+                    if op == "unadvertise" and topic == request.topic
+                )
+                assert gone - t_release < 1.0
+            assert shown == ["lidar_3d", "depth_camera"]
+            fatal = next(u for u in statuses if u.status is Status.FATAL)
+            assert fatal.hops[-2:] == ("component", "display")
+            order = [(op, topic) for _, op, topic in client.events if op != "message"]
+            lidar = DisplayRequest("component", target="range_sensor", candidate="lidar_3d").topic
+            depth = DisplayRequest("component", target="range_sensor", candidate="depth_camera")
+            assert order == [
+                ("advertise", lidar),
+                ("unadvertise", lidar),
+                ("advertise", depth.topic),
+            ]
+            assert ref is not None
+            registrar.release(ref.id)
+    finally:
+        manager.shutdown()
+        components.shutdown()
+        processes.shutdown(stop_processes=True)
         registrar.close()

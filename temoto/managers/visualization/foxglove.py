@@ -30,9 +30,16 @@ from typing import Any, Final
 from temoto.clock import Clock
 from temoto.errors import ConfigError
 from temoto.record.recorder import Recorder
-from temoto.record.schemas import schema_bytes
+from temoto.record.schemas import SCHEMAS, schema_bytes
 
-__all__ = ["DEFAULT_HOST", "DEFAULT_PORT", "FoxgloveServer", "LiveRecorder", "import_foxglove"]
+__all__ = [
+    "DEFAULT_HOST",
+    "DEFAULT_PORT",
+    "DISPLAY_SCHEMAS",
+    "FoxgloveServer",
+    "LiveRecorder",
+    "import_foxglove",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -42,6 +49,32 @@ DEFAULT_HOST: Final = "127.0.0.1"
 DEFAULT_PORT: Final = 8765
 #: What the missing extra's error says.
 INSTALL_HINT: Final = "pip install 'temoto[foxglove]'"
+
+
+_STR: Final = {"type": "string"}
+#: The displays' own schemas (the recording's are :data:`temoto.record.schemas.SCHEMAS`).
+DISPLAY_SCHEMAS: Final[dict[str, dict[str, Any]]] = {
+    "temoto.ComponentData": {
+        "title": "temoto.ComponentData",
+        "description": "One datagram of a component's output, as text (size: its bytes)",
+        "type": "object",
+        "properties": {
+            "timestamp": SCHEMAS["temoto.RobotHealth"]["properties"]["timestamp"],
+            "type": _STR,
+            "component": _STR,
+            "robot": _STR,
+            "data": _STR,
+            "size": {"type": "integer", "minimum": 0},
+        },
+    },
+}
+
+
+def _schema_data(name: str) -> bytes:
+    """A schema of the recording or of the displays, as the channel's schema data."""
+    if name in DISPLAY_SCHEMAS:
+        return json.dumps(DISPLAY_SCHEMAS[name], separators=(",", ":")).encode()
+    return schema_bytes(name)
 
 
 def import_foxglove() -> Any:
@@ -139,7 +172,7 @@ class FoxgloveServer:
             return {topic: live.schema for topic, live in self._topics.items()}
 
     def advertise(self, topic: str, schema: str) -> None:
-        """Advertise ``topic`` with a schema of :data:`temoto.record.schemas.SCHEMAS` (once).
+        """Advertise ``topic`` with a schema of the recording's or :data:`DISPLAY_SCHEMAS` (once).
 
         Args:
             topic: The topic.
@@ -163,7 +196,7 @@ class FoxgloveServer:
         fg = self._fg
         channel = fg.Channel(
             topic,
-            schema=fg.Schema(name=schema, encoding="jsonschema", data=schema_bytes(schema)),
+            schema=fg.Schema(name=schema, encoding="jsonschema", data=_schema_data(schema)),
             message_encoding="json",
             context=self._context,
         )

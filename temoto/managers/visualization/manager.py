@@ -239,6 +239,8 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
             display._thread = thread
             thread.start()
             return f"robot {robot.name} {request.field}"
+        if request.source == "component":
+            return self._start_component(display)
         # source "log"
         target = f"{_ACTION_LOGGER}.{request.target}" if request.target else _ACTION_LOGGER
         handler = _LogHandler(self, display)
@@ -247,15 +249,65 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         display._undo = lambda: log.removeHandler(handler)
         return f"log of {target}"
 
+    def _start_component(self, display: Display) -> str:
+        from temoto.managers.component.channels import ChannelReader
+        from temoto.managers.component.messages import ComponentRequest
+
+        request = display.request
+        # Called in on_load's thread: the component is a dependency of the display.
+        component = self.registrar.call(
+            "component",
+            ComponentRequest(
+                type=request.target, name=request.candidate, failover=not request.candidate
+            ),
+            client=f"display/{request.name}",
+        )
+        reader = ChannelReader(component.response.output())
+        thread = threading.Thread(
+            target=self._read_loop,
+            args=(display, reader, component.resource_id),
+            name=f"temoto-display-{request.name}",
+            daemon=True,
+        )
+        display._thread = thread
+        display._undo = reader.close
+        thread.start()
+        response = component.response
+        return f"{request.target} {response.name} of {response.robot}"
+
+    def _read_loop(self, display: Display, reader: Any, component_id: str) -> None:
+        request = display.request
+        while not display._stopping:
+            try:
+                data = reader.recv(0.1)
+            except OSError as err:
+                logger.debug("display %s: channel closed: %s", request.name, err)
+                return
+            if not data:
+                continue
+            try:  # the active candidate (a failover changes it in place)
+                active = self.registrar.info(component_id).response
+                name, robot = str(active.name), str(active.robot)
+            except Exception:  # released meanwhile
+                name, robot = request.candidate, ""
+            message = {
+                "type": request.target,
+                "component": name,
+                "robot": robot,
+                "data": bytes(data[:1024]).decode("utf-8", errors="replace"),
+                "size": len(data),
+            }
+            self._publish(display, message)
+
     def _stop(self, display: Display) -> None:
         with display._cond:
             display._stopping = True
             display._cond.notify_all()
-        if display._undo is not None:
-            display._undo()
         thread = display._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join(5.0)
+        if display._undo is not None:
+            display._undo()
 
     def _sample_loop(self, display: Display, robot: Any) -> None:
         request = display.request

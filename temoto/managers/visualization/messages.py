@@ -28,6 +28,9 @@ DISPLAY_FIELDS: Final[dict[str, dict[str, str]]] = {
     # An action's log (target: the logger below temoto.action, e.g. "patrol.Navigate_3";
     # "" = every action's).
     "log": {"log": "foxglove.Log"},
+    # A component's first output (target: the component type; candidate: one of its
+    # descriptions, "" = the Component Manager's choice, with failover).
+    "component": {"data": "temoto.ComponentData"},
 }
 
 _NAME: Final = re.compile(r"[A-Za-z0-9_.-]+")
@@ -38,14 +41,18 @@ class DisplayRequest:
     """Ask for a display (the ``"display"`` server).
 
     Attributes:
-        source: Where the data comes from: ``robot`` or ``log`` (:data:`DISPLAY_FIELDS`).
-        field: Which of the source's streams (``pose``, ``joints`` ...; ``log`` for a log).
-        target: The robot's name ("" = the Robot Manager's robot), or the action logger
-            below ``temoto.action`` ("" = every action's).
+        source: Where the data comes from: ``robot``, ``log`` or ``component``
+            (:data:`DISPLAY_FIELDS`).
+        field: Which of the source's streams (``pose``, ``joints`` ...; ``log`` for a log;
+            ``data`` for a component).
+        target: The robot's name ("" = the Robot Manager's robot), the action logger below
+            ``temoto.action`` ("" = every action's), or the component type (required).
         kind: The Foxglove schema it is shown as ("" = the field's; another is refused).
         name: The display's name, its topics' prefix ``/display/<name>/`` ("" = made from
             the source, target and field).
         rate_hz: Samples per second of a polled source (a robot's streams).
+        candidate: A component display: this candidate only, without failover (its failure
+            is the display's); "" = the manager's best, substituted when it fails.
 
     Raises:
         TypeError: A field of the wrong type.
@@ -59,9 +66,10 @@ class DisplayRequest:
     kind: str = ""
     name: str = ""
     rate_hz: float = 10.0
+    candidate: str = ""
 
     def __post_init__(self) -> None:
-        for attr in ("source", "field", "target", "kind", "name"):
+        for attr in ("source", "field", "target", "kind", "name", "candidate"):
             value = getattr(self, attr)
             if not isinstance(value, str):
                 raise TypeError(f"a display's {attr} must be a str, not {type(value).__name__}")
@@ -76,13 +84,18 @@ class DisplayRequest:
             raise ValueError(
                 f"a {self.source} display has no field '{field}' (one of: {', '.join(fields)})"
             )
+        if self.source == "component" and not self.target:
+            raise ValueError("a component display needs a target (the component type)")
+        if self.candidate and self.source != "component":
+            raise ValueError(f"a {self.source} display has no candidate")
         if self.kind and self.kind != kind:
             raise ValueError(f"a {self.source} {field} display is shown as {kind}, not {self.kind}")
         if isinstance(self.rate_hz, bool) or not isinstance(self.rate_hz, int | float):
             raise TypeError(f"a display's rate_hz must be a number, not {self.rate_hz!r}")
         if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
             raise ValueError(f"a display's rate_hz must be positive: {self.rate_hz!r}")
-        name = self.name or "_".join(p for p in (self.source, self.target, field) if p)
+        parts = (self.source, self.target, self.candidate, field)
+        name = self.name or "_".join(p for p in parts if p)
         name = name.replace("/", ".")
         if not _NAME.fullmatch(name):
             raise ValueError(f"a display's name may hold letters, digits, '_', '.', '-': {name!r}")
