@@ -99,6 +99,7 @@ from temoto.errors import (
     PluginError,
     TransportError,
 )
+from temoto.managers.visualization.live import add_foxglove_option
 from temoto.web.replay import add_view, view_command
 
 __all__ = ["COMMANDS", "Command", "main"]
@@ -176,6 +177,7 @@ def _add_demo(sub: Any) -> None:
         metavar="F",
         help="run the robots' clocks F times faster than real time (default 1)",
     )
+    add_foxglove_option(demo)  # demonstration 1's displays, live (docs/visualization.md)
 
 
 def _add_actions(sub: Any) -> None:
@@ -361,7 +363,7 @@ def _demo(args: argparse.Namespace) -> int:
     try:
         with SignalExit(raise_first=True) as signals:
             try:
-                report = run_demo(args.number, sys.stdout, speed=args.speed)
+                report = run_demo(args.number, sys.stdout, speed=args.speed, foxglove=_fg(args))
             finally:
                 signals.raising = False
                 if signals.signum is not None:
@@ -380,6 +382,11 @@ def _demo(args: argparse.Namespace) -> int:
     if signals.exit_code is not None:  # the signal came after the demonstration had ended
         return signals.exit_code
     return EXIT_TRUE if report.ok else EXIT_OTHER_RESULT
+
+
+def _fg(args: argparse.Namespace) -> tuple[str, int] | None:
+    """``--foxglove [PORT]`` and ``--foxglove-host`` as ``run_demo`` takes them."""
+    return None if args.foxglove is None else (args.foxglove_host, args.foxglove)
 
 
 def _actions(args: argparse.Namespace) -> int:

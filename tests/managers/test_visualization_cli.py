@@ -138,3 +138,38 @@ def test_temoto_serve_serves_its_fleet_traffic_live_to_foxglove() -> None:
             proc.wait()
         if proc.stderr is not None:
             proc.stderr.close()
+
+
+def test_demo_1_failover_is_seen_in_foxglove_as_unadvertise_then_advertise() -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "temoto", "demo", "1", "--foxglove", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env=_env(),
+    )
+    try:
+        assert proc.stdout is not None
+        url = next((ln.split()[-1] for ln in proc.stdout if "serving the displays on" in ln), "")
+        assert url.startswith("ws://127.0.0.1:"), "no foxglove line"
+        sensors = ("lidar_3d", "depth_camera", "lidar_2d")
+        topics = [f"/display/{sensor}/data" for sensor in sensors]
+        with FoxgloveClient(url) as client:
+            client.wait(
+                lambda c: ("unadvertise", topics[-1]) in [(op, t) for _, op, t in c.events],
+                timeout=30,
+            )
+        changes = [(op, t) for _, op, t in client.events if op != "message"]
+        expected = [(op, t) for t in topics for op in ("advertise", "unadvertise")]
+        assert changes == expected
+        assert client.server_info["name"] == "temoto demo 1"
+        rest = proc.stdout.read()
+        assert proc.wait(30) == 0, rest
+        for sensor in sensors:
+            assert f"display: showing {sensor} (/display/{sensor}/data)" in rest
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()

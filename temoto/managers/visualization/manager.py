@@ -18,7 +18,10 @@ dependency's. The robot's messages are made by the recorder's own encoders
 from __future__ import annotations
 
 import logging
+import os
+import select
 import threading
+import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Final, cast
@@ -78,16 +81,34 @@ class Display:
         resource_id: Its registrar resource.
         last: Its last message (None before the first).
         count: Messages published so far.
+        first_at: ``time.monotonic()`` of its first message (None before it).
     """
 
     request: DisplayRequest
     resource_id: str
     last: dict[str, Any] | None = None
     count: int = 0
+    first_at: float | None = None
     _cond: threading.Condition = field(default_factory=threading.Condition)
     _stopping: bool = False
     _thread: threading.Thread | None = None
     _undo: Callable[[], None] | None = None
+    _wake: int = -1  # the write end of a pipe that wakes a reader thread's select
+
+    def wait_for_message(self, timeout: float) -> float:
+        """Wait (real seconds) for the display's first message.
+
+        Returns:
+            Its ``time.monotonic()``.
+
+        Raises:
+            TimeoutError: None came within ``timeout``.
+        """
+        with self._cond:
+            if not self._cond.wait_for(lambda: self.first_at is not None, timeout):
+                raise TimeoutError(f"display {self.request.name}: no message in {timeout:g} s")
+            assert self.first_at is not None
+            return self.first_at
 
 
 class _LogHandler(logging.Handler):
@@ -263,23 +284,34 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
             client=f"display/{request.name}",
         )
         reader = ChannelReader(component.response.output())
+        wake_r, wake_w = os.pipe()  # _stop wakes the reader at once (a release is not delayed)
+
+        def undo() -> None:
+            reader.close()
+            os.close(wake_r)
+            os.close(wake_w)
+
         thread = threading.Thread(
             target=self._read_loop,
-            args=(display, reader, component.resource_id),
+            args=(display, reader, wake_r, component.resource_id),
             name=f"temoto-display-{request.name}",
             daemon=True,
         )
         display._thread = thread
-        display._undo = reader.close
+        display._undo = undo
+        display._wake = wake_w
         thread.start()
         response = component.response
         return f"{request.target} {response.name} of {response.robot}"
 
-    def _read_loop(self, display: Display, reader: Any, component_id: str) -> None:
+    def _read_loop(self, display: Display, reader: Any, wake: int, component_id: str) -> None:
         request = display.request
         while not display._stopping:
             try:
-                data = reader.recv(0.1)
+                ready, _, _ = select.select([reader, wake], [], [])
+                if wake in ready:
+                    return
+                data = reader.recv(0)
             except OSError as err:
                 logger.debug("display %s: channel closed: %s", request.name, err)
                 return
@@ -303,6 +335,8 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         with display._cond:
             display._stopping = True
             display._cond.notify_all()
+        if display._wake >= 0:
+            os.write(display._wake, b"x")
         thread = display._thread
         if thread is not None and thread is not threading.current_thread():
             thread.join(5.0)
@@ -342,6 +376,10 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         message.setdefault("timestamp", stamp(ns))
         display.last = message
         display.count += 1
+        if display.first_at is None:
+            with display._cond:
+                display.first_at = time.monotonic()
+                display._cond.notify_all()
         if self.server is not None:
             try:
                 self.server.publish(display.request.topic, display.request.kind, message, ns)
