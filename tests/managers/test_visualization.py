@@ -325,3 +325,35 @@ def test_a_failed_sensors_display_is_unadvertised_and_the_next_ones_advertised(
         components.shutdown()
         processes.shutdown(stop_processes=True)
         registrar.close()
+
+
+def test_after_a_registrar_restart_a_display_is_fatal_and_loads_afresh(
+    server: FoxgloveServer, tmp_path: Path
+) -> None:
+    catalog = tmp_path / "catalog.journal"
+    reg1 = Registrar("test-viz", catalog=catalog)
+    viz1 = VisualizationManager(reg1, server)
+    request = DisplayRequest("log", target="patrol", name="ops")
+    ref = reg1.call("display", request, client="operator")
+    viz1.shutdown()  # the process "dies": nothing is released
+    reg1.close()
+    reg2 = Registrar("test-viz", catalog=catalog, restore=True)
+    viz2 = VisualizationManager(reg2, server)
+    try:
+        info = reg2.info(ref.id)
+        assert info.request == request  # rebuilt from the journal's JSON
+        assert info.failed
+        assert viz2.displays() == {}
+        again = reg2.call("display", request, client="operator")
+        assert again.resource_id != ref.resource_id  # a fresh display, not the lost one
+        assert "/display/ops/log" in server.topics()
+        assert list(viz2.displays()) == ["ops"]
+        # the lost one's release leaves the fresh one alone
+        reg2.release(ref.id)
+        assert "/display/ops/log" in server.topics()
+        assert list(viz2.displays()) == ["ops"]
+        reg2.release(again.id)
+        assert "/display/ops/log" not in server.topics()
+    finally:
+        viz2.shutdown()
+        reg2.close()

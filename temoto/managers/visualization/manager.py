@@ -202,7 +202,9 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
             raise
         if self.server is not None:
             self.server.advertise(request.topic, request.kind)
-        response = DisplayResponse(request.name, (request.topic,), request.kind, what)
+        response = DisplayResponse(
+            request.name, (request.topic,), request.kind, what, ctx.resource_id
+        )
         self._tell("loaded", response)
         logger.info("display %s: showing %s on %s", request.name, what, request.topic)
         return response
@@ -210,9 +212,11 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
     def on_unload(self, request: DisplayRequest, response: DisplayResponse) -> None:
         """Stop publishing and unadvertise (the robot is released after, as a dependency)."""
         with self._lock:
-            display = self._displays.pop(request.name, None)
-        if display is not None:
-            self._stop(display)
+            display = self._displays.get(request.name)
+            if display is None or display.resource_id != response.resource_id:
+                return  # lost in a restart (on_restore): a display of that name is another one
+            del self._displays[request.name]
+        self._stop(display)
         if self.server is not None:
             for topic in response.topics:
                 self.server.unadvertise(topic)

@@ -119,12 +119,15 @@ class DisplayResponse:
         topics: Its topics on the live server.
         kind: The schema they carry.
         source: What it shows, in words (``robot sim_arm joints``).
+        resource_id: The display's registrar resource (tells a display from an earlier one of
+            the same name, lost in a restart).
     """
 
     name: str
     topics: tuple[str, ...]
     kind: str
     source: str
+    resource_id: str = ""
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "topics", tuple(self.topics))
