@@ -7,11 +7,13 @@ A subprocess runs the robot command (or ``temoto serve``); the client of
 
 from __future__ import annotations
 
+import json
 import os
 import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -173,3 +175,43 @@ def test_demo_1_failover_is_seen_in_foxglove_as_unadvertise_then_advertise() -> 
             proc.wait()
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+def test_the_robot_command_writes_a_foxglove_layout_for_its_features(tmp_path: Path) -> None:
+    layout = tmp_path / "arm.json"
+    mission = ROOT / "examples" / "missions" / "arm_poses.graph.json"
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "temoto.managers.robot",
+            "--profile",
+            str(ARM),
+            "--local",
+            "--mission",
+            str(mission),
+            "--foxglove-layout",
+            str(layout),
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=_env(),
+        check=False,
+    )
+    assert proc.returncode == 0, proc.stderr
+    panels: dict[str, dict[str, Any]] = {}
+
+    def walk(node: dict[str, Any]) -> None:
+        if node.get("type") == "panel":
+            panels[node["panelType"]] = node
+        for item in node.get("items", []):
+            walk(item["content"])
+
+    walk(json.loads(layout.read_text())["content"])
+    assert sorted(panels) == ["Log", "Plot", "RawMessages", "StateTransitions"]  # no 3D, no Map
+    series = panels["Plot"]["config"]["paths"]
+    assert series[0] == {"label": "shoulder_pan", "value": "/sim_arm/joint_states.position[0]"}
+    assert len(series) == 6
+    assert panels["RawMessages"]["config"]["topicPath"] == "/sim_arm/health"
+    assert panels["Log"]["config"]["topicToRender"] == "/temoto/log"

@@ -34,7 +34,7 @@ def _port(text: str) -> int:
 
 
 def add_foxglove_option(parser: argparse.ArgumentParser) -> None:
-    """``--foxglove [PORT]`` and ``--foxglove-host HOST``."""
+    """``--foxglove [PORT]``, ``--foxglove-layout FILE`` and ``--foxglove-host HOST``."""
     parser.add_argument(
         "--foxglove",
         nargs="?",
@@ -44,6 +44,12 @@ def add_foxglove_option(parser: argparse.ArgumentParser) -> None:
         help="serve the recording's topics and the loaded displays live to Foxglove on"
         f" ws://127.0.0.1:PORT (default {_DEFAULT_PORT}; extra temoto[foxglove];"
         " docs/visualization.md)",
+    )
+    parser.add_argument(
+        "--foxglove-layout",
+        metavar="FILE",
+        help="write a Foxglove layout for these channels (the robot's panels by its features)"
+        " to FILE (import it in Foxglove: Layouts, Import from file)",
     )
     parser.add_argument(
         "--foxglove-host",
@@ -81,9 +87,12 @@ def open_foxglove(args: argparse.Namespace, instance: Any, robot: Any = None) ->
         The session (close it with :func:`close_foxglove`), or None.
 
     Raises:
-        ConfigError: The SDK is missing (the message names the extra), or the port cannot be
-            listened on.
+        ConfigError: The SDK is missing (the message names the extra), the port cannot be
+            listened on, or the ``--foxglove-layout`` file cannot be written.
     """
+    layout = getattr(args, "foxglove_layout", None)
+    if layout:
+        _write_layout(layout, robot)
     port = getattr(args, "foxglove", None)
     if port is None:
         return None
@@ -111,6 +120,22 @@ def open_foxglove(args: argparse.Namespace, instance: Any, robot: Any = None) ->
         raise
     sys.stderr.write(f"temoto: foxglove on {server.url}\n")
     return LiveSession(server, recorder, manager)
+
+
+def _write_layout(path: str, robot: Any) -> None:
+    """``--foxglove-layout FILE``: the layout of the channels ``open_foxglove`` serves."""
+    from temoto.managers.visualization.layout import robot_layout, write_layout
+
+    name, features, joints = "", (), []
+    if robot is not None:
+        name, features = robot.name, tuple(robot.features)
+        if "manipulation" in features:
+            try:
+                joints = list(robot.joint_positions())
+            except Exception as err:  # a device in fault: a layout without the joints' plot
+                logger.warning("--foxglove-layout: no joint names: %s", err)
+    write_layout(path, robot_layout(name, features, joints))
+    sys.stderr.write(f"temoto: foxglove layout written to {path}\n")
 
 
 def close_foxglove(session: LiveSession | None) -> None:
