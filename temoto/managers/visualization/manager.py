@@ -196,12 +196,15 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
             self._displays[request.name] = display
         try:
             what = self._start(display, ctx)
+            if self.server is not None:
+                self.server.advertise(request.topic, request.kind)
         except BaseException:
             with self._lock:
                 self._displays.pop(request.name, None)
+            self._stop(display)  # the registrar releases the source (a dependency)
+            if self.server is not None:
+                self.server.unadvertise(request.topic)
             raise
-        if self.server is not None:
-            self.server.advertise(request.topic, request.kind)
         response = DisplayResponse(
             request.name, (request.topic,), request.kind, what, ctx.resource_id
         )
@@ -291,6 +294,8 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         wake_r, wake_w = os.pipe()  # _stop wakes the reader at once (a release is not delayed)
 
         def undo() -> None:
+            display._wake = -1
+            display._undo = None
             reader.close()
             os.close(wake_r)
             os.close(wake_w)
@@ -374,18 +379,20 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
                     clock.wait(cond, remaining)
 
     def _publish(self, display: Display, message: dict[str, Any]) -> None:
-        if display._stopping:
-            return
-        ns = int(self.clock.time() * 1e9)
-        message.setdefault("timestamp", stamp(ns))
-        display.last = message
-        display.count += 1
-        if display.first_at is None:
-            with display._cond:
+        # Under the display's condition: once _stop has set _stopping, nothing is in flight
+        # (a late message would advertise the topic again after its release).
+        with display._cond:
+            if display._stopping:
+                return
+            ns = int(self.clock.time() * 1e9)
+            message.setdefault("timestamp", stamp(ns))
+            display.last = message
+            display.count += 1
+            if display.first_at is None:
                 display.first_at = time.monotonic()
                 display._cond.notify_all()
-        if self.server is not None:
-            try:
-                self.server.publish(display.request.topic, display.request.kind, message, ns)
-            except ValueError as err:  # a NaN: that message only
-                logger.debug("display %s: message not sent: %s", display.request.name, err)
+            if self.server is not None:
+                try:
+                    self.server.publish(display.request.topic, display.request.kind, message, ns)
+                except ValueError as err:  # a NaN: that message only
+                    logger.debug("display %s: message not sent: %s", display.request.name, err)
