@@ -49,7 +49,7 @@ def run_demo(
         out: Where the timeline goes (default standard output).
         speed: How much faster than real time the robots' clocks run (tests use more than 1).
         foxglove: Serve the demonstration's displays live to Foxglove on this (host, port)
-            (demonstration 1 only), or None.
+            (demonstrations 1 and 2), or None.
 
     Returns:
         What happened, for checks.
@@ -64,8 +64,8 @@ def run_demo(
         raise ValueError(f"no demonstration {number} (there are {', '.join(map(str, DEMOS))})")
     if not speed > 0:
         raise ValueError(f"speed must be positive, got {speed}")
-    if foxglove is not None and number != 1:
-        raise ValueError(f"--foxglove: demonstration {number} has no displays yet (only 1 has)")
+    if foxglove is not None and number not in (1, 2):
+        raise ValueError(f"--foxglove: demonstration {number} has no displays (1 and 2 have)")
     title, module_name = DEMOS[number]
     module = importlib.import_module(module_name)
     timeline = Timeline(out or sys.stdout, f"demo {number}: {title}")

@@ -215,3 +215,42 @@ def test_the_robot_command_writes_a_foxglove_layout_for_its_features(tmp_path: P
     assert len(series) == 6
     assert panels["RawMessages"]["config"]["topicPath"] == "/sim_arm/health"
     assert panels["Log"]["config"]["topicToRender"] == "/temoto/log"
+
+
+def test_demo_2_shows_the_escorts_camera_on_the_same_display_in_foxglove() -> None:
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "temoto", "demo", "2", "--speed", "3", "--foxglove", "0"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env=_env(),
+    )
+    try:
+        assert proc.stdout is not None
+        url = next((ln.split()[-1] for ln in proc.stdout if "serving the display on" in ln), "")
+        assert url.startswith("ws://127.0.0.1:"), "no foxglove line"
+        topic = "/display/camera/data"
+        with FoxgloveClient(url) as client:
+            client.wait(lambda c: topic in c.topics(), timeout=30)
+            assert client.topics()[topic] == "temoto.ComponentData"
+            sub = client.subscribe(topic)
+            client.wait(
+                lambda c: any(m.payload["component"] == "escort_camera" for m in c.messages),
+                timeout=30,
+            )
+        cameras = [m.payload["component"] for m in client.messages if m.subscription == sub]
+        first = cameras.index("escort_camera")
+        assert set(cameras[:first]) == {"worker_camera"}  # one display, its source switched
+        escort = next(
+            m.payload for m in client.messages if m.payload["component"] == "escort_camera"
+        )
+        assert escort["robot"] == "escort"
+        rest = proc.stdout.read()
+        assert proc.wait(60) == 0, rest
+        assert "display: showing escort_camera" in rest
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()

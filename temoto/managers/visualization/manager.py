@@ -94,6 +94,16 @@ class Display:
     _thread: threading.Thread | None = None
     _undo: Callable[[], None] | None = None
     _wake: int = -1  # the write end of a pipe that wakes a reader thread's select
+    _watchers: list[Callable[[dict[str, Any]], None]] = field(default_factory=list)
+
+    def watch(self, watcher: Callable[[dict[str, Any]], None]) -> None:
+        """Call ``watcher(message)`` with each message from now on.
+
+        It runs in the publishing thread with the display's lock held: keep it short, and do not
+        release the display in it.
+        """
+        with self._cond:
+            self._watchers.append(watcher)
 
     def wait_for_message(self, timeout: float) -> float:
         """Wait (real seconds) for the display's first message.
@@ -391,6 +401,11 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
             if display.first_at is None:
                 display.first_at = time.monotonic()
                 display._cond.notify_all()
+            for watcher in display._watchers:
+                try:
+                    watcher(message)
+                except Exception:
+                    logger.exception("display %s: watcher failed", display.request.name)
             if self.server is not None:
                 try:
                     self.server.publish(display.request.topic, display.request.kind, message, ns)
