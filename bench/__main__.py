@@ -40,6 +40,7 @@ from bench import (
     ris,
     robot,
     safety,
+    visualization,
 )
 from bench.common import Metric, Results
 
@@ -99,6 +100,10 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     "stale": (
         "safety: an ODrive's encoder stream stops -> driver fault (virtual CAN)",
         safety.bench_stale,
+    ),
+    "visualization": (
+        "visualization: live Foxglove message cost (one client), display load -> first message",
+        visualization.bench_visualization,
     ),
 }
 

@@ -25,6 +25,7 @@ from temoto._cli_common import non_empty, not_negative, positive
 from temoto._cli_signals import FORCE_EXIT_S, Interrupted, SignalExit, make_devices_safe
 from temoto._files import read_regular_text
 from temoto.errors import ConfigError, GraphInputError
+from temoto.managers.visualization.live import add_foxglove_option, close_foxglove, open_foxglove
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials
@@ -339,6 +340,7 @@ def add_serve(sub: Any, paths: Any) -> None:
     add_components_option(serve_p)
     add_live_view_option(serve_p)
     add_record_option(serve_p)
+    add_foxglove_option(serve_p)
     add_fleet_options(serve_p, "the fleet this instance joins")
 
 
@@ -395,7 +397,9 @@ def _serve(
         live_view_port=args.live_view,
         component_files=args.components,
     )
+    live = None
     try:
+        live = open_foxglove(args, instance)  # --foxglove: docs/visualization.md
         if getattr(args, "verbose", 0):
             instance.engine.add_instrument(_traceback_printer())
         if recorder is not None:
@@ -415,6 +419,7 @@ def _serve(
         make_devices_safe(f"instance '{args.actor}' stopped by a signal")
     finally:
         instance.close()
+        close_foxglove(live)  # after the instance: its displays are released by then
     return EXIT_OK
 
 

@@ -105,6 +105,7 @@ from temoto.errors import (
     PluginError,
     TransportError,
 )
+from temoto.managers.visualization.live import add_foxglove_option
 from temoto.web.replay import add_view, view_command
 
 __all__ = ["COMMANDS", "Command", "main"]
@@ -182,6 +183,7 @@ def _add_demo(sub: Any) -> None:
         metavar="F",
         help="run the robots' clocks F times faster than real time (default 1)",
     )
+    add_foxglove_option(demo)  # demonstration 1's displays, live (docs/visualization.md)
 
 
 def _add_actions(sub: Any) -> None:
@@ -430,7 +432,7 @@ def _demo(args: argparse.Namespace) -> int:
     try:
         with SignalExit(raise_first=True, force_exit=FORCE_EXIT_S) as signals:
             try:
-                report = run_demo(args.number, sys.stdout, speed=args.speed)
+                report = run_demo(args.number, sys.stdout, speed=args.speed, foxglove=_fg(args))
             finally:
                 signals.raising = False
                 if signals.signum is not None:
@@ -467,6 +469,11 @@ def _examples(args: argparse.Namespace) -> int:
     for folder in copy_examples(args.dir):
         sys.stdout.write(f"wrote {folder}\n")
     return 0
+
+
+def _fg(args: argparse.Namespace) -> tuple[str, int] | None:
+    """``--foxglove [PORT]`` and ``--foxglove-host`` as ``run_demo`` takes them."""
+    return None if args.foxglove is None else (args.foxglove_host, args.foxglove)
 
 
 def _actions(args: argparse.Namespace) -> int:

@@ -35,28 +35,41 @@ DEMOS: Final[Mapping[int, tuple[str, str]]] = {
 }
 
 
-def run_demo(number: int, out: IO[str] | None = None, *, speed: float = 1.0) -> DemoReport:
+def run_demo(
+    number: int,
+    out: IO[str] | None = None,
+    *,
+    speed: float = 1.0,
+    foxglove: tuple[str, int] | None = None,
+) -> DemoReport:
     """Run one demonstration and print its timeline.
 
     Args:
         number: 1 to 5.
         out: Where the timeline goes (default standard output).
         speed: How much faster than real time the robots' clocks run (tests use more than 1).
+        foxglove: Serve the demonstration's displays live to Foxglove on this (host, port)
+            (demonstrations 1 and 2), or None.
 
     Returns:
         What happened, for checks.
 
     Raises:
-        ValueError: No demonstration has that number, or ``speed`` is not positive.
+        ValueError: No demonstration has that number, ``speed`` is not positive, or a server
+            is asked of a demonstration without displays.
+        ConfigError: The Foxglove SDK is missing, or the port cannot be listened on.
         ModuleNotFoundError: That demonstration is not built yet.
     """
     if number not in DEMOS:
         raise ValueError(f"no demonstration {number} (there are {', '.join(map(str, DEMOS))})")
     if not speed > 0:
         raise ValueError(f"speed must be positive, got {speed}")
+    if foxglove is not None and number not in (1, 2):
+        raise ValueError(f"--foxglove: demonstration {number} has no displays (1 and 2 have)")
     title, module_name = DEMOS[number]
     module = importlib.import_module(module_name)
     timeline = Timeline(out or sys.stdout, f"demo {number}: {title}")
-    report: DemoReport = module.run(timeline, speed=speed)
+    extra = {"foxglove": foxglove} if foxglove is not None else {}
+    report: DemoReport = module.run(timeline, speed=speed, **extra)
     timeline.close(report)
     return report

@@ -3,11 +3,12 @@
 Two rovers — a worker and an escort — are whole instances on an authenticated fleet bus, each
 with a Robot Manager on its simulators and a Component Manager reading the same camera
 descriptions (``data/cameras.yaml``: each camera's ``robot`` says who hosts it). The operator's
-display asks the worker's Component Manager for a ``camera``: the worker's own camera feeds it.
-The worker's camera fails; the Component Manager finds, through RIS, that the escort offers a
-camera, and asks the escort's manager for it (a remote resource): the escort starts its camera,
-which now feeds the display on the same channel. The escort then follows the worker (0.7 m
-behind it) while the worker drives on.
+display is a Visualization Manager display (``docs/visualization.md``) of the worker's
+``camera`` component: the worker's own camera feeds it. The worker's camera fails; the
+Component Manager finds, through RIS, that the escort offers a camera, and asks the escort's
+manager for it (a remote resource): the escort starts its camera, which now feeds the same
+display (the display stays; its messages name the new camera). The escort then follows the
+worker (0.7 m behind it) while the worker drives on.
 """
 
 from __future__ import annotations
@@ -21,17 +22,16 @@ import threading
 import time
 from contextlib import ExitStack
 from pathlib import Path
-from typing import Final
+from typing import Any, Final
 
 from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.clock import Clock, MonotonicClock, ScaledClock
 from temoto.config import load_profile
 from temoto.core.registrar import StatusUpdate
-from temoto.demos._display import Display
 from temoto.demos._timeline import DemoReport, Timeline
 from temoto.instance import Instance
-from temoto.managers.component import ChannelReader, ComponentManagerClient
 from temoto.managers.robot import RobotHandle, RobotManager, RobotManagerClient
+from temoto.managers.visualization import DisplayRequest, VisualizationManager
 from temoto.transport import InProcessTransport
 
 __all__ = ["run"]
@@ -90,12 +90,44 @@ class _Follower:
         self.thread.join(5.0)
 
 
-def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
+class _Shown:
+    """Watches the operator's display: prints the first message of each camera."""
+
+    def __init__(self, timeline: Timeline) -> None:
+        self.timeline = timeline
+        self.cond = threading.Condition()
+        self.first: dict[str, float] = {}  # camera -> monotonic time of its first message
+
+    def __call__(self, message: dict[str, Any]) -> None:
+        camera = str(message.get("data", "")).split(" ", 1)[0]
+        with self.cond:
+            if camera and camera not in self.first:
+                self.first[camera] = time.monotonic()
+                self.timeline.say("display", f"showing {camera}")
+                self.cond.notify_all()
+
+    def wait_for(self, camera: str, timeout: float) -> float:
+        """When ``camera``'s first message was shown (waiting up to ``timeout`` s)."""
+        with self.cond:
+            if not self.cond.wait_for(lambda: camera in self.first, timeout):
+                raise TimeoutError(f"the display showed nothing from {camera} in {timeout:g} s")
+            return self.first[camera]
+
+    def order(self) -> list[str]:
+        """The cameras in the order the display first showed them."""
+        with self.cond:
+            return sorted(self.first, key=self.first.__getitem__)
+
+
+def run(
+    timeline: Timeline, *, speed: float = 1.0, foxglove: tuple[str, int] | None = None
+) -> DemoReport:
     """Run the demonstration.
 
     Args:
         timeline: Where events are printed.
         speed: Clock speed-up of the rovers (the cameras are real processes).
+        foxglove: Serve the display live to Foxglove on this (host, port), or None.
 
     Returns:
         The report (facts: which camera fed the display, the switch-over time, the escort's
@@ -132,29 +164,40 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
                 raise TimeoutError("the worker never heard the escort's Component Manager")
             time.sleep(0.02)
         timeline.say("worker", "RIS: the escort offers components")
-        reader = stack.enter_context(ChannelReader(f"unix:@temoto-demo2-{secrets.token_hex(4)}"))
-        display = Display(reader, timeline, "showing")
-        stack.callback(display.close)
+        server = None
+        if foxglove is not None:
+            from temoto.managers.visualization.foxglove import FoxgloveServer
+
+            server = FoxgloveServer(*foxglove, name="temoto demo 2")
+            stack.callback(server.close)  # after the display's release (LIFO)
+            timeline.say("foxglove", f"serving the display on {server.url}")
+        displays = VisualizationManager(instances["worker"].registrar, server)
+        stack.callback(displays.shutdown)
+        shown = _Shown(timeline)
 
         def on_status(update: StatusUpdate) -> None:
             timeline.say("display", f"told: {update.status.value} {update.message}")
 
-        client = ComponentManagerClient(instances["worker"].registrar)
-        camera = client.request(
-            "camera", outputs={"image": reader.channel}, client="display", on_status=on_status
+        request = DisplayRequest("component", target="camera", name="camera")
+        ref = instances["worker"].registrar.call(
+            "display", request, client="operator", on_status=on_status
         )
-        display.wait_for("worker_camera", WAIT)
+        displays.displays()["camera"].watch(shown)
+        (component,) = instances["worker"].registrar.dependencies(ref.resource_id)
+        shown.wait_for("worker_camera", WAIT)
         mission = json.loads((DATA / "worker_route.graph.json").read_text())
         instances["worker"].engine.start(mission)
         timeline.say("worker", "driving its route")
         time.sleep(clock.real_seconds(1.0))
-        pid = camera.response.pid
+        pid = component.response.pid
         timeline.say("operator", f"the worker's camera fails (process {pid} killed)")
         t_kill = time.monotonic()
         os.kill(pid, signal.SIGKILL)
-        t_escort = display.wait_for("escort_camera", WAIT)
+        t_escort = shown.wait_for("escort_camera", WAIT)
         report.facts["switch_over_ms"] = round((t_escort - t_kill) * 1000, 1)
-        report.facts["camera_robot"] = camera.response.robot
+        report.facts["camera_robot"] = (
+            instances["worker"].registrar.info(component.id).response.robot
+        )
         timeline.say("escort", "camera on; following the worker")
         follower = _Follower(robots["escort"], robots["worker"], clock)
         stack.callback(follower.close)
@@ -167,8 +210,8 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
         report.facts["escort_gap_m"] = round(math.hypot(wx - ex, wy - ey), 2)
         report.facts["worker_at"] = (round(wx, 2), round(wy, 2))
         report.facts["escort_at"] = (round(ex, 2), round(ey, 2))
-        report.facts["shown"] = display.order()
-        client.release(camera)
+        report.facts["shown"] = shown.order()
+        instances["worker"].registrar.release(ref.id)
         report.ok = (
             report.facts["shown"] == ["worker_camera", "escort_camera"]
             and report.facts["camera_robot"] == "escort"

@@ -7,6 +7,7 @@
   Manager on the registrar).
 * :data:`CONTEXT_ACTIONS`: add, move, get, remove and find items of the shared world model (a
   Context Manager on the registrar).
+* :data:`VISUALIZATION_ACTIONS`: show a display (a Visualization Manager on the registrar).
 * :data:`BUILTIN_ACTIONS`: every folder above.
 """
 
@@ -15,7 +16,13 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Final
 
-__all__ = ["BUILTIN_ACTIONS", "COMPONENT_ACTIONS", "CONTEXT_ACTIONS", "ROBOT_ACTIONS"]
+__all__ = [
+    "BUILTIN_ACTIONS",
+    "COMPONENT_ACTIONS",
+    "CONTEXT_ACTIONS",
+    "ROBOT_ACTIONS",
+    "VISUALIZATION_ACTIONS",
+]
 
 _HERE: Final = Path(__file__).resolve().parent
 #: The folder of the built-in robot actions.
@@ -24,5 +31,7 @@ ROBOT_ACTIONS: Final = _HERE / "robot"
 COMPONENT_ACTIONS: Final = _HERE / "component"
 #: The folder of the built-in context (world model) actions.
 CONTEXT_ACTIONS: Final = _HERE / "context"
+#: The folder of the built-in visualization actions.
+VISUALIZATION_ACTIONS: Final = _HERE / "visualization"
 #: Every folder of built-in actions.
-BUILTIN_ACTIONS: Final = (ROBOT_ACTIONS, COMPONENT_ACTIONS, CONTEXT_ACTIONS)
+BUILTIN_ACTIONS: Final = (ROBOT_ACTIONS, COMPONENT_ACTIONS, CONTEXT_ACTIONS, VISUALIZATION_ACTIONS)

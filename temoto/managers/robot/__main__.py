@@ -61,6 +61,7 @@ from temoto.core.states import NodeState, Result
 from temoto.drivers import Driver, live_drivers, make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
 from temoto.managers.process import hurry_all
+from temoto.managers.visualization.live import add_foxglove_option, close_foxglove, open_foxglove
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials
@@ -181,6 +182,7 @@ def _parser() -> argparse.ArgumentParser:
     add_components_option(p)
     add_live_view_option(p)
     add_record_option(p)
+    add_foxglove_option(p)
     add_fleet_options(p, "the fleet this robot joins (unless --local)")
     return p
 
@@ -286,7 +288,9 @@ def _run_instance(
         if stale:
             logger.info("released %d references of the previous run", stale)
         robot = RobotManagerClient(instance.registrar).request(client=CLIENT)
+        live = None
         try:
+            live = open_foxglove(args, instance, robot)  # --foxglove: docs/visualization.md
             if recorder is not None:
                 instance.engine.add_instrument(recorder)
                 recorder.sample(robot)
@@ -333,6 +337,7 @@ def _run_instance(
         finally:
             if recorder is not None:
                 recorder.stop_sampling()  # before the robot goes
+            close_foxglove(live)
             # at every way out but a second signal: the catalog keeps nothing of this run
             _release(instance.registrar, robot.resource.id)
 

@@ -1,0 +1,144 @@
+"""``--foxglove [PORT]`` on ``temoto serve`` and the robot command (``docs/visualization.md``).
+
+:func:`add_foxglove_option` declares the options; :func:`open_foxglove` starts, for an
+:class:`~temoto.instance.Instance`, the live Foxglove server with the recording's channels
+(:class:`~temoto.managers.visualization.foxglove.LiveRecorder`) and a Visualization Manager
+on the instance's registrar; :func:`close_foxglove` ends them. This module imports neither the
+SDK nor the manager until a server is asked for.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from dataclasses import dataclass
+from typing import Any
+
+__all__ = ["LiveSession", "add_foxglove_option", "close_foxglove", "open_foxglove"]
+
+logger = logging.getLogger(__name__)
+
+_DEFAULT_PORT = 8765  # foxglove.DEFAULT_PORT, without importing it
+
+
+def _port(text: str) -> int:
+    """An argparse type: a TCP port (0: any free one)."""
+    try:
+        port = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
+    if not 0 <= port <= 65535:
+        raise argparse.ArgumentTypeError(f"a port is 0..65535, not {port}")
+    return port
+
+
+def add_foxglove_option(parser: argparse.ArgumentParser) -> None:
+    """``--foxglove [PORT]``, ``--foxglove-layout FILE`` and ``--foxglove-host HOST``."""
+    parser.add_argument(
+        "--foxglove",
+        nargs="?",
+        type=_port,
+        const=_DEFAULT_PORT,
+        metavar="PORT",
+        help="serve the recording's topics and the loaded displays live to Foxglove on"
+        f" ws://127.0.0.1:PORT (default {_DEFAULT_PORT}; extra temoto[foxglove];"
+        " docs/visualization.md)",
+    )
+    parser.add_argument(
+        "--foxglove-layout",
+        metavar="FILE",
+        help="write a Foxglove layout for these channels (the robot's panels by its features)"
+        " to FILE (import it in Foxglove: Layouts, Import from file)",
+    )
+    parser.add_argument(
+        "--foxglove-host",
+        default="127.0.0.1",
+        metavar="HOST",
+        help="the address --foxglove listens on (default 127.0.0.1: the protocol has no"
+        " authentication)",
+    )
+
+
+@dataclass
+class LiveSession:
+    """What :func:`open_foxglove` started: the server, its recorder, the display manager."""
+
+    server: Any
+    recorder: Any
+    manager: Any
+
+    def close(self) -> None:
+        """Stop sampling and publishing, unload nothing, stop the server; idempotent."""
+        self.recorder.close()
+        self.manager.shutdown()
+        self.server.close()
+
+
+def open_foxglove(args: argparse.Namespace, instance: Any, robot: Any = None) -> LiveSession | None:
+    """The live server ``--foxglove`` asks for (None if it does not), serving ``instance``.
+
+    Args:
+        args: The parsed arguments (``foxglove``, ``foxglove_host``).
+        instance: The :class:`~temoto.instance.Instance` (its engine, registrar, transport).
+        robot: A robot handle to sample (the robot command's), or None.
+
+    Returns:
+        The session (close it with :func:`close_foxglove`), or None.
+
+    Raises:
+        ConfigError: The SDK is missing (the message names the extra), the port cannot be
+            listened on, or the ``--foxglove-layout`` file cannot be written.
+    """
+    layout = getattr(args, "foxglove_layout", None)
+    if layout:
+        _write_layout(layout, robot)
+    port = getattr(args, "foxglove", None)
+    if port is None:
+        return None
+    from temoto.managers.visualization.foxglove import FoxgloveServer, LiveRecorder
+    from temoto.managers.visualization.manager import VisualizationManager
+
+    actor = str(getattr(instance, "actor", "") or "")
+    host = getattr(args, "foxglove_host", None) or "127.0.0.1"
+    server = FoxgloveServer(host, port, name=f"temoto {actor}".strip())
+    recorder = None
+    try:
+        recorder = LiveRecorder(server)
+        recorder.capture_logs()
+        transport = getattr(instance, "transport", None)
+        if transport is not None:
+            recorder.listen(transport, [actor] if actor else [])
+        instance.engine.add_instrument(recorder)
+        if robot is not None:
+            recorder.sample(robot)
+        manager = VisualizationManager(instance.registrar, server)
+    except BaseException:
+        if recorder is not None:
+            recorder.close()
+        server.close()
+        raise
+    sys.stderr.write(f"temoto: foxglove on {server.url}\n")
+    return LiveSession(server, recorder, manager)
+
+
+def _write_layout(path: str, robot: Any) -> None:
+    """``--foxglove-layout FILE``: the layout of the channels ``open_foxglove`` serves."""
+    from temoto.managers.visualization.layout import robot_layout, write_layout
+
+    name, features, joints = "", (), []
+    if robot is not None:
+        name, features = robot.name, tuple(robot.features)
+        if "manipulation" in features:
+            try:
+                joints = list(robot.joint_positions())
+            except Exception as err:  # a device in fault: a layout without the joints' plot
+                logger.warning("--foxglove-layout: no joint names: %s", err)
+    write_layout(path, robot_layout(name, features, joints))
+    sys.stderr.write(f"temoto: foxglove layout written to {path}\n")
+
+
+def close_foxglove(session: LiveSession | None) -> None:
+    """End what :func:`open_foxglove` started (None: nothing)."""
+    if session is not None:
+        session.close()

@@ -1,0 +1,413 @@
+"""The Visualization Manager: displays loaded on demand, served live (``docs/visualization.md``).
+
+The thesis' fifth resource manager (Table 13). :class:`VisualizationManager` serves
+``"display"`` on a registrar: a :class:`~temoto.managers.visualization.messages.DisplayRequest`
+names a source (a robot's pose, joints, location ...; an action's log) and the Foxglove schema
+it is shown as. Equal requests share one display (the registrar counts the references); a
+display exists only while some consumer holds it. While loaded, it publishes its source on
+``/display/<name>/<field>`` of the live server
+(:class:`~temoto.managers.visualization.foxglove.FoxgloveServer`), advertised on load and
+unadvertised on release.
+
+A robot display holds the robot through the registrar (a dependency of the display), so a
+fault of the robot reaches the display's consumers as a resource status, hop by hop, like any
+dependency's. The robot's messages are made by the recorder's own encoders
+(:class:`~temoto.record.Recorder`), so a display carries what ``--record`` records.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import select
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, ClassVar, Final, cast
+
+from temoto.clock import Clock, MonotonicClock
+from temoto.core.registrar import (
+    LoadContext,
+    Registrar,
+    ResourceInfo,
+    ResourceServer,
+    Status,
+)
+from temoto.managers.visualization.messages import DisplayRequest, DisplayResponse
+from temoto.record.recorder import Recorder, _level
+from temoto.record.schemas import stamp
+
+__all__ = ["Display", "VisualizationManager"]
+
+logger = logging.getLogger(__name__)
+
+_GONE: Final = "the display was lost with its process (request it again)"
+_ACTION_LOGGER: Final = "temoto.action"
+
+
+class _Capture:
+    """Stands in for a recorder's queue: keeps what the recorder's encoders put."""
+
+    def __init__(self) -> None:
+        self.messages: list[tuple[str, str, dict[str, Any]]] = []
+
+    def put(self, topic: str, schema: str, message: dict[str, Any]) -> None:
+        self.messages.append((topic, schema, message))
+
+
+def _robot_messages(robot: Any, field: str) -> list[tuple[str, str, dict[str, Any]]]:
+    """One reading of a robot's ``field``, encoded as ``--record`` encodes it."""
+    capture = _Capture()
+    rec = cast("Recorder", capture)
+    name = robot.name
+    if field in ("pose", "tf"):
+        Recorder._pose(rec, name, robot.pose())
+    elif field == "joints":
+        Recorder._joints(rec, name, robot.joint_positions())
+    elif field in ("location", "vehicle"):
+        Recorder._vehicle(rec, name, robot.telemetry())
+    elif field == "health":
+        Recorder._health(rec, name, robot.healthy())
+    return capture.messages
+
+
+@dataclass(eq=False)
+class Display:
+    """A loaded display (what :meth:`VisualizationManager.displays` lists).
+
+    Attributes:
+        request: What it shows.
+        resource_id: Its registrar resource.
+        last: Its last message (None before the first).
+        count: Messages published so far.
+        first_at: ``time.monotonic()`` of its first message (None before it).
+    """
+
+    request: DisplayRequest
+    resource_id: str
+    last: dict[str, Any] | None = None
+    count: int = 0
+    first_at: float | None = None
+    _cond: threading.Condition = field(default_factory=threading.Condition)
+    _stopping: bool = False
+    _thread: threading.Thread | None = None
+    _undo: Callable[[], None] | None = None
+    _wake: int = -1  # the write end of a pipe that wakes a reader thread's select
+    _watchers: list[Callable[[dict[str, Any]], None]] = field(default_factory=list)
+
+    def watch(self, watcher: Callable[[dict[str, Any]], None]) -> None:
+        """Call ``watcher(message)`` with each message from now on.
+
+        It runs in the publishing thread with the display's lock held: keep it short, and do not
+        release the display in it.
+        """
+        with self._cond:
+            self._watchers.append(watcher)
+
+    def wait_for_message(self, timeout: float) -> float:
+        """Wait (real seconds) for the display's first message.
+
+        Returns:
+            Its ``time.monotonic()``.
+
+        Raises:
+            TimeoutError: None came within ``timeout``.
+        """
+        with self._cond:
+            if not self._cond.wait_for(lambda: self.first_at is not None, timeout):
+                raise TimeoutError(f"display {self.request.name}: no message in {timeout:g} s")
+            assert self.first_at is not None
+            return self.first_at
+
+
+class _LogHandler(logging.Handler):
+    """Publishes an action logger's records on a log display."""
+
+    def __init__(self, manager: VisualizationManager, display: Display) -> None:
+        super().__init__()
+        self.manager = manager
+        self.display = display
+
+    def emit(self, record: logging.LogRecord) -> None:
+        try:
+            text = record.getMessage()
+        except Exception:
+            text = str(record.msg)
+        message = {
+            "level": _level(record.levelno),
+            "message": text,
+            "name": record.name,
+            "file": record.pathname,
+            "line": record.lineno,
+        }
+        self.manager._publish(self.display, message)
+
+
+class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
+    """Serves ``"display"``: one display per distinct request, while it is held.
+
+    Args:
+        registrar: The registrar to serve on (a robot display needs a Robot Manager there).
+        server: The live server displays publish on (None: displays load and keep their last
+            message for :meth:`displays`, published nowhere).
+        clock: Paces the robot displays' sampling and stamps messages (default: real time).
+        register: Register on ``registrar`` now.
+    """
+
+    name: ClassVar[str] = "display"
+    request_type = DisplayRequest
+    response_type = DisplayResponse
+
+    def __init__(
+        self,
+        registrar: Registrar,
+        server: Any = None,
+        *,
+        clock: Clock | None = None,
+        register: bool = True,
+    ) -> None:
+        self.registrar = registrar
+        self.server = server
+        self.clock: Clock = clock or MonotonicClock()
+        self._lock = threading.Lock()
+        self._displays: dict[str, Display] = {}  # by name
+        self._listeners: list[Callable[[str, DisplayResponse], None]] = []
+        if register:
+            registrar.register(self)
+
+    # ---- what is loaded ------------------------------------------------------------------------
+
+    def displays(self) -> dict[str, Display]:
+        """The loaded displays, by name."""
+        with self._lock:
+            return dict(self._displays)
+
+    def add_listener(self, listener: Callable[[str, DisplayResponse], None]) -> None:
+        """Call ``listener("loaded" | "released", response)`` as displays come and go.
+
+        It runs in the thread that loads or releases the display: keep it short.
+        """
+        self._listeners.append(listener)
+
+    # ---- the server hooks ----------------------------------------------------------------------
+
+    def on_load(self, request: DisplayRequest, ctx: LoadContext) -> DisplayResponse:
+        """Take the source (a robot: as a dependency), advertise the topic, start publishing.
+
+        Raises:
+            ValueError: Another display already has this name.
+            ResourceError: The robot cannot be had.
+        """
+        with self._lock:
+            if request.name in self._displays:
+                raise ValueError(f"display name '{request.name}' is in use by another display")
+            display = Display(request, ctx.resource_id)
+            self._displays[request.name] = display
+        try:
+            what = self._start(display, ctx)
+            if self.server is not None:
+                self.server.advertise(request.topic, request.kind)
+        except BaseException:
+            with self._lock:
+                self._displays.pop(request.name, None)
+            self._stop(display)  # the registrar releases the source (a dependency)
+            if self.server is not None:
+                self.server.unadvertise(request.topic)
+            raise
+        response = DisplayResponse(
+            request.name, (request.topic,), request.kind, what, ctx.resource_id
+        )
+        self._tell("loaded", response)
+        logger.info("display %s: showing %s on %s", request.name, what, request.topic)
+        return response
+
+    def on_unload(self, request: DisplayRequest, response: DisplayResponse) -> None:
+        """Stop publishing and unadvertise (the robot is released after, as a dependency)."""
+        with self._lock:
+            display = self._displays.get(request.name)
+            if display is None or display.resource_id != response.resource_id:
+                return  # lost in a restart (on_restore): a display of that name is another one
+            del self._displays[request.name]
+        self._stop(display)
+        if self.server is not None:
+            for topic in response.topics:
+                self.server.unadvertise(topic)
+        self._tell("released", response)
+        logger.info("display %s: released", request.name)
+
+    def on_restore(self, resource: ResourceInfo) -> tuple[Status, str] | None:
+        """After a restart from the catalog: the display's publisher died with its process."""
+        return Status.FATAL, _GONE
+
+    def shutdown(self) -> None:
+        """Stop every display still loaded (the registrar is closing); unadvertises them."""
+        with self._lock:
+            displays = list(self._displays.values())
+            self._displays.clear()
+        for display in displays:
+            self._stop(display)
+            if self.server is not None:
+                self.server.unadvertise(display.request.topic)
+
+    # ---- internals -----------------------------------------------------------------------------
+
+    def _tell(self, event: str, response: DisplayResponse) -> None:
+        for listener in list(self._listeners):
+            try:
+                listener(event, response)
+            except Exception:
+                logger.exception("display listener failed")
+
+    def _start(self, display: Display, ctx: LoadContext) -> str:
+        request = display.request
+        if request.source == "robot":
+            from temoto.managers.robot.client import RobotManagerClient
+
+            # Called in on_load's thread: the robot is a dependency of the display.
+            robot = RobotManagerClient(self.registrar).request(
+                request.target, client=f"display/{request.name}"
+            )
+            thread = threading.Thread(
+                target=self._sample_loop,
+                args=(display, robot),
+                name=f"temoto-display-{request.name}",
+                daemon=True,
+            )
+            display._thread = thread
+            thread.start()
+            return f"robot {robot.name} {request.field}"
+        if request.source == "component":
+            return self._start_component(display)
+        # source "log"
+        target = f"{_ACTION_LOGGER}.{request.target}" if request.target else _ACTION_LOGGER
+        handler = _LogHandler(self, display)
+        log = logging.getLogger(target)
+        log.addHandler(handler)
+        display._undo = lambda: log.removeHandler(handler)
+        return f"log of {target}"
+
+    def _start_component(self, display: Display) -> str:
+        from temoto.managers.component.channels import ChannelReader
+        from temoto.managers.component.messages import ComponentRequest
+
+        request = display.request
+        # Called in on_load's thread: the component is a dependency of the display.
+        component = self.registrar.call(
+            "component",
+            ComponentRequest(
+                type=request.target, name=request.candidate, failover=not request.candidate
+            ),
+            client=f"display/{request.name}",
+        )
+        reader = ChannelReader(component.response.output())
+        wake_r, wake_w = os.pipe()  # _stop wakes the reader at once (a release is not delayed)
+
+        def undo() -> None:
+            display._wake = -1
+            display._undo = None
+            reader.close()
+            os.close(wake_r)
+            os.close(wake_w)
+
+        thread = threading.Thread(
+            target=self._read_loop,
+            args=(display, reader, wake_r, component.resource_id),
+            name=f"temoto-display-{request.name}",
+            daemon=True,
+        )
+        display._thread = thread
+        display._undo = undo
+        display._wake = wake_w
+        thread.start()
+        response = component.response
+        return f"{request.target} {response.name} of {response.robot}"
+
+    def _read_loop(self, display: Display, reader: Any, wake: int, component_id: str) -> None:
+        request = display.request
+        while not display._stopping:
+            try:
+                ready, _, _ = select.select([reader, wake], [], [])
+                if wake in ready:
+                    return
+                data = reader.recv(0)
+            except OSError as err:
+                logger.debug("display %s: channel closed: %s", request.name, err)
+                return
+            if not data:
+                continue
+            try:  # the active candidate (a failover changes it in place)
+                active = self.registrar.info(component_id).response
+                name, robot = str(active.name), str(active.robot)
+            except Exception:  # released meanwhile
+                name, robot = request.candidate, ""
+            message = {
+                "type": request.target,
+                "component": name,
+                "robot": robot,
+                "data": bytes(data[:1024]).decode("utf-8", errors="replace"),
+                "size": len(data),
+            }
+            self._publish(display, message)
+
+    def _stop(self, display: Display) -> None:
+        with display._cond:
+            display._stopping = True
+            display._cond.notify_all()
+        if display._wake >= 0:
+            os.write(display._wake, b"x")
+        thread = display._thread
+        if thread is not None and thread is not threading.current_thread():
+            thread.join(5.0)
+        if display._undo is not None:
+            display._undo()
+
+    def _sample_loop(self, display: Display, robot: Any) -> None:
+        request = display.request
+        clock = self.clock
+        period = 1.0 / request.rate_hz
+        next_at = clock.monotonic()
+        cond = display._cond
+        while not display._stopping:
+            try:
+                messages = _robot_messages(robot, request.field)
+            except Exception as err:  # a device in fault: its status reaches the consumers
+                logger.debug("display %s: no sample: %s", request.name, err)
+                messages = []
+            for _topic, schema, message in messages:
+                if schema == request.kind:
+                    self._publish(display, message)
+            next_at += period
+            now = clock.monotonic()
+            if next_at < now - period:  # fell behind: do not catch up
+                next_at = now + period
+            with cond:
+                while not display._stopping:
+                    remaining = next_at - clock.monotonic()
+                    if remaining <= 0:
+                        break
+                    clock.wait(cond, remaining)
+
+    def _publish(self, display: Display, message: dict[str, Any]) -> None:
+        # Under the display's condition: once _stop has set _stopping, nothing is in flight
+        # (a late message would advertise the topic again after its release).
+        with display._cond:
+            if display._stopping:
+                return
+            ns = int(self.clock.time() * 1e9)
+            message.setdefault("timestamp", stamp(ns))
+            display.last = message
+            display.count += 1
+            if display.first_at is None:
+                display.first_at = time.monotonic()
+                display._cond.notify_all()
+            for watcher in display._watchers:
+                try:
+                    watcher(message)
+                except Exception:
+                    logger.exception("display %s: watcher failed", display.request.name)
+            if self.server is not None:
+                try:
+                    self.server.publish(display.request.topic, display.request.kind, message, ns)
+                except ValueError as err:  # a NaN: that message only
+                    logger.debug("display %s: message not sent: %s", display.request.name, err)

@@ -1,0 +1,359 @@
+"""The Visualization Manager and the live Foxglove server, seen by an independent client.
+
+The client (:mod:`temoto.testing.foxglove_client`) speaks the Foxglove WebSocket protocol
+from its specification on the ``websockets`` package, not through the SDK the server uses.
+The robot is the simulated Dynamixel arm (``hw_profiles/sim_arm.yaml``), in-process.
+"""
+
+from __future__ import annotations
+
+import builtins
+import logging
+import os
+import signal
+import threading
+import time
+from collections.abc import Iterator
+from pathlib import Path
+from typing import Any
+
+import pytest
+from _robots import robot_manager
+
+from temoto import ActionEngine, Result
+from temoto.actions.builtin import VISUALIZATION_ACTIONS
+from temoto.config import load_profile
+from temoto.core.registrar import Registrar, Status, StatusUpdate
+from temoto.errors import ConfigError
+from temoto.managers.robot import RobotManager, RobotManagerClient
+from temoto.managers.visualization import DisplayRequest, VisualizationManager
+from temoto.managers.visualization.foxglove import FoxgloveServer, LiveRecorder
+from temoto.testing.foxglove_client import FoxgloveClient
+
+pytest.importorskip("foxglove")
+pytest.importorskip("websockets")
+
+PROFILES = Path(__file__).resolve().parents[2] / "hw_profiles"
+WAIT = 10.0
+JOINTS = "/display/robot_joints/joints"
+
+
+@pytest.fixture
+def server() -> Iterator[FoxgloveServer]:
+    with FoxgloveServer(port=0) as srv:
+        yield srv
+
+
+@pytest.fixture
+def arm() -> Iterator[tuple[Registrar, RobotManager]]:
+    with robot_manager("test-viz", load_profile(PROFILES / "sim_arm.yaml")) as pair:
+        yield pair
+
+
+@pytest.fixture
+def viz(
+    arm: tuple[Registrar, RobotManager], server: FoxgloveServer
+) -> Iterator[tuple[Registrar, RobotManager, VisualizationManager]]:
+    registrar, robots = arm
+    manager = VisualizationManager(registrar, server)
+    try:
+        yield registrar, robots, manager
+    finally:
+        for ref in registrar.references():  # displays first (newest first), then the robot
+            registrar.release(ref.id)
+        manager.shutdown()
+
+
+def test_a_display_request_is_checked_and_named_from_what_it_shows() -> None:
+    request = DisplayRequest("robot", "joints")
+    assert (request.name, request.kind, request.topic) == (
+        "robot_joints",
+        "temoto.JointStates",
+        JOINTS,
+    )
+    # what a restarted registrar rebuilds from the journal is the same request
+    assert DisplayRequest(**vars(request)) == request
+    assert DisplayRequest("robot", "joints", name="robot_joints") == request
+    assert DisplayRequest("log").kind == "foxglove.Log"
+    with pytest.raises(ValueError, match="unknown display source 'lidar'"):
+        DisplayRequest("lidar")
+    with pytest.raises(ValueError, match="no field 'arm'"):
+        DisplayRequest("robot", "arm")
+    with pytest.raises(ValueError, match=r"shown as temoto\.JointStates, not foxglove\.Grid"):
+        DisplayRequest("robot", "joints", kind="foxglove.Grid")
+    with pytest.raises(ValueError, match="needs a target"):
+        DisplayRequest("component")
+    sensor = DisplayRequest("component", target="range_sensor", candidate="lidar_2d")
+    assert sensor.topic == "/display/component_range_sensor_lidar_2d_data/data"
+    with pytest.raises(ValueError, match="rate_hz must be positive"):
+        DisplayRequest("robot", "pose", rate_hz=0)
+
+
+def test_without_the_sdk_the_server_names_the_extra(monkeypatch: pytest.MonkeyPatch) -> None:
+    real_import = builtins.__import__
+
+    def no_foxglove(name: str, *args: Any, **kwargs: Any) -> Any:
+        if name == "foxglove" or name.startswith("foxglove."):
+            raise ImportError(name)
+        return real_import(name, *args, **kwargs)
+
+    monkeypatch.setattr(builtins, "__import__", no_foxglove)
+    with pytest.raises(ConfigError, match=r"pip install 'temoto\[foxglove\]'") as err:
+        FoxgloveServer(port=0)
+    assert "\n" not in str(err.value)
+
+
+def test_the_live_server_carries_the_recordings_topics_and_values(
+    arm: tuple[Registrar, RobotManager], server: FoxgloveServer
+) -> None:
+    registrar, _ = arm
+    robot = RobotManagerClient(registrar).request(client="test")
+    assert robot.move_to_pose("reach").wait(WAIT)
+    live = LiveRecorder(server)
+    try:
+        live.graph_started("patrol", 0.0)
+        live.log(2, "hello", "patrol/Say_0")
+        live.sample(robot, rate_hz=20)
+        with FoxgloveClient(server.url) as client:
+            wanted = {
+                "/temoto/graphs": "temoto.GraphEvent",
+                "/temoto/log": "foxglove.Log",
+                "/sim_arm/joint_states": "temoto.JointStates",
+                "/sim_arm/health": "temoto.RobotHealth",
+            }
+            client.wait(lambda c: wanted.items() <= c.topics().items())
+            assert client.server_info["op"] == "serverInfo"
+            assert client.server_info["name"] == "temoto"
+            channel = client.channels[client.channel_id("/sim_arm/joint_states")]
+            assert (channel["encoding"], channel["schemaEncoding"]) == ("json", "jsonschema")
+            sub = client.subscribe("/sim_arm/joint_states")
+            joints = client.first_message(sub).payload
+            # sampled after the motion reached "reach" (within the profile's tolerance, 0.03 rad)
+            reach = {"shoulder_pan": 0.6, "shoulder_lift": 0.8, "elbow": -1.0, "wrist_pitch": 0.4}
+            reach |= {"wrist_roll": 0.0, "gripper": 0.8}
+            assert joints["name"] == list(robot.joint_positions())
+            assert joints["position"] == pytest.approx([reach[n] for n in joints["name"]], abs=0.04)
+            assert set(joints["timestamp"]) == {"sec", "nsec"}
+            # a late subscriber gets the last value at once (the log was put before it came)
+            log = client.first_message(client.subscribe("/temoto/log")).payload
+            assert (log["message"], log["level"], log["name"]) == ("hello", 2, "patrol/Say_0")
+    finally:
+        live.close()
+        registrar.release(robot.resource.id)
+
+
+def test_a_display_is_advertised_while_held_and_shared_by_equal_requests(
+    viz: tuple[Registrar, RobotManager, VisualizationManager], server: FoxgloveServer
+) -> None:
+    registrar, _, manager = viz
+    with FoxgloveClient(server.url) as client:
+        client.wait(lambda c: bool(c.server_info))
+        t0 = time.monotonic()
+        first = registrar.call("display", DisplayRequest("robot", "joints"), client="a")
+        client.wait(lambda c: JOINTS in c.topics(), timeout=WAIT)
+        advertised = next(
+            t for t, op, topic in client.events if op == "advertise" and topic == JOINTS
+        )
+        assert advertised - t0 < WAIT  # the load itself opens the arm's driver
+        assert client.topics()[JOINTS] == "temoto.JointStates"
+        assert first.response.topics == (JOINTS,)
+        assert first.response.source == "robot sim_arm joints"
+        # the robot is a dependency of the display
+        assert [d.server for d in registrar.dependencies(first.resource_id)] == ["robot"]
+        second = registrar.call("display", DisplayRequest("robot", "joints"), client="b")
+        assert second.resource_id == first.resource_id
+        assert list(manager.displays()) == ["robot_joints"]
+        message = client.first_message(client.subscribe(JOINTS)).payload
+        assert message["name"][0] == "shoulder_pan"
+        assert len(message["position"]) == 6
+        # one consumer lets go: still shown; the last one: unadvertised within 1 s
+        assert not registrar.release(first.id)
+        assert JOINTS in server.topics()
+        t1 = time.monotonic()
+        assert registrar.release(second.id)
+        client.wait(lambda c: JOINTS not in c.topics(), timeout=WAIT)
+        gone = next(t for t, op, topic in client.events if op == "unadvertise" and topic == JOINTS)
+        assert gone - t1 < 1.0
+        assert manager.displays() == {}
+        assert registrar.served("robot") == []  # released with the display
+
+
+def test_a_late_subscriber_gets_the_displays_last_message(server: FoxgloveServer) -> None:
+    registrar = Registrar("test-late")
+    manager = VisualizationManager(registrar, server)
+    try:
+        ref = registrar.call("display", DisplayRequest("log", target="late"), client="a")
+        # one message, before any client: nothing else comes on this channel
+        logging.getLogger("temoto.action.late.Say_0").warning("battery low")
+        assert manager.displays()["log_late_log"].count == 1
+        with FoxgloveClient(server.url) as client:
+            topic = "/display/log_late_log/log"
+            client.wait(lambda c: topic in c.topics())
+            message = client.first_message(client.subscribe(topic)).payload
+            assert (message["message"], message["level"]) == ("battery low", 3)
+            assert message["name"] == "temoto.action.late.Say_0"
+        registrar.release(ref.id)
+    finally:
+        manager.shutdown()
+        registrar.close()
+
+
+def test_the_robots_fault_reaches_the_displays_consumers(
+    viz: tuple[Registrar, RobotManager, VisualizationManager],
+) -> None:
+    registrar, robots, _ = viz
+    got: list[StatusUpdate] = []
+    cond = threading.Condition()
+
+    def on_status(update: StatusUpdate) -> None:
+        with cond:
+            got.append(update)
+            cond.notify_all()
+
+    registrar.call("display", DisplayRequest("robot", "joints"), client="op", on_status=on_status)
+    robots.simulator("arm").inject("silence")
+    with cond:
+        assert cond.wait_for(lambda: any(u.status is Status.FATAL for u in got), WAIT), got
+    fatal = next(u for u in got if u.status is Status.FATAL)
+    assert fatal.hops == ("driver", "robot", "display")
+    assert "arm" in fatal.message
+
+
+GRAPH = {
+    "graph_name": "show",
+    "graph_entry": [{"name": "ShowDisplay", "instance_id": 0}],
+    "graph_exit": [{"name": "ShowDisplay", "instance_id": 0}],
+    "actions": [
+        {
+            "name": "ShowDisplay",
+            "instance_id": 0,
+            "type": "sync",
+            "input_parameters": {
+                "source": {"pvf_type": "string", "pvf_value": "log"},
+                "display_name": {"pvf_type": "string", "pvf_value": "ops"},
+                "duration": {"pvf_type": "number", "pvf_value": 0.5},
+            },
+        }
+    ],
+}
+
+
+def test_show_display_holds_a_display_for_its_node(server: FoxgloveServer) -> None:
+    registrar = Registrar("test-show")
+    manager = VisualizationManager(registrar, server)
+    seen: list[tuple[str, str]] = []
+    manager.add_listener(lambda event, response: seen.append((event, response.name)))
+    try:
+        with ActionEngine("show", actions=[VISUALIZATION_ACTIONS], registrar=registrar) as engine:
+            outcome = engine.run(GRAPH, timeout=30)
+        assert outcome.result is Result.TRUE, outcome.errors
+        assert seen == [("loaded", "ops"), ("released", "ops")]
+        assert manager.displays() == {}
+        assert "/display/ops/log" not in server.topics()
+    finally:
+        manager.shutdown()
+        registrar.close()
+
+
+def test_a_failed_sensors_display_is_unadvertised_and_the_next_ones_advertised(
+    server: FoxgloveServer,
+) -> None:
+    # Demonstration 1 as the thesis has it: the operator's display shows one range sensor; when
+    # that sensor fails, its display fails with it and is released, and the next one's loaded.
+    from temoto.demos.sensor_redundancy import SENSORS
+    from temoto.managers import ProcessManager
+    from temoto.managers.component import ComponentManager
+
+    registrar = Registrar("test-viz-sensors")
+    processes = ProcessManager(registrar)
+    components = ComponentManager(registrar, files=[SENSORS])
+    manager = VisualizationManager(registrar, server)
+    statuses: list[StatusUpdate] = []
+    cond = threading.Condition()
+
+    def on_status(update: StatusUpdate) -> None:
+        with cond:
+            statuses.append(update)
+            cond.notify_all()
+
+    try:
+        with FoxgloveClient(server.url) as client:
+            client.wait(lambda c: bool(c.server_info))
+            shown: list[str] = []
+            ref = None
+            for sensor in ("lidar_3d", "depth_camera"):
+                request = DisplayRequest("component", target="range_sensor", candidate=sensor)
+                ref = registrar.call("display", request, client="operator", on_status=on_status)
+                client.wait(lambda c, t=request.topic: t in c.topics())
+                assert client.topics()[request.topic] == "temoto.ComponentData"
+                message = client.first_message(client.subscribe(request.topic)).payload
+                assert message["component"] == sensor
+                assert message["data"].startswith(sensor)
+                shown.append(sensor)
+                if sensor == "depth_camera":
+                    break
+                (component,) = registrar.dependencies(ref.resource_id)
+                os.kill(component.response.pid, signal.SIGKILL)
+                with cond:
+                    assert cond.wait_for(
+                        lambda: any(u.status is Status.FATAL for u in statuses), WAIT
+                    ), statuses
+                t_release = time.monotonic()
+                registrar.release(ref.id)
+                client.wait(lambda c, t=request.topic: t not in c.topics())
+                gone = next(
+                    t
+                    for t, op, topic in client.events
+                    if op == "unadvertise" and topic == request.topic
+                )
+                assert gone - t_release < 1.0
+            assert shown == ["lidar_3d", "depth_camera"]
+            fatal = next(u for u in statuses if u.status is Status.FATAL)
+            assert fatal.hops[-2:] == ("component", "display")
+            order = [(op, topic) for _, op, topic in client.events if op != "message"]
+            lidar = DisplayRequest("component", target="range_sensor", candidate="lidar_3d").topic
+            depth = DisplayRequest("component", target="range_sensor", candidate="depth_camera")
+            assert order == [
+                ("advertise", lidar),
+                ("unadvertise", lidar),
+                ("advertise", depth.topic),
+            ]
+            assert ref is not None
+            registrar.release(ref.id)
+    finally:
+        manager.shutdown()
+        components.shutdown()
+        processes.shutdown(stop_processes=True)
+        registrar.close()
+
+
+def test_after_a_registrar_restart_a_display_is_fatal_and_loads_afresh(
+    server: FoxgloveServer, tmp_path: Path
+) -> None:
+    catalog = tmp_path / "catalog.journal"
+    reg1 = Registrar("test-viz", catalog=catalog)
+    viz1 = VisualizationManager(reg1, server)
+    request = DisplayRequest("log", target="patrol", name="ops")
+    ref = reg1.call("display", request, client="operator")
+    viz1.shutdown()  # the process "dies": nothing is released
+    reg1.close()
+    reg2 = Registrar("test-viz", catalog=catalog, restore=True)
+    viz2 = VisualizationManager(reg2, server)
+    try:
+        info = reg2.info(ref.id)
+        assert info.request == request  # rebuilt from the journal's JSON
+        assert info.failed
+        assert viz2.displays() == {}
+        again = reg2.call("display", request, client="operator")
+        assert again.resource_id != ref.resource_id  # a fresh display, not the lost one
+        assert "/display/ops/log" in server.topics()
+        assert list(viz2.displays()) == ["ops"]
+        # the lost one's release leaves the fresh one alone
+        reg2.release(ref.id)
+        assert "/display/ops/log" in server.topics()
+        assert list(viz2.displays()) == ["ops"]
+        reg2.release(again.id)
+        assert "/display/ops/log" not in server.topics()
+    finally:
+        viz2.shutdown()
+        reg2.close()
