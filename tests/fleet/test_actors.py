@@ -552,6 +552,39 @@ def test_a_late_resend_after_end_is_acknowledged_but_not_taken_again(fleet: Flee
     assert b.stats["duplicates"] == 1
 
 
+def test_a_member_naming_another_actor_is_dropped_and_logged(
+    fleet: Fleet, caplog: pytest.LogCaptureFixture
+) -> None:
+    # X seals with its own key but writes "C" as the actor of a notification, an
+    # acknowledgement and a handshake: B takes none of them (docs/security.md)
+    (b,) = fleet.links("B")
+    x = Raw(fleet.fleet_link("X"), ack_channel("X"), ack_channel("C"))
+    taken, flush = Got(), Got()
+    b.expect("g", "s1", "Move_1", "C", taken)
+    b.expect("g", "s1", "Flush_1", "X", flush)
+    with caplog.at_level(logging.WARNING, logger="temoto.fleet._common"):
+        x.send(NOTIFY_CHANNEL, notification("n1", "C", "Move_1", "on_true", ""))
+        x.send(HANDSHAKE_CHANNEL, handshake(1, "C"))
+        ack = action_ack_t()
+        ack.notification_id, ack.graph, ack.session, ack.actor = "n9", "g", "s1", "C"
+        x.send(ack_channel("B"), ack)
+        x.send(NOTIFY_CHANNEL, notification("n2", "X", "Flush_1", "on_true", ""))  # as itself
+        flush.wait_for(1)
+        deadline = time.monotonic() + WAIT_S  # three channels: each has its own queue
+        while b.stats["impostor"] < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert taken.calls == []
+    assert b.stats["impostor"] == 3
+    assert b.stats["handshakes_received"] == 0
+    assert b.stats["acks_received"] == 0
+    assert [a.notification_id for a in x.acks()] == ["n2"]  # only its own notification
+    lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    for kind in ("action_notification_t", "handshake_t", "action_ack_t"):
+        assert any(
+            f"a {kind}" in line and "sent by 'X' whose actor names 'C'" in line for line in lines
+        ), lines
+
+
 def test_what_was_never_started_here_is_forgotten_after_stray_s(fleet: Fleet) -> None:
     a = fleet.link("A")
     b = fleet.link("B", stray_s=0.2)
@@ -733,10 +766,11 @@ def test_end_of_a_peer_releases_a_notification_waiting_for_it(fleet: Fleet) -> N
     a, b = fleet.links("A", "B")
     assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
     seen = Raw(fleet.fleet_link("X"), NOTIFY_CHANNEL)
+    c = Raw(fleet.fleet_link("C"))  # C's END comes from C (a member speaks only as itself)
     got = interrupted(
         lambda: a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B", "C"], WAIT_S),
         seen.got,
-        lambda: (b.end("g", "s1"), seen.send(HANDSHAKE_CHANNEL, handshake(4, "C"))),
+        lambda: (b.end("g", "s1"), c.send(HANDSHAKE_CHANNEL, handshake(4, "C"))),
     )
     assert got == []  # returned: B acknowledged or finished, C finished
     assert a.notify("g", "s1", "Move_2", Result.TRUE, {}, ["C"], WAIT_S) is None  # not waited
