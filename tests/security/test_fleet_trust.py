@@ -421,6 +421,8 @@ def test_a_passive_capture_shows_no_graph_parameter_or_item(
     assert a.engine.wait("classified_graph", WAIT).value == "on_true"
     assert a.link.transport.flush(WAIT)  # type: ignore[attr-defined]
     assert spy.transport.flush(WAIT)
+    # the feedback thread publishes the run's end on its own time (loaded machine: later)
+    eventually(lambda: "TEMOTO_GRAPH_FEEDBACK" in {ch for ch, _ in spy.frames}, "no feedback")
     blob = b"".join(data for _, data in spy.frames)
     assert {ch for ch, _ in spy.frames} >= {
         COMMAND_CHANNEL,
