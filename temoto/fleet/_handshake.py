@@ -42,11 +42,15 @@ from temoto.lcm_types import handshake_t
 __all__ = ["Handshakes"]
 
 # A JOIN that answers newly heard peers waits this share of resend_s for more of them, so a
-# fleet that starts at once exchanges a few JOINs per actor, not one per pair; READY answers
-# to late JOINs are as rare.
+# large fleet that starts at once exchanges a few JOINs per actor, not one per pair; READY
+# answers to late JOINs are as rare.
 _ANSWER_WINDOW = 0.25
-# ... except the first few JOINs of a handshake, which answer at once.
-_ANSWERS_AT_ONCE = 3
+# ... except the first JOINs of a handshake, which answer at once: as many as there are
+# participants, up to this many (in a fleet of up to 10, every newly heard peer is answered
+# at once: each actor sends at most one JOIN per peer). It was 3 whatever the fleet: the
+# fourth peer an actor heard (in a handshake of 5, the one that started last) waited for the
+# resend period, so handshake_5_actors_ms was 100 ms in one round of three (issue 26).
+_ANSWERS_AT_ONCE = 10
 # A handshake of more actors than this sends its JOINs (and READY answers) at most every
 # resend_s * actors / _ACTORS_PER_PERIOD: every JOIN is decoded by every other actor, so the
 # whole fleet sends about as many JOINs per second as this many actors would, and the work
@@ -433,12 +437,12 @@ class Handshakes(LinkPart):
             if actor in run.actors:
                 self.check_same_actors(run, actor)
                 if (first or rejoined) and run.answer_at is None:
-                    # answered by the handshake's thread: the first few JOINs at once (a small
+                    # answered by the handshake's thread: the first JOINs at once (a small
                     # fleet is done in a round trip or two), later ones with every peer heard
                     # meanwhile, and never sooner than a resend period after the last JOIN
                     run.answer_at = (
                         now
-                        if run.joins < _ANSWERS_AT_ONCE
+                        if run.joins < min(len(run.actors), _ANSWERS_AT_ONCE)
                         else max(
                             now + self.resend_s * _ANSWER_WINDOW, run.last_join + self.gap(run)
                         )

@@ -203,6 +203,28 @@ def test_a_late_joiner_still_completes(fleet: Fleet) -> None:
     assert concurrently(handshaking(a, names, 3.0), handshaking(b, names, 3.0), late) == [None] * 3
 
 
+def test_every_newly_heard_peer_of_a_small_fleet_is_answered_at_once(fleet: Fleet) -> None:
+    # Five actors start one after the other. A answered only its first three JOINs at once and
+    # the fourth peer (D) a resend period later: with resend_s = 5 s nobody was done before
+    # 5 s. Issue 26: handshake_5_actors_ms was 100 ms (resend_s = 0.1) in one round of three.
+    names = ["A", "B", "C", "D", "E"]
+    links = fleet.links(*names, resend_s=5.0, silence_s=60.0)
+    a = links[0]
+    starts: list[float] = []
+
+    def staggered(i: int) -> Callable[[], None]:
+        def call() -> None:
+            while a.stats["handshakes_sent"] < i:  # A answered the ones started before
+                time.sleep(0.005)
+            starts.append(time.monotonic())
+            links[i].handshake("g", "s1", names, 20.0)
+
+        return call
+
+    assert concurrently(*(staggered(i) for i in range(5)), timeout=30.0) == [None] * 5
+    assert time.monotonic() - min(starts) < 2.5  # not a resend period (5 s)
+
+
 def test_a_join_heard_before_the_handshake_starts_is_kept(fleet: Fleet) -> None:
     a, b = fleet.links("A", "B")
     seen = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
@@ -577,6 +599,7 @@ def test_a_member_naming_another_actor_is_dropped_and_logged(
     assert b.stats["impostor"] == 3
     assert b.stats["handshakes_received"] == 0
     assert b.stats["acks_received"] == 0
+    x.got.wait_for(1)
     assert [a.notification_id for a in x.acks()] == ["n2"]  # only its own notification
     lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     for kind in ("action_notification_t", "handshake_t", "action_ack_t"):
