@@ -344,11 +344,8 @@ class RemoteResources(Closing):
         ``impostor``, logged; docs/security.md). A manager and a sender the RIS has not heard
         of yet (its first advert is on its way) cannot be checked and are let through.
         """
-        field = (
-            "consumer"
-            if opened.type in ("resource_request_t", "resource_release_t")
-            else ("provider")
-        )
+        requests = ("resource_request_t", "resource_release_t")
+        field = "consumer" if opened.type in requests else "provider"
         manager: str = getattr(msg, field)
         if manager == self.manager:
             owner: str | None = self._ris.robot
