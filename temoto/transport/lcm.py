@@ -1,6 +1,6 @@
 """LCM transport: one ``lcm.LCM`` handle and one thread (``temoto-lcm``) that dispatches.
 
-The thread waits for LCM's file descriptor (and a wake-up pipe of ours) in ``select``, then
+The thread waits for LCM's file descriptor (and a wake-up pipe of ours) in ``poll``, then
 dispatches what came with ``handle_timeout(0)``, until the transport is closed; handlers run
 on it, and :meth:`LcmTransport.close` returns within about one timeout (plus the running
 handler).
@@ -94,8 +94,8 @@ class LcmTransport(Transport):
     Args:
         url: The LCM provider URL, e.g. ``udpm://239.255.76.67:7667?ttl=1`` between robots or
             ``memq://`` in tests (delivers only within this one instance).
-        handle_timeout_s: Longest wait of one ``handle_timeout`` call; bounds how long
-            :meth:`close` waits for the receive thread.
+        handle_timeout_s: Longest wait of the receive thread in one ``poll`` (a subscription
+            or :meth:`close` wakes it at once; this bounds the wait if that wake-up is lost).
 
     Raises:
         TransportError: If the ``lcm`` package is missing or LCM cannot open ``url`` (an
@@ -127,7 +127,7 @@ class LcmTransport(Transport):
         self._released: list[LcmSubscription] = []
         self._requests: list[_Request] = []
         self._stop = threading.Event()
-        # The receive thread waits in select() for LCM's descriptor and this pipe: a byte in it
+        # The receive thread waits in poll() for LCM's descriptor and this pipe: a byte in it
         # wakes the thread to make a subscription (or to stop) at once.
         self._wake_r, self._wake_w = os.pipe()
         os.set_blocking(self._wake_r, False)
@@ -235,12 +235,15 @@ class LcmTransport(Transport):
         assert lc is not None
         fd = lc.fileno()
         timeout_s = self._timeout_ms / 1000
+        poller = select.poll()  # not select(): a descriptor may be above FD_SETSIZE (1024)
+        poller.register(fd, select.POLLIN)
+        poller.register(self._wake_r, select.POLLIN)
         try:
             while not self._stop.is_set():
                 self._unsubscribe_released(lc)
                 self._make_requested(lc)
                 try:
-                    ready, _, _ = select.select([fd, self._wake_r], [], [], timeout_s)
+                    ready = {ready_fd for ready_fd, _ in poller.poll(self._timeout_ms)}
                     if self._wake_r in ready:
                         os.read(self._wake_r, 4096)
                     if fd in ready:
