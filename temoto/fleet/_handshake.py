@@ -42,10 +42,15 @@ from temoto.lcm_types import handshake_t
 __all__ = ["Handshakes"]
 
 # A JOIN that answers newly heard peers waits this share of resend_s for more of them, so a
-# fleet that starts at once exchanges a few JOINs per actor, not one per pair; READY answers
-# to late JOINs are as rare.
+# large fleet that starts at once exchanges a few JOINs per actor, not one per pair; READY
+# answers to late JOINs are as rare.
 _ANSWER_WINDOW = 0.25
-# ... except the first few JOINs of a handshake, which answer at once.
+# ... except the first JOINs of a handshake, which answer at once: in a fleet of up to
+# _ACTORS_PER_PERIOD every newly heard peer is answered at once (each actor sends at most one
+# JOIN per peer), in a larger one the first _ANSWERS_AT_ONCE. It was those 3 whatever the
+# fleet: the fourth peer an actor heard (in a handshake of 5, the one that started last)
+# waited for the resend period, so handshake_5_actors_ms was 100 ms in one round of three
+# (issue 26).
 _ANSWERS_AT_ONCE = 3
 # A handshake of more actors than this sends its JOINs (and READY answers) at most every
 # resend_s * actors / _ACTORS_PER_PERIOD: every JOIN is decoded by every other actor, so the
@@ -169,6 +174,15 @@ class Handshakes(LinkPart):
         See ``_ACTORS_PER_PERIOD``.
         """
         return self.resend_s * max(1.0, len(run.actors) / _ACTORS_PER_PERIOD)
+
+    def answers_at_once(self, run: Run) -> int:
+        """How many JOINs of ``run`` (its first included) answer newly heard peers at once.
+
+        Every one in a fleet of up to ``_ACTORS_PER_PERIOD``; the first ``_ANSWERS_AT_ONCE`` in
+        a larger one, whose answers wait for more peers (module constants).
+        """
+        n = len(run.actors)
+        return n if n <= _ACTORS_PER_PERIOD else _ANSWERS_AT_ONCE
 
     def report_done(self, run: Run, actor: str, report: Peer) -> bool:
         """Whether ``actor``'s newest report says it heard every other participant.
@@ -433,12 +447,12 @@ class Handshakes(LinkPart):
             if actor in run.actors:
                 self.check_same_actors(run, actor)
                 if (first or rejoined) and run.answer_at is None:
-                    # answered by the handshake's thread: the first few JOINs at once (a small
+                    # answered by the handshake's thread: the first JOINs at once (a small
                     # fleet is done in a round trip or two), later ones with every peer heard
                     # meanwhile, and never sooner than a resend period after the last JOIN
                     run.answer_at = (
                         now
-                        if run.joins < _ANSWERS_AT_ONCE
+                        if run.joins < self.answers_at_once(run)
                         else max(
                             now + self.resend_s * _ANSWER_WINDOW, run.last_join + self.gap(run)
                         )

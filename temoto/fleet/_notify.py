@@ -190,6 +190,8 @@ class Notices(LinkPart):
         if msg is None:
             return
         actor: str = msg.actor
+        if actor and not self._core.speaks_as(opened, actor, "actor"):
+            return  # a member acknowledging in another's name (docs/security.md)
         with self._lock:
             if self._core.closed or not actor or actor == self._actor:
                 return
@@ -207,6 +209,8 @@ class Notices(LinkPart):
         if msg is None:
             return
         actor: str = msg.actor
+        if actor and not self._core.speaks_as(opened, actor, "actor"):
+            return  # a member notifying in another's name (docs/security.md)
         with self._lock:
             if self._core.closed:
                 return

@@ -117,6 +117,7 @@ STATS: Final = (
     "send_errors",  # sends that failed on the link's own threads (logged)
     "callback_errors",  # callbacks that raised (logged)
     "lost",  # actors reported to on_lost
+    "impostor",  # naming another member than their authenticated sender (dropped)
 )
 
 # Deliveries a busy subscription keeps while the handlers catch up (LCM keeps 30 by default
@@ -537,6 +538,8 @@ class FleetActorLink(Closing):
         if msg is None:
             return
         actor: str = msg.actor
+        if actor and not self._core.speaks_as(opened, actor, "actor"):
+            return  # a member speaking as another (docs/security.md)
         with self._lock:
             if self._core.closed:
                 return

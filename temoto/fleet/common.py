@@ -4,7 +4,9 @@
 :class:`~temoto.transport.FleetLink` (the Context Manager) build on these: :func:`new` makes
 an empty message of a generated LCM class, :func:`decode_or_count` opens an envelope's payload
 and counts what it drops, :func:`check_name`, :func:`check_seconds` and :func:`check_clock`
-check constructor arguments with clear errors, :class:`CallQueue` runs callbacks off the
+check constructor arguments with clear errors, :class:`SpeakerCheck` drops a message whose
+actor, robot or sender field names a member other than its envelope's authenticated sender,
+:class:`CallQueue` runs callbacks off the
 transport's receive thread, and :class:`Closing` gives ``with`` support to anything with a
 ``close()``. :class:`temoto.fleet.service.ServiceCore` is the state the parts of one service
 share.
@@ -24,10 +26,13 @@ from temoto.clock import Clock
 from temoto.errors import DecodeError
 from temoto.transport import codec
 from temoto.transport.auth import Opened
+from temoto.transport.base import _LogLimiter
 
 __all__ = [
+    "IMPOSTOR",
     "CallQueue",
     "Closing",
+    "SpeakerCheck",
     "check_clock",
     "check_name",
     "check_seconds",
@@ -43,6 +48,83 @@ logger = logging.getLogger("temoto.fleet._common")
 _VERSION_WARNED: set[tuple[str, str, int]] = set()
 _VERSION_WARNED_MAX = 256
 _version_lock = threading.Lock()
+
+
+#: The counter of the messages a :class:`SpeakerCheck` drops (in every fleet service's stats).
+IMPOSTOR = "impostor"
+#: Seconds between two WARNING lines about the same sender naming the same other member.
+_IMPOSTOR_LOG_S = 10.0
+
+
+class SpeakerCheck:
+    """A member speaks only as itself: its messages must name it, not another member.
+
+    Every fleet message whose meaning depends on who sent it names its sender inside (the
+    ``actor`` of a handshake, a notification, an acknowledgement, a command reply or feedback;
+    the ``robot`` of a RIS advert, a withdrawal, a world-model update or digest; the
+    ``requester`` of a request). It is accepted only when that name is the envelope's
+    authenticated sender (:attr:`Opened.sender`: with a roster, the member whose key sealed
+    it); otherwise it is dropped, counted as :data:`IMPOSTOR` and logged at WARNING with both
+    names (at once for each sender, claimed name and type, then at most every 10 s with the
+    count of those held back). docs/security.md lists the field of each message type.
+
+    With a shared fleet key or ``--insecure`` the sender's name is not bound to a key (any
+    member, or anyone, can write any sender name): the check then only keeps a member's
+    messages consistent, it proves nothing.
+
+    Args:
+        service: Names the service in the log line (e.g. ``"actors"``).
+    """
+
+    def __init__(self, service: str) -> None:
+        self.service = service
+        self._log = _LogLimiter(_IMPOSTOR_LOG_S)
+
+    def __call__(
+        self,
+        opened: Opened,
+        claimed: object,
+        field: str,
+        counts: dict[str, int],
+        lock: threading.Lock | threading.RLock,
+    ) -> bool:
+        """Whether ``claimed`` is the authenticated sender; counts and logs when not.
+
+        Args:
+            opened: The envelope the message came in.
+            claimed: The name the message gives for its sender (the value of ``field``).
+            field: The message's field that names it, for the log line.
+            counts: The service's counters; :data:`IMPOSTOR` is added to.
+            lock: Guards ``counts`` (not held by the caller).
+
+        Returns:
+            True if the message may be used.
+        """
+        if claimed == opened.sender:
+            return True
+        with lock:
+            counts[IMPOSTOR] = counts.get(IMPOSTOR, 0) + 1
+        held = self._log.allow((opened.sender, claimed, opened.type))
+        if held is not None:
+            more = f"; {held} more since the last report" if held else ""
+            logger.warning(
+                "%s: dropped a %s on %r sent by %s whose %s names %s: a member speaks only as"
+                " itself%s",
+                self.service,
+                opened.type,
+                opened.channel,
+                _quoted(opened.sender),
+                field,
+                _quoted(claimed),
+                more,
+            )
+        return False
+
+
+def _quoted(name: object) -> str:
+    """A name from the network for a log line: quoted, escaped, cut to 64 characters."""
+    text = repr(name if not isinstance(name, str) else name[:64])
+    return text + "..." if isinstance(name, str) and len(name) > 64 else text
 
 
 def new(cls: type[Any]) -> Any:

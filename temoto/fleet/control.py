@@ -53,7 +53,7 @@ from temoto.errors import (
     TemotoError,
     TransportError,
 )
-from temoto.fleet.common import Closing, check_clock, decode_or_count, new
+from temoto.fleet.common import IMPOSTOR, Closing, SpeakerCheck, check_clock, decode_or_count, new
 from temoto.lcm_types import graph_command_reply_t, graph_command_t, graph_feedback_t, node_state_t
 from temoto.transport import codec
 from temoto.transport.auth import Opened
@@ -528,7 +528,8 @@ class GraphCommander(Closing):
         self._watchers: list[Callable[[GraphFeedback], None]] = []
         self._ids = itertools.count(1)
         self._prefix = f"{socket.gethostname()}/{os.getpid()}/{time.time_ns()}"
-        self._stats = {"decode_errors": 0, "unexpected": 0}
+        self._stats = {"decode_errors": 0, "unexpected": 0, IMPOSTOR: 0}
+        self._speaks_as = SpeakerCheck("graph commander")
         self._closed = False
         self._subs = [
             link.listen(REPLY_CHANNEL, self._on_reply),
@@ -639,13 +640,17 @@ class GraphCommander(Closing):
 
     @property
     def stats(self) -> dict[str, int]:
-        """Dropped messages: ``decode_errors``, ``unexpected``."""
+        """Dropped messages: ``decode_errors``, ``unexpected``, ``impostor``.
+
+        ``impostor``: replies and feedback naming another actor than their authenticated sender
+        (docs/security.md).
+        """
         with self._lock:
             return dict(self._stats)
 
     def _on_reply(self, opened: Opened) -> None:
         msg = decode_or_count(opened, ("graph_command_reply_t",), self._stats, self._lock)
-        if msg is None:
+        if msg is None or not self._speaks_as(opened, msg.actor, "actor", self._stats, self._lock):
             return
         try:
             errors = tuple(str(e) for e in json.loads(msg.errors or "[]"))
@@ -669,7 +674,7 @@ class GraphCommander(Closing):
 
     def _on_feedback(self, opened: Opened) -> None:
         msg = decode_or_count(opened, ("graph_feedback_t",), self._stats, self._lock)
-        if msg is None:
+        if msg is None or not self._speaks_as(opened, msg.actor, "actor", self._stats, self._lock):
             return
         feedback = GraphFeedback(
             msg.actor,

@@ -53,6 +53,7 @@ RESOURCE_STATS: Final = (
     "timeouts",  # requests of this consumer that got no reply in time
     "lost_fatal",  # proxies made FATAL because their provider robot was lost
     "released_for_lost",  # references released here because their consumer robot was lost
+    "impostor",  # naming another member than their authenticated sender (dropped)
 )
 
 #: resource_reply_t.OK and .ERROR (the generated constants are untyped).

@@ -331,7 +331,33 @@ class RemoteResources(Closing):
             with self._lock:
                 self._core.count("unexpected")
             return
+        if not self._from_its_manager(opened, msg):
+            return
         handlers[opened.type](msg, opened.sender)
+
+    def _from_its_manager(self, opened: Opened, msg: Any) -> bool:
+        """Whether the manager a message comes from belongs to its authenticated sender.
+
+        A request or release comes from its ``consumer``, a reply or status from its
+        ``provider``: a manager the RIS knows as another robot's (or as ours), or a sender
+        the RIS knows with another manager, is a member speaking as another (dropped, counted
+        ``impostor``, logged; docs/security.md). A manager and a sender the RIS has not heard
+        of yet (its first advert is on its way) cannot be checked and are let through.
+        """
+        requests = ("resource_request_t", "resource_release_t")
+        field = "consumer" if opened.type in requests else "provider"
+        manager: str = getattr(msg, field)
+        if manager == self.manager:
+            owner: str | None = self._ris.robot
+        else:
+            robots = self._ris.robots()
+            owner = next((r.robot for r in robots if r.manager == manager), None)
+            if owner is None:
+                known = next((r for r in robots if r.robot == opened.sender), None)
+                if known is None or known.manager == manager:
+                    return True
+                owner = f"not {opened.sender!r} (whose manager is {known.manager!r})"
+        return self._core.speaks_as(opened, owner, f"{field} {manager!r} (of robot)")
 
     def _on_request(self, msg: Any, sender: str) -> None:
         if msg.provider == self.manager:  # else for another manager

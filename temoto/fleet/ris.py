@@ -72,6 +72,7 @@ RIS_STATS: Final = (
     "callback_errors",  # subscriber callbacks that raised (logged)
     "joined",  # robots heard for the first time (or again after being lost)
     "lost",  # robots reported lost (silent, or withdrawn)
+    "impostor",  # naming another member than their authenticated sender (dropped)
 )
 
 #: The server that forwards requests to other robots is never advertised (it would loop).
@@ -486,8 +487,15 @@ class ResourceInfoSync(Closing):
             "ris_withdraw_t": self._on_withdraw,
         }
         msg = self._core.decode(opened, handlers)
-        if msg is not None:
-            handlers[opened.type](msg)
+        if msg is None:
+            return
+        # An advert or withdrawal names the robot it is about, a request its requester: only
+        # the robot itself may say so (docs/security.md).
+        field = "requester" if opened.type == "ris_request_t" else "robot"
+        claimed = getattr(msg, field)
+        if claimed and not self._core.speaks_as(opened, claimed, field):
+            return
+        handlers[opened.type](msg)
 
     def _valid_source(self, robot: Any, manager: Any) -> bool:
         """A robot and manager name another robot may use (lock held; counts if not)."""

@@ -37,7 +37,7 @@ from typing import TYPE_CHECKING, Any, final
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.errors import TransportError
-from temoto.fleet.common import check_clock, decode_or_count
+from temoto.fleet.common import SpeakerCheck, check_clock, decode_or_count
 from temoto.transport import codec
 
 if TYPE_CHECKING:
@@ -68,7 +68,7 @@ class ServiceCore:
         TypeError: If ``clock`` is not a :class:`~temoto.clock.Clock`.
     """
 
-    __slots__ = ("_counts", "clock", "closed", "link", "lock")
+    __slots__ = ("_counts", "_speaker", "clock", "closed", "link", "lock")
 
     def __init__(
         self, link: FleetLink, counters: Iterable[str], clock: Clock | None = None
@@ -78,6 +78,7 @@ class ServiceCore:
         self.lock = threading.Lock()
         self.closed = False
         self._counts = dict.fromkeys(counters, 0)
+        self._speaker = SpeakerCheck("fleet")
 
     def __repr__(self) -> str:
         return f"<ServiceCore {'closed' if self.closed else 'open'} on {self.link!r}>"
@@ -182,3 +183,18 @@ class ServiceCore:
             The decoded message, or None.
         """
         return decode_or_count(opened, expected, self._counts, self.lock)
+
+    def speaks_as(self, opened: Opened, claimed: object, field: str) -> bool:
+        """Whether a message names its authenticated sender (else counted ``impostor``, logged).
+
+        See :class:`temoto.fleet.common.SpeakerCheck`. Not locked (the lock is taken).
+
+        Args:
+            opened: The envelope the message came in.
+            claimed: The sender's name the message gives.
+            field: The field it is in (for the log line).
+
+        Returns:
+            True if the message may be used.
+        """
+        return self._speaker(opened, claimed, field, self._counts, self.lock)

@@ -2,9 +2,11 @@
 
 The reasons a received envelope is dropped (:data:`DROP_REASONS`, the keys of
 ``FleetAuth.stats``), what each means in a log line, and :class:`_DropLog`: the first drop of
-each sender and reason at WARNING, later ones summarised at most every :data:`DROP_SUMMARY_S`
-seconds. Kept apart from the checks themselves so that the module deciding what a message means
-stays short enough to read at once.
+each sender and reason at WARNING, later ones summarised, per sender and reason, at most
+:data:`DROP_SUMMARY_S` seconds after the first of them (a ``FleetLink`` writes the summary when
+it is due, whether more drops come or not) and at most once per that interval. Kept apart
+from the checks themselves so that the module deciding what a message means stays short
+enough to read at once.
 """
 
 from __future__ import annotations
@@ -32,8 +34,10 @@ DROP_REASONS = (
 
 #: Drops that are normal on a shared network and logged at DEBUG only; the others at WARNING.
 _QUIET_REASONS = frozenset({"self", "fleet", "no_session", "not_for_us"})
-#: Seconds between two summary lines of dropped messages (WARNING).
-DROP_SUMMARY_S = 10.0
+#: A summary line of dropped messages (WARNING) comes at most this long after the first drop it
+#: counts, and at most once per this interval. It was 10 s and written only with the next drop
+#: after that (13 s later in one test) or at stop: a repeated attack could stay unseen.
+DROP_SUMMARY_S = 1.0
 #: At most this many (sender, reason) pairs get a line of their own; any later pair (a stranger
 #: inventing sender names) is only counted in the summaries.
 _MAX_FIRST_LINES = 64
@@ -96,8 +100,9 @@ class _DropLog:
     """Decides which authentication drops are logged at WARNING, and summarises the rest.
 
     The first drop of each (sender, reason) is logged at once (up to :data:`_MAX_FIRST_LINES`
-    pairs); later ones are counted and written as one summary line when a drop arrives at least
-    ``interval_s`` after the last line. Not thread-safe: the caller holds a lock.
+    pairs); later ones are counted and written as one summary line ``interval_s`` after the
+    first of them (:meth:`due`; a drop that comes later writes it too): at most one line per
+    interval, and never later than that after a drop. Not thread-safe: the caller holds a lock.
 
     Args:
         interval_s: Seconds between two summary lines.
@@ -107,7 +112,7 @@ class _DropLog:
         self.interval_s = interval_s
         self._first: set[tuple[str | None, str]] = set()
         self._pending: dict[tuple[str | None, str], int] = {}
-        self._since: float | None = None  # when the current summary period began
+        self._since: float | None = None  # when the first drop held back came
 
     def drop(self, sender: str | None, reason: str, now: float) -> tuple[bool, str | None]:
         """Record one drop.
@@ -121,15 +126,25 @@ class _DropLog:
             Whether this drop gets a line of its own, and a summary line to log now (or None).
         """
         key = (sender, reason)
-        if self._since is None or now < self._since:  # first drop, or the clock went back
-            self._since = now
         if key not in self._first and len(self._first) < _MAX_FIRST_LINES:
             self._first.add(key)
             return True, None
+        if not self._pending or self._since is None or now < self._since:  # or clock went back
+            self._since = now
         self._pending[key] = self._pending.get(key, 0) + 1
         if now - self._since < self.interval_s:
             return False, None
         return False, self.flush(now)
+
+    def due(self) -> float | None:
+        """When the summary of the drops held back is due (None: none is held back).
+
+        Returns:
+            The time, on the clock of :meth:`drop`.
+        """
+        if not self._pending or self._since is None:
+            return None
+        return self._since + self.interval_s
 
     def flush(self, now: float) -> str | None:
         """The summary of the drops held back so far (None if there are none); starts anew.
@@ -152,7 +167,7 @@ class _DropLog:
         if len(pairs) > _MAX_SUMMARY_PAIRS:
             rest = sum(n for _, n in pairs[_MAX_SUMMARY_PAIRS:])
             shown += f" and {rest} from {len(pairs) - _MAX_SUMMARY_PAIRS} other senders/reasons"
-        line = f"dropped {total} more messages in the last {now - since:.0f} s: {shown}"
+        line = f"dropped {total} more messages in the last {max(0.0, now - since):.1f} s: {shown}"
         self._pending.clear()
-        self._since = now
+        self._since = None
         return line

@@ -195,6 +195,9 @@ class SecureSession:
         # Per (sender, session) we lack: the sequence numbers we got and could not open.
         self._missed: dict[tuple[str, int], deque[int]] = {}
         self._resend: list[tuple[str, _Pair, list[int]]] = []  # with the next take_outgoing
+        # Per peer: the messages it asked for that an earlier boot of it held a grant for
+        # (never sent again: a replay shown to the restarted peer), since the last take_replays.
+        self._replays: dict[str, int] = {}
         self._last_hello: float | None = None
         self._born = clock()
         self._backlog: deque[tuple[int, float, str, str, bytes]] = deque(maxlen=_BACKLOG_MAX)
@@ -548,10 +551,23 @@ class SecureSession:
             wanted = set(missed)
             peer = self._peers.get(name)
             for seq, _, channel, type_name, payload in list(self._backlog):
-                if seq in wanted and not (peer is not None and peer.could_open(seq, pair)):
-                    self._outgoing.append(
-                        (channel, self.seal(channel, type_name, payload, only=pair))
-                    )
+                if seq not in wanted:
+                    continue
+                if peer is not None and peer.could_open(seq, pair):
+                    if name in self._replays or len(self._replays) < _MISSED_MAX:
+                        self._replays[name] = self._replays.get(name, 0) + 1
+                    continue
+                self._outgoing.append((channel, self.seal(channel, type_name, payload, only=pair)))
+
+    def take_replays(self) -> dict[str, int]:
+        """Per peer, how many messages it asked for that an earlier boot of it may have opened.
+
+        Such a message reached the restarted peer again: a replay of captured traffic (or a
+        copy in flight while it restarted). It is refused there and never sent again; the
+        counts are since the last call.
+        """
+        replays, self._replays = self._replays, {}
+        return replays
 
     def open_data(self, channel: str, env: envelope_t) -> Sealed | str:
         """Check and decrypt a data envelope; a :class:`Sealed` or a drop reason."""

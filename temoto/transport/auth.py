@@ -36,9 +36,12 @@ Drops that mean a member cannot be heard (every reason but ``self``, the multica
 ``fleet``, another fleet on the same network, ``no_session`` and ``not_for_us``, normal while
 hellos cross, which are logged at DEBUG only) are logged at
 WARNING, naming the claimed sender and the reason: the first drop of each sender and reason at
-once, later ones as one summary line with counts at most every :data:`DROP_SUMMARY_S` seconds
-(written with the next drop after that interval, or by :meth:`FleetAuth.log_drop_summary` when
-the member stops). :attr:`FleetAuth.stats` always has the exact counts.
+once, later ones as one summary line with counts per sender and reason, :data:`DROP_SUMMARY_S`
+(1 s) after the first of them at most and at most once per that interval: a
+:class:`~temoto.transport.link.FleetLink` writes it when it is due
+(:meth:`FleetAuth.drop_summary_due_in`, :meth:`FleetAuth.log_drop_summary`) whether more drops
+come or not, and the member writes what is left when it stops. :attr:`FleetAuth.stats` always
+has the exact counts.
 
 Every check covers the channel too: a captured message cannot be replayed on another channel.
 Replay protection follows IPsec (RFC 4303 §3.4.3): per sender session, the highest sequence
@@ -113,6 +116,8 @@ _WINDOW_MASK = (1 << REPLAY_WINDOW) - 1
 # A sender not heard for this many windows is forgotten; its old messages are stale by then.
 _FORGET_AFTER_WINDOWS = 10
 _HEX_DIGITS = frozenset(string.hexdigits)
+# Members warned about replays shown to them after a restart (once each), at most this many.
+_MAX_REPLAY_WARNED = 256
 
 
 def key_from_text(text: str) -> bytes:
@@ -306,6 +311,7 @@ class FleetAuth:
         self._next_prune = clock() + self.window_s
         self._log = _LogLimiter()  # the DEBUG lines of quiet drops
         self._drop_log = _DropLog(DROP_SUMMARY_S)  # guarded by _lock
+        self._replays_warned: set[str] = set()  # guarded by _lock
         self._writer = Writer(ENVELOPE_VERSION, fleet, sender)
         if insecure:
             logger.warning(
@@ -373,7 +379,25 @@ class FleetAuth:
             return []
         with self._lock:
             self._check_roster(_SEAL_ROSTER_CHECK_S)
-            return secure.take_outgoing()
+            out = secure.take_outgoing()
+            replays = secure.take_replays()
+            first: dict[str, int] = {}
+            for name, count in replays.items():
+                if name not in self._replays_warned and (
+                    len(self._replays_warned) < _MAX_REPLAY_WARNED
+                ):
+                    self._replays_warned.add(name)
+                    first[name] = count
+        for name, count in first.items():
+            logger.warning(
+                "fleet %r: %s, restarted, was shown %d message(s) of ours that its earlier boot"
+                " may have opened: a replay of captured traffic (or a copy in flight while it"
+                " restarted); refused there, not sent again (this warning once per member)",
+                self.fleet,
+                _claimed(name),
+                count,
+            )
+        return out
 
     @property
     def peers(self) -> frozenset[str]:
@@ -500,7 +524,7 @@ class FleetAuth:
             what, hint = _WARN_EXPLAIN[reason]
             logger.warning(
                 "fleet %r: dropped a message on %r from %s: %s%s; %s (further drops are"
-                " summarised at most every %.0f s)",
+                " summarised at most every %g s)",
                 self.fleet,
                 channel,
                 _claimed(sender),
@@ -525,10 +549,22 @@ class FleetAuth:
                 )
         return None
 
+    def drop_summary_due_in(self) -> float | None:
+        """Seconds until the summary of the drops held back is due (see :meth:`log_drop_summary`).
+
+        Returns:
+            The delay (0 when due already), or None when no drop is held back.
+        """
+        with self._lock:
+            due = self._drop_log.due()
+            return None if due is None else max(0.0, due - self._clock())
+
     def log_drop_summary(self) -> None:
         """Log the summary of drops held back since the last line (WARNING), if there are any.
 
-        Call it when the member stops, so that the drops of its last seconds are reported too.
+        A :class:`~temoto.transport.link.FleetLink` calls it when :meth:`drop_summary_due_in`
+        says; call it when the member stops, so that the drops of its last moments are reported
+        too.
 
         Raises:
             Nothing.

@@ -1,24 +1,38 @@
 """LCM transport: one ``lcm.LCM`` handle and one thread (``temoto-lcm``) that dispatches.
 
-The thread loops on ``handle_timeout`` until the transport is closed, so handlers run on it and
-:meth:`LcmTransport.close` returns within about one timeout (plus the running handler).
+The thread waits for LCM's file descriptor (and a wake-up pipe of ours) in ``poll``, then
+dispatches what came with ``handle_timeout(0)``, until the transport is closed; handlers run
+on it, and :meth:`LcmTransport.close` returns within about one timeout (plus the running
+handler).
 
 Threading rules of the Python LCM binding that shape this module (lcm-python/pylcm.c):
 
 * ``publish`` releases the GIL and the C library locks it, so any thread may publish.
-* ``subscribe`` from another thread is safe: the C library guards its handler lists.
+* ``subscribe`` is **not** safe while another thread dispatches: it registers its C callback
+  with the library *before* it fills in the subscription's fields (the handler and the LCM
+  object), and the receive thread, in ``handle_timeout`` without the GIL, may dispatch a
+  message that arrived meanwhile to that half-made subscription and dereference NULL: a
+  SIGSEGV (5 of about 1,000 ``temoto run`` processes at start-up under load, issue 26). So
+  every ``lc.subscribe`` runs on the receive thread, between two dispatches: a caller on
+  another thread queues its subscription, wakes the thread through a pipe and waits until it
+  is made (a handler subscribing runs it at once: it is on that thread already).
 * ``unsubscribe`` drops the binding's reference to the handler at once, while the receive thread
   may already have picked that subscription for the message it is dispatching. So unsubscribing
   only marks our subscription inactive (no further handler call starts) and queues the LCM
-  subscription; the receive thread removes it between two ``handle_timeout`` calls.
+  subscription; the receive thread removes it between two dispatches.
 
 The ``lcm`` wheel is imported when a transport is created, never when this module is imported.
 """
 
 from __future__ import annotations
 
+import contextlib
 import logging
+import os
+import select
 import threading
+from collections.abc import Callable
+from dataclasses import dataclass, field
 from typing import TYPE_CHECKING, final
 
 from temoto.errors import TransportError
@@ -40,6 +54,16 @@ _MULTICAST_HINT = (
     "(https://lcm-proj.github.io/lcm/content/multicast-setup.html); "
     "the LCM library printed its reason on stderr"
 )
+
+
+@dataclass(eq=False)
+class _Request:
+    """A subscription waiting to be made on the receive thread."""
+
+    sub: LcmSubscription
+    on_message: Callable[[str, bytes], None]
+    done: threading.Event = field(default_factory=threading.Event)
+    error: BaseException | None = None
 
 
 @final
@@ -70,8 +94,8 @@ class LcmTransport(Transport):
     Args:
         url: The LCM provider URL, e.g. ``udpm://239.255.76.67:7667?ttl=1`` between robots or
             ``memq://`` in tests (delivers only within this one instance).
-        handle_timeout_s: Longest wait of one ``handle_timeout`` call; bounds how long
-            :meth:`close` waits for the receive thread.
+        handle_timeout_s: Longest wait of the receive thread in one ``poll`` (a subscription
+            or :meth:`close` wakes it at once; this bounds the wait if that wake-up is lost).
 
     Raises:
         TransportError: If the ``lcm`` package is missing or LCM cannot open ``url`` (an
@@ -97,11 +121,17 @@ class LcmTransport(Transport):
             hint = _MULTICAST_HINT if url.startswith("udpm") else ""
             raise TransportError(f"LCM cannot open {url!r}{hint}") from err
         self._mutex = threading.Lock()
-        # Guarded by _mutex: the live subscriptions, and those waiting for the receive thread to
-        # remove them from LCM.
+        # Guarded by _mutex: the live subscriptions, those waiting for the receive thread to
+        # remove them from LCM, and those waiting for it to make them.
         self._subs: list[LcmSubscription] = []
         self._released: list[LcmSubscription] = []
+        self._requests: list[_Request] = []
         self._stop = threading.Event()
+        # The receive thread waits in poll() for LCM's descriptor and this pipe: a byte in it
+        # wakes the thread to make a subscription (or to stop) at once.
+        self._wake_r, self._wake_w = os.pipe()
+        os.set_blocking(self._wake_r, False)
+        os.set_blocking(self._wake_w, False)
         self._thread = threading.Thread(target=self._run, name="temoto-lcm", daemon=True)
         self._thread.start()
 
@@ -130,19 +160,44 @@ class LcmTransport(Transport):
             if rx_channel == channel:
                 self._deliver(sub, rx_channel, data)
 
-        with self._mutex:
+        if threading.current_thread() is self._thread:  # a handler subscribing: no race
             lc = self._lcm
             if lc is None or self.closed:
                 raise TransportError("LcmTransport is closed")
-            lcm_sub = lc.subscribe(channel, on_message)
-            if queue_capacity is not None:
-                lcm_sub.set_queue_capacity(queue_capacity)
+            self._make(lc, sub, on_message)
+            return sub
+        request = _Request(sub, on_message)
+        with self._mutex:
+            if self._lcm is None or self.closed:
+                raise TransportError("LcmTransport is closed")
+            self._requests.append(request)
+            self._wake()
+        request.done.wait()  # set by the receive thread, also when it stops
+        if request.error is not None:
+            raise request.error
+        return sub
+
+    def _make(
+        self, lc: _lcm.LCM, sub: LcmSubscription, on_message: Callable[[str, bytes], None]
+    ) -> None:
+        """Subscribe in LCM; on the receive thread only (module docstring)."""
+        lcm_sub = lc.subscribe(sub.channel, on_message)
+        if sub.queue_capacity is not None:
+            lcm_sub.set_queue_capacity(sub.queue_capacity)
+        with self._mutex:
             sub._lcm_sub = lcm_sub
             self._subs.append(sub)
-        return sub
+
+    def _wake(self) -> None:
+        """Wake the receive thread; ``_mutex`` held (the thread closes the pipe under it)."""
+        if self._wake_w >= 0:
+            with contextlib.suppress(BlockingIOError):  # full: a wake-up is pending anyway
+                os.write(self._wake_w, b"\0")
 
     def _close(self) -> None:
         self._stop.set()
+        with self._mutex:
+            self._wake()
         if threading.current_thread() is not self._thread:
             self._thread.join()
 
@@ -153,6 +208,19 @@ class LcmTransport(Transport):
             if sub in self._subs:
                 self._subs.remove(sub)
                 self._released.append(sub)
+
+    def _make_requested(self, lc: _lcm.LCM) -> None:
+        """Make the subscriptions other threads asked for (on the receive thread)."""
+        with self._mutex:
+            requests, self._requests = self._requests, []
+        for request in requests:
+            try:
+                self._make(lc, request.sub, request.on_message)
+            except Exception as err:  # the caller raises it
+                request.error = TransportError(
+                    f"LCM subscribe to {request.sub.channel!r} failed: {err}"
+                )
+            request.done.set()
 
     def _unsubscribe_released(self, lc: _lcm.LCM) -> None:
         with self._mutex:
@@ -165,15 +233,25 @@ class LcmTransport(Transport):
     def _run(self) -> None:
         lc = self._lcm
         assert lc is not None
+        fd = lc.fileno()
+        timeout_s = self._timeout_ms / 1000
+        poller = select.poll()  # not select(): a descriptor may be above FD_SETSIZE (1024)
+        poller.register(fd, select.POLLIN)
+        poller.register(self._wake_r, select.POLLIN)
         try:
             while not self._stop.is_set():
                 self._unsubscribe_released(lc)
+                self._make_requested(lc)
                 try:
-                    lc.handle_timeout(self._timeout_ms)
+                    ready = {ready_fd for ready_fd, _ in poller.poll(self._timeout_ms)}
+                    if self._wake_r in ready:
+                        os.read(self._wake_r, 4096)
+                    if fd in ready:
+                        lc.handle_timeout(0)  # what came: no waiting in LCM
                 except OSError as err:
                     # A socket error; wait one period so a persistent one does not spin.
                     logger.error("LCM receive on %r failed: %s", self.url, err)
-                    self._stop.wait(self._timeout_ms / 1000)
+                    self._stop.wait(timeout_s)
         finally:
             with self._mutex:
                 for sub in self._subs:
@@ -181,4 +259,12 @@ class LcmTransport(Transport):
                 self._released.extend(self._subs)
                 self._subs.clear()
                 self._lcm = None
+                requests, self._requests = self._requests, []
+            for request in requests:
+                request.error = TransportError("LcmTransport is closed")
+                request.done.set()
             self._unsubscribe_released(lc)
+            with self._mutex:
+                os.close(self._wake_r)
+                os.close(self._wake_w)
+                self._wake_r = self._wake_w = -1

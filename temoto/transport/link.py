@@ -59,6 +59,7 @@ class FleetLink:
         self._log = _LogLimiter()
         self._hellos: Subscription | None = None
         self._timer: threading.Timer | None = None
+        self._drop_timer: threading.Timer | None = None
         self._timer_lock = threading.Lock()
         self._hello_seen = threading.Condition()
         if not auth.insecure:
@@ -70,6 +71,7 @@ class FleetLink:
     def _on_hello(self, channel: str, data: bytes) -> None:
         self.auth.open(channel, data)
         self._flush()
+        self._summarise_drops()
         with self._hello_seen:
             self._hello_seen.notify_all()
 
@@ -132,6 +134,23 @@ class FleetLink:
             self._timer.daemon = True
             self._timer.start()
 
+    def _summarise_drops(self) -> None:
+        """Have the summary of drops held back written when it is due, more drops or not.
+
+        A short-lived thread (``temoto-fleet-drops``, at most ``DROP_SUMMARY_S``, 1 s, long)
+        writes it; before, it waited for the next drop after the interval, or the stop.
+        """
+        due = self.auth.drop_summary_due_in()
+        if due is None:
+            return
+        with self._timer_lock:
+            if self._drop_timer is not None and self._drop_timer.is_alive():
+                return
+            self._drop_timer = threading.Timer(due + 0.001, self.auth.log_drop_summary)
+            self._drop_timer.name = "temoto-fleet-drops"
+            self._drop_timer.daemon = True
+            self._drop_timer.start()
+
     def __repr__(self) -> str:
         return f"<FleetLink {self.auth!r} on {self.transport!r}>"
 
@@ -189,6 +208,7 @@ class FleetLink:
             if not self.auth.insecure:
                 self._flush()
             if opened is None:
+                self._summarise_drops()
                 return
             try:
                 handler(opened)

@@ -203,6 +203,28 @@ def test_a_late_joiner_still_completes(fleet: Fleet) -> None:
     assert concurrently(handshaking(a, names, 3.0), handshaking(b, names, 3.0), late) == [None] * 3
 
 
+def test_every_newly_heard_peer_of_a_small_fleet_is_answered_at_once(fleet: Fleet) -> None:
+    # Five actors start one after the other. A answered only its first three JOINs at once and
+    # the fourth peer (D) a resend period later: with resend_s = 5 s nobody was done before
+    # 5 s. Issue 26: handshake_5_actors_ms was 100 ms (resend_s = 0.1) in one round of three.
+    names = ["A", "B", "C", "D", "E"]
+    links = fleet.links(*names, resend_s=5.0, silence_s=60.0)
+    a = links[0]
+    starts: list[float] = []
+
+    def staggered(i: int) -> Callable[[], None]:
+        def call() -> None:
+            while a.stats["handshakes_sent"] < i:  # A answered the ones started before
+                time.sleep(0.005)
+            starts.append(time.monotonic())
+            links[i].handshake("g", "s1", names, 20.0)
+
+        return call
+
+    assert concurrently(*(staggered(i) for i in range(5)), timeout=30.0) == [None] * 5
+    assert time.monotonic() - min(starts) < 2.5  # not a resend period (5 s)
+
+
 def test_a_join_heard_before_the_handshake_starts_is_kept(fleet: Fleet) -> None:
     a, b = fleet.links("A", "B")
     seen = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
@@ -552,6 +574,40 @@ def test_a_late_resend_after_end_is_acknowledged_but_not_taken_again(fleet: Flee
     assert b.stats["duplicates"] == 1
 
 
+def test_a_member_naming_another_actor_is_dropped_and_logged(
+    fleet: Fleet, caplog: pytest.LogCaptureFixture
+) -> None:
+    # X seals with its own key but writes "C" as the actor of a notification, an
+    # acknowledgement and a handshake: B takes none of them (docs/security.md)
+    (b,) = fleet.links("B")
+    x = Raw(fleet.fleet_link("X"), ack_channel("X"), ack_channel("C"))
+    taken, flush = Got(), Got()
+    b.expect("g", "s1", "Move_1", "C", taken)
+    b.expect("g", "s1", "Flush_1", "X", flush)
+    with caplog.at_level(logging.WARNING, logger="temoto.fleet._common"):
+        x.send(NOTIFY_CHANNEL, notification("n1", "C", "Move_1", "on_true", ""))
+        x.send(HANDSHAKE_CHANNEL, handshake(1, "C"))
+        ack = action_ack_t()
+        ack.notification_id, ack.graph, ack.session, ack.actor = "n9", "g", "s1", "C"
+        x.send(ack_channel("B"), ack)
+        x.send(NOTIFY_CHANNEL, notification("n2", "X", "Flush_1", "on_true", ""))  # as itself
+        flush.wait_for(1)
+        deadline = time.monotonic() + WAIT_S  # three channels: each has its own queue
+        while b.stats["impostor"] < 3 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    assert taken.calls == []
+    assert b.stats["impostor"] == 3
+    assert b.stats["handshakes_received"] == 0
+    assert b.stats["acks_received"] == 0
+    x.got.wait_for(1)
+    assert [a.notification_id for a in x.acks()] == ["n2"]  # only its own notification
+    lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
+    for kind in ("action_notification_t", "handshake_t", "action_ack_t"):
+        assert any(
+            f"a {kind}" in line and "sent by 'X' whose actor names 'C'" in line for line in lines
+        ), lines
+
+
 def test_what_was_never_started_here_is_forgotten_after_stray_s(fleet: Fleet) -> None:
     a = fleet.link("A")
     b = fleet.link("B", stray_s=0.2)
@@ -733,10 +789,11 @@ def test_end_of_a_peer_releases_a_notification_waiting_for_it(fleet: Fleet) -> N
     a, b = fleet.links("A", "B")
     assert concurrently(handshaking(a, ["A", "B"]), handshaking(b, ["A", "B"])) == [None] * 2
     seen = Raw(fleet.fleet_link("X"), NOTIFY_CHANNEL)
+    c = Raw(fleet.fleet_link("C"))  # C's END comes from C (a member speaks only as itself)
     got = interrupted(
         lambda: a.notify("g", "s1", "Move_1", Result.TRUE, {}, ["B", "C"], WAIT_S),
         seen.got,
-        lambda: (b.end("g", "s1"), seen.send(HANDSHAKE_CHANNEL, handshake(4, "C"))),
+        lambda: (b.end("g", "s1"), c.send(HANDSHAKE_CHANNEL, handshake(4, "C"))),
     )
     assert got == []  # returned: B acknowledged or finished, C finished
     assert a.notify("g", "s1", "Move_2", Result.TRUE, {}, ["C"], WAIT_S) is None  # not waited

@@ -509,15 +509,15 @@ def test_bad_resource_messages_are_counted_and_dropped(fleet: Fleet) -> None:
     status.provider, status.consumer, status.reference_id = "B", "A", "nope"
     status.resource_id, status.status, status.message, status.origin = "x", 42, "?", "x"
     status.hops = []
-    raw.send(status)  # unknown status code
+    raw.send(status)  # in B's name (its provider): mallory speaking as B
     status.status = 5
-    raw.send(status)  # a status of a reference A never asked for
+    raw.send(status)  # in B's name again
     request = resource_request_t()
     request.request_id, request.provider, request.consumer = "", "B", "mallory"
     request.server, request.request, request.client = "process", "{}", ""
     raw.send(request)  # no request id
     request.request_id, request.consumer = "m/1", "B"
-    raw.send(request)  # from B itself
+    raw.send(request)  # in B's name (its consumer), to B itself
     rng = random.Random(7)
     for _ in range(200):
         kind = rng.choice(
@@ -538,13 +538,16 @@ def test_bad_resource_messages_are_counted_and_dropped(fleet: Fleet) -> None:
     deadline = time.monotonic() + WAIT_S
     while True:
         stats_a, stats_b = remote(a).stats, remote(b).stats  # copies
-        done = stats_a["unexpected"] >= 3 and stats_b["unexpected"] >= 3
+        done = stats_a["impostor"] >= 2 and stats_b["unexpected"] >= 2
+        done = done and stats_a["unexpected"] >= 1 and stats_b["impostor"] >= 1
         if (done and stats_a["decode_errors"] >= 2) or time.monotonic() > deadline:
             break
         time.sleep(0.01)
     why = (stats_a, stats_b, a.link.stats, b.link.stats, raw.link.stats)
-    assert stats_a["unexpected"] >= 3, why  # the advert, the bad status code, the unknown reference
-    assert stats_b["unexpected"] >= 3, why  # the advert, no request id, from B itself
+    assert stats_a["unexpected"] >= 1, why  # the advert
+    assert stats_a["impostor"] >= 2, why  # the statuses in B's name (docs/security.md)
+    assert stats_b["unexpected"] >= 2, why  # the advert, no request id
+    assert stats_b["impostor"] >= 1, why  # the request in B's own name
     assert stats_a["decode_errors"] >= 2
     assert stats_b["requests_received"] - stats_b["duplicates"] == 1  # only A's real one
 

@@ -241,7 +241,7 @@ def test_bad_messages_are_counted_never_raised(bus: Bus) -> None:
     assert a._link.wait_for_peers(["R"], WAIT_S)
     raw.send(CONTEXT_CHANNEL, "context_update_t", b"garbage")
     raw.send(CONTEXT_CHANNEL, *codec.encode(handshake_t()))
-    raw.send(CONTEXT_CHANNEL, *codec.encode(_update("A", _item("spoof"))))  # our own name
+    raw.send(CONTEXT_CHANNEL, *codec.encode(_update("A", _item("spoof"))))  # A's name: impostor
     raw.send(CONTEXT_CHANNEL, *codec.encode(_update("", _item("anon"))))
     bad = [
         _item(""),
@@ -259,7 +259,8 @@ def test_bad_messages_are_counted_never_raised(bus: Bus) -> None:
         assert transport.flush(WAIT_S)
     stats = a.stats
     assert stats["decode_errors"] == 1
-    assert stats["unexpected"] == 3
+    assert stats["unexpected"] == 2
+    assert stats["impostor"] == 1  # R speaking as A (docs/security.md)
     assert stats["records_invalid"] == len(bad)
     assert [i.name for i in a.items()] == ["good", "map"]
     assert set(stats) == set(CONTEXT_STATS)

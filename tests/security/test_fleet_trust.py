@@ -421,6 +421,8 @@ def test_a_passive_capture_shows_no_graph_parameter_or_item(
     assert a.engine.wait("classified_graph", WAIT).value == "on_true"
     assert a.link.transport.flush(WAIT)  # type: ignore[attr-defined]
     assert spy.transport.flush(WAIT)
+    # the feedback thread publishes the run's end on its own time (loaded machine: later)
+    eventually(lambda: "TEMOTO_GRAPH_FEEDBACK" in {ch for ch, _ in spy.frames}, "no feedback")
     blob = b"".join(data for _, data in spy.frames)
     assert {ch for ch, _ in spy.frames} >= {
         COMMAND_CHANNEL,
@@ -430,3 +432,41 @@ def test_a_passive_capture_shows_no_graph_parameter_or_item(
     secrets = (b"classified_graph", b"SECRET-PARAMETER", b"secret_crate_item", b"TaRelayString")
     for secret in secrets:
         assert (secret in blob) is (mode == "insecure"), secret
+
+
+def test_a_member_cannot_answer_or_report_feedback_in_another_s_name(
+    bus: Bus, tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Issue 26: mallory (a member, its own key) answers a command and sends feedback naming A
+    from temoto.fleet.common import new
+    from temoto.fleet.control import FEEDBACK_CHANNEL, REPLY_CHANNEL
+    from temoto.lcm_types import graph_command_reply_t, graph_feedback_t
+    from temoto.transport import codec
+
+    keys = Keys(tmp_path)
+    operator = bus.commander("operator", keys.creds("operator"))
+    mallory = FleetLink(bus.transport(), FleetAuth("temoto", "mallory", keys.creds("mallory")))
+    assert mallory.wait_for_peers(["operator"], WAIT)
+    seen: list[Any] = []
+    operator.watch(seen.append)
+
+    def answer(opened: Any) -> None:
+        msg = codec.decode(opened.type, opened.payload)
+        reply = new(graph_command_reply_t)
+        reply.request_id, reply.actor, reply.graph, reply.session = msg.request_id, "A", "g", "g"
+        reply.code, reply.message = 1, "started"
+        mallory.send(REPLY_CHANNEL, *codec.encode(reply))
+        feedback = new(graph_feedback_t)
+        feedback.actor, feedback.graph, feedback.session = "A", "g", "g"
+        feedback.state, feedback.result = "finished", "on_true"
+        mallory.send(FEEDBACK_CHANNEL, *codec.encode(feedback))
+
+    mallory.listen(COMMAND_CHANNEL, answer)
+    with caplog.at_level(logging.WARNING, logger="temoto.fleet._common"):
+        out = operator.command("start", ["A"], graph_json=relay_graph(), timeout=1.0)
+        eventually(lambda: operator.stats["impostor"] >= 2, "mallory's messages not dropped")
+    assert not out.ok
+    assert "A" not in out.replies
+    assert seen == []  # no feedback in A's name reached the watcher
+    lines = [r.getMessage() for r in caplog.records]
+    assert any("sent by 'mallory' whose actor names 'A'" in line for line in lines), lines

@@ -7,6 +7,7 @@ counts, at most once per ``DROP_SUMMARY_S`` seconds of the member's (injected) c
 from __future__ import annotations
 
 import logging
+import time
 from collections.abc import Callable
 
 import pytest
@@ -160,9 +161,12 @@ def test_the_table_covers_every_reason_that_warns() -> None:
     assert set(CASES) == set(DROP_REASONS) - quiet - own_tests
 
 
-def test_repeats_are_summarised_with_counts_at_most_once_per_interval(
+def test_repeats_are_summarised_within_a_second_even_without_more_drops(
     clock: FakeClock, bob: FleetAuth, caplog: pytest.LogCaptureFixture
 ) -> None:
+    # Issue 26: the summary waited for the next drop after 10 s (13 s later in one test) or
+    # for the stop; now it is due DROP_SUMMARY_S (1 s) after the first drop it counts, and
+    # the link writes it then (drop_summary_due_in, log_drop_summary), more drops or not.
     mallory = member("mallory", clock, bob)
 
     def drops(n: int, step: float) -> None:
@@ -170,24 +174,52 @@ def test_repeats_are_summarised_with_counts_at_most_once_per_interval(
             bob.open(CHANNEL, tampered(mallory))
             clock.t += step
 
+    assert DROP_SUMMARY_S == 1.0
     with caplog.at_level(logging.WARNING, logger="temoto.transport"):
-        drops(50, DROP_SUMMARY_S / 100)  # t = 0 .. 0.49 intervals
-        assert len(warnings(caplog)) == 1  # the first, at once; 49 held back
-        clock.t = T0 + DROP_SUMMARY_S
-        drops(1, 0.0)  # one interval after the first line: the summary
+        assert bob.drop_summary_due_in() is None
+        drops(50, 0.01)  # t = 0 .. 0.49 s: the first at once, 49 held back from t = 0.01 s
+        assert len(warnings(caplog)) == 1
+        assert bob.drop_summary_due_in() == pytest.approx(0.51)
+        clock.t = T0 + 0.01 + DROP_SUMMARY_S  # due, and no drop comes
+        assert bob.drop_summary_due_in() == 0.0
+        bob.log_drop_summary()  # what the FleetLink's timer does then
         assert len(warnings(caplog)) == 2
-        drops(30, DROP_SUMMARY_S / 100)  # inside the next interval: held back
+        assert bob.drop_summary_due_in() is None
+        drops(30, 0.01)  # a new period begins with the first of them: held back
         assert len(warnings(caplog)) == 2
-        clock.t = T0 + 2 * DROP_SUMMARY_S
+        clock.t += DROP_SUMMARY_S  # a drop after the period also writes the summary
         drops(1, 0.0)
     lines = warnings(caplog)
     assert len(lines) == 3, lines
     assert "from 'mallory': wrong mac" in lines[0]
     assert lines[1] == (
-        "fleet 'fleet': dropped 50 more messages in the last 10 s: 50 from 'mallory' (wrong mac)"
+        "fleet 'fleet': dropped 49 more messages in the last 1.0 s: 49 from 'mallory' (wrong mac)"
     )
-    assert lines[2].startswith("fleet 'fleet': dropped 31 more messages in the last 10 s")
-    assert bob.stats["forged"] == 82
+    assert lines[2].startswith("fleet 'fleet': dropped 31 more messages in the last 1.3 s")
+    assert bob.stats["forged"] == 81
+
+
+def test_a_fleet_link_writes_the_summary_when_it_is_due(caplog: pytest.LogCaptureFixture) -> None:
+    # the link's own timer (real time, at most 1 s): no further drop, no stop is needed
+    from temoto.transport import FleetLink, InProcessTransport
+
+    with (
+        InProcessTransport("drop-summary") as bus,
+        InProcessTransport("drop-summary") as noise,
+        caplog.at_level(logging.WARNING, logger="temoto.transport"),
+    ):
+        link = FleetLink(bus, FleetAuth("fleet", "bob", KEY))
+        link.listen(CHANNEL, lambda opened: None)
+        for _ in range(3):
+            noise.publish(CHANNEL, b"not an envelope")
+        assert noise.flush(5.0)
+        deadline = time.monotonic() + 5.0
+        while len(warnings(caplog)) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
+    lines = warnings(caplog)
+    assert len(lines) == 2, lines
+    assert "dropped 2 more messages" in lines[1]
+    assert "2 from an unknown sender (not a well-formed envelope)" in lines[1]
 
 
 def test_each_sender_and_reason_gets_its_own_first_line(
@@ -252,5 +284,45 @@ def test_the_summary_of_the_last_drops_can_be_logged_at_the_end(
     lines = warnings(caplog)
     assert len(lines) == 2, lines
     assert lines[1] == (
-        "fleet 'fleet': dropped 4 more messages in the last 2 s: 4 from 'mallory' (wrong mac)"
+        "fleet 'fleet': dropped 4 more messages in the last 2.0 s: 4 from 'mallory' (wrong mac)"
+    )
+
+
+def _exchange(*members: FleetAuth) -> None:
+    for _ in range(20):
+        moved = False
+        for m in members:
+            for channel, data in m.take_outgoing():
+                moved = True
+                for other in members:
+                    if other is not m:
+                        other.open(channel, data)
+        if not moved:
+            return
+    raise AssertionError("the hellos never settled")
+
+
+def test_a_replay_to_a_restarted_member_is_a_warning_once_per_member(
+    clock: FakeClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    # Issue 26: a captured message shown to a member after it restarted was logged at DEBUG
+    # only (its receiver cannot tell it from a message sent while the hellos crossed). Its
+    # sender can: the restarted member asks for it, and an earlier boot of that member held a
+    # grant for it. The sender says so at WARNING, once per member.
+    operator = FleetAuth("fleet", "operator", KEY, clock=clock)
+    a = FleetAuth("fleet", "A", KEY, clock=clock)
+    _exchange(operator, a)
+    captured = operator.seal(CHANNEL, "graph_command_t", b"start")
+    assert a.open(CHANNEL, captured) is not None
+    with caplog.at_level(logging.WARNING, logger="temoto.transport"):
+        for _boot in range(2):  # A restarts twice; the capture is replayed to each boot
+            clock.t += 1.0
+            a = FleetAuth("fleet", "A", KEY, clock=clock)
+            assert a.open(CHANNEL, captured) is None  # no_session: quiet at A
+            _exchange(operator, a)  # A asks operator for it: never sent again
+            assert a.stats["accepted"] == 0
+    lines = [line for line in warnings(caplog) if "restarted" in line]
+    assert len(lines) == 1, warnings(caplog)
+    assert lines[0].startswith(
+        "fleet 'fleet': 'A', restarted, was shown 1 message(s) of ours that its earlier boot"
     )

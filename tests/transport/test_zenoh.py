@@ -474,3 +474,40 @@ def test_importing_the_transports_and_the_cli_does_not_import_zenoh() -> None:
     )
     proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=60)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_subscribing_while_a_flood_arrives_is_safe(
+    pair: tuple[ZenohTransport, ZenohTransport],
+) -> None:
+    # Issue 26, item 2 (LCM crashed here): a Zenoh transport's subscriptions are our own
+    # lists, changed under the lock its receive thread dispatches under, and its one Zenoh
+    # subscriber is declared before that thread reads from it; nothing can race.
+    a, b = pair
+    until_routed(a, b)
+    stop, current, got = threading.Event(), [0], [0]
+
+    def flood() -> None:
+        while not stop.is_set():
+            n = current[0]
+            a.publish(f"S{n}", b"x")
+            a.publish(f"S{n + 1}", b"x")
+
+    def count(channel: str, data: bytes) -> None:
+        got[0] += 1
+
+    flooder = threading.Thread(target=flood, name="temoto-test-flood")
+    flooder.start()
+    subs = []
+    try:
+        deadline = time.monotonic() + 1.5
+        while time.monotonic() < deadline:
+            subs.append(b.subscribe(f"S{current[0] + 1}", count))
+            current[0] += 1
+            if len(subs) > 16:
+                subs.pop(0).unsubscribe()
+    finally:
+        stop.set()
+        flooder.join()
+    assert current[0] > 50
+    assert b.handler_errors == 0
+    assert got[0] > 0

@@ -94,6 +94,7 @@ CONTEXT_STATS: Final = (
     "digest_mismatches",  # digests differing from ours (a request follows if it persists)
     "decode_errors",  # payloads that codec.decode refused
     "unexpected",  # wrong type for the channel, empty names, our own robot name
+    "impostor",  # naming another robot than their authenticated sender (docs/security.md)
     "send_errors",  # sends that failed (logged)
     "callback_errors",  # listener callbacks that raised (logged)
     "tombstones_expired",

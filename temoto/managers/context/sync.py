@@ -23,7 +23,7 @@ from typing import TYPE_CHECKING, Any, Final
 
 from temoto.clock import Clock
 from temoto.errors import TransportError
-from temoto.fleet.common import decode_or_count, new
+from temoto.fleet.common import SpeakerCheck, decode_or_count, new
 from temoto.lcm_types import context_digest_t, context_request_t, context_update_t
 from temoto.managers.context._wire import chunks, from_wire
 from temoto.managers.context.tree import ContextTree, Record
@@ -71,6 +71,7 @@ class ContextSync(ABC):
         self._asked: dict[str, float] = {}  # robot -> when we last asked it
         self._mismatch: dict[str, int] = {}  # robot -> digests in a row that differed
         self._refused_senders: set[str] = set()  # members warned about (world.publish)
+        self._speaks_as = SpeakerCheck("context")
         self._next_digest = -math.inf
         self._sub: Subscription | None = None
         self._timer: threading.Thread | None = None
@@ -177,6 +178,12 @@ class ContextSync(ABC):
     def _on_message(self, opened: Opened) -> None:
         msg = decode_or_count(opened, _TYPES, self._counts, self._lock)
         if msg is None:
+            return
+        # An update or digest names the robot it comes from, a request its requester: only
+        # that robot may say so (docs/security.md).
+        field = "requester" if opened.type == "context_request_t" else "robot"
+        claimed = getattr(msg, field)
+        if claimed and not self._speaks_as(opened, claimed, field, self._counts, self._lock):
             return
         if opened.type == "context_update_t":
             if self._refused(opened.sender):
