@@ -1,6 +1,6 @@
-"""The shape of the ``temoto`` package: no import cycles, no module too long to read at once.
+"""The shape of the ``temoto`` package: no import cycles.
 
-Both checks read the source (``ast``), so they see the package as a reader does, without
+The check reads the source (``ast``), so it sees the package as a reader does, without
 importing anything.
 
 - **Import cycles.** The import graph has an edge from a module to every ``temoto`` module it
@@ -9,11 +9,12 @@ importing anything.
   ``if TYPE_CHECKING:`` are left out: they never run. ``from a.b import c`` counts as an
   import of ``a.b.c`` when that is a module, else of ``a.b``. Every strongly connected set of
   two or more modules is a cycle.
-- **Long modules.** A module of more than :data:`MAX_LINES` lines must say why in its
-  docstring, on a line starting with :data:`LONG_MARKER` ("Long because ...").
 
-:data:`KNOWN_CYCLES` and :data:`KNOWN_LARGE` may hold offenders being fixed elsewhere (empty
-since issue 19); an entry that is no longer true fails too, so the lists only shrink.
+There is no cap on a module's length: modules are cut by concept, not by line count (a cap
+made modules trimmed to it and concepts cut in two).
+
+:data:`KNOWN_CYCLES` may hold offenders being fixed elsewhere (empty since issue 19); an entry
+that is no longer true fails too, so the list only shrinks.
 """
 
 from __future__ import annotations
@@ -21,26 +22,16 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-import pytest
-
 import temoto
 
 ROOT = Path(temoto.__file__).parent
 
-#: A module longer than this (lines) must say why in its docstring.
-MAX_LINES = 700
-#: How a docstring line that says why a module is long starts.
-LONG_MARKER = "Long because"
 #: Generated code (lcm-gen, ``tools/gen_lcm_types.py``): never edited by hand, so not checked.
 GENERATED = ("temoto.lcm_types",)
 
 #: Import cycles allowed, each a set of modules with a comment saying why and where it is
 #: being fixed. None: keep it so.
 KNOWN_CYCLES: dict[frozenset[str], str] = {}
-
-#: Modules above MAX_LINES without a reason, each with a comment saying where it is being
-#: split. None: keep it so.
-KNOWN_LARGE: dict[str, str] = {}
 
 
 def module_name(path: Path, root: Path = ROOT) -> str:
@@ -163,25 +154,6 @@ def test_no_import_cycles() -> None:
     assert not gone, "cycles fixed or changed: update KNOWN_CYCLES\n" + "\n".join(gone)
 
 
-def _too_long(path: Path) -> bool:
-    text = path.read_text(encoding="utf-8")
-    if len(text.splitlines()) <= MAX_LINES:
-        return False
-    doc = ast.get_docstring(ast.parse(text)) or ""
-    return not any(line.strip().startswith(LONG_MARKER) for line in doc.splitlines())
-
-
-def test_long_modules_say_why() -> None:
-    long = {str(path.relative_to(ROOT.parent)) for path in modules().values() if _too_long(path)}
-    new = sorted(long - set(KNOWN_LARGE))
-    assert not new, (
-        f"modules above {MAX_LINES} lines: split them by concept, or start a docstring line"
-        f" with '{LONG_MARKER}' saying why\n" + "\n".join(new)
-    )
-    gone = sorted(set(KNOWN_LARGE) - long)
-    assert not gone, "no longer too long: remove from KNOWN_LARGE\n" + "\n".join(gone)
-
-
 # ---------------------------------------------------------------------- the checks themselves
 
 
@@ -226,15 +198,3 @@ def test_relative_imports_resolve(tmp_path: Path) -> None:
     assert graph["pkg.sub"] == {"pkg.top", "pkg.sub.leaf"}
     assert graph["pkg.sub.leaf"] == {"pkg.top"}
     assert cycles(graph) == [frozenset({"pkg.sub.leaf", "pkg.top"})]
-
-
-@pytest.mark.parametrize(
-    ("docstring", "too_long"),
-    [("A module.", True), ("A module.\n\nLong because the protocol is one table.", False)],
-)
-def test_a_long_module_needs_a_reason(tmp_path: Path, docstring: str, too_long: bool) -> None:
-    path = tmp_path / "m.py"
-    path.write_text(f'"""{docstring}"""\n' + "x = 1\n" * MAX_LINES, encoding="utf-8")
-    assert _too_long(path) is too_long
-    path.write_text(f'"""{docstring}"""\n' + "x = 1\n" * (MAX_LINES - 1), encoding="utf-8")
-    assert not _too_long(path)
