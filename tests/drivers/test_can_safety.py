@@ -432,7 +432,6 @@ def test_odrive_profile_keys_are_checked() -> None:
     odrive_bad({"watchdog_timeout": -1}, "watchdog_timeout", "0 .not used. or positive")
     odrive_bad({"watchdog_timeout": 0.08}, "command_period", "half the watchdog_timeout")
     odrive_bad({"command_period": 0}, "command_period", "positive")
-    odrive_bad({"safe_state": "hold"}, "safe_state", "hold needs watchdog_timeout")
     driver = ODriveDriver.from_profile(
         "base",
         odrive_config("c", safe_state="hold", watchdog_timeout=0.5),

@@ -261,12 +261,8 @@ class ODriveDriver(CanMotorDriver):
             )
         # checked here, used by simulate()
         sim_rates(reader, values["sim"], kwargs["heartbeat_period"], kwargs["encoder_period"])
-        if values["safe_state"] == "hold" and watchdog == 0:
-            reader.fail(
-                "safe_state",
-                "hold needs watchdog_timeout (the ODrives' axis watchdog): without it the axes"
-                " stay armed at 0 rev/s after TeMoto exits; set watchdog_timeout, or use idle",
-            )
+        # safe_state hold without watchdog_timeout: refused by the profile (temoto.config), which
+        # alone can take its acknowledgement (hold_without_watchdog: true), for every driver alike
         return kwargs
 
     @classmethod
