@@ -115,8 +115,9 @@ def test_a_failsafe_rtl_after_a_link_outage_ends_the_flight_with_the_reason() ->
     doc = yaml.safe_load((ROOT / "hw_profiles" / "sim_quad.yaml").read_text())
     entry = doc["devices"]["quad"]
     # ArduCopter's GCS failsafe after 2 s without our heartbeat (FS_GCS_TIMEOUT's minimum); the
-    # driver's own bound (5 s) is longer, so the outage below is no fault of the link
-    entry.update(gcs_failsafe={"enable": 1, "timeout": 2}, heartbeat_timeout=5.0)
+    # outage below is of the uplink only (the vehicle's telemetry still reaches us), so the
+    # driver sees no fault of the link: only the vehicle's own switch to RTL can end the flight
+    entry.update(gcs_failsafe={"enable": 1, "timeout": 2}, heartbeat_timeout=2.0)
     host = _SimHost(entry, {})
     registrar = Registrar("test-failsafe-wire")
     try:
@@ -149,11 +150,9 @@ def test_a_failsafe_rtl_after_a_link_outage_ends_the_flight_with_the_reason() ->
             with ActionEngine("quad", actions=[ROBOT_ACTIONS], registrar=registrar) as engine:
                 engine.start(graph)
                 time.sleep(0.3)
-                # (a parameter: the simulator's receive loop tests the fault's parameters for
-                # truth, so a link_loss injected without any would still let datagrams in)
-                host.command("inject link_loss why=outage")
+                host.command("inject uplink_loss")
                 host.wait("safe", since=time.monotonic(), timeout=10)  # RTL, seen by the host
-                host.command("clear link_loss")
+                host.command("clear uplink_loss")
                 t_back = time.monotonic()
                 result = engine.wait("fly", 10)  # before the fix: RUNNING until killed
                 took = time.monotonic() - t_back

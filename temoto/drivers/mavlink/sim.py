@@ -67,12 +67,13 @@ that MAVProxy, QGroundControl, MAVSDK and a pymavlink ground station work with i
   ``RTL_ALT_FINAL``). The battery drains while armed (``drain_idle`` %/s) and more in the air
   (``drain_flight`` %/s).
 
-Faults (:class:`~temoto.drivers.sim.Simulator`): ``silence`` and ``link_loss`` (nothing in or
-out), ``corrupt`` (every frame leaves with its CRC inverted), ``no_heartbeat`` (no HEARTBEAT,
-everything else flows), ``hardware_error`` (``overheat`` → the motor-outputs health bit cleared
-and the battery's over-temperature fault, ``overload`` → the propulsion health bit cleared,
-``voltage`` → battery voltage far below minimum and the battery health bit cleared; each with
-``MAV_STATE_CRITICAL`` and a STATUSTEXT).
+Faults (:class:`~temoto.drivers.sim.Simulator`): ``silence`` and ``link_loss`` (nothing in or out),
+``uplink_loss`` (nothing in: a radio that lost its uplink; the vehicle's GCS failsafe counts while
+its telemetry still reaches the ground), ``corrupt`` (every frame leaves with its CRC inverted),
+``no_heartbeat`` (no HEARTBEAT, everything else flows), ``hardware_error`` (``overheat`` → the
+motor-outputs health bit cleared and the battery's over-temperature fault, ``overload`` → the
+propulsion health bit cleared, ``voltage`` → battery voltage far below minimum and the battery
+health bit cleared; each with ``MAV_STATE_CRITICAL`` and a STATUSTEXT).
 
 The vehicle is written in layers, each a module that uses only the ones below it:
 :mod:`~temoto.drivers.mavlink.sim_state` (arguments, parameters, geometry, battery),
@@ -146,7 +147,7 @@ class SimVehicle(CommandHandler):
     """
 
     FAULTS: ClassVar[frozenset[str]] = frozenset(
-        {"silence", "corrupt", "hardware_error", "no_heartbeat", "link_loss"}
+        {"silence", "corrupt", "hardware_error", "no_heartbeat", "link_loss", "uplink_loss"}
     )
 
     # ---- lifecycle ---------------------------------------------------------------------------
@@ -265,8 +266,8 @@ class SimVehicle(CommandHandler):
                 raise
             if not data or self.fault("silence") is not None:
                 continue
-            if self.fault("link_loss") is not None:  # lost both ways: the GCS failsafe counts
-                continue
+            if self.fault("link_loss") is not None or self.fault("uplink_loss") is not None:
+                continue  # nothing heard from the ground: the GCS failsafe counts
             with self._lock:
                 if peer not in self._peers:
                     self._peers.append(peer)
