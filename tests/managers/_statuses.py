@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import threading
+from collections.abc import Callable
 
 from temoto.core.registrar import Status, StatusUpdate
 
@@ -34,3 +35,14 @@ class Statuses:
     def first(self, status: Status) -> StatusUpdate:
         """Wait for the first update with ``status`` and return it."""
         return self.wait(status)[0]
+
+    def wait_for(
+        self, pred: Callable[[StatusUpdate], bool], what: str, timeout: float = WAIT
+    ) -> StatusUpdate:
+        """Wait for the first update that ``pred`` accepts (``what`` names it if none comes)."""
+        with self._cond:
+            found = self._cond.wait_for(
+                lambda: next((u for u in self.got if pred(u)), None), timeout
+            )
+            assert found, f"no {what}; got {[(u.status.value, u.message) for u in self.got]}"
+            return found

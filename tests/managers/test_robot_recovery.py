@@ -9,7 +9,6 @@ returns. The robots run on a faster clock (the simulators share this process).
 from __future__ import annotations
 
 import logging
-import threading
 import time
 from collections.abc import Iterator
 from pathlib import Path
@@ -18,10 +17,11 @@ from typing import Any
 import pytest
 import yaml
 from _robots import robot_manager
+from _statuses import Statuses
 
 from temoto import ScaledClock
 from temoto.config import parse_profile
-from temoto.core.registrar import Status, StatusUpdate
+from temoto.core.registrar import Status
 from temoto.drivers import DriverState
 from temoto.drivers.recovery import RecoveryPolicy
 from temoto.errors import ProfileError
@@ -30,27 +30,6 @@ from temoto.managers.robot import RobotManagerClient
 ROOT = Path(__file__).resolve().parents[2]
 PROFILES = ROOT / "hw_profiles"
 WAIT = 20.0
-
-
-class Statuses:
-    """A consumer's statuses, waited for by predicate."""
-
-    def __init__(self) -> None:
-        self.got: list[StatusUpdate] = []
-        self._cond = threading.Condition()
-
-    def __call__(self, update: StatusUpdate) -> None:
-        with self._cond:
-            self.got.append(update)
-            self._cond.notify_all()
-
-    def wait_for(self, pred: Any, what: str, timeout: float = WAIT) -> StatusUpdate:
-        with self._cond:
-            found = self._cond.wait_for(
-                lambda: next((u for u in self.got if pred(u)), None), timeout
-            )
-            assert found, f"no {what}; got {[(u.status.value, u.message) for u in self.got]}"
-            return found
 
 
 def profile(name: str, clock: ScaledClock, **recovery: Any) -> Any:
@@ -101,13 +80,14 @@ def test_devices_whose_watchdogs_expired_in_a_pause_come_back(
     drive = robot.navigate_to(100.0, 0.0)  # far away: under way when the pause comes
     pause(sims, clock, 2.0)  # twice the profile's 1 s watchdogs
     # the base's axes disarmed by their watchdog: the driver sees it once the link is back
-    statuses.wait_for(lambda u: u.status is Status.FATAL, "FATAL")
+    statuses.wait_for(lambda u: u.status is Status.FATAL, "FATAL", WAIT)
     for device in ("base", "arm"):
         statuses.wait_for(
             lambda u, d=device: (
                 u.status is Status.OK and f"device {d}: recovered on try" in u.message
             ),
             f"OK for {device}",
+            WAIT,
         )
     wait_until(robot.healthy, "the robot is not healthy after the recovery")
     # the goal set before the fault ended with it: the recovered base holds where it is
@@ -144,7 +124,7 @@ def test_a_device_that_keeps_failing_ends_fatal_with_the_reason(
         robot = RobotManagerClient(registrar).request(client="test", on_status=statuses)
         manager.simulator("arm").inject("link_loss")  # never comes back
         gave_up = statuses.wait_for(
-            lambda u: u.status is Status.FATAL and "gave up" in u.message, "gave up"
+            lambda u: u.status is Status.FATAL and "gave up" in u.message, "gave up", WAIT
         )
         assert gave_up.message.startswith("robot sim_arm, device arm: gave up after 2 tries: "), (
             gave_up.message
@@ -176,7 +156,7 @@ def test_recovery_off_leaves_the_device_faulted_and_says_so(
         robot = RobotManagerClient(registrar).request(client="test", on_status=statuses)
         sim = manager.simulator("arm")
         pause([sim], clock, 2.0)
-        statuses.wait_for(lambda u: u.status is Status.FATAL, "FATAL")
+        statuses.wait_for(lambda u: u.status is Status.FATAL, "FATAL", WAIT)
         wait_until(lambda: "recovery off" in caplog.text, "no line says recovery is off")
         time.sleep(1.0)  # the chain answers again: nothing activates it
         assert not robot.healthy()
@@ -229,7 +209,7 @@ def test_a_hardware_error_is_not_cleared_automatically(caplog: pytest.LogCapture
         statuses = Statuses()
         robot = RobotManagerClient(registrar).request(client="test", on_status=statuses)
         manager.simulator("arm").inject("hardware_error", kind="overheat", device=3)
-        statuses.wait_for(lambda u: u.status is Status.FATAL, "FATAL")
+        statuses.wait_for(lambda u: u.status is Status.FATAL, "FATAL", WAIT)
         wait_until(
             lambda: "not recovered automatically" in caplog.text, "no line says it is not tried"
         )
