@@ -91,8 +91,11 @@ class RunControl:
         """
         if self.broken:
             update = self.broken.pop(0)
+            # the server's name, not the resource's id (``robot:5f3b-1`` means nothing to a
+            # person); the id stays in the log and the error's origin
+            server = update.resource_id.partition(":")[0]
             raise ResourceBrokenError(
-                f"resource {update.resource_id} reported {update.status.value}: {update.message}",
+                f"the {server} resource is {update.status.value}: {update.message}",
                 origin=update.origin,
             )
 

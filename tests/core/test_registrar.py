@@ -372,7 +372,7 @@ def test_actions_release_their_resources_when_the_graph_ends_and_notice_failures
         assert camera.consumers == ["g/Holder_0"]
         rr.send_status(camera.id, Status.FATAL, "camera unplugged")
         assert engine.wait("g", 5) is Result.FALSE
-        assert seen == [f"resource {camera.id} reported FATAL: camera unplugged"]
+        assert seen == ["the m2 resource is FATAL: camera unplugged"]  # m2: the server
     # the release runs on a worker right after the graph ends; shutdown joined the workers
     assert rr.resources() == []
     assert r2.unloads == ["camera"]
