@@ -1,36 +1,39 @@
 """Dispatch: carrying out the engine's effects, and the workers that run actions.
 
-One layer of the engine (see :mod:`temoto.core.engine`): :class:`EffectDispatcher` takes the
-effects evolution (:mod:`temoto.core.evolution`) produced under the lock and carries them
-out with the lock released. Ready actions go to the :class:`~temoto.core.executor.WorkerPool`
-as one batch; a worker runs an action (:meth:`Action.run_once
-<temoto.core.action.Action.run_once>`), takes the lock once to apply the results of its round
-(evolution), and goes on itself with what became ready: every inline action, or else the first
-blocking one, so a chain continues on one thread without a hand-off. Hooks (``on_stop``,
-``on_pause``, ``on_resume``), resource releases and the end of spontaneous actions run on
-workers too; calls to the actor link are made in the dispatching thread.
+One part of the engine (see :mod:`temoto.core.engine`): :class:`Dispatcher` owns the workers;
+it takes the effects the evolution (:class:`~temoto.core.evolution.RunEvolution`) produced under
+the lock and carries them out with the lock released. Ready actions go to the
+:class:`~temoto.core.executor.WorkerPool` as one batch; a worker runs an action
+(:meth:`Action.run_once <temoto.core.action.Action.run_once>`), takes the lock once to apply
+the results of its round (:meth:`RunEvolution.action_finished
+<temoto.core.evolution.RunEvolution.action_finished>`, the one path of an action's end), and goes
+on itself with what became ready: every inline action, or else the first blocking one, so a
+chain continues on one thread without a hand-off. Hooks (``on_stop``, ``on_pause``,
+``on_resume``), resource releases and the end of spontaneous actions run on workers too; calls
+to the actor link are made in the dispatching thread.
 """
 
 from __future__ import annotations
 
 import logging
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-from temoto.core._fast import P_RUN, SHIFT
-from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import Node, NodeKind
 from temoto.core.action import Action
 from temoto.core.effects import Effect, EffectKind, Effects, Run
-from temoto.core.evolution import RunEvolution, _transfer
+from temoto.core.evolution import RunEvolution
 from temoto.core.executor import WorkerPool
 from temoto.core.registrar.registry import Registrar
 from temoto.core.states import ACTIVE_NODE_STATES, GraphState, NodeState, Result
 from temoto.core.values import NO_VALUES
 from temoto.errors import ActionError
 
-__all__ = ["EffectDispatcher"]
+if TYPE_CHECKING:
+    from temoto.core.shared import SharedRuns
 
-logger = logging.getLogger("temoto.core.engine")  # the engine's log lines keep their logger
+__all__ = ["Dispatcher"]
+
+logger = logging.getLogger(__name__)
 
 _N_ERROR = NodeState.ERROR
 _N_FINISHED = NodeState.FINISHED
@@ -51,10 +54,6 @@ _E_FINISH_SPONTANEOUS = EffectKind.FINISH_SPONTANEOUS
 _E_RELEASE = EffectKind.RELEASE
 _E_CALL = EffectKind.CALL
 _ACTIVE = ACTIVE_NODE_STATES
-#: the low bits of a wave step (``edge << SHIFT | response << 1 | ready``) for the response
-#: `run` to a child whose every required parent was received (or not yet)
-_RUN_READY = P_RUN << 1 | 1
-_RUN_WAITS = P_RUN << 1  # the same, to a child still waiting for a required parent
 
 # a run prepared under the lock: (node, gen, its instance or None, input values)
 _Todo = tuple[Node, int, Action | None, dict[str, Any]]
@@ -62,29 +61,60 @@ _Todo = tuple[Node, int, Action | None, dict[str, Any]]
 _Done = tuple[Node, int, Action | None, Result, dict[str, Any], BaseException | None]
 
 
-class EffectDispatcher(RunEvolution):
+class Dispatcher:
     """Carries out effects (lock released) and runs actions on the engine's workers.
 
-    A layer of :class:`~temoto.core.engine.ActionEngine`, which makes the state in its
-    ``__init__``.
+    A part of :class:`~temoto.core.engine.ActionEngine`. Every state change it makes goes
+    through the evolution (:class:`~temoto.core.evolution.RunEvolution`), under its lock.
+
+    Args:
+        evolution: The engine's evolution (its lock, its runs, its state changes).
+        pool: The workers.
+        actor: The engine's actor (its actions of a shared run notify the others).
+        registrar: Where actions acquire resources.
     """
 
-    # made by ActionEngine.__init__
-    registrar: Registrar | None
-    _pool: WorkerPool
+    def __init__(
+        self,
+        evolution: RunEvolution,
+        pool: WorkerPool,
+        actor: str,
+        registrar: Registrar | None,
+    ) -> None:
+        self._evolution = evolution
+        self._lock = evolution.lock
+        self.pool = pool
+        self.actor = actor
+        self.registrar = registrar
+        #: the shared-run protocol, with an actor link only (set by the engine)
+        self.shared: SharedRuns | None = None
+        #: the engine is shut down (set under the lock): effects are carried out in the
+        #: calling thread, not refused
+        self.closed = False
 
-    def _dispatch(self, fx: Effects, *, closing: bool = False) -> None:
+    def carry_out(self, fx: Effects) -> None:
+        """Carry out effects from any thread, the lock released (the evolution's port)."""
+        self.dispatch(fx, closing=self.closed)
+
+    def dispatch(self, fx: Effects, *, closing: bool = False) -> None:
         """Carry out effects (lock released): calls here, actions and hooks on workers.
 
         Ready actions leave as one batch: the inline ones together as one worker job that runs
         them back to back (:meth:`_run_batch`), each blocking one as a job of its own, all
         handed to the pool under one lock of its own (:meth:`WorkerPool.submit_many`).
+
+        Args:
+            fx: The effects.
+            closing: The engine is shutting down: what the pool refuses is carried out here.
+
+        Raises:
+            RuntimeError: The pool is shut down and the engine is not closing.
         """
         other = fx.other
-        if self._releases:
+        evolution = self._evolution
+        if evolution.releases:
             with self._lock:
-                other = [*other, *self._releases]
-                self._releases.clear()
+                other = [*other, *evolution.take_releases()]
         for effect in other:
             if effect.kind is _E_CALL:
                 try:
@@ -96,7 +126,7 @@ class EffectDispatcher(RunEvolution):
             try:
                 self._submit(effect)
             except RuntimeError:
-                if not (closing or self._closed):  # shut down since the caller looked
+                if not (closing or self.closed):  # shut down since the caller looked
                     raise
                 self._settle_closed(effect)
         if not fx.runs:
@@ -111,9 +141,9 @@ class EffectDispatcher(RunEvolution):
         if inline:
             jobs.insert(0, (inline,))
         try:
-            self._pool.submit_many(self._run_batch, jobs)
+            self.pool.submit_many(self._run_batch, jobs)
         except RuntimeError:
-            if not (closing or self._closed):
+            if not (closing or self.closed):
                 raise
             for node, gen in fx.runs:
                 self._settle_closed_run(node, gen)
@@ -123,15 +153,15 @@ class EffectDispatcher(RunEvolution):
         kind = effect.kind
         if kind is _E_RELEASE:
             assert effect.action is not None
-            self._pool.submit(_release_resources, effect.action)
+            self.pool.submit(_release_resources, effect.action)
             return
         node = effect.node
         assert node is not None
         if kind is _E_HOOK:
-            self._pool.submit(self._call_hook, node, effect.gen, effect.hook)
+            self.pool.submit(self._call_hook, node, effect.gen, effect.hook)
         elif kind is _E_FINISH_SPONTANEOUS:
             assert effect.ending is not None
-            self._pool.submit(self._finish_spontaneous, node, effect.gen, *effect.ending)
+            self.pool.submit(self._finish_spontaneous, node, effect.gen, *effect.ending)
         else:
             raise ValueError(f"not an effect for a worker: {kind}")
 
@@ -155,7 +185,7 @@ class EffectDispatcher(RunEvolution):
         fx = Effects()
         with self._lock:
             if node.gen == gen and node.active:
-                self._on_finished(node, gen, _R_STOPPED, {}, None, fx)
+                self._evolution.action_finished(node, gen, _R_STOPPED, {}, None, fx)
 
     def _run_batch(self, batch: list[tuple[Node, int]]) -> None:
         """Worker: run a batch (:meth:`_run_rounds`); an error of the engine ends its runs.
@@ -188,10 +218,9 @@ class EffectDispatcher(RunEvolution):
                     graph=run.name,
                     node=node.name,
                 )
-                run.errors.append(reason)
-                self._end_run(run, _G_ERROR, _R_ERROR, fx)
+                self._evolution.fail_run(run, reason, fx)
         try:
-            self._dispatch(fx, closing=True)
+            self.dispatch(fx, closing=True)
         except Exception:
             logger.exception("engine error: cannot carry out the end of the failed runs")
 
@@ -199,16 +228,15 @@ class EffectDispatcher(RunEvolution):
         """Worker: run actions, evolve, and go on with what became ready, batch by batch.
 
         Each round runs the prepared actions back to back outside the lock, then takes the
-        lock once to apply every result (evolution) and to prepare the next round: the inline
-        actions that became ready, or, when none did, the first ready blocking action (a chain
-        continues on this thread without a hand-off). Further blocking actions go to other
-        workers. One lock per round, not per action.
-
-        The common end of a run (the current run of a RUNNING node that returned True or
-        False in a RUNNING graph, nobody observing transitions) is applied here directly;
-        it does what :meth:`_settle` and :meth:`_on_finished` do for that case.
+        lock once to apply every result (:meth:`_settle`) and to prepare the next round: the
+        inline actions that became ready, or, when none did, the first ready blocking action
+        (a chain continues on this thread without a hand-off: :meth:`_run_chain`). Further
+        blocking actions go to other workers. One lock per round, not per action.
         """
         lock = self._lock
+        evolution = self._evolution
+        finished = evolution.action_finished
+        settle = self._settle
         todo: list[_Todo] = []
         # what evolution decides; after _collect, what this thread leaves to others
         fx = Effects()
@@ -224,10 +252,9 @@ class EffectDispatcher(RunEvolution):
                     self._prep(node, gen, todo, fx)
             self._collect(fx, todo)
         running = _N_RUNNING
-        graph_running = _G_RUNNING
         while True:
-            if runs or other or self._releases:  # an ended run's releases may be all there is
-                self._dispatch(fx, closing=self._closed)
+            if runs or other or evolution.releases:  # an ended run's releases may be all
+                self.dispatch(fx, closing=self.closed)
                 runs.clear()
                 other.clear()
             if not todo:
@@ -250,50 +277,11 @@ class EffectDispatcher(RunEvolution):
                 done.append((node, gen, instance, result, outputs, error))
             todo.clear()
             with lock:
-                fast = not self._watchers and not self._feedback_on
-                for item in done:
-                    node, gen, instance, result, outputs, error = item
-                    run = node.run
-                    if not (
-                        fast
-                        and error is None
-                        and gen == node.gen
-                        and node.state is running
-                        and run.state is graph_running
-                        and not node.restart
-                        and not node.spontaneous
-                        and node.stop_timer is None
-                        and instance is not None
-                    ):
-                        self._settle(item, fx)
-                        continue
-                    if node.instance is None:
-                        node.instance = instance
-                    if node.log or node.logged:
-                        node.log = instance.log_snapshot()
-                    if len(node.data) != len(node.native):
-                        node.clear_data()
-                    node.state = _N_FINISHED  # RUNNING -> FINISHED, in a RUNNING graph
-                    run.active -= 1
-                    if self._quiet_waiters:
-                        self._quiet.notify_all()
-                    evolution = run.evolution
-                    code = _RESULT_CODES[result]
-                    step = evolution.advance(node.idx, code)  # the kernel's wave, if one step
-                    if step >= 0 and not step & 1:
-                        # a fan-in: the response `run` to a child that waits for other
-                        # parents; all _apply_wave would do is hand the outputs down
-                        if outputs:  # advance's edge is this node's own relation
-                            edge = step >> 1
-                            _transfer(node, run.edge_child[edge], run.edge_remap[edge], outputs)
-                    elif step >= 0:
-                        steps = [(step >> 1) << SHIFT | _RUN_READY]
-                        self._apply_wave(node, result, outputs, steps, fx)
+                for node, gen, instance, result, outputs, error in done:
+                    if node.spontaneous:
+                        settle(node, gen, instance, result, outputs, error, fx)
                     else:
-                        steps = evolution.propagate(node.idx, code)
-                        self._apply_wave(node, result, outputs, steps, fx)
-                    if not run.active:
-                        self._after_change(run, fx)
+                        finished(node, gen, result, outputs, error, fx, instance)
                 if len(runs) == 1 and not other:  # a chain: _collect's common case
                     node, gen = runs[0]
                     if node.inline and gen == node.gen and node.state is running:
@@ -312,115 +300,43 @@ class EffectDispatcher(RunEvolution):
         fx: Effects,
         todo: list[_Todo],
     ) -> None:
-        """Worker: :meth:`_run_batch`'s rounds of one action each, for as long as they last.
+        """Worker: :meth:`_run_rounds`'s rounds of one action each, for as long as they last.
 
         A chain is a round per action: the action, then the lock once to apply its result
-        and to start the one child it made ready, which runs next on this thread (inline or
-        blocking: :meth:`_collect` keeps the first blocking run for this thread too). That
-        case is carried out here without the round's lists and records, and the wave of the
-        kernel is applied directly when it is one step that starts an idle local child
-        (:meth:`_apply_wave` does everything else). Returns (lock released) as soon as a
-        round is anything else, leaving ``fx`` and ``todo`` as :meth:`_run_batch`'s round
-        would have (``fx`` holds no effect on entry).
+        (:meth:`_settle`) and to start the one child it made ready, which runs next on this
+        thread (inline or blocking: :meth:`_collect` keeps the first blocking run for this
+        thread too), without the round's lists and records. Returns (lock released) as soon
+        as a round is anything else, leaving ``fx`` and ``todo`` as :meth:`_run_rounds`'s
+        round would have (``fx`` holds no effect on entry).
         """
         lock = self._lock
         acquire, release = lock.acquire, lock.release
+        evolution = self._evolution
+        finished = evolution.action_finished
+        settle = self._settle
         runs, other = fx.runs, fx.other
         running = _N_RUNNING
-        graph_running = _G_RUNNING
         while True:
             if instance is None:
                 try:
                     instance = self._instantiate(node, gen)
                 except Exception as err:
                     with lock:
-                        self._settle(
-                            (node, gen, None, _R_ERROR, NO_VALUES, _init_error(node, err)), fx
-                        )
+                        settle(node, gen, None, _R_ERROR, NO_VALUES, _init_error(node, err), fx)
                         self._collect(fx, todo)
                     return
             result, outputs, error = instance.run_once(values)
             acquire()  # not `with lock`: its __enter__ and __exit__ cost as much again
             try:
-                run = node.run
-                if not (
-                    error is None
-                    and gen == node.gen
-                    and node.state is running
-                    and run.state is graph_running
-                    and not self._watchers
-                    and not self._feedback_on
-                    and not node.restart
-                    and not node.spontaneous
-                    and node.stop_timer is None
-                ):
-                    self._settle((node, gen, instance, result, outputs, error), fx)
-                    self._collect(fx, todo)
-                    return
-                # what _run_batch does for a round's common end, for this one action
-                if node.instance is None:
-                    node.instance = instance
-                if node.log or node.logged:
-                    node.log = instance.log_snapshot()
-                if len(node.data) != len(node.native):
-                    node.clear_data()
-                node.state = _N_FINISHED  # RUNNING -> FINISHED, in a RUNNING graph
-                run.active -= 1
-                if self._quiet_waiters:
-                    self._quiet.notify_all()
-                evolution = run.evolution
-                code = _RESULT_CODES[result]
-                step = evolution.advance(node.idx, code)  # the kernel's wave, if one step
-                child = None
-                if step >= 0 and step & 1:
-                    # one relation, whose response is `run`, to a child with every parent
-                    edge = step >> 1
-                    child = run.edge_child[edge]
-                    if outputs:  # advance's edge is this node's own relation
-                        _transfer(node, child, run.edge_remap[edge], outputs)
-                    if not (
-                        child.kind is _K_LOCAL  # inline or blocking: it runs next, here
-                        and child.state not in _ACTIVE
-                        and (not child.required_inputs or child.inputs_ready())
-                    ):
-                        child = None
-                        steps = [edge << SHIFT | _RUN_READY]
-                        self._apply_wave(node, result, NO_VALUES, steps, fx)  # done: transfer
-                elif step >= 0:  # one step to a child that waits for other parents
-                    edge = step >> 1
-                    steps = [edge << SHIFT | _RUN_WAITS]
-                    self._apply_wave(node, result, outputs, steps, fx)
+                if node.spontaneous:
+                    settle(node, gen, instance, result, outputs, error, fx)
                 else:
-                    self._apply_wave(node, result, outputs, evolution.propagate(node.idx, code), fx)
-                if child is not None:
-                    # _apply_wave's start of an idle local node
-                    child.gen += 1
-                    child.held = None
-                    if child.condition is None:  # RunControl.reset, nobody waits to race with
-                        child.stop = child.paused = False
-                    else:
-                        child.reset()
-                    if child.fresh_instance:
-                        child.instance = None  # the old one is stuck in a run we gave up on
-                        child.fresh_instance = False
-                    child.state = running
-                    run.active += 1
-                    data = child.data
-                    if other or self._releases:  # effects to dispatch first: back to the round
-                        todo.append(
-                            (child, child.gen, child.instance, dict(data) if data else NO_VALUES)
-                        )
-                        return
-                    node, gen, instance = child, child.gen, child.instance
-                    values = dict(data) if data else NO_VALUES
-                    continue
-                if not run.active:
-                    self._after_change(run, fx)
-                if len(runs) == 1 and not other:  # the next link of the chain, made by the wave
+                    finished(node, gen, result, outputs, error, fx, instance)
+                if len(runs) == 1 and not other and not evolution.releases:
+                    # the next link of the chain, made ready by this result: it runs here
                     child, child_gen = runs[0]
                     if (
-                        child.inline
-                        and child_gen == child.gen
+                        child_gen == child.gen
                         and child.state is running
                         and not child.run.peers  # (a sub-graph's end may reach a shared run)
                     ):
@@ -439,7 +355,7 @@ class EffectDispatcher(RunEvolution):
         if gen != node.gen or node.state not in _ACTIVE:
             return
         if node.state is _N_STOPPING:  # stopped before a worker got to it: do not start
-            self._on_finished(node, gen, _R_STOPPED, {}, None, fx)
+            self._evolution.action_finished(node, gen, _R_STOPPED, {}, None, fx)
             return
         todo.append((node, gen, node.instance, dict(node.data) if node.data else NO_VALUES))
 
@@ -448,7 +364,7 @@ class EffectDispatcher(RunEvolution):
 
         Inline runs are prepared here (a stale or stopped one may add effects, which are
         collected too); the first blocking run is kept only when no inline run is. What is left
-        in ``fx`` (other blocking runs, every other effect) is for :meth:`_dispatch`.
+        in ``fx`` (other blocking runs, every other effect) is for :meth:`dispatch`.
         """
         runs = fx.runs
         blocking: list[Run] = []
@@ -484,27 +400,39 @@ class EffectDispatcher(RunEvolution):
                 return node, gen, None, _R_ERROR, NO_VALUES, _init_error(node, err)
         result, outputs, error = instance.run_once(values)
         if node.run.peers and result is not _R_STOPPED and node.umrf.actor == self.actor:
-            assert self._shared is not None
-            result, error = self._shared.notify(node, result, outputs, error)
+            assert self.shared is not None
+            result, error = self.shared.notify(node, result, outputs, error)
         return node, gen, instance, result, outputs, error
 
-    def _settle(self, done: _Done, fx: Effects) -> None:
-        """Lock held: apply the end of an action run (evolution)."""
-        node, gen, instance, result, outputs, error = done
-        if instance is not None and gen == node.gen:
-            if node.instance is None:  # an inline node's first run (see _instantiate)
-                node.instance = instance
-            node.log = instance.log_snapshot()
+    def _settle(
+        self,
+        node: Node,
+        gen: int,
+        instance: Action | None,
+        result: Result,
+        outputs: dict[str, Any],
+        error: BaseException | None,
+        fx: Effects,
+    ) -> None:
+        """Lock held: apply the end of an action run that may be a spontaneous action's.
+
+        A spontaneous action's end is carried out on a worker (what runs downstream of it
+        stops first: :meth:`_finish_spontaneous`); every other end is the evolution's one path,
+        :meth:`RunEvolution.action_finished <temoto.core.evolution.RunEvolution.action_finished>`,
+        which the workers' rounds call directly for an action that is not spontaneous.
+        """
         if (
             node.spontaneous
             and gen == node.gen
             and node.run.state is not _G_PAUSED
             and not node.restart
         ):
+            if instance is not None:
+                self._evolution.adopt(node, instance)
             ending = (result, outputs, error)
             fx.other.append(Effect(_E_FINISH_SPONTANEOUS, node, gen, ending=ending))
-        else:
-            self._on_finished(node, gen, result, outputs, error, fx)
+            return
+        self._evolution.action_finished(node, gen, result, outputs, error, fx, instance)
 
     def _instantiate(self, node: Node, gen: int) -> Action:
         """No lock: make a node's action instance and initialise it (``on_init``).
@@ -535,8 +463,7 @@ class EffectDispatcher(RunEvolution):
                 logger.exception("%s/%s: %s() raised", node.run.name, node.name, hook)
         if hook == "on_pause":
             with self._lock:
-                if node.gen == gen and node.state is _N_PAUSE_REQUESTED:
-                    self._set_state(node, _N_PAUSED)
+                self._evolution.node_paused(node, gen)
 
     def _finish_spontaneous(
         self,
@@ -547,74 +474,46 @@ class EffectDispatcher(RunEvolution):
         error: BaseException | None,
     ) -> None:
         """Worker: stop everything downstream of a spontaneous action, then propagate and re-run."""
+        evolution = self._evolution
         fx = Effects()
         with self._lock:
-            downstream = self._downstream(node)
+            downstream = _downstream(node)
             for other in downstream:
                 if other.active:
-                    self._stop_node(other, fx)
-        self._dispatch(fx, closing=self._closed)
+                    evolution.stop_node(other, fx)
+        self.dispatch(fx, closing=self.closed)
         fx = Effects()
         with self._lock:
-            self._quiet_waiters += 1
-            try:
-                while any(n.active for n in downstream) and not self._closed and node.gen == gen:
-                    self._quiet.wait()
-            finally:
-                self._quiet_waiters -= 1
+            evolution.wait_quiet(
+                lambda: any(n.active for n in downstream) and not self.closed and node.gen == gen
+            )
             if node.gen != gen:
                 return
-            rerun = node.state is _N_RUNNING and node.run.state is _G_RUNNING and not self._closed
-            self._on_finished(node, gen, result, outputs, error, fx)
+            rerun = node.state is _N_RUNNING and node.run.state is _G_RUNNING and not self.closed
+            evolution.action_finished(node, gen, result, outputs, error, fx)
             if rerun and node.state is _N_FINISHED and node.run.state is _G_RUNNING:
-                self._run_node(node, fx)
-                self._after_change(node.run, fx)
+                evolution.rerun(node, fx)
         # the re-run (or the first action that became ready) continues on this worker
         nxt = fx.runs.pop(0) if fx.runs else None
-        self._dispatch(fx, closing=self._closed)
+        self.dispatch(fx, closing=self.closed)
         if nxt is not None:
             self._run_batch([nxt])
 
-    def _downstream(self, start: Node) -> list[Node]:
-        seen = {start.name}
-        out: list[Node] = []
-        todo = [start]
-        while todo:
-            node = todo.pop()
-            for child in node.run.children(node):
-                if child.kind is _K_EXIT or child.name in seen:
-                    continue
-                seen.add(child.name)
-                out.append(child)
-                todo.append(child)
-        return out
 
-    def _stop_expired(self, node: Node, gen: int) -> None:
-        """Timer thread: an action ignored its stop for ``stop_timeout``."""
-        fx = Effects()
-        with self._lock:
-            if node.gen != gen or node.state is not _N_STOPPING:
-                return
-            run = node.run
-            node.gen += 1  # its late return is ignored
-            node.fresh_instance = True
-            node.stop_timer = None
-            error = ActionError(
-                f"{node.name} did not stop within {self.stop_timeout} s; marked ERROR",
-                graph=run.name,
-                node=node.name,
-            )
-            node.error = error
-            run.errors.append(error)
-            run.stop_failed = True
-            logger.error("%s: %s", run.name, error)
-            self._set_state(node, _N_ERROR)
-            if node.restart:
-                node.restart = False
-                if run.state is _G_RUNNING:
-                    self._run_node(node, fx)
-            self._after_change(run, fx)
-        self._dispatch(fx, closing=self._closed)
+def _downstream(start: Node) -> list[Node]:
+    """Every node reachable from ``start`` along its run's relations (the exit excluded)."""
+    seen = {start.name}
+    out: list[Node] = []
+    todo = [start]
+    while todo:
+        node = todo.pop()
+        for child in node.run.children(node):
+            if child.kind is _K_EXIT or child.name in seen:
+                continue
+            seen.add(child.name)
+            out.append(child)
+            todo.append(child)
+    return out
 
 
 def _init_error(node: Node, err: Exception) -> ActionError:

@@ -5,19 +5,24 @@ sub-graph (same name and signature) or a remote actor, validates the graph, and 
 when an action finishes, its result is propagated to its children through the condition
 table, data flows along the relations, and ready children are dispatched to the worker pool.
 
-The engine is built in layers, one concept per module (``docs/engine.md``):
+The engine holds its parts, one concept per module (``docs/engine.md``):
 
 * :mod:`temoto.core.engine` (this module): :class:`ActionEngine`, the public API: start, wait,
-  stop, pause, resume, modify, snapshots and feedback, shutdown.
-* :mod:`temoto.core.dispatch`: carries out effects with the lock released; the workers that run
-  actions (:meth:`Action.run_once <temoto.core.action.Action.run_once>`) and evolve the graph.
-* :mod:`temoto.core.evolution`: the evolution of a run under the lock (start, finish,
-  propagate, transfer, end), producing :class:`~temoto.core.effects.Effects`.
-* :mod:`temoto.core.shared`: the engine's side of graphs shared with other actors.
+  stop, pause, resume, modify, snapshots and feedback, shutdown. It makes the parts below and
+  connects them.
+* :mod:`temoto.core.evolution`: :class:`~temoto.core.evolution.RunEvolution`, the engine's lock,
+  its runs and every state change of a run and of its nodes (one checked path each), under the
+  lock, producing :class:`~temoto.core.effects.Effects`.
+* :mod:`temoto.core.dispatch`: :class:`~temoto.core.dispatch.Dispatcher`, which owns the
+  workers: it carries out effects with the lock released, and its workers run actions
+  (:meth:`Action.run_once <temoto.core.action.Action.run_once>`) and hand each end to the
+  evolution.
+* :mod:`temoto.core.shared`: the engine's side of graphs shared with other actors; it reaches
+  the engine through :class:`~temoto.core.shared.RunHost`, which the evolution implements.
 
 Concurrency model:
 
-* One engine lock guards every graph run. Evolution is plain computation under that lock and
+* One engine lock guards every graph run. RunEvolution is plain computation under that lock and
   never waits on user code; user hooks (``on_run``, ``on_stop``, ...) run on the bounded
   :class:`~temoto.core.executor.WorkerPool`.
 * A worker that finishes an action evolves the graph and goes on itself with what became
@@ -31,8 +36,6 @@ Concurrency model:
 from __future__ import annotations
 
 import logging
-import threading
-from collections import deque
 from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -42,9 +45,10 @@ from temoto.clock import Clock, MonotonicClock
 from temoto.core._gc import collector_paused
 from temoto.core._runtime import GraphRun, Plan, wiring_of
 from temoto.core.catalog import ActionCatalog, GraphIndex
-from temoto.core.dispatch import EffectDispatcher
+from temoto.core.dispatch import Dispatcher
 from temoto.core.documents import graph_from_document
-from temoto.core.effects import Effect, Effects
+from temoto.core.effects import Effects
+from temoto.core.evolution import RunEvolution
 from temoto.core.executor import DeadlineTimer, WorkerPool
 from temoto.core.graph import UmrfGraph
 from temoto.core.instrument import Instrument
@@ -92,7 +96,7 @@ class GraphOutcome:
     aborted: str | None = None
 
 
-class ActionEngine(EffectDispatcher):
+class ActionEngine:
     """Runs UMRF graphs: start, wait, stop, pause, resume, modify; feedback.
 
     Args:
@@ -146,18 +150,6 @@ class ActionEngine(EffectDispatcher):
         self.link = link
         self.handshake_timeout = handshake_timeout
         self.notify_timeout = notify_timeout
-        # the shared-run protocol's engine side (temoto.core.shared), with a link only
-        self._shared = (
-            None
-            if link is None
-            else SharedRuns(
-                self,
-                link,
-                handshake_timeout=handshake_timeout,
-                notify_timeout=notify_timeout,
-                settle_timeout=settle_timeout,
-            )
-        )
         self.catalog = (
             actions if isinstance(actions, ActionCatalog) else ActionCatalog(actions or ())
         )
@@ -166,21 +158,29 @@ class ActionEngine(EffectDispatcher):
         self.clock: Clock = clock or MonotonicClock()
         self.stop_timeout = stop_timeout
         self.registrar = registrar
-        self._instruments = list(instruments)
-        # the instruments that observe node transitions (two per action run: kept apart so an
-        # instrument that only watches graph starts and ends costs nothing per action)
-        self._watchers = [i for i in self._instruments if _watches_transitions(i)]
-        self._lock = threading.Lock()
-        self._quiet = threading.Condition(self._lock)
-        self._quiet_waiters = 0
-        self._runs: dict[str, GraphRun] = {}
-        self._pool = WorkerPool(max_workers)
+        # the parts: the evolution (lock, runs, state changes), the dispatcher (workers), and
+        # with a link the shared-run protocol, which reaches the engine through the evolution
         self._timer = DeadlineTimer()
-        self._feedback: deque[dict[str, Any]] = deque(maxlen=max(feedback_size, 1))
-        self._feedback_on = feedback_size > 0
-        self._closed = False
-        # releases found under the lock, handed to workers by the next _dispatch
-        self._releases: list[Effect] = []
+        self._evolution = RunEvolution(
+            self.clock, stop_timeout, self._timer, instruments, feedback_size
+        )
+        self._lock = self._evolution.lock
+        self._runs: dict[str, GraphRun] = self._evolution.runs
+        self._pool = WorkerPool(max_workers)
+        self._dispatcher = Dispatcher(self._evolution, self._pool, actor, registrar)
+        self._evolution.carry_out = self._dispatcher.carry_out
+        self._shared = (
+            None
+            if link is None
+            else SharedRuns(
+                self._evolution,
+                link,
+                handshake_timeout=handshake_timeout,
+                notify_timeout=notify_timeout,
+                settle_timeout=settle_timeout,
+            )
+        )
+        self._evolution.shared = self._dispatcher.shared = self._shared
 
     # ================================================================ public API
 
@@ -240,7 +240,7 @@ class ActionEngine(EffectDispatcher):
             session = self._shared.handshake(plan, run_name, peers)
         with collector_paused() as pause:
             with self._lock:
-                if self._closed:
+                if self._dispatcher.closed:
                     raise StateError("the engine is shut down")
                 old = self._runs.get(run_name)
                 if old is not None and old.state in _BUSY_GRAPH:
@@ -253,7 +253,7 @@ class ActionEngine(EffectDispatcher):
                 self._runs[run_name] = run
                 if old is not None and reuse is None and not old.active:
                     old.dispose()  # its memory comes back now, not at a later full collection
-                self._start_run(run, values, result, fx)
+                self._evolution.start_run(run, values, result, fx)
             if reuse is None and len(run.nodes) >= YOUNG_COLLECT_AT_START:
                 # outside the lock; before the first action. A run that took over an ended
                 # run's nodes made few new objects: nothing for such a scan to do
@@ -261,7 +261,7 @@ class ActionEngine(EffectDispatcher):
         if peers:
             assert self._shared is not None
             self._shared.watch(run)
-        self._dispatch(fx)
+        self._dispatcher.dispatch(fx)
         return run_name
 
     def wait(self, name: str, timeout: float | None = None) -> Result:
@@ -331,8 +331,8 @@ class ActionEngine(EffectDispatcher):
         run = self._get(name)
         fx = Effects()
         with self._lock:
-            self._stop_run(run, fx)
-        self._dispatch(fx)
+            self._evolution.stop_run(run, fx)
+        self._dispatcher.dispatch(fx)
         return self.wait(name, timeout)
 
     def pause(self, name: str) -> None:
@@ -355,8 +355,8 @@ class ActionEngine(EffectDispatcher):
         with self._lock:
             if run.state is not _G_RUNNING:
                 raise StateError(f"graph '{name}' is {run.state.value}, not RUNNING")
-            self._pause_run(run, fx)
-        self._dispatch(fx)
+            self._evolution.pause_run(run, fx)
+        self._dispatcher.dispatch(fx)
 
     def resume(self, name: str, continue_from: str | None = None) -> None:
         """Resume a paused or halted graph, optionally running one node directly.
@@ -383,8 +383,8 @@ class ActionEngine(EffectDispatcher):
                 raise StateError(f"graph '{name}' is {run.state.value}, not PAUSED or HALTED")
             if continue_from is not None and continue_from not in run.nodes:
                 raise KeyError(f"graph '{name}' has no action '{continue_from}'")
-            self._resume_run(run, continue_from, fx)
-        self._dispatch(fx)
+            self._evolution.resume_run(run, continue_from, fx)
+        self._dispatcher.dispatch(fx)
 
     def modify(self, name: str, graph: UmrfGraph, continue_from: str | None = None) -> None:
         """Replace the structure of a running, paused or halted graph.
@@ -427,19 +427,19 @@ class ActionEngine(EffectDispatcher):
                 raise StateError(f"graph '{name}': cannot remove active actions {', '.join(busy)}")
             if continue_from is not None and continue_from not in new_names:
                 raise KeyError(f"the new graph has no action '{continue_from}'")
+            evolution = self._evolution
             for node in run.nodes.values():
                 if node.name not in new_names:
-                    self._release_node(node)
+                    evolution.release_node(node)
             run.wire(plan)
             logger.info("graph %s modified (%d actions)", name, len(run.nodes))
             if run.state is _G_HALTED or (continue_from and run.state is _G_PAUSED):
-                self._resume_run(run, continue_from, fx)
+                evolution.resume_run(run, continue_from, fx)
             elif continue_from is not None:
-                self._run_node(run.nodes[continue_from], fx)
-                self._after_change(run, fx)
+                evolution.rerun(run.nodes[continue_from], fx)
             else:
-                self._after_change(run, fx)
-        self._dispatch(fx)
+                evolution.after_change(run, fx)
+        self._dispatcher.dispatch(fx)
 
     def outcome(self, name: str) -> GraphOutcome:
         """Where a graph run is, or how it ended.
@@ -529,9 +529,7 @@ class ActionEngine(EffectDispatcher):
             Nothing.
         """
         with self._lock:
-            out = list(self._feedback)
-            self._feedback.clear()
-            return out
+            return self._evolution.take_feedback()
 
     def add_instrument(self, instrument: Instrument) -> None:
         """Attach an observer.
@@ -546,9 +544,7 @@ class ActionEngine(EffectDispatcher):
             Nothing.
         """
         with self._lock:
-            self._instruments.append(instrument)
-            if _watches_transitions(instrument):
-                self._watchers.append(instrument)
+            self._evolution.add_instrument(instrument)
 
     def shutdown(self, timeout: float = 10.0) -> None:
         """Stop every graph, then join the engine's threads. Idempotent.
@@ -563,23 +559,24 @@ class ActionEngine(EffectDispatcher):
             Nothing.
         """
         fx = Effects()
+        evolution = self._evolution
         with self._lock:
-            if self._closed:
+            if self._dispatcher.closed:
                 return
-            self._closed = True
+            self._dispatcher.closed = True
             runs = [r for r in self._runs.values() if r.parent_node is None]
             for run in runs:
-                self._stop_run(run, fx)
+                evolution.stop_run(run, fx)
             # a finished graph may still have actions winding down
             for run in self._runs.values():
                 for node in run.nodes.values():
                     if node.active:
-                        self._stop_node(node, fx)
-        self._dispatch(fx, closing=True)
+                        evolution.stop_node(node, fx)
+        self._dispatcher.dispatch(fx, closing=True)
         for run in runs:
             run.done.wait(timeout)
         with self._lock:
-            self._quiet.notify_all()
+            evolution.wake()
         stuck = self._pool.shutdown(timeout)
         self._timer.shutdown()
         if stuck:
@@ -606,18 +603,3 @@ class ActionEngine(EffectDispatcher):
         if run is None:
             raise GraphNotFoundError(f"no graph run named '{name}'")
         return run
-
-
-def _watches_transitions(instrument: Instrument) -> bool:
-    """Whether an instrument overrides a hook called per action run.
-
-    Those are :meth:`Instrument.node_transition` and :meth:`Instrument.node_result`.
-    """
-    kind = type(instrument)
-    return any(
-        getattr(kind, hook, base) is not base
-        for hook, base in (
-            ("node_transition", Instrument.node_transition),
-            ("node_result", Instrument.node_result),
-        )
-    )

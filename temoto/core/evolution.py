@@ -1,17 +1,22 @@
 """The evolution of graph runs: how nodes and runs change state, with the engine's lock held.
 
-One layer of the engine (see :mod:`temoto.core.engine`): :class:`RunEvolution` holds every
-state change of a run and of its nodes. A run starts (the entry's result reaches its first
-actions), an action run finishes (its result is applied: held while paused, turned into a stop
-or a restart, or recorded), the result propagates to the children along the condition table
-(the evolution kernel, :mod:`temoto.core._fast`, computes the wave), parameters are transferred
-along the relations, ready children start, and the run ends (finished, halted, stopped or
-failed) and hands its result to a parent node when it is a sub-graph.
+One part of the engine (see :mod:`temoto.core.engine`): :class:`RunEvolution` owns the engine's
+lock, its runs, and every state change of a run and of its nodes, each through one checked
+path (:meth:`RunEvolution.set_state` against :data:`~temoto.core.states.NODE_TRANSITIONS`,
+:meth:`RunEvolution.set_run_state` against :data:`~temoto.core.states.GRAPH_TRANSITIONS`). A run
+starts (the entry's result reaches its first actions), an action run finishes (its result is
+applied: held while paused, turned into a stop or a restart, or recorded:
+:meth:`RunEvolution.action_finished`, the one path of an action's end), the result propagates to
+the children along the condition table (the evolution kernel, :mod:`temoto.core._fast`,
+computes the wave), parameters are transferred along the relations, ready children start
+(one path, whatever made them ready), and the run ends (finished, halted, stopped or failed)
+and hands its result to a parent node when it is a sub-graph.
 
 Everything here is plain computation under the engine's lock: it never waits and never calls
 user code. What must happen outside the lock (run an action, call a hook, release resources,
 talk to the actor link) goes into the :class:`~temoto.core.effects.Effects` ``fx`` for the
-dispatcher (:mod:`temoto.core.dispatch`).
+dispatcher (:mod:`temoto.core.dispatch`), which the evolution reaches through one port,
+:attr:`RunEvolution.carry_out`, from the timer thread only (an action that ignores its stop).
 """
 
 from __future__ import annotations
@@ -19,34 +24,39 @@ from __future__ import annotations
 import logging
 import threading
 from collections import deque
-from collections.abc import Callable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from typing import TYPE_CHECKING, Any
 
 from temoto.core._fast import P_BYPASS, P_IGNORE, P_LOOP, P_PAUSE, P_RUN, P_STOP, SHIFT
 from temoto.core._runtime import RESULT_CODES as _RESULT_CODES
 from temoto.core._runtime import GraphRun, Node, NodeKind
 from temoto.core.effects import Effect, EffectKind, Effects
+from temoto.core.instrument import Instrument
 from temoto.core.snapshot import snapshot
 from temoto.core.states import (
     ACTIVE_NODE_STATES,
     BUSY_GRAPH_STATES,
     ENDED_GRAPH_STATES,
+    GRAPH_TRANSITIONS,
+    NODE_TRANSITIONS,
     GraphState,
     NodeState,
     Result,
+    check_graph_transition,
     check_node_transition,
 )
+from temoto.core.values import NO_VALUES
 from temoto.errors import ActionError
 
 if TYPE_CHECKING:
     from temoto.clock import Clock
-    from temoto.core.executor import DeadlineTimer
-    from temoto.core.instrument import Instrument
+    from temoto.core.action import Action
+    from temoto.core.executor import DeadlineTimer, TimerHandle
     from temoto.core.shared import SharedRuns
 
 __all__ = ["RunEvolution"]
 
-logger = logging.getLogger("temoto.core.engine")  # the engine's log lines keep their logger
+logger = logging.getLogger(__name__)
 
 # Enum members as module constants: `NodeState.RUNNING` is a class attribute lookup through
 # the enum's metaclass (about 70 ns on CPython 3.11, against about 10 ns for a global), and
@@ -83,48 +93,140 @@ _E_CALL = EffectKind.CALL
 _ACTIVE = ACTIVE_NODE_STATES
 _BUSY_GRAPH = BUSY_GRAPH_STATES
 _ENDED_GRAPH = ENDED_GRAPH_STATES
+_NODE_NEXT = NODE_TRANSITIONS
+_GRAPH_NEXT = GRAPH_TRANSITIONS
+#: the low bits of a wave step (``edge << SHIFT | response << 1 | ready``) for the response
+#: `run` to a child whose every required parent was received
+_RUN_READY = P_RUN << 1 | 1
 
 
 class RunEvolution:
-    """The engine's state changes of runs and nodes (engine lock held), as effects.
+    """The engine's runs and every state change of them and of their nodes (lock held).
 
-    A layer of :class:`~temoto.core.engine.ActionEngine`, which makes the state below in its
-    ``__init__``; the dispatcher (:class:`~temoto.core.dispatch.EffectDispatcher`) subclasses
-    this and carries out the effects.
+    A part of :class:`~temoto.core.engine.ActionEngine`. Methods whose docstring says "lock
+    held" are called with :attr:`lock` held; they never wait and never call user code: what
+    must happen outside the lock goes into the ``fx`` they are given, for the dispatcher
+    (:class:`~temoto.core.dispatch.Dispatcher`). It is also the host of the shared-run
+    protocol (:class:`~temoto.core.shared.RunHost`).
+
+    Args:
+        clock: Where time is read.
+        stop_timeout: Clock seconds an action has to return after a stop.
+        timer: The timer thread that enforces ``stop_timeout``.
+        instruments: Observers of engine events.
+        feedback_size: Whole-graph snapshots kept (one per node state change); 0 keeps none.
     """
 
-    # made by ActionEngine.__init__
-    actor: str
-    clock: Clock
-    stop_timeout: float
-    _lock: threading.Lock
-    _quiet: threading.Condition
-    _quiet_waiters: int
-    _runs: dict[str, GraphRun]
-    _timer: DeadlineTimer
-    _instruments: list[Instrument]
-    _watchers: list[Instrument]
-    _feedback: deque[dict[str, Any]]
-    _feedback_on: bool
-    _shared: SharedRuns | None
-    _closed: bool
-    #: releases found under the lock, handed to workers by the next dispatch
-    _releases: list[Effect]
-    #: the timer's callback when an action ignores its stop (the dispatcher's)
-    _stop_expired: Callable[[Node, int], None]
+    def __init__(
+        self,
+        clock: Clock,
+        stop_timeout: float,
+        timer: DeadlineTimer,
+        instruments: Iterable[Instrument] = (),
+        feedback_size: int = 0,
+    ) -> None:
+        self.clock = clock
+        self.stop_timeout = stop_timeout
+        self.timer = timer
+        #: the engine's one lock: it guards every run, node and the fields below
+        self.lock = threading.Lock()
+        self._quiet = threading.Condition(self.lock)  # a node went idle (wait_quiet)
+        self._quiet_waiters = 0
+        #: every run by name, sub-graph runs and ended runs included
+        self.runs: dict[str, GraphRun] = {}
+        self._instruments = list(instruments)
+        # the instruments that observe node transitions (two per action run: kept apart so an
+        # instrument that only watches graph starts and ends costs nothing per action)
+        self._watchers = [i for i in self._instruments if watches_transitions(i)]
+        self._feedback: deque[dict[str, Any]] = deque(maxlen=max(feedback_size, 1))
+        self._feedback_on = feedback_size > 0
+        #: whether anything observes node transitions (watchers, feedback): the fast paths
+        #: of the dispatcher are taken only when nothing does
+        self.observed = bool(self._watchers) or self._feedback_on
+        #: the shared-run protocol (temoto.core.shared), with an actor link only
+        self.shared: SharedRuns | None = None
+        #: carries out effects outside the lock (the dispatcher's); set by the engine
+        self.carry_out: Callable[[Effects], None] = _no_port
+        #: releases found under the lock, handed to workers by the next dispatch (read
+        #: without the lock as a hint; taken with it, :meth:`take_releases`)
+        self.releases: list[Effect] = []
 
-    def _set_state(self, node: Node, new: NodeState) -> None:
+    # ------------------------------------------------------------ observers, quiet, releases
+
+    def add_instrument(self, instrument: Instrument) -> None:
+        """Lock held: attach an observer."""
+        self._instruments.append(instrument)
+        if watches_transitions(instrument):
+            self._watchers.append(instrument)
+            self.observed = True
+
+    def take_feedback(self) -> list[dict[str, Any]]:
+        """Lock held: return and clear the buffered snapshots."""
+        out = list(self._feedback)
+        self._feedback.clear()
+        return out
+
+    def take_releases(self) -> list[Effect]:
+        """Lock held: the resource releases found since the last call (for workers)."""
+        out = self.releases
+        self.releases = []
+        return out
+
+    def wait_quiet(self, busy: Callable[[], bool]) -> None:
+        """Lock held: wait (releasing the lock) while ``busy()``, woken as nodes go idle."""
+        self._quiet_waiters += 1
+        try:
+            while busy():
+                self._quiet.wait()
+        finally:
+            self._quiet_waiters -= 1
+
+    def wake(self) -> None:
+        """Lock held: wake every :meth:`wait_quiet` (the engine shuts down)."""
+        self._quiet.notify_all()
+
+    def _drop_instrument(self, inst: Instrument) -> None:
+        logger.exception("instrument %r raised; removing it", inst)
+        if inst in self._instruments:
+            self._instruments.remove(inst)
+        if inst in self._watchers:
+            self._watchers.remove(inst)
+        self.observed = bool(self._watchers) or self._feedback_on
+
+    def _notify(self, hook: str, *args: Any) -> None:
+        for inst in list(self._instruments):
+            try:
+                getattr(inst, hook)(*args)
+            except Exception:
+                self._drop_instrument(inst)
+
+    # ------------------------------------------------------------ the two state paths
+
+    def set_state(self, node: Node, new: NodeState) -> None:
+        """Lock held: the one path of a node's state change (checked, counted, observed).
+
+        Raises:
+            StateError: The change is not in :data:`~temoto.core.states.NODE_TRANSITIONS`.
+        """
         old = node.state
-        check_node_transition(node.run.name, node.name, old, new)
+        if new not in _NODE_NEXT[old]:
+            check_node_transition(node.run.name, node.name, old, new)
         node.state = new
-        was, now = old in _ACTIVE, new in _ACTIVE
-        if was != now:
-            node.run.active += 1 if now else -1
-            if not now:
+        now = new in _ACTIVE
+        if (old in _ACTIVE) is not now:
+            run = node.run
+            if now:
+                run.active += 1
+            else:
+                run.active -= 1
                 if self._quiet_waiters:
                     self._quiet.notify_all()
-                if node.run.state in _ENDED_GRAPH:
-                    self._release_node(node)
+                if run.state in _ENDED_GRAPH:
+                    self.release_node(node)
+        if self.observed:
+            self._observe(node, old, new)
+
+    def _observe(self, node: Node, old: NodeState, new: NodeState) -> None:
         if self._watchers:
             t = self.clock.monotonic()
             for inst in list(self._watchers):
@@ -135,317 +237,92 @@ class RunEvolution:
         if self._feedback_on:
             self._feedback.append(snapshot(node.run))
 
-    def _drop_instrument(self, inst: Instrument) -> None:
-        logger.exception("instrument %r raised; removing it", inst)
-        if inst in self._instruments:
-            self._instruments.remove(inst)
-        if inst in self._watchers:
-            self._watchers.remove(inst)
+    def set_run_state(self, run: GraphRun, new: GraphState) -> None:
+        """Lock held: the one path of a run's state change (checked).
 
-    def _notify(self, hook: str, *args: Any) -> None:
-        for inst in list(self._instruments):
-            try:
-                getattr(inst, hook)(*args)
-            except Exception:
-                self._drop_instrument(inst)
+        Raises:
+            StateError: The change is not in :data:`~temoto.core.states.GRAPH_TRANSITIONS`.
+        """
+        if new not in _GRAPH_NEXT[run.state]:
+            check_graph_transition(run.name, run.state, new)
+        run.state = new
 
-    def _start_run(
-        self, run: GraphRun, values: dict[str, Any], result: Result, fx: Effects
-    ) -> None:
-        run.state = _G_RUNNING
+    # ------------------------------------------------------------ runs
+
+    def start_run(self, run: GraphRun, values: dict[str, Any], result: Result, fx: Effects) -> None:
+        """Lock held: start a new run: the entry hands ``result`` and ``values`` on."""
+        self.set_run_state(run, _G_RUNNING)
         run.started_at = self.clock.monotonic()
         if self._instruments:
             self._notify("graph_started", run.name, run.started_at)
         entry = run.entry
         entry.data = dict(values)
-        self._propagate(entry, result, values, fx)
-        self._after_change(run, fx)
+        steps = run.evolution.propagate(entry.idx, _RESULT_CODES[result])
+        self._apply_wave(entry, result, values, steps, fx)
+        self.after_change(run, fx)
 
-    def _on_finished(
-        self,
-        node: Node,
-        gen: int,
-        result: Result,
-        outputs: dict[str, Any],
-        error: BaseException | None,
-        fx: Effects,
-    ) -> None:
-        """An action run ended (returned, raised, timed out, or its sub-graph ended)."""
-        if gen != node.gen:
-            return  # a run the engine already gave up on (stop timeout)
-        run = node.run
-        if node.state in (_N_PAUSE_REQUESTED, _N_PAUSED):
-            node.held = (result, outputs, error)  # delivered on resume
-            return
-        if node.state is _N_STOPPING:
-            result = _R_STOPPED
-        if node.stop_timer is not None:
-            node.stop_timer.cancel()
-            node.stop_timer = None
-        if len(node.data) != len(node.native):
-            node.clear_data()
-        if node.restart:
-            node.restart = False
-            self._set_state(node, _N_FINISHED)
-            if run.state in (_G_RUNNING, _G_PAUSED):
-                self._run_node(node, fx)
-            self._after_change(run, fx)
-            return
-        if error is not None and result is _R_ERROR:
-            node.error = error
-            run.errors.append(error)
-            logger.warning("%s: %s", run.name, error)
-            if self._instruments:
-                self._notify("action_failed", run.name, node.name, error)
-        if self._watchers:  # the result, then the state change it leads to
-            t = self.clock.monotonic()
-            for inst in list(self._watchers):
-                try:
-                    inst.node_result(run.name, node.name, result, t)
-                except Exception:
-                    self._drop_instrument(inst)
-        self._set_state(node, _N_ERROR if result is _R_ERROR else _N_FINISHED)
-        if run.state is _G_RUNNING:
-            self._propagate(node, result, outputs, fx)
-        if not run.active:
-            self._after_change(run, fx)
-
-    def _propagate(
-        self, node: Node, result: Result, outputs: Mapping[str, Any], fx: Effects
-    ) -> None:
-        """Deliver a finished node's result and outputs to its children (REFERENCE §2.5).
-
-        The evolution kernel computes the wave (responses, received parents, bypass chains);
-        this carries out its steps: parameter transfer, input readiness, state changes.
-        """
-        self._apply_wave(
-            node, result, outputs, node.run.evolution.propagate(node.idx, _RESULT_CODES[result]), fx
-        )
-
-    def _apply_wave(
-        self,
-        node: Node,
-        result: Result,
-        outputs: Mapping[str, Any],
-        steps: list[int],
-        fx: Effects,
-    ) -> None:
-        """Carry out the steps of the wave the kernel computed for ``node``'s result."""
-        run = node.run
-        edge_child = run.edge_child
-        fast = not self._watchers and not self._feedback_on
-        for step in steps:
-            edge = step >> SHIFT
-            child = edge_child[edge]
-            code = (step >> 1) & 7
-            if code == P_IGNORE:
-                continue
-            if code == P_BYPASS:
-                if child.kind is _K_EXIT:
-                    self._finish_run(run, result, fx)
-                    return
-                if not child.active:
-                    self._set_state(child, _N_BYPASSED)
-                continue
-            if code == P_LOOP:
-                logger.warning(
-                    "%s: bypass loops back to %s; stopping it there", run.name, child.name
-                )
-                continue
-            if outputs and run.edge_parent[edge] is node:
-                _transfer(node, child, run.edge_remap[edge], outputs)
-            if not step & 1 or (child.required_inputs and not child.inputs_ready()):
-                continue
-            kind = child.kind
-            if kind is _K_LOCAL and code == P_RUN and fast and child.state not in _ACTIVE:
-                # _run_node's path for an idle local node, without observers to tell: every
-                # idle state may go to RUNNING (NODE_TRANSITIONS)
-                child.gen += 1
-                child.held = None
-                if child.condition is None:  # RunControl.reset, nobody waits to race with
-                    child.stop = child.paused = False
-                else:
-                    child.reset()
-                if child.fresh_instance:
-                    child.instance = None  # the old one is stuck in a run we gave up on
-                    child.fresh_instance = False
-                child.state = _N_RUNNING
-                run.active += 1
-                fx.runs.append((child, child.gen))
-                continue
-            if kind is _K_EXIT:
-                self._finish_run(run, result, fx)
-                return
-            if code == P_RUN:
-                self._run_node(child, fx)
-            elif code == P_STOP:
-                self._stop_node(child, fx)
-            elif code == P_PAUSE:
-                self._pause_node(child, fx)
-            else:
-                self._restart_node(child, fx)
-            if run.state is not _G_RUNNING:
-                return
-
-    def _run_node(self, node: Node, fx: Effects) -> None:
-        if node.state in (_N_PAUSE_REQUESTED, _N_PAUSED) and node.run.state is _G_RUNNING:
-            self._resume_node(node, fx)  # paused by a `pause` response: `run` resumes it
-            return
-        if node.state in _ACTIVE or node.kind in (_K_ENTRY, _K_EXIT):
-            return
-        run = node.run
-        node.gen += 1
-        node.held = None
-        if node.kind is _K_LOCAL:
-            node.reset()  # the node is its action's RunControl
-            if node.fresh_instance:
-                node.instance = None  # the old one is stuck in a run we gave up on
-                node.fresh_instance = False
-            self._set_state(node, _N_RUNNING)
-            fx.runs.append((node, node.gen))
-            return
-        if node.kind is _K_REMOTE:
-            self._set_state(node, _N_RUNNING)
-            assert self._shared is not None
-            fx.other.append(Effect(_E_CALL, call=self._shared.expect, args=(node, node.gen)))
-            return
-        assert node.plan is not None
-        self._set_state(node, _N_RUNNING)
-        child = GraphRun(
-            f"{run.name}__{node.umrf.name}__{node.umrf.instance_id}",
-            node.plan,
-            parent_node=node,
-            clock=self.clock,
-        )
-        node.child_run = child
-        old = self._runs.get(child.name)
-        if old is not None and old.state in _BUSY_GRAPH:
-            logger.warning(
-                "%s: replacing sub-graph run %s that was still %s",
-                run.name,
-                child.name,
-                old.state.value,
-            )
-        self._runs[child.name] = child
-        values = {k: v for k, v in node.data.items() if k in child.entry.inputs}
-        node.clear_data()
-        self._start_run(child, values, _R_TRUE, fx)
-
-    def _stop_node(self, node: Node, fx: Effects) -> None:
-        if node.state not in (_N_RUNNING, _N_PAUSE_REQUESTED, _N_PAUSED):
-            return
-        self._set_state(node, _N_STOPPING)
-        if node.kind is _K_GRAPH:
-            if node.child_run is not None:
-                self._stop_run(node.child_run, fx)
-            return
-        if node.kind is _K_REMOTE:  # nothing runs here: stop waiting for its actor
-            if node.remote_cancel is not None:
-                fx.other.append(Effect(_E_CALL, call=node.remote_cancel))
-                node.remote_cancel = None
-            self._on_finished(node, node.gen, _R_STOPPED, {}, None, fx)
-            return
-        node.request_stop()
-        fx.other.append(Effect(_E_HOOK, node, node.gen, "on_stop"))
-        node.stop_timer = self._timer.call_later(
-            self.clock.real_seconds(self.stop_timeout), self._stop_expired, node, node.gen
-        )
-        if node.held is not None:  # it had already finished while paused
-            result, outputs, error = node.held
-            node.held = None
-            self._on_finished(node, node.gen, result, outputs, error, fx)
-
-    def _pause_node(self, node: Node, fx: Effects) -> None:
-        if node.state is not _N_RUNNING:
-            return
-        if node.kind is _K_GRAPH:
-            self._set_state(node, _N_PAUSE_REQUESTED)
-            self._set_state(node, _N_PAUSED)
-            if node.child_run is not None and node.child_run.state is _G_RUNNING:
-                self._pause_run(node.child_run, fx)
-            return
-        if node.kind is _K_REMOTE:  # its actor goes on; a result is held until resume
-            self._set_state(node, _N_PAUSE_REQUESTED)
-            self._set_state(node, _N_PAUSED)
-            return
-        self._set_state(node, _N_PAUSE_REQUESTED)
-        node.set_paused(True)
-        fx.other.append(Effect(_E_HOOK, node, node.gen, "on_pause"))
-
-    def _resume_node(self, node: Node, fx: Effects) -> None:
-        if node.state not in (_N_PAUSE_REQUESTED, _N_PAUSED):
-            return
-        self._set_state(node, _N_RUNNING)
-        if node.kind is _K_GRAPH:
-            if node.child_run is not None and node.child_run.state is _G_PAUSED:
-                self._resume_run(node.child_run, None, fx)
-            return
-        if node.kind is _K_REMOTE:
-            if node.held is not None:
-                result, outputs, error = node.held
-                node.held = None
-                self._on_finished(node, node.gen, result, outputs, error, fx)
-            return
-        node.set_paused(False)
-        fx.other.append(Effect(_E_HOOK, node, node.gen, "on_resume"))
-        if node.held is not None:
-            result, outputs, error = node.held
-            node.held = None
-            if node.spontaneous:
-                fx.other.append(
-                    Effect(_E_FINISH_SPONTANEOUS, node, node.gen, ending=(result, outputs, error))
-                )
-            else:
-                self._on_finished(node, node.gen, result, outputs, error, fx)
-
-    def _restart_node(self, node: Node, fx: Effects) -> None:
-        if node.active:
-            node.restart = True
-            self._stop_node(node, fx)
-        else:
-            self._run_node(node, fx)
-
-    def _pause_run(self, run: GraphRun, fx: Effects) -> None:
-        run.state = _G_PAUSED
+    def pause_run(self, run: GraphRun, fx: Effects) -> None:
+        """Lock held: pause a RUNNING run: its running nodes are paused."""
+        self.set_run_state(run, _G_PAUSED)
         for node in list(run.nodes.values()):
             self._pause_node(node, fx)
 
-    def _resume_run(self, run: GraphRun, continue_from: str | None, fx: Effects) -> None:
+    def resume_run(self, run: GraphRun, continue_from: str | None, fx: Effects) -> None:
+        """Lock held: resume a paused or halted run (or a running one's paused nodes)."""
         # The graph is RUNNING before any node is released, so a node finishing at once is
         # propagated (upstream releases nodes first and can drop that result).
         if run.state is _G_HALTED:
             run.done.clear()
             run.result = None
-        run.state = _G_RUNNING
+        if run.state is not _G_RUNNING:
+            self.set_run_state(run, _G_RUNNING)
         for node in list(run.nodes.values()):
             if run.state is not _G_RUNNING:
                 break
             self._resume_node(node, fx)
         if continue_from is not None and run.state is _G_RUNNING:
-            self._run_node(run.nodes[continue_from], fx)
-        self._after_change(run, fx)
+            self.run_node(run.nodes[continue_from], fx)
+        self.after_change(run, fx)
 
-    def _stop_run(self, run: GraphRun, fx: Effects) -> None:
-        if run.state in (
-            _G_FINISHED,
-            _G_STOPPED,
-            _G_ERROR,
-            _G_STOPPING,
-        ):
+    def stop_run(self, run: GraphRun, fx: Effects) -> None:
+        """Lock held: stop a run (one that has ended stays as it is, a halted one stops)."""
+        if run.state in (_G_FINISHED, _G_STOPPED, _G_ERROR, _G_STOPPING):
             return
         if run.state is _G_HALTED:
             run.done.clear()
-        run.state = _G_STOPPING
+        self.set_run_state(run, _G_STOPPING)
         for node in list(run.nodes.values()):
-            self._stop_node(node, fx)
-        self._after_change(run, fx)
+            self.stop_node(node, fx)
+        self.after_change(run, fx)
 
-    def _after_change(self, run: GraphRun, fx: Effects) -> None:
+    def fail_run(self, run: GraphRun, reason: BaseException, fx: Effects) -> None:
+        """Lock held: end a run ERROR for a fault of the engine (not of an action)."""
+        run.errors.append(reason)
+        self.end_run(run, _G_ERROR, _R_ERROR, fx)
+
+    def end_with_peer(self, run: GraphRun, result: Result, fx: Effects) -> None:
+        """Lock held: a shared run ends here with the result another actor reached."""
+        if result is _R_HALTED:
+            self.end_run(run, _G_HALTED, result, fx)
+            for node in list(run.nodes.values()):
+                if node.active:
+                    self.stop_node(node, fx)
+        else:
+            self.finish_run(run, result, fx)
+
+    def take_peer_result(self, run: GraphRun, result: Result) -> None:
+        """Lock held: a settling (aborted, ended) shared run takes a peer's result instead."""
+        self.set_run_state(run, _G_HALTED if result is _R_HALTED else _G_FINISHED)
+        run.result = result
+        run.aborted = None
+
+    def after_change(self, run: GraphRun, fx: Effects) -> None:
+        """Lock held: end a run in which nothing is active any more (stopped, or halted)."""
         if run.active:
             return
         if run.state is _G_STOPPING:
             failed = run.stop_failed
-            self._end_run(
+            self.end_run(
                 run,
                 _G_ERROR if failed else _G_STOPPED,
                 _R_ERROR if failed else _R_STOPPED,
@@ -465,30 +342,26 @@ class RunEvolution:
                 )
             else:
                 logger.info("graph %s halted: nothing runs and its exit was not reached", run.name)
-            self._end_run(run, _G_HALTED, _R_HALTED, fx)
+            self.end_run(run, _G_HALTED, _R_HALTED, fx)
 
-    def _finish_run(self, run: GraphRun, result: Result, fx: Effects) -> None:
+    def finish_run(self, run: GraphRun, result: Result, fx: Effects) -> None:
+        """Lock held: a run reached its exit; actions still running are stopped."""
         run.outputs = dict(run.exit.data)
-        self._end_run(run, _G_FINISHED, result, fx)
+        self.end_run(run, _G_FINISHED, result, fx)
         # Actions still running are no longer needed: stop them (their results are ignored).
         for node in list(run.nodes.values()) if run.active else ():
             if node.state in _ACTIVE:
-                self._stop_node(node, fx)
+                self.stop_node(node, fx)
 
-    def _release_node(self, node: Node) -> None:
-        """Release the resources a node's action holds (it is idle and its run has ended)."""
-        instance = node.instance
-        if instance is not None and instance.holds_resources:
-            self._releases.append(Effect(_E_RELEASE, action=instance))
-
-    def _end_run(self, run: GraphRun, state: GraphState, result: Result, fx: Effects) -> None:
-        run.state = state
+    def end_run(self, run: GraphRun, state: GraphState, result: Result, fx: Effects) -> None:
+        """Lock held: a run ends in ``state`` with ``result``; its parent node finishes."""
+        self.set_run_state(run, state)
         run.result = result
         if run.peers:
-            assert self._shared is not None
-            fx.other.append(Effect(_E_CALL, call=self._shared.end, args=(run,)))
-        releases = self._releases
-        for node in run.nodes.values():  # _release_node for each idle one, inlined (all nodes)
+            assert self.shared is not None
+            fx.other.append(Effect(_E_CALL, call=self.shared.end, args=(run,)))
+        releases = self.releases
+        for node in run.nodes.values():  # release_node for each idle one, inlined (all nodes)
             instance = node.instance
             if (
                 node.acquired
@@ -514,7 +387,382 @@ class RunEvolution:
             elif result is _R_ERROR and run.errors:
                 error = run.errors[-1]
             outputs = {k: v for k, v in run.outputs.items() if k in parent.outputs}
-            self._on_finished(parent, parent.gen, result, outputs, error, fx)
+            self.action_finished(parent, parent.gen, result, outputs, error, fx)
+
+    def release_node(self, node: Node) -> None:
+        """Lock held: release the resources a node's action holds (idle, its run ended)."""
+        instance = node.instance
+        if instance is not None and instance.holds_resources:
+            self.releases.append(Effect(_E_RELEASE, action=instance))
+
+    # ------------------------------------------------------------ an action finished
+
+    def adopt(self, node: Node, instance: Action) -> None:
+        """Lock held: a node keeps the action that ran it and its log (its run ended).
+
+        An inline node's instance is kept from its first run's end (the dispatcher makes it
+        without the lock); a blocking node's is kept already.
+        """
+        if node.instance is None:
+            node.instance = instance
+        if node.log or node.logged:
+            node.log = instance.log_snapshot()
+
+    def action_finished(
+        self,
+        node: Node,
+        gen: int,
+        result: Result,
+        outputs: dict[str, Any],
+        error: BaseException | None,
+        fx: Effects,
+        instance: Action | None = None,
+    ) -> None:
+        """Lock held: an action run ended (returned, raised, timed out, or its sub-graph ended).
+
+        The one path of an action's end, the dispatcher's fast paths (a chain, a batch)
+        included: its result is held while the node is paused, turned into a stop or a
+        restart, or recorded and propagated to the children. ``instance``: the action that ran
+        (a worker's run), which the node keeps with its log.
+        """
+        if gen != node.gen:
+            return  # a run the engine already gave up on (stop timeout)
+        if instance is not None:  # adopt(), inlined
+            if node.instance is None:
+                node.instance = instance
+            if node.log or node.logged:
+                node.log = instance.log_snapshot()
+        run = node.run
+        state = node.state
+        if (
+            state is _N_RUNNING
+            and run.state is _G_RUNNING
+            and error is None
+            and not self.observed
+            and node.stop_timer is None
+            and not node.restart
+        ):
+            # The commonest end (a run that returned, nothing observing): set_state's path
+            # for RUNNING -> FINISHED, inlined (the table is still checked).
+            if _N_FINISHED not in _NODE_NEXT[state]:
+                check_node_transition(run.name, node.name, state, _N_FINISHED)
+            if len(node.data) != len(node.native):
+                node.clear_data()
+            node.state = _N_FINISHED
+            run.active -= 1
+            if self._quiet_waiters:
+                self._quiet.notify_all()
+        else:
+            if state is not _N_RUNNING:
+                if state is _N_PAUSE_REQUESTED or state is _N_PAUSED:
+                    node.held = (result, outputs, error)  # delivered on resume
+                    return
+                if state is _N_STOPPING:
+                    result = _R_STOPPED
+            if node.stop_timer is not None:
+                node.stop_timer.cancel()
+                node.stop_timer = None
+            if len(node.data) != len(node.native):
+                node.clear_data()
+            if node.restart:
+                node.restart = False
+                self.set_state(node, _N_FINISHED)
+                if run.state in (_G_RUNNING, _G_PAUSED):
+                    self.run_node(node, fx)
+                self.after_change(run, fx)
+                return
+            if error is not None and result is _R_ERROR:
+                node.error = error
+                run.errors.append(error)
+                logger.warning("%s: %s", run.name, error)
+                if self._instruments:
+                    self._notify("action_failed", run.name, node.name, error)
+            if self._watchers:  # the result, then the state change it leads to
+                t = self.clock.monotonic()
+                for inst in list(self._watchers):
+                    try:
+                        inst.node_result(run.name, node.name, result, t)
+                    except Exception:
+                        self._drop_instrument(inst)
+            self.set_state(node, _N_ERROR if result is _R_ERROR else _N_FINISHED)
+        if run.state is _G_RUNNING:
+            # The result goes to the children (REFERENCE §2.5): the evolution kernel computes
+            # the wave (responses, received parents, bypass chains), _apply_wave carries out
+            # its steps. A wave of one `run` step (a chain's link, a fan-in's edge) is asked
+            # for first (`advance`, which makes no list) and carried out here.
+            evolution = run.evolution
+            code = _RESULT_CODES[result]
+            step = evolution.advance(node.idx, code)
+            if step < 0:
+                self._apply_wave(node, result, outputs, evolution.propagate(node.idx, code), fx)
+            else:
+                edge = step >> 1
+                child = run.edge_child[edge]
+                if outputs:  # advance's edge is this node's own relation
+                    _transfer(node, child, run.edge_remap[edge], outputs)
+                if not step & 1:
+                    pass  # a fan-in: the child waits for other parents
+                elif (
+                    child.kind is _K_LOCAL
+                    and child.state not in _ACTIVE
+                    and (not child.required_inputs or child.inputs_ready())
+                ):
+                    self._start_local(child, fx)
+                else:
+                    self._apply_wave(node, result, NO_VALUES, [edge << SHIFT | _RUN_READY], fx)
+        if not run.active:
+            self.after_change(run, fx)
+
+    def _apply_wave(
+        self,
+        node: Node,
+        result: Result,
+        outputs: Mapping[str, Any],
+        steps: list[int],
+        fx: Effects,
+    ) -> None:
+        """Carry out the steps of the wave the kernel computed for ``node``'s result."""
+        run = node.run
+        edge_child = run.edge_child
+        for step in steps:
+            edge = step >> SHIFT
+            child = edge_child[edge]
+            code = (step >> 1) & 7
+            if code == P_IGNORE:
+                continue
+            if code == P_BYPASS:
+                if child.kind is _K_EXIT:
+                    self.finish_run(run, result, fx)
+                    return
+                if not child.active:
+                    self.set_state(child, _N_BYPASSED)
+                continue
+            if code == P_LOOP:
+                logger.warning(
+                    "%s: bypass loops back to %s; stopping it there", run.name, child.name
+                )
+                continue
+            if outputs and run.edge_parent[edge] is node:
+                _transfer(node, child, run.edge_remap[edge], outputs)
+            if not step & 1 or (child.required_inputs and not child.inputs_ready()):
+                continue
+            kind = child.kind
+            if kind is _K_LOCAL and code == P_RUN and child.state not in _ACTIVE:
+                self._start_local(child, fx)  # run_node's path for an idle local node
+                continue
+            if kind is _K_EXIT:
+                self.finish_run(run, result, fx)
+                return
+            if code == P_RUN:
+                self.run_node(child, fx)
+            elif code == P_STOP:
+                self.stop_node(child, fx)
+            elif code == P_PAUSE:
+                self._pause_node(child, fx)
+            else:
+                self._restart_node(child, fx)
+            if run.state is not _G_RUNNING:
+                return
+
+    # ------------------------------------------------------------ nodes
+
+    def _start_local(self, node: Node, fx: Effects) -> None:
+        """Start an idle local node: the one path that makes a run of an action ready."""
+        node.gen += 1
+        node.held = None
+        if node.condition is None:  # RunControl.reset, nobody waits to race with
+            node.stop = node.paused = False
+        else:
+            node.reset()  # the node is its action's RunControl
+        if node.fresh_instance:
+            node.instance = None  # the old one is stuck in a run we gave up on
+            node.fresh_instance = False
+        if self.observed or _N_RUNNING not in _NODE_NEXT[node.state]:
+            self.set_state(node, _N_RUNNING)  # observed (or refused: it raises)
+        else:  # set_state's path for an idle node, nothing observing (the table was checked)
+            node.state = _N_RUNNING
+            node.run.active += 1
+        fx.runs.append((node, node.gen))
+
+    def run_node(self, node: Node, fx: Effects) -> None:
+        """Lock held: run a node (a paused one resumes; an active one is left as it is)."""
+        if node.state in (_N_PAUSE_REQUESTED, _N_PAUSED) and node.run.state is _G_RUNNING:
+            self._resume_node(node, fx)  # paused by a `pause` response: `run` resumes it
+            return
+        if node.state in _ACTIVE or node.kind in (_K_ENTRY, _K_EXIT):
+            return
+        if node.kind is _K_LOCAL:
+            self._start_local(node, fx)
+            return
+        run = node.run
+        node.gen += 1
+        node.held = None
+        if node.kind is _K_REMOTE:
+            self.set_state(node, _N_RUNNING)
+            assert self.shared is not None
+            fx.other.append(Effect(_E_CALL, call=self.shared.expect, args=(node, node.gen)))
+            return
+        assert node.plan is not None
+        self.set_state(node, _N_RUNNING)
+        child = GraphRun(
+            f"{run.name}__{node.umrf.name}__{node.umrf.instance_id}",
+            node.plan,
+            parent_node=node,
+            clock=self.clock,
+        )
+        node.child_run = child
+        old = self.runs.get(child.name)
+        if old is not None and old.state in _BUSY_GRAPH:
+            logger.warning(
+                "%s: replacing sub-graph run %s that was still %s",
+                run.name,
+                child.name,
+                old.state.value,
+            )
+        self.runs[child.name] = child
+        values = {k: v for k, v in node.data.items() if k in child.entry.inputs}
+        node.clear_data()
+        self.start_run(child, values, _R_TRUE, fx)
+
+    def rerun(self, node: Node, fx: Effects) -> None:
+        """Lock held: run a node again in its running run (a spontaneous action's next run)."""
+        self.run_node(node, fx)
+        self.after_change(node.run, fx)
+
+    def stop_node(self, node: Node, fx: Effects) -> None:
+        """Lock held: stop an active node (cooperative, with the ``stop_timeout`` deadline)."""
+        if node.state not in (_N_RUNNING, _N_PAUSE_REQUESTED, _N_PAUSED):
+            return
+        self.set_state(node, _N_STOPPING)
+        if node.kind is _K_GRAPH:
+            if node.child_run is not None:
+                self.stop_run(node.child_run, fx)
+            return
+        if node.kind is _K_REMOTE:  # nothing runs here: stop waiting for its actor
+            if node.remote_cancel is not None:
+                fx.other.append(Effect(_E_CALL, call=node.remote_cancel))
+                node.remote_cancel = None
+            self.action_finished(node, node.gen, _R_STOPPED, {}, None, fx)
+            return
+        node.request_stop()
+        fx.other.append(Effect(_E_HOOK, node, node.gen, "on_stop"))
+        node.stop_timer = self.call_later(
+            self.clock.real_seconds(self.stop_timeout), self._stop_expired, node, node.gen
+        )
+        if node.held is not None:  # it had already finished while paused
+            result, outputs, error = node.held
+            node.held = None
+            self.action_finished(node, node.gen, result, outputs, error, fx)
+
+    def call_later(self, seconds: float, fn: Callable[..., Any], *args: Any) -> TimerHandle:
+        """Call ``fn(*args)`` on the engine's timer thread after ``seconds`` (real time).
+
+        Raises:
+            RuntimeError: The timer is shut down.
+        """
+        return self.timer.call_later(seconds, fn, *args)
+
+    def _stop_expired(self, node: Node, gen: int) -> None:
+        """Timer thread: an action ignored its stop for ``stop_timeout``; its node is ERROR."""
+        fx = Effects()
+        with self.lock:
+            if node.gen != gen or node.state is not _N_STOPPING:
+                return
+            run = node.run
+            node.gen += 1  # its late return is ignored
+            node.fresh_instance = True
+            node.stop_timer = None
+            error = ActionError(
+                f"{node.name} did not stop within {self.stop_timeout} s; marked ERROR",
+                graph=run.name,
+                node=node.name,
+            )
+            node.error = error
+            run.errors.append(error)
+            run.stop_failed = True
+            logger.error("%s: %s", run.name, error)
+            self.set_state(node, _N_ERROR)
+            if node.restart:
+                node.restart = False
+                if run.state is _G_RUNNING:
+                    self.run_node(node, fx)
+            self.after_change(run, fx)
+        self.carry_out(fx)
+
+    def _pause_node(self, node: Node, fx: Effects) -> None:
+        if node.state is not _N_RUNNING:
+            return
+        if node.kind is _K_GRAPH:
+            self.set_state(node, _N_PAUSE_REQUESTED)
+            self.set_state(node, _N_PAUSED)
+            if node.child_run is not None and node.child_run.state is _G_RUNNING:
+                self.pause_run(node.child_run, fx)
+            return
+        if node.kind is _K_REMOTE:  # its actor goes on; a result is held until resume
+            self.set_state(node, _N_PAUSE_REQUESTED)
+            self.set_state(node, _N_PAUSED)
+            return
+        self.set_state(node, _N_PAUSE_REQUESTED)
+        node.set_paused(True)
+        fx.other.append(Effect(_E_HOOK, node, node.gen, "on_pause"))
+
+    def node_paused(self, node: Node, gen: int) -> None:
+        """Lock held: a node's ``on_pause`` returned: the node is PAUSED (if still pausing)."""
+        if node.gen == gen and node.state is _N_PAUSE_REQUESTED:
+            self.set_state(node, _N_PAUSED)
+
+    def _resume_node(self, node: Node, fx: Effects) -> None:
+        if node.state not in (_N_PAUSE_REQUESTED, _N_PAUSED):
+            return
+        self.set_state(node, _N_RUNNING)
+        if node.kind is _K_GRAPH:
+            if node.child_run is not None and node.child_run.state is _G_PAUSED:
+                self.resume_run(node.child_run, None, fx)
+            return
+        if node.kind is _K_REMOTE:
+            if node.held is not None:
+                result, outputs, error = node.held
+                node.held = None
+                self.action_finished(node, node.gen, result, outputs, error, fx)
+            return
+        node.set_paused(False)
+        fx.other.append(Effect(_E_HOOK, node, node.gen, "on_resume"))
+        if node.held is not None:
+            result, outputs, error = node.held
+            node.held = None
+            if node.spontaneous:
+                fx.other.append(
+                    Effect(_E_FINISH_SPONTANEOUS, node, node.gen, ending=(result, outputs, error))
+                )
+            else:
+                self.action_finished(node, node.gen, result, outputs, error, fx)
+
+    def _restart_node(self, node: Node, fx: Effects) -> None:
+        if node.active:
+            node.restart = True
+            self.stop_node(node, fx)
+        else:
+            self.run_node(node, fx)
+
+
+def watches_transitions(instrument: Instrument) -> bool:
+    """Whether an instrument overrides a hook called per action run.
+
+    Those are :meth:`Instrument.node_transition` and :meth:`Instrument.node_result`.
+    """
+    kind = type(instrument)
+    return any(
+        getattr(kind, hook, base) is not base
+        for hook, base in (
+            ("node_transition", Instrument.node_transition),
+            ("node_result", Instrument.node_result),
+        )
+    )
+
+
+def _no_port(fx: Effects) -> None:
+    """:attr:`RunEvolution.carry_out` before the engine connects its dispatcher."""
+    raise RuntimeError(f"the evolution has no dispatcher to carry out {fx!r}")
 
 
 def _transfer(

@@ -28,38 +28,80 @@ ended (the link repeats it to peers that still speak of the run) or, if every wo
 finds the actor silent after the link's ``silence_s``.
 
 The methods are called by the engine outside its lock (effects, workers); link callbacks come
-in on the link's thread and take the engine's lock to change the run.
+in on the link's thread and take the engine's lock to change the run. The protocol reaches the
+engine only through :class:`RunHost` (its lock, the changes of a run it may ask for, the
+timer, and a way to carry out effects), which the engine's
+:class:`~temoto.core.evolution.RunEvolution` implements.
 """
 
 from __future__ import annotations
 
 import logging
-from collections.abc import Mapping
-from typing import TYPE_CHECKING, Any
+import threading
+from collections.abc import Callable, Mapping
+from typing import TYPE_CHECKING, Any, Protocol
 
 from temoto.core._runtime import GraphRun, Node, Plan
 from temoto.core.effects import Effects
 from temoto.core.remote import ActorLink, ActorLostError
-from temoto.core.states import GraphState, Result
+from temoto.core.states import ENDED_GRAPH_STATES, GraphState, Result
 from temoto.errors import ActionError, FleetError
 
 if TYPE_CHECKING:
-    from temoto.core.engine import ActionEngine
+    from temoto.core.executor import TimerHandle
 
-__all__ = ["SharedRuns"]
+__all__ = ["RunHost", "SharedRuns"]
 
 logger = logging.getLogger(__name__)
 
-_ENDED_GRAPH = frozenset(
-    {GraphState.FINISHED, GraphState.STOPPED, GraphState.ERROR, GraphState.HALTED}
-)
+_ENDED_GRAPH = ENDED_GRAPH_STATES
+#: a shared run that has not ended and was not asked to stop
+_LIVE_GRAPH = frozenset({GraphState.RUNNING, GraphState.PAUSED})
+
+
+class RunHost(Protocol):
+    """What the shared-run protocol asks of the engine (its evolution implements it).
+
+    The methods that take ``fx`` are called with :attr:`lock` held; they change the run and
+    add what must happen outside the lock to ``fx``, which :meth:`carry_out` then does (the
+    lock released).
+    """
+
+    #: the engine's lock: it guards the runs and their nodes
+    lock: threading.Lock
+    #: carries out effects, the lock released
+    carry_out: Callable[[Effects], None]
+
+    def stop_run(self, run: GraphRun, fx: Effects) -> None:
+        """Lock held: stop a run."""
+
+    def end_with_peer(self, run: GraphRun, result: Result, fx: Effects) -> None:
+        """Lock held: end a run with the result another actor reached."""
+
+    def take_peer_result(self, run: GraphRun, result: Result) -> None:
+        """Lock held: an ended (aborted, settling) run takes another actor's result instead."""
+
+    def action_finished(
+        self,
+        node: Node,
+        gen: int,
+        result: Result,
+        outputs: dict[str, Any],
+        error: BaseException | None,
+        fx: Effects,
+    ) -> None:
+        """Lock held: an action run of ``node`` (generation ``gen``) ended."""
+
+    def call_later(self, seconds: float, fn: Callable[..., Any], *args: Any) -> TimerHandle:
+        """Call ``fn(*args)`` on the engine's timer thread (RuntimeError: shut down)."""
+        ...
 
 
 class SharedRuns:
     """The shared runs of one engine, over its actor link.
 
     Args:
-        engine: The engine whose runs these are.
+        host: The engine whose runs these are (its evolution).
         link: The link to the other actors.
         handshake_timeout: Seconds the handshake before a shared run may take.
         notify_timeout: Seconds every other actor has to acknowledge a finished action.
@@ -69,14 +111,14 @@ class SharedRuns:
 
     def __init__(
         self,
-        engine: ActionEngine,
+        host: RunHost,
         link: ActorLink,
         *,
         handshake_timeout: float,
         notify_timeout: float,
         settle_timeout: float = 1.0,
     ) -> None:
-        self._engine = engine
+        self._host = host
         self.link = link
         self.handshake_timeout = handshake_timeout
         self.notify_timeout = notify_timeout
@@ -116,7 +158,6 @@ class SharedRuns:
 
     def watch(self, run: GraphRun) -> None:
         """Have the link report a peer of ``run`` that ends, aborts, falls silent or leaves."""
-        engine = self._engine
         cancel = self.link.watch(
             run.peers,
             lambda actor, why: self._actor_lost(run, actor, why),
@@ -125,7 +166,7 @@ class SharedRuns:
             on_end=lambda actor, result: self._peer_ended(run, actor, result),
             on_abort=lambda actor, reason: self.abort(run, reason),
         )
-        with engine._lock:
+        with self._host.lock:
             ended = run.state in _ENDED_GRAPH and run not in self._settling
             if not ended:
                 run.unwatch = cancel
@@ -134,8 +175,8 @@ class SharedRuns:
 
     def _actor_lost(self, run: GraphRun, actor: str, why: str) -> None:
         """Link thread: a peer fell silent or left without a word; the run is aborted."""
-        with self._engine._lock:
-            if run.state not in (GraphState.RUNNING, GraphState.PAUSED):
+        with self._host.lock:
+            if run.state not in _LIVE_GRAPH:
                 return  # a settling abort takes words from peers only (they agree on those)
             logger.error("%s: actor '%s' was lost (%s)", run.name, actor, why)
         # the same words on every actor, whoever it misses (a partition: each side another)
@@ -153,41 +194,35 @@ class SharedRuns:
             run: The run.
             reason: Why, in the words every actor reports.
         """
-        engine = self._engine
+        host = self._host
         fx = Effects()
-        with engine._lock:
-            if run.state in (GraphState.RUNNING, GraphState.PAUSED):
+        with host.lock:
+            if run.state in _LIVE_GRAPH:
                 run.aborted = reason
                 error = FleetError(f"shared run {run.name} aborted: {reason}")
                 run.errors.append(error)
                 run.stop_failed = True  # the stop ends the run in ERROR, not STOPPED
                 logger.error("%s", error)
-                engine._stop_run(run, fx)
+                host.stop_run(run, fx)
             elif run in self._settling and run.aborted is not None and reason < run.aborted:
                 run.aborted = reason
             else:
                 return
         if fx:
-            engine._dispatch(fx, closing=engine._closed)
+            host.carry_out(fx)
         else:
             self.link.end(run.plan.graph.name, run.session, gave_up=True, reason=reason)
 
     def _peer_ended(self, run: GraphRun, actor: str, result: Result) -> None:
         """Link thread: a peer reached the end of the run; it ends here with its result."""
-        engine = self._engine
+        host = self._host
         fx = Effects()
-        with engine._lock:
-            if run.state in (GraphState.RUNNING, GraphState.PAUSED):
+        with host.lock:
+            if run.state in _LIVE_GRAPH:
                 logger.info(
                     "%s: actor '%s' ended the run %s; so does this one", run.name, actor, result
                 )
-                if result is Result.HALTED:
-                    engine._end_run(run, GraphState.HALTED, result, fx)
-                    for node in list(run.nodes.values()):
-                        if node.active:
-                            engine._stop_node(node, fx)
-                else:
-                    engine._finish_run(run, result, fx)
+                host.end_with_peer(run, result, fx)
             elif run in self._settling:
                 # a peer had reached the end when this actor aborted: its result stands
                 logger.warning(
@@ -198,14 +233,12 @@ class SharedRuns:
                     run.aborted,
                 )
                 self._settling.discard(run)
-                run.state = GraphState.HALTED if result is Result.HALTED else GraphState.FINISHED
-                run.result = result
-                run.aborted = None
+                host.take_peer_result(run, result)
                 unwatch, run.unwatch = run.unwatch, None
             else:
                 return
         if fx:
-            engine._dispatch(fx, closing=engine._closed)
+            host.carry_out(fx)
             return
         try:
             if unwatch is not None:
@@ -222,9 +255,9 @@ class SharedRuns:
         ``settle_timeout``, during which a peer's result or a smaller reason can still change
         its outcome (see :meth:`abort`).
         """
-        engine = self._engine
+        host = self._host
         me = self.link.actor
-        with engine._lock:
+        with host.lock:
             reached = run.state in (GraphState.FINISHED, GraphState.HALTED)
             if reached:
                 unwatch, run.unwatch = run.unwatch, None
@@ -242,7 +275,7 @@ class SharedRuns:
         if not reached:
             self.link.end(graph, run.session, gave_up=True, reason=reason)
             try:
-                engine._timer.call_later(self.settle_timeout, self._settled, run)
+                host.call_later(self.settle_timeout, self._settled, run)
             except RuntimeError:  # the engine's timer is shut down: no time to settle
                 self._settled(run)
             return
@@ -255,7 +288,7 @@ class SharedRuns:
 
     def _settled(self, run: GraphRun) -> None:
         """Timer thread: an aborted run's outcome is final."""
-        with self._engine._lock:
+        with self._host.lock:
             if run not in self._settling:
                 return  # a peer's result was taken meanwhile
             self._settling.discard(run)
@@ -268,7 +301,6 @@ class SharedRuns:
 
     def expect(self, node: Node, gen: int) -> None:
         """Wait (through the link) for the notification of a remote action's end."""
-        engine = self._engine
         run = node.run
         cancel = self.link.expect(
             run.plan.graph.name,
@@ -277,7 +309,7 @@ class SharedRuns:
             node.umrf.actor,
             lambda result, outputs: self._remote_finished(node, gen, result, outputs),
         )
-        with engine._lock:
+        with self._host.lock:
             current = node.gen == gen and node.active
             if current:
                 node.remote_cancel = cancel
@@ -288,9 +320,9 @@ class SharedRuns:
         self, node: Node, gen: int, result: Result, outputs: Mapping[str, Any]
     ) -> None:
         """Link thread: another actor finished the action this node stands for."""
-        engine = self._engine
+        host = self._host
         fx = Effects()
-        with engine._lock:
+        with host.lock:
             if node.gen != gen or not node.active:
                 return  # stopped meanwhile, or a notification for an earlier run of the node
             node.remote_cancel = None
@@ -301,8 +333,8 @@ class SharedRuns:
                     graph=node.run.name,
                     node=node.name,
                 )
-            engine._on_finished(node, gen, result, dict(outputs), error, fx)
-        engine._dispatch(fx, closing=engine._closed)
+            host.action_finished(node, gen, result, dict(outputs), error, fx)
+        host.carry_out(fx)
 
     def notify(
         self, node: Node, result: Result, outputs: dict[str, Any], error: BaseException | None

@@ -14,11 +14,13 @@ __all__ = [
     "ACTIVE_NODE_STATES",
     "BUSY_GRAPH_STATES",
     "ENDED_GRAPH_STATES",
+    "GRAPH_TRANSITIONS",
     "NODE_TRANSITIONS",
     "GraphState",
     "NodeState",
     "Response",
     "Result",
+    "check_graph_transition",
     "check_node_transition",
 ]
 
@@ -112,6 +114,43 @@ BUSY_GRAPH_STATES: frozenset[GraphState] = frozenset(
 ENDED_GRAPH_STATES: frozenset[GraphState] = frozenset(
     {_G.FINISHED, _G.STOPPED, _G.ERROR, _G.HALTED}
 )
+
+
+#: Legal graph run state changes, checked in one place (:func:`check_graph_transition`).
+#:
+#: A run starts (INITIALIZED to RUNNING), is paused and resumed, stopped (STOPPING, then
+#: STOPPED, or ERROR when an action did not stop in time), or ends by itself: FINISHED at its
+#: exit, HALTED when nothing runs and the exit was not reached, ERROR on a fault of the engine.
+#: A halted run may be resumed (or modified) and stopped. An ended shared run that is still
+#: settling (an abort, ``temoto.core.shared``) takes a peer's result: STOPPED or ERROR to
+#: FINISHED or HALTED.
+GRAPH_TRANSITIONS: dict[GraphState, frozenset[GraphState]] = {
+    _G.UNINITIALIZED: frozenset({_G.RUNNING}),
+    _G.INITIALIZED: frozenset({_G.RUNNING}),
+    _G.RUNNING: frozenset({_G.PAUSED, _G.STOPPING, _G.FINISHED, _G.HALTED, _G.ERROR}),
+    _G.PAUSED: frozenset({_G.RUNNING, _G.STOPPING, _G.FINISHED, _G.HALTED, _G.ERROR}),
+    _G.STOPPING: frozenset({_G.STOPPED, _G.ERROR}),
+    _G.HALTED: frozenset({_G.RUNNING, _G.STOPPING}),
+    _G.STOPPED: frozenset({_G.FINISHED, _G.HALTED}),
+    _G.ERROR: frozenset({_G.FINISHED, _G.HALTED}),
+    _G.FINISHED: frozenset(),
+    _G.CLEARING: frozenset(),
+}
+
+
+def check_graph_transition(graph: str, old: GraphState, new: GraphState) -> None:
+    """Raise if a graph run may not go from ``old`` to ``new``.
+
+    Args:
+        graph: The run's name, for the message.
+        old: The current state.
+        new: The requested state.
+
+    Raises:
+        StateError: If the transition is not in :data:`GRAPH_TRANSITIONS`.
+    """
+    if new not in GRAPH_TRANSITIONS[old]:
+        raise StateError(f"{graph}: illegal graph state change {old.value} -> {new.value}")
 
 
 def check_node_transition(graph: str, node: str, old: NodeState, new: NodeState) -> None:

@@ -17,6 +17,7 @@ from temoto import ActionCatalog, ActionEngine, GraphIndex, GraphState, Result, 
 from temoto.build import action
 from temoto.core.action import Action
 from temoto.core.documents import load_graph
+from temoto.core.evolution import RunEvolution
 from temoto.core.planning import MAX_SUBGRAPH_DEPTH
 from temoto.errors import GraphDefinitionError
 
@@ -37,7 +38,7 @@ def test_an_engine_error_in_a_worker_ends_the_run_on_error_with_the_reason(
         raise RuntimeError("injected engine fault")
 
     # the end of a run is the engine's code, run on the worker that ran the last action
-    monkeypatch.setattr(ActionEngine, "_finish_run", broken)
+    monkeypatch.setattr(RunEvolution, "finish_run", broken)
     graph = build.graph(Fine, Fine, name="faulty")
     with ActionEngine("me", actions=build.catalog(Fine), stop_timeout=1.0) as engine:
         name = engine.start(graph)
