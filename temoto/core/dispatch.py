@@ -43,6 +43,7 @@ _N_RUNNING = NodeState.RUNNING
 _N_STOPPING = NodeState.STOPPING
 _G_ERROR = GraphState.ERROR
 _G_PAUSED = GraphState.PAUSED
+_G_PAUSE_REQUESTED = GraphState.PAUSE_REQUESTED
 _G_RUNNING = GraphState.RUNNING
 _G_STOPPING = GraphState.STOPPING
 _R_ERROR = Result.ERROR
@@ -210,7 +211,12 @@ class Dispatcher:
                 run = node.run
                 while run.parent_node is not None:
                     run = run.parent_node.run
-                if id(run) in ended or run.state not in (_G_RUNNING, _G_PAUSED, _G_STOPPING):
+                if id(run) in ended or run.state not in (
+                    _G_RUNNING,
+                    _G_PAUSE_REQUESTED,
+                    _G_PAUSED,
+                    _G_STOPPING,
+                ):
                     continue
                 ended.add(id(run))
                 reason = ActionError(
@@ -425,6 +431,7 @@ class Dispatcher:
             node.spontaneous
             and gen == node.gen
             and node.run.state is not _G_PAUSED
+            and node.run.state is not _G_PAUSE_REQUESTED
             and not node.restart
         ):
             if instance is not None:

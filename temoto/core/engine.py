@@ -66,6 +66,7 @@ logger = logging.getLogger(__name__)
 
 _G_HALTED = GraphState.HALTED
 _G_PAUSED = GraphState.PAUSED
+_G_PAUSE_REQUESTED = GraphState.PAUSE_REQUESTED
 _G_RUNNING = GraphState.RUNNING
 _BUSY_GRAPH = BUSY_GRAPH_STATES
 
@@ -373,13 +374,13 @@ class ActionEngine:
 
         Raises:
             GraphNotFoundError: No run of that name.
-            StateError: The run is not PAUSED, HALTED or RUNNING.
+            StateError: The run is not PAUSED (or PAUSE_REQUESTED), HALTED or RUNNING.
             KeyError: ``continue_from`` names no node of the graph.
         """
         run = self._get(name)
         fx = Effects()
         with self._lock:
-            if run.state not in (_G_PAUSED, _G_HALTED, _G_RUNNING):
+            if run.state not in (_G_PAUSED, _G_PAUSE_REQUESTED, _G_HALTED, _G_RUNNING):
                 raise StateError(f"graph '{name}' is {run.state.value}, not PAUSED or HALTED")
             if continue_from is not None and continue_from not in run.nodes:
                 raise KeyError(f"graph '{name}' has no action '{continue_from}'")
@@ -414,7 +415,7 @@ class ActionEngine:
             plan = self.plan(graph)
         fx = Effects()
         with self._lock:
-            if run.state not in (_G_RUNNING, _G_PAUSED, _G_HALTED):
+            if run.state not in (_G_RUNNING, _G_PAUSE_REQUESTED, _G_PAUSED, _G_HALTED):
                 raise StateError(
                     f"graph '{name}' is {run.state.value};"
                     " only running, paused or halted graphs can be modified"
@@ -433,7 +434,9 @@ class ActionEngine:
                     evolution.release_node(node)
             run.wire(plan)
             logger.info("graph %s modified (%d actions)", name, len(run.nodes))
-            if run.state is _G_HALTED or (continue_from and run.state is _G_PAUSED):
+            if run.state is _G_HALTED or (
+                continue_from and run.state in (_G_PAUSED, _G_PAUSE_REQUESTED)
+            ):
                 evolution.resume_run(run, continue_from, fx)
             elif continue_from is not None:
                 evolution.rerun(run.nodes[continue_from], fx)

@@ -39,6 +39,7 @@ from temoto.core.states import (
     ENDED_GRAPH_STATES,
     GRAPH_TRANSITIONS,
     NODE_TRANSITIONS,
+    PAUSED_GRAPH_STATES,
     GraphState,
     NodeState,
     Result,
@@ -73,6 +74,7 @@ _G_ERROR = GraphState.ERROR
 _G_FINISHED = GraphState.FINISHED
 _G_HALTED = GraphState.HALTED
 _G_PAUSED = GraphState.PAUSED
+_G_PAUSE_REQUESTED = GraphState.PAUSE_REQUESTED
 _G_RUNNING = GraphState.RUNNING
 _G_STOPPED = GraphState.STOPPED
 _G_STOPPING = GraphState.STOPPING
@@ -93,6 +95,7 @@ _E_CALL = EffectKind.CALL
 _ACTIVE = ACTIVE_NODE_STATES
 _BUSY_GRAPH = BUSY_GRAPH_STATES
 _ENDED_GRAPH = ENDED_GRAPH_STATES
+_PAUSED_GRAPH = PAUSED_GRAPH_STATES
 _NODE_NEXT = NODE_TRANSITIONS
 _GRAPH_NEXT = GRAPH_TRANSITIONS
 #: the low bits of a wave step (``edge << SHIFT | response << 1 | ready``) for the response
@@ -225,6 +228,8 @@ class RunEvolution:
                     self.release_node(node)
         if self.observed:
             self._observe(node, old, new)
+        if old is _N_PAUSE_REQUESTED and node.run.state is _G_PAUSE_REQUESTED:
+            self._pause_done(node.run)
 
     def _observe(self, node: Node, old: NodeState, new: NodeState) -> None:
         if self._watchers:
@@ -262,10 +267,26 @@ class RunEvolution:
         self.after_change(run, fx)
 
     def pause_run(self, run: GraphRun, fx: Effects) -> None:
-        """Lock held: pause a RUNNING run: its running nodes are paused."""
-        self.set_run_state(run, _G_PAUSED)
+        """Lock held: pause a RUNNING run: its running nodes are paused.
+
+        The run is PAUSE_REQUESTED until every node that was running has paused (its
+        ``on_pause`` returned, its sub-graph paused), then PAUSED.
+        """
+        self.set_run_state(run, _G_PAUSE_REQUESTED)
         for node in list(run.nodes.values()):
             self._pause_node(node, fx)
+        if run.state is _G_PAUSE_REQUESTED:
+            self._pause_done(run)
+
+    def _pause_done(self, run: GraphRun) -> None:
+        """A pausing run is PAUSED once none of its nodes is still pausing (and so on up)."""
+        for n in run.nodes.values():  # (RUNNING: pause_run has not reached it yet)
+            if n.state is _N_PAUSE_REQUESTED or n.state is _N_RUNNING:
+                return
+        self.set_run_state(run, _G_PAUSED)
+        parent = run.parent_node
+        if parent is not None and parent.child_run is run and parent.state is _N_PAUSE_REQUESTED:
+            self.set_state(parent, _N_PAUSED)  # which may complete its own run's pause
 
     def resume_run(self, run: GraphRun, continue_from: str | None, fx: Effects) -> None:
         """Lock held: resume a paused or halted run (or a running one's paused nodes)."""
@@ -467,7 +488,7 @@ class RunEvolution:
             if node.restart:
                 node.restart = False
                 self.set_state(node, _N_FINISHED)
-                if run.state in (_G_RUNNING, _G_PAUSED):
+                if run.state is _G_RUNNING or run.state in _PAUSED_GRAPH:
                     self.run_node(node, fx)
                 self.after_change(run, fx)
                 return
@@ -692,11 +713,12 @@ class RunEvolution:
     def _pause_node(self, node: Node, fx: Effects) -> None:
         if node.state is not _N_RUNNING:
             return
-        if node.kind is _K_GRAPH:
+        if node.kind is _K_GRAPH:  # paused once its sub-graph has (_pause_done)
             self.set_state(node, _N_PAUSE_REQUESTED)
-            self.set_state(node, _N_PAUSED)
             if node.child_run is not None and node.child_run.state is _G_RUNNING:
                 self.pause_run(node.child_run, fx)
+            elif node.state is _N_PAUSE_REQUESTED:
+                self.set_state(node, _N_PAUSED)
             return
         if node.kind is _K_REMOTE:  # its actor goes on; a result is held until resume
             self.set_state(node, _N_PAUSE_REQUESTED)
@@ -716,7 +738,7 @@ class RunEvolution:
             return
         self.set_state(node, _N_RUNNING)
         if node.kind is _K_GRAPH:
-            if node.child_run is not None and node.child_run.state is _G_PAUSED:
+            if node.child_run is not None and node.child_run.state in _PAUSED_GRAPH:
                 self.resume_run(node.child_run, None, fx)
             return
         if node.kind is _K_REMOTE:

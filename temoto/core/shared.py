@@ -56,7 +56,7 @@ logger = logging.getLogger(__name__)
 
 _ENDED_GRAPH = ENDED_GRAPH_STATES
 #: a shared run that has not ended and was not asked to stop
-_LIVE_GRAPH = frozenset({GraphState.RUNNING, GraphState.PAUSED})
+_LIVE_GRAPH = frozenset({GraphState.RUNNING, GraphState.PAUSE_REQUESTED, GraphState.PAUSED})
 
 
 class RunHost(Protocol):

@@ -16,6 +16,7 @@ __all__ = [
     "ENDED_GRAPH_STATES",
     "GRAPH_TRANSITIONS",
     "NODE_TRANSITIONS",
+    "PAUSED_GRAPH_STATES",
     "GraphState",
     "NodeState",
     "Response",
@@ -49,6 +50,10 @@ class GraphState(Enum):
     UNINITIALIZED = "UNINITIALIZED"
     INITIALIZED = "INITIALIZED"
     RUNNING = "RUNNING"
+    #: ``pause`` was asked for; some running action has not paused yet (its ``on_pause``
+    #: has not returned, or its sub-graph is still pausing). No action starts.
+    PAUSE_REQUESTED = "PAUSE_REQUESTED"
+    #: every action that was running has paused
     PAUSED = "PAUSED"
     STOPPING = "STOPPING"
     STOPPED = "STOPPED"
@@ -107,8 +112,11 @@ _G = GraphState
 
 #: States of a graph run that has not ended: a run of the same name cannot start.
 BUSY_GRAPH_STATES: frozenset[GraphState] = frozenset(
-    {_G.RUNNING, _G.PAUSED, _G.STOPPING, _G.CLEARING}
+    {_G.RUNNING, _G.PAUSE_REQUESTED, _G.PAUSED, _G.STOPPING, _G.CLEARING}
 )
+
+#: States of a paused run, or of one that is pausing: no action starts, results are held.
+PAUSED_GRAPH_STATES: frozenset[GraphState] = frozenset({_G.PAUSE_REQUESTED, _G.PAUSED})
 
 #: States of a graph run that has ended (its result is set; it may be started afresh).
 ENDED_GRAPH_STATES: frozenset[GraphState] = frozenset(
@@ -118,7 +126,8 @@ ENDED_GRAPH_STATES: frozenset[GraphState] = frozenset(
 
 #: Legal graph run state changes, checked in one place (:func:`check_graph_transition`).
 #:
-#: A run starts (INITIALIZED to RUNNING), is paused and resumed, stopped (STOPPING, then
+#: A run starts (INITIALIZED to RUNNING), is paused (PAUSE_REQUESTED until every running
+#: action has paused, then PAUSED) and resumed, stopped (STOPPING, then
 #: STOPPED, or ERROR when an action did not stop in time), or ends by itself: FINISHED at its
 #: exit, HALTED when nothing runs and the exit was not reached, ERROR on a fault of the engine.
 #: A halted run may be resumed (or modified) and stopped. An ended shared run that is still
@@ -127,7 +136,10 @@ ENDED_GRAPH_STATES: frozenset[GraphState] = frozenset(
 GRAPH_TRANSITIONS: dict[GraphState, frozenset[GraphState]] = {
     _G.UNINITIALIZED: frozenset({_G.RUNNING}),
     _G.INITIALIZED: frozenset({_G.RUNNING}),
-    _G.RUNNING: frozenset({_G.PAUSED, _G.STOPPING, _G.FINISHED, _G.HALTED, _G.ERROR}),
+    _G.RUNNING: frozenset({_G.PAUSE_REQUESTED, _G.STOPPING, _G.FINISHED, _G.HALTED, _G.ERROR}),
+    _G.PAUSE_REQUESTED: frozenset(
+        {_G.PAUSED, _G.RUNNING, _G.STOPPING, _G.FINISHED, _G.HALTED, _G.ERROR}
+    ),
     _G.PAUSED: frozenset({_G.RUNNING, _G.STOPPING, _G.FINISHED, _G.HALTED, _G.ERROR}),
     _G.STOPPING: frozenset({_G.STOPPED, _G.ERROR}),
     _G.HALTED: frozenset({_G.RUNNING, _G.STOPPING}),

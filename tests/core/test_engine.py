@@ -376,7 +376,9 @@ def test_non_pause_aware_action_finishing_while_paused_is_held_until_resume() ->
         t0 = time.monotonic()
         engine.pause(run)
         assert time.monotonic() - t0 < 0.1  # pause does not wait for the action
-        assert engine.outcome(run).state is GraphState.PAUSED
+        # PAUSE_REQUESTED until Busy_0's on_pause has returned (on a worker)
+        assert engine.outcome(run).state in (GraphState.PAUSE_REQUESTED, GraphState.PAUSED)
+        eventually(lambda: engine.outcome(run).state is GraphState.PAUSED, 5, "paused run")
         assert returned.wait(5)
         time.sleep(0.1)
         assert rec.started(run) == ["Busy_0"]  # the child did not start

@@ -9,6 +9,8 @@ state directly would not notice.
 
 from __future__ import annotations
 
+import threading
+import time
 from typing import Any
 
 import pytest
@@ -82,10 +84,12 @@ def test_the_fast_paths_change_a_node_through_the_checked_path(
 
 
 def test_a_run_changes_state_through_the_checked_path(monkeypatch: pytest.MonkeyPatch) -> None:
-    _without(monkeypatch, states.GRAPH_TRANSITIONS, GraphState.RUNNING, GraphState.PAUSED)
+    _without(monkeypatch, states.GRAPH_TRANSITIONS, GraphState.RUNNING, GraphState.PAUSE_REQUESTED)
     with ActionEngine("me", actions=_catalog(), stop_timeout=1.0) as engine:
         name = engine.start(build.graph(Hold, name="held"))
-        with pytest.raises(StateError, match="illegal graph state change RUNNING -> PAUSED"):
+        with pytest.raises(
+            StateError, match="illegal graph state change RUNNING -> PAUSE_REQUESTED"
+        ):
             engine.pause(name)
         assert engine.outcome(name).state is GraphState.RUNNING
         assert engine.stop(name, WAIT) is Result.STOPPED
@@ -118,3 +122,52 @@ def test_an_illegal_run_change_raises_a_state_error_naming_the_run(
 
 def test_the_shared_runs_use_the_one_definition_of_an_ended_run() -> None:
     assert shared._ENDED_GRAPH is states.ENDED_GRAPH_STATES
+
+
+PAUSE_GATE = threading.Event()  # Slow's on_pause returns once this is set
+IN_ON_PAUSE = threading.Event()
+
+
+@action
+class SlowToPause(Action):
+    """Blocking: runs until stopped; its on_pause takes until PAUSE_GATE is set."""
+
+    def on_run(self) -> bool:
+        self.wait_until_stopped()
+        return True
+
+    def on_pause(self) -> None:
+        IN_ON_PAUSE.set()
+        PAUSE_GATE.wait(WAIT)
+
+
+def _until(condition: Any, what: str) -> None:
+    deadline = time.monotonic() + WAIT
+    while not condition():
+        if time.monotonic() > deadline:
+            raise AssertionError(f"timed out waiting for {what}")
+        time.sleep(0.005)
+
+
+def test_a_run_is_paused_only_once_every_running_action_has_paused() -> None:
+    PAUSE_GATE.clear()
+    IN_ON_PAUSE.clear()
+    graph = build.graph(build.parallel(SlowToPause, Hold), name="pausing")
+    catalog = build.catalog(SlowToPause, Hold)
+    with ActionEngine("me", actions=catalog, stop_timeout=1.0) as engine:
+        name = engine.start(graph)
+        _until(lambda: set(engine.node_states(name).values()) == {NodeState.RUNNING}, "running")
+        engine.pause(name)
+        assert IN_ON_PAUSE.wait(WAIT)
+        # SlowToPause's on_pause has not returned: the run is not PAUSED yet (before: it was
+        # PAUSED as soon as the pause was asked for)
+        _until(lambda: engine.node_states(name)["Hold_0"] is NodeState.PAUSED, "Hold_0 paused")
+        assert engine.node_states(name)["SlowToPause_0"] is NodeState.PAUSE_REQUESTED
+        assert engine.outcome(name).state is GraphState.PAUSE_REQUESTED
+        assert engine.running_graphs()[name] is GraphState.PAUSE_REQUESTED
+        PAUSE_GATE.set()
+        _until(lambda: engine.outcome(name).state is GraphState.PAUSED, "the run paused")
+        assert engine.node_states(name)["SlowToPause_0"] is NodeState.PAUSED
+        engine.resume(name)
+        assert engine.outcome(name).state is GraphState.RUNNING
+        assert engine.stop(name, WAIT) is Result.STOPPED

@@ -473,7 +473,7 @@ function renderControls() {
   const state = view ? view.state : null;
   const can = !!token && connected;
   $("pause").disabled = !(can && state === "RUNNING");
-  $("resume").disabled = !(can && (state === "PAUSED" || state === "HALTED"));
+  $("resume").disabled = !(can && (state === "PAUSED" || state === "PAUSE_REQUESTED" || state === "HALTED"));
   $("stop").disabled = !(can && active(state));
   $("start").disabled = !(can && $("indexed").value);
   $("indexed").disabled = !can;
