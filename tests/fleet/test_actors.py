@@ -1042,6 +1042,19 @@ def test_link_properties_and_arguments(fleet: Fleet) -> None:
     assert "closed" in repr(a)
 
 
+def test_the_links_parts_hold_one_state_by_reference(fleet: Fleet) -> None:
+    # The handshake, the notifications and the supervision share the link's one state: none
+    # keeps its own alias of a table, a condition or the lock (an alias goes stale the day
+    # the state rebinds one, and hides what a part reads).
+    with fleet.link("A") as a:
+        state = a._st
+        shared = {id(v): k for k, v in vars(state).items() if not isinstance(v, int | float | str)}
+        for part in (a, a._handshakes, a._notices, a._supervisor):
+            aliases = sorted(k for k, v in vars(part).items() if id(v) in shared)
+            assert not aliases, f"{type(part).__name__} copies {aliases} of the link's state"
+            assert part is a or part._st is state
+
+
 def test_messages_are_what_the_lcm_definitions_say(fleet: Fleet) -> None:
     a, b = fleet.links("A", "B")
     raw_hs = Raw(fleet.fleet_link("X"), HANDSHAKE_CHANNEL)
