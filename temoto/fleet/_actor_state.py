@@ -42,8 +42,7 @@ __all__ = [
     "ack_channel",
 ]
 
-# The parts of the link log under the link's name: their log lines keep their logger.
-logger = logging.getLogger("temoto.fleet.actors")
+logger = logging.getLogger(__name__)
 
 #: Channel of ``handshake_t``: handshakes, heartbeats, leaving.
 HANDSHAKE_CHANNEL: Final = "TEMOTO_HANDSHAKE"

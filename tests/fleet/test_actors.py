@@ -584,7 +584,7 @@ def test_a_member_naming_another_actor_is_dropped_and_logged(
     taken, flush = Got(), Got()
     b.expect("g", "s1", "Move_1", "C", taken)
     b.expect("g", "s1", "Flush_1", "X", flush)
-    with caplog.at_level(logging.WARNING, logger="temoto.fleet._common"):
+    with caplog.at_level(logging.WARNING, logger="temoto.fleet.common"):
         x.send(NOTIFY_CHANNEL, notification("n1", "C", "Move_1", "on_true", ""))
         x.send(HANDSHAKE_CHANNEL, handshake(1, "C"))
         ack = action_ack_t()
@@ -1176,7 +1176,7 @@ def test_a_peer_with_another_actor_list_is_read_by_its_own_list(
     x.send(HANDSHAKE_CHANNEL, set_heard(x_join, ["0", "A", "X", "Y"], {"A": join.stamp_us, "Y": 1}))
     y_join = set_heard(handshake(handshake_t.JOIN, "Y"), ["A", "X", "Y"], {"A": join.stamp_us})
     y_join.heard = y_join.heard[:16] + struct.pack(">q", 0)  # Y has not heard X yet
-    with caplog.at_level(logging.WARNING, logger="temoto.fleet.actors"):
+    with caplog.at_level(logging.WARNING, logger="temoto.fleet"):
         y.send(HANDSHAKE_CHANNEL, y_join)
         thread.join(0.3)
         assert thread.is_alive()  # Y's report misses X: not done
