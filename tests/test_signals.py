@@ -1,6 +1,6 @@
 """Signals and crashes of the commands end with the documented exit code and nothing left behind.
 
-ARCHITECTURE.md §8 "Signals": ``temoto run`` and ``temoto demo`` exit 130 on SIGINT and 143 on
+docs/design.md §8 "Signals": ``temoto run`` and ``temoto demo`` exit 130 on SIGINT and 143 on
 SIGTERM, ``temoto serve`` exits 0 on either; no traceback; a second signal stops at once but
 still cleans up; no process of ours is left (checked in ``/proc`` by an environment marker
 that every process the command starts inherits). And the Process Manager's children (and

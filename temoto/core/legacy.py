@@ -15,7 +15,7 @@ integer, ``umrf_actions`` that is not an array, ...) are reported as the same
 (``umrf_actions[2].id``); errors the parser finds in a converted graph have their path mapped
 back (``actions[2]...`` becomes ``umrf_actions[2]...``; the action order is kept).
 
-The rewrite, rule by rule (REFERENCE.md 1.8 has the legacy semantics):
+The rewrite, rule by rule (docs/design.md §3.2 has the legacy semantics):
 
 * ``umrf_actions`` -> ``actions``; ``id`` -> ``instance_id`` on actions and relations (a
   missing id means 0).

@@ -1,6 +1,6 @@
 """The Resource Info Synchronizer (RIS): which robot serves which resources, and who is alive.
 
-Thesis §7.2, REFERENCE §4.6, ``docs/ris.md``. One :class:`ResourceInfoSync` runs per robot
+Thesis §7.2, docs/design.md §6, ``docs/ris.md``. One :class:`ResourceInfoSync` runs per robot
 (TeMoto instance) on the channel :data:`RIS_CHANNEL`:
 
 ``ris_advert_t``

@@ -3,7 +3,7 @@
 A :class:`Transport` moves opaque byte strings; what they mean (envelopes, authentication,
 inner messages) is the business of the layers above (:mod:`temoto.transport.auth`,
 :mod:`temoto.transport.codec`). The base class owns the public calls and their checks
-(template method, STYLE.md rule 2); an implementation fills in ``_publish``, ``_subscribe``
+(template method, docs/development.md §2); an implementation fills in ``_publish``, ``_subscribe``
 and ``_close``, and hands every received message to :meth:`Transport._deliver`, which runs the
 handler, logs and counts what it raises, and never lets it escape into the receive thread.
 

@@ -2,7 +2,7 @@
 
 The canonical, pure-Python implementation. ``setup.py`` compiles this same file with Cython as
 ``temoto.core._fast._refbook_c``, and ``_refbook_c.pxd`` turns :class:`RefBook` into a ``cdef
-class`` whose arrays are typed memoryviews (STYLE.md 3.9). Import it only through
+class`` whose arrays are typed memoryviews (docs/development.md §7). Import it only through
 ``temoto.core._fast``.
 
 Only integers cross the boundary. A *resource* is a slot number; a *reference* is another slot
