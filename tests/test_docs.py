@@ -138,3 +138,112 @@ def test_a_doc_block_runs(block: Block) -> None:
 def test_the_runner_finds_the_blocks_and_their_marks() -> None:
     assert len(ALL) > 20
     assert any(b.skip for b in ALL)
+
+
+# Every repository path that pyproject.toml and the docs name exists (issue 28, item 6).
+
+#: The documents whose paths are checked, relative to the repository's root.
+PATH_DOCS = (
+    "pyproject.toml",
+    "README.md",
+    *sorted(f"docs/{p.name}" for p in (ROOT / "docs").glob("*.md")),
+)
+
+#: Mentions that look like repository paths but are not, each with its reason.
+NOT_PATHS = {
+    # Zenoh key expressions: the fleet's channels under the key prefix `temoto` (docs/zenoh.md).
+    re.compile(r"temoto/TEMOTO_[A-Z_]+"): "a Zenoh key expression, not a file",
+}
+
+_LINK = re.compile(r"\[([^\]]*)\]\(([^)\s]+)\)")
+_URL = re.compile(r"^[a-z][a-z0-9+.-]*:", re.IGNORECASE)
+_PLACEHOLDER = re.compile(r"<[^<>/]+>")
+#: A `.py` path written relative to the package (`core/plan.py`), backticked.
+_PACKAGE_PATH = re.compile(r"`((\w+)/[\w./-]*\.py)(?::[\d-]+)?`")
+
+
+def _top_level_names() -> tuple[list[str], list[str]]:
+    """The repository's top-level directories and files (not hidden, not build output)."""
+    names = [
+        p
+        for p in sorted(ROOT.iterdir())
+        if not p.name.startswith((".", "_"))
+        and p.name not in ("build", "dist")
+        and not p.name.endswith(".egg-info")
+    ]
+    return [p.name for p in names if p.is_dir()], [p.name for p in names if p.is_file()]
+
+
+def _path_pattern(dirs: list[str], files: list[str]) -> re.Pattern[str]:
+    """A mention of `<top-level dir>/...` or of a top-level file, not inside a longer path."""
+    tops = "|".join([f"{re.escape(d)}/[\\w./*<>-]*" for d in dirs] + [re.escape(f) for f in files])
+    return re.compile(rf"(?<![\w./~$<-])({tops})(?![\w/-])")
+
+
+def mentioned_paths(
+    text: str, doc: str, dirs: list[str], files: list[str]
+) -> list[tuple[int, str]]:
+    """The repository paths a document names, as (line, path from the root) pairs.
+
+    Links to files (``[text](target)``, relative to the document) and mentions of a top-level
+    entry (``docs/engine.md``, ``temoto/core/engine.py:140``, ``README.md``) anywhere in the
+    text, and backticked ``.py`` paths relative to the package (```core/plan.py```). A link to
+    a URL is left out with its text. A ``<placeholder>`` stands for one or more characters.
+    """
+    pattern = _path_pattern(dirs, files)
+    packages = {p.name for p in (ROOT / "temoto").iterdir() if p.is_dir()}
+    base = Path(doc).parent
+    found = []
+    for number, line in enumerate(text.splitlines(), 1):
+        for m in _LINK.finditer(line):
+            target = m.group(2).split("#")[0]
+            if target and not _URL.match(m.group(2)):
+                found.append((number, os.path.normpath(base / target)))
+        line = _LINK.sub(lambda m: "" if _URL.match(m.group(2)) else m.group(1), line)
+        for m in pattern.finditer(line):
+            found.append((number, m.group(1).rstrip(".")))
+        for m in _PACKAGE_PATH.finditer(line):
+            if m.group(2) in packages:
+                found.append((number, f"temoto/{m.group(1)}"))
+    return [(n, p) for n, p in found if not any(rx.fullmatch(p) for rx in NOT_PATHS)]
+
+
+def _exists(path: str) -> bool:
+    glob = _PLACEHOLDER.sub("*", path)
+    if "*" in glob:
+        return any(ROOT.glob(glob))
+    return (ROOT / path).exists()
+
+
+def test_every_path_the_docs_and_pyproject_name_exists() -> None:
+    dirs, files = _top_level_names()
+    missing = [
+        f"{doc}:{line}: {path}"
+        for doc in PATH_DOCS
+        for line, path in mentioned_paths(
+            (ROOT / doc).read_text(encoding="utf-8"), doc, dirs, files
+        )
+        if not _exists(path)
+    ]
+    assert not missing, "paths that do not exist:\n" + "\n".join(missing)
+
+
+def test_the_path_finder_finds_paths_and_only_paths() -> None:
+    dirs, files = ["docs", "temoto", "hw_profiles"], ["README.md"]
+    text = (
+        "See docs/drivers.md, `temoto/core/engine.py:140`, [the guide](umrf-guide.md#conditions).\n"
+        "Not: [spec `docs/spec.md`](https://example.org/docs/spec.md), /dev/ttyUSB0, x/docs/a.md,\n"
+        "`temoto/TEMOTO_NOTIFY`, `python -m temoto`. Placeholders: `hw_profiles/<robot>.yaml`.\n"
+        "In the package: `core/plan.py`; not a package: `DIR/reliability.py`. Top file README.md.\n"
+    )
+    assert mentioned_paths(text, "docs/x.md", dirs, files) == [
+        (1, "docs/umrf-guide.md"),
+        (1, "docs/drivers.md"),
+        (1, "temoto/core/engine.py"),
+        (3, "hw_profiles/<robot>.yaml"),
+        (4, "README.md"),
+        (4, "temoto/core/plan.py"),
+    ]
+    assert _exists("hw_profiles/<robot>.yaml")
+    assert not _exists("hw_profiles/<robot>.toml")
+    assert not _exists("docs/drivers.md")
