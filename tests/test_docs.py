@@ -142,12 +142,24 @@ def test_the_runner_finds_the_blocks_and_their_marks() -> None:
 
 # Every repository path that pyproject.toml and the docs name exists (issue 28, item 6).
 
-#: The documents whose paths are checked, relative to the repository's root.
-PATH_DOCS = (
-    "pyproject.toml",
-    "README.md",
-    *sorted(f"docs/{p.name}" for p in (ROOT / "docs").glob("*.md")),
-)
+
+#: The documents whose paths are checked, relative to the repository's root: every Markdown
+#: file but the CHANGELOG (a record of the past, which names files that are gone).
+def _markdown_files() -> list[str]:
+    """Every Markdown file of the repository but the CHANGELOG (not in hidden or build folders)."""
+    found = []
+    for folder, subfolders, names in os.walk(ROOT):
+        subfolders[:] = [
+            d
+            for d in subfolders
+            if not d.startswith(".") and d not in ("build", "dist", "__pycache__")
+        ]
+        rel = Path(folder).relative_to(ROOT)
+        found += [str(rel / n) for n in names if n.endswith(".md") and n != "CHANGELOG.md"]
+    return sorted(os.path.normpath(f) for f in found)
+
+
+PATH_DOCS = ("pyproject.toml", *_markdown_files())
 
 #: Mentions that look like repository paths but are not, each with its reason.
 NOT_PATHS = {
@@ -208,6 +220,22 @@ def mentioned_paths(
     return [(n, p) for n, p in found if not any(rx.fullmatch(p) for rx in NOT_PATHS)]
 
 
+def _slug(heading: str) -> str:
+    """A Markdown heading's anchor, as GitHub makes it (punctuation dropped, spaces to hyphens)."""
+    return re.sub(r"[^\w\- ]", "", heading.strip().lower()).replace(" ", "-")
+
+
+def _anchors(doc: str) -> set[str]:
+    """The anchors of a document's headings (outside fenced blocks)."""
+    found, fenced = set(), False
+    for line in (ROOT / doc).read_text(encoding="utf-8").splitlines():
+        if line.startswith("```"):
+            fenced = not fenced
+        elif not fenced and line.startswith("#"):
+            found.add(_slug(line.lstrip("#")))
+    return found
+
+
 def _exists(path: str) -> bool:
     glob = _PLACEHOLDER.sub("*", path)
     if "*" in glob:
@@ -226,6 +254,22 @@ def test_every_path_the_docs_and_pyproject_name_exists() -> None:
         if not _exists(path)
     ]
     assert not missing, "paths that do not exist:\n" + "\n".join(missing)
+
+
+def test_every_link_to_a_heading_finds_it() -> None:
+    broken = []
+    for doc in PATH_DOCS:
+        if not doc.endswith(".md"):
+            continue
+        for number, line in enumerate((ROOT / doc).read_text(encoding="utf-8").splitlines(), 1):
+            for m in _LINK.finditer(line):
+                target, _, anchor = m.group(2).partition("#")
+                if not anchor or _URL.match(target) or not (target or doc).endswith(".md"):
+                    continue
+                path = os.path.normpath(Path(doc).parent / target) if target else doc
+                if (ROOT / path).exists() and anchor not in _anchors(path):
+                    broken.append(f"{doc}:{number}: {m.group(2)}")
+    assert not broken, "links to headings that do not exist:\n" + "\n".join(broken)
 
 
 def test_the_path_finder_finds_paths_and_only_paths() -> None:
@@ -247,3 +291,44 @@ def test_the_path_finder_finds_paths_and_only_paths() -> None:
     assert _exists("hw_profiles/<robot>.yaml")
     assert not _exists("hw_profiles/<robot>.toml")
     assert not _exists("docs/drivers.md")
+
+
+# Nothing points at design notes outside the repository (issue 28, item 6): their facts are in
+# docs/design.md and docs/development.md.
+
+_OUTSIDE = re.compile(
+    r"\b(?:STYLE|ARCHITECTURE|REFERENCE)\b(?:\.md)?\s*(?:§|\d|rule|part)|\b(?:STYLE|ARCHITECTURE|REFERENCE)\.md\b|\.\./shared/|shared/design"
+)
+
+#: Modules being reorganised on other branches, whose references are mended when they merge.
+PENDING = {
+    "temoto/cli.py",
+    "temoto/_cli_signals.py",
+    "temoto/_cli_sim.py",
+    "temoto/_cli_run.py",
+    "temoto/_cli_router.py",
+    "temoto/managers/robot/__main__.py",
+    "temoto/drivers/mavlink/sim.py",
+    "temoto/core/shared.py",
+    "temoto/core/evolution.py",
+}
+
+
+def _sources() -> list[str]:
+    """The code, build files and docs whose comments and docstrings may cite design notes."""
+    found = [*PATH_DOCS, "setup.py", "Makefile"]
+    for top in ("temoto", "tests", "tools", "bench"):
+        for suffix in ("*.py", "*.pxd", "*.pyx", "*.lcm"):
+            found += [str(p.relative_to(ROOT)) for p in (ROOT / top).rglob(suffix)]
+    return sorted(set(found) - PENDING - {"tests/test_docs.py"})  # this file holds the pattern
+
+
+def test_nothing_cites_a_design_note_outside_the_repository() -> None:
+    cited = [
+        f"{path}:{number}: {line.strip()}"
+        for path in _sources()
+        if (ROOT / path).exists()
+        for number, line in enumerate((ROOT / path).read_text(encoding="utf-8").splitlines(), 1)
+        if _OUTSIDE.search(line)
+    ]
+    assert not cited, "cite docs/design.md or docs/development.md instead:\n" + "\n".join(cited)
