@@ -332,3 +332,32 @@ def test_nothing_cites_a_design_note_outside_the_repository() -> None:
         if _OUTSIDE.search(line)
     ]
     assert not cited, "cite docs/design.md or docs/development.md instead:\n" + "\n".join(cited)
+
+
+# A docstring's ``Raises:`` section lists what the function raises; one that raises nothing has
+# none (docs/development.md), rather than a section that says "Nothing.".
+
+_RAISES_NOTHING = re.compile(r"^[ \t]*Raises:[ \t]*\n[ \t]*Nothing\b", re.MULTILINE)
+
+#: Modules being reorganised on other branches, mended when they merge.
+RAISES_PENDING = {
+    "temoto/core/engine.py",
+    "temoto/web/events.py",
+    "temoto/web/replay.py",
+    "temoto/web/robot.py",
+    "temoto/web/server.py",
+    "temoto/web/view.py",
+}
+
+
+def test_no_docstring_has_a_raises_section_that_says_nothing() -> None:
+    found = []
+    for top in ("temoto", "tools"):
+        for file in sorted((ROOT / top).rglob("*.py")):
+            path = str(file.relative_to(ROOT))
+            if path in RAISES_PENDING:
+                continue
+            text = file.read_text(encoding="utf-8")
+            for match in _RAISES_NOTHING.finditer(text):
+                found.append(f"{path}:{text.count(chr(10), 0, match.start()) + 1}")
+    assert not found, "drop the 'Raises: Nothing.' section:\n" + "\n".join(found)

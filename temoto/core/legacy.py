@@ -131,9 +131,6 @@ def is_legacy_graph(raw: object) -> bool:
 
     Returns:
         True for a legacy graph.
-
-    Raises:
-        Nothing.
     """
     return isinstance(raw, dict) and "umrf_actions" in raw and "actions" not in raw
 
@@ -148,9 +145,6 @@ def is_legacy_umrf(raw: object) -> bool:
 
     Returns:
         True for a legacy action description.
-
-    Raises:
-        Nothing.
     """
     if not isinstance(raw, dict) or "type" in raw:
         return False
@@ -250,9 +244,6 @@ class _Notes:
 
         Returns:
             The clauses.
-
-        Raises:
-            Nothing.
         """
         out: list[str] = ["umrf_actions -> actions"] if graph else []
         if any(self.ids):

@@ -29,9 +29,6 @@ def live_buses() -> dict[str, int]:
 
     Returns:
         Bus name to the number of open instances on it (buses without any are left out).
-
-    Raises:
-        Nothing.
     """
     with _registry_lock:
         return {bus: len(members) for bus, members in _registry.items() if members}

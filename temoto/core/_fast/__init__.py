@@ -141,9 +141,6 @@ def kernels() -> dict[str, str]:
 
     Returns:
         Kernel name -> module file path.
-
-    Raises:
-        Nothing.
     """
     import sys
 

@@ -427,9 +427,6 @@ class Evolution:
 
         Returns:
             The new kernel.
-
-        Raises:
-            Nothing.
         """
         new = Evolution.__new__(Evolution)
         n = self.n_nodes
@@ -461,8 +458,5 @@ class Evolution:
 
         Returns:
             One byte (0 or 1) per slot.
-
-        Raises:
-            Nothing.
         """
         return bytes(self.received)

@@ -72,9 +72,6 @@ class RefBook:
 
         Returns:
             The slot (the most recently freed one, if any).
-
-        Raises:
-            Nothing.
         """
         res = self._rfree
         if res >= 0:
@@ -155,9 +152,6 @@ class RefBook:
 
         Returns:
             The number of live resource slots.
-
-        Raises:
-            Nothing.
         """
         return self._nres
 
@@ -281,9 +275,6 @@ class RefBook:
 
         Returns:
             The number of live reference slots.
-
-        Raises:
-            Nothing.
         """
         return self._nref
 

@@ -632,9 +632,6 @@ class ContextManager(ContextSync, ResourceServer[MaintainRequest, MaintainRespon
         """Stop syncing, stop and join the threads. Idempotent; the tree stays readable.
 
         The fleet link and its transport stay the caller's to close.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             if self._closed:
