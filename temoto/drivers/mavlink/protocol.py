@@ -111,7 +111,7 @@ MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT: Final[int] = int(
     _dialect.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
 )
 
-# ---- used by the simulator's parameter, mission and FTP services (issue 16) -----------------
+# ---- used by the simulator's parameter, mission and FTP services ----------------------------
 
 MAV_CMD_NAV_WAYPOINT: Final[int] = int(_dialect.MAV_CMD_NAV_WAYPOINT)  # 16
 MAV_CMD_NAV_LOITER_UNLIM: Final[int] = int(_dialect.MAV_CMD_NAV_LOITER_UNLIM)  # 17
