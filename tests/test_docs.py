@@ -1,4 +1,4 @@
-"""Issue 27, item 4: every command and code block of the newcomer's docs runs.
+"""Every command and code block of the newcomer's docs runs.
 
 A doctest-like runner over README.md, docs/umrf-guide.md and docs/python-api.md: each fenced
 ``sh`` block runs with bash (``set -e``: every command of it must succeed) from the repository's
@@ -140,7 +140,7 @@ def test_the_runner_finds_the_blocks_and_their_marks() -> None:
     assert any(b.skip for b in ALL)
 
 
-# Every repository path that pyproject.toml and the docs name exists (issue 28, item 6).
+# Every repository path that pyproject.toml and the docs name exists.
 
 
 #: The documents whose paths are checked, relative to the repository's root: every Markdown
@@ -293,8 +293,8 @@ def test_the_path_finder_finds_paths_and_only_paths() -> None:
     assert not _exists("docs/drivers.md")
 
 
-# Nothing points at design notes outside the repository (issue 28, item 6): their facts are in
-# docs/design.md and docs/development.md.
+# Nothing points at design notes outside the repository: their facts are in docs/design.md and
+# docs/development.md.
 
 _OUTSIDE = re.compile(
     r"\b(?:STYLE|ARCHITECTURE|REFERENCE)\b(?:\.md)?\s*(?:§|\d|rule|part)|\b(?:STYLE|ARCHITECTURE|REFERENCE)\.md\b|\.\./shared/|shared/design"

@@ -158,8 +158,8 @@ _STARTED: list[subprocess.Popen[bytes]] = []
 def _end_commands() -> Iterator[None]:
     """After each test, also a failed one: no command left running, no pipe left open.
 
-    A test failing before it waited for its command left both to the garbage collector, whose
-    ResourceWarning then failed a later test (test_structure's import check, issue 27).
+    A test failing before it waited for its command would leave both to the garbage collector,
+    whose ResourceWarning would then fail a later test (test_structure's import check).
     """
     yield
     while _STARTED:
