@@ -1,6 +1,6 @@
 """The pure fallback: a missing compiled kernel, and a machine without a C compiler.
 
-ISSUE 4: "a machine without a compiler still gets a working pure install (with a warning)";
+A machine without a compiler still gets a working pure install (with a warning);
 ``TEMOTO_REQUIRE_EXTENSIONS=1`` turns the fallback into an error.
 """
 
