@@ -13,7 +13,7 @@ from types import ModuleType
 import pytest
 
 THREAD_PREFIX = "temoto-"
-#: Measured by ``tools/kernel_tests.py``: the test files outside ``tests/core/`` that reach a kernel.
+#: The test files outside ``tests/core/`` that reach a kernel (``tools/kernel_tests.py``).
 KERNEL_TESTS = Path(__file__).with_name("kernel_tests.txt")
 THREAD_GRACE_S = 2.0
 

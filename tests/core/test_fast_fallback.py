@@ -114,7 +114,8 @@ def test_the_pure_pass_list_names_existing_test_files_outside_core() -> None:
     assert listed == sorted(set(listed))
     for path in listed:
         assert (REPO / path).is_file(), f"{path} is listed but gone: run tools/kernel_tests.py"
-        assert path.startswith("tests/") and not path.startswith("tests/core/"), path
+        assert path.startswith("tests/"), path
+        assert not path.startswith("tests/core/"), path
 
 
 def test_the_pure_pass_keeps_core_and_the_listed_files_only() -> None:
