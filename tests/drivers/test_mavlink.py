@@ -359,7 +359,7 @@ def test_a_hardware_error_refuses_arming_in_the_vehicle(
 
 def test_configure_against_a_non_ardupilot_fails(clock: ManualClock) -> None:
     sim, d = make(clock)
-    real_frame = sim._frame
+    real_frame = sim.telemetry.frame
 
     def px4_heartbeat(name: str, now: float) -> bytes:
         if name == "HEARTBEAT":
@@ -374,7 +374,7 @@ def test_configure_against_a_non_ardupilot_fails(clock: ManualClock) -> None:
             )
         return real_frame(name, now)
 
-    sim._frame = px4_heartbeat  # type: ignore[method-assign]
+    sim.telemetry.frame = px4_heartbeat  # type: ignore[method-assign]
     with sim, d:
         with pytest.raises(Exception, match="not an ArduPilot") as info:
             configure(d, clock)
