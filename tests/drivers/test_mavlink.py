@@ -170,7 +170,8 @@ def test_a_full_flight_in_virtual_time(
     assert abs(tel().position.alt - 15.0) < 0.3
 
     d.land()
-    run_until(clock, lambda: not tel().armed, 20.0)
+    took = run_until(clock, lambda: not tel().armed, 40.0)
+    assert took > 10.0 / 0.5  # the last 10 m (LAND_ALT_LOW) at ArduCopter's LAND_SPEED 0.5 m/s
     assert tel().mode == "LAND"
     assert tel().position.alt == pytest.approx(0.0, abs=0.05)
     assert _distance(tel().position, GeoPoint(target.lat, target.lon, 0.0)) < 0.5

@@ -115,9 +115,10 @@ class SimVehicle(Simulator):
 
     The keyword arguments ``speed``, ``climb_rate``, ``descent_rate`` and ``rtl_altitude``
     (and ``system_id``) are the initial values of the ArduCopter parameters that hold them
-    (``WPNAV_SPEED``, ``WPNAV_SPEED_UP``, ``WPNAV_SPEED_DN`` and ``LAND_SPEED``, ``RTL_ALT``,
-    ``SYSID_THISMAV``); ``params`` is applied over them, and the ``params_file`` over that
-    (it is the vehicle's stored configuration, as ArduPilot's EEPROM).
+    (``WPNAV_SPEED``, ``WPNAV_SPEED_UP``, ``WPNAV_SPEED_DN``, ``RTL_ALT``, ``SYSID_THISMAV``;
+    their defaults are ArduCopter's: 10, 2.5 and 1.5 m/s, 15 m); ``params`` is applied over
+    them, and the ``params_file`` over that (it is the vehicle's stored configuration, as
+    ArduPilot's EEPROM).
 
     Args:
         name: For thread names and logs.
@@ -137,7 +138,9 @@ class SimVehicle(Simulator):
         min_arm_battery: Below this charge (%) arming is refused.
         speed: Horizontal speed, m/s (``WPNAV_SPEED``).
         climb_rate: Vertical speed up, m/s (``WPNAV_SPEED_UP``).
-        descent_rate: Vertical speed down, m/s (``WPNAV_SPEED_DN`` and ``LAND_SPEED``).
+        descent_rate: Vertical speed down, m/s (``WPNAV_SPEED_DN``; the landing's last
+            ``LAND_ALT_LOW`` is flown at ``LAND_SPEED``, ArduCopter's 0.5 m/s unless ``params``
+            says otherwise).
         tau: Time constant of the position model, s.
         rtl_altitude: Minimum altitude above home for the flight home in RTL, m (``RTL_ALT``).
         drain_idle: Battery drain while armed on the ground, %/s.
@@ -174,7 +177,7 @@ class SimVehicle(Simulator):
         battery: float = 100.0,
         cells: int = 4,
         min_arm_battery: float = 20.0,
-        speed: float = 5.0,
+        speed: float = 10.0,
         climb_rate: float = 2.5,
         descent_rate: float = 1.5,
         tau: float = 1.0,

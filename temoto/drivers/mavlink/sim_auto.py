@@ -31,6 +31,8 @@ _NAV_CMDS: Final = {
     p.MAV_CMD_NAV_TAKEOFF: "takeoff",
 }
 
+_AUTO_OPTION_TAKEOFF_NO_THROTTLE: Final = 2  # AUTO_OPTIONS bit 1
+
 _NAV_LAST: Final = 95  # ArduPilot: command ids below MAV_CMD_NAV_LAST are navigation commands
 
 
@@ -148,6 +150,7 @@ class AutoMission:
             if self.state.armed:
                 self._start_command(self.state.mis_index)
             return
+        self._lift_off()
         if not self._nav_done(nav):
             return
         seq = int(nav["seq"])
@@ -208,10 +211,25 @@ class AutoMission:
             if item.z == 0:
                 up = self.state.pos[2]  # ArduCopter: altitude 0 keeps the current one
             nav["target"] = [north, east, max(up, 0.5)]
-        if not self.state.airborne and kind != "rtl" and kind != "land":
-            self.state.airborne = True
-            self.state.landed_state = p.MAV_LANDED_STATE_TAKEOFF
         self.state.nav = nav
+        self._lift_off()
+
+    def _lift_off(self) -> None:
+        """Leave the ground for the running NAV command once ArduCopter would spool up.
+
+        ArduCopter's ``ModeAuto::takeoff_run`` sets ``auto_armed`` itself only with
+        ``AUTO_OPTIONS`` bit 1 (AllowTakeOffWithoutRaisingThrottle); otherwise the takeoff
+        waits on the ground until the throttle is raised or MAV_CMD_MISSION_START is sent.
+        """
+        nav, state = self.state.nav, self.state
+        if nav is None or state.airborne or not state.armed or nav["kind"] in ("rtl", "land"):
+            return
+        no_throttle = round(state.value("AUTO_OPTIONS")) & _AUTO_OPTION_TAKEOFF_NO_THROTTLE
+        if nav["kind"] == "takeoff" and no_throttle:
+            state.auto_armed = True
+        if state.auto_armed:
+            state.airborne = True
+            state.landed_state = p.MAV_LANDED_STATE_TAKEOFF
 
     def _nav_done(self, nav: dict[str, Any]) -> bool:
         kind = nav["kind"]

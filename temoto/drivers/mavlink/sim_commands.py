@@ -352,8 +352,10 @@ class CommandHandler:
             if prm[0] != 0 or prm[1] != 0:
                 return p.MAV_RESULT_DENIED, []  # first/last item: not supported
             result = self.flight.set_mode("AUTO")
-            if result == p.MAV_RESULT_ACCEPTED and self.state.mis_state != p.MISSION_STATE_ACTIVE:
-                self.auto.start_or_resume()
+            if result == p.MAV_RESULT_ACCEPTED:
+                self.state.auto_armed = True  # GCS_MAVLINK_Copter: as if the throttle was raised
+                if self.state.mis_state != p.MISSION_STATE_ACTIVE:
+                    self.auto.start_or_resume()
             return result, []
         if cmd == p.MAV_CMD_DO_SET_MISSION_CURRENT:
             result = self.auto.set_current(int(prm[0]), reset=prm[1] == 1.0)

@@ -84,6 +84,8 @@ class FlightModel:
         return max(self.state.value("LAND_SPEED"), 30.0) / 100.0
 
     def _step(self, dt: float) -> None:
+        if not self.state.armed:
+            self.state.auto_armed = False  # Copter::update_auto_armed: disarmed, never auto-armed
         target = self._goal()
         if target is not None:
             desired = [(target[i] - self.state.pos[i]) / self.state.tau for i in range(3)]
@@ -250,6 +252,7 @@ class FlightModel:
             )
             return p.MAV_RESULT_FAILED
         self.state.airborne = True
+        self.state.auto_armed = True  # Mode::do_user_takeoff
         self.state.landed_state = p.MAV_LANDED_STATE_TAKEOFF
         self.state.target = [
             self.state.pos[0],

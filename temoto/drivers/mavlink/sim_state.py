@@ -131,7 +131,7 @@ class VehicleState:
         min_arm_battery: Below this charge (%) arming is refused.
         speed: ``WPNAV_SPEED`` in m/s.
         climb_rate: ``WPNAV_SPEED_UP`` in m/s.
-        descent_rate: ``WPNAV_SPEED_DN`` in m/s.
+        descent_rate: ``WPNAV_SPEED_DN`` in m/s (``LAND_SPEED`` is a parameter, 0.5 m/s).
         tau: Time constant of the position model, s.
         rtl_altitude: ``RTL_ALT`` in m.
         drain_idle: Battery drain armed on the ground, %/s.
@@ -157,7 +157,7 @@ class VehicleState:
         battery: float = 100.0,
         cells: int = 4,
         min_arm_battery: float = 20.0,
-        speed: float = 5.0,
+        speed: float = 10.0,
         climb_rate: float = 2.5,
         descent_rate: float = 1.5,
         tau: float = 1.0,
@@ -190,7 +190,6 @@ class VehicleState:
             "WPNAV_SPEED": speed * 100.0,
             "WPNAV_SPEED_UP": climb_rate * 100.0,
             "WPNAV_SPEED_DN": descent_rate * 100.0,
-            "LAND_SPEED": descent_rate * 100.0,
             "RTL_ALT": rtl_altitude * 100.0,
             "SYSID_THISMAV": float(system_id),
         }
@@ -242,6 +241,10 @@ class VehicleState:
         self.vel = [0.0, 0.0, 0.0]
         self.yaw = 0.0
         self.airborne = False
+        # ArduCopter's ap.auto_armed: the pilot raised the throttle, or something stood in for
+        # it (a GUIDED takeoff, MAV_CMD_MISSION_START, AUTO_OPTIONS bit 1); AUTO leaves the
+        # ground only then. No RC here: the throttle is never raised
+        self.auto_armed = False
         self.target: list[float] | None = None
         self.landing = False  # descending to land (LAND, RTL's or AUTO's landing)
         self.landed_state = p.MAV_LANDED_STATE_ON_GROUND
@@ -254,7 +257,7 @@ class VehicleState:
         self.rtl_arrived: float | None = None
         self.speed_override: dict[str, float] = {}
         # missions
-        self.plans = MissionService(self.codec.encode, self.home_item)
+        self.plans = MissionService(self.codec.encode, self.home_item, self.flying_mission)
         self.mis_index = 0  # the current mission command (0: none yet)
         self.mis_state = p.MISSION_STATE_NO_MISSION
         self.nav: dict[str, Any] | None = None  # the running navigation command
@@ -323,6 +326,10 @@ class VehicleState:
         """Home in the local frame: north, east, up, m."""
         north, east = self.local(self.home[0], self.home[1])
         return north, east, self.home_up()
+
+    def flying_mission(self) -> bool:
+        """Whether the mission runs (AUTO, started): ``AP_Mission``'s MISSION_RUNNING."""
+        return self.mode == "AUTO" and self.mis_state == p.MISSION_STATE_ACTIVE
 
     def home_item(self) -> MissionItem:
         """Home as mission item 0."""

@@ -42,6 +42,9 @@ _HW_SENSOR: Final = {"overheat": "MOTOR_OUTPUTS", "overload": "PROPULSION", "vol
 
 _UINT16_MAX: Final = 65535
 
+_FENCE_ALT_CIRCLE: Final = 1 | 2 | 8  # FENCE_TYPE bits: altitude max, circle, altitude min
+_FENCE_POLYGON: Final = 4
+
 _PARAMS_PER_STEP: Final = 5  # PARAM_VALUEs of a list download per model step (ArduPilot: 5)
 
 _EKF_FLAGS: Final = 0x33F  # attitude, velocities, positions rel/abs, vertical, predicted
@@ -252,9 +255,23 @@ class VehicleTelemetry:
             enabled = bits | (prearm if self.state.value("ARMING_CHECK") != 0 else 0)
             if self.state.armed or self.state.prearm_failure() is None:
                 health |= prearm  # MAVLink: always healthy when armed
+            present = bits | prearm
+            # ArduPilot's AC_Fence::sys_status_present/enabled/failed: present when FENCE_TYPE
+            # names a circle or altitude fence (or a polygon with points), enabled when
+            # FENCE_ENABLE is set and FENCE_ACTION is not 0 (report only), failed only on a
+            # breach (none simulated: always healthy)
+            fence = p.MAV_SYS_STATUS_GEOFENCE
+            types = round(self.state.value("FENCE_TYPE"))
+            if types & _FENCE_ALT_CIRCLE or (
+                types & _FENCE_POLYGON and self.state.plans.count(p.MAV_MISSION_TYPE_FENCE)
+            ):
+                present |= fence
+                health |= fence
+                if self.state.value("FENCE_ENABLE") and self.state.value("FENCE_ACTION"):
+                    enabled |= fence
             return enc(
                 "SYS_STATUS",
-                onboard_control_sensors_present=bits | prearm,
+                onboard_control_sensors_present=present,
                 onboard_control_sensors_enabled=enabled,
                 onboard_control_sensors_health=health,
                 load=250,
