@@ -59,7 +59,9 @@ that MAVProxy, QGroundControl, MAVSDK and a pymavlink ground station work with i
   ``BATT_FS_CRT_ACT`` (0 none, 1 LAND, 2 RTL, 3 RTL, 4 LAND, 5 disarm, 6 RTL, 7 BRAKE);
   both latch. Each datagram received is parsed on its own.
 * A first-order kinematic model stepped on the injected clock at ``step_rate`` Hz: the
-  position approaches its target with time constant ``tau``, limited to ``WPNAV_SPEED``
+  position approaches its target with time constant ``tau``, its horizontal acceleration
+  bounded by the lean limit ``ANGLE_MAX`` (g·tan(angle); ATTITUDE leans within it), limited to
+  ``WPNAV_SPEED``
   horizontally (``RTL_SPEED`` in RTL, a DO_CHANGE_SPEED in AUTO/GUIDED), ``WPNAV_SPEED_UP`` up
   and ``WPNAV_SPEED_DN`` down; LAND descends at ``LAND_SPEED_HIGH`` (0: ``WPNAV_SPEED_DN``)
   above ``LAND_ALT_LOW`` and ``LAND_SPEED`` below, and disarms on touchdown; RTL climbs to

@@ -88,22 +88,34 @@ class FlightModel:
             self.state.auto_armed = False  # Copter::update_auto_armed: disarmed, never auto-armed
         target = self._goal()
         if target is not None:
-            desired = [(target[i] - self.state.pos[i]) / self.state.tau for i in range(3)]
+            pos, vel = self.state.pos, self.state.vel
+            desired = [(target[i] - pos[i]) / self.state.tau for i in range(3)]
             horizontal = math.hypot(desired[0], desired[1])
-            speed = self._h_speed()
+            # the lean angle bounds the horizontal acceleration, so the speed is also bounded
+            # by what can still stop at the target (no overshoot): sqrt(2 a d)
+            accel = self.state.max_accel()
+            distance = math.hypot(target[0] - pos[0], target[1] - pos[1])
+            speed = min(self._h_speed(), math.sqrt(2.0 * accel * distance))
             if horizontal > speed:
                 desired[0] *= speed / horizontal
                 desired[1] *= speed / horizontal
+            change = math.hypot(desired[0] - vel[0], desired[1] - vel[1])
+            if change > accel * dt:
+                scale = accel * dt / change
+                desired[0] = vel[0] + (desired[0] - vel[0]) * scale
+                desired[1] = vel[1] + (desired[1] - vel[1]) * scale
+            self.state.accel = [(desired[0] - vel[0]) / dt, (desired[1] - vel[1]) / dt]
             desired[2] = _clamp(desired[2], -self._down_speed(), self._up_speed())
             if self.state.landing:
-                desired[2] = -self._land_speed() if self.state.pos[2] > 0.0 else 0.0
+                desired[2] = -self._land_speed() if pos[2] > 0.0 else 0.0
             self.state.vel = desired
             for i in range(3):
-                self.state.pos[i] += desired[i] * dt
+                pos[i] += desired[i] * dt
             if math.hypot(desired[0], desired[1]) > 0.5:
                 self.state.yaw = math.atan2(desired[1], desired[0])
         else:
             self.state.vel = [0.0, 0.0, 0.0]
+            self.state.accel = [0.0, 0.0]
         if self.state.pos[2] <= 0.0:
             self.state.pos[2] = 0.0
             if (

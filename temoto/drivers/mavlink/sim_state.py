@@ -46,11 +46,12 @@ from temoto.drivers.mavlink.sim_params import (
     stored_value,
 )
 
-__all__ = ["DEFAULT_RATES", "EARTH_RADIUS", "HW_TEXT", "STREAM_GROUPS", "VehicleState"]
+__all__ = ["DEFAULT_RATES", "EARTH_RADIUS", "GRAVITY", "HW_TEXT", "STREAM_GROUPS", "VehicleState"]
 
 logger = logging.getLogger(__name__)
 
 EARTH_RADIUS: Final = 6_378_137.0  # m, WGS-84 equatorial
+GRAVITY: Final = 9.80665  # m/s², ArduPilot's GRAVITY_MSS
 
 #: Messages the simulator streams, and their default rates (Hz).
 DEFAULT_RATES: Final[Mapping[str, float]] = {
@@ -239,6 +240,7 @@ class VehicleState:
         self.mode = "STABILIZE"
         self.pos = [0.0, 0.0, 0.0]  # north, east, up (m from the origin: home at start)
         self.vel = [0.0, 0.0, 0.0]
+        self.accel = [0.0, 0.0]  # horizontal acceleration of the last model step, m/s²
         self.yaw = 0.0
         self.airborne = False
         # ArduCopter's ap.auto_armed: the pilot raised the throttle, or something stood in for
@@ -326,6 +328,14 @@ class VehicleState:
         """Home in the local frame: north, east, up, m."""
         north, east = self.local(self.home[0], self.home[1])
         return north, east, self.home_up()
+
+    def max_lean(self) -> float:
+        """ArduCopter's lean angle limit, rad: ``ANGLE_MAX`` (cdeg, its range 10..80 deg)."""
+        return math.radians(min(max(self.value("ANGLE_MAX"), 1000.0), 8000.0) / 100.0)
+
+    def max_accel(self) -> float:
+        """The horizontal acceleration the lean limit allows, m/s²: g·tan(``ANGLE_MAX``)."""
+        return GRAVITY * math.tan(self.max_lean())
 
     def flying_mission(self) -> bool:
         """Whether the mission runs (AUTO, started): ``AP_Mission``'s MISSION_RUNNING."""

@@ -18,7 +18,7 @@ from collections.abc import Iterable, Mapping
 from typing import Final
 
 from temoto.drivers.mavlink import protocol as p
-from temoto.drivers.mavlink.sim_state import DEFAULT_RATES, VehicleState
+from temoto.drivers.mavlink.sim_state import DEFAULT_RATES, GRAVITY, VehicleState
 
 __all__ = ["VehicleTelemetry"]
 
@@ -233,14 +233,20 @@ class VehicleTelemetry:
             )
         if name == "ATTITUDE":
             cos_y, sin_y = math.cos(self.state.yaw), math.sin(self.state.yaw)
-            forward = self.state.vel[0] * cos_y + self.state.vel[1] * sin_y
-            right = -self.state.vel[0] * sin_y + self.state.vel[1] * cos_y
+            vel, acc = self.state.vel, self.state.accel
+            # the tilt that accelerates it (atan(a/g)), plus a stand-in for the tilt against
+            # drag at speed, within ANGLE_MAX (ArduCopter's lean limit)
+            lean = self.state.max_lean()
+            forward = math.atan((acc[0] * cos_y + acc[1] * sin_y) / GRAVITY)
+            forward += 0.03 * (vel[0] * cos_y + vel[1] * sin_y)
+            right = math.atan((-acc[0] * sin_y + acc[1] * cos_y) / GRAVITY)
+            right += 0.03 * (-vel[0] * sin_y + vel[1] * cos_y)
             yaw = math.atan2(sin_y, cos_y)
             return enc(
                 "ATTITUDE",
                 time_boot_ms=boot_ms,
-                roll=0.03 * right,
-                pitch=-0.03 * forward,
+                roll=min(max(right, -lean), lean),
+                pitch=-min(max(forward, -lean), lean),
                 yaw=yaw,
                 rollspeed=0.0,
                 pitchspeed=0.0,

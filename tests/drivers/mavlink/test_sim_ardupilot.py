@@ -7,6 +7,8 @@ are named per test (ArduPilot master: ``AP_Mission``, ``ArduCopter/mode_auto.cpp
 
 from __future__ import annotations
 
+import itertools
+import math
 from typing import Any
 
 import pytest
@@ -290,3 +292,32 @@ def test_navigation_defaults_are_arducopters() -> None:
     assert vehicle.param("WPNAV_SPEED_UP") == 250.0
     assert vehicle.param("WPNAV_SPEED_DN") == 150.0
     assert vehicle.param("LAND_SPEED") == 50.0
+
+
+# ---- ANGLE_MAX: the lean angle limits the attitude and so the acceleration
+
+
+@pytest.mark.parametrize("angle_max", [1000, 3000])
+def test_angle_max_bounds_the_lean_and_the_acceleration(angle_max: int) -> None:
+    vehicle = _vehicle(ANGLE_MAX=angle_max)
+    lean = math.radians(angle_max / 100.0)
+    accel = 9.80665 * math.tan(lean)  # what the lean can give: g·tan(angle)
+    _mode(vehicle, "GUIDED")
+    _arm(vehicle)
+    _handle(vehicle, _command(p.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 10))
+    _run(vehicle, 15.0)
+    lat, lon, _ = vehicle.position()
+    _handle(vehicle, _command(p.MAV_CMD_DO_REPOSITION, -1, 0, 0, 0, lat + 0.001, lon, 498.0))
+    speeds, pitches = [], []
+    for _ in range(200):  # 20 s in 0.1 s steps: speed up, cruise, brake, arrive
+        _run(vehicle, 0.1)
+        with vehicle.state.lock:
+            speeds.append(math.hypot(*vehicle.state.vel[:2]))
+            pitches.append(_decode([vehicle.telemetry.frame("ATTITUDE", 0.0)])[0])
+    assert speeds[9] <= accel * 1.0 + 1e-6  # 1 s after the start
+    changes = [abs(b - a) / 0.1 for a, b in itertools.pairwise(speeds)]
+    assert max(changes) <= accel + 1e-6
+    assert max(abs(m.get_float("pitch")) for m in pitches) <= lean + 1e-6
+    assert max(abs(m.get_float("pitch")) for m in pitches) > 0.5 * lean  # it does lean
+    north = math.radians(vehicle.position()[0] - lat) * 6_378_137.0
+    assert north == pytest.approx(111.3, abs=0.5)  # arrived, no overshoot
