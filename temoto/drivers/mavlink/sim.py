@@ -23,15 +23,18 @@ that MAVProxy, QGroundControl, MAVSDK and a pymavlink ground station work with i
   (the vehicle has no files), so MAVProxy's ``param fetch`` falls back to PARAM_REQUEST_LIST
   at once.
 * The mission protocol (:class:`~temoto.drivers.mavlink.sim_mission.MissionService`: upload
-  and download with MISSION_INT or the legacy messages, CLEAR_ALL, fence and rally plans
-  stored), MISSION_SET_CURRENT and ``MAV_CMD_DO_SET_MISSION_CURRENT``, MISSION_CURRENT
-  (streamed and on every change), MISSION_ITEM_REACHED. The guided forms of MISSION_ITEM(_INT)
+  and download with MISSION_INT or the legacy messages, CLEAR_ALL (refused while the mission
+  flies), fence and rally plans stored), MISSION_SET_CURRENT and
+  ``MAV_CMD_DO_SET_MISSION_CURRENT``, MISSION_CURRENT (streamed and on every change),
+  MISSION_ITEM_REACHED. The guided forms of MISSION_ITEM(_INT)
   (``current`` 2: fly there, 3: change altitude) act in GUIDED.
 * AUTO flies the mission: NAV_TAKEOFF, NAV_WAYPOINT (acceptance radius: param2, else
   ``WPNAV_RADIUS``; hold: param1 s), NAV_LOITER_TIME, NAV_LOITER_UNLIM, NAV_LAND,
   NAV_RETURN_TO_LAUNCH, DO_CHANGE_SPEED and DO_JUMP; other commands are skipped. Entering AUTO
   needs a mission and, armed on the ground, a NAV_TAKEOFF first ("Auto: Missing Takeoff
-  Cmd"); arming in AUTO needs ``AUTO_OPTIONS`` bit 0, as in ArduCopter;
+  Cmd"); arming in AUTO needs ``AUTO_OPTIONS`` bit 0, as in ArduCopter; a takeoff from the
+  ground waits for the throttle (never raised: no RC) unless ``AUTO_OPTIONS`` bit 1, a GUIDED
+  takeoff before or ``MAV_CMD_MISSION_START`` stands in for it (``ModeAuto::takeoff_run``);
   ``MAV_CMD_MISSION_START`` switches to AUTO and starts a stopped mission. At the end of the
   mission the vehicle holds in the air, or disarms on the ground.
 * A COMMAND_ACK for every COMMAND_LONG and COMMAND_INT addressed to the autopilot (component 1
