@@ -247,8 +247,8 @@ def test_a_vehicle_switching_to_rtl_on_its_own_ends_the_flight_with_the_reason(
     ) as engine:
         engine.start(graph("fly", "FlyTo", _far(sim, 2000.0)))
         until(lambda: _speed(sim) > 1.0, "the vehicle did not fly")
-        with sim._lock:  # a pilot's switch, or a failsafe's: the vehicle changes mode itself
-            sim._set_mode("RTL")
+        with sim.state.lock:  # a pilot's switch, or a failsafe's: the vehicle changes mode itself
+            sim.flight.set_mode("RTL")
         t0 = clock.monotonic()
         assert engine.wait("fly", WAIT) is Result.ERROR
         took = clock.monotonic() - t0
