@@ -98,9 +98,6 @@ FRIENDS: dict[tuple[str, str], str] = {
             "timer",
         )
     },
-    ("temoto.drivers.mavlink.sim", "from temoto.drivers.mavlink.sim_state import _HW_TEXT"): (
-        "being refactored on branch h/mavsim"
-    ),
 }
 
 #: Logger names other than a module's ``__name__``: each documented, and why it is not one.
@@ -116,9 +113,6 @@ KNOWN_LOGGERS: dict[tuple[str, str], str] = {
     ("temoto.core.evolution", "temoto.core.engine"): "being refactored on branch h/engine",
     ("temoto.managers.robot.__main__", "temoto.robot"): "being refactored on branch h/sigterm",
     ("temoto._cli_run", "temoto.cli"): "being refactored on branch h/sigterm",
-    ("temoto.drivers.mavlink.sim_state", "temoto.drivers.mavlink.sim"): (
-        "being refactored on branch h/mavsim"
-    ),
 }
 
 
