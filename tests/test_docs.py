@@ -308,7 +308,6 @@ PENDING = {
     "temoto/_cli_run.py",
     "temoto/_cli_router.py",
     "temoto/managers/robot/__main__.py",
-    "temoto/drivers/mavlink/sim.py",
     "temoto/core/shared.py",
     "temoto/core/evolution.py",
 }

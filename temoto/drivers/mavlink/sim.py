@@ -1,4 +1,4 @@
-"""A simulated ArduCopter on UDP: the vehicle's side of MAVLink 2 (STYLE §3.7).
+"""A simulated ArduCopter on UDP: the vehicle's side of MAVLink 2 (docs/development.md §6).
 
 :class:`SimVehicle` binds a UDP socket (on ``127.0.0.1`` unless told ``host=``) and *sends*
 to the ground stations it is given (``gcs=[(host, port)]``, like a real autopilot streaming
