@@ -50,7 +50,7 @@ from temoto.web.view import graph_view, graphs_list, to_json
 if TYPE_CHECKING:
     from temoto.core.engine import ActionEngine
 
-__all__ = ["LiveView", "Site"]
+__all__ = ["COMMANDS", "LiveView", "Site", "operator_command"]
 
 logger = logging.getLogger(__name__)
 
@@ -88,6 +88,56 @@ def _is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+#: The operator's commands: ``start`` names an indexed graph, the others a run.
+COMMANDS = ("start", *_CONTROLS)
+
+
+def operator_command(engine: ActionEngine, verb: str, target: Any) -> tuple[HTTPStatus, Any]:
+    """Carry out one operator command, with the checks of the live view's controls.
+
+    The one place the page's buttons and the Foxglove server's services
+    (:mod:`temoto.managers.visualization.commands`) start, pause, resume and stop graphs;
+    the caller has checked the token.
+
+    Args:
+        engine: The engine.
+        verb: ``start`` (``target``: an indexed graph's name), ``pause``, ``resume`` or
+            ``stop`` (``target``: a run's name).
+        target: The graph or run (anything but a non-empty string is refused).
+
+    Returns:
+        The HTTP status and the JSON answer: ``{"run": name}`` for a start,
+        ``{"run": name, "done": verb}`` for the others, ``{"error": why}`` when refused
+        (400: no name; 404: no such graph or run; 409: not in a state for it).
+
+    Raises:
+        Nothing.
+    """
+    if verb not in COMMANDS:
+        return HTTPStatus.BAD_REQUEST, {"error": f"unknown command {verb!r}"}
+    if not isinstance(target, str) or not target:
+        why = "name a graph" if verb == "start" else "name a run"
+        return HTTPStatus.BAD_REQUEST, {"error": why}
+    try:
+        if verb == "start":
+            run = engine.start(target)
+            logger.info("operator: started %s", run)
+            return HTTPStatus.OK, {"run": run}
+        if verb == "pause":
+            engine.pause(target)
+        elif verb == "resume":
+            engine.resume(target)
+        else:
+            with contextlib.suppress(TimeoutError):  # answer now; the page sees it end
+                engine.stop(target, timeout=0.0)
+    except GraphNotFoundError as err:
+        return HTTPStatus.NOT_FOUND, {"error": str(err)}
+    except TemotoError as err:  # not RUNNING, already active, a bad graph, ...
+        return HTTPStatus.CONFLICT, {"error": f"{type(err).__name__}: {err}"}
+    logger.info("operator: %s %s", verb, target)
+    return HTTPStatus.OK, {"run": target, "done": verb}
 
 
 class _Server(ThreadingHTTPServer):
@@ -396,34 +446,15 @@ class LiveView(Site):
         return True
 
     def _post(self, handler: _Handler, path: str, body: dict[str, Any]) -> bool:
-        engine = self.engine
-        try:
-            if path == "/api/start":
-                graph = body.get("graph")
-                if not isinstance(graph, str) or not graph:
-                    handler.send_json(HTTPStatus.BAD_REQUEST, {"error": "name a graph"})
-                    return True
-                run = engine.start(graph)
-                logger.info("live view: started %s", run)
-                handler.send_json(HTTPStatus.OK, {"run": run})
-                return True
-            name, _, verb = path[len(_GRAPH_PREFIX) :].rpartition("/")
-            if not path.startswith(_GRAPH_PREFIX) or not name or verb not in _CONTROLS:
-                return False
-            name = unquote(name)
-            if verb == "pause":
-                engine.pause(name)
-            elif verb == "resume":
-                engine.resume(name)
-            else:
-                with contextlib.suppress(TimeoutError):  # answer now; the page sees it end
-                    engine.stop(name, timeout=0.0)
-            logger.info("live view: %s %s", verb, name)
-            handler.send_json(HTTPStatus.OK, {"run": name, "done": verb})
-        except GraphNotFoundError as err:
-            handler.send_json(HTTPStatus.NOT_FOUND, {"error": str(err)})
-        except TemotoError as err:  # not RUNNING, already active, a bad graph, ...
-            handler.send_json(HTTPStatus.CONFLICT, {"error": f"{type(err).__name__}: {err}"})
+        if path == "/api/start":
+            status, answer = operator_command(self.engine, "start", body.get("graph"))
+            handler.send_json(status, answer)
+            return True
+        name, _, verb = path[len(_GRAPH_PREFIX) :].rpartition("/")
+        if not path.startswith(_GRAPH_PREFIX) or not name or verb not in _CONTROLS:
+            return False
+        status, answer = operator_command(self.engine, verb, unquote(name))
+        handler.send_json(status, answer)
         return True
 
     def close(self) -> None:

@@ -254,3 +254,72 @@ def test_demo_2_shows_the_escorts_camera_on_the_same_display_in_foxglove() -> No
             proc.wait()
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+def test_the_robot_commands_foxglove_commands_need_the_flag_and_the_token() -> None:
+    """``--foxglove-commands``: the services are offered, and a call needs the token."""
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "temoto.managers.robot",
+            "--profile",
+            str(ARM),
+            "--local",
+            "--foxglove",
+            "0",
+            "--foxglove-commands",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(TEMOTO_FOXGLOVE_TOKEN="tok-29"),
+    )
+    try:
+        assert proc.stderr is not None
+        url, said = "", []
+        for line in proc.stderr:
+            said.append(line)
+            if line.startswith("temoto: foxglove on "):
+                url = line.split()[-1]
+                break
+        assert url.startswith("ws://127.0.0.1:"), "no foxglove line"
+        assert any("token $TEMOTO_FOXGLOVE_TOKEN" in line for line in said)  # not echoed
+        with FoxgloveClient(url) as client:
+            client.wait(lambda c: "/temoto/stop" in c.services)
+            ok, why = client.call("/temoto/stop", {"token": "nope", "graph": "x"})
+            assert not ok
+            assert "token" in why
+            ok, why = client.call("/temoto/stop", {"token": "tok-29", "graph": "x"})
+            assert not ok
+            assert "'x'" in why  # past the token: the engine has no run x
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stderr is not None:
+            proc.stderr.close()
+
+
+def test_foxglove_commands_without_foxglove_is_refused_in_one_line() -> None:
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "temoto.managers.robot",
+            "--profile",
+            str(ARM),
+            "--local",
+            "--foxglove-commands",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=_env(),
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "--foxglove-commands needs --foxglove" in proc.stderr
+    assert "Traceback" not in proc.stderr

@@ -61,7 +61,12 @@ from temoto.core.states import NodeState, Result
 from temoto.drivers import Driver, live_drivers, make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
 from temoto.managers.process import hurry_all
-from temoto.managers.visualization.live import add_foxglove_option, close_foxglove, open_foxglove
+from temoto.managers.visualization.live import (
+    add_foxglove_commands_option,
+    add_foxglove_option,
+    close_foxglove,
+    open_foxglove,
+)
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials
@@ -183,6 +188,7 @@ def _parser() -> argparse.ArgumentParser:
     add_live_view_option(p)
     add_record_option(p)
     add_foxglove_option(p)
+    add_foxglove_commands_option(p)  # issue 29 item 5
     add_fleet_options(p, "the fleet this robot joins (unless --local)")
     return p
 

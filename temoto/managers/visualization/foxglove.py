@@ -126,6 +126,9 @@ class FoxgloveServer:
         host: The address to listen on (default localhost; the protocol has no authentication).
         port: The TCP port (0: any free port; :attr:`port` says which).
         name: The server's name in its ``serverInfo``.
+        services: Declare the ``services`` capability (JSON requests), so that
+            :meth:`add_services` may advertise some (the operator's commands,
+            :mod:`~temoto.managers.visualization.commands`); off: clients can call nothing.
 
     Raises:
         ConfigError: The SDK is missing, or the server cannot listen there (the message names
@@ -133,7 +136,12 @@ class FoxgloveServer:
     """
 
     def __init__(
-        self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, *, name: str = "temoto"
+        self,
+        host: str = DEFAULT_HOST,
+        port: int = DEFAULT_PORT,
+        *,
+        name: str = "temoto",
+        services: bool = False,
     ) -> None:
         fg = import_foxglove()
         self._fg = fg
@@ -150,6 +158,8 @@ class FoxgloveServer:
                 port=port,
                 context=self._context,
                 server_listener=_listener(fg, self),
+                capabilities=[fg.websocket.Capability.Services] if services else [],
+                supported_encodings=["json"] if services else None,
             )
         except Exception as err:
             raise ConfigError(f"foxglove server on {host}:{port}: {err}") from None
@@ -243,6 +253,17 @@ class FoxgloveServer:
             self._ids.pop(int(live.channel.id()), None)
         live.channel.close()
         return True
+
+    def add_services(self, services: list[Any]) -> None:
+        """Advertise services (``foxglove.websocket.Service``) to the clients.
+
+        Args:
+            services: The services.
+
+        Raises:
+            RuntimeError: The server was made without ``services=True``, or a name is taken.
+        """
+        self._server.add_services(services)
 
     def _replay(self, channel_id: int) -> None:
         """Log a channel's last message again (a client just subscribed to it)."""
