@@ -167,6 +167,52 @@ class _Handler(BaseHTTPRequestHandler):
     timeout = 10.0
     server_version = "TeMotoLiveView"
     sys_version = ""
+    #: The methods answered (``OPTIONS`` and a 405 name them in ``Allow``).
+    allowed = "GET, HEAD, POST, OPTIONS"
+
+    def version_string(self) -> str:
+        """The Server header: the name alone (the base class adds a space and sys_version)."""
+        return self.server_version
+
+    def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
+        """Every error as JSON (``{"error": ...}``), as the API's own; never an HTML page."""
+        try:
+            status = HTTPStatus(code)
+        except ValueError:
+            status = HTTPStatus.INTERNAL_SERVER_ERROR
+        self.close_connection = True
+        self.send_json(status, {"error": message or status.phrase})
+
+    def do_HEAD(self) -> None:
+        """A GET's headers without its body (an event stream: its headers, then the end)."""
+        self.do_GET()
+
+    def do_OPTIONS(self) -> None:
+        """The methods the server answers (no CORS: another origin gets nothing more)."""
+        self.send_response(HTTPStatus.NO_CONTENT)
+        self.send_header("Allow", self.allowed)
+        self.send_header("Content-Length", "0")
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+
+    def _not_allowed(self) -> None:
+        self.close_connection = True
+        self.send_response(HTTPStatus.METHOD_NOT_ALLOWED)
+        self.send_header("Allow", self.allowed)
+        body = to_json({"error": f"{self.command} is not allowed"}).encode()
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def do_PUT(self) -> None:
+        self._not_allowed()
+
+    def do_DELETE(self) -> None:
+        self._not_allowed()
+
+    def do_PATCH(self) -> None:
+        self._not_allowed()
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the base's name
         logger.debug("%s %s", self.address_string(), format % args)
@@ -222,7 +268,8 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("X-Content-Type-Options", "nosniff")
         self.send_header("Content-Security-Policy", policy)
         self.end_headers()
-        self.wfile.write(body)
+        if self.command != "HEAD":
+            self.wfile.write(body)
 
     def send_json(self, status: HTTPStatus, answer: Any) -> None:
         """Send a JSON answer."""
@@ -244,6 +291,8 @@ class _Handler(BaseHTTPRequestHandler):
             self.send_header("Cache-Control", "no-store")
             self.send_header("X-Content-Type-Options", "nosniff")
             self.end_headers()
+            if self.command == "HEAD":
+                return
             # "hello" tells a (re)connected page to fetch fresh snapshots
             self.wfile.write(b'retry: 1000\ndata: {"kind": "hello"}\n\n')
             while True:

@@ -1,6 +1,6 @@
 "use strict";
 const SVGNS = "http://www.w3.org/2000/svg";
-const W = 150, H = 44;
+const W = 150, H = 44, MIN_SCALE = 0.9;
 const MODE = document.body.getAttribute("data-mode");
 const ACTIVE = ["RUNNING", "PAUSE_REQUESTED", "PAUSED", "STOPPING"];
 let runs = [], current = null, view = null, selected = null, pinned = false;
@@ -32,6 +32,13 @@ function clock(ms) {
 }
 function secs(s) { return s < 10 ? s.toFixed(2) + " s" : s < 100 ? s.toFixed(1) + " s"
   : Math.round(s) + " s"; }
+// a tick's time with as many decimals as its step needs (no "0.00 s" twice on a short run)
+function tickText(s, step) {
+  if (step >= 0.1) return secs(s);
+  const d = Math.min(6, Math.ceil(-Math.log10(step)) + (step * 10 ** Math.ceil(-Math.log10(step))
+    < 2 ? 1 : 0));
+  return s < 1 ? (s * 1000).toFixed(Math.max(0, d - 3)) + " ms" : s.toFixed(d) + " s";
+}
 function num(v, d) { return typeof v === "number" ? v.toFixed(d) : "\u2013"; }
 async function getJSON(url) {
   const r = await fetch(url, {cache: "no-store"});
@@ -93,6 +100,7 @@ function refresh() {
 async function loadView() {
   if (busy) { dirty = true; return; }
   busy = true;
+  let fetched = true;
   try {
     do {
       dirty = false;
@@ -102,11 +110,13 @@ async function loadView() {
       if (name === current) view = data;
     } while (dirty);
   } catch (e) {
-    // keep the last picture: the server may be gone (the header says so)
+    // keep the page as it is (the events may have moved it past the last snapshot): the
+    // server may be gone (the header says so)
+    fetched = false;
   } finally {
     busy = false;
   }
-  renderAll();
+  if (fetched) renderAll();
 }
 function renderAll() { renderHead(); renderGraph(); renderTimeline(); renderDetails();
   renderControls(); }
@@ -133,10 +143,13 @@ function applyCam() {
 function fitBox() {
   const pad = 30, gw = view.width + 2 * pad, gh = view.height + 2 * pad;
   const c = $("canvas"), cw = Math.max(c.clientWidth, 50), ch = Math.max(c.clientHeight, 50);
-  // fill the panel, but never enlarge more than 1.6 times (a 3-node graph stays readable)
-  const scale = Math.min(1.6, cw / gw, ch / gh);
+  // fill the panel, but never enlarge more than 1.6 times (a 3-node graph stays readable) nor
+  // shrink below MIN_SCALE (the text stays readable: a wide graph starts at its entry, and
+  // the rest is a drag away)
+  const scale = Math.max(MIN_SCALE, Math.min(1.6, cw / gw, ch / gh));
   const w = cw / scale, h = ch / scale;
-  return {x: -pad - (w - gw) / 2, y: -pad - (h - gh) / 2, w: w, h: h};
+  return {x: w >= gw ? -pad - (w - gw) / 2 : -pad, y: h >= gh ? -pad - (h - gh) / 2 : -pad,
+    w: w, h: h};
 }
 function zoomAt(factor, px, py) {
   const box = Object.assign({}, cam || fitted);
@@ -201,7 +214,7 @@ function renderGraph() {
     defs.append(marker);
   }
   svg.append(defs);
-  const at = {};
+  const at = {}, labels = [];
   for (const n of view.nodes) at[n.id] = n;
   for (const e of view.edges) {
     const a = at[e.from], b = at[e.to];
@@ -216,7 +229,7 @@ function renderGraph() {
       + (e.conditions.length ? "\n" + e.conditions.join("\n") : "")));
     svg.append(p);
     if (e.status === "skipped" || (e.status === "taken" && a.result)) {
-      svg.append(sv("text", {x: path.mx, y: path.my, "text-anchor": "middle", class: "elabel"},
+      labels.push(sv("text", {x: path.mx, y: path.my, "text-anchor": "middle", class: "elabel"},
         e.status === "skipped" ? "skipped" : a.result));
     }
   }
@@ -233,12 +246,13 @@ function renderGraph() {
     g.append(sv("title", {}, n.id + (n.actor ? " @" + n.actor : "") + "\n" + (n.state || "")
       + (n.result ? " \u00b7 " + n.result : "")));
     g.append(sv("rect", {x: n.x - W / 2, y: n.y - H / 2, width: W, height: H, rx: 7}));
-    g.append(sv("text", {x: n.x, y: n.y - 3, "text-anchor": "middle"}, short(n.label, 21)));
+    g.append(sv("text", {x: n.x, y: n.y - 3, "text-anchor": "middle"}, short(n.label, 19)));
     g.append(sv("text", {x: n.x, y: n.y + 13, "text-anchor": "middle", class: "state"},
       (n.state || "") + (n.result ? " \u00b7 " + n.result : "")));
     g.addEventListener("click", () => { selected = n.id; renderGraph(); renderDetails(); });
     svg.append(g);
   }
+  for (const t of labels) svg.append(t);  // over the edges and the boxes, never under them
 }
 
 // ---------------------------------------------------------------- the timeline (Gantt chart)
@@ -266,7 +280,7 @@ function renderTimeline() {
     const t = t0 + ((t1 - t0) * i) / ticks, x = X(t);
     svg.append(sv("line", {x1: x, x2: x, y1: 0, y2: height - 16, class: "gaxis"}));
     svg.append(sv("text", {x: x, y: height - 4, "text-anchor": "middle", class: "gtime"},
-      secs(t - t0)));
+      tickText(t - t0, (t1 - t0) / ticks)));
   }
   rows.forEach((node, i) => {
     const y = i * rowH + 3;
@@ -530,10 +544,29 @@ function takeToken() {
 
 // ---------------------------------------------------------------- events (live mode)
 
+// a run's state once it has ended, from its result (the engine's _end_run)
+function endedState(result) {
+  return {on_stopped: "STOPPED", on_error: "ERROR", on_halted: "HALTED"}[result] || "FINISHED";
+}
 function onEvent(ev) {
   if (ev.kind === "hello" || ev.kind === "resync") { loadRuns(); loadIndexed(); return; }
-  if (ev.kind === "graph") { refreshRuns(); }
+  if (ev.kind === "graph") {
+    // the events change the stored snapshots too, so that nothing older is drawn again when
+    // the server is gone before the next fetch
+    const state = ev.state === "ENDED" ? endedState(ev.result) : ev.state;
+    const result = ev.state === "ENDED" ? ev.result : null;
+    const r = runs.find((x) => x.name === ev.graph);
+    if (r) { r.state = state; r.result = result; renderRuns(); }
+    if (view && view.name === ev.graph && ev.state === "ENDED") {
+      view.state = state; view.result = result; renderHead(); renderControls();
+    }
+    refreshRuns();
+  }
   if (ev.graph !== current) return;
+  if (ev.kind === "node" && view && view.name === ev.graph) {
+    const n = view.nodes.find((x) => x.id === ev.node);
+    if (n) { n.state = ev.state; if (ev.result) n.result = ev.result; }
+  }
   if (ev.kind === "node") {
     for (const g of document.querySelectorAll("#svg .node")) {
       if (g.getAttribute("data-node") !== ev.node) continue;
@@ -648,6 +681,9 @@ async function loadRecording() {
   $("source").textContent = rec.source;
   $("source").setAttribute("title", rec.source + (rec.notes.length ? "\n" + rec.notes.join("\n")
     : ""));
+  // what the reader wants a person to know (a file cut short, lines skipped), on the page
+  $("notes").textContent = rec.notes.join(" \u00b7 ");
+  $("notes").setAttribute("title", rec.notes.join("\n"));
   $("slider").addEventListener("input", () => replayAt(sliderTime()));
   $("play").addEventListener("click", play);
   $("slider").value = $("slider").max;
