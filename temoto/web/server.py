@@ -9,6 +9,8 @@ on a named thread. Endpoints (see ``docs/live-view.md``):
   resources, timeline;
 * ``GET /api/indexed``: the graphs the engine can start by name;
 * ``GET /api/robot``: the Robot Manager's robot (:mod:`temoto.web.robot`), or null;
+* ``GET /api/displays``: the Visualization Manager's loaded displays with their newest
+  messages (:mod:`temoto.web.displays`), one panel each on the page;
 * ``GET /api/events``: a ``text/event-stream`` of engine events (:mod:`temoto.web.events`);
 * ``POST /api/start`` (``{"graph": name}``), ``POST /api/graphs/<run>/pause|resume|stop``:
   the controls. A write needs the view's token in the ``X-TeMoto-Token`` header (never a
@@ -43,6 +45,7 @@ from urllib.parse import unquote, urlsplit
 from temoto._closing import Closing
 from temoto.errors import ConfigError, GraphNotFoundError, TemotoError
 from temoto.web import _page
+from temoto.web.displays import DisplayWatch
 from temoto.web.events import EventHub
 from temoto.web.robot import RobotWatch
 from temoto.web.view import graph_view, graphs_list, to_json
@@ -462,6 +465,7 @@ class LiveView(Site):
         engine.add_instrument(self._hub)
         registrar = engine.registrar
         self._robot = RobotWatch(registrar, robot_period_s) if registrar is not None else None
+        self._displays = DisplayWatch(registrar) if registrar is not None else None
         self._serve()
         logger.info("live view at %s", self.base_url)
 
@@ -488,6 +492,9 @@ class LiveView(Site):
         elif path == "/api/robot":
             state = self._robot.state() if self._robot is not None else None
             handler.send_json(HTTPStatus.OK, {"robot": state})
+        elif path == "/api/displays":
+            shown = self._displays.state() if self._displays is not None else []
+            handler.send_json(HTTPStatus.OK, {"displays": shown})
         elif path == "/api/events":
             handler.stream(self._hub, self.heartbeat_s)
         else:
@@ -523,4 +530,6 @@ class LiveView(Site):
         self._hub.close()
         if self._robot is not None:
             self._robot.close()
+        if self._displays is not None:
+            self._displays.close()
         self._close_server()

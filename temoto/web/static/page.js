@@ -6,7 +6,7 @@ const ACTIVE = ["RUNNING", "PAUSE_REQUESTED", "PAUSED", "STOPPING"];
 let runs = [], current = null, view = null, selected = null, pinned = false;
 let busy = false, dirty = false, timer = null, runsTimer = null, robot = null;
 let connected = false, cam = null, fitted = null, token = "";
-let rec = null, playing = false, playTimer = null;
+let rec = null, playing = false, playTimer = null, displays = [];
 const $ = (id) => document.getElementById(id);
 
 function el(tag, attrs, text) {
@@ -350,6 +350,12 @@ function renderMap(r) {
     svg.append(sv("circle", {cx: gx, cy: gy, r: 7, class: "goal", id: "goal"}));
     svg.append(sv("path", {d: `M${gx - 4},${gy} h8 M${gx},${gy - 4} v8`, class: "goal"}));
   }
+  for (const d of displays) {  // a map display in the odometry frame: drawn over the map
+    const m = d.panel === "map" && d.messages.length ? d.messages[d.messages.length - 1] : null;
+    const p = m && typeof m.latitude !== "number" ? displayPoint(m) : null;
+    if (p) svg.append(sv("circle", {class: "overlay", cx: X(p[0]), cy: Y(p[1]), r: 6,
+      "data-display": d.name}));
+  }
   if (r.pose) {
     const deg = -r.pose.yaw * 180 / Math.PI;
     const g = sv("g", {id: "rover", transform: `translate(${X(r.pose.x)},${Y(r.pose.y)}) `
@@ -423,9 +429,127 @@ function renderRobot() {
 }
 async function pollRobot() {
   if (MODE === "live") {
-    try { robot = (await getJSON("/api/robot")).robot; renderRobot(); } catch (e) { /* kept */ }
+    try {
+      const [r, d] = await Promise.all([getJSON("/api/robot"), getJSON("/api/displays")]);
+      robot = r.robot; displays = d.displays;
+      renderRobot(); renderDisplays();
+    } catch (e) { /* kept */ }
   }
   setTimeout(pollRobot, connected ? 250 : 1000);
+}
+
+// ---------------------------------------------------------------- the loaded displays
+
+const LOG_LEVELS = ["", "DEBUG", "INFO", "WARNING", "ERROR", "FATAL"];
+const COLORS = ["#2f7de1", "#d63b3b", "#2fa84f", "#f59e0b", "#9333ea", "#0891b2", "#64748b"];
+// a display message's point on a map: [x, y] (odometry metres, or longitude/latitude)
+function displayPoint(m) {
+  if (m.pose && m.pose.position) return [m.pose.position.x, m.pose.position.y];
+  if (m.translation) return [m.translation.x, m.translation.y];
+  if (typeof m.latitude === "number") return [m.longitude, m.latitude];
+  return null;
+}
+function numbersIn(text) {
+  return (String(text).match(/-?\d+(?:\.\d+)?(?:e-?\d+)?/gi) || []).map(Number);
+}
+// a small line chart: one polyline per series, the y range from the data
+function plot(names, rows) {
+  const W0 = 320, H0 = 120;
+  const svg = sv("svg", {viewBox: `0 0 ${W0} ${H0}`, preserveAspectRatio: "none",
+    class: "plot"});
+  let lo = Infinity, hi = -Infinity;
+  for (const r of rows) for (const v of r) if (typeof v === "number") {
+    lo = Math.min(lo, v); hi = Math.max(hi, v); }
+  if (!isFinite(lo)) return svg;
+  if (hi - lo < 1e-6) { lo -= 0.5; hi += 0.5; }
+  const X = (i) => rows.length < 2 ? W0 : (i / (rows.length - 1)) * W0;
+  const Y = (v) => H0 - 6 - ((v - lo) / (hi - lo)) * (H0 - 12);
+  names.forEach((name, k) => {
+    const pts = [];
+    rows.forEach((r, i) => { if (typeof r[k] === "number") pts.push(X(i).toFixed(1) + ","
+      + Y(r[k]).toFixed(1)); });
+    svg.append(sv("polyline", {class: "series", "data-series": name, points: pts.join(" "),
+      stroke: COLORS[k % COLORS.length]}));
+  });
+  return svg;
+}
+function legendOf(names, last) {
+  const box = el("div", {class: "legend"});
+  names.forEach((name, k) => {
+    const s = el("span", {"data-series": name}, name + " " + num(last[k], 2));
+    s.style.setProperty("--c", COLORS[k % COLORS.length]);
+    box.append(s);
+  });
+  return box;
+}
+function mapPanel(d) {
+  const pts = d.messages.map(displayPoint).filter(Boolean);
+  const svg = sv("svg", {viewBox: "0 0 320 120", class: "track-map"});
+  if (!pts.length) return svg;
+  const b = mapBounds(pts), k = Math.min(320, 120) / b.span;
+  const X = (x) => 160 + (x - b.cx) * k, Y = (y) => 60 - (y - b.cy) * k;
+  svg.append(sv("polyline", {class: "track",
+    points: pts.map(([x, y]) => X(x).toFixed(1) + "," + Y(y).toFixed(1)).join(" ")}));
+  const [x, y] = pts[pts.length - 1];
+  svg.append(sv("circle", {class: "dmark", cx: X(x), cy: Y(y), r: 5, "data-x": x,
+    "data-y": y}));
+  return svg;
+}
+function panelBody(d) {
+  const msgs = d.messages, last = msgs.length ? msgs[msgs.length - 1] : null;
+  const out = [];
+  if (!last) { out.push(el("p", {class: "muted"}, "no message yet")); return out; }
+  if (d.panel === "plot") {
+    const names = last.name || [];
+    out.push(plot(names, msgs.map((m) => m.position || [])), legendOf(names, last.position));
+  } else if (d.panel === "map") {
+    const p = displayPoint(last);
+    out.push(mapPanel(d), el("pre", {}, p ? (typeof last.latitude === "number"
+      ? `lat ${num(p[1], 6)}  lon ${num(p[0], 6)}` : `x ${num(p[0], 2)} m  y ${num(p[1], 2)} m`)
+      + "  (" + (last.frame_id || last.parent_frame_id || "") + ")" : ""));
+  } else if (d.panel === "log") {
+    const ul = el("ul", {class: "dlog"});
+    for (const m of msgs.slice(-30).reverse()) {
+      ul.append(el("li", {}, (LOG_LEVELS[m.level] || m.level) + " " + m.name + ": "
+        + m.message));
+    }
+    out.push(ul);
+  } else if (d.panel === "text") {
+    const series = msgs.map((m) => numbersIn(m.data !== undefined ? m.data : show(m))[0]);
+    if (series.filter((v) => typeof v === "number").length > 1) {
+      out.push(plot(["value"], series.map((v) => [v])));
+    }
+    const head = last.component ? last.component + (last.robot ? " @" + last.robot : "")
+      + " \u00b7 " + last.size + " bytes\n" : "";
+    out.push(el("pre", {class: "ddata"}, head + (last.data !== undefined ? last.data
+      : show(last))));
+  } else {
+    const t = el("table");
+    for (const [k, v] of Object.entries(last)) if (k !== "timestamp") row(t, k, show(v));
+    out.push(t);
+  }
+  return out;
+}
+function renderDisplays() {
+  const box = $("displaylist");
+  $("displays").hidden = !displays.length;
+  const names = new Set(displays.map((d) => d.name));
+  for (const p of [...box.children]) {
+    if (!names.has(p.getAttribute("data-display"))) p.remove();  // released: its panel goes
+  }
+  for (const d of displays) {
+    let p = [...box.children].find((c) => c.getAttribute("data-display") === d.name);
+    if (!p) {
+      p = el("div", {class: "display", "data-display": d.name});
+      box.append(p);
+    }
+    p.setAttribute("data-panel", d.panel);
+    p.setAttribute("data-kind", d.kind);
+    clear(p);
+    const h = el("h3", {title: d.topic}, d.name);
+    h.append(el("span", {class: "dkind"}, d.kind + " \u00b7 " + d.count + " messages"));
+    p.append(h, ...panelBody(d));
+  }
 }
 
 // ---------------------------------------------------------------- the selected action

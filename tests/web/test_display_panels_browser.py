@@ -1,0 +1,105 @@
+"""The Visualization Manager's displays in the live view (issue 29 item 3), in headless Chromium.
+
+The page is opened first; then displays are loaded and released on the engine's registrar:
+a panel appears for each loaded display, drawn as its kind asks (the simulated arm's joints
+as a plot of each joint's position, an action log as its lines), and goes when the display is
+released. The robot is the simulated Dynamixel arm (``hw_profiles/sim_arm.yaml``), in-process.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import pytest
+from _cdp import Browser
+from test_live_view_browser import require_chromium
+
+from temoto import ActionEngine
+from temoto.config import load_profile
+from temoto.core.registrar import Registrar
+from temoto.managers.robot import RobotManager
+from temoto.managers.visualization import DisplayRequest, VisualizationManager
+from temoto.web import LiveView
+
+ROOT = Path(__file__).resolve().parents[2]
+WAIT = 15.0
+
+
+def _panel(name: str) -> str:
+    return f"document.querySelector('#displaylist .display[data-display={json.dumps(name)}]')"
+
+
+@pytest.mark.slow
+def test_a_panel_per_loaded_display_appears_and_goes_with_it(tmp_path: Path) -> None:
+    binary = require_chromium()
+    registrar = Registrar("display-panels")
+    robots = RobotManager(registrar, load_profile(ROOT / "hw_profiles" / "sim_arm.yaml"))
+    viz = VisualizationManager(registrar)  # no Foxglove server: the page is the only viewer
+    shot = tmp_path / "console-displays.png"
+    try:
+        with ActionEngine("sim_arm", registrar=registrar) as engine, LiveView(engine) as view:
+            browser = Browser(binary, view.url, tmp_path / "profile", tmp_path / "chromium.log")
+            try:
+                browser.wait_for("document.getElementById('conn').textContent === 'live'")
+                assert browser.evaluate("document.getElementById('displays').hidden")
+
+                joints = registrar.call("display", DisplayRequest("robot", "joints"), client="op")
+                log = registrar.call(
+                    "display",
+                    DisplayRequest("log", target="patrol", name="patrol_log"),
+                    client="op",
+                )
+                # the joints: a plot with one line per joint, with points, and a legend
+                browser.wait_for(
+                    f"{_panel('robot_joints')}?.querySelectorAll('polyline.series').length === 6"
+                    f" && {_panel('robot_joints')}.querySelector('polyline.series')"
+                    ".getAttribute('points').split(' ').length >= 3",
+                    timeout=WAIT,
+                )
+                assert browser.evaluate(f"{_panel('robot_joints')}.getAttribute('data-panel')") == (
+                    "plot"
+                )
+                series = browser.evaluate(
+                    f"[...{_panel('robot_joints')}.querySelectorAll('.legend span')]"
+                    ".map((s) => s.getAttribute('data-series'))"
+                )
+                assert series[:2] == ["shoulder_pan", "shoulder_lift"]
+                assert len(series) == 6
+                assert not browser.evaluate("document.getElementById('displays').hidden")
+
+                # the log: an action's records, as text (never markup)
+                logging.getLogger("temoto.action.patrol.Navigate_3").warning(
+                    "<b id='injected'>reached</b> waypoint 2"
+                )
+                line = browser.wait_for(
+                    f"{_panel('patrol_log')}?.querySelector('li')?.textContent", timeout=WAIT
+                )
+                assert "WARNING" in line
+                assert "<b id='injected'>reached</b> waypoint 2" in line
+                assert browser.evaluate("document.getElementById('injected')") is None
+                assert browser.evaluate(f"{_panel('patrol_log')}.getAttribute('data-panel')") == (
+                    "log"
+                )
+                browser.screenshot(shot)
+
+                # released: its panel goes, the other stays
+                registrar.release(joints.id)
+                browser.wait_for(f"{_panel('robot_joints')} === null", timeout=WAIT)
+                assert browser.evaluate(f"{_panel('patrol_log')} !== null")
+                registrar.release(log.id)
+                browser.wait_for("document.getElementById('displays').hidden", timeout=WAIT)
+                assert (
+                    browser.evaluate("document.querySelectorAll('#displaylist .display').length")
+                    == 0
+                )
+            finally:
+                browser.close()
+    finally:
+        for ref in registrar.references():
+            registrar.release(ref.id)
+        viz.shutdown()
+        robots.shutdown()
+        registrar.close()
+    assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
