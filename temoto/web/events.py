@@ -160,6 +160,7 @@ class EventHub(Instrument):
         self._closed = False
         self._timelines: dict[str, dict[str, Any]] = {}
         self._results: dict[tuple[str, str], str] = {}  # node results until their change
+        self._earlier: dict[str, dict[str, Any]] = {}  # ended runs whose name was used again
 
     # ------------------------------------------------------------------ subscribers
 
@@ -247,6 +248,43 @@ class EventHub(Instrument):
             ]
             return {"start": line["start"], "end": line["end"], "spans": spans}
 
+    def earlier_runs(self) -> list[dict[str, Any]]:
+        """The ended runs whose name a later run took (the engine forgot them), oldest first.
+
+        Returns:
+            ``[{"name": "<run> #<k>", "run": "<run>", "result", "timeline"}]``: ``k`` counts
+            the runs of that name from 1; ``timeline`` as :meth:`timeline` gives it. At most
+            ``MAX_TIMELINES`` are kept.
+
+        Raises:
+            Nothing.
+        """
+        with self._cond:
+            return [dict(e) for e in self._earlier.values()]
+
+    def _archive(self, graph: str, line: dict[str, Any]) -> None:
+        # hub lock held: an ended run's name is used again; keep its timeline under a new name
+        k = 1 + sum(1 for e in self._earlier.values() if e["run"] == graph)
+        name = f"{graph} #{k}"
+        while len(self._earlier) >= MAX_TIMELINES:
+            del self._earlier[next(iter(self._earlier))]
+        spans = [
+            {
+                "node": sp["node"],
+                "start": sp["start"],
+                "end": sp["end"],
+                "state": sp["state"],
+                "result": span_result(sp),
+            }
+            for sp in line["spans"]
+        ]
+        self._earlier[name] = {
+            "name": name,
+            "run": graph,
+            "result": line.get("result"),
+            "timeline": {"start": line["start"], "end": line["end"], "spans": spans},
+        }
+
     def _record(self, graph: str, node: str, old: str, new: str, t: float) -> None:
         # hub lock held
         line = self._timelines.get(graph)
@@ -296,7 +334,9 @@ class EventHub(Instrument):
     def graph_started(self, graph: str, t: float) -> None:
         """Publish a run's start."""
         with self._cond:
-            self._timelines.pop(graph, None)  # a name used again: a new timeline
+            old = self._timelines.pop(graph, None)  # a name used again: a new timeline
+            if old is not None and old["end"] is not None:
+                self._archive(graph, old)  # the earlier run stays listed
             self._new_timeline(graph, t)
         self._publish({"kind": "graph", "graph": graph, "state": "RUNNING", "t": t})
 
@@ -334,6 +374,7 @@ class EventHub(Instrument):
             line = self._timelines.get(graph)
             if line is not None:
                 line["end"] = t
+                line["result"] = result.value
         self._publish(
             {"kind": "graph", "graph": graph, "state": "ENDED", "result": result.value, "t": t}
         )

@@ -48,7 +48,7 @@ from temoto.web import _page
 from temoto.web.displays import DisplayWatch
 from temoto.web.events import EventHub
 from temoto.web.robot import RobotWatch
-from temoto.web.view import graph_view, graphs_list, to_json
+from temoto.web.view import edge_status, graph_picture, graph_view, graphs_list, to_json
 
 if TYPE_CHECKING:
     from temoto.core.engine import ActionEngine
@@ -91,6 +91,23 @@ def _is_loopback(host: str) -> bool:
         return ipaddress.ip_address(host).is_loopback
     except ValueError:
         return False
+
+
+#: The states of a run that has ended.
+_ENDED_STATES = frozenset({"FINISHED", "STOPPED", "ERROR", "HALTED"})
+
+
+def _state_of(result: str | None) -> str:
+    """An ended run's state from its result (as the engine's ``_end_run`` sets it)."""
+    return {"on_stopped": "STOPPED", "on_error": "ERROR", "on_halted": "HALTED"}.get(
+        result or "", "FINISHED"
+    )
+
+
+def _ended_state(picture: dict[str, Any] | None, result: str | None) -> str:
+    """An earlier run's state: its picture's if that was taken after its end."""
+    state = picture.get("state") if picture is not None else None
+    return state if state in _ENDED_STATES else _state_of(result)
 
 
 #: The operator's commands: ``start`` names an indexed graph, the others a run.
@@ -466,6 +483,11 @@ class LiveView(Site):
         registrar = engine.registrar
         self._robot = RobotWatch(registrar, robot_period_s) if registrar is not None else None
         self._displays = DisplayWatch(registrar) if registrar is not None else None
+        # the last picture of each ended run (its timeline's start, the answer), so that an
+        # earlier run of a name used again is still drawn as it ended
+        self._pictures_lock = threading.Lock()
+        self._pictures: dict[str, tuple[float | None, dict[str, Any]]] = {}
+        self._earlier: dict[str, dict[str, Any]] = {}  # by "<run> #<k>"
         self._serve()
         logger.info("live view at %s", self.base_url)
 
@@ -477,14 +499,18 @@ class LiveView(Site):
     def _get(self, handler: _Handler, path: str) -> bool:
         engine = self.engine
         if path == "/api/graphs":
-            handler.send_json(HTTPStatus.OK, graphs_list(engine))
+            handler.send_json(HTTPStatus.OK, self._graphs_list())
         elif path.startswith(_GRAPH_PREFIX) and len(path) > len(_GRAPH_PREFIX):
             name = unquote(path[len(_GRAPH_PREFIX) :])
             try:
-                answer = graph_view(engine, name, self._hub.timeline(name))
+                answer = self._graph_view(name)
             except GraphNotFoundError:
-                handler.send_json(HTTPStatus.NOT_FOUND, {"error": f"no graph run named {name!r}"})
-                return True
+                earlier = self._earlier_view(name)
+                if earlier is None:
+                    error = {"error": f"no graph run named {name!r}"}
+                    handler.send_json(HTTPStatus.NOT_FOUND, error)
+                    return True
+                answer = earlier
             handler.send_json(HTTPStatus.OK, answer)
         elif path == "/api/indexed":
             names = sorted(g.name for g in engine.indexed_graphs())
@@ -500,6 +526,118 @@ class LiveView(Site):
         else:
             return False
         return True
+
+    def _graph_view(self, name: str) -> dict[str, Any]:
+        """A run's picture; the last one served is kept (see :meth:`_graphs_list`)."""
+        self._take_earlier()
+        timeline = self._hub.timeline(name)
+        answer = graph_view(self.engine, name, timeline)
+        with self._pictures_lock:
+            self._pictures[name] = (timeline["start"] if timeline else None, answer)
+        return answer
+
+    def _take_earlier(self) -> list[dict[str, Any]]:
+        """Take in the runs the hub archived: each takes the picture kept of it (if any).
+
+        Called before a picture is replaced, so that the earlier run keeps its own.
+        """
+        earlier = self._hub.earlier_runs()
+        with self._pictures_lock:
+            for entry in earlier:
+                if entry["name"] in self._earlier:
+                    continue
+                kept = self._pictures.get(entry["run"])
+                start = entry["timeline"]["start"]
+                picture = kept[1] if kept is not None and kept[0] == start else None
+                self._earlier[entry["name"]] = {**entry, "picture": picture}
+            kept_names = {e["name"] for e in earlier}
+            for gone in [k for k in self._earlier if k not in kept_names]:
+                del self._earlier[gone]  # the hub keeps a bounded number
+        return earlier
+
+    def _graphs_list(self) -> dict[str, Any]:
+        """The engine's runs, each earlier run of a name used again just before that name's.
+
+        The engine forgets an ended run when its name is used again; the hub keeps its
+        timeline (:meth:`EventHub.earlier_runs`) and the view its last picture.
+        """
+        answer = graphs_list(self.engine)
+        earlier = self._take_earlier()
+        for run in answer["graphs"]:  # the picture of an ended run, once
+            if run["state"] in _ENDED_STATES:
+                line = self._hub.timeline(run["name"])
+                with self._pictures_lock:
+                    kept = self._pictures.get(run["name"])
+                if (
+                    kept is None
+                    or kept[1]["state"] not in _ENDED_STATES
+                    or (line is not None and kept[0] != line["start"])
+                ):
+                    with contextlib.suppress(GraphNotFoundError):
+                        self._graph_view(run["name"])
+        listed = answer["graphs"]
+        for entry in earlier:
+            with self._pictures_lock:
+                picture = self._earlier.get(entry["name"], {}).get("picture")
+            row = {
+                "name": entry["name"],
+                "state": _ended_state(picture, entry["result"]),
+                "result": entry["result"],
+                "earlier": True,
+            }
+            at = next((i for i, r in enumerate(listed) if r["name"] == entry["run"]), None)
+            listed.insert(len(listed) if at is None else at, row)
+        return answer
+
+    def _earlier_view(self, name: str) -> dict[str, Any] | None:
+        """The picture of an earlier run of a name used again (None: no such run)."""
+        self._take_earlier()
+        with self._pictures_lock:
+            entry = self._earlier.get(name)
+        if entry is None:
+            return None
+        line = entry["timeline"]
+        picture = entry["picture"]
+        last: dict[str, str] = {}
+        for span in line["spans"]:
+            last[span["node"]] = span["state"]
+        if picture is not None:  # its drawing as a page last saw it, its states as it ended
+            nodes = [
+                {**n, "state": last.get(n["id"], n["state"])} if n["kind"] == "action" else n
+                for n in picture["nodes"]
+            ]
+            states = {n["id"]: n["state"] for n in nodes}
+            edges = [
+                {**e, "status": edge_status(states.get(e["from"]), states.get(e["to"]), e)}
+                for e in picture["edges"]
+            ]
+            picture = {**picture, "nodes": nodes, "edges": edges}
+            if line["spans"]:  # each node's result is its newest span's
+                results = {sp["node"]: sp["result"] for sp in line["spans"]}
+                for n in nodes:
+                    if n["id"] in results:
+                        n["result"] = results[n["id"]]
+        else:  # not seen by a page: drawn from its timeline, without edges
+            actions = []
+            for node, state in last.items():
+                base, _, number = node.rpartition("_")
+                actions.append(
+                    {
+                        "name": base or node,
+                        "instance_id": int(number) if number.isdigit() else 0,
+                        "state": state,
+                    }
+                )
+            picture = graph_picture({"actions": actions}, None, line)
+            picture["errors"] = []
+        return {
+            **picture,
+            "name": name,
+            "state": _ended_state(picture, entry["result"]),
+            "result": entry["result"],
+            "timeline": line,
+            "earlier": True,
+        }
 
     def _post(self, handler: _Handler, path: str, body: dict[str, Any]) -> bool:
         if path == "/api/start":

@@ -22,7 +22,7 @@ from temoto.web.layout import layered_layout
 if TYPE_CHECKING:
     from temoto.core.engine import ActionEngine
 
-__all__ = ["ENTRY", "EXIT", "graph_picture", "graph_view", "graphs_list", "to_json"]
+__all__ = ["ENTRY", "EXIT", "edge_status", "graph_picture", "graph_view", "graphs_list", "to_json"]
 
 #: Names of the two pseudo-nodes drawn for ``graph_entry`` and ``graph_exit`` (no action's
 #: full name can be one of them: those end in ``_<instance id>``).
@@ -183,7 +183,7 @@ def graph_picture(
         node["layer"] = layout.layers[node["id"]]
     for edge in edges:
         edge["back"] = (edge["from"], edge["to"]) in layout.back_edges
-        edge["status"] = _edge_status(states.get(edge["from"]), states.get(edge["to"]), edge)
+        edge["status"] = edge_status(states.get(edge["from"]), states.get(edge["to"]), edge)
     return {
         "description": snapshot.get("graph_description", ""),
         "nodes": nodes,
@@ -197,7 +197,7 @@ _ENDED = frozenset({"FINISHED", "ERROR"})
 _STARTED = frozenset({"RUNNING", "PAUSE_REQUESTED", "PAUSED", "STOPPING", "FINISHED", "ERROR"})
 
 
-def _edge_status(parent: str | None, child: str | None, edge: Mapping[str, Any]) -> str:
+def edge_status(parent: str | None, child: str | None, edge: Mapping[str, Any]) -> str:
     """``taken``, ``skipped`` or ``pending``: what an edge did, from its ends' states."""
     parent_ended = edge["from"] == ENTRY or parent in _ENDED
     if not parent_ended:

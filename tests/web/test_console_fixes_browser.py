@@ -15,6 +15,7 @@ Each test opens its own Chromium (a few seconds each: ``slow``).
 from __future__ import annotations
 
 import json
+import time
 from pathlib import Path
 from typing import Any
 
@@ -86,6 +87,48 @@ def test_the_page_keeps_what_the_events_said_when_the_server_is_gone(tmp_path: P
             # a redraw (a resize) draws the same: the stored snapshot moved with the events
             browser.evaluate("window.dispatchEvent(new Event('resize')); true")
             assert _states(browser) == shown
+        finally:
+            browser.close()
+
+
+@pytest.mark.slow
+def test_a_re_run_keeps_the_earlier_run_in_the_list(tmp_path: Path) -> None:
+    binary = require_chromium()
+    with demo_engine() as demo, LiveView(demo.engine) as view:
+        browser = _browser(binary, view.url, tmp_path)
+        try:
+            browser.wait_for("document.getElementById('conn').textContent === 'live'")
+            for k in (1, 2):  # the page draws each run while it runs (half a second)
+                run = demo.engine.start(demo_graph(timer_s=0.5))
+                assert demo.engine.wait(run, timeout=WAIT) is Result.TRUE
+                # the holder is stopped after the run ends: let it finish (camera released)
+                deadline = time.monotonic() + WAIT
+                while len(demo.camera.unloads) < k:
+                    assert time.monotonic() < deadline
+                    time.sleep(0.01)
+                browser.wait_for(
+                    f"document.querySelectorAll('#runs li').length === {k}"
+                    " && [...document.querySelectorAll('#runs li .badge')]"
+                    ".every((b) => b.textContent === 'on_true')",
+                    timeout=WAIT,
+                )
+            listed = browser.evaluate(
+                "[...document.querySelectorAll('#runs li')].map((li) =>"
+                " li.getAttribute('data-run'))"
+            )
+            assert listed == ["live_demo", "live_demo #1"]  # newest first
+            browser.evaluate(
+                "document.querySelector('#runs li[data-run=\"live_demo #1\"]').click(); true"
+            )
+            browser.wait_for(
+                "document.getElementById('runname').textContent === 'live_demo #1'"
+                " && document.querySelectorAll('#svg .node').length === 4"
+            )
+            assert set(_states(browser).values()) == {
+                "FINISHED \u00b7 on_true",
+                "FINISHED \u00b7 on_stopped",
+            }
+            assert browser.evaluate("document.querySelectorAll('#svg .edge').length") == 5
         finally:
             browser.close()
 
