@@ -29,6 +29,7 @@ MAX_HISTORY: Final = 120
 PANELS: Final[dict[str, str]] = {
     "temoto.JointStates": "plot",  # each joint's position over time
     "foxglove.PoseInFrame": "map",  # an overlay on the map: the pose and its track
+    "foxglove.PosesInFrame": "map",  # a robot's path travelled: its poses are the track
     "foxglove.FrameTransform": "map",
     "foxglove.LocationFix": "map",
     "foxglove.Log": "log",

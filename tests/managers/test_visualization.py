@@ -8,7 +8,9 @@ The robot is the simulated Dynamixel arm (``hw_profiles/sim_arm.yaml``), in-proc
 from __future__ import annotations
 
 import builtins
+import itertools
 import logging
+import math
 import os
 import signal
 import threading
@@ -357,3 +359,54 @@ def test_after_a_registrar_restart_a_display_is_fatal_and_loads_afresh(
     finally:
         viz2.shutdown()
         reg2.close()
+
+
+def test_a_robots_path_display_grows_as_the_rover_drives(server: FoxgloveServer) -> None:
+    """``robot`` / ``path``: the path travelled, as ``foxglove.PosesInFrame`` (issue 29)."""
+    import yaml
+
+    from temoto import ScaledClock
+    from temoto.config import parse_profile
+
+    clock = ScaledClock(4)
+    doc = yaml.safe_load((PROFILES / "sim_rover.yaml").read_text())
+    doc["devices"]["base"]["heartbeat_period"] = 0.25  # lenient on a loaded machine
+    profile = parse_profile(doc, file="sim_rover.yaml", clock=clock)
+    request = DisplayRequest("robot", "path")
+    assert (request.name, request.kind, request.topic) == (
+        "robot_path",
+        "foxglove.PosesInFrame",
+        "/display/robot_path/path",
+    )
+    with robot_manager("test-viz-path", profile, clock) as (registrar, _robots):
+        manager = VisualizationManager(registrar, server, clock=clock)
+        try:
+            with FoxgloveClient(server.url) as client:
+                ref = registrar.call("display", request, client="op")
+                client.wait(lambda c: request.topic in c.topics(), timeout=WAIT)
+                assert client.topics()[request.topic] == "foxglove.PosesInFrame"
+                sub = client.subscribe(request.topic)
+                first = client.first_message(sub, timeout=WAIT).payload
+                assert first["frame_id"] == "odom"
+                assert len(first["poses"]) == 1  # standing still: one pose, no more messages
+                driver = RobotManagerClient(registrar).request(client="driver")
+                driver.navigate_to(0.6, 0.0).wait(WAIT * 3)
+
+                def far(c: FoxgloveClient) -> bool:
+                    mine = [m for m in c.messages if m.subscription == sub]
+                    return mine[-1].payload["poses"][-1]["position"]["x"] > 0.5
+
+                client.wait(far, timeout=WAIT)
+                path = [m for m in client.messages if m.subscription == sub][-1].payload["poses"]
+                xs = [p["position"]["x"] for p in path]
+                xy = [(p["position"]["x"], p["position"]["y"]) for p in path]
+                assert xs == sorted(xs)  # straight ahead, in order
+                assert len(path) >= 10  # a pose per 2 cm of the 0.6 m
+                steps = [math.dist(a, b) for a, b in itertools.pairwise(xy)]
+                assert min(steps) >= 0.02 - 1e-9
+                registrar.release(ref.id)
+                client.wait(lambda c: request.topic not in c.topics(), timeout=WAIT)
+        finally:
+            for ref in registrar.references():
+                registrar.release(ref.id)
+            manager.shutdown()

@@ -103,3 +103,60 @@ def test_a_panel_per_loaded_display_appears_and_goes_with_it(tmp_path: Path) -> 
         robots.shutdown()
         registrar.close()
     assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.slow
+def test_a_path_display_is_a_track_and_an_overlay_on_the_map(tmp_path: Path) -> None:
+    import yaml
+
+    from temoto import ScaledClock
+    from temoto.config import parse_profile
+    from temoto.managers.robot import RobotManagerClient
+
+    binary = require_chromium()
+    clock = ScaledClock(4)
+    doc = yaml.safe_load((ROOT / "hw_profiles" / "sim_rover.yaml").read_text())
+    doc["devices"]["base"]["heartbeat_period"] = 0.25  # lenient on a loaded machine
+    registrar = Registrar("display-path")
+    robots = RobotManager(registrar, parse_profile(doc, file="sim_rover.yaml", clock=clock))
+    viz = VisualizationManager(registrar, clock=clock)
+    try:
+        with (
+            ActionEngine("sim_rover", registrar=registrar, clock=clock) as engine,
+            LiveView(engine, robot_period_s=0.1) as view,
+        ):
+            browser = Browser(binary, view.url, tmp_path / "profile", tmp_path / "chromium.log")
+            try:
+                browser.wait_for("document.getElementById('conn').textContent === 'live'")
+                ref = registrar.call("display", DisplayRequest("robot", "path"), client="op")
+                driver = RobotManagerClient(registrar).request(client="driver")
+                assert driver.navigate_to(0.6, 0.0).wait(WAIT * 3)
+                track = browser.wait_for(
+                    f"{_panel('robot_path')}?.querySelector('polyline.track')"
+                    "?.getAttribute('points').split(' ').length >= 10"
+                    f" && {_panel('robot_path')}.getAttribute('data-panel')",
+                    timeout=WAIT,
+                )
+                assert track == "map"
+                mark = browser.evaluate(
+                    f"Number({_panel('robot_path')}.querySelector('.dmark')"
+                    ".getAttribute('data-x'))"
+                )
+                assert mark > 0.5
+                # over the robot's own map: the path and a dot at its newest pose
+                browser.wait_for(
+                    "document.querySelector('#map .overlay[data-display=\"robot_path\"]')"
+                    " !== null && document.querySelector('#map .overlay-path') !== null",
+                    timeout=WAIT,
+                )
+                registrar.release(ref.id)
+                browser.wait_for(f"{_panel('robot_path')} === null", timeout=WAIT)
+                browser.wait_for("document.querySelector('#map .overlay') === null")
+            finally:
+                browser.close()
+    finally:
+        for r in registrar.references():
+            registrar.release(r.id)
+        viz.shutdown()
+        robots.shutdown()
+        registrar.close()

@@ -54,6 +54,19 @@ INSTALL_HINT: Final = "pip install 'temoto[foxglove]'"
 _STR: Final = {"type": "string"}
 #: The displays' own schemas (the recording's are :data:`temoto.record.schemas.SCHEMAS`).
 DISPLAY_SCHEMAS: Final[dict[str, dict[str, Any]]] = {
+    "foxglove.PosesInFrame": {
+        "title": "foxglove.PosesInFrame",
+        "description": "An array of timestamped poses in a reference frame",
+        "type": "object",
+        "properties": {
+            "timestamp": SCHEMAS["foxglove.PoseInFrame"]["properties"]["timestamp"],
+            "frame_id": _STR,
+            "poses": {
+                "type": "array",
+                "items": SCHEMAS["foxglove.PoseInFrame"]["properties"]["pose"],
+            },
+        },
+    },
     "temoto.ComponentData": {
         "title": "temoto.ComponentData",
         "description": "One datagram of a component's output, as text (size: its bytes)",

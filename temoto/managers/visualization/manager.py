@@ -18,10 +18,12 @@ dependency's. The robot's messages are made by the recorder's own encoders
 from __future__ import annotations
 
 import logging
+import math
 import os
 import select
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, ClassVar, Final, cast
@@ -119,6 +121,38 @@ class Display:
                 raise TimeoutError(f"display {self.request.name}: no message in {timeout:g} s")
             assert self.first_at is not None
             return self.first_at
+
+
+#: Metres a robot moves before its path display takes another pose; the poses it keeps.
+PATH_STEP: Final = 0.02
+PATH_POSES: Final = 200
+
+
+class _Path:
+    """A robot's path travelled, as a ``foxglove.PosesInFrame`` in the odometry frame.
+
+    A pose each :data:`PATH_STEP` metres, the newest :data:`PATH_POSES`.
+    """
+
+    def __init__(self) -> None:
+        self.poses: deque[dict[str, Any]] = deque(maxlen=PATH_POSES)
+        self._last: tuple[float, float] | None = None
+
+    def sample(self, pose: tuple[float, float, float]) -> dict[str, Any] | None:
+        """Take a reading; the message to publish when the path grew (or at first), else None."""
+        x, y, yaw = pose
+        if self._last is not None and math.hypot(x - self._last[0], y - self._last[1]) < (
+            PATH_STEP
+        ):
+            return None
+        self._last = (x, y)
+        self.poses.append(
+            {
+                "position": {"x": x, "y": y, "z": 0.0},
+                "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)},
+            }
+        )
+        return {"frame_id": "odom", "poses": list(self.poses)}
 
 
 class _LogHandler(logging.Handler):
@@ -368,9 +402,14 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         period = 1.0 / request.rate_hz
         next_at = clock.monotonic()
         cond = display._cond
+        path = _Path() if request.field == "path" else None
         while not display._stopping:
             try:
-                messages = _robot_messages(robot, request.field)
+                if path is not None:
+                    message = path.sample(robot.pose())
+                    messages = [] if message is None else [("", request.kind, message)]
+                else:
+                    messages = _robot_messages(robot, request.field)
             except Exception as err:  # a device in fault: its status reaches the consumers
                 logger.debug("display %s: no sample: %s", request.name, err)
                 messages = []

@@ -19,6 +19,7 @@ DISPLAY_FIELDS: Final[dict[str, dict[str, str]]] = {
     # A robot of the Robot Manager (target: its name, "" = the manager's robot).
     "robot": {
         "pose": "foxglove.PoseInFrame",
+        "path": "foxglove.PosesInFrame",  # the path travelled: a pose per 2 cm, the newest 200
         "tf": "foxglove.FrameTransform",
         "joints": "temoto.JointStates",
         "location": "foxglove.LocationFix",

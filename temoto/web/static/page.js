@@ -353,6 +353,10 @@ function renderMap(r) {
   for (const d of displays) {  // a map display in the odometry frame: drawn over the map
     const m = d.panel === "map" && d.messages.length ? d.messages[d.messages.length - 1] : null;
     const p = m && typeof m.latitude !== "number" ? displayPoint(m) : null;
+    if (p && m.poses) {
+      svg.append(sv("polyline", {class: "overlay-path", "data-display": d.name,
+        points: trackOf(d).map(([x, y]) => X(x).toFixed(1) + "," + Y(y).toFixed(1)).join(" ")}));
+    }
     if (p) svg.append(sv("circle", {class: "overlay", cx: X(p[0]), cy: Y(p[1]), r: 6,
       "data-display": d.name}));
   }
@@ -444,6 +448,7 @@ const LOG_LEVELS = ["", "DEBUG", "INFO", "WARNING", "ERROR", "FATAL"];
 const COLORS = ["#2f7de1", "#d63b3b", "#2fa84f", "#f59e0b", "#9333ea", "#0891b2", "#64748b"];
 // a display message's point on a map: [x, y] (odometry metres, or longitude/latitude)
 function displayPoint(m) {
+  if (m.poses) return m.poses.length ? displayPoint({pose: m.poses[m.poses.length - 1]}) : null;
   if (m.pose && m.pose.position) return [m.pose.position.x, m.pose.position.y];
   if (m.translation) return [m.translation.x, m.translation.y];
   if (typeof m.latitude === "number") return [m.longitude, m.latitude];
@@ -482,8 +487,14 @@ function legendOf(names, last) {
   });
   return box;
 }
+// a map display's track: a path's poses, else the point of each message kept
+function trackOf(d) {
+  const last = d.messages.length ? d.messages[d.messages.length - 1] : null;
+  if (last && last.poses) return last.poses.map((p) => displayPoint({pose: p})).filter(Boolean);
+  return d.messages.map(displayPoint).filter(Boolean);
+}
 function mapPanel(d) {
-  const pts = d.messages.map(displayPoint).filter(Boolean);
+  const pts = trackOf(d);
   const svg = sv("svg", {viewBox: "0 0 320 120", class: "track-map"});
   if (!pts.length) return svg;
   const b = mapBounds(pts), k = Math.min(320, 120) / b.span;
