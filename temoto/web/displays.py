@@ -33,6 +33,7 @@ PANELS: Final[dict[str, str]] = {
     "foxglove.FrameTransform": "map",
     "foxglove.LocationFix": "map",
     "foxglove.Log": "log",
+    "foxglove.SceneUpdate": "scene",  # the world model's items, seen from above
     "temoto.ComponentData": "text",  # a datagram as text (numbers in it: plotted too)
     "temoto.VehicleState": "table",
     "temoto.RobotHealth": "table",

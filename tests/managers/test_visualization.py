@@ -410,3 +410,64 @@ def test_a_robots_path_display_grows_as_the_rover_drives(server: FoxgloveServer)
             for ref in registrar.references():
                 registrar.release(ref.id)
             manager.shutdown()
+
+
+def test_a_world_display_shows_the_world_models_items_as_a_scene(
+    server: FoxgloveServer,
+) -> None:
+    """``world``: the Context Manager's tree as ``foxglove.SceneUpdate`` (issue 29)."""
+    from temoto.errors import ResourceError
+    from temoto.managers.context import ContextManager
+    from temoto.managers.context.pose import Pose
+
+    registrar = Registrar("test-viz-world")
+    manager = VisualizationManager(registrar, server)
+    try:
+        with pytest.raises(ResourceError, match="needs a Context Manager"):
+            registrar.call("display", DisplayRequest("world"), client="op")
+        with ContextManager("worker", registrar=registrar) as context:
+            context.add("kitchen", "map", pose=Pose(x=10.0))
+            context.add("table", "object", parent="kitchen", pose=Pose(x=1.0, y=2.0))
+            with pytest.raises(ResourceError, match="no item 'attic'"):
+                registrar.call("display", DisplayRequest("world", target="attic"), client="op")
+            request = DisplayRequest("world", target="kitchen")
+            topic = "/display/world_kitchen_scene/scene"
+            assert (request.kind, request.topic) == ("foxglove.SceneUpdate", topic)
+            with FoxgloveClient(server.url) as client:
+                ref = registrar.call("display", request, client="op")
+                client.wait(lambda c: topic in c.topics(), timeout=WAIT)
+                assert client.topics()[topic] == "foxglove.SceneUpdate"
+                sub = client.subscribe(topic)
+                first = client.first_message(sub).payload
+                entities = {e["id"]: e for e in first["entities"]}
+                assert set(entities) == {"kitchen", "table"}
+                assert entities["kitchen"]["cubes"] == []  # a map: its name only
+                (cube,) = entities["table"]["cubes"]
+                assert cube["pose"]["position"] == {"x": 11.0, "y": 2.0, "z": 0.0}  # in world
+                assert entities["table"]["texts"][0]["text"] == "table"
+                assert {"key": "parent", "value": "kitchen"} in entities["table"]["metadata"]
+                assert first["deletions"] == []
+
+                def mine(c: FoxgloveClient) -> list[dict[str, Any]]:
+                    return [m.payload for m in c.messages if m.subscription == sub]
+
+                context.add("cup", "object", parent="table", pose=Pose(z=0.8))
+                client.wait(lambda c: any(e["id"] == "cup" for e in mine(c)[-1]["entities"]))
+                cup = next(e for e in mine(client)[-1]["entities"] if e["id"] == "cup")
+                assert cup["cubes"][0]["pose"]["position"] == {"x": 11.0, "y": 2.0, "z": 0.8}
+                context.remove("cup")
+                client.wait(lambda c: mine(c)[-1]["deletions"] != [])
+                last = mine(client)[-1]
+                assert [d["id"] for d in last["deletions"]] == ["cup"]
+                assert {e["id"] for e in last["entities"]} == {"kitchen", "table"}
+                context.add("elsewhere", "object")  # outside the subtree: not shown
+                count = len(mine(client))
+                registrar.release(ref.id)
+                client.wait(lambda c: topic not in c.topics(), timeout=WAIT)
+                assert all(
+                    "elsewhere" not in {e["id"] for e in m["entities"]}
+                    for m in mine(client)[count - 1 :]
+                )
+    finally:
+        manager.shutdown()
+        registrar.close()

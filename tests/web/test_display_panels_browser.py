@@ -139,8 +139,7 @@ def test_a_path_display_is_a_track_and_an_overlay_on_the_map(tmp_path: Path) -> 
                 )
                 assert track == "map"
                 mark = browser.evaluate(
-                    f"Number({_panel('robot_path')}.querySelector('.dmark')"
-                    ".getAttribute('data-x'))"
+                    f"Number({_panel('robot_path')}.querySelector('.dmark').getAttribute('data-x'))"
                 )
                 assert mark > 0.5
                 # over the robot's own map: the path and a dot at its newest pose
@@ -159,4 +158,52 @@ def test_a_path_display_is_a_track_and_an_overlay_on_the_map(tmp_path: Path) -> 
             registrar.release(r.id)
         viz.shutdown()
         robots.shutdown()
+        registrar.close()
+
+
+@pytest.mark.slow
+def test_a_world_display_shows_the_world_models_items(tmp_path: Path) -> None:
+    from temoto.managers.context import ContextManager
+    from temoto.managers.context.pose import Pose
+
+    binary = require_chromium()
+    registrar = Registrar("display-world")
+    viz = VisualizationManager(registrar)
+    try:
+        with (
+            ContextManager("worker", registrar=registrar) as context,
+            ActionEngine("worker", registrar=registrar) as engine,
+            LiveView(engine) as view,
+        ):
+            context.add("kitchen", "map")
+            context.add("table", "object", parent="kitchen", pose=Pose(x=1.0, y=2.0))
+            browser = Browser(binary, view.url, tmp_path / "profile", tmp_path / "chromium.log")
+            try:
+                browser.wait_for("document.getElementById('conn').textContent === 'live'")
+                ref = registrar.call("display", DisplayRequest("world"), client="op")
+                entities = (
+                    f"[...({_panel('world_scene')}?.querySelectorAll('.entity') || [])]"
+                    ".map((g) => g.getAttribute('data-entity')).sort().join(',')"
+                )
+                browser.wait_for(f"{entities} === 'kitchen,table'", timeout=WAIT)
+                assert browser.evaluate(f"{_panel('world_scene')}.getAttribute('data-panel')") == (
+                    "scene"
+                )
+                table = browser.evaluate(
+                    f"{_panel('world_scene')}.querySelector('.entity[data-entity=\"table\"]')"
+                    ".getAttribute('data-x')"
+                )
+                assert float(table) == 1.0
+                context.add("cup", "object", parent="table")
+                browser.wait_for(f"{entities} === 'cup,kitchen,table'", timeout=WAIT)
+                context.remove("cup")
+                browser.wait_for(f"{entities} === 'kitchen,table'", timeout=WAIT)
+                registrar.release(ref.id)
+                browser.wait_for(f"{_panel('world_scene')} === null", timeout=WAIT)
+            finally:
+                browser.close()
+    finally:
+        for r in registrar.references():
+            registrar.release(r.id)
+        viz.shutdown()
         registrar.close()

@@ -313,6 +313,8 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
             return f"robot {robot.name} {request.field}"
         if request.source == "component":
             return self._start_component(display)
+        if request.source == "world":
+            return self._start_world(display)
         # source "log"
         target = f"{_ACTION_LOGGER}.{request.target}" if request.target else _ACTION_LOGGER
         handler = _LogHandler(self, display)
@@ -320,6 +322,46 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         log.addHandler(handler)
         display._undo = lambda: log.removeHandler(handler)
         return f"log of {target}"
+
+    def _start_world(self, display: Display) -> str:
+        """A world display: the Context Manager's tree now, and again after every change."""
+        from temoto.errors import ContextError, ResourceError, ResourceNotFoundError
+        from temoto.managers.context.manager import ContextManager
+        from temoto.managers.visualization.scene import scene_update
+
+        try:
+            context = self.registrar.server(ContextManager.name)
+        except ResourceNotFoundError:
+            raise ResourceError(
+                f"display {display.request.name}: a world display needs a Context Manager"
+                " on this registrar"
+            ) from None
+        root = display.request.target
+        if root:
+            context.get(root)  # ContextItemNotFoundError: the load fails, naming the item
+        shown: set[str] = set()
+        lock = threading.Lock()
+
+        def send(_change: Any = None) -> None:
+            nonlocal shown
+            with lock:  # one at a time, in order (the load's thread, then the context's)
+                ns = int(self.clock.time() * 1e9)
+                try:
+                    message, shown = scene_update(context, root, shown, ns)
+                except ContextError:  # the root was removed: everything shown goes
+                    message = {
+                        "deletions": [
+                            {"timestamp": stamp(ns), "type": 0, "id": name}
+                            for name in sorted(shown)
+                        ],
+                        "entities": [],
+                    }
+                    shown = set()
+                self._publish(display, message)
+
+        display._undo = context.listen(send)
+        send()
+        return f"world model {root or '(every item)'}"
 
     def _start_component(self, display: Display) -> str:
         from temoto.managers.component.channels import ChannelReader

@@ -32,6 +32,9 @@ DISPLAY_FIELDS: Final[dict[str, dict[str, str]]] = {
     # A component's first output (target: the component type; candidate: one of its
     # descriptions, "" = the Component Manager's choice, with failover).
     "component": {"data": "temoto.ComponentData"},
+    # The world model of the Context Manager on the same registrar (target: the subtree's
+    # root item, "" = every item).
+    "world": {"scene": "foxglove.SceneUpdate"},
 }
 
 _NAME: Final = re.compile(r"[A-Za-z0-9_.-]+")

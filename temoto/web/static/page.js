@@ -506,6 +506,25 @@ function mapPanel(d) {
     "data-y": y}));
   return svg;
 }
+// a scene (the world model's items) from above: a square per item with a cube, every name
+function scenePanel(last) {
+  const svg = sv("svg", {viewBox: "0 0 320 160", class: "scene"});
+  const items = (last.entities || []).map((e) => {
+    const prim = (e.cubes && e.cubes[0]) || (e.texts && e.texts[0]);
+    const p = prim && prim.pose ? prim.pose.position : null;
+    return p ? {id: e.id, x: p.x, y: p.y, cube: !!(e.cubes && e.cubes.length)} : null;
+  }).filter(Boolean);
+  if (!items.length) return svg;
+  const b = mapBounds(items.map((i) => [i.x, i.y])), k = Math.min(320, 160) / b.span;
+  const X = (x) => 160 + (x - b.cx) * k, Y = (y) => 80 - (y - b.cy) * k;
+  for (const i of items) {
+    const g = sv("g", {class: "entity", "data-entity": i.id, "data-x": i.x, "data-y": i.y});
+    if (i.cube) g.append(sv("rect", {x: X(i.x) - 4, y: Y(i.y) - 4, width: 8, height: 8}));
+    g.append(sv("text", {x: X(i.x) + 6, y: Y(i.y) - 6}, i.id));
+    svg.append(g);
+  }
+  return svg;
+}
 function panelBody(d) {
   const msgs = d.messages, last = msgs.length ? msgs[msgs.length - 1] : null;
   const out = [];
@@ -518,6 +537,8 @@ function panelBody(d) {
     out.push(mapPanel(d), el("pre", {}, p ? (typeof last.latitude === "number"
       ? `lat ${num(p[1], 6)}  lon ${num(p[0], 6)}` : `x ${num(p[0], 2)} m  y ${num(p[1], 2)} m`)
       + "  (" + (last.frame_id || last.parent_frame_id || "") + ")" : ""));
+  } else if (d.panel === "scene") {
+    out.push(scenePanel(last), el("pre", {}, (last.entities || []).length + " items"));
   } else if (d.panel === "log") {
     const ul = el("ul", {class: "dlog"});
     for (const m of msgs.slice(-30).reverse()) {
