@@ -25,6 +25,9 @@ __all__ = ["MAX_HISTORY", "PANELS", "DisplayWatch", "panel_of"]
 #: Each display's messages the view keeps (the newest), for a plot's or a log's history.
 MAX_HISTORY: Final = 120
 
+#: The panels drawn from the newest message alone (the answer carries that one only).
+_NEWEST_ONLY: Final = frozenset({"scan", "image", "scene", "table"})
+
 #: The panel each display kind (Foxglove schema) is drawn as; any other kind: ``text``.
 PANELS: Final[dict[str, str]] = {
     "temoto.JointStates": "plot",  # each joint's position over time
@@ -34,6 +37,8 @@ PANELS: Final[dict[str, str]] = {
     "foxglove.LocationFix": "map",
     "foxglove.Log": "log",
     "foxglove.SceneUpdate": "scene",  # the world model's items, seen from above
+    "foxglove.LaserScan": "scan",  # the newest scan's points around the sensor
+    "foxglove.CompressedImage": "image",  # the newest image
     "temoto.ComponentData": "text",  # a datagram as text (numbers in it: plotted too)
     "temoto.VehicleState": "table",
     "temoto.RobotHealth": "table",
@@ -75,7 +80,8 @@ class DisplayWatch:
 
         Returns:
             ``[{"name", "kind", "panel", "source", "field", "target", "topic", "count",
-            "messages": [...]}]`` (oldest message first; at most :attr:`history`).
+            "messages": [...]}]`` (oldest message first; at most :attr:`history`; the newest
+            only for a panel drawn from it: a scan, an image, a scene, a table).
 
         Raises:
             Nothing.
@@ -97,9 +103,11 @@ class DisplayWatch:
                         kept.append(display.last)  # what it had before it was watched
             if new:  # outside our lock: the watcher runs under the display's, then takes ours
                 display.watch(self._keeper(kept))
+            request = display.request
             with self._lock:
                 messages = list(kept)
-            request = display.request
+            if panel_of(request.kind) in _NEWEST_ONLY:
+                messages = messages[-1:]
             out.append(
                 {
                     "name": name,

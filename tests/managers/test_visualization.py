@@ -471,3 +471,53 @@ def test_a_world_display_shows_the_world_models_items_as_a_scene(
     finally:
         manager.shutdown()
         registrar.close()
+
+
+def test_a_components_datagrams_are_decoded_as_a_scan_or_an_image(
+    server: FoxgloveServer, tmp_path: Path
+) -> None:
+    """A component display asked as ``foxglove.LaserScan`` or ``foxglove.CompressedImage``."""
+    import base64
+
+    from temoto.managers import ProcessManager
+    from temoto.managers.component import ComponentManager
+    from temoto.testing import sim_scanner
+
+    components_file = sim_scanner.components_file(str(tmp_path))
+    registrar = Registrar("test-viz-decode")
+    processes = ProcessManager(registrar)
+    components = ComponentManager(registrar, files=[components_file])
+    manager = VisualizationManager(registrar, server)
+    try:
+        with FoxgloveClient(server.url) as client:
+            scan = DisplayRequest("component", target="scanner", kind="foxglove.LaserScan")
+            image = DisplayRequest("component", target="camera", kind="foxglove.CompressedImage")
+            refs = [registrar.call("display", r, client="op") for r in (scan, image)]
+            client.wait(lambda c: {scan.topic, image.topic} <= set(c.topics()), timeout=WAIT)
+            assert client.topics()[scan.topic] == "foxglove.LaserScan"
+            assert client.topics()[image.topic] == "foxglove.CompressedImage"
+            got = client.first_message(client.subscribe(scan.topic), timeout=WAIT).payload
+            assert got["ranges"] == sim_scanner.RANGES
+            assert (got["start_angle"], got["end_angle"]) == (0.0, pytest.approx(math.pi))
+            assert got["frame_id"] == "lidar"
+            assert got["pose"]["orientation"]["w"] == 1.0
+            assert "seq" not in got  # only LaserScan's fields
+            shot = client.first_message(client.subscribe(image.topic), timeout=WAIT).payload
+            assert shot["format"] == "png"
+            assert base64.b64decode(shot["data"]).startswith(b"\x89PNG\r\n\x1a\n")
+            assert shot["frame_id"] == "cam"
+            # the undecodable datagrams between them were dropped, not published
+            deadline = time.monotonic() + WAIT
+            shown = manager.displays()
+            while not (shown[scan.name].dropped and shown[image.name].dropped):
+                assert time.monotonic() < deadline, "nothing dropped"
+                time.sleep(0.01)
+            assert shown[scan.name].count >= 1  # the good ones were published
+            for ref in refs:
+                registrar.release(ref.id)
+            client.wait(lambda c: not {scan.topic, image.topic} & set(c.topics()), timeout=WAIT)
+    finally:
+        manager.shutdown()
+        components.shutdown()
+        processes.shutdown(stop_processes=True)
+        registrar.close()

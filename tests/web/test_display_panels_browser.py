@@ -207,3 +207,63 @@ def test_a_world_display_shows_the_world_models_items(tmp_path: Path) -> None:
             registrar.release(r.id)
         viz.shutdown()
         registrar.close()
+
+
+@pytest.mark.slow
+def test_a_scan_and_an_image_display_are_drawn(tmp_path: Path) -> None:
+    from temoto.managers import ProcessManager
+    from temoto.managers.component import ComponentManager
+    from temoto.testing import sim_scanner
+
+    binary = require_chromium()
+    registrar = Registrar("display-scan")
+    processes = ProcessManager(registrar)
+    components = ComponentManager(registrar, files=[sim_scanner.components_file(str(tmp_path))])
+    viz = VisualizationManager(registrar)
+    try:
+        with ActionEngine("worker", registrar=registrar) as engine, LiveView(engine) as view:
+            browser = Browser(binary, view.url, tmp_path / "profile", tmp_path / "chromium.log")
+            try:
+                browser.wait_for("document.getElementById('conn').textContent === 'live'")
+                scan = DisplayRequest("component", target="scanner", kind="foxglove.LaserScan")
+                image = DisplayRequest(
+                    "component", target="camera", kind="foxglove.CompressedImage"
+                )
+                refs = [registrar.call("display", r, client="op") for r in (scan, image)]
+                ranges = browser.wait_for(
+                    f"[...({_panel(scan.name)}?.querySelectorAll('.ray') || [])]"
+                    ".map((c) => Number(c.getAttribute('data-range')))",
+                    timeout=WAIT,
+                )
+                assert ranges == sim_scanner.RANGES
+                assert browser.evaluate(f"{_panel(scan.name)}.getAttribute('data-panel')") == (
+                    "scan"
+                )
+                # the first range is straight ahead (angle 0: right of the sensor), the last
+                # behind (angle pi: left of it)
+                xs = browser.evaluate(
+                    f"[...{_panel(scan.name)}.querySelectorAll('.ray')]"
+                    ".map((c) => Number(c.getAttribute('cx')))"
+                )
+                assert xs[0] > 0 > xs[-1]
+                # the image: the camera's PNG, decoded by the browser (1x1)
+                size = browser.wait_for(
+                    f"(() => {{ const i = {_panel(image.name)}?.querySelector('img.dimage');"
+                    " return i && i.complete && i.naturalWidth ?"
+                    " [i.naturalWidth, i.naturalHeight] : null; })()",
+                    timeout=WAIT,
+                )
+                assert size == [1, 1]
+                browser.screenshot(tmp_path / "console-scan.png")
+                for ref in refs:
+                    registrar.release(ref.id)
+                browser.wait_for("document.getElementById('displays').hidden", timeout=WAIT)
+            finally:
+                browser.close()
+    finally:
+        for r in registrar.references():
+            registrar.release(r.id)
+        viz.shutdown()
+        components.shutdown()
+        processes.shutdown(stop_processes=True)
+        registrar.close()

@@ -29,6 +29,7 @@ from typing import Any, Final
 
 from temoto.clock import Clock
 from temoto.errors import ConfigError
+from temoto.managers.visualization.decode import DECODED_SCHEMAS
 from temoto.managers.visualization.scene import SCENE_SCHEMA
 from temoto.record.recorder import Recorder
 from temoto.record.schemas import SCHEMAS, schema_bytes
@@ -56,6 +57,7 @@ _STR: Final = {"type": "string"}
 #: The displays' own schemas (the recording's are :data:`temoto.record.schemas.SCHEMAS`).
 DISPLAY_SCHEMAS: Final[dict[str, dict[str, Any]]] = {
     "foxglove.SceneUpdate": SCENE_SCHEMA,
+    **DECODED_SCHEMAS,
     "foxglove.PosesInFrame": {
         "title": "foxglove.PosesInFrame",
         "description": "An array of timestamped poses in a reference frame",

@@ -36,6 +36,7 @@ from temoto.core.registrar import (
     ResourceServer,
     Status,
 )
+from temoto.managers.visualization.decode import decode
 from temoto.managers.visualization.messages import DisplayRequest, DisplayResponse
 from temoto.record.recorder import Recorder, _level
 from temoto.record.schemas import stamp
@@ -83,6 +84,7 @@ class Display:
         resource_id: Its registrar resource.
         last: Its last message (None before the first).
         count: Messages published so far.
+        dropped: Datagrams a decoding display could not decode (and did not publish).
         first_at: ``time.monotonic()`` of its first message (None before it).
     """
 
@@ -91,6 +93,7 @@ class Display:
     last: dict[str, Any] | None = None
     count: int = 0
     first_at: float | None = None
+    dropped: int = 0
     _cond: threading.Condition = field(default_factory=threading.Condition)
     _stopping: bool = False
     _thread: threading.Thread | None = None
@@ -417,6 +420,15 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
                 name, robot = str(active.name), str(active.robot)
             except Exception:  # released meanwhile
                 name, robot = request.candidate, ""
+            if request.kind != "temoto.ComponentData":  # decoded: a scan, an image
+                try:
+                    message = decode(request.kind, bytes(data), name)
+                except ValueError as err:
+                    display.dropped += 1
+                    logger.debug("display %s: datagram dropped: %s", request.name, err)
+                    continue
+                self._publish(display, message)
+                continue
             message = {
                 "type": request.target,
                 "component": name,

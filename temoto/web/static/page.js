@@ -525,6 +525,20 @@ function scenePanel(last) {
   }
   return svg;
 }
+// a laser scan around its sensor: a dot per range, the sensor at the centre
+function scanPanel(m) {
+  const svg = sv("svg", {viewBox: "-160 -80 320 160", class: "scan"});
+  const n = m.ranges.length, far = Math.max(0.5, ...m.ranges.filter((r) => r < 1e6));
+  const k = 75 / far;
+  svg.append(sv("circle", {cx: 0, cy: 0, r: 3, class: "sensor"}));
+  m.ranges.forEach((r, i) => {
+    if (!(r < 1e6)) return;  // no return
+    const a = m.start_angle + (n > 1 ? (i * (m.end_angle - m.start_angle)) / (n - 1) : 0);
+    svg.append(sv("circle", {cx: (r * Math.cos(a) * k).toFixed(1),
+      cy: (-r * Math.sin(a) * k).toFixed(1), r: 2.5, class: "ray", "data-range": r}));
+  });
+  return svg;
+}
 function panelBody(d) {
   const msgs = d.messages, last = msgs.length ? msgs[msgs.length - 1] : null;
   const out = [];
@@ -537,6 +551,14 @@ function panelBody(d) {
     out.push(mapPanel(d), el("pre", {}, p ? (typeof last.latitude === "number"
       ? `lat ${num(p[1], 6)}  lon ${num(p[0], 6)}` : `x ${num(p[0], 2)} m  y ${num(p[1], 2)} m`)
       + "  (" + (last.frame_id || last.parent_frame_id || "") + ")" : ""));
+  } else if (d.panel === "scan") {
+    out.push(scanPanel(last), el("pre", {}, last.ranges.length + " ranges \u00b7 "
+      + num(last.start_angle * 180 / Math.PI, 0) + "\u00b0 to "
+      + num(last.end_angle * 180 / Math.PI, 0) + "\u00b0 \u00b7 frame " + last.frame_id));
+  } else if (d.panel === "image") {
+    const fmt = last.format === "jpeg" ? "jpeg" : "png";
+    out.push(el("img", {class: "dimage", alt: d.name, src: `data:image/${fmt};base64,${last.data}`}),
+      el("pre", {}, fmt + " \u00b7 frame " + last.frame_id));
   } else if (d.panel === "scene") {
     out.push(scenePanel(last), el("pre", {}, (last.entities || []).length + " items"));
   } else if (d.panel === "log") {
