@@ -333,12 +333,15 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         from temoto.managers.visualization.scene import scene_update
 
         try:
-            context = self.registrar.server(ContextManager.name)
+            server = self.registrar.server(ContextManager.name)
         except ResourceNotFoundError:
+            server = None
+        if not isinstance(server, ContextManager):
             raise ResourceError(
                 f"display {display.request.name}: a world display needs a Context Manager"
                 " on this registrar"
-            ) from None
+            )
+        context = server
         root = display.request.target
         if root:
             context.get(root)  # ContextItemNotFoundError: the load fails, naming the item
