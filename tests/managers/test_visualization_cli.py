@@ -323,3 +323,73 @@ def test_foxglove_commands_without_foxglove_is_refused_in_one_line() -> None:
     assert proc.returncode == 2, proc.stderr
     assert "--foxglove-commands needs --foxglove" in proc.stderr
     assert "Traceback" not in proc.stderr
+
+
+def test_with_a_live_view_alone_a_graphs_display_is_drawn_by_the_page(tmp_path: Path) -> None:
+    """``--live-view`` without ``--foxglove``: ShowDisplay works, the page lists the display."""
+    import time
+    import urllib.request
+
+    graph = {
+        "graph_name": "show_joints",
+        "graph_entry": [{"name": "ShowDisplay", "instance_id": 0}],
+        "graph_exit": [{"name": "ShowDisplay", "instance_id": 0}],
+        "actions": [
+            {
+                "name": "ShowDisplay",
+                "instance_id": 0,
+                "type": "sync",
+                "input_parameters": {
+                    "source": {"pvf_type": "string", "pvf_value": "robot"},
+                    "field": {"pvf_type": "string", "pvf_value": "joints"},
+                    "duration": {"pvf_type": "number", "pvf_value": 4.0},
+                },
+            }
+        ],
+    }
+    mission = tmp_path / "show.graph.json"
+    mission.write_text(json.dumps(graph))
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "temoto.managers.robot",
+            "--profile",
+            str(ARM),
+            "--local",
+            "--live-view",
+            "0",
+            "--mission",
+            str(mission),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env=_env(),
+    )
+    try:
+        assert proc.stdout is not None
+        url = ""
+        for line in proc.stdout:
+            if line.startswith("live view: "):
+                url = line.split()[-1].split("?")[0]
+                break
+        assert url.startswith("http://127.0.0.1:"), "no live view line"
+        deadline = time.monotonic() + 20
+        shown: list[dict[str, Any]] = []
+        while time.monotonic() < deadline:
+            with urllib.request.urlopen(url + "api/displays", timeout=5) as answer:
+                shown = json.load(answer)["displays"]
+            if shown and shown[0]["messages"]:
+                break
+            time.sleep(0.1)
+        assert [d["name"] for d in shown] == ["robot_joints"]
+        assert shown[0]["panel"] == "plot"
+        assert shown[0]["messages"][-1]["name"][0] == "shoulder_pan"
+        assert proc.wait(30) == 0  # the mission ends on_true once the display is released
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()

@@ -53,7 +53,7 @@ from temoto._cli_fleet import (
 )
 from temoto._cli_sim import endpoint_for, parse_udp_address
 from temoto._progress import ActionLogHandler, Progress
-from temoto.actions.builtin import ROBOT_ACTIONS
+from temoto.actions.builtin import ROBOT_ACTIONS, VISUALIZATION_ACTIONS
 from temoto.clock import MonotonicClock
 from temoto.config import load_profile
 from temoto.core.documents import load_graph
@@ -275,7 +275,7 @@ def _run_instance(
         key=key,
         fleet=args.fleet,
         insecure=key is None,
-        actions=[ROBOT_ACTIONS, *args.actions],
+        actions=[ROBOT_ACTIONS, VISUALIZATION_ACTIONS, *args.actions],  # ShowDisplay too
         graphs=args.graphs,
         catalog=state.catalog,
         world=state.world,

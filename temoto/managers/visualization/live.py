@@ -87,7 +87,11 @@ def add_foxglove_commands_option(parser: argparse.ArgumentParser) -> None:
 
 @dataclass
 class LiveSession:
-    """What :func:`open_foxglove` started: the server, its recorder, the display manager."""
+    """What :func:`open_foxglove` started: the server, its recorder, the display manager.
+
+    Without ``--foxglove`` (a live view only): the manager alone, ``server`` and ``recorder``
+    None.
+    """
 
     server: Any
     recorder: Any
@@ -95,13 +99,19 @@ class LiveSession:
 
     def close(self) -> None:
         """Stop sampling and publishing, unload nothing, stop the server; idempotent."""
-        self.recorder.close()
+        if self.recorder is not None:
+            self.recorder.close()
         self.manager.shutdown()
-        self.server.close()
+        if self.server is not None:
+            self.server.close()
 
 
 def open_foxglove(args: argparse.Namespace, instance: Any, robot: Any = None) -> LiveSession | None:
-    """The live server ``--foxglove`` asks for (None if it does not), serving ``instance``.
+    """The live server ``--foxglove`` asks for, serving ``instance``; or a display manager alone.
+
+    With ``--foxglove``: the server, its recorder and a Visualization Manager. Without it, when
+    the instance has a live view (``--live-view``): a Visualization Manager with no server, so
+    that graphs can show displays (``ShowDisplay``) and the page draws them. Else None.
 
     Args:
         args: The parsed arguments (``foxglove``, ``foxglove_host``).
@@ -124,7 +134,12 @@ def open_foxglove(args: argparse.Namespace, instance: Any, robot: Any = None) ->
     if port is None:
         if commands:
             raise ConfigError("--foxglove-commands needs --foxglove")
-        return None
+        if getattr(instance, "live_view", None) is None:
+            return None
+        # a live view only: its page shows the displays (issue 29 item 3), served nowhere else
+        from temoto.managers.visualization.manager import VisualizationManager
+
+        return LiveSession(None, None, VisualizationManager(instance.registrar, None))
     from temoto.managers.visualization.foxglove import FoxgloveServer, LiveRecorder
     from temoto.managers.visualization.manager import VisualizationManager
 
