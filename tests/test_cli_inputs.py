@@ -1,4 +1,4 @@
-"""Issue 27, item 3: every bad input is one line, exit status 2, with the right words.
+"""Every bad input is one line, exit status 2, with the right words.
 
 One table: the arguments (``{tmp}`` is a folder made by :func:`inputs`), the exit status, the
 words the error must hold. Each row runs ``temoto`` in a child process (bounded in time) and

@@ -205,9 +205,6 @@ class Action(ABC):
         Returns:
             ``(result, outputs, error)``: the outputs set during the run (also after a failure;
             a shared empty dict if none, never to be mutated) and the error or None.
-
-        Raises:
-            Nothing: every exception of ``on_run`` becomes the ERROR result.
         """
         if values or self._input_params or self._output_params:
             self._begin(values)  # else: the shared empty views it holds already
@@ -234,9 +231,6 @@ class Action(ABC):
 
         Returns:
             The messages (at most :data:`LOG_LENGTH`).
-
-        Raises:
-            Nothing.
         """
         log = self._log
         # deque.copy() is one C call: safe while the action's thread appends
@@ -391,9 +385,6 @@ class Action(ABC):
 
         Returns:
             How many were released.
-
-        Raises:
-            Nothing: release failures are skipped.
         """
         held, self._resources = self._resources, _NOTHING_HELD
         if self._registrar is None:
@@ -415,9 +406,6 @@ class Action(ABC):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         stamp = int(self._ctl.clock.time() * 1000) if self._control is not None else 0
         if self._log is None:
@@ -514,9 +502,6 @@ class Action(ABC):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         ctl = self._ctl
         with ctl.cond:

@@ -47,10 +47,9 @@ __all__ = ["Handshakes"]
 _ANSWER_WINDOW = 0.25
 # ... except the first JOINs of a handshake, which answer at once: in a fleet of up to
 # _ACTORS_PER_PERIOD every newly heard peer is answered at once (each actor sends at most one
-# JOIN per peer), in a larger one the first _ANSWERS_AT_ONCE. It was those 3 whatever the
-# fleet: the fourth peer an actor heard (in a handshake of 5, the one that started last)
-# waited for the resend period, so handshake_5_actors_ms was 100 ms in one round of three
-# (issue 26).
+# JOIN per peer), in a larger one the first _ANSWERS_AT_ONCE. With only those 3 whatever the
+# fleet, the fourth peer an actor heard (in a handshake of 5, the one that started last) would
+# wait for the resend period.
 _ANSWERS_AT_ONCE = 3
 # A handshake of more actors than this sends its JOINs (and READY answers) at most every
 # resend_s * actors / _ACTORS_PER_PERIOD: every JOIN is decoded by every other actor, so the

@@ -1,6 +1,6 @@
 """The engine's link to the other actors of shared graphs, over the fleet transport.
 
-:class:`FleetActorLink` implements :class:`temoto.core.remote.ActorLink` (REFERENCE §2.14,
+:class:`FleetActorLink` implements :class:`temoto.core.remote.ActorLink` (docs/design.md §4.6,
 thesis §6.3.2) with the messages of ``temoto/lcm_types/defs`` on two channels:
 
 ``TEMOTO_HANDSHAKE`` (``handshake_t``)

@@ -35,8 +35,8 @@ DROP_REASONS = (
 #: Drops that are normal on a shared network and logged at DEBUG only; the others at WARNING.
 _QUIET_REASONS = frozenset({"self", "fleet", "no_session", "not_for_us"})
 #: A summary line of dropped messages (WARNING) comes at most this long after the first drop it
-#: counts, and at most once per this interval. It was 10 s and written only with the next drop
-#: after that (13 s later in one test) or at stop: a repeated attack could stay unseen.
+#: counts, and at most once per this interval, more drops or not: a summary that waited for the
+#: next drop or the stop would leave a repeated attack unseen.
 DROP_SUMMARY_S = 1.0
 #: At most this many (sender, reason) pairs get a line of their own; any later pair (a stranger
 #: inventing sender names) is only counted in the summaries.

@@ -505,9 +505,6 @@ class FleetAuth:
 
         Returns:
             Its content, or None if it was dropped (counted in :attr:`stats` by reason).
-
-        Raises:
-            Nothing.
         """
         result = self._check(channel, data)
         if isinstance(result, Opened):
@@ -565,9 +562,6 @@ class FleetAuth:
         A :class:`~temoto.transport.link.FleetLink` calls it when :meth:`drop_summary_due_in`
         says; call it when the member stops, so that the drops of its last moments are reported
         too.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             line = self._drop_log.flush(self._clock())

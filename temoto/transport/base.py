@@ -3,7 +3,7 @@
 A :class:`Transport` moves opaque byte strings; what they mean (envelopes, authentication,
 inner messages) is the business of the layers above (:mod:`temoto.transport.auth`,
 :mod:`temoto.transport.codec`). The base class owns the public calls and their checks
-(template method, STYLE.md rule 2); an implementation fills in ``_publish``, ``_subscribe``
+(template method, docs/development.md §2); an implementation fills in ``_publish``, ``_subscribe``
 and ``_close``, and hands every received message to :meth:`Transport._deliver`, which runs the
 handler, logs and counts what it raises, and never lets it escape into the receive thread.
 
@@ -96,9 +96,6 @@ class _LogLimiter:
         Returns:
             None if the line must be dropped; otherwise how many lines for ``key`` were
             dropped since the last one let through.
-
-        Raises:
-            Nothing.
         """
         now = time.monotonic()
         with self._mutex:
@@ -142,9 +139,6 @@ class Subscription(ABC):
 
         A handler call already running finishes; no call starts after this returns, except
         on the receive thread itself when called from another handler of the same message.
-
-        Raises:
-            Nothing.
         """
         if not self._active:
             return
@@ -281,9 +275,6 @@ class Transport(Closing, ABC):
         Messages not yet handed to a handler are discarded. Called from a handler, it does not
         wait for the receive thread (which is the caller), but the thread ends after the handler
         returns.
-
-        Raises:
-            Nothing.
         """
         with self._close_lock:
             if self._closed:
@@ -316,8 +307,8 @@ class Transport(Closing, ABC):
             data: The message.
 
         Raises:
-            Nothing derived from ``Exception``; a ``BaseException`` (``KeyboardInterrupt``,
-            ``SystemExit``) propagates.
+            BaseException: A ``KeyboardInterrupt`` or ``SystemExit`` of the handler propagates;
+                an ``Exception`` is counted and logged.
         """
         if not sub.active:
             return

@@ -6,8 +6,8 @@ exchange messages as robots do over LCM multicast, own messages included. Each i
 on one dispatch thread of its own (``temoto-inproc-<bus>``), so handlers never run on the
 publisher's thread, as with LCM.
 
-The bus registry is module state, acceptable for a test bus only (STYLE.md part 4) and guarded
-by a lock; :func:`live_buses` reports what is open, for leak checks.
+The bus registry is module state, acceptable for a test bus only (docs/development.md §10) and
+guarded by a lock; :func:`live_buses` reports what is open, for leak checks.
 """
 
 from __future__ import annotations
@@ -29,9 +29,6 @@ def live_buses() -> dict[str, int]:
 
     Returns:
         Bus name to the number of open instances on it (buses without any are left out).
-
-    Raises:
-        Nothing.
     """
     with _registry_lock:
         return {bus: len(members) for bus, members in _registry.items() if members}

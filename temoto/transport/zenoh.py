@@ -25,9 +25,10 @@ over LCM: a Python callback would be run by zenoh-python on a thread of its own 
 throughput, and Zenoh dropped messages of a flood), and then be handed to ours, which cost about
 0.04 ms a message on loopback (bench/README.md, "Over Zenoh, second part").
 
-Subscribing never races the receive thread (it did over LCM, issue 26): a subscription of ours
-is an entry in the transport's own lists, changed under the lock that thread dispatches under,
-and the one Zenoh subscriber is declared under it before that thread first reads from it.
+Subscribing never races the receive thread (LCM's binding can: :mod:`temoto.transport.lcm`):
+a subscription of ours is an entry in the transport's own lists, changed under the lock that
+thread dispatches under, and the one Zenoh subscriber is declared under it before that thread
+first reads from it.
 
 The URL (:func:`parse_zenoh_url`)::
 

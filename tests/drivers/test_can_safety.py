@@ -1,4 +1,4 @@
-"""Safe states, device watchdogs and stream supervision of the CAN motor drivers (issue 13).
+"""Safe states, device watchdogs and stream supervision of the CAN motor drivers.
 
 Most tests run a driver on its simulator in virtual time (:class:`ManualClock`). The safe state
 and the watchdog of the ODrive driver are also tested against :class:`DocODrive`, a small

@@ -1,4 +1,4 @@
-"""Dynamixel safety (issue 13): safe states, the Bus Watchdog, stale feedback, bad packets.
+"""Dynamixel safety: safe states, the Bus Watchdog, stale feedback, bad packets.
 
 The Bus Watchdog and torque off are tested twice: against our simulator and against
 :class:`EManualChain`, a small servo emulator written here from the ROBOTIS e-Manual (X series
@@ -573,7 +573,7 @@ def test_the_wire_time_formula() -> None:
     # bytes per cycle = 146 (SYNC_READ) + 44 (SYNC_WRITE) + 288 / 10 (three status reads).
     expected = 10 * (146 + 44 + 28.8) / 57600 + (6 + 1.8) * 500e-6
     assert poll_cycle_time(6, 57600, 500e-6, 10, True) == pytest.approx(expected)
-    assert 1 / expected < 30  # the issue's "six servos top out at about 30 Hz"
+    assert 1 / expected < 30  # six servos at 57600 baud top out at about 30 Hz
 
 
 def test_a_poll_rate_the_wire_cannot_carry_is_a_warning(caplog: pytest.LogCaptureFixture) -> None:

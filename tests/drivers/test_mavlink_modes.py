@@ -1,4 +1,4 @@
-"""The vehicle's own mode changes, link gaps, and components that are not the autopilot (issue 25).
+"""The vehicle's own mode changes, link gaps, and components that are not the autopilot.
 
 Against SimVehicle (its GCS failsafe, its ``link_loss``) on a virtual clock, and raw frames from
 pymavlink-free senders built with the driver's own codec under other component ids.
@@ -39,7 +39,7 @@ def clock() -> ManualClock:
 def test_a_gcs_failsafe_during_a_short_outage_is_seen_within_a_heartbeat(
     clock: ManualClock, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """Issue 25: a 2 s outage, shorter than heartbeat_timeout (3 s); the vehicle went RTL."""
+    """A 2 s outage, shorter than heartbeat_timeout (3 s), in which the vehicle went RTL."""
     sim, d = rig(clock, sim={"params": {"FS_GCS_ENABLE": 1, "FS_GCS_TIMEOUT": 2}})
     with sim, contextlib.closing(_Shut(d)):
         configure(d, clock)
@@ -135,7 +135,7 @@ def test_another_component_of_the_system_is_ignored_and_counted(
         d.shutdown()
 
 
-# ---- profile checks against ArduPilot (issue 25, item 6) -----------------------------------
+# ---- profile checks against ArduPilot --------------------------------------------------------
 
 
 @pytest.mark.parametrize(

@@ -204,9 +204,9 @@ def test_a_late_joiner_still_completes(fleet: Fleet) -> None:
 
 
 def test_every_newly_heard_peer_of_a_small_fleet_is_answered_at_once(fleet: Fleet) -> None:
-    # Five actors start one after the other. A answered only its first three JOINs at once and
-    # the fourth peer (D) a resend period later: with resend_s = 5 s nobody was done before
-    # 5 s. Issue 26: handshake_5_actors_ms was 100 ms (resend_s = 0.1) in one round of three.
+    # Five actors start one after the other. Were only A's first three JOINs answered at once,
+    # the fourth peer (D) would be answered a resend period later: with resend_s = 5 s nobody
+    # would be done before 5 s.
     names = ["A", "B", "C", "D", "E"]
     links = fleet.links(*names, resend_s=5.0, silence_s=60.0)
     a = links[0]

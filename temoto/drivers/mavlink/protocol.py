@@ -1,8 +1,8 @@
 """MAVLink 2 encode and decode: a thin, typed adapter over pymavlink's ``ardupilotmega`` dialect.
 
-Pure functions and one small stateful codec, no I/O and no threads (STYLE §3.7). The dialect is
-imported explicitly (``pymavlink.dialects.v20.ardupilotmega``, which includes ``common``); no
-``mavutil`` and none of its module-level state is used.
+Pure functions and one small stateful codec, no I/O and no threads (docs/development.md §6).
+The dialect is imported explicitly (``pymavlink.dialects.v20.ardupilotmega``, which includes
+``common``); no ``mavutil`` and none of its module-level state is used.
 
 :class:`Codec` packs messages for one sender (system id, component id, sequence number) and
 parses what others send into :class:`Message` values: :meth:`Codec.decode_datagram` parses one
@@ -111,7 +111,7 @@ MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT: Final[int] = int(
     _dialect.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
 )
 
-# ---- used by the simulator's parameter, mission and FTP services (issue 16) -----------------
+# ---- used by the simulator's parameter, mission and FTP services ----------------------------
 
 MAV_CMD_NAV_WAYPOINT: Final[int] = int(_dialect.MAV_CMD_NAV_WAYPOINT)  # 16
 MAV_CMD_NAV_LOITER_UNLIM: Final[int] = int(_dialect.MAV_CMD_NAV_LOITER_UNLIM)  # 17
