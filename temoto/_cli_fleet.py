@@ -346,7 +346,7 @@ def add_serve(sub: Any, paths: Any) -> None:
     add_live_view_option(serve_p)
     add_record_option(serve_p)
     add_foxglove_option(serve_p)
-    add_foxglove_commands_option(serve_p)  # issue 29 item 5
+    add_foxglove_commands_option(serve_p)
     add_fleet_options(serve_p, "the fleet this instance joins")
 
 

@@ -567,7 +567,7 @@ class Recorder(Instrument):
             signed = int(env.mac_size) > 0
             # The envelope's stamp field is the sender's clock on an insecure fleet only; a
             # keyed fleet's envelopes carry the sender's session id there (the same on every
-            # message): it is `session`, and `stamp_us` is 0 (issue 29).
+            # message): it is `session`, and `stamp_us` is 0.
             message.update(
                 sender=str(env.sender),
                 type=str(env.type),

@@ -1,4 +1,4 @@
-"""The Visualization Manager's loaded displays, for the live view's panels (issue 29 item 3).
+"""The Visualization Manager's loaded displays, for the live view's panels.
 
 :class:`DisplayWatch` reads the displays of the ``"display"`` server
 (:class:`~temoto.managers.visualization.VisualizationManager`) on a registrar, looked up at every
@@ -82,9 +82,6 @@ class DisplayWatch:
             ``[{"name", "kind", "panel", "source", "field", "target", "topic", "count",
             "messages": [...]}]`` (oldest message first; at most :attr:`history`; the newest
             only for a panel drawn from it: a scan, an image, a scene, a table).
-
-        Raises:
-            Nothing.
         """
         manager = self._manager()
         if manager is None:

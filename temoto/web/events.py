@@ -109,9 +109,6 @@ class Subscription:
 
         Returns:
             The events that arrived (possibly none, after the timeout).
-
-        Raises:
-            Nothing.
         """
         return self._hub._take(self, timeout)
 
@@ -120,9 +117,6 @@ class Subscription:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         self._hub._remove(self)
 
@@ -169,9 +163,6 @@ class EventHub(Instrument):
 
         Returns:
             Its subscription, or None when ``max_clients`` are subscribed or the hub closed.
-
-        Raises:
-            Nothing.
         """
         with self._cond:
             if self._closed or len(self._subs) >= self.max_clients:
@@ -191,9 +182,6 @@ class EventHub(Instrument):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         with self._cond:
             self._closed = True
@@ -228,9 +216,6 @@ class EventHub(Instrument):
         Returns:
             ``{"start": t, "end": t or None, "spans": [{"node", "start", "end", "state",
             "result"}]}`` in engine clock seconds; a running span has ``end`` None.
-
-        Raises:
-            Nothing.
         """
         with self._cond:
             line = self._timelines.get(graph)
@@ -255,9 +240,6 @@ class EventHub(Instrument):
             ``[{"name": "<run> #<k>", "run": "<run>", "result", "timeline"}]``: ``k`` counts
             the runs of that name from 1; ``timeline`` as :meth:`timeline` gives it. At most
             ``MAX_TIMELINES`` are kept.
-
-        Raises:
-            Nothing.
         """
         with self._cond:
             return [dict(e) for e in self._earlier.values()]

@@ -131,9 +131,6 @@ def operator_command(engine: ActionEngine, verb: str, target: Any) -> tuple[HTTP
         The HTTP status and the JSON answer: ``{"run": name}`` for a start,
         ``{"run": name, "done": verb}`` for the others, ``{"error": why}`` when refused
         (400: no name; 404: no such graph or run; 409: not in a state for it).
-
-    Raises:
-        Nothing.
     """
     if verb not in COMMANDS:
         return HTTPStatus.BAD_REQUEST, {"error": f"unknown command {verb!r}"}
@@ -432,9 +429,6 @@ class Site(Closing):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         if self._closed:
             return
@@ -658,9 +652,6 @@ class LiveView(Site):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         if self._closed:
             return

@@ -44,9 +44,6 @@ def graphs_list(engine: ActionEngine) -> dict[str, Any]:
 
     Returns:
         ``{"actor": str, "graphs": [{"name", "state", "result"}, ...]}``.
-
-    Raises:
-        Nothing.
     """
     graphs = []
     for name in engine.running_graphs():
@@ -114,9 +111,6 @@ def graph_picture(
         ``{"description", "nodes", "edges", "width", "height"}``; each edge has a ``status``:
         ``taken`` (its parent ended and its child ran), ``skipped`` (its child was bypassed)
         or ``pending``.
-
-    Raises:
-        Nothing.
     """
     actions: list[dict[str, Any]] = snapshot.get("actions", [])
     held = held or {}
@@ -294,9 +288,6 @@ def to_json(value: Any) -> str:
 
     Returns:
         The JSON text (ASCII only).
-
-    Raises:
-        Nothing.
     """
     try:
         return json.dumps(value, allow_nan=False, default=repr)

@@ -362,7 +362,7 @@ def test_after_a_registrar_restart_a_display_is_fatal_and_loads_afresh(
 
 
 def test_a_robots_path_display_grows_as_the_rover_drives(server: FoxgloveServer) -> None:
-    """``robot`` / ``path``: the path travelled, as ``foxglove.PosesInFrame`` (issue 29)."""
+    """``robot`` / ``path``: the path travelled, as ``foxglove.PosesInFrame``."""
     import yaml
 
     from temoto import ScaledClock
@@ -415,7 +415,7 @@ def test_a_robots_path_display_grows_as_the_rover_drives(server: FoxgloveServer)
 def test_a_world_display_shows_the_world_models_items_as_a_scene(
     server: FoxgloveServer,
 ) -> None:
-    """``world``: the Context Manager's tree as ``foxglove.SceneUpdate`` (issue 29)."""
+    """``world``: the Context Manager's tree as ``foxglove.SceneUpdate``."""
     from temoto.errors import ResourceError
     from temoto.managers.context import ContextManager
     from temoto.managers.context.pose import Pose

@@ -186,7 +186,7 @@ def test_fleet_envelopes_are_recorded_per_channel_with_sender_and_type(tmp_path:
 
 def test_a_fleet_envelopes_stamp_is_its_senders_clock_or_its_session(tmp_path: Path) -> None:
     """A keyed fleet's envelopes carry a session id where an insecure one's carry the clock:
-    it is recorded as ``session`` (constant), never as a ``stamp_us`` (issue 29)."""
+    it is recorded as ``session`` (constant), never as a ``stamp_us``."""
     path = tmp_path / "stamps.mcap"
     transport = InProcessTransport("record-stamps-test")
     try:

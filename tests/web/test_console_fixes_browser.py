@@ -1,13 +1,14 @@
-"""The console fixes of issue 29 (item 6), each seen as an operator sees it, in headless Chromium.
+"""The live view's page as an operator sees it, in headless Chromium: what it keeps, shows, answers.
 
-* the page keeps what the events told it when the server goes away before its next fetch
-  (it redrew an older snapshot: a finished node RUNNING again, the run's badge RUNNING);
+* the page keeps what the events told it when the server goes away before its next fetch:
+  a finished node stays FINISHED, the run's badge shows its result;
 * the graph's text is readable at 1400x1000 in the demo_patrol replay, and no edge label is
   under a node's box;
-* HEAD and OPTIONS are answered (not 501 with an HTML page); the Server header has no
-  trailing space;
-* the timeline's ticks of a very short run are all different (not "0.00 s" six times);
-* a recording cut short says so on the page (not only in a tooltip).
+* HEAD and OPTIONS are answered, other methods get 405 as JSON; the Server header is the
+  name alone;
+* the timeline's ticks of a very short run are all different;
+* a re-run keeps the earlier run listed (``<run> #1``) and drawn as it ended;
+* a recording cut short says so on the page, under the time slider.
 
 Each test opens its own Chromium (a few seconds each: ``slow``).
 """

@@ -1,4 +1,4 @@
-"""The Visualization Manager's displays in the live view (issue 29 item 3), in headless Chromium.
+"""The Visualization Manager's displays in the live view, in headless Chromium.
 
 The page is opened first; then displays are loaded and released on the engine's registrar:
 a panel appears for each loaded display, drawn as its kind asks (the simulated arm's joints

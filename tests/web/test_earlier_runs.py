@@ -1,4 +1,4 @@
-"""A run's name used again: the earlier run stays in "Graph runs" (issue 29 item 6).
+"""A run's name used again: the earlier run stays in "Graph runs".
 
 The engine forgets an ended run when a new run takes its name; the live view keeps it as
 ``<run> #<k>`` with its result and its timeline, drawn as it ended (with its edges when a

@@ -1,4 +1,4 @@
-"""Operator commands from Foxglove (issue 29 item 5), called with our own protocol client.
+"""Operator commands from Foxglove, called with our own protocol client.
 
 The server's services (``/temoto/start|pause|resume|stop``) go through the live view's own
 controls (:func:`temoto.web.server.operator_command`) behind a token; a server made without

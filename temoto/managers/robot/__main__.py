@@ -188,7 +188,7 @@ def _parser() -> argparse.ArgumentParser:
     add_live_view_option(p)
     add_record_option(p)
     add_foxglove_option(p)
-    add_foxglove_commands_option(p)  # issue 29 item 5
+    add_foxglove_commands_option(p)
     add_fleet_options(p, "the fleet this robot joins (unless --local)")
     return p
 

@@ -136,7 +136,7 @@ def open_foxglove(args: argparse.Namespace, instance: Any, robot: Any = None) ->
             raise ConfigError("--foxglove-commands needs --foxglove")
         if getattr(instance, "live_view", None) is None:
             return None
-        # a live view only: its page shows the displays (issue 29 item 3), served nowhere else
+        # a live view only: its page shows the displays, served nowhere else
         from temoto.managers.visualization.manager import VisualizationManager
 
         return LiveSession(None, None, VisualizationManager(instance.registrar, None))
