@@ -55,10 +55,13 @@ if TYPE_CHECKING:
     from temoto.clock import Clock
     from temoto.core.registrar.registry import Registrar
 
-__all__ = ["LOG_LENGTH", "Action", "Inputs", "Outputs", "RunControl"]
+__all__ = ["ACTION_LOGGER", "LOG_LENGTH", "Action", "Inputs", "Outputs", "RunControl"]
 
 #: How many runtime log messages a node keeps (newest first), as upstream.
 LOG_LENGTH = 10
+#: The logger the actions log under: a node's is ``temoto.action.<graph>.<node>``
+#: (:attr:`Action.logger`; the recorder and the log displays read it, ``docs/recording.md``).
+ACTION_LOGGER = "temoto.action"
 
 
 # results of on_run, as globals (a member lookup on the enum class costs several times more)
@@ -272,8 +275,9 @@ class Action(ABC):
     def logger(self) -> logging.Logger:
         """This node's logger (``temoto.action.<graph>.<node>``), made on first use."""
         if self._logger is None:
-            name = f"temoto.action.{self._graph}.{self._name}" if self._graph else "temoto.action"
-            self._logger = logging.getLogger(name)
+            self._logger = logging.getLogger(
+                f"{ACTION_LOGGER}.{self._graph}.{self._name}" if self._graph else ACTION_LOGGER
+            )
         return self._logger
 
     @property

@@ -28,6 +28,7 @@ from temoto.errors import TransportError
 __all__ = [
     "CHANNEL_MAX_LEN",
     "Handler",
+    "LogLimiter",
     "QueuedSubscription",
     "Subscription",
     "Transport",
@@ -74,8 +75,10 @@ def check_channel(channel: str) -> str:
     return channel
 
 
-class _LogLimiter:
+class LogLimiter:
     """Lets one log line per key through per interval and counts the ones held back.
+
+    For the transports and the fleet's services: a peer's flood is logged, not repeated.
 
     Args:
         interval_s: Seconds between two lines for the same key.
@@ -145,6 +148,13 @@ class Subscription(ABC):
         self._active = False
         self._on_unsubscribe()
 
+    def detach(self) -> None:
+        """Stop delivering, without the release hook.
+
+        For its transport, which is closing and releases every subscription itself.
+        """
+        self._active = False
+
     @abstractmethod
     def _on_unsubscribe(self) -> None:
         """Release the implementation's resources; called once, by :meth:`unsubscribe`."""
@@ -157,10 +167,10 @@ class Subscription(ABC):
 class QueuedSubscription(Subscription):
     """A subscription with a bounded queue of its own, drained by its transport's one thread.
 
-    The transport, holding its lock, :meth:`_offer` s each message to the subscriptions of its
-    channel and pops ``_pending`` on its dispatch thread, one message per token in its ready
-    queue; a subscription that was emptied (unsubscribed) leaves stale tokens that the
-    dispatcher skips.
+    The transport, holding its lock, :meth:`offer` s each message to the subscriptions of its
+    channel and :meth:`take` s one on its dispatch thread per token in its ready queue; a
+    subscription that was emptied (:meth:`discard_pending`, when unsubscribed) leaves stale
+    tokens that the dispatcher skips.
 
     Args:
         channel: The channel name.
@@ -184,7 +194,7 @@ class QueuedSubscription(Subscription):
         """How many messages were dropped because the queue was full."""
         return self._dropped
 
-    def _offer(self, data: bytes, ready: collections.deque[Self]) -> None:
+    def offer(self, data: bytes, ready: collections.deque[Self]) -> None:
         """Queue ``data`` (transport lock held); a token goes to ``ready`` unless one is dropped.
 
         A full queue drops its oldest message for this one: the dispatcher's tokens still
@@ -197,6 +207,22 @@ class QueuedSubscription(Subscription):
         else:
             ready.append(self)
         self._pending.append(data)
+
+    def take(self) -> bytes | None:
+        """The oldest message waiting, or None (a stale token); transport lock held."""
+        return self._pending.popleft() if self._pending else None
+
+    def discard_pending(self) -> None:
+        """Drop the messages waiting (removed from its channel); transport lock held."""
+        self._pending.clear()
+
+    def detach(self) -> None:
+        """Stop delivering and drop the messages waiting, without the release hook.
+
+        For its transport, which is closing and releases every subscription itself.
+        """
+        self._active = False
+        self._pending.clear()
 
 
 class Transport(Closing, ABC):
@@ -212,7 +238,7 @@ class Transport(Closing, ABC):
         self._close_lock = threading.Lock()
         self._handler_errors = 0
         self._errors_lock = threading.Lock()
-        self._error_log = _LogLimiter()
+        self._error_log = LogLimiter()
 
     # --- the calls (not overridden) -----------------------------------------------------------
 

@@ -147,8 +147,7 @@ class InProcessTransport(Transport):
             self._ready.clear()
             self._cond.notify_all()
         for sub in subs:
-            sub._active = False
-            sub._pending.clear()
+            sub.detach()
         if threading.current_thread() is not self._thread:
             self._thread.join()
 
@@ -159,7 +158,7 @@ class InProcessTransport(Transport):
             if self._stopping:
                 return
             for sub in self._subs.get(channel, ()):
-                sub._offer(data, self._ready)
+                sub.offer(data, self._ready)
             self._cond.notify_all()  # the dispatcher, and flushes waiting
 
     def _remove(self, sub: InProcessSubscription) -> None:
@@ -170,7 +169,7 @@ class InProcessTransport(Transport):
                 if not subs:
                     del self._subs[sub.channel]
             # Its tokens stay in _ready; the dispatcher skips them (the queue is empty).
-            sub._pending.clear()
+            sub.discard_pending()
 
     def _run(self) -> None:
         while True:
@@ -180,11 +179,11 @@ class InProcessTransport(Transport):
                 if self._stopping:
                     return
                 sub = self._ready.popleft()
-                if not sub._pending:
+                data = sub.take()
+                if data is None:
                     if not self._ready:
                         self._cond.notify_all()  # a flush may be waiting
                     continue
-                data = sub._pending.popleft()
                 self._busy = True
             try:
                 self._deliver(sub, sub.channel, data)

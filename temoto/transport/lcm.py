@@ -255,7 +255,7 @@ class LcmTransport(Transport):
         finally:
             with self._mutex:
                 for sub in self._subs:
-                    sub._active = False
+                    sub.detach()
                 self._released.extend(self._subs)
                 self._subs.clear()
                 self._lcm = None

@@ -451,8 +451,7 @@ class ZenohTransport(Transport):
             zsub, self._zsub = self._zsub, None
             self._cond.notify_all()
         for sub in subs:
-            sub._active = False
-            sub._pending.clear()
+            sub.detach()
         try:
             if zsub is not None:
                 zsub.undeclare()  # closes its channel: the thread's recv() returns
@@ -478,7 +477,7 @@ class ZenohTransport(Transport):
                 if subs:
                     data = sample.payload.to_bytes()
                     for sub in subs:
-                        sub._offer(data, self._ready)
+                        sub.offer(data, self._ready)
             self._cond.notify_all()  # whoever watches the queues
 
     def _remove(self, sub: ZenohSubscription) -> None:
@@ -488,7 +487,7 @@ class ZenohTransport(Transport):
                 subs.remove(sub)
                 if not subs:
                     del self._by_key[sub.key]
-            sub._pending.clear()  # its tokens stay in _ready; the thread skips them
+            sub.discard_pending()  # its tokens stay in _ready; the thread skips them
 
     def _run(self) -> None:
         with self._cond:
@@ -528,9 +527,9 @@ class ZenohTransport(Transport):
             if not self._ready:
                 return True
             sub = self._ready.popleft()
-            if not sub._pending:
+            data = sub.take()
+            if data is None:
                 return True
-            data = sub._pending.popleft()
         self._deliver(sub, sub.channel, data)
         return True
 

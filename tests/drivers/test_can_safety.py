@@ -38,7 +38,7 @@ ENC = 0.01  # encoder estimate period
 CMD = 0.05  # the driver's command_period
 WATCHDOG = 0.2  # the devices' watchdog timeout
 RATE = 10.0  # MIT polls per clock second
-ODRIVE_LOG = "temoto.drivers.can_motor.odrive"
+ODRIVE_LOG = "temoto.drivers.can_motor.detect"
 CAN_LOG = "temoto.drivers.can_motor"
 
 

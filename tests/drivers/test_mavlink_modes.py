@@ -48,7 +48,7 @@ def test_a_gcs_failsafe_during_a_short_outage_is_seen_within_a_heartbeat(
         d.add_mode_listener(heard.append)
         take_off(d, clock, 3.0)
         assert d.telemetry().mode == "GUIDED"
-        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink.driver")
+        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink")
         sim.inject("link_loss")
         run_until(clock, lambda: sim.mode == "RTL", 2.0 + 1.0)  # FS_GCS_TIMEOUT, then RTL
         back = clock.monotonic()
@@ -80,7 +80,7 @@ def test_a_commanded_mode_change_is_no_warning(
         configure(d, clock)
         d.activate()
         take_off(d, clock, 3.0)
-        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink.driver")
+        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink")
         d.set_mode("LOITER")
         run_until(clock, lambda: d.telemetry().mode == "LOITER", 1.5)
         change = d.last_mode_change
@@ -102,7 +102,7 @@ def test_another_component_of_the_system_is_ignored_and_counted(
         d.activate()
         take_off(d, clock, 3.0)
         run_until(clock, lambda: d._landed_state == p.MAV_LANDED_STATE_IN_AIR, 2.0)
-        caplog.set_level(logging.WARNING, logger="temoto.drivers.mavlink.driver")
+        caplog.set_level(logging.WARNING, logger="temoto.drivers.mavlink")
         companion = p.Codec(1, 100)
         frames = [
             companion.encode("EXTENDED_SYS_STATE", vtol_state=0,

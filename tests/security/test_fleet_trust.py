@@ -343,7 +343,7 @@ def test_a_resource_request_without_permission_gets_a_reason(
         eventually(lambda m=member: "A" in m.ris.providers("process"), "A's servers not heard")
     request = ProcessRequest(sys.executable, ("-c", "import time; time.sleep(60)"))
     with (
-        caplog.at_level(logging.WARNING, logger="temoto.fleet.resources"),
+        caplog.at_level(logging.WARNING, logger="temoto.fleet"),
         pytest.raises(ResourceLoadError, match="permission denied: 'mallory' may not"),
     ):
         mallory.resources.request("process", request, robot="A")
@@ -462,7 +462,7 @@ def test_a_member_cannot_answer_or_report_feedback_in_another_s_name(
         mallory.send(FEEDBACK_CHANNEL, *codec.encode(feedback))
 
     mallory.listen(COMMAND_CHANNEL, answer)
-    with caplog.at_level(logging.WARNING, logger="temoto.fleet._common"):
+    with caplog.at_level(logging.WARNING, logger="temoto.fleet.common"):
         out = operator.command("start", ["A"], graph_json=relay_graph(), timeout=1.0)
         eventually(lambda: operator.stats["impostor"] >= 2, "mallory's messages not dropped")
     assert not out.ok

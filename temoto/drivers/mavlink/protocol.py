@@ -32,6 +32,7 @@ __all__ = [
     "Message",
     "command_name",
     "corrupt",
+    "enum_name",
     "mode_name",
     "mode_number",
     "result_name",
@@ -254,7 +255,16 @@ def mode_number(name: str) -> int:
         raise ValueError(f"unknown ArduCopter flight mode {name!r} (known: {known})") from None
 
 
-def _enum_name(enum: str, value: int) -> str:
+def enum_name(enum: str, value: int) -> str:
+    """The name of ``value`` in a MAVLink enum of the dialect (``ENUM(<n>)`` if unknown).
+
+    Args:
+        enum: The enum's name (``MAV_TYPE``, ``MAV_FRAME``, ...).
+        value: The number.
+
+    Returns:
+        The entry's name.
+    """
     entry = _dialect.enums.get(enum, {}).get(value)
     return str(entry.name) if entry is not None else f"{enum}({value})"
 
@@ -268,7 +278,7 @@ def command_name(command: int) -> str:
     Returns:
         The name.
     """
-    return _enum_name("MAV_CMD", command)
+    return enum_name("MAV_CMD", command)
 
 
 def result_name(result: int) -> str:
@@ -280,7 +290,7 @@ def result_name(result: int) -> str:
     Returns:
         The name.
     """
-    return _enum_name("MAV_RESULT", result)
+    return enum_name("MAV_RESULT", result)
 
 
 # ---- messages ------------------------------------------------------------------------------
@@ -545,7 +555,7 @@ def mission_result_name(result: int) -> str:
     Returns:
         The name.
     """
-    return _enum_name("MAV_MISSION_RESULT", result)
+    return enum_name("MAV_MISSION_RESULT", result)
 
 
 def param_type_name(param_type: int) -> str:
@@ -557,4 +567,4 @@ def param_type_name(param_type: int) -> str:
     Returns:
         The name (``MAV_PARAM_TYPE(<n>)`` if unknown).
     """
-    return _enum_name("MAV_PARAM_TYPE", param_type)
+    return enum_name("MAV_PARAM_TYPE", param_type)

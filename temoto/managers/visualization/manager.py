@@ -26,9 +26,10 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Final, cast
+from typing import Any, ClassVar, Final
 
 from temoto.clock import Clock, MonotonicClock
+from temoto.core.action import ACTION_LOGGER
 from temoto.core.registrar import (
     LoadContext,
     Registrar,
@@ -38,7 +39,14 @@ from temoto.core.registrar import (
 )
 from temoto.managers.visualization.decode import decode
 from temoto.managers.visualization.messages import DisplayRequest, DisplayResponse
-from temoto.record.recorder import Recorder, _level
+from temoto.record.recorder import (
+    Encoded,
+    health_messages,
+    joints_messages,
+    log_level,
+    pose_messages,
+    vehicle_messages,
+)
 from temoto.record.schemas import stamp
 
 __all__ = ["Display", "VisualizationManager"]
@@ -46,33 +54,20 @@ __all__ = ["Display", "VisualizationManager"]
 logger = logging.getLogger(__name__)
 
 _GONE: Final = "the display was lost with its process (request it again)"
-_ACTION_LOGGER: Final = "temoto.action"
 
 
-class _Capture:
-    """Stands in for a recorder's queue: keeps what the recorder's encoders put."""
-
-    def __init__(self) -> None:
-        self.messages: list[tuple[str, str, dict[str, Any]]] = []
-
-    def put(self, topic: str, schema: str, message: dict[str, Any]) -> None:
-        self.messages.append((topic, schema, message))
-
-
-def _robot_messages(robot: Any, field: str) -> list[tuple[str, str, dict[str, Any]]]:
+def _robot_messages(robot: Any, field: str) -> list[Encoded]:
     """One reading of a robot's ``field``, encoded as ``--record`` encodes it."""
-    capture = _Capture()
-    rec = cast("Recorder", capture)
     name = robot.name
     if field in ("pose", "tf"):
-        Recorder._pose(rec, name, robot.pose())
-    elif field == "joints":
-        Recorder._joints(rec, name, robot.joint_positions())
-    elif field in ("location", "vehicle"):
-        Recorder._vehicle(rec, name, robot.telemetry())
-    elif field == "health":
-        Recorder._health(rec, name, robot.healthy())
-    return capture.messages
+        return pose_messages(name, robot.pose())
+    if field == "joints":
+        return joints_messages(name, robot.joint_positions())
+    if field in ("location", "vehicle"):
+        return vehicle_messages(name, robot.telemetry())
+    if field == "health":
+        return health_messages(name, robot.healthy())
+    return []
 
 
 @dataclass(eq=False)
@@ -172,7 +167,7 @@ class _LogHandler(logging.Handler):
         except Exception:
             text = str(record.msg)
         message = {
-            "level": _level(record.levelno),
+            "level": log_level(record.levelno),
             "message": text,
             "name": record.name,
             "file": record.pathname,
@@ -319,12 +314,13 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         if request.source == "world":
             return self._start_world(display)
         # source "log"
-        target = f"{_ACTION_LOGGER}.{request.target}" if request.target else _ACTION_LOGGER
         handler = _LogHandler(self, display)
-        log = logging.getLogger(target)
+        log = logging.getLogger(
+            f"{ACTION_LOGGER}.{request.target}" if request.target else ACTION_LOGGER
+        )
         log.addHandler(handler)
         display._undo = lambda: log.removeHandler(handler)
-        return f"log of {target}"
+        return f"log of {log.name}"
 
     def _start_world(self, display: Display) -> str:
         """A world display: the Context Manager's tree now, and again after every change."""
