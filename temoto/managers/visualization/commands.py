@@ -95,26 +95,9 @@ def add_operator_commands(server: FoxgloveServer, engine: ActionEngine, token: s
     Raises:
         RuntimeError: The server does not declare services.
     """
-    fg = server._fg
-    encoded = {
-        name: fg.Schema(
-            name=schema["title"],
-            encoding="jsonschema",
-            data=json.dumps(schema, separators=(",", ":")).encode(),
-        )
-        for name, schema in (("request", _REQUEST_SCHEMA), ("response", _RESPONSE_SCHEMA))
-    }
     services = [
-        fg.websocket.Service(
-            f"{SERVICE_PREFIX}{verb}",
-            schema=fg.websocket.ServiceSchema(
-                f"temoto.{verb.capitalize()}",
-                request=fg.websocket.MessageSchema(encoding="json", schema=encoded["request"]),
-                response=fg.websocket.MessageSchema(encoding="json", schema=encoded["response"]),
-            ),
-            handler=_handler(engine, verb, token),
-        )
+        (SERVICE_PREFIX + verb, _REQUEST_SCHEMA, _RESPONSE_SCHEMA, _handler(engine, verb, token))
         for verb in COMMANDS
     ]
-    server.add_services(services)
-    return [s.name for s in services]
+    server.add_json_services(services)
+    return [name for name, *_ in services]

@@ -271,16 +271,39 @@ class FoxgloveServer:
         live.channel.close()
         return True
 
-    def add_services(self, services: list[Any]) -> None:
-        """Advertise services (``foxglove.websocket.Service``) to the clients.
+    def add_json_services(
+        self,
+        services: list[tuple[str, dict[str, Any], dict[str, Any], Any]],
+    ) -> None:
+        """Advertise services with JSON requests and responses to the clients.
 
         Args:
-            services: The services.
+            services: ``(name, request schema, response schema, handler)`` each: the schemas
+                are JSON schemas (their ``title`` names them), the handler takes the SDK's
+                request (its ``payload`` the JSON bytes) and returns the response's bytes, or
+                raises (its text goes to the client as the call's failure).
 
         Raises:
             RuntimeError: The server was made without ``services=True``, or a name is taken.
         """
-        self._server.add_services(services)
+        fg = self._fg
+
+        def schema(doc: dict[str, Any]) -> Any:
+            data = json.dumps(doc, separators=(",", ":")).encode()
+            encoded = fg.Schema(name=doc["title"], encoding="jsonschema", data=data)
+            return fg.websocket.MessageSchema(encoding="json", schema=encoded)
+
+        made = [
+            fg.websocket.Service(
+                name,
+                schema=fg.websocket.ServiceSchema(
+                    name.strip("/").replace("/", "."), request=schema(req), response=schema(resp)
+                ),
+                handler=handler,
+            )
+            for name, req, resp, handler in services
+        ]
+        self._server.add_services(made)
 
     def _replay(self, channel_id: int) -> None:
         """Log a channel's last message again (a client just subscribed to it)."""
