@@ -25,7 +25,12 @@ from temoto._cli_common import non_empty, not_negative, positive
 from temoto._cli_signals import FORCE_EXIT_S, Interrupted, SignalExit, make_devices_safe
 from temoto._files import read_regular_text
 from temoto.errors import ConfigError, GraphInputError
-from temoto.managers.visualization.live import add_foxglove_option, close_foxglove, open_foxglove
+from temoto.managers.visualization.live import (
+    add_foxglove_commands_option,
+    add_foxglove_option,
+    close_foxglove,
+    open_foxglove,
+)
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials
@@ -341,6 +346,7 @@ def add_serve(sub: Any, paths: Any) -> None:
     add_live_view_option(serve_p)
     add_record_option(serve_p)
     add_foxglove_option(serve_p)
+    add_foxglove_commands_option(serve_p)
     add_fleet_options(serve_p, "the fleet this instance joins")
 
 

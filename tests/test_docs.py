@@ -341,11 +341,6 @@ _RAISES_NOTHING = re.compile(r"^[ \t]*Raises:[ \t]*\n[ \t]*Nothing\b", re.MULTIL
 #: Modules being reorganised on other branches, mended when they merge.
 RAISES_PENDING = {
     "temoto/core/engine.py",
-    "temoto/web/events.py",
-    "temoto/web/replay.py",
-    "temoto/web/robot.py",
-    "temoto/web/server.py",
-    "temoto/web/view.py",
 }
 
 

@@ -594,15 +594,20 @@ class Recorder(Instrument):
         message: dict[str, Any] = {"channel": channel, "size": len(data)}
         try:
             env = envelope_t.decode(data)
+            signed = int(env.mac_size) > 0
+            # The envelope's stamp field is the sender's clock on an insecure fleet only; a
+            # keyed fleet's envelopes carry the sender's session id there (the same on every
+            # message): it is `session`, and `stamp_us` is 0.
             message.update(
                 sender=str(env.sender),
                 type=str(env.type),
                 seq=int(env.seq),
-                stamp_us=int(env.stamp_us),
-                signed=int(env.mac_size) > 0,
+                stamp_us=0 if signed else int(env.stamp_us),
+                session=int(env.stamp_us) if signed else 0,
+                signed=signed,
             )
         except Exception:
-            message.update(sender="", type="", seq=0, stamp_us=0, signed=False)
+            message.update(sender="", type="", seq=0, stamp_us=0, session=0, signed=False)
         self.put(f"/fleet/{channel}", "temoto.FleetMessage", message)
         if message["type"] == "handshake_t" and channel == "TEMOTO_HANDSHAKE":
             # A keyed fleet encrypts the payload (docs/security.md): every participant sends

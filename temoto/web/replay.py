@@ -98,9 +98,6 @@ class Recording:
         Returns:
             ``{"source", "name", "result", "start", "end", "events", "robot", "graph",
             "notes"}``; ``graph`` is :func:`~temoto.web.view.graph_picture`'s drawing.
-
-        Raises:
-            Nothing.
         """
         times = [e["t"] for e in self.events] + [r["t"] for r in self.robot]
         start = min(times, default=0.0)

@@ -53,7 +53,7 @@ from temoto._cli_fleet import (
 )
 from temoto._cli_sim import endpoint_for, parse_udp_address
 from temoto._progress import ActionLogHandler, Progress
-from temoto.actions.builtin import ROBOT_ACTIONS
+from temoto.actions.builtin import ROBOT_ACTIONS, VISUALIZATION_ACTIONS
 from temoto.clock import MonotonicClock
 from temoto.config import load_profile
 from temoto.core.documents import load_graph
@@ -61,7 +61,12 @@ from temoto.core.states import NodeState, Result
 from temoto.drivers import Driver, live_drivers, make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
 from temoto.managers.process import hurry_all
-from temoto.managers.visualization.live import add_foxglove_option, close_foxglove, open_foxglove
+from temoto.managers.visualization.live import (
+    add_foxglove_commands_option,
+    add_foxglove_option,
+    close_foxglove,
+    open_foxglove,
+)
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials
@@ -183,6 +188,7 @@ def _parser() -> argparse.ArgumentParser:
     add_live_view_option(p)
     add_record_option(p)
     add_foxglove_option(p)
+    add_foxglove_commands_option(p)
     add_fleet_options(p, "the fleet this robot joins (unless --local)")
     return p
 
@@ -269,7 +275,7 @@ def _run_instance(
         key=key,
         fleet=args.fleet,
         insecure=key is None,
-        actions=[ROBOT_ACTIONS, *args.actions],
+        actions=[ROBOT_ACTIONS, VISUALIZATION_ACTIONS, *args.actions],  # ShowDisplay too
         graphs=args.graphs,
         catalog=state.catalog,
         world=state.world,
