@@ -1,0 +1,94 @@
+"""A plain rclpy node, independent of TeMoto, that the ROS 2 action tests talk to.
+
+Run as ``python peer_node.py``; prints ``ready`` once its entities exist, and one line per
+event the tests look for (``called``, ``goal``, ``canceled``, ``succeeded``). Serves:
+
+* ``/peer/trigger`` (``std_srvs/srv/Trigger``): answers ``triggered N``;
+* ``/peer/echo_in`` -> ``/peer/echo_out`` (``std_msgs/msg/String``): once a message arrived,
+  republishes ``echo: <data>`` every 0.1 s (late subscribers see it too);
+* ``/peer/fibonacci`` (``test_msgs/action/Fibonacci``): one feedback per step every 0.1 s,
+  cancellable.
+
+Ends on SIGINT or SIGTERM (exit 0, segments removed).
+"""
+
+from __future__ import annotations
+
+import signal
+import threading
+import time
+
+import rclpy
+from rclpy.action import ActionServer, CancelResponse, GoalResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
+from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+from std_msgs.msg import String
+from std_srvs.srv import Trigger
+from test_msgs.action import Fibonacci
+
+
+def main() -> None:
+    rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda _s, _f: stop.set())
+    node = rclpy.create_node("temoto_test_peer")
+    calls = [0]
+    echo: list[str] = []
+
+    def trigger(_req: Trigger.Request, resp: Trigger.Response) -> Trigger.Response:
+        calls[0] += 1
+        resp.success = True
+        resp.message = f"triggered {calls[0]}"
+        print("called", flush=True)
+        return resp
+
+    node.create_service(Trigger, "/peer/trigger", trigger)
+    pub = node.create_publisher(String, "/peer/echo_out", 10)
+    node.create_subscription(String, "/peer/echo_in", lambda m: echo[:] or echo.append(m.data), 10)
+    node.create_timer(0.1, lambda: echo and pub.publish(String(data=f"echo: {echo[0]}")))
+
+    def execute(handle: object) -> Fibonacci.Result:
+        print("goal", flush=True)
+        seq = [0, 1]
+        feedback = Fibonacci.Feedback()
+        for _ in range(1, handle.request.order):  # type: ignore[attr-defined]
+            if handle.is_cancel_requested:  # type: ignore[attr-defined]
+                handle.canceled()  # type: ignore[attr-defined]
+                print("canceled", flush=True)
+                return Fibonacci.Result(sequence=seq)
+            seq.append(seq[-1] + seq[-2])
+            feedback.sequence = seq
+            handle.publish_feedback(feedback)  # type: ignore[attr-defined]
+            time.sleep(0.1)
+        handle.succeed()  # type: ignore[attr-defined]
+        print("succeeded", flush=True)
+        return Fibonacci.Result(sequence=seq)
+
+    group = ReentrantCallbackGroup()
+    server = ActionServer(
+        node,
+        Fibonacci,
+        "/peer/fibonacci",
+        execute_callback=execute,
+        goal_callback=lambda _g: GoalResponse.ACCEPT,
+        cancel_callback=lambda _h: CancelResponse.ACCEPT,
+        callback_group=group,
+    )
+    executor = MultiThreadedExecutor(num_threads=2)  # the goal runs while cancels arrive
+    executor.add_node(node)
+    print("ready", flush=True)
+    try:
+        while not stop.is_set():
+            executor.spin_once(timeout_sec=0.1)
+    except ExternalShutdownException:
+        pass
+    server.destroy()
+    executor.shutdown()
+    node.destroy_node()
+    rclpy.try_shutdown()
+
+
+if __name__ == "__main__":
+    main()
