@@ -36,6 +36,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any, Final
 
+from temoto.ros2 import INSTALL_HINT
 from temoto.ros2.convert import fill, import_type, to_json
 from temoto.ros2.protocol import FrameError, recv_frame, send_frame
 
@@ -406,8 +407,13 @@ def main(argv: list[str] | None = None) -> int:
         error = check_rmw(os.environ)
         if error is not None:
             return _refuse(listener, error, stop)
-        import rclpy  # exits 102 on an RMW it cannot use (checked above)
-        from rclpy.signals import SignalHandlerOptions
+        try:
+            import rclpy  # exits 102 on an RMW it cannot use (checked above)
+            from rclpy.signals import SignalHandlerOptions
+        except ImportError:
+            return _refuse(
+                listener, f"the ROS 2 actions need rclpy in {sys.executable}: {INSTALL_HINT}", stop
+            )
 
         rclpy.init(args=[], signal_handler_options=SignalHandlerOptions.NO)
         bridge = Bridge(rclpy, stop)

@@ -35,12 +35,16 @@ from temoto.ros2 import require_rclpy
 from temoto.ros2.client import BridgeClient, BridgeError
 from temoto.ros2.shm import clean_stale_segments
 
-__all__ = ["Ros2BridgeRequest", "Ros2BridgeResponse", "Ros2Manager"]
+__all__ = ["PYTHON_VARIABLE", "Ros2BridgeRequest", "Ros2BridgeResponse", "Ros2Manager"]
 
 logger = logging.getLogger(__name__)
 
 #: The exit status of a process whose ``import rclpy`` found the wrong RMW.
 EXIT_WRONG_RMW = 102
+#: The environment variable naming another interpreter (with rclpy) for the bridge.
+PYTHON_VARIABLE = "TEMOTO_ROS2_PYTHON"
+#: The directory that holds the ``temoto`` package (put on the other interpreter's path).
+_PACKAGE_ROOT = str(Path(__file__).resolve().parents[2])
 
 
 @dataclass(frozen=True)
@@ -79,7 +83,9 @@ class Ros2Manager(ResourceServer[Ros2BridgeRequest, Ros2BridgeResponse]):
     Args:
         registrar: The registrar (with a Process Manager on it).
         start_timeout: Seconds a bridge may take to be ready (rclpy's import and init).
-        python: The interpreter that runs the bridge (default: this one).
+        python: The interpreter that runs the bridge: default ``$TEMOTO_ROS2_PYTHON`` (the
+            python of another environment that has rclpy, keeping the ROS wheels' start-up
+            hook out of this one), else this interpreter.
     """
 
     name: ClassVar[str] = "ros2"
@@ -91,7 +97,7 @@ class Ros2Manager(ResourceServer[Ros2BridgeRequest, Ros2BridgeResponse]):
     ) -> None:
         self.registrar = registrar
         self.start_timeout = start_timeout
-        self.python = python or sys.executable
+        self.python = python or os.environ.get(PYTHON_VARIABLE) or sys.executable
         registrar.register(self)
 
     def on_load(self, request: Ros2BridgeRequest, ctx: LoadContext) -> Ros2BridgeResponse:
@@ -109,12 +115,16 @@ class Ros2Manager(ResourceServer[Ros2BridgeRequest, Ros2BridgeResponse]):
                 cannot be used (one line).
             ResourceError: The bridge exited while starting, or was not ready in time.
         """
-        require_rclpy()
+        if self.python == sys.executable:
+            require_rclpy()  # else the bridge checks, and answers with the same line
         folder = Path(tempfile.mkdtemp(prefix="temoto-ros2-"))
         path = folder / "bridge.sock"
         env: list[tuple[str, str]] = []
         if request.domain_id >= 0:
             env.append(("ROS_DOMAIN_ID", str(request.domain_id)))
+        if self.python != sys.executable:
+            path_now = os.environ.get("PYTHONPATH", "")
+            env.append(("PYTHONPATH", os.pathsep.join(p for p in (_PACKAGE_ROOT, path_now) if p)))
         died = threading.Event()
         why: list[str] = []
 

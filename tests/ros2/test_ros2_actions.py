@@ -25,14 +25,28 @@ from temoto import ActionEngine, Result
 from temoto.actions.builtin import ROS2_ACTIONS
 from temoto.core.registrar import Registrar
 from temoto.managers.process import ProcessManager
-from temoto.ros2.manager import Ros2BridgeResponse, Ros2Manager
+from temoto.ros2.manager import PYTHON_VARIABLE, Ros2BridgeResponse, Ros2Manager
 from temoto.ros2.shm import fastdds_segments
+
+#: The interpreter with rclpy: $TEMOTO_ROS2_PYTHON (what the bridge then runs in), else this one.
+ROS_PYTHON = os.environ.get(PYTHON_VARIABLE) or sys.executable
+
+
+def _has_rclpy(python: str) -> bool:
+    if python == sys.executable:
+        return importlib.util.find_spec("rclpy") is not None
+    check = "import importlib.util, sys; sys.exit(importlib.util.find_spec('rclpy') is None)"
+    try:
+        return subprocess.run([python, "-c", check], timeout=60, check=False).returncode == 0
+    except OSError:
+        return False
+
 
 pytestmark = [
     pytest.mark.slow,
     pytest.mark.skipif(
-        importlib.util.find_spec("rclpy") is None,
-        reason="rclpy is not installed (pip install 'temoto[ros2]'; Linux x86_64, CPython <3.14)",
+        not _has_rclpy(ROS_PYTHON),
+        reason="rclpy is not installed (pip install 'temoto[ros2]', or set TEMOTO_ROS2_PYTHON)",
     ),
 ]
 
@@ -44,7 +58,7 @@ class Peer:
     """The rclpy peer process; its stdout lines are collected."""
 
     def __init__(self) -> None:
-        self.proc = subprocess.Popen([sys.executable, str(PEER)], stdout=subprocess.PIPE, text=True)
+        self.proc = subprocess.Popen([ROS_PYTHON, str(PEER)], stdout=subprocess.PIPE, text=True)
         self.lines: list[str] = []
         self._changed = threading.Condition()
         self._reader = threading.Thread(target=self._read, name="test-peer-reader")

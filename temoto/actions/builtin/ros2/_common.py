@@ -9,7 +9,6 @@ from typing import Any
 
 from temoto.core.action import Action
 from temoto.errors import ConfigError, StopRequested
-from temoto.ros2 import require_rclpy
 from temoto.ros2.client import BridgeClient, BridgeError
 from temoto.ros2.manager import Ros2BridgeRequest, Ros2BridgeResponse
 
@@ -29,10 +28,9 @@ def connect(action: Action) -> BridgeClient:
         A client; close it when the action is done.
 
     Raises:
-        ConfigError: The ``ros2`` extra is not installed (one line naming it).
+        ConfigError: The ``ros2`` extra is not installed (one line naming it; from the load).
         ResourceError: No bridge could be started.
     """
-    require_rclpy()
     domain = int(action.inputs.get("domain_id", -1))
     resource = action.acquire("ros2", Ros2BridgeRequest(domain))
     response = resource.response
