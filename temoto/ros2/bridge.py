@@ -386,19 +386,25 @@ def main(argv: list[str] | None = None) -> int:
     """Run the bridge until SIGTERM or SIGINT, or until the parent is gone.
 
     Args:
-        argv: The arguments (``--socket PATH``).
+        argv: The arguments (``--socket PATH [--parent PID]``).
 
     Returns:
         The exit status: 0, or 2 when the environment is wrong.
     """
     parser = argparse.ArgumentParser(prog="python -m temoto.ros2.bridge")
     parser.add_argument("--socket", required=True, help="the Unix socket path to listen on")
+    parser.add_argument(
+        "--parent",
+        type=int,
+        default=0,
+        help="exit when this process is gone (default: the parent at start)",
+    )
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="temoto-ros2-bridge: %(message)s")
     stop = threading.Event()
     for sig in (signal.SIGTERM, signal.SIGINT):
         signal.signal(sig, lambda _s, _f: stop.set())
-    parent = os.getppid()
+    parent = args.parent or os.getppid()
     path = Path(args.socket)
     listener = socket.socket(socket.AF_UNIX, socket.SOCK_STREAM)
     try:
@@ -422,7 +428,7 @@ def main(argv: list[str] | None = None) -> int:
         try:
             listener.settimeout(TICK_S)
             while not stop.is_set():
-                if os.getppid() != parent:
+                if os.getppid() != parent:  # re-parented: the parent is gone
                     logger.info("the TeMoto process that started the bridge is gone; stopping")
                     break
                 try:

@@ -77,6 +77,18 @@ class Ros2BridgeResponse:
     pid: int
 
 
+def bridge_args(path: Path) -> tuple[str, ...]:
+    """The bridge's arguments (after the interpreter): its socket, and this process as parent.
+
+    Args:
+        path: The socket path.
+
+    Returns:
+        The arguments.
+    """
+    return ("-m", "temoto.ros2.bridge", "--socket", str(path), "--parent", str(os.getpid()))
+
+
 class Ros2Manager(ResourceServer[Ros2BridgeRequest, Ros2BridgeResponse]):
     """Serves ``"ros2"``: ROS 2 bridge processes, through the registrar's ``"process"`` server.
 
@@ -136,9 +148,7 @@ class Ros2Manager(ResourceServer[Ros2BridgeRequest, Ros2BridgeResponse]):
         try:
             process = ctx.call(
                 "process",
-                ProcessRequest(
-                    self.python, ("-m", "temoto.ros2.bridge", "--socket", str(path)), tuple(env)
-                ),
+                ProcessRequest(self.python, bridge_args(path), tuple(env)),
                 on_status=on_status,
             )
             pid = int(getattr(process.response, "pid", 0))

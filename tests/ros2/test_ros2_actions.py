@@ -25,6 +25,7 @@ from temoto import ActionEngine, Result
 from temoto.actions.builtin import ROS2_ACTIONS
 from temoto.core.registrar import Registrar
 from temoto.managers.process import ProcessManager
+from temoto.ros2.client import BridgeClient, BridgeError
 from temoto.ros2.manager import PYTHON_VARIABLE, Ros2BridgeResponse, Ros2Manager
 from temoto.ros2.shm import fastdds_segments
 
@@ -337,3 +338,89 @@ def test_a_wrong_rmw_is_one_line(
     assert outcome.result is Result.ERROR
     assert expected in str(outcome.errors), outcome.errors
     assert "Traceback" not in str(outcome.errors)
+
+
+def _bridge_env() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": str(Path(__file__).resolve().parents[2])}
+
+
+def _wait_path(path: Path) -> None:
+    deadline = time.monotonic() + 30
+    while not path.exists() and time.monotonic() < deadline:
+        time.sleep(0.02)
+    assert path.exists(), "the bridge did not listen"
+
+
+def _request_error(client: BridgeClient) -> str:
+    try:
+        client.request("wait_message", topic="/nobody", type="std_msgs/msg/String", timeout=60)
+    except BridgeError as exc:
+        return str(exc)
+    return ""
+
+
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_the_bridge_ends_cleanly_on_a_signal_during_a_request(
+    ros_env: int, tmp_path: Path, sig: signal.Signals
+) -> None:
+    path = tmp_path / "b.sock"
+    proc = subprocess.Popen(
+        [ROS_PYTHON, "-m", "temoto.ros2.bridge", "--socket", str(path)],
+        env=_bridge_env(),
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    errors: list[str] = []
+    try:
+        _wait_path(path)
+        with BridgeClient(str(path)) as client:
+            waiting = threading.Thread(
+                target=lambda: errors.append(_request_error(client)), name="test-waiting"
+            )
+            waiting.start()
+            time.sleep(0.5)  # the request is in the bridge
+            proc.send_signal(sig)
+            assert proc.wait(30) == 0
+            waiting.join(10)
+        assert proc.stderr is not None
+        stderr = proc.stderr.read()
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stderr is not None:
+            proc.stderr.close()
+    assert errors, "the waiting request hung"
+    assert errors[0], "the waiting request got no error"
+    assert "Traceback" not in stderr, stderr
+    assert not path.exists()
+    # ros_env: no segment left (the executor thread was joined, rclpy shut down)
+
+
+def test_the_bridge_exits_when_the_process_that_started_it_is_gone(
+    ros_env: int, tmp_path: Path
+) -> None:
+    path = tmp_path / "b.sock"
+    starter = (
+        "import subprocess, sys; "
+        "import os; "
+        "p = subprocess.Popen([sys.argv[1], '-m', 'temoto.ros2.bridge', '--socket', sys.argv[2], "
+        "'--parent', str(os.getpid())], "
+        "stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL); "
+        "print(p.pid, flush=True)"
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", starter, ROS_PYTHON, str(path)],
+        env=_bridge_env(),
+        capture_output=True,
+        text=True,
+        check=True,
+        timeout=30,
+    )
+    pid = int(out.stdout.split()[0])
+    _wait_path(path)  # started, and its parent has exited by now
+    deadline = time.monotonic() + 30
+    while Path(f"/proc/{pid}").exists() and time.monotonic() < deadline:
+        time.sleep(0.05)
+    assert not Path(f"/proc/{pid}").exists(), "the orphaned bridge still runs"
+    assert not path.exists()
