@@ -110,6 +110,7 @@ class Ros2Manager(ResourceServer[Ros2BridgeRequest, Ros2BridgeResponse]):
         self.registrar = registrar
         self.start_timeout = start_timeout
         self.python = python or os.environ.get(PYTHON_VARIABLE) or sys.executable
+        self._used = False
         registrar.register(self)
 
     def on_load(self, request: Ros2BridgeRequest, ctx: LoadContext) -> Ros2BridgeResponse:
@@ -129,6 +130,7 @@ class Ros2Manager(ResourceServer[Ros2BridgeRequest, Ros2BridgeResponse]):
         """
         if self.python == sys.executable:
             require_rclpy()  # else the bridge checks, and answers with the same line
+        self._used = True
         folder = Path(tempfile.mkdtemp(prefix="temoto-ros2-"))
         path = folder / "bridge.sock"
         env: list[tuple[str, str]] = []
@@ -210,8 +212,11 @@ class Ros2Manager(ResourceServer[Ros2BridgeRequest, Ros2BridgeResponse]):
     def shutdown(self) -> None:
         """Remove the Fast DDS segments crashed processes left.
 
-        Call it after the Process Manager's shutdown (its bridges are stopped by then).
+        Call it after the Process Manager's shutdown (its bridges are stopped by then). Nothing
+        is looked at if this manager never started a bridge.
         """
+        if not self._used:
+            return
         with contextlib.suppress(OSError):
             clean_stale_segments()
 
