@@ -424,3 +424,25 @@ def test_the_bridge_exits_when_the_process_that_started_it_is_gone(
         time.sleep(0.05)
     assert not Path(f"/proc/{pid}").exists(), "the orphaned bridge still runs"
     assert not path.exists()
+
+
+def test_an_instance_serves_the_ros2_actions(peer: Peer, monkeypatch: pytest.MonkeyPatch) -> None:
+    from temoto.instance import Instance
+    from temoto.transport import InProcessTransport
+
+    monkeypatch.setenv(PYTHON_VARIABLE, ROS_PYTHON)
+    instance = Instance("r1", transport=InProcessTransport(f"ros2-{os.getpid()}"), key=bytes(32))
+    try:
+        g = graph(
+            "ros2_instance",
+            node(
+                "Ros2CallService",
+                {"service": "/peer/trigger", "type": "std_srvs/srv/Trigger", "timeout": 20},
+            ),
+        )
+        outcome = instance.engine.run(g, timeout=60)
+        assert outcome.result is Result.TRUE, outcome.errors
+        assert json.loads(outcome.outputs["response"])["success"] is True
+    finally:
+        instance.close()
+    assert instance.processes.running() == []
