@@ -199,11 +199,11 @@ class Bridge:
                 client = self.node.create_client(cls, service)
                 self._clients[(service, type_name)] = client
         start = time.monotonic()
-        if not self._wait_ready(client.service_is_ready, timeout):
+        cancel: threading.Event = req["_cancel"]
+        if not self._wait_ready(client.service_is_ready, timeout, cancel, service):
             raise OpError(f"no {type_name} service {service} within {timeout:g} s")
         left = None if timeout is None else max(0.0, timeout - (time.monotonic() - start))
         future = client.call_async(request)
-        cancel: threading.Event = req["_cancel"]
         if not _wait_future(future, left, cancel):
             client.remove_pending_request(future)
             if cancel.is_set():
@@ -211,13 +211,16 @@ class Bridge:
             raise OpError(f"the service {service} did not answer within {timeout:g} s")
         return {"response": to_json(future.result())}
 
-    def _wait_ready(self, ready: Callable[[], bool], timeout: float | None) -> bool:
+    def _wait_ready(
+        self, ready: Callable[[], bool], timeout: float | None, cancel: threading.Event, what: str
+    ) -> bool:
+        """Wait for discovery (a service or action server); False on timeout."""
         deadline = None if timeout is None else time.monotonic() + timeout
         while not ready():
             if deadline is not None and time.monotonic() >= deadline:
                 return False
-            if self.stop.wait(0.02):
-                raise OpError("the bridge is stopping")
+            if cancel.wait(0.02) or self.stop.is_set():
+                raise OpError(f"waiting for {what} was cancelled")
         return True
 
     def send_goal(self, req: dict[str, Any], event: Callable[[dict[str, Any]], None]) -> Any:
@@ -235,7 +238,7 @@ class Bridge:
                 client = ActionClient(self.node, cls, action)
                 self._action_clients[(action, type_name)] = client
         start = time.monotonic()
-        if not self._wait_ready(client.server_is_ready, timeout):
+        if not self._wait_ready(client.server_is_ready, timeout, cancel, action):
             raise OpError(f"no {type_name} action server {action} within {timeout:g} s")
 
         def left() -> float | None:

@@ -446,3 +446,19 @@ def test_an_instance_serves_the_ros2_actions(peer: Peer, monkeypatch: pytest.Mon
     finally:
         instance.close()
     assert instance.processes.running() == []
+
+
+def test_stopping_a_call_that_waits_for_discovery(registrar: Registrar) -> None:
+    g = graph(
+        "ros2_undiscovered",
+        node(
+            "Ros2CallService", {"service": "/nobody", "type": "std_srvs/srv/Trigger", "timeout": 0}
+        ),
+    )
+    with ActionEngine("r1", actions=[ROS2_ACTIONS], registrar=registrar, stop_timeout=10) as engine:
+        engine.start(g)
+        deadline = time.monotonic() + 30
+        while not registrar.resources() and time.monotonic() < deadline:
+            time.sleep(0.05)
+        time.sleep(0.5)  # the bridge is waiting for /nobody
+        assert engine.stop("ros2_undiscovered", timeout=30) is Result.STOPPED
