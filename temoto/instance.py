@@ -10,8 +10,8 @@ only another robot serves, and the provider for the others' requests). The Compo
 (``"component"``, ``"pipeline"``; candidates on other robots through RIS) and the Context
 Manager (``"context"``, the world model synchronised with the other robots) run on the same
 registrar, and their built-in actions are in the engine's catalog, as are the ROS 2 actions
-(``"ros2"``: bridge processes, ``docs/ros2.md``). ``temoto serve`` runs
-one until SIGINT or SIGTERM; the Robot Manager builds on it.
+(``"ros2"``: bridge processes; ``"ros2_lifecycle"``: lifecycle nodes; ``docs/ros2.md``).
+``temoto serve`` runs one until SIGINT or SIGTERM; the Robot Manager builds on it.
 
 Closing stops the runs (their actions get their stop request, their resources are released),
 then the fleet services and the managers, releases whatever is still held, then stops the
@@ -44,6 +44,7 @@ from temoto.fleet.ris import ResourceInfoSync
 from temoto.managers.component import ComponentManager
 from temoto.managers.context import ContextManager
 from temoto.managers.process import ProcessManager
+from temoto.ros2.lifecycle import Ros2LifecycleManager
 from temoto.ros2.manager import Ros2Manager
 from temoto.transport.auth import FleetAuth
 from temoto.transport.base import Transport
@@ -139,6 +140,7 @@ class Instance(Closing):
             # ROS 2 bridges (docs/ros2.md): rclpy is imported only in a bridge process, when a
             # ROS 2 action asks for one; without the ros2 extra that action fails in one line.
             self.ros2 = Ros2Manager(self.registrar)
+            self.ros2_lifecycle = Ros2LifecycleManager(self.registrar)
             self.link = FleetLink(transport, FleetAuth(fleet, actor, key, insecure=insecure))
             self.actors = FleetActorLink(self.link, actor, silence_s=silence_s, resend_s=resend_s)
             closing.append(self.actors)

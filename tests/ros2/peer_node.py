@@ -7,13 +7,17 @@ event the tests look for (``called``, ``goal``, ``canceled``, ``succeeded``). Se
 * ``/peer/echo_in`` -> ``/peer/echo_out`` (``std_msgs/msg/String``): once a message arrived,
   republishes ``echo: <data>`` every 0.1 s (late subscribers see it too);
 * ``/peer/fibonacci`` (``test_msgs/action/Fibonacci``): one feedback per step every 0.1 s,
-  cancellable.
+  cancellable;
+* the lifecycle node ``/peer_lifecycle``: prints ``configure``, ``activate``, ``deactivate``,
+  ``cleanup`` on each transition; with ``PEER_SELF_DEACTIVATE_S`` set, it deactivates itself
+  that long after being activated.
 
 Ends on SIGINT or SIGTERM (exit 0, segments removed).
 """
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 import time
@@ -22,10 +26,43 @@ import rclpy
 from rclpy.action import ActionServer, CancelResponse, GoalResponse
 from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import ExternalShutdownException, MultiThreadedExecutor
+from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import String
 from std_srvs.srv import Trigger
 from test_msgs.action import Fibonacci
+
+
+class PeerLifecycle(LifecycleNode):
+    """Prints its transitions; may deactivate itself (``PEER_SELF_DEACTIVATE_S``)."""
+
+    def __init__(self) -> None:
+        super().__init__("peer_lifecycle")
+        self._quit_after = float(os.environ.get("PEER_SELF_DEACTIVATE_S", "0"))
+        self._timer: object = None
+
+    def _say(self, what: str) -> TransitionCallbackReturn:
+        print(what, flush=True)
+        return TransitionCallbackReturn.SUCCESS
+
+    def on_configure(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._say("configure")
+
+    def on_activate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        if self._quit_after > 0:
+            self._timer = self.create_timer(self._quit_after, self._quit)
+        return self._say("activate")
+
+    def _quit(self) -> None:
+        self.destroy_timer(self._timer)  # type: ignore[arg-type]
+        self._quit_after = 0
+        self.trigger_deactivate()
+
+    def on_deactivate(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._say("deactivate")
+
+    def on_cleanup(self, state: LifecycleState) -> TransitionCallbackReturn:
+        return self._say("cleanup")
 
 
 def main() -> None:
@@ -76,8 +113,10 @@ def main() -> None:
         cancel_callback=lambda _h: CancelResponse.ACCEPT,
         callback_group=group,
     )
+    lifecycle = PeerLifecycle()
     executor = MultiThreadedExecutor(num_threads=2)  # the goal runs while cancels arrive
     executor.add_node(node)
+    executor.add_node(lifecycle)
     print("ready", flush=True)
     try:
         while not stop.is_set():
@@ -86,6 +125,7 @@ def main() -> None:
         pass
     server.destroy()
     executor.shutdown()
+    lifecycle.destroy_node()
     node.destroy_node()
     rclpy.try_shutdown()
 

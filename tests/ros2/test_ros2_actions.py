@@ -26,6 +26,7 @@ from temoto.actions.builtin import ROS2_ACTIONS
 from temoto.core.registrar import Registrar
 from temoto.managers.process import ProcessManager
 from temoto.ros2.client import BridgeClient, BridgeError
+from temoto.ros2.lifecycle import Ros2LifecycleManager
 from temoto.ros2.manager import PYTHON_VARIABLE, Ros2BridgeResponse, Ros2Manager
 from temoto.ros2.shm import fastdds_segments
 
@@ -58,8 +59,13 @@ _DOMAINS = iter(range(100 + os.getpid() % 50 * 2, 232))
 class Peer:
     """The rclpy peer process; its stdout lines are collected."""
 
-    def __init__(self) -> None:
-        self.proc = subprocess.Popen([ROS_PYTHON, str(PEER)], stdout=subprocess.PIPE, text=True)
+    def __init__(self, env: dict[str, str] | None = None) -> None:
+        self.proc = subprocess.Popen(
+            [ROS_PYTHON, str(PEER)],
+            stdout=subprocess.PIPE,
+            text=True,
+            env={**os.environ, **(env or {})},
+        )
         self.lines: list[str] = []
         self._changed = threading.Condition()
         self._reader = threading.Thread(target=self._read, name="test-peer-reader")
@@ -114,6 +120,7 @@ def registrar(ros_env: int) -> Iterator[Registrar]:
     reg = Registrar("r1")
     processes = ProcessManager(reg, grace=5.0)
     manager = Ros2Manager(reg)
+    Ros2LifecycleManager(reg, check_period=0.2)
     try:
         yield reg
     finally:
@@ -462,3 +469,42 @@ def test_stopping_a_call_that_waits_for_discovery(registrar: Registrar) -> None:
             time.sleep(0.05)
         time.sleep(0.5)  # the bridge is waiting for /nobody
         assert engine.stop("ros2_undiscovered", timeout=30) is Result.STOPPED
+
+
+def _holder(name: str, duration: float) -> dict[str, Any]:
+    return graph(name, node("Ros2LifecycleNode", {"node": "peer_lifecycle", "duration": duration}))
+
+
+def test_a_lifecycle_node_shared_by_two_graphs_goes_down_when_both_end(
+    peer: Peer, registrar: Registrar
+) -> None:
+    with ActionEngine("r1", actions=[ROS2_ACTIONS], registrar=registrar) as engine:
+        engine.start(_holder("short", 1.0))
+        engine.start(_holder("long", 6.0))
+        assert engine.wait("short", timeout=60) is Result.TRUE, engine.outcome("short").errors
+        held = [r for r in registrar.resources() if r.server == "ros2_lifecycle"]
+        assert len(held) == 1, held  # one node, shared
+        assert "deactivate" not in peer.lines  # "long" still holds it
+        assert engine.wait("long", timeout=60) is Result.TRUE, engine.outcome("long").errors
+    lifecycle = [
+        line for line in peer.lines if line in ("configure", "activate", "deactivate", "cleanup")
+    ]
+    assert lifecycle == ["configure", "activate", "deactivate", "cleanup"]
+    assert registrar.resources() == []
+
+
+def test_a_lifecycle_node_that_deactivates_itself_fails_its_holder(
+    ros_env: int, registrar: Registrar
+) -> None:
+    peer = Peer({"PEER_SELF_DEACTIVATE_S": "1.0"})
+    try:
+        with ActionEngine("r1", actions=[ROS2_ACTIONS], registrar=registrar) as engine:
+            engine.start(_holder("held", 60.0))
+            assert engine.wait("held", timeout=60) is Result.ERROR
+            errors = str(engine.outcome("held").errors)
+        assert "lifecycle node /peer_lifecycle left ACTIVE on its own (now inactive)" in errors
+        assert registrar.resources() == []
+        # released after the failure: cleaned up (deactivate was the node's own)
+        assert peer.wait_line("cleanup", 10), peer.lines
+    finally:
+        assert peer.stop() == 0
