@@ -8,9 +8,10 @@
 * :data:`CONTEXT_ACTIONS`: add, move, get, remove and find items of the shared world model (a
   Context Manager on the registrar).
 * :data:`VISUALIZATION_ACTIONS`: show a display (a Visualization Manager on the registrar).
-* :data:`ROS2_ACTIONS`: publish, wait for a message, call a service, send a goal on ROS 2 (a
-  ``"ros2"`` server on the registrar, :class:`~temoto.ros2.manager.Ros2Manager`, and the
-  ``temoto[ros2]`` extra; ``docs/ros2.md``). Not in :data:`BUILTIN_ACTIONS`.
+* :data:`ROS2_ACTIONS`: publish, wait for a message, call a service, send a goal, hold a
+  lifecycle node on ROS 2 (the ``"ros2"`` and ``"ros2_lifecycle"`` servers on the registrar,
+  :mod:`temoto.ros2`, and the ``temoto[ros2]`` extra; ``docs/ros2.md``). Not in
+  :data:`BUILTIN_ACTIONS`.
 * :data:`BUILTIN_ACTIONS`: every folder above but the ROS 2 one.
 """
 
