@@ -508,3 +508,29 @@ def test_a_lifecycle_node_that_deactivates_itself_fails_its_holder(
         assert peer.wait_line("cleanup", 10), peer.lines
     finally:
         assert peer.stop() == 0
+
+
+def test_the_example_graph_runs_against_the_example_peer(ros_env: int) -> None:
+    examples = Path(__file__).resolve().parents[2] / "examples" / "ros2"
+    env = {**_bridge_env(), PYTHON_VARIABLE: ROS_PYTHON}
+    peer = subprocess.Popen(
+        [ROS_PYTHON, str(examples / "peer.py")], stdout=subprocess.PIPE, text=True, env=env
+    )
+    try:
+        assert peer.stdout is not None
+        assert peer.stdout.readline().strip() == "peer ready"
+        run = subprocess.run(
+            [sys.executable, str(examples / "run.py")],
+            env=env,
+            capture_output=True,
+            text=True,
+            timeout=120,
+            check=False,
+        )
+        assert run.returncode == 0, run.stdout + run.stderr
+        assert run.stdout == 'ros2_tour: goal SUCCEEDED: {"sequence":[0,1,1,2,3,5,8]}\n'
+    finally:
+        peer.send_signal(signal.SIGINT)
+        assert peer.wait(15) == 0
+        if peer.stdout is not None:
+            peer.stdout.close()
