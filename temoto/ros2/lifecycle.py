@@ -19,6 +19,7 @@ import contextlib
 import logging
 import threading
 import uuid
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any, ClassVar, Final
 
@@ -26,7 +27,7 @@ from temoto.core.registrar import LoadContext, Registrar, ResourceServer, Status
 from temoto.core.registrar.messages import StatusUpdate
 from temoto.errors import ResourceError
 from temoto.ros2.client import BridgeClient, BridgeError
-from temoto.ros2.manager import Ros2BridgeRequest
+from temoto.ros2.manager import Ros2BridgeRequest, program_request
 
 __all__ = ["Ros2LifecycleManager", "Ros2LifecycleRequest", "Ros2LifecycleResponse"]
 
@@ -56,17 +57,22 @@ class Ros2LifecycleRequest:
         node: The node's name (``/ns/name`` or ``name``).
         timeout: Seconds each service call may take (discovery included).
         domain_id: The bridge's ``ROS_DOMAIN_ID``, or -1 for the environment's.
+        program: The node's program, started first and stopped after the node is brought
+            down (a Python node file run with the interpreter that has rclpy, or an executable,
+            and its arguments); empty: the node runs already.
     """
 
     node: str
     timeout: float = 10.0
     domain_id: int = -1
+    program: tuple[str, ...] = ()
 
     def __post_init__(self) -> None:
         if not isinstance(self.node, str) or not self.node.strip("/"):
             raise ValueError(f"a lifecycle node needs a name, not {self.node!r}")
         if not self.timeout > 0:
             raise ValueError(f"timeout must be > 0, not {self.timeout!r}")
+        object.__setattr__(self, "program", tuple(str(a) for a in self.program))
 
     @property
     def path(self) -> str:
@@ -92,7 +98,7 @@ class Ros2LifecycleResponse:
 @dataclass
 class _Held:
     client: BridgeClient
-    bridge_ref: str
+    refs: list[str]  # the bridge's and the program's references, released last to first
     stop: threading.Event
     watcher: threading.Thread | None = None
 
@@ -175,28 +181,41 @@ class Ros2LifecycleManager(ResourceServer[Ros2LifecycleRequest, Ros2LifecycleRes
         token = uuid.uuid4().hex
         resource_id = ctx.resource_id
 
-        def on_bridge(update: StatusUpdate) -> None:
-            if update.status is Status.FATAL:
-                with contextlib.suppress(ResourceError):
-                    self.registrar.send_status(
-                        resource_id,
-                        Status.FATAL,
-                        f"lifecycle node {request.path}: the ROS 2 bridge failed: {update.message}",
-                    )
+        def passed_on(what: str) -> Callable[[StatusUpdate], None]:
+            def on_status(update: StatusUpdate) -> None:
+                if update.status is Status.FATAL:
+                    with contextlib.suppress(ResourceError):
+                        self.registrar.send_status(
+                            resource_id,
+                            Status.FATAL,
+                            f"lifecycle node {request.path}: {what} failed: {update.message}",
+                        )
 
-        # Not a dependency: the registrar releases dependencies before on_unload, and the node
-        # is brought down through the bridge there; its failure is passed on by on_bridge.
-        bridge = self.registrar.call(
-            "ros2",
-            Ros2BridgeRequest(request.domain_id),
-            client=f"{self.registrar.name}/ros2_lifecycle/{token}",
-            holder="",
-            on_status=on_bridge,
-        )
+            return on_status
+
+        # Not dependencies: the registrar releases dependencies before on_unload, and the node
+        # is brought down through the bridge there (before its program is stopped); their
+        # failures are passed on to the holders.
+        refs: list[str] = []
+
+        def hold(server: str, req: Any, what: str) -> Any:
+            res = self.registrar.call(
+                server,
+                req,
+                client=f"{self.registrar.name}/ros2_lifecycle/{token}",
+                holder="",
+                on_status=passed_on(what),
+            )
+            refs.append(res.id)
+            return res
+
         try:
+            if request.program:
+                hold("process", program_request(request.program), "its program")
+            bridge = hold("ros2", Ros2BridgeRequest(request.domain_id), "the ROS 2 bridge")
             client = BridgeClient(bridge.response.socket)
         except BaseException:
-            self.registrar.release(bridge.id)
+            self._release(refs)
             raise
         try:
             initial, label = self._state(client, request)
@@ -210,12 +229,12 @@ class Ros2LifecycleManager(ResourceServer[Ros2LifecycleRequest, Ros2LifecycleRes
                 self._transition(client, request, ACTIVATE)
         except BaseException as exc:
             client.close()
-            self.registrar.release(bridge.id)
+            self._release(refs)
             if isinstance(exc, BridgeError):
                 raise ResourceError(f"lifecycle node {request.path}: {exc}") from None
             raise
         response = Ros2LifecycleResponse(request.path, initial, token)
-        held = _Held(client, bridge.id, threading.Event())
+        held = _Held(client, refs, threading.Event())
         held.watcher = threading.Thread(
             target=self._watch,
             args=(request, resource_id, held),
@@ -268,5 +287,9 @@ class Ros2LifecycleManager(ResourceServer[Ros2LifecycleRequest, Ros2LifecycleRes
             logger.warning("lifecycle node %s: not brought back down: %s", request.path, exc)
         finally:
             held.client.close()
+            self._release(held.refs)
+
+    def _release(self, refs: list[str]) -> None:
+        for ref in reversed(refs):
             with contextlib.suppress(ResourceError):
-                self.registrar.release(held.bridge_ref)
+                self.registrar.release(ref)

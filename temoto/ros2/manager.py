@@ -35,7 +35,14 @@ from temoto.ros2 import require_rclpy
 from temoto.ros2.client import BridgeClient, BridgeError
 from temoto.ros2.shm import clean_stale_segments
 
-__all__ = ["PYTHON_VARIABLE", "Ros2BridgeRequest", "Ros2BridgeResponse", "Ros2Manager"]
+__all__ = [
+    "PYTHON_VARIABLE",
+    "Ros2BridgeRequest",
+    "Ros2BridgeResponse",
+    "Ros2Manager",
+    "program_request",
+    "ros_python",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -77,6 +84,38 @@ class Ros2BridgeResponse:
     pid: int
 
 
+def ros_python() -> str:
+    """The interpreter that has rclpy: ``$TEMOTO_ROS2_PYTHON``, else this one.
+
+    Returns:
+        Its path.
+    """
+    return os.environ.get(PYTHON_VARIABLE) or sys.executable
+
+
+def program_request(argv: tuple[str, ...], python: str | None = None) -> ProcessRequest:
+    """A Process Manager request for a ROS 2 program: a Python node file or an executable.
+
+    A ``.py`` file runs with the interpreter that has rclpy (:func:`ros_python`); anything
+    else is an executable. Both inherit the environment (the user's ROS variables).
+
+    Args:
+        argv: The program and its arguments.
+        python: The interpreter for ``.py`` files (default :func:`ros_python`).
+
+    Returns:
+        The request.
+
+    Raises:
+        ValueError: An empty ``argv``.
+    """
+    if not argv or not argv[0]:
+        raise ValueError("a ROS 2 program needs a file or an executable")
+    if argv[0].endswith(".py"):
+        return ProcessRequest(python or ros_python(), (str(Path(argv[0]).resolve()), *argv[1:]))
+    return ProcessRequest(argv[0], tuple(argv[1:]))
+
+
 def bridge_args(path: Path) -> tuple[str, ...]:
     """The bridge's arguments (after the interpreter): its socket, and this process as parent.
 
@@ -109,7 +148,7 @@ class Ros2Manager(ResourceServer[Ros2BridgeRequest, Ros2BridgeResponse]):
     ) -> None:
         self.registrar = registrar
         self.start_timeout = start_timeout
-        self.python = python or os.environ.get(PYTHON_VARIABLE) or sys.executable
+        self.python = python or ros_python()
         self._used = False
         registrar.register(self)
 

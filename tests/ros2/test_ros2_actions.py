@@ -534,3 +534,18 @@ def test_the_example_graph_runs_against_the_example_peer(ros_env: int) -> None:
         assert peer.wait(15) == 0
         if peer.stdout is not None:
             peer.stdout.close()
+
+
+def test_a_lifecycle_node_whose_program_is_started_first(registrar: Registrar) -> None:
+    g = graph(
+        "ros2_program",
+        node(
+            "Ros2LifecycleNode",
+            {"node": "peer_lifecycle", "program": str(PEER), "timeout": 30, "duration": 0.5},
+        ),
+    )
+    with ActionEngine("r1", actions=[ROS2_ACTIONS], registrar=registrar) as engine:
+        outcome = engine.run(g, timeout=90)
+    assert outcome.result is Result.TRUE, outcome.errors
+    assert outcome.outputs["state"] == 1  # found unconfigured: it was just started
+    assert registrar.resources() == []  # the program was stopped with the node

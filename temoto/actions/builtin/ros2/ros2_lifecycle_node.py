@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import shlex
+
 from temoto.core.action import Action
 from temoto.ros2.lifecycle import Ros2LifecycleRequest, Ros2LifecycleResponse
 
@@ -14,6 +16,9 @@ class Ros2LifecycleNode(Action):
     reference goes when the run ends, or after ``duration`` seconds if given (the action then
     returns; while it holds, a node that leaves ACTIVE on its own, or is gone, fails it).
     Output ``state``: the state the node was found in (1 unconfigured, 2 inactive, 3 active).
+    ``program`` (optional): the node's program and its arguments (shell-like words; a ``.py``
+    file runs with the interpreter that has rclpy), started first by the Process Manager and
+    stopped once the node is brought down.
     """
 
     def on_run(self) -> bool:
@@ -22,6 +27,7 @@ class Ros2LifecycleNode(Action):
             self.inputs.get_string("node"),
             timeout=float(self.inputs.get("timeout", 10.0)),
             domain_id=int(self.inputs.get("domain_id", -1)),
+            program=tuple(shlex.split(str(self.inputs.get("program", "")))),
         )
         resource = self.acquire("ros2_lifecycle", request)
         response = resource.response
