@@ -1,8 +1,8 @@
 """A ROS 2 peer for the example graph: plain rclpy, nothing of TeMoto.
 
 Serves ``/arm/home`` (``std_srvs/srv/Trigger``), ``/arm/count`` (``test_msgs/action/Fibonacci``,
-one feedback per step) and the lifecycle node ``/gripper``. Run it with the Python that has
-rclpy (``python examples/ros2/peer.py``); Ctrl-C ends it.
+one feedback per step, cancellable) and the lifecycle node ``/gripper``. Run it with the Python
+that has rclpy (``python examples/ros2/peer.py``); Ctrl-C ends it.
 """
 
 from __future__ import annotations
@@ -12,7 +12,8 @@ import threading
 import time
 
 import rclpy
-from rclpy.action import ActionServer
+from rclpy.action import ActionServer, CancelResponse
+from rclpy.callback_groups import ReentrantCallbackGroup
 from rclpy.executors import MultiThreadedExecutor
 from rclpy.lifecycle import LifecycleNode, LifecycleState, TransitionCallbackReturn
 from rclpy.signals import SignalHandlerOptions
@@ -54,15 +55,26 @@ def main() -> None:
 
     def count(handle: object) -> Fibonacci.Result:
         seq = [0, 1]
-        for _ in range(1, handle.request.order):  # type: ignore[attr-defined]
-            seq.append(seq[-1] + seq[-2])
+        for _ in range(1, min(handle.request.order, 46)):  # type: ignore[attr-defined]
+            if handle.is_cancel_requested:  # type: ignore[attr-defined]
+                handle.canceled()  # type: ignore[attr-defined]
+                node.get_logger().info("count cancelled")
+                return Fibonacci.Result(sequence=seq)
+            seq.append(seq[-1] + seq[-2])  # int32: order 46 at most
             handle.publish_feedback(Fibonacci.Feedback(sequence=seq))  # type: ignore[attr-defined]
             time.sleep(0.1)
         handle.succeed()  # type: ignore[attr-defined]
         return Fibonacci.Result(sequence=seq)
 
     node.create_service(Trigger, "/arm/home", home)
-    server = ActionServer(node, Fibonacci, "/arm/count", execute_callback=count)
+    server = ActionServer(
+        node,
+        Fibonacci,
+        "/arm/count",
+        execute_callback=count,
+        cancel_callback=lambda _h: CancelResponse.ACCEPT,
+        callback_group=ReentrantCallbackGroup(),
+    )
     gripper = Gripper()
     executor = MultiThreadedExecutor(num_threads=2)
     executor.add_node(node)

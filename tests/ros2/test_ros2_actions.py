@@ -549,3 +549,48 @@ def test_a_lifecycle_node_whose_program_is_started_first(registrar: Registrar) -
     assert outcome.result is Result.TRUE, outcome.errors
     assert outcome.outputs["state"] == 1  # found unconfigured: it was just started
     assert registrar.resources() == []  # the program was stopped with the node
+
+
+def test_ctrl_c_of_the_example_and_its_peer(ros_env: int) -> None:
+    examples = Path(__file__).resolve().parents[2] / "examples" / "ros2"
+    env = {**_bridge_env(), PYTHON_VARIABLE: ROS_PYTHON}
+    peer = subprocess.Popen(
+        [ROS_PYTHON, str(examples / "peer.py")],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    run = subprocess.Popen(
+        [sys.executable, str(examples / "run.py"), "--order", "45"],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=env,
+    )
+    try:
+        assert peer.stdout is not None
+        assert peer.stdout.readline().strip() == "peer ready"
+        assert peer.stderr is not None
+        deadline = time.monotonic() + 60
+        seen = ""
+        while "activated" not in seen and time.monotonic() < deadline:
+            seen += peer.stderr.readline()  # the gripper's log: held, the goal comes next
+        assert "activated" in seen, seen
+        time.sleep(1.0)  # the goal runs
+        run.send_signal(signal.SIGINT)  # Ctrl-C: to the run, then to the peer
+        out, err = run.communicate(timeout=60)
+        peer.send_signal(signal.SIGINT)
+        peer_err = peer.communicate(timeout=30)[1]
+    finally:
+        for proc in (run, peer):
+            if proc.poll() is None:
+                proc.kill()
+                proc.communicate()
+    assert run.returncode == 130, out + err
+    assert out == "ros2_tour: interrupted (on_stopped)\n"
+    assert peer.returncode == 0
+    assert "Traceback" not in err + peer_err, err + peer_err
+    assert "count cancelled" in peer_err  # the goal was cancelled
+    assert "deactivated" in peer_err  # the lifecycle node was brought down on the way out
+    # ros_env: no /dev/shm segment left; the leak check: no process left (the bridge included)
