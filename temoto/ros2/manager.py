@@ -169,6 +169,8 @@ class Ros2Manager(ResourceServer[Ros2BridgeRequest, Ros2BridgeResponse]):
         """
         if self.python == sys.executable:
             require_rclpy()  # else the bridge checks, and answers with the same line
+        elif not os.access(self.python, os.X_OK):
+            raise ConfigError(f"{PYTHON_VARIABLE}={self.python}: no such executable")
         self._used = True
         folder = Path(tempfile.mkdtemp(prefix="temoto-ros2-"))
         path = folder / "bridge.sock"

@@ -120,9 +120,47 @@ def test_without_the_extra_the_actions_fail_with_one_line_naming_it() -> None:
         registrar.close()
     assert outcome.result is Result.ERROR
     (error,) = outcome.errors
-    assert "the ROS 2 actions need rclpy: pip install 'temoto[ros2]'" in str(error)
-    assert "\n" not in str(error)
+    assert str(error) == (
+        "Ros2Publish_0 failed: the ROS 2 actions need rclpy: "
+        "pip install 'temoto[ros2]' (or source a ROS 2 installation)"
+    )
     assert processes.running() == []
+
+
+def _publish_graph() -> dict[str, object]:
+    return {
+        "graph_name": "ros2_publish",
+        "graph_entry": [{"name": "Ros2Publish", "instance_id": 0}],
+        "graph_exit": [{"name": "Ros2Publish", "instance_id": 0}],
+        "actions": [
+            {
+                "name": "Ros2Publish",
+                "instance_id": 0,
+                "type": "sync",
+                "input_parameters": {
+                    "topic": {"pvf_type": "string", "pvf_value": "/x"},
+                    "type": {"pvf_type": "string", "pvf_value": "std_msgs/msg/String"},
+                },
+            }
+        ],
+    }
+
+
+def test_a_missing_ros2_python_is_one_line(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    missing = tmp_path / "nowhere" / "python"
+    monkeypatch.setenv("TEMOTO_ROS2_PYTHON", str(missing))
+    registrar = Registrar("r1")
+    processes = ProcessManager(registrar, grace=1.0)
+    Ros2Manager(registrar)
+    try:
+        with ActionEngine("r1", actions=[ROS2_ACTIONS], registrar=registrar) as engine:
+            outcome = engine.run(_publish_graph(), timeout=30)
+    finally:
+        processes.shutdown()
+        registrar.close()
+    assert outcome.result is Result.ERROR
+    (error,) = outcome.errors
+    assert str(error) == f"Ros2Publish_0 failed: TEMOTO_ROS2_PYTHON={missing}: no such executable"
 
 
 @pytest.fixture

@@ -8,11 +8,11 @@ import time
 from typing import Any
 
 from temoto.core.action import Action
-from temoto.errors import ConfigError, StopRequested
+from temoto.errors import ConfigError, ResourceError, ResourceLoadError, StopRequested
 from temoto.ros2.client import BridgeClient, BridgeError
 from temoto.ros2.manager import Ros2BridgeRequest, Ros2BridgeResponse
 
-__all__ = ["GONE_WAIT_S", "connect", "json_object", "request", "timeout_of"]
+__all__ = ["GONE_WAIT_S", "acquire", "connect", "json_object", "request", "timeout_of"]
 
 #: Real seconds to wait for the resource failure that explains a lost bridge connection.
 GONE_WAIT_S = 2.0
@@ -32,11 +32,46 @@ def connect(action: Action) -> BridgeClient:
         ResourceError: No bridge could be started.
     """
     domain = int(action.inputs.get("domain_id", -1))
-    resource = action.acquire("ros2", Ros2BridgeRequest(domain))
+    resource = acquire(action, "ros2", Ros2BridgeRequest(domain))
     response = resource.response
     if not isinstance(response, Ros2BridgeResponse):
         raise ConfigError(f"the 'ros2' server answered {type(response).__name__}, not a bridge")
     return BridgeClient(response.socket)
+
+
+def acquire(action: Action, server: str, request: Any) -> Any:
+    """``action.acquire``, with a load failure's own one line instead of the registrar's.
+
+    The registrar wraps a failed load in "server S could not load <request JSON>: ...", once per
+    level (the bridge's process under the bridge); the innermost cause is the line a user needs
+    (the missing extra, the wrong RMW, the missing interpreter).
+
+    Args:
+        action: The action.
+        server: The server.
+        request: The request.
+
+    Returns:
+        The reference.
+
+    Raises:
+        ConfigError: The innermost cause was a user error (one line).
+        ResourceError: The load failed otherwise (its innermost cause's line).
+    """
+    try:
+        return action.acquire(server, request)
+    except ResourceLoadError as exc:
+        cause: BaseException = exc
+        while isinstance(cause, ResourceLoadError) and cause.__cause__ is not None:
+            cause = cause.__cause__
+        if cause is exc:
+            raise
+        kind = (
+            ConfigError
+            if isinstance(cause, (ConfigError, ValueError, TypeError))
+            else ResourceError
+        )
+        raise kind(str(cause)) from exc
 
 
 def json_object(action: Action, name: str) -> dict[str, Any]:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import shlex
 
+from temoto.actions.builtin.ros2._common import acquire
 from temoto.core.action import Action
 from temoto.ros2.lifecycle import Ros2LifecycleRequest, Ros2LifecycleResponse
 
@@ -29,7 +30,7 @@ class Ros2LifecycleNode(Action):
             domain_id=int(self.inputs.get("domain_id", -1)),
             program=tuple(shlex.split(str(self.inputs.get("program", "")))),
         )
-        resource = self.acquire("ros2_lifecycle", request)
+        resource = acquire(self, "ros2_lifecycle", request)
         response = resource.response
         assert isinstance(response, Ros2LifecycleResponse)
         self.outputs["state"] = response.initial_state
