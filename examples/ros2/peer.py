@@ -82,8 +82,8 @@ def main() -> None:
     print("peer ready", flush=True)
     while not stop.is_set():
         executor.spin_once(timeout_sec=0.1)
+    executor.shutdown()  # its running callbacks end before their entities are destroyed
     server.destroy()
-    executor.shutdown()
     gripper.destroy_node()
     node.destroy_node()
     rclpy.try_shutdown()

@@ -123,8 +123,8 @@ def main() -> None:
             executor.spin_once(timeout_sec=0.1)
     except ExternalShutdownException:
         pass
+    executor.shutdown()  # its running callbacks end before their entities are destroyed
     server.destroy()
-    executor.shutdown()
     lifecycle.destroy_node()
     node.destroy_node()
     rclpy.try_shutdown()
