@@ -32,7 +32,7 @@ import socket
 import sys
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Mapping
 from pathlib import Path
 from typing import Any, Final
 
@@ -42,7 +42,7 @@ from temoto.ros2.protocol import FrameError, recv_frame, send_frame
 
 __all__ = ["main"]
 
-logger = logging.getLogger("temoto.ros2.bridge")
+logger = logging.getLogger(__name__)
 
 #: The RMW that the PyPI wheels are built for (and rclpy's default).
 DEFAULT_RMW: Final = "rmw_fastrtps_cpp"
@@ -58,7 +58,7 @@ class OpError(Exception):
     """A request failed; its message (one line) is the reply's ``error``."""
 
 
-def check_rmw(environ: dict[str, str] | os._Environ[str]) -> str | None:
+def check_rmw(environ: Mapping[str, str]) -> str | None:
     """Whether the RMW named by ``RMW_IMPLEMENTATION`` can be loaded.
 
     Args:
