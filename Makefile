@@ -75,11 +75,12 @@ lint: install
 # The whole suite on the compiled kernels (which must have been built), then on the pure-Python
 # kernels the tests that reach them (tests/core/ and tests/kernel_tests.txt, measured by
 # tools/kernel_tests.py); TEMOTO_KERNEL_TESTS_ONLY=0 runs the whole suite in both passes.
+# The ROS 2 tests run against rclpy peers from $(ROS2_VENV) (about a minute to install, once).
 TEMOTO_KERNEL_TESTS_ONLY ?= 1
-test: install lint sysdeps
-	TEMOTO_REQUIRE_EXTENSIONS=1 $(BIN)/python -m pytest $(PYTEST_ARGS)
+test: install lint sysdeps $(ROS2_STAMP)
+	TEMOTO_REQUIRE_EXTENSIONS=1 TEMOTO_ROS2_PYTHON=$(ROS2_PYTHON) $(BIN)/python -m pytest $(PYTEST_ARGS)
 	TEMOTO_NO_EXTENSIONS=1 TEMOTO_KERNEL_TESTS_ONLY=$(TEMOTO_KERNEL_TESTS_ONLY) \
-		$(BIN)/python -m pytest $(PYTEST_ARGS)
+		TEMOTO_ROS2_PYTHON=$(ROS2_PYTHON) $(BIN)/python -m pytest $(PYTEST_ARGS)
 
 $(ROS2_STAMP): pyproject.toml
 	test -x $(ROS2_VENV)/bin/python || $(PY) -m venv $(ROS2_VENV)
@@ -87,7 +88,7 @@ $(ROS2_STAMP): pyproject.toml
 		| $(ROS2_VENV)/bin/python -m pip install --quiet -r /dev/stdin
 	touch $@
 
-# The ROS 2 tests against rclpy peers (they skip, with the reason, without ROS 2).
+# Only the ROS 2 tests against rclpy peers (make test runs them too).
 test-ros2: install $(ROS2_STAMP)
 	TEMOTO_ROS2_PYTHON=$(ROS2_PYTHON) $(BIN)/python -m pytest tests/ros2 $(PYTEST_ARGS)
 
