@@ -22,7 +22,13 @@ from pathlib import Path
 from typing import IO, TYPE_CHECKING, Any, NamedTuple
 
 from temoto._cli_common import non_empty, not_negative, positive
-from temoto._cli_signals import FORCE_EXIT_S, Interrupted, SignalExit, make_devices_safe
+from temoto._cli_signals import (
+    FORCE_EXIT_S,
+    Interrupted,
+    SignalExit,
+    make_devices_safe,
+    stop_on_signals,
+)
 from temoto._files import read_regular_text
 from temoto.errors import ConfigError, GraphInputError
 from temoto.managers.visualization.live import add_foxglove_option, close_foxglove, open_foxglove
@@ -580,17 +586,17 @@ def watch(args: argparse.Namespace) -> int:
         sys.stdout, set(args.target), set(args.graph), live=not args.once, as_json=args.json
     )
     stop = threading.Event()
-    previous = signal.signal(signal.SIGINT, lambda s, f: stop.set())
-    try:
-        with fleet_link(args, _sender(), "graph watch") as link, GraphCommander(link) as cmd:
+    with (
+        stop_on_signals(stop, (signal.SIGINT,)),
+        fleet_link(args, _sender(), "graph watch") as link,
+        GraphCommander(link) as cmd,
+    ):
 
-            def on_feedback(feedback: GraphFeedback) -> None:
-                view.update(feedback)
+        def on_feedback(feedback: GraphFeedback) -> None:
+            view.update(feedback)
 
-            cmd.watch(on_feedback)
-            stop.wait(duration)
-    finally:
-        signal.signal(signal.SIGINT, previous)
+        cmd.watch(on_feedback)
+        stop.wait(duration)
     if args.once:
         view.print_table()
     return EXIT_OK if view.heard else EXIT_FAILED

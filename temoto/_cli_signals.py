@@ -9,16 +9,20 @@ from :mod:`temoto._cli_fleet` because a local command needs none of the fleet st
 from __future__ import annotations
 
 import atexit
+import logging
 import os
+import selectors
 import signal
 import sys
 import threading
 import time
-from collections.abc import Callable
-from contextlib import suppress
+from collections.abc import Callable, Iterator
+from contextlib import contextmanager, suppress
 from typing import Any
 
-__all__ = ["FORCE_EXIT_S", "Interrupted", "SignalExit", "make_devices_safe"]
+__all__ = ["FORCE_EXIT_S", "Interrupted", "SignalExit", "make_devices_safe", "stop_on_signals"]
+
+logger = logging.getLogger(__name__)
 
 #: How long a command may take to end after a second signal before it exits by force
 #: (``SignalExit(force_exit=...)``): the hurried clean-up (devices safe, processes killed
@@ -41,12 +45,99 @@ class Interrupted(KeyboardInterrupt):
         self.signum = signum
 
 
+class _Watcher:
+    """The thread that acts on SIGINT and SIGTERM, outside the signal handler.
+
+    A Python signal handler runs in the main thread between two bytecodes, wherever that
+    thread is: inside ``threading.Event.wait`` holding the event's lock, inside
+    ``Thread.start`` holding the thread registry's lock, inside a driver's lock. A handler
+    that takes any lock (``Event.set``, starting a thread, a buffered write) may wait for
+    the very code it interrupted, forever. And a signal can land in the main thread just
+    before it blocks (in a lock's wait): its Python handler then runs only when the wait
+    ends, which for ``stop.wait()`` is never.
+
+    So the signal is taken by the interpreter's wake-up file descriptor
+    (:func:`signal.set_wakeup_fd`: one byte per signal, written by the C-level handler, in
+    whichever thread got it), and this thread (``temoto-signals``) reads it and does what
+    the signal asks, with no lock of the interrupted code held. The Python-level handler
+    does only what needs no lock.
+
+    Args:
+        on_signal: Called on this thread with each signal's number, in order.
+        handler: The Python-level handler (must take no lock).
+        signums: The signals taken.
+    """
+
+    def __init__(
+        self,
+        on_signal: Callable[[int], None],
+        handler: Callable[[int, Any], None],
+        signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM),
+    ) -> None:
+        self._on_signal = on_signal
+        self._handler = handler
+        self._signums = signums
+        self._previous: dict[int, Any] = {}
+        self._previous_wakeup = -1
+        self._read, self._write = os.pipe()
+        os.set_blocking(self._write, False)  # set_wakeup_fd needs it
+        self._thread = threading.Thread(target=self._run, name="temoto-signals", daemon=True)
+        #: Absolute time.monotonic() of a force-exit (see SignalExit), checked by the thread.
+        self.deadline: float | None = None
+        self.on_deadline: Callable[[], None] | None = None
+
+    def install(self) -> None:
+        """Start the thread, then take the signals (main thread only)."""
+        self._thread.start()
+        # the wake-up fd first: a signal after the handlers are in is never missed
+        self._previous_wakeup = signal.set_wakeup_fd(self._write, warn_on_full_buffer=False)
+        for signum in self._signums:
+            self._previous[signum] = signal.signal(signum, self._handler)
+
+    def restore(self) -> None:
+        """Give the signals back to the previous handlers and end the thread (main thread)."""
+        for signum, handler in self._previous.items():
+            signal.signal(signum, handler)
+        self._previous.clear()
+        with suppress(ValueError):
+            signal.set_wakeup_fd(self._previous_wakeup)
+        with suppress(OSError):
+            os.write(self._write, b"\0")  # no signal has number 0: the end
+        self._thread.join()
+        os.close(self._read)
+        os.close(self._write)
+
+    def _run(self) -> None:
+        with selectors.DefaultSelector() as selector:
+            selector.register(self._read, selectors.EVENT_READ)
+            self._loop(selector)
+
+    def _loop(self, selector: selectors.BaseSelector) -> None:
+        while True:
+            wait = None if self.deadline is None else max(0.0, self.deadline - time.monotonic())
+            if not selector.select(wait):
+                if self.on_deadline is not None:
+                    self.on_deadline()
+                self.deadline = None
+                continue
+            data = os.read(self._read, 64)
+            for signum in data:
+                if signum == 0:
+                    return
+                if signum in self._signums:
+                    try:
+                        self._on_signal(signum)
+                    except Exception:  # a callback's fault must not end the signals' thread
+                        logger.exception("handling %s", signal.Signals(signum).name)
+
+
 class SignalExit:
     """How a command reacts to SIGINT and SIGTERM (ARCHITECTURE.md §8 "Signals").
 
     Use it as a context manager around the command (main thread only); the previous handlers
     are restored at the end, unless a signal came: then the command is ending, and later
-    signals keep being taken as "hurry" until the process exits.
+    signals keep being taken as "hurry" until the process exits (:meth:`close` gives them
+    back, for a process that goes on).
 
     * The **first** signal sets :attr:`stop` and, if ``raise_first`` (and :attr:`raising`
       is still true), raises :class:`Interrupted` in the main thread; otherwise the command
@@ -55,11 +146,18 @@ class SignalExit:
       callbacks (by default :func:`temoto.managers.process.hurry_all`: process stops skip
       their grace period) and never raises, so that the clean-up it interrupts still runs.
 
+    Everything but the raise is done on a thread of its own (``temoto-signals``), never in
+    the signal handler: the handler interrupts the main thread wherever it is, possibly
+    inside :attr:`stop`'s own ``wait`` holding its lock, and a lock taken there would wait
+    for itself (see :class:`_Watcher`). So the main thread sees :attr:`stop` set shortly
+    after the signal, not at once; :attr:`signum` is set by the handler too, before it
+    raises.
+
     Args:
         raise_first: Raise :class:`Interrupted` on the first signal.
-        hurry: Callbacks for the second signal (must be safe in a signal handler).
-        first: Callbacks for the first signal, with its number (must be safe in a signal
-            handler: start a thread, set a flag), called before anything is raised.
+        hurry: Callbacks for the second signal (called on the signals' thread).
+        first: Callbacks for the first signal, with its number (called on the signals'
+            thread; one that takes long delays a second signal's handling).
         force_exit: For a command's process only (never in a library or a test process):
             after the second signal, the process exits with :attr:`exit_code` at the latest
             this many seconds later, even if its main thread is stuck (in a blocking call, on
@@ -86,10 +184,10 @@ class SignalExit:
         self.stop = threading.Event()
         self.hurried = threading.Event()
         self._hurry = hurry
-        self._previous: dict[int, Any] = {}
+        self._handled = False
         self._force_exit = force_exit
         self._force_exit_code = force_exit_code
-        self._exit_timer: threading.Thread | None = None
+        self._watcher: _Watcher | None = None
 
     @property
     def exit_code(self) -> int | None:
@@ -97,12 +195,12 @@ class SignalExit:
         return None if self.signum is None else 128 + self.signum
 
     def __enter__(self) -> SignalExit:
-        for signum in (signal.SIGINT, signal.SIGTERM):
-            self._previous[signum] = signal.signal(signum, self._handle)
+        self._watcher = _Watcher(self._on_signal, self._handle)
+        self._watcher.install()
         return self
 
     def __exit__(self, *exc: object) -> None:
-        if self.signum is not None:
+        if self.signum is not None or self.count:
             # The command is ending because of a signal: the handler stays, so that a second
             # Ctrl-C arriving while the interpreter winds down (after this block, before the
             # exit) hurries instead of raising KeyboardInterrupt where nothing catches it; and
@@ -112,45 +210,60 @@ class SignalExit:
             self.raising = False
             atexit.register(_ignore_late_signals)
             return
-        for signum, handler in self._previous.items():
-            signal.signal(signum, handler)
+        self.close()
+
+    def close(self) -> None:
+        """Give the signals back to the handlers before the block, and end the thread.
+
+        Done at the block's end when no signal came; after a signal, only a process that
+        goes on (a test) calls it.
+        """
+        if self._watcher is not None:
+            self._watcher.restore()
+            self._watcher = None
 
     def _handle(self, signum: int, frame: object) -> None:
-        self.count += 1
-        name = signal.Signals(signum).name
+        # The main thread, between two bytecodes, maybe inside a lock: no lock here, no
+        # thread started, no buffered write. The signals' thread does the rest.
         if self.signum is None:
             self.signum = signum
-            self.stop.set()
-            # os.write, not sys.stderr: the main thread may be inside a write to sys.stderr.
+        first, self._handled = not self._handled, True
+        if first and self.raising:
+            self.raising = False
+            raise Interrupted(signum)
+
+    def _on_signal(self, signum: int) -> None:
+        """One signal, on the signals' thread."""
+        self.count += 1
+        name = signal.Signals(signum).name
+        if self.count == 1:
+            if self.signum is None:
+                self.signum = signum
             _say(f"temoto: {name}: stopping (a second signal stops at once)\n")
+            self.stop.set()
             for at_first in self._first:
                 at_first(signum)
-            if self.raising:
-                self.raising = False
-                raise Interrupted(signum)
             return
         if not self.hurried.is_set():
             _say(f"temoto: {name} again: stopping at once\n")
-        if self._force_exit is not None:
-            code = 128 + self.signum if self._force_exit_code is None else self._force_exit_code
-            if self._exit_timer is not None:  # a third signal: no more waiting
+        watcher = self._watcher
+        if self._force_exit is not None and watcher is not None:
+            code = self.exit_code or 0
+            if self._force_exit_code is not None:
+                code = self._force_exit_code
+            if watcher.on_deadline is not None:  # a third signal: no more waiting
                 _say(f"temoto: {name}: exiting now\n")
                 os._exit(code)
-            self._exit_timer = threading.Thread(
-                target=_exit_later,
-                args=(self._force_exit, code),
-                name="temoto-signal-exit",
-                daemon=True,  # it ends the process; nothing is left to join it
-            )
-            self._exit_timer.start()
+            delay = self._force_exit
+            watcher.on_deadline = lambda: _exit_now(delay, code)
+            watcher.deadline = time.monotonic() + delay
         self.hurried.set()
         for callback in self._hurry if self._hurry is not None else _default_hurry():
             callback()
 
 
-def _exit_later(delay: float, code: int) -> None:
-    """End the process ``delay`` seconds from now, devices made safe first (``force_exit``)."""
-    time.sleep(delay)
+def _exit_now(delay: float, code: int) -> None:
+    """End the process, devices made safe first (``force_exit``, ``delay`` s after the signal)."""
     _say(f"temoto: still not stopped {delay:g} s after the second signal: exiting\n")
     with suppress(Exception):
         make_devices_safe("the command did not stop after a second signal")
@@ -197,3 +310,33 @@ def make_devices_safe(reason: str) -> None:
         return
     for driver, what in make_all_safe(reason):
         sys.stderr.write(f"temoto: {driver.name}: {what}\n")
+
+
+@contextmanager
+def stop_on_signals(
+    stop: threading.Event, signums: tuple[int, ...] = (signal.SIGINT, signal.SIGTERM)
+) -> Iterator[threading.Event]:
+    """Set ``stop`` on each of ``signums`` while the block runs (main thread only).
+
+    For a command or a helper process whose signals only end a wait: the event is set on the
+    signals' thread, never in the signal handler (which may interrupt the main thread inside
+    ``stop.wait()``, holding the event's lock: see :class:`_Watcher`). The previous handlers
+    are back after the block.
+
+    Args:
+        stop: The event to set.
+        signums: The signals taken.
+
+    Yields:
+        ``stop``.
+    """
+    watcher = _Watcher(lambda _signum: stop.set(), _ignore, signums)
+    watcher.install()
+    try:
+        yield stop
+    finally:
+        watcher.restore()
+
+
+def _ignore(signum: int, frame: object) -> None:
+    """The Python-level handler when the signals' thread does everything."""

@@ -20,10 +20,10 @@ at once; the page computes every moment from it as the time slider moves). It is
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import logging
 import math
-import signal
 import sys
 import threading
 from collections.abc import Callable
@@ -470,6 +470,8 @@ def view_command(args: argparse.Namespace, stop: threading.Event | None = None) 
         ConfigError: The recording or the graph file is invalid (the command line prints it
             as one line and exits 2).
     """
+    from temoto._cli_signals import stop_on_signals
+
     recording = load_recording(args.file, args.graph)
     try:
         site = ReplayView(recording, host=args.host, port=args.port)
@@ -477,11 +479,10 @@ def view_command(args: argparse.Namespace, stop: threading.Event | None = None) 
         sys.stderr.write(f"temoto: error: cannot serve on {args.host}:{args.port}: {err}\n")
         return 1
     done = stop or threading.Event()
-    previous: dict[signal.Signals, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, lambda *_: done.set())
-    try:
+    with contextlib.ExitStack() as signals:
+        if threading.current_thread() is threading.main_thread():
+            # set on a thread of its own, never in the handler (which may interrupt done.wait)
+            signals.enter_context(stop_on_signals(done))
         with site:
             sys.stdout.write(
                 f"replaying {recording.source} ({len(recording.events)} node changes,"
@@ -490,7 +491,4 @@ def view_command(args: argparse.Namespace, stop: threading.Event | None = None) 
             sys.stdout.flush()
             while not done.wait(0.5):
                 pass
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
     return 0

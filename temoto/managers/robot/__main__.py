@@ -84,10 +84,11 @@ logger = logging.getLogger("temoto.robot")
 class _SafeOnSignal:
     """What the robot command adds to :class:`~temoto._cli_fleet.SignalExit`.
 
-    The first signal starts a thread that makes every device safe at once (the handler never
-    waits in the signal's frame, which may hold a driver's lock); a second one makes them safe
-    again and exits the process at once, without waiting for the mission's actions or the
-    instance's close.
+    The first signal starts a thread that makes every device safe at once (the signals'
+    thread goes on to take a second signal); a second one makes them safe again and exits the
+    process at once, without waiting for the mission's actions or the instance's close. Both
+    run on :class:`SignalExit`'s thread, never in the signal handler (which may interrupt the
+    main thread inside a lock: the serving ``stop.wait()`` hung on that).
 
     Args:
         err: Where the per-device lines go.
