@@ -1,6 +1,6 @@
 """What the commands print for people while a graph runs (``--progress``, the robot command).
 
-Not public API: :mod:`temoto.cli` and :mod:`temoto.managers.robot` share it.
+Not public API: :mod:`temoto.cli`'s commands share it (``temoto run``, the robot command).
 """
 
 from __future__ import annotations

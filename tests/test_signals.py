@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from temoto._cli_signals import SignalExit
+from temoto.cli.signals import SignalExit
 from temoto.testing import ProcessLeakCheck
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -417,7 +417,7 @@ def test_a_block_left_without_a_signal_restores_the_handlers() -> None:
 
 LATE_SIGNAL = r"""
 import atexit, os, signal, sys
-from temoto._cli_signals import SignalExit
+from temoto.cli.signals import SignalExit
 
 def late():  # registered first, so it runs after SignalExit's own exit hook (last in, first out)
     print("at exit:", signal.getsignal(signal.SIGINT) is signal.SIG_IGN, flush=True)
@@ -449,7 +449,7 @@ def test_devices_are_made_safe_while_another_thread_imports_the_drivers(
     # sys.modules without make_all_safe yet (the serve command exited 1 with a traceback).
     import types
 
-    from temoto._cli_signals import make_devices_safe
+    from temoto.cli.signals import make_devices_safe
 
     monkeypatch.setitem(sys.modules, "temoto.drivers.base", types.ModuleType("half-imported"))
     make_devices_safe("a signal")  # nothing to make safe, and no AttributeError
@@ -459,7 +459,7 @@ def test_devices_are_made_safe_while_another_thread_imports_the_drivers(
 
 HELD_LOCK = r"""
 import faulthandler, os, signal, sys
-from temoto._cli_signals import SignalExit
+from temoto.cli.signals import SignalExit
 
 faulthandler.dump_traceback_later(10, exit=True)  # a hang: a traceback and exit 1
 with SignalExit() as signals:
@@ -486,7 +486,7 @@ def test_a_signal_inside_the_stop_event_s_own_wait_does_not_hang() -> None:
 
 MISSED_WAKEUP = r"""
 import faulthandler, os, signal, sys
-from temoto._cli_signals import SignalExit
+from temoto.cli.signals import SignalExit
 
 faulthandler.dump_traceback_later(20, exit=True)
 with SignalExit() as signals:

@@ -38,7 +38,7 @@ import time
 from collections.abc import Callable, Mapping
 from typing import Any, Final
 
-from temoto._cli_signals import stop_on_signals
+from temoto.cli.signals import stop_on_signals
 from temoto.clock import MonotonicClock
 from temoto.drivers import driver_class
 from temoto.drivers.sim import Simulator

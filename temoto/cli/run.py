@@ -18,7 +18,8 @@ import traceback
 from collections.abc import Sequence
 from typing import IO, Any
 
-from temoto._cli_common import (
+from temoto._progress import ActionLogHandler, Progress
+from temoto.cli.common import (
     EXIT_OTHER_RESULT,
     EXIT_TRUE,
     add_paths,
@@ -27,17 +28,14 @@ from temoto._cli_common import (
     positive,
     signal_name,
 )
-from temoto._cli_fleet import (
-    SignalExit,
+from temoto.cli.fleet import (
     add_fleet_options,
     add_record_option,
     close_recorder,
     fleet_key,
-    make_devices_safe,
     open_recorder,
 )
-from temoto._cli_signals import FORCE_EXIT_S
-from temoto._progress import ActionLogHandler, Progress
+from temoto.cli.signals import FORCE_EXIT_S, SignalExit, make_devices_safe
 from temoto.clock import MonotonicClock, ScaledClock
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.documents import load_graph
@@ -50,7 +48,7 @@ from temoto.core.states import NodeState, Result
 from temoto.errors import GraphInputError
 from temoto.managers.process import ProcessManager
 
-__all__ = ["add_run", "run_command"]
+__all__ = ["add_parser", "main"]
 
 
 class _RunTrace(TraceInstrument):
@@ -95,7 +93,7 @@ class _RunTrace(TraceInstrument):
                 self._write({"graph": self.graph, "result": result})
 
 
-def add_run(sub: Any) -> None:
+def add_parser(sub: Any) -> None:
     """Add ``temoto run`` to the top-level subparsers.
 
     Args:
@@ -192,7 +190,7 @@ def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
         raise
 
 
-def run_command(args: argparse.Namespace) -> int:
+def main(args: argparse.Namespace) -> int:
     """``temoto run``: run one graph, print its result; the exit status stands for it.
 
     Args:

@@ -3,7 +3,7 @@
 :class:`SignalExit` (the first signal stops, the second hurries), :class:`Interrupted` (what
 the first one raises in the main thread) and :func:`make_devices_safe`. Used by ``temoto
 run``, ``temoto serve``, ``temoto sim``, ``temoto router`` and the robot command; kept apart
-from :mod:`temoto._cli_fleet` because a local command needs none of the fleet stack.
+from :mod:`temoto.cli.fleet` because a local command needs none of the fleet stack.
 """
 
 from __future__ import annotations
