@@ -1,10 +1,9 @@
-"""The fleet side of the command line: ``temoto serve`` and ``temoto graph start|...|watch``.
+"""What the commands that join a fleet share: its options, its key, its link, state files.
 
-Kept apart from :mod:`temoto.cli` (which owns the parser, logging and exit codes) so that a
-local ``temoto run`` imports none of the fleet stack. Like :mod:`temoto.cli`, this module
-prints; nothing else in the package does. The handling of signals lives in
-:mod:`temoto.cli.signals`; its names are re-exported here for the commands that import them
-from this module.
+Used by ``temoto serve``, ``temoto run`` (a shared graph), ``temoto graph start|...|watch``
+and the robot command: ``--fleet-url``/``--fleet``/key options, ``--catalog``/``--world``
+state files, ``--components``, ``--live-view`` and ``--record`` (a recorder opened and finished
+for the command). The fleet stack itself is imported only when a link is opened.
 """
 
 from __future__ import annotations

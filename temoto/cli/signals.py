@@ -1,9 +1,11 @@
 """How a command of the command line reacts to SIGINT and SIGTERM (ARCHITECTURE.md §8).
 
 :class:`SignalExit` (the first signal stops, the second hurries), :class:`Interrupted` (what
-the first one raises in the main thread) and :func:`make_devices_safe`. Used by ``temoto
-run``, ``temoto serve``, ``temoto sim``, ``temoto router`` and the robot command; kept apart
-from :mod:`temoto.cli.fleet` because a local command needs none of the fleet stack.
+the first one raises in the main thread), :func:`stop_on_signals` (a wait that a signal ends)
+and :func:`make_devices_safe`. Used by ``temoto run``, ``temoto serve``, ``temoto sim``,
+``temoto router``, ``temoto demo``, ``temoto view``, ``temoto graph watch``, the robot command
+and the simulator host of the tests. The signal handler itself takes no lock and starts no
+thread: a thread of :class:`SignalExit`'s (``temoto-signals``) does the work.
 """
 
 from __future__ import annotations
