@@ -40,7 +40,6 @@ import time
 from collections.abc import Sequence
 from typing import IO, TYPE_CHECKING, Any
 
-from temoto._progress import ActionLogHandler, Progress
 from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.cli.common import EXIT_FAILED, EXIT_INVALID, EXIT_OK
 from temoto.cli.fleet import (
@@ -54,6 +53,7 @@ from temoto.cli.fleet import (
     open_recorder,
     state_files,
 )
+from temoto.cli.progress import ActionLogHandler, Progress
 from temoto.cli.signals import SignalExit
 from temoto.cli.sim_args import parse_udp_address
 from temoto.cli.sim_devices import endpoint_for

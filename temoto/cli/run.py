@@ -18,7 +18,6 @@ import traceback
 from collections.abc import Sequence
 from typing import IO, Any
 
-from temoto._progress import ActionLogHandler, Progress
 from temoto.cli.common import (
     EXIT_OTHER_RESULT,
     EXIT_TRUE,
@@ -35,6 +34,7 @@ from temoto.cli.fleet import (
     fleet_key,
     open_recorder,
 )
+from temoto.cli.progress import ActionLogHandler, Progress
 from temoto.cli.signals import FORCE_EXIT_S, SignalExit, make_devices_safe
 from temoto.clock import MonotonicClock, ScaledClock
 from temoto.core.catalog import ActionCatalog, GraphIndex
