@@ -65,10 +65,14 @@ lint: install
 	$(BIN)/mypy
 	$(BIN)/python tools/gen_lcm_types.py --check
 
-# The whole suite twice: the compiled kernels (which must have been built), then pure Python.
+# The whole suite on the compiled kernels (which must have been built), then on the pure-Python
+# kernels the tests that reach them (tests/core/ and tests/kernel_tests.txt, measured by
+# tools/kernel_tests.py); TEMOTO_KERNEL_TESTS_ONLY=0 runs the whole suite in both passes.
+TEMOTO_KERNEL_TESTS_ONLY ?= 1
 test: install lint sysdeps
 	TEMOTO_REQUIRE_EXTENSIONS=1 $(BIN)/python -m pytest $(PYTEST_ARGS)
-	TEMOTO_NO_EXTENSIONS=1 $(BIN)/python -m pytest $(PYTEST_ARGS)
+	TEMOTO_NO_EXTENSIONS=1 TEMOTO_KERNEL_TESTS_ONLY=$(TEMOTO_KERNEL_TESTS_ONLY) \
+		$(BIN)/python -m pytest $(PYTEST_ARGS)
 
 bench: install
 	$(BIN)/python -m bench --quick --json bench-results.json

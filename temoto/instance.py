@@ -1,4 +1,4 @@
-"""One TeMoto instance: what a robot (or an operator station) runs (ARCHITECTURE §2).
+"""One TeMoto instance: what a robot (or an operator station) runs (docs/design.md §2).
 
 An :class:`Instance` puts together an :class:`~temoto.core.engine.ActionEngine` whose actor is
 the robot's name, a :class:`~temoto.core.registrar.Registrar` with the Process Manager on it,

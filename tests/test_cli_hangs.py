@@ -1,4 +1,4 @@
-"""Issue 27, item 1: no input makes a command hang, and a signal always ends it.
+"""No input makes a command hang, and a signal always ends it.
 
 Process tests: each runs ``python -m temoto`` (or a small script) in a child process with a
 bounded wait; a hang is a test failure (``subprocess.TimeoutExpired``), never a stuck suite.

@@ -146,7 +146,7 @@ def test_the_robot_command_exits_2_on_a_pose_beyond_the_limits(tmp_path: Path) -
     assert main(["--profile", str(path), "--local"]) == 2
 
 
-# ---- profile-wide rules (issue 25) --------------------------------------------------------------
+# ---- profile-wide rules ----------------------------------------------------------------------
 
 ROVER = yaml.safe_load((ROOT / "hw_profiles" / "sim_rover.yaml").read_text())
 

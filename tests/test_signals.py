@@ -1,6 +1,6 @@
 """Signals and crashes of the commands end with the documented exit code and nothing left behind.
 
-ARCHITECTURE.md §8 "Signals": ``temoto run`` and ``temoto demo`` exit 130 on SIGINT and 143 on
+docs/design.md §8 "Signals": ``temoto run`` and ``temoto demo`` exit 130 on SIGINT and 143 on
 SIGTERM, ``temoto serve`` exits 0 on either; no traceback; a second signal stops at once but
 still cleans up; no process of ours is left (checked in ``/proc`` by an environment marker
 that every process the command starts inherits). And the Process Manager's children (and
@@ -158,8 +158,8 @@ _STARTED: list[subprocess.Popen[bytes]] = []
 def _end_commands() -> Iterator[None]:
     """After each test, also a failed one: no command left running, no pipe left open.
 
-    A test failing before it waited for its command left both to the garbage collector, whose
-    ResourceWarning then failed a later test (test_structure's import check, issue 27).
+    A test failing before it waited for its command would leave both to the garbage collector,
+    whose ResourceWarning would then fail a later test (test_structure's import check).
     """
     yield
     while _STARTED:

@@ -35,7 +35,7 @@ Commands:
 Errors are one line, ``temoto: error: ...``, without a traceback: invalid input (status 2),
 including a ``--live-view`` port out of range or in use.
 
-Signals (ARCHITECTURE.md §8): SIGINT (Ctrl-C) or SIGTERM during ``temoto run`` stops the graph
+Signals (docs/design.md §8): SIGINT (Ctrl-C) or SIGTERM during ``temoto run`` stops the graph
 cleanly (its actions get their stop request), makes every device of this process safe, stops
 the processes it started, prints the result (``on_stopped``) and exits 130 (SIGINT) or 143
 (SIGTERM); ``temoto demo`` does the same. ``temoto serve`` stopped by either exits 0. A

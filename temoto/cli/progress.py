@@ -10,6 +10,7 @@ import threading
 from typing import IO
 
 from temoto.clock import Clock
+from temoto.core.action import ACTION_LOGGER
 from temoto.core.instrument import Instrument
 from temoto.core.states import NodeState, Result
 
@@ -99,7 +100,7 @@ class ActionLogHandler(logging.Handler):
     def __init__(self, progress: Progress) -> None:
         super().__init__(logging.INFO)
         self.progress = progress
-        self._logger = logging.getLogger("temoto.action")
+        self._logger = logging.getLogger(ACTION_LOGGER)
         self._saved = (self._logger.level, self._logger.propagate)
 
     def emit(self, record: logging.LogRecord) -> None:

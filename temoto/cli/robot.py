@@ -1,6 +1,6 @@
 """``python -m temoto.managers.robot --profile hw_profiles/<robot>.yaml``: one robot's instance.
 
-Starts everything the robot runs (ARCHITECTURE §2): its drivers (or their simulators when the
+Starts everything the robot runs (docs/design.md §2): its drivers (or their simulators when the
 profile says ``sim: true``), a registrar with the Process and Robot Managers, an engine whose
 actor is the robot's name with the built-in robot actions, and the fleet services (graph
 commands, shared graphs, RIS). With ``--mission GRAPH.json`` it runs that graph at once and
@@ -40,7 +40,7 @@ import time
 from collections.abc import Sequence
 from typing import IO, TYPE_CHECKING, Any
 
-from temoto.actions.builtin import ROBOT_ACTIONS
+from temoto.actions.builtin import ROBOT_ACTIONS, VISUALIZATION_ACTIONS
 from temoto.cli.common import EXIT_FAILED, EXIT_INVALID, EXIT_OK
 from temoto.cli.fleet import (
     add_components_option,
@@ -64,7 +64,12 @@ from temoto.core.states import NodeState, Result
 from temoto.drivers import Driver, live_drivers, make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
 from temoto.managers.process import hurry_all
-from temoto.managers.visualization.live import add_foxglove_option, close_foxglove, open_foxglove
+from temoto.managers.visualization.live import (
+    add_foxglove_commands_option,
+    add_foxglove_option,
+    close_foxglove,
+    open_foxglove,
+)
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials
@@ -77,7 +82,7 @@ CLIENT = "robot-manager"
 #: Real seconds the command waits at its end for a signal's per-device lines.
 _LINES_WAIT = 2.0
 
-logger = logging.getLogger("temoto.robot")
+logger = logging.getLogger(__name__)
 
 
 class _SafeOnSignal:
@@ -183,6 +188,7 @@ def _parser() -> argparse.ArgumentParser:
     add_live_view_option(p)
     add_record_option(p)
     add_foxglove_option(p)
+    add_foxglove_commands_option(p)
     add_fleet_options(p, "the fleet this robot joins (unless --local)")
     return p
 
@@ -269,7 +275,7 @@ def _run_instance(
         key=key,
         fleet=args.fleet,
         insecure=key is None,
-        actions=[ROBOT_ACTIONS, *args.actions],
+        actions=[ROBOT_ACTIONS, VISUALIZATION_ACTIONS, *args.actions],  # ShowDisplay too
         graphs=args.graphs,
         catalog=state.catalog,
         world=state.world,

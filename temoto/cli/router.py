@@ -6,7 +6,7 @@ this command runs (the standard ``zenohd`` does the same job; docs/zenoh.md show
 router forwards the fleet's envelopes without opening them: it needs no fleet key.
 
 The command prints one line saying where it listens and how robots connect, then serves until
-SIGINT or SIGTERM and exits 0 (ARCHITECTURE.md §8: a server stopped by a signal); invalid input
+SIGINT or SIGTERM and exits 0 (docs/design.md §8: a server stopped by a signal); invalid input
 (a malformed endpoint, an address in use, eclipse-zenoh missing) is exit status 2 with a one-line
 message. Kept apart from :mod:`temoto.cli` so that other commands do not import Zenoh. Like
 :mod:`temoto.cli`, this module prints.

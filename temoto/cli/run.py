@@ -50,6 +50,8 @@ from temoto.managers.process import ProcessManager
 
 __all__ = ["add_parser", "main"]
 
+logger = logging.getLogger(__name__)
+
 
 class _RunTrace(TraceInstrument):
     """The ``--trace`` file of one ``temoto run``: exactly one result line, its last.
@@ -57,7 +59,7 @@ class _RunTrace(TraceInstrument):
     Node lines are written as they happen. The engine's own end-of-graph events are not
     written: a halted graph is still stopped when the engine shuts down at exit, which would
     end the trace with a second result. Instead :meth:`finish` writes the result the command
-    prints (ARCHITECTURE.md §8) and closes the trace to everything after it.
+    prints (docs/design.md §8) and closes the trace to everything after it.
 
     Args:
         stream: The trace file.
@@ -197,7 +199,7 @@ def main(args: argparse.Namespace) -> int:
         args: The parsed command line.
 
     Returns:
-        The exit status (ARCHITECTURE.md §8).
+        The exit status (docs/design.md §8).
     """
     with SignalExit(force_exit=FORCE_EXIT_S) as signals:
         graph = load_graph(args.graph)
@@ -279,7 +281,7 @@ def _run_graph(
                 grace = args.stop_timeout  # what the exit waits for actions still stopping
                 if not _wait_run(engine, name, args.timeout, signals.stop):
                     if signals.signum is None:
-                        logging.getLogger("temoto.cli").warning(
+                        logger.warning(
                             "graph %s did not end within %s s; stopping it", name, args.timeout
                         )
                     else:

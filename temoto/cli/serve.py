@@ -25,7 +25,12 @@ from temoto.cli.fleet import (
     state_files,
 )
 from temoto.cli.signals import FORCE_EXIT_S, SignalExit, make_devices_safe
-from temoto.managers.visualization.live import add_foxglove_option, close_foxglove, open_foxglove
+from temoto.managers.visualization.live import (
+    add_foxglove_commands_option,
+    add_foxglove_option,
+    close_foxglove,
+    open_foxglove,
+)
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials
@@ -78,6 +83,7 @@ def add_parser(sub: Any) -> None:
     add_live_view_option(serve_p)
     add_record_option(serve_p)
     add_foxglove_option(serve_p)
+    add_foxglove_commands_option(serve_p)
     add_fleet_options(serve_p, "the fleet this instance joins")
 
 

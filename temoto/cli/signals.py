@@ -1,4 +1,4 @@
-"""How a command of the command line reacts to SIGINT and SIGTERM (ARCHITECTURE.md §8).
+"""How a command of the command line reacts to SIGINT and SIGTERM (docs/design.md §8).
 
 :class:`SignalExit` (the first signal stops, the second hurries), :class:`Interrupted` (what
 the first one raises in the main thread), :func:`stop_on_signals` (a wait that a signal ends)
@@ -134,7 +134,7 @@ class _Watcher:
 
 
 class SignalExit:
-    """How a command reacts to SIGINT and SIGTERM (ARCHITECTURE.md §8 "Signals").
+    """How a command reacts to SIGINT and SIGTERM (docs/design.md §8 "Signals").
 
     Use it as a context manager around the command (main thread only); the previous handlers
     are restored at the end, unless a signal came: then the command is ending, and later

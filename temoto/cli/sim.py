@@ -3,7 +3,7 @@
 ``temoto sim quad|odrive|mit|dynamixel ...`` starts one simulator; ``temoto sim --profile
 FILE`` starts the simulator of every device of a hardware profile (each built by its driver's
 ``simulate()``, so the profile's simulator settings apply). Either way the command prints what
-it serves, then keeps serving until SIGINT or SIGTERM, and exits 0 (ARCHITECTURE.md §8: a
+it serves, then keeps serving until SIGINT or SIGTERM, and exits 0 (docs/design.md §8: a
 server stopped by a signal); invalid input is exit status 2 with a one-line message.
 
 What it prints on standard output, per device, is the ``link`` line a profile uses to reach the

@@ -26,15 +26,12 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, final
+from typing import Any, Protocol, final
 
 from temoto._files import read_regular_text
 from temoto.errors import ConfigError
 from temoto.web.server import Site
 from temoto.web.view import graph_picture
-
-if TYPE_CHECKING:
-    from temoto.web.server import _Handler
 
 __all__ = [
     "READERS",
@@ -95,9 +92,6 @@ class Recording:
         Returns:
             ``{"source", "name", "result", "start", "end", "events", "robot", "graph",
             "notes"}``; ``graph`` is :func:`~temoto.web.view.graph_picture`'s drawing.
-
-        Raises:
-            Nothing.
         """
         times = [e["t"] for e in self.events] + [r["t"] for r in self.robot]
         start = min(times, default=0.0)
@@ -387,6 +381,12 @@ def load_recording(path: str | Path, graph: str | Path | None = None) -> Recordi
     return recording
 
 
+class _Answers(Protocol):
+    """What the view needs of the server's request handler: a JSON answer."""
+
+    def send_json(self, status: HTTPStatus, answer: Any) -> None: ...
+
+
 @final
 class ReplayView(Site):
     """Serves a recording in the live view's page, with a time slider (started at once).
@@ -410,7 +410,7 @@ class ReplayView(Site):
         self._answer = recording.to_page()
         self._serve()
 
-    def _get(self, handler: _Handler, path: str) -> bool:
+    def _get(self, handler: _Answers, path: str) -> bool:
         if path == "/api/recording":
             handler.send_json(HTTPStatus.OK, self._answer)
             return True

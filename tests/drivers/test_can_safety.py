@@ -1,4 +1,4 @@
-"""Safe states, device watchdogs and stream supervision of the CAN motor drivers (issue 13).
+"""Safe states, device watchdogs and stream supervision of the CAN motor drivers.
 
 Most tests run a driver on its simulator in virtual time (:class:`ManualClock`). The safe state
 and the watchdog of the ODrive driver are also tested against :class:`DocODrive`, a small
@@ -38,7 +38,7 @@ ENC = 0.01  # encoder estimate period
 CMD = 0.05  # the driver's command_period
 WATCHDOG = 0.2  # the devices' watchdog timeout
 RATE = 10.0  # MIT polls per clock second
-ODRIVE_LOG = "temoto.drivers.can_motor.odrive"
+ODRIVE_LOG = "temoto.drivers.can_motor.detect"
 CAN_LOG = "temoto.drivers.can_motor"
 
 

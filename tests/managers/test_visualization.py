@@ -8,7 +8,9 @@ The robot is the simulated Dynamixel arm (``hw_profiles/sim_arm.yaml``), in-proc
 from __future__ import annotations
 
 import builtins
+import itertools
 import logging
+import math
 import os
 import signal
 import threading
@@ -357,3 +359,165 @@ def test_after_a_registrar_restart_a_display_is_fatal_and_loads_afresh(
     finally:
         viz2.shutdown()
         reg2.close()
+
+
+def test_a_robots_path_display_grows_as_the_rover_drives(server: FoxgloveServer) -> None:
+    """``robot`` / ``path``: the path travelled, as ``foxglove.PosesInFrame``."""
+    import yaml
+
+    from temoto import ScaledClock
+    from temoto.config import parse_profile
+
+    clock = ScaledClock(4)
+    doc = yaml.safe_load((PROFILES / "sim_rover.yaml").read_text())
+    doc["devices"]["base"]["heartbeat_period"] = 0.25  # lenient on a loaded machine
+    profile = parse_profile(doc, file="sim_rover.yaml", clock=clock)
+    request = DisplayRequest("robot", "path")
+    assert (request.name, request.kind, request.topic) == (
+        "robot_path",
+        "foxglove.PosesInFrame",
+        "/display/robot_path/path",
+    )
+    with robot_manager("test-viz-path", profile, clock) as (registrar, _robots):
+        manager = VisualizationManager(registrar, server, clock=clock)
+        try:
+            with FoxgloveClient(server.url) as client:
+                ref = registrar.call("display", request, client="op")
+                client.wait(lambda c: request.topic in c.topics(), timeout=WAIT)
+                assert client.topics()[request.topic] == "foxglove.PosesInFrame"
+                sub = client.subscribe(request.topic)
+                first = client.first_message(sub, timeout=WAIT).payload
+                assert first["frame_id"] == "odom"
+                assert len(first["poses"]) == 1  # standing still: one pose, no more messages
+                driver = RobotManagerClient(registrar).request(client="driver")
+                driver.navigate_to(0.6, 0.0).wait(WAIT * 3)
+
+                def far(c: FoxgloveClient) -> bool:
+                    mine = [m for m in c.messages if m.subscription == sub]
+                    return mine[-1].payload["poses"][-1]["position"]["x"] > 0.5
+
+                client.wait(far, timeout=WAIT)
+                path = [m for m in client.messages if m.subscription == sub][-1].payload["poses"]
+                xs = [p["position"]["x"] for p in path]
+                xy = [(p["position"]["x"], p["position"]["y"]) for p in path]
+                assert xs == sorted(xs)  # straight ahead, in order
+                assert len(path) >= 10  # a pose per 2 cm of the 0.6 m
+                steps = [math.dist(a, b) for a, b in itertools.pairwise(xy)]
+                assert min(steps) >= 0.02 - 1e-9
+                registrar.release(ref.id)
+                client.wait(lambda c: request.topic not in c.topics(), timeout=WAIT)
+        finally:
+            for ref in registrar.references():
+                registrar.release(ref.id)
+            manager.shutdown()
+
+
+def test_a_world_display_shows_the_world_models_items_as_a_scene(
+    server: FoxgloveServer,
+) -> None:
+    """``world``: the Context Manager's tree as ``foxglove.SceneUpdate``."""
+    from temoto.errors import ResourceError
+    from temoto.managers.context import ContextManager
+    from temoto.managers.context.pose import Pose
+
+    registrar = Registrar("test-viz-world")
+    manager = VisualizationManager(registrar, server)
+    try:
+        with pytest.raises(ResourceError, match="needs a Context Manager"):
+            registrar.call("display", DisplayRequest("world"), client="op")
+        with ContextManager("worker", registrar=registrar) as context:
+            context.add("kitchen", "map", pose=Pose(x=10.0))
+            context.add("table", "object", parent="kitchen", pose=Pose(x=1.0, y=2.0))
+            with pytest.raises(ResourceError, match="no item 'attic'"):
+                registrar.call("display", DisplayRequest("world", target="attic"), client="op")
+            request = DisplayRequest("world", target="kitchen")
+            topic = "/display/world_kitchen_scene/scene"
+            assert (request.kind, request.topic) == ("foxglove.SceneUpdate", topic)
+            with FoxgloveClient(server.url) as client:
+                ref = registrar.call("display", request, client="op")
+                client.wait(lambda c: topic in c.topics(), timeout=WAIT)
+                assert client.topics()[topic] == "foxglove.SceneUpdate"
+                sub = client.subscribe(topic)
+                first = client.first_message(sub).payload
+                entities = {e["id"]: e for e in first["entities"]}
+                assert set(entities) == {"kitchen", "table"}
+                assert entities["kitchen"]["cubes"] == []  # a map: its name only
+                (cube,) = entities["table"]["cubes"]
+                assert cube["pose"]["position"] == {"x": 11.0, "y": 2.0, "z": 0.0}  # in world
+                assert entities["table"]["texts"][0]["text"] == "table"
+                assert {"key": "parent", "value": "kitchen"} in entities["table"]["metadata"]
+                assert first["deletions"] == []
+
+                def mine(c: FoxgloveClient) -> list[dict[str, Any]]:
+                    return [m.payload for m in c.messages if m.subscription == sub]
+
+                context.add("cup", "object", parent="table", pose=Pose(z=0.8))
+                client.wait(lambda c: any(e["id"] == "cup" for e in mine(c)[-1]["entities"]))
+                cup = next(e for e in mine(client)[-1]["entities"] if e["id"] == "cup")
+                assert cup["cubes"][0]["pose"]["position"] == {"x": 11.0, "y": 2.0, "z": 0.8}
+                context.remove("cup")
+                client.wait(lambda c: mine(c)[-1]["deletions"] != [])
+                last = mine(client)[-1]
+                assert [d["id"] for d in last["deletions"]] == ["cup"]
+                assert {e["id"] for e in last["entities"]} == {"kitchen", "table"}
+                context.add("elsewhere", "object")  # outside the subtree: not shown
+                count = len(mine(client))
+                registrar.release(ref.id)
+                client.wait(lambda c: topic not in c.topics(), timeout=WAIT)
+                assert all(
+                    "elsewhere" not in {e["id"] for e in m["entities"]}
+                    for m in mine(client)[count - 1 :]
+                )
+    finally:
+        manager.shutdown()
+        registrar.close()
+
+
+def test_a_components_datagrams_are_decoded_as_a_scan_or_an_image(
+    server: FoxgloveServer, tmp_path: Path
+) -> None:
+    """A component display asked as ``foxglove.LaserScan`` or ``foxglove.CompressedImage``."""
+    import base64
+
+    from temoto.managers import ProcessManager
+    from temoto.managers.component import ComponentManager
+    from temoto.testing import sim_scanner
+
+    components_file = sim_scanner.components_file(str(tmp_path))
+    registrar = Registrar("test-viz-decode")
+    processes = ProcessManager(registrar)
+    components = ComponentManager(registrar, files=[components_file])
+    manager = VisualizationManager(registrar, server)
+    try:
+        with FoxgloveClient(server.url) as client:
+            scan = DisplayRequest("component", target="scanner", kind="foxglove.LaserScan")
+            image = DisplayRequest("component", target="camera", kind="foxglove.CompressedImage")
+            refs = [registrar.call("display", r, client="op") for r in (scan, image)]
+            client.wait(lambda c: {scan.topic, image.topic} <= set(c.topics()), timeout=WAIT)
+            assert client.topics()[scan.topic] == "foxglove.LaserScan"
+            assert client.topics()[image.topic] == "foxglove.CompressedImage"
+            got = client.first_message(client.subscribe(scan.topic), timeout=WAIT).payload
+            assert got["ranges"] == sim_scanner.RANGES
+            assert (got["start_angle"], got["end_angle"]) == (0.0, pytest.approx(math.pi))
+            assert got["frame_id"] == "lidar"
+            assert got["pose"]["orientation"]["w"] == 1.0
+            assert "seq" not in got  # only LaserScan's fields
+            shot = client.first_message(client.subscribe(image.topic), timeout=WAIT).payload
+            assert shot["format"] == "png"
+            assert base64.b64decode(shot["data"]).startswith(b"\x89PNG\r\n\x1a\n")
+            assert shot["frame_id"] == "cam"
+            # the undecodable datagrams between them were dropped, not published
+            deadline = time.monotonic() + WAIT
+            shown = manager.displays()
+            while not (shown[scan.name].dropped and shown[image.name].dropped):
+                assert time.monotonic() < deadline, "nothing dropped"
+                time.sleep(0.01)
+            assert shown[scan.name].count >= 1  # the good ones were published
+            for ref in refs:
+                registrar.release(ref.id)
+            client.wait(lambda c: not {scan.topic, image.topic} & set(c.topics()), timeout=WAIT)
+    finally:
+        manager.shutdown()
+        components.shutdown()
+        processes.shutdown(stop_processes=True)
+        registrar.close()

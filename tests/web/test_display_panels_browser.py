@@ -1,0 +1,269 @@
+"""The Visualization Manager's displays in the live view, in headless Chromium.
+
+The page is opened first; then displays are loaded and released on the engine's registrar:
+a panel appears for each loaded display, drawn as its kind asks (the simulated arm's joints
+as a plot of each joint's position, an action log as its lines), and goes when the display is
+released. The robot is the simulated Dynamixel arm (``hw_profiles/sim_arm.yaml``), in-process.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from pathlib import Path
+
+import pytest
+from _cdp import Browser
+from test_live_view_browser import require_chromium
+
+from temoto import ActionEngine
+from temoto.config import load_profile
+from temoto.core.registrar import Registrar
+from temoto.managers.robot import RobotManager
+from temoto.managers.visualization import DisplayRequest, VisualizationManager
+from temoto.web import LiveView
+
+ROOT = Path(__file__).resolve().parents[2]
+WAIT = 15.0
+
+
+def _panel(name: str) -> str:
+    return f"document.querySelector('#displaylist .display[data-display={json.dumps(name)}]')"
+
+
+@pytest.mark.slow
+def test_a_panel_per_loaded_display_appears_and_goes_with_it(tmp_path: Path) -> None:
+    binary = require_chromium()
+    registrar = Registrar("display-panels")
+    robots = RobotManager(registrar, load_profile(ROOT / "hw_profiles" / "sim_arm.yaml"))
+    viz = VisualizationManager(registrar)  # no Foxglove server: the page is the only viewer
+    shot = tmp_path / "console-displays.png"
+    try:
+        with ActionEngine("sim_arm", registrar=registrar) as engine, LiveView(engine) as view:
+            browser = Browser(binary, view.url, tmp_path / "profile", tmp_path / "chromium.log")
+            try:
+                browser.wait_for("document.getElementById('conn').textContent === 'live'")
+                assert browser.evaluate("document.getElementById('displays').hidden")
+
+                joints = registrar.call("display", DisplayRequest("robot", "joints"), client="op")
+                log = registrar.call(
+                    "display",
+                    DisplayRequest("log", target="patrol", name="patrol_log"),
+                    client="op",
+                )
+                # the joints: a plot with one line per joint, with points, and a legend
+                browser.wait_for(
+                    f"{_panel('robot_joints')}?.querySelectorAll('polyline.series').length === 6"
+                    f" && {_panel('robot_joints')}.querySelector('polyline.series')"
+                    ".getAttribute('points').split(' ').length >= 3",
+                    timeout=WAIT,
+                )
+                assert browser.evaluate(f"{_panel('robot_joints')}.getAttribute('data-panel')") == (
+                    "plot"
+                )
+                series = browser.evaluate(
+                    f"[...{_panel('robot_joints')}.querySelectorAll('.legend span')]"
+                    ".map((s) => s.getAttribute('data-series'))"
+                )
+                assert series[:2] == ["shoulder_pan", "shoulder_lift"]
+                assert len(series) == 6
+                assert not browser.evaluate("document.getElementById('displays').hidden")
+
+                # the log: an action's records, as text (never markup)
+                logging.getLogger("temoto.action.patrol.Navigate_3").warning(
+                    "<b id='injected'>reached</b> waypoint 2"
+                )
+                line = browser.wait_for(
+                    f"{_panel('patrol_log')}?.querySelector('li')?.textContent", timeout=WAIT
+                )
+                assert "WARNING" in line
+                assert "<b id='injected'>reached</b> waypoint 2" in line
+                assert browser.evaluate("document.getElementById('injected')") is None
+                assert browser.evaluate(f"{_panel('patrol_log')}.getAttribute('data-panel')") == (
+                    "log"
+                )
+                browser.screenshot(shot)
+
+                # released: its panel goes, the other stays
+                registrar.release(joints.id)
+                browser.wait_for(f"{_panel('robot_joints')} === null", timeout=WAIT)
+                assert browser.evaluate(f"{_panel('patrol_log')} !== null")
+                registrar.release(log.id)
+                browser.wait_for("document.getElementById('displays').hidden", timeout=WAIT)
+                assert (
+                    browser.evaluate("document.querySelectorAll('#displaylist .display').length")
+                    == 0
+                )
+            finally:
+                browser.close()
+    finally:
+        for ref in registrar.references():
+            registrar.release(ref.id)
+        viz.shutdown()
+        robots.shutdown()
+        registrar.close()
+    assert shot.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+@pytest.mark.slow
+def test_a_path_display_is_a_track_and_an_overlay_on_the_map(tmp_path: Path) -> None:
+    import yaml
+
+    from temoto import ScaledClock
+    from temoto.config import parse_profile
+    from temoto.managers.robot import RobotManagerClient
+
+    binary = require_chromium()
+    clock = ScaledClock(4)
+    doc = yaml.safe_load((ROOT / "hw_profiles" / "sim_rover.yaml").read_text())
+    doc["devices"]["base"]["heartbeat_period"] = 0.25  # lenient on a loaded machine
+    registrar = Registrar("display-path")
+    robots = RobotManager(registrar, parse_profile(doc, file="sim_rover.yaml", clock=clock))
+    viz = VisualizationManager(registrar, clock=clock)
+    try:
+        with (
+            ActionEngine("sim_rover", registrar=registrar, clock=clock) as engine,
+            LiveView(engine, robot_period_s=0.1) as view,
+        ):
+            browser = Browser(binary, view.url, tmp_path / "profile", tmp_path / "chromium.log")
+            try:
+                browser.wait_for("document.getElementById('conn').textContent === 'live'")
+                ref = registrar.call("display", DisplayRequest("robot", "path"), client="op")
+                driver = RobotManagerClient(registrar).request(client="driver")
+                assert driver.navigate_to(0.6, 0.0).wait(WAIT * 3)
+                track = browser.wait_for(
+                    f"{_panel('robot_path')}?.querySelector('polyline.track')"
+                    "?.getAttribute('points').split(' ').length >= 10"
+                    f" && {_panel('robot_path')}.getAttribute('data-panel')",
+                    timeout=WAIT,
+                )
+                assert track == "map"
+                mark = browser.evaluate(
+                    f"Number({_panel('robot_path')}.querySelector('.dmark').getAttribute('data-x'))"
+                )
+                assert mark > 0.5
+                # over the robot's own map: the path and a dot at its newest pose
+                browser.wait_for(
+                    "document.querySelector('#map .overlay[data-display=\"robot_path\"]')"
+                    " !== null && document.querySelector('#map .overlay-path') !== null",
+                    timeout=WAIT,
+                )
+                registrar.release(ref.id)
+                browser.wait_for(f"{_panel('robot_path')} === null", timeout=WAIT)
+                browser.wait_for("document.querySelector('#map .overlay') === null")
+            finally:
+                browser.close()
+    finally:
+        for r in registrar.references():
+            registrar.release(r.id)
+        viz.shutdown()
+        robots.shutdown()
+        registrar.close()
+
+
+@pytest.mark.slow
+def test_a_world_display_shows_the_world_models_items(tmp_path: Path) -> None:
+    from temoto.managers.context import ContextManager
+    from temoto.managers.context.pose import Pose
+
+    binary = require_chromium()
+    registrar = Registrar("display-world")
+    viz = VisualizationManager(registrar)
+    try:
+        with (
+            ContextManager("worker", registrar=registrar) as context,
+            ActionEngine("worker", registrar=registrar) as engine,
+            LiveView(engine) as view,
+        ):
+            context.add("kitchen", "map")
+            context.add("table", "object", parent="kitchen", pose=Pose(x=1.0, y=2.0))
+            browser = Browser(binary, view.url, tmp_path / "profile", tmp_path / "chromium.log")
+            try:
+                browser.wait_for("document.getElementById('conn').textContent === 'live'")
+                ref = registrar.call("display", DisplayRequest("world"), client="op")
+                entities = (
+                    f"[...({_panel('world_scene')}?.querySelectorAll('.entity') || [])]"
+                    ".map((g) => g.getAttribute('data-entity')).sort().join(',')"
+                )
+                browser.wait_for(f"{entities} === 'kitchen,table'", timeout=WAIT)
+                assert browser.evaluate(f"{_panel('world_scene')}.getAttribute('data-panel')") == (
+                    "scene"
+                )
+                table = browser.evaluate(
+                    f"{_panel('world_scene')}.querySelector('.entity[data-entity=\"table\"]')"
+                    ".getAttribute('data-x')"
+                )
+                assert float(table) == 1.0
+                context.add("cup", "object", parent="table")
+                browser.wait_for(f"{entities} === 'cup,kitchen,table'", timeout=WAIT)
+                context.remove("cup")
+                browser.wait_for(f"{entities} === 'kitchen,table'", timeout=WAIT)
+                registrar.release(ref.id)
+                browser.wait_for(f"{_panel('world_scene')} === null", timeout=WAIT)
+            finally:
+                browser.close()
+    finally:
+        for r in registrar.references():
+            registrar.release(r.id)
+        viz.shutdown()
+        registrar.close()
+
+
+@pytest.mark.slow
+def test_a_scan_and_an_image_display_are_drawn(tmp_path: Path) -> None:
+    from temoto.managers import ProcessManager
+    from temoto.managers.component import ComponentManager
+    from temoto.testing import sim_scanner
+
+    binary = require_chromium()
+    registrar = Registrar("display-scan")
+    processes = ProcessManager(registrar)
+    components = ComponentManager(registrar, files=[sim_scanner.components_file(str(tmp_path))])
+    viz = VisualizationManager(registrar)
+    try:
+        with ActionEngine("worker", registrar=registrar) as engine, LiveView(engine) as view:
+            browser = Browser(binary, view.url, tmp_path / "profile", tmp_path / "chromium.log")
+            try:
+                browser.wait_for("document.getElementById('conn').textContent === 'live'")
+                scan = DisplayRequest("component", target="scanner", kind="foxglove.LaserScan")
+                image = DisplayRequest(
+                    "component", target="camera", kind="foxglove.CompressedImage"
+                )
+                refs = [registrar.call("display", r, client="op") for r in (scan, image)]
+                ranges = browser.wait_for(
+                    f"[...({_panel(scan.name)}?.querySelectorAll('.ray') || [])]"
+                    ".map((c) => Number(c.getAttribute('data-range')))",
+                    timeout=WAIT,
+                )
+                assert ranges == sim_scanner.RANGES
+                assert browser.evaluate(f"{_panel(scan.name)}.getAttribute('data-panel')") == (
+                    "scan"
+                )
+                # the first range is straight ahead (angle 0: right of the sensor), the last
+                # behind (angle pi: left of it)
+                xs = browser.evaluate(
+                    f"[...{_panel(scan.name)}.querySelectorAll('.ray')]"
+                    ".map((c) => Number(c.getAttribute('cx')))"
+                )
+                assert xs[0] > 0 > xs[-1]
+                # the image: the camera's PNG, decoded by the browser (1x1)
+                size = browser.wait_for(
+                    f"(() => {{ const i = {_panel(image.name)}?.querySelector('img.dimage');"
+                    " return i && i.complete && i.naturalWidth ?"
+                    " [i.naturalWidth, i.naturalHeight] : null; })()",
+                    timeout=WAIT,
+                )
+                assert size == [1, 1]
+                browser.screenshot(tmp_path / "console-scan.png")
+                for ref in refs:
+                    registrar.release(ref.id)
+                browser.wait_for("document.getElementById('displays').hidden", timeout=WAIT)
+            finally:
+                browser.close()
+    finally:
+        for r in registrar.references():
+            registrar.release(r.id)
+        viz.shutdown()
+        components.shutdown()
+        processes.shutdown(stop_processes=True)
+        registrar.close()
