@@ -63,7 +63,7 @@ def test_a_fifo_given_as_a_file_is_refused_in_one_line(fifo: Path, args: list[st
 
 BLOCKED = r"""
 import os, sys
-from temoto._cli_signals import SignalExit
+from temoto.cli.signals import SignalExit
 with SignalExit(force_exit=1.0) as signals:
     print("ready", flush=True)
     os.open(sys.argv[1], os.O_RDONLY)  # a FIFO without a writer: blocks for ever

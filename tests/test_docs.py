@@ -302,12 +302,6 @@ _OUTSIDE = re.compile(
 
 #: Modules being reorganised on other branches, whose references are mended when they merge.
 PENDING = {
-    "temoto/cli.py",
-    "temoto/_cli_signals.py",
-    "temoto/_cli_sim.py",
-    "temoto/_cli_run.py",
-    "temoto/_cli_router.py",
-    "temoto/managers/robot/__main__.py",
     "temoto/core/shared.py",
     "temoto/core/evolution.py",
 }

@@ -80,7 +80,9 @@ FRIENDS: dict[tuple[str, str], str] = {
     ("temoto.transport._envelope", "._get_packed_fingerprint"): (
         "lcm-gen's generated types (temoto.lcm_types) give their fingerprint under this name only"
     ),
-    ("temoto.cli", "import temoto.core._fast"): "being refactored on branch h/sigterm",
+    ("temoto.cli", "import temoto.core._fast"): (
+        "temoto --version names the build (compiled or pure kernels), which only their loader knows"
+    ),
     ("temoto.core.dispatch", "from temoto.core.evolution import _transfer"): (
         "being refactored on branch h/engine"
     ),
@@ -111,8 +113,6 @@ LOGGER_NAMES: dict[str, str] = {
 KNOWN_LOGGERS: dict[tuple[str, str], str] = {
     ("temoto.core.dispatch", "temoto.core.engine"): "being refactored on branch h/engine",
     ("temoto.core.evolution", "temoto.core.engine"): "being refactored on branch h/engine",
-    ("temoto.managers.robot.__main__", "temoto.robot"): "being refactored on branch h/sigterm",
-    ("temoto._cli_run", "temoto.cli"): "being refactored on branch h/sigterm",
 }
 
 

@@ -473,7 +473,7 @@ def test_a_router_on_a_port_in_use_fails_naming_it() -> None:
 
 def test_importing_the_transports_and_the_cli_does_not_import_zenoh() -> None:
     code = (
-        "import sys, temoto.transport, temoto.cli, temoto._cli_router;"
+        "import sys, temoto.transport, temoto.cli, temoto.cli.router;"
         " temoto.cli._parser();"
         " assert 'zenoh' not in sys.modules, 'zenoh imported'"
     )

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from temoto._cli_sim_args import DEFAULT_CAN_GROUP, DEFAULT_OUT, parse_udp_address
+from temoto.cli.sim_args import DEFAULT_CAN_GROUP, DEFAULT_OUT, parse_udp_address
 from temoto.clock import Clock, MonotonicClock, ScaledClock
 from temoto.errors import ConfigError, DriverError
 
