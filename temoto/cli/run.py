@@ -18,6 +18,7 @@ import traceback
 from collections.abc import Sequence
 from typing import IO, Any
 
+from temoto.actions.builtin import ROS2_ACTIONS
 from temoto.cli.common import (
     EXIT_OTHER_RESULT,
     EXIT_TRUE,
@@ -47,6 +48,8 @@ from temoto.core.registrar import Registrar
 from temoto.core.states import NodeState, Result
 from temoto.errors import GraphInputError
 from temoto.managers.process import ProcessManager
+from temoto.ros2.lifecycle import Ros2LifecycleManager
+from temoto.ros2.manager import Ros2Manager
 
 __all__ = ["add_parser", "main"]
 
@@ -263,9 +266,12 @@ def _run_graph(
         # the graph's end releases them, so nothing outlives the command.
         registrar = Registrar("temoto-run")
         processes = ProcessManager(registrar)
+        # ROS 2 bridges (docs/ros2.md): started only when a ROS 2 action asks for one
+        ros2 = Ros2Manager(registrar)
+        Ros2LifecycleManager(registrar)
         engine = ActionEngine(
             args.actor,
-            actions=ActionCatalog(args.actions),
+            actions=ActionCatalog([ROS2_ACTIONS, *args.actions]),
             graphs=GraphIndex(args.graphs),
             clock=clock,
             instruments=instruments,
@@ -315,6 +321,7 @@ def _run_graph(
             # Whatever the actions did not release (a run that did not stop) is stopped here:
             # nothing started by this command outlives it.
             processes.shutdown(stop_processes=True)
+            ros2.shutdown()  # segments a crashed bridge's peers re-created
             registrar.close()
     finally:
         if trace_file is not None:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import fcntl
 import importlib.util
+import json
 import os
 import socket
 import struct
@@ -203,3 +204,21 @@ def test_a_bridge_without_rclpy_answers_with_one_line(tmp_path: Path, no_rclpy_p
     )
     assert "Traceback" not in stderr
     assert not path.exists()
+
+
+def test_temoto_run_knows_the_ros2_actions(tmp_path: Path) -> None:
+    """``temoto run`` has the ROS 2 servers and actions: without rclpy, the extra's one line."""
+    graph = tmp_path / "publish.graph.json"
+    graph.write_text(json.dumps(_publish_graph()), encoding="utf-8")
+    env = {k: v for k, v in os.environ.items() if k != "TEMOTO_ROS2_PYTHON"}
+    done = subprocess.run(
+        [sys.executable, "-m", "temoto", "run", str(graph), "--timeout", "60"],
+        capture_output=True,
+        text=True,
+        timeout=120,
+        env=env,
+        check=False,
+    )
+    assert done.returncode != 0, done.stdout
+    assert "pip install 'temoto[ros2]'" in done.stderr, done.stderr
+    assert "Traceback" not in done.stderr
