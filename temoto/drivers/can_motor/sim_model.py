@@ -15,7 +15,15 @@ from typing import Final
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor import mitmode as mit
 
-__all__ = ["TORQUE_CONSTANT", "VEL_LIMIT_TOLERANCE", "AxisModel", "MitModel"]
+__all__ = [
+    "MIT_MECHANICS",
+    "MIT_SUBSTEP",
+    "TORQUE_CONSTANT",
+    "VEL_LIMIT_TOLERANCE",
+    "AxisModel",
+    "MitMechanics",
+    "MitModel",
+]
 
 #: N·m per A: ODrive's default ``motor.config.torque_constant``, turning a current limit into
 #: a torque limit and a torque into Iq.
@@ -144,23 +152,84 @@ class AxisModel:
         return self.torque
 
 
+#: Seconds of the MIT model's integration step (at most): the AK firmware evaluates its
+#: impedance law in its 40 kHz current loop; a quarter millisecond keeps the semi-implicit Euler
+#: steps well inside the stable range of every model's stiffest gains (kp 500, kd 5).
+MIT_SUBSTEP: Final = 0.00025
+
+#: Simulated seconds a single :meth:`MitModel.step` integrates at most; the rest of a longer
+#: jump of the clock goes on at the velocity reached (settled by then).
+MIT_MAX_INTEGRATION: Final = 10.0
+
+
+@dataclass(frozen=True, slots=True)
+class MitMechanics:
+    """The mechanics of one motor model, output side.
+
+    Attributes:
+        inertia: Rotor inertia seen at the output shaft (rotor x gear ratio²), kg·m².
+        damping: Viscous friction, N·m per rad/s.
+        coulomb: Dry (Coulomb) friction of the gearbox, N·m; it also holds a motor at rest
+            against a smaller torque.
+    """
+
+    inertia: float
+    damping: float
+    coulomb: float
+
+
+#: Plausible mechanics per AK model (output side). The inertias are of the order of the
+#: CubeMars specification sheets' rotor inertia (hundreds of g·cm² for the 60-100 mm frames)
+#: reflected through the planetary gearbox (x ratio²); the frictions are assumed (a few tenths
+#: of a percent to one percent of the peak torque, typical of a single-stage planetary
+#: quasi-direct-drive actuator). Not measured on a motor: set your own on :class:`MitModel`.
+MIT_MECHANICS: Final = {
+    "AK10-9": MitMechanics(inertia=0.0081, damping=0.04, coulomb=0.3),
+    "AK60-6": MitMechanics(inertia=0.0009, damping=0.01, coulomb=0.08),
+    "AK70-10": MitMechanics(inertia=0.0040, damping=0.02, coulomb=0.15),
+    "AK80-6": MitMechanics(inertia=0.0022, damping=0.02, coulomb=0.08),
+    "AK80-9": MitMechanics(inertia=0.0049, damping=0.02, coulomb=0.1),
+}
+
+
 @dataclass
 class MitModel:
     """One simulated MIT-mode motor (output side: rad, rad/s, N·m).
 
-    The motor's torque ``kp (p_des - p) + kd (v_des - v) + t_ff`` works against viscous
-    ``damping`` (none by default) with no inertia, which makes the position a first-order
-    system with the time constant ``(kd + damping) / kp``.
+    In motor mode the firmware (Ben Katz's mini-cheetah ``motorcontrol``, ``torque_control``
+    in ``foc.c``, which the CubeMars AK firmware follows) evaluates, in its current loop, on the
+    *measured* position and velocity::
+
+        torque = clamp(kp (p_des - p) + kd (v_des - v) + t_ff, ±t_max)
+
+    The model integrates that torque (every :data:`MIT_SUBSTEP` at most) against the rotor's
+    and the load's inertia, viscous ``damping`` and Coulomb ``coulomb`` friction; the torque a
+    reply reports is the one applied last. The supply voltage bounds the speed: driving
+    torque falls linearly to zero at ``v_max`` (the velocity field's range standing for the
+    no-load speed), so a free motor under a constant torque runs up to ``v_max`` at most.
+    Out of motor mode (after ``exit``, or before
+    ``enter``) no current flows: the motor coasts to rest under its friction.
+
+    A zero command as a host packs it (p, v, kp, kd, t_ff = 0) decodes in the firmware to
+    t_ff = -0.0044 N·m and v_des = -0.012 rad/s on an AK80-9 (``uint_to_float`` of the fields'
+    rounded-down midpoints 2047 of 0..4095): far below the gearbox's dry friction, so the motor
+    stays where it is, as a real one does.
 
     Attributes:
         motor_id: Its CAN id.
         ranges: Its field ranges.
-        damping: N·m per rad/s.
+        inertia: Rotor inertia at the output, kg·m² (:data:`MIT_MECHANICS`; AK80-9 by default).
+        load_inertia: What the shaft carries, kg·m² (none by default).
+        damping: Viscous friction, N·m per rad/s.
+        coulomb: Dry friction, N·m.
     """
 
     motor_id: int
     ranges: mit.MitRanges = field(default_factory=mit.MitRanges)
-    damping: float = 0.0
+    inertia: float = MIT_MECHANICS["AK80-9"].inertia
+    load_inertia: float = 0.0
+    damping: float = MIT_MECHANICS["AK80-9"].damping
+    coulomb: float = MIT_MECHANICS["AK80-9"].coulomb
     enabled: bool = False
     pos: float = 0.0
     vel: float = 0.0
@@ -173,31 +242,77 @@ class MitModel:
     fed: float = -math.inf  # the CAN timeout's last reset (a command frame), clock seconds
     timeouts: int = 0  # times the CAN timeout zeroed the command (for tests)
 
+    @classmethod
+    def of(cls, motor_id: int, model: str, ranges: mit.MitRanges | None = None) -> MitModel:
+        """A motor of a named AK model, with its ranges and :data:`MIT_MECHANICS`.
+
+        Args:
+            motor_id: Its CAN id.
+            model: A key of :data:`~temoto.drivers.can_motor.mitmode.MODELS`.
+            ranges: Ranges other than the model's (a profile's ``p_max`` ...).
+
+        Returns:
+            The model.
+
+        Raises:
+            KeyError: An unknown model.
+        """
+        mech = MIT_MECHANICS[model]
+        return cls(
+            motor_id,
+            ranges if ranges is not None else mit.MODELS[model],
+            inertia=mech.inertia,
+            damping=mech.damping,
+            coulomb=mech.coulomb,
+        )
+
+    def _motor_torque(self) -> float:
+        """The impedance law on the present state, clamped to ±t_max (0 out of motor mode)."""
+        if not self.enabled:
+            return 0.0
+        c = self.command
+        torque = c.kp * (c.p - self.pos) + c.kd * (c.v - self.vel) + c.t
+        limit = self.ranges.t_max
+        torque = max(-limit, min(limit, torque))
+        if torque * self.vel > 0:  # the back-EMF leaves less torque the faster it turns
+            top = limit * max(0.0, 1.0 - abs(self.vel) / self.ranges.v_max)
+            torque = math.copysign(min(abs(torque), top), torque)
+        return torque
+
     def step(self, now: float) -> None:
         """Advance the model to ``now`` (clock seconds)."""
         if self.stamp is None or now <= self.stamp:
             self.stamp = now if self.stamp is None else self.stamp
             return
         dt, self.stamp = now - self.stamp, now
-        if not self.enabled:
-            self.vel *= math.exp(-dt * 20.0)
-            self.pos += self.vel * dt
-            self.torque = 0.0
-            return
+        inertia = self.inertia + self.load_inertia
         c = self.command
-        friction = self.damping + c.kd
-        if c.kp > 0:
-            goal = c.p + (c.kd * c.v + c.t) / c.kp
-            decay = math.exp(-dt * c.kp / friction) if friction > 0 else 0.0
-            new = goal + (self.pos - goal) * decay
-            vel = (new - self.pos) / dt
-        elif friction > 0:
-            vel = (c.kd * c.v + c.t) / friction
-        else:  # a free motor under a constant torque runs up to its limit
-            vel = math.copysign(self.ranges.v_max, c.t) if c.t else 0.0
-        limit = self.ranges.v_max
-        vel = max(-limit, min(limit, vel))
-        self.pos += vel * dt  # the shaft turns on past the reply's ±p_max field
-        self.vel = vel
-        torque = c.kp * (c.p - self.pos) + c.kd * (c.v - vel) + c.t
-        self.torque = max(-self.ranges.t_max, min(self.ranges.t_max, torque))
+        kd = c.kd if self.enabled else 0.0
+        kp = c.kp if self.enabled else 0.0
+        h = MIT_SUBSTEP  # inside the stable range of semi-implicit Euler, with margin
+        if kd + self.damping > 0:
+            h = min(h, 0.5 * inertia / (kd + self.damping))
+        if kp > 0:
+            h = min(h, 0.2 * math.sqrt(inertia / kp))
+        span = min(dt, MIT_MAX_INTEGRATION)
+        steps = max(1, math.ceil(span / h))
+        h = span / steps
+        torque = 0.0
+        for _ in range(steps):
+            torque = self._motor_torque()
+            self.vel = self._accelerate(torque, inertia, h)
+            self.pos += self.vel * h  # the shaft turns on past the reply's ±p_max field
+        self.pos += self.vel * (dt - span)
+        self.torque = torque
+
+    def _accelerate(self, torque: float, inertia: float, h: float) -> float:
+        """The velocity after ``h`` seconds under ``torque`` and the friction."""
+        v, dry = self.vel, self.coulomb
+        if v == 0.0 and abs(torque) <= dry:
+            return 0.0  # static friction holds it
+        direction = v if v != 0.0 else torque
+        friction = math.copysign(dry, direction) + self.damping * v
+        new = v + h * (torque - friction) / inertia
+        if v != 0.0 and (new > 0) != (v > 0) and abs(torque) <= dry:
+            return 0.0  # friction stops a motor; it does not turn it round
+        return new
