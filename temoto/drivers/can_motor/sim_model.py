@@ -16,9 +16,13 @@ from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor import mitmode as mit
 
 __all__ = [
+    "CURRENT_LIMIT",
     "MIT_MECHANICS",
     "MIT_SUBSTEP",
+    "POS_GAIN",
     "TORQUE_CONSTANT",
+    "VEL_GAIN",
+    "VEL_INTEGRATOR_GAIN",
     "VEL_LIMIT_TOLERANCE",
     "AxisModel",
     "MitMechanics",
@@ -33,49 +37,134 @@ TORQUE_CONSTANT: Final = 0.04
 #: velocity limit disarms with ``VELOCITY_LIMIT_VIOLATION`` (``enable_overspeed_error``).
 VEL_LIMIT_TOLERANCE: Final = 1.2
 
+#: The ODrive firmware's controller defaults (``controller.config``, firmware 0.5/0.6
+#: ``controller.hpp``): ``pos_gain`` (turn/s)/turn, ``vel_gain`` N·m/(turn/s),
+#: ``vel_integrator_gain`` N·m/(turn/s·s), ``vel_ramp_rate`` (turn/s)/s.
+POS_GAIN: Final = 20.0
+VEL_GAIN: Final = 1.0 / 6.0
+VEL_INTEGRATOR_GAIN: Final = 2.0 / 6.0
+VEL_RAMP_RATE: Final = 1.0
+
+#: ``motor.config.current_lim``'s default, A (firmware ``motor.hpp``; ``Set_Limits`` sets it).
+CURRENT_LIMIT: Final = 10.0
+
+#: Seconds of the axis model's integration step (at most; the firmware's loop runs at 8 kHz).
+AXIS_SUBSTEP: Final = 0.001
+
+#: The integrator's decay while the torque is limited, per second: the firmware multiplies it by
+#: 0.99 every 8 kHz control cycle (``controller.cpp``'s anti-windup).
+_WINDUP_DECAY: Final = 0.01 * 8000.0
+
+_TAU: Final = 2.0 * math.pi
+
+#: Simulated seconds a single step integrates at most; the rest of a longer jump of the clock
+#: goes on at the velocity reached (settled by then).
+MAX_INTEGRATION: Final = 10.0
+
 
 @dataclass
 class AxisModel:
-    """One simulated ODrive axis (motor side: rev, rev/s, N·m).
+    """One simulated ODrive axis (motor side: turn, turn/s, N·m).
 
-    The motor's torque works against viscous ``damping`` only, so in torque control the speed
-    settles at ``torque / damping`` and holding a speed takes ``damping * speed``.
+    **Control**, as the ODrive firmware's cascaded controller (``controller.cpp``; docs
+    "Control Structure and Tuning"): in ``POSITION_CONTROL`` the velocity set-point is
+    ``pos_gain * (input_pos - pos)``; in ``VELOCITY_CONTROL`` it is ``input_vel`` (ramped at
+    ``vel_ramp_rate`` with ``input_mode`` ``VEL_RAMP``); both are clamped to ``vel_limit``. The
+    velocity loop is a PI: ``torque = vel_gain * (vel_setpoint - vel) + integrator`` (the
+    integrator decays instead of growing while the torque is limited, the firmware's
+    anti-windup). In ``TORQUE_CONTROL`` the torque is ``input_torque``. Every torque is then
+    clamped to ``current_limit * torque_constant`` (in torque control first held inside
+    ``±(vel_limit - vel) * vel_gain``: ``enable_torque_mode_vel_limit``, on by default): a stop
+    decelerates as fast as the current limit allows.
+
+    **Mechanics**: the torque turns ``inertia + load_inertia`` (kg·m², at the motor) against
+    viscous ``damping`` (N·m per turn/s, the load's rolling or bearing friction); an axis out
+    of closed loop coasts under that friction.
 
     **Limits**, as ``Set_Limits`` sets them (``controller.config.vel_limit`` and the motor's
-    current limit) and as the ODrive documents them: the velocity set-point, the position
-    loop's velocity and (``enable_torque_mode_vel_limit``) the speed in torque control are
-    clamped to ``vel_limit``; the torque is clamped to ``current_limit * torque_constant``, so
-    a speed that needs more torque than that is not reached. An axis that is found faster than
-    :data:`VEL_LIMIT_TOLERANCE` times ``vel_limit`` (a limit lowered below the present speed)
-    disarms with ``VELOCITY_LIMIT_VIOLATION``, as with ``enable_overspeed_error``.
+    current limit). An axis that is found faster than :data:`VEL_LIMIT_TOLERANCE` times
+    ``vel_limit`` (a limit lowered below the present speed) disarms with
+    ``VELOCITY_LIMIT_VIOLATION``, as with ``enable_overspeed_error``.
+
+    **Procedure result** (the heartbeat's ``Procedure_Result``, ODrive 0.6): ``SUCCESS`` at
+    power-on; ``BUSY`` while closed-loop control runs; ``CANCELLED`` when a state request (IDLE)
+    ends it; ``DISARMED`` when an error ends it (a watchdog, an estop, overspeed, a hardware
+    fault) or refuses it (an axis with active errors does not arm).
 
     Attributes:
         node_id: Its CANSimple node id.
-        time_constant: Seconds of the first-order response.
-        vel_limit: rev/s.
-        damping: N·m per rev/s.
-        current_limit: A (infinite: not limited until ``Set_Limits``).
+        vel_limit: turn/s (the simulator's default is generous: the driver sends no
+            ``Set_Limits``; the firmware's own default is 2 turn/s).
+        damping: N·m per turn/s.
+        current_limit: A (``motor.config.current_lim``, 10 A by default).
         torque_constant: N·m per A.
+        inertia: The rotor's inertia, kg·m² (assumed: a 50-65 mm outrunner such as ODrive's
+            D5065/D6374 class).
+        load_inertia: What the axis drives, reflected to the motor, kg·m².
+        pos_gain: (turn/s) per turn.
+        vel_gain: N·m per turn/s.
+        vel_integrator_gain: N·m per turn/s per s.
+        vel_ramp_rate: (turn/s) per s, for ``VEL_RAMP``.
     """
 
     node_id: int
-    time_constant: float = 0.05
     vel_limit: float = 50.0
-    damping: float = 0.1
-    current_limit: float = math.inf
+    damping: float = 0.01
+    current_limit: float = CURRENT_LIMIT
     torque_constant: float = TORQUE_CONSTANT
+    inertia: float = 3e-4
+    load_inertia: float = 7e-4
+    pos_gain: float = POS_GAIN
+    vel_gain: float = VEL_GAIN
+    vel_integrator_gain: float = VEL_INTEGRATOR_GAIN
+    vel_ramp_rate: float = VEL_RAMP_RATE
     pos: float = 0.0
     vel: float = 0.0
     state: int = cs.AxisState.IDLE
     error: int = 0
+    procedure_result: int = cs.ProcedureResult.SUCCESS
     control_mode: int = cs.ControlMode.POSITION_CONTROL
     input_mode: int = cs.InputMode.PASSTHROUGH
     input_pos: float = 0.0
     input_vel: float = 0.0
     input_torque: float = 0.0
+    vel_setpoint: float = 0.0  # the ramped velocity set-point (VEL_RAMP), turn/s
+    integrator: float = 0.0  # the velocity integrator's torque, N·m
+    torque: float = 0.0  # the torque applied last, N·m (Get_Torques' estimate)
+    torque_target: float = 0.0  # the controller's torque before the limits, N·m
     stamp: float | None = None
     commands: int = 0  # set-points received (for tests)
     fed: float = -math.inf  # the watchdog's last feed, clock seconds
+
+    @property
+    def armed(self) -> bool:
+        """Whether the axis is in closed-loop control."""
+        return self.state == cs.AxisState.CLOSED_LOOP_CONTROL
+
+    def arm(self) -> None:
+        """Enter closed-loop control (a ``Set_Axis_State`` request): hold where it is."""
+        if self.error:
+            self.procedure_result = cs.ProcedureResult.DISARMED  # does not arm
+            return
+        self.input_pos = self.pos
+        self.input_vel = self.input_torque = 0.0
+        self.vel_setpoint = self.vel if self.input_mode == cs.InputMode.VEL_RAMP else 0.0
+        self.integrator = 0.0
+        self.state = cs.AxisState.CLOSED_LOOP_CONTROL
+        self.procedure_result = cs.ProcedureResult.BUSY
+
+    def idle(self) -> None:
+        """An IDLE request: closed-loop control (if it ran) is cancelled."""
+        if self.armed:
+            self.procedure_result = cs.ProcedureResult.CANCELLED
+        self.state = cs.AxisState.IDLE
+
+    def disarm(self, error: int) -> None:
+        """Raise ``error`` and leave closed loop, as the firmware does on an error."""
+        self.error |= error
+        if self.armed:
+            self.procedure_result = cs.ProcedureResult.DISARMED
+        self.state = cs.AxisState.IDLE
 
     def step(self, now: float) -> None:
         """Advance the model to ``now`` (clock seconds)."""
@@ -83,73 +172,78 @@ class AxisModel:
             self.stamp = now if self.stamp is None else self.stamp
             return
         dt, self.stamp = now - self.stamp, now
-        decay = math.exp(-dt / self.time_constant)
-        if self.state != cs.AxisState.CLOSED_LOOP_CONTROL:
-            self.vel *= decay  # coasting
-            self.pos += self.vel * dt
-            return
-        if abs(self.vel) > VEL_LIMIT_TOLERANCE * self.vel_limit:  # overspeed: disarm
-            self.error |= cs.AxisError.VELOCITY_LIMIT_VIOLATION
-            self.state = cs.AxisState.IDLE
-            self.vel *= decay
-            self.pos += self.vel * dt
-            return
-        # the fastest the axis may go: its velocity limit, and the speed its torque limit holds
-        fastest = min(self.vel_limit, self.torque_limit / self.damping)
-        if self.control_mode == cs.ControlMode.POSITION_CONTROL:
-            target = self.input_pos + (self.pos - self.input_pos) * decay
-            vel = (target - self.pos) / dt
-            vel = max(-fastest, min(fastest, vel))
-            self.pos += vel * dt
-            self.vel = vel
-            return
-        if self.control_mode == cs.ControlMode.VELOCITY_CONTROL:
-            goal = self.input_vel
+        span = min(dt, MAX_INTEGRATION)
+        inertia = _TAU * (self.inertia + self.load_inertia)  # N·m per turn/s²
+        h = AXIS_SUBSTEP
+        stiff = self.vel_gain + self.damping
+        if stiff > 0:
+            h = min(h, 0.5 * inertia / stiff)
+        steps = max(1, math.ceil(span / h))
+        h = span / steps
+        for _ in range(steps):
+            if self.armed and abs(self.vel) > VEL_LIMIT_TOLERANCE * self.vel_limit:
+                self.disarm(cs.AxisError.VELOCITY_LIMIT_VIOLATION)  # overspeed
+            torque = self._control(h) if self.armed else 0.0
+            self.torque = torque
+            self.vel += h * (torque - self.damping * self.vel) / inertia
+            self.pos += self.vel * h
+        if not self.armed:
+            self.torque = self.torque_target = 0.0
+        self.pos += self.vel * (dt - span)
+
+    def _control(self, h: float) -> float:
+        """One control cycle of ``h`` seconds: the torque the controller applies, N·m."""
+        limit = self.vel_limit
+        feedforward = 0.0
+        if self.control_mode == cs.ControlMode.TORQUE_CONTROL:
+            torque = self.input_torque
+            self.integrator = 0.0
         else:
-            goal = self._torque_command() / self.damping
-        goal = max(-fastest, min(fastest, goal))
-        new = goal + (self.vel - goal) * decay
-        self.pos += 0.5 * (self.vel + new) * dt
-        self.vel = new
+            if self.control_mode == cs.ControlMode.POSITION_CONTROL:
+                goal = self.pos_gain * (self.input_pos - self.pos) + self.input_vel
+                self.vel_setpoint = goal
+            elif self.input_mode == cs.InputMode.VEL_RAMP:
+                ramp = self.vel_ramp_rate * h
+                goal = self.vel_setpoint + max(-ramp, min(ramp, self.input_vel - self.vel_setpoint))
+                self.vel_setpoint = goal
+            else:
+                goal = self.vel_setpoint = self.input_vel
+            if self.control_mode == cs.ControlMode.VELOCITY_CONTROL:
+                feedforward = self.input_torque  # Set_Input_Vel's torque feed-forward
+            goal = max(-limit, min(limit, goal))
+            error = goal - self.vel
+            torque = self.vel_gain * error + self.integrator + feedforward
+        self.torque_target = torque
+        bounded = torque
+        if self.control_mode == cs.ControlMode.TORQUE_CONTROL:  # enable_torque_mode_vel_limit
+            low = (-limit - self.vel) * self.vel_gain
+            high = (limit - self.vel) * self.vel_gain
+            bounded = max(low, min(high, torque))
+        top = self.torque_limit
+        bounded = max(-top, min(top, bounded))
+        if self.control_mode != cs.ControlMode.TORQUE_CONTROL:
+            if bounded != torque:  # limited: the integrator decays (anti-windup)
+                self.integrator *= math.exp(-_WINDUP_DECAY * h)
+            else:
+                self.integrator += self.vel_integrator_gain * error * h
+        return bounded
 
     @property
     def torque_limit(self) -> float:
         """The largest torque the current limit allows, N·m."""
         return self.current_limit * self.torque_constant
 
-    def _torque_command(self) -> float:
-        limit = self.torque_limit
-        return max(-limit, min(limit, self.input_torque))
-
     def set_limits(self, vel_limit: float, current_limit: float) -> None:
-        """Apply ``Set_Limits`` (rev/s, A); a value that is not finite and positive is ignored.
+        """Apply ``Set_Limits`` (turn/s, A); a value that is not finite and positive is ignored.
 
         Args:
-            vel_limit: The velocity limit, rev/s.
+            vel_limit: The velocity limit, turn/s.
             current_limit: The current limit, A.
         """
         if math.isfinite(vel_limit) and vel_limit > 0:
             self.vel_limit = vel_limit
         if math.isfinite(current_limit) and current_limit > 0:
             self.current_limit = current_limit
-
-    @property
-    def torque(self) -> float:
-        """The torque estimate, N·m."""
-        if self.state != cs.AxisState.CLOSED_LOOP_CONTROL:
-            return 0.0
-        if self.control_mode == cs.ControlMode.TORQUE_CONTROL:
-            return self._torque_command()
-        return self.damping * self.vel
-
-    @property
-    def torque_target(self) -> float:
-        """The torque the controller aims at, N·m (``Get_Torques``' ``Torque_Target``)."""
-        if self.state != cs.AxisState.CLOSED_LOOP_CONTROL:
-            return 0.0
-        if self.control_mode == cs.ControlMode.TORQUE_CONTROL:
-            return self._torque_command()
-        return self.torque
 
 
 #: Seconds of the MIT model's integration step (at most): the AK firmware evaluates its
