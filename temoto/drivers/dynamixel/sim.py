@@ -102,6 +102,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import select
 import termios
@@ -115,7 +116,7 @@ from temoto.clock import Clock
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel import protocol as p
 from temoto.drivers.dynamixel.sim_instructions import ServoChain
-from temoto.drivers.dynamixel.sim_servo import BAUD_BY_CODE, GENERIC_REGISTERS
+from temoto.drivers.dynamixel.sim_servo import AMBIENT, BAUD_BY_CODE, GENERIC_REGISTERS
 
 __all__ = ["SimDynamixelChain"]
 
@@ -235,6 +236,27 @@ class SimDynamixelChain(ServoChain):
         with self._state:
             return self._servo(dxl_id).model
 
+    def set_load(self, dxl_id: int, *, inertia: float = 0.0, torque: float = 0.0) -> None:
+        """What the servo's horn carries: an inertia and a constant torque against it.
+
+        Args:
+            dxl_id: Its id now.
+            inertia: kg·m² at the output (a link and its payload).
+            torque: N·m it must hold (gravity on an arm; positive opposes positive motion).
+
+        Raises:
+            KeyError: No servo answers to that id.
+            ValueError: A negative or non-finite inertia, a non-finite torque.
+        """
+        if not (math.isfinite(inertia) and inertia >= 0 and math.isfinite(torque)):
+            raise ValueError(
+                f"load: inertia must be >= 0 kg·m² and torque finite, got {inertia!r}, {torque!r}"
+            )
+        with self._state:
+            self._step_locked()
+            servo = self._servo(dxl_id)
+            servo.load_inertia, servo.load_torque = inertia, torque
+
     def read_register(self, dxl_id: int, address: int, size: int | None = None) -> int:
         """A register's value, as stored (stepping the model first; no Indirect Data mapping).
 
@@ -279,6 +301,7 @@ class SimDynamixelChain(ServoChain):
             servo.put(reg, value)
             if reg.name == "Present Position":
                 servo.position = float(value)
+                servo.traj_pos = None
 
     # ---- faults ------------------------------------------------------------------------------
 
@@ -295,6 +318,11 @@ class SimDynamixelChain(ServoChain):
             with self._state:
                 for servo in self._targets(params):
                     self._raise_hardware_error(servo, str(params.get("kind", "overheat")))
+        elif fault == "hardware_error":  # an injected overheat is over: the servo has cooled
+            with self._state:
+                for servo in self._servos:
+                    if servo.injected_heat:
+                        servo.temperature, servo.injected_heat = AMBIENT, False
 
     # ---- serving -----------------------------------------------------------------------------
 
