@@ -10,15 +10,15 @@ encoder estimates every 10 ms by default, the others off; 0 turns one off), each
 :class:`SimMitMotor` answers the MIT-mode protocol of CubeMars AK motors: enter / exit / zero
 frames and impedance commands, each with a reply.
 
-Both step a first-order motion model on the injected clock, on a thread that waits with
-``clock.wait`` (so a :class:`~temoto.clock.ManualClock` test runs in virtual time), and read
-the bus on another thread. Faults (:meth:`~temoto.drivers.sim.Simulator.inject`, optionally
-``node=<id>`` for one axis or motor): ``silence`` (dead: no frames, commands ignored),
-``corrupt`` (frames go out truncated: a wrong DLC), ``hardware_error`` (``kind`` = overheat,
-overload or voltage: error bits, the axis disarms; latched until Clear_Errors on an ODrive),
-``no_heartbeat`` (ODrive: cyclic heartbeats stop, everything else answers), ``no_encoder``
-(ODrive: cyclic encoder estimates stop, heartbeats go on) and ``link_loss`` (no frames in
-either direction, every node).
+Both step a motion model (torque, inertia, friction) on the injected clock, on a thread that
+waits with ``clock.wait`` (so a :class:`~temoto.clock.ManualClock` test runs in virtual time),
+and read the bus on another thread. Faults (:meth:`~temoto.drivers.sim.Simulator.inject`,
+optionally ``node=<id>`` for one axis or motor): ``silence`` (dead: no frames, commands
+ignored), ``corrupt`` (frames go out truncated: a wrong DLC), ``hardware_error`` (``kind`` =
+overheat, overload or voltage: error bits, the axis disarms; latched until Clear_Errors on an
+ODrive), ``no_heartbeat`` (ODrive: cyclic heartbeats stop, everything else answers),
+``no_encoder`` (ODrive: cyclic encoder estimates stop, heartbeats go on) and ``link_loss`` (no
+frames in either direction, every node).
 
 **Device watchdogs** (``docs/driver-can.md``), modelled as the vendors document them so that a
 killed host is testable: :class:`SimODrive` with ``watchdog_timeout`` > 0 is an ODrive with

@@ -1,9 +1,10 @@
 """The motion models behind the simulated CAN motors: an ODrive axis and an MIT-mode motor.
 
 :class:`AxisModel` is one ODrive axis (state, control mode, set-points, the velocity and current
-limits, first-order motion, the overspeed check); :class:`MitModel` a CubeMars AK motor under
-MIT-mode impedance control. Both are plain data stepped by their simulator
-(:mod:`~temoto.drivers.can_motor.sim`) on its clock: no I/O, no threads.
+limits, the cascaded controller driving inertia and friction, the overspeed check);
+:class:`MitModel` a CubeMars AK motor under MIT-mode impedance control. Both are plain data
+stepped by their simulator (:mod:`~temoto.drivers.can_motor.sim`) on its clock: no I/O, no
+threads.
 """
 
 from __future__ import annotations

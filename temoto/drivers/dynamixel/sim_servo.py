@@ -1,13 +1,13 @@
 """One simulated DYNAMIXEL X-series servo: its control table and its motion model.
 
 :class:`Servo` holds a servo's control table as the bytes a real one holds (every register of
-its model, :class:`Layout` indexing them by name, by address and through the Indirect
-Addresses) and the continuous state behind the registers (position, velocity, current, the
-Bus Watchdog's clock). :func:`move` advances one servo's first-order model and refreshes its
-Present registers; :func:`watchdog_expiry` and :func:`expire_watchdog` are its Bus Watchdog.
-The behaviour is described in :mod:`~temoto.drivers.dynamixel.sim`; the instructions that act
-on servos are in :mod:`~temoto.drivers.dynamixel.sim_instructions`. Pure data and functions:
-no I/O, no threads, no lock (the chain holds its lock around every use).
+its model, :class:`Layout` indexing them by name, by address and through the Indirect Addresses)
+and the continuous state behind the registers (position, velocity, current, the Bus Watchdog's
+clock, the winding's temperature). :func:`move` advances one servo's profile, torque and heat
+and refreshes its Present registers; :func:`watchdog_expiry` and :func:`expire_watchdog` are its
+Bus Watchdog. The behaviour is described in :mod:`~temoto.drivers.dynamixel.sim`; the
+instructions that act on servos are in :mod:`~temoto.drivers.dynamixel.sim_instructions`. Pure
+data and functions: no I/O, no threads, no lock (the chain holds its lock around every use).
 """
 
 from __future__ import annotations
