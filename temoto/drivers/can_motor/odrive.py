@@ -296,9 +296,13 @@ class ODriveDriver(CanMotorDriver):
         reader = ProfileReader(name)
         rates = sim_rates(reader, config.get("sim"), driver.heartbeat_period, driver.encoder_period)
         mechanics = sim_mechanics(reader, config.get("sim"))
+        axes = [AxisModel(n.node_id) for n in driver.nodes]
+        for axis in axes:
+            for key, value in mechanics.items():
+                setattr(axis, key, value)
         sim = SimODrive(
             driver.link,
-            [AxisModel(n.node_id, **mechanics) for n in driver.nodes],
+            axes,
             clock,
             heartbeat_period=driver.heartbeat_period,
             encoder_period=driver.encoder_period,

@@ -10,6 +10,7 @@ CANCELLED 2, DISARMED 3).
 from __future__ import annotations
 
 import math
+import re
 import uuid
 from pathlib import Path
 
@@ -197,3 +198,49 @@ def test_a_watchdog_expiry_ends_closed_loop_as_disarmed() -> None:
     beat = wire.ask(cs.Cmd.HEARTBEAT, "Heartbeat")
     assert beat["Axis_State"] == cs.AxisState.IDLE
     assert beat["Procedure_Result"] == cs.ProcedureResult.DISARMED
+
+
+# ---- the profile's sim keys give the simulated axes their mechanics --------------------------
+
+
+def entry(sim: dict[str, object]) -> dict[str, object]:
+    return {
+        "link": {"interface": "virtual", "channel": f"odphys-{uuid.uuid4().hex[:8]}"},
+        "heartbeat_period": 0.1,
+        "encoder_period": 0.01,
+        "nodes": [{"node_id": 1, "joint": "left"}, {"node_id": 2, "joint": "right"}],
+        "sim": sim,
+    }
+
+
+def test_the_profile_sim_keys_set_every_axis_mechanics() -> None:
+    from temoto.drivers.can_motor.odrive import ODriveDriver
+
+    keys = {"load_inertia": 0.032, "damping": 0.1, "current_limit": 50.0, "vel_gain": 10.0}
+    sim, _ = ODriveDriver.simulate(
+        "base", entry({**keys, "torques_msg_rate_ms": 10}), clock=ManualClock()
+    )
+    assert isinstance(sim, SimODrive)
+    for axis in sim.axes.values():
+        assert (axis.load_inertia, axis.damping, axis.current_limit, axis.vel_gain) == (
+            0.032,
+            0.1,
+            50.0,
+            10.0,
+        )
+    assert sim.periods["torques_msg_rate_ms"] == pytest.approx(0.01)
+
+
+@pytest.mark.parametrize(
+    ("sim", "key"),
+    [
+        ({"current_limit": 0}, "sim.current_limit: must be a positive number of A"),
+        ({"load_inertia": -1}, "sim.load_inertia: must be a number >= 0"),
+    ],
+)
+def test_a_bad_mechanics_key_is_a_profile_error_naming_it(sim: dict[str, object], key: str) -> None:
+    from temoto.drivers.can_motor.odrive import ODriveDriver
+    from temoto.errors import ProfileError
+
+    with pytest.raises(ProfileError, match=re.escape(key)):
+        ODriveDriver.from_profile("base", entry(sim), clock=ManualClock(), where="devices.base")
