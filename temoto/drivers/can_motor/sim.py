@@ -228,11 +228,13 @@ class SimODrive(CanDeviceSim):
             elif cmd == cs.Cmd.SET_CONTROLLER_MODE:
                 axis.control_mode, axis.input_mode = cs.decode_set_controller_mode(data)
             elif cmd == cs.Cmd.SET_INPUT_POS:
-                axis.input_pos, _, _ = cs.decode_set_input_pos(data)
+                # Set_Input_Pos carries the velocity and torque feed-forwards too (input_vel,
+                # input_torque in the firmware)
+                axis.input_pos, axis.input_vel, axis.input_torque = cs.decode_set_input_pos(data)
                 axis.commands += 1
                 axis.fed = now
             elif cmd == cs.Cmd.SET_INPUT_VEL:
-                axis.input_vel, _ = cs.decode_set_input_vel(data)
+                axis.input_vel, axis.input_torque = cs.decode_set_input_vel(data)
                 axis.commands += 1
                 axis.fed = now
             elif cmd == cs.Cmd.SET_INPUT_TORQUE:

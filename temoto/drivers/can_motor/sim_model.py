@@ -195,7 +195,6 @@ class AxisModel:
     def _control(self, h: float) -> float:
         """One control cycle of ``h`` seconds: the torque the controller applies, N·m."""
         limit = self.vel_limit
-        feedforward = 0.0
         if self.control_mode == cs.ControlMode.TORQUE_CONTROL:
             torque = self.input_torque
             self.integrator = 0.0
@@ -209,8 +208,7 @@ class AxisModel:
                 self.vel_setpoint = goal
             else:
                 goal = self.vel_setpoint = self.input_vel
-            if self.control_mode == cs.ControlMode.VELOCITY_CONTROL:
-                feedforward = self.input_torque  # Set_Input_Vel's torque feed-forward
+            feedforward = self.input_torque  # Set_Input_Pos / _Vel's torque feed-forward
             goal = max(-limit, min(limit, goal))
             error = goal - self.vel
             torque = self.vel_gain * error + self.integrator + feedforward

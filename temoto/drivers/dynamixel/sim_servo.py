@@ -285,22 +285,21 @@ def move(servo: Servo, dt: float) -> None:
         if mode == ct.OperatingMode.POSITION:
             low = servo.value("Min Position Limit")
             target = min(max(target, low), servo.value("Max Position Limit", 4095))
-    else:
+        top = _torque_limit(servo, mode)
+        goal_vel = min(max(servo.value("Goal Velocity") * TICKS_S_PER_UNIT, -vlimit), vlimit)
+        pwm_share = servo.value("Goal PWM") / PWM_FULL
+        goal_amps = servo.value("Goal Current") * (model.current_unit or 0.0)
+    else:  # torque off: the gear's friction holds it (a servo is not backdriven)
         servo.traj_pos, servo.traj_vel = None, 0.0
         target = servo.position
-    top = _torque_limit(servo, mode)
-    goal_vel = min(max(servo.value("Goal Velocity") * TICKS_S_PER_UNIT, -vlimit), vlimit)
-    pwm_share = servo.value("Goal PWM") / PWM_FULL
-    goal_amps = servo.value("Goal Current") * (model.current_unit or 0.0)
+        servo.velocity = servo.torque_out = 0.0
+        steps = 0
     positional = mode in POSITION_MODES
     velocity_mode = mode == ct.OperatingMode.VELOCITY
     vtop = vlimit * _RAD
     kp = inertia * _BANDWIDTH**2  # N·m per rad
     kd = 2.0 * inertia * _BANDWIDTH  # N·m per rad/s
     heat = 0.0
-    if not driven:  # torque off: the gear's friction holds it (a servo is not backdriven)
-        servo.velocity = servo.torque_out = 0.0
-        steps = 0
     done = 0.0
     for _ in range(steps):
         vel = servo.velocity * _RAD
