@@ -449,6 +449,7 @@ def test_mit_safe_state_is_zero_torque_then_exit(
 ) -> None:
     driver, sim, ch = mit
     assert driver.safe_state == "zero_torque"
+    sim.motors[1].damping = 1.0  # a load: 3 N·m holds ~3 rad/s, not a free run to v_max
     active(driver)
     driver.command([JointCommand("shoulder", ControlMode.EFFORT, 3.0)])
     eventually(lambda: sim.motors[1].torque > 2.0, 1.0, clock)
