@@ -521,3 +521,173 @@ def test_a_components_datagrams_are_decoded_as_a_scan_or_an_image(
         components.shutdown()
         processes.shutdown(stop_processes=True)
         registrar.close()
+
+
+def test_a_components_datagrams_are_decoded_as_a_cloud_a_raw_image_or_a_grid(
+    server: FoxgloveServer, tmp_path: Path
+) -> None:
+    """``foxglove.PointCloud``, ``foxglove.RawImage`` (PPM, PGM, JSON bgr8), ``foxglove.Grid``.
+
+    The values are read back from the base64 ``data`` with the message's own fields and
+    strides, as a Foxglove panel reads them; each sensor's bad datagrams are dropped, counted.
+    """
+    import base64
+    import struct
+
+    from temoto.managers import ProcessManager
+    from temoto.managers.component import ComponentManager
+    from temoto.testing import sim_scanner
+
+    components_file = sim_scanner.components_file(str(tmp_path))
+    registrar = Registrar("test-viz-decode2")
+    processes = ProcessManager(registrar)
+    components = ComponentManager(registrar, files=[components_file])
+    manager = VisualizationManager(registrar, server)
+    requests = {
+        target: DisplayRequest("component", target=target, kind=kind)
+        for target, kind in (
+            ("depth_camera", "foxglove.PointCloud"),
+            ("raw_camera", "foxglove.RawImage"),
+            ("bgr_camera", "foxglove.RawImage"),
+            ("grey_camera", "foxglove.RawImage"),
+            ("costmap", "foxglove.Grid"),
+        )
+    }
+    try:
+        with FoxgloveClient(server.url) as client:
+            refs = [registrar.call("display", r, client="op") for r in requests.values()]
+            topics = {r.topic for r in requests.values()}
+            client.wait(lambda c: topics <= set(c.topics()), timeout=WAIT)
+            got = {}
+            for target, request in requests.items():
+                assert client.topics()[request.topic] == request.kind
+                sub = client.subscribe(request.topic)
+                got[target] = client.first_message(sub, timeout=WAIT).payload
+
+            # the cloud: x, y, z FLOAT32 (NumericType 7) at 0, 4, 8; a point per 12 bytes
+            cloud = got["depth_camera"]
+            assert cloud["frame_id"] == "depth"
+            assert cloud["point_stride"] == 12
+            assert cloud["fields"] == [
+                {"name": axis, "offset": 4 * i, "type": 7} for i, axis in enumerate("xyz")
+            ]
+            data = base64.b64decode(cloud["data"])
+            points = [list(p) for p in struct.iter_unpack("<fff", data)]
+            assert points == [[*p, 0.0][:3] for p in sim_scanner.POINTS]
+
+            # the raw images: the same picture as rgb8 (a PPM) and bgr8 (JSON, padded rows)
+            def pixels(image: dict[str, Any], order: str) -> list[list[tuple[int, ...]]]:
+                raw = base64.b64decode(image["data"])
+                assert len(raw) == image["step"] * image["height"]
+                rows = [raw[r * image["step"] :][: 3 * image["width"]] for r in range(2)]
+                return [
+                    [
+                        tuple(row[3 * c : 3 * c + 3])[:: 1 if order == "rgb" else -1]
+                        for c in range(2)
+                    ]
+                    for row in rows
+                ]
+
+            rgb, bgr = got["raw_camera"], got["bgr_camera"]
+            assert (rgb["encoding"], rgb["width"], rgb["height"], rgb["step"]) == ("rgb8", 2, 2, 6)
+            assert (bgr["encoding"], bgr["step"]) == ("bgr8", 8)
+            assert rgb["frame_id"] == "rawcam"
+            assert (
+                pixels(rgb, "rgb")
+                == pixels(bgr, "bgr")
+                == [[tuple(p) for p in row] for row in sim_scanner.PIXELS]
+            )
+            grey = got["grey_camera"]
+            assert (grey["encoding"], grey["step"]) == ("mono8", 2)
+            assert list(base64.b64decode(grey["data"])) == [v for r in sim_scanner.GREYS for v in r]
+
+            # the grid: one FLOAT32 field, row-major from its corner; the unknown cell is NaN
+            grid = got["costmap"]
+            assert grid["column_count"] == 3
+            assert grid["cell_size"] == {"x": 0.5, "y": 0.5}
+            assert (grid["row_stride"], grid["cell_stride"]) == (12, 4)
+            assert grid["fields"] == [{"name": "value", "offset": 0, "type": 7}]
+            assert grid["pose"]["position"] == {"x": -1.0, "y": -1.0, "z": 0.0}
+            cells = [v for (v,) in struct.iter_unpack("<f", base64.b64decode(grid["data"]))]
+            assert cells[:5] == [0.0, 1.0, 2.0, 3.0, 4.0]
+            assert math.isnan(cells[5])
+
+            # every sensor's bad datagrams were dropped and counted, the good ones published
+            deadline = time.monotonic() + WAIT
+            shown = manager.displays()
+            while not all(shown[r.name].dropped for r in requests.values()):
+                assert time.monotonic() < deadline, "nothing dropped"
+                time.sleep(0.01)
+            assert all(shown[r.name].count >= 1 for r in requests.values())
+            for ref in refs:
+                registrar.release(ref.id)
+            client.wait(lambda c: not topics & set(c.topics()), timeout=WAIT)
+    finally:
+        manager.shutdown()
+        components.shutdown()
+        processes.shutdown(stop_processes=True)
+        registrar.close()
+
+
+def test_a_robots_plan_display_is_the_segment_to_its_goal(server: FoxgloveServer) -> None:
+    """``robot`` / ``plan``: no goal, no poses; a goal: from the base to it; reached: none."""
+    import yaml
+
+    from temoto import ScaledClock
+    from temoto.config import parse_profile
+
+    clock = ScaledClock(4)
+    doc = yaml.safe_load((PROFILES / "sim_rover.yaml").read_text())
+    doc["devices"]["base"]["heartbeat_period"] = 0.25  # lenient on a loaded machine
+    profile = parse_profile(doc, file="sim_rover.yaml", clock=clock)
+    request = DisplayRequest("robot", "plan")
+    assert (request.name, request.kind, request.topic) == (
+        "robot_plan",
+        "foxglove.PosesInFrame",
+        "/display/robot_plan/plan",
+    )
+    with robot_manager("test-viz-plan", profile, clock) as (registrar, _robots):
+        manager = VisualizationManager(registrar, server, clock=clock)
+        try:
+            with FoxgloveClient(server.url) as client:
+                ref = registrar.call("display", request, client="op")
+                client.wait(lambda c: request.topic in c.topics(), timeout=WAIT)
+                sub = client.subscribe(request.topic)
+
+                def mine(c: FoxgloveClient) -> list[dict[str, Any]]:
+                    return [m.payload for m in c.messages if m.subscription == sub]
+
+                first = client.first_message(sub, timeout=WAIT).payload
+                assert (first["frame_id"], first["poses"]) == ("odom", [])  # no goal yet
+                driver = RobotManagerClient(registrar).request(client="driver")
+                motion = driver.navigate_to(0.6, 0.3, yaw=math.pi / 2)
+                client.wait(lambda c: bool(mine(c)[-1]["poses"]), timeout=WAIT)
+                start, goal = mine(client)[-1]["poses"]
+                assert goal["position"] == {"x": 0.6, "y": 0.3, "z": 0.0}
+                assert goal["orientation"]["z"] == pytest.approx(math.sin(math.pi / 4))
+                sx, sy = start["position"]["x"], start["position"]["y"]
+                heading = 2 * math.atan2(start["orientation"]["z"], start["orientation"]["w"])
+                assert heading == pytest.approx(math.atan2(0.3 - sy, 0.6 - sx))
+                assert motion.wait(WAIT * 3)
+                # on the way, the segment's start followed the base; reached: no plan
+                client.wait(lambda c: mine(c)[-1]["poses"] == [], timeout=WAIT)
+                starts = [m["poses"][0]["position"]["x"] for m in mine(client) if m["poses"]]
+                assert len(starts) >= 3
+                assert starts[-1] > starts[0] + 0.3
+                registrar.release(ref.id)
+                client.wait(lambda c: request.topic not in c.topics(), timeout=WAIT)
+        finally:
+            for r in registrar.references():
+                registrar.release(r.id)
+            manager.shutdown()
+
+
+def test_a_plan_display_of_a_robot_without_navigation_is_refused(
+    viz: tuple[Registrar, RobotManager, VisualizationManager],
+) -> None:
+    from temoto.errors import ResourceError
+
+    registrar, _robots, manager = viz
+    with pytest.raises(ResourceError, match="no navigation feature: it has no planned path"):
+        registrar.call("display", DisplayRequest("robot", "plan"), client="op")
+    assert manager.displays() == {}
