@@ -691,3 +691,38 @@ def test_a_plan_display_of_a_robot_without_navigation_is_refused(
     with pytest.raises(ResourceError, match="no navigation feature: it has no planned path"):
         registrar.call("display", DisplayRequest("robot", "plan"), client="op")
     assert manager.displays() == {}
+
+
+@pytest.mark.parametrize(
+    ("kind", "datagram", "why"),
+    [
+        ("foxglove.PointCloud", b'{"points": [[1.0, NaN, 0.0]]}', "finite"),
+        ("foxglove.PointCloud", b'{"points": [[1e39, 0.0, 0.0]]}', "too large"),
+        ("foxglove.PointCloud", b"[[1.0, 2.0, 3.0]]", "JSON object"),
+        ("foxglove.RawImage", b"P6\n2 2\n255\n" + bytes(11), "11 bytes of pixels, 12 needed"),
+        ("foxglove.RawImage", b'{"width": 2, "height": 1, "encoding": "jpeg"}', "encoding"),
+        (
+            "foxglove.RawImage",
+            b'{"width": 2, "height": 1, "encoding": "rgb8", "step": 5, "data": ""}',
+            "less than a row",
+        ),
+        (
+            "foxglove.RawImage",
+            b'{"width": 1, "height": 1, "encoding": "mono8", "data": "%%"}',
+            "not base64",
+        ),
+        ("foxglove.RawImage", b'{"width": 0, "height": 1, "encoding": "mono8"}', "positive"),
+        ("foxglove.Grid", b'{"columns": 2, "cells": [1, 2, 3]}', "whole number of rows"),
+        ("foxglove.Grid", b'{"columns": 1, "cells": [1], "cell_size": -1}', "positive"),
+        ("foxglove.Grid", b'{"columns": 1, "cells": [1], "origin": [0]}', r"origin is \[x, y\]"),
+        ("foxglove.Grid", b'{"columns": 1, "cells": ["a"]}', "finite"),
+    ],
+)
+def test_a_datagram_that_is_not_the_kind_is_refused_naming_why(
+    kind: str, datagram: bytes, why: str
+) -> None:
+    """The reason a dropped datagram is logged with (at DEBUG)."""
+    from temoto.managers.visualization.decode import decode
+
+    with pytest.raises(ValueError, match=why):
+        decode(kind, datagram, "sensor")
