@@ -716,6 +716,10 @@ def test_a_plan_display_of_a_robot_without_navigation_is_refused(
         ("foxglove.Grid", b'{"columns": 1, "cells": [1], "cell_size": -1}', "positive"),
         ("foxglove.Grid", b'{"columns": 1, "cells": [1], "origin": [0]}', r"origin is \[x, y\]"),
         ("foxglove.Grid", b'{"columns": 1, "cells": ["a"]}', "finite"),
+        ("foxglove.RawImage", b'{"width": 1, "height": 1, "encoding": ["mono8"]}', "encoding"),
+        # a TypeError inside the decoder (float() of a list) is a refusal too: it would
+        # otherwise end the display's reader thread
+        ("foxglove.LaserScan", b'{"ranges": [1.0], "start_angle": [0]}', "float"),
     ],
 )
 def test_a_datagram_that_is_not_the_kind_is_refused_naming_why(

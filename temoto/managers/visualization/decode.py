@@ -276,9 +276,10 @@ def _raw(data: bytes, component: str) -> dict[str, Any]:
         body = _object(data, "raw image")
         width = _count(body.get("width"), "width")
         height = _count(body.get("height"), "height")
-        encoding = body.get("encoding")
-        if encoding not in RAW_ENCODINGS:
-            raise ValueError(f"unknown encoding {encoding!r}")
+        named = body.get("encoding")
+        if not isinstance(named, str) or named not in RAW_ENCODINGS:
+            raise ValueError(f"unknown encoding {named!r}")
+        encoding = named
         step = body.get("step", width * RAW_ENCODINGS[encoding])
         if _count(step, "step") < width * RAW_ENCODINGS[encoding]:
             raise ValueError(f"a step of {step} is less than a row")
@@ -361,5 +362,5 @@ def decode(kind: str, data: bytes, component: str) -> dict[str, Any]:
         raise ValueError(f"no decoder for {kind}")
     try:
         return decoder(data, component)
-    except (UnicodeDecodeError, struct.error, OverflowError) as err:  # JSONDecodeError: ValueError
-        raise ValueError(str(err)) from err
+    except (TypeError, struct.error, OverflowError) as err:  # JSONDecodeError is a ValueError
+        raise ValueError(str(err)) from err  # (a TypeError: float([1]) of a field)
