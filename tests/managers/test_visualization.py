@@ -720,6 +720,7 @@ def test_a_plan_display_of_a_robot_without_navigation_is_refused(
         # a TypeError inside the decoder (float() of a list) is a refusal too: it would
         # otherwise end the display's reader thread
         ("foxglove.LaserScan", b'{"ranges": [1.0], "start_angle": [0]}', "float"),
+        ("foxglove.Grid", b"[" * 200_000, "nested too deeply"),
     ],
 )
 def test_a_datagram_that_is_not_the_kind_is_refused_naming_why(

@@ -364,3 +364,5 @@ def decode(kind: str, data: bytes, component: str) -> dict[str, Any]:
         return decoder(data, component)
     except (TypeError, struct.error, OverflowError) as err:  # JSONDecodeError is a ValueError
         raise ValueError(str(err)) from err  # (a TypeError: float([1]) of a field)
+    except RecursionError as err:  # json.loads of [[[[...
+        raise ValueError("JSON nested too deeply") from err
