@@ -715,7 +715,8 @@ def test_a_plan_display_of_a_robot_without_navigation_is_refused(
         ("foxglove.Grid", b'{"columns": 2, "cells": [1, 2, 3]}', "whole number of rows"),
         ("foxglove.Grid", b'{"columns": 1, "cells": [1], "cell_size": -1}', "positive"),
         ("foxglove.Grid", b'{"columns": 1, "cells": [1], "origin": [0]}', r"origin is \[x, y\]"),
-        ("foxglove.Grid", b'{"columns": 1, "cells": ["a"]}', "finite"),
+        ("foxglove.Grid", b'{"columns": 1, "cells": ["a"]}', "a number or null"),
+        ("foxglove.PointCloud", b'{"points": [[1.0, "2", 0.0]]}', "finite"),
         ("foxglove.RawImage", b'{"width": 1, "height": 1, "encoding": ["mono8"]}', "encoding"),
         # a TypeError inside the decoder (float() of a list) is a refusal too: it would
         # otherwise end the display's reader thread

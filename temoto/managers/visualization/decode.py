@@ -239,12 +239,19 @@ def _cloud(data: bytes, component: str) -> dict[str, Any]:
     points = body.get("points")
     if not isinstance(points, list):
         raise ValueError("points must be a list of [x, y, z]")
-    packed = bytearray()
+    flat: list[float] = []
     for point in points:
         if not isinstance(point, list) or len(point) not in (2, 3):
             raise ValueError("a point is [x, y, z] or [x, y]")
-        xyz = [_finite(v, "a coordinate") for v in point] + [0.0] * (3 - len(point))
-        packed += struct.pack("<fff", *xyz)
+        flat += point
+        if len(point) == 2:
+            flat.append(0.0)
+    try:  # one pack for the lot (a string or null: struct.error; beyond a float32: overflow)
+        packed = struct.pack(f"<{len(flat)}f", *flat)
+    except (struct.error, OverflowError) as err:
+        raise ValueError(f"a coordinate must be a finite number: {err}") from err
+    if not math.isfinite(math.fsum(flat)):  # NaN or infinity among them (each < 3.5e38)
+        raise ValueError("a coordinate must be a finite number")
     return {
         "frame_id": str(body.get("frame_id") or component),
         "pose": _IDENTITY,
@@ -252,7 +259,7 @@ def _cloud(data: bytes, component: str) -> dict[str, Any]:
         "fields": [
             {"name": axis, "offset": 4 * i, "type": FLOAT32} for i, axis in enumerate("xyz")
         ],
-        "data": _b64(bytes(packed)),
+        "data": _b64(packed),
     }
 
 
@@ -308,7 +315,7 @@ def _grid(data: bytes, component: str) -> dict[str, Any]:
     cells = body.get("cells")
     if not isinstance(cells, list) or not cells or len(cells) % columns:
         raise ValueError("cells must be a whole number of rows of numbers")
-    values = [math.nan if v is None else _finite(v, "a cell") for v in cells]
+    values = [math.nan if v is None else v for v in cells]
     size = body.get("cell_size", 0.1)
     sx, sy = (size, size) if not isinstance(size, list) or len(size) != 2 else size
     sx, sy = _finite(sx, "cell_size"), _finite(sy, "cell_size")
@@ -329,8 +336,15 @@ def _grid(data: bytes, component: str) -> dict[str, Any]:
         "row_stride": 4 * columns,
         "cell_stride": 4,
         "fields": [{"name": "value", "offset": 0, "type": FLOAT32}],
-        "data": _b64(struct.pack(f"<{len(values)}f", *values)),
+        "data": _b64(_pack_cells(values)),
     }
+
+
+def _pack_cells(values: list[Any]) -> bytes:
+    try:
+        return struct.pack(f"<{len(values)}f", *values)
+    except (struct.error, OverflowError) as err:
+        raise ValueError(f"a cell must be a number or null: {err}") from err
 
 
 _DECODERS: Final = {
