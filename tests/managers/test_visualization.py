@@ -732,3 +732,84 @@ def test_a_datagram_that_is_not_the_kind_is_refused_naming_why(
 
     with pytest.raises(ValueError, match=why):
         decode(kind, datagram, "sensor")
+
+
+def _protobuf_fields(descriptor_set: bytes) -> dict[str, list[str]]:
+    """Each message's field names, in order, from a protobuf ``FileDescriptorSet``.
+
+    The protobuf wire format (varint keys; length-delimited ``file`` = 1, ``package`` = 2,
+    ``message_type`` = 4, ``DescriptorProto.name`` = 1 and ``field`` = 2,
+    ``FieldDescriptorProto.name`` = 1), read here without the protobuf package.
+    """
+
+    def varint(b: bytes, i: int) -> tuple[int, int]:
+        value = shift = 0
+        while True:
+            c = b[i]
+            i += 1
+            value |= (c & 0x7F) << shift
+            shift += 7
+            if c < 0x80:
+                return value, i
+
+    def records(b: bytes) -> list[tuple[int, Any]]:
+        i, out = 0, []
+        while i < len(b):
+            key, i = varint(b, i)
+            wire = key & 7
+            value: Any
+            if wire == 0:
+                value, i = varint(b, i)
+            elif wire == 2:
+                n, i = varint(b, i)
+                value, i = b[i : i + n], i + n
+            else:
+                size = {1: 8, 5: 4}[wire]
+                value, i = b[i : i + size], i + size
+            out.append((key >> 3, value))
+        return out
+
+    found = {}
+    for number, file in records(descriptor_set):
+        if number != 1:
+            continue
+        parts = records(file)
+        package = next((v.decode() for n, v in parts if n == 2), "")
+        for n, message in parts:
+            if n != 4:
+                continue
+            body = records(message)
+            name = next(v.decode() for k, v in body if k == 1)
+            found[f"{package}.{name}"] = [
+                next(v.decode() for k2, v in records(f) if k2 == 1) for k, f in body if k == 2
+            ]
+    return found
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "foxglove.PointCloud",
+        "foxglove.RawImage",
+        "foxglove.Grid",
+        "foxglove.LaserScan",
+        "foxglove.CompressedImage",
+        "foxglove.PosesInFrame",
+    ],
+)
+def test_a_display_schemas_fields_are_the_foxglove_sdks(kind: str) -> None:
+    """Our JSON schemas name the fields of Foxglove's own (the SDK's protobuf descriptors)."""
+    import foxglove.messages
+
+    from temoto.managers.visualization.decode import FLOAT32
+    from temoto.managers.visualization.foxglove import DISPLAY_SCHEMAS
+
+    sdk = _protobuf_fields(getattr(foxglove.messages, kind.split(".")[1]).get_schema().data)
+    ours = DISPLAY_SCHEMAS[kind]
+    assert ours["title"] == kind
+    assert list(ours["properties"]) == sdk[kind]
+    for prop in ours["properties"].values():
+        nested = prop.get("items", prop).get("title", "")
+        if nested in sdk:  # PackedElementField, Vector2
+            assert list(prop.get("items", prop)["properties"]) == sdk[nested]
+    assert foxglove.messages.PackedElementFieldNumericType.Float32.value == FLOAT32
