@@ -26,7 +26,7 @@ __all__ = ["MAX_HISTORY", "PANELS", "DisplayWatch", "panel_of"]
 MAX_HISTORY: Final = 120
 
 #: The panels drawn from the newest message alone (the answer carries that one only).
-_NEWEST_ONLY: Final = frozenset({"scan", "image", "scene", "table"})
+_NEWEST_ONLY: Final = frozenset({"scan", "image", "cloud", "rawimage", "grid", "scene", "table"})
 
 #: The panel each display kind (Foxglove schema) is drawn as; any other kind: ``text``.
 PANELS: Final[dict[str, str]] = {
@@ -39,6 +39,9 @@ PANELS: Final[dict[str, str]] = {
     "foxglove.SceneUpdate": "scene",  # the world model's items, seen from above
     "foxglove.LaserScan": "scan",  # the newest scan's points around the sensor
     "foxglove.CompressedImage": "image",  # the newest image
+    "foxglove.PointCloud": "cloud",  # the newest cloud seen from above, coloured by height
+    "foxglove.RawImage": "rawimage",  # the newest image, drawn to a canvas
+    "foxglove.Grid": "grid",  # the newest grid as a heat map seen from above
     "temoto.ComponentData": "text",  # a datagram as text (numbers in it: plotted too)
     "temoto.VehicleState": "table",
     "temoto.RobotHealth": "table",
@@ -81,7 +84,8 @@ class DisplayWatch:
         Returns:
             ``[{"name", "kind", "panel", "source", "field", "target", "topic", "count",
             "messages": [...]}]`` (oldest message first; at most :attr:`history`; the newest
-            only for a panel drawn from it: a scan, an image, a scene, a table).
+            only for a panel drawn from it: a scan, an image, a cloud, a grid, a scene, a
+            table).
         """
         manager = self._manager()
         if manager is None:

@@ -144,13 +144,49 @@ class _Path:
         ):
             return None
         self._last = (x, y)
-        self.poses.append(
-            {
-                "position": {"x": x, "y": y, "z": 0.0},
-                "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)},
-            }
-        )
+        self.poses.append(_pose(x, y, yaw))
         return {"frame_id": "odom", "poses": list(self.poses)}
+
+
+def _pose(x: float, y: float, yaw: float) -> dict[str, Any]:
+    return {
+        "position": {"x": x, "y": y, "z": 0.0},
+        "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)},
+    }
+
+
+class _Plan:
+    """A robot's planned path, as a ``foxglove.PosesInFrame`` in the odometry frame.
+
+    The drive controller holds a goal and no plan: it turns towards the goal from where the
+    base is and drives straight to it (then turns to the goal's yaw, if it has one). So the
+    path planned from here is the straight segment from the base's pose to the goal: two
+    poses, both facing along the segment, the goal's with its yaw if it has one. No goal: no
+    poses. A message when the goal changes or the base moved :data:`PATH_STEP` metres.
+    """
+
+    def __init__(self) -> None:
+        self._last: tuple[Any, tuple[float, float]] | None = None
+
+    def sample(
+        self,
+        pose: tuple[float, float, float],
+        goal: tuple[float, float, float | None] | None,
+    ) -> dict[str, Any] | None:
+        """Take a reading; the message to publish when the plan changed (or at first), else None."""
+        x, y, yaw = pose
+        if self._last is not None:
+            last_goal, (lx, ly) = self._last
+            moved = math.hypot(x - lx, y - ly) >= PATH_STEP
+            if goal == last_goal and (goal is None or not moved):
+                return None
+        self._last = (goal, (x, y))
+        if goal is None:
+            return {"frame_id": "odom", "poses": []}
+        gx, gy, gyaw = goal
+        heading = math.atan2(gy - y, gx - x) if (gx, gy) != (x, y) else yaw
+        end = heading if gyaw is None else gyaw
+        return {"frame_id": "odom", "poses": [_pose(x, y, heading), _pose(gx, gy, end)]}
 
 
 class _LogHandler(logging.Handler):
@@ -300,9 +336,10 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
             robot = RobotManagerClient(self.registrar).request(
                 request.target, client=f"display/{request.name}"
             )
+            drive = self._drive(robot.name) if request.field == "plan" else None
             thread = threading.Thread(
                 target=self._sample_loop,
-                args=(display, robot),
+                args=(display, robot, drive),
                 name=f"temoto-display-{request.name}",
                 daemon=True,
             )
@@ -321,6 +358,22 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         log.addHandler(handler)
         display._undo = lambda: log.removeHandler(handler)
         return f"log of {log.name}"
+
+    def _drive(self, robot: str) -> Any:
+        """The drive controller of a loaded robot (its goal is a plan display's source).
+
+        Raises:
+            StateError: The robot has no navigation feature.
+        """
+        from temoto.errors import StateError
+        from temoto.managers.robot.manager import RobotManager
+
+        server = self.registrar.server(RobotManager.name)
+        assert isinstance(server, RobotManager)  # RobotManagerClient found it
+        drive = server.robot(robot).drive
+        if drive is None:
+            raise StateError(f"robot '{robot}' has no navigation feature: it has no planned path")
+        return drive
 
     def _start_world(self, display: Display) -> str:
         """A world display: the Context Manager's tree now, and again after every change."""
@@ -449,16 +502,20 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         if display._undo is not None:
             display._undo()
 
-    def _sample_loop(self, display: Display, robot: Any) -> None:
+    def _sample_loop(self, display: Display, robot: Any, drive: Any = None) -> None:
         request = display.request
         clock = self.clock
         period = 1.0 / request.rate_hz
         next_at = clock.monotonic()
         cond = display._cond
         path = _Path() if request.field == "path" else None
+        plan = _Plan() if drive is not None else None
         while not display._stopping:
             try:
-                if path is not None:
+                if plan is not None:
+                    message = plan.sample(drive.pose(), drive.goal())
+                    messages = [] if message is None else [("", request.kind, message)]
+                elif path is not None:
                     message = path.sample(robot.pose())
                     messages = [] if message is None else [("", request.kind, message)]
                 else:

@@ -20,6 +20,7 @@ DISPLAY_FIELDS: Final[dict[str, dict[str, str]]] = {
     "robot": {
         "pose": "foxglove.PoseInFrame",
         "path": "foxglove.PosesInFrame",  # the path travelled: a pose per 2 cm, the newest 200
+        "plan": "foxglove.PosesInFrame",  # the path planned: the straight segment to the goal
         "tf": "foxglove.FrameTransform",
         "joints": "temoto.JointStates",
         "location": "foxglove.LocationFix",
@@ -38,10 +39,17 @@ DISPLAY_FIELDS: Final[dict[str, dict[str, str]]] = {
 }
 
 #: Other kinds a field may be shown as, decoding its data (the first kind of the field's is the
-#: default): a component's datagrams as a laser scan (a JSON object of LaserScan's fields) or
-#: as a compressed image (the bytes of a PNG or JPEG image); see ``decode.py``.
+#: default): a component's datagrams as a laser scan (a JSON object of LaserScan's fields), a
+#: compressed image (the bytes of a PNG or JPEG image), a point cloud, a raw image or a grid;
+#: see ``decode.py``.
 OTHER_KINDS: Final[dict[tuple[str, str], tuple[str, ...]]] = {
-    ("component", "data"): ("foxglove.LaserScan", "foxglove.CompressedImage"),
+    ("component", "data"): (
+        "foxglove.LaserScan",
+        "foxglove.CompressedImage",
+        "foxglove.PointCloud",
+        "foxglove.RawImage",
+        "foxglove.Grid",
+    ),
 }
 
 _NAME: Final = re.compile(r"[A-Za-z0-9_.-]+")

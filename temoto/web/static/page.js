@@ -354,7 +354,8 @@ function renderMap(r) {
     const m = d.panel === "map" && d.messages.length ? d.messages[d.messages.length - 1] : null;
     const p = m && typeof m.latitude !== "number" ? displayPoint(m) : null;
     if (p && m.poses) {
-      svg.append(sv("polyline", {class: "overlay-path", "data-display": d.name,
+      svg.append(sv("polyline", {class: d.field === "plan" ? "overlay-path overlay-plan"
+        : "overlay-path", "data-display": d.name,
         points: trackOf(d).map(([x, y]) => X(x).toFixed(1) + "," + Y(y).toFixed(1)).join(" ")}));
     }
     if (p) svg.append(sv("circle", {class: "overlay", cx: X(p[0]), cy: Y(p[1]), r: 6,
@@ -499,7 +500,7 @@ function mapPanel(d) {
   if (!pts.length) return svg;
   const b = mapBounds(pts), k = Math.min(320, 120) / b.span;
   const X = (x) => 160 + (x - b.cx) * k, Y = (y) => 60 - (y - b.cy) * k;
-  svg.append(sv("polyline", {class: "track",
+  svg.append(sv("polyline", {class: d.field === "plan" ? "track plan" : "track",
     points: pts.map(([x, y]) => X(x).toFixed(1) + "," + Y(y).toFixed(1)).join(" ")}));
   const [x, y] = pts[pts.length - 1];
   svg.append(sv("circle", {class: "dmark", cx: X(x), cy: Y(y), r: 5, "data-x": x,
@@ -539,6 +540,125 @@ function scanPanel(m) {
   });
   return svg;
 }
+// bytes from a message's base64 ``data`` (the Foxglove JSON encoding of ``bytes``)
+function bytesOf(b64) {
+  const s = atob(b64 || ""), a = new Uint8Array(s.length);
+  for (let i = 0; i < s.length; i++) a[i] = s.charCodeAt(i);
+  return a;
+}
+// Foxglove's NumericType (PackedElementField.type): the DataView getter and its bytes
+const NUMERIC = {1: ["getUint8", 1], 2: ["getInt8", 1], 3: ["getUint16", 2], 4: ["getInt16", 2],
+  5: ["getUint32", 4], 6: ["getInt32", 4], 7: ["getFloat32", 4], 8: ["getFloat64", 8]};
+// a packed field's reader: the value of the element starting at byte ``at`` (little endian)
+function fieldReader(view, f) {
+  const t = f ? NUMERIC[f.type] : null;
+  if (!t) return null;
+  return (at) => at + f.offset + t[1] <= view.byteLength ? view[t[0]](at + f.offset, true) : NaN;
+}
+// a heat colour from 0 (low: blue) through amber to 1 (high: red)
+const HEAT = [[47, 125, 225], [245, 158, 11], [214, 59, 59]];
+function heat(t) {
+  const u = Math.max(0, Math.min(1, t)) * 2, i = Math.min(1, Math.floor(u)), f = u - i;
+  return HEAT[i].map((c, k) => Math.round(c + (HEAT[i + 1][k] - c) * f));
+}
+function rangeOf(values) {
+  let lo = Infinity, hi = -Infinity;
+  for (const v of values) if (Number.isFinite(v)) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
+  return [lo, hi];
+}
+// a point cloud seen from above (x right, y up): a dot per point coloured by its height,
+// the cloud's origin marked; at most MAX_CLOUD points drawn (evenly picked)
+const MAX_CLOUD = 2000;
+function cloudPanel(m) {
+  const svg = sv("svg", {viewBox: "0 0 320 160", class: "cloud"});
+  const data = bytesOf(m.data), view = new DataView(data.buffer);
+  const by = Object.fromEntries((m.fields || []).map((f) => [f.name, f]));
+  const rx = fieldReader(view, by.x), ry = fieldReader(view, by.y), rz = fieldReader(view, by.z);
+  const stride = m.point_stride, n = stride > 0 ? Math.floor(data.length / stride) : 0;
+  if (!rx || !ry || !n) return [svg, 0];
+  const every = Math.max(1, Math.ceil(n / MAX_CLOUD)), pts = [];
+  for (let i = 0; i < n; i += every) {
+    const at = i * stride, p = [rx(at), ry(at), rz ? rz(at) : 0];
+    if (Number.isFinite(p[0]) && Number.isFinite(p[1])) pts.push(p);
+  }
+  const b = mapBounds([[0, 0], ...pts]), k = Math.min(320, 160) / b.span;
+  const X = (x) => 160 + (x - b.cx) * k, Y = (y) => 80 - (y - b.cy) * k;
+  const [lo, hi] = rangeOf(pts.map((p) => p[2]));
+  svg.append(sv("circle", {cx: X(0), cy: Y(0), r: 3, class: "sensor"}));
+  for (const [x, y, z] of pts) {
+    const c = heat(hi > lo ? (z - lo) / (hi - lo) : 0.5);
+    svg.append(sv("circle", {cx: X(x).toFixed(1), cy: Y(y).toFixed(1), r: 2.5, class: "pt",
+      fill: `rgb(${c.join(",")})`, "data-x": x, "data-y": y, "data-z": z}));
+  }
+  return [svg, n];
+}
+// a raw image drawn to a canvas, a pixel per pixel (mono8/16, rgb8, bgr8, rgba8, bgra8, 32FC1)
+const RAW_CHANNELS = {mono8: 1, "8UC1": 1, rgb8: 3, "8UC3": 3, bgr8: 3, rgba8: 4, bgra8: 4,
+  mono16: 2, "16UC1": 2, "32FC1": 4};
+function rawPanel(m) {
+  const w = m.width, h = m.height, enc = m.encoding, bpp = RAW_CHANNELS[enc];
+  if (!bpp || !(w > 0 && h > 0) || w * h > 4096 * 4096) {
+    return el("p", {class: "muted"}, "not drawn here: " + enc + " " + w + "\u00d7" + h);
+  }
+  const data = bytesOf(m.data), view = new DataView(data.buffer);
+  const canvas = el("canvas", {class: "draw", width: w, height: h, "data-encoding": enc});
+  const ctx = canvas.getContext("2d"), img = ctx.createImageData(w, h), out = img.data;
+  let lo = 0, hi = 255;
+  if (enc === "32FC1") {
+    const vals = [];
+    for (let y = 0; y < h; y++) for (let x = 0; x < w; x++) {
+      const at = y * m.step + 4 * x;
+      if (at + 4 <= data.length) vals.push(view.getFloat32(at, true));
+    }
+    [lo, hi] = rangeOf(vals);
+  }
+  for (let y = 0; y < h; y++) for (let x = 0; x < w; x++) {
+    const at = y * m.step + bpp * x, o = 4 * (y * w + x);
+    if (at + bpp > data.length) continue;  // short: left transparent
+    let r, g, b, a = 255;
+    if (bpp === 1) { r = g = b = data[at]; }
+    else if (enc === "mono16" || enc === "16UC1") { r = g = b = view.getUint16(at, true) >> 8; }
+    else if (enc === "32FC1") {
+      const v = view.getFloat32(at, true);
+      r = g = b = Number.isFinite(v) && hi > lo ? Math.round(255 * (v - lo) / (hi - lo)) : 0;
+    } else if (enc === "bgr8" || enc === "bgra8") {
+      [b, g, r] = [data[at], data[at + 1], data[at + 2]];
+      if (bpp === 4) a = data[at + 3];
+    } else {
+      [r, g, b] = [data[at], data[at + 1], data[at + 2]];
+      if (bpp === 4) a = data[at + 3];
+    }
+    out[o] = r; out[o + 1] = g; out[o + 2] = b; out[o + 3] = a;
+  }
+  ctx.putImageData(img, 0, 0);
+  return canvas;
+}
+// a grid as a heat map seen from above: a pixel per cell, its first field's value from the
+// lowest (blue) to the highest (red), row 0 (the grid's corner) at the bottom; NaN: grey
+function gridPanel(m) {
+  const data = bytesOf(m.data), view = new DataView(data.buffer);
+  const cols = m.column_count, rows = m.row_stride > 0 ? Math.floor(data.length / m.row_stride) : 0;
+  const f = (m.fields || []).find((x) => x.name === "value") || (m.fields || [])[0];
+  const read = fieldReader(view, f);
+  if (!read || !(cols > 0) || !rows || cols * rows > 4096 * 4096) {
+    return [el("p", {class: "muted"}, "no cells"), [NaN, NaN]];
+  }
+  const vals = [];
+  for (let r = 0; r < rows; r++) for (let c = 0; c < cols; c++) {
+    vals.push(Number(read(r * m.row_stride + c * m.cell_stride)));
+  }
+  const [lo, hi] = rangeOf(vals);
+  const canvas = el("canvas", {class: "draw", width: cols, height: rows, "data-field": f.name,
+    "data-min": lo, "data-max": hi});
+  const ctx = canvas.getContext("2d"), img = ctx.createImageData(cols, rows), out = img.data;
+  vals.forEach((v, i) => {
+    const r = Math.floor(i / cols), c = i % cols, o = 4 * ((rows - 1 - r) * cols + c);
+    const rgb = Number.isFinite(v) ? heat(hi > lo ? (v - lo) / (hi - lo) : 0.5) : [229, 231, 235];
+    out[o] = rgb[0]; out[o + 1] = rgb[1]; out[o + 2] = rgb[2]; out[o + 3] = 255;
+  });
+  ctx.putImageData(img, 0, 0);
+  return [canvas, [lo, hi]];
+}
 function panelBody(d) {
   const msgs = d.messages, last = msgs.length ? msgs[msgs.length - 1] : null;
   const out = [];
@@ -546,6 +666,12 @@ function panelBody(d) {
   if (d.panel === "plot") {
     const names = last.name || [];
     out.push(plot(names, msgs.map((m) => m.position || [])), legendOf(names, last.position));
+  } else if (d.panel === "map" && d.field === "plan") {  // the segment from the base to its goal
+    const ps = (last.poses || []).map((q) => displayPoint({pose: q}));
+    out.push(mapPanel(d), el("pre", {class: "dplan"}, ps.length > 1
+      ? `to x ${num(ps[ps.length - 1][0], 2)} m  y ${num(ps[ps.length - 1][1], 2)} m  \u00b7 `
+        + num(Math.hypot(ps[ps.length - 1][0] - ps[0][0], ps[ps.length - 1][1] - ps[0][1]), 2)
+        + " m to go  (" + last.frame_id + ")" : "no goal"));
   } else if (d.panel === "map") {
     const p = displayPoint(last);
     out.push(mapPanel(d), el("pre", {}, p ? (typeof last.latitude === "number"
@@ -559,6 +685,17 @@ function panelBody(d) {
     const fmt = last.format === "jpeg" ? "jpeg" : "png";
     out.push(el("img", {class: "dimage", alt: d.name, src: `data:image/${fmt};base64,${last.data}`}),
       el("pre", {}, fmt + " \u00b7 frame " + last.frame_id));
+  } else if (d.panel === "cloud") {
+    const [svg, n] = cloudPanel(last);
+    out.push(svg, el("pre", {}, n + " points \u00b7 frame " + last.frame_id));
+  } else if (d.panel === "rawimage") {
+    out.push(rawPanel(last), el("pre", {}, last.encoding + " " + last.width + "\u00d7"
+      + last.height + " \u00b7 frame " + last.frame_id));
+  } else if (d.panel === "grid") {
+    const [canvas, [lo, hi]] = gridPanel(last), size = last.cell_size || {};
+    out.push(canvas, el("pre", {}, last.column_count + " columns \u00b7 "
+      + num(size.x, 2) + " m cells \u00b7 " + num(lo, 2) + " to " + num(hi, 2)
+      + " \u00b7 frame " + last.frame_id));
   } else if (d.panel === "scene") {
     out.push(scenePanel(last), el("pre", {}, (last.entities || []).length + " items"));
   } else if (d.panel === "log") {
