@@ -15,7 +15,14 @@ RUN_CMD = $(BIN)/python -m temoto.managers.robot --profile hw_profiles/sim_mobil
 	--mission examples/missions/mobile_manipulation.graph.json --local
 PYTEST_ARGS ?=
 
-.PHONY: install sysdeps run lint test bench clean
+.PHONY: install sysdeps run lint test test-ros2 bench clean
+
+# ROS 2 (docs/ros2.md): the temoto[ros2] wheels go into a venv of their own, whose python runs
+# the bridge process and the tests' rclpy peers (TEMOTO_ROS2_PYTHON): the wheels' start-up hook
+# re-executes every interpreter of the venv they are in, which $(VENV) is spared.
+ROS2_VENV = .venv-ros2
+ROS2_STAMP = $(ROS2_VENV)/.installed
+ROS2_PYTHON = $(CURDIR)/$(ROS2_VENV)/bin/python
 
 install: $(STAMP)
 
@@ -65,16 +72,31 @@ lint: install
 	$(BIN)/mypy
 	$(BIN)/python tools/gen_lcm_types.py --check
 
-# The whole suite twice: the compiled kernels (which must have been built), then pure Python.
-test: install lint sysdeps
-	TEMOTO_REQUIRE_EXTENSIONS=1 $(BIN)/python -m pytest $(PYTEST_ARGS)
-	TEMOTO_NO_EXTENSIONS=1 $(BIN)/python -m pytest $(PYTEST_ARGS)
+# The whole suite on the compiled kernels (which must have been built), then on the pure-Python
+# kernels the tests that reach them (tests/core/ and tests/kernel_tests.txt, measured by
+# tools/kernel_tests.py); TEMOTO_KERNEL_TESTS_ONLY=0 runs the whole suite in both passes.
+# The ROS 2 tests run against rclpy peers from $(ROS2_VENV) (about a minute to install, once).
+TEMOTO_KERNEL_TESTS_ONLY ?= 1
+test: install lint sysdeps $(ROS2_STAMP)
+	TEMOTO_REQUIRE_EXTENSIONS=1 TEMOTO_ROS2_PYTHON=$(ROS2_PYTHON) $(BIN)/python -m pytest $(PYTEST_ARGS)
+	TEMOTO_NO_EXTENSIONS=1 TEMOTO_KERNEL_TESTS_ONLY=$(TEMOTO_KERNEL_TESTS_ONLY) \
+		TEMOTO_ROS2_PYTHON=$(ROS2_PYTHON) $(BIN)/python -m pytest $(PYTEST_ARGS)
+
+$(ROS2_STAMP): pyproject.toml
+	test -x $(ROS2_VENV)/bin/python || $(PY) -m venv $(ROS2_VENV)
+	$(PY) -c 'import tomllib; print("\n".join(tomllib.load(open("pyproject.toml", "rb"))["project"]["optional-dependencies"]["ros2"]))' \
+		| $(ROS2_VENV)/bin/python -m pip install --quiet -r /dev/stdin
+	touch $@
+
+# Only the ROS 2 tests against rclpy peers (make test runs them too).
+test-ros2: install $(ROS2_STAMP)
+	TEMOTO_ROS2_PYTHON=$(ROS2_PYTHON) $(BIN)/python -m pytest tests/ros2 $(PYTEST_ARGS)
 
 bench: install
 	$(BIN)/python -m bench --quick --json bench-results.json
 
 clean:
-	rm -rf $(VENV) build dist *.egg-info .pytest_cache .mypy_cache .ruff_cache .hypothesis \
+	rm -rf $(VENV) $(ROS2_VENV) build dist *.egg-info .pytest_cache .mypy_cache .ruff_cache .hypothesis \
 		.coverage .coverage.* htmlcov
 	find . -path ./.git -prune -o -type d -name __pycache__ -prune -exec rm -rf {} +
 	find temoto -name '*.so' -delete 2>/dev/null || true

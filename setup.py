@@ -1,7 +1,7 @@
 """Build the optional Cython accelerators in ``temoto/core/_fast/``; metadata is in pyproject.toml.
 
 Each name ``x`` in ``FAST_MODULES`` compiles the canonical pure-Python source ``_x_py.py`` as the
-extension ``_x_c`` (``_x_c.pxd`` adds the C declarations), as described in STYLE.md 3.9.
+extension ``_x_c`` (``_x_c.pxd`` adds the C declarations), as described in docs/development.md §7.
 Extensions are skipped when ``TEMOTO_NO_EXTENSIONS`` is set, on non-CPython interpreters and when
 Cython cannot be imported (``--no-build-isolation`` installs). Each one is marked optional, so a
 machine without a C compiler still installs a working pure-Python TeMoto.

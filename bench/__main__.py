@@ -39,6 +39,7 @@ from bench import (
     registrar,
     ris,
     robot,
+    ros2,
     safety,
     visualization,
 )
@@ -104,6 +105,10 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
     "visualization": (
         "visualization: live Foxglove message cost (one client), display load -> first message",
         visualization.bench_visualization,
+    ),
+    "ros2": (
+        "ros2: Trigger service round trip, rclpy's own vs the bridge vs an action",
+        ros2.bench_ros2,
     ),
 }
 

@@ -455,10 +455,10 @@ def _bench_zenoh(out: Results, lcm_spec: dict[str, Any], rounds: int, quick: boo
     if importlib.util.find_spec("zenoh") is None:
         out.notes.append("the zenoh extra is not installed: *_zenoh skipped")
         return
-    # the goal: within 2x of LCM, measured in the same run
+    # the goal: within 2x of LCM, measured in the same run
     lcm = {m.name: m.value for m in out.metrics}
     base = {**lcm_spec, "sizes": [3], "rounds_of": {}}
-    base.pop("floods", None)  # one flood with the fleet key, as before
+    base.pop("floods", None)  # one flood, with the fleet key (the default)
     _bench_zenoh_run(
         out,
         lcm,

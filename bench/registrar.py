@@ -34,8 +34,8 @@ from typing import Any
 from bench.common import Results, median, now, percentile, repeat
 from temoto.core.registrar import LoadContext, Registrar, ResourceServer, Status, StatusUpdate
 
-# >= this many deduplicated request+release pairs per second: issue 17's goal in the VM's fast
-# mode (>= 60 k in its slow one; issue 3's goal was 50 k)
+# >= this many deduplicated request+release pairs per second: the goal in the VM's fast mode
+# (>= 60 k in its slow one)
 GOAL_DEDUP_PAIRS = 100_000.0
 GOAL_BOOK_SPEEDUP = 5.0  # compiled RefBook >= 5x the pure one on the op sequence below
 

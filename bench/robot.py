@@ -116,7 +116,7 @@ def bench_robot(quick: bool) -> Results:
 
 PROFILES = ROOT / "hw_profiles"
 
-#: The goal (issue 25): every commanded device still within 100 ms of the stop command.
+#: The goal: every commanded device still within 100 ms of the stop command.
 GOAL_MS = 100.0
 
 #: X-series control table (ROBOTIS e-Manual): Goal Position 116, Moving 122, Present Position

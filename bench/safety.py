@@ -31,7 +31,7 @@ from typing import Any
 
 from bench.common import Results, median
 
-#: The goal (issue 13): every device safe within 100 ms of the signal.
+#: The goal: every device safe within 100 ms of the signal.
 GOAL_MS = 100.0
 
 

@@ -51,9 +51,6 @@ class MonotonicClock:
 
         Returns:
             The reading.
-
-        Raises:
-            Nothing.
         """
         return time.monotonic()
 
@@ -62,9 +59,6 @@ class MonotonicClock:
 
         Returns:
             The reading.
-
-        Raises:
-            Nothing.
         """
         return time.time()
 
@@ -76,9 +70,6 @@ class MonotonicClock:
 
         Returns:
             The same duration.
-
-        Raises:
-            Nothing.
         """
         return seconds
 
@@ -124,9 +115,6 @@ class ScaledClock(MonotonicClock):
 
         Returns:
             The reading.
-
-        Raises:
-            Nothing.
         """
         return (time.monotonic() - self._origin) * self.factor
 
@@ -135,9 +123,6 @@ class ScaledClock(MonotonicClock):
 
         Returns:
             The reading.
-
-        Raises:
-            Nothing.
         """
         return self._epoch + self.monotonic()
 
@@ -149,9 +134,6 @@ class ScaledClock(MonotonicClock):
 
         Returns:
             ``seconds / factor``.
-
-        Raises:
-            Nothing.
         """
         return seconds / self.factor
 

@@ -141,9 +141,6 @@ class TemotoError(Exception):
         Returns:
             One record per exception in the ``__cause__``/``__context__`` chain; notes added
             with ``add_note`` become records of type ``"note"``.
-
-        Raises:
-            Nothing.
         """
         records: list[ErrorRecord] = []
         now = time.time()

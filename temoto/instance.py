@@ -1,4 +1,4 @@
-"""One TeMoto instance: what a robot (or an operator station) runs (ARCHITECTURE §2).
+"""One TeMoto instance: what a robot (or an operator station) runs (docs/design.md §2).
 
 An :class:`Instance` puts together an :class:`~temoto.core.engine.ActionEngine` whose actor is
 the robot's name, a :class:`~temoto.core.registrar.Registrar` with the Process Manager on it,
@@ -9,8 +9,9 @@ servers and :class:`~temoto.fleet.resources.RemoteResources` (the ``"remote"`` s
 only another robot serves, and the provider for the others' requests). The Component Manager
 (``"component"``, ``"pipeline"``; candidates on other robots through RIS) and the Context
 Manager (``"context"``, the world model synchronised with the other robots) run on the same
-registrar, and their built-in actions are in the engine's catalog. ``temoto serve`` runs
-one until SIGINT or SIGTERM; the Robot Manager builds on it.
+registrar, and their built-in actions are in the engine's catalog, as are the ROS 2 actions
+(``"ros2"``: bridge processes; ``"ros2_lifecycle"``: lifecycle nodes; ``docs/ros2.md``).
+``temoto serve`` runs one until SIGINT or SIGTERM; the Robot Manager builds on it.
 
 Closing stops the runs (their actions get their stop request, their resources are released),
 then the fleet services and the managers, releases whatever is still held, then stops the
@@ -31,7 +32,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING
 
 from temoto._closing import Closing
-from temoto.actions.builtin import COMPONENT_ACTIONS, CONTEXT_ACTIONS
+from temoto.actions.builtin import COMPONENT_ACTIONS, CONTEXT_ACTIONS, ROS2_ACTIONS
 from temoto.clock import Clock
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.engine import ActionEngine
@@ -43,6 +44,8 @@ from temoto.fleet.ris import ResourceInfoSync
 from temoto.managers.component import ComponentManager
 from temoto.managers.context import ContextManager
 from temoto.managers.process import ProcessManager
+from temoto.ros2.lifecycle import Ros2LifecycleManager
+from temoto.ros2.manager import Ros2Manager
 from temoto.transport.auth import FleetAuth
 from temoto.transport.base import Transport
 from temoto.transport.link import FleetLink
@@ -134,6 +137,10 @@ class Instance(Closing):
             closing.append(self.registrar)
             self.processes = ProcessManager(self.registrar)
             closing.append(self.processes)
+            # ROS 2 bridges (docs/ros2.md): rclpy is imported only in a bridge process, when a
+            # ROS 2 action asks for one; without the ros2 extra that action fails in one line.
+            self.ros2 = Ros2Manager(self.registrar)
+            self.ros2_lifecycle = Ros2LifecycleManager(self.registrar)
             self.link = FleetLink(transport, FleetAuth(fleet, actor, key, insecure=insecure))
             self.actors = FleetActorLink(self.link, actor, silence_s=silence_s, resend_s=resend_s)
             closing.append(self.actors)
@@ -154,7 +161,7 @@ class Instance(Closing):
             closing.append(self.context)
             self.engine = ActionEngine(
                 actor,
-                actions=ActionCatalog([COMPONENT_ACTIONS, CONTEXT_ACTIONS, *actions]),
+                actions=ActionCatalog([COMPONENT_ACTIONS, CONTEXT_ACTIONS, ROS2_ACTIONS, *actions]),
                 graphs=GraphIndex(graphs),
                 stop_timeout=stop_timeout,
                 registrar=self.registrar,
@@ -212,6 +219,7 @@ class Instance(Closing):
                     self.processes.shutdown(stop_processes=True)
                 except Exception:
                     logger.exception("closing the process manager failed")
+                self.ros2.shutdown()  # segments a crashed bridge's peers re-created
                 continue
             _close(part)
 

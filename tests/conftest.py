@@ -1,4 +1,4 @@
-"""Suite-wide fixtures: autouse leak checks that every test gets."""
+"""Suite-wide fixtures: autouse leak checks that every test gets; the pure pass's selection."""
 
 from __future__ import annotations
 
@@ -7,11 +7,14 @@ import os
 import threading
 import time
 from collections.abc import Iterator
+from pathlib import Path
 from types import ModuleType
 
 import pytest
 
 THREAD_PREFIX = "temoto-"
+#: The test files outside ``tests/core/`` that reach a kernel (``tools/kernel_tests.py``).
+KERNEL_TESTS = Path(__file__).with_name("kernel_tests.txt")
 THREAD_GRACE_S = 2.0
 
 
@@ -78,3 +81,28 @@ def evolution_impl(request: pytest.FixtureRequest) -> ModuleType:
 def refbook_impl(request: pytest.FixtureRequest) -> ModuleType:
     """The registrar's reference book, once per build (pure, compiled)."""
     return fast_kernel("refbook", request.param)
+
+
+def kernel_test_files() -> set[str]:
+    """The test files outside ``tests/core/`` listed in ``tests/kernel_tests.txt``."""
+    lines = KERNEL_TESTS.read_text(encoding="utf-8").splitlines()
+    return {line.strip() for line in lines if line.strip() and not line.startswith("#")}
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """With ``TEMOTO_KERNEL_TESTS_ONLY=1``, keep only the tests that reach a compiled kernel.
+
+    The Makefile's pure-Python pass sets it: the other tests run the same code in both builds,
+    and the compiled pass ran them already. Kept: everything under ``tests/core/`` and the files
+    of ``tests/kernel_tests.txt``.
+    """
+    if os.environ.get("TEMOTO_KERNEL_TESTS_ONLY") != "1":
+        return
+    files = kernel_test_files()
+    keep, drop = [], []
+    for item in items:
+        path = item.nodeid.split("::", 1)[0]
+        (keep if path.startswith("tests/core/") or path in files else drop).append(item)
+    if drop:
+        config.hook.pytest_deselected(items=drop)
+        items[:] = keep

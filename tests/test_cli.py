@@ -203,7 +203,7 @@ def test_version_names_the_build(capsys: pytest.CaptureFixture[str]) -> None:
     assert ("compiled" if _fast.COMPILED else "pure") == _fast.BUILD
 
 
-# --- the newcomer's path: one-line errors, checked options, tracebacks on demand (issue 15) ----
+# --- the newcomer's path: one-line errors, checked options, tracebacks on demand -------------
 
 GUIDE = ROOT / "examples" / "umrf-guide"
 CLI_ACTIONS = ROOT / "tests" / "data" / "cli_actions"

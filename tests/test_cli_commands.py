@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import importlib
 from typing import Any
 
 import pytest
@@ -13,6 +14,13 @@ from temoto import cli
 def test_the_help_lists_the_registered_commands_in_order() -> None:
     sub = next(a for a in cli._parser()._actions if isinstance(a, argparse._SubParsersAction))
     assert list(sub.choices) == [c.name for c in cli.COMMANDS]
+
+
+def test_each_command_is_a_module_of_the_cli_package_with_its_entry() -> None:
+    # python-can's layout: `temoto NAME` is temoto/cli/NAME.py, its add_parser and main
+    for command in cli.COMMANDS:
+        module = importlib.import_module(f"temoto.cli.{command.name}")
+        assert (command.add, command.run) == (module.add_parser, module.main), command.name
 
 
 def test_one_line_registers_a_command(

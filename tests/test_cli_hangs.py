@@ -1,4 +1,4 @@
-"""Issue 27, item 1: no input makes a command hang, and a signal always ends it.
+"""No input makes a command hang, and a signal always ends it.
 
 Process tests: each runs ``python -m temoto`` (or a small script) in a child process with a
 bounded wait; a hang is a test failure (``subprocess.TimeoutExpired``), never a stuck suite.
@@ -63,7 +63,7 @@ def test_a_fifo_given_as_a_file_is_refused_in_one_line(fifo: Path, args: list[st
 
 BLOCKED = r"""
 import os, sys
-from temoto._cli_signals import SignalExit
+from temoto.cli.signals import SignalExit
 with SignalExit(force_exit=1.0) as signals:
     print("ready", flush=True)
     os.open(sys.argv[1], os.O_RDONLY)  # a FIFO without a writer: blocks for ever

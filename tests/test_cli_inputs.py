@@ -1,4 +1,4 @@
-"""Issue 27, item 3: every bad input is one line, exit status 2, with the right words.
+"""Every bad input is one line, exit status 2, with the right words.
 
 One table: the arguments (``{tmp}`` is a folder made by :func:`inputs`), the exit status, the
 words the error must hold. Each row runs ``temoto`` in a child process (bounded in time) and
@@ -211,14 +211,55 @@ def test_ctrl_c_during_the_imports_prints_no_traceback(command: str, status: int
     assert "Traceback" not in done.stderr
 
 
+MODULE_INTERRUPTED = r"""
+import builtins, os, runpy, signal, sys
+
+real_import = builtins.__import__
+sent = []
+
+def interrupting(name, *args, **kwargs):
+    if name.startswith("temoto.core") and not sent:  # Ctrl-C while the framework loads
+        sent.append(name)
+        os.kill(os.getpid(), signal.SIGINT)
+    return real_import(name, *args, **kwargs)
+
+builtins.__import__ = interrupting
+runpy.run_module("temoto", run_name="__main__", alter_sys=True)
+"""
+
+
+@pytest.mark.parametrize(("command", "status"), [("actions", 130), ("serve", 0)])
+def test_python_m_temoto_interrupted_while_it_loads_prints_no_traceback(
+    command: str, status: int
+) -> None:
+    """``python -m temoto``: the package's import loads nothing, so the Ctrl-C lands in the try."""
+    done = subprocess.run(
+        [sys.executable, "-c", MODULE_INTERRUPTED, command, "--help"],
+        capture_output=True,
+        text=True,
+        timeout=BOUND,
+        cwd=ROOT,
+        check=False,
+    )
+    assert done.returncode == status, done.stderr
+    assert "Traceback" not in done.stderr
+
+
+def test_importing_the_package_imports_none_of_the_framework() -> None:
+    code = "import sys, temoto; print(sorted(m for m in sys.modules if m.startswith('temoto')))"
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=BOUND, check=True
+    )
+    assert done.stdout.strip() == "['temoto']"
+
+
 ENTRY = "import sys, _temoto_entry; sys.exit(_temoto_entry.main())"
 
 
 @pytest.mark.parametrize("delay", [0.5, 1.5, 3.0])
 def test_serve_interrupted_while_it_starts_exits_0(delay: float) -> None:
     proc = subprocess.Popen(
-        # the console script's entry (`python -m temoto` imports the package before any code
-        # of ours can catch a Ctrl-C)
+        # the console script's entry
         [sys.executable, "-c", ENTRY, "serve", "--actor", "a", "--insecure"],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.PIPE,

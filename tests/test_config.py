@@ -136,7 +136,7 @@ def test_a_pose_outside_the_joint_limits_is_refused_before_any_port_opens(
 
 
 def test_the_robot_command_exits_2_on_a_pose_beyond_the_limits(tmp_path: Path) -> None:
-    from temoto.managers.robot.__main__ import main
+    from temoto.cli.robot import main
 
     doc = variant(sim=False)
     doc["devices"]["arm"]["link"] = "serial:/dev/nonexistent-temoto-tty?baud=1000000"
@@ -146,7 +146,7 @@ def test_the_robot_command_exits_2_on_a_pose_beyond_the_limits(tmp_path: Path) -
     assert main(["--profile", str(path), "--local"]) == 2
 
 
-# ---- profile-wide rules (issue 25) --------------------------------------------------------------
+# ---- profile-wide rules ----------------------------------------------------------------------
 
 ROVER = yaml.safe_load((ROOT / "hw_profiles" / "sim_rover.yaml").read_text())
 
@@ -274,7 +274,7 @@ def test_hold_with_the_watchdog_on_loads() -> None:
 def test_the_robot_command_exits_2_with_one_line(
     tmp_path: Path, capsys: pytest.CaptureFixture[str], doc: dict[str, Any], key: str
 ) -> None:
-    from temoto.managers.robot.__main__ import main
+    from temoto.cli.robot import main
 
     doc["sim"] = False
     path = tmp_path / "robot.yaml"

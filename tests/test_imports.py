@@ -1,4 +1,6 @@
-"""Importing any temoto module works, warns about nothing and has no side effects (STYLE.md 3.11).
+"""Importing any temoto module works, warns about nothing and has no side effects.
+
+The rule is in docs/development.md §9.
 
 All modules are imported one by one in a single fresh interpreter run with ``-W error``: a fresh
 interpreter, because the test process has already imported most of the package; a single one,
@@ -14,7 +16,7 @@ from pathlib import Path
 
 import temoto
 
-# Generated code with its own rules (STYLE.md 3.10); not walked.
+# Generated code with its own rules (docs/development.md §8); not walked.
 SKIPPED_PACKAGES = ("temoto.lcm_types",)
 
 # Runs in the child. pkgutil.walk_packages cannot prune a subtree (it would import

@@ -1,5 +1,5 @@
-"""The built-in robot actions log how a motion goes (issue 15): at most once per period of
-clock time, only when it changed, never after the end; virtual time, no robot needed."""
+"""The built-in robot actions log how a motion goes: at most once per period of clock time,
+only when it changed, never after the end; virtual time, no robot needed."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The trace contract of ``temoto run --trace`` (ARCHITECTURE.md §8), on every upstream graph.
+"""The trace contract of ``temoto run --trace`` (docs/design.md §8), on every upstream graph.
 
 A run's trace has exactly one result line, its last, equal to the result the command prints and
 to its exit status (0 iff ``on_true``, else 1; 130 after SIGINT). A graph refused before its

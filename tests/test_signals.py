@@ -1,6 +1,6 @@
 """Signals and crashes of the commands end with the documented exit code and nothing left behind.
 
-ARCHITECTURE.md §8 "Signals": ``temoto run`` and ``temoto demo`` exit 130 on SIGINT and 143 on
+docs/design.md §8 "Signals": ``temoto run`` and ``temoto demo`` exit 130 on SIGINT and 143 on
 SIGTERM, ``temoto serve`` exits 0 on either; no traceback; a second signal stops at once but
 still cleans up; no process of ours is left (checked in ``/proc`` by an environment marker
 that every process the command starts inherits). And the Process Manager's children (and
@@ -25,7 +25,7 @@ from pathlib import Path
 
 import pytest
 
-from temoto._cli_signals import SignalExit
+from temoto.cli.signals import SignalExit
 from temoto.testing import ProcessLeakCheck
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -158,8 +158,8 @@ _STARTED: list[subprocess.Popen[bytes]] = []
 def _end_commands() -> Iterator[None]:
     """After each test, also a failed one: no command left running, no pipe left open.
 
-    A test failing before it waited for its command left both to the garbage collector, whose
-    ResourceWarning then failed a later test (test_structure's import check, issue 27).
+    A test failing before it waited for its command would leave both to the garbage collector,
+    whose ResourceWarning would then fail a later test (test_structure's import check).
     """
     yield
     while _STARTED:
@@ -397,9 +397,13 @@ def test_a_signal_after_the_block_of_a_signalled_command_hurries_and_raises_noth
             assert signals.stop.wait(5.0)
         os.kill(os.getpid(), signal.SIGINT)  # after the block: taken, not raised
         os.kill(os.getpid(), signal.SIGTERM)
+        deadline = time.monotonic() + 5.0  # the signals' thread calls the hurry callbacks
+        while len(hurried) < 2 and time.monotonic() < deadline:
+            time.sleep(0.01)
         assert hurried == ["hurry", "hurry"]
         assert signals.exit_code == 130
     finally:
+        signals.close()  # the process goes on: the signals' thread ends
         for signum, handler in before.items():
             signal.signal(signum, handler)
 
@@ -413,7 +417,7 @@ def test_a_block_left_without_a_signal_restores_the_handlers() -> None:
 
 LATE_SIGNAL = r"""
 import atexit, os, signal, sys
-from temoto._cli_signals import SignalExit
+from temoto.cli.signals import SignalExit
 
 def late():  # registered first, so it runs after SignalExit's own exit hook (last in, first out)
     print("at exit:", signal.getsignal(signal.SIGINT) is signal.SIG_IGN, flush=True)
@@ -445,7 +449,60 @@ def test_devices_are_made_safe_while_another_thread_imports_the_drivers(
     # sys.modules without make_all_safe yet (the serve command exited 1 with a traceback).
     import types
 
-    from temoto._cli_signals import make_devices_safe
+    from temoto.cli.signals import make_devices_safe
 
     monkeypatch.setitem(sys.modules, "temoto.drivers.base", types.ModuleType("half-imported"))
     make_devices_safe("a signal")  # nothing to make safe, and no AttributeError
+
+
+# --- no signal can hang a command ------------------------------------------------------------
+
+HELD_LOCK = r"""
+import faulthandler, os, signal, sys
+from temoto.cli.signals import SignalExit
+
+faulthandler.dump_traceback_later(10, exit=True)  # a hang: a traceback and exit 1
+with SignalExit() as signals:
+    # where the main thread is inside signals.stop.wait(): holding the event's lock; a
+    # handler that sets the event there waits for itself
+    with signals.stop._cond:
+        os.kill(os.getpid(), signal.SIGTERM)
+        print("went on", flush=True)
+    print("stopped:", signals.stop.wait(10), flush=True)
+sys.exit(signals.exit_code)
+"""
+
+
+def test_a_signal_inside_the_stop_event_s_own_wait_does_not_hang() -> None:
+    # The robot command hung on a SIGTERM right after "serving": the handler ran inside
+    # stop.wait() and its stop.set() waited for the lock that wait held.
+    proc = subprocess.run(
+        [sys.executable, "-c", HELD_LOCK], capture_output=True, text=True, timeout=60, cwd=ROOT
+    )
+    assert proc.stdout.splitlines() == ["went on", "stopped: True"], proc.stderr
+    assert proc.returncode == 143, proc.stderr
+    assert "SIGTERM: stopping" in proc.stderr
+
+
+MISSED_WAKEUP = r"""
+import faulthandler, os, signal, sys
+from temoto.cli.signals import SignalExit
+
+faulthandler.dump_traceback_later(20, exit=True)
+with SignalExit() as signals:
+    # the signal lands where the main thread cannot run its handler: as when it lands just
+    # before the main thread blocks in stop.wait(), or in another thread of the process
+    signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGTERM})
+    os.kill(os.getpid(), signal.SIGTERM)
+    print("stopped:", signals.stop.wait(10), flush=True)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGTERM})
+sys.exit(signals.exit_code)
+"""
+
+
+def test_a_signal_the_main_thread_does_not_run_still_stops_the_command() -> None:
+    proc = subprocess.run(
+        [sys.executable, "-c", MISSED_WAKEUP], capture_output=True, text=True, timeout=60, cwd=ROOT
+    )
+    assert proc.stdout.splitlines() == ["stopped: True"], proc.stderr
+    assert proc.returncode == 143, proc.stderr

@@ -1,4 +1,4 @@
-"""Issue 27, item 2: the installed wheel works on its own, without any extra.
+"""The installed wheel works on its own, without any extra.
 
 The wheel is built from a copy of the source (``pip wheel --no-deps``; the pure build, to spare
 the machine a compile) and installed in a fresh virtual environment without extras (its

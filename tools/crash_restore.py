@@ -54,7 +54,7 @@ COMPONENTS = ROOT / "examples" / "components" / "components.yaml"
 MOMENTS = ("start-up", "loading", "holding")
 #: The pipeline's processes (the ``tracking`` template has three segments).
 PIPELINE_PROCESSES = 3
-#: The false alarm the restore used to raise for processes it had stopped itself.
+#: The false alarm a restore would raise for processes it had stopped itself (never expected).
 FALSE_ALARM = "died while the manager was down"
 
 MISSION: dict[str, Any] = {

@@ -9,7 +9,7 @@ Usage::
 every ``temoto/lcm_types/defs/*.lcm`` into a scratch directory; only the
 ``temoto/lcm_types/*.py`` files it produces are copied back. lcm-gen writes an ``__init__.py``
 for every level of the package, so pointing it at the repository would overwrite
-``temoto/__init__.py`` (STYLE.md 3.10). Generated files whose source is gone are removed.
+``temoto/__init__.py`` (docs/development.md §8). Generated files whose source is gone are removed.
 
 Exit status: 0 when the tree is (now) up to date, 1 when ``--check`` found differences, 2 when
 the sources or lcm-gen are missing or lcm-gen failed.
@@ -241,7 +241,7 @@ def update(
 
     Only ``package_dir/*.py`` files are written or removed. An extra file without lcm-gen's
     header is left alone and reported as an error: hand-written code does not belong in the
-    generated package (STYLE.md 3.10).
+    generated package (docs/development.md §8).
 
     Args:
         package_dir: ``temoto/lcm_types`` of the tree.

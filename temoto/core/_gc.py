@@ -51,9 +51,6 @@ class Pause:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         if self.was_enabled:
             gc.collect(1)

@@ -136,9 +136,6 @@ class Node(RunControl):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         self.umrf = umrf
         self.kind = resolved.kind
@@ -181,9 +178,6 @@ class Node(RunControl):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         self.run = run
         self.clock = run.clock
@@ -236,9 +230,6 @@ class Node(RunControl):
 
         Returns:
             True if the inputs allow the node to start.
-
-        Raises:
-            Nothing.
         """
         if self.kind is _EXIT:
             return True
@@ -253,9 +244,6 @@ class Node(RunControl):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         if len(self.data) != len(self.native):
             native = self.native
@@ -382,9 +370,6 @@ class GraphRun:
 
         Returns:
             None.
-
-        Raises:
-            Nothing (the plan was validated).
         """
         received = self._received_by_slot() if self.order else {}
         self.plan = plan
@@ -433,9 +418,6 @@ class GraphRun:
 
         Returns:
             True if the nodes may be renewed for the new run.
-
-        Raises:
-            Nothing.
         """
         return (
             plan is self.plan
@@ -462,9 +444,6 @@ class GraphRun:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         for node in self.all_nodes():
             node.child_run = None
@@ -479,9 +458,6 @@ class GraphRun:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         self.nodes = {}
         self.order = []
@@ -498,9 +474,6 @@ class GraphRun:
 
         Returns:
             The child nodes (``graph_exit`` included when the node is an exit action).
-
-        Raises:
-            Nothing.
         """
         return self.edge_child[self.edge_start[node.idx] : self.edge_start[node.idx + 1]]
 
@@ -512,9 +485,6 @@ class GraphRun:
 
         Returns:
             True if one did.
-
-        Raises:
-            Nothing.
         """
         return self.evolution.received_any(node.idx)
 
@@ -523,8 +493,5 @@ class GraphRun:
 
         Returns:
             The nodes.
-
-        Raises:
-            Nothing.
         """
         return [*self.nodes.values(), self.entry, self.exit]

@@ -17,9 +17,6 @@ def strongly_connected(succ: list[list[int]]) -> list[list[int]]:
 
     Returns:
         The components (each a list of nodes), in reverse topological order.
-
-    Raises:
-        Nothing.
     """
     n = len(succ)
     order = [-1] * n

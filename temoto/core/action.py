@@ -55,10 +55,13 @@ if TYPE_CHECKING:
     from temoto.clock import Clock
     from temoto.core.registrar.registry import Registrar
 
-__all__ = ["LOG_LENGTH", "Action", "Inputs", "Outputs", "RunControl"]
+__all__ = ["ACTION_LOGGER", "LOG_LENGTH", "Action", "Inputs", "Outputs", "RunControl"]
 
 #: How many runtime log messages a node keeps (newest first), as upstream.
 LOG_LENGTH = 10
+#: The logger the actions log under: a node's is ``temoto.action.<graph>.<node>``
+#: (:attr:`Action.logger`; the recorder and the log displays read it, ``docs/recording.md``).
+ACTION_LOGGER = "temoto.action"
 
 
 # results of on_run, as globals (a member lookup on the enum class costs several times more)
@@ -205,9 +208,6 @@ class Action(ABC):
         Returns:
             ``(result, outputs, error)``: the outputs set during the run (also after a failure;
             a shared empty dict if none, never to be mutated) and the error or None.
-
-        Raises:
-            Nothing: every exception of ``on_run`` becomes the ERROR result.
         """
         if values or self._input_params or self._output_params:
             self._begin(values)  # else: the shared empty views it holds already
@@ -234,9 +234,6 @@ class Action(ABC):
 
         Returns:
             The messages (at most :data:`LOG_LENGTH`).
-
-        Raises:
-            Nothing.
         """
         log = self._log
         # deque.copy() is one C call: safe while the action's thread appends
@@ -278,8 +275,9 @@ class Action(ABC):
     def logger(self) -> logging.Logger:
         """This node's logger (``temoto.action.<graph>.<node>``), made on first use."""
         if self._logger is None:
-            name = f"temoto.action.{self._graph}.{self._name}" if self._graph else "temoto.action"
-            self._logger = logging.getLogger(name)
+            self._logger = logging.getLogger(
+                f"{ACTION_LOGGER}.{self._graph}.{self._name}" if self._graph else ACTION_LOGGER
+            )
         return self._logger
 
     @property
@@ -391,9 +389,6 @@ class Action(ABC):
 
         Returns:
             How many were released.
-
-        Raises:
-            Nothing: release failures are skipped.
         """
         held, self._resources = self._resources, _NOTHING_HELD
         if self._registrar is None:
@@ -415,9 +410,6 @@ class Action(ABC):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         stamp = int(self._ctl.clock.time() * 1000) if self._control is not None else 0
         if self._log is None:
@@ -514,9 +506,6 @@ class Action(ABC):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         ctl = self._ctl
         with ctl.cond:

@@ -50,6 +50,8 @@ SCAN_DEPTH = 2
 def scan_files(root: Path, marker: str, depth: int = SCAN_DEPTH) -> list[Path]:
     """Files under ``root`` (down to ``depth`` levels) whose name contains ``marker``.
 
+    Unreadable directories are skipped.
+
     Args:
         root: The directory.
         marker: A substring of the file name (``umrf.json``, ``graph.json``).
@@ -57,9 +59,6 @@ def scan_files(root: Path, marker: str, depth: int = SCAN_DEPTH) -> list[Path]:
 
     Returns:
         The files, sorted (deterministic across file systems).
-
-    Raises:
-        Nothing (unreadable directories are skipped).
     """
     found: list[Path] = []
     level = [root]
@@ -184,11 +183,10 @@ class ActionCatalog:
     def refresh(self) -> None:
         """Re-read every description (new files appear, removed ones vanish).
 
+        Unreadable files are logged and listed in :attr:`problems`.
+
         Returns:
             None.
-
-        Raises:
-            Nothing: unreadable files are logged and listed in :attr:`problems`.
         """
         entries: dict[str, list[ActionEntry]] = {}
         problems: list[tuple[str, str]] = []
@@ -262,9 +260,6 @@ class ActionCatalog:
 
         Returns:
             Sorted names.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             return sorted(self._entries)
@@ -473,9 +468,6 @@ class GraphIndex:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             self._graphs.setdefault(graph.name, []).append(graph)
@@ -484,11 +476,10 @@ class GraphIndex:
     def refresh(self) -> None:
         """Re-read every graph file.
 
+        Unreadable files are logged and listed in :attr:`problems`.
+
         Returns:
             None.
-
-        Raises:
-            Nothing: unreadable files are logged and listed in :attr:`problems`.
         """
         graphs: dict[str, list[UmrfGraph]] = {}
         problems: list[tuple[str, str]] = []
@@ -514,9 +505,6 @@ class GraphIndex:
 
         Returns:
             Sorted names.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             return sorted(self._graphs)
@@ -526,9 +514,6 @@ class GraphIndex:
 
         Returns:
             The graphs, by name then file.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             return [g for name in sorted(self._graphs) for g in self._graphs[name]]

@@ -70,9 +70,6 @@ class RunControl:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         with self.cond:
             if self.broken is None:
@@ -104,9 +101,6 @@ class RunControl:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         if self.condition is None:  # no helper ever waited: nobody to race with between runs
             self.stop = False
@@ -121,9 +115,6 @@ class RunControl:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         with self.cond:
             self.stop = True
@@ -137,9 +128,6 @@ class RunControl:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         with self.cond:
             self.paused = paused

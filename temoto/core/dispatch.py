@@ -192,9 +192,9 @@ class Dispatcher:
         """Worker: run a batch (:meth:`_run_rounds`); an error of the engine ends its runs.
 
         An action's own errors never get here (they are the node's result); what does is a
-        fault of the engine itself (a bug, a ``RecursionError``, ``MemoryError``). Left to the
-        pool, it was logged and the run never ended: now the top-level run of every node of the
-        batch ends ``on_error`` with the reason (:meth:`_job_failed`).
+        fault of the engine itself (a bug, a ``RecursionError``, ``MemoryError``): the top-level
+        run of every node of the batch ends ``on_error`` with the reason (:meth:`_job_failed`),
+        rather than the pool logging it and the run never ending.
         """
         try:
             self._run_rounds(batch)

@@ -169,9 +169,6 @@ def dump_umrf(action: Umrf, *, with_relations: bool = True) -> dict[str, Any]:
 
     Returns:
         A JSON-ready dict.
-
-    Raises:
-        Nothing.
     """
     out: dict[str, Any] = {
         "name": action.name,
@@ -213,9 +210,6 @@ def dump_parent(rel: ParentRelation, *, conditions: bool = True) -> dict[str, An
 
     Returns:
         A JSON-ready dict.
-
-    Raises:
-        Nothing.
     """
     out: dict[str, Any] = {
         "name": rel.name,
@@ -235,9 +229,6 @@ def dump_child(rel: ChildRelation) -> dict[str, Any]:
 
     Returns:
         A JSON-ready dict.
-
-    Raises:
-        Nothing.
     """
     out: dict[str, Any] = {"name": rel.name, "instance_id": rel.instance_id}
     if rel.remap:
@@ -314,9 +305,6 @@ def graph_to_dict(graph: UmrfGraph, actions: list[dict[str, Any]] | None = None)
     Returns:
         A JSON-ready dict that :func:`parse_graph` reads back to a graph with the same
         meaning (actions sorted by full name, every condition written out).
-
-    Raises:
-        Nothing.
     """
     out: dict[str, Any] = {"graph_name": graph.name, "graph_description": graph.description}
     if graph.state is not GraphState.UNINITIALIZED:
@@ -338,8 +326,5 @@ def dump_graph(graph: UmrfGraph, *, indent: int | None = 2) -> str:
 
     Returns:
         JSON text.
-
-    Raises:
-        Nothing.
     """
     return json.dumps(graph_to_dict(graph), indent=indent, ensure_ascii=False)

@@ -58,9 +58,6 @@ def quote(text: str) -> str:
 
     Returns:
         The text in double quotes.
-
-    Raises:
-        Nothing.
     """
     out: list[str] = []
     for ch in text:
@@ -121,9 +118,6 @@ def graph_to_dot(graph: UmrfGraph, *, states: Mapping[str, str] | None = None) -
 
     Returns:
         DOT text of a ``digraph``, ending with a newline.
-
-    Raises:
-        Nothing.
     """
     states = states or {}
     lines = [

@@ -102,9 +102,6 @@ class Effects:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         self.runs.clear()
         self.other.clear()

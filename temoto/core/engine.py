@@ -488,9 +488,6 @@ class ActionEngine:
 
         Returns:
             States by run name.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             return {name: run.state for name, run in self._runs.items()}
@@ -500,9 +497,6 @@ class ActionEngine:
 
         Returns:
             The graphs.
-
-        Raises:
-            Nothing.
         """
         return self.graphs.all()
 
@@ -527,9 +521,6 @@ class ActionEngine:
 
         Returns:
             Snapshots, oldest first.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             return self._evolution.take_feedback()
@@ -542,9 +533,6 @@ class ActionEngine:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             self._evolution.add_instrument(instrument)
@@ -557,9 +545,6 @@ class ActionEngine:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         fx = Effects()
         evolution = self._evolution

@@ -507,7 +507,7 @@ class RunEvolution:
                         self._drop_instrument(inst)
             self.set_state(node, _N_ERROR if result is _R_ERROR else _N_FINISHED)
         if run.state is _G_RUNNING:
-            # The result goes to the children (REFERENCE §2.5): the evolution kernel computes
+            # The result goes to the children (docs/design.md §4.3): the evolution kernel computes
             # the wave (responses, received parents, bypass chains), _apply_wave carries out
             # its steps. A wave of one `run` step (a chain's link, a fan-in's edge) is asked
             # for first (`advance`, which makes no list) and carried out here.
@@ -790,7 +790,7 @@ def _no_port(fx: Effects) -> None:
 def _transfer(
     parent: Node, child: Node, remap: Mapping[str, str], outputs: Mapping[str, Any]
 ) -> None:
-    """Copy a parent's outputs into a child's inputs (REFERENCE §2.5, parameter transfer)."""
+    """Copy a parent's outputs into a child's inputs (parameter transfer, docs/design.md §4.4)."""
     inputs = child.inputs
     kinds = parent.outputs
     for name, value in outputs.items():

@@ -178,9 +178,6 @@ class WorkerPool:
 
         Returns:
             Names of workers still busy after the timeout (stuck in user code).
-
-        Raises:
-            Nothing.
         """
         with self._mutex:
             self._closed = True
@@ -212,9 +209,6 @@ class TimerHandle:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         self.cancelled = True
 
@@ -288,9 +282,6 @@ class DeadlineTimer:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         with self._cond:
             self._closed = True

@@ -55,9 +55,6 @@ class GraphSignature:
 
         Returns:
             True if the input and output name sets are equal.
-
-        Raises:
-            Nothing.
         """
         return set(self.inputs) == set(action.input_parameters) and set(self.outputs) == set(
             action.output_parameters
@@ -115,9 +112,6 @@ class UmrfGraph:
 
         Returns:
             Inputs: entry actions' inputs without a literal; outputs: exit actions' outputs.
-
-        Raises:
-            Nothing.
         """
         by_name = {a.full_name: a for a in self.actions}
         inputs: dict[str, Parameter] = {}

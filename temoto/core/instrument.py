@@ -114,9 +114,6 @@ class RecordingInstrument(Instrument):
 
         Returns:
             Full node names.
-
-        Raises:
-            Nothing.
         """
         resumed = ("PAUSED", "PAUSE_REQUESTED")
         with self._lock:

@@ -15,7 +15,7 @@ integer, ``umrf_actions`` that is not an array, ...) are reported as the same
 (``umrf_actions[2].id``); errors the parser finds in a converted graph have their path mapped
 back (``actions[2]...`` becomes ``umrf_actions[2]...``; the action order is kept).
 
-The rewrite, rule by rule (REFERENCE.md 1.8 has the legacy semantics):
+The rewrite, rule by rule (docs/design.md §3.2 has the legacy semantics):
 
 * ``umrf_actions`` -> ``actions``; ``id`` -> ``instance_id`` on actions and relations (a
   missing id means 0).
@@ -131,9 +131,6 @@ def is_legacy_graph(raw: object) -> bool:
 
     Returns:
         True for a legacy graph.
-
-    Raises:
-        Nothing.
     """
     return isinstance(raw, dict) and "umrf_actions" in raw and "actions" not in raw
 
@@ -148,9 +145,6 @@ def is_legacy_umrf(raw: object) -> bool:
 
     Returns:
         True for a legacy action description.
-
-    Raises:
-        Nothing.
     """
     if not isinstance(raw, dict) or "type" in raw:
         return False
@@ -250,9 +244,6 @@ class _Notes:
 
         Returns:
             The clauses.
-
-        Raises:
-            Nothing.
         """
         out: list[str] = ["umrf_actions -> actions"] if graph else []
         if any(self.ids):

@@ -132,9 +132,6 @@ def values_equal(pvf_type: str, a: object, b: object) -> bool:
     Returns:
         True if equal. Only ``string``, ``number`` and ``bool`` compare (as upstream); any other
         type never compares equal, so a non-empty allowed list rejects every value.
-
-    Raises:
-        Nothing.
     """
     if pvf_type not in ("string", "number", "bool"):
         return False
@@ -179,9 +176,6 @@ class Parameter:
 
         Returns:
             True if there is no allowed list or the value is in it.
-
-        Raises:
-            Nothing.
         """
         if not self.allowed_values:
             return True
@@ -290,9 +284,6 @@ def kind_of(value: object) -> str:
     Returns:
         A short description: ``null``, ``true``/``false``, ``string '...'`` (cut at 40
         characters), ``number 3``, ``NaN``, ``an array``, ``an object``, or the type's name.
-
-    Raises:
-        Nothing.
     """
     if value is None:
         return "null"
@@ -357,9 +348,6 @@ def dump_parameter_tree(
         A JSON-ready dict. ``pvf_value`` only when data is present and the type native;
         ``pvf_required`` and ``pvf_updatable`` only when false; ``pvf_allowed_values`` when
         non-empty.
-
-    Raises:
-        Nothing.
     """
     root: dict[str, Any] = {}
     for name, param in params.items():

@@ -266,9 +266,6 @@ class Wiring:
 
         Returns:
             The pairs.
-
-        Raises:
-            Nothing.
         """
         names, start, parents = self.names, self.slot_start, self.slot_parent
         return [
@@ -284,9 +281,6 @@ def wiring_of(plan: Plan) -> Wiring:
 
     Returns:
         Its wiring.
-
-    Raises:
-        Nothing (the plan was validated).
     """
     wiring = plan.wiring
     if wiring is None:

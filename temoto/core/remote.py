@@ -1,6 +1,6 @@
 """What the engine needs from a fleet link to run graphs shared by several actors.
 
-Every actor (robot) runs the same graph in its own engine (REFERENCE §2.14, thesis §6.3.2):
+Every actor (robot) runs the same graph in its own engine (docs/design.md §4.6, thesis §6.3.2):
 
 - before the run, the participating actors perform the N-to-N handshake (thesis Algorithm 3);
 - an action whose ``actor`` is this engine's runs here, and its result and outputs are sent

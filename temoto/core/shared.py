@@ -1,8 +1,8 @@
 """Shared runs: the engine's side of graphs shared by several actors.
 
 A graph that names other actors is *shared*: every actor runs it in its own engine, and the
-engines keep their runs in step through an :class:`~temoto.core.remote.ActorLink` (REFERENCE
-§2.14, thesis §6.3.2; the wire protocol is ``temoto.fleet.actors``). The engine evolves one
+engines keep their runs in step through an :class:`~temoto.core.remote.ActorLink` (docs/design.md
+§4.6, thesis §6.3.2; the wire protocol is ``temoto.fleet.actors``). The engine evolves one
 graph and knows nothing of the protocol; :class:`SharedRuns` does the rest:
 
 * the handshake before a shared run starts (:meth:`SharedRuns.handshake`);

@@ -28,9 +28,6 @@ def snapshot(run: GraphRun) -> dict[str, Any]:
     Returns:
         A JSON-ready dict: the run's name and state, every action with its state, the input
         values it holds now and its runtime log (a running action's log as it grows).
-
-    Raises:
-        Nothing.
     """
     actions = []
     for node in sorted(run.nodes.values(), key=lambda n: n.name):

@@ -66,9 +66,6 @@ def snake_case(name: str) -> str:
 
     Returns:
         The snake_case form used for description files and modules.
-
-    Raises:
-        Nothing.
     """
     out: list[str] = []
     for i, ch in enumerate(name):
@@ -239,9 +236,6 @@ class UmrfReader:
 
         Returns:
             The error, to be raised by the caller.
-
-        Raises:
-            Nothing.
         """
         return self.error(message, file=self.file, path=path)
 
@@ -478,9 +472,6 @@ class UmrfReader:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         for key in raw:
             if key not in known:

@@ -126,6 +126,8 @@ def validate_graph(
 ) -> ValidationReport:
     """Check that a parsed graph can run as written.
 
+    Every problem becomes an :class:`Issue` of the report; nothing is raised for them.
+
     Args:
         graph: The graph (as returned by :func:`~temoto.core.graph.parse_graph`, or built in
             code).
@@ -135,9 +137,6 @@ def validate_graph(
 
     Returns:
         The report; :attr:`ValidationReport.ok` is true when no errors were found.
-
-    Raises:
-        Nothing: every problem becomes an :class:`Issue` of the report.
     """
     checker = _Checker(graph)
     checker.run(supplied)

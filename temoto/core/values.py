@@ -53,9 +53,6 @@ class Inputs(Mapping[str, Any]):
 
         Returns:
             The inputs.
-
-        Raises:
-            Nothing.
         """
         inputs = cls.__new__(cls)  # no __init__: the values are not copied
         inputs._values = values
@@ -207,9 +204,6 @@ class Outputs:
 
         Returns:
             A copy, by name.
-
-        Raises:
-            Nothing.
         """
         return dict(self._values)
 
@@ -219,9 +213,6 @@ class Outputs:
         Returns:
             A copy by name, or the shared empty :data:`NO_VALUES` if none was set (the engine
             never mutates what it is given).
-
-        Raises:
-            Nothing.
         """
         return dict(self._values) if self._values else NO_VALUES
 

@@ -1,4 +1,4 @@
-"""Device drivers: the hardware layer under the Robot Manager (ARCHITECTURE §5, STYLE §3.7).
+"""Device drivers: the hardware layer under the Robot Manager (docs/design.md §7).
 
 Three layers per device: a link (a python-can Bus, a serial port or pseudo-terminal, UDP), a
 pure protocol module (frames and packets to typed values), and a :class:`Driver` with the

@@ -1,4 +1,4 @@
-"""The driver lifecycle every device driver shares (STYLE §3.5, §3.7).
+"""The driver lifecycle every device driver shares (docs/development.md §5, §6).
 
 A :class:`Driver` moves through ``UNCONFIGURED → INACTIVE → ACTIVE → FINALIZED``, plus
 ``FAULT``. The public transitions (:meth:`~Driver.configure`, :meth:`~Driver.activate`,
@@ -527,7 +527,7 @@ class Driver(ABC):
     def detect(
         cls, links: Sequence[Any] | None = None, *, timeout: float = 1.0
     ) -> list[dict[str, Any]]:
-        """The devices this driver can reach, as profile device entries (STYLE §3.7).
+        """The devices this driver can reach, as profile device entries (docs/development.md §6).
 
         Looking must not move anything: a driver only listens, or asks questions the device
         answers without acting (a ping, a heartbeat). Each entry has ``driver`` and the keys

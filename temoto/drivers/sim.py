@@ -1,8 +1,8 @@
 """What every device simulator shares: start/close and fault injection on command.
 
 A simulator sits at the *device* end of the link and speaks the device's side of the wire
-protocol (STYLE §3.7); the production driver talks to it exactly as to hardware. Faults are
-injected by name and cleared again, so failure handling is tested deterministically:
+protocol (docs/development.md §6); the production driver talks to it exactly as to hardware.
+Faults are injected by name and cleared again, so failure handling is tested deterministically:
 
 ==================  ==========================================================================
 ``silence``         the device stops answering and sending (a dead device, a cut cable)

@@ -38,13 +38,11 @@ __all__ = [
     "ACK_CHANNEL_PREFIX",
     "HANDSHAKE_CHANNEL",
     "NOTIFY_CHANNEL",
-    "LinkPart",
     "LinkState",
     "ack_channel",
 ]
 
-# The parts of the link log under the link's name: their log lines keep their logger.
-logger = logging.getLogger("temoto.fleet.actors")
+logger = logging.getLogger(__name__)
 
 #: Channel of ``handshake_t``: handshakes, heartbeats, leaving.
 HANDSHAKE_CHANNEL: Final = "TEMOTO_HANDSHAKE"
@@ -360,32 +358,3 @@ class LinkState:
                 logger.warning("actor %r: %s", self.actor, err)
             else:
                 logger.debug("actor %r: %s", self.actor, err)
-
-
-class LinkPart:
-    """Base of the parts of a link: short names for what :class:`LinkState` holds.
-
-    Args:
-        state: The link's shared state.
-    """
-
-    def __init__(self, state: LinkState) -> None:
-        self._st = state
-        self._core = state.core
-        self._lock = state.lock
-        self._actor = state.actor
-        self.resend_s = state.resend_s
-        self.silence_s = state.silence_s
-        self.grace_s = state.grace_s
-        self.stray_s = state.stray_s
-        self.heartbeat_s = state.heartbeat_s
-        self._changed = state.changed
-        self._timer_wake = state.timer_wake
-        self._calls_ready = state.calls_ready
-        self._runs = state.runs
-        self._ended = state.ended
-        self._outgoing = state.outgoing
-        self._watches = state.watches
-        self._heard_at = state.heard_at
-        self._left = state.left
-        self._calls = state.calls

@@ -48,8 +48,7 @@ if TYPE_CHECKING:
 
 __all__ = ["Consumer", "ProxyServer"]
 
-# The consumer side logs under the service's name: its log lines keep their logger.
-logger = logging.getLogger("temoto.fleet.resources")
+logger = logging.getLogger(__name__)
 
 _EARLY_PER_REF: Final = 16  # statuses kept for a reference whose reply has not arrived
 _EARLY_REFS: Final = 1024

@@ -26,7 +26,6 @@ from temoto.fleet._actor_state import (
     MAX_BACKOFF,
     READY,
     Ended,
-    LinkPart,
     LinkState,
     Peer,
     Phase,
@@ -47,10 +46,9 @@ __all__ = ["Handshakes"]
 _ANSWER_WINDOW = 0.25
 # ... except the first JOINs of a handshake, which answer at once: in a fleet of up to
 # _ACTORS_PER_PERIOD every newly heard peer is answered at once (each actor sends at most one
-# JOIN per peer), in a larger one the first _ANSWERS_AT_ONCE. It was those 3 whatever the
-# fleet: the fourth peer an actor heard (in a handshake of 5, the one that started last)
-# waited for the resend period, so handshake_5_actors_ms was 100 ms in one round of three
-# (issue 26).
+# JOIN per peer), in a larger one the first _ANSWERS_AT_ONCE. With only those 3 whatever the
+# fleet, the fourth peer an actor heard (in a handshake of 5, the one that started last) would
+# wait for the resend period.
 _ANSWERS_AT_ONCE = 3
 # A handshake of more actors than this sends its JOINs (and READY answers) at most every
 # resend_s * actors / _ACTORS_PER_PERIOD: every JOIN is decoded by every other actor, so the
@@ -59,15 +57,15 @@ _ANSWERS_AT_ONCE = 3
 _ACTORS_PER_PERIOD = 10
 
 
-class Handshakes(LinkPart):
+class Handshakes:
     """The handshakes of one link, and every ``handshake_t`` it sends.
 
     Args:
-        state: The link's shared state.
+        state: The link's shared state (held, not copied: every part sees one table).
     """
 
     def __init__(self, state: LinkState) -> None:
-        super().__init__(state)
+        self._st = state  # shared with the link's other parts, by reference
         self._last_stamp = 0  # guarded by the lock
 
     def run(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> str:
@@ -76,26 +74,26 @@ class Handshakes(LinkPart):
         check_name("session", session)
         timeout = check_seconds("timeout", timeout, zero=True)
         participants = tuple(sorted({check_name("an actor", a) for a in actors}))
-        if self._actor not in participants:
+        if self._st.actor not in participants:
             raise ValueError(f"actors {list(participants)} do not include this actor")
         if len(participants) == 1:
             return session
         key = (graph, session)
-        with self._lock:
+        with self._st.lock:
             self._st.check_open()
-            now = self._core.now()
-            run = self._runs.get(key)
+            now = self._st.core.now()
+            run = self._st.runs.get(key)
             if run is not None and run.phase is Phase.JOINING:
                 raise StateError(f"a handshake of graph '{graph}' session '{session}' is running")
             if run is None:
                 run = self._st.new_run(key, now)
-            ended = self._ended.pop(key, None)
+            ended = self._st.ended.pop(key, None)
             if ended is not None:
                 run.seen |= ended.seen
             run.local = True
             run.actors = participants
             run.actors_text = actors_json(participants)
-            run.me = participants.index(self._actor)
+            run.me = participants.index(self._st.actor)
             run.phase = Phase.JOINING
             run.proposal = f"{session}@{secrets.token_hex(6)}"
             run.joins = 0
@@ -111,15 +109,15 @@ class Handshakes(LinkPart):
         ready: Any = None
         gap = self.gap(run)  # the least time between two JOINs
         period = gap  # doubles while a resend brings nothing new (to MAX_BACKOFF)
-        longest = max(gap, MAX_BACKOFF * self.resend_s)
+        longest = max(gap, MAX_BACKOFF * self._st.resend_s)
         unheard = math.inf  # reports missing at the last resend
         try:
             while ready is None:
                 self._st.send(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
-                run.last_join = self._core.now()
+                run.last_join = self._st.core.now()
                 run.joins += 1
                 next_send = run.last_join + period
-                with self._lock:
+                with self._st.lock:
                     while True:
                         self.check_joining(run)
                         missing = self.unheard(run)
@@ -129,10 +127,10 @@ class Handshakes(LinkPart):
                             self.agree(run)
                             ready = self.ready_msg(run)
                             # READY goes out now: the next heartbeat can wait a period
-                            self._st.next_heartbeat = self._core.now() + self.heartbeat_s
-                            self._timer_wake.notify()
+                            self._st.next_heartbeat = self._st.core.now() + self._st.heartbeat_s
+                            self._st.timer_wake.notify()
                             break
-                        now = self._core.now()
+                        now = self._st.core.now()
                         if now >= deadline:
                             raise FleetError(
                                 f"handshake of graph '{graph}' session '{session}' with "
@@ -151,7 +149,7 @@ class Handshakes(LinkPart):
                             msg = self.join_msg(run)
                             break
                         wake = min(next_send, deadline, math.inf if answer is None else answer)
-                        self._core.wait(self._changed, wake - now)
+                        self._st.core.wait(self._st.changed, wake - now)
         except BaseException:
             self.give_up(run)
             raise
@@ -173,7 +171,7 @@ class Handshakes(LinkPart):
 
         See ``_ACTORS_PER_PERIOD``.
         """
-        return self.resend_s * max(1.0, len(run.actors) / _ACTORS_PER_PERIOD)
+        return self._st.resend_s * max(1.0, len(run.actors) / _ACTORS_PER_PERIOD)
 
     def answers_at_once(self, run: Run) -> int:
         """How many JOINs of ``run`` (its first included) answer newly heard peers at once.
@@ -196,7 +194,7 @@ class Handshakes(LinkPart):
             )
         heard = report.heard()
         for b in run.actors:
-            if b != actor and heard.get(b, 0) < (run.first_stamp if b == self._actor else 1):
+            if b != actor and heard.get(b, 0) < (run.first_stamp if b == self._st.actor else 1):
                 return False
         return True
 
@@ -207,7 +205,7 @@ class Handshakes(LinkPart):
         """
         count = 0
         for actor in run.actors:
-            if actor == self._actor:
+            if actor == self._st.actor:
                 continue
             report = run.peers.get(actor)
             if report is None or not self.report_done(run, actor, report):
@@ -216,7 +214,7 @@ class Handshakes(LinkPart):
 
     def missing(self, run: Run) -> dict[str, list[str]]:
         """Who has not (yet, freshly) been heard by whom: heard actor -> hearers."""
-        me = self._actor
+        me = self._st.actor
         missing: dict[str, list[str]] = {}
         for a in run.actors:
             report = run.peers.get(a)
@@ -238,7 +236,7 @@ class Handshakes(LinkPart):
 
     def status(self, run: Run) -> str:
         """Why the handshake of ``run`` is not done yet, for an error message."""
-        silent = [a for a in run.actors if a != self._actor and a not in run.peers]
+        silent = [a for a in run.actors if a != self._st.actor and a not in run.peers]
         parts = []
         if silent:
             parts.append(f"no answer from {quoted(silent)}")
@@ -275,23 +273,23 @@ class Handshakes(LinkPart):
     def give_up(self, run: Run) -> None:
         """Not locked: a handshake failed; forget the run's handshake and LEAVE it."""
         key = (run.graph, run.session)
-        with self._lock:
-            if self._runs.get(key) is not run or run.phase is not Phase.JOINING:
+        with self._st.lock:
+            if self._st.runs.get(key) is not run or run.phase is not Phase.JOINING:
                 return
-            del self._runs[key]
+            del self._st.runs[key]
             if run.seen:
-                self._ended[key] = Ended(
-                    run.actors, None, run.seen, self._core.now() + self.grace_s
+                self._st.ended[key] = Ended(
+                    run.actors, None, run.seen, self._st.core.now() + self._st.grace_s
                 )
             leave = (
-                None if self._core.closed else self.leave_msg(run.graph, run.session, run.actors)
+                None if self._st.core.closed else self.leave_msg(run.graph, run.session, run.actors)
             )
         if leave is not None:
             self._st.send_quietly(HANDSHAKE_CHANNEL, leave, "handshakes_sent")
 
     def stamp(self) -> int:
         """A handshake stamp: the wall clock in microseconds, strictly increasing."""
-        self._last_stamp = max(self._last_stamp + 1, round(self._core.wall() * 1e6))
+        self._last_stamp = max(self._last_stamp + 1, round(self._st.core.wall() * 1e6))
         return self._last_stamp
 
     def handshake_msg(
@@ -304,12 +302,12 @@ class Handshakes(LinkPart):
     ) -> Any:
         """A handshake_t; ``heard`` (None: no heard list) is written by place in ``actors``."""
         msg = new(handshake_t)
-        msg.phase, msg.graph, msg.session, msg.actor = phase, graph, session, self._actor
+        msg.phase, msg.graph, msg.session, msg.actor = phase, graph, session, self._st.actor
         msg.stamp_us = self.stamp()
         msg.result, msg.reason, msg.run_id = "", "", ""
         msg.actors = actors_json(actors) if actors else ""
         if heard is not None and actors:  # by place; this actor's place: this message's stamp
-            own = {self._actor: msg.stamp_us}
+            own = {self._st.actor: msg.stamp_us}
             stamps = [own.get(a) or heard.get(a, 0) for a in actors]
             msg.heard = struct.pack(f">{len(stamps)}q", *stamps)
         else:
@@ -337,7 +335,7 @@ class Handshakes(LinkPart):
         answering a JOIN.
         """
         for actor in run.actors:
-            if actor != self._actor:
+            if actor != self._st.actor:
                 peer = run.peers.get(actor)
                 if peer is None or peer.phase != READY:
                     return False
@@ -366,7 +364,7 @@ class Handshakes(LinkPart):
                 proposals.append(peer.run_id)
         run.run_id = min(proposals)
         key = (run.graph, run.run_id)
-        early = self._runs.get(key)
+        early = self._st.runs.get(key)
         if early is not None and early is not run:  # peers that ran ahead spoke of it already
             for node, notices in early.pending.items():
                 run.pending.setdefault(node, collections.deque()).extend(notices)
@@ -375,7 +373,7 @@ class Handshakes(LinkPart):
                 run.ended_peers.setdefault(actor, result)
             run.left_reasons.update(early.left_reasons)
             run.left_peers |= early.left_peers
-        self._runs[key] = run
+        self._st.runs[key] = run
 
     def leave_msg(self, graph: str, session: str, actors: Sequence[str]) -> Any:
         """A LEAVE of a run (no reason: the peers report this actor lost). Lock held."""
@@ -394,10 +392,10 @@ class Handshakes(LinkPart):
         """Record a JOIN or READY of a run; the answer to send, if any. Lock held."""
         key: SessionKey = (msg.graph, msg.session)
         actor: str = msg.actor
-        run = self._runs.get(key)
+        run = self._st.runs.get(key)
         reply: Any = None
         if run is None or not run.local:
-            ended = self._ended.get(key)
+            ended = self._st.ended.get(key)
             known = ended is not None and actor in ended.actors
             if (
                 known
@@ -420,7 +418,7 @@ class Handshakes(LinkPart):
                 # a peer still in a run that ended here: tell it again how (END may be lost);
                 # one answer per heartbeat period reaches every peer
                 reply = self.decision_msg(ended.out_key or key, ended.actors, ended.decision)
-                ended.next_answer = now + self.heartbeat_s / 2
+                ended.next_answer = now + self._st.heartbeat_s / 2
             elif known and msg.phase == JOIN and ended is not None and ended.heard is not None:
                 reply = self.handshake_msg(READY, *key, ended.actors, ended.heard)
                 reply.run_id = ended.run_id  # the run id agreed: the late peer takes it too
@@ -432,7 +430,7 @@ class Handshakes(LinkPart):
             return reply  # a heartbeat: liveness only; the peer's full READY still stands
         raw: bytes = msg.heard
         if len(raw) % 8:
-            self._core.count("unexpected")  # not whole stamps
+            self._st.core.count("unexpected")  # not whole stamps
             return reply
         run.touched = now
         peer = run.peers.get(actor)
@@ -454,10 +452,10 @@ class Handshakes(LinkPart):
                         now
                         if run.joins < self.answers_at_once(run)
                         else max(
-                            now + self.resend_s * _ANSWER_WINDOW, run.last_join + self.gap(run)
+                            now + self._st.resend_s * _ANSWER_WINDOW, run.last_join + self.gap(run)
                         )
                     )
-            self._changed.notify_all()
+            self._st.changed.notify_all()
         elif (
             run.phase is Phase.READY
             and msg.phase == JOIN

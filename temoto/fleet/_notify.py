@@ -23,7 +23,6 @@ from temoto.errors import FleetError
 from temoto.fleet._actor_state import (
     MAX_BACKOFF,
     NOTIFY_CHANNEL,
-    LinkPart,
     LinkState,
     NodeKey,
     Notice,
@@ -42,15 +41,15 @@ from temoto.transport.auth import Opened
 __all__ = ["Notices"]
 
 
-class Notices(LinkPart):
+class Notices:
     """The notifications one link sends, acknowledges and delivers.
 
     Args:
-        state: The link's shared state.
+        state: The link's shared state (held, not copied: every part sees one table).
     """
 
     def __init__(self, state: LinkState) -> None:
-        super().__init__(state)
+        self._st = state  # shared with the link's other parts, by reference
         self._ids = itertools.count(1)
         self._boot = f"{round(state.core.wall() * 1000):x}"  # keeps ids unique across restarts
 
@@ -71,7 +70,7 @@ class Notices(LinkPart):
         timeout = check_seconds("timeout", timeout, zero=True)
         if not isinstance(result, Result):
             raise ValueError(f"result must be a Result, got {result!r}")
-        others = {check_name("an actor", a) for a in actors} - {self._actor}
+        others = {check_name("an actor", a) for a in actors} - {self._st.actor}
         try:
             text = json.dumps(dict(outputs), sort_keys=True, separators=(",", ":"))
         except (TypeError, ValueError, RecursionError) as err:
@@ -79,13 +78,13 @@ class Notices(LinkPart):
         if not outputs:
             text = ""
         key = (graph, session)
-        with self._lock:
-            run = self._runs.get(key)
+        with self._st.lock:
+            run = self._st.runs.get(key)
             left: set[str] = set()
             if run is not None:
                 others -= set(run.ended_peers)  # finished there: they need nothing more
                 left = run.left_peers
-            gone = sorted(a for a in others if a in left or self._st.gone(a, self._core.now()))
+            gone = sorted(a for a in others if a in left or self._st.gone(a, self._st.core.now()))
         if gone:
             why = "left" if gone[0] in left else self._st.why_gone(gone[0])
             raise ActorLostError(
@@ -97,25 +96,25 @@ class Notices(LinkPart):
         if not others:
             return
         msg = new(action_notification_t)
-        msg.graph, msg.session, msg.action, msg.actor = graph, session, action, self._actor
+        msg.graph, msg.session, msg.action, msg.actor = graph, session, action, self._st.actor
         msg.result, msg.outputs = result.value, text
-        with self._lock:
+        with self._st.lock:
             self._st.check_open()
             serial = f"{self._boot}.{next(self._ids)}"
-            msg.notification_id = f"{self._actor}/{graph}/{session}/{action}/{serial}"
-            out = Outgoing(key, set(others), self._core.now())
-            self._outgoing[msg.notification_id] = out
-            self._timer_wake.notify()  # it watches the silence of the actors waited for
-        deadline = self._core.now() + timeout
-        period = self.resend_s  # doubles with every copy (to MAX_BACKOFF * resend_s)
+            msg.notification_id = f"{self._st.actor}/{graph}/{session}/{action}/{serial}"
+            out = Outgoing(key, set(others), self._st.core.now())
+            self._st.outgoing[msg.notification_id] = out
+            self._st.timer_wake.notify()  # it watches the silence of the actors waited for
+        deadline = self._st.core.now() + timeout
+        period = self._st.resend_s  # doubles with every copy (to MAX_BACKOFF * resend_s)
         waiting = len(out.waiting)
         try:
             while True:
                 self._st.send(NOTIFY_CHANNEL, msg, "notifications_sent")
-                next_send = self._core.now() + period
-                with self._lock:
+                next_send = self._st.core.now() + period
+                with self._st.lock:
                     while out.waiting:
-                        if self._core.closed:
+                        if self._st.core.closed:
                             raise FleetError("the fleet link is closed")
                         if out.aborted is not None:
                             text = (
@@ -126,7 +125,7 @@ class Notices(LinkPart):
                             if out.lost is not None:
                                 raise ActorLostError(text, actor=out.lost[0], why=out.lost[1])
                             raise FleetError(text)
-                        now = self._core.now()
+                        now = self._st.core.now()
                         if now >= deadline:
                             raise FleetError(
                                 f"{action} ({result.value}) of graph '{graph}' session "
@@ -138,18 +137,18 @@ class Notices(LinkPart):
                                 # acknowledgements still coming in (a loaded fleet answers
                                 # slowly): no copy yet, look again a resend_s later
                                 waiting = len(out.waiting)
-                                period = self.resend_s
+                                period = self._st.resend_s
                                 next_send = now + period
                                 continue
                             # a period without any acknowledgement: send again, later next time
-                            period = min(period * 2, MAX_BACKOFF * self.resend_s)
+                            period = min(period * 2, MAX_BACKOFF * self._st.resend_s)
                             break
-                        self._core.wait(self._changed, min(next_send, deadline) - now)
+                        self._st.core.wait(self._st.changed, min(next_send, deadline) - now)
                     else:
                         return
         finally:
-            with self._lock:
-                self._outgoing.pop(msg.notification_id, None)
+            with self._st.lock:
+                self._st.outgoing.pop(msg.notification_id, None)
 
     def expect(
         self, graph: str, session: str, action: str, actor: str, on_result: RemoteResult
@@ -157,11 +156,11 @@ class Notices(LinkPart):
         """See :meth:`FleetActorLink.expect`."""
         key = (check_name("graph", graph), check_name("session", session))
         node = (check_name("action", action), check_name("actor", actor))
-        with self._lock:
+        with self._st.lock:
             self._st.check_open()
-            run = self._runs.get(key)
+            run = self._st.runs.get(key)
             if run is None:
-                run = self._st.new_run(key, self._core.now())
+                run = self._st.new_run(key, self._st.core.now())
             run.local = True
             waiter = Waiter(run, node, on_result)
             pending = run.pending.get(node)
@@ -174,7 +173,7 @@ class Notices(LinkPart):
                 run.waiters.setdefault(node, collections.deque()).append(waiter)
 
         def cancel() -> None:
-            with self._lock:
+            with self._st.lock:
                 waiter.active = False
                 waiters = run.waiters.get(node)
                 if waiters is not None and waiter in waiters:
@@ -190,18 +189,18 @@ class Notices(LinkPart):
         if msg is None:
             return
         actor: str = msg.actor
-        if actor and not self._core.speaks_as(opened, actor, "actor"):
+        if actor and not self._st.core.speaks_as(opened, actor, "actor"):
             return  # a member acknowledging in another's name (docs/security.md)
-        with self._lock:
-            if self._core.closed or not actor or actor == self._actor:
+        with self._st.lock:
+            if self._st.core.closed or not actor or actor == self._st.actor:
                 return
-            self._core.count("acks_received")
-            self._heard_at[actor] = self._core.now()
-            out = self._outgoing.get(msg.notification_id)
+            self._st.core.count("acks_received")
+            self._st.heard_at[actor] = self._st.core.now()
+            out = self._st.outgoing.get(msg.notification_id)
             if out is not None and actor in out.waiting:
                 out.waiting.discard(actor)
                 if not out.waiting:
-                    self._changed.notify_all()
+                    self._st.changed.notify_all()
 
     def on_notify(self, opened: Opened) -> None:
         """A notification on ``TEMOTO_NOTIFY`` (the transport's thread): take it, acknowledge it."""
@@ -209,39 +208,39 @@ class Notices(LinkPart):
         if msg is None:
             return
         actor: str = msg.actor
-        if actor and not self._core.speaks_as(opened, actor, "actor"):
+        if actor and not self._st.core.speaks_as(opened, actor, "actor"):
             return  # a member notifying in another's name (docs/security.md)
-        with self._lock:
-            if self._core.closed:
+        with self._st.lock:
+            if self._st.core.closed:
                 return
-            if not actor or actor == self._actor or not msg.notification_id:
-                self._core.count("unexpected")
+            if not actor or actor == self._st.actor or not msg.notification_id:
+                self._st.core.count("unexpected")
                 return
-            self._core.count("notifications_received")
+            self._st.core.count("notifications_received")
             # Taken (its delivery queued) before the acknowledgement leaves: the sender's END,
             # which may follow the acknowledgement at once, is then handled after it.
             self.take(msg)
         ack = new(action_ack_t)
         ack.notification_id, ack.graph, ack.session = msg.notification_id, msg.graph, msg.session
-        ack.actor = self._actor
+        ack.actor = self._st.actor
         self._st.send_quietly(ack_channel(actor), ack, "acks_sent")
 
     def take(self, msg: Any) -> None:
         """Store or deliver a notification unless it is a duplicate. Lock held."""
-        if self._core.closed:
+        if self._st.core.closed:
             return
-        now = self._core.now()
-        self._heard_at[msg.actor] = now
+        now = self._st.core.now()
+        self._st.heard_at[msg.actor] = now
         key: SessionKey = (msg.graph, msg.session)
         nid: str = msg.notification_id
-        ended = self._ended.get(key)
+        ended = self._st.ended.get(key)
         if ended is not None and ended.decision is not None:
             # it still waits for our acknowledgement of a run that ended here: an earlier one
             # may not have reached it (real time: see FleetActorLink._linger)
             ended.speaking[msg.actor] = time.monotonic()
-        run = self._runs.get(key)
+        run = self._st.runs.get(key)
         if (run is not None and nid in run.seen) or (ended is not None and nid in ended.seen):
-            self._core.count("duplicates")
+            self._st.core.count("duplicates")
             return
         if run is None:
             run = self._st.new_run(key, now)
@@ -290,10 +289,10 @@ class Notices(LinkPart):
         """Queue the delivery of a notice to a waiter (a cancelled one passes it on). Lock held."""
 
         def deliver() -> None:
-            with self._lock:
+            with self._st.lock:
                 if not waiter.active:  # cancelled meanwhile: keep the notice for the next
                     run = waiter.run
-                    if self._runs.get((run.graph, run.session)) is run:
+                    if self._st.runs.get((run.graph, run.session)) is run:
                         self.route(run, waiter.key, notice, front=True)
                     return
                 waiter.active = False

@@ -20,7 +20,6 @@ from temoto.fleet._actor_state import (
     HANDSHAKE_CHANNEL,
     LEAVE,
     READY,
-    LinkPart,
     LinkState,
     Phase,
     SessionKey,
@@ -33,16 +32,16 @@ from temoto.fleet.common import check_name
 __all__ = ["Supervisor"]
 
 
-class Supervisor(LinkPart):
+class Supervisor:
     """The watches of one link, and its timer and callback threads.
 
     Args:
-        state: The link's shared state.
+        state: The link's shared state (held, not copied: every part sees one table).
         handshakes: Builds the heartbeats and the repeated LEAVEs.
     """
 
     def __init__(self, state: LinkState, handshakes: Handshakes) -> None:
-        super().__init__(state)
+        self._st = state  # shared with the link's other parts, by reference
         self._handshakes = handshakes
 
     def watch(
@@ -56,28 +55,28 @@ class Supervisor(LinkPart):
         on_abort: Callable[[str, str], None] | None = None,
     ) -> Cancel:
         """See :meth:`FleetActorLink.watch`."""
-        names = {check_name("an actor", a) for a in actors} - {self._actor}
+        names = {check_name("an actor", a) for a in actors} - {self._st.actor}
         key = (graph, session) if graph or session else None
-        with self._lock:
+        with self._st.lock:
             self._st.check_open()
-            run = self._runs.get(key) if key is not None else None
-            watch = Watch(names, on_lost, self._core.now(), key, on_end, on_abort)
-            self._watches.append(watch)
+            run = self._st.runs.get(key) if key is not None else None
+            watch = Watch(names, on_lost, self._st.core.now(), key, on_end, on_abort)
+            self._st.watches.append(watch)
             if run is not None:
                 for actor, result in sorted(run.ended_peers.items()):
                     self.report_end(watch, actor, result)
                 for actor, reason in sorted(run.left_reasons.items()):
                     self.report_abort(watch, actor, reason)
-            for actor in sorted(names & self._left):
+            for actor in sorted(names & self._st.left):
                 self.report_lost(watch, actor, "left")
-            self._timer_wake.notify()
+            self._st.timer_wake.notify()
 
         def cancel() -> None:
-            with self._lock:
+            with self._st.lock:
                 watch.active = False
-                if watch in self._watches:
-                    self._watches.remove(watch)
-                    self._timer_wake.notify()
+                if watch in self._st.watches:
+                    self._st.watches.remove(watch)
+                    self._st.timer_wake.notify()
 
         return cancel
 
@@ -86,10 +85,10 @@ class Supervisor(LinkPart):
         if not watch.active or actor not in watch.actors or actor in watch.reported:
             return
         watch.reported.add(actor)
-        self._core.count("lost")
+        self._st.core.count("lost")
 
         def call() -> None:
-            with self._lock:
+            with self._st.lock:
                 if not watch.active:
                     return
             watch.on_lost(actor, reason)
@@ -107,11 +106,13 @@ class Supervisor(LinkPart):
         try:
             taken = Result(result)
         except ValueError:
-            logger.warning("actor %r: END of %r with unknown result %r", self._actor, actor, result)
+            logger.warning(
+                "actor %r: END of %r with unknown result %r", self._st.actor, actor, result
+            )
             return
 
         def call() -> None:
-            with self._lock:
+            with self._st.lock:
                 if not watch.active:
                     return
             on_end(actor, taken)
@@ -127,10 +128,10 @@ class Supervisor(LinkPart):
         if not watch.active or (actor, reason) in watch.aborts:
             return
         watch.aborts.add((actor, reason))
-        self._core.count("lost")
+        self._st.core.count("lost")
 
         def call() -> None:
-            with self._lock:
+            with self._st.lock:
                 if not watch.active:
                     return
             on_abort(actor, reason)
@@ -141,15 +142,16 @@ class Supervisor(LinkPart):
         """A peer gave up a run (or, with no graph and session, left the fleet). Lock held."""
         fleet = not graph and not session
         if fleet:
-            self._left.add(actor)
+            self._st.left.add(actor)
             runs = self._st.distinct_runs()
         else:
-            ended = self._ended.get((graph, session))
+            ended = self._st.ended.get((graph, session))
             if ended is not None:
                 ended.speaking.pop(actor, None)
-            run = self._runs.get((graph, session))
-            if run is None and reason and (graph, session) not in self._ended:
-                run = self._st.new_run((graph, session), self._core.now())  # kept for a later watch
+            run = self._st.runs.get((graph, session))
+            if run is None and reason and (graph, session) not in self._st.ended:
+                # kept for a later watch
+                run = self._st.new_run((graph, session), self._st.core.now())
             runs = [] if run is None else [run]
         lost = fleet
         for run in runs:
@@ -162,16 +164,16 @@ class Supervisor(LinkPart):
                 continue
             if run.phase is Phase.JOINING:
                 run.aborted = f"'{actor}' {'left the fleet' if fleet else 'gave up'}"
-                self._changed.notify_all()
+                self._st.changed.notify_all()
             elif run.phase is Phase.READY:
                 lost = True
         why = "left the fleet" if fleet else "gave up the run"
-        for out in self._outgoing.values():  # it will not acknowledge: do not wait for it
+        for out in self._st.outgoing.values():  # it will not acknowledge: do not wait for it
             if actor in out.waiting and (fleet or out.key == (graph, session)):
                 out.aborted = f"'{actor}' {why}"
                 out.lost = (actor, "left")
-                self._changed.notify_all()
-        for watch in self._watches:
+                self._st.changed.notify_all()
+        for watch in self._st.watches:
             if reason and not fleet and watch.key == (graph, session):
                 self.report_abort(watch, actor, reason)  # also once the run ended here
             elif lost:
@@ -179,36 +181,36 @@ class Supervisor(LinkPart):
 
     def on_end(self, actor: str, key: SessionKey, result: str = "") -> None:
         """A peer's run finished: stop waiting for it in that run, take its result. Lock held."""
-        run = self._runs.get(key)
-        ended = self._ended.get(key)
+        run = self._st.runs.get(key)
+        ended = self._st.ended.get(key)
         if ended is not None:
             ended.speaking.pop(actor, None)  # it ended too: it needs no word from us
-        if run is None and key not in self._ended:
+        if run is None and key not in self._st.ended:
             run = self._st.new_run(
-                key, self._core.now()
+                key, self._st.core.now()
             )  # kept for a watch of a run not started yet
         if run is not None:
             run.ended_peers.setdefault(actor, result)
-        for out in self._outgoing.values():
+        for out in self._st.outgoing.values():
             if out.key == key and actor in out.waiting:
                 out.waiting.discard(actor)  # it needs nothing more of this run
-                self._changed.notify_all()
-        for watch in self._watches:
+                self._st.changed.notify_all()
+        for watch in self._st.watches:
             if watch.key == key:
                 self.report_end(watch, actor, result)
 
     def run_timer(self) -> None:
         """Heartbeats, silence checks, expiry of kept state."""
         while True:
-            with self._lock:
-                if self._core.closed:
+            with self._st.lock:
+                if self._st.core.closed:
                     return
-                now = self._core.now()
+                now = self._st.core.now()
                 wake = math.inf
                 ready = [r for r in self._st.distinct_runs() if r.local and r.phase is Phase.READY]
-                graced = any(e.heard is not None for e in self._ended.values())
+                graced = any(e.heard is not None for e in self._st.ended.values())
                 msgs: list[Any] = []
-                if ready or graced or self._watches:
+                if ready or graced or self._st.watches:
                     if now >= self._st.next_heartbeat:
                         msgs = [
                             self._handshakes.heartbeat_msg(r)
@@ -218,7 +220,7 @@ class Supervisor(LinkPart):
                         ]
                         if not msgs:
                             msgs.append(self._handshakes.handshake_msg(READY, "", "", (), None))
-                        self._st.next_heartbeat = now + self.heartbeat_s
+                        self._st.next_heartbeat = now + self._st.heartbeat_s
                     wake = self._st.next_heartbeat
                 else:
                     self._st.next_heartbeat = now
@@ -227,8 +229,8 @@ class Supervisor(LinkPart):
                 msgs += repeats
                 wake = min(wake, due)
                 if not msgs:
-                    self._core.wait(
-                        self._timer_wake, None if wake == math.inf else max(0.0, wake - now)
+                    self._st.core.wait(
+                        self._st.timer_wake, None if wake == math.inf else max(0.0, wake - now)
                     )
                     continue
             for msg in msgs:
@@ -242,16 +244,16 @@ class Supervisor(LinkPart):
         """
         msgs: list[Any] = []
         wake = math.inf
-        for key, ended in self._ended.items():
+        for key, ended in self._st.ended.items():
             if ended.decision is None or ended.decision[0] != LEAVE:
                 continue  # an END is answered to the heartbeats of peers still in the run
-            if now >= ended.decided + self.silence_s:
+            if now >= ended.decided + self._st.silence_s:
                 continue
             if ended.out_key not in (None, key):
                 continue  # the same run under its session's name: said under its run id
             if now >= ended.next_repeat:
                 msgs.append(self._handshakes.decision_msg(key, ended.actors, ended.decision))
-                ended.next_repeat = now + self.resend_s
+                ended.next_repeat = now + self._st.resend_s
             wake = min(wake, ended.next_repeat)
         return msgs, wake
 
@@ -261,22 +263,24 @@ class Supervisor(LinkPart):
         Returns when the next may fall silent. Lock held.
         """
         wake = math.inf
-        for out in self._outgoing.values():
+        for out in self._st.outgoing.values():
             if out.aborted is not None:
                 continue
             for actor in sorted(out.waiting):
-                due = max(self._heard_at.get(actor, -math.inf), out.started) + self.silence_s
+                due = max(self._st.heard_at.get(actor, -math.inf), out.started) + self._st.silence_s
                 if now >= due:
-                    out.aborted = f"'{actor}' was not heard for {self.silence_s:g} s"
-                    out.lost = (actor, f"not heard for {self.silence_s:g} s")
-                    self._changed.notify_all()
+                    out.aborted = f"'{actor}' was not heard for {self._st.silence_s:g} s"
+                    out.lost = (actor, f"not heard for {self._st.silence_s:g} s")
+                    self._st.changed.notify_all()
                     break
                 wake = min(wake, due)
-        for watch in self._watches:
+        for watch in self._st.watches:
             for actor in watch.actors - watch.reported:
-                due = max(self._heard_at.get(actor, -math.inf), watch.started) + self.silence_s
+                due = (
+                    max(self._st.heard_at.get(actor, -math.inf), watch.started) + self._st.silence_s
+                )
                 if now >= due:
-                    self.report_lost(watch, actor, f"not heard for {self.silence_s:g} s")
+                    self.report_lost(watch, actor, f"not heard for {self._st.silence_s:g} s")
                 else:
                     wake = min(wake, due)
         return wake
@@ -284,16 +288,16 @@ class Supervisor(LinkPart):
     def expire(self, now: float) -> float:
         """Drop ended runs after their grace and stray runs; when next to look. Lock held."""
         wake = math.inf
-        for key, ended in list(self._ended.items()):
+        for key, ended in list(self._st.ended.items()):
             if now >= ended.until:
-                del self._ended[key]
+                del self._st.ended[key]
             else:
                 wake = min(wake, ended.until)
-        for key, run in list(self._runs.items()):
+        for key, run in list(self._st.runs.items()):
             if not run.local:
-                due = run.touched + self.stray_s
+                due = run.touched + self._st.stray_s
                 if now >= due:
-                    del self._runs[key]
+                    del self._st.runs[key]
                 else:
                     wake = min(wake, due)
         return wake
@@ -301,15 +305,15 @@ class Supervisor(LinkPart):
     def run_calls(self) -> None:
         """Run the callbacks, in order."""
         while True:
-            with self._lock:
-                while not self._calls and not self._core.closed:
-                    self._calls_ready.wait()
-                if self._core.closed:
+            with self._st.lock:
+                while not self._st.calls and not self._st.core.closed:
+                    self._st.calls_ready.wait()
+                if self._st.core.closed:
                     return
-                call = self._calls.popleft()
+                call = self._st.calls.popleft()
             try:
                 call()
             except Exception:
-                with self._lock:
-                    self._core.count("callback_errors")
-                logger.exception("actor %r: a fleet callback raised", self._actor)
+                with self._st.lock:
+                    self._st.core.count("callback_errors")
+                logger.exception("actor %r: a fleet callback raised", self._st.actor)

@@ -1,6 +1,6 @@
 """The engine's link to the other actors of shared graphs, over the fleet transport.
 
-:class:`FleetActorLink` implements :class:`temoto.core.remote.ActorLink` (REFERENCE §2.14,
+:class:`FleetActorLink` implements :class:`temoto.core.remote.ActorLink` (docs/design.md §4.6,
 thesis §6.3.2) with the messages of ``temoto/lcm_types/defs`` on two channels:
 
 ``TEMOTO_HANDSHAKE`` (``handshake_t``)
@@ -150,13 +150,7 @@ class FleetActorLink(Closing):
             :class:`~temoto.clock.MonotonicClock`).
 
     Attributes:
-        resend_s: Period of handshake and notification resends.
-        silence_s: After this long without a message a watched actor is lost.
-        grace_s: How long an ended run is still answered for.
-        stray_s: How long a run never started here is kept.
         linger_s: How long :meth:`close` keeps answering after runs that just finished.
-        heartbeat_s: Period of the READY heartbeats: ``5 * resend_s``, at most a third of
-            ``silence_s``.
 
     Raises:
         ValueError: If ``actor`` is empty or a duration is not a positive number.
@@ -176,45 +170,30 @@ class FleetActorLink(Closing):
         linger_s: float = 0.3,
         clock: Clock | None = None,
     ) -> None:
-        self._core = core = ServiceCore(link, STATS, clock)
         self._link = link
-        self._actor = check_name("actor", actor)
-        self.resend_s = check_seconds("resend_s", resend_s)
-        self.silence_s = check_seconds("silence_s", silence_s)
-        self.grace_s = check_seconds("grace_s", grace_s, zero=True)
-        self.stray_s = check_seconds("stray_s", stray_s)
+        actor = check_name("actor", actor)
+        resend_s = check_seconds("resend_s", resend_s)
+        silence_s = check_seconds("silence_s", silence_s)
         self.linger_s = check_seconds("linger_s", linger_s, zero=True)
-        self.heartbeat_s = min(5 * self.resend_s, self.silence_s / 3)
+        # The one state the parts share: each holds it by reference.
         self._st = st = LinkState(
-            core,
-            self._actor,
-            resend_s=self.resend_s,
-            silence_s=self.silence_s,
-            grace_s=self.grace_s,
-            stray_s=self.stray_s,
-            heartbeat_s=self.heartbeat_s,
+            ServiceCore(link, STATS, clock),
+            actor,
+            resend_s=resend_s,
+            silence_s=silence_s,
+            grace_s=check_seconds("grace_s", grace_s, zero=True),
+            stray_s=check_seconds("stray_s", stray_s),
+            heartbeat_s=min(5 * resend_s, silence_s / 3),
         )
         self._handshakes = Handshakes(st)
         self._notices = Notices(st)
         self._supervisor = Supervisor(st, self._handshakes)
-        self._lock = core.lock
-        self._changed = st.changed
-        self._timer_wake = st.timer_wake
-        self._calls_ready = st.calls_ready
-        # Guarded by the lock.
-        self._runs = st.runs
-        self._ended = st.ended
-        self._outgoing = st.outgoing
-        self._watches = st.watches
-        self._heard_at = st.heard_at
-        self._left = st.left
-        self._calls = st.calls
         self._subs: list[Subscription] = []
         try:
             for channel, handler in (
                 (HANDSHAKE_CHANNEL, self._on_handshake),
                 (NOTIFY_CHANNEL, self._notices.on_notify),
-                (ack_channel(self._actor), self._notices.on_ack),
+                (ack_channel(self._st.actor), self._notices.on_ack),
             ):
                 self._subs.append(link.listen(channel, handler, queue_capacity=_QUEUE_CAPACITY))
         except BaseException:
@@ -231,18 +210,43 @@ class FleetActorLink(Closing):
         self._caller.start()
 
     def __repr__(self) -> str:
-        state = "closed" if self._core.closed else "open"
-        return f"<FleetActorLink actor={self._actor!r} {state} on {self._link!r}>"
+        state = "closed" if self._st.core.closed else "open"
+        return f"<FleetActorLink actor={self._st.actor!r} {state} on {self._link!r}>"
 
     @property
     def actor(self) -> str:
         """This engine's actor name."""
-        return self._actor
+        return self._st.actor
+
+    @property
+    def resend_s(self) -> float:
+        """Period of handshake and notification resends."""
+        return self._st.resend_s
+
+    @property
+    def silence_s(self) -> float:
+        """After this long without a message a watched actor is lost."""
+        return self._st.silence_s
+
+    @property
+    def grace_s(self) -> float:
+        """How long an ended run is still answered for."""
+        return self._st.grace_s
+
+    @property
+    def stray_s(self) -> float:
+        """How long a run never started here is kept."""
+        return self._st.stray_s
+
+    @property
+    def heartbeat_s(self) -> float:
+        """Period of the READY heartbeats: ``5 * resend_s``, at most a third of ``silence_s``."""
+        return self._st.heartbeat_s
 
     @property
     def stats(self) -> dict[str, int]:
         """A copy of the counters, one per name in :data:`STATS`."""
-        return self._core.stats()
+        return self._st.core.stats()
 
     def handshake(self, graph: str, session: str, actors: Sequence[str], timeout: float) -> str:
         """Block until every pair of ``actors`` has heard each other in this run.
@@ -401,14 +405,14 @@ class FleetActorLink(Closing):
         key = (graph, session)
         leave = None
         decision: tuple[int, str, str] | None = None
-        with self._lock:
-            now = self._core.now()
-            run = self._runs.pop(key, None)
+        with self._st.lock:
+            now = self._st.core.now()
+            run = self._st.runs.pop(key, None)
             if run is not None:
                 for other in ((run.graph, run.session), (run.graph, run.run_id)):
-                    if self._runs.get(other) is run:
-                        del self._runs[other]  # the same run under its other key
-            ended = self._ended.get(key)
+                    if self._st.runs.get(other) is run:
+                        del self._st.runs[other]  # the same run under its other key
+            ended = self._st.ended.get(key)
             if run is None and ended is not None and ended.decision is not None:
                 # a new word on a run that ended here: an abort's reason, or a result taken
                 # from a peer while the abort settled
@@ -416,8 +420,8 @@ class FleetActorLink(Closing):
                     ended.decision = (LEAVE, "", reason)
                 elif result is not None:
                     ended.decision = (END, result.value, "")
-                ended.decided, ended.next_repeat = now, now + self.resend_s
-                if not self._core.closed:
+                ended.decided, ended.next_repeat = now, now + self._st.resend_s
+                if not self._st.core.closed:
                     leave = self._handshakes.decision_msg(
                         ended.out_key or key, ended.actors, ended.decision
                     )
@@ -427,7 +431,7 @@ class FleetActorLink(Closing):
                     decision = (LEAVE, "", reason)
                 else:
                     decision = (END, "" if result is None else result.value, "")
-                if not self._core.closed:
+                if not self._st.core.closed:
                     leave = self._handshakes.decision_msg(key, run.actors, decision)
             if run is not None:
                 for waiters in run.waiters.values():
@@ -440,20 +444,20 @@ class FleetActorLink(Closing):
                         run.actors,
                         run.frozen if done else None,
                         run.seen,
-                        now + self.grace_s,
+                        now + self._st.grace_s,
                         decision if done else None,
                         now,
-                        now + self.resend_s,
+                        now + self._st.resend_s,
                         key,
                         run_id=run.run_id,
                     )
-                    self._ended[key] = kept
-                    self._ended[(run.graph, run.session)] = kept  # late JOINs name the session
-            for out in self._outgoing.values():
+                    self._st.ended[key] = kept
+                    self._st.ended[(run.graph, run.session)] = kept  # late JOINs name the session
+            for out in self._st.outgoing.values():
                 if out.key == key:
                     out.aborted = "the run was ended"
-            self._changed.notify_all()
-            self._timer_wake.notify()
+            self._st.changed.notify_all()
+            self._st.timer_wake.notify()
         if leave is not None:
             self._st.send_quietly(HANDSHAKE_CHANNEL, leave, "handshakes_sent")
 
@@ -463,16 +467,16 @@ class FleetActorLink(Closing):
         Waiting calls fail with FleetError; callbacks not run yet are dropped. Idempotent.
         """
         self._linger()
-        with self._lock:
-            if self._core.closed:
+        with self._st.lock:
+            if self._st.core.closed:
                 return
-            self._core.closed = True
+            self._st.core.closed = True
             active = [r for r in self._st.distinct_runs() if r.local and r.phase is not Phase.KEPT]
             leaves = [self._handshakes.leave_msg(r.graph, r.session, r.actors) for r in active]
-            self._calls.clear()
-            self._changed.notify_all()
-            self._timer_wake.notify()
-            self._calls_ready.notify()
+            self._st.calls.clear()
+            self._st.changed.notify_all()
+            self._st.timer_wake.notify()
+            self._st.calls_ready.notify()
         for msg in leaves:
             self._st.send_quietly(HANDSHAKE_CHANNEL, msg, "handshakes_sent")
         for sub in self._subs:
@@ -493,13 +497,13 @@ class FleetActorLink(Closing):
         held up for seconds; a process that exited meanwhile took them along, and its peers
         aborted the run it had ended (tests/fleet/test_zenoh_netns.py, 2 runs in 7).
         """
-        with self._lock:
-            if self._core.closed:
+        with self._st.lock:
+            if self._st.core.closed:
                 return
-            now = self._core.now()
+            now = self._st.core.now()
             ends = [
                 self._handshakes.decision_msg(key, e.actors, e.decision)
-                for key, e in self._ended.items()
+                for key, e in self._st.ended.items()
                 if e.decision is not None and e.until > now and e.out_key in (None, key)
             ]
         if not ends or self.linger_s <= 0:
@@ -512,23 +516,23 @@ class FleetActorLink(Closing):
             remaining = deadline - time.monotonic()
             if remaining <= 0:
                 break
-            with self._lock:
-                self._changed.wait(min(self.resend_s, remaining))
+            with self._st.lock:
+                self._st.changed.wait(min(self._st.resend_s, remaining))
         # Peers that still send us notifications or heartbeats of such a run are acknowledged
         # and told END again until they go quiet: answered, ended, or gone.
-        until = time.monotonic() + self.silence_s
-        with self._lock:
-            while not self._core.closed:
+        until = time.monotonic() + self._st.silence_s
+        with self._st.lock:
+            while not self._st.core.closed:
                 now = time.monotonic()
-                recent = now - 2 * self.heartbeat_s
+                recent = now - 2 * self._st.heartbeat_s
                 if now >= until or not any(
                     heard >= recent
-                    for e in self._ended.values()
+                    for e in self._st.ended.values()
                     if e.decision is not None
                     for heard in e.speaking.values()
                 ):
                     return
-                self._changed.wait(min(self.heartbeat_s, until - now))
+                self._st.changed.wait(min(self._st.heartbeat_s, until - now))
 
     # --- receiving (the transport's thread) ---------------------------------------------------
 
@@ -538,24 +542,24 @@ class FleetActorLink(Closing):
         if msg is None:
             return
         actor: str = msg.actor
-        if actor and not self._core.speaks_as(opened, actor, "actor"):
+        if actor and not self._st.core.speaks_as(opened, actor, "actor"):
             return  # a member speaking as another (docs/security.md)
-        with self._lock:
-            if self._core.closed:
+        with self._st.lock:
+            if self._st.core.closed:
                 return
-            if not actor or actor == self._actor or msg.phase not in PHASES:
-                self._core.count("unexpected")
+            if not actor or actor == self._st.actor or msg.phase not in PHASES:
+                self._st.core.count("unexpected")
                 return
-            self._core.count("handshakes_received")
-            now = self._core.now()
-            self._heard_at[actor] = now
+            self._st.core.count("handshakes_received")
+            now = self._st.core.now()
+            self._st.heard_at[actor] = now
             if msg.phase == LEAVE:
                 self._supervisor.on_leave(actor, msg.graph, msg.session, msg.reason)
                 return
             if msg.phase == END:
                 self._supervisor.on_end(actor, (msg.graph, msg.session), msg.result)
                 return
-            self._left.discard(actor)
+            self._st.left.discard(actor)
             reply = (
                 self._handshakes.on_join_or_ready(msg, now) if msg.graph or msg.session else None
             )

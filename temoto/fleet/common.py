@@ -26,7 +26,7 @@ from temoto.clock import Clock
 from temoto.errors import DecodeError
 from temoto.transport import codec
 from temoto.transport.auth import Opened
-from temoto.transport.base import _LogLimiter
+from temoto.transport.base import LogLimiter
 
 __all__ = [
     "IMPOSTOR",
@@ -40,8 +40,7 @@ __all__ = [
     "new",
 ]
 
-# The name these helpers logged under when the module was private: log lines do not change.
-logger = logging.getLogger("temoto.fleet._common")
+logger = logging.getLogger(__name__)
 
 # (sender, type, version) already warned about: a peer of another release is named once, not
 # once per message. Bounded: past this many, further ones are logged at DEBUG only.
@@ -78,7 +77,7 @@ class SpeakerCheck:
 
     def __init__(self, service: str) -> None:
         self.service = service
-        self._log = _LogLimiter(_IMPOSTOR_LOG_S)
+        self._log = LogLimiter(_IMPOSTOR_LOG_S)
 
     def __call__(
         self,

@@ -1,6 +1,6 @@
 """Remote control of running instances: graph commands and live feedback over the fleet.
 
-Upstream TeMoto drives its Action Engines through ROS topics (REFERENCE §2.13); here the same
+Upstream TeMoto drives its Action Engines through ROS topics (docs/design.md §4.5); here the same
 commands travel as ``graph_command_t`` on ``TEMOTO_GRAPH_CMD``, addressed to target actors:
 
 * :class:`GraphControlServer` runs in every instance. It carries out the commands that name its

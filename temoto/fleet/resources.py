@@ -445,9 +445,6 @@ class RemoteResources(Closing):
 
         Releases still waiting for their acknowledgement are sent once more. The ``"remote"``
         server stays registered (loads then fail with ``ResourceClosedError``). Idempotent.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             if self._core.closed:

@@ -1,6 +1,6 @@
 """The Resource Info Synchronizer (RIS): which robot serves which resources, and who is alive.
 
-Thesis §7.2, REFERENCE §4.6, ``docs/ris.md``. One :class:`ResourceInfoSync` runs per robot
+Thesis §7.2, docs/design.md §6, ``docs/ris.md``. One :class:`ResourceInfoSync` runs per robot
 (TeMoto instance) on the channel :data:`RIS_CHANNEL`:
 
 ``ris_advert_t``
@@ -330,8 +330,7 @@ class ResourceInfoSync(Closing):
     def refresh(self) -> None:
         """Advertise now (after registering or removing servers).
 
-        Raises:
-            Nothing; a failed send is counted and logged.
+        A failed send is counted and logged.
         """
         with self._lock:
             self._next_advert = -math.inf
@@ -357,11 +356,7 @@ class ResourceInfoSync(Closing):
         self._send_withdraw(names)
 
     def close(self) -> None:
-        """Withdraw this robot, unsubscribe, stop and join the threads. Idempotent.
-
-        Raises:
-            Nothing.
-        """
+        """Withdraw this robot, unsubscribe, stop and join the threads. Idempotent."""
         with self._lock:
             if self._core.closed:
                 return

@@ -9,7 +9,7 @@ import struct
 
 class graph_command_t(object):
     """
-    Channel TEMOTO_GRAPH_CMD. Control of a graph on other actors (REFERENCE 2.11, 2.13). Every
+    Channel TEMOTO_GRAPH_CMD. Control of a graph on other actors (docs/design.md §4.5). Every
     target answers with a graph_command_reply_t carrying the same request_id; an actor that is
     not a target ignores the command.
     """

@@ -10,7 +10,7 @@ import struct
 class handshake_t(object):
     """
     Channel TEMOTO_HANDSHAKE. The N-to-N handshake before a multi-actor graph starts (thesis
-    Algorithm 3, REFERENCE 2.14): every participant re-publishes it until each pair of
+    Algorithm 3, docs/design.md §4.6): every participant re-publishes it until each pair of
     participants has heard each other with a fresh stamp, learnt through the echoed stamps in
     `heard`. Version 2: the actor list is one string and the heard list one array of stamps by
     place in it, so a receiver decodes a message of a 50-actor run in a few fields, not 100.

@@ -10,7 +10,7 @@ import struct
 class resource_status_t(object):
     """
     Channel TEMOTO_RESOURCE. A status report of a resource sent by its provider to one remote
-    consumer's reference (REFERENCE 3.5), e.g. FATAL when a process died.
+    consumer's reference (docs/design.md §5), e.g. FATAL when a process died.
     """
 
     __slots__ = ["version", "provider", "consumer", "reference_id", "resource_id", "status", "message", "origin", "hops_count", "hops"]

@@ -11,7 +11,7 @@ import temoto.lcm_types
 
 class ris_advert_t(object):
     """
-    Channel TEMOTO_RIS. The Resource Info Synchronizer (REFERENCE 4.6): a manager advertises
+    Channel TEMOTO_RIS. The Resource Info Synchronizer (docs/design.md §6): a manager advertises
     its servers every period_ms, and at once when they change or a ris_request_t asks.
     """
 

@@ -45,7 +45,7 @@ __all__ = [
     "wait_readable",
 ]
 
-logger = logging.getLogger("temoto.managers.process")  # the manager's log, as before
+logger = logging.getLogger(__name__)
 
 #: States of /proc/<pid>/stat that mean "no longer running".
 DEAD_STATES = frozenset({"Z", "X", "x"})

@@ -225,9 +225,6 @@ class ProcessMonitor:
         """Stop the monitor thread and close every pidfd; processes are left alone.
 
         Pending exits are not reported. Idempotent.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             if not self._closing:
@@ -362,9 +359,6 @@ def processes_with_environ(entry: bytes) -> list[int]:
     Returns:
         The pids, sorted. Processes whose environment cannot be read (gone, not ours) are
         skipped.
-
-    Raises:
-        Nothing.
     """
     me = os.getpid()
     found: list[int] = []

@@ -511,15 +511,12 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
         Idempotent. After it, loads fail with :class:`StateError`. Processes left running
         can be re-adopted by a new manager on a restored registrar (in this OS process, or in
         another one with ``die_with_manager=False``); with ``die_with_manager`` they are
-        stopped when this OS process ends.
+        stopped when this OS process ends. A process that survives SIGKILL is logged.
 
         Args:
             stop_processes: Stop every process first (all at once: SIGTERM to each group,
                 ``grace`` seconds, SIGKILL; see :meth:`hurry`), without reporting their exits
                 as failures. For a program that ends: nothing it started outlives it.
-
-        Raises:
-            Nothing: a process that survives SIGKILL is logged.
         """
         with self._lock:
             self._closed = True
@@ -609,9 +606,6 @@ class ProcessManager(ResourceServer[ProcessRequest, ProcessResponse]):
 
         Returns:
             Pids, in the order they were started or adopted.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             return [p.pid for p in self._procs.values() if p.exit is None]

@@ -190,9 +190,6 @@ class ProcessManagerClient:
 
         Args:
             handle: What :meth:`load` returned.
-
-        Raises:
-            Nothing for a handle already released.
         """
         with self._lock:
             if handle.released:
@@ -208,11 +205,7 @@ class ProcessManagerClient:
                     self.registrar.release(ref)
 
     def release_all(self) -> None:
-        """Release every process of this client.
-
-        Raises:
-            Nothing.
-        """
+        """Release every process of this client."""
         with self._lock:
             handles = list(self._all)
         for handle in reversed(handles):
@@ -223,9 +216,6 @@ class ProcessManagerClient:
 
         Returns:
             Handles, in load order.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             return list(self._all)
@@ -265,11 +255,7 @@ class ProcessManagerClient:
         return attached
 
     def close(self) -> None:
-        """Release everything and stop the worker thread. Idempotent.
-
-        Raises:
-            Nothing.
-        """
+        """Release everything and stop the worker thread. Idempotent."""
         self.release_all()
         with self._thread_lock:
             self._closed = True

@@ -24,12 +24,24 @@ from typing import IO, Any, Final, cast
 from mcap.writer import Writer
 
 from temoto.clock import Clock, MonotonicClock
+from temoto.core.action import ACTION_LOGGER
 from temoto.core.instrument import Instrument
 from temoto.core.states import NodeState, Result
 from temoto.errors import ConfigError
 from temoto.record.schemas import schema_bytes, stamp
 
-__all__ = ["FLUSH_PERIOD_S", "TELEMETRY_RATE_HZ", "TOPICS", "Recorder"]
+__all__ = [
+    "FLUSH_PERIOD_S",
+    "TELEMETRY_RATE_HZ",
+    "TOPICS",
+    "Encoded",
+    "Recorder",
+    "health_messages",
+    "joints_messages",
+    "log_level",
+    "pose_messages",
+    "vehicle_messages",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -58,16 +70,100 @@ _LEVELS: Final = ((logging.CRITICAL, 5), (logging.ERROR, 4), (logging.WARNING, 3
 _STOP: Final = object()
 #: A queued message: topic, schema, stamp (ns since the epoch), message.
 _Item = tuple[str, str, int, dict[str, Any]]
-#: Where the actions log (``temoto.action.<graph>.<node>``, see Action.logger).
-_ACTION_LOGGER: Final = "temoto.action"
 
 
-def _level(levelno: int) -> int:
+#: An encoded message: topic, schema, message (what :meth:`Recorder.put` takes).
+Encoded = tuple[str, str, dict[str, Any]]
+
+
+def log_level(levelno: int) -> int:
     """A logging level as a ``foxglove.LogLevel``."""
     for at_least, level in _LEVELS:
         if levelno >= at_least:
             return level
     return 2 if levelno >= logging.INFO else 1
+
+
+def pose_messages(robot: str, pose: tuple[float, float, float]) -> list[Encoded]:
+    """A robot's pose ``(x, y, yaw)`` as its ``/{robot}/pose`` and ``/tf`` messages."""
+    x, y, yaw = pose
+    position = {"x": x, "y": y, "z": 0.0}
+    orientation = {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}
+    return [
+        (
+            f"/{robot}/pose",
+            "foxglove.PoseInFrame",
+            {"frame_id": "odom", "pose": {"position": position, "orientation": orientation}},
+        ),
+        (
+            "/tf",
+            "foxglove.FrameTransform",
+            {
+                "parent_frame_id": "odom",
+                "child_frame_id": f"{robot}/base_link",
+                "translation": dict(position),
+                "rotation": dict(orientation),
+            },
+        ),
+    ]
+
+
+def joints_messages(robot: str, positions: dict[str, float]) -> list[Encoded]:
+    """A robot's joint positions as its ``/{robot}/joint_states`` message."""
+    message = {
+        "name": list(positions),
+        "position": list(positions.values()),
+        "velocity": [],
+        "effort": [],
+    }
+    return [(f"/{robot}/joint_states", "temoto.JointStates", message)]
+
+
+def vehicle_messages(robot: str, telemetry: Any) -> list[Encoded]:
+    """A vehicle's telemetry as its ``/{robot}/location`` and ``/{robot}/vehicle`` messages.
+
+    None (no telemetry yet) gives none.
+    """
+    if telemetry is None:
+        return []
+    where = telemetry.position
+    roll, pitch, yaw = telemetry.attitude
+    return [
+        (
+            f"/{robot}/location",
+            "foxglove.LocationFix",
+            {
+                "frame_id": f"{robot}/base_link",
+                "latitude": where.lat,
+                "longitude": where.lon,
+                "altitude": where.alt,
+                "position_covariance": [0.0] * 9,
+                "position_covariance_type": 0,
+            },
+        ),
+        (
+            f"/{robot}/vehicle",
+            "temoto.VehicleState",
+            {
+                "armed": bool(telemetry.armed),
+                "mode": str(telemetry.mode),
+                "latitude": where.lat,
+                "longitude": where.lon,
+                "altitude": where.alt,
+                "roll": roll,
+                "pitch": pitch,
+                "yaw": yaw,
+                "battery_voltage": telemetry.battery_voltage,
+                "battery_remaining": int(telemetry.battery_remaining),
+                "heartbeat_age": telemetry.heartbeat_age,
+            },
+        ),
+    ]
+
+
+def health_messages(robot: str, healthy: bool) -> list[Encoded]:
+    """A robot's health as its ``/{robot}/health`` message."""
+    return [(f"/{robot}/health", "temoto.RobotHealth", {"robot": robot, "healthy": bool(healthy)})]
 
 
 class _LogHandler(logging.Handler):
@@ -86,7 +182,7 @@ class _LogHandler(logging.Handler):
         except Exception:
             message = str(record.msg)
         self.recorder.log(
-            _level(record.levelno), message, record.name, record.pathname, record.lineno
+            log_level(record.levelno), message, record.name, record.pathname, record.lineno
         )
 
 
@@ -236,13 +332,13 @@ class Recorder(Instrument):
         showed before: ``temoto.action`` no longer propagates, and a handler passes its parent
         the records at the level it had. :meth:`close` restores it all.
         """
-        actions = logging.getLogger(_ACTION_LOGGER)
+        actions = logging.getLogger(ACTION_LOGGER)
         parent = logging.getLogger("temoto")
         shown = actions.getEffectiveLevel()
         level, propagate = actions.level, actions.propagate
         mine = _LogHandler(self)
         forward = _Forward(parent, shown)
-        others = _LogHandler(self, skip=_ACTION_LOGGER, level=logging.WARNING)
+        others = _LogHandler(self, skip=ACTION_LOGGER, level=logging.WARNING)
         actions.setLevel(min(shown, logging.INFO))
         actions.addHandler(mine)
         actions.addHandler(forward)
@@ -475,88 +571,22 @@ class Recorder(Instrument):
     def _sample_once(self, robot: Any) -> None:
         name = robot.name
         features = robot.features
-        readings: list[tuple[str, Callable[[], None]]] = []
+        readings: list[tuple[str, Callable[[], list[Encoded]]]] = []
         if "navigation" in features:
-            readings.append(("pose", lambda: self._pose(name, robot.pose())))
+            readings.append(("pose", lambda: pose_messages(name, robot.pose())))
         if "manipulation" in features:
-            readings.append(("joints", lambda: self._joints(name, robot.joint_positions())))
+            readings.append(("joints", lambda: joints_messages(name, robot.joint_positions())))
         if "flight" in features:
-            readings.append(("vehicle", lambda: self._vehicle(name, robot.telemetry())))
-        readings.append(("health", lambda: self._health(name, robot.healthy())))
+            readings.append(("vehicle", lambda: vehicle_messages(name, robot.telemetry())))
+        readings.append(("health", lambda: health_messages(name, robot.healthy())))
         for what, read in readings:
             try:
-                read()
+                messages = read()
             except Exception as err:  # a device in fault, a driver shut down: skip it
                 logger.debug("robot %s: no %s sample: %s", name, what, err)
-
-    def _pose(self, robot: str, pose: tuple[float, float, float]) -> None:
-        x, y, yaw = pose
-        position = {"x": x, "y": y, "z": 0.0}
-        orientation = {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)}
-        self.put(
-            f"/{robot}/pose",
-            "foxglove.PoseInFrame",
-            {"frame_id": "odom", "pose": {"position": position, "orientation": orientation}},
-        )
-        self.put(
-            "/tf",
-            "foxglove.FrameTransform",
-            {
-                "parent_frame_id": "odom",
-                "child_frame_id": f"{robot}/base_link",
-                "translation": dict(position),
-                "rotation": dict(orientation),
-            },
-        )
-
-    def _joints(self, robot: str, positions: dict[str, float]) -> None:
-        message = {
-            "name": list(positions),
-            "position": list(positions.values()),
-            "velocity": [],
-            "effort": [],
-        }
-        self.put(f"/{robot}/joint_states", "temoto.JointStates", message)
-
-    def _vehicle(self, robot: str, telemetry: Any) -> None:
-        if telemetry is None:
-            return
-        where = telemetry.position
-        roll, pitch, yaw = telemetry.attitude
-        self.put(
-            f"/{robot}/location",
-            "foxglove.LocationFix",
-            {
-                "frame_id": f"{robot}/base_link",
-                "latitude": where.lat,
-                "longitude": where.lon,
-                "altitude": where.alt,
-                "position_covariance": [0.0] * 9,
-                "position_covariance_type": 0,
-            },
-        )
-        self.put(
-            f"/{robot}/vehicle",
-            "temoto.VehicleState",
-            {
-                "armed": bool(telemetry.armed),
-                "mode": str(telemetry.mode),
-                "latitude": where.lat,
-                "longitude": where.lon,
-                "altitude": where.alt,
-                "roll": roll,
-                "pitch": pitch,
-                "yaw": yaw,
-                "battery_voltage": telemetry.battery_voltage,
-                "battery_remaining": int(telemetry.battery_remaining),
-                "heartbeat_age": telemetry.heartbeat_age,
-            },
-        )
-
-    def _health(self, robot: str, healthy: bool) -> None:
-        self.put(
-            f"/{robot}/health", "temoto.RobotHealth", {"robot": robot, "healthy": bool(healthy)}
-        )
+                continue
+            for topic, schema, message in messages:
+                self.put(topic, schema, message)
 
     def _on_fleet(self, channel: str, data: bytes) -> None:
         from temoto.lcm_types import envelope_t
@@ -564,15 +594,20 @@ class Recorder(Instrument):
         message: dict[str, Any] = {"channel": channel, "size": len(data)}
         try:
             env = envelope_t.decode(data)
+            signed = int(env.mac_size) > 0
+            # The envelope's stamp field is the sender's clock on an insecure fleet only; a
+            # keyed fleet's envelopes carry the sender's session id there (the same on every
+            # message): it is `session`, and `stamp_us` is 0.
             message.update(
                 sender=str(env.sender),
                 type=str(env.type),
                 seq=int(env.seq),
-                stamp_us=int(env.stamp_us),
-                signed=int(env.mac_size) > 0,
+                stamp_us=0 if signed else int(env.stamp_us),
+                session=int(env.stamp_us) if signed else 0,
+                signed=signed,
             )
         except Exception:
-            message.update(sender="", type="", seq=0, stamp_us=0, signed=False)
+            message.update(sender="", type="", seq=0, stamp_us=0, session=0, signed=False)
         self.put(f"/fleet/{channel}", "temoto.FleetMessage", message)
         if message["type"] == "handshake_t" and channel == "TEMOTO_HANDSHAKE":
             # A keyed fleet encrypts the payload (docs/security.md): every participant sends

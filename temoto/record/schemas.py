@@ -170,6 +170,7 @@ SCHEMAS: Final[dict[str, dict[str, Any]]] = {
         type=_STRING,
         seq={"type": "integer"},
         stamp_us={"type": "integer"},
+        session={"type": "integer"},
         size={"type": "integer"},
         signed={"type": "boolean"},
     ),

@@ -5,7 +5,11 @@ Written from the protocol's specification, ``foxglove/ws-protocol`` ``docs/spec.
 with an ``op`` (``serverInfo``, ``advertise``, ``unadvertise`` from the server; ``subscribe``
 from the client, ``subscriptions: [{id, channelId}]``); a Message Data frame is binary, opcode
 ``0x01``, then the subscription id (uint32) and the receive timestamp (uint64, ns), little
-endian, then the payload in the channel's encoding.
+endian, then the payload in the channel's encoding. Services: the server's ``advertiseServices``
+(``services: [{id, name, type, request, response}]``); a Service Call Request is binary,
+opcode ``0x02``, then the service id, the call id and the encoding's length (uint32 each),
+the encoding, the payload; its answer is a binary Service Call Response (opcode ``0x03``, the
+same layout) or a text ``serviceCallFailure`` (``serviceId``, ``callId``, ``message``).
 
 The SDK's server accepts the subprotocol ``foxglove.sdk.v1`` only (``foxglove-sdk`` 0.30; the
 spec's ``foxglove.websocket.v1`` alone is refused with 400), so the client offers both.
@@ -23,6 +27,8 @@ from websockets.sync.client import ClientConnection, connect
 
 SUBPROTOCOLS = ["foxglove.sdk.v1", "foxglove.websocket.v1"]
 MESSAGE_DATA = 0x01
+SERVICE_CALL_REQUEST = 0x02
+SERVICE_CALL_RESPONSE = 0x03
 
 
 @dataclass
@@ -47,6 +53,9 @@ class FoxgloveClient:
         self.messages: list[Message] = []
         self._subs: dict[int, int] = {}  # subscription id -> channel id
         self._next_sub = 1
+        self.services: dict[str, dict[str, Any]] = {}  # name -> the advertised service
+        self.answers: dict[int, tuple[bool, Any]] = {}  # call id -> (ok, JSON | failure text)
+        self._next_call = 1
 
     def close(self) -> None:
         self._connection.__exit__(None, None, None)
@@ -78,6 +87,10 @@ class FoxgloveClient:
     def read_one(self, timeout: float) -> None:
         frame = self.ws.recv(timeout=timeout)
         now = time.monotonic()
+        if isinstance(frame, bytes) and frame[0] == SERVICE_CALL_RESPONSE:
+            _service, call, n = struct.unpack_from("<III", frame, 1)
+            self.answers[call] = (True, json.loads(frame[13 + n :]))
+            return
         if isinstance(frame, bytes):
             assert frame[0] == MESSAGE_DATA, f"unexpected binary opcode {frame[0]}"
             sub, ns = struct.unpack_from("<IQ", frame, 1)
@@ -93,6 +106,14 @@ class FoxgloveClient:
             for channel in body["channels"]:
                 self.channels[channel["id"]] = channel
                 self.events.append((now, "advertise", channel["topic"]))
+        elif op == "advertiseServices":
+            for service in body["services"]:
+                self.services[service["name"]] = service
+        elif op == "unadvertiseServices":
+            gone = set(body["serviceIds"])
+            self.services = {k: v for k, v in self.services.items() if v["id"] not in gone}
+        elif op == "serviceCallFailure":
+            self.answers[body["callId"]] = (False, body["message"])
         elif op == "unadvertise":
             for cid in body["channelIds"]:
                 channel = self.channels.pop(cid, None)
@@ -109,6 +130,21 @@ class FoxgloveClient:
                 self.read_one(left)
             except TimeoutError:
                 continue
+
+    def call(self, service: str, request: Any, timeout: float = 10.0) -> tuple[bool, Any]:
+        """Call an advertised service with a JSON request; wait for its answer.
+
+        Returns:
+            ``(True, the response's JSON)`` or ``(False, the failure's message)``.
+        """
+        self.wait(lambda c: service in c.services, timeout)
+        call = self._next_call
+        self._next_call += 1
+        encoding = b"json"
+        head = struct.pack("<BIII", SERVICE_CALL_REQUEST, self.services[service]["id"], call, 4)
+        self.ws.send(head + encoding + json.dumps(request).encode())
+        self.wait(lambda c: call in c.answers, timeout)
+        return self.answers[call]
 
     def first_message(self, sub: int, timeout: float = 10.0) -> Message:
         self.wait(lambda c: any(m.subscription == sub for m in c.messages), timeout)

@@ -32,13 +32,13 @@ seen doing its work.
 from __future__ import annotations
 
 import json
-import signal
 import sys
 import threading
 import time
 from collections.abc import Callable, Mapping
 from typing import Any, Final
 
+from temoto.cli.signals import stop_on_signals
 from temoto.clock import MonotonicClock
 from temoto.drivers import driver_class
 from temoto.drivers.sim import Simulator
@@ -167,10 +167,9 @@ def main(argv: list[str] | None = None) -> int:
     config = {k: v for k, v in entry.items() if k != "driver"}
     sim, settings = cls.simulate("device", config, clock=MonotonicClock())
     stop = threading.Event()
-    for signum in (signal.SIGTERM, signal.SIGINT):
-        signal.signal(signum, lambda *_: stop.set())
     lock = threading.Lock()
-    with sim:
+    # set on a thread of its own: a handler setting it could interrupt stop.wait() and hang
+    with stop_on_signals(stop), sim:
         _emit({"config": {"driver": kind, **settings}}, lock)
         reader = threading.Thread(target=_read_commands, args=(sim, stop, lock), daemon=True)
         reader.start()

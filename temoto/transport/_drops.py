@@ -1,7 +1,7 @@
 """What the fleet's authentication drops, and how it says so (:mod:`temoto.transport.auth`).
 
 The reasons a received envelope is dropped (:data:`DROP_REASONS`, the keys of
-``FleetAuth.stats``), what each means in a log line, and :class:`_DropLog`: the first drop of
+``FleetAuth.stats``), what each means in a log line, and :class:`DropLog`: the first drop of
 each sender and reason at WARNING, later ones summarised, per sender and reason, at most
 :data:`DROP_SUMMARY_S` seconds after the first of them (a ``FleetLink`` writes the summary when
 it is due, whether more drops come or not) and at most once per that interval. Kept apart
@@ -11,7 +11,16 @@ enough to read at once.
 
 from __future__ import annotations
 
-__all__ = ["DROP_REASONS", "DROP_SUMMARY_S"]
+__all__ = [
+    "DROP_REASONS",
+    "DROP_SUMMARY_S",
+    "EXPLAIN",
+    "KEY_ENV",
+    "QUIET_REASONS",
+    "WARN_EXPLAIN",
+    "DropLog",
+    "claimed",
+]
 
 #: The environment variable holding the fleet key (hex or base64).
 KEY_ENV = "TEMOTO_FLEET_KEY"
@@ -33,10 +42,10 @@ DROP_REASONS = (
 )
 
 #: Drops that are normal on a shared network and logged at DEBUG only; the others at WARNING.
-_QUIET_REASONS = frozenset({"self", "fleet", "no_session", "not_for_us"})
+QUIET_REASONS = frozenset({"self", "fleet", "no_session", "not_for_us"})
 #: A summary line of dropped messages (WARNING) comes at most this long after the first drop it
-#: counts, and at most once per this interval. It was 10 s and written only with the next drop
-#: after that (13 s later in one test) or at stop: a repeated attack could stay unseen.
+#: counts, and at most once per this interval, more drops or not: a summary that waited for the
+#: next drop or the stop would leave a repeated attack unseen.
 DROP_SUMMARY_S = 1.0
 #: At most this many (sender, reason) pairs get a line of their own; any later pair (a stranger
 #: inventing sender names) is only counted in the summaries.
@@ -46,7 +55,7 @@ _MAX_NAME_CHARS = 64
 #: A summary line lists at most this many (sender, reason) pairs.
 _MAX_SUMMARY_PAIRS = 8
 
-_EXPLAIN = {
+EXPLAIN = {
     "garbage": "not an envelope",
     "version": "unknown envelope version",
     "fleet": "another fleet",
@@ -63,7 +72,7 @@ _EXPLAIN = {
 
 
 #: What a WARNING says about each reason it logs: what was wrong, and what to check.
-_WARN_EXPLAIN = {
+WARN_EXPLAIN = {
     "garbage": ("not a well-formed envelope", "damaged, truncated, or another program's message"),
     "version": ("an unknown envelope version", "does the sender run another TeMoto version?"),
     "unsigned": ("no mac, but this fleet has a key", "does the sender run --insecure?"),
@@ -87,7 +96,7 @@ _WARN_EXPLAIN = {
 }
 
 
-def _claimed(sender: str | None) -> str:
+def claimed(sender: str | None) -> str:
     """A claimed sender name for a log line: quoted, escaped, cut (it is the sender's text)."""
     if sender is None:
         return "an unknown sender"
@@ -96,7 +105,7 @@ def _claimed(sender: str | None) -> str:
     return repr(sender)
 
 
-class _DropLog:
+class DropLog:
     """Decides which authentication drops are logged at WARNING, and summarises the rest.
 
     The first drop of each (sender, reason) is logged at once (up to :data:`_MAX_FIRST_LINES`
@@ -161,7 +170,7 @@ class _DropLog:
         pairs = sorted(self._pending.items(), key=lambda item: -item[1])
         total = sum(n for _, n in pairs)
         shown = ", ".join(
-            f"{n} from {_claimed(who)} ({_WARN_EXPLAIN[why][0]})"
+            f"{n} from {claimed(who)} ({WARN_EXPLAIN[why][0]})"
             for (who, why), n in pairs[:_MAX_SUMMARY_PAIRS]
         )
         if len(pairs) > _MAX_SUMMARY_PAIRS:

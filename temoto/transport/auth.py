@@ -68,18 +68,18 @@ from typing import TYPE_CHECKING, final
 
 from temoto.lcm_types import envelope_t
 from temoto.transport._drops import (
-    _EXPLAIN,
-    _QUIET_REASONS,
-    _WARN_EXPLAIN,
     DROP_REASONS,
     DROP_SUMMARY_S,
+    EXPLAIN,
     KEY_ENV,
-    _claimed,
-    _DropLog,
+    QUIET_REASONS,
+    WARN_EXPLAIN,
+    DropLog,
+    claimed,
 )
 from temoto.transport._envelope import HELLO_TYPE, Writer
 from temoto.transport._envelope import parse as parse_envelope
-from temoto.transport.base import _LogLimiter
+from temoto.transport.base import LogLimiter
 from temoto.transport.identity import Credentials, RosterError
 
 if TYPE_CHECKING:
@@ -309,8 +309,8 @@ class FleetAuth:
         self._counts = dict.fromkeys(("accepted", "hello", *DROP_REASONS), 0)
         self._peers: dict[str, _Peer] = {}
         self._next_prune = clock() + self.window_s
-        self._log = _LogLimiter()  # the DEBUG lines of quiet drops
-        self._drop_log = _DropLog(DROP_SUMMARY_S)  # guarded by _lock
+        self._log = LogLimiter()  # the DEBUG lines of quiet drops
+        self._drop_log = DropLog(DROP_SUMMARY_S)  # guarded by _lock
         self._replays_warned: set[str] = set()  # guarded by _lock
         self._writer = Writer(ENVELOPE_VERSION, fleet, sender)
         if insecure:
@@ -394,7 +394,7 @@ class FleetAuth:
                 " may have opened: a replay of captured traffic (or a copy in flight while it"
                 " restarted); refused there, not sent again (this warning once per member)",
                 self.fleet,
-                _claimed(name),
+                claimed(name),
                 count,
             )
         return out
@@ -505,9 +505,6 @@ class FleetAuth:
 
         Returns:
             Its content, or None if it was dropped (counted in :attr:`stats` by reason).
-
-        Raises:
-            Nothing.
         """
         result = self._check(channel, data)
         if isinstance(result, Opened):
@@ -518,16 +515,16 @@ class FleetAuth:
         first, summary = False, None
         with self._lock:
             self._counts[reason] += 1
-            if reason not in _QUIET_REASONS:
+            if reason not in QUIET_REASONS:
                 first, summary = self._drop_log.drop(sender, reason, self._clock())
         if first:
-            what, hint = _WARN_EXPLAIN[reason]
+            what, hint = WARN_EXPLAIN[reason]
             logger.warning(
                 "fleet %r: dropped a message on %r from %s: %s%s; %s (further drops are"
                 " summarised at most every %g s)",
                 self.fleet,
                 channel,
-                _claimed(sender),
+                claimed(sender),
                 what,
                 detail,
                 hint,
@@ -535,7 +532,7 @@ class FleetAuth:
             )
         elif summary is not None:
             logger.warning("fleet %r: %s", self.fleet, summary)
-        if reason in _QUIET_REASONS and logger.isEnabledFor(logging.DEBUG):
+        if reason in QUIET_REASONS and logger.isEnabledFor(logging.DEBUG):
             held = self._log.allow(reason)
             if held is not None:
                 more = f" ({held} more since the last report)" if held else ""
@@ -543,8 +540,8 @@ class FleetAuth:
                     "fleet %r: dropped a message on %r from %s: %s%s",
                     self.fleet,
                     channel,
-                    _claimed(sender),
-                    _EXPLAIN[reason],
+                    claimed(sender),
+                    EXPLAIN[reason],
                     more,
                 )
         return None
@@ -565,9 +562,6 @@ class FleetAuth:
         A :class:`~temoto.transport.link.FleetLink` calls it when :meth:`drop_summary_due_in`
         says; call it when the member stops, so that the drops of its last moments are reported
         too.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             line = self._drop_log.flush(self._clock())

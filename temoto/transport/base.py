@@ -3,7 +3,7 @@
 A :class:`Transport` moves opaque byte strings; what they mean (envelopes, authentication,
 inner messages) is the business of the layers above (:mod:`temoto.transport.auth`,
 :mod:`temoto.transport.codec`). The base class owns the public calls and their checks
-(template method, STYLE.md rule 2); an implementation fills in ``_publish``, ``_subscribe``
+(template method, docs/development.md §2); an implementation fills in ``_publish``, ``_subscribe``
 and ``_close``, and hands every received message to :meth:`Transport._deliver`, which runs the
 handler, logs and counts what it raises, and never lets it escape into the receive thread.
 
@@ -28,6 +28,7 @@ from temoto.errors import TransportError
 __all__ = [
     "CHANNEL_MAX_LEN",
     "Handler",
+    "LogLimiter",
     "QueuedSubscription",
     "Subscription",
     "Transport",
@@ -74,8 +75,10 @@ def check_channel(channel: str) -> str:
     return channel
 
 
-class _LogLimiter:
+class LogLimiter:
     """Lets one log line per key through per interval and counts the ones held back.
+
+    For the transports and the fleet's services: a peer's flood is logged, not repeated.
 
     Args:
         interval_s: Seconds between two lines for the same key.
@@ -96,9 +99,6 @@ class _LogLimiter:
         Returns:
             None if the line must be dropped; otherwise how many lines for ``key`` were
             dropped since the last one let through.
-
-        Raises:
-            Nothing.
         """
         now = time.monotonic()
         with self._mutex:
@@ -142,14 +142,18 @@ class Subscription(ABC):
 
         A handler call already running finishes; no call starts after this returns, except
         on the receive thread itself when called from another handler of the same message.
-
-        Raises:
-            Nothing.
         """
         if not self._active:
             return
         self._active = False
         self._on_unsubscribe()
+
+    def detach(self) -> None:
+        """Stop delivering, without the release hook.
+
+        For its transport, which is closing and releases every subscription itself.
+        """
+        self._active = False
 
     @abstractmethod
     def _on_unsubscribe(self) -> None:
@@ -163,10 +167,10 @@ class Subscription(ABC):
 class QueuedSubscription(Subscription):
     """A subscription with a bounded queue of its own, drained by its transport's one thread.
 
-    The transport, holding its lock, :meth:`_offer` s each message to the subscriptions of its
-    channel and pops ``_pending`` on its dispatch thread, one message per token in its ready
-    queue; a subscription that was emptied (unsubscribed) leaves stale tokens that the
-    dispatcher skips.
+    The transport, holding its lock, :meth:`offer` s each message to the subscriptions of its
+    channel and :meth:`take` s one on its dispatch thread per token in its ready queue; a
+    subscription that was emptied (:meth:`discard_pending`, when unsubscribed) leaves stale
+    tokens that the dispatcher skips.
 
     Args:
         channel: The channel name.
@@ -190,7 +194,7 @@ class QueuedSubscription(Subscription):
         """How many messages were dropped because the queue was full."""
         return self._dropped
 
-    def _offer(self, data: bytes, ready: collections.deque[Self]) -> None:
+    def offer(self, data: bytes, ready: collections.deque[Self]) -> None:
         """Queue ``data`` (transport lock held); a token goes to ``ready`` unless one is dropped.
 
         A full queue drops its oldest message for this one: the dispatcher's tokens still
@@ -203,6 +207,22 @@ class QueuedSubscription(Subscription):
         else:
             ready.append(self)
         self._pending.append(data)
+
+    def take(self) -> bytes | None:
+        """The oldest message waiting, or None (a stale token); transport lock held."""
+        return self._pending.popleft() if self._pending else None
+
+    def discard_pending(self) -> None:
+        """Drop the messages waiting (removed from its channel); transport lock held."""
+        self._pending.clear()
+
+    def detach(self) -> None:
+        """Stop delivering and drop the messages waiting, without the release hook.
+
+        For its transport, which is closing and releases every subscription itself.
+        """
+        self._active = False
+        self._pending.clear()
 
 
 class Transport(Closing, ABC):
@@ -218,7 +238,7 @@ class Transport(Closing, ABC):
         self._close_lock = threading.Lock()
         self._handler_errors = 0
         self._errors_lock = threading.Lock()
-        self._error_log = _LogLimiter()
+        self._error_log = LogLimiter()
 
     # --- the calls (not overridden) -----------------------------------------------------------
 
@@ -281,9 +301,6 @@ class Transport(Closing, ABC):
         Messages not yet handed to a handler are discarded. Called from a handler, it does not
         wait for the receive thread (which is the caller), but the thread ends after the handler
         returns.
-
-        Raises:
-            Nothing.
         """
         with self._close_lock:
             if self._closed:
@@ -316,8 +333,8 @@ class Transport(Closing, ABC):
             data: The message.
 
         Raises:
-            Nothing derived from ``Exception``; a ``BaseException`` (``KeyboardInterrupt``,
-            ``SystemExit``) propagates.
+            BaseException: A ``KeyboardInterrupt`` or ``SystemExit`` of the handler propagates;
+                an ``Exception`` is counted and logged.
         """
         if not sub.active:
             return

@@ -14,7 +14,7 @@ receiver counts and drops. Each type has its version (:data:`VERSIONS`): a type 
 changes gets a new version and a new LCM fingerprint, and a payload of another version is
 refused naming both versions.
 
-This module is the only hand-written code about the generated types (STYLE.md 3.10).
+This module is the only hand-written code about the generated types (docs/development.md §8).
 """
 
 from __future__ import annotations

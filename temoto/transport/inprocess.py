@@ -6,8 +6,8 @@ exchange messages as robots do over LCM multicast, own messages included. Each i
 on one dispatch thread of its own (``temoto-inproc-<bus>``), so handlers never run on the
 publisher's thread, as with LCM.
 
-The bus registry is module state, acceptable for a test bus only (STYLE.md part 4) and guarded
-by a lock; :func:`live_buses` reports what is open, for leak checks.
+The bus registry is module state, acceptable for a test bus only (docs/development.md §10) and
+guarded by a lock; :func:`live_buses` reports what is open, for leak checks.
 """
 
 from __future__ import annotations
@@ -29,9 +29,6 @@ def live_buses() -> dict[str, int]:
 
     Returns:
         Bus name to the number of open instances on it (buses without any are left out).
-
-    Raises:
-        Nothing.
     """
     with _registry_lock:
         return {bus: len(members) for bus, members in _registry.items() if members}
@@ -150,8 +147,7 @@ class InProcessTransport(Transport):
             self._ready.clear()
             self._cond.notify_all()
         for sub in subs:
-            sub._active = False
-            sub._pending.clear()
+            sub.detach()
         if threading.current_thread() is not self._thread:
             self._thread.join()
 
@@ -162,7 +158,7 @@ class InProcessTransport(Transport):
             if self._stopping:
                 return
             for sub in self._subs.get(channel, ()):
-                sub._offer(data, self._ready)
+                sub.offer(data, self._ready)
             self._cond.notify_all()  # the dispatcher, and flushes waiting
 
     def _remove(self, sub: InProcessSubscription) -> None:
@@ -173,7 +169,7 @@ class InProcessTransport(Transport):
                 if not subs:
                     del self._subs[sub.channel]
             # Its tokens stay in _ready; the dispatcher skips them (the queue is empty).
-            sub._pending.clear()
+            sub.discard_pending()
 
     def _run(self) -> None:
         while True:
@@ -183,11 +179,11 @@ class InProcessTransport(Transport):
                 if self._stopping:
                     return
                 sub = self._ready.popleft()
-                if not sub._pending:
+                data = sub.take()
+                if data is None:
                     if not self._ready:
                         self._cond.notify_all()  # a flush may be waiting
                     continue
-                data = sub._pending.popleft()
                 self._busy = True
             try:
                 self._deliver(sub, sub.channel, data)

@@ -12,7 +12,7 @@ Threading rules of the Python LCM binding that shape this module (lcm-python/pyl
   with the library *before* it fills in the subscription's fields (the handler and the LCM
   object), and the receive thread, in ``handle_timeout`` without the GIL, may dispatch a
   message that arrived meanwhile to that half-made subscription and dereference NULL: a
-  SIGSEGV (5 of about 1,000 ``temoto run`` processes at start-up under load, issue 26). So
+  SIGSEGV (seen in 5 of about 1,000 ``temoto run`` processes at start-up under load). So
   every ``lc.subscribe`` runs on the receive thread, between two dispatches: a caller on
   another thread queues its subscription, wakes the thread through a pipe and waits until it
   is made (a handler subscribing runs it at once: it is on that thread already).
@@ -255,7 +255,7 @@ class LcmTransport(Transport):
         finally:
             with self._mutex:
                 for sub in self._subs:
-                    sub._active = False
+                    sub.detach()
                 self._released.extend(self._subs)
                 self._subs.clear()
                 self._lcm = None

@@ -15,12 +15,11 @@ from collections.abc import Callable, Iterable
 from typing import final
 
 from temoto.transport.auth import HELLO_CHANNEL, FleetAuth, Opened
-from temoto.transport.base import Subscription, Transport, _LogLimiter
+from temoto.transport.base import LogLimiter, Subscription, Transport
 
 __all__ = ["FleetLink"]
 
-# The link's lines were logged under the auth module's name: log lines do not change.
-logger = logging.getLogger("temoto.transport.auth")
+logger = logging.getLogger(__name__)
 
 # wait_for_peers says hello again after this long without news, then twice as long, up to
 # the maximum.
@@ -56,7 +55,7 @@ class FleetLink:
         self.auth = auth
         self._handler_errors = 0
         self._errors_lock = threading.Lock()
-        self._log = _LogLimiter()
+        self._log = LogLimiter()
         self._hellos: Subscription | None = None
         self._timer: threading.Timer | None = None
         self._drop_timer: threading.Timer | None = None

@@ -25,9 +25,10 @@ over LCM: a Python callback would be run by zenoh-python on a thread of its own 
 throughput, and Zenoh dropped messages of a flood), and then be handed to ours, which cost about
 0.04 ms a message on loopback (bench/README.md, "Over Zenoh, second part").
 
-Subscribing never races the receive thread (it did over LCM, issue 26): a subscription of ours
-is an entry in the transport's own lists, changed under the lock that thread dispatches under,
-and the one Zenoh subscriber is declared under it before that thread first reads from it.
+Subscribing never races the receive thread (LCM's binding can: :mod:`temoto.transport.lcm`):
+a subscription of ours is an entry in the transport's own lists, changed under the lock that
+thread dispatches under, and the one Zenoh subscriber is declared under it before that thread
+first reads from it.
 
 The URL (:func:`parse_zenoh_url`)::
 
@@ -450,8 +451,7 @@ class ZenohTransport(Transport):
             zsub, self._zsub = self._zsub, None
             self._cond.notify_all()
         for sub in subs:
-            sub._active = False
-            sub._pending.clear()
+            sub.detach()
         try:
             if zsub is not None:
                 zsub.undeclare()  # closes its channel: the thread's recv() returns
@@ -477,7 +477,7 @@ class ZenohTransport(Transport):
                 if subs:
                     data = sample.payload.to_bytes()
                     for sub in subs:
-                        sub._offer(data, self._ready)
+                        sub.offer(data, self._ready)
             self._cond.notify_all()  # whoever watches the queues
 
     def _remove(self, sub: ZenohSubscription) -> None:
@@ -487,7 +487,7 @@ class ZenohTransport(Transport):
                 subs.remove(sub)
                 if not subs:
                     del self._by_key[sub.key]
-            sub._pending.clear()  # its tokens stay in _ready; the thread skips them
+            sub.discard_pending()  # its tokens stay in _ready; the thread skips them
 
     def _run(self) -> None:
         with self._cond:
@@ -527,9 +527,9 @@ class ZenohTransport(Transport):
             if not self._ready:
                 return True
             sub = self._ready.popleft()
-            if not sub._pending:
+            data = sub.take()
+            if data is None:
                 return True
-            data = sub._pending.popleft()
         self._deliver(sub, sub.channel, data)
         return True
 

@@ -109,9 +109,6 @@ class Subscription:
 
         Returns:
             The events that arrived (possibly none, after the timeout).
-
-        Raises:
-            Nothing.
         """
         return self._hub._take(self, timeout)
 
@@ -120,9 +117,6 @@ class Subscription:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         self._hub._remove(self)
 
@@ -160,6 +154,7 @@ class EventHub(Instrument):
         self._closed = False
         self._timelines: dict[str, dict[str, Any]] = {}
         self._results: dict[tuple[str, str], str] = {}  # node results until their change
+        self._earlier: dict[str, dict[str, Any]] = {}  # ended runs whose name was used again
 
     # ------------------------------------------------------------------ subscribers
 
@@ -168,9 +163,6 @@ class EventHub(Instrument):
 
         Returns:
             Its subscription, or None when ``max_clients`` are subscribed or the hub closed.
-
-        Raises:
-            Nothing.
         """
         with self._cond:
             if self._closed or len(self._subs) >= self.max_clients:
@@ -190,9 +182,6 @@ class EventHub(Instrument):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         with self._cond:
             self._closed = True
@@ -227,9 +216,6 @@ class EventHub(Instrument):
         Returns:
             ``{"start": t, "end": t or None, "spans": [{"node", "start", "end", "state",
             "result"}]}`` in engine clock seconds; a running span has ``end`` None.
-
-        Raises:
-            Nothing.
         """
         with self._cond:
             line = self._timelines.get(graph)
@@ -246,6 +232,40 @@ class EventHub(Instrument):
                 for sp in line["spans"]
             ]
             return {"start": line["start"], "end": line["end"], "spans": spans}
+
+    def earlier_runs(self) -> list[dict[str, Any]]:
+        """The ended runs whose name a later run took (the engine forgot them), oldest first.
+
+        Returns:
+            ``[{"name": "<run> #<k>", "run": "<run>", "result", "timeline"}]``: ``k`` counts
+            the runs of that name from 1; ``timeline`` as :meth:`timeline` gives it. At most
+            ``MAX_TIMELINES`` are kept.
+        """
+        with self._cond:
+            return [dict(e) for e in self._earlier.values()]
+
+    def _archive(self, graph: str, line: dict[str, Any]) -> None:
+        # hub lock held: an ended run's name is used again; keep its timeline under a new name
+        k = 1 + sum(1 for e in self._earlier.values() if e["run"] == graph)
+        name = f"{graph} #{k}"
+        while len(self._earlier) >= MAX_TIMELINES:
+            del self._earlier[next(iter(self._earlier))]
+        spans = [
+            {
+                "node": sp["node"],
+                "start": sp["start"],
+                "end": sp["end"],
+                "state": sp["state"],
+                "result": span_result(sp),
+            }
+            for sp in line["spans"]
+        ]
+        self._earlier[name] = {
+            "name": name,
+            "run": graph,
+            "result": line.get("result"),
+            "timeline": {"start": line["start"], "end": line["end"], "spans": spans},
+        }
 
     def _record(self, graph: str, node: str, old: str, new: str, t: float) -> None:
         # hub lock held
@@ -296,7 +316,9 @@ class EventHub(Instrument):
     def graph_started(self, graph: str, t: float) -> None:
         """Publish a run's start."""
         with self._cond:
-            self._timelines.pop(graph, None)  # a name used again: a new timeline
+            old = self._timelines.pop(graph, None)  # a name used again: a new timeline
+            if old is not None and old["end"] is not None:
+                self._archive(graph, old)  # the earlier run stays listed
             self._new_timeline(graph, t)
         self._publish({"kind": "graph", "graph": graph, "state": "RUNNING", "t": t})
 
@@ -334,6 +356,7 @@ class EventHub(Instrument):
             line = self._timelines.get(graph)
             if line is not None:
                 line["end"] = t
+                line["result"] = result.value
         self._publish(
             {"kind": "graph", "graph": graph, "state": "ENDED", "result": result.value, "t": t}
         )

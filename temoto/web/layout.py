@@ -16,7 +16,7 @@ from dataclasses import dataclass
 __all__ = ["Layout", "layered_layout"]
 
 #: Horizontal distance between layers, vertical distance between nodes of one layer, margin.
-LAYER_GAP = 180.0
+LAYER_GAP = 250.0  # the boxes are 150 wide: 100 between layers holds an edge's label
 ROW_GAP = 70.0
 MARGIN = 90.0
 

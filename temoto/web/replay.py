@@ -19,37 +19,28 @@ at once; the page computes every moment from it as the time slider moves). It is
 
 from __future__ import annotations
 
-import argparse
 import json
 import logging
 import math
-import signal
-import sys
-import threading
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from http import HTTPStatus
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, final
+from typing import Any, Protocol, final
 
 from temoto._files import read_regular_text
 from temoto.errors import ConfigError
 from temoto.web.server import Site
 from temoto.web.view import graph_picture
 
-if TYPE_CHECKING:
-    from temoto.web.server import _Handler
-
 __all__ = [
     "READERS",
     "Recording",
     "ReplayView",
-    "add_view",
     "load_recording",
     "read_mcap",
     "read_trace",
     "register_reader",
-    "view_command",
 ]
 
 logger = logging.getLogger(__name__)
@@ -101,9 +92,6 @@ class Recording:
         Returns:
             ``{"source", "name", "result", "start", "end", "events", "robot", "graph",
             "notes"}``; ``graph`` is :func:`~temoto.web.view.graph_picture`'s drawing.
-
-        Raises:
-            Nothing.
         """
         times = [e["t"] for e in self.events] + [r["t"] for r in self.robot]
         start = min(times, default=0.0)
@@ -393,6 +381,12 @@ def load_recording(path: str | Path, graph: str | Path | None = None) -> Recordi
     return recording
 
 
+class _Answers(Protocol):
+    """What the view needs of the server's request handler: a JSON answer."""
+
+    def send_json(self, status: HTTPStatus, answer: Any) -> None: ...
+
+
 @final
 class ReplayView(Site):
     """Serves a recording in the live view's page, with a time slider (started at once).
@@ -416,81 +410,8 @@ class ReplayView(Site):
         self._answer = recording.to_page()
         self._serve()
 
-    def _get(self, handler: _Handler, path: str) -> bool:
+    def _get(self, handler: _Answers, path: str) -> bool:
         if path == "/api/recording":
             handler.send_json(HTTPStatus.OK, self._answer)
             return True
         return False
-
-
-def add_view(sub: Any) -> None:
-    """Add ``temoto view FILE [--graph GRAPH.json] [--port N] [--host ADDR]``.
-
-    Args:
-        sub: The ``add_subparsers()`` object of the top-level parser.
-
-    Returns:
-        None.
-    """
-    p = sub.add_parser(
-        "view",
-        help="replay a recorded run in the live view's page",
-        description="Serve a recorded run (a `temoto run --trace` file, or a `--record"
-        " FILE.mcap` recording) in the live view's page, with a time slider, until Ctrl-C.",
-    )
-    p.add_argument(
-        "file", metavar="FILE", help="the recording (--trace JSON lines, or --record .mcap)"
-    )
-    p.add_argument("--graph", metavar="GRAPH.json", help="the run's graph, to draw its edges")
-    p.add_argument("--port", type=_port, default=0, help="port to serve on (default: any free)")
-    p.add_argument("--host", default="127.0.0.1", help="address to serve on (default 127.0.0.1)")
-
-
-def _port(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a port number: {text!r}") from None
-    if not 0 <= value <= 65535:
-        raise argparse.ArgumentTypeError(f"a port is 0 to 65535, got {value}")
-    return value
-
-
-def view_command(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
-    """Run ``temoto view``: print the page's address, serve until SIGINT/SIGTERM (or ``stop``).
-
-    Args:
-        args: The parsed arguments (``file``, ``graph``, ``port``, ``host``).
-        stop: Set to end the command (tests); signals do the same.
-
-    Returns:
-        0 after an interruption; 1 when the address cannot be bound.
-
-    Raises:
-        ConfigError: The recording or the graph file is invalid (the command line prints it
-            as one line and exits 2).
-    """
-    recording = load_recording(args.file, args.graph)
-    try:
-        site = ReplayView(recording, host=args.host, port=args.port)
-    except OSError as err:
-        sys.stderr.write(f"temoto: error: cannot serve on {args.host}:{args.port}: {err}\n")
-        return 1
-    done = stop or threading.Event()
-    previous: dict[signal.Signals, Any] = {}
-    if threading.current_thread() is threading.main_thread():
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            previous[sig] = signal.signal(sig, lambda *_: done.set())
-    try:
-        with site:
-            sys.stdout.write(
-                f"replaying {recording.source} ({len(recording.events)} node changes,"
-                f" result {recording.result or 'none'})\nopen {site.url}\n"
-            )
-            sys.stdout.flush()
-            while not done.wait(0.5):
-                pass
-    finally:
-        for sig, handler in previous.items():
-            signal.signal(sig, handler)
-    return 0

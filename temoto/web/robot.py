@@ -55,10 +55,8 @@ def robot_state(robot: Robot) -> dict[str, Any]:
     Returns:
         ``{"name", "loaded", "features", "healthy", "health": [...], "pose", "goal", "joints",
         "vehicle"}``; ``pose``/``goal`` (navigation), ``joints`` (manipulation) and ``vehicle``
-        (flight) are None for a robot without that feature (see ``docs/live-view.md``).
-
-    Raises:
-        Nothing: a read that fails (a device gone meanwhile) leaves its part None.
+        (flight) are None for a robot without that feature (see ``docs/live-view.md``);
+        a read that fails (a device gone meanwhile) leaves its part None.
     """
     out: dict[str, Any] = {
         "name": robot.name,
@@ -142,9 +140,6 @@ class RobotWatch(Closing):
             :func:`robot_state`'s dict plus ``"trail": [[x, y], ...]`` (oldest first);
             ``"loaded"`` is False once the robot was released (the last reading stays,
             without a goal).
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             if self._latest is None:
@@ -156,9 +151,6 @@ class RobotWatch(Closing):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         manager = _find_manager(self.registrar)
         robot = None
@@ -201,9 +193,6 @@ class RobotWatch(Closing):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         self._stop.set()
         if threading.current_thread() is not self._thread:

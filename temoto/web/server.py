@@ -9,6 +9,8 @@ on a named thread. Endpoints (see ``docs/live-view.md``):
   resources, timeline;
 * ``GET /api/indexed``: the graphs the engine can start by name;
 * ``GET /api/robot``: the Robot Manager's robot (:mod:`temoto.web.robot`), or null;
+* ``GET /api/displays``: the Visualization Manager's loaded displays with their newest
+  messages (:mod:`temoto.web.displays`), one panel each on the page;
 * ``GET /api/events``: a ``text/event-stream`` of engine events (:mod:`temoto.web.events`);
 * ``POST /api/start`` (``{"graph": name}``), ``POST /api/graphs/<run>/pause|resume|stop``:
   the controls. A write needs the view's token in the ``X-TeMoto-Token`` header (never a
@@ -43,14 +45,15 @@ from urllib.parse import unquote, urlsplit
 from temoto._closing import Closing
 from temoto.errors import ConfigError, GraphNotFoundError, TemotoError
 from temoto.web import _page
+from temoto.web.displays import DisplayWatch
 from temoto.web.events import EventHub
 from temoto.web.robot import RobotWatch
-from temoto.web.view import graph_view, graphs_list, to_json
+from temoto.web.view import edge_status, graph_picture, graph_view, graphs_list, to_json
 
 if TYPE_CHECKING:
     from temoto.core.engine import ActionEngine
 
-__all__ = ["LiveView", "Site"]
+__all__ = ["COMMANDS", "LiveView", "Site", "operator_command"]
 
 logger = logging.getLogger(__name__)
 
@@ -90,6 +93,70 @@ def _is_loopback(host: str) -> bool:
         return False
 
 
+#: The states of a run that has ended.
+_ENDED_STATES = frozenset({"FINISHED", "STOPPED", "ERROR", "HALTED"})
+
+
+def _state_of(result: str | None) -> str:
+    """An ended run's state from its result (as the engine's ``_end_run`` sets it)."""
+    return {"on_stopped": "STOPPED", "on_error": "ERROR", "on_halted": "HALTED"}.get(
+        result or "", "FINISHED"
+    )
+
+
+def _ended_state(picture: dict[str, Any] | None, result: str | None) -> str:
+    """An earlier run's state: its picture's if that was taken after its end."""
+    state = picture.get("state") if picture is not None else None
+    return state if state in _ENDED_STATES else _state_of(result)
+
+
+#: The operator's commands: ``start`` names an indexed graph, the others a run.
+COMMANDS = ("start", *_CONTROLS)
+
+
+def operator_command(engine: ActionEngine, verb: str, target: Any) -> tuple[HTTPStatus, Any]:
+    """Carry out one operator command, with the checks of the live view's controls.
+
+    The one place the page's buttons and the Foxglove server's services
+    (:mod:`temoto.managers.visualization.commands`) start, pause, resume and stop graphs;
+    the caller has checked the token.
+
+    Args:
+        engine: The engine.
+        verb: ``start`` (``target``: an indexed graph's name), ``pause``, ``resume`` or
+            ``stop`` (``target``: a run's name).
+        target: The graph or run (anything but a non-empty string is refused).
+
+    Returns:
+        The HTTP status and the JSON answer: ``{"run": name}`` for a start,
+        ``{"run": name, "done": verb}`` for the others, ``{"error": why}`` when refused
+        (400: no name; 404: no such graph or run; 409: not in a state for it).
+    """
+    if verb not in COMMANDS:
+        return HTTPStatus.BAD_REQUEST, {"error": f"unknown command {verb!r}"}
+    if not isinstance(target, str) or not target:
+        why = "name a graph" if verb == "start" else "name a run"
+        return HTTPStatus.BAD_REQUEST, {"error": why}
+    try:
+        if verb == "start":
+            run = engine.start(target)
+            logger.info("operator: started %s", run)
+            return HTTPStatus.OK, {"run": run}
+        if verb == "pause":
+            engine.pause(target)
+        elif verb == "resume":
+            engine.resume(target)
+        else:
+            with contextlib.suppress(TimeoutError):  # answer now; the page sees it end
+                engine.stop(target, timeout=0.0)
+    except GraphNotFoundError as err:
+        return HTTPStatus.NOT_FOUND, {"error": str(err)}
+    except TemotoError as err:  # not RUNNING, already active, a bad graph, ...
+        return HTTPStatus.CONFLICT, {"error": f"{type(err).__name__}: {err}"}
+    logger.info("operator: %s %s", verb, target)
+    return HTTPStatus.OK, {"run": target, "done": verb}
+
+
 class _Server(ThreadingHTTPServer):
     """A threading HTTP server whose request threads are named ``temoto-web-<n>``."""
 
@@ -117,6 +184,52 @@ class _Handler(BaseHTTPRequestHandler):
     timeout = 10.0
     server_version = "TeMotoLiveView"
     sys_version = ""
+    #: The methods answered (``OPTIONS`` and a 405 name them in ``Allow``).
+    allowed = "GET, HEAD, POST, OPTIONS"
+
+    def version_string(self) -> str:
+        """The Server header: the name alone (the base class adds a space and sys_version)."""
+        return self.server_version
+
+    def send_error(self, code: int, message: str | None = None, explain: str | None = None) -> None:
+        """Every error as JSON (``{"error": ...}``), as the API's own; never an HTML page."""
+        try:
+            status = HTTPStatus(code)
+        except ValueError:
+            status = HTTPStatus.INTERNAL_SERVER_ERROR
+        self.close_connection = True
+        self.send_json(status, {"error": message or status.phrase})
+
+    def do_HEAD(self) -> None:
+        """A GET's headers without its body (an event stream: its headers, then the end)."""
+        self.do_GET()
+
+    def do_OPTIONS(self) -> None:
+        """The methods the server answers (no CORS: another origin gets nothing more)."""
+        self.send_response(HTTPStatus.NO_CONTENT)
+        self.send_header("Allow", self.allowed)
+        self.send_header("Content-Length", "0")
+        self.send_header("Cache-Control", "no-store")
+        self.end_headers()
+
+    def _not_allowed(self) -> None:
+        self.close_connection = True
+        self.send_response(HTTPStatus.METHOD_NOT_ALLOWED)
+        self.send_header("Allow", self.allowed)
+        body = to_json({"error": f"{self.command} is not allowed"}).encode()
+        self.send_header("Content-Type", "application/json")
+        self.send_header("Content-Length", str(len(body)))
+        self.end_headers()
+        self.wfile.write(body)
+
+    def do_PUT(self) -> None:
+        self._not_allowed()
+
+    def do_DELETE(self) -> None:
+        self._not_allowed()
+
+    def do_PATCH(self) -> None:
+        self._not_allowed()
 
     def log_message(self, format: str, *args: Any) -> None:  # noqa: A002 - the base's name
         logger.debug("%s %s", self.address_string(), format % args)
@@ -172,7 +285,8 @@ class _Handler(BaseHTTPRequestHandler):
         self.send_header("X-Content-Type-Options", "nosniff")
         self.send_header("Content-Security-Policy", policy)
         self.end_headers()
-        self.wfile.write(body)
+        if self.command != "HEAD":
+            self.wfile.write(body)
 
     def send_json(self, status: HTTPStatus, answer: Any) -> None:
         """Send a JSON answer."""
@@ -194,6 +308,8 @@ class _Handler(BaseHTTPRequestHandler):
             self.send_header("Cache-Control", "no-store")
             self.send_header("X-Content-Type-Options", "nosniff")
             self.end_headers()
+            if self.command == "HEAD":
+                return
             # "hello" tells a (re)connected page to fetch fresh snapshots
             self.wfile.write(b'retry: 1000\ndata: {"kind": "hello"}\n\n')
             while True:
@@ -313,9 +429,6 @@ class Site(Closing):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         if self._closed:
             return
@@ -363,6 +476,12 @@ class LiveView(Site):
         engine.add_instrument(self._hub)
         registrar = engine.registrar
         self._robot = RobotWatch(registrar, robot_period_s) if registrar is not None else None
+        self._displays = DisplayWatch(registrar) if registrar is not None else None
+        # the last picture of each ended run (its timeline's start, the answer), so that an
+        # earlier run of a name used again is still drawn as it ended
+        self._pictures_lock = threading.Lock()
+        self._pictures: dict[str, tuple[float | None, dict[str, Any]]] = {}
+        self._earlier: dict[str, dict[str, Any]] = {}  # by "<run> #<k>"
         self._serve()
         logger.info("live view at %s", self.base_url)
 
@@ -374,14 +493,18 @@ class LiveView(Site):
     def _get(self, handler: _Handler, path: str) -> bool:
         engine = self.engine
         if path == "/api/graphs":
-            handler.send_json(HTTPStatus.OK, graphs_list(engine))
+            handler.send_json(HTTPStatus.OK, self._graphs_list())
         elif path.startswith(_GRAPH_PREFIX) and len(path) > len(_GRAPH_PREFIX):
             name = unquote(path[len(_GRAPH_PREFIX) :])
             try:
-                answer = graph_view(engine, name, self._hub.timeline(name))
+                answer = self._graph_view(name)
             except GraphNotFoundError:
-                handler.send_json(HTTPStatus.NOT_FOUND, {"error": f"no graph run named {name!r}"})
-                return True
+                earlier = self._earlier_view(name)
+                if earlier is None:
+                    error = {"error": f"no graph run named {name!r}"}
+                    handler.send_json(HTTPStatus.NOT_FOUND, error)
+                    return True
+                answer = earlier
             handler.send_json(HTTPStatus.OK, answer)
         elif path == "/api/indexed":
             names = sorted(g.name for g in engine.indexed_graphs())
@@ -389,41 +512,137 @@ class LiveView(Site):
         elif path == "/api/robot":
             state = self._robot.state() if self._robot is not None else None
             handler.send_json(HTTPStatus.OK, {"robot": state})
+        elif path == "/api/displays":
+            shown = self._displays.state() if self._displays is not None else []
+            handler.send_json(HTTPStatus.OK, {"displays": shown})
         elif path == "/api/events":
             handler.stream(self._hub, self.heartbeat_s)
         else:
             return False
         return True
 
+    def _graph_view(self, name: str) -> dict[str, Any]:
+        """A run's picture; the last one served is kept (see :meth:`_graphs_list`)."""
+        self._take_earlier()
+        timeline = self._hub.timeline(name)
+        answer = graph_view(self.engine, name, timeline)
+        with self._pictures_lock:
+            self._pictures[name] = (timeline["start"] if timeline else None, answer)
+        return answer
+
+    def _take_earlier(self) -> list[dict[str, Any]]:
+        """Take in the runs the hub archived: each takes the picture kept of it (if any).
+
+        Called before a picture is replaced, so that the earlier run keeps its own.
+        """
+        earlier = self._hub.earlier_runs()
+        with self._pictures_lock:
+            for entry in earlier:
+                if entry["name"] in self._earlier:
+                    continue
+                kept = self._pictures.get(entry["run"])
+                start = entry["timeline"]["start"]
+                picture = kept[1] if kept is not None and kept[0] == start else None
+                self._earlier[entry["name"]] = {**entry, "picture": picture}
+            kept_names = {e["name"] for e in earlier}
+            for gone in [k for k in self._earlier if k not in kept_names]:
+                del self._earlier[gone]  # the hub keeps a bounded number
+        return earlier
+
+    def _graphs_list(self) -> dict[str, Any]:
+        """The engine's runs, each earlier run of a name used again just before that name's.
+
+        The engine forgets an ended run when its name is used again; the hub keeps its
+        timeline (:meth:`EventHub.earlier_runs`) and the view its last picture.
+        """
+        answer = graphs_list(self.engine)
+        earlier = self._take_earlier()
+        for run in answer["graphs"]:  # the picture of an ended run, once
+            if run["state"] in _ENDED_STATES:
+                line = self._hub.timeline(run["name"])
+                with self._pictures_lock:
+                    kept = self._pictures.get(run["name"])
+                if (
+                    kept is None
+                    or kept[1]["state"] not in _ENDED_STATES
+                    or (line is not None and kept[0] != line["start"])
+                ):
+                    with contextlib.suppress(GraphNotFoundError):
+                        self._graph_view(run["name"])
+        listed = answer["graphs"]
+        for entry in earlier:
+            with self._pictures_lock:
+                picture = self._earlier.get(entry["name"], {}).get("picture")
+            row = {
+                "name": entry["name"],
+                "state": _ended_state(picture, entry["result"]),
+                "result": entry["result"],
+                "earlier": True,
+            }
+            at = next((i for i, r in enumerate(listed) if r["name"] == entry["run"]), None)
+            listed.insert(len(listed) if at is None else at, row)
+        return answer
+
+    def _earlier_view(self, name: str) -> dict[str, Any] | None:
+        """The picture of an earlier run of a name used again (None: no such run)."""
+        self._take_earlier()
+        with self._pictures_lock:
+            entry = self._earlier.get(name)
+        if entry is None:
+            return None
+        line = entry["timeline"]
+        picture = entry["picture"]
+        last: dict[str, str] = {}
+        for span in line["spans"]:
+            last[span["node"]] = span["state"]
+        if picture is not None:  # its drawing as a page last saw it, its states as it ended
+            nodes = [
+                {**n, "state": last.get(n["id"], n["state"])} if n["kind"] == "action" else n
+                for n in picture["nodes"]
+            ]
+            states = {n["id"]: n["state"] for n in nodes}
+            edges = [
+                {**e, "status": edge_status(states.get(e["from"]), states.get(e["to"]), e)}
+                for e in picture["edges"]
+            ]
+            picture = {**picture, "nodes": nodes, "edges": edges}
+            if line["spans"]:  # each node's result is its newest span's
+                results = {sp["node"]: sp["result"] for sp in line["spans"]}
+                for n in nodes:
+                    if n["id"] in results:
+                        n["result"] = results[n["id"]]
+        else:  # not seen by a page: drawn from its timeline, without edges
+            actions = []
+            for node, state in last.items():
+                base, _, number = node.rpartition("_")
+                actions.append(
+                    {
+                        "name": base or node,
+                        "instance_id": int(number) if number.isdigit() else 0,
+                        "state": state,
+                    }
+                )
+            picture = graph_picture({"actions": actions}, None, line)
+            picture["errors"] = []
+        return {
+            **picture,
+            "name": name,
+            "state": _ended_state(picture, entry["result"]),
+            "result": entry["result"],
+            "timeline": line,
+            "earlier": True,
+        }
+
     def _post(self, handler: _Handler, path: str, body: dict[str, Any]) -> bool:
-        engine = self.engine
-        try:
-            if path == "/api/start":
-                graph = body.get("graph")
-                if not isinstance(graph, str) or not graph:
-                    handler.send_json(HTTPStatus.BAD_REQUEST, {"error": "name a graph"})
-                    return True
-                run = engine.start(graph)
-                logger.info("live view: started %s", run)
-                handler.send_json(HTTPStatus.OK, {"run": run})
-                return True
-            name, _, verb = path[len(_GRAPH_PREFIX) :].rpartition("/")
-            if not path.startswith(_GRAPH_PREFIX) or not name or verb not in _CONTROLS:
-                return False
-            name = unquote(name)
-            if verb == "pause":
-                engine.pause(name)
-            elif verb == "resume":
-                engine.resume(name)
-            else:
-                with contextlib.suppress(TimeoutError):  # answer now; the page sees it end
-                    engine.stop(name, timeout=0.0)
-            logger.info("live view: %s %s", verb, name)
-            handler.send_json(HTTPStatus.OK, {"run": name, "done": verb})
-        except GraphNotFoundError as err:
-            handler.send_json(HTTPStatus.NOT_FOUND, {"error": str(err)})
-        except TemotoError as err:  # not RUNNING, already active, a bad graph, ...
-            handler.send_json(HTTPStatus.CONFLICT, {"error": f"{type(err).__name__}: {err}"})
+        if path == "/api/start":
+            status, answer = operator_command(self.engine, "start", body.get("graph"))
+            handler.send_json(status, answer)
+            return True
+        name, _, verb = path[len(_GRAPH_PREFIX) :].rpartition("/")
+        if not path.startswith(_GRAPH_PREFIX) or not name or verb not in _CONTROLS:
+            return False
+        status, answer = operator_command(self.engine, verb, unquote(name))
+        handler.send_json(status, answer)
         return True
 
     def close(self) -> None:
@@ -433,9 +652,6 @@ class LiveView(Site):
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         if self._closed:
             return
@@ -443,4 +659,6 @@ class LiveView(Site):
         self._hub.close()
         if self._robot is not None:
             self._robot.close()
+        if self._displays is not None:
+            self._displays.close()
         self._close_server()

@@ -22,7 +22,7 @@ from temoto.web.layout import layered_layout
 if TYPE_CHECKING:
     from temoto.core.engine import ActionEngine
 
-__all__ = ["ENTRY", "EXIT", "graph_picture", "graph_view", "graphs_list", "to_json"]
+__all__ = ["ENTRY", "EXIT", "edge_status", "graph_picture", "graph_view", "graphs_list", "to_json"]
 
 #: Names of the two pseudo-nodes drawn for ``graph_entry`` and ``graph_exit`` (no action's
 #: full name can be one of them: those end in ``_<instance id>``).
@@ -44,9 +44,6 @@ def graphs_list(engine: ActionEngine) -> dict[str, Any]:
 
     Returns:
         ``{"actor": str, "graphs": [{"name", "state", "result"}, ...]}``.
-
-    Raises:
-        Nothing.
     """
     graphs = []
     for name in engine.running_graphs():
@@ -114,9 +111,6 @@ def graph_picture(
         ``{"description", "nodes", "edges", "width", "height"}``; each edge has a ``status``:
         ``taken`` (its parent ended and its child ran), ``skipped`` (its child was bypassed)
         or ``pending``.
-
-    Raises:
-        Nothing.
     """
     actions: list[dict[str, Any]] = snapshot.get("actions", [])
     held = held or {}
@@ -183,7 +177,7 @@ def graph_picture(
         node["layer"] = layout.layers[node["id"]]
     for edge in edges:
         edge["back"] = (edge["from"], edge["to"]) in layout.back_edges
-        edge["status"] = _edge_status(states.get(edge["from"]), states.get(edge["to"]), edge)
+        edge["status"] = edge_status(states.get(edge["from"]), states.get(edge["to"]), edge)
     return {
         "description": snapshot.get("graph_description", ""),
         "nodes": nodes,
@@ -197,7 +191,7 @@ _ENDED = frozenset({"FINISHED", "ERROR"})
 _STARTED = frozenset({"RUNNING", "PAUSE_REQUESTED", "PAUSED", "STOPPING", "FINISHED", "ERROR"})
 
 
-def _edge_status(parent: str | None, child: str | None, edge: Mapping[str, Any]) -> str:
+def edge_status(parent: str | None, child: str | None, edge: Mapping[str, Any]) -> str:
     """``taken``, ``skipped`` or ``pending``: what an edge did, from its ends' states."""
     parent_ended = edge["from"] == ENTRY or parent in _ENDED
     if not parent_ended:
@@ -294,9 +288,6 @@ def to_json(value: Any) -> str:
 
     Returns:
         The JSON text (ASCII only).
-
-    Raises:
-        Nothing.
     """
     try:
         return json.dumps(value, allow_nan=False, default=repr)

@@ -586,7 +586,7 @@ def test_updatable_flag_decides_whether_parent_overwrites_literal(
     updatable: bool, expected: str
 ) -> None:
     # pvf_updatable is a property of the action's description (the graph supplies literals and
-    # allowed values; REFERENCE 2.3)
+    # allowed values; docs/design.md §4.1)
     @action(inputs={"value": Param(str, updatable=updatable)}, outputs={"out": str})
     class Keep(Action):
         def on_run(self) -> bool:

@@ -1,8 +1,8 @@
 """Faults of the engine itself (not of an action) end a run; sub-graph nesting has a limit.
 
-Issue 27: an error raised by the engine's own code in a worker (a bug, a ``RecursionError`` of
-sub-graphs nested 200 deep) was logged as "uncaught error in worker job" and the run never
-ended; nesting beyond what the engine can end is now refused when the graph is planned.
+An error raised by the engine's own code in a worker (a bug, a ``RecursionError`` of sub-graphs
+nested 200 deep) ends the run on ERROR with the reason, not a log line with the run left going;
+nesting beyond what the engine can end is refused when the graph is planned.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ def test_an_engine_error_in_a_worker_ends_the_run_on_error_with_the_reason(
     graph = build.graph(Fine, Fine, name="faulty")
     with ActionEngine("me", actions=build.catalog(Fine), stop_timeout=1.0) as engine:
         name = engine.start(graph)
-        engine.wait(name, WAIT)  # before the fix: TimeoutError, the run never ended
+        engine.wait(name, WAIT)  # not a TimeoutError: the run ends
         outcome = engine.outcome(name)
     assert outcome.result is Result.ERROR
     assert outcome.state is GraphState.ERROR

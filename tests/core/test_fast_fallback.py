@@ -1,6 +1,6 @@
 """The pure fallback: a missing compiled kernel, and a machine without a C compiler.
 
-ISSUE 4: "a machine without a compiler still gets a working pure install (with a warning)";
+A machine without a compiler still gets a working pure install (with a warning);
 ``TEMOTO_REQUIRE_EXTENSIONS=1`` turns the fallback into an error.
 """
 
@@ -102,3 +102,39 @@ def test_a_build_without_a_c_compiler_succeeds_and_runs_pure(tmp_path: Path) -> 
     assert build == "pure"
     assert where.startswith(str(tree))
     assert "compiled kernels not available" in run.stderr
+
+
+def test_the_pure_pass_list_names_existing_test_files_outside_core() -> None:
+    """``tests/kernel_tests.txt`` (made by ``tools/kernel_tests.py``) names real test files."""
+    listed = [
+        line
+        for line in (REPO / "tests" / "kernel_tests.txt").read_text().splitlines()
+        if line and not line.startswith("#")
+    ]
+    assert listed == sorted(set(listed))
+    for path in listed:
+        assert (REPO / path).is_file(), f"{path} is listed but gone: run tools/kernel_tests.py"
+        assert path.startswith("tests/"), path
+        assert not path.startswith("tests/core/"), path
+
+
+def test_the_pure_pass_keeps_core_and_the_listed_files_only() -> None:
+    """``TEMOTO_KERNEL_TESTS_ONLY=1`` deselects a test file that reaches no kernel."""
+    clean = {k: v for k, v in os.environ.items() if k != "TEMOTO_KERNEL_TESTS_ONLY"}
+    args = [sys.executable, "-m", "pytest", "--collect-only", "-q", "-p", "no:cacheprovider"]
+    files = ["tests/test_clock.py", "tests/core/test_states.py"]
+
+    def collected(only: str) -> list[str]:
+        done = subprocess.run(
+            [*args, *files],
+            env={**clean, "TEMOTO_KERNEL_TESTS_ONLY": only},
+            cwd=REPO,
+            capture_output=True,
+            text=True,
+            timeout=120,
+        )
+        assert done.returncode == 0, done.stdout + done.stderr
+        return sorted({line.split("::")[0] for line in done.stdout.splitlines() if "::" in line})
+
+    assert collected("0") == sorted(files)
+    assert collected("1") == ["tests/core/test_states.py"]

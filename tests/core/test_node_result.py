@@ -1,4 +1,4 @@
-"""Instrument.node_result: each node's result, just before its state change (issue 15)."""
+"""Instrument.node_result: each node's result, just before its state change."""
 
 from __future__ import annotations
 

@@ -1,7 +1,7 @@
 """RefBook (temoto.core._fast): the registrar's reference counts and dependency lists.
 
-Every test runs against both builds (STYLE.md 3.9): the pure-Python ``_refbook_py`` and the
-compiled ``_refbook_c``. The compiled parameter skips when the extension is not built, unless
+Every test runs against both builds (docs/development.md §7): the pure-Python ``_refbook_py`` and
+the compiled ``_refbook_c``. The compiled parameter skips when the extension is not built, unless
 ``TEMOTO_REQUIRE_EXTENSIONS=1`` (then it fails). A Hypothesis test drives each build and a
 dict-based model with the same random operations and compares every result and exception.
 """

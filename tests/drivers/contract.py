@@ -1,4 +1,4 @@
-"""The driver contract: every driver + simulator pair passes these tests (STYLE §3.7).
+"""The driver contract: every driver + simulator pair passes these tests (docs/development.md §6).
 
 A driver's test module subclasses :class:`DriverContract` once and provides the ``rig``
 fixture: a configured-but-not-started driver on a running simulator, and how to make the

@@ -27,7 +27,7 @@ from temoto.drivers.can_motor.sim import SimODrive
 
 HB = 0.05  # the simulated axes' heartbeat period, real seconds
 LISTEN = 0.3  # detect's timeout: several heartbeats
-ODRIVE = "temoto.drivers.can_motor.odrive"  # the logger detect reports on
+ODRIVE = "temoto.drivers.can_motor.detect"  # the logger detect reports on
 
 
 def link(channel: str) -> dict[str, Any]:

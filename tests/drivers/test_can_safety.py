@@ -1,4 +1,4 @@
-"""Safe states, device watchdogs and stream supervision of the CAN motor drivers (issue 13).
+"""Safe states, device watchdogs and stream supervision of the CAN motor drivers.
 
 Most tests run a driver on its simulator in virtual time (:class:`ManualClock`). The safe state
 and the watchdog of the ODrive driver are also tested against :class:`DocODrive`, a small
@@ -38,7 +38,7 @@ ENC = 0.01  # encoder estimate period
 CMD = 0.05  # the driver's command_period
 WATCHDOG = 0.2  # the devices' watchdog timeout
 RATE = 10.0  # MIT polls per clock second
-ODRIVE_LOG = "temoto.drivers.can_motor.odrive"
+ODRIVE_LOG = "temoto.drivers.can_motor.detect"
 CAN_LOG = "temoto.drivers.can_motor"
 
 
@@ -449,6 +449,7 @@ def test_mit_safe_state_is_zero_torque_then_exit(
 ) -> None:
     driver, sim, ch = mit
     assert driver.safe_state == "zero_torque"
+    sim.motors[1].damping = 1.0  # a load: 3 N·m holds ~3 rad/s, not a free run to v_max
     active(driver)
     driver.command([JointCommand("shoulder", ControlMode.EFFORT, 3.0)])
     eventually(lambda: sim.motors[1].torque > 2.0, 1.0, clock)

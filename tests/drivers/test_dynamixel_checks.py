@@ -1,5 +1,5 @@
-"""Dynamixel checks before anything is written (issue 25): identity, duplicates, model limits,
-every bad status packet counted, and messages that name the servo and the register.
+"""Dynamixel checks before anything is written: identity, duplicates, model limits, every bad
+status packet counted, and messages that name the servo and the register.
 
 The simulated chain runs on its pseudo-terminal; what reaches it is watched by wrapping its
 packet handler (the instructions on the wire), and registers are read back from it.

@@ -36,7 +36,7 @@ CHAIN = {2: "XM430-W350", 5: "XL430-W250", 9: "XM430-W350"}
 FOUND = 0.2  # detect's timeout where servos answer: real seconds
 MISS = 0.05  # where nothing answers (each baud rate tried costs this much)
 SLACK = 1.5  # real seconds of scheduling slack in time bounds (loaded machines)
-DRIVER = "temoto.drivers.dynamixel.driver"  # the logger detect reports on
+DRIVER = "temoto.drivers.dynamixel.detect"  # the logger detect reports on
 
 
 def servos(*ids: int) -> list[dict[str, Any]]:

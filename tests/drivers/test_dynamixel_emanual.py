@@ -581,7 +581,7 @@ def test_reboot_resets_the_ram_area_and_keeps_the_eeprom(
     for address, size, value in ((64, 1, 1), (65, 1, 1), (84, 2, 1500), (112, 4, 100)):
         assert write(ph, port, 1, address, size, value) == OK
     assert write(ph, port, 1, 116, 4, 3 * 4096 + 100) == OK
-    clock.advance(5.0)
+    clock.advance(8.0)  # 10,340 ticks at Profile Velocity 100 (22.9 rev/min): 6.6 s
     assert sim.read_register(1, 132) == 3 * 4096 + 100
     assert ph.reboot(port, 1) == (dxl.COMM_SUCCESS, 0)
     after = {a: read(ph, port, 1, a, s)[0] for a, s in ((64, 1), (65, 1), (84, 2), (112, 4))}

@@ -1,4 +1,4 @@
-"""Dynamixel safety (issue 13): safe states, the Bus Watchdog, stale feedback, bad packets.
+"""Dynamixel safety: safe states, the Bus Watchdog, stale feedback, bad packets.
 
 The Bus Watchdog and torque off are tested twice: against our simulator and against
 :class:`EManualChain`, a small servo emulator written here from the ROBOTIS e-Manual (X series
@@ -537,7 +537,7 @@ def test_one_bad_packet_is_counted_a_burst_is_a_fault(
     driver, sim, clock = chain
     driver.configure()
     driver.activate()
-    caplog.set_level(logging.INFO, logger="temoto.drivers.dynamixel.driver")
+    caplog.set_level(logging.INFO, logger="temoto.drivers.dynamixel")
     sim.inject("corrupt", replies=1)
     eventually(lambda: sim.fault("corrupt") is None, 3.0, clock)
     packets = sim.stats["packets"]
@@ -573,11 +573,11 @@ def test_the_wire_time_formula() -> None:
     # bytes per cycle = 146 (SYNC_READ) + 44 (SYNC_WRITE) + 288 / 10 (three status reads).
     expected = 10 * (146 + 44 + 28.8) / 57600 + (6 + 1.8) * 500e-6
     assert poll_cycle_time(6, 57600, 500e-6, 10, True) == pytest.approx(expected)
-    assert 1 / expected < 30  # the issue's "six servos top out at about 30 Hz"
+    assert 1 / expected < 30  # six servos at 57600 baud top out at about 30 Hz
 
 
 def test_a_poll_rate_the_wire_cannot_carry_is_a_warning(caplog: pytest.LogCaptureFixture) -> None:
-    caplog.set_level(logging.WARNING, logger="temoto.drivers.dynamixel.driver")
+    caplog.set_level(logging.WARNING, logger="temoto.drivers.dynamixel")
     DynamixelDriver.from_profile(
         "a", config(6, baud=57600), clock=MonotonicClock(), where="arm.yaml: devices.arm"
     )
@@ -617,7 +617,7 @@ def test_limits_and_return_delay_are_written_only_when_they_differ() -> None:
 def test_the_usb_latency_timer_is_checked(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, caplog: pytest.LogCaptureFixture
 ) -> None:
-    caplog.set_level(logging.WARNING, logger="temoto.drivers.dynamixel.driver")
+    caplog.set_level(logging.WARNING, logger="temoto.drivers.dynamixel")
     monkeypatch.setattr(dxl_timing, "USB_SERIAL_SYSFS", str(tmp_path))
     clock = MonotonicClock()
     sim, entry = DynamixelDriver.simulate("arm", config(1), clock=clock)

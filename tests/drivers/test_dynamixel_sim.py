@@ -70,6 +70,8 @@ def test_read_write_and_motion_on_the_clock(
     clock.advance(0.05)
     moving = ph.read4ByteTxRx(port, 1, 132)[0]
     assert 2048 < moving < 3072
+    clock.advance(0.15)  # the controller has caught up with its profile (~80 ms)
+    assert ph.read4ByteTxRx(port, 1, 132)[0] < 3072
     speed = ph.read4ByteTxRx(port, 1, 128)[0]
     assert speed == 200  # at the Velocity Limit
     current = ph.read2ByteTxRx(port, 1, 126)[0]

@@ -170,7 +170,8 @@ def test_a_full_flight_in_virtual_time(
     assert abs(tel().position.alt - 15.0) < 0.3
 
     d.land()
-    run_until(clock, lambda: not tel().armed, 20.0)
+    took = run_until(clock, lambda: not tel().armed, 40.0)
+    assert took > 10.0 / 0.5  # the last 10 m (LAND_ALT_LOW) at ArduCopter's LAND_SPEED 0.5 m/s
     assert tel().mode == "LAND"
     assert tel().position.alt == pytest.approx(0.0, abs=0.05)
     assert _distance(tel().position, GeoPoint(target.lat, target.lon, 0.0)) < 0.5
@@ -359,7 +360,7 @@ def test_a_hardware_error_refuses_arming_in_the_vehicle(
 
 def test_configure_against_a_non_ardupilot_fails(clock: ManualClock) -> None:
     sim, d = make(clock)
-    real_frame = sim._frame
+    real_frame = sim.telemetry.frame
 
     def px4_heartbeat(name: str, now: float) -> bytes:
         if name == "HEARTBEAT":
@@ -374,7 +375,7 @@ def test_configure_against_a_non_ardupilot_fails(clock: ManualClock) -> None:
             )
         return real_frame(name, now)
 
-    sim._frame = px4_heartbeat  # type: ignore[method-assign]
+    sim.telemetry.frame = px4_heartbeat  # type: ignore[method-assign]
     with sim, d:
         with pytest.raises(Exception, match="not an ArduPilot") as info:
             configure(d, clock)

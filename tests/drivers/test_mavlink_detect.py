@@ -154,7 +154,7 @@ def test_a_simulated_vehicle_is_found_and_its_entry_flies(
 ) -> None:
     sim, settings = quad
     link = settings["link"]
-    with caplog.at_level(logging.INFO, logger="temoto.drivers.mavlink.driver"):
+    with caplog.at_level(logging.INFO, logger="temoto.drivers.mavlink"):
         entries = MavlinkDriver.detect([link], timeout=TIMEOUT)
     assert entries == [{"driver": "mavlink", "link": link, "system_id": 1, "component_id": 1}]
     assert "MAV_TYPE_QUADROTOR, MAV_AUTOPILOT_ARDUPILOTMEGA" in caplog.text
@@ -259,7 +259,7 @@ def test_every_vehicle_on_a_link_is_an_entry(caplog: pytest.LogCaptureFixture) -
         quad_heartbeat(4, component=50),  # an autopilot on a component other than 1
     ]
     with (
-        caplog.at_level(logging.INFO, logger="temoto.drivers.mavlink.driver"),
+        caplog.at_level(logging.INFO, logger="temoto.drivers.mavlink"),
         sending(port, frames),
     ):
         entries = MavlinkDriver.detect([link], timeout=TIMEOUT)
@@ -291,7 +291,7 @@ def test_a_link_that_cannot_be_opened_is_skipped(caplog: pytest.LogCaptureFixtur
         taken.bind(("127.0.0.1", free_port()))
         busy = f"udpin:127.0.0.1:{taken.getsockname()[1]}"
         good = f"udpin:127.0.0.1:{port}"
-        with caplog.at_level(logging.WARNING, logger="temoto.drivers.mavlink.driver"):
+        with caplog.at_level(logging.WARNING, logger="temoto.drivers.mavlink"):
             entries = MavlinkDriver.detect([busy, good], timeout=TIMEOUT)
     assert [e["link"] for e in entries] == [good]
     assert f"skipping {busy}" in caplog.text
@@ -336,7 +336,7 @@ def test_a_missing_serial_port_is_skipped_once(
     fake_links: dict[str, Any], caplog: pytest.LogCaptureFixture
 ) -> None:
     fake_links["missing"].add("/dev/ttyGONE")
-    with caplog.at_level(logging.WARNING, logger="temoto.drivers.mavlink.driver"):
+    with caplog.at_level(logging.WARNING, logger="temoto.drivers.mavlink"):
         assert MavlinkDriver.detect(["serial:/dev/ttyGONE"], timeout=0.1) == []
     assert fake_links["opened"] == []
     assert caplog.text.count("skipping serial:/dev/ttyGONE?baud=57600") == 1
@@ -403,7 +403,7 @@ def test_two_vehicles_with_one_system_id_are_named_a_duplicate(
     with (
         sending(port, [quad_heartbeat(1)]),
         sending(port, [quad_heartbeat(1)]),
-        caplog.at_level(logging.WARNING, logger="temoto.drivers.mavlink.driver"),
+        caplog.at_level(logging.WARNING, logger="temoto.drivers.mavlink"),
     ):
         found = MavlinkDriver.detect(link, timeout=TIMEOUT)
     assert [(e["system_id"], e["component_id"]) for e in found] == [(1, 1)]

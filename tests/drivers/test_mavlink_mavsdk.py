@@ -52,6 +52,7 @@ def flight() -> Iterator[tuple[SimVehicle, Any]]:
         climb_rate=5.0,
         descent_rate=4.0,
         tau=0.4,
+        params={"LAND_SPEED": 400},  # ArduCopter's 50 cm/s is too slow for a real-time test
     )
     mavsdk.log_subscribe(lambda level, message, file, line: True)  # keep MAVSDK quiet
     client = mavsdk.Mavsdk(

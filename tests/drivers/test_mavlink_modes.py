@@ -1,4 +1,4 @@
-"""The vehicle's own mode changes, link gaps, and components that are not the autopilot (issue 25).
+"""The vehicle's own mode changes, link gaps, and components that are not the autopilot.
 
 Against SimVehicle (its GCS failsafe, its ``link_loss``) on a virtual clock, and raw frames from
 pymavlink-free senders built with the driver's own codec under other component ids.
@@ -39,7 +39,7 @@ def clock() -> ManualClock:
 def test_a_gcs_failsafe_during_a_short_outage_is_seen_within_a_heartbeat(
     clock: ManualClock, caplog: pytest.LogCaptureFixture
 ) -> None:
-    """Issue 25: a 2 s outage, shorter than heartbeat_timeout (3 s); the vehicle went RTL."""
+    """A 2 s outage, shorter than heartbeat_timeout (3 s), in which the vehicle went RTL."""
     sim, d = rig(clock, sim={"params": {"FS_GCS_ENABLE": 1, "FS_GCS_TIMEOUT": 2}})
     with sim, contextlib.closing(_Shut(d)):
         configure(d, clock)
@@ -48,7 +48,7 @@ def test_a_gcs_failsafe_during_a_short_outage_is_seen_within_a_heartbeat(
         d.add_mode_listener(heard.append)
         take_off(d, clock, 3.0)
         assert d.telemetry().mode == "GUIDED"
-        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink.driver")
+        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink")
         sim.inject("link_loss")
         run_until(clock, lambda: sim.mode == "RTL", 2.0 + 1.0)  # FS_GCS_TIMEOUT, then RTL
         back = clock.monotonic()
@@ -80,7 +80,7 @@ def test_a_commanded_mode_change_is_no_warning(
         configure(d, clock)
         d.activate()
         take_off(d, clock, 3.0)
-        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink.driver")
+        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink")
         d.set_mode("LOITER")
         run_until(clock, lambda: d.telemetry().mode == "LOITER", 1.5)
         change = d.last_mode_change
@@ -102,7 +102,7 @@ def test_another_component_of_the_system_is_ignored_and_counted(
         d.activate()
         take_off(d, clock, 3.0)
         run_until(clock, lambda: d._landed_state == p.MAV_LANDED_STATE_IN_AIR, 2.0)
-        caplog.set_level(logging.WARNING, logger="temoto.drivers.mavlink.driver")
+        caplog.set_level(logging.WARNING, logger="temoto.drivers.mavlink")
         companion = p.Codec(1, 100)
         frames = [
             companion.encode("EXTENDED_SYS_STATE", vtol_state=0,
@@ -135,7 +135,7 @@ def test_another_component_of_the_system_is_ignored_and_counted(
         d.shutdown()
 
 
-# ---- profile checks against ArduPilot (issue 25, item 6) -----------------------------------
+# ---- profile checks against ArduPilot --------------------------------------------------------
 
 
 @pytest.mark.parametrize(

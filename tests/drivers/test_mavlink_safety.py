@@ -1,4 +1,4 @@
-"""MAVLink safety (issue 13): safe state, GCS failsafe, stream supervision, an untrusting link.
+"""MAVLink safety: safe state, GCS failsafe, stream supervision, an untrusting link.
 
 Against SimVehicle, and, for what matters to safety, against ``Autopilot`` below: a small
 emulator of ArduCopter's side written from the ArduPilot documentation and the MAVLink common

@@ -1,4 +1,4 @@
-"""Trust only the autopilot (issue 25): other components and a second vehicle are not believed.
+"""Trust only the autopilot: other components and a second vehicle are not believed.
 
 Process tests: ``mavlink/_flying_autopilot.py`` (an independent ArduCopter end written from
 common.xml, encoding with pymavlink, not our simulator) runs in a process of its own; the robot

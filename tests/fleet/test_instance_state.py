@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from temoto._cli_fleet import StateFiles, add_state_options, state_files
+from temoto.cli.fleet import StateFiles, add_state_options, state_files
 from temoto.errors import ConfigError, ResourceBusyError
 from temoto.instance import Instance
 from temoto.managers.context import Pose

@@ -5,22 +5,18 @@ next actor, so every node's result is a notification passed from actor to actor 
 48 others); ``TaCompareString_0`` on actor 0 checks the string that went round. All processes
 run in one network namespace (`unshare -n`: loopback up, multicast routed to it), with the
 default timeouts (5 s to acknowledge a notification). Needs root, `unshare` and `ip`; skipped
-otherwise. Slow: 50 Python processes start on a 2-core machine (12-21 s on 2026-11-25, with
-the other jobs of the machine at a load of 14-18; most of it is the processes' start-up).
+otherwise.
 
-With keyed sessions (issue 20: every process agrees a session key with the 49 others while
-the handshake runs) the LCM run took 95 s on an idle machine on 2026-11-27, against 24 s
-before: past the default minute, so it has a limit of its own, and runs in the compiled pass
-of ``make test`` only. Most of it was a storm of hellos (docs/security.md, "How many hellos");
-without it the run took 29 s, beside 31 s with the HMAC envelopes of git 90291e4 (load
-average 42 - 47, 2026-11-27).
+Slow: 50 Python processes start on a 2-core machine, and every one agrees a session key with the
+49 others while the handshake runs (docs/security.md, "How many hellos"): 29 s on 2026-11-27 at
+a load average of 42 - 47. Past the minute a test of the default run may take on a loaded
+machine, it has a limit of its own and runs in the compiled pass of ``make test`` only. The
+handshake's JOINs stay small enough that every process acknowledges the first node's
+notification within the 5 s (50-entry JOINs kept every process decoding past them, and the run
+aborted everywhere). `python -m bench --only fleet` measures the handshake and the ring apart
+(`handshake_50_actors_ms`, `ring_50_actors_ms`).
 
-With the first handshake format (issue 14) the first node's notification was not
-acknowledged within 5 s (every process was still decoding 50-entry JOINs): the run aborted
-everywhere, so this test ran 40 actors. `python -m bench --only fleet` measures the handshake
-and the ring apart (`handshake_50_actors_ms`, `ring_50_actors_ms`).
-
-Over Zenoh (issue 18) every process is a client of a `temoto router` in the namespace. That run
+Over Zenoh every process is a client of a `temoto router` in the namespace. That run
 took 22, 32 and 79 s here on 2026-11-27 (load averages 7 - 78; the LCM one 24 s at the same
 time), so, past the minute a test of the default run may take on a loaded machine, it runs only
 when ``TEMOTO_TEST_RING_ZENOH=1`` is set, with a limit of its own; ``-k zenoh`` selects it.

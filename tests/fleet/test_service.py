@@ -126,9 +126,12 @@ def test_no_import_circles_in_the_fleet_package() -> None:
         visit(module, ())
 
 
-def test_every_fleet_module_is_below_700_lines_and_says_what_it_is() -> None:
-    paths = [*FLEET.glob("*.py"), FLEET.parent / "_cli_fleet.py", FLEET.parent / "_cli_signals.py"]
+def test_every_fleet_module_says_what_it_is() -> None:
+    paths = [
+        *FLEET.glob("*.py"),
+        FLEET.parent / "cli" / "fleet.py",
+        FLEET.parent / "cli" / "signals.py",
+    ]
     for path in paths:
         text = path.read_text()
-        assert len(text.splitlines()) < 700, f"{path.name} has {len(text.splitlines())} lines"
         assert ast.get_docstring(ast.parse(text)), f"{path.name} has no docstring"

@@ -28,7 +28,7 @@ from temoto.managers.component.manager import COMPONENT_STATS
 from temoto.managers.process import ProcessManager
 
 WAIT = 10.0
-LOGGER = "temoto.managers.component.manager"
+LOGGER = "temoto.managers.component"
 
 
 def peer(name: str) -> ComponentDescription:

@@ -1,4 +1,4 @@
-"""Restore without ghosts (issue 14 item 4).
+"""Restore without ghosts.
 
 After a restart on the same catalog every restored resource is re-adopted or released: a
 pipeline whose segments did not survive is FATAL (never shared with nothing behind it), the

@@ -1,4 +1,4 @@
-"""The time estimates behind the robot actions' deadlines (issue 25), against their formulas.
+"""The time estimates behind the robot actions' deadlines, against their formulas.
 
 No robot: the controllers get stand-in devices that report a fixed state.
 """

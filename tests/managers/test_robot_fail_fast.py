@@ -1,7 +1,7 @@
-"""An action that needs a faulted device fails at once with the device's reason (issue 25).
+"""An action that needs a faulted device fails at once with the device's reason.
 
 The base's wheels are commanded only by the robot's control thread, which does not step while a
-device is in FAULT: before the fix, NavigateTo then waited RUNNING, with no error. The fault
+device is in FAULT: NavigateTo must not wait RUNNING there, with no error. The fault
 happens before the action starts: the robot's consumers were told of it when it
 happened, so the action (which holds no reference yet) is never told; it must see it itself
 when it acquires the robot or starts its motion, instead of waiting for a device that does not
@@ -64,7 +64,7 @@ def test_a_drive_after_the_bases_fault_fails_at_once_with_the_devices_reason(
         t0 = time.monotonic()
         engine.start(GRAPH)
         try:
-            result = engine.wait("drive", 5)  # before the fix: RUNNING, no error, for ever
+            result = engine.wait("drive", 5)  # not RUNNING, with no error, for ever
         finally:
             took = time.monotonic() - t0
             errors = [str(e) for e in engine.outcome("drive").errors]

@@ -1,8 +1,8 @@
-"""Stop and pause act on the devices (issue 25): a stopped or paused robot action leaves every
-device it commanded still, seen from the simulators' state, before the engine reports it.
+"""Stop and pause act on the devices: a stopped or paused robot action leaves every device it
+commanded still, seen from the simulators' state, before the engine reports it.
 
 The robots here step their controllers at 2 Hz (``rate_hz``) instead of 50 Hz: a stop or hold
-that waited for the control thread's next step (as before the fix) is then late by up to half a
+that waited for the control thread's next step would then be late by up to half a
 second, so the checks at the moment the engine reports STOPPED or PAUSED tell the two apart
 without tight timing. The arm's servos are slowed down (their Velocity Limit register, in the
 simulator) so that a stop comes long before the pose is reached even on a loaded machine.
@@ -97,7 +97,7 @@ def test_a_stopped_move_leaves_the_arm_where_it_was_not_at_the_pose(
         engine.start(graph("reach", "MoveJoints", {"pose": "reach"}))
         until(lambda: _ticks(sim, lift, ct.GOAL_POSITION.address) != start, "no goal was sent")
         pose = _ticks(sim, lift, ct.GOAL_POSITION.address)
-        time.sleep(0.02)  # 5-30 ms after the motion started, as the issue tried
+        time.sleep(0.02)  # 5-30 ms after the motion started
         assert engine.stop("reach", WAIT) is Result.STOPPED
         at_stop = _ticks(sim, lift, ct.PRESENT_POSITION.address)
         # told before the engine said STOPPED: the goal is where the servo is, not the pose
@@ -247,8 +247,8 @@ def test_a_vehicle_switching_to_rtl_on_its_own_ends_the_flight_with_the_reason(
     ) as engine:
         engine.start(graph("fly", "FlyTo", _far(sim, 2000.0)))
         until(lambda: _speed(sim) > 1.0, "the vehicle did not fly")
-        with sim._lock:  # a pilot's switch, or a failsafe's: the vehicle changes mode itself
-            sim._set_mode("RTL")
+        with sim.state.lock:  # a pilot's switch, or a failsafe's: the vehicle changes mode itself
+            sim.flight.set_mode("RTL")
         t0 = clock.monotonic()
         assert engine.wait("fly", WAIT) is Result.ERROR
         took = clock.monotonic() - t0

@@ -8,7 +8,9 @@ The robot is the simulated Dynamixel arm (``hw_profiles/sim_arm.yaml``), in-proc
 from __future__ import annotations
 
 import builtins
+import itertools
 import logging
+import math
 import os
 import signal
 import threading
@@ -357,3 +359,457 @@ def test_after_a_registrar_restart_a_display_is_fatal_and_loads_afresh(
     finally:
         viz2.shutdown()
         reg2.close()
+
+
+def test_a_robots_path_display_grows_as_the_rover_drives(server: FoxgloveServer) -> None:
+    """``robot`` / ``path``: the path travelled, as ``foxglove.PosesInFrame``."""
+    import yaml
+
+    from temoto import ScaledClock
+    from temoto.config import parse_profile
+
+    clock = ScaledClock(4)
+    doc = yaml.safe_load((PROFILES / "sim_rover.yaml").read_text())
+    doc["devices"]["base"]["heartbeat_period"] = 0.25  # lenient on a loaded machine
+    profile = parse_profile(doc, file="sim_rover.yaml", clock=clock)
+    request = DisplayRequest("robot", "path")
+    assert (request.name, request.kind, request.topic) == (
+        "robot_path",
+        "foxglove.PosesInFrame",
+        "/display/robot_path/path",
+    )
+    with robot_manager("test-viz-path", profile, clock) as (registrar, _robots):
+        manager = VisualizationManager(registrar, server, clock=clock)
+        try:
+            with FoxgloveClient(server.url) as client:
+                ref = registrar.call("display", request, client="op")
+                client.wait(lambda c: request.topic in c.topics(), timeout=WAIT)
+                assert client.topics()[request.topic] == "foxglove.PosesInFrame"
+                sub = client.subscribe(request.topic)
+                first = client.first_message(sub, timeout=WAIT).payload
+                assert first["frame_id"] == "odom"
+                assert len(first["poses"]) == 1  # standing still: one pose, no more messages
+                driver = RobotManagerClient(registrar).request(client="driver")
+                driver.navigate_to(0.6, 0.0).wait(WAIT * 3)
+
+                def far(c: FoxgloveClient) -> bool:
+                    mine = [m for m in c.messages if m.subscription == sub]
+                    return mine[-1].payload["poses"][-1]["position"]["x"] > 0.5
+
+                client.wait(far, timeout=WAIT)
+                path = [m for m in client.messages if m.subscription == sub][-1].payload["poses"]
+                xs = [p["position"]["x"] for p in path]
+                xy = [(p["position"]["x"], p["position"]["y"]) for p in path]
+                assert xs == sorted(xs)  # straight ahead, in order
+                assert len(path) >= 10  # a pose per 2 cm of the 0.6 m
+                steps = [math.dist(a, b) for a, b in itertools.pairwise(xy)]
+                assert min(steps) >= 0.02 - 1e-9
+                registrar.release(ref.id)
+                client.wait(lambda c: request.topic not in c.topics(), timeout=WAIT)
+        finally:
+            for ref in registrar.references():
+                registrar.release(ref.id)
+            manager.shutdown()
+
+
+def test_a_world_display_shows_the_world_models_items_as_a_scene(
+    server: FoxgloveServer,
+) -> None:
+    """``world``: the Context Manager's tree as ``foxglove.SceneUpdate``."""
+    from temoto.errors import ResourceError
+    from temoto.managers.context import ContextManager
+    from temoto.managers.context.pose import Pose
+
+    registrar = Registrar("test-viz-world")
+    manager = VisualizationManager(registrar, server)
+    try:
+        with pytest.raises(ResourceError, match="needs a Context Manager"):
+            registrar.call("display", DisplayRequest("world"), client="op")
+        with ContextManager("worker", registrar=registrar) as context:
+            context.add("kitchen", "map", pose=Pose(x=10.0))
+            context.add("table", "object", parent="kitchen", pose=Pose(x=1.0, y=2.0))
+            with pytest.raises(ResourceError, match="no item 'attic'"):
+                registrar.call("display", DisplayRequest("world", target="attic"), client="op")
+            request = DisplayRequest("world", target="kitchen")
+            topic = "/display/world_kitchen_scene/scene"
+            assert (request.kind, request.topic) == ("foxglove.SceneUpdate", topic)
+            with FoxgloveClient(server.url) as client:
+                ref = registrar.call("display", request, client="op")
+                client.wait(lambda c: topic in c.topics(), timeout=WAIT)
+                assert client.topics()[topic] == "foxglove.SceneUpdate"
+                sub = client.subscribe(topic)
+                first = client.first_message(sub).payload
+                entities = {e["id"]: e for e in first["entities"]}
+                assert set(entities) == {"kitchen", "table"}
+                assert entities["kitchen"]["cubes"] == []  # a map: its name only
+                (cube,) = entities["table"]["cubes"]
+                assert cube["pose"]["position"] == {"x": 11.0, "y": 2.0, "z": 0.0}  # in world
+                assert entities["table"]["texts"][0]["text"] == "table"
+                assert {"key": "parent", "value": "kitchen"} in entities["table"]["metadata"]
+                assert first["deletions"] == []
+
+                def mine(c: FoxgloveClient) -> list[dict[str, Any]]:
+                    return [m.payload for m in c.messages if m.subscription == sub]
+
+                context.add("cup", "object", parent="table", pose=Pose(z=0.8))
+                client.wait(lambda c: any(e["id"] == "cup" for e in mine(c)[-1]["entities"]))
+                cup = next(e for e in mine(client)[-1]["entities"] if e["id"] == "cup")
+                assert cup["cubes"][0]["pose"]["position"] == {"x": 11.0, "y": 2.0, "z": 0.8}
+                context.remove("cup")
+                client.wait(lambda c: mine(c)[-1]["deletions"] != [])
+                last = mine(client)[-1]
+                assert [d["id"] for d in last["deletions"]] == ["cup"]
+                assert {e["id"] for e in last["entities"]} == {"kitchen", "table"}
+                context.add("elsewhere", "object")  # outside the subtree: not shown
+                count = len(mine(client))
+                registrar.release(ref.id)
+                client.wait(lambda c: topic not in c.topics(), timeout=WAIT)
+                assert all(
+                    "elsewhere" not in {e["id"] for e in m["entities"]}
+                    for m in mine(client)[count - 1 :]
+                )
+    finally:
+        manager.shutdown()
+        registrar.close()
+
+
+def test_a_components_datagrams_are_decoded_as_a_scan_or_an_image(
+    server: FoxgloveServer, tmp_path: Path
+) -> None:
+    """A component display asked as ``foxglove.LaserScan`` or ``foxglove.CompressedImage``."""
+    import base64
+
+    from temoto.managers import ProcessManager
+    from temoto.managers.component import ComponentManager
+    from temoto.testing import sim_scanner
+
+    components_file = sim_scanner.components_file(str(tmp_path))
+    registrar = Registrar("test-viz-decode")
+    processes = ProcessManager(registrar)
+    components = ComponentManager(registrar, files=[components_file])
+    manager = VisualizationManager(registrar, server)
+    try:
+        with FoxgloveClient(server.url) as client:
+            scan = DisplayRequest("component", target="scanner", kind="foxglove.LaserScan")
+            image = DisplayRequest("component", target="camera", kind="foxglove.CompressedImage")
+            refs = [registrar.call("display", r, client="op") for r in (scan, image)]
+            client.wait(lambda c: {scan.topic, image.topic} <= set(c.topics()), timeout=WAIT)
+            assert client.topics()[scan.topic] == "foxglove.LaserScan"
+            assert client.topics()[image.topic] == "foxglove.CompressedImage"
+            got = client.first_message(client.subscribe(scan.topic), timeout=WAIT).payload
+            assert got["ranges"] == sim_scanner.RANGES
+            assert (got["start_angle"], got["end_angle"]) == (0.0, pytest.approx(math.pi))
+            assert got["frame_id"] == "lidar"
+            assert got["pose"]["orientation"]["w"] == 1.0
+            assert "seq" not in got  # only LaserScan's fields
+            shot = client.first_message(client.subscribe(image.topic), timeout=WAIT).payload
+            assert shot["format"] == "png"
+            assert base64.b64decode(shot["data"]).startswith(b"\x89PNG\r\n\x1a\n")
+            assert shot["frame_id"] == "cam"
+            # the undecodable datagrams between them were dropped, not published
+            deadline = time.monotonic() + WAIT
+            shown = manager.displays()
+            while not (shown[scan.name].dropped and shown[image.name].dropped):
+                assert time.monotonic() < deadline, "nothing dropped"
+                time.sleep(0.01)
+            assert shown[scan.name].count >= 1  # the good ones were published
+            for ref in refs:
+                registrar.release(ref.id)
+            client.wait(lambda c: not {scan.topic, image.topic} & set(c.topics()), timeout=WAIT)
+    finally:
+        manager.shutdown()
+        components.shutdown()
+        processes.shutdown(stop_processes=True)
+        registrar.close()
+
+
+def test_a_components_datagrams_are_decoded_as_a_cloud_a_raw_image_or_a_grid(
+    server: FoxgloveServer, tmp_path: Path
+) -> None:
+    """``foxglove.PointCloud``, ``foxglove.RawImage`` (PPM, PGM, JSON bgr8), ``foxglove.Grid``.
+
+    The values are read back from the base64 ``data`` with the message's own fields and
+    strides, as a Foxglove panel reads them; each sensor's bad datagrams are dropped, counted.
+    """
+    import base64
+    import struct
+
+    from temoto.managers import ProcessManager
+    from temoto.managers.component import ComponentManager
+    from temoto.testing import sim_scanner
+
+    components_file = sim_scanner.components_file(str(tmp_path))
+    registrar = Registrar("test-viz-decode2")
+    processes = ProcessManager(registrar)
+    components = ComponentManager(registrar, files=[components_file])
+    manager = VisualizationManager(registrar, server)
+    requests = {
+        target: DisplayRequest("component", target=target, kind=kind)
+        for target, kind in (
+            ("depth_camera", "foxglove.PointCloud"),
+            ("raw_camera", "foxglove.RawImage"),
+            ("bgr_camera", "foxglove.RawImage"),
+            ("grey_camera", "foxglove.RawImage"),
+            ("costmap", "foxglove.Grid"),
+        )
+    }
+    try:
+        with FoxgloveClient(server.url) as client:
+            refs = [registrar.call("display", r, client="op") for r in requests.values()]
+            topics = {r.topic for r in requests.values()}
+            client.wait(lambda c: topics <= set(c.topics()), timeout=WAIT)
+            got = {}
+            for target, request in requests.items():
+                assert client.topics()[request.topic] == request.kind
+                sub = client.subscribe(request.topic)
+                got[target] = client.first_message(sub, timeout=WAIT).payload
+
+            # the cloud: x, y, z FLOAT32 (NumericType 7) at 0, 4, 8; a point per 12 bytes
+            cloud = got["depth_camera"]
+            assert cloud["frame_id"] == "depth"
+            assert cloud["point_stride"] == 12
+            assert cloud["fields"] == [
+                {"name": axis, "offset": 4 * i, "type": 7} for i, axis in enumerate("xyz")
+            ]
+            data = base64.b64decode(cloud["data"])
+            points = [list(p) for p in struct.iter_unpack("<fff", data)]
+            assert points == [[*p, 0.0][:3] for p in sim_scanner.POINTS]
+
+            # the raw images: the same picture as rgb8 (a PPM) and bgr8 (JSON, padded rows)
+            def pixels(image: dict[str, Any], order: str) -> list[list[tuple[int, ...]]]:
+                raw = base64.b64decode(image["data"])
+                assert len(raw) == image["step"] * image["height"]
+                rows = [raw[r * image["step"] :][: 3 * image["width"]] for r in range(2)]
+                return [
+                    [
+                        tuple(row[3 * c : 3 * c + 3])[:: 1 if order == "rgb" else -1]
+                        for c in range(2)
+                    ]
+                    for row in rows
+                ]
+
+            rgb, bgr = got["raw_camera"], got["bgr_camera"]
+            assert (rgb["encoding"], rgb["width"], rgb["height"], rgb["step"]) == ("rgb8", 2, 2, 6)
+            assert (bgr["encoding"], bgr["step"]) == ("bgr8", 8)
+            assert rgb["frame_id"] == "rawcam"
+            assert (
+                pixels(rgb, "rgb")
+                == pixels(bgr, "bgr")
+                == [[tuple(p) for p in row] for row in sim_scanner.PIXELS]
+            )
+            grey = got["grey_camera"]
+            assert (grey["encoding"], grey["step"]) == ("mono8", 2)
+            assert list(base64.b64decode(grey["data"])) == [v for r in sim_scanner.GREYS for v in r]
+
+            # the grid: one FLOAT32 field, row-major from its corner; the unknown cell is NaN
+            grid = got["costmap"]
+            assert grid["column_count"] == 3
+            assert grid["cell_size"] == {"x": 0.5, "y": 0.5}
+            assert (grid["row_stride"], grid["cell_stride"]) == (12, 4)
+            assert grid["fields"] == [{"name": "value", "offset": 0, "type": 7}]
+            assert grid["pose"]["position"] == {"x": -1.0, "y": -1.0, "z": 0.0}
+            cells = [v for (v,) in struct.iter_unpack("<f", base64.b64decode(grid["data"]))]
+            assert cells[:5] == [0.0, 1.0, 2.0, 3.0, 4.0]
+            assert math.isnan(cells[5])
+
+            # every sensor's bad datagrams were dropped and counted, the good ones published
+            deadline = time.monotonic() + WAIT
+            shown = manager.displays()
+            while not all(shown[r.name].dropped for r in requests.values()):
+                assert time.monotonic() < deadline, "nothing dropped"
+                time.sleep(0.01)
+            assert all(shown[r.name].count >= 1 for r in requests.values())
+            for ref in refs:
+                registrar.release(ref.id)
+            client.wait(lambda c: not topics & set(c.topics()), timeout=WAIT)
+    finally:
+        manager.shutdown()
+        components.shutdown()
+        processes.shutdown(stop_processes=True)
+        registrar.close()
+
+
+def test_a_robots_plan_display_is_the_segment_to_its_goal(server: FoxgloveServer) -> None:
+    """``robot`` / ``plan``: no goal, no poses; a goal: from the base to it; reached: none."""
+    import yaml
+
+    from temoto import ScaledClock
+    from temoto.config import parse_profile
+
+    clock = ScaledClock(4)
+    doc = yaml.safe_load((PROFILES / "sim_rover.yaml").read_text())
+    doc["devices"]["base"]["heartbeat_period"] = 0.25  # lenient on a loaded machine
+    profile = parse_profile(doc, file="sim_rover.yaml", clock=clock)
+    request = DisplayRequest("robot", "plan")
+    assert (request.name, request.kind, request.topic) == (
+        "robot_plan",
+        "foxglove.PosesInFrame",
+        "/display/robot_plan/plan",
+    )
+    with robot_manager("test-viz-plan", profile, clock) as (registrar, _robots):
+        manager = VisualizationManager(registrar, server, clock=clock)
+        try:
+            with FoxgloveClient(server.url) as client:
+                ref = registrar.call("display", request, client="op")
+                client.wait(lambda c: request.topic in c.topics(), timeout=WAIT)
+                sub = client.subscribe(request.topic)
+
+                def mine(c: FoxgloveClient) -> list[dict[str, Any]]:
+                    return [m.payload for m in c.messages if m.subscription == sub]
+
+                first = client.first_message(sub, timeout=WAIT).payload
+                assert (first["frame_id"], first["poses"]) == ("odom", [])  # no goal yet
+                driver = RobotManagerClient(registrar).request(client="driver")
+                motion = driver.navigate_to(0.6, 0.3, yaw=math.pi / 2)
+                client.wait(lambda c: bool(mine(c)[-1]["poses"]), timeout=WAIT)
+                start, goal = mine(client)[-1]["poses"]
+                assert goal["position"] == {"x": 0.6, "y": 0.3, "z": 0.0}
+                assert goal["orientation"]["z"] == pytest.approx(math.sin(math.pi / 4))
+                sx, sy = start["position"]["x"], start["position"]["y"]
+                heading = 2 * math.atan2(start["orientation"]["z"], start["orientation"]["w"])
+                assert heading == pytest.approx(math.atan2(0.3 - sy, 0.6 - sx))
+                assert motion.wait(WAIT * 3)
+                # on the way, the segment's start followed the base; reached: no plan
+                client.wait(lambda c: mine(c)[-1]["poses"] == [], timeout=WAIT)
+                starts = [m["poses"][0]["position"]["x"] for m in mine(client) if m["poses"]]
+                assert len(starts) >= 3
+                assert starts[-1] > starts[0] + 0.3
+                registrar.release(ref.id)
+                client.wait(lambda c: request.topic not in c.topics(), timeout=WAIT)
+        finally:
+            for r in registrar.references():
+                registrar.release(r.id)
+            manager.shutdown()
+
+
+def test_a_plan_display_of_a_robot_without_navigation_is_refused(
+    viz: tuple[Registrar, RobotManager, VisualizationManager],
+) -> None:
+    from temoto.errors import ResourceError
+
+    registrar, _robots, manager = viz
+    with pytest.raises(ResourceError, match="no navigation feature: it has no planned path"):
+        registrar.call("display", DisplayRequest("robot", "plan"), client="op")
+    assert manager.displays() == {}
+
+
+@pytest.mark.parametrize(
+    ("kind", "datagram", "why"),
+    [
+        ("foxglove.PointCloud", b'{"points": [[1.0, NaN, 0.0]]}', "finite"),
+        ("foxglove.PointCloud", b'{"points": [[1e39, 0.0, 0.0]]}', "too large"),
+        ("foxglove.PointCloud", b"[[1.0, 2.0, 3.0]]", "JSON object"),
+        ("foxglove.RawImage", b"P6\n2 2\n255\n" + bytes(11), "11 bytes of pixels, 12 needed"),
+        ("foxglove.RawImage", b'{"width": 2, "height": 1, "encoding": "jpeg"}', "encoding"),
+        (
+            "foxglove.RawImage",
+            b'{"width": 2, "height": 1, "encoding": "rgb8", "step": 5, "data": ""}',
+            "less than a row",
+        ),
+        (
+            "foxglove.RawImage",
+            b'{"width": 1, "height": 1, "encoding": "mono8", "data": "%%"}',
+            "not base64",
+        ),
+        ("foxglove.RawImage", b'{"width": 0, "height": 1, "encoding": "mono8"}', "positive"),
+        ("foxglove.Grid", b'{"columns": 2, "cells": [1, 2, 3]}', "whole number of rows"),
+        ("foxglove.Grid", b'{"columns": 1, "cells": [1], "cell_size": -1}', "positive"),
+        ("foxglove.Grid", b'{"columns": 1, "cells": [1], "origin": [0]}', r"origin is \[x, y\]"),
+        ("foxglove.Grid", b'{"columns": 1, "cells": ["a"]}', "a number or null"),
+        ("foxglove.PointCloud", b'{"points": [[1.0, "2", 0.0]]}', "finite"),
+        ("foxglove.RawImage", b'{"width": 1, "height": 1, "encoding": ["mono8"]}', "encoding"),
+        # a TypeError inside the decoder (float() of a list) is a refusal too: it would
+        # otherwise end the display's reader thread
+        ("foxglove.LaserScan", b'{"ranges": [1.0], "start_angle": [0]}', "float"),
+        ("foxglove.Grid", b"[" * 200_000, "nested too deeply"),
+    ],
+)
+def test_a_datagram_that_is_not_the_kind_is_refused_naming_why(
+    kind: str, datagram: bytes, why: str
+) -> None:
+    """The reason a dropped datagram is logged with (at DEBUG)."""
+    from temoto.managers.visualization.decode import decode
+
+    with pytest.raises(ValueError, match=why):
+        decode(kind, datagram, "sensor")
+
+
+def _protobuf_fields(descriptor_set: bytes) -> dict[str, list[str]]:
+    """Each message's field names, in order, from a protobuf ``FileDescriptorSet``.
+
+    The protobuf wire format (varint keys; length-delimited ``file`` = 1, ``package`` = 2,
+    ``message_type`` = 4, ``DescriptorProto.name`` = 1 and ``field`` = 2,
+    ``FieldDescriptorProto.name`` = 1), read here without the protobuf package.
+    """
+
+    def varint(b: bytes, i: int) -> tuple[int, int]:
+        value = shift = 0
+        while True:
+            c = b[i]
+            i += 1
+            value |= (c & 0x7F) << shift
+            shift += 7
+            if c < 0x80:
+                return value, i
+
+    def records(b: bytes) -> list[tuple[int, Any]]:
+        i, out = 0, []
+        while i < len(b):
+            key, i = varint(b, i)
+            wire = key & 7
+            value: Any
+            if wire == 0:
+                value, i = varint(b, i)
+            elif wire == 2:
+                n, i = varint(b, i)
+                value, i = b[i : i + n], i + n
+            else:
+                size = {1: 8, 5: 4}[wire]
+                value, i = b[i : i + size], i + size
+            out.append((key >> 3, value))
+        return out
+
+    found = {}
+    for number, file in records(descriptor_set):
+        if number != 1:
+            continue
+        parts = records(file)
+        package = next((v.decode() for n, v in parts if n == 2), "")
+        for n, message in parts:
+            if n != 4:
+                continue
+            body = records(message)
+            name = next(v.decode() for k, v in body if k == 1)
+            found[f"{package}.{name}"] = [
+                next(v.decode() for k2, v in records(f) if k2 == 1) for k, f in body if k == 2
+            ]
+    return found
+
+
+@pytest.mark.parametrize(
+    "kind",
+    [
+        "foxglove.PointCloud",
+        "foxglove.RawImage",
+        "foxglove.Grid",
+        "foxglove.LaserScan",
+        "foxglove.CompressedImage",
+        "foxglove.PosesInFrame",
+    ],
+)
+def test_a_display_schemas_fields_are_the_foxglove_sdks(kind: str) -> None:
+    """Our JSON schemas name the fields of Foxglove's own (the SDK's protobuf descriptors)."""
+    import foxglove.messages
+
+    from temoto.managers.visualization.decode import FLOAT32
+    from temoto.managers.visualization.foxglove import DISPLAY_SCHEMAS
+
+    sdk = _protobuf_fields(getattr(foxglove.messages, kind.split(".")[1]).get_schema().data)
+    ours = DISPLAY_SCHEMAS[kind]
+    assert ours["title"] == kind
+    assert list(ours["properties"]) == sdk[kind]
+    for prop in ours["properties"].values():
+        nested = prop.get("items", prop).get("title", "")
+        if nested in sdk:  # PackedElementField, Vector2
+            assert list(prop.get("items", prop)["properties"]) == sdk[nested]
+    assert foxglove.messages.PackedElementFieldNumericType.Float32.value == FLOAT32

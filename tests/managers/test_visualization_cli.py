@@ -254,3 +254,142 @@ def test_demo_2_shows_the_escorts_camera_on_the_same_display_in_foxglove() -> No
             proc.wait()
         if proc.stdout is not None:
             proc.stdout.close()
+
+
+def test_the_robot_commands_foxglove_commands_need_the_flag_and_the_token() -> None:
+    """``--foxglove-commands``: the services are offered, and a call needs the token."""
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "temoto.managers.robot",
+            "--profile",
+            str(ARM),
+            "--local",
+            "--foxglove",
+            "0",
+            "--foxglove-commands",
+        ],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+        env=_env(TEMOTO_FOXGLOVE_TOKEN="tok-29"),
+    )
+    try:
+        assert proc.stderr is not None
+        url, said = "", []
+        for line in proc.stderr:
+            said.append(line)
+            if line.startswith("temoto: foxglove on "):
+                url = line.split()[-1]
+                break
+        assert url.startswith("ws://127.0.0.1:"), "no foxglove line"
+        assert any("token $TEMOTO_FOXGLOVE_TOKEN" in line for line in said)  # not echoed
+        with FoxgloveClient(url) as client:
+            client.wait(lambda c: "/temoto/stop" in c.services)
+            ok, why = client.call("/temoto/stop", {"token": "nope", "graph": "x"})
+            assert not ok
+            assert "token" in why
+            ok, why = client.call("/temoto/stop", {"token": "tok-29", "graph": "x"})
+            assert not ok
+            assert "'x'" in why  # past the token: the engine has no run x
+        proc.send_signal(signal.SIGINT)
+        assert proc.wait(30) == 0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stderr is not None:
+            proc.stderr.close()
+
+
+def test_foxglove_commands_without_foxglove_is_refused_in_one_line() -> None:
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "temoto.managers.robot",
+            "--profile",
+            str(ARM),
+            "--local",
+            "--foxglove-commands",
+        ],
+        capture_output=True,
+        text=True,
+        timeout=60,
+        env=_env(),
+        check=False,
+    )
+    assert proc.returncode == 2, proc.stderr
+    assert "--foxglove-commands needs --foxglove" in proc.stderr
+    assert "Traceback" not in proc.stderr
+
+
+def test_with_a_live_view_alone_a_graphs_display_is_drawn_by_the_page(tmp_path: Path) -> None:
+    """``--live-view`` without ``--foxglove``: ShowDisplay works, the page lists the display."""
+    import time
+    import urllib.request
+
+    graph = {
+        "graph_name": "show_joints",
+        "graph_entry": [{"name": "ShowDisplay", "instance_id": 0}],
+        "graph_exit": [{"name": "ShowDisplay", "instance_id": 0}],
+        "actions": [
+            {
+                "name": "ShowDisplay",
+                "instance_id": 0,
+                "type": "sync",
+                "input_parameters": {
+                    "source": {"pvf_type": "string", "pvf_value": "robot"},
+                    "field": {"pvf_type": "string", "pvf_value": "joints"},
+                    "duration": {"pvf_type": "number", "pvf_value": 4.0},
+                },
+            }
+        ],
+    }
+    mission = tmp_path / "show.graph.json"
+    mission.write_text(json.dumps(graph))
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "temoto.managers.robot",
+            "--profile",
+            str(ARM),
+            "--local",
+            "--live-view",
+            "0",
+            "--mission",
+            str(mission),
+        ],
+        stdout=subprocess.PIPE,
+        stderr=subprocess.DEVNULL,
+        text=True,
+        env=_env(),
+    )
+    try:
+        assert proc.stdout is not None
+        url = ""
+        for line in proc.stdout:
+            if line.startswith("live view: "):
+                url = line.split()[-1].split("?")[0]
+                break
+        assert url.startswith("http://127.0.0.1:"), "no live view line"
+        deadline = time.monotonic() + 20
+        shown: list[dict[str, Any]] = []
+        while time.monotonic() < deadline:
+            with urllib.request.urlopen(url + "api/displays", timeout=5) as answer:
+                shown = json.load(answer)["displays"]
+            if shown and shown[0]["messages"]:
+                break
+            time.sleep(0.1)
+        assert [d["name"] for d in shown] == ["robot_joints"]
+        assert shown[0]["panel"] == "plot"
+        assert shown[0]["messages"][-1]["name"][0] == "shoulder_pan"
+        assert proc.wait(30) == 0  # the mission ends on_true once the display is released
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+        if proc.stdout is not None:
+            proc.stdout.close()

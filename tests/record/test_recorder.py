@@ -12,6 +12,7 @@ import subprocess
 import sys
 import textwrap
 import threading
+import time
 from pathlib import Path
 from typing import Any
 
@@ -181,6 +182,34 @@ def test_fleet_envelopes_are_recorded_per_channel_with_sender_and_type(tmp_path:
         ("/fleet/TEMOTO_RIS", "", "", False),
     ]
     assert summary(path)["/fleet/TEMOTO_RIS"] == ("temoto.FleetMessage", "jsonschema", 2)
+
+
+def test_a_fleet_envelopes_stamp_is_its_senders_clock_or_its_session(tmp_path: Path) -> None:
+    """A keyed fleet's envelopes carry a session id where an insecure one's carry the clock:
+    it is recorded as ``session`` (constant), never as a ``stamp_us``."""
+    path = tmp_path / "stamps.mcap"
+    transport = InProcessTransport("record-stamps-test")
+    try:
+        keyed = FleetLink(transport, FleetAuth("temoto", "rover", bytes(32)))
+        plain = FleetLink(transport, FleetAuth("temoto", "drone", None, insecure=True))
+        with Recorder(path, flush_period_s=0.0) as recorder:
+            recorder.listen(transport)
+            before_us = int(time.time() * 1e6)
+            for _ in range(2):
+                keyed.send("TEMOTO_RIS", "ris_advert_t", b"\x01")
+                plain.send("TEMOTO_RIS", "ris_advert_t", b"\x02")
+            assert _wait(lambda: sum(recorder.counts.values()) == 4)
+            after_us = int(time.time() * 1e6)
+    finally:
+        transport.close()
+    messages, _ = read_messages(path)
+    keyed_rows = [m.data for m in messages if m.data["sender"] == "rover"]
+    plain_rows = [m.data for m in messages if m.data["sender"] == "drone"]
+    assert [(m["signed"], m["stamp_us"]) for m in keyed_rows] == [(True, 0), (True, 0)]
+    assert keyed_rows[0]["session"] == keyed_rows[1]["session"] != 0
+    for m in plain_rows:
+        assert (m["signed"], m["session"]) == (False, 0)
+        assert before_us - 1_000_000 <= m["stamp_us"] <= after_us + 1_000_000
 
 
 def test_the_acknowledgement_channels_of_shared_runs_are_recorded(tmp_path: Path) -> None:

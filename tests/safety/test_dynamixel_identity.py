@@ -1,4 +1,4 @@
-"""A Dynamixel chain is checked whole before anything is written (issue 25), across processes.
+"""A Dynamixel chain is checked whole before anything is written, across processes.
 
 The simulated chain runs in a process of its own (:mod:`temoto.testing.simhost`), the robot in
 another (``python -m temoto.managers.robot``), and the servos' registers are read afterwards by

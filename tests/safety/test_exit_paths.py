@@ -3,7 +3,7 @@
 Each case runs :mod:`temoto.testing.exitpaths`: the device's simulator in a process of its own,
 the robot command in another one talking to it over the real link (CAN over python-can's
 ``udp_multicast`` inside ``unshare -n``, the Dynamixel pseudo-terminal, MAVLink over UDP), and
-the device's state as the simulator sees it on the wire. Bounds (issue 13, docs/safety.md):
+the device's state as the simulator sees it on the wire. Bounds (docs/safety.md):
 safe within 200 ms of SIGINT or SIGTERM; safe before the command exits at a mission's end, after
 an action's exception or a driver fault; a second SIGINT exits at once; no process of the
 command is left behind, and no traceback is printed.

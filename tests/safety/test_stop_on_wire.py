@@ -1,4 +1,4 @@
-"""Motions end on the wire as they should, seen from the simulator's own process (issue 25).
+"""Motions end on the wire as they should, seen from the simulator's own process.
 
 A stopped arm is held where it is; a vehicle whose GCS failsafe switched it to RTL ends the
 flight action with the reason, and is left in RTL.
@@ -40,7 +40,7 @@ ROOT = Path(__file__).resolve().parents[2]
 TARGET = 2.5
 #: Seconds between the wire and the host's report of it (it reads the registers every 2 ms;
 #: lenient: a loaded machine can hold either process back; a hold left to the 2 Hz control
-#: step, or never sent as before the fix, comes later than this or not at all).
+#: step, or never sent, comes later than this or not at all).
 REPORT = 0.2
 
 GRAPH = {
@@ -154,7 +154,7 @@ def test_a_failsafe_rtl_after_a_link_outage_ends_the_flight_with_the_reason() ->
                 host.wait("safe", since=time.monotonic(), timeout=10)  # RTL, seen by the host
                 host.command("clear uplink_loss")
                 t_back = time.monotonic()
-                result = engine.wait("fly", 10)  # before the fix: RUNNING until killed
+                result = engine.wait("fly", 10)  # not RUNNING until killed
                 took = time.monotonic() - t_back
                 errors = [str(e) for e in engine.outcome("fly").errors]
             assert result is Result.ERROR, errors

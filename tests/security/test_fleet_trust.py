@@ -1,5 +1,5 @@
-"""Issue 20 in one process: replays across restarts, a key per member, permissions, revocation,
-and what a passive listener sees (docs/security.md).
+"""Fleet security in one process: replays across restarts, a key per member, permissions,
+revocation, and what a passive listener sees (docs/security.md).
 
 Every member is a whole :class:`~temoto.instance.Instance` or a commander on an in-process bus;
 an attacker transport on the same bus captures and re-publishes bytes.
@@ -137,7 +137,7 @@ def test_a_captured_start_replayed_to_a_restarted_instance_is_refused(bus: Bus) 
     drops = restarted.link.stats
     assert drops["no_session"] + drops["replayed"] >= 2 * len(captured)
     assert drops["accepted"] == 0 or restarted.control.stats["commands"] == 0
-    # and the commander is heard by the new boot as before
+    # and the commander is heard by the new boot as by the old one
     out = commander.command("start", ["A"], graph_json=relay_graph(), timeout=WAIT)
     assert out.ok, out
 
@@ -343,7 +343,7 @@ def test_a_resource_request_without_permission_gets_a_reason(
         eventually(lambda m=member: "A" in m.ris.providers("process"), "A's servers not heard")
     request = ProcessRequest(sys.executable, ("-c", "import time; time.sleep(60)"))
     with (
-        caplog.at_level(logging.WARNING, logger="temoto.fleet.resources"),
+        caplog.at_level(logging.WARNING, logger="temoto.fleet"),
         pytest.raises(ResourceLoadError, match="permission denied: 'mallory' may not"),
     ):
         mallory.resources.request("process", request, robot="A")
@@ -437,7 +437,7 @@ def test_a_passive_capture_shows_no_graph_parameter_or_item(
 def test_a_member_cannot_answer_or_report_feedback_in_another_s_name(
     bus: Bus, tmp_path: Path, caplog: pytest.LogCaptureFixture
 ) -> None:
-    # Issue 26: mallory (a member, its own key) answers a command and sends feedback naming A
+    # mallory (a member, its own key) answers a command and sends feedback naming A
     from temoto.fleet.common import new
     from temoto.fleet.control import FEEDBACK_CHANNEL, REPLY_CHANNEL
     from temoto.lcm_types import graph_command_reply_t, graph_feedback_t
@@ -462,7 +462,7 @@ def test_a_member_cannot_answer_or_report_feedback_in_another_s_name(
         mallory.send(FEEDBACK_CHANNEL, *codec.encode(feedback))
 
     mallory.listen(COMMAND_CHANNEL, answer)
-    with caplog.at_level(logging.WARNING, logger="temoto.fleet._common"):
+    with caplog.at_level(logging.WARNING, logger="temoto.fleet.common"):
         out = operator.command("start", ["A"], graph_json=relay_graph(), timeout=1.0)
         eventually(lambda: operator.stats["impostor"] >= 2, "mallory's messages not dropped")
     assert not out.ok

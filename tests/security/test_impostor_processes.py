@@ -1,4 +1,4 @@
-"""A member speaks only as itself (issue 26): an impostor process against honest ones.
+"""A member speaks only as itself: an impostor process against honest ones.
 
 The impostor is a library-level process (``_impostor.py``) that seals with its own valid key
 (the roster member ``guest``) and names another member inside its messages: the actor of a

@@ -9,8 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from temoto._cli_fleet import fleet_key
 from temoto.cli import main
+from temoto.cli.fleet import fleet_key
 from temoto.errors import ConfigError
 from temoto.transport.identity import (
     Credentials,

@@ -1,12 +1,12 @@
-"""Issue 20's attack, with processes: a captured `temoto graph start` replayed to a restarted
-`temoto serve` is refused.
+"""A replay across a restart, with processes: a captured `temoto graph start` replayed to a
+restarted `temoto serve` is refused.
 
 Inside its own network namespace (`unshare -n`: loopback up, multicast routed to it), a passive
 LCM listener records every datagram on ``TEMOTO_GRAPH_CMD`` while `temoto graph start` starts a
 ticking graph on instance A; A is stopped and started again on the same fleet key, and the
 listener re-publishes the captured bytes (seconds after the capture: inside the old 30 s clock
-window). Before issue 20 the graph ran again (``"TaTimer_0": "RUNNING"``). Needs root,
-`unshare` and `ip`.
+window); the graph must not run again (``"TaTimer_0": "RUNNING"``). Needs root, `unshare` and
+`ip`.
 """
 
 from __future__ import annotations

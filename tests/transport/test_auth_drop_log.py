@@ -164,9 +164,9 @@ def test_the_table_covers_every_reason_that_warns() -> None:
 def test_repeats_are_summarised_within_a_second_even_without_more_drops(
     clock: FakeClock, bob: FleetAuth, caplog: pytest.LogCaptureFixture
 ) -> None:
-    # Issue 26: the summary waited for the next drop after 10 s (13 s later in one test) or
-    # for the stop; now it is due DROP_SUMMARY_S (1 s) after the first drop it counts, and
-    # the link writes it then (drop_summary_due_in, log_drop_summary), more drops or not.
+    # The summary is due DROP_SUMMARY_S (1 s) after the first drop it counts, and the link
+    # writes it then (drop_summary_due_in, log_drop_summary), more drops or not: it does not
+    # wait for the next drop or for the stop.
     mallory = member("mallory", clock, bob)
 
     def drops(n: int, step: float) -> None:
@@ -305,10 +305,10 @@ def _exchange(*members: FleetAuth) -> None:
 def test_a_replay_to_a_restarted_member_is_a_warning_once_per_member(
     clock: FakeClock, caplog: pytest.LogCaptureFixture
 ) -> None:
-    # Issue 26: a captured message shown to a member after it restarted was logged at DEBUG
-    # only (its receiver cannot tell it from a message sent while the hellos crossed). Its
-    # sender can: the restarted member asks for it, and an earlier boot of that member held a
-    # grant for it. The sender says so at WARNING, once per member.
+    # A captured message shown to a member after it restarted: its receiver cannot tell it from
+    # a message sent while the hellos crossed (DEBUG only). Its sender can: the restarted
+    # member asks for it, and an earlier boot of that member held a grant for it. The sender
+    # says so at WARNING, once per member.
     operator = FleetAuth("fleet", "operator", KEY, clock=clock)
     a = FleetAuth("fleet", "A", KEY, clock=clock)
     _exchange(operator, a)

@@ -1,9 +1,9 @@
-"""Subscribing while messages flood in never crashes the LCM transport (issue 26, item 2).
+"""Subscribing while messages flood in never crashes the LCM transport.
 
 lcm-python's ``subscribe`` registers its C callback before it fills in the subscription's
 fields; a message dispatched by the receive thread in that window dereferences NULL (SIGSEGV:
-5 ``temoto run`` processes of about 1,000 at start-up under load). The transport therefore
-makes every LCM subscription on its receive thread (temoto/transport/lcm.py).
+seen in 5 ``temoto run`` processes of about 1,000 at start-up under load). The transport
+therefore makes every LCM subscription on its receive thread (temoto/transport/lcm.py).
 """
 
 from __future__ import annotations

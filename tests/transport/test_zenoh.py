@@ -473,7 +473,7 @@ def test_a_router_on_a_port_in_use_fails_naming_it() -> None:
 
 def test_importing_the_transports_and_the_cli_does_not_import_zenoh() -> None:
     code = (
-        "import sys, temoto.transport, temoto.cli, temoto._cli_router;"
+        "import sys, temoto.transport, temoto.cli, temoto.cli.router;"
         " temoto.cli._parser();"
         " assert 'zenoh' not in sys.modules, 'zenoh imported'"
     )
@@ -484,9 +484,9 @@ def test_importing_the_transports_and_the_cli_does_not_import_zenoh() -> None:
 def test_subscribing_while_a_flood_arrives_is_safe(
     pair: tuple[ZenohTransport, ZenohTransport],
 ) -> None:
-    # Issue 26, item 2 (LCM crashed here): a Zenoh transport's subscriptions are our own
-    # lists, changed under the lock its receive thread dispatches under, and its one Zenoh
-    # subscriber is declared before that thread reads from it; nothing can race.
+    # LCM's binding can crash here (temoto/transport/lcm.py): a Zenoh transport's subscriptions
+    # are our own lists, changed under the lock its receive thread dispatches under, and its one
+    # Zenoh subscriber is declared before that thread reads from it; nothing can race.
     a, b = pair
     until_routed(a, b)
     stop, current, got = threading.Event(), [0], [0]

@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from temoto._cli_router import DEFAULT_LISTEN
+from temoto.cli.router import DEFAULT_LISTEN
 from temoto.testing.inbox import Inbox
 from temoto.transport import ZenohTransport
 from temoto.transport.zenoh import DEFAULT_ROUTER_LISTEN, open_router

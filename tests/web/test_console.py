@@ -24,11 +24,12 @@ from _demo import Demo, demo_engine, demo_graph
 
 from temoto import Result
 from temoto.cli import main
+from temoto.cli.view import main as view_command
 from temoto.core.documents import dump_graph
 from temoto.errors import ConfigError
 from temoto.testing.robots import FakeRobot
 from temoto.web import LiveView
-from temoto.web.replay import READERS, ReplayView, load_recording, read_trace, view_command
+from temoto.web.replay import READERS, ReplayView, load_recording, read_trace
 
 WAIT = 10.0
 

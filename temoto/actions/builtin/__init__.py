@@ -8,7 +8,11 @@
 * :data:`CONTEXT_ACTIONS`: add, move, get, remove and find items of the shared world model (a
   Context Manager on the registrar).
 * :data:`VISUALIZATION_ACTIONS`: show a display (a Visualization Manager on the registrar).
-* :data:`BUILTIN_ACTIONS`: every folder above.
+* :data:`ROS2_ACTIONS`: publish, wait for a message, call a service, send a goal, hold a
+  lifecycle node on ROS 2 (the ``"ros2"`` and ``"ros2_lifecycle"`` servers on the registrar,
+  :mod:`temoto.ros2`, and the ``temoto[ros2]`` extra; ``docs/ros2.md``). Not in
+  :data:`BUILTIN_ACTIONS`.
+* :data:`BUILTIN_ACTIONS`: every folder above but the ROS 2 one.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ __all__ = [
     "COMPONENT_ACTIONS",
     "CONTEXT_ACTIONS",
     "ROBOT_ACTIONS",
+    "ROS2_ACTIONS",
     "VISUALIZATION_ACTIONS",
 ]
 
@@ -33,5 +38,7 @@ COMPONENT_ACTIONS: Final = _HERE / "component"
 CONTEXT_ACTIONS: Final = _HERE / "context"
 #: The folder of the built-in visualization actions.
 VISUALIZATION_ACTIONS: Final = _HERE / "visualization"
-#: Every folder of built-in actions.
+#: The folder of the built-in ROS 2 actions.
+ROS2_ACTIONS: Final = _HERE / "ros2"
+#: Every folder of built-in actions (but the ROS 2 one).
 BUILTIN_ACTIONS: Final = (ROBOT_ACTIONS, COMPONENT_ACTIONS, CONTEXT_ACTIONS, VISUALIZATION_ACTIONS)

@@ -2,7 +2,7 @@
 
 Each kernel ``x`` is written once as typed, plain Python in ``_x_py.py``; ``setup.py`` compiles
 that same file with Cython as the extension ``_x_c`` (``_x_c.pxd`` adds the C declarations), see
-STYLE.md 3.9 and ``docs/fast.md``. This selector decides once, at import:
+docs/development.md §7 and ``docs/fast.md``. This selector decides once, at import:
 
 - ``TEMOTO_NO_EXTENSIONS`` set (to anything but ``""`` or ``0``), or an interpreter other than
   CPython: the pure-Python modules are used.
@@ -141,9 +141,6 @@ def kernels() -> dict[str, str]:
 
     Returns:
         Kernel name -> module file path.
-
-    Raises:
-        Nothing.
     """
     import sys
 

@@ -1,4 +1,4 @@
-# C declarations for the compiled build of _evolution_py.py (STYLE.md 3.9); the .py file is
+# C declarations for the compiled build of _evolution_py.py (docs/development.md §7); the .py file is
 # the one source of behaviour, this file only adds types.
 cimport cython
 

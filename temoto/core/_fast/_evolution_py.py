@@ -1,8 +1,8 @@
 """The evolution kernel: how a finished action's result reaches its children (thesis §6.1.4).
 
 Canonical source of two builds: imported as is (the pure build), and compiled by Cython as
-``_evolution_c`` with the declarations in ``_evolution_c.pxd`` (STYLE.md 3.9). Import it only
-through :mod:`temoto.core._fast`.
+``_evolution_c`` with the declarations in ``_evolution_c.pxd`` (docs/development.md §7).
+Import it only through :mod:`temoto.core._fast`.
 
 Everything here is integers in flat arrays; the engine numbers a graph run's nodes
 ``0 .. n-1`` when it wires the run and keeps names, data and action instances to itself.
@@ -135,7 +135,7 @@ def default_evolution(rows: array[int], n_rows: int) -> int:
 
 
 def default_response(result: int) -> int:
-    """The response of a relation the graph wrote no condition for (REFERENCE §2.5).
+    """The response of a relation the graph wrote no condition for (docs/design.md §4.3).
 
     Eq. 6.1 over the one row of the parent that just finished: idle-true or idle-false runs the
     child; error evolves it to error, which the engine carries out as ``bypass`` (the child is
@@ -427,9 +427,6 @@ class Evolution:
 
         Returns:
             The new kernel.
-
-        Raises:
-            Nothing.
         """
         new = Evolution.__new__(Evolution)
         n = self.n_nodes
@@ -461,8 +458,5 @@ class Evolution:
 
         Returns:
             One byte (0 or 1) per slot.
-
-        Raises:
-            Nothing.
         """
         return bytes(self.received)

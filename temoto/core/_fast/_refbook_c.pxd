@@ -1,5 +1,5 @@
 # C declarations for the compiled build of _refbook_py.py (extension temoto.core._fast._refbook_c).
-# STYLE.md 3.9: the .py is the only source; this file only adds types. Keep the method list and
+# docs/development.md §7: the .py is the only source; this file only adds types. Keep the method list and
 # signatures in step with RefBook in _refbook_py.py.
 #
 # Cython picks this file up by the *extension's* name (_refbook_c), not the source's; a

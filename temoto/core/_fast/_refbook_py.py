@@ -2,7 +2,7 @@
 
 The canonical, pure-Python implementation. ``setup.py`` compiles this same file with Cython as
 ``temoto.core._fast._refbook_c``, and ``_refbook_c.pxd`` turns :class:`RefBook` into a ``cdef
-class`` whose arrays are typed memoryviews (STYLE.md 3.9). Import it only through
+class`` whose arrays are typed memoryviews (docs/development.md §7). Import it only through
 ``temoto.core._fast``.
 
 Only integers cross the boundary. A *resource* is a slot number; a *reference* is another slot
@@ -72,9 +72,6 @@ class RefBook:
 
         Returns:
             The slot (the most recently freed one, if any).
-
-        Raises:
-            Nothing.
         """
         res = self._rfree
         if res >= 0:
@@ -155,9 +152,6 @@ class RefBook:
 
         Returns:
             The number of live resource slots.
-
-        Raises:
-            Nothing.
         """
         return self._nres
 
@@ -281,9 +275,6 @@ class RefBook:
 
         Returns:
             The number of live reference slots.
-
-        Raises:
-            Nothing.
         """
         return self._nref
 

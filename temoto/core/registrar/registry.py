@@ -193,9 +193,6 @@ class Registrar:
 
         Returns:
             Sorted names.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             return sorted(self._servers)
@@ -444,14 +441,13 @@ class Registrar:
     def release_client(self, client: str) -> int:
         """Release every reference a consumer holds.
 
+        References released meanwhile by others are skipped.
+
         Args:
             client: The consumer's name.
 
         Returns:
             How many references were released.
-
-        Raises:
-            Nothing for references released meanwhile by others.
         """
         with self._lock:
             refs = self._ledger.refs.values()
@@ -617,9 +613,6 @@ class Registrar:
 
         Returns:
             Snapshots.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             refs = self._ledger.refs.values()
@@ -630,9 +623,6 @@ class Registrar:
 
         Returns:
             Snapshots, in load order.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             entries = self._ledger.entries.values()
@@ -676,9 +666,6 @@ class Registrar:
 
         Returns:
             None.
-
-        Raises:
-            Nothing.
         """
         with self._lock:  # the journal is serialized by this lock: closed under it too
             if self._closed:

@@ -27,6 +27,8 @@ from temoto.drivers.can_motor.cansimple_types import (
     ErrorStatus,
     Heartbeat,
     InputMode,
+    ProcedureResult,
+    Version,
     arbitration_id,
     error_names,
     split_id,
@@ -43,6 +45,8 @@ __all__ = [
     "ErrorStatus",
     "Heartbeat",
     "InputMode",
+    "ProcedureResult",
+    "Version",
     "arbitration_id",
     "decode_clear_errors",
     "decode_encoder_estimates",
@@ -56,6 +60,7 @@ __all__ = [
     "decode_set_input_vel",
     "decode_set_limits",
     "decode_torques",
+    "decode_version",
     "encode_bus_voltage_current",
     "encode_clear_errors",
     "encode_encoder_estimates",
@@ -180,6 +185,22 @@ def heartbeat_problem(data: bytes | bytearray) -> str | None:
     if flags & 0xFE:
         return f"undefined flag bits 0x{flags & 0xFE:02x}"
     return None
+
+
+def decode_version(data: bytes | bytearray) -> Version:
+    """Parse a ``Get_Version`` payload.
+
+    Args:
+        data: 8 bytes.
+
+    Returns:
+        The versions.
+
+    Raises:
+        ValueError: Wrong length.
+    """
+    _check_len("Get_Version", data, 8)
+    return Version(*data)
 
 
 def encode_set_axis_state(state: int) -> bytes:

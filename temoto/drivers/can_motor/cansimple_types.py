@@ -22,6 +22,8 @@ __all__ = [
     "ErrorStatus",
     "Heartbeat",
     "InputMode",
+    "ProcedureResult",
+    "Version",
     "arbitration_id",
     "error_names",
     "split_id",
@@ -108,6 +110,27 @@ class InputMode(enum.IntEnum):
     TUNING = 8
 
 
+class ProcedureResult(enum.IntEnum):
+    """``Axis.procedure_result`` (the heartbeat's ``Procedure_Result``), as the DBC names it."""
+
+    SUCCESS = 0
+    BUSY = 1
+    CANCELLED = 2
+    DISARMED = 3
+    NO_RESPONSE = 4
+    POLE_PAIR_CPR_MISMATCH = 5
+    PHASE_RESISTANCE_OUT_OF_RANGE = 6
+    PHASE_INDUCTANCE_OUT_OF_RANGE = 7
+    UNBALANCED_PHASES = 8
+    INVALID_MOTOR_TYPE = 9
+    ILLEGAL_HALL_STATE = 10
+    TIMEOUT = 11
+    HOMING_WITHOUT_ENDSTOP = 12
+    INVALID_STATE = 13
+    NOT_CALIBRATED = 14
+    NOT_CONVERGING = 15
+
+
 class AxisError(enum.IntFlag):
     """``Axis.active_errors`` / ``disarm_reason`` bits (the heartbeat's ``Axis_Error``)."""
 
@@ -178,6 +201,30 @@ class Heartbeat(NamedTuple):
     axis_state: int
     procedure_result: int
     trajectory_done: bool
+
+
+class Version(NamedTuple):
+    """``Get_Version`` (0x00, node -> host): one byte each, in the DBC's order."""
+
+    protocol: int
+    hw_major: int
+    hw_minor: int
+    hw_variant: int
+    fw_major: int
+    fw_minor: int
+    fw_revision: int
+    fw_unreleased: int
+
+    @property
+    def hardware(self) -> str:
+        """``major.minor-variant``, as odrivetool prints a board's hardware version."""
+        return f"{self.hw_major}.{self.hw_minor}-{self.hw_variant}"
+
+    @property
+    def firmware(self) -> str:
+        """``major.minor.revision`` (``-dev`` when unreleased)."""
+        dev = "-dev" if self.fw_unreleased else ""
+        return f"{self.fw_major}.{self.fw_minor}.{self.fw_revision}{dev}"
 
 
 class EncoderEstimates(NamedTuple):

@@ -25,9 +25,7 @@ from temoto.errors import DriverError, ProfileError
 
 __all__ = ["DETECT_MIN_BEATS", "detect"]
 
-#: The ODrive driver's logger: detection logged there before it had a module of its own, and
-#: logging configurations that name it keep working.
-logger = logging.getLogger("temoto.drivers.can_motor.odrive")
+logger = logging.getLogger(__name__)
 
 #: Well-formed heartbeats a node must send while :func:`detect` listens.
 DETECT_MIN_BEATS: Final = 2

@@ -131,6 +131,7 @@ class MitMotor:
         kp: Position stiffness for position commands, N·m/rad (motor side).
         kd: Damping for position and velocity commands, N·m·s/rad (motor side).
         limits: Joint-side limits of set-points.
+        model: Its AK model (a key of ``MODELS``; the simulator takes its mechanics from it).
     """
 
     motor_id: int
@@ -140,6 +141,7 @@ class MitMotor:
     kp: float = 20.0
     kd: float = 1.0
     limits: JointLimits = field(default_factory=JointLimits)
+    model: str = "AK80-9"
 
 
 def _check_model(
@@ -402,7 +404,7 @@ class MitMotorDriver(CanMotorDriver):
             gear = reader.field(raw, "gear_ratio", number(1.0), path)
             limits = read_limits(reader, raw, path)
             _check_model(reader, path, model, ranges, gear, limits)
-            motors.append(MitMotor(motor_id, joint, ranges, gear, kp, kd, limits))
+            motors.append(MitMotor(motor_id, joint, ranges, gear, kp, kd, limits, model))
         kwargs["motors"] = motors
         rate, timeout = kwargs["poll_rate"], kwargs["can_timeout"]
         if timeout > CAN_TIMEOUT_MAX:
@@ -439,7 +441,7 @@ class MitMotorDriver(CanMotorDriver):
 
         driver = cls.from_profile(name, config, clock=clock, where=name)
         driver.shutdown()
-        models = [MitModel(m.motor_id, m.ranges) for m in driver.motors]
+        models = [MitModel.of(m.motor_id, m.model, m.ranges) for m in driver.motors]
         sim = SimMitMotor(
             driver.link,
             models,

@@ -77,7 +77,7 @@ from temoto.drivers.can_motor.odrive_axes import (
     ODriveNode,
     motor_fault,
 )
-from temoto.drivers.can_motor.odrive_settings import read_nodes, sim_rates
+from temoto.drivers.can_motor.odrive_settings import read_nodes, sim_mechanics, sim_rates
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.profile import Field, ProfileReader, custom, number
 from temoto.drivers.sim import Simulator
@@ -261,6 +261,7 @@ class ODriveDriver(CanMotorDriver):
             )
         # checked here, used by simulate()
         sim_rates(reader, values["sim"], kwargs["heartbeat_period"], kwargs["encoder_period"])
+        sim_mechanics(reader, values["sim"])
         # safe_state hold without watchdog_timeout: refused by the profile (temoto.config), which
         # alone can take its acknowledgement (hold_without_watchdog: true), for every driver alike
         return kwargs
@@ -288,16 +289,20 @@ class ODriveDriver(CanMotorDriver):
         Raises:
             ProfileError: A bad entry.
         """
-        from temoto.drivers.can_motor.sim import SimODrive
+        from temoto.drivers.can_motor.sim import AxisModel, SimODrive
 
         driver = cls.from_profile(name, config, clock=clock, where=name)
         driver.shutdown()
-        rates = sim_rates(
-            ProfileReader(name), config.get("sim"), driver.heartbeat_period, driver.encoder_period
-        )
+        reader = ProfileReader(name)
+        rates = sim_rates(reader, config.get("sim"), driver.heartbeat_period, driver.encoder_period)
+        mechanics = sim_mechanics(reader, config.get("sim"))
+        axes = [AxisModel(n.node_id) for n in driver.nodes]
+        for axis in axes:
+            for key, value in mechanics.items():
+                setattr(axis, key, value)
         sim = SimODrive(
             driver.link,
-            [n.node_id for n in driver.nodes],
+            axes,
             clock,
             heartbeat_period=driver.heartbeat_period,
             encoder_period=driver.encoder_period,

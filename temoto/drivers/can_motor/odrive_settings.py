@@ -16,7 +16,7 @@ from temoto.drivers.can_motor._common import read_limits, read_members
 from temoto.drivers.can_motor.odrive_axes import ODriveNode
 from temoto.drivers.profile import ProfileReader, number
 
-__all__ = ["read_nodes", "sim_rates"]
+__all__ = ["SIM_MECHANICS", "read_nodes", "sim_mechanics", "sim_rates"]
 
 _NODE_KEYS: Final = frozenset(
     {
@@ -30,6 +30,18 @@ _NODE_KEYS: Final = frozenset(
     }
 )
 _SIM_MS: Final = number(0.0, low=0, low_open=False, describe="0 (off) or a number of ms")
+
+#: The simulated axes' mechanics and controller settings a ``sim`` mapping may set (every axis
+#: of the entry alike), by key: what it sets on
+#: :class:`~temoto.drivers.can_motor.sim_model.AxisModel`, with its unit.
+SIM_MECHANICS: Final = {
+    "load_inertia": "kg·m² at the motor",
+    "damping": "N·m per turn/s",
+    "current_limit": "A",
+    "vel_gain": "N·m per turn/s",
+    "vel_integrator_gain": "N·m per turn/s per s",
+}
+_POSITIVE: Final = number(0.0, low=0, low_open=False, describe="a number >= 0")
 
 #: The cyclic messages the driver supervises, and the key that states each one's period.
 _SUPERVISED: Final = {
@@ -74,11 +86,14 @@ def sim_rates(
         return rates
     sim = p.mapping(raw, "sim")
     for key in sim:
+        if key in SIM_MECHANICS:
+            continue
         if key not in CYCLIC_RATES:
             p.fail(
                 f"sim.{key}",
-                f"unknown; the simulator's settings are the ODrive's cyclic message rates:"
-                f" {', '.join(CYCLIC_RATES)}",
+                f"unknown; the simulator's settings are the ODrive's cyclic message rates"
+                f" ({', '.join(CYCLIC_RATES)}) and the axes' mechanics"
+                f" ({', '.join(SIM_MECHANICS)})",
             )
         ms = p.field(sim, key, _SIM_MS, "sim")
         driver_key = _SUPERVISED.get(key)
@@ -95,6 +110,29 @@ def sim_rates(
             )
         rates[key] = ms
     return rates
+
+
+def sim_mechanics(p: ProfileReader, raw: object) -> dict[str, float]:
+    """The simulated axes' mechanics from an entry's ``sim`` mapping (:data:`SIM_MECHANICS`).
+
+    Args:
+        p: The entry's profile reader (for messages).
+        raw: The entry's ``sim`` value (None when absent).
+
+    Returns:
+        ``{key: value}`` of the keys given.
+
+    Raises:
+        ProfileError: ``sim`` is not a mapping, or a value is not a number >= 0 (the current
+            limit: > 0).
+    """
+    if raw is None:
+        return {}
+    sim = p.mapping(raw, "sim")
+    out = {key: p.field(sim, key, _POSITIVE, "sim") for key in SIM_MECHANICS if key in sim}
+    if out.get("current_limit", 1.0) <= 0:
+        p.fail("sim.current_limit", "must be a positive number of A")
+    return out
 
 
 def read_nodes(reader: ProfileReader, value: object, key: str) -> list[ODriveNode]:

@@ -10,15 +10,15 @@ encoder estimates every 10 ms by default, the others off; 0 turns one off), each
 :class:`SimMitMotor` answers the MIT-mode protocol of CubeMars AK motors: enter / exit / zero
 frames and impedance commands, each with a reply.
 
-Both step a first-order motion model on the injected clock, on a thread that waits with
-``clock.wait`` (so a :class:`~temoto.clock.ManualClock` test runs in virtual time), and read
-the bus on another thread. Faults (:meth:`~temoto.drivers.sim.Simulator.inject`, optionally
-``node=<id>`` for one axis or motor): ``silence`` (dead: no frames, commands ignored),
-``corrupt`` (frames go out truncated: a wrong DLC), ``hardware_error`` (``kind`` = overheat,
-overload or voltage: error bits, the axis disarms; latched until Clear_Errors on an ODrive),
-``no_heartbeat`` (ODrive: cyclic heartbeats stop, everything else answers), ``no_encoder``
-(ODrive: cyclic encoder estimates stop, heartbeats go on) and ``link_loss`` (no frames in
-either direction, every node).
+Both step a motion model (torque, inertia, friction) on the injected clock, on a thread that
+waits with ``clock.wait`` (so a :class:`~temoto.clock.ManualClock` test runs in virtual time),
+and read the bus on another thread. Faults (:meth:`~temoto.drivers.sim.Simulator.inject`,
+optionally ``node=<id>`` for one axis or motor): ``silence`` (dead: no frames, commands
+ignored), ``corrupt`` (frames go out truncated: a wrong DLC), ``hardware_error`` (``kind`` =
+overheat, overload or voltage: error bits, the axis disarms; latched until Clear_Errors on an
+ODrive), ``no_heartbeat`` (ODrive: cyclic heartbeats stop, everything else answers),
+``no_encoder`` (ODrive: cyclic encoder estimates stop, heartbeats go on) and ``link_loss`` (no
+frames in either direction, every node).
 
 **Device watchdogs** (``docs/driver-can.md``), modelled as the vendors document them so that a
 killed host is testable: :class:`SimODrive` with ``watchdog_timeout`` > 0 is an ODrive with
@@ -60,6 +60,7 @@ __all__ = [
     "CYCLIC_RATES",
     "TORQUE_CONSTANT",
     "VEL_LIMIT_TOLERANCE",
+    "VERSION",
     "AxisModel",
     "MitModel",
     "SimMitMotor",
@@ -99,7 +100,10 @@ _PHASE_RESISTANCE: Final = 0.1  # Ω: the copper losses in the electrical power
 
 _TEMPERATURES: Final = (40.0, 35.0)  # FET, motor, °C
 
-_VERSION: Final = bytes([2, 0, 0, 0, 0, 6, 10, 0])  # protocol 2, hardware 0.0.0, firmware 0.6.10
+#: ``Get_Version`` (fields as the 0.6.10 DBC lays them out): protocol 2, hardware 4.4-58 (an
+#: ODrive Pro, ``hw_version_major.minor-variant`` as odrivetool prints it), firmware 0.6.10
+#: released (``Fw_Version_Unreleased`` 0): the firmware the DBC describes.
+VERSION: Final = cs.Version(2, 4, 4, 58, 0, 6, 10, 0)
 
 
 class SimODrive(CanDeviceSim):
@@ -188,8 +192,7 @@ class SimODrive(CanDeviceSim):
             for axis in self.axes.values():
                 if active and params.get("node") in (None, axis.node_id):
                     axis.step(self.clock.monotonic())
-                    axis.error |= _HW_BITS[params.get("kind", "overheat")]
-                    axis.state = cs.AxisState.IDLE
+                    axis.disarm(_HW_BITS[params.get("kind", "overheat")])
 
     def _hw_bits(self, node: int) -> int:
         params = self.fault("hardware_error")
@@ -218,21 +221,20 @@ class SimODrive(CanDeviceSim):
             elif cmd == cs.Cmd.SET_AXIS_STATE:
                 axis.fed = now
                 wanted = cs.decode_set_axis_state(data)
-                if wanted == cs.AxisState.CLOSED_LOOP_CONTROL and axis.error:
-                    pass  # a faulted axis does not arm
-                elif wanted in (cs.AxisState.IDLE, cs.AxisState.CLOSED_LOOP_CONTROL):
-                    if wanted == cs.AxisState.CLOSED_LOOP_CONTROL:
-                        axis.input_pos = axis.pos  # the ODrive holds where it is
-                        axis.input_vel = axis.input_torque = 0.0
-                    axis.state = wanted
+                if wanted == cs.AxisState.CLOSED_LOOP_CONTROL:
+                    axis.arm()  # holds where it is; a faulted axis does not arm
+                elif wanted == cs.AxisState.IDLE:
+                    axis.idle()
             elif cmd == cs.Cmd.SET_CONTROLLER_MODE:
                 axis.control_mode, axis.input_mode = cs.decode_set_controller_mode(data)
             elif cmd == cs.Cmd.SET_INPUT_POS:
-                axis.input_pos, _, _ = cs.decode_set_input_pos(data)
+                # Set_Input_Pos carries the velocity and torque feed-forwards too (input_vel,
+                # input_torque in the firmware)
+                axis.input_pos, axis.input_vel, axis.input_torque = cs.decode_set_input_pos(data)
                 axis.commands += 1
                 axis.fed = now
             elif cmd == cs.Cmd.SET_INPUT_VEL:
-                axis.input_vel, _ = cs.decode_set_input_vel(data)
+                axis.input_vel, axis.input_torque = cs.decode_set_input_vel(data)
                 axis.commands += 1
                 axis.fed = now
             elif cmd == cs.Cmd.SET_INPUT_TORQUE:
@@ -242,8 +244,7 @@ class SimODrive(CanDeviceSim):
             elif cmd == cs.Cmd.SET_LIMITS:
                 axis.set_limits(*cs.decode_set_limits(data))
             elif cmd == cs.Cmd.ESTOP:
-                axis.error |= cs.AxisError.ESTOP_REQUESTED
-                axis.state = cs.AxisState.IDLE
+                axis.disarm(cs.AxisError.ESTOP_REQUESTED)
             elif cmd == cs.Cmd.CLEAR_ERRORS:
                 cs.decode_clear_errors(data)
                 axis.error = self._hw_bits(node)  # a present condition stays
@@ -256,7 +257,7 @@ class SimODrive(CanDeviceSim):
         ``_model_lock`` held.
         """
         if cmd == cs.Cmd.HEARTBEAT:
-            return cs.encode_heartbeat(axis.error, axis.state, 0, True)
+            return cs.encode_heartbeat(axis.error, axis.state, axis.procedure_result, True)
         if cmd == cs.Cmd.GET_ENCODER_ESTIMATES:
             return cs.encode_encoder_estimates(axis.pos, axis.vel)
         if cmd == cs.Cmd.GET_ERROR:
@@ -279,7 +280,7 @@ class SimODrive(CanDeviceSim):
         if cmd == cs.Cmd.GET_POWERS:
             return cs.encode_powers(electrical, mechanical)
         if cmd == cs.Cmd.GET_VERSION:
-            return _VERSION
+            return bytes(VERSION)
         return None
 
     def on_tick(self, now: float) -> None:
@@ -316,8 +317,7 @@ class SimODrive(CanDeviceSim):
         if timeout <= 0 or axis.state != cs.AxisState.CLOSED_LOOP_CONTROL:
             return
         if now - axis.fed > timeout:
-            axis.error |= cs.AxisError.WATCHDOG_TIMER_EXPIRED
-            axis.state = cs.AxisState.IDLE
+            axis.disarm(cs.AxisError.WATCHDOG_TIMER_EXPIRED)
 
 
 #: Commands an axis sends on its own (a data frame with one of these ids is not for it).

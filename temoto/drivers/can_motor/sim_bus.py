@@ -25,7 +25,7 @@ from temoto.drivers.sim import Simulator
 
 __all__ = ["CanDeviceSim"]
 
-logger = logging.getLogger("temoto.drivers.can_motor.sim")  # the simulators' log, as before
+logger = logging.getLogger(__name__)
 
 _RX_POLL: Final = 0.05  # real seconds between stop-flag checks of a receive thread
 

@@ -45,9 +45,7 @@ from temoto.errors import (
 
 __all__ = ["ServoChain", "register_label"]
 
-#: The logger of :mod:`temoto.drivers.dynamixel.driver`: this layer's log lines were logged there
-#: before the driver was split by concept, and logging configurations that name it still work.
-logger = logging.getLogger("temoto.drivers.dynamixel.driver")
+logger = logging.getLogger(__name__)
 
 _PING_TRIES: Final = 3
 

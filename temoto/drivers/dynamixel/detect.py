@@ -21,9 +21,7 @@ from temoto.errors import ProfileError
 
 __all__ = ["DETECT_BAUD_RATES", "detect"]
 
-#: The driver module's logger: detection logged there before it had a module of its own,
-#: and logging configurations that name it keep working.
-logger = logging.getLogger("temoto.drivers.dynamixel.driver")
+logger = logging.getLogger(__name__)
 
 #: The baud rates :func:`detect` tries on a link without ``?baud=``, most common first: the
 #: X series' factory setting, then the usual setting of an arm.

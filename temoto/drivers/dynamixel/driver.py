@@ -1,6 +1,6 @@
 """DynamixelDriver: one chain of DYNAMIXEL X-series servos over dynamixel-sdk (Protocol 2.0).
 
-Lifecycle (STYLE §3.5):
+Lifecycle (docs/development.md §5):
 
 * ``configure`` opens the port at the baud rate (and warns when the USB adapter's latency timer
   is above 1 ms), then checks every servo before it writes anything to any of them (PING and

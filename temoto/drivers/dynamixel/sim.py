@@ -56,16 +56,19 @@ servos build together, as the e-Manual shows. Not modelled: Drive Mode's directi
 time-based profile bits, External Port levels, and Control Table Backup (0x20), which is
 answered with an Instruction Error.
 
-Motion (first order, stepped on the injected clock whenever a packet arrives): in the position
-modes the position approaches the goal with a time constant of 50 ms at no more than the profile
-velocity (or the Velocity Limit register), within the position limits in Position mode; in
-Velocity mode the velocity approaches the goal velocity; in Current mode it approaches the
-speed that the goal current's share of the Current Limit gives, in PWM mode the goal PWM's
-share of 885. Present Current (or Present Load) is the effort of that tracking (a proportional
-share of the Current Limit, or of 100.0 %). Moving is 1 while the speed exceeds the Moving
-Threshold; Moving Status bit 0 (in position) and bit 1 (profile ongoing), Present PWM, the
-trajectories and Realtime Tick (ms since the last boot, modulo 32768) follow the model. Torque
-off stops the servo.
+Motion (stepped on the injected clock whenever a packet arrives;
+:func:`~temoto.drivers.dynamixel.sim_servo.move`): in the position modes the servo follows the
+e-Manual's velocity-based trapezoidal profile (Profile Velocity and Profile Acceleration, 0 =
+unlimited; the Velocity Limit bounds the speed) within the position limits in Position mode; in
+Velocity mode the goal velocity, ramped at Profile Acceleration; in Current mode the goal
+current's torque, in PWM mode the goal PWM's share of the stall torque less the back-EMF's. The
+torque is bounded by the Current Limit and accelerates the servo's inertia and its load
+(:meth:`SimDynamixelChain.set_load`) against friction; Present Current (or Present Load) is that
+torque. The winding heats with the current (I²R) and cools to 30 °C; past the Temperature Limit,
+with Shutdown's bit 2 set, Hardware Error Status bit 2 (Overheating) is set and torque goes off.
+Moving is 1 while the speed exceeds the Moving Threshold; Moving Status bit 0 (in position) and
+bit 1 (profile ongoing), Present PWM, the trajectories and Realtime Tick (ms since the last boot,
+modulo 32768) follow the model. Torque off stops the servo.
 
 Bus Watchdog (98), as the e-Manual describes it for the X series (firmware v38 on): 0 is off,
 1..127 arms it in units of 20 ms. While Torque Enable is 1, a servo that hears no instruction
@@ -102,6 +105,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import math
 import os
 import select
 import termios
@@ -115,7 +119,7 @@ from temoto.clock import Clock
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel import protocol as p
 from temoto.drivers.dynamixel.sim_instructions import ServoChain
-from temoto.drivers.dynamixel.sim_servo import BAUD_BY_CODE, GENERIC_REGISTERS
+from temoto.drivers.dynamixel.sim_servo import AMBIENT, BAUD_BY_CODE, GENERIC_REGISTERS
 
 __all__ = ["SimDynamixelChain"]
 
@@ -235,6 +239,27 @@ class SimDynamixelChain(ServoChain):
         with self._state:
             return self._servo(dxl_id).model
 
+    def set_load(self, dxl_id: int, *, inertia: float = 0.0, torque: float = 0.0) -> None:
+        """What the servo's horn carries: an inertia and a constant torque against it.
+
+        Args:
+            dxl_id: Its id now.
+            inertia: kg·m² at the output (a link and its payload).
+            torque: N·m it must hold (gravity on an arm; positive opposes positive motion).
+
+        Raises:
+            KeyError: No servo answers to that id.
+            ValueError: A negative or non-finite inertia, a non-finite torque.
+        """
+        if not (math.isfinite(inertia) and inertia >= 0 and math.isfinite(torque)):
+            raise ValueError(
+                f"load: inertia must be >= 0 kg·m² and torque finite, got {inertia!r}, {torque!r}"
+            )
+        with self._state:
+            self._step_locked()
+            servo = self._servo(dxl_id)
+            servo.load_inertia, servo.load_torque = inertia, torque
+
     def read_register(self, dxl_id: int, address: int, size: int | None = None) -> int:
         """A register's value, as stored (stepping the model first; no Indirect Data mapping).
 
@@ -279,6 +304,7 @@ class SimDynamixelChain(ServoChain):
             servo.put(reg, value)
             if reg.name == "Present Position":
                 servo.position = float(value)
+                servo.traj_pos = None
 
     # ---- faults ------------------------------------------------------------------------------
 
@@ -295,6 +321,11 @@ class SimDynamixelChain(ServoChain):
             with self._state:
                 for servo in self._targets(params):
                     self._raise_hardware_error(servo, str(params.get("kind", "overheat")))
+        elif fault == "hardware_error":  # an injected overheat is over: the servo has cooled
+            with self._state:
+                for servo in self._servos:
+                    if servo.injected_heat:
+                        servo.temperature, servo.injected_heat = AMBIENT, False
 
     # ---- serving -----------------------------------------------------------------------------
 

@@ -154,6 +154,8 @@ class ServoChain(Simulator):
         servo.set("Hardware Error Status", servo.hardware_error | _KIND_BITS[kind])
         servo.set("Torque Enable", 0)
         if kind == "overheat":
+            servo.temperature = servo.value("Temperature Limit") + 5.0
+            servo.injected_heat = True
             servo.set("Present Temperature", servo.value("Temperature Limit") + 5)
         elif kind == "voltage":
             servo.set("Present Input Voltage", servo.value("Max Voltage Limit") + 10)
@@ -518,6 +520,7 @@ class ServoChain(Simulator):
         servo.halted = False
         servo.velocity = 0.0
         servo.current = 0.0
+        servo.traj_pos, servo.traj_vel = None, 0.0
         servo.registered = None
         servo.booted = self.clock.monotonic()
         if still and params is not None:
@@ -545,6 +548,8 @@ class ServoChain(Simulator):
             raise _Reject(_E.RESULT_FAIL)
         turns = math.floor((servo.position - servo.value("Homing Offset")) / 4096)
         servo.position -= turns * 4096
+        if servo.traj_pos is not None:
+            servo.traj_pos -= turns * 4096
         for name in ("Present Position", "Position Trajectory"):
             servo.set(name, round(servo.position))
         if servo.value("Operating Mode") in POSITION_MODES:  # keep standing where it is

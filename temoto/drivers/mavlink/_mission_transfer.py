@@ -28,9 +28,7 @@ from temoto.errors import (
 
 __all__ = ["MissionClient"]
 
-#: The logger of :mod:`temoto.drivers.mavlink.driver`: this layer's log lines were logged there
-#: before the driver was split by concept, and logging configurations that name it still work.
-logger = logging.getLogger("temoto.drivers.mavlink.driver")
+logger = logging.getLogger(__name__)
 
 
 class MissionClient(ParameterClient):

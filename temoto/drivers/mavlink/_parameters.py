@@ -25,9 +25,7 @@ from temoto.errors import (
 
 __all__ = ["ParameterClient"]
 
-#: The logger of :mod:`temoto.drivers.mavlink.driver`: this layer's log lines were logged there
-#: before the driver was split by concept, and logging configurations that name it still work.
-logger = logging.getLogger("temoto.drivers.mavlink.driver")
+logger = logging.getLogger(__name__)
 
 #: The parameter naming the GCS system id whose heartbeats the failsafe watches (the older
 #: name, and the one newer ArduPilot firmware uses).
@@ -159,7 +157,7 @@ class ParameterClient(Session):
         if error is not None:
             return DriverOperationError(
                 f"{self.name}: {what} {name}: the vehicle answered PARAM_ERROR"
-                f" {p._enum_name('MAV_PARAM_ERROR', error)}"
+                f" {p.enum_name('MAV_PARAM_ERROR', error)}"
             )
         tries = 1 + self.command_retries
         hint = " (does this firmware have it?)" if what == "reading" else ""

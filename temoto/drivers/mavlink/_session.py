@@ -41,9 +41,7 @@ from temoto.errors import (
 
 __all__ = ["LINK_GAP", "ModeChange", "Session"]
 
-#: The logger of :mod:`temoto.drivers.mavlink.driver`: this layer's log lines were logged there
-#: before the driver was split by concept, and logging configurations that name it still work.
-logger = logging.getLogger("temoto.drivers.mavlink.driver")
+logger = logging.getLogger(__name__)
 
 _POLL: Final = 0.05  # real seconds per socket read (also how often waiters re-check)
 _UNKNOWN_VOLTAGE: Final = 65535

@@ -21,9 +21,7 @@ from temoto.drivers.mavlink.protocol import Codec
 
 __all__ = ["detect"]
 
-#: The driver module's logger: detection logged there before it had a module of its own,
-#: and logging configurations that name it keep working.
-logger = logging.getLogger("temoto.drivers.mavlink.driver")
+logger = logging.getLogger(__name__)
 
 #: Baud rates :func:`detect` tries on a serial link without ``?baud=``, in order.
 _DETECT_BAUDS: Final = (57600, 115200, 921600)
@@ -210,11 +208,11 @@ def _detected(kind: str, link: str, vehicles: _Heard) -> list[dict[str, Any]]:
 
 
 def _type_name(mav_type: int) -> str:
-    return p._enum_name("MAV_TYPE", mav_type)
+    return p.enum_name("MAV_TYPE", mav_type)
 
 
 def _autopilot_name(autopilot: int) -> str:
-    return p._enum_name("MAV_AUTOPILOT", autopilot)
+    return p.enum_name("MAV_AUTOPILOT", autopilot)
 
 
 def _address(addr: Any) -> str:

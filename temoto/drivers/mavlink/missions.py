@@ -187,13 +187,13 @@ def decoded_item(name: str, msg: Message, home: tuple[float, float, float] | Non
         if home is None:
             raise DriverOperationError(
                 f"{name}: mission item {seq} has an altitude above sea level"
-                f" ({p._enum_name('MAV_FRAME', frame)}) and the home position is unknown"
+                f" ({p.enum_name('MAV_FRAME', frame)}) and the home position is unknown"
             )
         alt = z - home[2]
     elif frame not in p.MAV_FRAME_RELATIVE_FRAMES:
         raise DriverOperationError(
             f"{name}: mission item {seq} ({p.command_name(command)}) is in"
-            f" {p._enum_name('MAV_FRAME', frame)}; only global frames are supported"
+            f" {p.enum_name('MAV_FRAME', frame)}; only global frames are supported"
         )
     if kind == "land":
         alt = None

@@ -1,8 +1,8 @@
 """MAVLink 2 encode and decode: a thin, typed adapter over pymavlink's ``ardupilotmega`` dialect.
 
-Pure functions and one small stateful codec, no I/O and no threads (STYLE §3.7). The dialect is
-imported explicitly (``pymavlink.dialects.v20.ardupilotmega``, which includes ``common``); no
-``mavutil`` and none of its module-level state is used.
+Pure functions and one small stateful codec, no I/O and no threads (docs/development.md §6).
+The dialect is imported explicitly (``pymavlink.dialects.v20.ardupilotmega``, which includes
+``common``); no ``mavutil`` and none of its module-level state is used.
 
 :class:`Codec` packs messages for one sender (system id, component id, sequence number) and
 parses what others send into :class:`Message` values: :meth:`Codec.decode_datagram` parses one
@@ -32,6 +32,7 @@ __all__ = [
     "Message",
     "command_name",
     "corrupt",
+    "enum_name",
     "mode_name",
     "mode_number",
     "result_name",
@@ -111,7 +112,7 @@ MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT: Final[int] = int(
     _dialect.MAV_PROTOCOL_CAPABILITY_SET_POSITION_TARGET_GLOBAL_INT
 )
 
-# ---- used by the simulator's parameter, mission and FTP services (issue 16) -----------------
+# ---- used by the simulator's parameter, mission and FTP services ----------------------------
 
 MAV_CMD_NAV_WAYPOINT: Final[int] = int(_dialect.MAV_CMD_NAV_WAYPOINT)  # 16
 MAV_CMD_NAV_LOITER_UNLIM: Final[int] = int(_dialect.MAV_CMD_NAV_LOITER_UNLIM)  # 17
@@ -156,6 +157,7 @@ MAV_DATA_STREAM_EXTRA2: Final[int] = int(_dialect.MAV_DATA_STREAM_EXTRA2)
 MAV_DATA_STREAM_EXTRA3: Final[int] = int(_dialect.MAV_DATA_STREAM_EXTRA3)
 
 MAV_SYS_STATUS_PREARM_CHECK: Final[int] = int(_dialect.MAV_SYS_STATUS_PREARM_CHECK)
+MAV_SYS_STATUS_GEOFENCE: Final[int] = int(_dialect.MAV_SYS_STATUS_GEOFENCE)
 MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT: Final[int] = int(_dialect.MAV_PROTOCOL_CAPABILITY_PARAM_FLOAT)
 MAV_PROTOCOL_CAPABILITY_MISSION_INT: Final[int] = int(_dialect.MAV_PROTOCOL_CAPABILITY_MISSION_INT)
 MAV_PROTOCOL_CAPABILITY_MISSION_FENCE: Final[int] = int(
@@ -254,7 +256,16 @@ def mode_number(name: str) -> int:
         raise ValueError(f"unknown ArduCopter flight mode {name!r} (known: {known})") from None
 
 
-def _enum_name(enum: str, value: int) -> str:
+def enum_name(enum: str, value: int) -> str:
+    """The name of ``value`` in a MAVLink enum of the dialect (``ENUM(<n>)`` if unknown).
+
+    Args:
+        enum: The enum's name (``MAV_TYPE``, ``MAV_FRAME``, ...).
+        value: The number.
+
+    Returns:
+        The entry's name.
+    """
     entry = _dialect.enums.get(enum, {}).get(value)
     return str(entry.name) if entry is not None else f"{enum}({value})"
 
@@ -268,7 +279,7 @@ def command_name(command: int) -> str:
     Returns:
         The name.
     """
-    return _enum_name("MAV_CMD", command)
+    return enum_name("MAV_CMD", command)
 
 
 def result_name(result: int) -> str:
@@ -280,7 +291,7 @@ def result_name(result: int) -> str:
     Returns:
         The name.
     """
-    return _enum_name("MAV_RESULT", result)
+    return enum_name("MAV_RESULT", result)
 
 
 # ---- messages ------------------------------------------------------------------------------
@@ -545,7 +556,7 @@ def mission_result_name(result: int) -> str:
     Returns:
         The name.
     """
-    return _enum_name("MAV_MISSION_RESULT", result)
+    return enum_name("MAV_MISSION_RESULT", result)
 
 
 def param_type_name(param_type: int) -> str:
@@ -557,4 +568,4 @@ def param_type_name(param_type: int) -> str:
     Returns:
         The name (``MAV_PARAM_TYPE(<n>)`` if unknown).
     """
-    return _enum_name("MAV_PARAM_TYPE", param_type)
+    return enum_name("MAV_PARAM_TYPE", param_type)

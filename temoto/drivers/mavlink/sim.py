@@ -1,4 +1,4 @@
-"""A simulated ArduCopter on UDP: the vehicle's side of MAVLink 2 (STYLE §3.7).
+"""A simulated ArduCopter on UDP: the vehicle's side of MAVLink 2 (docs/development.md §6).
 
 :class:`SimVehicle` binds a UDP socket (on ``127.0.0.1`` unless told ``host=``) and *sends*
 to the ground stations it is given (``gcs=[(host, port)]``, like a real autopilot streaming
@@ -23,15 +23,18 @@ that MAVProxy, QGroundControl, MAVSDK and a pymavlink ground station work with i
   (the vehicle has no files), so MAVProxy's ``param fetch`` falls back to PARAM_REQUEST_LIST
   at once.
 * The mission protocol (:class:`~temoto.drivers.mavlink.sim_mission.MissionService`: upload
-  and download with MISSION_INT or the legacy messages, CLEAR_ALL, fence and rally plans
-  stored), MISSION_SET_CURRENT and ``MAV_CMD_DO_SET_MISSION_CURRENT``, MISSION_CURRENT
-  (streamed and on every change), MISSION_ITEM_REACHED. The guided forms of MISSION_ITEM(_INT)
+  and download with MISSION_INT or the legacy messages, CLEAR_ALL (refused while the mission
+  flies), fence and rally plans stored), MISSION_SET_CURRENT and
+  ``MAV_CMD_DO_SET_MISSION_CURRENT``, MISSION_CURRENT (streamed and on every change),
+  MISSION_ITEM_REACHED. The guided forms of MISSION_ITEM(_INT)
   (``current`` 2: fly there, 3: change altitude) act in GUIDED.
 * AUTO flies the mission: NAV_TAKEOFF, NAV_WAYPOINT (acceptance radius: param2, else
   ``WPNAV_RADIUS``; hold: param1 s), NAV_LOITER_TIME, NAV_LOITER_UNLIM, NAV_LAND,
   NAV_RETURN_TO_LAUNCH, DO_CHANGE_SPEED and DO_JUMP; other commands are skipped. Entering AUTO
   needs a mission and, armed on the ground, a NAV_TAKEOFF first ("Auto: Missing Takeoff
-  Cmd"); arming in AUTO needs ``AUTO_OPTIONS`` bit 0, as in ArduCopter;
+  Cmd"); arming in AUTO needs ``AUTO_OPTIONS`` bit 0, as in ArduCopter; a takeoff from the
+  ground waits for the throttle (never raised: no RC) unless ``AUTO_OPTIONS`` bit 1, a GUIDED
+  takeoff before or ``MAV_CMD_MISSION_START`` stands in for it (``ModeAuto::takeoff_run``);
   ``MAV_CMD_MISSION_START`` switches to AUTO and starts a stopped mission. At the end of the
   mission the vehicle holds in the air, or disarms on the ground.
 * A COMMAND_ACK for every COMMAND_LONG and COMMAND_INT addressed to the autopilot (component 1
@@ -59,7 +62,9 @@ that MAVProxy, QGroundControl, MAVSDK and a pymavlink ground station work with i
   ``BATT_FS_CRT_ACT`` (0 none, 1 LAND, 2 RTL, 3 RTL, 4 LAND, 5 disarm, 6 RTL, 7 BRAKE);
   both latch. Each datagram received is parsed on its own.
 * A first-order kinematic model stepped on the injected clock at ``step_rate`` Hz: the
-  position approaches its target with time constant ``tau``, limited to ``WPNAV_SPEED``
+  position approaches its target with time constant ``tau``, its horizontal acceleration
+  bounded by the lean limit ``ANGLE_MAX`` (g·tan(angle); ATTITUDE leans within it), limited to
+  ``WPNAV_SPEED``
   horizontally (``RTL_SPEED`` in RTL, a DO_CHANGE_SPEED in AUTO/GUIDED), ``WPNAV_SPEED_UP`` up
   and ``WPNAV_SPEED_DN`` down; LAND descends at ``LAND_SPEED_HIGH`` (0: ``WPNAV_SPEED_DN``)
   above ``LAND_ALT_LOW`` and ``LAND_SPEED`` below, and disarms on touchdown; RTL climbs to
@@ -75,39 +80,50 @@ motor-outputs health bit cleared and the battery's over-temperature fault, ``ove
 propulsion health bit cleared, ``voltage`` → battery voltage far below minimum and the battery
 health bit cleared; each with ``MAV_STATE_CRITICAL`` and a STATUSTEXT).
 
-The vehicle is written in layers, each a module that uses only the ones below it:
-:mod:`~temoto.drivers.mavlink.sim_state` (arguments, parameters, geometry, battery),
-:mod:`~temoto.drivers.mavlink.sim_telemetry` (what it sends, at what rates),
-:mod:`~temoto.drivers.mavlink.sim_auto` (AUTO), :mod:`~temoto.drivers.mavlink.sim_flight`
-(kinematics and flight modes), :mod:`~temoto.drivers.mavlink.sim_failsafe`,
-:mod:`~temoto.drivers.mavlink.sim_commands` (what it does with what it receives) and this
-module (the UDP endpoint and the threads). The mission and parameter protocols are
-:mod:`~temoto.drivers.mavlink.sim_mission` and :mod:`~temoto.drivers.mavlink.sim_params`.
+The vehicle holds its parts, each a class of its own module that can be built and driven
+alone over a :class:`~temoto.drivers.mavlink.sim_state.VehicleState` (the one state object
+they share by reference): :attr:`SimVehicle.state`, :attr:`SimVehicle.telemetry` (what it
+sends, at what rates), :attr:`SimVehicle.auto` (the mission in AUTO), :attr:`SimVehicle.flight`
+(kinematics and flight modes), :attr:`SimVehicle.failsafes` and :attr:`SimVehicle.commands`
+(what it does with what it receives); this module adds the UDP endpoint and the threads. The
+mission and parameter protocols are :mod:`~temoto.drivers.mavlink.sim_mission` and
+:mod:`~temoto.drivers.mavlink.sim_params`.
 """
 
 from __future__ import annotations
 
+import os
 import threading
-from typing import ClassVar
+from collections.abc import Iterable, Mapping
+from typing import Any, ClassVar
 
+from temoto.clock import Clock
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.link import LinkSpec, UdpLink
+from temoto.drivers.mavlink.protocol import Codec
+from temoto.drivers.mavlink.sim_auto import AutoMission
 from temoto.drivers.mavlink.sim_commands import CommandHandler
+from temoto.drivers.mavlink.sim_failsafe import Failsafes
+from temoto.drivers.mavlink.sim_flight import FlightModel
+from temoto.drivers.mavlink.sim_mission import MissionItem
 from temoto.drivers.mavlink.sim_params import PARAMETERS
-from temoto.drivers.mavlink.sim_state import _HW_TEXT, DEFAULT_RATES, STREAM_GROUPS
+from temoto.drivers.mavlink.sim_state import DEFAULT_RATES, HW_TEXT, STREAM_GROUPS, VehicleState
 from temoto.drivers.mavlink.sim_state import EARTH_RADIUS as EARTH_RADIUS
+from temoto.drivers.mavlink.sim_telemetry import VehicleTelemetry
+from temoto.drivers.sim import Simulator
 
 __all__ = ["DEFAULT_RATES", "PARAMETERS", "STREAM_GROUPS", "SimVehicle"]
 
 
-class SimVehicle(CommandHandler):
+class SimVehicle(Simulator):
     """A simulated ArduCopter quad on UDP loopback (see the module docstring).
 
     The keyword arguments ``speed``, ``climb_rate``, ``descent_rate`` and ``rtl_altitude``
     (and ``system_id``) are the initial values of the ArduCopter parameters that hold them
-    (``WPNAV_SPEED``, ``WPNAV_SPEED_UP``, ``WPNAV_SPEED_DN`` and ``LAND_SPEED``, ``RTL_ALT``,
-    ``SYSID_THISMAV``); ``params`` is applied over them, and the ``params_file`` over that
-    (it is the vehicle's stored configuration, as ArduPilot's EEPROM).
+    (``WPNAV_SPEED``, ``WPNAV_SPEED_UP``, ``WPNAV_SPEED_DN``, ``RTL_ALT``, ``SYSID_THISMAV``;
+    their defaults are ArduCopter's: 10, 2.5 and 1.5 m/s, 15 m); ``params`` is applied over
+    them, and the ``params_file`` over that (it is the vehicle's stored configuration, as
+    ArduPilot's EEPROM).
 
     Args:
         name: For thread names and logs.
@@ -127,7 +143,9 @@ class SimVehicle(CommandHandler):
         min_arm_battery: Below this charge (%) arming is refused.
         speed: Horizontal speed, m/s (``WPNAV_SPEED``).
         climb_rate: Vertical speed up, m/s (``WPNAV_SPEED_UP``).
-        descent_rate: Vertical speed down, m/s (``WPNAV_SPEED_DN`` and ``LAND_SPEED``).
+        descent_rate: Vertical speed down, m/s (``WPNAV_SPEED_DN``; the landing's last
+            ``LAND_ALT_LOW`` is flown at ``LAND_SPEED``, ArduCopter's 0.5 m/s unless ``params``
+            says otherwise).
         tau: Time constant of the position model, s.
         rtl_altitude: Minimum altitude above home for the flight home in RTL, m (``RTL_ALT``).
         drain_idle: Battery drain while armed on the ground, %/s.
@@ -150,6 +168,215 @@ class SimVehicle(CommandHandler):
         {"silence", "corrupt", "hardware_error", "no_heartbeat", "link_loss", "uplink_loss"}
     )
 
+    def __init__(
+        self,
+        name: str = "vehicle",
+        *,
+        clock: Clock | None = None,
+        gcs: Iterable[tuple[str, int]] = (),
+        port: int = 0,
+        host: str = "127.0.0.1",
+        system_id: int = 1,
+        home: tuple[float, float, float] = (47.397742, 8.545594, 488.0),
+        rates: Mapping[str, float] | None = None,
+        battery: float = 100.0,
+        cells: int = 4,
+        min_arm_battery: float = 20.0,
+        speed: float = 10.0,
+        climb_rate: float = 2.5,
+        descent_rate: float = 1.5,
+        tau: float = 1.0,
+        rtl_altitude: float = 15.0,
+        drain_idle: float = 0.01,
+        drain_flight: float = 0.1,
+        step_rate: float = 50.0,
+        params: Mapping[str, float] | None = None,
+        params_file: str | os.PathLike[str] | None = None,
+    ) -> None:
+        super().__init__()
+        #: The state the parts share.
+        self.state = VehicleState(
+            name,
+            clock=clock,
+            system_id=system_id,
+            home=home,
+            battery=battery,
+            cells=cells,
+            min_arm_battery=min_arm_battery,
+            speed=speed,
+            climb_rate=climb_rate,
+            descent_rate=descent_rate,
+            tau=tau,
+            rtl_altitude=rtl_altitude,
+            drain_idle=drain_idle,
+            drain_flight=drain_flight,
+            step_rate=step_rate,
+            params=params,
+            params_file=params_file,
+            fault=self._active_fault,
+        )
+        state = self.state
+        #: The messages it sends and their rates.
+        self.telemetry = VehicleTelemetry(state, rates)
+        #: The mission flown in AUTO.
+        self.auto = AutoMission(state, self.telemetry)
+        #: The kinematic model and the flight modes.
+        self.flight = FlightModel(state, self.telemetry, self.auto)
+        #: The GCS and battery failsafes.
+        self.failsafes = Failsafes(state, self.flight)
+        #: What it does with each received message.
+        self.commands = CommandHandler(
+            state, self.telemetry, self.auto, self.flight, self.failsafes
+        )
+        self.name = name
+        self.port = port
+        self.host = host
+        self._gcs = list(gcs)
+        self._peers: list[Any] = []
+        self._wake = threading.Condition(state.lock)
+        self._link: UdpLink | None = None
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        #: Frames received (counted once handled) by message name, for tests and benchmarks.
+        self.received: dict[str, int] = {}
+
+    def _active_fault(self, name: str) -> dict[str, Any] | None:
+        params = self.fault(name)
+        return None if params is None else dict(params)
+
+    # ---- the state, read ------------------------------------------------------------------------
+
+    @property
+    def clock(self) -> Clock:
+        """The clock that steps the model and paces the streams."""
+        return self.state.clock
+
+    @property
+    def codec(self) -> Codec:
+        """The vehicle's MAVLink codec (its system and component id)."""
+        return self.state.codec
+
+    @property
+    def params_file(self) -> str | None:
+        """The ``.param`` file the parameters are kept in (None: none)."""
+        return self.state.params_file
+
+    @property
+    def armed(self) -> bool:
+        """Whether the motors are armed."""
+        return self.state.armed
+
+    @property
+    def airborne(self) -> bool:
+        """Whether the vehicle is flying (taking off, in the air or landing)."""
+        return self.state.airborne
+
+    @property
+    def mode(self) -> str:
+        """The ArduCopter flight mode's name."""
+        return self.state.mode
+
+    @property
+    def pos(self) -> list[float]:
+        """The model's position: north, east, up (m from the origin, home at start)."""
+        return self.state.pos
+
+    @property
+    def vel(self) -> list[float]:
+        """The model's velocity: north, east, up (m/s)."""
+        return self.state.vel
+
+    @property
+    def yaw(self) -> float:
+        """The heading, rad from north."""
+        return self.state.yaw
+
+    @property
+    def battery(self) -> float:
+        """The remaining charge, %."""
+        return self.state.battery
+
+    @property
+    def home(self) -> tuple[float, float, float]:
+        """Home: latitude, longitude (degrees), altitude above mean sea level (m)."""
+        return self.state.home
+
+    @property
+    def acks(self) -> list[tuple[int, int]]:
+        """Every command answered: (MAV_CMD, MAV_RESULT), oldest first."""
+        return self.commands.acks
+
+    def param(self, name: str) -> float:
+        """A parameter's value, as the vehicle stores it (takes the lock).
+
+        Args:
+            name: A parameter's name.
+
+        Returns:
+            The value.
+
+        Raises:
+            KeyError: Not a parameter of this vehicle.
+        """
+        return self.state.param(name)
+
+    def position(self) -> tuple[float, float, float]:
+        """Where the vehicle is: latitude, longitude (degrees), altitude above home (m).
+
+        Returns:
+            The position.
+        """
+        return self.state.position()
+
+    def mission(self) -> list[MissionItem]:
+        """The stored mission, item 0 (home as uploaded) included; empty if none.
+
+        Returns:
+            A copy of the items.
+        """
+        return self.auto.mission()
+
+    @property
+    def mission_current(self) -> int:
+        """The sequence number of the current mission command (0: none)."""
+        return self.auto.mission_current
+
+    @property
+    def gcs_failsafe(self) -> bool:
+        """Whether the GCS failsafe is active."""
+        return self.failsafes.gcs_failsafe
+
+    @property
+    def battery_failsafe(self) -> int:
+        """The battery failsafe level: 0 none, 1 low, 2 critical (they latch)."""
+        return self.failsafes.battery_failsafe
+
+    def set_rate(self, message: str, hz: float) -> None:
+        """Stream ``message`` at ``hz`` from now on (see :meth:`VehicleTelemetry.set_rate`).
+
+        Args:
+            message: One of :data:`DEFAULT_RATES`.
+            hz: The rate (≥ 0).
+
+        Raises:
+            ValueError: Not a simulated stream, or a negative rate.
+        """
+        self.telemetry.set_rate(message, hz)
+
+    def rate(self, message: str) -> float:
+        """The rate a message is streamed at now, Hz (0: not streamed).
+
+        Args:
+            message: One of :data:`DEFAULT_RATES`.
+
+        Returns:
+            The rate.
+
+        Raises:
+            KeyError: Not a simulated stream.
+        """
+        return self.telemetry.rate(message)
+
     # ---- lifecycle ---------------------------------------------------------------------------
 
     @property
@@ -170,7 +397,7 @@ class SimVehicle(CommandHandler):
             host: The ground station's host.
             port: Its UDP port.
         """
-        with self._lock:
+        with self.state.lock:
             if (host, port) not in self._gcs:
                 self._gcs.append((host, port))
 
@@ -186,8 +413,8 @@ class SimVehicle(CommandHandler):
         self._link = UdpLink(LinkSpec("udpin", self.host, self.port))
         self.port = self._link.address[1]
         self._stop.clear()
-        now = self.clock.monotonic()
-        self._t0 = self._last = now
+        now = self.state.clock.monotonic()
+        self.state.t0 = self.state.last = now
         self._threads = [
             threading.Thread(target=self._step_loop, name=f"temoto-sim-{self.name}-step"),
             threading.Thread(target=self._rx_loop, name=f"temoto-sim-{self.name}-rx"),
@@ -198,7 +425,7 @@ class SimVehicle(CommandHandler):
     def close(self) -> None:
         """Stop the threads and close the socket (idempotent)."""
         self._stop.set()
-        with self._lock:
+        with self.state.lock:
             self._wake.notify_all()
         for thread in self._threads:
             thread.join()
@@ -211,8 +438,8 @@ class SimVehicle(CommandHandler):
         """Announce a hardware error at once (STATUSTEXT); see :meth:`Simulator.inject`."""
         if fault == "hardware_error" and active:
             kind = (self.fault("hardware_error") or {}).get("kind", "overheat")
-            with self._lock:
-                self._texts.append((p.MAV_SEVERITY_CRITICAL, _HW_TEXT[kind]))
+            with self.state.lock:
+                self.state.texts.append((p.MAV_SEVERITY_CRITICAL, HW_TEXT[kind]))
 
     def send_raw(self, datagram: bytes) -> None:
         """Send bytes as one datagram to every ground station, from the vehicle's own port.
@@ -228,7 +455,7 @@ class SimVehicle(CommandHandler):
         link = self._link
         if link is None:
             raise RuntimeError("the simulator is not started")
-        with self._lock:
+        with self.state.lock:
             peers = list(dict.fromkeys([*self._gcs, *self._peers]))
         for peer in peers:
             link.send_to(datagram, peer)
@@ -236,23 +463,23 @@ class SimVehicle(CommandHandler):
     # ---- threads -----------------------------------------------------------------------------
 
     def _step_loop(self) -> None:
-        with self._lock:
-            next_tick = self.clock.monotonic()
+        with self.state.lock:
+            next_tick = self.state.clock.monotonic()
             while not self._stop.is_set():
-                now = self.clock.monotonic()
+                now = self.state.clock.monotonic()
                 if now >= next_tick:
-                    self._advance(now)
-                    self._check_gcs(now)
-                    frames = self._streams(now)
-                    self._lock.release()
+                    self.flight.advance(now)
+                    self.failsafes.check(now)
+                    frames = self.telemetry.streams(now)
+                    self.state.lock.release()
                     try:
                         self._send(frames)
                     finally:
-                        self._lock.acquire()
-                    next_tick = now + self._dt
+                        self.state.lock.acquire()
+                    next_tick = now + self.state.dt
                     if self._stop.is_set():  # close() notified while the lock was released
                         break
-                self.clock.wait(self._wake, max(next_tick - now, 0.0))
+                self.state.clock.wait(self._wake, max(next_tick - now, 0.0))
 
     def _rx_loop(self) -> None:
         link = self._link
@@ -268,11 +495,11 @@ class SimVehicle(CommandHandler):
                 continue
             if self.fault("link_loss") is not None or self.fault("uplink_loss") is not None:
                 continue  # nothing heard from the ground: the GCS failsafe counts
-            with self._lock:
+            with self.state.lock:
                 if peer not in self._peers:
                     self._peers.append(peer)
-            for msg in self.codec.decode_datagram(data):
-                replies = self._handle(msg)
+            for msg in self.state.codec.decode_datagram(data):
+                replies = self.commands.handle(msg)
                 # counted once handled: a test that waits for the count sees its effect
                 self.received[msg.name] = self.received.get(msg.name, 0) + 1
                 self._send(replies)
@@ -285,7 +512,7 @@ class SimVehicle(CommandHandler):
             return
         if self.fault("corrupt") is not None:
             frames = [p.corrupt(f) for f in frames]
-        with self._lock:
+        with self.state.lock:
             peers = list(dict.fromkeys([*self._gcs, *self._peers]))
         for frame in frames:
             for peer in peers:

@@ -13,6 +13,7 @@ from typing import Final
 
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.sim_flight import FlightModel
+from temoto.drivers.mavlink.sim_state import VehicleState
 
 __all__ = ["Failsafes"]
 
@@ -31,73 +32,93 @@ _GCS_FAILSAFE_MODE: Final = {
 _BATT_FAILSAFE_MODE: Final = {1: "LAND", 2: "RTL", 3: "RTL", 4: "LAND", 6: "RTL", 7: "BRAKE"}
 
 
-class Failsafes(FlightModel):
-    """The GCS and battery failsafes (see the module docstring)."""
+class Failsafes:
+    """The GCS and battery failsafes (see the module docstring).
+
+    Args:
+        state: The vehicle's state.
+        flight: Takes the failsafe's action (a mode change, a disarm).
+    """
+
+    def __init__(self, state: VehicleState, flight: FlightModel) -> None:
+        self.state = state
+        self.flight = flight
+        self._gcs_seen: float | None = None  # clock time of the GCS's newest heartbeat
+        self._low_volt_since: float | None = None
+        self._crt_volt_since: float | None = None
+
+    def gcs_heartbeat(self, now: float) -> None:
+        """A HEARTBEAT from the GCS (``SYSID_MYGCS``) arrived at clock time ``now``.
+
+        Args:
+            now: The clock time.
+        """
+        self._gcs_seen = now
 
     @property
     def gcs_failsafe(self) -> bool:
         """Whether the GCS failsafe is active (no GCS heartbeat for ``FS_GCS_TIMEOUT``)."""
-        with self._lock:
-            return self._gcs_failsafe
+        with self.state.lock:
+            return self.state.gcs_failsafe
 
     @property
     def battery_failsafe(self) -> int:
         """The battery failsafe level: 0 none, 1 low, 2 critical (they latch)."""
-        with self._lock:
-            return self._batt_failsafe
+        with self.state.lock:
+            return self.state.batt_failsafe
 
-    def _check_gcs(self, now: float) -> None:
+    def check(self, now: float) -> None:
         """ArduCopter's GCS failsafe check, once per model step."""
         self._check_battery(now)
-        if self._params["FS_GCS_ENABLE"] == 0 or self._gcs_seen is None:
+        if self.state.params["FS_GCS_ENABLE"] == 0 or self._gcs_seen is None:
             return
-        late = now - self._gcs_seen > self._params["FS_GCS_TIMEOUT"]
-        if late and not self._gcs_failsafe:
-            self._gcs_failsafe = True
+        late = now - self._gcs_seen > self.state.params["FS_GCS_TIMEOUT"]
+        if late and not self.state.gcs_failsafe:
+            self.state.gcs_failsafe = True
             self._gcs_failsafe_on()
-        elif not late and self._gcs_failsafe:
-            self._gcs_failsafe = False
-            self._texts.append((p.MAV_SEVERITY_WARNING, "GCS Failsafe Cleared"))
+        elif not late and self.state.gcs_failsafe:
+            self.state.gcs_failsafe = False
+            self.state.texts.append((p.MAV_SEVERITY_WARNING, "GCS Failsafe Cleared"))
 
     def _gcs_failsafe_on(self) -> None:
         warn = p.MAV_SEVERITY_WARNING
-        if not self.armed:
-            self._texts.append((warn, "GCS Failsafe"))
+        if not self.state.armed:
+            self.state.texts.append((warn, "GCS Failsafe"))
             return
-        if not self.airborne:
-            self._disarm(force=True)
-            self._texts.append((warn, "GCS Failsafe - Disarming"))
+        if not self.state.airborne:
+            self.flight.disarm(force=True)
+            self.state.texts.append((warn, "GCS Failsafe - Disarming"))
             return
-        enable = int(self._params["FS_GCS_ENABLE"])
-        continue_auto = enable == 2 or round(self._p("FS_OPTIONS")) & 2  # FS_OPTIONS bit 1
-        if self.mode == "AUTO" and continue_auto:
-            self._texts.append((warn, "GCS Failsafe - Continuing Auto Mode"))
+        enable = int(self.state.params["FS_GCS_ENABLE"])
+        continue_auto = enable == 2 or round(self.state.value("FS_OPTIONS")) & 2  # FS_OPTIONS bit 1
+        if self.state.mode == "AUTO" and continue_auto:
+            self.state.texts.append((warn, "GCS Failsafe - Continuing Auto Mode"))
             return
-        self._texts.append((warn, "GCS Failsafe"))
+        self.state.texts.append((warn, "GCS Failsafe"))
         if enable in (3, 4):
             fallback = "RTL" if enable == 3 else "Land"
-            self._texts.append((warn, f"SmartRTL Unavailable, Using {fallback} Mode"))
-        self._set_mode(_GCS_FAILSAFE_MODE.get(enable, "RTL"))
+            self.state.texts.append((warn, f"SmartRTL Unavailable, Using {fallback} Mode"))
+        self.flight.set_mode(_GCS_FAILSAFE_MODE.get(enable, "RTL"))
 
     def _volts_below(self, threshold: float, since: float | None, now: float) -> float | None:
         """When the voltage went below ``threshold`` (None: it is not below it)."""
-        if threshold <= 0 or self._voltage() >= threshold:
+        if threshold <= 0 or self.state.voltage() >= threshold:
             return None
         return now if since is None else since
 
     def _check_battery(self, now: float) -> None:
         """ArduPilot's battery failsafe (AP_BattMonitor): low and critical, latched."""
-        if self._p("BATT_MONITOR") == 0:
+        if self.state.value("BATT_MONITOR") == 0:
             return
-        timer = self._p("BATT_LOW_TIMER")
+        timer = self.state.value("BATT_LOW_TIMER")
         self._low_volt_since = self._volts_below(
-            self._p("BATT_LOW_VOLT"), self._low_volt_since, now
+            self.state.value("BATT_LOW_VOLT"), self._low_volt_since, now
         )
         self._crt_volt_since = self._volts_below(
-            self._p("BATT_CRT_VOLT"), self._crt_volt_since, now
+            self.state.value("BATT_CRT_VOLT"), self._crt_volt_since, now
         )
-        remaining = self._p("BATT_CAPACITY") - self._consumed_mah()
-        crt_mah, low_mah = self._p("BATT_CRT_MAH"), self._p("BATT_LOW_MAH")
+        remaining = self.state.value("BATT_CAPACITY") - self.state.consumed_mah()
+        crt_mah, low_mah = self.state.value("BATT_CRT_MAH"), self.state.value("BATT_LOW_MAH")
         critical = (self._crt_volt_since is not None and now - self._crt_volt_since >= timer) or (
             crt_mah > 0 and remaining < crt_mah
         )
@@ -105,22 +126,23 @@ class Failsafes(FlightModel):
             low_mah > 0 and remaining < low_mah
         )
         level = 2 if critical else 1 if low else 0
-        if level <= self._batt_failsafe:
+        if level <= self.state.batt_failsafe:
             return
-        self._batt_failsafe = level
+        self.state.batt_failsafe = level
         word = "critical" if level == 2 else "low"
-        self._texts.append(
+        self.state.texts.append(
             (
                 p.MAV_SEVERITY_WARNING,
-                f"Battery 1 is {word} {self._voltage():.2f}V used {self._consumed_mah():.0f} mAh",
+                f"Battery 1 is {word} {self.state.voltage():.2f}V"
+                f" used {self.state.consumed_mah():.0f} mAh",
             )
         )
-        action = int(self._p("BATT_FS_CRT_ACT" if level == 2 else "BATT_FS_LOW_ACT"))
-        if action == 0 or not self.armed:
+        action = int(self.state.value("BATT_FS_CRT_ACT" if level == 2 else "BATT_FS_LOW_ACT"))
+        if action == 0 or not self.state.armed:
             return
-        if not self.airborne or action == 5:  # landed: disarm; 5: terminate (motors off)
-            self._disarm(force=True)
+        if not self.state.airborne or action == 5:  # landed: disarm; 5: terminate (motors off)
+            self.flight.disarm(force=True)
             return
         mode = _BATT_FAILSAFE_MODE.get(action, "RTL")
-        if self.mode != "LAND":  # never from landing back to something else
-            self._set_mode(mode)
+        if self.state.mode != "LAND":  # never from landing back to something else
+            self.flight.set_mode(mode)

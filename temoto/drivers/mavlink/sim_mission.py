@@ -8,8 +8,17 @@ without an item) and ends with a MISSION_ACK; a download starts with MISSION_REQ
 vehicle answers MISSION_COUNT) and the ground station asks for each item. Legacy
 MISSION_ITEM / MISSION_REQUEST (float coordinates) are accepted and answered in kind. Item 0 of
 the mission is home, as in ArduPilot: a download reports the current home there. While an
-upload runs, another system's upload and any download are DENIED. An upload replaces the
-stored plan only when it completes (a cancelled one leaves the old plan).
+upload runs, another system's upload and any download are DENIED. As in ArduPilot
+(``MissionItemProtocol``, ``MissionItemProtocol_Waypoints``/``_Rally``/``_Fence``): an item
+other than the one asked for gets ``MAV_MISSION_INVALID_SEQUENCE`` and the upload goes on;
+mission and rally items are written as they arrive over a plan first truncated to the new
+count, so a cancelled or refused upload leaves the items received so far over the rest of the
+old plan (fence items are kept apart and stored only when the upload completes); "Flight plan
+received" / "Rally points received" before the final ACK, "Mission upload timeout" (rally,
+fence: "Rally"/"Fence upload timeout") before ``MAV_MISSION_OPERATION_CANCELLED``;
+MISSION_CLEAR_ALL of the mission while it is flown is refused (``AP_Mission::clear``:
+``MAV_MISSION_ERROR``, the mission goes on); a request for a mission item past the end gets
+MISSION_COUNT with the real count, then ``MAV_MISSION_ERROR``.
 
 No I/O and no threads: the owner passes each received message to :meth:`MissionService.handle`
 and calls :meth:`MissionService.tick` regularly, and sends the frames they return. Not
@@ -45,6 +54,17 @@ _GLOBAL_FRAMES: Final = frozenset(
     }
 )
 _FRAMES: Final = _GLOBAL_FRAMES | {p.MAV_FRAME_MISSION}
+
+# ArduPilot's MissionItemProtocol_Waypoints/_Rally/_Fence ``timeout()`` and ``complete()`` texts
+_NOUN: Final = {
+    p.MAV_MISSION_TYPE_MISSION: "Mission",
+    p.MAV_MISSION_TYPE_FENCE: "Fence",
+    p.MAV_MISSION_TYPE_RALLY: "Rally",
+}
+_RECEIVED: Final = {
+    p.MAV_MISSION_TYPE_MISSION: "Flight plan received",
+    p.MAV_MISSION_TYPE_RALLY: "Rally points received",
+}
 
 
 @dataclass(frozen=True, slots=True)
@@ -148,7 +168,8 @@ class _Upload:
     sysid: int
     compid: int
     legacy: bool  # the GCS sent MISSION_ITEM: ask with MISSION_REQUEST
-    items: list[MissionItem]
+    items: list[MissionItem]  # fence items, stored when the upload completes
+    next: int  # the item asked for
     last_item: float
     last_request: float
 
@@ -162,11 +183,18 @@ class MissionService:
     Args:
         encode: Packs one message as the vehicle (``Codec.encode``).
         home_item: Item 0 of a downloaded mission: the current home.
+        flying: Whether the stored mission is being flown (MISSION_CLEAR_ALL is then refused).
     """
 
-    def __init__(self, encode: Encode, home_item: Callable[[], MissionItem]) -> None:
+    def __init__(
+        self,
+        encode: Encode,
+        home_item: Callable[[], MissionItem],
+        flying: Callable[[], bool] = lambda: False,
+    ) -> None:
         self._encode = encode
         self._home_item = home_item
+        self._flying = flying
         self._plans: dict[int, list[MissionItem]] = {t: [] for t in _TYPES}
         self._upload: _Upload | None = None
         #: Bumped whenever the stored mission (type MISSION) changes.
@@ -243,6 +271,8 @@ class MissionService:
         if name == "MISSION_CLEAR_ALL":
             if self._upload is not None or kind not in (*_TYPES, p.MAV_MISSION_TYPE_ALL):
                 return [self._ack(msg, p.MAV_MISSION_ERROR, kind)]
+            if kind in (p.MAV_MISSION_TYPE_MISSION, p.MAV_MISSION_TYPE_ALL) and self._flying():
+                return [self._ack(msg, p.MAV_MISSION_ERROR, kind)]  # AP_Mission::clear refuses
             self.clear(kind)
             return [self._ack(msg, p.MAV_MISSION_ACCEPTED, kind)]
         if kind not in _TYPES:
@@ -281,14 +311,16 @@ class MissionService:
             return []
         if now - up.last_item > UPLOAD_TIMEOUT:
             self._upload = None
+            self._changed(up.mission_type)
             return [
+                self._text(p.MAV_SEVERITY_WARNING, f"{_NOUN[up.mission_type]} upload timeout"),
                 self._encode(
                     "MISSION_ACK",
                     target_system=up.sysid,
                     target_component=up.compid,
                     type=p.MAV_MISSION_OPERATION_CANCELLED,
                     mission_type=up.mission_type,
-                )
+                ),
             ]
         if now - up.last_request > REQUEST_RESEND:
             return [self._request(up, now)]
@@ -301,11 +333,17 @@ class MissionService:
             return [self._ack(msg, p.MAV_MISSION_DENIED, kind)]  # someone else is uploading
         if count > MAX_ITEMS:
             return [self._ack(msg, p.MAV_MISSION_NO_SPACE, kind)]
+        self._upload = None
+        if kind != p.MAV_MISSION_TYPE_FENCE and len(self._plans[kind]) > count:
+            del self._plans[kind][count:]  # ArduPilot truncates the stored plan at once
+            self._changed(kind)
         if count == 0:
-            self._upload = None
-            self.clear(kind)
-            return [self._ack(msg, p.MAV_MISSION_ACCEPTED, kind)]
-        self._upload = _Upload(kind, count, msg.src_system, msg.src_component, False, [], now, now)
+            if kind == p.MAV_MISSION_TYPE_FENCE:
+                self._plans[kind] = []
+            return [*self._received(kind), self._ack(msg, p.MAV_MISSION_ACCEPTED, kind)]
+        self._upload = _Upload(
+            kind, count, msg.src_system, msg.src_component, False, [], 0, now, now
+        )
         return [self._request(self._upload, now)]
 
     def _item(self, msg: Message, now: float) -> list[bytes]:
@@ -313,26 +351,51 @@ class MissionService:
         if up is None:
             return []  # not uploading (a guided item is the simulator's business)
         item = MissionItem.from_message(msg)
+        if item.mission_type != up.mission_type or item.seq != up.next:
+            # ArduPilot: any item but the one asked for (a stray copy after a resent request
+            # too); the upload goes on
+            return [self._ack(msg, p.MAV_MISSION_INVALID_SEQUENCE, up.mission_type)]
         if (msg.src_system, msg.src_component) != (up.sysid, up.compid):
             return [self._ack(msg, p.MAV_MISSION_DENIED, up.mission_type)]
-        if item.mission_type != up.mission_type or item.seq != len(up.items):
-            if item.seq < len(up.items):
-                return []  # a duplicate of an item we have (our request crossed it)
-            return [self._ack(msg, p.MAV_MISSION_INVALID_SEQUENCE, up.mission_type)]
         verdict = item.check()
         if verdict != p.MAV_MISSION_ACCEPTED:
             self._upload = None
+            self._changed(up.mission_type)
             return [self._ack(msg, verdict, up.mission_type)]
-        up.items.append(replace(item, current=0))
+        item = replace(item, current=0)
+        if up.mission_type == p.MAV_MISSION_TYPE_FENCE:
+            up.items.append(item)
+        else:  # written as it arrives: replaces the old item there, or appends
+            plan = self._plans[up.mission_type]
+            if item.seq < len(plan):
+                plan[item.seq] = item
+            else:
+                plan.append(item)
+        up.next += 1
         up.legacy = msg.name == "MISSION_ITEM"
         up.last_item = now
-        if len(up.items) < up.count:
+        if up.next < up.count:
             return [self._request(up, now)]
         self._upload = None
-        self._plans[up.mission_type] = up.items
-        if up.mission_type == p.MAV_MISSION_TYPE_MISSION:
+        if up.mission_type == p.MAV_MISSION_TYPE_FENCE:
+            self._plans[up.mission_type] = up.items
+        self._changed(up.mission_type)
+        return [
+            *self._received(up.mission_type),
+            self._ack(msg, p.MAV_MISSION_ACCEPTED, up.mission_type),
+        ]
+
+    def _changed(self, kind: int) -> None:
+        if kind == p.MAV_MISSION_TYPE_MISSION:
             self.version += 1
-        return [self._ack(msg, p.MAV_MISSION_ACCEPTED, up.mission_type)]
+
+    def _received(self, kind: int) -> list[bytes]:
+        """The STATUSTEXT ArduPilot sends when an upload completes (none for a fence)."""
+        text = _RECEIVED.get(kind)
+        return [] if text is None else [self._text(p.MAV_SEVERITY_INFO, text)]
+
+    def _text(self, severity: int, text: str) -> bytes:
+        return self._encode("STATUSTEXT", severity=severity, text=text.encode(), id=0)
 
     def _send_item(self, msg: Message, kind: int) -> list[bytes]:
         if self._upload is not None:
@@ -343,6 +406,16 @@ class MissionService:
         else:
             plan = self._plans[kind]
             item = plan[seq] if 0 <= seq < len(plan) else None
+        if item is None and kind == p.MAV_MISSION_TYPE_MISSION:
+            # MissionItemProtocol_Waypoints::get_item: tell the GCS the real count, then ERROR
+            count = self._encode(
+                "MISSION_COUNT",
+                target_system=msg.src_system,
+                target_component=msg.src_component,
+                count=self.count(kind),
+                mission_type=kind,
+            )
+            return [count, self._ack(msg, p.MAV_MISSION_ERROR, kind)]
         if item is None:
             return [self._ack(msg, p.MAV_MISSION_INVALID_SEQUENCE, kind)]
         fields: dict[str, Any] = {
@@ -376,7 +449,7 @@ class MissionService:
             "MISSION_REQUEST" if up.legacy else "MISSION_REQUEST_INT",
             target_system=up.sysid,
             target_component=up.compid,
-            seq=len(up.items),
+            seq=up.next,
             mission_type=up.mission_type,
         )
 

@@ -4,8 +4,9 @@
 default, ``MAV_PARAM_TYPE``), the ones a ground station usually looks at and the ones that
 drive :class:`~temoto.drivers.mavlink.sim.SimVehicle`'s model (navigation speeds, RTL and LAND,
 the GCS and battery failsafes, arming checks). Integer parameters hold what ArduPilot's
-``AP_Int8``/``AP_Int16``/``AP_Int32`` would (rounded, clamped to the type's range); ``REAL32``
-ones hold a single-precision float, as PARAM_VALUE carries it.
+``AP_Int8``/``AP_Int16``/``AP_Int32`` would (``AP_Param::set_float``: 0.01 added away from
+zero, clamped to the type's range, truncated); ``REAL32`` ones hold a single-precision float,
+as PARAM_VALUE carries it.
 
 :func:`load_param_file` and :func:`save_param_file` read and write the format that MAVProxy
 (``param save``), Mission Planner and ArduPilot's SITL defaults files use: one ``NAME VALUE``
@@ -103,6 +104,8 @@ PARAMETERS: Final[Mapping[str, tuple[float, int]]] = {
     "MIS_RESTART": (0.0, _I8),
     "MIS_OPTIONS": (0.0, _I16),
     "FENCE_ENABLE": (0.0, _I8),
+    "FENCE_TYPE": (7.0, _I8),
+    "FENCE_ACTION": (1.0, _I8),
     "FENCE_ALT_MAX": (100.0, _F),
     "FENCE_RADIUS": (300.0, _F),
     # flight modes on the RC switch
@@ -141,8 +144,10 @@ _INT_RANGE: Final = {
 def stored_value(param_type: int, value: float) -> float:
     """``value`` as a parameter of ``param_type`` holds it.
 
-    Integers are rounded and clamped to the type's range; ``REAL32`` becomes the nearest
-    single-precision float (what a PARAM_VALUE carries back).
+    Integers as ArduPilot's ``AP_Param::set_float`` stores them: the single-precision value
+    plus 0.01 (minus 0.01 if negative), clamped to the type's range, truncated toward zero
+    (2500.7 → 2500, 2.995 → 3, -3.7 → -3). ``REAL32`` becomes the nearest single-precision
+    float (what a PARAM_VALUE carries back).
 
     Args:
         param_type: A ``MAV_PARAM_TYPE``.
@@ -151,10 +156,17 @@ def stored_value(param_type: int, value: float) -> float:
     Returns:
         The stored value.
     """
+    single = _f32(value)
     limits = _INT_RANGE.get(param_type)
     if limits is None:
-        return float(struct.unpack("<f", struct.pack("<f", value))[0])
-    return float(min(max(round(value), limits[0]), limits[1]))
+        return single
+    nudged = _f32(single + _f32(-0.01 if single < 0 else 0.01))  # float arithmetic, as on board
+    return float(math.trunc(min(max(nudged, limits[0]), limits[1])))
+
+
+def _f32(value: float) -> float:
+    """``value`` rounded to single precision (what a C ``float`` holds)."""
+    return float(struct.unpack("<f", struct.pack("<f", value))[0])
 
 
 def load_param_file(path: str | os.PathLike[str]) -> dict[str, float]:

@@ -1,22 +1,29 @@
 """The simulated ArduCopter's shared state: configuration tables, parameters, geometry, battery.
 
-:class:`VehicleState` is the bottom layer of :class:`~temoto.drivers.mavlink.sim.SimVehicle`.
-The vehicle is one state machine under one lock, written in layers that each use only the
-layers below them (no layer calls up):
+:class:`VehicleState` is the one state object the parts of
+:class:`~temoto.drivers.mavlink.sim.SimVehicle` share by reference. The vehicle is one state
+machine under one lock, made of parts it holds, each a class that can be built and driven on
+its own over a :class:`VehicleState` (and the parts it names in its constructor):
 
-* :mod:`~temoto.drivers.mavlink.sim_state` (this module): the constructor (validation of the
+* :mod:`~temoto.drivers.mavlink.sim_state` (this module): the state (validation of the
   arguments, parameters from :data:`~temoto.drivers.mavlink.sim_params.PARAMETERS`, the
-  ``.param`` file), the model's variables, the local frame (north, east, up from the origin),
-  the battery model and the pre-arm checks;
-* :mod:`~temoto.drivers.mavlink.sim_telemetry`: the messages the vehicle sends and their rates;
-* :mod:`~temoto.drivers.mavlink.sim_auto`: flying the stored mission in AUTO;
-* :mod:`~temoto.drivers.mavlink.sim_flight`: the kinematic model and the flight modes
-  (arming, mode changes, takeoff, reposition, home);
-* :mod:`~temoto.drivers.mavlink.sim_failsafe`: the GCS and battery failsafes;
-* :mod:`~temoto.drivers.mavlink.sim_commands`: what the vehicle does with each received message;
-* :mod:`~temoto.drivers.mavlink.sim`: :class:`SimVehicle` itself, the UDP endpoint and threads.
+  ``.param`` file), the local frame (north, east, up from the origin), the battery model and
+  the pre-arm checks;
+* :mod:`~temoto.drivers.mavlink.sim_telemetry`: :class:`VehicleTelemetry`, the messages the
+  vehicle sends and their rates (over the state);
+* :mod:`~temoto.drivers.mavlink.sim_auto`: :class:`AutoMission`, flying the stored mission in
+  AUTO (state, telemetry);
+* :mod:`~temoto.drivers.mavlink.sim_flight`: :class:`FlightModel`, the kinematic model and the
+  flight modes: arming, mode changes, takeoff, reposition, home (state, telemetry, mission);
+* :mod:`~temoto.drivers.mavlink.sim_failsafe`: :class:`Failsafes`, the GCS and battery
+  failsafes (state, flight model);
+* :mod:`~temoto.drivers.mavlink.sim_commands`: :class:`CommandHandler`, what the vehicle does
+  with each received message (all of the above);
+* :mod:`~temoto.drivers.mavlink.sim`: :class:`SimVehicle`, which holds the parts, the UDP
+  endpoint and the threads.
 
-Methods whose names start with ``_`` expect the lock held unless their docstring says otherwise.
+Every method of a part expects :attr:`VehicleState.lock` held unless its docstring says it
+takes it.
 """
 
 from __future__ import annotations
@@ -25,12 +32,11 @@ import logging
 import math
 import os
 import threading
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Mapping
 from typing import Any, Final
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.drivers.mavlink import protocol as p
-from temoto.drivers.mavlink.link import UdpLink
 from temoto.drivers.mavlink.protocol import Codec
 from temoto.drivers.mavlink.sim_mission import MissionItem, MissionService
 from temoto.drivers.mavlink.sim_params import (
@@ -39,13 +45,13 @@ from temoto.drivers.mavlink.sim_params import (
     load_param_file,
     stored_value,
 )
-from temoto.drivers.sim import Simulator
 
-__all__ = ["DEFAULT_RATES", "EARTH_RADIUS", "STREAM_GROUPS", "VehicleState"]
+__all__ = ["DEFAULT_RATES", "EARTH_RADIUS", "GRAVITY", "HW_TEXT", "STREAM_GROUPS", "VehicleState"]
 
-logger = logging.getLogger("temoto.drivers.mavlink.sim")
+logger = logging.getLogger(__name__)
 
 EARTH_RADIUS: Final = 6_378_137.0  # m, WGS-84 equatorial
+GRAVITY: Final = 9.80665  # m/s², ArduPilot's GRAVITY_MSS
 
 #: Messages the simulator streams, and their default rates (Hz).
 DEFAULT_RATES: Final[Mapping[str, float]] = {
@@ -89,7 +95,8 @@ STREAM_GROUPS: Final[Mapping[int, tuple[str, ...]]] = {
     p.MAV_DATA_STREAM_EXTRA3: ("SYSTEM_TIME", "BATTERY_STATUS", "EKF_STATUS_REPORT", "VIBRATION"),
 }
 
-_HW_TEXT: Final = {
+#: The STATUSTEXT of each ``hardware_error`` fault kind (also the "PreArm: ..." reason).
+HW_TEXT: Final[Mapping[str, str]] = {
     "overheat": "Motor overheat",
     "overload": "Propulsion overload",
     "voltage": "Battery voltage critical",
@@ -102,11 +109,43 @@ _ARMING_CHECK_ALL: Final = 1
 _ARMING_CHECK_BATTERY: Final = 256
 
 
-class VehicleState(Simulator):
-    """The state every layer of the simulated vehicle shares, and the reads of it.
+def _no_fault(_: str) -> dict[str, Any] | None:
+    return None
 
-    The constructor's arguments are :class:`~temoto.drivers.mavlink.sim.SimVehicle`'s (see
-    there). The model's variables are guarded by ``_lock``.
+
+class VehicleState:
+    """The state every part of the simulated vehicle shares, and the reads of it.
+
+    The parts (telemetry, mission, flight model, failsafes, commands) each hold this object
+    and read and write its public fields; the vehicle holds the parts. The constructor's
+    arguments are :class:`~temoto.drivers.mavlink.sim.SimVehicle`'s of the same names (see
+    there). The fields are guarded by :attr:`lock`: every method here but :meth:`param` and
+    :meth:`position` expects it held.
+
+    Args:
+        name: For logs.
+        clock: The model's clock.
+        system_id: ``SYSID_THISMAV`` unless the parameter file sets it.
+        home: Home (and the local frame's origin): latitude, longitude (deg), AMSL (m).
+        battery: Initial charge, %.
+        cells: Cells in series.
+        min_arm_battery: Below this charge (%) arming is refused.
+        speed: ``WPNAV_SPEED`` in m/s.
+        climb_rate: ``WPNAV_SPEED_UP`` in m/s.
+        descent_rate: ``WPNAV_SPEED_DN`` in m/s (``LAND_SPEED`` is a parameter, 0.5 m/s).
+        tau: Time constant of the position model, s.
+        rtl_altitude: ``RTL_ALT`` in m.
+        drain_idle: Battery drain armed on the ground, %/s.
+        drain_flight: Extra drain in the air, %/s.
+        step_rate: Model steps per clock second.
+        params: Parameter values over the defaults.
+        params_file: A ``.param`` file loaded over them, if it exists.
+        fault: The active fault of a name and its parameters (None: not active); the
+            vehicle's :meth:`~temoto.drivers.sim.Simulator.fault`.
+
+    Raises:
+        ValueError: An argument out of range, an unknown parameter, a bad parameter file line.
+        OSError: ``params_file`` exists but cannot be read.
     """
 
     def __init__(
@@ -114,16 +153,12 @@ class VehicleState(Simulator):
         name: str = "vehicle",
         *,
         clock: Clock | None = None,
-        gcs: Iterable[tuple[str, int]] = (),
-        port: int = 0,
-        host: str = "127.0.0.1",
         system_id: int = 1,
         home: tuple[float, float, float] = (47.397742, 8.545594, 488.0),
-        rates: Mapping[str, float] | None = None,
         battery: float = 100.0,
         cells: int = 4,
         min_arm_battery: float = 20.0,
-        speed: float = 5.0,
+        speed: float = 10.0,
         climb_rate: float = 2.5,
         descent_rate: float = 1.5,
         tau: float = 1.0,
@@ -133,13 +168,8 @@ class VehicleState(Simulator):
         step_rate: float = 50.0,
         params: Mapping[str, float] | None = None,
         params_file: str | os.PathLike[str] | None = None,
+        fault: Callable[[str], dict[str, Any] | None] = _no_fault,
     ) -> None:
-        super().__init__()
-        merged = dict(DEFAULT_RATES)
-        for msg, hz in (rates or {}).items():
-            if msg.upper() not in DEFAULT_RATES or not (math.isfinite(hz) and hz >= 0):
-                raise ValueError(f"bad stream rate {msg}={hz!r} (streams: {list(DEFAULT_RATES)})")
-            merged[msg.upper()] = float(hz)
         positive = {
             "speed": speed,
             "climb_rate": climb_rate,
@@ -155,22 +185,21 @@ class VehicleState(Simulator):
             raise ValueError(f"battery must be 0..100 %, got {battery!r}")
         if not 1 <= system_id <= 255:
             raise ValueError(f"system_id must be 1..255, got {system_id!r}")
-        self._ptypes: dict[str, int] = {n: t for n, (_, t) in PARAMETERS.items()}
-        self._params: dict[str, float] = {n: v for n, (v, _) in PARAMETERS.items()}
+        self.ptypes: dict[str, int] = {n: t for n, (_, t) in PARAMETERS.items()}
+        self.params: dict[str, float] = {n: v for n, (v, _) in PARAMETERS.items()}
         initial = {
             "WPNAV_SPEED": speed * 100.0,
             "WPNAV_SPEED_UP": climb_rate * 100.0,
             "WPNAV_SPEED_DN": descent_rate * 100.0,
-            "LAND_SPEED": descent_rate * 100.0,
             "RTL_ALT": rtl_altitude * 100.0,
             "SYSID_THISMAV": float(system_id),
         }
         for key, value in initial.items():
-            self._params[key] = self._stored(key, value)
+            self.params[key] = self.stored(key, value)
         for key, value in (params or {}).items():
             if key not in PARAMETERS or not math.isfinite(value):
                 raise ValueError(f"bad parameter {key}={value!r} (known: {list(PARAMETERS)})")
-            self._params[key] = self._stored(key, float(value))
+            self.params[key] = self.stored(key, float(value))
         self.params_file = None if params_file is None else os.fspath(params_file)
         if self.params_file is not None and os.path.exists(self.params_file):
             loaded = load_param_file(self.params_file)
@@ -184,72 +213,57 @@ class VehicleState(Simulator):
                     ", ".join(extra[:10]) + (" ..." if len(extra) > 10 else ""),
                 )
             for key, value in loaded.items():
-                self._ptypes.setdefault(key, p.MAV_PARAM_TYPE_REAL32)
+                self.ptypes.setdefault(key, p.MAV_PARAM_TYPE_REAL32)
                 if key not in READ_ONLY:
-                    self._params[key] = self._stored(key, value)
-        sysid = round(self._params["SYSID_THISMAV"])
+                    self.params[key] = self.stored(key, value)
+        sysid = round(self.params["SYSID_THISMAV"])
         if not 1 <= sysid <= 255:
             where = f" ({self.params_file})" if self.params_file is not None else ""
             raise ValueError(f"SYSID_THISMAV must be 1..255, got {sysid}{where}")
-        self._names = sorted(self._params)  # PARAM_VALUE index order
+        self.names = sorted(self.params)  # PARAM_VALUE index order
         self.name = name
         self.clock: Clock = clock or MonotonicClock()
         self.codec = Codec(sysid, _AUTOPILOT)
-        self.port = port
-        self.host = host
-        self._origin = home
+        self.fault = fault
+        self.origin = home
         #: Home: latitude, longitude (degrees), altitude above mean sea level (m).
         self.home = home
-        self._home_locked = False
-        self._periods = {m: (1.0 / hz if hz > 0 else math.inf) for m, hz in merged.items()}
-        self._due = dict.fromkeys(merged, 0.0)
-        self._cells, self._min_arm = int(cells), float(min_arm_battery)
-        self._tau = tau
-        self._drain_idle, self._drain_flight = drain_idle, drain_flight
-        self._dt = 1.0 / step_rate
-        self._gcs = list(gcs)
-        # model (guarded by _lock)
-        self._lock = threading.Lock()
-        self._wake = threading.Condition(self._lock)
+        self.home_locked = False
+        self.cells, self.min_arm = int(cells), float(min_arm_battery)
+        self.tau = tau
+        self.drain_idle, self.drain_flight = drain_idle, drain_flight
+        self.dt = 1.0 / step_rate
+        # model (guarded by lock)
+        self.lock = threading.Lock()
         self.battery = float(battery)
         self.armed = False
         self.mode = "STABILIZE"
         self.pos = [0.0, 0.0, 0.0]  # north, east, up (m from the origin: home at start)
         self.vel = [0.0, 0.0, 0.0]
+        self.accel = [0.0, 0.0]  # horizontal acceleration of the last model step, m/s²
         self.yaw = 0.0
         self.airborne = False
-        self._target: list[float] | None = None
-        self._landing = False  # descending to land (LAND, RTL's or AUTO's landing)
-        self._landed_state = p.MAV_LANDED_STATE_ON_GROUND
-        self._texts: list[tuple[int, str]] = []
-        self._outbox: list[bytes] = []  # frames the model wants sent with the next streams
-        self._peers: list[Any] = []
-        self._t0 = 0.0
-        self._last = 0.0
-        self._gcs_seen: float | None = None  # clock time of the GCS's newest heartbeat
-        self._gcs_failsafe = False
-        self._batt_failsafe = 0  # 0 none, 1 low, 2 critical
-        self._low_volt_since: float | None = None
-        self._crt_volt_since: float | None = None
-        self._rtl_arrived: float | None = None
-        self._speed_override: dict[str, float] = {}
-        # parameters being listed (PARAM_REQUEST_LIST): the next index
-        self._param_cursor: int | None = None
+        # ArduCopter's ap.auto_armed: the pilot raised the throttle, or something stood in for
+        # it (a GUIDED takeoff, MAV_CMD_MISSION_START, AUTO_OPTIONS bit 1); AUTO leaves the
+        # ground only then. No RC here: the throttle is never raised
+        self.auto_armed = False
+        self.target: list[float] | None = None
+        self.landing = False  # descending to land (LAND, RTL's or AUTO's landing)
+        self.landed_state = p.MAV_LANDED_STATE_ON_GROUND
+        self.texts: list[tuple[int, str]] = []
+        self.outbox: list[bytes] = []  # frames the model wants sent with the next streams
+        self.t0 = 0.0
+        self.last = 0.0
+        self.gcs_failsafe = False
+        self.batt_failsafe = 0  # 0 none, 1 low, 2 critical
+        self.rtl_arrived: float | None = None
+        self.speed_override: dict[str, float] = {}
         # missions
-        self._mission = MissionService(self.codec.encode, self._home_item)
-        self._mission_version = 0
-        self._mis_index = 0  # the current mission command (0: none yet)
-        self._mis_state = p.MISSION_STATE_NO_MISSION
-        self._nav: dict[str, Any] | None = None  # the running navigation command
-        self._jumps: dict[int, int] = {}
-        # I/O
-        self._link: UdpLink | None = None  # SimVehicle's endpoint
-        self._stop = threading.Event()
-        self._threads: list[threading.Thread] = []
-        #: Frames received (counted once handled) by message name, for tests and benchmarks.
-        self.received: dict[str, int] = {}
-        self.acks: list[tuple[int, int]] = []
-        self._sync_mission_param()
+        self.plans = MissionService(self.codec.encode, self.home_item, self.flying_mission)
+        self.mis_index = 0  # the current mission command (0: none yet)
+        self.mis_state = p.MISSION_STATE_NO_MISSION
+        self.nav: dict[str, Any] | None = None  # the running navigation command
+        self.sync_mission_param()
 
     # ---- parameters ----------------------------------------------------------------------------
 
@@ -265,18 +279,20 @@ class VehicleState(Simulator):
         Raises:
             KeyError: Not a parameter of this vehicle.
         """
-        with self._lock:
-            return self._params[name]
+        with self.lock:
+            return self.params[name]
 
-    def _stored(self, name: str, value: float) -> float:
+    def stored(self, name: str, value: float) -> float:
         """``value`` as a parameter of ``name``'s type holds it."""
-        return stored_value(self._ptypes[name], value)
+        return stored_value(self.ptypes[name], value)
 
-    def _p(self, name: str) -> float:
-        return self._params[name]
+    def value(self, name: str) -> float:
+        """A parameter's value (lock held)."""
+        return self.params[name]
 
-    def _sync_mission_param(self) -> None:
-        self._params["MIS_TOTAL"] = float(self._mission.count())
+    def sync_mission_param(self) -> None:
+        """``MIS_TOTAL`` follows the stored mission."""
+        self.params["MIS_TOTAL"] = float(self.plans.count())
 
     # ---- geometry ------------------------------------------------------------------------------
 
@@ -286,31 +302,47 @@ class VehicleState(Simulator):
         Returns:
             The position.
         """
-        with self._lock:
-            lat, lon, up = self._geo(self.pos)
-            return lat, lon, up - self._home_up()
+        with self.lock:
+            lat, lon, up = self.geo(self.pos)
+            return lat, lon, up - self.home_up()
 
-    def _geo(self, pos: list[float]) -> tuple[float, float, float]:
-        lat0, lon0, _ = self._origin
+    def geo(self, pos: list[float]) -> tuple[float, float, float]:
+        """A local position (north, east, up) as latitude, longitude (deg) and up."""
+        lat0, lon0, _ = self.origin
         lat = lat0 + math.degrees(pos[0] / EARTH_RADIUS)
         lon = lon0 + math.degrees(pos[1] / (EARTH_RADIUS * math.cos(math.radians(lat0))))
         return lat, lon, pos[2]
 
-    def _local(self, lat: float, lon: float) -> tuple[float, float]:
-        lat0, lon0, _ = self._origin
+    def local(self, lat: float, lon: float) -> tuple[float, float]:
+        """Latitude and longitude (deg) as north and east of the origin, m."""
+        lat0, lon0, _ = self.origin
         north = math.radians(lat - lat0) * EARTH_RADIUS
         east = math.radians(lon - lon0) * EARTH_RADIUS * math.cos(math.radians(lat0))
         return north, east
 
-    def _home_up(self) -> float:
+    def home_up(self) -> float:
         """Home's height over the origin (the ground), m."""
-        return self.home[2] - self._origin[2]
+        return self.home[2] - self.origin[2]
 
-    def _home_local(self) -> tuple[float, float, float]:
-        north, east = self._local(self.home[0], self.home[1])
-        return north, east, self._home_up()
+    def home_local(self) -> tuple[float, float, float]:
+        """Home in the local frame: north, east, up, m."""
+        north, east = self.local(self.home[0], self.home[1])
+        return north, east, self.home_up()
 
-    def _home_item(self) -> MissionItem:
+    def max_lean(self) -> float:
+        """ArduCopter's lean angle limit, rad: ``ANGLE_MAX`` (cdeg, its range 10..80 deg)."""
+        return math.radians(min(max(self.value("ANGLE_MAX"), 1000.0), 8000.0) / 100.0)
+
+    def max_accel(self) -> float:
+        """The horizontal acceleration the lean limit allows, m/s²: g·tan(``ANGLE_MAX``)."""
+        return GRAVITY * math.tan(self.max_lean())
+
+    def flying_mission(self) -> bool:
+        """Whether the mission runs (AUTO, started): ``AP_Mission``'s MISSION_RUNNING."""
+        return self.mode == "AUTO" and self.mis_state == p.MISSION_STATE_ACTIVE
+
+    def home_item(self) -> MissionItem:
+        """Home as mission item 0."""
         return MissionItem(
             seq=0,
             frame=p.MAV_FRAME_GLOBAL,
@@ -328,34 +360,37 @@ class VehicleState(Simulator):
 
     # ---- battery and health --------------------------------------------------------------------
 
-    def _voltage(self) -> float:
-        if self._hw_kind() == "voltage":
-            return self._cells * 2.9
-        return self._cells * (3.3 + 0.9 * self.battery / 100.0)
+    def voltage(self) -> float:
+        """The battery voltage now, V."""
+        if self.hw_kind() == "voltage":
+            return self.cells * 2.9
+        return self.cells * (3.3 + 0.9 * self.battery / 100.0)
 
-    def _consumed_mah(self) -> float:
-        return self._p("BATT_CAPACITY") * (100.0 - self.battery) / 100.0
+    def consumed_mah(self) -> float:
+        """The charge used, mAh (of ``BATT_CAPACITY``)."""
+        return self.value("BATT_CAPACITY") * (100.0 - self.battery) / 100.0
 
-    def _hw_kind(self) -> str | None:
+    def hw_kind(self) -> str | None:
+        """The active ``hardware_error`` fault's kind (None: none)."""
         params = self.fault("hardware_error")
         return None if params is None else str(params.get("kind", "overheat"))
 
-    def _prearm_failure(self) -> str | None:
+    def prearm_failure(self) -> str | None:
         """The first failing pre-arm check's STATUSTEXT (None: they pass)."""
-        checks = round(self._p("ARMING_CHECK"))
+        checks = round(self.value("ARMING_CHECK"))
         if checks == 0:
             return None
-        kind = self._hw_kind()
+        kind = self.hw_kind()
         if kind is not None:
-            return f"PreArm: {_HW_TEXT[kind]}"
+            return f"PreArm: {HW_TEXT[kind]}"
         if checks & (_ARMING_CHECK_ALL | _ARMING_CHECK_BATTERY):
-            if self._batt_failsafe:
+            if self.batt_failsafe:
                 return "PreArm: Battery failsafe"
-            if self.battery < self._min_arm:
+            if self.battery < self.min_arm:
                 return "PreArm: Battery below minimum arming capacity"
-            arm_volt, arm_mah = self._p("BATT_ARM_VOLT"), self._p("BATT_ARM_MAH")
-            if arm_volt > 0 and self._voltage() < arm_volt:
+            arm_volt, arm_mah = self.value("BATT_ARM_VOLT"), self.value("BATT_ARM_MAH")
+            if arm_volt > 0 and self.voltage() < arm_volt:
                 return "PreArm: Battery 1 below minimum arming voltage"
-            if arm_mah > 0 and self._p("BATT_CAPACITY") - self._consumed_mah() < arm_mah:
+            if arm_mah > 0 and self.value("BATT_CAPACITY") - self.consumed_mah() < arm_mah:
                 return "PreArm: Battery 1 below minimum arming capacity"
         return None

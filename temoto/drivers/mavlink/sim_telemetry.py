@@ -5,19 +5,20 @@
 PARAM_VALUE, STATUSTEXT) and paces the streams: each message of
 :data:`~temoto.drivers.mavlink.sim_state.DEFAULT_RATES` has a period, changed by
 ``MAV_CMD_SET_MESSAGE_INTERVAL`` or :meth:`VehicleTelemetry.set_rate`; one call of
-:meth:`VehicleTelemetry._streams` per model step returns what is due, with the queued texts,
+:meth:`VehicleTelemetry.streams` per model step returns what is due, with the queued texts,
 the mission service's frames and the next few PARAM_VALUEs of a list download. No I/O: the
-vehicle sends what it returns. A layer of :class:`~temoto.drivers.mavlink.sim.SimVehicle` (see
+vehicle sends what it returns. A part of :class:`~temoto.drivers.mavlink.sim.SimVehicle` (see
 :mod:`~temoto.drivers.mavlink.sim_state`).
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Iterable, Mapping
 from typing import Final
 
 from temoto.drivers.mavlink import protocol as p
-from temoto.drivers.mavlink.sim_state import DEFAULT_RATES, VehicleState
+from temoto.drivers.mavlink.sim_state import DEFAULT_RATES, GRAVITY, VehicleState
 
 __all__ = ["VehicleTelemetry"]
 
@@ -41,13 +42,50 @@ _HW_SENSOR: Final = {"overheat": "MOTOR_OUTPUTS", "overload": "PROPULSION", "vol
 
 _UINT16_MAX: Final = 65535
 
+_FENCE_ALT_CIRCLE: Final = 1 | 2 | 8  # FENCE_TYPE bits: altitude max, circle, altitude min
+_FENCE_POLYGON: Final = 4
+
 _PARAMS_PER_STEP: Final = 5  # PARAM_VALUEs of a list download per model step (ArduPilot: 5)
 
 _EKF_FLAGS: Final = 0x33F  # attitude, velocities, positions rel/abs, vertical, predicted
 
 
-class VehicleTelemetry(VehicleState):
-    """The messages the simulated vehicle sends (see the module docstring)."""
+class VehicleTelemetry:
+    """The messages the simulated vehicle sends (see the module docstring).
+
+    Args:
+        state: The vehicle's state.
+        rates: Stream rates in Hz by message name, over :data:`DEFAULT_RATES` (0: not sent).
+
+    Raises:
+        ValueError: An unknown stream or a negative rate.
+    """
+
+    def __init__(self, state: VehicleState, rates: Mapping[str, float] | None = None) -> None:
+        merged = dict(DEFAULT_RATES)
+        for msg, hz in (rates or {}).items():
+            if msg.upper() not in DEFAULT_RATES or not (math.isfinite(hz) and hz >= 0):
+                raise ValueError(f"bad stream rate {msg}={hz!r} (streams: {list(DEFAULT_RATES)})")
+            merged[msg.upper()] = float(hz)
+        self.state = state
+        self._periods = {m: (1.0 / hz if hz > 0 else math.inf) for m, hz in merged.items()}
+        self._due = dict.fromkeys(merged, 0.0)
+        self._param_cursor: int | None = None  # PARAM_REQUEST_LIST being answered: next index
+
+    def list_params(self) -> None:
+        """Start sending every PARAM_VALUE, a few per model step (PARAM_REQUEST_LIST)."""
+        self._param_cursor = 0
+
+    def set_group_rate(self, names: Iterable[str], hz: float) -> None:
+        """Stream each of ``names`` at ``hz`` (0: stop), as REQUEST_DATA_STREAM does.
+
+        Args:
+            names: Messages of :data:`DEFAULT_RATES`.
+            hz: The rate.
+        """
+        for name in names:
+            self._periods[name] = 1.0 / hz if hz > 0 else math.inf
+            self._due[name] = 0.0
 
     def set_rate(self, message: str, hz: float) -> None:
         """Stream ``message`` at ``hz`` from now on (0 stops it), as the vehicle's own setting.
@@ -64,7 +102,7 @@ class VehicleTelemetry(VehicleState):
         name = message.upper()
         if name not in DEFAULT_RATES or not (math.isfinite(hz) and hz >= 0):
             raise ValueError(f"bad stream rate {message}={hz!r} (streams: {list(DEFAULT_RATES)})")
-        with self._lock:
+        with self.state.lock:
             self._periods[name] = 1.0 / hz if hz > 0 else math.inf
             self._due[name] = 0.0
 
@@ -80,11 +118,12 @@ class VehicleTelemetry(VehicleState):
         Raises:
             KeyError: Not a simulated stream.
         """
-        with self._lock:
+        with self.state.lock:
             period = self._periods[message.upper()]
         return 0.0 if period == math.inf else 1.0 / period
 
-    def _set_interval(self, msg_id: int, interval_us: float) -> int:
+    def set_interval(self, msg_id: int, interval_us: float) -> int:
+        """MAV_CMD_SET_MESSAGE_INTERVAL: the MAV_RESULT."""
         names = {v: k for k, v in p.MSG_ID.items()}
         name = names.get(msg_id)
         if name not in self._periods or name == "HEARTBEAT":
@@ -99,104 +138,115 @@ class VehicleTelemetry(VehicleState):
         self._due[name] = 0.0
         return p.MAV_RESULT_ACCEPTED
 
-    def _streams(self, now: float) -> list[bytes]:
+    def streams(self, now: float) -> list[bytes]:
+        """The frames due at ``now``: streams, queued texts and frames, transfers."""
         frames: list[bytes] = []
         for name, period in self._periods.items():
             if period == math.inf or now < self._due[name]:
                 continue
-            if name == "HEARTBEAT" and self.fault("no_heartbeat") is not None:
+            if name == "HEARTBEAT" and self.state.fault("no_heartbeat") is not None:
                 continue
             self._due[name] = max(self._due[name] + period, now)
-            frames.append(self._frame(name, now))
-        texts, self._texts = self._texts, []
-        frames.extend(self._text_frames(texts))
-        frames.extend(self._outbox)
-        self._outbox = []
-        frames.extend(self._mission.tick(now))
+            frames.append(self.frame(name, now))
+        texts, self.state.texts = self.state.texts, []
+        frames.extend(self.text_frames(texts))
+        frames.extend(self.state.outbox)
+        self.state.outbox = []
+        frames.extend(self.state.plans.tick(now))
         if self._param_cursor is not None:  # a PARAM_REQUEST_LIST being answered, paced
-            stop = min(self._param_cursor + _PARAMS_PER_STEP, len(self._names))
+            stop = min(self._param_cursor + _PARAMS_PER_STEP, len(self.state.names))
             frames += [
-                self._param_value(self._names[i], i) for i in range(self._param_cursor, stop)
+                self.param_value(self.state.names[i], i) for i in range(self._param_cursor, stop)
             ]
-            self._param_cursor = stop if stop < len(self._names) else None
+            self._param_cursor = stop if stop < len(self.state.names) else None
         return frames
 
-    def _text_frames(self, texts: list[tuple[int, str]]) -> list[bytes]:
+    def text_frames(self, texts: list[tuple[int, str]]) -> list[bytes]:
+        """STATUSTEXT frames of (severity, text) pairs."""
         return [
-            self.codec.encode("STATUSTEXT", severity=sev, text=text.encode()[:50], id=0)
+            self.state.codec.encode("STATUSTEXT", severity=sev, text=text.encode()[:50], id=0)
             for sev, text in texts
         ]
 
-    def _param_value(self, name: str, index: int) -> bytes:
-        return self.codec.encode(
+    def param_value(self, name: str, index: int) -> bytes:
+        """The PARAM_VALUE of a parameter (``index`` -1: answered by name)."""
+        return self.state.codec.encode(
             "PARAM_VALUE",
             param_id=name.encode(),
-            param_value=self._params[name],
-            param_type=self._ptypes[name],
-            param_count=len(self._names),
+            param_value=self.state.params[name],
+            param_type=self.state.ptypes[name],
+            param_count=len(self.state.names),
             param_index=index if index >= 0 else _UINT16_MAX,
         )
 
-    def _one_message(self, msg_id: int) -> bytes | None:
+    def one_message(self, msg_id: int) -> bytes | None:
+        """MAV_CMD_REQUEST_MESSAGE: the message, or None if the vehicle does not send it."""
         names = {v: k for k, v in p.MSG_ID.items()}
         name = names.get(msg_id, "")
         if name not in DEFAULT_RATES and name != "AUTOPILOT_VERSION":
             return None
-        return self._frame(name, self.clock.monotonic())
+        return self.frame(name, self.state.clock.monotonic())
 
-    def _frame(self, name: str, now: float) -> bytes:
-        boot_ms = int((now - self._t0) * 1000) & 0xFFFFFFFF
-        lat, lon, up = self._geo(self.pos)
-        amsl = self.home[2] + up
-        kind = self._hw_kind()
-        enc = self.codec.encode
+    def frame(self, name: str, now: float) -> bytes:
+        """Message ``name`` as the vehicle would send it at ``now``."""
+        boot_ms = int((now - self.state.t0) * 1000) & 0xFFFFFFFF
+        lat, lon, up = self.state.geo(self.state.pos)
+        amsl = self.state.home[2] + up
+        kind = self.state.hw_kind()
+        enc = self.state.codec.encode
         if name == "HEARTBEAT":
             base = (
                 p.MAV_MODE_FLAG_CUSTOM_MODE_ENABLED
                 | p.MAV_MODE_FLAG_STABILIZE_ENABLED
                 | p.MAV_MODE_FLAG_MANUAL_INPUT_ENABLED  # ArduCopter sets it in every mode
             )
-            if self.mode in ("GUIDED", "AUTO", "RTL", "LOITER", "POSHOLD", "BRAKE"):
+            if self.state.mode in ("GUIDED", "AUTO", "RTL", "LOITER", "POSHOLD", "BRAKE"):
                 base |= p.MAV_MODE_FLAG_GUIDED_ENABLED  # ArduCopter's modes with a position goal
-            if self.armed:
+            if self.state.armed:
                 base |= p.MAV_MODE_FLAG_SAFETY_ARMED
             # ArduCopter: STANDBY while landed (armed or not), ACTIVE in the air
-            status = p.MAV_STATE_ACTIVE if self.airborne else p.MAV_STATE_STANDBY
-            if kind is not None or self._gcs_failsafe or self._batt_failsafe:
+            status = p.MAV_STATE_ACTIVE if self.state.airborne else p.MAV_STATE_STANDBY
+            if kind is not None or self.state.gcs_failsafe or self.state.batt_failsafe:
                 status = p.MAV_STATE_CRITICAL  # ArduCopter: any failsafe triggered
             return enc(
                 "HEARTBEAT",
                 type=p.MAV_TYPE_QUADROTOR,
                 autopilot=p.MAV_AUTOPILOT_ARDUPILOTMEGA,
                 base_mode=base,
-                custom_mode=p.COPTER_MODES[self.mode],
+                custom_mode=p.COPTER_MODES[self.state.mode],
                 system_status=status,
                 mavlink_version=3,
             )
         if name == "GLOBAL_POSITION_INT":
-            hdg = round(math.degrees(self.yaw) % 360 * 100) % 36000
+            hdg = round(math.degrees(self.state.yaw) % 360 * 100) % 36000
             return enc(
                 "GLOBAL_POSITION_INT",
                 time_boot_ms=boot_ms,
                 lat=p.deg_e7(lat),
                 lon=p.deg_e7(lon),
                 alt=round(amsl * 1000),
-                relative_alt=round((up - self._home_up()) * 1000),
-                vx=round(self.vel[0] * 100),
-                vy=round(self.vel[1] * 100),
-                vz=round(-self.vel[2] * 100),
+                relative_alt=round((up - self.state.home_up()) * 1000),
+                vx=round(self.state.vel[0] * 100),
+                vy=round(self.state.vel[1] * 100),
+                vz=round(-self.state.vel[2] * 100),
                 hdg=hdg,
             )
         if name == "ATTITUDE":
-            cos_y, sin_y = math.cos(self.yaw), math.sin(self.yaw)
-            forward = self.vel[0] * cos_y + self.vel[1] * sin_y
-            right = -self.vel[0] * sin_y + self.vel[1] * cos_y
+            cos_y, sin_y = math.cos(self.state.yaw), math.sin(self.state.yaw)
+            vel, acc = self.state.vel, self.state.accel
+            # the tilt that accelerates it (atan(a/g)), plus a stand-in for the tilt against
+            # drag at speed, within ANGLE_MAX (ArduCopter's lean limit)
+            lean = self.state.max_lean()
+            forward = math.atan((acc[0] * cos_y + acc[1] * sin_y) / GRAVITY)
+            forward += 0.03 * (vel[0] * cos_y + vel[1] * sin_y)
+            right = math.atan((-acc[0] * sin_y + acc[1] * cos_y) / GRAVITY)
+            right += 0.03 * (-vel[0] * sin_y + vel[1] * cos_y)
             yaw = math.atan2(sin_y, cos_y)
             return enc(
                 "ATTITUDE",
                 time_boot_ms=boot_ms,
-                roll=0.03 * right,
-                pitch=-0.03 * forward,
+                roll=min(max(right, -lean), lean),
+                pitch=-min(max(forward, -lean), lean),
                 yaw=yaw,
                 rollspeed=0.0,
                 pitchspeed=0.0,
@@ -208,18 +258,32 @@ class VehicleTelemetry(VehicleState):
                 bits |= p.SENSOR_BITS[sensor]
             health = bits & ~p.SENSOR_BITS[_HW_SENSOR[kind]] if kind else bits
             prearm = p.MAV_SYS_STATUS_PREARM_CHECK
-            enabled = bits | (prearm if self._p("ARMING_CHECK") != 0 else 0)
-            if self.armed or self._prearm_failure() is None:
+            enabled = bits | (prearm if self.state.value("ARMING_CHECK") != 0 else 0)
+            if self.state.armed or self.state.prearm_failure() is None:
                 health |= prearm  # MAVLink: always healthy when armed
+            present = bits | prearm
+            # ArduPilot's AC_Fence::sys_status_present/enabled/failed: present when FENCE_TYPE
+            # names a circle or altitude fence (or a polygon with points), enabled when
+            # FENCE_ENABLE is set and FENCE_ACTION is not 0 (report only), failed only on a
+            # breach (none simulated: always healthy)
+            fence = p.MAV_SYS_STATUS_GEOFENCE
+            types = round(self.state.value("FENCE_TYPE"))
+            if types & _FENCE_ALT_CIRCLE or (
+                types & _FENCE_POLYGON and self.state.plans.count(p.MAV_MISSION_TYPE_FENCE)
+            ):
+                present |= fence
+                health |= fence
+                if self.state.value("FENCE_ENABLE") and self.state.value("FENCE_ACTION"):
+                    enabled |= fence
             return enc(
                 "SYS_STATUS",
-                onboard_control_sensors_present=bits | prearm,
+                onboard_control_sensors_present=present,
                 onboard_control_sensors_enabled=enabled,
                 onboard_control_sensors_health=health,
                 load=250,
-                voltage_battery=round(self._voltage() * 1000),
+                voltage_battery=round(self.state.voltage() * 1000),
                 current_battery=-1,
-                battery_remaining=round(self.battery),
+                battery_remaining=round(self.state.battery),
                 drop_rate_comm=0,
                 errors_comm=0,
                 errors_count1=0,
@@ -228,11 +292,13 @@ class VehicleTelemetry(VehicleState):
                 errors_count4=0,
             )
         if name == "BATTERY_STATUS":
-            cell = round(self._voltage() / self._cells * 1000)
-            cells = [cell] * min(self._cells, 10) + [_UINT16_MAX] * (10 - min(self._cells, 10))
-            if kind == "voltage" or self.battery < 10 or self._batt_failsafe == 2:
+            cell = round(self.state.voltage() / self.state.cells * 1000)
+            cells = [cell] * min(self.state.cells, 10) + [_UINT16_MAX] * (
+                10 - min(self.state.cells, 10)
+            )
+            if kind == "voltage" or self.state.battery < 10 or self.state.batt_failsafe == 2:
                 charge = p.MAV_BATTERY_CHARGE_STATE_CRITICAL
-            elif self.battery < self._min_arm or self._batt_failsafe == 1:
+            elif self.state.battery < self.state.min_arm or self.state.batt_failsafe == 1:
                 charge = p.MAV_BATTERY_CHARGE_STATE_LOW
             else:
                 charge = p.MAV_BATTERY_CHARGE_STATE_OK
@@ -247,9 +313,9 @@ class VehicleTelemetry(VehicleState):
                 temperature=7000 if kind == "overheat" else 2500,
                 voltages=cells,
                 current_battery=-1,
-                current_consumed=round(self._consumed_mah()),
+                current_consumed=round(self.state.consumed_mah()),
                 energy_consumed=-1,
-                battery_remaining=round(self.battery),
+                battery_remaining=round(self.state.battery),
                 time_remaining=0,
                 charge_state=charge,
                 voltages_ext=[0, 0, 0, 0],
@@ -266,32 +332,34 @@ class VehicleTelemetry(VehicleState):
                 alt=round(amsl * 1000),
                 eph=80,
                 epv=120,
-                vel=round(math.hypot(self.vel[0], self.vel[1]) * 100),
+                vel=round(math.hypot(self.state.vel[0], self.state.vel[1]) * 100),
                 cog=_UINT16_MAX,
                 satellites_visible=14,
             )
         if name == "EXTENDED_SYS_STATE":
-            landed = self._landed_state if self.airborne else p.MAV_LANDED_STATE_ON_GROUND
+            landed = (
+                self.state.landed_state if self.state.airborne else p.MAV_LANDED_STATE_ON_GROUND
+            )
             return enc("EXTENDED_SYS_STATE", vtol_state=0, landed_state=landed)
         if name == "VFR_HUD":
             return enc(
                 "VFR_HUD",
-                airspeed=math.hypot(self.vel[0], self.vel[1]),
-                groundspeed=math.hypot(self.vel[0], self.vel[1]),
-                heading=round(math.degrees(self.yaw)) % 360,
-                throttle=50 if self.airborne else 0,
+                airspeed=math.hypot(self.state.vel[0], self.state.vel[1]),
+                groundspeed=math.hypot(self.state.vel[0], self.state.vel[1]),
+                heading=round(math.degrees(self.state.yaw)) % 360,
+                throttle=50 if self.state.airborne else 0,
                 alt=amsl,
-                climb=self.vel[2],
+                climb=self.state.vel[2],
             )
         if name == "HOME_POSITION":
             return enc(
                 "HOME_POSITION",
-                latitude=p.deg_e7(self.home[0]),
-                longitude=p.deg_e7(self.home[1]),
-                altitude=round(self.home[2] * 1000),
-                x=self._home_local()[0],  # home in the local frame (NED from the origin)
-                y=self._home_local()[1],
-                z=-self._home_up(),
+                latitude=p.deg_e7(self.state.home[0]),
+                longitude=p.deg_e7(self.state.home[1]),
+                altitude=round(self.state.home[2] * 1000),
+                x=self.state.home_local()[0],  # home in the local frame (NED from the origin)
+                y=self.state.home_local()[1],
+                z=-self.state.home_up(),
                 q=[1.0, 0.0, 0.0, 0.0],
                 approach_x=0.0,
                 approach_y=0.0,
@@ -320,48 +388,50 @@ class VehicleTelemetry(VehicleState):
                 os_custom_version=b"\x00" * 8,
                 vendor_id=0,
                 product_id=0,
-                uid=self.codec.system_id,
+                uid=self.state.codec.system_id,
             )
         return self._frame_more(name, now, boot_ms)
 
     def _nav_target(self) -> list[float] | None:
-        if self._nav is not None and self._nav.get("target") is not None:
-            target: list[float] = self._nav["target"]
+        if self.state.nav is not None and self.state.nav.get("target") is not None:
+            target: list[float] = self.state.nav["target"]
             return target
-        return self._target if self.airborne else None
+        return self.state.target if self.state.airborne else None
 
     def _frame_more(self, name: str, now: float, boot_ms: int) -> bytes:
         """The messages added for ground stations (issue 16)."""
-        enc = self.codec.encode
+        enc = self.state.codec.encode
         if name == "LOCAL_POSITION_NED":
             return enc(
                 "LOCAL_POSITION_NED",
                 time_boot_ms=boot_ms,
-                x=self.pos[0],
-                y=self.pos[1],
-                z=-self.pos[2],
-                vx=self.vel[0],
-                vy=self.vel[1],
-                vz=-self.vel[2],
+                x=self.state.pos[0],
+                y=self.state.pos[1],
+                z=-self.state.pos[2],
+                vx=self.state.vel[0],
+                vy=self.state.vel[1],
+                vz=-self.state.vel[2],
             )
         if name == "MISSION_CURRENT":
-            count = self._mission.count()
+            count = self.state.plans.count()
             return enc(
                 "MISSION_CURRENT",
-                seq=self._mis_index,
+                seq=self.state.mis_index,
                 total=count - 1 if count > 1 else _UINT16_MAX,
-                mission_state=self._mis_state,
-                mission_mode=1 if self.mode == "AUTO" else 2,
+                mission_state=self.state.mis_state,
+                mission_mode=1 if self.state.mode == "AUTO" else 2,
             )
         if name == "NAV_CONTROLLER_OUTPUT":
             target = self._nav_target()
             dist, bearing, alt_error = 0.0, 0, 0.0
             if target is not None:
-                dist = math.hypot(target[0] - self.pos[0], target[1] - self.pos[1])
+                dist = math.hypot(target[0] - self.state.pos[0], target[1] - self.state.pos[1])
                 bearing = round(
-                    math.degrees(math.atan2(target[1] - self.pos[1], target[0] - self.pos[0]))
+                    math.degrees(
+                        math.atan2(target[1] - self.state.pos[1], target[0] - self.state.pos[0])
+                    )
                 )
-                alt_error = target[2] - self.pos[2]
+                alt_error = target[2] - self.state.pos[2]
             return enc(
                 "NAV_CONTROLLER_OUTPUT",
                 nav_roll=0.0,
@@ -389,7 +459,7 @@ class VehicleTelemetry(VehicleState):
                 rssi=255,
             )
         if name == "SERVO_OUTPUT_RAW":
-            pwm = (1600 if self.airborne else 1100) if self.armed else 1000
+            pwm = (1600 if self.state.airborne else 1100) if self.state.armed else 1000
             return enc(
                 "SERVO_OUTPUT_RAW",
                 time_usec=(boot_ms * 1000) & 0xFFFFFFFF,
@@ -399,7 +469,7 @@ class VehicleTelemetry(VehicleState):
         if name == "SYSTEM_TIME":
             return enc(
                 "SYSTEM_TIME",
-                time_unix_usec=round(self.clock.time() * 1e6),
+                time_unix_usec=round(self.state.clock.time() * 1e6),
                 time_boot_ms=boot_ms,
             )
         if name == "EKF_STATUS_REPORT":
@@ -414,7 +484,7 @@ class VehicleTelemetry(VehicleState):
                 airspeed_variance=0.0,
             )
         if name == "VIBRATION":
-            level = 3.0 if self.airborne else 0.05
+            level = 3.0 if self.state.airborne else 0.05
             return enc(
                 "VIBRATION",
                 time_usec=boot_ms * 1000,

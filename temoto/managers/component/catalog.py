@@ -33,7 +33,7 @@ if TYPE_CHECKING:
 
 __all__ = ["COMPONENT_STATS", "Candidate", "ComponentCatalog"]
 
-logger = logging.getLogger("temoto.managers.component.manager")  # the manager's log, as before
+logger = logging.getLogger(__name__)
 
 #: Counters in :attr:`ComponentManager.stats`.
 COMPONENT_STATS = (

@@ -289,13 +289,22 @@ class ComponentManager(ComponentCatalog, ResourceServer[ComponentRequest, Compon
                         origin=self.registrar.name,
                     ) from err
 
-    def _channel(self, uid: str, output: str) -> str:
+    def channel(self, uid: str, output: str) -> str:
+        """The channel this manager allocates to one output of a resource.
+
+        Args:
+            uid: The resource's id (a component's, or a pipeline's for its links).
+            output: The output's (or the pipeline link's) name.
+
+        Returns:
+            An abstract Unix socket address, unique to this manager, resource and output.
+        """
         return f"unix:@{self.channel_prefix}-{self.registrar.name}-{uid}-{output}"
 
     def _start(self, state: _Active, candidate: Candidate) -> ComponentResponse:
         desc = candidate.description
         pinned = dict(state.request.outputs)
-        outputs = {n: pinned.get(n) or self._channel(state.uid, n) for n in desc.outputs}
+        outputs = {n: pinned.get(n) or self.channel(state.uid, n) for n in desc.outputs}
         inputs = dict(state.request.inputs)
         with self._lock:
             state.generation += 1

@@ -10,18 +10,40 @@ fails for good, and after a restart keeps it only if every segment survived. See
 from __future__ import annotations
 
 import logging
-from typing import TYPE_CHECKING, Any, ClassVar
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol
 
 from temoto.core.registrar import LoadContext, ResourceInfo, ResourceServer, Status
 from temoto.errors import ComponentNotFoundError, ResourceError
 from temoto.managers.component.messages import ComponentRequest, PipelineRequest, PipelineResponse
 
 if TYPE_CHECKING:
-    from temoto.managers.component.manager import ComponentManager
+    from temoto.core.registrar import Registrar
+    from temoto.managers.component.description import PipelineTemplate
 
-__all__ = ["PipelineServer"]
+__all__ = ["PipelineHost", "PipelineServer"]
 
-logger = logging.getLogger("temoto.managers.component.manager")  # the manager's log, as before
+logger = logging.getLogger(__name__)
+
+
+class PipelineHost(Protocol):
+    """What the pipeline server needs of the Component Manager that made it."""
+
+    @property
+    def name(self) -> str:
+        """The manager's server name: the segments are requested from it."""
+
+    @property
+    def registrar(self) -> Registrar:
+        """The registrar both servers serve on."""
+
+    def template(self, name: str) -> PipelineTemplate:
+        """A pipeline template by name (ComponentNotFoundError if unknown)."""
+
+    def check_type(self, type: str, *, name: str = "", local_only: bool = False) -> None:  # noqa: A002
+        """Raise ComponentNotFoundError unless some candidate can provide the type now."""
+
+    def channel(self, uid: str, output: str) -> str:
+        """The channel the manager allocates to one output (or link) of a resource."""
 
 
 class PipelineServer(ResourceServer[PipelineRequest, PipelineResponse]):
@@ -41,7 +63,7 @@ class PipelineServer(ResourceServer[PipelineRequest, PipelineResponse]):
     request_type: ClassVar[type[Any]] = PipelineRequest
     response_type: ClassVar[type[Any]] = PipelineResponse
 
-    def __init__(self, manager: ComponentManager) -> None:
+    def __init__(self, manager: PipelineHost) -> None:
         self.manager = manager
 
     def on_load(self, request: PipelineRequest, ctx: LoadContext) -> PipelineResponse:
@@ -66,10 +88,10 @@ class PipelineServer(ResourceServer[PipelineRequest, PipelineResponse]):
             )
         links: dict[str, str] = {}
         for out, link in template.outputs:
-            links[link] = pinned.get(out) or manager._channel(ctx.resource_id, link)
+            links[link] = pinned.get(out) or manager.channel(ctx.resource_id, link)
         for seg in order:
             for _, link in seg.inputs:
-                links.setdefault(link, manager._channel(ctx.resource_id, link))
+                links.setdefault(link, manager.channel(ctx.resource_id, link))
         segments = []
         for seg in order:
             outputs = {

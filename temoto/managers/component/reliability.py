@@ -1,10 +1,10 @@
 """Reliability of a component candidate: a moving average of its outcomes (upstream's filter).
 
-Upstream (``temoto_core``'s reliability filter, REFERENCE §4.3) keeps the last 100 ratings, starts
-at 0.8 and clamps to [0, 1]. This is the same: a window of ``window`` outcomes, pre-filled with
-the initial value, so a fresh candidate reads the initial value and each outcome moves it by
-``(outcome - oldest) / window``. Outcomes are 1.0 (served until released without failing) and
-0.0 (failed to start, or failed while active).
+Upstream (``temoto_core``'s reliability filter, docs/design.md §6) keeps the last 100 ratings,
+starts at 0.8 and clamps to [0, 1]. This is the same: a window of ``window`` outcomes,
+pre-filled with the initial value, so a fresh candidate reads the initial value and each
+outcome moves it by ``(outcome - oldest) / window``. Outcomes are 1.0 (served until released
+without failing) and 0.0 (failed to start, or failed while active).
 
 By default reliabilities are kept in memory only: a restarted manager starts again from the
 descriptions' initial values. With a *reliability file* (``ComponentManager(...,

@@ -1,6 +1,6 @@
 """The Context Manager: a world model of maps, objects, robots and components.
 
-Shared by the fleet (REFERENCE §4.4, thesis demo 5; docs/context-manager.md).
+Shared by the fleet (docs/design.md §6, thesis demo 5; docs/context-manager.md).
 
 * :class:`ContextManager`: one robot's tree, synchronised over the fleet link; also the
   registrar server ``"context"`` (:class:`MaintainRequest`: an item kept while held).

@@ -1,4 +1,4 @@
-"""The Context Manager: a world model shared by the fleet (REFERENCE §4.4, thesis demo 5).
+"""The Context Manager: a world model shared by the fleet (docs/design.md §6, thesis demo 5).
 
 One :class:`ContextManager` runs per robot. It holds a :class:`~.tree.ContextTree` of items —
 maps, objects, robots, components — each with a pose relative to its parent, and keeps it
@@ -632,9 +632,6 @@ class ContextManager(ContextSync, ResourceServer[MaintainRequest, MaintainRespon
         """Stop syncing, stop and join the threads. Idempotent; the tree stays readable.
 
         The fleet link and its transport stay the caller's to close.
-
-        Raises:
-            Nothing.
         """
         with self._lock:
             if self._closed:

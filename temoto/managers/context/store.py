@@ -185,11 +185,7 @@ class WorldStore:
         self._journal.rewrite(record_to_json(r) for r in records)
 
     def close(self) -> None:
-        """Sync and close the file. Idempotent.
-
-        Raises:
-            Nothing (a failed final sync is logged).
-        """
+        """Sync and close the file. Idempotent; a failed final sync is logged."""
         try:
             self._journal.close()
         except OSError as err:

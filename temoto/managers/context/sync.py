@@ -36,7 +36,7 @@ if TYPE_CHECKING:
 
 __all__ = ["CONTEXT_CHANNEL", "ContextSync"]
 
-logger = logging.getLogger("temoto.managers.context.manager")  # the manager's log, as before
+logger = logging.getLogger(__name__)
 
 #: Channel of ``context_update_t``, ``context_request_t`` and ``context_digest_t``.
 CONTEXT_CHANNEL: Final = "TEMOTO_CONTEXT"

@@ -1,4 +1,4 @@
-"""The Robot Manager: robots from hardware profiles, as registrar resources (REFERENCE §4.2).
+"""The Robot Manager: robots from hardware profiles, as registrar resources (docs/design.md §6).
 
 Two servers on the registrar:
 

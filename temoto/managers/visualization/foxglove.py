@@ -29,6 +29,8 @@ from typing import Any, Final
 
 from temoto.clock import Clock
 from temoto.errors import ConfigError
+from temoto.managers.visualization.decode import DECODED_SCHEMAS
+from temoto.managers.visualization.scene import SCENE_SCHEMA
 from temoto.record.recorder import Recorder
 from temoto.record.schemas import SCHEMAS, schema_bytes
 
@@ -54,6 +56,21 @@ INSTALL_HINT: Final = "pip install 'temoto[foxglove]'"
 _STR: Final = {"type": "string"}
 #: The displays' own schemas (the recording's are :data:`temoto.record.schemas.SCHEMAS`).
 DISPLAY_SCHEMAS: Final[dict[str, dict[str, Any]]] = {
+    "foxglove.SceneUpdate": SCENE_SCHEMA,
+    **DECODED_SCHEMAS,
+    "foxglove.PosesInFrame": {
+        "title": "foxglove.PosesInFrame",
+        "description": "An array of timestamped poses in a reference frame",
+        "type": "object",
+        "properties": {
+            "timestamp": SCHEMAS["foxglove.PoseInFrame"]["properties"]["timestamp"],
+            "frame_id": _STR,
+            "poses": {
+                "type": "array",
+                "items": SCHEMAS["foxglove.PoseInFrame"]["properties"]["pose"],
+            },
+        },
+    },
     "temoto.ComponentData": {
         "title": "temoto.ComponentData",
         "description": "One datagram of a component's output, as text (size: its bytes)",
@@ -126,6 +143,9 @@ class FoxgloveServer:
         host: The address to listen on (default localhost; the protocol has no authentication).
         port: The TCP port (0: any free port; :attr:`port` says which).
         name: The server's name in its ``serverInfo``.
+        services: Declare the ``services`` capability (JSON requests), so that
+            :meth:`add_services` may advertise some (the operator's commands,
+            :mod:`~temoto.managers.visualization.commands`); off: clients can call nothing.
 
     Raises:
         ConfigError: The SDK is missing, or the server cannot listen there (the message names
@@ -133,7 +153,12 @@ class FoxgloveServer:
     """
 
     def __init__(
-        self, host: str = DEFAULT_HOST, port: int = DEFAULT_PORT, *, name: str = "temoto"
+        self,
+        host: str = DEFAULT_HOST,
+        port: int = DEFAULT_PORT,
+        *,
+        name: str = "temoto",
+        services: bool = False,
     ) -> None:
         fg = import_foxglove()
         self._fg = fg
@@ -150,6 +175,8 @@ class FoxgloveServer:
                 port=port,
                 context=self._context,
                 server_listener=_listener(fg, self),
+                capabilities=[fg.websocket.Capability.Services] if services else [],
+                supported_encodings=["json"] if services else None,
             )
         except Exception as err:
             raise ConfigError(f"foxglove server on {host}:{port}: {err}") from None
@@ -243,6 +270,40 @@ class FoxgloveServer:
             self._ids.pop(int(live.channel.id()), None)
         live.channel.close()
         return True
+
+    def add_json_services(
+        self,
+        services: list[tuple[str, dict[str, Any], dict[str, Any], Any]],
+    ) -> None:
+        """Advertise services with JSON requests and responses to the clients.
+
+        Args:
+            services: ``(name, request schema, response schema, handler)`` each: the schemas
+                are JSON schemas (their ``title`` names them), the handler takes the SDK's
+                request (its ``payload`` the JSON bytes) and returns the response's bytes, or
+                raises (its text goes to the client as the call's failure).
+
+        Raises:
+            RuntimeError: The server was made without ``services=True``, or a name is taken.
+        """
+        fg = self._fg
+
+        def schema(doc: dict[str, Any]) -> Any:
+            data = json.dumps(doc, separators=(",", ":")).encode()
+            encoded = fg.Schema(name=doc["title"], encoding="jsonschema", data=data)
+            return fg.websocket.MessageSchema(encoding="json", schema=encoded)
+
+        made = [
+            fg.websocket.Service(
+                name,
+                schema=fg.websocket.ServiceSchema(
+                    name.strip("/").replace("/", "."), request=schema(req), response=schema(resp)
+                ),
+                handler=handler,
+            )
+            for name, req, resp, handler in services
+        ]
+        self._server.add_services(made)
 
     def _replay(self, channel_id: int) -> None:
         """Log a channel's last message again (a client just subscribed to it)."""

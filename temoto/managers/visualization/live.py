@@ -11,11 +11,25 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
+import secrets
 import sys
 from dataclasses import dataclass
 from typing import Any
 
-__all__ = ["LiveSession", "add_foxglove_option", "close_foxglove", "open_foxglove"]
+from temoto.errors import ConfigError
+
+__all__ = [
+    "TOKEN_ENV",
+    "LiveSession",
+    "add_foxglove_commands_option",
+    "add_foxglove_option",
+    "close_foxglove",
+    "open_foxglove",
+]
+
+#: The environment variable that gives ``--foxglove-commands`` its token (else a random one).
+TOKEN_ENV = "TEMOTO_FOXGLOVE_TOKEN"
 
 logger = logging.getLogger(__name__)
 
@@ -60,9 +74,24 @@ def add_foxglove_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_foxglove_commands_option(parser: argparse.ArgumentParser) -> None:
+    """``--foxglove-commands``: the operator's commands as services, behind a token."""
+    parser.add_argument(
+        "--foxglove-commands",
+        action="store_true",
+        help="with --foxglove: offer the services /temoto/start, /temoto/pause, /temoto/resume"
+        " and /temoto/stop, each call carrying the token printed on stderr (or"
+        f" ${TOKEN_ENV}); off by default (docs/visualization.md)",
+    )
+
+
 @dataclass
 class LiveSession:
-    """What :func:`open_foxglove` started: the server, its recorder, the display manager."""
+    """What :func:`open_foxglove` started: the server, its recorder, the display manager.
+
+    Without ``--foxglove`` (a live view only): the manager alone, ``server`` and ``recorder``
+    None.
+    """
 
     server: Any
     recorder: Any
@@ -70,13 +99,19 @@ class LiveSession:
 
     def close(self) -> None:
         """Stop sampling and publishing, unload nothing, stop the server; idempotent."""
-        self.recorder.close()
+        if self.recorder is not None:
+            self.recorder.close()
         self.manager.shutdown()
-        self.server.close()
+        if self.server is not None:
+            self.server.close()
 
 
 def open_foxglove(args: argparse.Namespace, instance: Any, robot: Any = None) -> LiveSession | None:
-    """The live server ``--foxglove`` asks for (None if it does not), serving ``instance``.
+    """The live server ``--foxglove`` asks for, serving ``instance``; or a display manager alone.
+
+    With ``--foxglove``: the server, its recorder and a Visualization Manager. Without it, when
+    the instance has a live view (``--live-view``): a Visualization Manager with no server, so
+    that graphs can show displays (``ShowDisplay``) and the page draws them. Else None.
 
     Args:
         args: The parsed arguments (``foxglove``, ``foxglove_host``).
@@ -88,20 +123,29 @@ def open_foxglove(args: argparse.Namespace, instance: Any, robot: Any = None) ->
 
     Raises:
         ConfigError: The SDK is missing (the message names the extra), the port cannot be
-            listened on, or the ``--foxglove-layout`` file cannot be written.
+            listened on, the ``--foxglove-layout`` file cannot be written, or
+            ``--foxglove-commands`` is given without ``--foxglove``.
     """
     layout = getattr(args, "foxglove_layout", None)
     if layout:
         _write_layout(layout, robot)
     port = getattr(args, "foxglove", None)
+    commands = bool(getattr(args, "foxglove_commands", False))
     if port is None:
-        return None
+        if commands:
+            raise ConfigError("--foxglove-commands needs --foxglove")
+        if getattr(instance, "live_view", None) is None:
+            return None
+        # a live view only: its page shows the displays, served nowhere else
+        from temoto.managers.visualization.manager import VisualizationManager
+
+        return LiveSession(None, None, VisualizationManager(instance.registrar, None))
     from temoto.managers.visualization.foxglove import FoxgloveServer, LiveRecorder
     from temoto.managers.visualization.manager import VisualizationManager
 
     actor = str(getattr(instance, "actor", "") or "")
     host = getattr(args, "foxglove_host", None) or "127.0.0.1"
-    server = FoxgloveServer(host, port, name=f"temoto {actor}".strip())
+    server = FoxgloveServer(host, port, name=f"temoto {actor}".strip(), services=commands)
     recorder = None
     try:
         recorder = LiveRecorder(server)
@@ -113,6 +157,15 @@ def open_foxglove(args: argparse.Namespace, instance: Any, robot: Any = None) ->
         if robot is not None:
             recorder.sample(robot)
         manager = VisualizationManager(instance.registrar, server)
+        if commands:
+            from temoto.managers.visualization.commands import add_operator_commands
+
+            token = os.environ.get(TOKEN_ENV) or secrets.token_urlsafe(24)
+            add_operator_commands(server, instance.engine, token)
+            shown = f"${TOKEN_ENV}" if os.environ.get(TOKEN_ENV) else token
+            sys.stderr.write(
+                f"temoto: foxglove commands /temoto/start|pause|resume|stop, token {shown}\n"
+            )
     except BaseException:
         if recorder is not None:
             recorder.close()

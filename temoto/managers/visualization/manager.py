@@ -18,15 +18,18 @@ dependency's. The robot's messages are made by the recorder's own encoders
 from __future__ import annotations
 
 import logging
+import math
 import os
 import select
 import threading
 import time
+from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass, field
-from typing import Any, ClassVar, Final, cast
+from typing import Any, ClassVar, Final
 
 from temoto.clock import Clock, MonotonicClock
+from temoto.core.action import ACTION_LOGGER
 from temoto.core.registrar import (
     LoadContext,
     Registrar,
@@ -34,8 +37,16 @@ from temoto.core.registrar import (
     ResourceServer,
     Status,
 )
+from temoto.managers.visualization.decode import decode
 from temoto.managers.visualization.messages import DisplayRequest, DisplayResponse
-from temoto.record.recorder import Recorder, _level
+from temoto.record.recorder import (
+    Encoded,
+    health_messages,
+    joints_messages,
+    log_level,
+    pose_messages,
+    vehicle_messages,
+)
 from temoto.record.schemas import stamp
 
 __all__ = ["Display", "VisualizationManager"]
@@ -43,33 +54,20 @@ __all__ = ["Display", "VisualizationManager"]
 logger = logging.getLogger(__name__)
 
 _GONE: Final = "the display was lost with its process (request it again)"
-_ACTION_LOGGER: Final = "temoto.action"
 
 
-class _Capture:
-    """Stands in for a recorder's queue: keeps what the recorder's encoders put."""
-
-    def __init__(self) -> None:
-        self.messages: list[tuple[str, str, dict[str, Any]]] = []
-
-    def put(self, topic: str, schema: str, message: dict[str, Any]) -> None:
-        self.messages.append((topic, schema, message))
-
-
-def _robot_messages(robot: Any, field: str) -> list[tuple[str, str, dict[str, Any]]]:
+def _robot_messages(robot: Any, field: str) -> list[Encoded]:
     """One reading of a robot's ``field``, encoded as ``--record`` encodes it."""
-    capture = _Capture()
-    rec = cast("Recorder", capture)
     name = robot.name
     if field in ("pose", "tf"):
-        Recorder._pose(rec, name, robot.pose())
-    elif field == "joints":
-        Recorder._joints(rec, name, robot.joint_positions())
-    elif field in ("location", "vehicle"):
-        Recorder._vehicle(rec, name, robot.telemetry())
-    elif field == "health":
-        Recorder._health(rec, name, robot.healthy())
-    return capture.messages
+        return pose_messages(name, robot.pose())
+    if field == "joints":
+        return joints_messages(name, robot.joint_positions())
+    if field in ("location", "vehicle"):
+        return vehicle_messages(name, robot.telemetry())
+    if field == "health":
+        return health_messages(name, robot.healthy())
+    return []
 
 
 @dataclass(eq=False)
@@ -81,6 +79,7 @@ class Display:
         resource_id: Its registrar resource.
         last: Its last message (None before the first).
         count: Messages published so far.
+        dropped: Datagrams a decoding display could not decode (and did not publish).
         first_at: ``time.monotonic()`` of its first message (None before it).
     """
 
@@ -89,6 +88,7 @@ class Display:
     last: dict[str, Any] | None = None
     count: int = 0
     first_at: float | None = None
+    dropped: int = 0
     _cond: threading.Condition = field(default_factory=threading.Condition)
     _stopping: bool = False
     _thread: threading.Thread | None = None
@@ -121,6 +121,74 @@ class Display:
             return self.first_at
 
 
+#: Metres a robot moves before its path display takes another pose; the poses it keeps.
+PATH_STEP: Final = 0.02
+PATH_POSES: Final = 200
+
+
+class _Path:
+    """A robot's path travelled, as a ``foxglove.PosesInFrame`` in the odometry frame.
+
+    A pose each :data:`PATH_STEP` metres, the newest :data:`PATH_POSES`.
+    """
+
+    def __init__(self) -> None:
+        self.poses: deque[dict[str, Any]] = deque(maxlen=PATH_POSES)
+        self._last: tuple[float, float] | None = None
+
+    def sample(self, pose: tuple[float, float, float]) -> dict[str, Any] | None:
+        """Take a reading; the message to publish when the path grew (or at first), else None."""
+        x, y, yaw = pose
+        if self._last is not None and math.hypot(x - self._last[0], y - self._last[1]) < (
+            PATH_STEP
+        ):
+            return None
+        self._last = (x, y)
+        self.poses.append(_pose(x, y, yaw))
+        return {"frame_id": "odom", "poses": list(self.poses)}
+
+
+def _pose(x: float, y: float, yaw: float) -> dict[str, Any]:
+    return {
+        "position": {"x": x, "y": y, "z": 0.0},
+        "orientation": {"x": 0.0, "y": 0.0, "z": math.sin(yaw / 2), "w": math.cos(yaw / 2)},
+    }
+
+
+class _Plan:
+    """A robot's planned path, as a ``foxglove.PosesInFrame`` in the odometry frame.
+
+    The drive controller holds a goal and no plan: it turns towards the goal from where the
+    base is and drives straight to it (then turns to the goal's yaw, if it has one). So the
+    path planned from here is the straight segment from the base's pose to the goal: two
+    poses, both facing along the segment, the goal's with its yaw if it has one. No goal: no
+    poses. A message when the goal changes or the base moved :data:`PATH_STEP` metres.
+    """
+
+    def __init__(self) -> None:
+        self._last: tuple[Any, tuple[float, float]] | None = None
+
+    def sample(
+        self,
+        pose: tuple[float, float, float],
+        goal: tuple[float, float, float | None] | None,
+    ) -> dict[str, Any] | None:
+        """Take a reading; the message to publish when the plan changed (or at first), else None."""
+        x, y, yaw = pose
+        if self._last is not None:
+            last_goal, (lx, ly) = self._last
+            moved = math.hypot(x - lx, y - ly) >= PATH_STEP
+            if goal == last_goal and (goal is None or not moved):
+                return None
+        self._last = (goal, (x, y))
+        if goal is None:
+            return {"frame_id": "odom", "poses": []}
+        gx, gy, gyaw = goal
+        heading = math.atan2(gy - y, gx - x) if (gx, gy) != (x, y) else yaw
+        end = heading if gyaw is None else gyaw
+        return {"frame_id": "odom", "poses": [_pose(x, y, heading), _pose(gx, gy, end)]}
+
+
 class _LogHandler(logging.Handler):
     """Publishes an action logger's records on a log display."""
 
@@ -135,7 +203,7 @@ class _LogHandler(logging.Handler):
         except Exception:
             text = str(record.msg)
         message = {
-            "level": _level(record.levelno),
+            "level": log_level(record.levelno),
             "message": text,
             "name": record.name,
             "file": record.pathname,
@@ -268,9 +336,10 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
             robot = RobotManagerClient(self.registrar).request(
                 request.target, client=f"display/{request.name}"
             )
+            drive = self._drive(robot.name) if request.field == "plan" else None
             thread = threading.Thread(
                 target=self._sample_loop,
-                args=(display, robot),
+                args=(display, robot, drive),
                 name=f"temoto-display-{request.name}",
                 daemon=True,
             )
@@ -279,13 +348,75 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
             return f"robot {robot.name} {request.field}"
         if request.source == "component":
             return self._start_component(display)
+        if request.source == "world":
+            return self._start_world(display)
         # source "log"
-        target = f"{_ACTION_LOGGER}.{request.target}" if request.target else _ACTION_LOGGER
         handler = _LogHandler(self, display)
-        log = logging.getLogger(target)
+        log = logging.getLogger(
+            f"{ACTION_LOGGER}.{request.target}" if request.target else ACTION_LOGGER
+        )
         log.addHandler(handler)
         display._undo = lambda: log.removeHandler(handler)
-        return f"log of {target}"
+        return f"log of {log.name}"
+
+    def _drive(self, robot: str) -> Any:
+        """The drive controller of a loaded robot (its goal is a plan display's source).
+
+        Raises:
+            StateError: The robot has no navigation feature.
+        """
+        from temoto.errors import StateError
+        from temoto.managers.robot.manager import RobotManager
+
+        server = self.registrar.server(RobotManager.name)
+        assert isinstance(server, RobotManager)  # RobotManagerClient found it
+        drive = server.robot(robot).drive
+        if drive is None:
+            raise StateError(f"robot '{robot}' has no navigation feature: it has no planned path")
+        return drive
+
+    def _start_world(self, display: Display) -> str:
+        """A world display: the Context Manager's tree now, and again after every change."""
+        from temoto.errors import ContextError, ResourceError, ResourceNotFoundError
+        from temoto.managers.context.manager import ContextManager
+        from temoto.managers.visualization.scene import scene_update
+
+        try:
+            server = self.registrar.server(ContextManager.name)
+        except ResourceNotFoundError:
+            server = None
+        if not isinstance(server, ContextManager):
+            raise ResourceError(
+                f"display {display.request.name}: a world display needs a Context Manager"
+                " on this registrar"
+            )
+        context = server
+        root = display.request.target
+        if root:
+            context.get(root)  # ContextItemNotFoundError: the load fails, naming the item
+        shown: set[str] = set()
+        lock = threading.Lock()
+
+        def send(_change: Any = None) -> None:
+            nonlocal shown
+            with lock:  # one at a time, in order (the load's thread, then the context's)
+                ns = int(self.clock.time() * 1e9)
+                try:
+                    message, shown = scene_update(context, root, shown, ns)
+                except ContextError:  # the root was removed: everything shown goes
+                    message = {
+                        "deletions": [
+                            {"timestamp": stamp(ns), "type": 0, "id": name}
+                            for name in sorted(shown)
+                        ],
+                        "entities": [],
+                    }
+                    shown = set()
+                self._publish(display, message)
+
+        display._undo = context.listen(send)
+        send()
+        return f"world model {root or '(every item)'}"
 
     def _start_component(self, display: Display) -> str:
         from temoto.managers.component.channels import ChannelReader
@@ -341,6 +472,15 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
                 name, robot = str(active.name), str(active.robot)
             except Exception:  # released meanwhile
                 name, robot = request.candidate, ""
+            if request.kind != "temoto.ComponentData":  # decoded: a scan, an image
+                try:
+                    message = decode(request.kind, bytes(data), name)
+                except ValueError as err:
+                    display.dropped += 1
+                    logger.debug("display %s: datagram dropped: %s", request.name, err)
+                    continue
+                self._publish(display, message)
+                continue
             message = {
                 "type": request.target,
                 "component": name,
@@ -362,15 +502,24 @@ class VisualizationManager(ResourceServer[DisplayRequest, DisplayResponse]):
         if display._undo is not None:
             display._undo()
 
-    def _sample_loop(self, display: Display, robot: Any) -> None:
+    def _sample_loop(self, display: Display, robot: Any, drive: Any = None) -> None:
         request = display.request
         clock = self.clock
         period = 1.0 / request.rate_hz
         next_at = clock.monotonic()
         cond = display._cond
+        path = _Path() if request.field == "path" else None
+        plan = _Plan() if drive is not None else None
         while not display._stopping:
             try:
-                messages = _robot_messages(robot, request.field)
+                if plan is not None:
+                    message = plan.sample(drive.pose(), drive.goal())
+                    messages = [] if message is None else [("", request.kind, message)]
+                elif path is not None:
+                    message = path.sample(robot.pose())
+                    messages = [] if message is None else [("", request.kind, message)]
+                else:
+                    messages = _robot_messages(robot, request.field)
             except Exception as err:  # a device in fault: its status reaches the consumers
                 logger.debug("display %s: no sample: %s", request.name, err)
                 messages = []

@@ -12,13 +12,15 @@ import re
 from dataclasses import dataclass
 from typing import Final
 
-__all__ = ["DISPLAY_FIELDS", "DisplayRequest", "DisplayResponse"]
+__all__ = ["DISPLAY_FIELDS", "OTHER_KINDS", "DisplayRequest", "DisplayResponse"]
 
 #: What each source can show: field -> the schema (``kind``) it is shown as.
 DISPLAY_FIELDS: Final[dict[str, dict[str, str]]] = {
     # A robot of the Robot Manager (target: its name, "" = the manager's robot).
     "robot": {
         "pose": "foxglove.PoseInFrame",
+        "path": "foxglove.PosesInFrame",  # the path travelled: a pose per 2 cm, the newest 200
+        "plan": "foxglove.PosesInFrame",  # the path planned: the straight segment to the goal
         "tf": "foxglove.FrameTransform",
         "joints": "temoto.JointStates",
         "location": "foxglove.LocationFix",
@@ -31,6 +33,23 @@ DISPLAY_FIELDS: Final[dict[str, dict[str, str]]] = {
     # A component's first output (target: the component type; candidate: one of its
     # descriptions, "" = the Component Manager's choice, with failover).
     "component": {"data": "temoto.ComponentData"},
+    # The world model of the Context Manager on the same registrar (target: the subtree's
+    # root item, "" = every item).
+    "world": {"scene": "foxglove.SceneUpdate"},
+}
+
+#: Other kinds a field may be shown as, decoding its data (the first kind of the field's is the
+#: default): a component's datagrams as a laser scan (a JSON object of LaserScan's fields), a
+#: compressed image (the bytes of a PNG or JPEG image), a point cloud, a raw image or a grid;
+#: see ``decode.py``.
+OTHER_KINDS: Final[dict[tuple[str, str], tuple[str, ...]]] = {
+    ("component", "data"): (
+        "foxglove.LaserScan",
+        "foxglove.CompressedImage",
+        "foxglove.PointCloud",
+        "foxglove.RawImage",
+        "foxglove.Grid",
+    ),
 }
 
 _NAME: Final = re.compile(r"[A-Za-z0-9_.-]+")
@@ -88,19 +107,29 @@ class DisplayRequest:
             raise ValueError("a component display needs a target (the component type)")
         if self.candidate and self.source != "component":
             raise ValueError(f"a {self.source} display has no candidate")
-        if self.kind and self.kind != kind:
-            raise ValueError(f"a {self.source} {field} display is shown as {kind}, not {self.kind}")
+        other = OTHER_KINDS.get((self.source, field), ())
+        if self.kind and self.kind != kind and self.kind not in other:
+            shown = " or ".join((kind, *other))
+            what = f"a {self.source} {field} display"
+            raise ValueError(f"{what} is shown as {shown}, not {self.kind}")
+        decoded = self.kind if self.kind in other else ""
         if isinstance(self.rate_hz, bool) or not isinstance(self.rate_hz, int | float):
             raise TypeError(f"a display's rate_hz must be a number, not {self.rate_hz!r}")
         if not (math.isfinite(self.rate_hz) and self.rate_hz > 0):
             raise ValueError(f"a display's rate_hz must be positive: {self.rate_hz!r}")
-        parts = (self.source, self.target, self.candidate, field)
+        parts = (
+            self.source,
+            self.target,
+            self.candidate,
+            field,
+            decoded.rpartition(".")[2].lower(),  # component_scanner_data_laserscan
+        )
         name = self.name or "_".join(p for p in parts if p)
         name = name.replace("/", ".")
         if not _NAME.fullmatch(name):
             raise ValueError(f"a display's name may hold letters, digits, '_', '.', '-': {name!r}")
         object.__setattr__(self, "field", field)
-        object.__setattr__(self, "kind", kind)
+        object.__setattr__(self, "kind", decoded or kind)
         object.__setattr__(self, "name", name)
         object.__setattr__(self, "rate_hz", float(self.rate_hz))
 

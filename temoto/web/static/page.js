@@ -1,12 +1,12 @@
 "use strict";
 const SVGNS = "http://www.w3.org/2000/svg";
-const W = 150, H = 44;
+const W = 150, H = 44, MIN_SCALE = 0.9;
 const MODE = document.body.getAttribute("data-mode");
 const ACTIVE = ["RUNNING", "PAUSE_REQUESTED", "PAUSED", "STOPPING"];
 let runs = [], current = null, view = null, selected = null, pinned = false;
 let busy = false, dirty = false, timer = null, runsTimer = null, robot = null;
 let connected = false, cam = null, fitted = null, token = "";
-let rec = null, playing = false, playTimer = null;
+let rec = null, playing = false, playTimer = null, displays = [];
 const $ = (id) => document.getElementById(id);
 
 function el(tag, attrs, text) {
@@ -32,6 +32,13 @@ function clock(ms) {
 }
 function secs(s) { return s < 10 ? s.toFixed(2) + " s" : s < 100 ? s.toFixed(1) + " s"
   : Math.round(s) + " s"; }
+// a tick's time with as many decimals as its step needs (no "0.00 s" twice on a short run)
+function tickText(s, step) {
+  if (step >= 0.1) return secs(s);
+  const d = Math.min(6, Math.ceil(-Math.log10(step)) + (step * 10 ** Math.ceil(-Math.log10(step))
+    < 2 ? 1 : 0));
+  return s < 1 ? (s * 1000).toFixed(Math.max(0, d - 3)) + " ms" : s.toFixed(d) + " s";
+}
 function num(v, d) { return typeof v === "number" ? v.toFixed(d) : "\u2013"; }
 async function getJSON(url) {
   const r = await fetch(url, {cache: "no-store"});
@@ -93,6 +100,7 @@ function refresh() {
 async function loadView() {
   if (busy) { dirty = true; return; }
   busy = true;
+  let fetched = true;
   try {
     do {
       dirty = false;
@@ -102,11 +110,13 @@ async function loadView() {
       if (name === current) view = data;
     } while (dirty);
   } catch (e) {
-    // keep the last picture: the server may be gone (the header says so)
+    // keep the page as it is (the events may have moved it past the last snapshot): the
+    // server may be gone (the header says so)
+    fetched = false;
   } finally {
     busy = false;
   }
-  renderAll();
+  if (fetched) renderAll();
 }
 function renderAll() { renderHead(); renderGraph(); renderTimeline(); renderDetails();
   renderControls(); }
@@ -133,10 +143,13 @@ function applyCam() {
 function fitBox() {
   const pad = 30, gw = view.width + 2 * pad, gh = view.height + 2 * pad;
   const c = $("canvas"), cw = Math.max(c.clientWidth, 50), ch = Math.max(c.clientHeight, 50);
-  // fill the panel, but never enlarge more than 1.6 times (a 3-node graph stays readable)
-  const scale = Math.min(1.6, cw / gw, ch / gh);
+  // fill the panel, but never enlarge more than 1.6 times (a 3-node graph stays readable) nor
+  // shrink below MIN_SCALE (the text stays readable: a wide graph starts at its entry, and
+  // the rest is a drag away)
+  const scale = Math.max(MIN_SCALE, Math.min(1.6, cw / gw, ch / gh));
   const w = cw / scale, h = ch / scale;
-  return {x: -pad - (w - gw) / 2, y: -pad - (h - gh) / 2, w: w, h: h};
+  return {x: w >= gw ? -pad - (w - gw) / 2 : -pad, y: h >= gh ? -pad - (h - gh) / 2 : -pad,
+    w: w, h: h};
 }
 function zoomAt(factor, px, py) {
   const box = Object.assign({}, cam || fitted);
@@ -201,7 +214,7 @@ function renderGraph() {
     defs.append(marker);
   }
   svg.append(defs);
-  const at = {};
+  const at = {}, labels = [];
   for (const n of view.nodes) at[n.id] = n;
   for (const e of view.edges) {
     const a = at[e.from], b = at[e.to];
@@ -216,7 +229,7 @@ function renderGraph() {
       + (e.conditions.length ? "\n" + e.conditions.join("\n") : "")));
     svg.append(p);
     if (e.status === "skipped" || (e.status === "taken" && a.result)) {
-      svg.append(sv("text", {x: path.mx, y: path.my, "text-anchor": "middle", class: "elabel"},
+      labels.push(sv("text", {x: path.mx, y: path.my, "text-anchor": "middle", class: "elabel"},
         e.status === "skipped" ? "skipped" : a.result));
     }
   }
@@ -233,12 +246,13 @@ function renderGraph() {
     g.append(sv("title", {}, n.id + (n.actor ? " @" + n.actor : "") + "\n" + (n.state || "")
       + (n.result ? " \u00b7 " + n.result : "")));
     g.append(sv("rect", {x: n.x - W / 2, y: n.y - H / 2, width: W, height: H, rx: 7}));
-    g.append(sv("text", {x: n.x, y: n.y - 3, "text-anchor": "middle"}, short(n.label, 21)));
+    g.append(sv("text", {x: n.x, y: n.y - 3, "text-anchor": "middle"}, short(n.label, 19)));
     g.append(sv("text", {x: n.x, y: n.y + 13, "text-anchor": "middle", class: "state"},
       (n.state || "") + (n.result ? " \u00b7 " + n.result : "")));
     g.addEventListener("click", () => { selected = n.id; renderGraph(); renderDetails(); });
     svg.append(g);
   }
+  for (const t of labels) svg.append(t);  // over the edges and the boxes, never under them
 }
 
 // ---------------------------------------------------------------- the timeline (Gantt chart)
@@ -266,7 +280,7 @@ function renderTimeline() {
     const t = t0 + ((t1 - t0) * i) / ticks, x = X(t);
     svg.append(sv("line", {x1: x, x2: x, y1: 0, y2: height - 16, class: "gaxis"}));
     svg.append(sv("text", {x: x, y: height - 4, "text-anchor": "middle", class: "gtime"},
-      secs(t - t0)));
+      tickText(t - t0, (t1 - t0) / ticks)));
   }
   rows.forEach((node, i) => {
     const y = i * rowH + 3;
@@ -335,6 +349,17 @@ function renderMap(r) {
       class: "goalline"}));
     svg.append(sv("circle", {cx: gx, cy: gy, r: 7, class: "goal", id: "goal"}));
     svg.append(sv("path", {d: `M${gx - 4},${gy} h8 M${gx},${gy - 4} v8`, class: "goal"}));
+  }
+  for (const d of displays) {  // a map display in the odometry frame: drawn over the map
+    const m = d.panel === "map" && d.messages.length ? d.messages[d.messages.length - 1] : null;
+    const p = m && typeof m.latitude !== "number" ? displayPoint(m) : null;
+    if (p && m.poses) {
+      svg.append(sv("polyline", {class: d.field === "plan" ? "overlay-path overlay-plan"
+        : "overlay-path", "data-display": d.name,
+        points: trackOf(d).map(([x, y]) => X(x).toFixed(1) + "," + Y(y).toFixed(1)).join(" ")}));
+    }
+    if (p) svg.append(sv("circle", {class: "overlay", cx: X(p[0]), cy: Y(p[1]), r: 6,
+      "data-display": d.name}));
   }
   if (r.pose) {
     const deg = -r.pose.yaw * 180 / Math.PI;
@@ -409,9 +434,313 @@ function renderRobot() {
 }
 async function pollRobot() {
   if (MODE === "live") {
-    try { robot = (await getJSON("/api/robot")).robot; renderRobot(); } catch (e) { /* kept */ }
+    try {
+      const [r, d] = await Promise.all([getJSON("/api/robot"), getJSON("/api/displays")]);
+      robot = r.robot; displays = d.displays;
+      renderRobot(); renderDisplays();
+    } catch (e) { /* kept */ }
   }
   setTimeout(pollRobot, connected ? 250 : 1000);
+}
+
+// ---------------------------------------------------------------- the loaded displays
+
+const LOG_LEVELS = ["", "DEBUG", "INFO", "WARNING", "ERROR", "FATAL"];
+const COLORS = ["#2f7de1", "#d63b3b", "#2fa84f", "#f59e0b", "#9333ea", "#0891b2", "#64748b"];
+// a display message's point on a map: [x, y] (odometry metres, or longitude/latitude)
+function displayPoint(m) {
+  if (m.poses) return m.poses.length ? displayPoint({pose: m.poses[m.poses.length - 1]}) : null;
+  if (m.pose && m.pose.position) return [m.pose.position.x, m.pose.position.y];
+  if (m.translation) return [m.translation.x, m.translation.y];
+  if (typeof m.latitude === "number") return [m.longitude, m.latitude];
+  return null;
+}
+function numbersIn(text) {
+  return (String(text).match(/-?\d+(?:\.\d+)?(?:e-?\d+)?/gi) || []).map(Number);
+}
+// a small line chart: one polyline per series, the y range from the data
+function plot(names, rows) {
+  const W0 = 320, H0 = 120;
+  const svg = sv("svg", {viewBox: `0 0 ${W0} ${H0}`, preserveAspectRatio: "none",
+    class: "plot"});
+  let lo = Infinity, hi = -Infinity;
+  for (const r of rows) for (const v of r) if (typeof v === "number") {
+    lo = Math.min(lo, v); hi = Math.max(hi, v); }
+  if (!isFinite(lo)) return svg;
+  if (hi - lo < 1e-6) { lo -= 0.5; hi += 0.5; }
+  const X = (i) => rows.length < 2 ? W0 : (i / (rows.length - 1)) * W0;
+  const Y = (v) => H0 - 6 - ((v - lo) / (hi - lo)) * (H0 - 12);
+  names.forEach((name, k) => {
+    const pts = [];
+    rows.forEach((r, i) => { if (typeof r[k] === "number") pts.push(X(i).toFixed(1) + ","
+      + Y(r[k]).toFixed(1)); });
+    svg.append(sv("polyline", {class: "series", "data-series": name, points: pts.join(" "),
+      stroke: COLORS[k % COLORS.length]}));
+  });
+  return svg;
+}
+function legendOf(names, last) {
+  const box = el("div", {class: "legend"});
+  names.forEach((name, k) => {
+    const s = el("span", {"data-series": name}, name + " " + num(last[k], 2));
+    s.style.setProperty("--c", COLORS[k % COLORS.length]);
+    box.append(s);
+  });
+  return box;
+}
+// a map display's track: a path's poses, else the point of each message kept
+function trackOf(d) {
+  const last = d.messages.length ? d.messages[d.messages.length - 1] : null;
+  if (last && last.poses) return last.poses.map((p) => displayPoint({pose: p})).filter(Boolean);
+  return d.messages.map(displayPoint).filter(Boolean);
+}
+function mapPanel(d) {
+  const pts = trackOf(d);
+  const svg = sv("svg", {viewBox: "0 0 320 120", class: "track-map"});
+  if (!pts.length) return svg;
+  const b = mapBounds(pts), k = Math.min(320, 120) / b.span;
+  const X = (x) => 160 + (x - b.cx) * k, Y = (y) => 60 - (y - b.cy) * k;
+  svg.append(sv("polyline", {class: d.field === "plan" ? "track plan" : "track",
+    points: pts.map(([x, y]) => X(x).toFixed(1) + "," + Y(y).toFixed(1)).join(" ")}));
+  const [x, y] = pts[pts.length - 1];
+  svg.append(sv("circle", {class: "dmark", cx: X(x), cy: Y(y), r: 5, "data-x": x,
+    "data-y": y}));
+  return svg;
+}
+// a scene (the world model's items) from above: a square per item with a cube, every name
+function scenePanel(last) {
+  const svg = sv("svg", {viewBox: "0 0 320 160", class: "scene"});
+  const items = (last.entities || []).map((e) => {
+    const prim = (e.cubes && e.cubes[0]) || (e.texts && e.texts[0]);
+    const p = prim && prim.pose ? prim.pose.position : null;
+    return p ? {id: e.id, x: p.x, y: p.y, cube: !!(e.cubes && e.cubes.length)} : null;
+  }).filter(Boolean);
+  if (!items.length) return svg;
+  const b = mapBounds(items.map((i) => [i.x, i.y])), k = Math.min(320, 160) / b.span;
+  const X = (x) => 160 + (x - b.cx) * k, Y = (y) => 80 - (y - b.cy) * k;
+  for (const i of items) {
+    const g = sv("g", {class: "entity", "data-entity": i.id, "data-x": i.x, "data-y": i.y});
+    if (i.cube) g.append(sv("rect", {x: X(i.x) - 4, y: Y(i.y) - 4, width: 8, height: 8}));
+    g.append(sv("text", {x: X(i.x) + 6, y: Y(i.y) - 6}, i.id));
+    svg.append(g);
+  }
+  return svg;
+}
+// a laser scan around its sensor: a dot per range, the sensor at the centre
+function scanPanel(m) {
+  const svg = sv("svg", {viewBox: "-160 -80 320 160", class: "scan"});
+  const n = m.ranges.length, far = Math.max(0.5, ...m.ranges.filter((r) => r < 1e6));
+  const k = 75 / far;
+  svg.append(sv("circle", {cx: 0, cy: 0, r: 3, class: "sensor"}));
+  m.ranges.forEach((r, i) => {
+    if (!(r < 1e6)) return;  // no return
+    const a = m.start_angle + (n > 1 ? (i * (m.end_angle - m.start_angle)) / (n - 1) : 0);
+    svg.append(sv("circle", {cx: (r * Math.cos(a) * k).toFixed(1),
+      cy: (-r * Math.sin(a) * k).toFixed(1), r: 2.5, class: "ray", "data-range": r}));
+  });
+  return svg;
+}
+// bytes from a message's base64 ``data`` (the Foxglove JSON encoding of ``bytes``)
+function bytesOf(b64) {
+  const s = atob(b64 || ""), a = new Uint8Array(s.length);
+  for (let i = 0; i < s.length; i++) a[i] = s.charCodeAt(i);
+  return a;
+}
+// Foxglove's NumericType (PackedElementField.type): the DataView getter and its bytes
+const NUMERIC = {1: ["getUint8", 1], 2: ["getInt8", 1], 3: ["getUint16", 2], 4: ["getInt16", 2],
+  5: ["getUint32", 4], 6: ["getInt32", 4], 7: ["getFloat32", 4], 8: ["getFloat64", 8]};
+// a packed field's reader: the value of the element starting at byte ``at`` (little endian)
+function fieldReader(view, f) {
+  const t = f ? NUMERIC[f.type] : null;
+  if (!t) return null;
+  return (at) => at + f.offset + t[1] <= view.byteLength ? view[t[0]](at + f.offset, true) : NaN;
+}
+// a heat colour from 0 (low: blue) through amber to 1 (high: red)
+const HEAT = [[47, 125, 225], [245, 158, 11], [214, 59, 59]];
+function heat(t) {
+  const u = Math.max(0, Math.min(1, t)) * 2, i = Math.min(1, Math.floor(u)), f = u - i;
+  return HEAT[i].map((c, k) => Math.round(c + (HEAT[i + 1][k] - c) * f));
+}
+function rangeOf(values) {
+  let lo = Infinity, hi = -Infinity;
+  for (const v of values) if (Number.isFinite(v)) { lo = Math.min(lo, v); hi = Math.max(hi, v); }
+  return [lo, hi];
+}
+// a point cloud seen from above (x right, y up): a dot per point coloured by its height,
+// the cloud's origin marked; at most MAX_CLOUD points drawn (evenly picked)
+const MAX_CLOUD = 2000;
+function cloudPanel(m) {
+  const svg = sv("svg", {viewBox: "0 0 320 160", class: "cloud"});
+  const data = bytesOf(m.data), view = new DataView(data.buffer);
+  const by = Object.fromEntries((m.fields || []).map((f) => [f.name, f]));
+  const rx = fieldReader(view, by.x), ry = fieldReader(view, by.y), rz = fieldReader(view, by.z);
+  const stride = m.point_stride, n = stride > 0 ? Math.floor(data.length / stride) : 0;
+  if (!rx || !ry || !n) return [svg, 0];
+  const every = Math.max(1, Math.ceil(n / MAX_CLOUD)), pts = [];
+  for (let i = 0; i < n; i += every) {
+    const at = i * stride, p = [rx(at), ry(at), rz ? rz(at) : 0];
+    if (Number.isFinite(p[0]) && Number.isFinite(p[1])) pts.push(p);
+  }
+  const b = mapBounds([[0, 0], ...pts]), k = Math.min(320, 160) / b.span;
+  const X = (x) => 160 + (x - b.cx) * k, Y = (y) => 80 - (y - b.cy) * k;
+  const [lo, hi] = rangeOf(pts.map((p) => p[2]));
+  svg.append(sv("circle", {cx: X(0), cy: Y(0), r: 3, class: "sensor"}));
+  for (const [x, y, z] of pts) {
+    const c = heat(hi > lo ? (z - lo) / (hi - lo) : 0.5);
+    svg.append(sv("circle", {cx: X(x).toFixed(1), cy: Y(y).toFixed(1), r: 2.5, class: "pt",
+      fill: `rgb(${c.join(",")})`, "data-x": x, "data-y": y, "data-z": z}));
+  }
+  return [svg, n];
+}
+// a raw image drawn to a canvas, a pixel per pixel (mono8/16, rgb8, bgr8, rgba8, bgra8, 32FC1)
+const RAW_CHANNELS = {mono8: 1, "8UC1": 1, rgb8: 3, "8UC3": 3, bgr8: 3, rgba8: 4, bgra8: 4,
+  mono16: 2, "16UC1": 2, "32FC1": 4};
+function rawPanel(m) {
+  const w = m.width, h = m.height, enc = m.encoding, bpp = RAW_CHANNELS[enc];
+  if (!bpp || !(w > 0 && h > 0) || w * h > 4096 * 4096) {
+    return el("p", {class: "muted"}, "not drawn here: " + enc + " " + w + "\u00d7" + h);
+  }
+  const data = bytesOf(m.data), view = new DataView(data.buffer);
+  const canvas = el("canvas", {class: "draw", width: w, height: h, "data-encoding": enc});
+  const ctx = canvas.getContext("2d"), img = ctx.createImageData(w, h), out = img.data;
+  let lo = 0, hi = 255;
+  if (enc === "32FC1") {
+    const vals = [];
+    for (let y = 0; y < h; y++) for (let x = 0; x < w; x++) {
+      const at = y * m.step + 4 * x;
+      if (at + 4 <= data.length) vals.push(view.getFloat32(at, true));
+    }
+    [lo, hi] = rangeOf(vals);
+  }
+  for (let y = 0; y < h; y++) for (let x = 0; x < w; x++) {
+    const at = y * m.step + bpp * x, o = 4 * (y * w + x);
+    if (at + bpp > data.length) continue;  // short: left transparent
+    let r, g, b, a = 255;
+    if (bpp === 1) { r = g = b = data[at]; }
+    else if (enc === "mono16" || enc === "16UC1") { r = g = b = view.getUint16(at, true) >> 8; }
+    else if (enc === "32FC1") {
+      const v = view.getFloat32(at, true);
+      r = g = b = Number.isFinite(v) && hi > lo ? Math.round(255 * (v - lo) / (hi - lo)) : 0;
+    } else if (enc === "bgr8" || enc === "bgra8") {
+      [b, g, r] = [data[at], data[at + 1], data[at + 2]];
+      if (bpp === 4) a = data[at + 3];
+    } else {
+      [r, g, b] = [data[at], data[at + 1], data[at + 2]];
+      if (bpp === 4) a = data[at + 3];
+    }
+    out[o] = r; out[o + 1] = g; out[o + 2] = b; out[o + 3] = a;
+  }
+  ctx.putImageData(img, 0, 0);
+  return canvas;
+}
+// a grid as a heat map seen from above: a pixel per cell, its first field's value from the
+// lowest (blue) to the highest (red), row 0 (the grid's corner) at the bottom; NaN: grey
+function gridPanel(m) {
+  const data = bytesOf(m.data), view = new DataView(data.buffer);
+  const cols = m.column_count, rows = m.row_stride > 0 ? Math.floor(data.length / m.row_stride) : 0;
+  const f = (m.fields || []).find((x) => x.name === "value") || (m.fields || [])[0];
+  const read = fieldReader(view, f);
+  if (!read || !(cols > 0) || !rows || cols * rows > 4096 * 4096) {
+    return [el("p", {class: "muted"}, "no cells"), [NaN, NaN]];
+  }
+  const vals = [];
+  for (let r = 0; r < rows; r++) for (let c = 0; c < cols; c++) {
+    vals.push(Number(read(r * m.row_stride + c * m.cell_stride)));
+  }
+  const [lo, hi] = rangeOf(vals);
+  const canvas = el("canvas", {class: "draw", width: cols, height: rows, "data-field": f.name,
+    "data-min": lo, "data-max": hi});
+  const ctx = canvas.getContext("2d"), img = ctx.createImageData(cols, rows), out = img.data;
+  vals.forEach((v, i) => {
+    const r = Math.floor(i / cols), c = i % cols, o = 4 * ((rows - 1 - r) * cols + c);
+    const rgb = Number.isFinite(v) ? heat(hi > lo ? (v - lo) / (hi - lo) : 0.5) : [229, 231, 235];
+    out[o] = rgb[0]; out[o + 1] = rgb[1]; out[o + 2] = rgb[2]; out[o + 3] = 255;
+  });
+  ctx.putImageData(img, 0, 0);
+  return [canvas, [lo, hi]];
+}
+function panelBody(d) {
+  const msgs = d.messages, last = msgs.length ? msgs[msgs.length - 1] : null;
+  const out = [];
+  if (!last) { out.push(el("p", {class: "muted"}, "no message yet")); return out; }
+  if (d.panel === "plot") {
+    const names = last.name || [];
+    out.push(plot(names, msgs.map((m) => m.position || [])), legendOf(names, last.position));
+  } else if (d.panel === "map" && d.field === "plan") {  // the segment from the base to its goal
+    const ps = (last.poses || []).map((q) => displayPoint({pose: q}));
+    out.push(mapPanel(d), el("pre", {class: "dplan"}, ps.length > 1
+      ? `to x ${num(ps[ps.length - 1][0], 2)} m  y ${num(ps[ps.length - 1][1], 2)} m  \u00b7 `
+        + num(Math.hypot(ps[ps.length - 1][0] - ps[0][0], ps[ps.length - 1][1] - ps[0][1]), 2)
+        + " m to go  (" + last.frame_id + ")" : "no goal"));
+  } else if (d.panel === "map") {
+    const p = displayPoint(last);
+    out.push(mapPanel(d), el("pre", {}, p ? (typeof last.latitude === "number"
+      ? `lat ${num(p[1], 6)}  lon ${num(p[0], 6)}` : `x ${num(p[0], 2)} m  y ${num(p[1], 2)} m`)
+      + "  (" + (last.frame_id || last.parent_frame_id || "") + ")" : ""));
+  } else if (d.panel === "scan") {
+    out.push(scanPanel(last), el("pre", {}, last.ranges.length + " ranges \u00b7 "
+      + num(last.start_angle * 180 / Math.PI, 0) + "\u00b0 to "
+      + num(last.end_angle * 180 / Math.PI, 0) + "\u00b0 \u00b7 frame " + last.frame_id));
+  } else if (d.panel === "image") {
+    const fmt = last.format === "jpeg" ? "jpeg" : "png";
+    out.push(el("img", {class: "dimage", alt: d.name, src: `data:image/${fmt};base64,${last.data}`}),
+      el("pre", {}, fmt + " \u00b7 frame " + last.frame_id));
+  } else if (d.panel === "cloud") {
+    const [svg, n] = cloudPanel(last);
+    out.push(svg, el("pre", {}, n + " points \u00b7 frame " + last.frame_id));
+  } else if (d.panel === "rawimage") {
+    out.push(rawPanel(last), el("pre", {}, last.encoding + " " + last.width + "\u00d7"
+      + last.height + " \u00b7 frame " + last.frame_id));
+  } else if (d.panel === "grid") {
+    const [canvas, [lo, hi]] = gridPanel(last), size = last.cell_size || {};
+    out.push(canvas, el("pre", {}, last.column_count + " columns \u00b7 "
+      + num(size.x, 2) + " m cells \u00b7 " + num(lo, 2) + " to " + num(hi, 2)
+      + " \u00b7 frame " + last.frame_id));
+  } else if (d.panel === "scene") {
+    out.push(scenePanel(last), el("pre", {}, (last.entities || []).length + " items"));
+  } else if (d.panel === "log") {
+    const ul = el("ul", {class: "dlog"});
+    for (const m of msgs.slice(-30).reverse()) {
+      ul.append(el("li", {}, (LOG_LEVELS[m.level] || m.level) + " " + m.name + ": "
+        + m.message));
+    }
+    out.push(ul);
+  } else if (d.panel === "text") {
+    const series = msgs.map((m) => numbersIn(m.data !== undefined ? m.data : show(m))[0]);
+    if (series.filter((v) => typeof v === "number").length > 1) {
+      out.push(plot(["value"], series.map((v) => [v])));
+    }
+    const head = last.component ? last.component + (last.robot ? " @" + last.robot : "")
+      + " \u00b7 " + last.size + " bytes\n" : "";
+    out.push(el("pre", {class: "ddata"}, head + (last.data !== undefined ? last.data
+      : show(last))));
+  } else {
+    const t = el("table");
+    for (const [k, v] of Object.entries(last)) if (k !== "timestamp") row(t, k, show(v));
+    out.push(t);
+  }
+  return out;
+}
+function renderDisplays() {
+  const box = $("displaylist");
+  $("displays").hidden = !displays.length;
+  const names = new Set(displays.map((d) => d.name));
+  for (const p of [...box.children]) {
+    if (!names.has(p.getAttribute("data-display"))) p.remove();  // released: its panel goes
+  }
+  for (const d of displays) {
+    let p = [...box.children].find((c) => c.getAttribute("data-display") === d.name);
+    if (!p) {
+      p = el("div", {class: "display", "data-display": d.name});
+      box.append(p);
+    }
+    p.setAttribute("data-panel", d.panel);
+    p.setAttribute("data-kind", d.kind);
+    clear(p);
+    const h = el("h3", {title: d.topic}, d.name);
+    h.append(el("span", {class: "dkind"}, d.kind + " \u00b7 " + d.count + " messages"));
+    p.append(h, ...panelBody(d));
+  }
 }
 
 // ---------------------------------------------------------------- the selected action
@@ -530,10 +859,29 @@ function takeToken() {
 
 // ---------------------------------------------------------------- events (live mode)
 
+// a run's state once it has ended, from its result (the engine's _end_run)
+function endedState(result) {
+  return {on_stopped: "STOPPED", on_error: "ERROR", on_halted: "HALTED"}[result] || "FINISHED";
+}
 function onEvent(ev) {
   if (ev.kind === "hello" || ev.kind === "resync") { loadRuns(); loadIndexed(); return; }
-  if (ev.kind === "graph") { refreshRuns(); }
+  if (ev.kind === "graph") {
+    // the events change the stored snapshots too, so that nothing older is drawn again when
+    // the server is gone before the next fetch
+    const state = ev.state === "ENDED" ? endedState(ev.result) : ev.state;
+    const result = ev.state === "ENDED" ? ev.result : null;
+    const r = runs.find((x) => x.name === ev.graph);
+    if (r) { r.state = state; r.result = result; renderRuns(); }
+    if (view && view.name === ev.graph && ev.state === "ENDED") {
+      view.state = state; view.result = result; renderHead(); renderControls();
+    }
+    refreshRuns();
+  }
   if (ev.graph !== current) return;
+  if (ev.kind === "node" && view && view.name === ev.graph) {
+    const n = view.nodes.find((x) => x.id === ev.node);
+    if (n) { n.state = ev.state; if (ev.result) n.result = ev.result; }
+  }
   if (ev.kind === "node") {
     for (const g of document.querySelectorAll("#svg .node")) {
       if (g.getAttribute("data-node") !== ev.node) continue;
@@ -648,6 +996,9 @@ async function loadRecording() {
   $("source").textContent = rec.source;
   $("source").setAttribute("title", rec.source + (rec.notes.length ? "\n" + rec.notes.join("\n")
     : ""));
+  // what the reader wants a person to know (a file cut short, lines skipped), on the page
+  $("notes").textContent = rec.notes.join(" \u00b7 ");
+  $("notes").setAttribute("title", rec.notes.join("\n"));
   $("slider").addEventListener("input", () => replayAt(sliderTime()));
   $("play").addEventListener("click", play);
   $("slider").value = $("slider").max;

@@ -1,4 +1,4 @@
-"""Two devices on one id are refused before anything is armed (issue 25, item 5).
+"""Two devices on one id are refused before anything is armed.
 
 A second ODrive answering as node 1, or a second MIT motor answering as id 1, present from
 the start: ``configure`` refuses with a message that says "duplicate", and the wire (watched by a

@@ -1,4 +1,4 @@
-"""MIT motors against their model's limits (issue 25, items 5 and 6).
+"""MIT motors against their model's limits.
 
 A wheel driven past the ±12.5 rad position field of the MIT protocol: its reported position
 saturates (or wraps), so the driver can no longer see it move; that is a fault naming the motor

@@ -1,4 +1,4 @@
-"""A pause of the driver's process: no stale set-point goes out, no false fault (issue 25, item 5).
+"""A pause of the driver's process: no stale set-point goes out, no false fault.
 
 The pause is injected: the simulator runs on a clock of its own, which goes on while the
 driver's clock stands still and its receive thread is held at a gate (so frames queue on the bus

@@ -119,7 +119,7 @@ def test_a_message_that_is_off_is_still_answered_on_request() -> None:
 
 def test_every_cyclic_payload_decodes_with_the_official_dbc() -> None:
     db = cantools.database.load_file(str(DBC))
-    axis = AxisModel(2, state=cs.AxisState.CLOSED_LOOP_CONTROL)
+    axis = AxisModel(2, state=cs.AxisState.CLOSED_LOOP_CONTROL, damping=0.1)
     axis.control_mode = cs.ControlMode.TORQUE_CONTROL
     axis.input_torque = 0.2
     axis.step(0.0)
@@ -193,22 +193,25 @@ def test_the_velocity_limit_bounds_a_position_move() -> None:
     axis.set_limits(2.0, 60.0)
     axis.input_pos = 100.0
     t = axis.stamp or 0.0
-    fastest = 0.0
+    speeds = []
     for i in range(1, 200):
         axis.step(t + i * 0.005)
-        fastest = max(fastest, abs(axis.vel))
-    assert fastest == pytest.approx(2.0)
-    assert axis.pos == pytest.approx(2.0 * 199 * 0.005, rel=1e-6)
+        speeds.append(axis.vel)
+    # the position loop asks for far more; the clamped set-point is 2 turn/s (the PI loop's
+    # overshoot on reaching it is small)
+    assert max(speeds) == pytest.approx(2.0, rel=0.05)
+    assert speeds[-1] == pytest.approx(2.0, rel=0.01)  # the integrator's slow tail
+    assert axis.pos == pytest.approx(2.0 * 199 * 0.005, rel=0.05)
 
 
 def test_the_current_limit_clamps_the_torque_and_the_speed_it_holds() -> None:
-    axis = armed(cs.ControlMode.TORQUE_CONTROL)
+    axis = armed(cs.ControlMode.TORQUE_CONTROL, damping=0.1)
     axis.set_limits(50.0, 2.5)  # 2.5 A x 0.04 N·m/A = 0.1 N·m
     axis.input_torque = 1.0
     settle(axis)
     assert axis.torque == pytest.approx(0.1)
     assert axis.vel == pytest.approx(0.1 / axis.damping, rel=1e-3)
-    velocity = armed(cs.ControlMode.VELOCITY_CONTROL)
+    velocity = armed(cs.ControlMode.VELOCITY_CONTROL, damping=0.1)
     velocity.set_limits(50.0, 2.5)  # holding 5 rev/s would take 0.5 N·m
     velocity.input_vel = 5.0
     settle(velocity)
@@ -220,6 +223,7 @@ def test_a_limit_lowered_below_the_speed_disarms_the_axis_for_overspeed() -> Non
     axis = armed(cs.ControlMode.VELOCITY_CONTROL)
     axis.input_vel = 10.0
     settle(axis)
+    assert axis.vel == pytest.approx(10.0, rel=0.01)
     axis.set_limits(5.0, math.inf)  # 10 rev/s > 1.2 x 5 rev/s
     settle(axis, 0.01)
     assert axis.state == cs.AxisState.IDLE
@@ -230,7 +234,7 @@ def test_a_limit_that_is_not_finite_and_positive_is_ignored() -> None:
     axis = AxisModel(1)
     axis.set_limits(0.0, -1.0)
     axis.set_limits(math.nan, math.inf)
-    assert (axis.vel_limit, axis.current_limit) == (50.0, math.inf)
+    assert (axis.vel_limit, axis.current_limit) == (50.0, 10.0)  # the firmware's current_lim
 
 
 # ---- with the driver, and the profile's sim settings -----------------------------------------

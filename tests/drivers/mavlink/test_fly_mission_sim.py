@@ -2,7 +2,7 @@
 
 FlyMission uploads the mission to temoto's simulated ArduCopter (MISSION_INT), starts it (GUIDED,
 arm, MAV_CMD_MISSION_START) and follows MISSION_CURRENT to the landing, on a clock ten times
-faster. It needs the simulator's mission protocol and AUTO mode (issue 16, item 2).
+faster. It needs the simulator's mission protocol and AUTO mode.
 """
 
 from __future__ import annotations

@@ -67,12 +67,12 @@ def test_upload_asks_for_each_item_then_acks(service: MissionService) -> None:
         service.handle(_gcs_msg("MISSION_COUNT", target_system=1, target_component=1, count=3), 0.0)
     )
     assert (req.name, req.get_int("seq")) == ("MISSION_REQUEST_INT", 0)
-    for seq in range(3):
+    for seq in range(2):
         (reply,) = _decode(service.handle(_gcs_msg("MISSION_ITEM_INT", **_item_fields(seq)), 0.1))
-        expect = (
-            ("MISSION_REQUEST_INT", seq + 1) if seq < 2 else ("MISSION_ACK", p.MAV_MISSION_ACCEPTED)
-        )
-        assert (reply.name, reply.get_int("seq" if seq < 2 else "type")) == expect
+        assert (reply.name, reply.get_int("seq")) == ("MISSION_REQUEST_INT", seq + 1)
+    text, ack = _decode(service.handle(_gcs_msg("MISSION_ITEM_INT", **_item_fields(2)), 0.1))
+    assert text.get_text("text") == "Flight plan received"  # ArduPilot's, before the ACK
+    assert (ack.name, ack.get_int("type")) == ("MISSION_ACK", p.MAV_MISSION_ACCEPTED)
     assert service.count() == 3
     assert service.version == 1
     assert service.item(0) == _home()  # item 0 is home, whatever was uploaded there
@@ -87,13 +87,14 @@ def test_an_unanswered_request_is_resent_and_a_stalled_upload_cancelled(
     assert service.tick(0.5) == []
     (again,) = _decode(service.tick(1.1))  # after 1 s without an item
     assert (again.name, again.get_int("seq")) == ("MISSION_REQUEST_INT", 0)
-    (cancel,) = _decode(service.tick(8.2))  # 8 s without an item
+    text, cancel = _decode(service.tick(8.2))  # 8 s without an item
+    assert text.get_text("text") == "Mission upload timeout"
     assert (cancel.name, cancel.get_int("type")) == (
         "MISSION_ACK",
         p.MAV_MISSION_OPERATION_CANCELLED,
     )
     assert not service.uploading
-    assert service.count() == 1  # the old (empty) mission is kept
+    assert service.count() == 1  # nothing arrived: the old (empty) mission is kept
 
 
 def test_refusals_during_an_upload(service: MissionService) -> None:
@@ -154,7 +155,7 @@ def test_clear_all_and_an_empty_upload_clear(service: MissionService) -> None:
         )
     )
     assert (count.name, count.get_int("count")) == ("MISSION_COUNT", 0)
-    (ack,) = _decode(
+    _, ack = _decode(
         service.handle(_gcs_msg("MISSION_COUNT", target_system=1, target_component=1, count=0), 0.4)
     )
     assert ack.get_int("type") == p.MAV_MISSION_ACCEPTED
@@ -283,6 +284,9 @@ def test_entering_auto_and_arming_in_it_as_arducopter_allows() -> None:
         recv(gcs, "PARAM_VALUE", 5.0, lambda m: m.param_id == "AUTO_OPTIONS")
         assert set_mode(gcs, "AUTO")[0] == 0
         assert command(gcs, mavlink.MAV_CMD_COMPONENT_ARM_DISARM, 1)[0] == 0  # AUTO_OPTIONS bit 0
+        # ModeAuto::takeoff_run: no throttle raised (no RC here), no AUTO_OPTIONS bit 1: waits
+        none_within(gcs, "GLOBAL_POSITION_INT", 1.0, lambda m: m.relative_alt > 100)
+        assert command(gcs, mavlink.MAV_CMD_MISSION_START)[0] == 0  # stands in for the throttle
         recv(gcs, "MISSION_CURRENT", 10.0, lambda m: m.seq == 2 and m.mission_state == 3)
         assert sim.position()[2] > 9.0  # took off in AUTO to 10 m
 

@@ -47,7 +47,7 @@ def test_the_table_has_arducopter_names_defaults_and_types() -> None:
 
 def test_stored_values_follow_the_type() -> None:
     assert stored_value(p.MAV_PARAM_TYPE_INT8, 300.0) == 127.0
-    assert stored_value(p.MAV_PARAM_TYPE_INT16, -2.6) == -3.0
+    assert stored_value(p.MAV_PARAM_TYPE_INT16, -2.6) == -2.0  # AP_Param::set_float truncates
     assert (
         stored_value(p.MAV_PARAM_TYPE_REAL32, 0.1) == struct.unpack("<f", struct.pack("<f", 0.1))[0]
     )
@@ -118,7 +118,7 @@ def test_a_ground_station_downloads_the_complete_parameter_list() -> None:
         names = {name: (value, kind) for name, value, kind in seen.values()}
         assert set(names) == set(PARAMETERS)
         assert names["RTL_ALT"] == (1500.0, p.MAV_PARAM_TYPE_INT32)
-        assert names["WPNAV_SPEED"] == (500.0, p.MAV_PARAM_TYPE_REAL32)  # speed=5.0 m/s
+        assert names["WPNAV_SPEED"] == (1000.0, p.MAV_PARAM_TYPE_REAL32)  # ArduCopter's 10 m/s
 
 
 def test_read_by_name_and_by_index_as_arducopter_answers() -> None:

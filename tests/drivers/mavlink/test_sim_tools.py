@@ -175,7 +175,7 @@ def test_mavproxy_fetches_params_loads_waypoints_and_flies_auto(tmp_path: Path) 
         tau=0.5,
         climb_rate=4.0,
         descent_rate=3.0,
-        params={**FAST, "AUTO_OPTIONS": 1},
+        params=FAST,
         params_file=tmp_path / "eeprom.param",
     )
     env = {**os.environ, "HOME": str(tmp_path), "MPLBACKEND": "Agg"}
@@ -231,12 +231,16 @@ def test_mavproxy_fetches_params_loads_waypoints_and_flies_auto(tmp_path: Path) 
             until(lambda: sim.param("RTL_ALT") == 2000.0, 10.0, "param set")
             send("param fetch")
             seen("Requested parameter list", 10.0)
+            # the recipe of docs/simulators.md: AUTO_OPTIONS 3 = arming in AUTO (bit 0) and
+            # its takeoff without a raised throttle (bit 1), as SITL and a real copter need
+            send("param set AUTO_OPTIONS 3")
+            until(lambda: sim.param("AUTO_OPTIONS") == 3.0, 10.0, "param set AUTO_OPTIONS")
             send(f"wp load {waypoints}")
             until(lambda: len(sim.mission()) == 7, 15.0, "wp load")
             send("mode auto")
             until(lambda: sim.mode == "AUTO", 10.0, "mode auto")
             send("arm throttle")
-            until(lambda: sim.armed, 10.0, "armed in AUTO (AUTO_OPTIONS 1)")
+            until(lambda: sim.armed, 10.0, "armed in AUTO (AUTO_OPTIONS bit 0)")
             until(lambda: sim.position()[2] > 9.0, 20.0, "AUTO takeoff")
             until(lambda: sim.mission_current >= 6, 40.0, "the 4 waypoints")
             until(lambda: not sim.armed, 30.0, "landed and disarmed")

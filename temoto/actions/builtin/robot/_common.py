@@ -26,7 +26,7 @@ TakeOff, Land, FlyTo and FlyMission, see :mod:`temoto.managers.robot.features`).
 (x1.5, +5 s) covers acceleration, the controllers' slow final approach and command latency. A
 missed deadline stops the motion (the devices are made still) and ends the action on_error:
 ``NavigateTo: not at (2, 0.5) within 14.2 s (1.2 m left)``. An explicit ``timeout`` input wins:
-then the action ends on_false at the timeout, as before. Paused time is not counted.
+then the action ends on_false at the timeout. Paused time is not counted.
 """
 
 from __future__ import annotations

@@ -19,7 +19,7 @@ import sys
 from pathlib import Path
 from typing import Any
 
-__all__ = ["add_keys", "keys_command"]
+__all__ = ["add_parser", "main"]
 
 _HELP = {
     "new": "make an identity (an Ed25519 key pair) for a robot or an operator",
@@ -29,7 +29,7 @@ _HELP = {
 }
 
 
-def add_keys(sub: Any) -> None:
+def add_parser(sub: Any) -> None:
     """Add ``temoto keys`` to the top-level subparsers.
 
     Args:
@@ -80,7 +80,7 @@ def _public_key(text: str) -> bytes:
     return Identity.load(text).public_key
 
 
-def keys_command(args: argparse.Namespace) -> int:
+def main(args: argparse.Namespace) -> int:
     """Run ``temoto keys ...``.
 
     Args:

@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from temoto._cli_sim_args import DEFAULT_CAN_GROUP, DEFAULT_OUT, parse_udp_address
+from temoto.cli.sim_args import DEFAULT_CAN_GROUP, DEFAULT_OUT, parse_udp_address
 from temoto.clock import Clock, MonotonicClock, ScaledClock
 from temoto.errors import ConfigError, DriverError
 
@@ -184,7 +184,6 @@ def _can_link(args: argparse.Namespace) -> dict[str, Any]:
 
 
 def _can(kind: str, args: argparse.Namespace, stack: ExitStack) -> Served:
-    from temoto.drivers.can_motor import mitmode
     from temoto.drivers.can_motor.sim import MitModel, SimMitMotor, SimODrive
 
     link = _can_link(args)
@@ -201,7 +200,7 @@ def _can(kind: str, args: argparse.Namespace, stack: ExitStack) -> Served:
             ids = sorted(args.node)
             driver = "odrive_can"
         else:
-            models = [MitModel(i, mitmode.MODELS[m]) for i, m in args.motor]
+            models = [MitModel.of(i, m) for i, m in args.motor]
             sim = SimMitMotor(
                 link, models, clock, host_id=args.host_id, can_timeout=args.can_timeout
             )

@@ -17,19 +17,19 @@ import json
 import sys
 from typing import IO, Any
 
+from temoto.cli.common import EXIT_FAILED, EXIT_INVALID, EXIT_OK
 from temoto.errors import ConfigError, DriverUnavailableError, PluginError
 
-__all__ = ["add_drivers", "drivers_command"]
+__all__ = ["add_parser", "main"]
 
-EXIT_OK = 0
-EXIT_NOTHING = 1
-EXIT_INVALID = 2
+#: ``detect`` found no device.
+EXIT_NOTHING = EXIT_FAILED
 
 #: The library each built-in driver's extra installs (to say which are usable without importing).
 _LIBRARY = {"can": "can", "dynamixel": "dynamixel_sdk", "mavlink": "pymavlink"}
 
 
-def add_drivers(sub: Any) -> None:
+def add_parser(sub: Any) -> None:
     """Add ``temoto drivers list|detect`` to the top-level subparsers.
 
     Args:
@@ -79,7 +79,7 @@ def add_drivers(sub: Any) -> None:
     detect.add_argument("--json", action="store_true", help="print JSON instead of YAML")
 
 
-def drivers_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
+def main(args: argparse.Namespace, out: IO[str] | None = None) -> int:
     """Run ``temoto drivers list`` or ``temoto drivers detect``.
 
     Args:

@@ -18,7 +18,8 @@ import traceback
 from collections.abc import Sequence
 from typing import IO, Any
 
-from temoto._cli_common import (
+from temoto.actions.builtin import ROS2_ACTIONS
+from temoto.cli.common import (
     EXIT_OTHER_RESULT,
     EXIT_TRUE,
     add_paths,
@@ -27,17 +28,15 @@ from temoto._cli_common import (
     positive,
     signal_name,
 )
-from temoto._cli_fleet import (
-    SignalExit,
+from temoto.cli.fleet import (
     add_fleet_options,
     add_record_option,
     close_recorder,
     fleet_key,
-    make_devices_safe,
     open_recorder,
 )
-from temoto._cli_signals import FORCE_EXIT_S
-from temoto._progress import ActionLogHandler, Progress
+from temoto.cli.progress import ActionLogHandler, Progress
+from temoto.cli.signals import FORCE_EXIT_S, SignalExit, make_devices_safe
 from temoto.clock import MonotonicClock, ScaledClock
 from temoto.core.catalog import ActionCatalog, GraphIndex
 from temoto.core.documents import load_graph
@@ -49,8 +48,12 @@ from temoto.core.registrar import Registrar
 from temoto.core.states import NodeState, Result
 from temoto.errors import GraphInputError
 from temoto.managers.process import ProcessManager
+from temoto.ros2.lifecycle import Ros2LifecycleManager
+from temoto.ros2.manager import Ros2Manager
 
-__all__ = ["add_run", "run_command"]
+__all__ = ["add_parser", "main"]
+
+logger = logging.getLogger(__name__)
 
 
 class _RunTrace(TraceInstrument):
@@ -59,7 +62,7 @@ class _RunTrace(TraceInstrument):
     Node lines are written as they happen. The engine's own end-of-graph events are not
     written: a halted graph is still stopped when the engine shuts down at exit, which would
     end the trace with a second result. Instead :meth:`finish` writes the result the command
-    prints (ARCHITECTURE.md §8) and closes the trace to everything after it.
+    prints (docs/design.md §8) and closes the trace to everything after it.
 
     Args:
         stream: The trace file.
@@ -95,7 +98,7 @@ class _RunTrace(TraceInstrument):
                 self._write({"graph": self.graph, "result": result})
 
 
-def add_run(sub: Any) -> None:
+def add_parser(sub: Any) -> None:
     """Add ``temoto run`` to the top-level subparsers.
 
     Args:
@@ -192,14 +195,14 @@ def _open_fleet(args: argparse.Namespace, graph: UmrfGraph) -> Any:
         raise
 
 
-def run_command(args: argparse.Namespace) -> int:
+def main(args: argparse.Namespace) -> int:
     """``temoto run``: run one graph, print its result; the exit status stands for it.
 
     Args:
         args: The parsed command line.
 
     Returns:
-        The exit status (ARCHITECTURE.md §8).
+        The exit status (docs/design.md §8).
     """
     with SignalExit(force_exit=FORCE_EXIT_S) as signals:
         graph = load_graph(args.graph)
@@ -263,9 +266,12 @@ def _run_graph(
         # the graph's end releases them, so nothing outlives the command.
         registrar = Registrar("temoto-run")
         processes = ProcessManager(registrar)
+        # ROS 2 bridges (docs/ros2.md): started only when a ROS 2 action asks for one
+        ros2 = Ros2Manager(registrar)
+        Ros2LifecycleManager(registrar)
         engine = ActionEngine(
             args.actor,
-            actions=ActionCatalog(args.actions),
+            actions=ActionCatalog([ROS2_ACTIONS, *args.actions]),
             graphs=GraphIndex(args.graphs),
             clock=clock,
             instruments=instruments,
@@ -281,7 +287,7 @@ def _run_graph(
                 grace = args.stop_timeout  # what the exit waits for actions still stopping
                 if not _wait_run(engine, name, args.timeout, signals.stop):
                     if signals.signum is None:
-                        logging.getLogger("temoto.cli").warning(
+                        logger.warning(
                             "graph %s did not end within %s s; stopping it", name, args.timeout
                         )
                     else:
@@ -315,6 +321,7 @@ def _run_graph(
             # Whatever the actions did not release (a run that did not stop) is stopped here:
             # nothing started by this command outlives it.
             processes.shutdown(stop_processes=True)
+            ros2.shutdown()  # segments a crashed bridge's peers re-created
             registrar.close()
     finally:
         if trace_file is not None:

@@ -6,7 +6,7 @@ this command runs (the standard ``zenohd`` does the same job; docs/zenoh.md show
 router forwards the fleet's envelopes without opening them: it needs no fleet key.
 
 The command prints one line saying where it listens and how robots connect, then serves until
-SIGINT or SIGTERM and exits 0 (ARCHITECTURE.md §8: a server stopped by a signal); invalid input
+SIGINT or SIGTERM and exits 0 (docs/design.md §8: a server stopped by a signal); invalid input
 (a malformed endpoint, an address in use, eclipse-zenoh missing) is exit status 2 with a one-line
 message. Kept apart from :mod:`temoto.cli` so that other commands do not import Zenoh. Like
 :mod:`temoto.cli`, this module prints.
@@ -20,7 +20,7 @@ from typing import IO, Any, Final
 
 from temoto.errors import ConfigError, TransportError
 
-__all__ = ["DEFAULT_LISTEN", "add_router", "router_command"]
+__all__ = ["DEFAULT_LISTEN", "add_parser", "main"]
 
 #: Where the router listens without --listen or --config (Zenoh's router port, every address;
 #: the same as :data:`temoto.transport.zenoh.DEFAULT_ROUTER_LISTEN`, which is not imported
@@ -31,7 +31,7 @@ DEFAULT_LISTEN: Final = "tcp/0.0.0.0:7447"
 _WAIT_S: Final = 0.5
 
 
-def add_router(sub: Any) -> None:
+def add_parser(sub: Any) -> None:
     """Add ``temoto router`` to the top-level subparsers.
 
     Args:
@@ -77,7 +77,7 @@ def _join_url(listen: tuple[str, ...], config: str | None) -> str:
     return f"zenoh:{first}"
 
 
-def router_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
+def main(args: argparse.Namespace, out: IO[str] | None = None) -> int:
     """Run ``temoto router`` until SIGINT or SIGTERM.
 
     Args:
@@ -91,7 +91,7 @@ def router_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
         ConfigError: A malformed endpoint, an unusable configuration file, an address in use,
             or eclipse-zenoh missing.
     """
-    from temoto._cli_signals import FORCE_EXIT_S, SignalExit
+    from temoto.cli.signals import FORCE_EXIT_S, SignalExit
     from temoto.transport.zenoh import open_router
 
     listen = tuple(args.listen) if args.listen else ()

@@ -3,7 +3,7 @@
 :func:`add_sim` adds ``temoto sim`` and its forms (``quad``, ``odrive``, ``mit``, ``dynamixel``,
 ``--profile``) to the ``temoto`` parser; the other functions parse one option's value each and
 raise :class:`argparse.ArgumentTypeError` with a message naming what was expected. Run by
-:mod:`temoto._cli_sim`; the guide is ``docs/simulators.md``.
+:mod:`temoto.cli.sim`; the guide is ``docs/simulators.md``.
 """
 
 from __future__ import annotations

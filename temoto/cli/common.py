@@ -1,7 +1,7 @@
 """What the command line's modules share: exit codes, error lines, output files, option types.
 
-Not public API: :mod:`temoto.cli` and its ``_cli_*`` modules use it. Like them, it prints (to
-standard error only).
+Not public API: the modules of :mod:`temoto.cli` use it. Like them, it prints (to standard
+error only).
 """
 
 from __future__ import annotations
@@ -21,7 +21,9 @@ from temoto.errors import ConfigError
 
 __all__ = [
     "EXIT_BROKEN_PIPE",
+    "EXIT_FAILED",
     "EXIT_INVALID",
+    "EXIT_OK",
     "EXIT_OTHER_RESULT",
     "EXIT_TRUE",
     "add_paths",
@@ -35,9 +37,16 @@ __all__ = [
     "signal_name",
 ]
 
-EXIT_TRUE = 0
-EXIT_OTHER_RESULT = 1
+#: The exit statuses of every command (the robot command's too).
+EXIT_OK = 0
+#: A command that did not do what it was asked (a device failed, no answer, nothing found).
+EXIT_FAILED = 1
+#: Invalid input: a one-line message naming the file, key or option.
 EXIT_INVALID = 2
+#: A graph's run ended ``on_true`` (``temoto run``, ``temoto demo``, a robot's mission).
+EXIT_TRUE = EXIT_OK
+#: A graph's run ended with any other result.
+EXIT_OTHER_RESULT = EXIT_FAILED
 EXIT_BROKEN_PIPE = 128 + 13  # SIGPIPE
 #: The longest error line printed; the rest is counted, not shown.
 MAX_ERROR_CHARS = 1000

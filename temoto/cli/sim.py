@@ -3,7 +3,7 @@
 ``temoto sim quad|odrive|mit|dynamixel ...`` starts one simulator; ``temoto sim --profile
 FILE`` starts the simulator of every device of a hardware profile (each built by its driver's
 ``simulate()``, so the profile's simulator settings apply). Either way the command prints what
-it serves, then keeps serving until SIGINT or SIGTERM, and exits 0 (ARCHITECTURE.md §8: a
+it serves, then keeps serving until SIGINT or SIGTERM, and exits 0 (docs/design.md §8: a
 server stopped by a signal); invalid input is exit status 2 with a one-line message.
 
 What it prints on standard output, per device, is the ``link`` line a profile uses to reach the
@@ -18,8 +18,8 @@ event) and the text goes to standard error. ``docs/simulators.md`` is the guide.
 Kept apart from :mod:`temoto.cli` so that other commands import no driver code. Like
 :mod:`temoto.cli`, this module prints.
 
-The command is in three modules: :mod:`temoto._cli_sim_args` (the arguments),
-:mod:`temoto._cli_sim_devices` (starting each simulator and describing its endpoint) and this one
+The command is in three modules: :mod:`temoto.cli.sim_args` (the arguments),
+:mod:`temoto.cli.sim_devices` (starting each simulator and describing its endpoint) and this one
 (running: printing endpoints, watching traffic, stopping on a signal).
 """
 
@@ -36,14 +36,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Final
 
-from temoto._cli_sim_args import (
+from temoto.cli.sim_args import (
     DEFAULT_CAN_GROUP,
     DEFAULT_OUT,
     DEFAULT_PORT,
     add_sim,
     parse_udp_address,
 )
-from temoto._cli_sim_devices import Endpoint, Served, endpoint_for, serve_kind, serve_profile
+from temoto.cli.sim_devices import Endpoint, Served, endpoint_for, serve_kind, serve_profile
 from temoto.errors import ConfigError
 
 __all__ = [
@@ -51,16 +51,21 @@ __all__ = [
     "DEFAULT_OUT",
     "DEFAULT_PORT",
     "Endpoint",
-    "add_sim",
+    "add_parser",
     "endpoint_for",
+    "main",
     "parse_udp_address",
-    "sim_command",
 ]
 
 #: Seconds without traffic after which a client counts as gone (and its return as a new one).
 QUIET_S: Final = 2.0
 #: Real seconds between two looks at the simulators' traffic.
 WATCH_PERIOD_S: Final = 0.1
+
+
+def add_parser(sub: Any) -> None:
+    """Add ``temoto sim`` and its forms (:func:`temoto.cli.sim_args.add_sim`)."""
+    add_sim(sub)
 
 
 class _Printer:
@@ -87,7 +92,7 @@ class _Printer:
                 self.broken = True
 
 
-def sim_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
+def main(args: argparse.Namespace, out: IO[str] | None = None) -> int:
     """Run ``temoto sim`` until SIGINT or SIGTERM.
 
     Args:
@@ -101,7 +106,7 @@ def sim_command(args: argparse.Namespace, out: IO[str] | None = None) -> int:
         ConfigError: Invalid input (a bad profile, neither or both of KIND and --profile).
         BrokenPipeError: The reader of the output went away (the simulators are closed).
     """
-    from temoto._cli_signals import FORCE_EXIT_S, SignalExit
+    from temoto.cli.signals import FORCE_EXIT_S, SignalExit
 
     kind = getattr(args, "sim_kind", None)
     profile = getattr(args, "profile", None)

@@ -1,6 +1,6 @@
 """What the commands print for people while a graph runs (``--progress``, the robot command).
 
-Not public API: :mod:`temoto.cli` and :mod:`temoto.managers.robot` share it.
+Not public API: :mod:`temoto.cli`'s commands share it (``temoto run``, the robot command).
 """
 
 from __future__ import annotations
@@ -10,6 +10,7 @@ import threading
 from typing import IO
 
 from temoto.clock import Clock
+from temoto.core.action import ACTION_LOGGER
 from temoto.core.instrument import Instrument
 from temoto.core.states import NodeState, Result
 
@@ -55,14 +56,17 @@ class Progress(Instrument):
                 self.stream.flush()
 
     def graph_started(self, graph: str, t: float) -> None:
+        """Print ``GRAPH: started``."""
         self._say(t, f"{graph}: started")
 
     def node_result(self, graph: str, node: str, result: Result, t: float) -> None:
+        """Keep a node's result for the state change that follows it."""
         self._results[(graph, node)] = result  # printed with the state change that follows
 
     def node_transition(
         self, graph: str, node: str, old: NodeState, new: NodeState, t: float
     ) -> None:
+        """Print ``GRAPH: NODE STATE [RESULT]`` (only the states asked for)."""
         result = self._results.pop((graph, node), None)
         if self.states is not None and new not in self.states:
             return
@@ -70,6 +74,7 @@ class Progress(Instrument):
         self._say(t, f"{graph}: {node} {new.value}{suffix}")
 
     def graph_finished(self, graph: str, result: Result, t: float) -> None:
+        """Print ``GRAPH: ended with RESULT``."""
         self._say(t, f"{graph}: ended with {result.value}")
 
     def action_log(self, record: logging.LogRecord) -> None:
@@ -95,21 +100,24 @@ class ActionLogHandler(logging.Handler):
     def __init__(self, progress: Progress) -> None:
         super().__init__(logging.INFO)
         self.progress = progress
-        self._logger = logging.getLogger("temoto.action")
+        self._logger = logging.getLogger(ACTION_LOGGER)
         self._saved = (self._logger.level, self._logger.propagate)
 
     def emit(self, record: logging.LogRecord) -> None:
+        """Print an action's log line in the timeline."""
         try:
             self.progress.action_log(record)
         except Exception:  # a closed stream: as logging does, never raise into the action
             self.handleError(record)
 
     def install(self) -> None:
+        """Take the action logs (INFO and up) from here on."""
         self._logger.addHandler(self)
         self._logger.setLevel(logging.INFO)
         self._logger.propagate = False
 
     def remove(self) -> None:
+        """Give the action logs back to the root handler, as before :meth:`install`."""
         self._logger.removeHandler(self)
         self._logger.setLevel(self._saved[0])
         self._logger.propagate = self._saved[1]

@@ -1,0 +1,175 @@
+"""ROS 2: a service call through the bridge and from an action, against rclpy's own round trip.
+
+Needs an interpreter with rclpy: ``$TEMOTO_ROS2_PYTHON`` (``make test-ros2`` makes one in
+``.venv-ros2``) or this one; without, the group is skipped with a note. Three processes on
+loopback, ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, a domain of their own: an rclpy peer
+serving ``std_srvs/srv/Trigger``; an rclpy client timing its own calls to it (single-threaded
+executor: the peer's own figure); and TeMoto, timing the same call through the bridge
+(``call_service`` on a :class:`~temoto.ros2.client.BridgeClient`) and as a one-action graph
+(``Ros2CallService``, the bridge held across runs as a graph run's actions hold it).
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+from bench.common import Results, median, now, percentile
+
+_PEER = """
+import signal, sys, threading, rclpy
+from rclpy.executors import SingleThreadedExecutor
+from rclpy.signals import SignalHandlerOptions
+from std_srvs.srv import Trigger
+rclpy.init(signal_handler_options=SignalHandlerOptions.NO)
+stop = threading.Event()
+signal.signal(signal.SIGTERM, lambda *_: stop.set())
+node = rclpy.create_node("bench_peer")
+def cb(req, resp):
+    resp.success = True
+    return resp
+node.create_service(Trigger, "/bench/trigger", cb)
+ex = SingleThreadedExecutor(); ex.add_node(node)
+print("ready", flush=True)
+while not stop.is_set():
+    ex.spin_once(timeout_sec=0.1)
+node.destroy_node(); rclpy.try_shutdown()
+"""
+
+_CLIENT = """
+import json, sys, time, rclpy
+from rclpy.executors import SingleThreadedExecutor
+from std_srvs.srv import Trigger
+n = int(sys.argv[1])
+rclpy.init()
+node = rclpy.create_node("bench_client")
+cli = node.create_client(Trigger, "/bench/trigger")
+assert cli.wait_for_service(timeout_sec=30)
+ex = SingleThreadedExecutor(); ex.add_node(node)
+out = []
+for i in range(n + 20):
+    t = time.perf_counter()
+    fut = cli.call_async(Trigger.Request())
+    while not fut.done():
+        ex.spin_once(timeout_sec=10)
+    if i >= 20:
+        out.append((time.perf_counter() - t) * 1e3)
+print(json.dumps(out))
+node.destroy_node(); rclpy.try_shutdown()
+"""
+
+
+def _ros_python() -> str | None:
+    python = os.environ.get("TEMOTO_ROS2_PYTHON") or sys.executable
+    if python == sys.executable:
+        return python if importlib.util.find_spec("rclpy") else None
+    return python if Path(python).exists() else None
+
+
+def bench_ros2(quick: bool) -> Results:
+    """Service round trips: rclpy's own, through the bridge, from an action."""
+    out = Results()
+    python = _ros_python()
+    if python is None:
+        out.notes.append("ros2: skipped: no rclpy (set TEMOTO_ROS2_PYTHON; docs/ros2.md)")
+        return out
+    from temoto import ActionEngine, Result
+    from temoto.actions.builtin import ROS2_ACTIONS
+    from temoto.core.registrar import Registrar
+    from temoto.managers.process import ProcessManager
+    from temoto.ros2.client import BridgeClient
+    from temoto.ros2.manager import Ros2BridgeRequest, Ros2Manager
+
+    n_calls = 200 if quick else 1000
+    n_runs = 20 if quick else 100
+    env = dict(os.environ)
+    env.update(ROS_DOMAIN_ID=str(150 + os.getpid() % 50), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
+    os.environ.update({k: env[k] for k in saved})
+    with tempfile.TemporaryDirectory() as tmp:
+        peer_py, client_py = Path(tmp, "peer.py"), Path(tmp, "client.py")
+        peer_py.write_text(_PEER)
+        client_py.write_text(_CLIENT)
+        peer = subprocess.Popen([python, str(peer_py)], stdout=subprocess.PIPE, text=True, env=env)
+        registrar = Registrar("bench-ros2")
+        processes = ProcessManager(registrar)
+        manager = Ros2Manager(registrar, python=python)
+        try:
+            if peer.stdout is None or peer.stdout.readline().strip() != "ready":
+                raise RuntimeError("the rclpy peer did not start")
+            mine = subprocess.run(
+                [python, str(client_py), str(n_calls)],
+                env=env,
+                capture_output=True,
+                text=True,
+                timeout=300,
+                check=True,
+            )
+            rclpy_ms = json.loads(mine.stdout.strip().splitlines()[-1])
+            bridge = registrar.call("ros2", Ros2BridgeRequest(), client="bench")
+            with BridgeClient(bridge.response.socket) as client:
+                fields = {
+                    "service": "/bench/trigger",
+                    "type": "std_srvs/srv/Trigger",
+                    "timeout": 30,
+                }
+                for _ in range(20):
+                    client.request("call_service", **fields)
+                bridge_ms = []
+                for _ in range(n_calls):
+                    t = now()
+                    client.request("call_service", **fields)
+                    bridge_ms.append((now() - t) * 1e3)
+            graph = {
+                "graph_name": "bench_ros2_call",
+                "graph_entry": [{"name": "Ros2CallService", "instance_id": 0}],
+                "graph_exit": [{"name": "Ros2CallService", "instance_id": 0}],
+                "actions": [
+                    {
+                        "name": "Ros2CallService",
+                        "instance_id": 0,
+                        "type": "sync",
+                        "input_parameters": {
+                            "service": {"pvf_type": "string", "pvf_value": "/bench/trigger"},
+                            "type": {"pvf_type": "string", "pvf_value": "std_srvs/srv/Trigger"},
+                        },
+                    }
+                ],
+            }
+            action_ms = []
+            with ActionEngine("r1", actions=[ROS2_ACTIONS], registrar=registrar) as engine:
+                for i in range(n_runs + 3):
+                    t = now()
+                    outcome = engine.run(graph, timeout=60)
+                    if outcome.result is not Result.TRUE:
+                        raise RuntimeError(f"Ros2CallService failed: {outcome.errors}")
+                    if i >= 3:
+                        action_ms.append((now() - t) * 1e3)
+            registrar.release(bridge.id)
+        finally:
+            processes.shutdown()
+            manager.shutdown()
+            registrar.close()
+            peer.terminate()
+            peer.wait(30)
+            if peer.stdout is not None:
+                peer.stdout.close()
+            for k, v in saved.items():
+                if v is None:
+                    os.environ.pop(k, None)
+                else:
+                    os.environ[k] = v
+    r, b, a = median(rclpy_ms), median(bridge_ms), median(action_ms)
+    out.add("ros2_rclpy_service_rtt_median", r, "ms", f"rclpy client, {n_calls} Trigger calls")
+    out.add("ros2_rclpy_service_rtt_p99", percentile(rclpy_ms, 99), "ms")
+    out.add("ros2_bridge_service_rtt_median", b, "ms", "BridgeClient call_service, same peer")
+    out.add("ros2_bridge_service_rtt_p99", percentile(bridge_ms, 99), "ms")
+    out.add("ros2_action_service_run_median", a, "ms", f"one-action graph run, {n_runs} runs")
+    out.add("ros2_bridge_over_rclpy", b / r, "ratio")
+    out.add("ros2_action_over_rclpy", a / r, "ratio")
+    return out
