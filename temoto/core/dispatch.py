@@ -5,8 +5,8 @@ it takes the effects the evolution (:class:`~temoto.core.evolution.RunEvolution`
 the lock and carries them out with the lock released. Ready actions go to the
 :class:`~temoto.core.executor.WorkerPool` as one batch; a worker runs an action
 (:meth:`Action.run_once <temoto.core.action.Action.run_once>`), takes the lock once to apply
-the results of its round (:meth:`RunEvolution.action_finished
-<temoto.core.evolution.RunEvolution.action_finished>`, the one path of an action's end), and goes
+the results of its round (:meth:`RunEvolution.finished_next
+<temoto.core.evolution.RunEvolution.finished_next>`, the one path of an action's end), and goes
 on itself with what became ready: every inline action, or else the first blocking one, so a
 chain continues on one thread without a hand-off. Hooks (``on_stop``, ``on_pause``,
 ``on_resume``), resource releases and the end of spontaneous actions run on workers too; calls
@@ -241,7 +241,7 @@ class Dispatcher:
         """
         lock = self._lock
         evolution = self._evolution
-        finished = evolution.action_finished
+        finished = evolution.finished_next
         settle = self._settle
         todo: list[_Todo] = []
         # what evolution decides; after _collect, what this thread leaves to others
@@ -286,8 +286,10 @@ class Dispatcher:
                 for node, gen, instance, result, outputs, error in done:
                     if node.spontaneous:
                         settle(node, gen, instance, result, outputs, error, fx)
-                    else:
-                        finished(node, gen, result, outputs, error, fx, instance)
+                        continue
+                    child = finished(node, gen, result, outputs, error, fx, instance)
+                    if child is not None:  # the child it started, for this round to queue
+                        runs.append((child, child.gen))
                 if len(runs) == 1 and not other:  # a chain: _collect's common case
                     node, gen = runs[0]
                     if node.inline and gen == node.gen and node.state is running:
@@ -318,7 +320,7 @@ class Dispatcher:
         lock = self._lock
         acquire, release = lock.acquire, lock.release
         evolution = self._evolution
-        finished = evolution.action_finished
+        finished = evolution.finished_next
         settle = self._settle
         runs, other = fx.runs, fx.other
         running = _N_RUNNING
@@ -336,10 +338,20 @@ class Dispatcher:
             try:
                 if node.spontaneous:
                     settle(node, gen, instance, result, outputs, error, fx)
+                    child = None
                 else:
-                    finished(node, gen, result, outputs, error, fx, instance)
-                if len(runs) == 1 and not other and not evolution.releases:
-                    # the next link of the chain, made ready by this result: it runs here
+                    child = finished(node, gen, result, outputs, error, fx, instance)
+                if child is not None:
+                    # the next link of the chain, started by this result (same run): it runs
+                    # here, unless there are effects to carry out first
+                    if not other and not runs and not evolution.releases:
+                        data = child.data
+                        node, gen, instance = child, child.gen, child.instance
+                        values = dict(data) if data else NO_VALUES
+                        continue
+                    runs.append((child, child.gen))
+                elif len(runs) == 1 and not other and not evolution.releases:
+                    # the next link made ready through the general path: it runs here too
                     child, child_gen = runs[0]
                     if (
                         child_gen == child.gen

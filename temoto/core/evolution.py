@@ -6,7 +6,7 @@ path (:meth:`RunEvolution.set_state` against :data:`~temoto.core.states.NODE_TRA
 :meth:`RunEvolution.set_run_state` against :data:`~temoto.core.states.GRAPH_TRANSITIONS`). A run
 starts (the entry's result reaches its first actions), an action run finishes (its result is
 applied: held while paused, turned into a stop or a restart, or recorded:
-:meth:`RunEvolution.action_finished`, the one path of an action's end), the result propagates to
+:meth:`RunEvolution.finished_next`, the one path of an action's end), the result propagates to
 the children along the condition table (the evolution kernel, :mod:`temoto.core._fast`,
 computes the wave), parameters are transferred along the relations, ready children start
 (one path, whatever made them ready), and the run ends (finished, halted, stopped or failed)
@@ -98,6 +98,21 @@ _ENDED_GRAPH = ENDED_GRAPH_STATES
 _PAUSED_GRAPH = PAUSED_GRAPH_STATES
 _NODE_NEXT = NODE_TRANSITIONS
 _GRAPH_NEXT = GRAPH_TRANSITIONS
+#: The node changes the fast paths make without a table lookup: an action's end in a RUNNING
+#: node, and the start of an idle node. Each must be legal by :data:`NODE_TRANSITIONS`; an
+#: engine checks them against the table when it is made (:func:`fast_changes_legal`), and
+#: takes the checked path (:meth:`RunEvolution.set_state`) for every change if one is not.
+FAST_CHANGES: tuple[tuple[NodeState, NodeState], ...] = (
+    (_N_RUNNING, _N_FINISHED),
+    *((old, _N_RUNNING) for old in NodeState if old not in ACTIVE_NODE_STATES),
+)
+
+
+def fast_changes_legal() -> bool:
+    """Whether every change of :data:`FAST_CHANGES` is in :data:`NODE_TRANSITIONS` now."""
+    return all(new in NODE_TRANSITIONS[old] for old, new in FAST_CHANGES)
+
+
 #: the low bits of a wave step (``edge << SHIFT | response << 1 | ready``) for the response
 #: `run` to a child whose every required parent was received
 _RUN_READY = P_RUN << 1 | 1
@@ -143,9 +158,11 @@ class RunEvolution:
         self._watchers = [i for i in self._instruments if watches_transitions(i)]
         self._feedback: deque[dict[str, Any]] = deque(maxlen=max(feedback_size, 1))
         self._feedback_on = feedback_size > 0
-        #: whether anything observes node transitions (watchers, feedback): the fast paths
-        #: of the dispatcher are taken only when nothing does
-        self.observed = bool(self._watchers) or self._feedback_on
+        #: the fast paths' changes (FAST_CHANGES) are legal by the transition table
+        self._fast_legal = fast_changes_legal()
+        #: whether anything observes node transitions (watchers, feedback), or the fast paths'
+        #: changes are not legal: the fast paths are taken only when neither is so
+        self.observed = bool(self._watchers) or self._feedback_on or not self._fast_legal
         #: the shared-run protocol (temoto.core.shared), with an actor link only
         self.shared: SharedRuns | None = None
         #: carries out effects outside the lock (the dispatcher's); set by the engine
@@ -194,7 +211,7 @@ class RunEvolution:
             self._instruments.remove(inst)
         if inst in self._watchers:
             self._watchers.remove(inst)
-        self.observed = bool(self._watchers) or self._feedback_on
+        self.observed = bool(self._watchers) or self._feedback_on or not self._fast_legal
 
     def _notify(self, hook: str, *args: Any) -> None:
         for inst in list(self._instruments):
@@ -441,13 +458,36 @@ class RunEvolution:
     ) -> None:
         """Lock held: an action run ended (returned, raised, timed out, or its sub-graph ended).
 
-        The one path of an action's end, the dispatcher's fast paths (a chain, a batch)
-        included: its result is held while the node is paused, turned into a stop or a
-        restart, or recorded and propagated to the children. ``instance``: the action that ran
-        (a worker's run), which the node keeps with its log.
+        :meth:`finished_next`, with the action it started queued in ``fx`` like every other.
+        """
+        child = self.finished_next(node, gen, result, outputs, error, fx, instance)
+        if child is not None:
+            fx.runs.append((child, child.gen))
+
+    def finished_next(
+        self,
+        node: Node,
+        gen: int,
+        result: Result,
+        outputs: dict[str, Any],
+        error: BaseException | None,
+        fx: Effects,
+        instance: Action | None,
+    ) -> Node | None:
+        """Lock held: an action run ended; the one path of an action's end.
+
+        Its result is held while the node is paused, turned into a stop or a restart, or
+        recorded and propagated to the children. ``instance``: the action that ran (a worker's
+        run), which the node keeps with its log. The dispatcher's fast paths (a chain, a
+        batch's round) call it directly, :meth:`action_finished` for everyone else.
+
+        Returns:
+            The idle local child this end started when its wave was that one step: it is
+            RUNNING but not queued in ``fx``, and the caller runs it (or queues it). None when
+            the end started nothing so, everything it did being in ``fx``.
         """
         if gen != node.gen:
-            return  # a run the engine already gave up on (stop timeout)
+            return None  # a run the engine already gave up on (stop timeout)
         if instance is not None:  # adopt(), inlined
             if node.instance is None:
                 node.instance = instance
@@ -464,9 +504,7 @@ class RunEvolution:
             and not node.restart
         ):
             # The commonest end (a run that returned, nothing observing): set_state's path
-            # for RUNNING -> FINISHED, inlined (the table is still checked).
-            if _N_FINISHED not in _NODE_NEXT[state]:
-                check_node_transition(run.name, node.name, state, _N_FINISHED)
+            # for RUNNING -> FINISHED, inlined (legal by the table: FAST_CHANGES).
             if len(node.data) != len(node.native):
                 node.clear_data()
             node.state = _N_FINISHED
@@ -477,7 +515,7 @@ class RunEvolution:
             if state is not _N_RUNNING:
                 if state is _N_PAUSE_REQUESTED or state is _N_PAUSED:
                     node.held = (result, outputs, error)  # delivered on resume
-                    return
+                    return None
                 if state is _N_STOPPING:
                     result = _R_STOPPED
             if node.stop_timer is not None:
@@ -491,7 +529,7 @@ class RunEvolution:
                 if run.state is _G_RUNNING or run.state in _PAUSED_GRAPH:
                     self.run_node(node, fx)
                 self.after_change(run, fx)
-                return
+                return None
             if error is not None and result is _R_ERROR:
                 node.error = error
                 run.errors.append(error)
@@ -528,11 +566,13 @@ class RunEvolution:
                     and child.state not in _ACTIVE
                     and (not child.required_inputs or child.inputs_ready())
                 ):
-                    self._start_local(child, fx)
+                    self._ready_local(child)
+                    return child  # RUNNING: run.active is not 0
                 else:
                     self._apply_wave(node, result, NO_VALUES, [edge << SHIFT | _RUN_READY], fx)
         if not run.active:
             self.after_change(run, fx)
+        return None
 
     def _apply_wave(
         self,
@@ -569,7 +609,8 @@ class RunEvolution:
                 continue
             kind = child.kind
             if kind is _K_LOCAL and code == P_RUN and child.state not in _ACTIVE:
-                self._start_local(child, fx)  # run_node's path for an idle local node
+                self._ready_local(child)  # run_node's path for an idle local node
+                fx.runs.append((child, child.gen))
                 continue
             if kind is _K_EXIT:
                 self.finish_run(run, result, fx)
@@ -587,8 +628,8 @@ class RunEvolution:
 
     # ------------------------------------------------------------ nodes
 
-    def _start_local(self, node: Node, fx: Effects) -> None:
-        """Start an idle local node: the one path that makes a run of an action ready."""
+    def _ready_local(self, node: Node) -> None:
+        """Make an idle local node RUNNING: the one path that makes a run of an action ready."""
         node.gen += 1
         node.held = None
         if node.condition is None:  # RunControl.reset, nobody waits to race with
@@ -598,12 +639,11 @@ class RunEvolution:
         if node.fresh_instance:
             node.instance = None  # the old one is stuck in a run we gave up on
             node.fresh_instance = False
-        if self.observed or _N_RUNNING not in _NODE_NEXT[node.state]:
-            self.set_state(node, _N_RUNNING)  # observed (or refused: it raises)
-        else:  # set_state's path for an idle node, nothing observing (the table was checked)
+        if self.observed:
+            self.set_state(node, _N_RUNNING)
+        else:  # set_state's path for an idle node, nothing observing (legal: FAST_CHANGES)
             node.state = _N_RUNNING
             node.run.active += 1
-        fx.runs.append((node, node.gen))
 
     def run_node(self, node: Node, fx: Effects) -> None:
         """Lock held: run a node (a paused one resumes; an active one is left as it is)."""
@@ -613,7 +653,8 @@ class RunEvolution:
         if node.state in _ACTIVE or node.kind in (_K_ENTRY, _K_EXIT):
             return
         if node.kind is _K_LOCAL:
-            self._start_local(node, fx)
+            self._ready_local(node)
+            fx.runs.append((node, node.gen))
             return
         run = node.run
         node.gen += 1
