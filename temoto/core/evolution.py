@@ -566,7 +566,21 @@ class RunEvolution:
                     and child.state not in _ACTIVE
                     and (not child.required_inputs or child.inputs_ready())
                 ):
-                    self._ready_local(child)
+                    if self.observed:
+                        self._ready_local(child)
+                        return child
+                    # _ready_local, inlined for the chain's link (nothing observes)
+                    child.gen += 1
+                    child.held = None
+                    if child.condition is None:  # RunControl.reset, nobody waits to race with
+                        child.stop = child.paused = False
+                    else:
+                        child.reset()
+                    if child.fresh_instance:
+                        child.instance = None
+                        child.fresh_instance = False
+                    child.state = _N_RUNNING  # legal: FAST_CHANGES
+                    run.active += 1
                     return child  # RUNNING: run.active is not 0
                 else:
                     self._apply_wave(node, result, NO_VALUES, [edge << SHIFT | _RUN_READY], fx)
@@ -609,7 +623,22 @@ class RunEvolution:
                 continue
             kind = child.kind
             if kind is _K_LOCAL and code == P_RUN and child.state not in _ACTIVE:
-                self._ready_local(child)  # run_node's path for an idle local node
+                # run_node's path for an idle local node: _ready_local, inlined when nothing
+                # observes (a fan-out's start makes every branch ready here)
+                if self.observed:
+                    self._ready_local(child)
+                else:
+                    child.gen += 1
+                    child.held = None
+                    if child.condition is None:  # RunControl.reset, nobody waits to race with
+                        child.stop = child.paused = False
+                    else:
+                        child.reset()
+                    if child.fresh_instance:
+                        child.instance = None
+                        child.fresh_instance = False
+                    child.state = _N_RUNNING  # legal: FAST_CHANGES
+                    run.active += 1
                 fx.runs.append((child, child.gen))
                 continue
             if kind is _K_EXIT:
