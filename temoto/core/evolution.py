@@ -544,46 +544,51 @@ class RunEvolution:
                     except Exception:
                         self._drop_instrument(inst)
             self.set_state(node, _N_ERROR if result is _R_ERROR else _N_FINISHED)
-        if run.state is _G_RUNNING:
-            # The result goes to the children (docs/design.md §4.3): the evolution kernel computes
-            # the wave (responses, received parents, bypass chains), _apply_wave carries out
-            # its steps. A wave of one `run` step (a chain's link, a fan-in's edge) is asked
-            # for first (`advance`, which makes no list) and carried out here.
-            evolution = run.evolution
-            code = _RESULT_CODES[result]
-            step = evolution.advance(node.idx, code)
-            if step < 0:
-                self._apply_wave(node, result, outputs, evolution.propagate(node.idx, code), fx)
-            else:
+            if run.state is not _G_RUNNING:  # (the common end is in a RUNNING run)
+                if not run.active:
+                    self.after_change(run, fx)
+                return None
+        # The result goes to the children (docs/design.md §4.3): the evolution kernel computes
+        # the wave (responses, received parents, bypass chains), _apply_wave carries out
+        # its steps. A wave of one `run` step (a chain's link, a fan-in's edge) is asked
+        # for first (`advance`, which makes no list) and carried out here.
+        evolution = run.evolution
+        code = _RESULT_CODES[result]
+        step = evolution.advance(node.idx, code)
+        if step < 0:
+            self._apply_wave(node, result, outputs, evolution.propagate(node.idx, code), fx)
+        elif not step & 1:  # a fan-in: the child waits for other parents
+            if outputs:  # advance's edge is this node's own relation
                 edge = step >> 1
-                child = run.edge_child[edge]
-                if outputs:  # advance's edge is this node's own relation
-                    _transfer(node, child, run.edge_remap[edge], outputs)
-                if not step & 1:
-                    pass  # a fan-in: the child waits for other parents
-                elif (
-                    child.kind is _K_LOCAL
-                    and child.state not in _ACTIVE
-                    and (not child.required_inputs or child.inputs_ready())
-                ):
-                    if self.observed:
-                        self._ready_local(child)
-                        return child
-                    # _ready_local, inlined for the chain's link (nothing observes)
-                    child.gen += 1
-                    child.held = None
-                    if child.condition is None:  # RunControl.reset, nobody waits to race with
-                        child.stop = child.paused = False
-                    else:
-                        child.reset()
-                    if child.fresh_instance:
-                        child.instance = None
-                        child.fresh_instance = False
-                    child.state = _N_RUNNING  # legal: FAST_CHANGES
-                    run.active += 1
-                    return child  # RUNNING: run.active is not 0
+                _transfer(node, run.edge_child[edge], run.edge_remap[edge], outputs)
+        else:
+            edge = step >> 1
+            child = run.edge_child[edge]
+            if outputs:
+                _transfer(node, child, run.edge_remap[edge], outputs)
+            if (
+                child.kind is _K_LOCAL
+                and child.state not in _ACTIVE
+                and (not child.required_inputs or child.inputs_ready())
+            ):
+                if self.observed:
+                    self._ready_local(child)
+                    return child
+                # _ready_local, inlined for the chain's link (nothing observes)
+                child.gen += 1
+                child.held = None
+                if child.condition is None:  # RunControl.reset, nobody waits to race with
+                    child.stop = child.paused = False
                 else:
-                    self._apply_wave(node, result, NO_VALUES, [edge << SHIFT | _RUN_READY], fx)
+                    child.reset()
+                if child.fresh_instance:
+                    child.instance = None
+                    child.fresh_instance = False
+                child.state = _N_RUNNING  # legal: FAST_CHANGES
+                run.active += 1
+                return child  # RUNNING: run.active is not 0
+            else:
+                self._apply_wave(node, result, NO_VALUES, [edge << SHIFT | _RUN_READY], fx)
         if not run.active:
             self.after_change(run, fx)
         return None
