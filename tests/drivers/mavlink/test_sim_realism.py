@@ -8,6 +8,7 @@ in order. At ``typical`` the driver's supervision sees no fault and a flight end
 
 from __future__ import annotations
 
+import logging
 import math
 import statistics
 import threading
@@ -23,6 +24,7 @@ from temoto.drivers.mavlink import MavlinkDriver, SimVehicle
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.protocol import Codec
 from temoto.drivers.realism import LEVELS, QUANTITIES, Realism, derive_seed, realism_level
+from temoto.drivers.sim import Simulator
 from temoto.errors import DriverError, ProfileError
 
 HOME = (47.397742, 8.545594, 488.0)
@@ -415,3 +417,25 @@ def test_the_profile_keys_are_checked() -> None:
     default, _ = MavlinkDriver.simulate("quad", {"link": "udpin:127.0.0.1:1"}, clock=clock)
     assert isinstance(default, SimVehicle)
     assert not default.realism.enabled
+
+
+def test_the_vehicle_logs_its_level_and_seed_so_a_run_can_be_replayed(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    with caplog.at_level(logging.INFO, logger="temoto.drivers.mavlink.sim"):
+        SimVehicle("quad", clock=ManualClock(), realism="typical", seed=5)
+        SimVehicle("quiet", clock=ManualClock())
+    assert [r.getMessage() for r in caplog.records] == ["quad: realism typical, seed 5"]
+
+
+def test_every_simulator_has_a_realism_off_by_default() -> None:
+    class Bare(Simulator):
+        def start(self) -> None:
+            pass
+
+        def close(self) -> None:
+            pass
+
+    bare = Bare()
+    assert not bare.realism.enabled
+    assert bare.realism.describe() == "realism off"
