@@ -234,7 +234,7 @@ def test_the_link_delays_frames_but_keeps_their_order() -> None:
             drain()
             return clock.monotonic() - start >= 30.0
 
-        run_until(clock, enough, 31.0, step=0.005)
+        run_until(clock, enough, 31.0, step=0.01)
     finally:
         sim.close()
         rx.close()
