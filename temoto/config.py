@@ -327,8 +327,12 @@ def _ros2(
         given = p.mapping(cfg["publish"], f"{path}.publish")
         p.known(given, tuple(ROS2_DEFAULT_RATES), f"{path}.publish")
         for topic in given:
-            rate = p.field(given, topic, number(0.0, low=0.0, low_open=False, high=1000.0,
-                                                unit="Hz"), f"{path}.publish")
+            rate = p.field(
+                given,
+                topic,
+                number(0.0, low=0.0, low_open=False, high=1000.0, unit="Hz"),
+                f"{path}.publish",
+            )
             if rate > 0 and not has[topic]:
                 p.fail(f"{path}.publish.{topic}", why[topic])
             if rate > 0:

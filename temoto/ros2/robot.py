@@ -173,7 +173,8 @@ class RobotRos2Link:
 
         def on_status(update: StatusUpdate) -> None:
             if update.status is Status.FATAL:
-                logger.warning("robot %s: the ROS 2 bridge failed: %s", self.robot.name, update.message)
+                name = self.robot.name
+                logger.warning("robot %s: the ROS 2 bridge failed: %s", name, update.message)
                 self._lost.set()
 
         try:
@@ -188,8 +189,9 @@ class RobotRos2Link:
             inner: BaseException = err
             while inner.__cause__ is not None:
                 inner = inner.__cause__
-            if isinstance(inner, ConfigError):
-                raise ProfileError(str(inner), file=self.source or None, path="ros2") from None
+            if isinstance(inner, ConfigError):  # no rclpy (the extra), a wrong RMW: one line
+                text = str(inner).replace("the ROS 2 actions need", "the ros2 block needs")
+                raise ProfileError(text, file=self.source or None, path="ros2") from None
             raise
         self._ref = res.id
         try:
@@ -317,7 +319,14 @@ class RobotRos2Link:
         drive = self.robot.drive
         if drive is None:
             return None
-        return odometry_message(drive.pose(), drive.velocity(), now, self.settings.frame_prefix)
+        health = self.robot.health()
+        moving = all(
+            health[d].state is DriverState.ACTIVE
+            for d in self.robot.navigation_devices()
+            if d in health
+        )
+        velocity = drive.velocity() if moving else (0.0, 0.0)  # a device not readable: at rest
+        return odometry_message(drive.pose(), velocity, now, self.settings.frame_prefix)
 
     def _joint_states(self, now: float) -> dict[str, Any] | None:
         joints = self.robot.joint_states()
