@@ -261,3 +261,58 @@ def test_cmd_vel_without_the_opt_in_is_not_subscribed(loaded: Any, peer_of: Any)
     assert peer.of("cmd_vel_done")[0]["subscribers"] == 0
     assert abs(rover.handle.pose()[0]) < 0.01
     assert abs(peer.of("odom")[-1]["x"]) < 0.01
+
+
+def _robot_profile(tmp_path: Path, name: str, ros2: dict[str, Any]) -> Path:
+    doc = yaml.safe_load((ROOT / "hw_profiles" / f"{name}.yaml").read_text())
+    doc["ros2"] = ros2
+    path = tmp_path / f"{name}.yaml"
+    path.write_text(yaml.safe_dump(doc))
+    return path
+
+
+def test_the_robot_command_publishes_odometry_that_moves_during_make_runs_mission(
+    ros_env: int, peer_of: Any, tmp_path: Path
+) -> None:
+    """``make run``'s mission, with a ``ros2:`` block in its profile (a process test, ~20 s)."""
+    peer = peer_of("sim_mobile_manipulator")
+    profile = _robot_profile(tmp_path, "sim_mobile_manipulator", {"publish": {"odom": 20}})
+    mission = ROOT / "examples" / "missions" / "mobile_manipulation.graph.json"
+    argv = ["--profile", str(profile), "--mission", str(mission), "--local"]
+    done = subprocess.run(
+        [sys.executable, "-m", "temoto.managers.robot", *argv],
+        capture_output=True,
+        text=True,
+        timeout=180,
+        check=False,
+    )
+    assert done.returncode == 0, done.stderr
+    xs = [m["x"] for m in peer.of("odom")]
+    assert xs, "no odometry reached the rclpy subscriber"
+    assert max(xs) - min(xs) > 0.5, (min(xs), max(xs))
+    assert "Traceback" not in done.stderr
+
+
+def test_ctrl_c_of_the_robot_command_with_a_ros2_block(
+    ros_env: int, peer_of: Any, tmp_path: Path
+) -> None:
+    """Serving, then SIGINT: exit 0, no traceback, the bridge gone, no segment left."""
+    peer = peer_of("sim_rover")
+    profile = _robot_profile(tmp_path, "sim_rover", {"cmd_vel": True})
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "temoto.managers.robot", "--profile", str(profile), "--local"],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.PIPE,
+        text=True,
+    )
+    try:
+        assert peer.wait_for(lambda: bool(peer.of("odom")), 60), "no odometry"
+        assert peer.matched() == 1
+        proc.send_signal(signal.SIGINT)
+        _out, err = proc.communicate(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 0, err
+    assert "Traceback" not in err, err
