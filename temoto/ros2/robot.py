@@ -32,20 +32,17 @@ import math
 import threading
 import time
 from collections.abc import Callable
-from typing import TYPE_CHECKING, Any, Final
+from typing import Any, Final, Protocol
 
 from temoto.config import Ros2Settings
 from temoto.core.registrar import Registrar, Status
 from temoto.core.registrar.messages import StatusUpdate
-from temoto.drivers import DriverState
+from temoto.drivers import DriverState, Health, JointState
 from temoto.errors import ConfigError, ProfileError, ResourceError, StateError
 from temoto.ros2.client import BridgeClient, BridgeError
 from temoto.ros2.manager import Ros2BridgeRequest
 
-if TYPE_CHECKING:
-    from temoto.managers.robot.manager import Robot
-
-__all__ = ["RETRY_S", "RobotRos2Link", "diagnostics_message", "odometry_message"]
+__all__ = ["RETRY_S", "Robot", "RobotRos2Link", "diagnostics_message", "odometry_message"]
 
 logger = logging.getLogger(__name__)
 
@@ -62,6 +59,28 @@ _TYPES: Final = {
     "fix": "sensor_msgs/msg/NavSatFix",
     "diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
 }
+
+
+class Robot(Protocol):
+    """What the link needs of a loaded robot (:class:`temoto.managers.robot.manager.Robot`)."""
+
+    name: str
+    #: The drive (``DriveController``): ``pose()``, ``velocity()``, ``command_velocity()``.
+    drive: Any
+    #: The flight controller: ``telemetry()``.
+    flight: Any
+
+    def health(self) -> dict[str, Health]:
+        """Each device's health."""
+        ...
+
+    def joint_states(self) -> list[JointState]:
+        """The joints of the ACTIVE devices."""
+        ...
+
+    def navigation_devices(self) -> tuple[str, ...]:
+        """The devices the drive moves."""
+        ...
 
 
 def _stamp(now: float) -> dict[str, int]:
