@@ -133,16 +133,23 @@ class Loaded:
     def __init__(self, name: str, ros2: dict[str, Any]) -> None:
         doc = yaml.safe_load((ROOT / "hw_profiles" / f"{name}.yaml").read_text())
         doc["ros2"] = ros2
+        profile = parse_profile(doc, file=f"{name}.yaml")
         self.registrar = Registrar("r1")
         self.processes = ProcessManager(self.registrar, grace=5.0)
         self.ros2 = Ros2Manager(self.registrar)
-        self.manager = RobotManager(self.registrar, parse_profile(doc, file=f"{name}.yaml"))
-        self.handle = RobotManagerClient(self.registrar).request(client="test")
+        self.manager = RobotManager(self.registrar, profile)
+        self.handle: Any = None
+        try:
+            self.handle = RobotManagerClient(self.registrar).request(client="test")
+        except BaseException:
+            self.close()
+            raise
         self.robot = self.manager.robot()
 
     def close(self) -> None:
         try:
-            self.registrar.release(self.handle.resource.id)
+            if self.handle is not None:
+                self.registrar.release(self.handle.resource.id)
             assert self.registrar.resources() == []  # the bridge went with the robot
         finally:
             self.manager.shutdown()
