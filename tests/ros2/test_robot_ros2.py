@@ -200,6 +200,26 @@ def test_rover_odometry_arrives_and_moves(loaded: Any, peer_of: Any) -> None:
     assert not peer.of("joint_states"), "joint_states was not asked for"
 
 
+def test_a_killed_bridge_is_replaced_and_the_robot_goes_on(loaded: Any, peer_of: Any) -> None:
+    """The bridge is no dependency of the robot: its crash does not fail the robot's holders."""
+    peer = peer_of("sim_rover")
+    statuses: list[Any] = []
+    rover = loaded("sim_rover", {"publish": {"odom": 20}})
+    client = RobotManagerClient(rover.registrar)
+    watcher = client.request(client="watcher", on_status=statuses.append)
+    assert peer.wait_for(lambda: bool(peer.of("odom")), 30)
+    (bridge,) = [r.response for r in rover.registrar.resources() if r.server == "ros2"]
+    os.kill(bridge.pid, signal.SIGKILL)
+    time.sleep(0.5)
+    before = len(peer.of("odom"))
+    assert peer.wait_for(lambda: len(peer.of("odom")) > before + 5, 60), "odometry did not resume"
+    (again,) = [r.response for r in rover.registrar.resources() if r.server == "ros2"]
+    assert again.pid != bridge.pid
+    assert statuses == []  # the robot's holders were told nothing
+    assert watcher.healthy()
+    rover.registrar.release(watcher.resource.id)
+
+
 def test_arm_joint_states_arrive_and_follow_the_arm(loaded: Any, peer_of: Any) -> None:
     peer = peer_of("sim_arm")
     arm = loaded("sim_arm", {})  # the defaults: joint_states at 20 Hz, diagnostics at 1 Hz
