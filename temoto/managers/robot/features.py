@@ -36,6 +36,7 @@ import threading
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+from temoto.clock import Clock
 from temoto.config import ArmFeature, DriveFeature
 from temoto.drivers import Actuator, ControlMode, JointCommand
 from temoto.errors import StateError
@@ -61,6 +62,8 @@ class DriveController:
     Args:
         feature: The profile's drive settings.
         wheels: The driver of each wheel joint (left, right).
+        clock: The robot's clock, for how long a velocity command holds (without one, the
+            control steps' ``dt`` are counted).
     """
 
     #: Proportional gains: linear speed per metre of distance, turn rate per radian.
@@ -69,8 +72,14 @@ class DriveController:
     #: Heading error beyond which the base turns in place before driving.
     TURN_FIRST = 0.35
 
-    def __init__(self, feature: DriveFeature, wheels: tuple[Actuator, Actuator]) -> None:
+    def __init__(
+        self,
+        feature: DriveFeature,
+        wheels: tuple[Actuator, Actuator],
+        clock: Clock | None = None,
+    ) -> None:
         self.feature = feature
+        self._clock = clock
         self._left, self._right = wheels
         self._lock = threading.Lock()
         self.x = self.y = self.yaw = 0.0
@@ -78,7 +87,8 @@ class DriveController:
         self._goal: tuple[float, float, float | None] | None = None
         self._motion: Motion | None = None
         self._commanded = (0.0, 0.0)
-        #: A velocity command (``cmd_vel``): v (m/s), w (rad/s), clock seconds it still holds.
+        #: A velocity command (``cmd_vel``): v (m/s), w (rad/s), and until when it holds (the
+        #: clock's reading; without a clock, the seconds it still holds).
         self._velocity: tuple[float, float, float] | None = None
 
     def pose(self) -> tuple[float, float, float]:
@@ -123,7 +133,8 @@ class DriveController:
         with self._lock:
             if self._motion is not None and not self._motion.done:
                 raise StateError(f"the base is driven by a goal ({self._motion.what})")
-            self._velocity = (v, w, hold)
+            until = hold if self._clock is None else self._clock.monotonic() + hold
+            self._velocity = (v, w, until)
         return v, w
 
     def goal(self) -> tuple[float, float, float | None] | None:
@@ -232,11 +243,15 @@ class DriveController:
             if reached:
                 self._motion = self._goal = None
             if motion is None and self._velocity is not None:
-                cv, cw, left_s = self._velocity
-                left_s -= dt
+                cv, cw, until = self._velocity
+                if self._clock is None:
+                    until -= dt
+                    left_s = until
+                else:  # clock time: a control loop that fell behind does not stretch it
+                    left_s = until - self._clock.monotonic()
                 if left_s > 0:
                     v, w = cv, cw
-                    self._velocity = (cv, cw, left_s)
+                    self._velocity = (cv, cw, until)
                 else:  # no new command within its hold time: stop
                     self._velocity = None
             wl = (v - w * sep / 2) / r

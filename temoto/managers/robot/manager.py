@@ -231,7 +231,7 @@ class Robot:
             nav = profile.navigation
             wheels = (profile.joint_device(nav.left_wheel), profile.joint_device(nav.right_wheel))
             left, right = self._actuator(wheels[0]), self._actuator(wheels[1])
-            self.drive = DriveController(nav, (left, right))
+            self.drive = DriveController(nav, (left, right), clock)
             self._commanders.append((self.drive, frozenset(wheels)))
         if profile.manipulation is not None:
             arm = profile.manipulation
