@@ -238,6 +238,21 @@ def test_arm_joint_states_arrive_and_follow_the_arm(loaded: Any, peer_of: Any) -
     assert peer.wait_for(panned, 30), peer.of("joint_states")[-1]
 
 
+def test_the_quads_fix_and_diagnostics_arrive(loaded: Any, peer_of: Any) -> None:
+    peer = peer_of("sim_quad")
+    quad = loaded("sim_quad", {"publish": {"fix": 5, "diagnostics": 2}})
+    assert peer.wait_for(lambda: bool(peer.of("fix")), 30), "no /sim_quad/fix"
+    home = quad.handle.telemetry().position
+    fix = peer.of("fix")[-1]
+    assert fix["lat"] == pytest.approx(home.lat, abs=1e-5)
+    assert fix["lon"] == pytest.approx(home.lon, abs=1e-5)
+    assert fix["lat"] != 0.0
+    assert peer.wait_for(lambda: bool(peer.of("diagnostics")), 10)
+    assert set(peer.of("diagnostics")[-1]["levels"]) == {
+        f"sim_quad/{d}" for d in quad.robot.health()
+    }
+
+
 def test_cmd_vel_drives_the_rover_and_it_stops_when_cmd_vel_stops(
     loaded: Any, peer_of: Any
 ) -> None:
