@@ -191,7 +191,11 @@ def _latencies(
         if lines.get(timeout=60) != "ready":
             raise RuntimeError("the rclpy subscriber did not start")
         subprocess.run([python, str(pub_py), str(n)], env=env, timeout=300, check=True)
-        point = {"topic": "/bench/bridge", "type": "geometry_msgs/msg/Point", "timeout": 5}
+        point: dict[str, Any] = {
+            "topic": "/bench/bridge",
+            "type": "geometry_msgs/msg/Point",
+            "timeout": 5,
+        }
         with BridgeClient(socket) as client:
             warm("bridge", lambda: client.request("publish", message={"x": -1.0}, **point))
             for i in range(n):
@@ -275,7 +279,7 @@ def bench_ros2(quick: bool) -> Results:
             rclpy_ms = json.loads(mine.stdout.strip().splitlines()[-1])
             bridge = registrar.call("ros2", Ros2BridgeRequest(), client="bench")
             with BridgeClient(bridge.response.socket) as client:
-                fields = {
+                fields: dict[str, Any] = {
                     "service": "/bench/trigger",
                     "type": "std_srvs/srv/Trigger",
                     "timeout": 30,
