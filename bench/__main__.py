@@ -112,7 +112,7 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
         visualization.bench_visualization,
     ),
     "ros2": (
-        "ros2: Trigger service round trip, rclpy's own vs the bridge vs an action",
+        "ros2: service round trip and publish latency, rclpy's own vs the bridge vs an action",
         ros2.bench_ros2,
     ),
 }
