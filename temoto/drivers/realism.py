@@ -32,16 +32,21 @@ import secrets
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from types import MappingProxyType
-from typing import Final
+from typing import TYPE_CHECKING, Final
+
+if TYPE_CHECKING:
+    from temoto.drivers.profile import ProfileReader
 
 __all__ = [
     "LEVELS",
     "LEVEL_NAMES",
     "QUANTITIES",
+    "SIM_KEYS",
     "Realism",
     "RealismLevel",
     "derive_seed",
     "new_seed",
+    "read_sim_realism",
     "realism_level",
 ]
 
@@ -274,3 +279,34 @@ class Realism:
         if level.late > 0.0 and rng.random() < level.late:
             extra += rng.uniform(*level.late_delay)
         return extra
+
+
+#: The keys of a device entry's ``sim`` mapping that set its realism (every simulated driver
+#: accepts them).
+SIM_KEYS: Final = frozenset({"realism", "seed"})
+
+
+def read_sim_realism(reader: ProfileReader, sim: object) -> tuple[str, int | None]:
+    """The ``realism`` and ``seed`` keys of a device entry's ``sim`` mapping.
+
+    Args:
+        reader: The entry's profile reader (errors name the file and ``<entry>.sim.<key>``).
+        sim: The entry's ``sim`` value (None: absent).
+
+    Returns:
+        ``(level name, seed or None)``; ``("off", None)`` when absent.
+
+    Raises:
+        ProfileError: ``sim`` is not a mapping, an unknown level or a seed that is not a
+            non-negative integer.
+    """
+    if sim is None:
+        return "off", None
+    values = reader.mapping(sim, "sim")
+    level = values.get("realism", "off")
+    if level not in LEVEL_NAMES:
+        reader.fail("sim.realism", f"must be one of {', '.join(LEVEL_NAMES)}, got {level!r}")
+    seed = values.get("seed")
+    if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
+        reader.fail("sim.seed", f"must be a non-negative integer, got {seed!r}")
+    return str(level), seed

@@ -37,6 +37,7 @@ from temoto.drivers import (
     make_all_safe,
 )
 from temoto.drivers.base import device_text
+from temoto.drivers.realism import Realism
 from temoto.drivers.sim import Simulator
 from temoto.errors import (
     ConfigError,
@@ -364,9 +365,15 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         sim_gcs: With ``sim: true``: more UDP addresses every simulated vehicle streams to
             (ground stations watching the robot's own vehicle, the robot command's
             ``--sim-out``).
+        realism: With ``sim: true``: the simulators' realism level (``off``, the default:
+            the exact figures; ``typical``; ``harsh``: :mod:`temoto.drivers.realism`). A
+            device entry's own ``sim.realism`` / ``sim.seed`` win over it.
+        seed: The realism's top-level seed (None: a fresh one at a level other than off;
+            :attr:`seed` holds it, to be printed so the run can be replayed).
 
     Raises:
-        ValueError: ``rate_hz`` is not positive, or the servers exist already.
+        ValueError: ``rate_hz`` is not positive, an unknown realism level, a seed that is not
+            a non-negative integer, or the servers exist already.
     """
 
     name: ClassVar[str] = "robot"
@@ -381,9 +388,15 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         clock: Clock | None = None,
         rate_hz: float = 50.0,
         sim_gcs: Sequence[tuple[str, int]] = (),
+        realism: str = "off",
+        seed: int | None = None,
     ) -> None:
         if not rate_hz > 0:
             raise ValueError("rate_hz must be positive")
+        #: The simulators' realism (``realism.describe()``: the line to print).
+        self.realism = Realism(realism, seed=seed, device=profile.robot)
+        #: The realism's top-level seed (None at ``off``).
+        self.seed = self.realism.seed
         self.sim_gcs = tuple(sim_gcs)
         self.registrar = registrar
         self.profile = profile
@@ -535,6 +548,12 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         config: Mapping[str, Any] = spec.config
         sim: Simulator | None = None
         if self.profile.sim:
+            own = config.get("sim")
+            if own is None or isinstance(own, Mapping):  # the entry's own keys win
+                level: dict[str, Any] = {"realism": self.realism.level.name}
+                if self.seed is not None:
+                    level["seed"] = self.seed
+                config = {**config, "sim": {**level, **(own or {})}}
             sim, config = cls.simulate(spec.name, config, clock=self.clock)
             if isinstance(sim, _StreamsToGcs):
                 for host, port in self.sim_gcs:
