@@ -36,6 +36,7 @@ from bench import (
     mavlink,
     peers,
     process,
+    realism,
     registrar,
     ris,
     robot,
@@ -82,6 +83,10 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
         mavlink.bench_mavlink,
     ),
     "can": ("can: 8 CANSimple axes at 500 Hz on a virtual bus", can.bench_can),
+    "realism": (
+        "realism: the simulated vehicle's supervised streams per level (virtual hours)",
+        realism.bench_realism,
+    ),
     "component": (
         "component manager: active sensor killed -> substitute's data at the consumer",
         component.bench_component,
@@ -107,7 +112,7 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
         visualization.bench_visualization,
     ),
     "ros2": (
-        "ros2: Trigger service round trip, rclpy's own vs the bridge vs an action",
+        "ros2: service round trip and publish latency, rclpy's own vs the bridge vs an action",
         ros2.bench_ros2,
     ),
 }

@@ -13,6 +13,9 @@ A profile is a YAML file (``hw_profiles/*.yaml``, schema in ``hw_profiles/README
                    wheel_radius: 0.1, wheel_separation: 0.5}
       manipulation: {type: arm, device: arm, poses: {home: {shoulder: 0.0}}}
       flight: {type: vehicle, device: quad}
+    ros2:                       # optional: the robot's state on ROS 2 (docs/ros2.md)
+      publish: {odom: 20, joint_states: 20, fix: 5, diagnostics: 1}   # Hz, 0: off
+      cmd_vel: false            # true: geometry_msgs/Twist on /<robot>/cmd_vel drives the base
 
 :func:`load_profile` reads and checks everything without touching hardware (drivers are
 constructed, never configured); every problem is a :class:`~temoto.errors.ProfileError` whose
@@ -36,7 +39,7 @@ from temoto._yaml import safe_load_strict
 from temoto.clock import Clock, MonotonicClock
 from temoto.drivers import Actuator, Vehicle, driver_class
 from temoto.drivers import profile as fields
-from temoto.drivers.profile import Field, ProfileReader, custom, flag, number, text
+from temoto.drivers.profile import Field, ProfileReader, custom, flag, integer, number, text
 from temoto.errors import PluginError, ProfileError
 
 __all__ = [
@@ -45,6 +48,7 @@ __all__ = [
     "DriveFeature",
     "FlightFeature",
     "Profile",
+    "Ros2Settings",
     "load_profile",
     "parse_profile",
 ]
@@ -56,6 +60,7 @@ _TOP_FIELDS: Final[Mapping[str, Field[Any]]] = {
     "sim": flag(False),
     "devices": custom(lambda p, value, key: value, {}),
     "features": custom(lambda p, value, key: value, {}),
+    "ros2": custom(lambda p, value, key: value, None),
 }
 _DRIVER: Final = text(hint="name the driver (e.g. odrive_can, dynamixel)")
 #: A device key read here, not by its driver: ``true`` accepts ``safe_state: hold`` on a device
@@ -145,6 +150,26 @@ class FlightFeature:
 
 
 @dataclass(frozen=True, slots=True)
+class Ros2Settings:
+    """The robot's state on ROS 2 (the profile's ``ros2:`` block, ``docs/ros2.md``).
+
+    Attributes:
+        rates: Topic (``odom``, ``joint_states``, ``fix``, ``diagnostics``) -> Hz; only those
+            published (a rate of 0 in the file leaves the topic out).
+        cmd_vel: Whether ``geometry_msgs/Twist`` on ``/<robot>/cmd_vel`` drives the base.
+        cmd_vel_timeout: Seconds without a new ``cmd_vel`` after which the base is stopped.
+        domain_id: The ``ROS_DOMAIN_ID`` (-1: the environment's).
+        frame_prefix: Put before the frame ids ``odom`` and ``base_link``.
+    """
+
+    rates: Mapping[str, float]
+    cmd_vel: bool = False
+    cmd_vel_timeout: float = 0.5
+    domain_id: int = -1
+    frame_prefix: str = ""
+
+
+@dataclass(frozen=True, slots=True)
 class Profile:
     """A checked hardware profile.
 
@@ -157,6 +182,7 @@ class Profile:
         manipulation: The arm feature, if any.
         flight: The flight feature, if any.
         source: The file it came from.
+        ros2: The ``ros2:`` block, if any.
     """
 
     robot: str
@@ -167,6 +193,7 @@ class Profile:
     manipulation: ArmFeature | None = None
     flight: FlightFeature | None = None
     source: str = ""
+    ros2: Ros2Settings | None = None
 
     @property
     def features(self) -> tuple[str, ...]:
@@ -255,7 +282,68 @@ def parse_profile(raw: object, *, file: str = "", clock: Clock | None = None) ->
         arm = _arm(p, features["manipulation"], devices)
     if "flight" in features:
         flight = _flight(p, features["flight"], devices)
-    return Profile(robot, description, sim, devices, nav, arm, flight, file)
+    ros2 = None
+    if top["ros2"] is not None:
+        ros2 = _ros2(p, top["ros2"], devices, nav, flight)
+    return Profile(robot, description, sim, devices, nav, arm, flight, file, ros2)
+
+
+#: What the ``ros2:`` block publishes when it has no ``publish`` key (Hz; each only where the
+#: robot has it).
+ROS2_DEFAULT_RATES: Final[Mapping[str, float]] = {
+    "odom": 20.0,
+    "joint_states": 20.0,
+    "fix": 5.0,
+    "diagnostics": 1.0,
+}
+
+
+def _ros2(
+    p: ProfileReader,
+    raw: object,
+    devices: Mapping[str, DeviceSpec],
+    nav: DriveFeature | None,
+    flight: FlightFeature | None,
+) -> Ros2Settings:
+    path = "ros2"
+    cfg = p.mapping(raw, path)
+    keys = ("publish", "cmd_vel", "cmd_vel_timeout", "domain_id", "frame_prefix")
+    p.known(cfg, keys, path)
+    has = {
+        "odom": nav is not None,
+        "joint_states": any(spec.joints for spec in devices.values()),
+        "fix": flight is not None,
+        "diagnostics": True,
+    }
+    why = {
+        "odom": "the robot has no navigation feature",
+        "joint_states": "no device of the robot has joints",
+        "fix": "the robot has no flight feature",
+    }
+    rates: dict[str, float] = {}
+    if cfg.get("publish") is None:
+        rates = {k: v for k, v in ROS2_DEFAULT_RATES.items() if has[k]}
+    else:
+        given = p.mapping(cfg["publish"], f"{path}.publish")
+        p.known(given, tuple(ROS2_DEFAULT_RATES), f"{path}.publish")
+        for topic in given:
+            rate = p.field(
+                given,
+                topic,
+                number(0.0, low=0.0, low_open=False, high=1000.0, unit="Hz"),
+                f"{path}.publish",
+            )
+            if rate > 0 and not has[topic]:
+                p.fail(f"{path}.publish.{topic}", why[topic])
+            if rate > 0:
+                rates[topic] = rate
+    cmd_vel = p.field(cfg, "cmd_vel", flag(False), path)
+    if cmd_vel and nav is None:
+        p.fail(f"{path}.cmd_vel", "the robot has no navigation feature to drive")
+    timeout = p.field(cfg, "cmd_vel_timeout", number(0.5, high=10.0, unit="s"), path)
+    domain = p.field(cfg, "domain_id", integer(-1, low=0, high=232), path)
+    prefix = p.field(cfg, "frame_prefix", text("", empty=True), path)
+    return Ros2Settings(rates, cmd_vel, timeout, domain, prefix)
 
 
 def _devices(p: ProfileReader, raw: object, clock: Clock) -> dict[str, DeviceSpec]:

@@ -19,6 +19,7 @@ from temoto.cli.common import (
     factor,
     signal_name,
 )
+from temoto.cli.realism_opts import add_realism_options, announce_realism, resolve_seed
 from temoto.cli.signals import FORCE_EXIT_S, Interrupted, SignalExit, make_devices_safe
 from temoto.managers.visualization.live import add_foxglove_option
 
@@ -40,6 +41,7 @@ def add_parser(sub: Any) -> None:
         metavar="F",
         help="run the robots' clocks F times faster than real time (default 1)",
     )
+    add_realism_options(demo)  # the robots' simulators (demonstrations 2 to 5)
     add_foxglove_option(demo)  # demonstration 1's displays, live (docs/visualization.md)
 
 
@@ -49,10 +51,20 @@ def main(args: argparse.Namespace) -> int:
 
     # The first signal raises KeyboardInterrupt (Interrupted) inside the demonstration, which
     # cleans up on its way out as it does for Ctrl-C; its processes are stopped by then.
+    resolve_seed(args)
+    if args.number != 1:  # demonstration 1's sensors are processes, not simulated devices
+        announce_realism(args, sys.stderr)
     try:
         with SignalExit(raise_first=True, force_exit=FORCE_EXIT_S) as signals:
             try:
-                report = run_demo(args.number, sys.stdout, speed=args.speed, foxglove=_fg(args))
+                report = run_demo(
+                    args.number,
+                    sys.stdout,
+                    speed=args.speed,
+                    foxglove=_fg(args),
+                    realism=args.realism,
+                    seed=args.seed,
+                )
             finally:
                 signals.raising = False
                 if signals.signum is not None:

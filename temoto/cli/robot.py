@@ -54,6 +54,7 @@ from temoto.cli.fleet import (
     state_files,
 )
 from temoto.cli.progress import ActionLogHandler, Progress
+from temoto.cli.realism_opts import add_realism_options, announce_realism, resolve_seed
 from temoto.cli.signals import SignalExit
 from temoto.cli.sim_args import parse_udp_address
 from temoto.cli.sim_devices import endpoint_for
@@ -178,6 +179,7 @@ def _parser() -> argparse.ArgumentParser:
         " ground station (repeatable; QGroundControl listens on udp:127.0.0.1:14550)",
     )
     add_state_options(p)
+    add_realism_options(p)
     p.add_argument(
         "--local",
         action="store_true",
@@ -229,6 +231,9 @@ def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
     clock = MonotonicClock()
     profile = load_profile(args.profile, clock=clock)
     _check_sim_out(args.sim_out, profile)
+    resolve_seed(args)
+    if profile.sim:
+        announce_realism(args, sys.stderr)
     mission = load_graph(args.mission) if args.mission else None
     state = state_files(args)
     transport: Transport
@@ -285,7 +290,14 @@ def _run_instance(
         live_view_port=args.live_view,
         component_files=args.components,
     ) as instance:
-        manager = RobotManager(instance.registrar, profile, clock=clock, sim_gcs=args.sim_out)
+        manager = RobotManager(
+            instance.registrar,
+            profile,
+            clock=clock,
+            sim_gcs=args.sim_out,
+            realism=args.realism,
+            seed=args.seed,
+        )
         instance.add_manager(manager)
         # load the robot now: a device that does not answer fails here, not mid-mission
         # references this command held before a restart died with its process: let them go

@@ -36,6 +36,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import IO, Any, Final
 
+from temoto.cli.realism_opts import announce_realism, resolve_seed
 from temoto.cli.sim_args import (
     DEFAULT_CAN_GROUP,
     DEFAULT_OUT,
@@ -115,6 +116,8 @@ def main(args: argparse.Namespace, out: IO[str] | None = None) -> int:
             "temoto sim: say what to simulate: a KIND (quad, odrive, mit, dynamixel) or"
             " --profile FILE, not both"
         )
+    resolve_seed(args)
+    announce_realism(args, sys.stderr)
     printer = _Printer(bool(getattr(args, "json", False)), out)
     with SignalExit(force_exit=FORCE_EXIT_S, force_exit_code=0) as signals, ExitStack() as stack:
         if kind is None:

@@ -14,6 +14,8 @@ import math
 from collections.abc import Callable
 from typing import Any, Final
 
+from temoto.cli.realism_opts import add_realism_options
+
 __all__ = ["DEFAULT_CAN_GROUP", "DEFAULT_OUT", "DEFAULT_PORT", "add_sim", "parse_udp_address"]
 
 #: The vehicle's own UDP port: the number ArduPilot SITL serves its first MAVLink port on
@@ -359,6 +361,7 @@ def _common(p: argparse.ArgumentParser, *, out: bool) -> None:
     or after the kind counts.
     """
     default: Any = argparse.SUPPRESS
+    add_realism_options(p, suppress=True)
     p.add_argument(
         "--json",
         action="store_true",

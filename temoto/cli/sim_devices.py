@@ -123,6 +123,8 @@ def _quad(args: argparse.Namespace, stack: ExitStack) -> Served:
             host=args.bind,
             port=args.port,
             system_id=args.sysid,
+            realism=args.realism,
+            seed=args.seed,
             **kwargs,
         )
     except (ValueError, OSError) as err:
@@ -196,13 +198,23 @@ def _can(kind: str, args: argparse.Namespace, stack: ExitStack) -> Served:
                 clock,
                 watchdog_timeout=args.watchdog,
                 rates_ms=dict(args.rate),
+                realism=args.realism,
+                seed=args.seed,
+                device=kind,
             )
             ids = sorted(args.node)
             driver = "odrive_can"
         else:
             models = [MitModel.of(i, m) for i, m in args.motor]
             sim = SimMitMotor(
-                link, models, clock, host_id=args.host_id, can_timeout=args.can_timeout
+                link,
+                models,
+                clock,
+                host_id=args.host_id,
+                can_timeout=args.can_timeout,
+                realism=args.realism,
+                seed=args.seed,
+                device=kind,
             )
             ids = sorted(i for i, _ in args.motor)
             driver = "mit_can"
@@ -293,6 +305,12 @@ def serve_profile(path: Path, args: argparse.Namespace, stack: ExitStack) -> lis
         if isinstance(link, Mapping) and link.get("interface") == "virtual":
             group = groups.setdefault(str(link.get("channel")), _group(len(groups)))
             config["link"] = {"interface": "udp_multicast", "channel": group}
+        own = config.get("sim")
+        if own is None or isinstance(own, Mapping):  # the entry's own keys win
+            level: dict[str, Any] = {"realism": args.realism}
+            if args.seed is not None:
+                level["seed"] = args.seed
+            config["sim"] = {**level, **(own or {})}
         try:
             sim, settings = driver_class(spec.driver).simulate(name, config, clock=clock)
         except DriverError as err:  # a driver whose library is missing, a busy resource

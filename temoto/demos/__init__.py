@@ -41,6 +41,8 @@ def run_demo(
     *,
     speed: float = 1.0,
     foxglove: tuple[str, int] | None = None,
+    realism: str = "off",
+    seed: int | None = None,
 ) -> DemoReport:
     """Run one demonstration and print its timeline.
 
@@ -50,6 +52,9 @@ def run_demo(
         speed: How much faster than real time the robots' clocks run (tests use more than 1).
         foxglove: Serve the demonstration's displays live to Foxglove on this (host, port)
             (demonstrations 1 and 2), or None.
+        realism: The simulated devices' realism level (``off``: the exact figures;
+            ``typical``, ``harsh``: :mod:`temoto.drivers.realism`); demonstration 1 has none.
+        seed: The realism's seed (None: a fresh one per robot at a level other than off).
 
     Returns:
         What happened, for checks.
@@ -69,7 +74,9 @@ def run_demo(
     title, module_name = DEMOS[number]
     module = importlib.import_module(module_name)
     timeline = Timeline(out or sys.stdout, f"demo {number}: {title}")
-    extra = {"foxglove": foxglove} if foxglove is not None else {}
+    extra: dict[str, object] = {"foxglove": foxglove} if foxglove is not None else {}
+    if number != 1:  # demonstration 1's sensors are processes, not simulated devices
+        extra.update(realism=realism, seed=seed)
     report: DemoReport = module.run(timeline, speed=speed, **extra)
     timeline.close(report)
     return report

@@ -120,7 +120,12 @@ class _Shown:
 
 
 def run(
-    timeline: Timeline, *, speed: float = 1.0, foxglove: tuple[str, int] | None = None
+    timeline: Timeline,
+    *,
+    speed: float = 1.0,
+    foxglove: tuple[str, int] | None = None,
+    realism: str = "off",
+    seed: int | None = None,
 ) -> DemoReport:
     """Run the demonstration.
 
@@ -128,6 +133,9 @@ def run(
         timeline: Where events are printed.
         speed: Clock speed-up of the rovers (the cameras are real processes).
         foxglove: Serve the display live to Foxglove on this (host, port), or None.
+
+        realism: The robots' simulators' realism level (``off``, ``typical``, ``harsh``).
+        seed: The realism's seed (None: a fresh one at a level other than off).
 
     Returns:
         The report (facts: which camera fed the display, the switch-over time, the escort's
@@ -152,7 +160,9 @@ def run(
                 )
             )
             profile = load_profile(DATA / f"demo_{actor}.yaml", clock=clock)
-            robot_manager = RobotManager(instance.registrar, profile, clock=clock)
+            robot_manager = RobotManager(
+                instance.registrar, profile, clock=clock, realism=realism, seed=seed
+            )
             instance.add_manager(robot_manager)
             instance.components.add_file(DATA / "cameras.yaml")
             robots[actor] = RobotManagerClient(instance.registrar).request(client="demo")

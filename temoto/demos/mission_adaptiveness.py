@@ -91,12 +91,17 @@ class _Steps(Instrument):
         self.timeline.say(self.actor, f"{graph} ended: {result.value}")
 
 
-def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
+def run(
+    timeline: Timeline, *, speed: float = 1.0, realism: str = "off", seed: int | None = None
+) -> DemoReport:
     """Run the demonstration.
 
     Args:
         timeline: Where events are printed.
         speed: Clock speed-up of the robots (1: real time).
+
+        realism: The robots' simulators' realism level (``off``, ``typical``, ``harsh``).
+        seed: The realism's seed (None: a fresh one at a level other than off).
 
     Returns:
         The report (facts: pause/resume times, delivery results, patrol legs).
@@ -123,7 +128,11 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
                 )
             )
             manager = RobotManager(
-                instance.registrar, load_profile(DATA / profile_file, clock=clock), clock=clock
+                instance.registrar,
+                load_profile(DATA / profile_file, clock=clock),
+                clock=clock,
+                realism=realism,
+                seed=seed,
             )
             instance.add_manager(manager)
             robot = RobotManagerClient(instance.registrar).request(client="demo")

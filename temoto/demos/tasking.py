@@ -52,12 +52,17 @@ class _Steps(Instrument):
             self.timeline.say("robot", f"{node} ({self.labels.get(node, '')}) {what}")
 
 
-def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
+def run(
+    timeline: Timeline, *, speed: float = 1.0, realism: str = "off", seed: int | None = None
+) -> DemoReport:
     """Run the demonstration.
 
     Args:
         timeline: Where events are printed.
         speed: Clock speed-up of the robot (1: real time).
+
+        realism: The robots' simulators' realism level (``off``, ``typical``, ``harsh``).
+        seed: The realism's seed (None: a fresh one at a level other than off).
 
     Returns:
         The report (facts: the steps understood, the result, where the robot ended, the
@@ -77,7 +82,9 @@ def run(timeline: Timeline, *, speed: float = 1.0) -> DemoReport:
     report_v.raise_for_errors()
     timeline.say("engine", f"graph '{graph.name}' valid ({len(graph.actions)} actions)")
     registrar = Registrar("demo4")
-    manager = RobotManager(registrar, load_profile(PROFILE, clock=clock), clock=clock)
+    manager = RobotManager(
+        registrar, load_profile(PROFILE, clock=clock), clock=clock, realism=realism, seed=seed
+    )
     try:
         robot = RobotManagerClient(registrar).request(client="demo")
         timeline.say("robot", f"ready ({', '.join(robot.features)}; simulated)")

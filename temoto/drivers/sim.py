@@ -25,6 +25,8 @@ from collections.abc import Mapping
 from types import TracebackType
 from typing import Any, ClassVar, Final, Self
 
+from temoto.drivers.realism import Realism
+
 __all__ = ["FAULT_NAMES", "HARDWARE_ERRORS", "Simulator"]
 
 #: Every fault name a simulator may support.
@@ -44,6 +46,9 @@ class Simulator(ABC):
     def __init__(self) -> None:
         self._fault_lock = threading.Lock()
         self._faults: dict[str, dict[str, Any]] = {}
+        #: The simulator's imperfections (:mod:`temoto.drivers.realism`): ``off`` unless the
+        #: simulator takes a level; ``realism.describe()`` names the level and the seed to print.
+        self.realism = Realism("off")
 
     def __enter__(self) -> Self:
         self.start()

@@ -187,6 +187,41 @@ class Bridge:
                 self.node.destroy_subscription(sub)
         return {"message": to_json(got[0])}
 
+    def subscribe(self, req: dict[str, Any], event: Callable[[dict[str, Any]], None]) -> Any:
+        """Every message on a topic as a ``message`` event, until the request is cancelled.
+
+        The messages are handed over in the request's own thread (the executor's callback only
+        keeps the newest ``depth`` of them), so a slow connection never holds the executor up.
+        """
+        topic, type_name = str(req["topic"]), str(req["type"])
+        depth = max(1, int(req.get("depth") or 10))
+        cls = import_type(type_name, "msg")
+        queue: list[Any] = []
+        arrived = threading.Condition()
+
+        def on_message(msg: Any) -> None:
+            with arrived:
+                queue.append(msg)
+                del queue[:-depth]
+                arrived.notify()
+
+        with self._lock:
+            sub = self.node.create_subscription(cls, topic, on_message, depth)
+        cancel: threading.Event = req["_cancel"]
+        count = 0
+        try:
+            while not (self.stop.is_set() or cancel.is_set()):
+                with arrived:
+                    arrived.wait_for(lambda: bool(queue), TICK_S)
+                    got, queue[:] = list(queue), []
+                for msg in got:
+                    event({"event": "message", "message": to_json(msg)})
+                count += len(got)
+        finally:
+            with self._lock:
+                self.node.destroy_subscription(sub)
+        return {"messages": count}
+
     def call_service(self, req: dict[str, Any], _event: Callable[[dict[str, Any]], None]) -> Any:
         """Call a service; its response, within ``timeout`` seconds (discovery included)."""
         service, type_name = str(req["service"]), str(req["type"])
@@ -329,6 +364,7 @@ class Connection:
             "wait_message": self._bridge.wait_message,
             "call_service": self._bridge.call_service,
             "send_goal": self._bridge.send_goal,
+            "subscribe": self._bridge.subscribe,
         }.get(str(op))
         if handler is None or not isinstance(rid, int):
             self._send({"id": rid, "ok": False, "error": f"unknown operation {op!r}"})

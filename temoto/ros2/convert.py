@@ -78,6 +78,8 @@ def fill(msg: Any, values: dict[str, Any], where: str = "") -> Any:
                     raise TypeError(f"an object, not {type(value).__name__}")
                 fill(current, value, path)
                 continue
+            if isinstance(current, bytes) and isinstance(value, int) and len(current) == 1:
+                value = bytes([value])  # an ``octet``/``byte`` field (DiagnosticStatus.level)
             if isinstance(value, list):
                 element = _element_class(msg, key)
                 if element is not None:

@@ -211,7 +211,11 @@ class Ros2LifecycleManager(ResourceServer[Ros2LifecycleRequest, Ros2LifecycleRes
 
         try:
             if request.program:
-                hold("process", program_request(request.program), "its program")
+                hold(
+                    "process",
+                    program_request(request.program, domain_id=request.domain_id),
+                    "its program",
+                )
             bridge = hold("ros2", Ros2BridgeRequest(request.domain_id), "the ROS 2 bridge")
             client = BridgeClient(bridge.response.socket)
         except BaseException:

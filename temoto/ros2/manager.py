@@ -93,27 +93,34 @@ def ros_python() -> str:
     return os.environ.get(PYTHON_VARIABLE) or sys.executable
 
 
-def program_request(argv: tuple[str, ...], python: str | None = None) -> ProcessRequest:
+def program_request(
+    argv: tuple[str, ...], python: str | None = None, domain_id: int = -1
+) -> ProcessRequest:
     """A Process Manager request for a ROS 2 program: a Python node file or an executable.
 
     A ``.py`` file runs with the interpreter that has rclpy (:func:`ros_python`); anything
-    else is an executable. Both inherit the environment (the user's ROS variables).
+    else is an executable. Both inherit the environment (the user's ROS variables); a
+    ``domain_id`` other than -1 sets the program's ``ROS_DOMAIN_ID`` (as it does the bridge's).
 
     Args:
         argv: The program and its arguments.
         python: The interpreter for ``.py`` files (default :func:`ros_python`).
+        domain_id: The program's ``ROS_DOMAIN_ID``, or -1 for the environment's.
 
     Returns:
         The request.
 
     Raises:
-        ValueError: An empty ``argv``.
+        ValueError: An empty ``argv``, or a domain id outside -1..232.
     """
     if not argv or not argv[0]:
         raise ValueError("a ROS 2 program needs a file or an executable")
+    Ros2BridgeRequest(domain_id)  # the same check as the bridge's
+    env = () if domain_id == -1 else (("ROS_DOMAIN_ID", str(domain_id)),)
     if argv[0].endswith(".py"):
-        return ProcessRequest(python or ros_python(), (str(Path(argv[0]).resolve()), *argv[1:]))
-    return ProcessRequest(argv[0], tuple(argv[1:]))
+        args = (str(Path(argv[0]).resolve()), *argv[1:])
+        return ProcessRequest(python or ros_python(), args, env)
+    return ProcessRequest(argv[0], tuple(argv[1:]), env)
 
 
 def bridge_args(path: Path) -> tuple[str, ...]:

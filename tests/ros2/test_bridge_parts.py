@@ -24,7 +24,7 @@ from temoto.errors import ConfigError
 from temoto.managers.process import ProcessManager
 from temoto.ros2 import require_rclpy
 from temoto.ros2.client import BridgeClient, BridgeError
-from temoto.ros2.manager import Ros2Manager
+from temoto.ros2.manager import Ros2Manager, program_request
 from temoto.ros2.protocol import MAX_FRAME, FrameError, recv_frame, send_frame
 from temoto.ros2.shm import PORT_MIN_AGE_S, clean_stale_segments
 
@@ -222,3 +222,13 @@ def test_temoto_run_knows_the_ros2_actions(tmp_path: Path) -> None:
     assert done.returncode != 0, done.stdout
     assert "pip install 'temoto[ros2]'" in done.stderr, done.stderr
     assert "Traceback" not in done.stderr
+
+
+def test_a_ros2_program_request_runs_node_files_with_the_ros_interpreter_and_domain() -> None:
+    node_file = program_request(("node.py", "--x"), python="/ros/python", domain_id=7)
+    assert node_file.executable == "/ros/python"
+    assert node_file.args == (str(Path("node.py").resolve()), "--x")
+    assert node_file.env == (("ROS_DOMAIN_ID", "7"),)
+    assert program_request(("talker",)).env == ()  # the environment's domain
+    with pytest.raises(ValueError, match="domain_id"):
+        program_request(("talker",), domain_id=300)

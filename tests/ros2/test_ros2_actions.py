@@ -552,6 +552,34 @@ def test_a_lifecycle_node_whose_program_is_started_first(registrar: Registrar) -
     assert registrar.resources() == []  # the program was stopped with the node
 
 
+def test_a_ros2_node_program_started_by_the_process_manager(registrar: Registrar) -> None:
+    # The node file is started by Ros2Node in a domain of its own (not the environment's):
+    # only if it got the ROS environment and that ROS_DOMAIN_ID does the call reach it.
+    domain = next(_DOMAINS)
+    g = graph(
+        "ros2_node",
+        node("Ros2Node", {"program": str(PEER), "domain_id": domain}, children=["Ros2CallService"]),
+        node(
+            "Ros2CallService",
+            {
+                "service": "/peer/trigger",
+                "type": "std_srvs/srv/Trigger",
+                "timeout": 30,
+                "domain_id": domain,
+            },
+            parents=["Ros2Node"],
+        ),
+    )
+    g["graph_exit"].append({"name": "Ros2Node", "instance_id": 0})  # for its output pid
+    with ActionEngine("r1", actions=[ROS2_ACTIONS], registrar=registrar) as engine:
+        outcome = engine.run(g, timeout=90)
+    assert outcome.result is Result.TRUE, outcome.errors
+    assert json.loads(outcome.outputs["response"])["message"] == "triggered 1"
+    pid = int(outcome.outputs["pid"])
+    assert registrar.resources() == []  # released with the run: the process was stopped
+    assert not Path(f"/proc/{pid}").exists()
+
+
 def test_ctrl_c_of_the_example_and_its_peer(ros_env: int) -> None:
     examples = Path(__file__).resolve().parents[2] / "examples" / "ros2"
     env = {**_bridge_env(), PYTHON_VARIABLE: ROS_PYTHON}

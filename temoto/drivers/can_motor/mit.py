@@ -66,6 +66,7 @@ from temoto.drivers.can_motor._driver import (
 )
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.profile import Field, ProfileReader, custom, integer, number
+from temoto.drivers.realism import SIM_KEYS, read_sim_realism
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import BAD_FRAMES_WINDOW, FaultWindow, StreamAge
 from temoto.errors import (
@@ -288,6 +289,7 @@ class MitMotorDriver(CanMotorDriver):
         "timeout_periods": integer(3, low=1, high=1000),
         "init_timeout": number(0.5),
         "can_timeout": number(0.0, low=0, low_open=False, describe="0 (not used) or positive"),
+        "sim": custom(lambda r, v, k: dict(r.mapping(v, k)), {}, init=False),
     }
 
     def __init__(
@@ -406,6 +408,10 @@ class MitMotorDriver(CanMotorDriver):
             _check_model(reader, path, model, ranges, gear, limits)
             motors.append(MitMotor(motor_id, joint, ranges, gear, kp, kd, limits, model))
         kwargs["motors"] = motors
+        for key in values["sim"]:  # checked here, used by simulate()
+            if key not in SIM_KEYS:
+                reader.fail(f"sim.{key}", "unknown; the simulator's settings are realism, seed")
+        read_sim_realism(reader, values["sim"])
         rate, timeout = kwargs["poll_rate"], kwargs["can_timeout"]
         if timeout > CAN_TIMEOUT_MAX:
             reader.fail(
@@ -432,7 +438,7 @@ class MitMotorDriver(CanMotorDriver):
             clock: The clock the simulator steps on.
 
         Returns:
-            ``(simulator, config)``; for CAN the config is the same.
+            ``(simulator, config)``; for CAN the config is the entry without ``sim``.
 
         Raises:
             ProfileError: A bad entry.
@@ -442,6 +448,7 @@ class MitMotorDriver(CanMotorDriver):
         driver = cls.from_profile(name, config, clock=clock, where=name)
         driver.shutdown()
         models = [MitModel.of(m.motor_id, m.model, m.ranges) for m in driver.motors]
+        level, seed = read_sim_realism(ProfileReader.at(name), config.get("sim"))
         sim = SimMitMotor(
             driver.link,
             models,
@@ -449,8 +456,11 @@ class MitMotorDriver(CanMotorDriver):
             host_id=driver.host_id,
             tick=driver.supervise_period,
             can_timeout=driver.can_timeout,
+            realism=level,
+            seed=seed,
+            device=name,
         )
-        return sim, dict(config)
+        return sim, {k: v for k, v in config.items() if k != "sim"}
 
     # ---- lifecycle -------------------------------------------------------------------------
 

@@ -80,6 +80,7 @@ from temoto.drivers.can_motor.odrive_axes import (
 from temoto.drivers.can_motor.odrive_settings import read_nodes, sim_mechanics, sim_rates
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
 from temoto.drivers.profile import Field, ProfileReader, custom, number
+from temoto.drivers.realism import read_sim_realism
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import stale_periods
 from temoto.errors import (
@@ -262,6 +263,7 @@ class ODriveDriver(CanMotorDriver):
         # checked here, used by simulate()
         sim_rates(reader, values["sim"], kwargs["heartbeat_period"], kwargs["encoder_period"])
         sim_mechanics(reader, values["sim"])
+        read_sim_realism(reader, values["sim"] or None)
         # safe_state hold without watchdog_timeout: refused by the profile (temoto.config), which
         # alone can take its acknowledgement (hold_without_watchdog: true), for every driver alike
         return kwargs
@@ -296,6 +298,7 @@ class ODriveDriver(CanMotorDriver):
         reader = ProfileReader(name)
         rates = sim_rates(reader, config.get("sim"), driver.heartbeat_period, driver.encoder_period)
         mechanics = sim_mechanics(reader, config.get("sim"))
+        level, seed = read_sim_realism(reader, config.get("sim"))
         axes = [AxisModel(n.node_id) for n in driver.nodes]
         for axis in axes:
             for key, value in mechanics.items():
@@ -308,6 +311,9 @@ class ODriveDriver(CanMotorDriver):
             encoder_period=driver.encoder_period,
             watchdog_timeout=driver.watchdog_timeout,
             rates_ms=rates,
+            realism=level,
+            seed=seed,
+            device=name,
         )
         return sim, {k: v for k, v in config.items() if k != "sim"}
 

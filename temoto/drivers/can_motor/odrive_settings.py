@@ -15,6 +15,7 @@ from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor._common import read_limits, read_members
 from temoto.drivers.can_motor.odrive_axes import ODriveNode
 from temoto.drivers.profile import ProfileReader, number
+from temoto.drivers.realism import SIM_KEYS
 
 __all__ = ["SIM_MECHANICS", "read_nodes", "sim_mechanics", "sim_rates"]
 
@@ -86,14 +87,14 @@ def sim_rates(
         return rates
     sim = p.mapping(raw, "sim")
     for key in sim:
-        if key in SIM_MECHANICS:
+        if key in SIM_MECHANICS or key in SIM_KEYS:
             continue
         if key not in CYCLIC_RATES:
             p.fail(
                 f"sim.{key}",
                 f"unknown; the simulator's settings are the ODrive's cyclic message rates"
                 f" ({', '.join(CYCLIC_RATES)}) and the axes' mechanics"
-                f" ({', '.join(SIM_MECHANICS)})",
+                f" ({', '.join(SIM_MECHANICS)}) and realism, seed",
             )
         ms = p.field(sim, key, _SIM_MS, "sim")
         driver_key = _SUPERVISED.get(key)

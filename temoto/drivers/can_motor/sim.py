@@ -29,6 +29,13 @@ killed host is testable: :class:`SimODrive` with ``watchdog_timeout`` > 0 is an 
 frame (the special frames do not count) arrived for that long, its command is zeroed
 (p, v, kp, kd, t_ff = 0: no torque); it stays in motor mode.
 
+**Realism** (``realism=``, :mod:`temoto.drivers.realism`; figures in ``docs/simulators.md``,
+"Realism"): at ``typical`` or ``harsh`` the reported position, velocity, torque, current,
+temperature and bus voltage carry seeded gaussian noise (the model's true state does not), and
+each of an ODrive's cyclic frames is lost now and then (requested frames and MIT replies are
+not: a lost one would look like a dead device to a host that asks once). Jitter and stalls of
+the streams are not modelled on CAN yet (a tick-driven sender would quantize them to the tick).
+
 The bus may be ``virtual`` (one process) or ``udp_multicast`` (across processes).
 
 Code: the motion models are in :mod:`~temoto.drivers.can_motor.sim_model`, the bus, threads and
@@ -38,6 +45,7 @@ protocols.
 
 from __future__ import annotations
 
+import logging
 import math
 import threading
 from collections.abc import Mapping, Sequence
@@ -55,6 +63,9 @@ from temoto.drivers.can_motor.sim_model import (
     AxisModel,
     MitModel,
 )
+from temoto.drivers.realism import Realism
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "CYCLIC_RATES",
@@ -77,6 +88,18 @@ _HW_BITS: Final = {
 _MIT_CODES: Final = {"overheat": 1, "overload": 2, "voltage": 4}
 
 _ZERO: Final = mit.MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
+
+_TURN: Final = 2.0 * math.pi  # rad per turn: the realism figures are in rad, an ODrive's in turns
+
+
+def _realism(realism: Realism | str, seed: int | None, device: str) -> Realism:
+    """A device's realism from a level name (and seed) or as given."""
+    if isinstance(realism, Realism):
+        return realism
+    made = Realism(realism, seed=seed, device=device)
+    if made.enabled:
+        logger.info("%s: %s", device, made.describe())
+    return made
 
 
 #: ODrive 0.6's cyclic messages: each ``axis.config.can`` rate setting → (the message, its
@@ -127,6 +150,10 @@ class SimODrive(CanDeviceSim):
             seconds (0 = the watchdog is off). See the module docstring.
         rates_ms: ``{"<name>_msg_rate_ms": ms}`` over the periods (names in
             :data:`CYCLIC_RATES`).
+        realism: ``off`` (default: the exact figures), ``typical``, ``harsh`` or a
+            :class:`~temoto.drivers.realism.Realism` (see the module docstring).
+        seed: The realism's top-level seed (None: a fresh one; ``realism.seed`` holds it).
+        device: The device's name (its random numbers are its own).
 
     Raises:
         ValueError: No nodes, a duplicate node id, a negative or non-finite period or rate, or
@@ -147,6 +174,9 @@ class SimODrive(CanDeviceSim):
         torque_period: float = 0.0,
         watchdog_timeout: float = 0.0,
         rates_ms: Mapping[str, float] | None = None,
+        realism: Realism | str = "off",
+        seed: int | None = None,
+        device: str = "odrive",
     ) -> None:
         periods = {name: ms / 1000.0 for name, (_, ms) in CYCLIC_RATES.items()}
         periods["heartbeat_msg_rate_ms"] = heartbeat_period
@@ -166,6 +196,9 @@ class SimODrive(CanDeviceSim):
             ticks.append(watchdog_timeout / 10)  # expiry seen within a tenth of the timeout
         super().__init__(link, clock, min(ticks) if ticks else 0.1)
         self.watchdog_timeout = watchdog_timeout
+        self.realism = _realism(realism, seed, device)
+        #: Cyclic frames lost on purpose (realism), for tests and tools.
+        self.frames_lost = 0
         models = [n if isinstance(n, AxisModel) else AxisModel(n) for n in nodes]
         if not models or len({m.node_id for m in models}) != len(models):
             raise ValueError("a SimODrive needs distinct node ids")
@@ -258,25 +291,30 @@ class SimODrive(CanDeviceSim):
         """
         if cmd == cs.Cmd.HEARTBEAT:
             return cs.encode_heartbeat(axis.error, axis.state, axis.procedure_result, True)
+        r = self.realism
         if cmd == cs.Cmd.GET_ENCODER_ESTIMATES:
-            return cs.encode_encoder_estimates(axis.pos, axis.vel)
+            pos = r.noise("joint_position", axis.pos * _TURN) / _TURN if r.enabled else axis.pos
+            vel = r.noise("joint_velocity", axis.vel * _TURN) / _TURN if r.enabled else axis.vel
+            return cs.encode_encoder_estimates(pos, vel)
         if cmd == cs.Cmd.GET_ERROR:
             return cs.encode_error_status(axis.error, axis.error)
         if cmd == cs.Cmd.GET_TORQUES:
-            return cs.encode_torques(axis.torque_target, axis.torque)
+            return cs.encode_torques(axis.torque_target, r.noise("torque", axis.torque))
         if cmd == cs.Cmd.GET_IQ:
             kt = axis.torque_constant
-            return cs.encode_iq(axis.torque_target / kt, axis.torque / kt)
+            return cs.encode_iq(axis.torque_target / kt, r.noise("current", axis.torque / kt))
         hot = self._hw_bits(axis.node_id) & cs.AxisError.MOTOR_OVER_TEMP
         if cmd == cs.Cmd.GET_TEMPERATURE:
             fet, motor = _TEMPERATURES
+            fet, motor = r.noise("temperature", fet), r.noise("temperature", motor)
             return cs.encode_temperature(fet, 130.0 if hot else motor)
         mechanical = axis.torque * axis.vel * 2.0 * math.pi
         electrical = mechanical + _PHASE_RESISTANCE * (axis.torque / axis.torque_constant) ** 2
         if cmd == cs.Cmd.GET_BUS_VOLTAGE_CURRENT:
             low = self._hw_bits(axis.node_id) & cs.AxisError.DC_BUS_UNDER_VOLTAGE
             volts = 8.0 if low else _BUS_VOLTAGE
-            return cs.encode_bus_voltage_current(volts, electrical / volts)
+            amps = r.noise("current", electrical / volts)
+            return cs.encode_bus_voltage_current(r.noise("voltage", volts), amps)
         if cmd == cs.Cmd.GET_POWERS:
             return cs.encode_powers(electrical, mechanical)
         if cmd == cs.Cmd.GET_VERSION:
@@ -304,6 +342,9 @@ class SimODrive(CanDeviceSim):
                     if what == cs.Cmd.GET_ENCODER_ESTIMATES:
                         off = no_enc
                     if off is not None and off.get("node") in (None, node):
+                        continue
+                    if self.realism.lost():  # lost on the way: the schedule goes on
+                        self.frames_lost += 1
                         continue
                     payload = self._payload(axis, what)
                     if payload is not None:
@@ -338,6 +379,11 @@ class SimMitMotor(CanDeviceSim):
         past_p_max: What a reply says of a position past the ±p_max field: ``"saturate"``
             (the field's end, as a clamping firmware sends) or ``"wrap"`` (the other end, as a
             conversion without clamping gives). The motor itself turns on either way.
+        realism: ``off`` (default: the exact figures), ``typical``, ``harsh`` or a
+            :class:`~temoto.drivers.realism.Realism`: the replies' position, velocity, torque
+            and temperature carry its noise.
+        seed: The realism's top-level seed (None: a fresh one; ``realism.seed`` holds it).
+        device: The device's name (its random numbers are its own).
 
     Raises:
         ValueError: No motors, a duplicate motor id, a negative timeout or an unknown
@@ -357,6 +403,9 @@ class SimMitMotor(CanDeviceSim):
         long_replies: bool = True,
         can_timeout: float = 0.0,
         past_p_max: str = "saturate",
+        realism: Realism | str = "off",
+        seed: int | None = None,
+        device: str = "mit",
     ) -> None:
         if not (can_timeout >= 0 and math.isfinite(can_timeout)):
             raise ValueError(f"can_timeout must be >= 0 s, got {can_timeout!r}")
@@ -365,6 +414,7 @@ class SimMitMotor(CanDeviceSim):
         self.past_p_max = past_p_max
         super().__init__(link, clock, min(tick, can_timeout / 10) if can_timeout > 0 else tick)
         self.can_timeout = can_timeout
+        self.realism = _realism(realism, seed, device)
         models = [m if isinstance(m, MitModel) else MitModel(m) for m in motors]
         if not models or len({m.motor_id for m in models}) != len(models):
             raise ValueError("a SimMitMotor needs distinct motor ids")
@@ -414,15 +464,16 @@ class SimMitMotor(CanDeviceSim):
             else:
                 return  # not a frame this motor understands: no reply
             self.frames_received += 1
-            pos, top = motor.pos, motor.ranges.p_max
+            r = self.realism
+            pos, top = r.noise("joint_position", motor.pos), motor.ranges.p_max
             if self.past_p_max == "wrap" and abs(pos) > top:
                 pos = (pos + top) % (2 * top) - top
             reply = mit.MitReply(  # encode_reply clamps: a position past the field saturates
                 motor.motor_id,
                 pos,
-                motor.vel,
-                motor.torque,
-                motor.temperature if self.long_replies else None,
+                r.noise("joint_velocity", motor.vel),
+                r.noise("torque", motor.torque),
+                round(r.noise("temperature", motor.temperature)) if self.long_replies else None,
                 motor.error if self.long_replies else None,
             )
             payload = mit.encode_reply(reply, motor.ranges)

@@ -386,7 +386,7 @@ class ServoChain(Driver):
         with self._bus:
             for dxl_id in expired:
                 self._write(dxl_id, ct.BUS_WATCHDOG, 0, "bus watchdog clear")
-            result, data, _ = self._reader("fast").read()
+            result, data, _ = self._read_twice(self._reader("fast"))
             if result != _sdk.COMM_SUCCESS:
                 raise self._sync_error(self._reader("fast"), result, "read after the bus watchdog")
             holds = self._hold_goals(data)
@@ -455,6 +455,18 @@ class ServoChain(Driver):
         if self._sdk is None:
             raise StateError(f"{self.name}: the port is not open")
         return self._sdk
+
+    def _read_twice(self, reader: _sdk.SyncReader) -> tuple[int, dict[int, bytes], dict[int, int]]:
+        """A one-shot SyncRead (not a poll) that needs every reply: asked again after a timeout.
+
+        A status packet lost on the wire (a noisy RS-485 line, the simulator's realism) is no
+        reason to refuse an activation or a hold; a servo that is really gone times out twice.
+        """
+        result, data, errors = reader.read()
+        if result == _sdk.COMM_RX_TIMEOUT:
+            logger.info("%s: a SyncRead timed out; asking once more", self.name)
+            result, data, errors = reader.read()
+        return result, data, errors
 
     def _reader(self, which: str) -> _sdk.SyncReader:
         reader = {"fast": self._fast, "torques": self._torques}[which]

@@ -96,7 +96,8 @@ from temoto.drivers.dynamixel.timing import (
     latency_timer,
     poll_cycle_time,
 )
-from temoto.drivers.profile import Field
+from temoto.drivers.profile import Field, ProfileReader
+from temoto.drivers.realism import read_sim_realism
 from temoto.drivers.sim import Simulator
 from temoto.errors import (
     DriverInitError,
@@ -287,7 +288,10 @@ class DynamixelDriver(ServoChain):
         """
         values = cls.read_profile(config, name)
         servos: Sequence[ServoConfig] = cls.profile_settings(values, name)["servos"]
-        sim = SimDynamixelChain({s.id: s.model for s in servos}, clock=clock, name=name)
+        level, seed = read_sim_realism(ProfileReader.at(name), config.get("sim"))
+        sim = SimDynamixelChain(
+            {s.id: s.model for s in servos}, clock=clock, name=name, realism=level, seed=seed
+        )
         out = dict(config)
         out["link"] = f"serial:{sim.path}"
         out.setdefault("reply_timeout", SIM_REPLY_TIMEOUT)
@@ -460,7 +464,7 @@ class DynamixelDriver(ServoChain):
         self._comm_fault = self._hw_fault = False
         self._feedback.reset()
         self._bad_packets.clear()
-        if not self._poll_fast():
+        if not self._poll_fast() and not self._poll_fast():  # one lost reply is no failure
             raise DriverInitError(f"{self.name}: the first SyncRead of the chain failed")
         self._poll_status()
         self._start_polling()
@@ -470,7 +474,7 @@ class DynamixelDriver(ServoChain):
         with self._bus:
             for servo in self.servos:  # 0 clears a Bus Watchdog error: goals writable again
                 self._write(servo.id, ct.BUS_WATCHDOG, 0, "bus watchdog clear")
-            result, data, errors = self._reader("fast").read()
+            result, data, errors = self._read_twice(self._reader("fast"))
             if result != _sdk.COMM_SUCCESS:
                 raise self._sync_error(self._reader("fast"), result, "read before torque on")
             self._raise_alerts(errors)
@@ -565,7 +569,7 @@ class DynamixelDriver(ServoChain):
 
     def _hold(self, port: _sdk.SdkPort) -> str:
         reader = self._fast or port.sync_reader(*ct.FAST_READ, self._ids)
-        result, data, _ = reader.read()
+        result, data, _ = self._read_twice(reader)
         if result != _sdk.COMM_SUCCESS:
             raise DriverOperationError(
                 f"{self.name}: hold: cannot read the present positions: "

@@ -17,6 +17,7 @@ from temoto.drivers.dynamixel import protocol as p
 from temoto.drivers.dynamixel.servos import MODES, ServoConfig, ServoFieldError
 from temoto.drivers.dynamixel.timing import return_delay_units, watchdog_units
 from temoto.drivers.profile import Field, ProfileReader, custom, integer, number, text
+from temoto.drivers.realism import SIM_KEYS, read_sim_realism
 
 __all__ = ["BAUD_RATES", "LINK_HINT", "PROFILE_FIELDS", "read_link", "settings"]
 
@@ -138,9 +139,21 @@ def _read_servos(reader: ProfileReader, value: object, key: str) -> list[ServoCo
     return parsed
 
 
+def _read_sim(reader: ProfileReader, value: object, key: str) -> dict[str, Any] | None:
+    """An entry's ``sim`` mapping: the simulator's ``realism`` and ``seed`` (nothing else)."""
+    if value is None:
+        return None
+    sim = dict(reader.mapping(value, key))
+    for name in sim:
+        if name not in SIM_KEYS:
+            reader.fail(f"{key}.{name}", "unknown; the simulator's settings are realism, seed")
+    read_sim_realism(reader, sim)
+    return sim
+
+
 #: The keys of a chain's entry, in the order they are checked.
 PROFILE_FIELDS: Final[Mapping[str, Field[Any]]] = {
-    "sim": custom(lambda reader, value, key: value, None, init=False),  # the simulator's
+    "sim": custom(_read_sim, None, init=False),  # the simulator's
     "link": custom(read_link, hint=LINK_HINT, init=False),
     "baud": custom(_read_baud, None),
     "poll_rate": number(50.0, low=0, high=1000, unit="Hz"),

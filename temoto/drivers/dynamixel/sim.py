@@ -96,6 +96,14 @@ Faults (:meth:`~temoto.drivers.sim.Simulator.inject`; ``device=<id>`` limits ``s
   path must stay valid for the reconnect; an adapter whose device node disappears is not
   modelled).
 
+Realism (``realism=``, :mod:`temoto.drivers.realism`; figures in ``docs/simulators.md``,
+"Realism"): at ``typical`` or ``harsh`` Present Position, Velocity, Current and Temperature
+carry seeded gaussian noise (the model's true state does not; Moving and Moving Status follow
+the true state), and the status packets that answer a SYNC_READ, FAST_SYNC_READ, BULK_READ or
+FAST_BULK_READ (a host's poll) are lost now and then: the host sees a timeout. Replies to
+single READs, PINGs and writes are never lost (a lost write status would make the host think a
+goal was refused); no jitter is added (a pseudo-terminal's own latency varies already).
+
 Code: this module is the pseudo-terminal, the serving thread, fault injection and the
 inspection methods; :mod:`~temoto.drivers.dynamixel.sim_instructions` (:class:`ServoChain`)
 carries out the instructions and :mod:`~temoto.drivers.dynamixel.sim_servo` models one servo.
@@ -120,10 +128,21 @@ from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel import protocol as p
 from temoto.drivers.dynamixel.sim_instructions import ServoChain
 from temoto.drivers.dynamixel.sim_servo import AMBIENT, BAUD_BY_CODE, GENERIC_REGISTERS
+from temoto.drivers.realism import Realism
 
 __all__ = ["SimDynamixelChain"]
 
 logger = logging.getLogger(__name__)
+
+#: The instructions whose status packets realism may lose (a host's polls).
+_POLLS: Final = frozenset(
+    {
+        p.Instruction.SYNC_READ,
+        p.Instruction.FAST_SYNC_READ,
+        p.Instruction.BULK_READ,
+        p.Instruction.FAST_BULK_READ,
+    }
+)
 
 #: ``termios`` speed constants → bits per second (those this platform has).
 _LINE_SPEEDS: Final[Mapping[int, int]] = {
@@ -144,6 +163,9 @@ class SimDynamixelChain(ServoChain):
         baud: The servos' baud rate (their Baud Rate register): they hear only packets sent
             at this rate (or at whatever the register says after a client changes it). None:
             the baud rate is not modelled, every packet is heard.
+        realism: ``off`` (default: the exact figures), ``typical``, ``harsh`` or a
+            :class:`~temoto.drivers.realism.Realism` (see the module docstring).
+        seed: The realism's top-level seed (None: a fresh one; ``realism.seed`` holds it).
 
     Raises:
         ValueError: No servos, a bad id, an unknown model or a baud rate the X series lacks.
@@ -161,9 +183,18 @@ class SimDynamixelChain(ServoChain):
         clock: Clock | None = None,
         name: str = "dxl",
         baud: int | None = None,
+        realism: Realism | str = "off",
+        seed: int | None = None,
     ) -> None:
         super().__init__(servos, clock=clock, baud=baud)
         self.name = name
+        if not isinstance(realism, Realism):
+            realism = Realism(realism, seed=seed, device=name)
+            if realism.enabled:
+                logger.info("%s: %s", name, realism.describe())
+        self.realism = realism
+        #: Status packets lost on purpose (realism), for tests and tools.
+        self.replies_lost = 0
         self._reader = p.PacketReader()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -357,6 +388,9 @@ class SimDynamixelChain(ServoChain):
                     replies = self._handle(item, line)
                 except Exception:  # a bug here must not kill the chain
                     logger.exception("sim %s: handling %s failed", self.name, item)
+                    continue
+                if replies and item.instruction in _POLLS and self.realism.lost():
+                    self.replies_lost += 1  # lost on the way: the host's read times out
                     continue
                 for reply in replies:
                     self._send(reply)

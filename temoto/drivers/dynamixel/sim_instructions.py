@@ -35,6 +35,9 @@ from temoto.drivers.dynamixel.sim_servo import (
 )
 from temoto.drivers.sim import Simulator
 
+_RAD_PER_TICK: Final = 2.0 * math.pi / 4096.0  # Present Position's unit (0.088°)
+_RAD_S_PER_UNIT: Final = TICKS_S_PER_UNIT * _RAD_PER_TICK  # Present Velocity's (0.229 rpm)
+
 __all__ = ["ServoChain"]
 
 _EXTENDED_GOAL: Final = 1_048_575  # |Goal Position| in the multi-turn modes (e-Manual)
@@ -573,6 +576,21 @@ class ServoChain(Simulator):
             else:
                 move(servo, dt)
             servo.set("Realtime Tick", int((now - servo.booted) * 1000) % 32768)
+            if self.realism.enabled:
+                self._noisy(servo)
+
+    def _noisy(self, servo: Servo) -> None:
+        """Present Position, Velocity, Current and Temperature as a sensor reports them."""
+        r = self.realism
+        ticks = r.noise("joint_position", 0.0) / _RAD_PER_TICK
+        servo.set("Present Position", round(servo.position + ticks))
+        rad_s = servo.velocity * _RAD_PER_TICK
+        servo.set("Present Velocity", round(r.noise("joint_velocity", rad_s) / _RAD_S_PER_UNIT))
+        unit = servo.model.current_unit
+        if unit is not None:
+            amps = r.noise("current", servo.current * unit)
+            servo.set("Present Current", min(max(round(amps / unit), -32768), 32767))
+        servo.set("Present Temperature", round(r.noise("temperature", servo.temperature)))
 
     def _hear(self, servos: Iterable[Servo]) -> None:
         """An instruction packet for ``servos`` arrived now: their Bus Watchdogs restart."""

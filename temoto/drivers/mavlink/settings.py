@@ -18,6 +18,7 @@ from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.link import parse_link
 from temoto.drivers.mavlink.sim import DEFAULT_RATES, PARAMETERS
 from temoto.drivers.profile import Field, ProfileReader, custom, integer, number
+from temoto.drivers.realism import LEVEL_NAMES
 
 __all__ = ["LINK_HINT", "PROFILE_FIELDS", "failsafe_params", "read_sim"]
 
@@ -45,6 +46,8 @@ _SIM_KEYS: Final = frozenset(
         "step_rate",
         "rates",
         "params",
+        "realism",
+        "seed",
     }
 )
 _POSITIVE: Final = frozenset({"cells", "speed", "climb_rate", "descent_rate", "tau", "step_rate"})
@@ -139,6 +142,16 @@ def read_sim(reader: ProfileReader, raw: Any, where: str) -> dict[str, Any]:
                 if isinstance(number, bool) or not finite:
                     reader.fail(f"{where}.params.{param}", f"must be a number, got {number!r}")
             out[key] = {str(k): float(v) for k, v in value.items()}
+        elif key == "realism":
+            if value not in LEVEL_NAMES:
+                reader.fail(
+                    f"{where}.realism", f"must be one of {', '.join(LEVEL_NAMES)}, got {value!r}"
+                )
+            out[key] = str(value)
+        elif key == "seed":
+            if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+                reader.fail(f"{where}.seed", f"must be a non-negative integer, got {value!r}")
+            out[key] = value
         else:
             if isinstance(value, bool) or not isinstance(value, int | float):
                 reader.fail(f"{where}.{key}", f"must be a number, got {value!r}")

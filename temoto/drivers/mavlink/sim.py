@@ -72,6 +72,13 @@ that MAVProxy, QGroundControl, MAVSDK and a pymavlink ground station work with i
   ``RTL_ALT_FINAL``). The battery drains while armed (``drain_idle`` %/s) and more in the air
   (``drain_flight`` %/s).
 
+An imperfect world on request (``realism=``, :mod:`temoto.drivers.realism`; the figures are in
+``docs/simulators.md``, "Realism"): at ``typical`` or ``harsh`` the reported position, altitude,
+velocity, attitude, heading and battery voltage carry seeded sensor noise (the model flies on its
+true state), streamed frames are now and then lost, and every batch of frames the vehicle sends
+(streams and replies alike, kept in order) leaves after a jitter and now and then a stall of
+the link. ``off`` (the default) sends the model's exact figures at once.
+
 Faults (:class:`~temoto.drivers.sim.Simulator`): ``silence`` and ``link_loss`` (nothing in or out),
 ``uplink_loss`` (nothing in: a radio that lost its uplink; the vehicle's GCS failsafe counts while
 its telemetry still reaches the ground), ``corrupt`` (every frame leaves with its CRC inverted),
@@ -92,8 +99,10 @@ mission and parameter protocols are :mod:`~temoto.drivers.mavlink.sim_mission` a
 
 from __future__ import annotations
 
+import logging
 import os
 import threading
+from collections import deque
 from collections.abc import Iterable, Mapping
 from typing import Any, ClassVar
 
@@ -110,9 +119,12 @@ from temoto.drivers.mavlink.sim_params import PARAMETERS
 from temoto.drivers.mavlink.sim_state import DEFAULT_RATES, HW_TEXT, STREAM_GROUPS, VehicleState
 from temoto.drivers.mavlink.sim_state import EARTH_RADIUS as EARTH_RADIUS
 from temoto.drivers.mavlink.sim_telemetry import VehicleTelemetry
+from temoto.drivers.realism import Realism
 from temoto.drivers.sim import Simulator
 
 __all__ = ["DEFAULT_RATES", "PARAMETERS", "STREAM_GROUPS", "SimVehicle"]
+
+logger = logging.getLogger(__name__)
 
 
 class SimVehicle(Simulator):
@@ -157,10 +169,14 @@ class SimVehicle(Simulator):
             comments) loaded at construction if it exists and rewritten, atomically, after
             every accepted PARAM_SET. Names the table does not have are kept and served as
             ``REAL32`` parameters.
+        realism: ``off`` (default: the exact figures), ``typical`` or ``harsh``, or a
+            :class:`~temoto.drivers.realism.Realism` (see :mod:`temoto.drivers.realism`).
+        seed: The top-level seed of the realism's random numbers (None: a fresh one, logged;
+            :attr:`realism` ``.seed`` holds it). Ignored when ``realism`` is a Realism.
 
     Raises:
         ValueError: A parameter out of range, an unknown parameter name in ``params``, a bad
-            line in ``params_file`` (naming the file and line).
+            line in ``params_file`` (naming the file and line), an unknown realism level.
         OSError: ``params_file`` exists but cannot be read.
     """
 
@@ -192,8 +208,16 @@ class SimVehicle(Simulator):
         step_rate: float = 50.0,
         params: Mapping[str, float] | None = None,
         params_file: str | os.PathLike[str] | None = None,
+        realism: Realism | str = "off",
+        seed: int | None = None,
     ) -> None:
         super().__init__()
+        if not isinstance(realism, Realism):
+            realism = Realism(realism, seed=seed, device=name)
+        #: The vehicle's imperfections: noise, lost frames, jitter and stalls.
+        self.realism = realism
+        if realism.enabled:
+            logger.info("%s: %s", name, realism.describe())
         #: The state the parts share.
         self.state = VehicleState(
             name,
@@ -217,7 +241,7 @@ class SimVehicle(Simulator):
         )
         state = self.state
         #: The messages it sends and their rates.
-        self.telemetry = VehicleTelemetry(state, rates)
+        self.telemetry = VehicleTelemetry(state, rates, realism)
         #: The mission flown in AUTO.
         self.auto = AutoMission(state, self.telemetry)
         #: The kinematic model and the flight modes.
@@ -239,6 +263,9 @@ class SimVehicle(Simulator):
         self._threads: list[threading.Thread] = []
         #: Frames received (counted once handled) by message name, for tests and benchmarks.
         self.received: dict[str, int] = {}
+        # the link's delay (realism): batches of frames held until their time, in order
+        self._held: deque[tuple[float, list[bytes]]] = deque()
+        self._held_until = 0.0
 
     def _active_fault(self, name: str) -> dict[str, Any] | None:
         params = self.fault(name)
@@ -467,19 +494,40 @@ class SimVehicle(Simulator):
             next_tick = self.state.clock.monotonic()
             while not self._stop.is_set():
                 now = self.state.clock.monotonic()
+                frames: list[bytes] = []
                 if now >= next_tick:
                     self.flight.advance(now)
                     self.failsafes.check(now)
-                    frames = self.telemetry.streams(now)
+                    frames = self._delayed(self.telemetry.streams(now), now)
+                    next_tick = now + self.state.dt
+                while self._held and self._held[0][0] <= now:  # the link's delay is over
+                    frames += self._held.popleft()[1]
+                if frames:
                     self.state.lock.release()
                     try:
                         self._send(frames)
                     finally:
                         self.state.lock.acquire()
-                    next_tick = now + self.state.dt
                     if self._stop.is_set():  # close() notified while the lock was released
                         break
-                self.state.clock.wait(self._wake, max(next_tick - now, 0.0))
+                wake = min(next_tick, self._held[0][0]) if self._held else next_tick
+                self.state.clock.wait(self._wake, max(wake - now, 0.0))
+
+    def _delayed(self, frames: list[bytes], now: float, *, reply: bool = False) -> list[bytes]:
+        """What of ``frames`` leaves now; the rest is held for the link's delay (lock held).
+
+        Realism: the batch leaves after the link's jitter (and now and then a stall), never
+        before a batch sent earlier.
+        """
+        if not frames or not self.realism.enabled:
+            return frames
+        release = max(now + self.realism.delay(reply=reply), self._held_until)
+        if release <= now and not self._held:
+            return frames
+        self._held.append((release, frames))
+        self._held_until = release
+        self._wake.notify_all()
+        return []
 
     def _rx_loop(self) -> None:
         link = self._link
@@ -502,6 +550,10 @@ class SimVehicle(Simulator):
                 replies = self.commands.handle(msg)
                 # counted once handled: a test that waits for the count sees its effect
                 self.received[msg.name] = self.received.get(msg.name, 0) + 1
+                if self.realism.enabled:
+                    with self.state.lock:
+                        now = self.state.clock.monotonic()
+                        replies = self._delayed(replies, now, reply=True)
                 self._send(replies)
 
     def _send(self, frames: list[bytes]) -> None:

@@ -19,6 +19,7 @@ from typing import Final
 
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.sim_state import DEFAULT_RATES, GRAVITY, VehicleState
+from temoto.drivers.realism import Realism
 
 __all__ = ["VehicleTelemetry"]
 
@@ -49,25 +50,48 @@ _PARAMS_PER_STEP: Final = 5  # PARAM_VALUEs of a list download per model step (A
 
 _EKF_FLAGS: Final = 0x33F  # attitude, velocities, positions rel/abs, vertical, predicted
 
+#: The messages that report the position estimate (noisy at a realism level other than off).
+_POSITION_MESSAGES: Final = frozenset(
+    {"GLOBAL_POSITION_INT", "GPS_RAW_INT", "VFR_HUD", "LOCAL_POSITION_NED"}
+)
+#: The messages that report the heading.
+_HEADING_MESSAGES: Final = frozenset({"GLOBAL_POSITION_INT", "ATTITUDE", "VFR_HUD"})
+
 
 class VehicleTelemetry:
     """The messages the simulated vehicle sends (see the module docstring).
 
+    At a realism level other than ``off`` (:mod:`temoto.drivers.realism`) the reported
+    position, altitude, velocity, attitude, heading and battery voltage carry the level's
+    sensor noise (the model's state stays true), and each streamed frame may be lost
+    (:meth:`~temoto.drivers.realism.Realism.lost`); the vehicle adds the link's jitter and
+    stalls.
+
     Args:
         state: The vehicle's state.
         rates: Stream rates in Hz by message name, over :data:`DEFAULT_RATES` (0: not sent).
+        realism: The vehicle's imperfections (None: none, the exact figures).
 
     Raises:
         ValueError: An unknown stream or a negative rate.
     """
 
-    def __init__(self, state: VehicleState, rates: Mapping[str, float] | None = None) -> None:
+    def __init__(
+        self,
+        state: VehicleState,
+        rates: Mapping[str, float] | None = None,
+        realism: Realism | None = None,
+    ) -> None:
         merged = dict(DEFAULT_RATES)
         for msg, hz in (rates or {}).items():
             if msg.upper() not in DEFAULT_RATES or not (math.isfinite(hz) and hz >= 0):
                 raise ValueError(f"bad stream rate {msg}={hz!r} (streams: {list(DEFAULT_RATES)})")
             merged[msg.upper()] = float(hz)
         self.state = state
+        #: The noise and lost frames of the vehicle's realism level.
+        self.realism = realism if realism is not None else Realism("off")
+        #: Streamed frames lost on purpose (realism), by message name.
+        self.lost: dict[str, int] = {}
         self._periods = {m: (1.0 / hz if hz > 0 else math.inf) for m, hz in merged.items()}
         self._due = dict.fromkeys(merged, 0.0)
         self._param_cursor: int | None = None  # PARAM_REQUEST_LIST being answered: next index
@@ -147,6 +171,9 @@ class VehicleTelemetry:
             if name == "HEARTBEAT" and self.state.fault("no_heartbeat") is not None:
                 continue
             self._due[name] = max(self._due[name] + period, now)
+            if self.realism.lost():  # lost on the way: the schedule goes on
+                self.lost[name] = self.lost.get(name, 0) + 1
+                continue
             frames.append(self.frame(name, now))
         texts, self.state.texts = self.state.texts, []
         frames.extend(self.text_frames(texts))
@@ -190,7 +217,17 @@ class VehicleTelemetry:
     def frame(self, name: str, now: float) -> bytes:
         """Message ``name`` as the vehicle would send it at ``now``."""
         boot_ms = int((now - self.state.t0) * 1000) & 0xFFFFFFFF
-        lat, lon, up = self.state.geo(self.state.pos)
+        pos, vel = self.state.pos, self.state.vel
+        realism = self.realism
+        noisy = realism.enabled
+        if noisy and name in _POSITION_MESSAGES:  # what the estimate says, not the truth
+            pos = [
+                realism.noise("position", pos[0]),
+                realism.noise("position", pos[1]),
+                realism.noise("altitude", pos[2]),
+            ]
+            vel = [realism.noise("velocity", v) for v in vel]
+        lat, lon, up = self.state.geo(pos)
         amsl = self.state.home[2] + up
         kind = self.state.hw_kind()
         enc = self.state.codec.encode
@@ -217,8 +254,11 @@ class VehicleTelemetry:
                 system_status=status,
                 mavlink_version=3,
             )
+        yaw = self.state.yaw
+        if noisy and name in _HEADING_MESSAGES:
+            yaw = realism.noise("heading", yaw)
         if name == "GLOBAL_POSITION_INT":
-            hdg = round(math.degrees(self.state.yaw) % 360 * 100) % 36000
+            hdg = round(math.degrees(yaw) % 360 * 100) % 36000
             return enc(
                 "GLOBAL_POSITION_INT",
                 time_boot_ms=boot_ms,
@@ -226,9 +266,9 @@ class VehicleTelemetry:
                 lon=p.deg_e7(lon),
                 alt=round(amsl * 1000),
                 relative_alt=round((up - self.state.home_up()) * 1000),
-                vx=round(self.state.vel[0] * 100),
-                vy=round(self.state.vel[1] * 100),
-                vz=round(-self.state.vel[2] * 100),
+                vx=round(vel[0] * 100),
+                vy=round(vel[1] * 100),
+                vz=round(-vel[2] * 100),
                 hdg=hdg,
             )
         if name == "ATTITUDE":
@@ -241,13 +281,16 @@ class VehicleTelemetry:
             forward += 0.03 * (vel[0] * cos_y + vel[1] * sin_y)
             right = math.atan((-acc[0] * sin_y + acc[1] * cos_y) / GRAVITY)
             right += 0.03 * (-vel[0] * sin_y + vel[1] * cos_y)
-            yaw = math.atan2(sin_y, cos_y)
+            roll, pitch = min(max(right, -lean), lean), -min(max(forward, -lean), lean)
+            if noisy:
+                roll = realism.noise("attitude", roll)
+                pitch = realism.noise("attitude", pitch)
             return enc(
                 "ATTITUDE",
                 time_boot_ms=boot_ms,
-                roll=min(max(right, -lean), lean),
-                pitch=-min(max(forward, -lean), lean),
-                yaw=yaw,
+                roll=roll,
+                pitch=pitch,
+                yaw=math.atan2(math.sin(yaw), math.cos(yaw)),
                 rollspeed=0.0,
                 pitchspeed=0.0,
                 yawspeed=0.0,
@@ -281,7 +324,7 @@ class VehicleTelemetry:
                 onboard_control_sensors_enabled=enabled,
                 onboard_control_sensors_health=health,
                 load=250,
-                voltage_battery=round(self.state.voltage() * 1000),
+                voltage_battery=round(self._voltage() * 1000),
                 current_battery=-1,
                 battery_remaining=round(self.state.battery),
                 drop_rate_comm=0,
@@ -292,7 +335,7 @@ class VehicleTelemetry:
                 errors_count4=0,
             )
         if name == "BATTERY_STATUS":
-            cell = round(self.state.voltage() / self.state.cells * 1000)
+            cell = round(self._voltage() / self.state.cells * 1000)
             cells = [cell] * min(self.state.cells, 10) + [_UINT16_MAX] * (
                 10 - min(self.state.cells, 10)
             )
@@ -332,7 +375,7 @@ class VehicleTelemetry:
                 alt=round(amsl * 1000),
                 eph=80,
                 epv=120,
-                vel=round(math.hypot(self.state.vel[0], self.state.vel[1]) * 100),
+                vel=round(math.hypot(vel[0], vel[1]) * 100),
                 cog=_UINT16_MAX,
                 satellites_visible=14,
             )
@@ -344,12 +387,12 @@ class VehicleTelemetry:
         if name == "VFR_HUD":
             return enc(
                 "VFR_HUD",
-                airspeed=math.hypot(self.state.vel[0], self.state.vel[1]),
-                groundspeed=math.hypot(self.state.vel[0], self.state.vel[1]),
-                heading=round(math.degrees(self.state.yaw)) % 360,
+                airspeed=math.hypot(vel[0], vel[1]),
+                groundspeed=math.hypot(vel[0], vel[1]),
+                heading=round(math.degrees(yaw)) % 360,
                 throttle=50 if self.state.airborne else 0,
                 alt=amsl,
-                climb=self.state.vel[2],
+                climb=vel[2],
             )
         if name == "HOME_POSITION":
             return enc(
@@ -390,7 +433,12 @@ class VehicleTelemetry:
                 product_id=0,
                 uid=self.state.codec.system_id,
             )
-        return self._frame_more(name, now, boot_ms)
+        return self._frame_more(name, now, boot_ms, pos, vel)
+
+    def _voltage(self) -> float:
+        """The battery voltage as the power monitor reports it, V."""
+        volts = self.state.voltage()
+        return self.realism.noise("voltage", volts) if self.realism.enabled else volts
 
     def _nav_target(self) -> list[float] | None:
         if self.state.nav is not None and self.state.nav.get("target") is not None:
@@ -398,19 +446,21 @@ class VehicleTelemetry:
             return target
         return self.state.target if self.state.airborne else None
 
-    def _frame_more(self, name: str, now: float, boot_ms: int) -> bytes:
-        """The messages added for ground stations (issue 16)."""
+    def _frame_more(
+        self, name: str, now: float, boot_ms: int, pos: list[float], vel: list[float]
+    ) -> bytes:
+        """The messages added for ground stations (issue 16); ``pos``, ``vel`` as reported."""
         enc = self.state.codec.encode
         if name == "LOCAL_POSITION_NED":
             return enc(
                 "LOCAL_POSITION_NED",
                 time_boot_ms=boot_ms,
-                x=self.state.pos[0],
-                y=self.state.pos[1],
-                z=-self.state.pos[2],
-                vx=self.state.vel[0],
-                vy=self.state.vel[1],
-                vz=-self.state.vel[2],
+                x=pos[0],
+                y=pos[1],
+                z=-pos[2],
+                vx=vel[0],
+                vy=vel[1],
+                vz=-vel[2],
             )
         if name == "MISSION_CURRENT":
             count = self.state.plans.count()

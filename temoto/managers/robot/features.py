@@ -36,6 +36,7 @@ import threading
 from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
+from temoto.clock import Clock
 from temoto.config import ArmFeature, DriveFeature
 from temoto.drivers import Actuator, ControlMode, JointCommand
 from temoto.errors import StateError
@@ -61,6 +62,8 @@ class DriveController:
     Args:
         feature: The profile's drive settings.
         wheels: The driver of each wheel joint (left, right).
+        clock: The robot's clock, for how long a velocity command holds (without one, the
+            control steps' ``dt`` are counted).
     """
 
     #: Proportional gains: linear speed per metre of distance, turn rate per radian.
@@ -69,8 +72,14 @@ class DriveController:
     #: Heading error beyond which the base turns in place before driving.
     TURN_FIRST = 0.35
 
-    def __init__(self, feature: DriveFeature, wheels: tuple[Actuator, Actuator]) -> None:
+    def __init__(
+        self,
+        feature: DriveFeature,
+        wheels: tuple[Actuator, Actuator],
+        clock: Clock | None = None,
+    ) -> None:
         self.feature = feature
+        self._clock = clock
         self._left, self._right = wheels
         self._lock = threading.Lock()
         self.x = self.y = self.yaw = 0.0
@@ -78,11 +87,55 @@ class DriveController:
         self._goal: tuple[float, float, float | None] | None = None
         self._motion: Motion | None = None
         self._commanded = (0.0, 0.0)
+        #: A velocity command (``cmd_vel``): v (m/s), w (rad/s), and until when it holds (the
+        #: clock's reading; without a clock, the seconds it still holds).
+        self._velocity: tuple[float, float, float] | None = None
 
     def pose(self) -> tuple[float, float, float]:
         """The odometry pose: x, y (m), yaw (rad) since the robot was loaded."""
         with self._lock:
             return self.x, self.y, self.yaw
+
+    def velocity(self) -> tuple[float, float]:
+        """The base's velocity from its wheels' joint velocities: v (m/s), w (rad/s)."""
+        r, sep = self.feature.wheel_radius, self.feature.wheel_separation
+        left = self._left.read_state().joints[self.feature.left_wheel].velocity * r
+        right = self._right.read_state().joints[self.feature.right_wheel].velocity * r
+        return (left + right) / 2, (right - left) / sep
+
+    def command_velocity(self, v: float, w: float, hold: float) -> tuple[float, float]:
+        """Drive at ``v`` m/s turning at ``w`` rad/s, for at most ``hold`` clock seconds.
+
+        A velocity command (a ROS 2 ``cmd_vel``) is clamped to ``max_speed`` and
+        ``max_turn_rate``, as the goal controller's commands are; unless a new one comes within
+        ``hold`` seconds, the control thread commands the wheels zero velocity (a stale command
+        never drives on). A goal (an action's motion) has the base: a velocity command is
+        refused while one runs, and a new goal or a stop ends the velocity command.
+
+        Args:
+            v: Linear speed, m/s (forward positive).
+            w: Turn rate, rad/s (counter-clockwise positive).
+            hold: Clock seconds the command holds.
+
+        Returns:
+            The command applied (after clamping).
+
+        Raises:
+            ValueError: A value is not finite, or ``hold`` is not positive.
+            StateError: A goal drives the base.
+        """
+        if not (math.isfinite(v) and math.isfinite(w)):
+            raise ValueError("a velocity command must be finite")
+        if not hold > 0:
+            raise ValueError("a velocity command must hold for a positive time")
+        v = _clamp(v, self.feature.max_speed)
+        w = _clamp(w, self.feature.max_turn_rate)
+        with self._lock:
+            if self._motion is not None and not self._motion.done:
+                raise StateError(f"the base is driven by a goal ({self._motion.what})")
+            until = hold if self._clock is None else self._clock.monotonic() + hold
+            self._velocity = (v, w, until)
+        return v, w
 
     def goal(self) -> tuple[float, float, float | None] | None:
         """The goal it drives to: x, y (m), yaw (rad, or None), or None when it has none."""
@@ -125,6 +178,7 @@ class DriveController:
         motion = Motion(f"navigate to ({x:g}, {y:g})", self)
         with self._lock:
             old, self._motion, self._goal = self._motion, motion, (x, y, yaw)
+            self._velocity = None
         if old is not None:
             old.supersede()
         return motion
@@ -133,6 +187,7 @@ class DriveController:
         """Cancel the goal and command the wheels zero velocity now (if they were not)."""
         with self._lock:
             old, self._motion, self._goal = self._motion, None, None
+            self._velocity = None
             if self._commanded != (0.0, 0.0):
                 self._still()
         if old is not None:
@@ -187,6 +242,18 @@ class DriveController:
                 motion.progress = f"at ({self.x:.2f}, {self.y:.2f})"
             if reached:
                 self._motion = self._goal = None
+            if motion is None and self._velocity is not None:
+                cv, cw, until = self._velocity
+                if self._clock is None:
+                    until -= dt
+                    left_s = until
+                else:  # clock time: a control loop that fell behind does not stretch it
+                    left_s = until - self._clock.monotonic()
+                if left_s > 0:
+                    v, w = cv, cw
+                    self._velocity = (cv, cw, until)
+                else:  # no new command within its hold time: stop
+                    self._velocity = None
             wl = (v - w * sep / 2) / r
             wr = (v + w * sep / 2) / r
             if (wl, wr) != self._commanded:

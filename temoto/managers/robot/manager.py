@@ -21,7 +21,7 @@ import logging
 import threading
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field, replace
-from typing import Any, ClassVar, Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Any, ClassVar, Protocol, runtime_checkable
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.config import Profile
@@ -31,11 +31,13 @@ from temoto.drivers import (
     Driver,
     DriverState,
     Health,
+    JointState,
     Vehicle,
     driver_class,
     make_all_safe,
 )
 from temoto.drivers.base import device_text
+from temoto.drivers.realism import Realism
 from temoto.drivers.sim import Simulator
 from temoto.errors import (
     ConfigError,
@@ -50,6 +52,9 @@ from temoto.managers.robot.features import (
     FlightController,
     controllers_step,
 )
+
+if TYPE_CHECKING:
+    from temoto.ros2.robot import RobotRos2Link
 
 __all__ = [
     "DriverRequest",
@@ -227,7 +232,7 @@ class Robot:
             nav = profile.navigation
             wheels = (profile.joint_device(nav.left_wheel), profile.joint_device(nav.right_wheel))
             left, right = self._actuator(wheels[0]), self._actuator(wheels[1])
-            self.drive = DriveController(nav, (left, right))
+            self.drive = DriveController(nav, (left, right), clock)
             self._commanders.append((self.drive, frozenset(wheels)))
         if profile.manipulation is not None:
             arm = profile.manipulation
@@ -239,6 +244,8 @@ class Robot:
             assert isinstance(vehicle, Vehicle)
             self.flight = FlightController(profile.flight, vehicle)
             self._steps.append((self.flight, frozenset({profile.flight.device})))
+        #: The robot's link to ROS 2 (a profile's ``ros2:`` block), set by the manager.
+        self.ros2: RobotRos2Link | None = None
         self._cond = threading.Condition()
         self._stopping = False
         self._errors_logged = 0
@@ -257,6 +264,27 @@ class Robot:
     def features(self) -> tuple[str, ...]:
         """The features it has."""
         return self.profile.features
+
+    def joint_states(self) -> list[JointState]:
+        """The state of every joint of the robot's ACTIVE devices, in profile order.
+
+        Returns:
+            One per joint.
+        """
+        out: list[JointState] = []
+        for driver in self._devices.values():
+            if isinstance(driver, Actuator) and driver.state is DriverState.ACTIVE:
+                out.extend(driver.read_state().joints.values())
+        return out
+
+    def navigation_devices(self) -> tuple[str, ...]:
+        """The devices the drive moves (none without a navigation feature)."""
+        nav = self.profile.navigation
+        if nav is None:
+            return ()
+        left = self.profile.joint_device(nav.left_wheel)
+        right = self.profile.joint_device(nav.right_wheel)
+        return (left,) if left == right else (left, right)
 
     def healthy(self) -> bool:
         """Whether every device is active (configured, not in FAULT, not made safe)."""
@@ -286,6 +314,9 @@ class Robot:
 
     def close(self) -> None:
         """Stop the control thread (the drivers are closed by their resources)."""
+        if self.ros2 is not None:  # first: no cmd_vel reaches the drive after this
+            self.ros2.close()
+            self.ros2 = None
         for controller in (self.drive, self.arm):
             if controller is not None:
                 controller.stop()
@@ -334,9 +365,15 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         sim_gcs: With ``sim: true``: more UDP addresses every simulated vehicle streams to
             (ground stations watching the robot's own vehicle, the robot command's
             ``--sim-out``).
+        realism: With ``sim: true``: the simulators' realism level (``off``, the default:
+            the exact figures; ``typical``; ``harsh``: :mod:`temoto.drivers.realism`). A
+            device entry's own ``sim.realism`` / ``sim.seed`` win over it.
+        seed: The realism's top-level seed (None: a fresh one at a level other than off;
+            :attr:`seed` holds it, to be printed so the run can be replayed).
 
     Raises:
-        ValueError: ``rate_hz`` is not positive, or the servers exist already.
+        ValueError: ``rate_hz`` is not positive, an unknown realism level, a seed that is not
+            a non-negative integer, or the servers exist already.
     """
 
     name: ClassVar[str] = "robot"
@@ -351,9 +388,15 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         clock: Clock | None = None,
         rate_hz: float = 50.0,
         sim_gcs: Sequence[tuple[str, int]] = (),
+        realism: str = "off",
+        seed: int | None = None,
     ) -> None:
         if not rate_hz > 0:
             raise ValueError("rate_hz must be positive")
+        #: The simulators' realism (``realism.describe()``: the line to print).
+        self.realism = Realism(realism, seed=seed, device=profile.robot)
+        #: The realism's top-level seed (None at ``off``).
+        self.seed = self.realism.seed
         self.sim_gcs = tuple(sim_gcs)
         self.registrar = registrar
         self.profile = profile
@@ -440,6 +483,16 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             with self._lock:
                 drivers[device] = self._devices[device].driver
         robot = Robot(self.profile, drivers, self.clock, self.rate_hz, self._annotate)
+        if self.profile.ros2 is not None:  # the robot on ROS 2 (docs/ros2.md)
+            from temoto.ros2.robot import RobotRos2Link
+
+            link = RobotRos2Link(self.registrar, robot, self.profile.ros2, self.profile.source)
+            try:
+                link.start()
+            except BaseException:
+                robot.close()
+                raise
+            robot.ros2 = link
         with self._lock:
             self._robots[name] = robot
         logger.info("robot %s ready (%s)", name, ", ".join(self.profile.features) or "no features")
@@ -495,6 +548,12 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
         config: Mapping[str, Any] = spec.config
         sim: Simulator | None = None
         if self.profile.sim:
+            own = config.get("sim")
+            if own is None or isinstance(own, Mapping):  # the entry's own keys win
+                level: dict[str, Any] = {"realism": self.realism.level.name}
+                if self.seed is not None:
+                    level["seed"] = self.seed
+                config = {**config, "sim": {**level, **(own or {})}}
             sim, config = cls.simulate(spec.name, config, clock=self.clock)
             if isinstance(sim, _StreamsToGcs):
                 for host, port in self.sim_gcs:
