@@ -53,6 +53,11 @@ logger = logging.getLogger(__name__)
 EARTH_RADIUS: Final = 6_378_137.0  # m, WGS-84 equatorial
 GRAVITY: Final = 9.80665  # m/s², ArduPilot's GRAVITY_MSS
 
+#: The wind's drag on the vehicle per unit mass, 1/m: acceleration = WIND_DRAG·airspeed².
+#: With ArduCopter's ANGLE_MAX of 30° (g·tan 30° = 5.66 m/s²) the vehicle holds its position
+#: in winds up to sqrt(5.66/0.025) ≈ 15 m/s, a typical small quad's limit; above, it drifts.
+WIND_DRAG: Final = 0.025
+
 #: Messages the simulator streams, and their default rates (Hz).
 DEFAULT_RATES: Final[Mapping[str, float]] = {
     "HEARTBEAT": 1.0,
@@ -336,6 +341,23 @@ class VehicleState:
     def max_accel(self) -> float:
         """The horizontal acceleration the lean limit allows, m/s²: g·tan(``ANGLE_MAX``)."""
         return GRAVITY * math.tan(self.max_lean())
+
+    def wind_drag(self) -> tuple[float, float]:
+        """The wind's push on the vehicle now: north, east acceleration, m/s².
+
+        ``SIM_WIND_SPD`` m/s from ``SIM_WIND_DIR`` (true degrees the wind comes *from*, as in
+        ArduPilot SITL's ``SIM_WIND_DIR``); the drag is :data:`WIND_DRAG` times the airspeed
+        squared, along the air's velocity relative to the vehicle. Zero in still air (the model
+        then flies its exact figures: the drag of its own motion is not modelled).
+        """
+        speed = self.value("SIM_WIND_SPD")
+        if speed <= 0.0:
+            return 0.0, 0.0
+        towards = math.radians(self.value("SIM_WIND_DIR") + 180.0)
+        rel_n = speed * math.cos(towards) - self.vel[0]
+        rel_e = speed * math.sin(towards) - self.vel[1]
+        airspeed = math.hypot(rel_n, rel_e)
+        return WIND_DRAG * airspeed * rel_n, WIND_DRAG * airspeed * rel_e
 
     def flying_mission(self) -> bool:
         """Whether the mission runs (AUTO, started): ``AP_Mission``'s MISSION_RUNNING."""

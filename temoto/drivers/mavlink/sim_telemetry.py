@@ -277,10 +277,12 @@ class VehicleTelemetry:
             # the tilt that accelerates it (atan(a/g)), plus a stand-in for the tilt against
             # drag at speed, within ANGLE_MAX (ArduCopter's lean limit)
             lean = self.state.max_lean()
+            # in wind the model's acceleration is the thrust, the air's drag included
+            stand_in = 0.0 if any(self.state.wind_drag()) else 0.03
             forward = math.atan((acc[0] * cos_y + acc[1] * sin_y) / GRAVITY)
-            forward += 0.03 * (vel[0] * cos_y + vel[1] * sin_y)
+            forward += stand_in * (vel[0] * cos_y + vel[1] * sin_y)
             right = math.atan((-acc[0] * sin_y + acc[1] * cos_y) / GRAVITY)
-            right += 0.03 * (-vel[0] * sin_y + vel[1] * cos_y)
+            right += stand_in * (-vel[0] * sin_y + vel[1] * cos_y)
             roll, pitch = min(max(right, -lean), lean), -min(max(forward, -lean), lean)
             if noisy:
                 roll = realism.noise("attitude", roll)
