@@ -132,11 +132,7 @@ class FlightModel:
         takeoff = self.state.landed_state == p.MAV_LANDED_STATE_TAKEOFF
         if takeoff and target is not None and abs(target[2] - self.state.pos[2]) < 0.3:
             self.state.landed_state = p.MAV_LANDED_STATE_IN_AIR
-        if self.state.armed:
-            self.state.battery -= (
-                self.state.drain_idle + (self.state.drain_flight if self.state.airborne else 0)
-            ) * dt
-            self.state.battery = max(self.state.battery, 0.0)
+        self.state.drain(dt)
         if self.state.mode == "AUTO":
             self.auto.update()
 

@@ -327,7 +327,7 @@ class VehicleTelemetry:
                 onboard_control_sensors_health=health,
                 load=250,
                 voltage_battery=round(self._voltage() * 1000),
-                current_battery=-1,
+                current_battery=round(self.state.current * 100),  # cA
                 battery_remaining=round(self.state.battery),
                 drop_rate_comm=0,
                 errors_comm=0,
@@ -357,7 +357,7 @@ class VehicleTelemetry:
                 type=p.MAV_BATTERY_TYPE_LIPO,
                 temperature=7000 if kind == "overheat" else 2500,
                 voltages=cells,
-                current_battery=-1,
+                current_battery=round(self.state.current * 100),  # cA
                 current_consumed=round(self.state.consumed_mah()),
                 energy_consumed=-1,
                 battery_remaining=round(self.state.battery),
