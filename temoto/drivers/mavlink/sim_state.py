@@ -425,8 +425,10 @@ class VehicleState:
         return self.resting_voltage() - self.current * self.cells * CELL_RESISTANCE
 
     def failsafe_voltage(self) -> float:
-        """The voltage the battery failsafe compares, V: ``BATT_FS_VOLTSRC`` 0 the measured
-        one, 1 the sag-compensated (resting) one (AP_BattMonitor's ``voltage_resting_estimate``).
+        """The voltage the battery failsafe compares, V.
+
+        ``BATT_FS_VOLTSRC`` 0: the measured one, 1: the sag-compensated (resting) one, as
+        ``AP_BattMonitor_Backend::check_failsafe_types`` chooses.
         """
         if round(self.value("BATT_FS_VOLTSRC")) == 1:
             return self.resting_voltage()

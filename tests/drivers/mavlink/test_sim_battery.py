@@ -120,12 +120,15 @@ def test_the_low_voltage_failsafe_acts_after_batt_low_timer_under_load() -> None
     _below_low_volt(vehicle, 14.0)
     assert vehicle.state.resting_voltage() > 14.0
     _run(vehicle, 9.5)
-    assert vehicle.battery_failsafe == 0 and vehicle.mode == "GUIDED"
+    assert vehicle.battery_failsafe == 0
+    assert vehicle.mode == "GUIDED"
     _run(vehicle, 1.0)
     assert vehicle.battery_failsafe == 1
     assert vehicle.mode == "RTL"  # BATT_FS_LOW_ACT 2
     low = [t for t in _texts(vehicle) if t.startswith("Battery 1 is low ")]
-    assert len(low) == 1 and low[0].endswith(" mAh") and " used " in low[0]
+    assert len(low) == 1
+    assert low[0].endswith(" mAh")
+    assert " used " in low[0]
     charge = _frame(vehicle, "BATTERY_STATUS").get_int("charge_state")
     assert charge == p.MAV_BATTERY_CHARGE_STATE_LOW
 
@@ -135,7 +138,8 @@ def test_sag_compensated_voltage_source_ignores_the_load() -> None:
     vehicle = _fly(30.0, **params)
     _below_low_volt(vehicle, 14.0)
     _run(vehicle, 15.0)
-    assert vehicle.battery_failsafe == 0 and vehicle.mode == "GUIDED"
+    assert vehicle.battery_failsafe == 0
+    assert vehicle.mode == "GUIDED"
 
 
 def test_the_critical_failsafe_follows_the_low_and_lands() -> None:
