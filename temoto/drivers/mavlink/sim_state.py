@@ -405,7 +405,7 @@ class VehicleState:
             return self.drain_idle
         thrust = math.sqrt(1.0 + (math.hypot(*self.accel) / GRAVITY) ** 2)
         climb = max(self.vel[2], 0.0) / (2.0 * HOVER_INDUCED_SPEED)
-        power = thrust**1.5 * (climb + math.sqrt(climb * climb + 1.0))
+        power = thrust * math.sqrt(thrust) * (climb + math.sqrt(climb * climb + 1.0))
         return self.drain_idle + self.drain_flight * power
 
     def drain(self, dt: float) -> None:
