@@ -422,7 +422,7 @@ class VehicleState:
 
     def voltage(self) -> float:
         """The battery voltage now, under the load's sag (:data:`CELL_RESISTANCE`), V."""
-        return self.resting_voltage() - self.current * self.cells * CELL_RESISTANCE
+        return max(self.resting_voltage() - self.current * self.cells * CELL_RESISTANCE, 0.0)
 
     def failsafe_voltage(self) -> float:
         """The voltage the battery failsafe compares, V.

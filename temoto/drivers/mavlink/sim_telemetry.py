@@ -42,6 +42,7 @@ _SENSORS: Final = (
 _HW_SENSOR: Final = {"overheat": "MOTOR_OUTPUTS", "overload": "PROPULSION", "voltage": "BATTERY"}
 
 _UINT16_MAX: Final = 65535
+_INT16_MAX: Final = 32767
 
 _FENCE_ALT_CIRCLE: Final = 1 | 2 | 8  # FENCE_TYPE bits: altitude max, circle, altitude min
 _FENCE_POLYGON: Final = 4
@@ -327,7 +328,7 @@ class VehicleTelemetry:
                 onboard_control_sensors_health=health,
                 load=250,
                 voltage_battery=round(self._voltage() * 1000),
-                current_battery=round(self.state.current * 100),  # cA
+                current_battery=min(round(self.state.current * 100), _INT16_MAX),  # cA
                 battery_remaining=round(self.state.battery),
                 drop_rate_comm=0,
                 errors_comm=0,
@@ -357,7 +358,7 @@ class VehicleTelemetry:
                 type=p.MAV_BATTERY_TYPE_LIPO,
                 temperature=7000 if kind == "overheat" else 2500,
                 voltages=cells,
-                current_battery=round(self.state.current * 100),  # cA
+                current_battery=min(round(self.state.current * 100), _INT16_MAX),  # cA
                 current_consumed=round(self.state.consumed_mah()),
                 energy_consumed=-1,
                 battery_remaining=round(self.state.battery),
