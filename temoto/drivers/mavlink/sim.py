@@ -70,7 +70,9 @@ that MAVProxy, QGroundControl, MAVSDK and a pymavlink ground station work with i
   above ``LAND_ALT_LOW`` and ``LAND_SPEED`` below, and disarms on touchdown; RTL climbs to
   ``RTL_ALT``, flies home, hovers ``RTL_LOIT_TIME`` ms and lands (or stays at
   ``RTL_ALT_FINAL``). The battery drains while armed (``drain_idle`` %/s) and more in the air
-  (``drain_flight`` %/s).
+  (``drain_flight`` %/s at hover, more with the lean's thrust and a climb); its current is
+  reported and its voltage sags under it. Wind (SITL's ``SIM_WIND_SPD``, ``SIM_WIND_DIR``)
+  pushes the vehicle; the lean counters it within ``ANGLE_MAX``, a stronger wind drifts it.
 
 An imperfect world on request (``realism=``, :mod:`temoto.drivers.realism`; the figures are in
 ``docs/simulators.md``, "Realism"): at ``typical`` or ``harsh`` the reported position, altitude,
@@ -161,7 +163,7 @@ class SimVehicle(Simulator):
         tau: Time constant of the position model, s.
         rtl_altitude: Minimum altitude above home for the flight home in RTL, m (``RTL_ALT``).
         drain_idle: Battery drain while armed on the ground, %/s.
-        drain_flight: Battery drain in the air, %/s.
+        drain_flight: Battery drain in the air at hover, %/s (more with lean and climb).
         step_rate: Model steps per clock second.
         params: Parameter values (e.g. ``{"FS_GCS_ENABLE": 5}`` for a vehicle whose GCS
             failsafe lands it); names from :data:`PARAMETERS`.

@@ -102,7 +102,7 @@ class Failsafes:
 
     def _volts_below(self, threshold: float, since: float | None, now: float) -> float | None:
         """When the voltage went below ``threshold`` (None: it is not below it)."""
-        if threshold <= 0 or self.state.voltage() >= threshold:
+        if threshold <= 0 or self.state.failsafe_voltage() >= threshold:
             return None
         return now if since is None else since
 

@@ -99,12 +99,17 @@ class FlightModel:
             if horizontal > speed:
                 desired[0] *= speed / horizontal
                 desired[1] *= speed / horizontal
-            change = math.hypot(desired[0] - vel[0], desired[1] - vel[1])
-            if change > accel * dt:
-                scale = accel * dt / change
-                desired[0] = vel[0] + (desired[0] - vel[0]) * scale
-                desired[1] = vel[1] + (desired[1] - vel[1]) * scale
-            self.state.accel = [(desired[0] - vel[0]) / dt, (desired[1] - vel[1]) / dt]
+            # the lean (thrust) gives the change of velocity and counters the wind's drag, all
+            # within g·tan(ANGLE_MAX): a wind stronger than that pushes the vehicle off its goal
+            drag_n, drag_e = self.state.wind_drag()
+            thrust = [(desired[0] - vel[0]) / dt - drag_n, (desired[1] - vel[1]) / dt - drag_e]
+            demand = math.hypot(thrust[0], thrust[1])
+            if demand > accel or drag_n or drag_e:  # else: what was asked, to the last bit
+                if demand > accel:
+                    thrust = [thrust[0] * accel / demand, thrust[1] * accel / demand]
+                desired[0] = vel[0] + (thrust[0] + drag_n) * dt
+                desired[1] = vel[1] + (thrust[1] + drag_e) * dt
+            self.state.accel = thrust
             desired[2] = _clamp(desired[2], -self._down_speed(), self._up_speed())
             if self.state.landing:
                 desired[2] = -self._land_speed() if pos[2] > 0.0 else 0.0
@@ -127,11 +132,7 @@ class FlightModel:
         takeoff = self.state.landed_state == p.MAV_LANDED_STATE_TAKEOFF
         if takeoff and target is not None and abs(target[2] - self.state.pos[2]) < 0.3:
             self.state.landed_state = p.MAV_LANDED_STATE_IN_AIR
-        if self.state.armed:
-            self.state.battery -= (
-                self.state.drain_idle + (self.state.drain_flight if self.state.airborne else 0)
-            ) * dt
-            self.state.battery = max(self.state.battery, 0.0)
+        self.state.drain(dt)
         if self.state.mode == "AUTO":
             self.auto.update()
 

@@ -87,6 +87,9 @@ PARAMETERS: Final[Mapping[str, tuple[float, int]]] = {
     "WP_YAW_BEHAVIOR": (2.0, _I8),
     "LOIT_SPEED": (1250.0, _F),
     "ANGLE_MAX": (3000.0, _I16),
+    # the simulated world (ArduPilot SITL's SIM_* names): wind speed m/s, direction it comes from
+    "SIM_WIND_SPD": (0.0, _F),
+    "SIM_WIND_DIR": (180.0, _F),
     "PILOT_SPEED_UP": (250.0, _I16),
     "PILOT_TKOFF_ALT": (0.0, _F),
     # return to launch and landing

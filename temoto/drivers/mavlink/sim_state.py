@@ -53,6 +53,18 @@ logger = logging.getLogger(__name__)
 EARTH_RADIUS: Final = 6_378_137.0  # m, WGS-84 equatorial
 GRAVITY: Final = 9.80665  # m/s², ArduPilot's GRAVITY_MSS
 
+#: The wind's drag on the vehicle per unit mass, 1/m: acceleration = WIND_DRAG·airspeed².
+#: With ArduCopter's ANGLE_MAX of 30° (g·tan 30° = 5.66 m/s²) the vehicle holds its position
+#: in winds up to sqrt(5.66/0.025) ≈ 15 m/s, a typical small quad's limit; above, it drifts.
+WIND_DRAG: Final = 0.025
+
+#: The battery's internal resistance (with the wiring) per cell, Ω: the load's voltage sag.
+CELL_RESISTANCE: Final = 0.01
+
+#: The rotors' induced velocity at hover, m/s: a climb at v_c needs the hover power times
+#: v_c/(2·v_h) + sqrt((v_c/(2·v_h))² + 1) (momentum theory).
+HOVER_INDUCED_SPEED: Final = 5.0
+
 #: Messages the simulator streams, and their default rates (Hz).
 DEFAULT_RATES: Final[Mapping[str, float]] = {
     "HEARTBEAT": 1.0,
@@ -236,6 +248,7 @@ class VehicleState:
         # model (guarded by lock)
         self.lock = threading.Lock()
         self.battery = float(battery)
+        self.current = 0.0  # the battery current of the last model step, A
         self.armed = False
         self.mode = "STABILIZE"
         self.pos = [0.0, 0.0, 0.0]  # north, east, up (m from the origin: home at start)
@@ -337,6 +350,23 @@ class VehicleState:
         """The horizontal acceleration the lean limit allows, m/s²: g·tan(``ANGLE_MAX``)."""
         return GRAVITY * math.tan(self.max_lean())
 
+    def wind_drag(self) -> tuple[float, float]:
+        """The wind's push on the vehicle now: north, east acceleration, m/s².
+
+        ``SIM_WIND_SPD`` m/s from ``SIM_WIND_DIR`` (true degrees the wind comes *from*, as in
+        ArduPilot SITL's ``SIM_WIND_DIR``); the drag is :data:`WIND_DRAG` times the airspeed
+        squared, along the air's velocity relative to the vehicle. Zero in still air (the model
+        then flies its exact figures: the drag of its own motion is not modelled).
+        """
+        speed = self.value("SIM_WIND_SPD")
+        if speed <= 0.0:
+            return 0.0, 0.0
+        towards = math.radians(self.value("SIM_WIND_DIR") + 180.0)
+        rel_n = speed * math.cos(towards) - self.vel[0]
+        rel_e = speed * math.sin(towards) - self.vel[1]
+        airspeed = math.hypot(rel_n, rel_e)
+        return WIND_DRAG * airspeed * rel_n, WIND_DRAG * airspeed * rel_e
+
     def flying_mission(self) -> bool:
         """Whether the mission runs (AUTO, started): ``AP_Mission``'s MISSION_RUNNING."""
         return self.mode == "AUTO" and self.mis_state == p.MISSION_STATE_ACTIVE
@@ -360,11 +390,49 @@ class VehicleState:
 
     # ---- battery and health --------------------------------------------------------------------
 
-    def voltage(self) -> float:
-        """The battery voltage now, V."""
+    def drain_rate(self) -> float:
+        """The charge the motors draw now, % of the capacity per second.
+
+        Disarmed nothing; armed ``drain_idle`` (the motors at their idle spin); in the air
+        ``drain_flight`` more at hover, times the power the thrust needs over the hover's:
+        the thrust's ratio to the weight (the lean: sqrt(1 + (a/g)²), the wind's drag
+        included) to the power 3/2, and a climb's share (momentum theory,
+        :data:`HOVER_INDUCED_SPEED`).
+        """
+        if not self.armed:
+            return 0.0
+        if not self.airborne:
+            return self.drain_idle
+        thrust = math.sqrt(1.0 + (math.hypot(*self.accel) / GRAVITY) ** 2)
+        climb = max(self.vel[2], 0.0) / (2.0 * HOVER_INDUCED_SPEED)
+        power = thrust * math.sqrt(thrust) * (climb + math.sqrt(climb * climb + 1.0))
+        return self.drain_idle + self.drain_flight * power
+
+    def drain(self, dt: float) -> None:
+        """Draw the battery for ``dt`` s at :meth:`drain_rate`; sets :attr:`current`."""
+        rate = self.drain_rate()
+        self.current = rate / 100.0 * self.value("BATT_CAPACITY") * 3.6  # %/s → mAh/s → A
+        self.battery = max(self.battery - rate * dt, 0.0)
+
+    def resting_voltage(self) -> float:
+        """The battery's voltage without load (its charge's), V."""
         if self.hw_kind() == "voltage":
             return self.cells * 2.9
         return self.cells * (3.3 + 0.9 * self.battery / 100.0)
+
+    def voltage(self) -> float:
+        """The battery voltage now, under the load's sag (:data:`CELL_RESISTANCE`), V."""
+        return max(self.resting_voltage() - self.current * self.cells * CELL_RESISTANCE, 0.0)
+
+    def failsafe_voltage(self) -> float:
+        """The voltage the battery failsafe compares, V.
+
+        ``BATT_FS_VOLTSRC`` 0: the measured one, 1: the sag-compensated (resting) one, as
+        ``AP_BattMonitor_Backend::check_failsafe_types`` chooses.
+        """
+        if round(self.value("BATT_FS_VOLTSRC")) == 1:
+            return self.resting_voltage()
+        return self.voltage()
 
     def consumed_mah(self) -> float:
         """The charge used, mAh (of ``BATT_CAPACITY``)."""

@@ -42,6 +42,7 @@ _SENSORS: Final = (
 _HW_SENSOR: Final = {"overheat": "MOTOR_OUTPUTS", "overload": "PROPULSION", "voltage": "BATTERY"}
 
 _UINT16_MAX: Final = 65535
+_INT16_MAX: Final = 32767
 
 _FENCE_ALT_CIRCLE: Final = 1 | 2 | 8  # FENCE_TYPE bits: altitude max, circle, altitude min
 _FENCE_POLYGON: Final = 4
@@ -277,10 +278,12 @@ class VehicleTelemetry:
             # the tilt that accelerates it (atan(a/g)), plus a stand-in for the tilt against
             # drag at speed, within ANGLE_MAX (ArduCopter's lean limit)
             lean = self.state.max_lean()
+            # in wind the model's acceleration is the thrust, the air's drag included
+            stand_in = 0.0 if any(self.state.wind_drag()) else 0.03
             forward = math.atan((acc[0] * cos_y + acc[1] * sin_y) / GRAVITY)
-            forward += 0.03 * (vel[0] * cos_y + vel[1] * sin_y)
+            forward += stand_in * (vel[0] * cos_y + vel[1] * sin_y)
             right = math.atan((-acc[0] * sin_y + acc[1] * cos_y) / GRAVITY)
-            right += 0.03 * (-vel[0] * sin_y + vel[1] * cos_y)
+            right += stand_in * (-vel[0] * sin_y + vel[1] * cos_y)
             roll, pitch = min(max(right, -lean), lean), -min(max(forward, -lean), lean)
             if noisy:
                 roll = realism.noise("attitude", roll)
@@ -325,7 +328,7 @@ class VehicleTelemetry:
                 onboard_control_sensors_health=health,
                 load=250,
                 voltage_battery=round(self._voltage() * 1000),
-                current_battery=-1,
+                current_battery=min(round(self.state.current * 100), _INT16_MAX),  # cA
                 battery_remaining=round(self.state.battery),
                 drop_rate_comm=0,
                 errors_comm=0,
@@ -355,7 +358,7 @@ class VehicleTelemetry:
                 type=p.MAV_BATTERY_TYPE_LIPO,
                 temperature=7000 if kind == "overheat" else 2500,
                 voltages=cells,
-                current_battery=-1,
+                current_battery=min(round(self.state.current * 100), _INT16_MAX),  # cA
                 current_consumed=round(self.state.consumed_mah()),
                 energy_consumed=-1,
                 battery_remaining=round(self.state.battery),

@@ -321,3 +321,45 @@ def test_angle_max_bounds_the_lean_and_the_acceleration(angle_max: int) -> None:
     assert max(abs(m.get_float("pitch")) for m in pitches) > 0.5 * lean  # it does lean
     north = math.radians(vehicle.position()[0] - lat) * 6_378_137.0
     assert north == pytest.approx(111.3, abs=0.5)  # arrived, no overshoot
+
+
+# ---- wind (ArduPilot SITL's SIM_WIND_SPD, SIM_WIND_DIR: the direction it comes from)
+
+
+def _hover_in_wind(speed: float, seconds: float, **params: float) -> tuple[float, float, Any]:
+    """Take off to 10 m in GUIDED, let ``speed`` m/s blow from the north: the drift north, east
+    (m from where it hovered) and the last ATTITUDE."""
+    vehicle = _vehicle(**params)
+    _mode(vehicle, "GUIDED")
+    _arm(vehicle)
+    _handle(vehicle, _command(p.MAV_CMD_NAV_TAKEOFF, 0, 0, 0, 0, 0, 0, 10))
+    _run(vehicle, 15.0)
+    start = list(vehicle.pos)
+    vehicle.state.params["SIM_WIND_SPD"] = speed
+    vehicle.state.params["SIM_WIND_DIR"] = 0.0  # from the north: it pushes south
+    _run(vehicle, seconds)
+    with vehicle.state.lock:
+        attitude = _decode([vehicle.telemetry.frame("ATTITUDE", 0.0)])[0]
+    return vehicle.pos[0] - start[0], vehicle.pos[1] - start[1], attitude
+
+
+def test_wind_params_are_sitls_and_still_by_default() -> None:
+    vehicle = SimVehicle("wind", clock=ManualClock())
+    assert vehicle.param("SIM_WIND_SPD") == 0.0
+    assert vehicle.param("SIM_WIND_DIR") == 180.0  # SITL's default
+
+
+def test_wind_below_the_lean_limit_is_countered() -> None:
+    # 10 m/s needs 0.025·100 = 2.5 m/s² of lean (14°), within ANGLE_MAX 30° (5.66 m/s²)
+    north, east, attitude = _hover_in_wind(10.0, 30.0)
+    assert math.hypot(north, east) < 1.0  # pushed a little, then held
+    assert attitude.get_float("pitch") == pytest.approx(-math.atan(2.5 / 9.80665), abs=0.02)
+
+
+def test_wind_above_the_lean_limit_drifts_the_vehicle() -> None:
+    # 10 m/s with ANGLE_MAX 10° (1.73 m/s²): the wind wins; the drift settles where the
+    # airspeed's drag equals the lean: 10 - sqrt(1.73/0.025) = 1.68 m/s downwind (south)
+    north, east, attitude = _hover_in_wind(10.0, 30.0, ANGLE_MAX=1000)
+    assert north < -30.0
+    assert abs(east) < 1e-6
+    assert abs(attitude.get_float("pitch")) == pytest.approx(math.radians(10.0), abs=1e-3)
