@@ -2,11 +2,12 @@
 
 Needs an interpreter with rclpy: ``$TEMOTO_ROS2_PYTHON`` (``make test-ros2`` makes one in
 ``.venv-ros2``) or this one; without, the group is skipped with a note. Three processes on
-loopback, ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, a domain of their own: an rclpy peer
-serving ``std_srvs/srv/Trigger``; an rclpy client timing its own calls to it (single-threaded
-executor: the peer's own figure); and TeMoto, timing the same call through the bridge
-(``call_service`` on a :class:`~temoto.ros2.client.BridgeClient`) and as a one-action graph
-(``Ros2CallService``, the bridge held across runs as a graph run's actions hold it).
+loopback, ``ROS_AUTOMATIC_DISCOVERY_RANGE=LOCALHOST``, a domain of their own
+(``$ROS_DOMAIN_ID`` if set, else one from the pid): an rclpy peer serving
+``std_srvs/srv/Trigger``; an rclpy client timing its own calls to it (single-threaded executor:
+the peer's own figure); and TeMoto, timing the same call through the bridge (``call_service`` on
+a :class:`~temoto.ros2.client.BridgeClient`) and as a one-action graph (``Ros2CallService``, the
+bridge held across runs as a graph run's actions hold it).
 
 And a published message's latency: an rclpy subscriber records, for each
 ``geometry_msgs/msg/Point`` it receives, ``time.monotonic()`` (``CLOCK_MONOTONIC``, one clock for
@@ -254,7 +255,10 @@ def bench_ros2(quick: bool) -> Results:
     n_calls = 200 if quick else 1000
     n_runs = 20 if quick else 100
     env = dict(os.environ)
-    env.update(ROS_DOMAIN_ID=str(150 + os.getpid() % 50), ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
+    # The caller's ROS_DOMAIN_ID if set (parallel runs on one machine each pass their own: two
+    # runs in one domain would share /bench/trigger's servers), else one from the pid.
+    domain = os.environ.get("ROS_DOMAIN_ID") or str(150 + os.getpid() % 50)
+    env.update(ROS_DOMAIN_ID=domain, ROS_AUTOMATIC_DISCOVERY_RANGE="LOCALHOST")
     saved = {k: os.environ.get(k) for k in ("ROS_DOMAIN_ID", "ROS_AUTOMATIC_DISCOVERY_RANGE")}
     os.environ.update({k: env[k] for k in saved})
     with tempfile.TemporaryDirectory() as tmp:
