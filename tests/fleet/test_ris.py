@@ -272,9 +272,26 @@ def test_a_plain_function_is_refused_as_a_clock(fleet: Fleet) -> None:
 # ================================================================ bad messages
 
 
+def introduced(a: Any, raw: Any, name: str, *servers: str) -> None:
+    """``raw`` (speaking as ``name``) adverts once and A takes it: A holds its session key.
+
+    A burst sent before A holds a new sender's session key reaches A only through resends (the
+    newest 256 at most), not in the order it was sent: the tests that count what A made of a
+    sequence of messages introduce their senders first.
+    """
+    raw.send(advert(name, *servers))
+    deadline = time.monotonic() + WAIT_S
+    while a.ris.robot_info(name) is None:
+        assert time.monotonic() < deadline, f"{name}'s advert was not taken: {a.link.stats}"
+        time.sleep(0.01)
+
+
 def test_bad_messages_are_counted_and_dropped_never_raised(fleet: Fleet) -> None:
     a = fleet.robot("A", period_s=60.0)
     raw = fleet.raw("mallory", RIS_CHANNEL)
+    m = fleet.raw("m", RIS_CHANNEL)  # a robot's adverts name that robot (docs/security.md)
+    introduced(a, raw, "mallory")
+    introduced(a, m, "m")
     joined = Got()
     a.ris.subscribe(on_joined=joined)
     before = a.ris.stats
@@ -293,7 +310,6 @@ def test_bad_messages_are_counted_and_dropped_never_raised(fleet: Fleet) -> None
     raw.send_raw("ris_advert_t", bad_version.encode())
     # decodable, but invalid: own robot name, empty names, no period, duplicate servers
     raw.send(advert(""))
-    m = fleet.raw("m", RIS_CHANNEL)  # a robot's adverts name that robot (docs/security.md)
     m.send(advert("m", manager=""))
     m.send(advert("m", period_ms=0))
     m.send(advert("m", "camera", "camera"))
@@ -330,13 +346,7 @@ def test_random_payloads_never_reach_a_handler_error(fleet: Fleet) -> None:
     raw = fleet.raw("f", RIS_CHANNEL)  # its adverts name it: they reach the RIS's checks
     rng = random.Random(5)
     good = codec.encode(advert("f", "camera"))[1]
-    # f's session first: a burst sent before A holds f's session key reaches A only through
-    # resends (the newest 256 at most), a race this test is not about
-    raw.send(advert("f", "camera"))
-    deadline = time.monotonic() + WAIT_S
-    while a.ris.providers("camera") != ["f"]:
-        assert time.monotonic() < deadline, f"f's advert was not taken: {a.link.stats}"
-        time.sleep(0.01)
+    introduced(a, raw, "f", "camera")
     for i in range(300):
         kind = rng.choice(["ris_advert_t", "ris_request_t", "ris_withdraw_t"])
         if i % 2:
