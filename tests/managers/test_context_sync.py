@@ -178,7 +178,8 @@ def test_late_joiner_receives_the_tree(bus: Bus) -> None:
     assert len(c) == 1500
     assert c.removed("obj3") is not None
     assert len(dump) == 1501
-    assert a.stats["states_sent"] >= 2  # chunked
+    # chunked: whoever answered C first (A or B, a race) sent its tree in two chunks or more
+    assert max(r.stats["states_sent"] for r in (a, b)) >= 2
     assert len(list(chunks(a.dump()))) >= 2
 
 
