@@ -26,7 +26,9 @@ in which every device of the robot is still:
 LOITER); the rest is the device slowing down (the simulated ODrive axes and servos are driven
 by their controllers' torque, bounded by their current limits, against inertia and friction).
 ``stop_decel_min_base_ms`` is the least of that slowing down the base's torque limit allows
-from the speed its wheels had when the zero reached them (the whole limit braking all the way).
+from the speed its wheels had when the zero reached them (the whole limit braking all the way);
+``stop_decel_min_vehicle_ms`` the least the vehicle's lean limit allows (g·tan ``ANGLE_MAX``)
+from its speed when it entered LOITER.
 """
 
 from __future__ import annotations
@@ -201,9 +203,31 @@ class _Arm:
         return any(flags), rest, not any(flags)
 
 
-def _vehicle(sim: Any) -> tuple[bool, bool, bool]:
-    speed = math.hypot(sim.vel[0], sim.vel[1])
-    return speed > 5.0, sim.mode == "LOITER", speed < 0.1
+#: m/s: "still" for the vehicle (horizontal speed).
+_STILL_M_S = 0.1
+
+
+class _Vehicle:
+    """The vehicle's readings; the least braking time noted when it is in LOITER."""
+
+    def __init__(self) -> None:
+        self.moved = False
+        #: ms: the least time the lean limit (``ANGLE_MAX``: g·tan) needs from the speed the
+        #: vehicle had when it entered LOITER to still (None until it did).
+        self.decel_min_ms: float | None = None
+        #: m/s: that speed.
+        self.speed_at_rest: float | None = None
+
+    def __call__(self, sim: Any) -> tuple[bool, bool, bool]:
+        speed = math.hypot(sim.vel[0], sim.vel[1])
+        moving = speed > 5.0
+        self.moved = self.moved or moving
+        rest = sim.mode == "LOITER"
+        if rest and self.moved and self.decel_min_ms is None:
+            self.speed_at_rest = speed
+            top = sim.state.max_accel()  # m/s²
+            self.decel_min_ms = 1000 * max(0.0, speed - _STILL_M_S) / top
+        return moving, rest, speed < _STILL_M_S
 
 
 def _stop_once(
@@ -270,13 +294,14 @@ def bench_stop_to_still(quick: bool) -> Results:
             _Base,
         ),
         "arm": ("sim_arm.yaml", "arm", _graph("MoveJoints", {"pose": "reach"}), _Arm),
-        "vehicle": ("sim_quad.yaml", "quad", {}, lambda: _vehicle),
+        "vehicle": ("sim_quad.yaml", "quad", {}, _Vehicle),
     }
     rounds = 1 if quick else 7
     still: dict[str, list[float]] = {k: [] for k in cases}
     rest: dict[str, list[float]] = {k: [] for k in cases}
     failed: dict[str, list[str]] = {k: [] for k in cases}
-    decel: list[tuple[float, float]] = []  # the base's (least deceleration ms, rad/s) per stop
+    # per robot with a deceleration bound: (the least deceleration ms, the speed) per stop
+    decel: dict[str, list[tuple[float, float]]] = {"base": [], "vehicle": []}
     for _ in range(rounds):
         for name, (profile, device, graph, read) in cases.items():
             for _attempt in range(3):  # a device that faulted under load: that round again
@@ -288,8 +313,8 @@ def bench_stop_to_still(quick: bool) -> Results:
                     continue
                 still[name].append(s)
                 rest[name].append(r)
-                if isinstance(reader, _Base) and reader.decel_min_ms is not None:
-                    decel.append((reader.decel_min_ms, reader.speed_at_rest or 0.0))
+                if isinstance(reader, (_Base, _Vehicle)) and reader.decel_min_ms is not None:
+                    decel[name].append((reader.decel_min_ms, reader.speed_at_rest or 0.0))
                 break
     for name, errors in failed.items():
         if errors:
@@ -316,14 +341,19 @@ def bench_stop_to_still(quick: bool) -> Results:
             f" (max {max(r):.1f})",
         )
         out.add(f"stop_to_rest_command_{name}_ms", median(r), "ms", f"max {max(r):.1f}")
-    if decel:
-        speeds = [v for _, v in decel]
-        out.add(
-            "stop_decel_min_base_ms",
-            median([d for d, _ in decel]),
-            "ms",
-            "the least time the wheels' torque limit needs from the speed they had when the"
-            f" zero reached them ({min(speeds):.2f} - {max(speeds):.2f} rad/s) to still; a"
-            " physical bound, part of stop_to_still_base_ms",
-        )
+    bounds = {
+        "base": ("the wheels' torque limit", "the zero reached them", "rad/s"),
+        "vehicle": ("the lean limit (g·tan ANGLE_MAX)", "it entered LOITER", "m/s"),
+    }
+    for name, (what, when, unit) in bounds.items():
+        if decel[name]:
+            speeds = [v for _, v in decel[name]]
+            out.add(
+                f"stop_decel_min_{name}_ms",
+                median([d for d, _ in decel[name]]),
+                "ms",
+                f"the least time {what} needs from the speed at which {when}"
+                f" ({min(speeds):.2f} - {max(speeds):.2f} {unit}) to still; a physical bound,"
+                f" part of stop_to_still_{name}_ms",
+            )
     return out
