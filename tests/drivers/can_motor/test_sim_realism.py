@@ -36,11 +36,15 @@ def odrive_frames(seconds: float, **kwargs: Any) -> tuple[SimODrive, list[tuple[
     """What an ODrive axis at rest streams for ``seconds`` (virtual time, no bus, no thread)."""
     axis = AxisModel(1)
     axis.pos = 1.25
-    sim = SimODrive(link(), [axis], ManualClock(), torque_period=0.01, **kwargs)
+    clock = ManualClock()
+    sim = SimODrive(link(), [axis], clock, torque_period=0.01, **kwargs)
     frames: list[tuple[int, bytes]] = []
     sim.send = lambda aid, data, node: frames.append((cs.split_id(aid)[1], bytes(data)))  # type: ignore[method-assign]
     for i in range(round(seconds / 0.001)):
+        clock.set(i * 0.001)
         sim.on_tick(i * 0.001)
+        sim.send_due(i * 0.001)  # what the realism's jitter held back (test_sim_can_timing.py)
+    sim.send_due(seconds + 1.0)
     return sim, frames
 
 
@@ -156,12 +160,16 @@ def test_a_mit_entry_refuses_other_sim_keys() -> None:
 def mit_replies(n: int, **kwargs: Any) -> list[mm.MitReply]:
     motor = MitModel.of(1, "AK80-9")
     motor.pos = 0.3
-    sim = SimMitMotor(link(), [motor], ManualClock(), **kwargs)
+    clock = ManualClock()
+    sim = SimMitMotor(link(), [motor], clock, **kwargs)
     replies: list[mm.MitReply] = []
     sim.send = lambda aid, data, node: replies.append(mm.decode_reply(data, motor.ranges))  # type: ignore[method-assign]
     frame = mm.encode_command(mm.MitCommand(0.3, 0.0, 0.0, 0.0, 0.0), motor.ranges)
-    for _ in range(n):
+    for i in range(n):
+        clock.set(i * 0.01)
+        sim.send_due(i * 0.01)  # what the realism's jitter held back (test_sim_can_timing.py)
         sim.on_frame(can.Message(arbitration_id=1, data=frame, is_extended_id=False))
+    sim.send_due(n * 0.01 + 1.0)
     return replies
 
 
