@@ -33,8 +33,12 @@ frame (the special frames do not count) arrived for that long, its command is ze
 "Realism"): at ``typical`` or ``harsh`` the reported position, velocity, torque, current,
 temperature and bus voltage carry seeded gaussian noise (the model's true state does not), and
 each of an ODrive's cyclic frames is lost now and then (requested frames and MIT replies are
-not: a lost one would look like a dead device to a host that asks once). Jitter and stalls of
-the streams are not modelled on CAN yet (a tick-driven sender would quantize them to the tick).
+not: a lost one would look like a dead device to a host that asks once). Each cyclic frame and
+each MIT reply leaves after the node's jitter, now and then late
+(:class:`~temoto.drivers.realism.CanTransmitter`: a late frame stalls the node, whose frames stay
+in order); the frames are held and sent at their clock time by the tick thread
+(:meth:`~temoto.drivers.can_motor.sim_bus.CanDeviceSim.send_at`), not rounded to the tick. An
+ODrive's answers to RTR requests leave at once.
 
 The bus may be ``virtual`` (one process) or ``udp_multicast`` (across processes).
 
