@@ -191,3 +191,29 @@ def test_mit_replies_are_exact_at_off_and_noisy_and_replayable_at_typical() -> N
     assert sim.realism.level.name == "harsh"
     assert sim.realism.seed is not None
     assert "sim" not in cfg
+
+
+def test_a_driven_mit_motor_at_harsh_gets_every_late_reply_and_does_not_fault() -> None:
+    # the replies go out on the simulator's tick thread at their (jittered, now and then late)
+    # times, woken on the manual clock; 10 polls a clock second as the MIT rigs use
+    clock = ManualClock()
+    cfg = {
+        "link": link(),
+        "poll_rate": 10.0,
+        "init_timeout": 0.5,
+        "motors": [{"motor_id": 1, "joint": "j", "model": "AK80-9"}],
+        "sim": {"realism": "harsh", "seed": 2},  # its second reply is late
+    }
+    sim, cfg = MitMotorDriver.simulate("arm", cfg, clock=clock)
+    assert isinstance(sim, SimMitMotor)
+    driver = MitMotorDriver.from_profile("arm", cfg, clock=clock, where="devices.arm")
+    with sim:
+        try:
+            in_thread(driver.configure, clock)
+            in_thread(driver.activate, clock)
+            driver.command([JointCommand("j", ControlMode.POSITION, 0.5)])
+            assert not move(clock, lambda: driver.state is not DriverState.ACTIVE, 6.0)
+            assert abs(driver.read_state().joints["j"].position - 0.5) < 0.05
+            assert sim.transmitter.stalls > 0  # some replies were late, and arrived
+        finally:
+            driver.shutdown()
