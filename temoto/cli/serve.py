@@ -189,3 +189,9 @@ def _traceback_printer() -> Any:
             sys.stderr.flush()
 
     return TracebackPrinter()
+
+
+if __name__ == "__main__":  # python -m temoto.cli.serve: temoto serve, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("serve"))
