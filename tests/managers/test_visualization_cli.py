@@ -17,6 +17,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _displays import show_display_graph
 
 from temoto.testing.foxglove_client import FoxgloveClient
 
@@ -237,23 +238,7 @@ def test_with_a_live_view_alone_a_graphs_display_is_drawn_by_the_page(
     import time
     import urllib.request
 
-    graph = {
-        "graph_name": "show_joints",
-        "graph_entry": [{"name": "ShowDisplay", "instance_id": 0}],
-        "graph_exit": [{"name": "ShowDisplay", "instance_id": 0}],
-        "actions": [
-            {
-                "name": "ShowDisplay",
-                "instance_id": 0,
-                "type": "sync",
-                "input_parameters": {
-                    "source": {"pvf_type": "string", "pvf_value": "robot"},
-                    "field": {"pvf_type": "string", "pvf_value": "joints"},
-                    "duration": {"pvf_type": "number", "pvf_value": 4.0},
-                },
-            }
-        ],
-    }
+    graph = show_display_graph("show_joints", source="robot", field="joints", duration=4.0)
     mission = tmp_path / "show.graph.json"
     mission.write_text(json.dumps(graph))
     proc = python_m(
