@@ -138,6 +138,10 @@ def commands() -> tuple[Command, ...]:
     return tuple(found)
 
 
+#: The help of ``-v``, on ``temoto`` and on each ``python -m temoto.cli.<name>``.
+_VERBOSE = "more log output (-vv: debug)"
+
+
 class _Alone:
     """The sub-parsers of ``python -m temoto.cli.<name>``: the command's parser alone.
 
@@ -170,9 +174,6 @@ class _Alone:
             "-v", "--verbose", action="count", default=argparse.SUPPRESS, help=_VERBOSE
         )
         return parser
-
-
-_VERBOSE = "more log output (-vv: debug)"
 
 
 def _parser(only: str | None = None) -> argparse.ArgumentParser:
