@@ -241,9 +241,13 @@ def busy_graph(tmp_path: Path) -> tuple[Path, Path]:
 
 
 @pytest.mark.parametrize(
-    ("signums", "code"),
-    [((signal.SIGINT,), 130), ((signal.SIGTERM,), 143)],
-    ids=["SIGINT", "SIGTERM"],
+    ("signums", "code", "entry"),
+    [
+        ((signal.SIGINT,), 130, ("temoto", "run")),
+        ((signal.SIGTERM,), 143, ("temoto", "run")),
+        ((signal.SIGTERM,), 143, ("temoto.cli.run",)),  # the command's own entry: the same
+    ],
+    ids=["SIGINT", "SIGTERM", "python-m-temoto.cli.run-SIGTERM"],
 )
 def test_run_stops_the_graph_and_its_processes_on_a_signal(
     busy_graph: tuple[Path, Path],
@@ -251,11 +255,12 @@ def test_run_stops_the_graph_and_its_processes_on_a_signal(
     leaks: ProcessLeakCheck,
     signums: tuple[int, ...],
     code: int,
+    entry: tuple[str, ...],
 ) -> None:
     graph, actions = busy_graph
     device = tmp_path / "device"
     run = Command(
-        ["-m", "temoto", "run", str(graph), "--actions", str(actions)],
+        ["-m", *entry, str(graph), "--actions", str(actions)],
         {"BUSY_TOUCH": str(tmp_path / "child.pid"), "BUSY_DEVICE": str(device)},
     )
     child = int(run.wait_for("busy ").split()[1])
@@ -321,14 +326,19 @@ def test_demo_1_leaves_no_sensor_process_behind(
 
 
 @pytest.mark.parametrize(
-    "signums",
-    [(signal.SIGINT,), (signal.SIGTERM,), (signal.SIGINT, signal.SIGINT)],
-    ids=["SIGINT", "SIGTERM", "SIGINT-twice"],
+    ("signums", "entry"),
+    [
+        ((signal.SIGINT,), ("temoto", "serve")),
+        ((signal.SIGTERM,), ("temoto", "serve")),
+        ((signal.SIGINT, signal.SIGINT), ("temoto", "serve")),
+        ((signal.SIGINT,), ("temoto.cli.serve",)),  # the command's own entry: the same
+    ],
+    ids=["SIGINT", "SIGTERM", "SIGINT-twice", "python-m-temoto.cli.serve-SIGINT"],
 )
-def test_serve_exits_0_on_a_signal(leaks: ProcessLeakCheck, signums: tuple[int, ...]) -> None:
-    serve = Command(
-        ["-m", "temoto", "serve", "--actor", "a", "--fleet-url", "inproc://signals", "--insecure"]
-    )
+def test_serve_exits_0_on_a_signal(
+    leaks: ProcessLeakCheck, signums: tuple[int, ...], entry: tuple[str, ...]
+) -> None:
+    serve = Command(["-m", *entry, "--actor", "a", "--fleet-url", "inproc://signals", "--insecure"])
     serve.wait_for("ready")
     serve.signal(*signums)
     status, err = serve.finish()

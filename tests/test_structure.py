@@ -46,22 +46,10 @@ GENERATED = ("temoto.lcm_types",)
 #: being fixed. None: keep it so.
 KNOWN_CYCLES: dict[frozenset[str], str] = {}
 
-#: Cycles through ``TYPE_CHECKING`` imports allowed, each with why.
-KNOWN_TYPE_CYCLES: dict[frozenset[str], str] = {
-    frozenset(
-        {
-            "temoto.core.registrar._ledger",
-            "temoto.core.registrar._restore",
-            "temoto.core.registrar.registry",
-            "temoto.core.registrar.server",
-        }
-    ): (
-        "by design (docs/registrar.md): the registrar holds its servers and a server's on_load"
-        " gets a LoadContext (beside the Registrar) whose registrar it calls, so registry.py and"
-        " server.py name each other's types, and the ledger and the restore name both; breaking"
-        " it means typing LoadContext.registrar as a Protocol, a change of the servers' typing"
-    ),
-}
+#: Cycles through ``TYPE_CHECKING`` imports allowed, each with why. None: keep it so (the
+#: registrar's servers see it as :class:`temoto.core.registrar.RegistrarAPI`, a Protocol in
+#: their own module, which is how such a circle is broken).
+KNOWN_TYPE_CYCLES: dict[frozenset[str], str] = {}
 
 #: Uses of another module's private names allowed: (module, what :func:`leaks` says) -> why.
 FRIENDS: dict[tuple[str, str], str] = {

@@ -46,9 +46,12 @@ traceback in any case. A closed standard output (``temoto actions | head``) ends
 quietly with status 141 (128 + SIGPIPE, as a program killed by SIGPIPE reports).
 
 Each sub-command is a module of this package (python-can's layout), with ``add_parser(sub)``
-and ``main(args)``, and one line of :data:`COMMANDS`: ``run``, ``serve``, ``validate``,
+and ``main(args)``, and one line of :data:`COMMAND_NAMES`: ``run``, ``serve``, ``validate``,
 ``graph``, ``demo``, ``actions``, ``drivers``, ``sim``, ``router``, ``view``, ``keys``,
-``examples``. The robot command (``python -m temoto.managers.robot``) is
+``examples``. Each also runs on its own, ``python -m temoto.cli.<name> ARGS``, the same as
+``temoto <name> ARGS`` (:func:`command_main`: the same parser, named after the module, errors,
+exit statuses and signal handling). This package imports them only when the command line runs.
+The robot command (``python -m temoto.managers.robot``, or ``python -m temoto.cli.robot``) is
 :mod:`temoto.cli.robot`. What they share is written once: exit statuses and error lines in
 :mod:`temoto.cli.common`, signals in :mod:`temoto.cli.signals`, the fleet's options in
 :mod:`temoto.cli.fleet`. These modules print; nothing else in the package does. This one
@@ -58,6 +61,7 @@ configures logging.
 from __future__ import annotations
 
 import argparse
+import importlib
 import logging
 import os
 import signal
@@ -66,20 +70,6 @@ from collections.abc import Callable, Sequence
 from typing import Any, NamedTuple
 
 from temoto import __version__
-from temoto.cli import (
-    actions,
-    demo,
-    drivers,
-    examples,
-    graph,
-    keys,
-    router,
-    run,
-    serve,
-    sim,
-    validate,
-    view,
-)
 from temoto.cli.common import (
     EXIT_BROKEN_PIPE,
     EXIT_INVALID,
@@ -96,7 +86,7 @@ from temoto.errors import (
     TransportError,
 )
 
-__all__ = ["COMMANDS", "Command", "main"]
+__all__ = ["COMMAND_NAMES", "Command", "command_main", "commands", "main"]
 
 
 class Command(NamedTuple):
@@ -113,7 +103,81 @@ class Command(NamedTuple):
     run: Callable[[argparse.Namespace], int]
 
 
-def _parser() -> argparse.ArgumentParser:
+#: The sub-commands, in the order ``temoto --help`` lists them: each is the module
+#: ``temoto.cli.<name>``, with ``add_parser(sub)`` and ``main(args)``. Adding one is one line here.
+COMMAND_NAMES: tuple[str, ...] = (
+    "run",
+    "serve",
+    "validate",
+    "graph",
+    "demo",
+    "actions",
+    "drivers",
+    "sim",
+    "router",
+    "view",
+    "keys",
+    "examples",
+)
+
+
+def commands() -> tuple[Command, ...]:
+    """The sub-commands of :data:`COMMAND_NAMES`, their modules imported.
+
+    Imported here, when the command line runs, not with this package:
+    ``python -m temoto.cli.<name>`` runs the module as ``__main__``, and Python imports this
+    package first (a module it had imported already would run twice, with a warning).
+
+    Returns:
+        One :class:`Command` per name, in order.
+    """
+    found = []
+    for name in COMMAND_NAMES:
+        module = importlib.import_module(f"temoto.cli.{name}")
+        found.append(Command(name, module.add_parser, module.main))
+    return tuple(found)
+
+
+#: The help of ``-v``, on ``temoto`` and on each ``python -m temoto.cli.<name>``.
+_VERBOSE = "more log output (-vv: debug)"
+
+
+class _Alone:
+    """The sub-parsers of ``python -m temoto.cli.<name>``: the command's parser alone.
+
+    The command's ``add_parser`` gets this instead of the top-level sub-parsers: its parser is
+    named ``python -m temoto.cli.<name>`` (its usage line), and takes the top level's ``-v``
+    too (the command's own ``-v``, if it has one, replaces it).
+
+    Args:
+        sub: The top-level parser's sub-parsers.
+    """
+
+    def __init__(self, sub: Any) -> None:
+        self.sub = sub
+
+    def add_parser(self, name: str, **kwargs: Any) -> argparse.ArgumentParser:
+        """Add the command's parser (``argparse``'s ``add_parser``, named after the module).
+
+        Args:
+            name: The command's name.
+            **kwargs: ``argparse``'s.
+
+        Returns:
+            The parser.
+        """
+        kwargs.setdefault("prog", f"python -m temoto.cli.{name}")
+        parser: argparse.ArgumentParser = self.sub.add_parser(
+            name, conflict_handler="resolve", **kwargs
+        )
+        parser.add_argument(  # SUPPRESS: the top level's default (0) stays when it is not given
+            "-v", "--verbose", action="count", default=argparse.SUPPRESS, help=_VERBOSE
+        )
+        return parser
+
+
+def _parser(only: str | None = None) -> argparse.ArgumentParser:
+    """The parser of ``temoto``, or with ``only``, of ``python -m temoto.cli.<only>``."""
     top = argparse.ArgumentParser(
         prog="temoto", description="TeMoto for Python: run and check UMRF task graphs."
     )
@@ -122,22 +186,45 @@ def _parser() -> argparse.ArgumentParser:
         action="version",
         version=f"temoto {__version__} ({_fast.BUILD} build, Python {sys.version.split()[0]})",
     )
-    top.add_argument(
-        "-v", "--verbose", action="count", default=0, help="more log output (-vv: debug)"
-    )
+    top.add_argument("-v", "--verbose", action="count", default=0, help=_VERBOSE)
     sub = top.add_subparsers(dest="command", required=True, metavar="COMMAND")
-    for command in COMMANDS:
-        command.add(sub)
+    for command in commands():
+        if only is not None and command.name != only:
+            continue
+        command.add(sub if only is None else _Alone(sub))
         if command.name not in sub.choices:
             raise RuntimeError(f"{command.add.__qualname__} did not add 'temoto {command.name}'")
+    if only is not None and only not in sub.choices:
+        raise ValueError(f"no command '{only}' (commands: {', '.join(COMMAND_NAMES)})")
     return top
 
 
-def main(argv: Sequence[str] | None = None) -> int:
+def command_main(name: str, argv: Sequence[str] | None = None) -> int:
+    """``python -m temoto.cli.<name>``: one command, as ``temoto <name>`` runs it.
+
+    The same parser (named after the module), logging, error lines, exit statuses and signal
+    handling as :func:`main`, which it calls.
+
+    Args:
+        name: The command (one of :data:`COMMAND_NAMES`).
+        argv: Its arguments, without the program name (default ``sys.argv[1:]``).
+
+    Returns:
+        The exit status.
+
+    Raises:
+        SystemExit: On ``--help`` and argument errors (status 2).
+    """
+    return main([name, *(sys.argv[1:] if argv is None else argv)], only=name)
+
+
+def main(argv: Sequence[str] | None = None, *, only: str | None = None) -> int:
     """Run the command line.
 
     Args:
         argv: Arguments without the program name (default ``sys.argv[1:]``).
+        only: The command, when this is ``python -m temoto.cli.<only>``
+            (:func:`command_main`): its parser alone.
 
     Returns:
         The exit status.
@@ -147,7 +234,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     """
     args: argparse.Namespace | None = None
     try:
-        args = _parser().parse_args(argv)
+        args = _parser(only).parse_args(argv)
         level = logging.WARNING - 10 * min(args.verbose, 2)
         if getattr(args, "progress", False):
             level = min(level, logging.INFO)
@@ -168,13 +255,18 @@ def main(argv: Sequence[str] | None = None) -> int:
         # a command without a signal handler of its own (watch, detect, validate, ...): Ctrl-C
         # ends it quietly, devices made safe like everywhere else
         make_devices_safe("SIGINT")
-        if args is not None and args.command == "serve":
+        if args is not None:
+            command = args.command
+        else:  # while the command's modules were imported
+            words = sys.argv[1:] if argv is None else argv
+            command = next((a for a in words if not a.startswith("-")), "")
+        if command == "serve":
             return EXIT_TRUE  # a service stopped as asked, even while it was starting
         return 128 + signal.SIGINT
 
 
 def _command(args: argparse.Namespace) -> int:
-    run = next(c.run for c in COMMANDS if c.name == args.command)
+    run = next(c.run for c in commands() if c.name == args.command)
     try:
         return run(args)
     except (ConfigError, PluginError) as err:
@@ -227,24 +319,3 @@ def _missing_extra(err: BaseException) -> str | None:
                 )
         cause = cause.__cause__ or cause.__context__
     return None
-
-
-#: The sub-commands, in the order ``temoto --help`` lists them: each is a module of this
-#: package with ``add_parser(sub)`` and ``main(args)``. Adding one is one line here.
-COMMANDS: tuple[Command, ...] = tuple(
-    Command(name, module.add_parser, module.main)
-    for name, module in (
-        ("run", run),
-        ("serve", serve),
-        ("validate", validate),
-        ("graph", graph),
-        ("demo", demo),
-        ("actions", actions),
-        ("drivers", drivers),
-        ("sim", sim),
-        ("router", router),
-        ("view", view),
-        ("keys", keys),
-        ("examples", examples),
-    )
-)

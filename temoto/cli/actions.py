@@ -48,3 +48,9 @@ def main(args: argparse.Namespace) -> int:
     for file, problem in catalog.problems:
         sys.stdout.write(f"problem: {file}: {problem}\n")
     return 0
+
+
+if __name__ == "__main__":  # python -m temoto.cli.actions: temoto actions, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("actions"))

@@ -88,3 +88,9 @@ def main(args: argparse.Namespace) -> int:
 def _fg(args: argparse.Namespace) -> tuple[str, int] | None:
     """``--foxglove [PORT]`` and ``--foxglove-host`` as ``run_demo`` takes them."""
     return None if args.foxglove is None else (args.foxglove_host, args.foxglove)
+
+
+if __name__ == "__main__":  # python -m temoto.cli.demo: temoto demo, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("demo"))

@@ -172,3 +172,9 @@ def _device_name(driver: str, taken: dict[str, Any]) -> str:
     while f"{driver}_{n}" in taken:
         n += 1
     return f"{driver}_{n}"
+
+
+if __name__ == "__main__":  # python -m temoto.cli.drivers: temoto drivers, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("drivers"))

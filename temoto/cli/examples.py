@@ -30,3 +30,9 @@ def main(args: argparse.Namespace) -> int:
     for folder in copy_examples(args.dir):
         sys.stdout.write(f"wrote {folder}\n")
     return 0
+
+
+if __name__ == "__main__":  # python -m temoto.cli.examples: temoto examples, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("examples"))

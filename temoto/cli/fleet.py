@@ -3,7 +3,9 @@
 Used by ``temoto serve``, ``temoto run`` (a shared graph), ``temoto graph start|...|watch``
 and the robot command: ``--fleet-url``/``--fleet``/key options, ``--catalog``/``--world``
 state files, ``--components``, ``--live-view`` and ``--record`` (a recorder opened and finished
-for the command). The fleet stack itself is imported only when a link is opened.
+for the command). The two commands that run an instance, ``temoto serve`` and the robot
+command, add all of them, and ``--foxglove``, with :func:`add_instance_options`. The fleet
+stack itself is imported only when a link is opened.
 """
 
 from __future__ import annotations
@@ -18,6 +20,7 @@ from typing import TYPE_CHECKING, Any, NamedTuple
 
 from temoto._files import read_regular_text
 from temoto.errors import ConfigError, GraphInputError
+from temoto.managers.visualization.live import add_foxglove_commands_option, add_foxglove_option
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials
@@ -27,12 +30,14 @@ __all__ = [
     "StateFiles",
     "add_components_option",
     "add_fleet_options",
+    "add_instance_options",
     "add_live_view_option",
     "add_record_option",
     "add_state_options",
     "close_recorder",
     "fleet_key",
     "fleet_link",
+    "instance_recording",
     "open_recorder",
     "state_files",
 ]
@@ -168,6 +173,25 @@ def add_live_view_option(parser: argparse.ArgumentParser) -> None:
     )
 
 
+def add_instance_options(parser: argparse.ArgumentParser, description: str) -> None:
+    """The options of a command that runs an instance (``temoto serve``, the robot command).
+
+    Its state files, ``--components``, ``--live-view``, ``--record``, ``--foxglove`` (and its
+    layout, host and commands) and the fleet's options.
+
+    Args:
+        parser: The command's parser.
+        description: The fleet options' group title (which fleet the instance joins).
+    """
+    add_state_options(parser)
+    add_components_option(parser)
+    add_live_view_option(parser)
+    add_record_option(parser)
+    add_foxglove_option(parser)
+    add_foxglove_commands_option(parser)
+    add_fleet_options(parser, description)
+
+
 def add_record_option(parser: argparse.ArgumentParser) -> None:
     """``--record FILE.mcap``: record the command's runs, logs, telemetry and fleet traffic."""
     parser.add_argument(
@@ -208,6 +232,39 @@ def open_recorder(
             recorder.close()
             raise
     return recorder
+
+
+@contextmanager
+def instance_recording(
+    args: argparse.Namespace, command: str, actor: str, transport: Any
+) -> Iterator[Any]:
+    """``--record`` around the life of an instance that is to own ``transport``.
+
+    ``temoto serve`` and the robot command: if the recorder cannot be opened, the transport
+    (which no instance owns yet) is closed; the recording is finished (:func:`close_recorder`)
+    at every way out, after the instance, so that its runs' last transitions are in.
+
+    Args:
+        args: The parsed arguments (``args.record``).
+        command: What runs (kept in the recording's metadata).
+        actor: The instance's actor.
+        transport: The fleet transport, listened to by the recorder.
+
+    Yields:
+        The recorder, or None without ``--record``.
+
+    Raises:
+        ConfigError: The file cannot be written.
+    """
+    try:
+        recorder = open_recorder(args, command, actor, transport)
+    except BaseException:
+        transport.close()
+        raise
+    try:
+        yield recorder
+    finally:
+        close_recorder(recorder)
 
 
 def close_recorder(recorder: Any) -> None:

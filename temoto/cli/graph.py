@@ -294,3 +294,9 @@ def feedback_json(feedback: Any) -> str:
             "nodes": dict(feedback.nodes),
         }
     )
+
+
+if __name__ == "__main__":  # python -m temoto.cli.graph: temoto graph, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("graph"))

@@ -135,3 +135,9 @@ def main(args: argparse.Namespace) -> int:
     except (ValueError, OSError) as err:  # RosterError is a ValueError
         sys.stderr.write(f"temoto: error: keys {args.keys_command}: {err}\n")
         return 2
+
+
+if __name__ == "__main__":  # python -m temoto.cli.keys: temoto keys, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("keys"))

@@ -43,14 +43,9 @@ from typing import IO, TYPE_CHECKING, Any
 from temoto.actions.builtin import ROBOT_ACTIONS, VISUALIZATION_ACTIONS
 from temoto.cli.common import EXIT_FAILED, EXIT_INVALID, EXIT_OK
 from temoto.cli.fleet import (
-    add_components_option,
-    add_fleet_options,
-    add_live_view_option,
-    add_record_option,
-    add_state_options,
-    close_recorder,
+    add_instance_options,
     fleet_key,
-    open_recorder,
+    instance_recording,
     state_files,
 )
 from temoto.cli.progress import ActionLogHandler, Progress
@@ -65,12 +60,7 @@ from temoto.core.states import NodeState, Result
 from temoto.drivers import Driver, live_drivers, make_all_safe
 from temoto.errors import ConfigError, DriverError, PluginError, ResourceError, TransportError
 from temoto.managers.process import hurry_all
-from temoto.managers.visualization.live import (
-    add_foxglove_commands_option,
-    add_foxglove_option,
-    close_foxglove,
-    open_foxglove,
-)
+from temoto.managers.visualization.live import close_foxglove, open_foxglove
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials
@@ -178,7 +168,6 @@ def _parser() -> argparse.ArgumentParser:
         help="with sim: true, also stream the simulated vehicle to this loopback address, for a"
         " ground station (repeatable; QGroundControl listens on udp:127.0.0.1:14550)",
     )
-    add_state_options(p)
     add_realism_options(p)
     p.add_argument(
         "--local",
@@ -186,12 +175,7 @@ def _parser() -> argparse.ArgumentParser:
         help="no fleet: nothing is sent to or taken from the network (a mission on one robot)",
     )
     p.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
-    add_components_option(p)
-    add_live_view_option(p)
-    add_record_option(p)
-    add_foxglove_option(p)
-    add_foxglove_commands_option(p)
-    add_fleet_options(p, "the fleet this robot joins (unless --local)")
+    add_instance_options(p, "the fleet this robot joins (unless --local)")
     return p
 
 
@@ -243,19 +227,12 @@ def _run(args: argparse.Namespace, interrupts: _SafeOnSignal) -> int:
     else:
         key = fleet_key(args, f"robot '{profile.robot}'")
         transport = open_transport(args.fleet_url)
-    try:
-        recorder = open_recorder(args, "robot", profile.robot, transport)
-    except BaseException:
-        transport.close()
-        raise
-    if recorder is not None:
-        interrupts.before_exit.append(recorder.close)  # a second signal: finished, then exit
-    try:
+    with instance_recording(args, "robot", profile.robot, transport) as recorder:
+        if recorder is not None:
+            interrupts.before_exit.append(recorder.close)  # a second signal: finished, then exit
         return _run_instance(
             args, interrupts, (t0, clock), (profile, mission, state), transport, key, recorder
         )
-    finally:
-        close_recorder(recorder)  # after the instance: the runs' last transitions are in
 
 
 def _run_instance(

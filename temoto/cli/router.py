@@ -115,3 +115,9 @@ def main(args: argparse.Namespace, out: IO[str] | None = None) -> int:
         finally:
             session.close()
     return 0
+
+
+if __name__ == "__main__":  # python -m temoto.cli.router: temoto router, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("router"))

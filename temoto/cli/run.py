@@ -360,3 +360,9 @@ def _printed_result(result: Result | None, *, interrupted: bool) -> str:
     if result is None:
         return Result.STOPPED.value if interrupted else "none"
     return result.value
+
+
+if __name__ == "__main__":  # python -m temoto.cli.run: temoto run, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("run"))

@@ -14,23 +14,13 @@ from typing import TYPE_CHECKING, Any
 from temoto.cli.common import EXIT_OK, add_paths, non_empty, not_negative, positive
 from temoto.cli.fleet import (
     StateFiles,
-    add_components_option,
-    add_fleet_options,
-    add_live_view_option,
-    add_record_option,
-    add_state_options,
-    close_recorder,
+    add_instance_options,
     fleet_key,
-    open_recorder,
+    instance_recording,
     state_files,
 )
 from temoto.cli.signals import FORCE_EXIT_S, SignalExit, make_devices_safe
-from temoto.managers.visualization.live import (
-    add_foxglove_commands_option,
-    add_foxglove_option,
-    close_foxglove,
-    open_foxglove,
-)
+from temoto.managers.visualization.live import close_foxglove, open_foxglove
 
 if TYPE_CHECKING:
     from temoto.transport.identity import Credentials
@@ -57,7 +47,6 @@ def add_parser(sub: Any) -> None:
         help="more log output (-vv: debug); -v also prints each failed action's traceback",
     )
     add_paths(serve_p)
-    add_state_options(serve_p)
     serve_p.add_argument(
         "--handshake-timeout",
         type=float,
@@ -79,12 +68,7 @@ def add_parser(sub: Any) -> None:
         metavar="SECONDS",
         help="publish every run's state this often (default 1)",
     )
-    add_components_option(serve_p)
-    add_live_view_option(serve_p)
-    add_record_option(serve_p)
-    add_foxglove_option(serve_p)
-    add_foxglove_commands_option(serve_p)
-    add_fleet_options(serve_p, "the fleet this instance joins")
+    add_instance_options(serve_p, "the fleet this instance joins")
 
 
 def main(args: argparse.Namespace) -> int:
@@ -100,15 +84,8 @@ def main(args: argparse.Namespace) -> int:
     state = state_files(args)
     with SignalExit(force_exit=FORCE_EXIT_S, force_exit_code=EXIT_OK) as signals:
         transport = open_transport(args.fleet_url)
-        try:
-            recorder = open_recorder(args, "temoto serve", args.actor, transport)
-        except BaseException:
-            transport.close()
-            raise
-        try:
+        with instance_recording(args, "temoto serve", args.actor, transport) as recorder:
             return _serve(args, key, state, transport, recorder, signals)
-        finally:
-            close_recorder(recorder)  # after the instance: its runs' last transitions are in
 
 
 def _serve(
@@ -189,3 +166,9 @@ def _traceback_printer() -> Any:
             sys.stderr.flush()
 
     return TracebackPrinter()
+
+
+if __name__ == "__main__":  # python -m temoto.cli.serve: temoto serve, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("serve"))

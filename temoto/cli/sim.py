@@ -197,3 +197,9 @@ class _Traffic:
             )
         self.count = count
         self.names |= names
+
+
+if __name__ == "__main__":  # python -m temoto.cli.sim: temoto sim, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("sim"))

@@ -137,3 +137,9 @@ def _validated(graph: UmrfGraph, actors: list[str], actor: str, elsewhere: int |
     elif elsewhere is not None:
         text += f"; {count - elsewhere} resolved here, {elsewhere} left to their actors"
     return text
+
+
+if __name__ == "__main__":  # python -m temoto.cli.validate: temoto validate, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("validate"))

@@ -85,3 +85,9 @@ def main(args: argparse.Namespace, stop: threading.Event | None = None) -> int:
             while not done.wait(0.5):
                 pass
     return 0
+
+
+if __name__ == "__main__":  # python -m temoto.cli.view: temoto view, on its own
+    from temoto.cli import command_main
+
+    sys.exit(command_main("view"))

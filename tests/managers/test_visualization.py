@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Any
 
 import pytest
+from _displays import show_display_graph
 from _robots import robot_manager
 
 from temoto import ActionEngine, Result
@@ -221,23 +222,7 @@ def test_the_robots_fault_reaches_the_displays_consumers(
     assert "arm" in fatal.message
 
 
-GRAPH = {
-    "graph_name": "show",
-    "graph_entry": [{"name": "ShowDisplay", "instance_id": 0}],
-    "graph_exit": [{"name": "ShowDisplay", "instance_id": 0}],
-    "actions": [
-        {
-            "name": "ShowDisplay",
-            "instance_id": 0,
-            "type": "sync",
-            "input_parameters": {
-                "source": {"pvf_type": "string", "pvf_value": "log"},
-                "display_name": {"pvf_type": "string", "pvf_value": "ops"},
-                "duration": {"pvf_type": "number", "pvf_value": 0.5},
-            },
-        }
-    ],
-}
+GRAPH = show_display_graph("show", source="log", display_name="ops", duration=0.5)
 
 
 def test_show_display_holds_a_display_for_its_node(server: FoxgloveServer) -> None:

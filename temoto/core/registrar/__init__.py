@@ -13,13 +13,14 @@ from temoto.core.registrar.messages import (
     Status,
     StatusUpdate,
 )
-from temoto.core.registrar.registry import LoadContext, Registrar
-from temoto.core.registrar.server import ResourceServer
+from temoto.core.registrar.registry import Registrar
+from temoto.core.registrar.server import LoadContext, RegistrarAPI, ResourceServer
 
 __all__ = [
     "LoadContext",
     "Reference",
     "Registrar",
+    "RegistrarAPI",
     "Resource",
     "ResourceInfo",
     "ResourceServer",

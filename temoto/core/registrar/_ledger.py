@@ -18,7 +18,7 @@ import collections
 import itertools
 import secrets
 import threading
-from collections.abc import Callable, Iterable, Mapping
+from collections.abc import Iterable, Mapping
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Final
 
@@ -28,6 +28,7 @@ from temoto.core.registrar.messages import (
     Reference,
     ResourceInfo,
     Status,
+    StatusCallback,
     StatusUpdate,
     from_plain,
     request_key,
@@ -45,7 +46,6 @@ if TYPE_CHECKING:
     from temoto.core.registrar.journal import FsyncPolicy, Journal
     from temoto.core.registrar.server import ResourceServer
 
-StatusCallback = Callable[[StatusUpdate], None]
 #: Status updates to deliver, each with the callbacks of its reference.
 Notices = list[tuple[tuple[StatusCallback, ...], StatusUpdate]]
 

@@ -17,7 +17,7 @@ from temoto.core.registrar import records
 
 if TYPE_CHECKING:
     from temoto.core.registrar._ledger import Entry, Ledger
-    from temoto.core.registrar.registry import Registrar
+    from temoto.core.registrar.server import RegistrarAPI
 
 __all__ = ["settle"]
 
@@ -25,7 +25,7 @@ logger = logging.getLogger(__name__)
 
 
 def settle(
-    registrar: Registrar,
+    registrar: RegistrarAPI,
     ledger: Ledger,
     lock: threading.Lock,
     restored: list[Entry],

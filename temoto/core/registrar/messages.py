@@ -20,6 +20,7 @@ __all__ = [
     "Resource",
     "ResourceInfo",
     "Status",
+    "StatusCallback",
     "StatusUpdate",
     "canonical_json",
     "from_plain",
@@ -62,6 +63,10 @@ class StatusUpdate:
     message: str
     origin: str
     hops: tuple[str, ...] = ()
+
+
+#: What a consumer gives to be told of its reference's status updates.
+StatusCallback = Callable[[StatusUpdate], None]
 
 
 @dataclass(frozen=True, slots=True)

@@ -31,12 +31,13 @@ from temoto.core.registrar.messages import (
     Resource,
     ResourceInfo,
     Status,
-    StatusUpdate,
+    StatusCallback,
     canonical_json,
     new_resource,
     request_key,
     to_plain,
 )
+from temoto.core.registrar.server import LoadContext, ResourceServer
 from temoto.errors import (
     ResourceClosedError,
     ResourceError,
@@ -47,84 +48,9 @@ from temoto.errors import (
 if TYPE_CHECKING:
     from pathlib import Path
 
-    from temoto.core.registrar.server import ResourceServer
-
-__all__ = ["LoadContext", "Registrar"]
+__all__ = ["Registrar"]
 
 logger = logging.getLogger(__name__)
-
-StatusCallback = Callable[[StatusUpdate], None]
-
-
-class LoadContext:
-    """What a server's ``on_load`` gets besides the request.
-
-    Attributes:
-        registrar: The registrar.
-        resource_id: The id the resource will have (use it in later ``send_status`` calls).
-        server: The server's name.
-    """
-
-    __slots__ = ("registrar", "resource_id", "server")
-
-    def __init__(self, registrar: Registrar, resource_id: str, server: str) -> None:
-        self.registrar = registrar
-        self.resource_id = resource_id
-        self.server = server
-
-    def call(
-        self,
-        server: str,
-        request: Any,
-        *,
-        priority: int = 0,
-        exclusive: bool = False,
-        on_status: StatusCallback | None = None,
-    ) -> Resource[Any]:
-        """Request a sub-resource as a dependency of this resource, from any thread.
-
-        Calls made with ``registrar.call`` in the thread running ``on_load`` are recorded
-        automatically; use this one from other threads.
-
-        Args:
-            server: The sub-resource's server.
-            request: Its request.
-            priority: Priority of the reference.
-            exclusive: Whether it wants the sub-resource alone.
-            on_status: Extra callback for the sub-resource's status (the server's
-                ``on_status`` is called anyway).
-
-        Returns:
-            The reference.
-
-        Raises:
-            Everything ``Registrar.call`` raises.
-        """
-        return self.registrar.call(
-            server,
-            request,
-            priority=priority,
-            exclusive=exclusive,
-            on_status=on_status,
-            holder=self.resource_id,
-        )
-
-    def checkpoint(self, progress: Mapping[str, Any]) -> None:
-        """Record how far the load got (e.g. a spawned pid) before it returns.
-
-        If the process dies before ``on_load`` returns, the restarted registrar hands this to
-        ``on_abandoned`` so the server can undo it (no orphaned process).
-
-        Args:
-            progress: JSON-serialisable data.
-
-        Returns:
-            None.
-
-        Raises:
-            TypeError: If the data cannot be serialised.
-        """
-        self.registrar.checkpoint(self.resource_id, progress)
 
 
 class Registrar:

@@ -102,11 +102,10 @@ mission and parameter protocols are :mod:`~temoto.drivers.mavlink.sim_mission` a
 from __future__ import annotations
 
 import logging
-import os
 import threading
 from collections import deque
 from collections.abc import Iterable, Mapping
-from typing import Any, ClassVar
+from typing import Any, ClassVar, Unpack
 
 from temoto.clock import Clock
 from temoto.drivers.mavlink import protocol as p
@@ -118,7 +117,13 @@ from temoto.drivers.mavlink.sim_failsafe import Failsafes
 from temoto.drivers.mavlink.sim_flight import FlightModel
 from temoto.drivers.mavlink.sim_mission import MissionItem
 from temoto.drivers.mavlink.sim_params import PARAMETERS
-from temoto.drivers.mavlink.sim_state import DEFAULT_RATES, HW_TEXT, STREAM_GROUPS, VehicleState
+from temoto.drivers.mavlink.sim_state import (
+    DEFAULT_RATES,
+    HW_TEXT,
+    STREAM_GROUPS,
+    VehicleModel,
+    VehicleState,
+)
 from temoto.drivers.mavlink.sim_state import EARTH_RADIUS as EARTH_RADIUS
 from temoto.drivers.mavlink.sim_telemetry import VehicleTelemetry
 from temoto.drivers.realism import Realism
@@ -141,40 +146,46 @@ class SimVehicle(Simulator):
 
     Args:
         name: For thread names and logs.
-        clock: Steps the model and paces the streams.
         gcs: Where to send (host, port) pairs; more are learned from whoever sends to us.
         port: This vehicle's own UDP port (0: any free port).
         host: The address it binds: loopback by default; ``0.0.0.0`` or a network address
             for ground stations on other machines.
-        system_id: The vehicle's MAVLink system id (``SYSID_THISMAV``; a value in the
-            parameter file wins).
-        home: Home latitude, longitude (degrees) and altitude above mean sea level (m); also
-            the origin of the model's local frame and its ground level.
         rates: Stream rates in Hz by message name (merged over :data:`DEFAULT_RATES`; 0 stops
             a stream).
-        battery: Initial charge, percent.
-        cells: Battery cells in series (4.2 V full, 3.3 V empty each).
-        min_arm_battery: Below this charge (%) arming is refused.
-        speed: Horizontal speed, m/s (``WPNAV_SPEED``).
-        climb_rate: Vertical speed up, m/s (``WPNAV_SPEED_UP``).
-        descent_rate: Vertical speed down, m/s (``WPNAV_SPEED_DN``; the landing's last
-            ``LAND_ALT_LOW`` is flown at ``LAND_SPEED``, ArduCopter's 0.5 m/s unless ``params``
-            says otherwise).
-        tau: Time constant of the position model, s.
-        rtl_altitude: Minimum altitude above home for the flight home in RTL, m (``RTL_ALT``).
-        drain_idle: Battery drain while armed on the ground, %/s.
-        drain_flight: Battery drain in the air at hover, %/s (more with lean and climb).
-        step_rate: Model steps per clock second.
-        params: Parameter values (e.g. ``{"FS_GCS_ENABLE": 5}`` for a vehicle whose GCS
-            failsafe lands it); names from :data:`PARAMETERS`.
-        params_file: A ``.param`` file (``NAME VALUE`` or ``NAME,VALUE`` lines, ``#``
-            comments) loaded at construction if it exists and rewritten, atomically, after
-            every accepted PARAM_SET. Names the table does not have are kept and served as
-            ``REAL32`` parameters.
         realism: ``off`` (default: the exact figures), ``typical`` or ``harsh``, or a
             :class:`~temoto.drivers.realism.Realism` (see :mod:`temoto.drivers.realism`).
         seed: The top-level seed of the realism's random numbers (None: a fresh one, logged;
             :attr:`realism` ``.seed`` holds it). Ignored when ``realism`` is a Realism.
+        **model: The model, :class:`~temoto.drivers.mavlink.sim_state.VehicleModel`, each
+            keyword optional (the defaults are ArduCopter's, in
+            :class:`~temoto.drivers.mavlink.sim_state.VehicleState`):
+
+            - ``clock``: Steps the model and paces the streams.
+            - ``system_id``: The vehicle's MAVLink system id (``SYSID_THISMAV``; a value in
+              the parameter file wins).
+            - ``home``: Home latitude, longitude (degrees) and altitude above mean sea level
+              (m); also the origin of the model's local frame and its ground level.
+            - ``battery``: Initial charge, percent.
+            - ``cells``: Battery cells in series (4.2 V full, 3.3 V empty each).
+            - ``min_arm_battery``: Below this charge (%) arming is refused.
+            - ``speed``: Horizontal speed, m/s (``WPNAV_SPEED``).
+            - ``climb_rate``: Vertical speed up, m/s (``WPNAV_SPEED_UP``).
+            - ``descent_rate``: Vertical speed down, m/s (``WPNAV_SPEED_DN``; the landing's
+              last ``LAND_ALT_LOW`` is flown at ``LAND_SPEED``, ArduCopter's 0.5 m/s unless
+              ``params`` says otherwise).
+            - ``tau``: Time constant of the position model, s.
+            - ``rtl_altitude``: Minimum altitude above home for the flight home in RTL, m
+              (``RTL_ALT``).
+            - ``drain_idle``: Battery drain while armed on the ground, %/s.
+            - ``drain_flight``: Battery drain in the air at hover, %/s (more with lean and
+              climb).
+            - ``step_rate``: Model steps per clock second.
+            - ``params``: Parameter values (e.g. ``{"FS_GCS_ENABLE": 5}`` for a vehicle whose
+              GCS failsafe lands it); names from :data:`PARAMETERS`.
+            - ``params_file``: A ``.param`` file (``NAME VALUE`` or ``NAME,VALUE`` lines,
+              ``#`` comments) loaded at construction if it exists and rewritten, atomically,
+              after every accepted PARAM_SET. Names the table does not have are kept and
+              served as ``REAL32`` parameters.
 
     Raises:
         ValueError: A parameter out of range, an unknown parameter name in ``params``, a bad
@@ -190,28 +201,13 @@ class SimVehicle(Simulator):
         self,
         name: str = "vehicle",
         *,
-        clock: Clock | None = None,
         gcs: Iterable[tuple[str, int]] = (),
         port: int = 0,
         host: str = "127.0.0.1",
-        system_id: int = 1,
-        home: tuple[float, float, float] = (47.397742, 8.545594, 488.0),
         rates: Mapping[str, float] | None = None,
-        battery: float = 100.0,
-        cells: int = 4,
-        min_arm_battery: float = 20.0,
-        speed: float = 10.0,
-        climb_rate: float = 2.5,
-        descent_rate: float = 1.5,
-        tau: float = 1.0,
-        rtl_altitude: float = 15.0,
-        drain_idle: float = 0.01,
-        drain_flight: float = 0.1,
-        step_rate: float = 50.0,
-        params: Mapping[str, float] | None = None,
-        params_file: str | os.PathLike[str] | None = None,
         realism: Realism | str = "off",
         seed: int | None = None,
+        **model: Unpack[VehicleModel],
     ) -> None:
         super().__init__()
         if not isinstance(realism, Realism):
@@ -221,26 +217,7 @@ class SimVehicle(Simulator):
         if realism.enabled:
             logger.info("%s: %s", name, realism.describe())
         #: The state the parts share.
-        self.state = VehicleState(
-            name,
-            clock=clock,
-            system_id=system_id,
-            home=home,
-            battery=battery,
-            cells=cells,
-            min_arm_battery=min_arm_battery,
-            speed=speed,
-            climb_rate=climb_rate,
-            descent_rate=descent_rate,
-            tau=tau,
-            rtl_altitude=rtl_altitude,
-            drain_idle=drain_idle,
-            drain_flight=drain_flight,
-            step_rate=step_rate,
-            params=params,
-            params_file=params_file,
-            fault=self._active_fault,
-        )
+        self.state = VehicleState(name, fault=self._active_fault, **model)
         state = self.state
         #: The messages it sends and their rates.
         self.telemetry = VehicleTelemetry(state, rates, realism)

@@ -33,7 +33,7 @@ import math
 import os
 import threading
 from collections.abc import Callable, Mapping
-from typing import Any, Final
+from typing import Any, Final, TypedDict
 
 from temoto.clock import Clock, MonotonicClock
 from temoto.drivers.mavlink import protocol as p
@@ -46,7 +46,15 @@ from temoto.drivers.mavlink.sim_params import (
     stored_value,
 )
 
-__all__ = ["DEFAULT_RATES", "EARTH_RADIUS", "GRAVITY", "HW_TEXT", "STREAM_GROUPS", "VehicleState"]
+__all__ = [
+    "DEFAULT_RATES",
+    "EARTH_RADIUS",
+    "GRAVITY",
+    "HW_TEXT",
+    "STREAM_GROUPS",
+    "VehicleModel",
+    "VehicleState",
+]
 
 logger = logging.getLogger(__name__)
 
@@ -123,6 +131,32 @@ _ARMING_CHECK_BATTERY: Final = 256
 
 def _no_fault(_: str) -> dict[str, Any] | None:
     return None
+
+
+class VehicleModel(TypedDict, total=False):
+    """The vehicle's model: :class:`VehicleState`'s keyword arguments but ``fault``, each optional.
+
+    :class:`~temoto.drivers.mavlink.sim.SimVehicle` takes them as they are and hands them to
+    its state (what each means is said there, the defaults are :class:`VehicleState`'s): the
+    list is written once, here, and mypy checks both calls against it.
+    """
+
+    clock: Clock | None
+    system_id: int
+    home: tuple[float, float, float]
+    battery: float
+    cells: int
+    min_arm_battery: float
+    speed: float
+    climb_rate: float
+    descent_rate: float
+    tau: float
+    rtl_altitude: float
+    drain_idle: float
+    drain_flight: float
+    step_rate: float
+    params: Mapping[str, float] | None
+    params_file: str | os.PathLike[str] | None
 
 
 class VehicleState:
