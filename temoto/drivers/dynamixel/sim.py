@@ -151,6 +151,11 @@ _POLLS: Final = frozenset(
     }
 )
 
+#: The shortest delay of a status packet the serving thread waits out: a shorter sleep costs a
+#: trip through the scheduler that, on a loaded machine, takes far longer than the delay (and
+#: a pseudo-terminal adds its own latency of that order anyway).
+_MIN_WAIT: Final = 0.001
+
 #: ``termios`` speed constants → bits per second (those this platform has).
 _LINE_SPEEDS: Final[Mapping[int, int]] = {
     getattr(termios, f"B{baud}"): baud
@@ -435,7 +440,7 @@ class SimDynamixelChain(ServoChain):
                 with contextlib.suppress(KeyError, IndexError):
                     units += self._servo(reply[4]).value("Return Delay Time")
         wait = extra + units * ct.RETURN_DELAY_UNIT
-        if wait > 0.0:
+        if wait >= _MIN_WAIT:
             self._stop.wait(wait)
 
     def _line_baud(self) -> int | None:
