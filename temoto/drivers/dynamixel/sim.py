@@ -108,8 +108,9 @@ its servo's register 9 sets (2 µs a unit, as the e-Manual's Protocol 2.0 timing
 small jitter, and a poll's packets now and then wait longer, as behind a USB adapter's latency
 timer or a busy USB host: within dynamixel-sdk's 34 ms at ``typical``, past it now and then at
 ``harsh``. The serving thread waits meanwhile (a half-duplex line carries one packet at a
-time): a host that gave up and asked again reads the late packets first. At ``off`` replies go
-out at once.
+time): a host that gave up and asked again reads the late packets first. A delay under 1 ms is
+not waited out (a sleep costs more than that on a loaded machine). At ``off`` replies go out at
+once.
 
 Code: this module is the pseudo-terminal, the serving thread, fault injection and the
 inspection methods; :mod:`~temoto.drivers.dynamixel.sim_instructions` (:class:`ServoChain`)
