@@ -15,12 +15,15 @@ stall left out). The seed is fixed, so a run repeats exactly.
 
 from __future__ import annotations
 
+import itertools
 import math
 import struct
 from collections.abc import Mapping
 
 from bench.common import Results, percentile
 from temoto.clock import ManualClock
+from temoto.drivers.can_motor import cansimple as cs
+from temoto.drivers.can_motor.sim import AxisModel, SimODrive
 from temoto.drivers.mavlink import protocol as p
 from temoto.drivers.mavlink.sim import DEFAULT_RATES, SimVehicle
 
@@ -104,4 +107,69 @@ def bench_realism(quick: bool) -> Results:
         res.add(f"realism_{level}_lost_pct", got["lost_pct"], "%")
         res.add(f"realism_{level}_jitter_p99_ms", got["jitter_p99_ms"], "ms")
     res.notes.append(f"seed {SEED}; a virtual clock, model steps of 20 ms, no socket")
+    _add_can(res, quick)
     return res
+
+
+# ---- CAN: an ODrive axis's encoder estimates at each level --------------------------------------
+
+CAN_PERIOD = 0.01  # s: ODrive 0.6's default encoder_msg_rate_ms
+#: The ODrive driver over a real bus: stale after 3 periods, at two looks a tenth of a period
+#: apart (``temoto/drivers/can_motor/odrive.py``, ``_judge_streams``).
+CAN_STALE = 3.1 * CAN_PERIOD
+
+
+def _run_can(level: str, hours: float) -> Mapping[str, float]:
+    """One ODrive axis's cyclic frames for ``hours`` of virtual time, through the tick loop."""
+    clock = ManualClock()
+    link = {"interface": "virtual", "channel": "bench-realism"}  # never opened
+    sim = SimODrive(link, [AxisModel(1)], clock, realism=level, seed=SEED)
+    enc = int(cs.Cmd.GET_ENCODER_ESTIMATES)
+    arrivals: list[float] = []
+    sent = [0]
+
+    def send(aid: int, data: bytes, node: int) -> None:
+        sent[0] += 1
+        if cs.split_id(aid)[1] == enc:
+            arrivals.append(clock.monotonic())
+
+    sim.send = send  # type: ignore[method-assign]
+    end, due = hours * 3600.0, 0.0
+    while True:  # the simulator's tick loop, on the virtual clock
+        now = clock.monotonic()
+        if now >= due:
+            sim.on_tick(now)
+            due = max(due + sim.tick, now)
+        wake = min(due, sim.send_due(now))
+        if wake > end:
+            break
+        clock.set(wake)
+    gaps = [b - a for a, b in itertools.pairwise(arrivals)]
+    deviation = [abs(g - CAN_PERIOD) for g in gaps if 0.5 * CAN_PERIOD < g < 1.5 * CAN_PERIOD]
+    return {
+        "stale_per_hour": sum(1 for g in gaps if g > CAN_STALE) / hours,
+        "late_pct": 100.0 * sim.transmitter.stalls / max(sent[0], 1),
+        "jitter_p99_ms": 1000.0 * percentile(deviation, 99) if deviation else math.nan,
+        "longest_gap_ms": 1000.0 * max(gaps, default=math.nan),
+    }
+
+
+def _add_can(res: Results, quick: bool) -> None:
+    """Stale events, late frames and jitter of an ODrive's encoder estimates per level."""
+    hours = {"off": 0.02, "typical": 0.1 if quick else 1.0, "harsh": 0.05 if quick else 0.5}
+    for level, span in hours.items():
+        got = _run_can(level, span)
+        res.add(
+            f"realism_{level}_can_stale_per_hour",
+            got["stale_per_hour"],
+            "1/h",
+            f"{span:g} virtual h, an ODrive's encoder estimates at 100 Hz, > 31 ms silent",
+            ("<=", 0.5) if level == "typical" else None,
+        )
+        res.add(f"realism_{level}_can_late_pct", got["late_pct"], "%")
+        res.add(f"realism_{level}_can_jitter_p99_ms", got["jitter_p99_ms"], "ms")
+        res.add(f"realism_{level}_can_longest_gap_ms", got["longest_gap_ms"], "ms")
+    res.notes.append(
+        f"CAN: seed {SEED}; one SimODrive axis, heartbeats 100 ms, estimates 10 ms, its tick"
+        " loop on a virtual clock, no bus"
+    )

@@ -23,8 +23,12 @@ in which every device of the robot is still:
 
 ``stop_to_rest_command_ms`` is the part of it until the simulator holds the rest set-point
 (the wheels' input velocity 0, the arm's goal positions no longer the pose's, the vehicle in
-LOITER); the rest is the device slowing down (the simulators' motors
-and servos follow their set-points with a 50 ms time constant).
+LOITER); the rest is the device slowing down (the simulated ODrive axes and servos are driven
+by their controllers' torque, bounded by their current limits, against inertia and friction).
+``stop_decel_min_base_ms`` is the least of that slowing down the base's torque limit allows
+from the speed its wheels had when the zero reached them (the whole limit braking all the way);
+``stop_decel_min_vehicle_ms`` the least the vehicle's lean limit allows (g·tan ``ANGLE_MAX``)
+from its speed when it entered LOITER.
 """
 
 from __future__ import annotations
@@ -138,11 +142,50 @@ def _graph(action: str, inputs: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def _base(sim: Any) -> tuple[bool, bool, bool]:
-    vels = [abs(a.vel) * 2 * math.pi for a in sim.axes.values()]  # ODrive: rev/s; here rad/s
-    moving = max(vels) > 5.0
-    rest = all(a.input_vel == 0 for a in sim.axes.values())
-    return moving, rest, max(vels) < 0.24
+#: rad/s: "still" for a wheel (the Dynamixel Moving Threshold's default speed).
+_STILL_RAD_S = 0.24
+
+
+def _decel_min_s(axis: Any, speed: float) -> float:
+    """Seconds the axis needs at the least from ``speed`` (turn/s) to still, at its torque limit.
+
+    The whole torque limit ``T`` braking, helped by the load's viscous friction ``d``, against
+    the inertia ``J`` (turn units): ``J dv/dt = -(T + d v)``, so ``t = J/d ln((T + d v0) /
+    (T + d v_still))``. No controller stops quicker (its PI leaves the limit near zero speed).
+    """
+    inertia = 2 * math.pi * (axis.inertia + axis.load_inertia)  # N·m per turn/s²
+    top, damping = axis.torque_limit, axis.damping
+    still = _STILL_RAD_S / (2 * math.pi)
+    if speed <= still:
+        return 0.0
+    if damping <= 0:
+        return inertia * (speed - still) / top
+    return inertia / damping * math.log((top + damping * speed) / (top + damping * still))
+
+
+class _Base:
+    """The wheels' readings; the least deceleration time noted when the zero set-point lands."""
+
+    def __init__(self) -> None:
+        self.moved = False
+        #: ms: the current-limited minimum from the speed the wheels had when the zero reached
+        #: them (None until it did).
+        self.decel_min_ms: float | None = None
+        #: rad/s: that speed (the fastest wheel).
+        self.speed_at_rest: float | None = None
+
+    def __call__(self, sim: Any) -> tuple[bool, bool, bool]:
+        axes = list(sim.axes.values())
+        vels = [abs(a.vel) * 2 * math.pi for a in axes]  # ODrive: rev/s; here rad/s
+        moving = max(vels) > 5.0
+        self.moved = self.moved or moving
+        rest = all(a.input_vel == 0 for a in axes)
+        if rest and self.moved and self.decel_min_ms is None:
+            # the model was stepped to each zero's arrival (the simulator steps an axis on
+            # every frame): these are the speeds the stop starts from
+            self.speed_at_rest = max(vels)
+            self.decel_min_ms = 1000 * max(_decel_min_s(a, abs(a.vel)) for a in axes)
+        return moving, rest, max(vels) < _STILL_RAD_S
 
 
 class _Arm:
@@ -160,9 +203,31 @@ class _Arm:
         return any(flags), rest, not any(flags)
 
 
-def _vehicle(sim: Any) -> tuple[bool, bool, bool]:
-    speed = math.hypot(sim.vel[0], sim.vel[1])
-    return speed > 5.0, sim.mode == "LOITER", speed < 0.1
+#: m/s: "still" for the vehicle (horizontal speed).
+_STILL_M_S = 0.1
+
+
+class _Vehicle:
+    """The vehicle's readings; the least braking time noted when it is in LOITER."""
+
+    def __init__(self) -> None:
+        self.moved = False
+        #: ms: the least time the lean limit (``ANGLE_MAX``: g·tan) needs from the speed the
+        #: vehicle had when it entered LOITER to still (None until it did).
+        self.decel_min_ms: float | None = None
+        #: m/s: that speed.
+        self.speed_at_rest: float | None = None
+
+    def __call__(self, sim: Any) -> tuple[bool, bool, bool]:
+        speed = math.hypot(sim.vel[0], sim.vel[1])
+        moving = speed > 5.0
+        self.moved = self.moved or moving
+        rest = sim.mode == "LOITER"
+        if rest and self.moved and self.decel_min_ms is None:
+            self.speed_at_rest = speed
+            top = sim.state.max_accel()  # m/s²
+            self.decel_min_ms = 1000 * max(0.0, speed - _STILL_M_S) / top
+        return moving, rest, speed < _STILL_M_S
 
 
 def _stop_once(
@@ -226,25 +291,30 @@ def bench_stop_to_still(quick: bool) -> Results:
             "sim_rover.yaml",
             "base",
             _graph("NavigateTo", {"x": 3.0, "y": 0.0}),
-            lambda: _base,
+            _Base,
         ),
         "arm": ("sim_arm.yaml", "arm", _graph("MoveJoints", {"pose": "reach"}), _Arm),
-        "vehicle": ("sim_quad.yaml", "quad", {}, lambda: _vehicle),
+        "vehicle": ("sim_quad.yaml", "quad", {}, _Vehicle),
     }
     rounds = 1 if quick else 7
     still: dict[str, list[float]] = {k: [] for k in cases}
     rest: dict[str, list[float]] = {k: [] for k in cases}
     failed: dict[str, list[str]] = {k: [] for k in cases}
+    # per robot with a deceleration bound: (the least deceleration ms, the speed) per stop
+    decel: dict[str, list[tuple[float, float]]] = {"base": [], "vehicle": []}
     for _ in range(rounds):
         for name, (profile, device, graph, read) in cases.items():
             for _attempt in range(3):  # a device that faulted under load: that round again
+                reader = read()
                 try:
-                    s, r = _stop_once(profile, device, graph, read())
+                    s, r = _stop_once(profile, device, graph, reader)
                 except RuntimeError as err:
                     failed[name].append(str(err))
                     continue
                 still[name].append(s)
                 rest[name].append(r)
+                if isinstance(reader, (_Base, _Vehicle)) and reader.decel_min_ms is not None:
+                    decel[name].append((reader.decel_min_ms, reader.speed_at_rest or 0.0))
                 break
     for name, errors in failed.items():
         if errors:
@@ -271,4 +341,19 @@ def bench_stop_to_still(quick: bool) -> Results:
             f" (max {max(r):.1f})",
         )
         out.add(f"stop_to_rest_command_{name}_ms", median(r), "ms", f"max {max(r):.1f}")
+    bounds = {
+        "base": ("the wheels' torque limit", "the zero reached them", "rad/s"),
+        "vehicle": ("the lean limit (g·tan ANGLE_MAX)", "it entered LOITER", "m/s"),
+    }
+    for name, (what, when, unit) in bounds.items():
+        if decel[name]:
+            speeds = [v for _, v in decel[name]]
+            out.add(
+                f"stop_decel_min_{name}_ms",
+                median([d for d, _ in decel[name]]),
+                "ms",
+                f"the least time {what} needs from the speed at which {when}"
+                f" ({min(speeds):.2f} - {max(speeds):.2f} {unit}) to still; a physical bound,"
+                f" part of stop_to_still_{name}_ms",
+            )
     return out

@@ -38,11 +38,14 @@ if TYPE_CHECKING:
     from temoto.drivers.profile import ProfileReader
 
 __all__ = [
+    "CAN_TIMING",
     "LEVELS",
     "LEVEL_NAMES",
     "QUANTITIES",
     "SERIAL_REPLY_TIMING",
     "SIM_KEYS",
+    "CanTiming",
+    "CanTransmitter",
     "Realism",
     "RealismLevel",
     "SerialReplyDelay",
@@ -313,6 +316,102 @@ def read_sim_realism(reader: ProfileReader, sim: object) -> tuple[str, int | Non
     if seed is not None and (isinstance(seed, bool) or not isinstance(seed, int) or seed < 0):
         reader.fail("sim.seed", f"must be a non-negative integer, got {seed!r}")
     return str(level), seed
+
+
+# ---- CAN: a node's transmit timing (jitter and late frames) -----------------------------------
+
+
+@dataclass(frozen=True)
+class CanTiming:
+    """When a CAN node's frames leave at one level (``docs/simulators.md``, "Realism").
+
+    A frame is ready at its scheduled time (a cyclic message's period, a reply's request) and
+    leaves after a half-normal **jitter** of standard deviation ``jitter``; now and then (share
+    ``late`` of the frames) the node's transmitter **stalls** for a uniform time in
+    ``late_delay``, and the frame and everything the node sends after it wait for the stall
+    to end: a node's frames leave in the order it made them (one transmit queue per node).
+
+    Args:
+        name: The level's name.
+        jitter: Standard deviation, s, of the half-normal extra delay of every frame.
+        late: Share of the frames that stall the node's transmitter.
+        late_delay: The stall's duration, s: uniform between these two.
+    """
+
+    name: str
+    jitter: float = 0.0
+    late: float = 0.0
+    late_delay: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether frames ever leave later than scheduled."""
+        return bool(self.jitter or self.late)
+
+
+#: The CAN timing of each level by name; a level of another name has none. Figures and reasons:
+#: ``docs/simulators.md``, "Realism".
+CAN_TIMING: Final[Mapping[str, CanTiming]] = MappingProxyType(
+    {
+        "off": CanTiming("off"),
+        "typical": CanTiming("typical", jitter=0.0005, late=0.001, late_delay=(0.002, 0.008)),
+        "harsh": CanTiming("harsh", jitter=0.002, late=0.01, late_delay=(0.005, 0.02)),
+    }
+)
+
+
+class CanTransmitter:
+    """The transmit timing of the CAN nodes of one simulated device, drawn from seeded generators.
+
+    Streams and replies draw from generators of their own (seeded from the device's
+    :class:`Realism` seed and name, :func:`derive_seed` purposes ``can-stream`` and
+    ``can-reply``), so the streams' timing does not depend on when requests arrive and the
+    noise and losses of :class:`Realism` are the same as without it. Each node keeps its frames
+    in order: a frame never leaves before one the node made earlier.
+
+    Not thread-safe: the simulator calls it under its own lock.
+
+    Args:
+        realism: The device's realism (its level's name picks :data:`CAN_TIMING`).
+    """
+
+    def __init__(self, realism: Realism) -> None:
+        self.timing = CAN_TIMING.get(realism.level.name, CAN_TIMING["off"])
+        base = 0 if realism.seed is None else realism.seed
+        self._stream = random.Random(derive_seed(base, realism.device, "can-stream"))
+        self._reply = random.Random(derive_seed(base, realism.device, "can-reply"))
+        self._free: dict[int, float] = {}  # node -> when its last frame left
+        #: Frames that stalled their node's transmitter (late frames), for tests and tools.
+        self.stalls = 0
+
+    @property
+    def enabled(self) -> bool:
+        """Whether frames ever leave later than scheduled."""
+        return self.timing.enabled
+
+    def release(self, node: int, ready: float, *, reply: bool = False) -> float:
+        """When a frame of ``node`` made at ``ready`` leaves.
+
+        Args:
+            node: The node (an ODrive's node id, a motor's id): its frames stay in order.
+            ready: Clock seconds the frame was made.
+            reply: The frame answers a request (drawn from the replies' generator).
+
+        Returns:
+            Clock seconds, never before ``ready`` nor before the node's previous frame
+            (``ready`` itself at ``off``).
+        """
+        timing = self.timing
+        if not timing.enabled:
+            return ready
+        rng = self._reply if reply else self._stream
+        at = ready + abs(rng.gauss(0.0, timing.jitter)) if timing.jitter > 0.0 else ready
+        if timing.late > 0.0 and rng.random() < timing.late:
+            at += rng.uniform(*timing.late_delay)
+            self.stalls += 1
+        at = max(at, self._free.get(node, -math.inf))
+        self._free[node] = at
+        return at
 
 
 # ---- serial lines (DYNAMIXEL): late status packets ---------------------------------------------

@@ -33,8 +33,12 @@ frame (the special frames do not count) arrived for that long, its command is ze
 "Realism"): at ``typical`` or ``harsh`` the reported position, velocity, torque, current,
 temperature and bus voltage carry seeded gaussian noise (the model's true state does not), and
 each of an ODrive's cyclic frames is lost now and then (requested frames and MIT replies are
-not: a lost one would look like a dead device to a host that asks once). Jitter and stalls of
-the streams are not modelled on CAN yet (a tick-driven sender would quantize them to the tick).
+not: a lost one would look like a dead device to a host that asks once). Each cyclic frame and
+each MIT reply leaves after the node's jitter, now and then late
+(:class:`~temoto.drivers.realism.CanTransmitter`: a late frame stalls the node, whose frames stay
+in order); the frames are held and sent at their clock time by the tick thread
+(:meth:`~temoto.drivers.can_motor.sim_bus.CanDeviceSim.send_at`), not rounded to the tick. An
+ODrive's answers to RTR requests leave at once.
 
 The bus may be ``virtual`` (one process) or ``udp_multicast`` (across processes).
 
@@ -63,7 +67,7 @@ from temoto.drivers.can_motor.sim_model import (
     AxisModel,
     MitModel,
 )
-from temoto.drivers.realism import Realism
+from temoto.drivers.realism import CanTransmitter, Realism
 
 logger = logging.getLogger(__name__)
 
@@ -88,6 +92,10 @@ _HW_BITS: Final = {
 _MIT_CODES: Final = {"overheat": 1, "overload": 2, "voltage": 4}
 
 _ZERO: Final = mit.MitCommand(0.0, 0.0, 0.0, 0.0, 0.0)
+
+#: Clock seconds a cyclic message may be early and still be due: a tick loop that adds its
+#: period up (0.01 ten times) reaches a 100 ms message's time a rounding error before it.
+_DUE_SLACK: Final = 1e-9
 
 _TURN: Final = 2.0 * math.pi  # rad per turn: the realism figures are in rad, an ODrive's in turns
 
@@ -197,6 +205,8 @@ class SimODrive(CanDeviceSim):
         super().__init__(link, clock, min(ticks) if ticks else 0.1)
         self.watchdog_timeout = watchdog_timeout
         self.realism = _realism(realism, seed, device)
+        #: When each node's cyclic frames leave (the realism's jitter and late frames).
+        self.transmitter = CanTransmitter(self.realism)
         #: Cyclic frames lost on purpose (realism), for tests and tools.
         self.frames_lost = 0
         models = [n if isinstance(n, AxisModel) else AxisModel(n) for n in nodes]
@@ -325,11 +335,12 @@ class SimODrive(CanDeviceSim):
         """Send the cyclic messages that are due."""
         due: list[str] = []
         for name, period in self.periods.items():
-            if period > 0 and now >= self._due[name]:
+            if period > 0 and now >= self._due[name] - _DUE_SLACK:
                 due.append(name)
                 after = self._due[name] + period  # keeps the phase; late by a period: skip
                 self._due[name] = after if after > now else now + period
-        frames: list[tuple[int, int, bytes]] = []
+        frames: list[tuple[float, int, int, bytes]] = []
+        timed = self.transmitter.enabled
         no_hb = self.fault("no_heartbeat")
         no_enc = self.fault("no_encoder")
         with self._model_lock:
@@ -348,9 +359,13 @@ class SimODrive(CanDeviceSim):
                         continue
                     payload = self._payload(axis, what)
                     if payload is not None:
-                        frames.append((node, what, payload))
-        for node, cmd, data in frames:
-            self.send(self._ids[node, cmd], data, node)
+                        at = self.transmitter.release(node, now) if timed else now
+                        frames.append((at, node, what, payload))
+        for at, node, cmd, data in frames:
+            if timed:
+                self.send_at(at, self._ids[node, cmd], data, node)
+            else:
+                self.send(self._ids[node, cmd], data, node)
 
     def _watchdog(self, axis: AxisModel, now: float) -> None:
         """Disarm an armed axis whose watchdog expired (``_model_lock`` held)."""
@@ -415,6 +430,8 @@ class SimMitMotor(CanDeviceSim):
         super().__init__(link, clock, min(tick, can_timeout / 10) if can_timeout > 0 else tick)
         self.can_timeout = can_timeout
         self.realism = _realism(realism, seed, device)
+        #: When each motor's replies leave (the realism's jitter and late frames).
+        self.transmitter = CanTransmitter(self.realism)
         models = [m if isinstance(m, MitModel) else MitModel(m) for m in motors]
         if not models or len({m.motor_id for m in models}) != len(models):
             raise ValueError("a SimMitMotor needs distinct motor ids")
@@ -447,7 +464,8 @@ class SimMitMotor(CanDeviceSim):
             return
         data = bytes(msg.data)
         with self._model_lock:
-            motor.step(self.clock.monotonic())
+            now = self.clock.monotonic()
+            motor.step(now)
             kind = mit.special(data)
             if kind == "enter":
                 motor.enabled = motor.error == 0
@@ -457,7 +475,7 @@ class SimMitMotor(CanDeviceSim):
             elif kind == "zero":
                 motor.pos = 0.0
             elif len(data) == 8:
-                motor.fed = self.clock.monotonic()
+                motor.fed = now
                 if motor.enabled:
                     motor.command = mit.decode_command(data, motor.ranges)
                     motor.commands += 1
@@ -477,7 +495,11 @@ class SimMitMotor(CanDeviceSim):
                 motor.error if self.long_replies else None,
             )
             payload = mit.encode_reply(reply, motor.ranges)
-        self.send(self.host_id, payload, motor.motor_id)
+            at = self.transmitter.release(motor.motor_id, now, reply=True)  # off: now
+        if self.transmitter.enabled:
+            self.send_at(at, self.host_id, payload, motor.motor_id)
+        else:
+            self.send(self.host_id, payload, motor.motor_id)
 
     def on_tick(self, now: float) -> None:
         """Step the models; zero the command of a motor whose CAN timeout expired."""

@@ -6,11 +6,15 @@
 calls :meth:`~CanDeviceSim.on_tick` every ``tick`` seconds of the injected clock (waiting with
 ``clock.wait``, so a :class:`~temoto.clock.ManualClock` runs it in virtual time), and applies
 the faults every device shares (``silence`` and ``link_loss``: nothing in or out; ``corrupt``:
-frames go out truncated) in :meth:`~CanDeviceSim.send`.
+frames go out truncated) in :meth:`~CanDeviceSim.send`. A frame may also be sent later
+(:meth:`~CanDeviceSim.send_at`: the realism's jitter and late frames); the tick thread wakes
+for it too and sends it at its clock time.
 """
 
 from __future__ import annotations
 
+import heapq
+import itertools
 import logging
 import threading
 from abc import abstractmethod
@@ -48,6 +52,9 @@ class CanDeviceSim(Simulator):
         self._bus: can.BusABC | None = None
         self._threads: list[threading.Thread] = []
         self._send_lock = threading.Lock()
+        #: Frames to send later: (clock time, order, arbitration id, data, node); under _cond.
+        self._later: list[tuple[float, int, int, bytes, int]] = []
+        self._order = itertools.count()
 
     def __repr__(self) -> str:
         return f"<{type(self).__name__} on {self.link.get('channel')!r}>"
@@ -113,6 +120,38 @@ class CanDeviceSim(Simulator):
         except can.CanError as err:
             logger.debug("%r: send failed: %s", self, err)
 
+    def send_at(self, when: float, arbitration_id: int, data: bytes, node: int) -> None:
+        """Send a frame from ``node`` at clock time ``when`` (now if it is past).
+
+        Frames due at the same time leave in the order they were given.
+        """
+        if when <= self.clock.monotonic():
+            self.send(arbitration_id, data, node)
+            return
+        with self._cond:
+            heapq.heappush(self._later, (when, next(self._order), arbitration_id, data, node))
+            self._cond.notify_all()
+
+    def send_due(self, now: float) -> float:
+        """Send the frames of :meth:`send_at` due by ``now``; when the next one is due.
+
+        Args:
+            now: Clock seconds.
+
+        Returns:
+            The clock time of the next frame held (infinity: none).
+        """
+        due: list[tuple[int, bytes, int]] = []
+        with self._cond:
+            later = self._later
+            while later and later[0][0] <= now:
+                _, _, aid, data, node = heapq.heappop(later)
+                due.append((aid, data, node))
+            nxt = later[0][0] if later else float("inf")
+        for aid, data, node in due:
+            self.send(aid, data, node)
+        return nxt
+
     # ---- threads ---------------------------------------------------------------------------
 
     def _rx_loop(self) -> None:
@@ -136,18 +175,24 @@ class CanDeviceSim(Simulator):
         while True:
             with self._cond:
                 while not self._stop:
-                    left = due - self.clock.monotonic()
+                    wake = min(due, self._later[0][0]) if self._later else due
+                    left = wake - self.clock.monotonic()
                     if left <= 0:
                         break
                     self.clock.wait(self._cond, left)
                 if self._stop:
                     return
             now = self.clock.monotonic()
+            if now >= due:
+                due = max(due + self.tick, now)
+                try:
+                    self.on_tick(now)
+                except Exception:
+                    logger.exception("%r: tick failed", self)
             try:
-                self.on_tick(now)
+                self.send_due(self.clock.monotonic())
             except Exception:
-                logger.exception("%r: tick failed", self)
-            due = max(due + self.tick, now)
+                logger.exception("%r: sending held frames failed", self)
 
     @abstractmethod
     def on_frame(self, msg: can.Message) -> None:

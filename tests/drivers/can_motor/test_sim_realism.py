@@ -36,11 +36,15 @@ def odrive_frames(seconds: float, **kwargs: Any) -> tuple[SimODrive, list[tuple[
     """What an ODrive axis at rest streams for ``seconds`` (virtual time, no bus, no thread)."""
     axis = AxisModel(1)
     axis.pos = 1.25
-    sim = SimODrive(link(), [axis], ManualClock(), torque_period=0.01, **kwargs)
+    clock = ManualClock()
+    sim = SimODrive(link(), [axis], clock, torque_period=0.01, **kwargs)
     frames: list[tuple[int, bytes]] = []
     sim.send = lambda aid, data, node: frames.append((cs.split_id(aid)[1], bytes(data)))  # type: ignore[method-assign]
     for i in range(round(seconds / 0.001)):
+        clock.set(i * 0.001)
         sim.on_tick(i * 0.001)
+        sim.send_due(i * 0.001)  # what the realism's jitter held back (test_sim_can_timing.py)
+    sim.send_due(seconds + 1.0)
     return sim, frames
 
 
@@ -156,12 +160,16 @@ def test_a_mit_entry_refuses_other_sim_keys() -> None:
 def mit_replies(n: int, **kwargs: Any) -> list[mm.MitReply]:
     motor = MitModel.of(1, "AK80-9")
     motor.pos = 0.3
-    sim = SimMitMotor(link(), [motor], ManualClock(), **kwargs)
+    clock = ManualClock()
+    sim = SimMitMotor(link(), [motor], clock, **kwargs)
     replies: list[mm.MitReply] = []
     sim.send = lambda aid, data, node: replies.append(mm.decode_reply(data, motor.ranges))  # type: ignore[method-assign]
     frame = mm.encode_command(mm.MitCommand(0.3, 0.0, 0.0, 0.0, 0.0), motor.ranges)
-    for _ in range(n):
+    for i in range(n):
+        clock.set(i * 0.01)
+        sim.send_due(i * 0.01)  # what the realism's jitter held back (test_sim_can_timing.py)
         sim.on_frame(can.Message(arbitration_id=1, data=frame, is_extended_id=False))
+    sim.send_due(n * 0.01 + 1.0)
     return replies
 
 
@@ -183,3 +191,29 @@ def test_mit_replies_are_exact_at_off_and_noisy_and_replayable_at_typical() -> N
     assert sim.realism.level.name == "harsh"
     assert sim.realism.seed is not None
     assert "sim" not in cfg
+
+
+def test_a_driven_mit_motor_at_harsh_gets_every_late_reply_and_does_not_fault() -> None:
+    # the replies go out on the simulator's tick thread at their (jittered, now and then late)
+    # times, woken on the manual clock; 10 polls a clock second as the MIT rigs use
+    clock = ManualClock()
+    cfg = {
+        "link": link(),
+        "poll_rate": 10.0,
+        "init_timeout": 0.5,
+        "motors": [{"motor_id": 1, "joint": "j", "model": "AK80-9"}],
+        "sim": {"realism": "harsh", "seed": 2},  # its second reply is late
+    }
+    sim, cfg = MitMotorDriver.simulate("arm", cfg, clock=clock)
+    assert isinstance(sim, SimMitMotor)
+    driver = MitMotorDriver.from_profile("arm", cfg, clock=clock, where="devices.arm")
+    with sim:
+        try:
+            in_thread(driver.configure, clock)
+            in_thread(driver.activate, clock)
+            driver.command([JointCommand("j", ControlMode.POSITION, 0.5)])
+            assert not move(clock, lambda: driver.state is not DriverState.ACTIVE, 6.0)
+            assert abs(driver.read_state().joints["j"].position - 0.5) < 0.05
+            assert sim.transmitter.stalls > 0  # some replies were late, and arrived
+        finally:
+            driver.shutdown()
