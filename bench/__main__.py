@@ -78,6 +78,10 @@ GROUPS: dict[str, tuple[str, Callable[[bool], Results]]] = {
         "dynamixel: SyncRead + SyncWrite of 6 servos over a pseudo-terminal",
         dynamixel.bench_dynamixel,
     ),
+    "dxl_realism": (
+        "dynamixel realism: polls of 6 servos at typical and harsh (late and lost replies)",
+        dynamixel.bench_dynamixel_realism,
+    ),
     "mavlink": (
         "mavlink: CPU of the driver handling 50 Hz telemetry (subprocess)",
         mavlink.bench_mavlink,

@@ -78,3 +78,99 @@ def bench_dynamixel(quick: bool) -> Results:
         goal=(">=", 100.0),
     )
     return out
+
+
+# ---- realism: late status packets (issue 30) ---------------------------------------------------
+
+REALISM_SEED = 2026
+
+
+def _late_polls(level: str, polls: int) -> dict[str, float]:
+    """The driver's poll sequence against a chain at ``level``: what times out, what is late.
+
+    Each poll is a SyncRead of present current, velocity and position of the six servos (10
+    bytes each); after every tenth good one, a SyncRead of the status (3 bytes) and one of
+    Hardware Error Status (1 byte), as the driver polls. Through :class:`SdkPort` with
+    dynamixel-sdk's own 34 ms reply timeout (a real adapter's), back to back (no poll period).
+    """
+    from temoto.clock import ManualClock
+    from temoto.drivers.dynamixel import control_table as ct
+    from temoto.drivers.dynamixel._sdk import COMM_SUCCESS, SdkPort
+    from temoto.drivers.dynamixel.sim import SimDynamixelChain
+
+    ids = list(IDS)
+    failed = wrong = longest_run = run = 0
+    round_trips: list[float] = []
+    with SimDynamixelChain(
+        dict.fromkeys(IDS, "XM430-W350"),
+        clock=ManualClock(),
+        name="bench",
+        realism=level,
+        seed=REALISM_SEED,
+    ) as sim:
+        port = SdkPort(sim.path, 1_000_000, reply_timeout=0.034)
+        port.open()
+        try:
+            fast = port.sync_reader(*ct.FAST_READ, ids)
+            slow = port.sync_reader(*ct.STATUS_READ, ids)
+            errors = port.sync_reader(ct.HARDWARE_ERROR_STATUS.address, 1, ids)
+            good = 0
+            for _ in range(polls):
+                start = time.perf_counter()
+                result, _, _ = fast.read()
+                round_trips.append(time.perf_counter() - start)
+                if result != COMM_SUCCESS:
+                    failed += 1
+                    run += 1
+                    longest_run = max(longest_run, run)
+                    continue
+                run = 0
+                good += 1
+                if good % 10 == 0 and slow.read()[0] == COMM_SUCCESS:
+                    result, bits, _ = errors.read()
+                    wrong += result == COMM_SUCCESS and any(b[0] for b in bits.values())
+            late, longest, strays = sim.replies_late, sim.longest_late, port.stray_packets
+        finally:
+            port.close()
+    return {
+        "failed_pct": 100.0 * failed / polls,
+        "longest_failed_run": float(longest_run),
+        "late": float(late),
+        "longest_late_ms": 1000.0 * longest,
+        "max_round_trip_ms": 1000.0 * max(round_trips),
+        "strays": float(strays),
+        "wrong": float(wrong),
+    }
+
+
+def bench_dynamixel_realism(quick: bool) -> Results:
+    """``dxl_realism_<level>_failed_polls_pct``: polls of a chain at each realism level that fail.
+
+    ``off`` is the baseline: polls that fail on a loaded machine with no realism at all.
+
+    Args:
+        quick: 150 polls per level instead of 3000 (some 5 s on a loaded machine).
+
+    Returns:
+        Per level the failed polls' share, with the late polls, the longest delay, the longest
+        round trip, the late answers dropped and the false hardware errors in the note.
+    """
+    out = Results()
+    try:
+        import dynamixel_sdk  # noqa: F401
+    except ImportError:
+        out.notes.append("dynamixel-sdk not installed (pip install 'temoto[dynamixel]'): skipped")
+        return out
+    polls = 150 if quick else 3000
+    for level in ("off", "typical", "harsh"):  # off: what the machine's load alone fails
+        r = _late_polls(level, polls)
+        out.add(
+            f"dxl_realism_{level}_failed_polls_pct",
+            r["failed_pct"],
+            "%",
+            f"{polls} polls of 6 servos, seed {REALISM_SEED}, 34 ms timeout: {r['late']:.0f} late"
+            f" (longest {r['longest_late_ms']:.1f} ms), longest round trip"
+            f" {r['max_round_trip_ms']:.1f} ms, at most {r['longest_failed_run']:.0f} failed in a"
+            f" row, {r['strays']:.0f} late answers dropped, {r['wrong']:.0f} false hardware errors",
+        )
+    return out

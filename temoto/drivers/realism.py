@@ -42,11 +42,14 @@ __all__ = [
     "LEVELS",
     "LEVEL_NAMES",
     "QUANTITIES",
+    "SERIAL_REPLY_TIMING",
     "SIM_KEYS",
     "CanTiming",
     "CanTransmitter",
     "Realism",
     "RealismLevel",
+    "SerialReplyDelay",
+    "SerialReplyTiming",
     "derive_seed",
     "new_seed",
     "read_sim_realism",
@@ -409,3 +412,103 @@ class CanTransmitter:
         at = max(at, self._free.get(node, -math.inf))
         self._free[node] = at
         return at
+
+
+# ---- serial lines (DYNAMIXEL): late status packets ---------------------------------------------
+#
+# A DYNAMIXEL status packet leaves the servo after its Return Delay Time (register 9, 2 µs per
+# unit, at most 508 µs: ROBOTIS e-Manual, X series control table) and reaches the host through
+# a USB serial adapter, which holds short packets until its latency timer runs out (16 ms by
+# default on the U2D2's FTDI chip, 1 ms once set: e-Manual, "U2D2" and "DYNAMIXEL Wizard 2.0"
+# FAQ) and through a USB host a busy machine serves late now and then. dynamixel-sdk waits
+# twice the default latency timer plus 2 ms (34 ms) beyond a packet's transfer time before it
+# gives up (``PortHandler.LATENCY_TIMER``). The figures: ``docs/simulators.md``, "Realism".
+
+
+@dataclass(frozen=True)
+class SerialReplyTiming:
+    """How late a serial line's status packets come, at one level.
+
+    Args:
+        name: The level's name.
+        jitter: Standard deviation, s, of a half-normal extra delay of every status packet
+            (the servo's processing and the adapter's latency timer at 1 ms).
+        late: Probability that a poll's status packets come late (the latency timer at its
+            16 ms default, a busy USB host).
+        late_delay: How late, s: uniform between these two.
+    """
+
+    name: str
+    jitter: float = 0.0
+    late: float = 0.0
+    late_delay: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any status packet comes late."""
+        return bool(self.jitter or self.late)
+
+
+#: The serial lines' reply timing by level name. ``typical`` stays within dynamixel-sdk's
+#: 34 ms (never a timeout); a late ``harsh`` poll goes past it nine times in ten (past the
+#: simulated driver's 0.1 s four times in ten), so the host sees a timeout and the packets
+#: arrive during its next transaction.
+SERIAL_REPLY_TIMING: Final[Mapping[str, SerialReplyTiming]] = MappingProxyType(
+    {
+        "off": SerialReplyTiming("off"),
+        "typical": SerialReplyTiming(
+            "typical", jitter=0.0002, late=0.01, late_delay=(0.002, 0.016)
+        ),
+        "harsh": SerialReplyTiming("harsh", jitter=0.001, late=0.04, late_delay=(0.02, 0.15)),
+    }
+)
+
+
+class SerialReplyDelay:
+    """One serial line's status-packet delays, from its own seeded generator.
+
+    The generator is seeded from the realism's top-level seed, the device's name and the
+    purpose ``serial`` (:func:`derive_seed`), so the noise, lost frames and delays of a device
+    do not shift one another. Not thread-safe: the simulator's serving thread alone calls it.
+
+    Args:
+        realism: The device's realism (its level names the timing; its seed and device seed
+            the generator).
+        timing: Other figures than the level's (tests).
+    """
+
+    def __init__(self, realism: Realism, timing: SerialReplyTiming | None = None) -> None:
+        self.timing = timing or SERIAL_REPLY_TIMING.get(
+            realism.level.name, SERIAL_REPLY_TIMING["off"]
+        )
+        #: The realism the figures and the seed come from.
+        self.realism = realism
+        #: How many times :meth:`delay` made a poll's packets late, and the longest delay (s).
+        self.late = 0
+        self.longest = 0.0
+        base = 0 if realism.seed is None else realism.seed
+        self._rng = random.Random(derive_seed(base, realism.device, "serial"))
+
+    @property
+    def enabled(self) -> bool:
+        """Whether any status packet comes late."""
+        return self.timing.enabled
+
+    def delay(self, *, poll: bool) -> float:
+        """The extra seconds the next status packet(s) take.
+
+        Args:
+            poll: They answer a host's poll (SYNC_READ and the like): only those come late by
+                more than the jitter (a late single READ or WRITE status would be retried or
+                refused; the same reason as for :meth:`Realism.lost`).
+
+        Returns:
+            Seconds (0 at ``off``).
+        """
+        t = self.timing
+        extra = abs(self._rng.gauss(0.0, t.jitter)) if t.jitter > 0.0 else 0.0
+        if poll and t.late > 0.0 and self._rng.random() < t.late:
+            extra += self._rng.uniform(*t.late_delay)
+            self.late += 1
+            self.longest = max(self.longest, extra)
+        return extra

@@ -8,7 +8,9 @@ again once.
 
 from __future__ import annotations
 
+import time
 from collections.abc import Iterator
+from dataclasses import replace
 from typing import Any
 
 import pytest
@@ -18,9 +20,16 @@ from temoto.clock import ManualClock
 from temoto.drivers import DriverState
 from temoto.drivers.capabilities import ControlMode, JointCommand
 from temoto.drivers.dynamixel import control_table as ct
+from temoto.drivers.dynamixel._sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, SdkPort
 from temoto.drivers.dynamixel.driver import SIM_REPLY_TIMEOUT, DynamixelDriver
 from temoto.drivers.dynamixel.sim import SimDynamixelChain
-from temoto.drivers.realism import Realism, RealismLevel
+from temoto.drivers.realism import (
+    SERIAL_REPLY_TIMING,
+    Realism,
+    RealismLevel,
+    SerialReplyDelay,
+    SerialReplyTiming,
+)
 from temoto.errors import ProfileError
 
 
@@ -126,3 +135,127 @@ def test_bad_sim_keys_are_refused_in_one_line(sim: Any, key: str, words: str) ->
     with pytest.raises(ProfileError, match=words) as err:
         DynamixelDriver.from_profile("arm", config(sim=sim), clock=ManualClock(), where="arm")
     assert f"arm.{key}:" in str(err.value)
+
+
+# ---- late status packets (issue 30, item 3) ------------------------------------------------
+
+SDK_TIMEOUT = 0.034  # dynamixel-sdk's own: twice the 16 ms latency timer plus 2 ms
+
+
+def test_late_replies_stay_within_the_sdk_timeout_at_typical_and_pass_it_at_harsh() -> None:
+    def draws(level: str, seed: int, n: int = 20000) -> list[float]:
+        delays = SerialReplyDelay(Realism(level, seed=seed, device="arm"))
+        return [delays.delay(poll=True) for _ in range(n)]
+
+    assert set(draws("off", 1, 100)) == {0.0}
+    typical = draws("typical", 5)
+    assert max(typical) < SDK_TIMEOUT  # never a timeout
+    assert sum(d > 0.002 for d in typical) > 100  # about 1 % late (the latency timer at 16 ms)
+    harsh = draws("harsh", 5)
+    late = [d for d in harsh if d > 0.02]
+    assert 0.03 < len(late) / len(harsh) < 0.05  # 4 %
+    assert sum(d > SDK_TIMEOUT for d in late) > 0.8 * len(late)
+    assert sum(d > SIM_REPLY_TIMEOUT for d in late) > 0.2 * len(late)
+    assert draws("harsh", 5, 500) == harsh[:500]  # replayed from the seed
+    assert draws("harsh", 6, 500) != harsh[:500]
+    # a single READ's or WRITE's status packet gets the jitter only
+    single = SerialReplyDelay(Realism("harsh", seed=5, device="arm"))
+    assert max(single.delay(poll=False) for _ in range(5000)) < 0.01
+
+
+def _late_sim(delay: float) -> SimDynamixelChain:
+    """A chain of two XM430-W350 whose every poll's status packets come ``delay`` s late."""
+    sim = SimDynamixelChain(
+        {1: "XM430-W350", 2: "XM430-W350"}, clock=ManualClock(), name="arm", realism="typical"
+    )
+    sim.reply_delays = SerialReplyDelay(
+        sim.realism, SerialReplyTiming("late", late=1.0, late_delay=(delay, delay))
+    )
+    return sim
+
+
+def test_the_sim_sends_a_poll_s_status_packets_late() -> None:
+    with _late_sim(0.06) as sim:
+        port = SdkPort(sim.path, 1_000_000, reply_timeout=0.5)
+        port.open()
+        try:
+            reader = port.sync_reader(*ct.FAST_READ, [1, 2])
+            t0 = time.monotonic()
+            result, data, _ = reader.read()
+            took = time.monotonic() - t0
+            assert result == COMM_SUCCESS
+            assert set(data) == {1, 2}
+            assert took >= 0.06
+            assert sim.replies_late == 1
+            # a single READ gets the jitter only (never late: the figures make every poll late)
+            assert port.read(1, ct.MODEL_NUMBER.address, 2)[:2] == (1020, COMM_SUCCESS)
+            assert sim.replies_late == 1
+        finally:
+            port.close()
+
+
+def test_a_late_answer_to_another_syncread_is_dropped_not_taken() -> None:
+    # the slow read's status packets (3 bytes of data) come 0.3 s late, after the host gave up
+    # (0.2 s): they reach the host during the next SYNC_READ (1 byte: Hardware Error Status; 0.1
+    # s of slack either side for a loaded machine). Taken for its answer, the voltage's low byte
+    # (120: 12.0 V) would read as a hardware error.
+    with _late_sim(0.3) as sim:
+        port = SdkPort(sim.path, 1_000_000, reply_timeout=0.2)
+        port.open()
+        try:
+            slow = port.sync_reader(*ct.STATUS_READ, [1, 2])
+            errors = port.sync_reader(ct.HARDWARE_ERROR_STATUS.address, 1, [1, 2])
+            assert slow.read()[0] == COMM_RX_TIMEOUT
+            result, data, _ = errors.read()
+            assert data == {}, f"a late status packet taken for the answer: {data}"
+            assert result == COMM_RX_TIMEOUT  # as if its own answer was lost
+            assert port.stray_packets >= 1
+        finally:
+            port.close()
+
+
+def test_a_late_poll_answer_is_not_taken_for_a_single_read_s() -> None:
+    with _late_sim(0.3) as sim:  # as above: late past the timeout, within the next one
+        port = SdkPort(sim.path, 1_000_000, reply_timeout=0.2)
+        port.open()
+        try:
+            torques = port.sync_reader(ct.TORQUE_ENABLE.address, 1, [1, 2])
+            assert torques.read()[0] == COMM_RX_TIMEOUT
+            # a 1-byte status packet where 4 are awaited: dynamixel-sdk indexes past its end
+            value, result, _ = port.read(1, ct.GOAL_POSITION.address, 4)
+            assert result == COMM_SUCCESS
+            assert value == sim.read_register(1, ct.GOAL_POSITION.address)
+            assert port.stray_packets >= 1
+        finally:
+            port.close()
+
+
+@pytest.mark.parametrize("seed", [1, 2])
+def test_a_driven_chain_at_harsh_faults_clearly_or_not_at_all(
+    seed: int, caplog: pytest.LogCaptureFixture
+) -> None:
+    # every tenth poll reads the status (3 bytes) and the hardware errors (1 byte) after the
+    # fast read (10 bytes): late answers cross between them; none may be taken for another
+    clock = ManualClock()
+    sim, cfg = DynamixelDriver.simulate(
+        "arm", config(status_every=2, sim={"realism": "harsh", "seed": seed}), clock=clock
+    )
+    assert isinstance(sim, SimDynamixelChain)
+    sim.reply_delays = SerialReplyDelay(  # harsh's lateness, ten times as often
+        sim.realism, replace(SERIAL_REPLY_TIMING["harsh"], late=0.4)
+    )
+    with sim, DynamixelDriver.from_profile("arm", cfg, clock=clock, where="arm") as driver:
+        driver.configure()
+        driver.activate()
+        driver.command([JointCommand("j1", ControlMode.POSITION, 0.5)])
+        t0 = clock.monotonic()
+        follow(driver, clock, lambda: clock.monotonic() - t0 >= 0.8, 3.0, real_timeout=60.0)
+        assert sim.longest_late > SIM_REPLY_TIMEOUT  # some came after the driver gave up
+        if driver.state is DriverState.FAULT:
+            error = str(driver.health().error)
+            assert error.startswith("arm: "), error
+            assert "hardware error" not in error, error
+            assert "\n" not in error
+    assert "Traceback" not in caplog.text
+    assert "poll failed" not in caplog.text
+    assert "hardware error" not in caplog.text

@@ -10,16 +10,32 @@ of this module as a result code, so the driver has one place to turn them into t
 The SDK measures its timeouts with ``time.time``; here each port reads ``time.monotonic``
 instead, so a wall-clock step cannot cut a wait short or stretch it. pyserial's port list (for
 discovery) is read here too.
+
+A status packet that comes after its timeout (a USB adapter's latency timer, a busy USB host,
+the simulator's ``harsh`` realism) reaches the host during the next transaction. The SDK takes
+the first status packet of the right id for the answer, whatever its length, and slices the
+bytes it wants out of it: a late answer to another read would give wrong register values, and
+one shorter than asked an ``IndexError`` inside the SDK. Here each transaction knows how many
+parameter bytes its status packet has (READ: the bytes read; WRITE and REBOOT: none; PING:
+three; SYNC_READ: the bytes read of each servo; any of them refused: none) and a packet of
+another length is dropped as a late one (counted in :attr:`SdkPort.stray_packets`) while the
+SDK reads on until its timeout. A late answer to the same read is indistinguishable from the
+new one (Protocol 2.0 has no sequence numbers): it is taken, data one transaction old, as on a
+real line.
 """
 
 from __future__ import annotations
 
+import contextlib
+import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Iterator, Mapping
 from typing import Any, Final, cast
 
 import dynamixel_sdk as _dxl  # type: ignore[import-untyped]  # no type hints: wrapped here
 from serial.tools import list_ports as _list_ports  # type: ignore[import-untyped]  # pyserial
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "COMM_RX_CORRUPT",
@@ -72,6 +88,40 @@ class SdkPort:
         self._port.setPacketTimeout = self._set_packet_timeout  # the SDK's, with our margin
         self._port.getCurrentTime = _monotonic_ms  # the SDK's clock, never stepped
         self._ph: Any = _dxl.PacketHandler(2.0)
+        #: Status packets dropped because their length fits no transaction at hand (late
+        #: answers to an earlier one; see the module docstring).
+        self.stray_packets = 0
+        self._expect: int | None = None  # parameter bytes of the status packet awaited
+        self._sdk_rx = self._ph.rxPacket
+        self._ph.rxPacket = self._rx_packet  # the SDK's, dropping late answers
+
+    def _rx_packet(self, port: Any, fast_option: bool) -> tuple[list[int], int]:
+        """The SDK's ``rxPacket``, reading on past status packets of the wrong length."""
+        while True:
+            rxpacket, result = self._sdk_rx(port, fast_option)
+            expect = self._expect
+            if result != COMM_SUCCESS or fast_option or expect is None:
+                return rxpacket, result
+            params = len(rxpacket) - _STATUS_OVERHEAD
+            if params == expect or (params == 0 and rxpacket[_PKT_ERROR] & 0x7F):
+                return rxpacket, result  # an instruction refused answers without data
+            self.stray_packets += 1
+            logger.debug(
+                "%s: a late status packet from id %d (%d parameter bytes, %d awaited): dropped",
+                self.path,
+                rxpacket[_PKT_ID],
+                params,
+                expect,
+            )
+
+    @contextlib.contextmanager
+    def _expecting(self, params: int) -> Iterator[None]:
+        """Within the block, a status packet must carry ``params`` parameter bytes."""
+        self._expect = params
+        try:
+            yield
+        finally:
+            self._expect = None
 
     def _set_packet_timeout(self, packet_length: int) -> None:
         port = self._port
@@ -142,7 +192,8 @@ class SdkPort:
 
     def ping(self, dxl_id: int) -> tuple[int, int, int]:
         """PING: (model number, result, error byte)."""
-        out = self._guard(self._ph.ping, self._port, dxl_id)
+        with self._expecting(3):  # model number (2), firmware version
+            out = self._guard(self._ph.ping, self._port, dxl_id)
         if out is None:
             return 0, COMM_TX_FAIL, 0
         return int(out[0]), int(out[1]), int(out[2])
@@ -187,7 +238,8 @@ class SdkPort:
             2: self._ph.read2ByteTxRx,
             4: self._ph.read4ByteTxRx,
         }[size]
-        out = self._guard(call, self._port, dxl_id, address)
+        with self._expecting(size):
+            out = self._guard(call, self._port, dxl_id, address)
         if out is None:
             return 0, COMM_TX_FAIL, 0
         return int(out[0]), int(out[1]), int(out[2])
@@ -199,14 +251,16 @@ class SdkPort:
             2: self._ph.write2ByteTxRx,
             4: self._ph.write4ByteTxRx,
         }[size]
-        out = self._guard(call, self._port, dxl_id, address, value & ((1 << (8 * size)) - 1))
+        with self._expecting(0):
+            out = self._guard(call, self._port, dxl_id, address, value & ((1 << (8 * size)) - 1))
         if out is None:
             return COMM_TX_FAIL, 0
         return int(out[0]), int(out[1])
 
     def reboot(self, dxl_id: int) -> tuple[int, int]:
         """REBOOT: (result, error byte)."""
-        out = self._guard(self._ph.reboot, self._port, dxl_id)
+        with self._expecting(0):
+            out = self._guard(self._ph.reboot, self._port, dxl_id)
         if out is None:
             return COMM_TX_FAIL, 0
         return int(out[0]), int(out[1])
@@ -227,6 +281,13 @@ def serial_ports() -> list[str]:
         Their paths.
     """
     return sorted(str(port.device) for port in _list_ports.comports())
+
+
+#: Bytes of a status packet besides its parameters: header (3), reserved, id, length (2),
+#: instruction, error, CRC (2) -- the e-Manual's Protocol 2.0 status packet.
+_STATUS_OVERHEAD: Final = 11
+_PKT_ID: Final = 4  # the id's index in a packet
+_PKT_ERROR: Final = 8  # the error byte's index in a status packet
 
 
 def _monotonic_ms() -> float:
@@ -276,7 +337,8 @@ class SyncReader:
         first = COMM_SUCCESS
         ph, raw = self._port._ph, self._port._port
         for dxl_id in self.ids:
-            out = self._port._guard(ph.readRx, raw, dxl_id, self.length)
+            with self._port._expecting(self.length):
+                out = self._port._guard(ph.readRx, raw, dxl_id, self.length)
             code = COMM_TX_FAIL if out is None else int(out[1])
             if code != COMM_SUCCESS:
                 self.failed[dxl_id] = code

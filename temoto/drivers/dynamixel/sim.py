@@ -102,7 +102,15 @@ carry seeded gaussian noise (the model's true state does not; Moving and Moving 
 the true state), and the status packets that answer a SYNC_READ, FAST_SYNC_READ, BULK_READ or
 FAST_BULK_READ (a host's poll) are lost now and then: the host sees a timeout. Replies to
 single READs, PINGs and writes are never lost (a lost write status would make the host think a
-goal was refused); no jitter is added (a pseudo-terminal's own latency varies already).
+goal was refused). Status packets also come late
+(:class:`~temoto.drivers.realism.SerialReplyDelay`): every one waits the Return Delay Time
+its servo's register 9 sets (2 µs a unit, as the e-Manual's Protocol 2.0 timing shows) plus a
+small jitter, and a poll's packets now and then wait longer, as behind a USB adapter's latency
+timer or a busy USB host: within dynamixel-sdk's 34 ms at ``typical``, past it now and then at
+``harsh``. The serving thread waits meanwhile (a half-duplex line carries one packet at a
+time): a host that gave up and asked again reads the late packets first. A delay under 1 ms is
+not waited out (a sleep costs more than that on a loaded machine). At ``off`` replies go out at
+once.
 
 Code: this module is the pseudo-terminal, the serving thread, fault injection and the
 inspection methods; :mod:`~temoto.drivers.dynamixel.sim_instructions` (:class:`ServoChain`)
@@ -128,7 +136,7 @@ from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel import protocol as p
 from temoto.drivers.dynamixel.sim_instructions import ServoChain
 from temoto.drivers.dynamixel.sim_servo import AMBIENT, BAUD_BY_CODE, GENERIC_REGISTERS
-from temoto.drivers.realism import Realism
+from temoto.drivers.realism import Realism, SerialReplyDelay
 
 __all__ = ["SimDynamixelChain"]
 
@@ -143,6 +151,11 @@ _POLLS: Final = frozenset(
         p.Instruction.FAST_BULK_READ,
     }
 )
+
+#: The shortest delay of a status packet the serving thread waits out: a shorter sleep costs a
+#: trip through the scheduler that, on a loaded machine, takes far longer than the delay (and
+#: a pseudo-terminal adds its own latency of that order anyway).
+_MIN_WAIT: Final = 0.001
 
 #: ``termios`` speed constants → bits per second (those this platform has).
 _LINE_SPEEDS: Final[Mapping[int, int]] = {
@@ -195,6 +208,9 @@ class SimDynamixelChain(ServoChain):
         self.realism = realism
         #: Status packets lost on purpose (realism), for tests and tools.
         self.replies_lost = 0
+        #: The status packets' delays (realism other than ``off``; made for :attr:`realism` at
+        #: the first reply, made again when it is replaced; tests may set other figures).
+        self.reply_delays: SerialReplyDelay | None = None
         self._reader = p.PacketReader()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -389,11 +405,44 @@ class SimDynamixelChain(ServoChain):
                 except Exception:  # a bug here must not kill the chain
                     logger.exception("sim %s: handling %s failed", self.name, item)
                     continue
-                if replies and item.instruction in _POLLS and self.realism.lost():
+                poll = item.instruction in _POLLS
+                if replies and poll and self.realism.lost():
                     self.replies_lost += 1  # lost on the way: the host's read times out
                     continue
+                if replies and self.realism.enabled:
+                    self._wait_before(replies, poll=poll)
                 for reply in replies:
                     self._send(reply)
+
+    @property
+    def replies_late(self) -> int:
+        """Polls whose status packets were sent late on purpose (realism), for tests and tools."""
+        return 0 if self.reply_delays is None else self.reply_delays.late
+
+    @property
+    def longest_late(self) -> float:
+        """The longest such delay (s; the Return Delay Time not counted)."""
+        return 0.0 if self.reply_delays is None else self.reply_delays.longest
+
+    def _wait_before(self, replies: list[bytes], *, poll: bool) -> None:
+        """Wait as long as ``replies`` take to reach the host (realism other than ``off``).
+
+        Each servo waits its Return Delay Time (register 9) before its status packet; the
+        line adds its jitter, and a poll's packets now and then come late
+        (:class:`~temoto.drivers.realism.SerialReplyDelay`).
+        """
+        delays = self.reply_delays
+        if delays is None or delays.realism is not self.realism:
+            delays = self.reply_delays = SerialReplyDelay(self.realism)
+        extra = delays.delay(poll=poll)
+        units = 0
+        with self._state:
+            for reply in replies:
+                with contextlib.suppress(KeyError, IndexError):
+                    units += self._servo(reply[4]).value("Return Delay Time")
+        wait = extra + units * ct.RETURN_DELAY_UNIT
+        if wait >= _MIN_WAIT:
+            self._stop.wait(wait)
 
     def _line_baud(self) -> int | None:
         """The baud rate the client set on the line (None: unknown, or not modelled)."""
