@@ -4,10 +4,13 @@ Usage::
 
     python tools/kernel_tests.py            # run the suite on the pure build, rewrite the list
     python tools/kernel_tests.py -- -k foo  # extra pytest arguments after ``--``
+    python tools/kernel_tests.py --add -- tests/new_file.py   # measure some files, keep the rest
 
 ``make test`` runs the whole suite on the compiled kernels, then a second pass on the pure-Python
 kernels (``TEMOTO_NO_EXTENSIONS=1``). The second pass only needs the tests that reach a kernel:
-the others run the same Python code in both passes. This tool measures which tests those are:
+the others run the same Python code in both passes. With ``--add`` only the test paths given
+after ``--`` run, and the files found are added to the list (nothing is removed), for new tests
+without a whole pass. This tool measures which tests those are:
 it runs the suite on the pure build with itself loaded as a pytest plugin, which wraps the
 constructors of the pure ``Evolution`` and ``RefBook`` classes and notes every test during
 which one was built in the test's process. The files holding such tests are written to
@@ -98,6 +101,13 @@ def main(argv: list[str]) -> int:
     files = [f for f in json.loads(out.read_text(encoding="utf-8")) if f.startswith("tests/")]
     out.unlink()
     outside = sorted(f for f in files if not f.startswith("tests/core/"))
+    if "--add" in argv[: argv.index("--") if "--" in argv else len(argv)]:
+        kept = [
+            line.strip()
+            for line in LIST.read_text(encoding="utf-8").splitlines()
+            if line.strip() and not line.startswith("#")
+        ]
+        outside = sorted({*kept, *outside})
     LIST.write_text(HEADER + "".join(f"{f}\n" for f in outside), encoding="utf-8")
     print(f"kernel_tests: {len(files)} files reach a kernel, {len(outside)} outside tests/core/")
     print(f"kernel_tests: wrote {LIST.relative_to(ROOT)}")
