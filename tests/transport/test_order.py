@@ -1,0 +1,175 @@
+"""A new member's first messages reach the handlers in the order they were sent (docs/fleet.md).
+
+What a new member sends before a receiver holds its grant is refused and asked for again; the
+copies, sealed anew, come a round trip later than what it sent meanwhile. The receiver holds
+the sender's other messages back until the copies came (``HOLD_S`` at most). Every step is
+driven by hand here: which message reaches whom, and when, is the test's choice.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from pathlib import Path
+
+import pytest
+
+from temoto.transport import FleetAuth
+from temoto.transport._secure import HOLD_S
+from temoto.transport.auth import HELLO_CHANNEL
+from temoto.transport.identity import Credentials, Identity, Roster
+
+KEY = bytes(range(32))
+CHANNEL = "TEMOTO_RIS"
+OTHER = "TEMOTO_NOTIFY"
+N = 12
+
+
+class FakeClock:
+    def __init__(self) -> None:
+        self.t = 1_750_000_000.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+Make = Callable[[str], FleetAuth]
+
+
+@pytest.fixture
+def clock() -> FakeClock:
+    return FakeClock()
+
+
+@pytest.fixture(params=["fleet key", "roster"])
+def make(request: pytest.FixtureRequest, tmp_path: Path, clock: FakeClock) -> Make:
+    """Members with one fleet key, or a roster of exactly the two (a message to the receiver
+    alone then carries the receiver's entry only, as a copy did before copies were marked)."""
+    if request.param == "fleet key":
+        return lambda name: FleetAuth("fleet", name, KEY, clock=clock)
+    ids = {name: Identity.generate(name) for name in ("alice", "bob")}
+    roster = Roster({})
+    for name, identity in ids.items():
+        roster.add(name, identity.public_key)
+    roster.save(tmp_path / "roster.yaml")
+    return lambda name: FleetAuth(
+        "fleet", name, Credentials(ids[name], Roster.load(tmp_path / "roster.yaml")), clock=clock
+    )
+
+
+class Handler:
+    """The receiver's side of a FleetLink: released messages first, then the one opened."""
+
+    def __init__(self, auth: FleetAuth) -> None:
+        self.auth = auth
+        self.got: list[bytes] = []
+
+    def deliver(self, channel: str, data: bytes) -> None:
+        opened = self.auth.open(channel, data)
+        self.got += [o.payload for o in self.auth.take_released()]
+        if opened is not None:
+            self.got.append(opened.payload)
+
+
+def hellos(member: FleetAuth) -> list[tuple[str, bytes]]:
+    out = member.take_outgoing()
+    assert all(channel == HELLO_CHANNEL for channel, _ in out)
+    return out
+
+
+def copies(member: FleetAuth) -> list[tuple[str, bytes]]:
+    """What ``member`` publishes now but hellos: the copies it re-sends."""
+    return [(c, d) for c, d in member.take_outgoing() if c != HELLO_CHANNEL]
+
+
+def numbered(i: int) -> bytes:
+    return f"message {i}".encode()
+
+
+def new_member(make: Make) -> tuple[FleetAuth, FleetAuth, Handler]:
+    """alice listens; bob boots and his hello reaches alice, whose grant reaches bob."""
+    alice, bob = make("alice"), make("bob")
+    alice.take_outgoing()  # alice's first hello: bob was not there yet
+    handler = Handler(alice)
+    for channel, data in hellos(bob):  # bob's first hello: alice grants him her session
+        alice.open(channel, data)
+    for channel, data in alice.take_outgoing():
+        bob.open(channel, data)
+    return alice, bob, handler
+
+
+def test_a_new_members_burst_before_the_grant_is_handled_in_order(make: Make) -> None:
+    alice, bob, handler = new_member(make)
+    k = N // 3
+    early = [(CHANNEL, bob.seal(CHANNEL, "t", numbered(i))) for i in range(1, k + 1)]
+    grant = hellos(bob)  # bob's grant for alice: its floor counts the early ones
+    for channel, data in early:  # before the grant: refused, asked for again
+        handler.deliver(channel, data)
+    assert handler.got == []
+    assert alice.stats["no_session"] == k
+    for channel, data in grant:
+        handler.deliver(channel, data)
+    ask = alice.take_outgoing()  # alice's hello asks for the early ones
+    later = [(CHANNEL, bob.seal(CHANNEL, "t", numbered(i))) for i in range(k + 1, N + 1)]
+    for channel, data in later:  # alice holds bob's grant: these open at once
+        handler.deliver(channel, data)
+    for channel, data in ask:
+        bob.open(channel, data)
+    resent = copies(bob)
+    assert len(resent) == k
+    for channel, data in resent:
+        handler.deliver(channel, data)
+    assert handler.got == [numbered(i) for i in range(1, N + 1)]
+    # and from now on at once
+    handler.deliver(CHANNEL, bob.seal(CHANNEL, "t", b"after"))
+    assert handler.got[-1] == b"after"
+
+
+def test_copies_asked_for_in_two_hellos_are_handled_in_the_order_sent(make: Make) -> None:
+    """A message that its grant overtook is asked for in a hello of its own; the two batches
+    of copies cross on the way back (two threads of bob publish them), and a message of
+    another channel comes between."""
+    alice, bob, handler = new_member(make)
+    first = (CHANNEL, bob.seal(CHANNEL, "t", numbered(1)))
+    second = (OTHER, bob.seal(OTHER, "t", numbered(2)))  # sealed, not yet published...
+    grant = hellos(bob)  # ... when bob's grant (its floor counts both) goes out
+    handler.deliver(*first)
+    for channel, data in grant:
+        handler.deliver(channel, data)
+    ask_first = alice.take_outgoing()
+    handler.deliver(*second)  # after the grant, at or below its floor: asked for alone
+    ask_second = alice.take_outgoing()
+    third = (CHANNEL, bob.seal(CHANNEL, "t", numbered(3)))
+    for channel, data in ask_first:
+        bob.open(channel, data)
+    batch_one = copies(bob)
+    for channel, data in ask_second:
+        bob.open(channel, data)
+    batch_two = copies(bob)
+    assert len(batch_one) == len(batch_two) == 1
+    for channel, data in [third, *batch_two, *batch_one]:
+        handler.deliver(channel, data)
+    assert handler.got == [numbered(1), numbered(2), numbered(3)]
+
+
+def test_a_lost_copy_holds_its_sender_back_hold_s_at_most(make: Make, clock: FakeClock) -> None:
+    alice, bob, handler = new_member(make)
+    early = [(CHANNEL, bob.seal(CHANNEL, "t", numbered(i))) for i in (1, 2)]
+    grant = hellos(bob)
+    for channel, data in [*early, *grant]:
+        handler.deliver(channel, data)
+    for channel, data in alice.take_outgoing():
+        bob.open(channel, data)
+    lost, kept = copies(bob)
+    handler.deliver(*kept)
+    handler.deliver(CHANNEL, bob.seal(CHANNEL, "t", numbered(3)))
+    assert handler.got == []  # waiting for the lost copy
+    assert alice.hold_due_in() == pytest.approx(HOLD_S)
+    clock.t += HOLD_S
+    assert alice.hold_due_in() == 0.0
+    handler.deliver(OTHER, b"garbage")  # whatever comes next ends the hold
+    assert handler.got == [numbered(2), numbered(3)]  # what came, in order; 1 is lost
+    assert alice.hold_due_in() is None
+    handler.deliver(*lost)  # a copy later than the hold: handed on when it comes
+    assert handler.got[-1] == numbered(1)
+    handler.deliver(CHANNEL, bob.seal(CHANNEL, "t", numbered(4)))
+    assert handler.got[-1] == numbered(4)
