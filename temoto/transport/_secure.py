@@ -68,10 +68,10 @@ _BACKLOG_MAX: Final = 256
 #: A sender's messages that come while copies we asked of it are awaited are held back, so that
 #: its handler sees them in the order they were sent (the copies, sealed anew, carry later
 #: sequence numbers than the messages it sent meanwhile): at most this long after the last ask
-#: (a lost copy, or one the sender refused, does not stall the sender longer) ...
+#: or copy (a lost copy, or one the sender refused, does not stall the sender longer) ...
 HOLD_S: Final = 1.0
 #: ... and at most this many per sender session (more are let go at once, in order).
-HOLD_MAX: Final = 256
+HOLD_MAX: Final = 1024
 _TAG: Final = 16  # Poly1305 tag
 _RECIPIENT: Final = 4  # recipient tag
 _MAC: Final = 16  # per-recipient MAC (roster fleets)
@@ -680,6 +680,8 @@ class SecureSession:
             rx.awaited -= 1
         if rx.hold_until is None:  # the common case: nothing of this sender is awaited
             return sealed
+        if copy:  # they come: a receive queue that is slow to drain does not end the hold
+            rx.hold_until = max(rx.hold_until, self._clock() + HOLD_S)
         (rx.copies if copy else rx.held).append((channel, sealed))
         if (rx.awaited or (sender, session) in self._missed) and len(rx.held) < HOLD_MAX:
             return "held"

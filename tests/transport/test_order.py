@@ -8,14 +8,18 @@ driven by hand here: which message reaches whom, and when, is the test's choice.
 
 from __future__ import annotations
 
+import threading
+import time
+from collections import deque
 from collections.abc import Callable
 from pathlib import Path
 
 import pytest
 
-from temoto.transport import FleetAuth
+from temoto.transport import FleetAuth, FleetLink
 from temoto.transport._secure import HOLD_S
 from temoto.transport.auth import HELLO_CHANNEL
+from temoto.transport.base import Handler, Subscription, Transport
 from temoto.transport.identity import Credentials, Identity, Roster
 
 KEY = bytes(range(32))
@@ -56,7 +60,7 @@ def make(request: pytest.FixtureRequest, tmp_path: Path, clock: FakeClock) -> Ma
     )
 
 
-class Handler:
+class Receiver:
     """The receiver's side of a FleetLink: released messages first, then the one opened."""
 
     def __init__(self, auth: FleetAuth) -> None:
@@ -85,11 +89,11 @@ def numbered(i: int) -> bytes:
     return f"message {i}".encode()
 
 
-def new_member(make: Make) -> tuple[FleetAuth, FleetAuth, Handler]:
+def new_member(make: Make) -> tuple[FleetAuth, FleetAuth, Receiver]:
     """alice listens; bob boots and his hello reaches alice, whose grant reaches bob."""
     alice, bob = make("alice"), make("bob")
     alice.take_outgoing()  # alice's first hello: bob was not there yet
-    handler = Handler(alice)
+    handler = Receiver(alice)
     for channel, data in hellos(bob):  # bob's first hello: alice grants him her session
         alice.open(channel, data)
     for channel, data in alice.take_outgoing():
@@ -173,3 +177,99 @@ def test_a_lost_copy_holds_its_sender_back_hold_s_at_most(make: Make, clock: Fak
     assert handler.got[-1] == numbered(1)
     handler.deliver(CHANNEL, bob.seal(CHANNEL, "t", numbered(4)))
     assert handler.got[-1] == numbered(4)
+
+
+# --- through a FleetLink ----------------------------------------------------------------------
+
+
+class HandSub(Subscription):
+    def _on_unsubscribe(self) -> None:
+        pass
+
+
+class HandBus(Transport):
+    """A transport whose messages wait in this member's inbox until the test delivers them
+    (on the test's thread): the order in which each member hears the others is the test's."""
+
+    def __init__(self, members: list[HandBus]) -> None:
+        super().__init__()
+        self.members = members
+        members.append(self)
+        self.inbox: deque[tuple[str, bytes]] = deque()
+        self.subs: list[HandSub] = []
+        self.lock = threading.Lock()  # a hello timer of the link may publish meanwhile
+
+    def _publish(self, channel: str, data: bytes) -> None:
+        for member in self.members:  # our own messages too, as over multicast
+            with member.lock:
+                member.inbox.append((channel, data))
+
+    def _subscribe(self, channel: str, handler: Handler, queue_capacity: int | None) -> HandSub:
+        sub = HandSub(channel, handler)
+        self.subs.append(sub)
+        return sub
+
+    def _close(self) -> None:
+        self.subs.clear()
+
+    def pump(self) -> None:
+        """Deliver everything in the inbox, and what comes meanwhile."""
+        while True:
+            with self.lock:
+                if not self.inbox:
+                    return
+                channel, data = self.inbox.popleft()
+            for sub in self.subs:
+                if sub.channel == channel:
+                    self._deliver(sub, channel, data)
+
+
+def test_a_fleet_links_handler_sees_a_new_members_burst_in_order() -> None:
+    """Over a FleetLink: bob joins and sends N numbered messages, the first third before alice
+    holds his grant; alice's handler gets them in order, whatever reaches her when."""
+    members: list[HandBus] = []
+    with HandBus(members) as a_bus, HandBus(members) as b_bus:
+        alice = FleetLink(a_bus, FleetAuth("fleet", "alice", KEY))
+        got: list[bytes] = []
+        alice.listen(CHANNEL, lambda opened: got.append(opened.payload))
+        bob = FleetLink(b_bus, FleetAuth("fleet", "bob", KEY))
+        k = N // 3
+        for i in range(1, k + 1):  # before anyone heard anyone
+            bob.send(CHANNEL, "t", numbered(i))
+        a_bus.pump()  # bob's hello, then his messages: refused; alice grants bob her session
+        assert got == []
+        b_bus.pump()  # alice's grant: bob answers with his
+        a_bus.pump()  # bob's grant: alice asks for what she could not open
+        for i in range(k + 1, N + 1):  # these alice can open at once
+            bob.send(CHANNEL, "t", numbered(i))
+        a_bus.pump()
+        b_bus.pump()  # alice's ask: bob re-sends the first ones
+        a_bus.pump()
+        assert got == [numbered(i) for i in range(1, N + 1)]
+        assert alice.stats["handler_error"] == 0
+
+
+def test_a_link_lets_go_of_what_waits_for_lost_copies_when_nothing_else_comes() -> None:
+    """The copies are lost and bob says nothing more: alice's link ends the hold itself, HOLD_S
+    (1 s) later (its hello's echo comes back on the receive thread, where handlers run)."""
+    members: list[HandBus] = []
+    with HandBus(members) as a_bus, HandBus(members) as b_bus:
+        alice = FleetLink(a_bus, FleetAuth("fleet", "alice", KEY))
+        got: list[bytes] = []
+        alice.listen(CHANNEL, lambda opened: got.append(opened.payload))
+        bob = FleetLink(b_bus, FleetAuth("fleet", "bob", KEY))
+        bob.send(CHANNEL, "t", numbered(1))
+        a_bus.pump()
+        b_bus.pump()
+        a_bus.pump()  # alice asks for message 1
+        bob.send(CHANNEL, "t", numbered(2))
+        a_bus.pump()  # held back
+        b_bus.pump()  # the copy of 1 ...
+        with a_bus.lock:
+            a_bus.inbox.clear()  # ... is lost
+        assert got == []
+        deadline = time.monotonic() + 10 * HOLD_S
+        while not got and time.monotonic() < deadline:
+            a_bus.pump()
+            time.sleep(0.01)
+        assert got == [numbered(2)]
