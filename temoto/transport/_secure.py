@@ -675,14 +675,14 @@ class SecureSession:
             return "no_session"
         if not _admit(rx, seq):
             return "replayed"
-        sealed = Sealed(type_name, plain, seq, session)
+        message = Sealed(type_name, plain, seq, session)
         if copy and rx.awaited:
             rx.awaited -= 1
         if rx.hold_until is None:  # the common case: nothing of this sender is awaited
-            return sealed
+            return message
         if copy:  # they come: a receive queue that is slow to drain does not end the hold
             rx.hold_until = max(rx.hold_until, self._clock() + HOLD_S)
-        (rx.copies if copy else rx.held).append((channel, sealed))
+        (rx.copies if copy else rx.held).append((channel, message))
         if (rx.awaited or (sender, session) in self._missed) and len(rx.held) < HOLD_MAX:
             return "held"
         self._release(rx, session)  # the last copy came (or too many wait): all, in order
