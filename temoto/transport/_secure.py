@@ -171,6 +171,7 @@ class RxSession:
     copies: list[tuple[str, Sealed]] = field(default_factory=list)
     held: list[tuple[str, Sealed]] = field(default_factory=list)
     hold_until: float | None = None
+    since: float = 0.0  # our clock when the grant came
 
 
 class SecureSession:
@@ -498,7 +499,7 @@ class SecureSession:
         if (sender, session) not in self.rx:
             # Everything at or below the floor was sealed before this grant: refused.
             rx = self.rx[sender, session] = RxSession(
-                sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK, floor
+                sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK, floor, since=self._clock()
             )
             pair.opens = True
             # What we got and could not open, our next hello asks for again; the originals
@@ -686,6 +687,9 @@ class SecureSession:
         if (rx.awaited or (sender, session) in self._missed) and len(rx.held) < HOLD_MAX:
             return "held"
         self._release(rx, session)  # the last copy came (or too many wait): all, in order
+        if self._released[-1][2] is message:  # handed on last: the caller delivers it
+            del self._released[-1]
+            return message
         return "held"
 
     def _hold(self, rx: RxSession, session: int, now: float) -> None:
@@ -762,8 +766,11 @@ class SecureSession:
         rx.asked.add(seq)
         self._missed.setdefault(key, deque(maxlen=_MISSED_MAX)).append(seq)
         self._answer()
-        if rx.hold_until is None:
-            self._hold(rx, session, self._clock())
+        now = self._clock()
+        if rx.hold_until is None and now - rx.since < BACKLOG_S:
+            # overtaken by the grant a moment ago; later, its copy would be too old to come
+            # (and a replay to a restarted member could hold the sender back again and again)
+            self._hold(rx, session, now)
         return True
 
 

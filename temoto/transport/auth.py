@@ -557,7 +557,7 @@ class FleetAuth:
         (those that came before we held its grant) are on their way, so that they are handed
         on in the order they were sent: :meth:`open` returns None for them (they are counted
         ``accepted``), and this returns them once the copies came, or after
-        ``_secure.HOLD_S`` (1 s) at most (checked at every :meth:`open`;
+        ``_secure.HOLD_S`` (1 s) at most (checked at every :meth:`open` and here;
         :meth:`hold_due_in` says when). Deliver them after every :meth:`open`, before the
         message it returned. A :class:`~temoto.transport.link.FleetLink` does.
 
@@ -565,9 +565,10 @@ class FleetAuth:
             The messages, in order (possibly of several channels and senders); usually none.
         """
         secure = self._secure
-        if secure is None or not secure.has_released:  # the common case, without the lock
+        if secure is None or not (secure.has_released or secure.holding):  # without the lock
             return []
         with self._lock:
+            secure.expire_holds()
             released = secure.take_released()
         return [
             Opened(channel, sender, sealed.type, sealed.payload, sealed.seq, sealed.session)

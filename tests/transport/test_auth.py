@@ -406,7 +406,6 @@ def test_a_captured_message_never_opens_at_a_restarted_receiver(
     assert restarted.open(CHANNEL, alice.seal(CHANNEL, "t", b"next")) is None
     assert restarted.take_released() == []
     clock.t += HOLD_S
-    assert [o.payload for o in restarted.take_released()] == []  # checked when one comes
     assert restarted.open(CHANNEL, alice.seal(CHANNEL, "t", b"later")) is not None
     assert [o.payload for o in restarted.take_released()] == [b"next"]  # delivered before it
 

@@ -17,7 +17,7 @@ from pathlib import Path
 import pytest
 
 from temoto.transport import FleetAuth, FleetLink
-from temoto.transport._secure import HOLD_S
+from temoto.transport._secure import BACKLOG_S, HOLD_S
 from temoto.transport.auth import HELLO_CHANNEL
 from temoto.transport.base import Handler, Subscription, Transport
 from temoto.transport.identity import Credentials, Identity, Roster
@@ -273,3 +273,37 @@ def test_a_link_lets_go_of_what_waits_for_lost_copies_when_nothing_else_comes() 
             a_bus.pump()
             time.sleep(0.01)
         assert got == [numbered(2)]
+
+
+def test_a_replay_long_after_the_key_exchange_holds_nothing_back(clock: FakeClock) -> None:
+    """A message at or below the grant's floor that comes BACKLOG_S after the grant is asked
+    for (a copy would be too old to come) but holds nothing back: a replay of captured traffic
+    to a restarted member cannot delay the sender's messages again and again."""
+    alice = FleetAuth("fleet", "alice", KEY, clock=clock)
+    bob = FleetAuth("fleet", "bob", KEY, clock=clock)
+    settle(alice, bob)
+    captured = alice.seal(CHANNEL, "t", b"captured")
+    assert bob.open(CHANNEL, captured) is not None
+    restarted = FleetAuth("fleet", "bob", KEY, clock=clock)
+    settle(alice, restarted)
+    clock.t += BACKLOG_S
+    assert restarted.open(CHANNEL, captured) is None  # at or below the floor
+    opened = restarted.open(CHANNEL, alice.seal(CHANNEL, "t", b"fresh"))
+    assert opened is not None
+    assert opened.payload == b"fresh"
+    assert restarted.hold_due_in() is None
+
+
+def settle(*members: FleetAuth) -> None:
+    """Hand every hello to every other member until none is left."""
+    for _ in range(20):
+        moved = False
+        for member in members:
+            for channel, data in member.take_outgoing():
+                moved = True
+                for other in members:
+                    if other is not member:
+                        other.open(channel, data)
+        if not moved:
+            return
+    raise AssertionError("the hellos never settled")
