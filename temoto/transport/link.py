@@ -177,7 +177,15 @@ class FleetLink:
             self._hold_timer.start()
 
     def _hold_due(self) -> None:
-        if self.auth.hold_due_in() is None:
+        """The hold timer: say hello if a hold is due, or wait again if it was extended."""
+        due = self.auth.hold_due_in()
+        with self._timer_lock:
+            if self._hold_timer is threading.current_thread():
+                self._hold_timer = None
+        if due is None:
+            return
+        if due > 0:  # a copy came meanwhile: the hold lasts longer
+            self._watch_holds()
             return
         self.auth.want_hello()
         self._flush()
