@@ -698,7 +698,14 @@ class SecureSession:
         Copies are sealed anew, so they carry later sequence numbers than what their sender
         sent meanwhile, and come a round trip later: without the hold, the sender's first
         messages reached its handlers after later ones (docs/fleet.md, *Order*).
+
+        Only within :data:`BACKLOG_S` of the grant: what was sealed before it is older than
+        that by then, and its copy would not come (a replay of captured messages to a
+        restarted member, asked for like them, could otherwise hold the sender back again
+        and again).
         """
+        if now - rx.since >= BACKLOG_S:
+            return
         rx.hold_until = now + HOLD_S
         self.holding.add((rx.sender, session))
 
@@ -766,11 +773,8 @@ class SecureSession:
         rx.asked.add(seq)
         self._missed.setdefault(key, deque(maxlen=_MISSED_MAX)).append(seq)
         self._answer()
-        now = self._clock()
-        if rx.hold_until is None and now - rx.since < BACKLOG_S:
-            # overtaken by the grant a moment ago; later, its copy would be too old to come
-            # (and a replay to a restarted member could hold the sender back again and again)
-            self._hold(rx, session, now)
+        if rx.hold_until is None:
+            self._hold(rx, session, self._clock())
         return True
 
 

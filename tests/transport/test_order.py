@@ -288,6 +288,9 @@ def test_a_replay_long_after_the_key_exchange_holds_nothing_back(clock: FakeCloc
     settle(alice, restarted)
     clock.t += BACKLOG_S
     assert restarted.open(CHANNEL, captured) is None  # at or below the floor
+    for channel, data in restarted.take_outgoing():  # its hello asks for it
+        alice.open(channel, data)
+    assert [c for c, _ in alice.take_outgoing() if c != HELLO_CHANNEL] == []  # too old: refused
     opened = restarted.open(CHANNEL, alice.seal(CHANNEL, "t", b"fresh"))
     assert opened is not None
     assert opened.payload == b"fresh"
