@@ -508,7 +508,7 @@ class ODriveDriver(CanMotorDriver):
 
         Raises:
             DeviceLimitError: Every problem found, in one line naming the file and each key.
-            DriverTimeoutError: A node did not answer ``Get_Version`` or a read (named).
+            DriverInitError: A node did not answer ``Get_Version`` or a read (named).
         """
         checked = [
             (i, a)
@@ -588,7 +588,7 @@ class ODriveDriver(CanMotorDriver):
             lambda: all(a.node.node_id in self._versions for a in axes), self.init_timeout, ask
         ):
             silent = [a.label() for a in axes if a.node.node_id not in self._versions]
-            raise DriverTimeoutError(
+            raise DriverInitError(
                 f"{self.name}: no answer to Get_Version within {self.init_timeout} s from"
                 f" {', '.join(silent)} (needed to check the profile's limits; nothing was"
                 " written)"
@@ -618,7 +618,7 @@ class ODriveDriver(CanMotorDriver):
         ask()
         if not self._wait_for(lambda: not missing(), self.init_timeout, ask):
             late = [f"{a.label()}: {path} (endpoint {e})" for a, path, e in missing()]
-            raise DriverTimeoutError(
+            raise DriverInitError(
                 f"{self.name}: no TxSdo answer within {self.init_timeout} s to reading"
                 f" {'; '.join(late)} (needed to check the profile's limits; nothing was"
                 " written)"
