@@ -347,12 +347,13 @@ def test_the_emulated_device_s_limits_refuse_the_profile(channel: str) -> None:
 
 
 def test_the_emulated_device_takes_limits_within_its_own(channel: str) -> None:
-    with Emulator(channel, {5: pro(), 6: pro(vel_limit=4.0)}):
+    with Emulator(channel, {5: pro(), 6: pro(vel_limit=4.0)}) as emulator:
         nodes = [
             {"node_id": 5, "joint": "a", "velocity_limit": 62.8, "torque_limit": 2.0},
             {"node_id": 6, "joint": "b", "gear_ratio": 0.5, "velocity_limit": 50.0},
         ]
         configure(entry(channel, *nodes)).shutdown()
+        assert {e for n, e in emulator.reads if n == 6} == {259, 271, 388}  # checked, taken
 
 
 def test_a_silent_endpoint_read_times_out_naming_node_and_endpoint(channel: str) -> None:
