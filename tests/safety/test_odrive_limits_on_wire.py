@@ -8,7 +8,7 @@ decoded here with the official DBC) and refuses the profile's ``velocity_limit``
 (3.2 turn/s) with one line, before any ``Set_Axis_State``, ``Set_Limits``, controller mode or
 set-point is sent.
 
-Run as a script (``python tests/safety/test_odrive_device_limits.py DIR``) it is the part that
+Run as a script (``python tests/safety/test_odrive_limits_on_wire.py DIR``) it is the part that
 runs inside the namespace; the test starts it there.
 """
 
