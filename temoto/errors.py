@@ -12,6 +12,7 @@ situation, and inherit the matching builtin so generic callers can catch what th
         │   ├── PipelineError               a component pipeline template is invalid (cycle, ...)
         │   ├── TaskParseError              a task in words that no graph can be made of
         │   └── ProfileError                a hardware profile is invalid
+        │       └── DeviceLimitError (+DriverInitError)  it asks more than the device allows
         ├── PluginError                     discovery and loading of actions and drivers
         │   ├── ActionNotFoundError (+LookupError)
         │   ├── GraphNotFoundError (+LookupError)
@@ -68,6 +69,7 @@ __all__ = [
     "ContextError",
     "ContextItemNotFoundError",
     "DecodeError",
+    "DeviceLimitError",
     "DriverError",
     "DriverInitError",
     "DriverNotFoundError",
@@ -354,6 +356,15 @@ class DriverUnavailableError(DriverError):
 
 class DriverInitError(DriverError):
     """The device did not answer or rejected its settings while being configured."""
+
+
+class DeviceLimitError(ProfileError, DriverInitError):
+    """A profile's limit is beyond what the device, as it is configured, allows.
+
+    Found while the device is configured (its settings read from it), before anything is
+    written to it: a :class:`ProfileError` (the message names the file and the key; the robot
+    command exits 2) that is a :class:`DriverInitError` too (configure failed).
+    """
 
 
 class DriverOperationError(DriverError):

@@ -52,6 +52,7 @@ import math
 import threading
 import time
 from collections.abc import Iterable, Mapping, Sequence
+from pathlib import Path
 from typing import Any, ClassVar, Final
 
 import can
@@ -59,6 +60,7 @@ import can
 from temoto.clock import Clock
 from temoto.drivers.base import DriverState
 from temoto.drivers.can_motor import cansimple as cs
+from temoto.drivers.can_motor import odrive_sdo as sdo
 from temoto.drivers.can_motor._common import (
     LINK_HINT,
     check_limits,
@@ -79,11 +81,12 @@ from temoto.drivers.can_motor.odrive_axes import (
 )
 from temoto.drivers.can_motor.odrive_settings import read_nodes, sim_mechanics, sim_rates
 from temoto.drivers.capabilities import ControlMode, JointCommand, JointState, JointStates
-from temoto.drivers.profile import Field, ProfileReader, custom, number
+from temoto.drivers.profile import Field, ProfileReader, custom, flag, number
 from temoto.drivers.realism import read_sim_realism
 from temoto.drivers.sim import Simulator
 from temoto.drivers.supervision import stale_periods
 from temoto.errors import (
+    DeviceLimitError,
     DriverError,
     DriverInitError,
     DriverOperationError,
@@ -122,6 +125,21 @@ _MODES: Final = {
 }
 
 
+def _read_flat_endpoints(
+    reader: ProfileReader, value: object, key: str
+) -> tuple[tuple[str, str], dict[str, sdo.Endpoint]]:
+    """The ``flat_endpoints`` key: a release's file, relative to the profile's folder."""
+    if not isinstance(value, str) or not value:
+        reader.fail(key, f"must be the path of a flat_endpoints.json, got {value!r}")
+    path = Path(value)
+    if not path.is_absolute() and reader.file:
+        path = Path(reader.file).parent / path
+    try:
+        return sdo.load_flat_endpoints(path)
+    except ValueError as err:
+        reader.fail(key, str(err))
+
+
 def _alternating(recent: Iterable[tuple[int, int, int]]) -> str | None:
     """Why these heartbeats come from two devices (A, B, A with no state asked), or None."""
     runs: list[tuple[int, int]] = []
@@ -154,6 +172,14 @@ class ODriveDriver(CanMotorDriver):
         command_period: Seconds between re-sends of the set-points while active.
         watchdog_timeout: The axes' watchdog timeout as set on the devices, seconds (0 = not
             used); ``command_period`` must be at most half of it.
+        check_device_limits: Read each node's velocity limit, current limit and torque
+            constant over CAN in configure and refuse limits beyond them (see
+            :meth:`_check_device_limits`); False skips it (with a warning).
+        flat_endpoints: ``((firmware, hardware), {path: Endpoint})`` of a release's
+            ``flat_endpoints.json`` (:func:`~temoto.drivers.can_motor.odrive_sdo.
+            load_flat_endpoints`), for firmware whose ids TeMoto does not know.
+        where: The entry's place in its profile (``robot.yaml: devices.base``), for the
+            messages of that check (default: the device's name).
 
     Raises:
         ValueError: No nodes, a duplicate node id or joint, a non-positive period, or a
@@ -171,6 +197,12 @@ class ODriveDriver(CanMotorDriver):
         "timeout_periods": number(3.0),
         "command_period": number(0.05),
         "watchdog_timeout": number(0.0, low=0, low_open=False, describe="0 (not used) or positive"),
+        "check_device_limits": flag(True),
+        "flat_endpoints": custom(
+            lambda r, v, k: _read_flat_endpoints(r, v, k),
+            None,
+            hint="the firmware release's flat_endpoints.json",
+        ),
         "sim": custom(lambda r, v, k: dict(r.mapping(v, k)), {}, init=False),
     }
 
@@ -187,6 +219,9 @@ class ODriveDriver(CanMotorDriver):
         encoder_period: float = 0.01,
         command_period: float = 0.05,
         watchdog_timeout: float = 0.0,
+        check_device_limits: bool = True,
+        flat_endpoints: tuple[tuple[str, str], Mapping[str, sdo.Endpoint]] | None = None,
+        where: str = "",
     ) -> None:
         if not nodes:
             raise ValueError("an ODriveDriver needs at least one node")
@@ -216,6 +251,11 @@ class ODriveDriver(CanMotorDriver):
         self.encoder_period = encoder_period
         self.command_period = command_period
         self.watchdog_timeout = watchdog_timeout
+        self.check_device_limits = check_device_limits
+        self._flat_endpoints = flat_endpoints
+        self._where = where or name
+        self._versions: dict[int, cs.Version] = {}  # Get_Version answers, by node id
+        self._sdo_values: dict[tuple[int, int], bytes] = {}  # TxSdo answers (node, endpoint)
         #: Malformed frames received from the nodes since the driver was made.
         self._armed = False  # the axes were confirmed in CLOSED_LOOP_CONTROL by activate
         self._feeding = False  # the supervisor re-sends the held set-points
@@ -230,8 +270,14 @@ class ODriveDriver(CanMotorDriver):
         self._by_joint = {a.node.joint: a for a in self._axes}
         self._rx: dict[int, tuple[AxisCache, int]] = {}
         for axis in self._axes:
-            for cmd in (cs.Cmd.HEARTBEAT, cs.Cmd.GET_ENCODER_ESTIMATES, cs.Cmd.GET_TORQUES):
-                self._rx[axis.ids[cmd]] = (axis, cmd)
+            for cmd in (
+                cs.Cmd.HEARTBEAT,
+                cs.Cmd.GET_ENCODER_ESTIMATES,
+                cs.Cmd.GET_TORQUES,
+                cs.Cmd.GET_VERSION,
+                cs.Cmd.TXSDO,
+            ):
+                self._rx[cs.arbitration_id(axis.node.node_id, cmd)] = (axis, cmd)
 
     # ---- profile ---------------------------------------------------------------------------
 
@@ -264,6 +310,7 @@ class ODriveDriver(CanMotorDriver):
         sim_rates(reader, values["sim"], kwargs["heartbeat_period"], kwargs["encoder_period"])
         sim_mechanics(reader, values["sim"])
         read_sim_realism(reader, values["sim"] or None)
+        kwargs["where"] = where  # the device-limit check names the file and the key
         # safe_state hold without watchdog_timeout: refused by the profile (temoto.config), which
         # alone can take its acknowledgement (hold_without_watchdog: true), for every driver alike
         return kwargs
@@ -368,10 +415,16 @@ class ODriveDriver(CanMotorDriver):
         return self.watchdog_timeout
 
     def on_configure(self) -> None:
-        """Open the bus and wait for every node's heartbeat and encoder estimate.
+        """Open the bus, wait for every node, then check the profile's limits against them.
+
+        Waits for each node's heartbeat and encoder estimate, refuses a node id answered by
+        two devices, and reads each node's limits over CAN (:meth:`_check_device_limits`).
+        Nothing is written to any node (only requests: RTR frames and ``RxSdo`` reads).
 
         Raises:
             DriverInitError: A node did not answer within ``init_timeout`` (named).
+            DeviceLimitError: A profile limit beyond what a node is configured for, or a
+                firmware whose endpoint ids are not known (names the file and the key).
             MotorFaultError: A node reports error bits.
         """
         for axis in self._axes:
@@ -394,6 +447,7 @@ class ODriveDriver(CanMotorDriver):
         problem = self._problem(self.clock.monotonic())
         if problem is not None:
             raise problem
+        self._check_device_limits()
         self._supervising = True
 
     def _refuse_duplicates(self) -> None:
@@ -439,6 +493,141 @@ class ODriveDriver(CanMotorDriver):
                     f" (one device sends at most {most}): two devices answer as node {node};"
                     " give one of them another node id. Nothing was armed."
                 )
+
+    def _check_device_limits(self) -> None:
+        """Refuse profile limits beyond what each node, as it is configured, allows.
+
+        For every node with a ``velocity_limit`` or a ``torque_limit``: ``Get_Version`` (RTR)
+        tells its firmware and hardware; the endpoint ids of that release (the profile's
+        ``flat_endpoints`` file, else :data:`~temoto.drivers.can_motor.odrive_sdo.
+        KNOWN_ENDPOINTS`) give ``RxSdo`` reads of ``vel_limit``, ``current_soft_max`` and
+        ``torque_constant`` (:func:`~temoto.drivers.can_motor.odrive_sdo.limit_problems`).
+        Every read has a deadline of ``init_timeout`` and is asked again meanwhile. A release
+        whose ids are not known is refused (the limits would go unchecked), unless
+        ``check_device_limits`` is false: then the check is skipped with a warning.
+
+        Raises:
+            DeviceLimitError: Every problem found, in one line naming the file and each key.
+            DriverInitError: A node did not answer ``Get_Version`` or a read (named).
+        """
+        checked = [
+            (i, a)
+            for i, a in enumerate(self._axes)
+            if math.isfinite(a.node.limits.velocity) or math.isfinite(a.node.limits.torque)
+        ]
+        if not checked:
+            return
+        if not self.check_device_limits:
+            logger.warning(
+                "%s: check_device_limits is false: velocity_limit and torque_limit are not"
+                " checked against the ODrives",
+                self._where,
+            )
+            return
+        axes = [a for _, a in checked]
+        versions = self._read_versions(axes)
+        reader = ProfileReader.at(self._where)
+        problems: list[str] = []
+        reads: dict[AxisCache, Mapping[str, sdo.Endpoint]] = {}
+        for index, axis in checked:
+            version = versions[axis.node.node_id]
+            table, why = self._endpoint_table(version)
+            if table is None:
+                key = "flat_endpoints" if self._flat_endpoints is not None else f"nodes[{index}]"
+                problems.append(f"{reader.path(key)}: {axis.label()} {why}")
+            else:
+                reads[axis] = table
+        values = self._read_endpoints(reads)
+        for index, axis in checked:
+            if axis not in reads:
+                continue
+            node = axis.node
+            found = sdo.limit_problems(
+                node.node_id,
+                node.joint,
+                node.gear_ratio,
+                node.limits.velocity,
+                node.limits.torque,
+                values[axis],
+            )
+            problems += [f"{reader.path(f'nodes[{index}].{key}')}: {text}" for key, text in found]
+        if problems:
+            raise DeviceLimitError("; ".join(problems) + " (nothing was written)", file=reader.file)
+
+    def _endpoint_table(self, version: cs.Version) -> tuple[Mapping[str, sdo.Endpoint] | None, str]:
+        """The endpoint ids of a node's release, or None and why not."""
+        fw, hw = sdo.version_key(version)
+        said = f"runs ODrive firmware {fw} on hardware {version.hardware}"
+        if self._flat_endpoints is not None:
+            (file_fw, file_hw), table = self._flat_endpoints
+            if file_fw.partition("-")[0] == fw and file_hw == hw:
+                return table, ""
+            return None, f"{said}; flat_endpoints is for firmware {file_fw}, hardware {file_hw}"
+        known = sdo.KNOWN_ENDPOINTS.get((fw, hw))
+        if known is not None:
+            return known, ""
+        return None, (
+            f"{said}, whose endpoint ids TeMoto does not know: its velocity_limit and"
+            " torque_limit cannot be checked against the device. Give flat_endpoints (that"
+            " release's flat_endpoints.json, from ODrive's firmware releases page) or set"
+            " check_device_limits: false"
+        )
+
+    def _read_versions(self, axes: Sequence[AxisCache]) -> dict[int, cs.Version]:
+        """Each node's ``Get_Version`` (RTR, asked again until ``init_timeout``)."""
+        for axis in axes:
+            self._versions.pop(axis.node.node_id, None)
+
+        def ask() -> None:
+            for axis in axes:
+                if axis.node.node_id not in self._versions:
+                    self._send(axis.ids[cs.Cmd.GET_VERSION], b"", remote=True)
+
+        ask()
+        if not self._wait_for(
+            lambda: all(a.node.node_id in self._versions for a in axes), self.init_timeout, ask
+        ):
+            silent = [a.label() for a in axes if a.node.node_id not in self._versions]
+            raise DriverInitError(
+                f"{self.name}: no answer to Get_Version within {self.init_timeout} s from"
+                f" {', '.join(silent)} (needed to check the profile's limits; nothing was"
+                " written)"
+            )
+        return {a.node.node_id: self._versions[a.node.node_id] for a in axes}
+
+    def _read_endpoints(
+        self, reads: Mapping[AxisCache, Mapping[str, sdo.Endpoint]]
+    ) -> dict[AxisCache, dict[str, float]]:
+        """``RxSdo`` reads of :data:`~...odrive_sdo.LIMIT_PATHS` on every node, together."""
+        wanted = [
+            (axis, path, table[path].id)
+            for axis, table in reads.items()
+            for path in sdo.LIMIT_PATHS
+        ]
+        for axis, _, endpoint in wanted:
+            self._sdo_values.pop((axis.node.node_id, endpoint), None)
+
+        def missing() -> list[tuple[AxisCache, str, int]]:
+            return [w for w in wanted if (w[0].node.node_id, w[2]) not in self._sdo_values]
+
+        def ask() -> None:
+            for axis, _, endpoint in missing():
+                data = sdo.encode_rxsdo(sdo.OPCODE_READ, endpoint)
+                self._send(cs.arbitration_id(axis.node.node_id, cs.Cmd.RXSDO), data)
+
+        ask()
+        if not self._wait_for(lambda: not missing(), self.init_timeout, ask):
+            late = [f"{a.label()}: {path} (endpoint {e})" for a, path, e in missing()]
+            raise DriverInitError(
+                f"{self.name}: no TxSdo answer within {self.init_timeout} s to reading"
+                f" {'; '.join(late)} (needed to check the profile's limits; nothing was"
+                " written)"
+            )
+        values: dict[AxisCache, dict[str, float]] = {axis: {} for axis in reads}
+        for axis, path, endpoint in wanted:
+            raw = self._sdo_values[axis.node.node_id, endpoint]
+            values[axis][path] = sdo.read_float(raw)
+        return values
 
     def on_activate(self) -> None:
         """Hold position, enter ``CLOSED_LOOP_CONTROL`` on every axis and wait for it.
@@ -720,6 +909,15 @@ class ODriveDriver(CanMotorDriver):
             why = None if len(data) == 8 else f"{len(data)} data bytes instead of 8"
         if why is not None:
             self._malformed(axis, cs.Cmd(cmd).name, why, now)
+            return
+        if cmd == cs.Cmd.GET_VERSION:
+            self._versions[axis.node.node_id] = cs.decode_version(data)
+            self._notify()
+            return
+        if cmd == cs.Cmd.TXSDO:
+            endpoint, value = sdo.decode_txsdo(data)
+            self._sdo_values[axis.node.node_id, endpoint] = value
+            self._notify()
             return
         if cmd == cs.Cmd.GET_ENCODER_ESTIMATES:
             pos, vel = cs.F32X2.unpack(data)

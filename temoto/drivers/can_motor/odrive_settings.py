@@ -39,6 +39,8 @@ SIM_MECHANICS: Final = {
     "load_inertia": "kg·m² at the motor",
     "damping": "N·m per turn/s",
     "current_limit": "A",
+    "vel_limit": "turn/s",
+    "torque_constant": "N·m per A",
     "vel_gain": "N·m per turn/s",
     "vel_integrator_gain": "N·m per turn/s per s",
 }
@@ -125,14 +127,15 @@ def sim_mechanics(p: ProfileReader, raw: object) -> dict[str, float]:
 
     Raises:
         ProfileError: ``sim`` is not a mapping, or a value is not a number >= 0 (the current
-            limit: > 0).
+            limit, the velocity limit and the torque constant: > 0).
     """
     if raw is None:
         return {}
     sim = p.mapping(raw, "sim")
     out = {key: p.field(sim, key, _POSITIVE, "sim") for key in SIM_MECHANICS if key in sim}
-    if out.get("current_limit", 1.0) <= 0:
-        p.fail("sim.current_limit", "must be a positive number of A")
+    for key in ("current_limit", "vel_limit", "torque_constant"):
+        if out.get(key, 1.0) <= 0:
+            p.fail(f"sim.{key}", f"must be a positive number of {SIM_MECHANICS[key]}")
     return out
 
 

@@ -6,7 +6,9 @@ per node on a real bus: the cyclic messages of ODrive 0.6 at the rates of its
 encoder estimates every 10 ms by default, the others off; 0 turns one off), each also on request
 (an RTR frame), axis states, controller modes, position / velocity / torque inputs,
 ``Set_Limits`` (the velocity limit and the current limit bound the motion: see
-:class:`AxisModel`), errors, estop and clear errors.
+:class:`AxisModel`), errors, estop and clear errors, and ``RxSdo`` reads and writes of the
+endpoints the driver checks a profile against (``vel_limit``, ``current_soft_max``,
+``current_hard_max``, ``torque_constant``: :mod:`~temoto.drivers.can_motor.odrive_sdo`).
 :class:`SimMitMotor` answers the MIT-mode protocol of CubeMars AK motors: enter / exit / zero
 frames and impedance commands, each with a reply.
 
@@ -60,6 +62,7 @@ import can
 from temoto.clock import Clock
 from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor import mitmode as mit
+from temoto.drivers.can_motor import odrive_sdo as sdo
 from temoto.drivers.can_motor.sim_bus import CanDeviceSim
 from temoto.drivers.can_motor.sim_model import (
     TORQUE_CONSTANT,
@@ -220,6 +223,8 @@ class SimODrive(CanDeviceSim):
         self.torque_period = periods["torques_msg_rate_ms"]
         #: Frames received that the axes acted on or answered (a host at work), for tools.
         self.frames_received = 0
+        #: ``RxSdo`` frames for an endpoint id the axes do not have (left unanswered).
+        self.sdo_unknown = 0
         self._model_lock = threading.Lock()
         self._due = dict.fromkeys(periods, -math.inf)
         self._ids: dict[tuple[int, int], int] = {
@@ -286,6 +291,10 @@ class SimODrive(CanDeviceSim):
                 axis.fed = now
             elif cmd == cs.Cmd.SET_LIMITS:
                 axis.set_limits(*cs.decode_set_limits(data))
+            elif cmd == cs.Cmd.RXSDO:
+                answer = self._sdo(axis, data)
+                if answer is not None:
+                    reply = (cs.Cmd.TXSDO, answer)
             elif cmd == cs.Cmd.ESTOP:
                 axis.disarm(cs.AxisError.ESTOP_REQUESTED)
             elif cmd == cs.Cmd.CLEAR_ERRORS:
@@ -293,6 +302,31 @@ class SimODrive(CanDeviceSim):
                 axis.error = self._hw_bits(node)  # a present condition stays
         if reply is not None:
             self.send(self._ids[node, reply[0]], reply[1], node)
+
+    def _sdo(self, axis: AxisModel, data: bytes) -> bytes | None:
+        """Answer an ``RxSdo`` as firmware 0.6.10 does (:mod:`odrive_sdo`); ``_model_lock`` held.
+
+        A read of a known endpoint is answered with a ``TxSdo`` carrying its value; a write
+        sets it, unanswered (0.6.10 confirms no write; 0.6.11 does). An endpoint the axis does
+        not have, a malformed frame or another opcode: nothing is sent (the firmware's answer
+        to those is not documented; see ``docs/simulators.md``).
+        """
+        try:
+            opcode, endpoint_id, value = sdo.decode_rxsdo(data)
+        except ValueError:
+            return None
+        path = _SDO_PATHS.get(endpoint_id)
+        if path is None:
+            self.sdo_unknown += 1
+            return None
+        attribute = _SDO_ATTRIBUTES[path]
+        if opcode == sdo.OPCODE_READ:
+            return sdo.encode_txsdo(endpoint_id, sdo.float_value(getattr(axis, attribute)))
+        if opcode == sdo.OPCODE_WRITE:
+            written = sdo.read_float(value)
+            if sdo.finite_positive(written):
+                setattr(axis, attribute, written)
+        return None
 
     def _payload(self, axis: AxisModel, cmd: int) -> bytes | None:
         """What the axis sends as ``cmd`` now (cyclic or on request); None for no such message.
@@ -377,7 +411,22 @@ class SimODrive(CanDeviceSim):
 
 
 #: Commands an axis sends on its own (a data frame with one of these ids is not for it).
-_DEVICE_SENDS: Final = frozenset(cmd for cmd, _ in CYCLIC_RATES.values())
+_DEVICE_SENDS: Final = frozenset(cmd for cmd, _ in CYCLIC_RATES.values()) | {cs.Cmd.TXSDO}
+
+#: The endpoints the simulated axes have (the reported version's ids), and the
+#: :class:`AxisModel` attribute each one is: ``current_soft_max`` is the current limit that
+#: ``Set_Limits`` sets too.
+_SDO_ATTRIBUTES: Final = {
+    sdo.VEL_LIMIT: "vel_limit",
+    sdo.CURRENT_SOFT_MAX: "current_limit",
+    sdo.TORQUE_CONSTANT: "torque_constant",
+    "axis0.config.motor.current_hard_max": "current_hard_max",
+}
+_SDO_PATHS: Final = {
+    endpoint.id: path
+    for path, endpoint in sdo.KNOWN_ENDPOINTS[sdo.version_key(VERSION)].items()
+    if path in _SDO_ATTRIBUTES
+}
 
 
 class SimMitMotor(CanDeviceSim):

@@ -17,6 +17,7 @@ from temoto.drivers.can_motor import cansimple as cs
 from temoto.drivers.can_motor import mitmode as mit
 
 __all__ = [
+    "CURRENT_HARD_MAX",
     "CURRENT_LIMIT",
     "MIT_MECHANICS",
     "MIT_SUBSTEP",
@@ -48,6 +49,11 @@ VEL_RAMP_RATE: Final = 1.0
 
 #: ``motor.config.current_lim``'s default, A (firmware ``motor.hpp``; ``Set_Limits`` sets it).
 CURRENT_LIMIT: Final = 10.0
+
+#: ``axis.config.motor.current_hard_max`` as the simulated axes report it over ``RxSdo``, A:
+#: the simulator's own figure (the trip level is not modelled; firmware defaults differ by
+#: board), above the current limit as the firmware requires.
+CURRENT_HARD_MAX: Final = 20.0
 
 #: Seconds of the axis model's integration step (at most; the firmware's loop runs at 8 kHz).
 AXIS_SUBSTEP: Final = 0.001
@@ -97,7 +103,9 @@ class AxisModel:
         vel_limit: turn/s (the simulator's default is generous: the driver sends no
             ``Set_Limits``; the firmware's own default is 2 turn/s).
         damping: N·m per turn/s.
-        current_limit: A (``motor.config.current_lim``, 10 A by default).
+        current_limit: A (``motor.config.current_lim``, 10 A by default; 0.6 names it
+            ``axis.config.motor.current_soft_max``, which ``RxSdo`` reads and writes).
+        current_hard_max: A, reported over ``RxSdo`` only (no trip is modelled).
         torque_constant: N·m per A.
         inertia: The rotor's inertia, kg·m² (assumed: a 50-65 mm outrunner such as ODrive's
             D5065/D6374 class).
@@ -112,6 +120,7 @@ class AxisModel:
     vel_limit: float = 50.0
     damping: float = 0.01
     current_limit: float = CURRENT_LIMIT
+    current_hard_max: float = CURRENT_HARD_MAX
     torque_constant: float = TORQUE_CONSTANT
     inertia: float = 3e-4
     load_inertia: float = 7e-4
