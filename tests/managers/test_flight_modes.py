@@ -16,6 +16,7 @@ import pytest
 
 from temoto.config import FlightFeature
 from temoto.drivers import GeoPoint, VehicleTelemetry
+from temoto.drivers.mavlink import ModeChange
 from temoto.errors import DriverTimeoutError, StateError
 from temoto.managers.robot.flight import FlightController
 
@@ -216,3 +217,20 @@ def test_a_stops_loiter_shown_before_the_next_flight_is_used_up(
     vehicle.switch("LOITER")
     controller.step(DT)
     assert "quad: the vehicle switched to LOITER (not commanded)" in _error(second)
+
+
+def test_a_mode_the_driver_commanded_is_not_called_the_vehicles_own(
+    flight: tuple[FlightController, _Vehicle],
+) -> None:
+    """The driver's safe state (LOITER after a fault) ends the flight, named as the driver's."""
+    controller, vehicle = flight
+    motion = controller.fly_to(FAR)
+    controller.step(DT)
+    vehicle.switch("LOITER")
+    vehicle.last_mode_change = ModeChange("GUIDED", "LOITER", 1.0, True)  # type: ignore[attr-defined]
+    controller.step(DT)
+    assert motion.done
+    assert "not commanded" not in _error(motion)
+    assert "quad: the vehicle was switched to LOITER by its driver (its safe state)" in _error(
+        motion
+    )

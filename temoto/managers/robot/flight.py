@@ -326,6 +326,22 @@ class FlightController:
         else:
             logger.info("%s: %s: vehicle %s", motion.what, why, self.HOLD_MODE)
 
+    def _switched(self, mode: str) -> StateError:
+        """The error for a change into ``mode`` that this controller did not ask for.
+
+        The vehicle's own (a failsafe, a pilot) unless its driver says it asked for that mode
+        itself (the safe state it sent after a fault, e.g. LOITER or BRAKE): that is not the
+        vehicle's own switch, and the error says so.
+        """
+        name = getattr(self._vehicle, "name", "vehicle")
+        change = getattr(self._vehicle, "last_mode_change", None)
+        if change is not None and change.new == mode and change.commanded:
+            return StateError(
+                f"{name}: the vehicle was switched to {mode} by its driver (its safe state),"
+                " not by this flight"
+            )
+        return StateError(f"{name}: the vehicle switched to {mode} (not commanded)")
+
     def _halt(self, motion: Motion) -> None:
         with self._lock:
             if self._motion is not motion:
@@ -397,8 +413,7 @@ class FlightController:
                     self._asked[mode] = owed - 1  # the change a stop, hold or resume asked for
                 elif mode not in self._modes and not (motion.held and mode == self.HOLD_MODE):
                     self._motion = None
-                    name = getattr(self._vehicle, "name", "vehicle")
-                    error = StateError(f"{name}: the vehicle switched to {mode} (not commanded)")
+                    error = self._switched(mode)
             reached = error is None and not motion.held and check(telemetry)
             if reached:
                 self._motion = None
