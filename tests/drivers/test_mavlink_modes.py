@@ -198,3 +198,26 @@ def test_a_mode_asked_is_used_up_by_its_change(
         assert (change.old, change.new, change.commanded) == ("GUIDED", "LOITER", False)
         assert d.uncommanded_mode_changes == 1
         assert "quad: the vehicle switched GUIDED -> LOITER (not commanded" in caplog.text
+
+
+def test_the_record_of_a_mode_asked_survives_a_recoverys_configure(
+    clock: ManualClock,
+) -> None:
+    """The safe state's LOITER, sent before a recovery configures again, shown after it.
+
+    Before, configure forgot the asks and the mode before: the LOITER that showed after the
+    recovery was no change at all, and the flight controller took it for the vehicle's own.
+    """
+    sim, d = rig(clock)
+    with sim, contextlib.closing(_Shut(d)):
+        configure(d, clock)
+        d.activate()
+        take_off(d, clock, 3.0)
+        d.set_mode("LOITER")  # acknowledged; its HEARTBEAT not read yet
+        with d._cond:
+            d._reset()  # what a recovery's configure does to the driver's state
+        run_until(clock, lambda: d.telemetry().mode == "LOITER", 1.5)
+        change = d.last_mode_change
+        assert change is not None
+        assert (change.old, change.new, change.commanded) == ("GUIDED", "LOITER", True)
+        assert d.uncommanded_mode_changes == 0

@@ -192,6 +192,14 @@ class Session(Driver):
         self._ages: dict[str, StreamAge] = {}
         self._bad_window = FaultWindow()
         self._seq_jumps = FaultWindow(SEQ_JUMPS, self.heartbeat_timeout)
+        # ---- the driver's record of the modes: kept across a recovery's configure, so that
+        # the safe state it sent before (LOITER, BRAKE) is still its own when the vehicle
+        # shows it after the link came back ----
+        self._last_mode: int | None = None  # the mode the newest HEARTBEAT showed
+        # mode number → the autopilot's HEARTBEATs counted when this driver asked for it, until
+        # a HEARTBEAT shows the change into it
+        self._commanded: dict[int, int] = {}
+        self._beats = 0  # the autopilot's HEARTBEATs heard by this driver
         self._reset()
 
     def _reset(self) -> None:
@@ -252,12 +260,7 @@ class Session(Driver):
         self._link_gaps = 0
         self._backlog = False  # reading what queued while this process did not run
         self._rx_turn = time.monotonic()  # real time the receive thread last came round
-        # ---- flight modes: what the vehicle did, and what this driver asked for ----
-        self._mode_seen = False
-        # mode number → the autopilot's HEARTBEATs counted when this driver asked for it, until
-        # a HEARTBEAT shows the change into it
-        self._commanded: dict[int, int] = {}
-        self._beats = 0  # the autopilot's HEARTBEATs since configure
+        # ---- flight modes since configure (the record of asks: see __init__) ----
         self._mode_change: ModeChange | None = None
         self._mode_notify: list[ModeChange] = []  # changes whose listeners are still to call
         self._uncommanded = 0
@@ -715,9 +718,9 @@ class Session(Driver):
             self._autopilot = msg.get_int("autopilot")
             self._armed = bool(msg.get_int("base_mode") & p.MAV_MODE_FLAG_SAFETY_ARMED)
             mode = msg.get_int("custom_mode")
-            if self._mode_seen and mode != self._custom_mode:
-                self._mode_changed(self._custom_mode, mode, now)
-            self._mode_seen = True
+            if self._last_mode is not None and mode != self._last_mode:
+                self._mode_changed(self._last_mode, mode, now)
+            self._last_mode = mode
             self._custom_mode = mode
             return True
         if name == "GLOBAL_POSITION_INT":
