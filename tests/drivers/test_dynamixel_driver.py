@@ -2,7 +2,9 @@
 
 from __future__ import annotations
 
+import linecache
 import math
+import sys
 import threading
 from collections.abc import Iterator
 from typing import Any
@@ -20,6 +22,7 @@ from temoto.drivers import (
     JointCommand,
     driver_class,
 )
+from temoto.drivers.dynamixel import _sdk
 from temoto.drivers.dynamixel.driver import SIM_REPLY_TIMEOUT, DynamixelDriver, ServoConfig
 from temoto.drivers.dynamixel.sim import SimDynamixelChain
 from temoto.errors import (
@@ -363,3 +366,96 @@ def test_a_good_profile_and_the_conversions() -> None:
     assert servo.current_units(servo.effort(100)) == 100
     with pytest.raises(ValueError, match="gear"):
         ServoConfig(1, "j", "XM430-W350", gear=0.0)
+
+
+def _waiting_at_the_bus(thread: threading.Thread, function: str) -> bool:
+    """Whether ``thread`` is in the Dynamixel driver's ``function``, stopped at taking the bus."""
+    frame = sys._current_frames().get(thread.ident or -1)
+    while frame is not None:
+        code = frame.f_code
+        if code.co_name == function and "dynamixel" in code.co_filename:
+            return "self._bus" in linecache.getline(code.co_filename, frame.f_lineno)
+        frame = frame.f_back
+    return False
+
+
+def test_a_set_point_goes_before_the_polls_waiting_for_the_bus(
+    chain: tuple[DynamixelDriver, SimDynamixelChain, Clock],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """A hold waits for the transaction in flight only, not for the polls queued behind it.
+
+    The bus is held (a transaction in flight) until the poll thread waits for it and then a
+    command waits too; when it is given back, the next transaction on the wire must be the
+    command's SYNC_WRITE (before: the poll thread, waiting first, went first, and a hold
+    queued behind its reads and its goal feed).
+    """
+    driver, _, clock = chain
+    driver.configure()
+    driver.activate()
+    wire: list[tuple[str, str]] = []  # (thread, transaction) in the order they took place
+    real_read, real_write = _sdk.SyncReader.read, _sdk.SyncWriter.write
+
+    def read(self: _sdk.SyncReader) -> Any:
+        wire.append((threading.current_thread().name, "read"))
+        return real_read(self)
+
+    def write(self: _sdk.SyncWriter, data: dict[int, bytes]) -> int:
+        wire.append((threading.current_thread().name, "write"))
+        return real_write(self, data)
+
+    monkeypatch.setattr(_sdk.SyncReader, "read", read)
+    monkeypatch.setattr(_sdk.SyncWriter, "write", write)
+    poller = driver._poller
+    assert poller is not None
+    for target in (0.5, -0.5, 0.3, -0.3, 0.1):  # before: the poll went first in 2 of 4
+        hold = threading.Thread(
+            target=driver.command,
+            args=([JointCommand("j1", ControlMode.POSITION, target)],),
+            name="hold",
+        )
+        with driver._bus:  # the transaction in flight
+            eventually(
+                lambda: (
+                    _waiting_at_the_bus(poller, "_poll_fast")
+                    or _waiting_at_the_bus(poller, "_feed_goals")
+                ),
+                5.0,
+            )
+            hold.start()
+            eventually(lambda: _waiting_at_the_bus(hold, "command"), 5.0)  # noqa: B023
+            start = len(wire)
+        hold.join(5.0)
+        assert not hold.is_alive()
+        eventually(lambda: len(wire) > start, 5.0, clock)  # noqa: B023
+        assert wire[start] == ("hold", "write"), wire[start:]
+
+
+def test_a_poll_cannot_take_the_bus_again_while_a_set_point_waits(
+    chain: tuple[DynamixelDriver, SimDynamixelChain, Clock],
+) -> None:
+    """The thread that gives the bus back (a poll between two transactions) must not retake it.
+
+    Before, the chain's bus was a plain re-entrant lock: the poll thread, giving it back after
+    a SYNC_READ and taking it again for its goal feed a few microseconds later, got it again
+    before the command waiting for it had woken up.
+    """
+    driver, _, _ = chain
+    driver.configure()
+    driver.activate()
+    driver._stop_polling()  # this thread plays the poll
+    hold = threading.Thread(
+        target=driver.command,
+        args=([JointCommand("j1", ControlMode.POSITION, 0.5)],),
+        name="hold",
+    )
+    driver._bus.acquire()
+    hold.start()
+    eventually(lambda: _waiting_at_the_bus(hold, "command"), 5.0)
+    driver._bus.release()
+    again = driver._bus.acquire(blocking=False)  # the poll's next transaction
+    if again:
+        driver._bus.release()
+    hold.join(5.0)
+    assert not hold.is_alive()
+    assert not again, "the poll took the bus again before the waiting set-point"

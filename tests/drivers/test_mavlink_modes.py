@@ -169,3 +169,55 @@ def test_null_keys_that_mean_something_are_accepted() -> None:
     config = {"link": "udpin:127.0.0.1:0", "system_id": None, "gcs_failsafe": None}
     d = MavlinkDriver.from_profile("quad", config, clock=ManualClock(), where="devices.quad")
     assert (d.system_id, d.failsafe_params, d.safe_state) == (None, {}, "loiter")
+
+
+def test_a_mode_asked_is_used_up_by_its_change(
+    clock: ManualClock, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Paused (LOITER), resumed (GUIDED), then the vehicle's own LOITER: not commanded.
+
+    Before, an ask stayed good for a window of clock time (here 2 tries of 2 s and two
+    heartbeats: 6 s), so the pilot's LOITER a few seconds after a pause's was taken for the
+    driver's own.
+    """
+    sim, d = rig(clock, command_timeout=2.0)
+    with sim, contextlib.closing(_Shut(d)):
+        configure(d, clock)
+        d.activate()
+        take_off(d, clock, 3.0)
+        caplog.set_level(logging.INFO, logger="temoto.drivers.mavlink")
+        d.set_mode("LOITER")
+        run_until(clock, lambda: d.telemetry().mode == "LOITER", 1.5)
+        d.set_mode("GUIDED")
+        run_until(clock, lambda: d.telemetry().mode == "GUIDED", 1.5)
+        with sim.state.lock:  # the pilot's switch
+            sim.flight.set_mode("LOITER")
+        run_until(clock, lambda: d.telemetry().mode == "LOITER", 1.5)
+        change = d.last_mode_change
+        assert change is not None
+        assert (change.old, change.new, change.commanded) == ("GUIDED", "LOITER", False)
+        assert d.uncommanded_mode_changes == 1
+        assert "quad: the vehicle switched GUIDED -> LOITER (not commanded" in caplog.text
+
+
+def test_the_record_of_a_mode_asked_survives_a_recoverys_configure(
+    clock: ManualClock,
+) -> None:
+    """The safe state's LOITER, sent before a recovery configures again, shown after it.
+
+    Before, configure forgot the asks and the mode before: the LOITER that showed after the
+    recovery was no change at all, and the flight controller took it for the vehicle's own.
+    """
+    sim, d = rig(clock)
+    with sim, contextlib.closing(_Shut(d)):
+        configure(d, clock)
+        d.activate()
+        take_off(d, clock, 3.0)
+        d.set_mode("LOITER")  # acknowledged; its HEARTBEAT not read yet
+        with d._cond:
+            d._reset()  # what a recovery's configure does to the driver's state
+        run_until(clock, lambda: d.telemetry().mode == "LOITER", 1.5)
+        change = d.last_mode_change
+        assert change is not None
+        assert (change.old, change.new, change.commanded) == ("GUIDED", "LOITER", True)
+        assert d.uncommanded_mode_changes == 0

@@ -14,7 +14,8 @@ from __future__ import annotations
 import logging
 import math
 import threading
-from collections.abc import Mapping, Sequence
+from collections.abc import Iterator, Mapping, Sequence
+from contextlib import contextmanager
 from typing import Final
 
 from temoto.clock import Clock
@@ -43,7 +44,7 @@ from temoto.errors import (
     StateError,
 )
 
-__all__ = ["ServoChain", "register_label"]
+__all__ = ["BusLock", "ServoChain", "register_label"]
 
 logger = logging.getLogger(__name__)
 
@@ -71,6 +72,96 @@ def register_label(address: int, length: int) -> str:
 
 
 _TRIES: Final = 3  # attempts of a single READ or WRITE (they are idempotent)
+
+
+class BusLock:
+    """The chain's bus: one transaction at a time, set-points before polls.
+
+    A re-entrant lock (``with bus:``, ``acquire``/``release`` as :class:`threading.RLock`)
+    with one addition: :meth:`urgent` (a set-point, a hold, the safe state) goes before every
+    ordinary acquisition that is waiting or comes later. A half-duplex transaction in flight
+    (a SYNC_READ waiting for its status packets) cannot be cut short, so an urgent write waits
+    for that one, and no further: the poll thread, which releases the bus between its
+    transactions, cannot take it again while an urgent write is waiting (a plain RLock lets
+    the thread that just released it take it again first, poll after poll).
+    """
+
+    def __init__(self) -> None:
+        self._cond = threading.Condition(threading.Lock())
+        self._owner: int | None = None
+        self._depth = 0
+        self._urgent = 0  # urgent acquisitions waiting
+
+    def acquire(self, blocking: bool = True, timeout: float = -1, *, urgent: bool = False) -> bool:
+        """Take the bus (re-entrant).
+
+        Args:
+            blocking: Wait for it (else only take it if free).
+            timeout: Real seconds to wait at most (negative: no limit).
+            urgent: Go before the ordinary acquisitions waiting.
+
+        Returns:
+            Whether it was taken.
+        """
+        me = threading.get_ident()
+        with self._cond:
+            if self._owner == me:
+                self._depth += 1
+                return True
+            if urgent:
+                self._urgent += 1
+            try:
+
+                def free() -> bool:
+                    return self._owner is None and (urgent or self._urgent == 0)
+
+                if not blocking:
+                    got = free()
+                else:
+                    got = self._cond.wait_for(free, None if timeout < 0 else timeout)
+                if got:
+                    self._owner, self._depth = me, 1
+                return got
+            finally:
+                if urgent:
+                    self._urgent -= 1
+                    if not self._urgent:
+                        self._cond.notify_all()  # the ordinary waiters may go on
+
+    def release(self) -> None:
+        """Give the bus back (the owner only).
+
+        Raises:
+            RuntimeError: The calling thread does not hold it.
+        """
+        with self._cond:
+            if self._owner != threading.get_ident():
+                raise RuntimeError("release of a bus lock this thread does not hold")
+            self._depth -= 1
+            if not self._depth:
+                self._owner = None
+                self._cond.notify_all()
+
+    @property
+    def urgent_waiting(self) -> bool:
+        """Whether an urgent acquisition is waiting (a poll between transactions yields)."""
+        return self._urgent > 0
+
+    def __enter__(self) -> BusLock:
+        self.acquire()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.release()
+
+    @contextmanager
+    def urgent(self) -> Iterator[None]:
+        """Hold the bus, taken before the ordinary acquisitions (set-points, holds)."""
+        self.acquire(urgent=True)
+        try:
+            yield
+        finally:
+            self.release()
 
 
 class ServoChain(Driver):
@@ -122,7 +213,7 @@ class ServoChain(Driver):
         self._by_joint = {s.joint: s for s in self.servos}
         self._by_id = {s.id: s for s in self.servos}
         self._ids = [s.id for s in self.servos]
-        self._bus = threading.RLock()  # one transaction on the wire at a time
+        self._bus = BusLock()  # one transaction on the wire at a time, set-points first
         self._sdk: _sdk.SdkPort | None = None
         self._fast: _sdk.SyncReader | None = None
         self._slow: _sdk.SyncReader | None = None
@@ -411,13 +502,19 @@ class ServoChain(Driver):
 
     def _poll_status(self) -> None:
         """Read voltage, temperature and hardware error status; report hardware errors."""
+        # one transaction per taking of the bus: a set-point waiting goes between them
         with self._bus:
-            if self._slow is None or self._errors is None:
+            if self._slow is None:
                 return
             result, slow, _ = self._slow.read()
-            result2, bits, _ = self._errors.read() if result == _sdk.COMM_SUCCESS else (0, {}, {})
-        if result != _sdk.COMM_SUCCESS or result2 != _sdk.COMM_SUCCESS:
+        if result != _sdk.COMM_SUCCESS:
             return  # the fast poll counts communication failures
+        with self._bus:
+            if self._errors is None:
+                return
+            result, bits, _ = self._errors.read()
+        if result != _sdk.COMM_SUCCESS:
+            return
         expired = self._expired_watchdogs()
         if expired and self.state is DriverState.ACTIVE:
             self._hw_fault = True  # stays until recover()

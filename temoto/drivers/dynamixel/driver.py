@@ -372,7 +372,8 @@ class DynamixelDriver(ServoChain):
 
         A position command's ``velocity_limit`` sets the servo's Profile Velocity. The poll
         thread writes the newest goal of every servo again each period while ``ACTIVE``, so the
-        servos' Bus Watchdog sees a steady stream of set-points.
+        servos' Bus Watchdog sees a steady stream of set-points. The SyncWrite goes before the
+        poll thread's transactions waiting for the bus: it waits only for the one in flight.
 
         Args:
             commands: Set-points; each joint's mode must match its servo's operating mode.
@@ -421,7 +422,7 @@ class DynamixelDriver(ServoChain):
                     raise ValueError(f"{self.name}: joint {cmd.joint}: {cmd.value} N·m too much")
             goals.setdefault(reg.address, {})[servo.id] = p.to_le(value, reg.size)
         order = (ct.PROFILE_VELOCITY, ct.GOAL_POSITION, ct.GOAL_VELOCITY, ct.GOAL_CURRENT)
-        with self._bus:
+        with self._bus.urgent():  # before the polls waiting: a hold must not queue behind them
             for reg in order:
                 if reg.address in goals:
                     result = self._writer(reg).write(goals[reg.address])
@@ -529,7 +530,8 @@ class DynamixelDriver(ServoChain):
         port = self._sdk
         if port is None or not port.is_open:
             raise DriverOperationError(f"{self.name}: the port is not open")
-        got = self._bus.acquire(timeout=_SAFE_BUS_WAIT)  # else the SDK says if it is busy
+        # before the polls waiting; else (a transaction stuck) the SDK says if it is busy
+        got = self._bus.acquire(timeout=_SAFE_BUS_WAIT, urgent=True)
         try:
             self._goals = {}
             if self.safe_state == "hold":

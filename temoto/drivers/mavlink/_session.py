@@ -192,6 +192,14 @@ class Session(Driver):
         self._ages: dict[str, StreamAge] = {}
         self._bad_window = FaultWindow()
         self._seq_jumps = FaultWindow(SEQ_JUMPS, self.heartbeat_timeout)
+        # ---- the driver's record of the modes: kept across a recovery's configure, so that
+        # the safe state it sent before (LOITER, BRAKE) is still its own when the vehicle
+        # shows it after the link came back ----
+        self._last_mode: int | None = None  # the mode the newest HEARTBEAT showed
+        # mode number → the autopilot's HEARTBEATs counted when this driver asked for it, until
+        # a HEARTBEAT shows the change into it
+        self._commanded: dict[int, int] = {}
+        self._beats = 0  # the autopilot's HEARTBEATs heard by this driver
         self._reset()
 
     def _reset(self) -> None:
@@ -252,9 +260,7 @@ class Session(Driver):
         self._link_gaps = 0
         self._backlog = False  # reading what queued while this process did not run
         self._rx_turn = time.monotonic()  # real time the receive thread last came round
-        # ---- flight modes: what the vehicle did, and what this driver asked for ----
-        self._mode_seen = False
-        self._commanded: dict[int, float] = {}  # mode number → clock time this driver asked
+        # ---- flight modes since configure (the record of asks: see __init__) ----
         self._mode_change: ModeChange | None = None
         self._mode_notify: list[ModeChange] = []  # changes whose listeners are still to call
         self._uncommanded = 0
@@ -346,7 +352,7 @@ class Session(Driver):
     def _note_mode(self, number: int) -> None:
         """Record that this driver asked for flight mode ``number`` (now)."""
         with self._cond:
-            self._commanded[number] = self.clock.monotonic()
+            self._commanded[number] = self._beats
 
     # ---- commands ----------------------------------------------------------------------------
     def _send_command(
@@ -707,13 +713,14 @@ class Session(Driver):
                 changed = True
         if name == "HEARTBEAT":
             self._last_hb = now
+            self._beats += 1
             self._bad_at_hb = self._vehicle_bad
             self._autopilot = msg.get_int("autopilot")
             self._armed = bool(msg.get_int("base_mode") & p.MAV_MODE_FLAG_SAFETY_ARMED)
             mode = msg.get_int("custom_mode")
-            if self._mode_seen and mode != self._custom_mode:
-                self._mode_changed(self._custom_mode, mode, now)
-            self._mode_seen = True
+            if self._last_mode is not None and mode != self._last_mode:
+                self._mode_changed(self._last_mode, mode, now)
+            self._last_mode = mode
             self._custom_mode = mode
             return True
         if name == "GLOBAL_POSITION_INT":
@@ -769,10 +776,19 @@ class Session(Driver):
         return changed
 
     def _mode_changed(self, old: int, new: int, now: float) -> None:
-        """The autopilot's HEARTBEAT shows another mode (lock held): record it, say it."""
-        asked = self._commanded.get(new)
-        window = (1 + self.command_retries) * self.command_timeout + 2 * p.VEHICLE_HEARTBEAT_PERIOD
-        commanded = asked is not None and now - asked <= window
+        """The autopilot's HEARTBEAT shows another mode (lock held): record it, say it.
+
+        Commanded when this driver asked for ``new`` at most as many HEARTBEATs ago as its
+        command takes with every retry, plus two (the vehicle shows a mode with its next
+        HEARTBEAT, one a second on ArduPilot): counted in HEARTBEATs, not clock time, so a
+        receive thread that ran late under load does not make its own command the vehicle's.
+        The ask is used up by the change: the vehicle switching into that mode again later
+        (a pilot's LOITER after a pause's LOITER and a resume) is its own.
+        """
+        asked = self._commanded.pop(new, None)
+        wait = (1 + self.command_retries) * self.command_timeout
+        beats = math.ceil(wait / p.VEHICLE_HEARTBEAT_PERIOD) + 2
+        commanded = asked is not None and self._beats - asked <= beats
         change = ModeChange(p.mode_name(old), p.mode_name(new), now, commanded)
         self._mode_change = change
         self._mode_notify.append(change)

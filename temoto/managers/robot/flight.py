@@ -70,7 +70,10 @@ class FlightController:
         self._resume_mode = "GUIDED"
         self._describe: Callable[[Any], str] | None = None
         self._modes: frozenset[str] = frozenset()  # the modes this motion commands
-        self._seen_mode = ""
+        self._seen_mode = ""  # the mode the telemetry showed at the last step
+        #: Modes a stop, hold or resume asked for that the telemetry has not shown since (by
+        #: count: a mode asked twice is owed two changes into it).
+        self._asked: dict[str, int] = {}
         self._speeds: dict[str, float] | None = None
 
     def telemetry(self) -> Any:
@@ -286,21 +289,58 @@ class FlightController:
             self._resume_mode, self._describe = resume_mode, describe
             self._modes = frozenset(modes | {resume_mode})
             self._seen_mode = seen
+            if self._asked.get(seen):  # shown while no motion was stepped: no longer owed
+                self._asked[seen] -= 1
         if old is not None:
             old.supersede()
         return motion
 
     # ---- stop, hold, resume (on the caller's thread, under the lock) ------------------------
 
+    def _ask(self, mode: str) -> None:
+        """Lock held: note that ``mode`` is asked for, before it is (see :meth:`step`).
+
+        Kept across motions: the LOITER of a stop may show after the next motion started.
+        No change is owed when the vehicle shows that mode already and no other asked change
+        is still to show (it stays in it), so nothing is owed for ever.
+        """
+        if not any(self._asked.values()):
+            try:
+                if str(self._vehicle.telemetry().mode) == mode:
+                    return
+            except Exception as err:  # no telemetry yet: owe it
+                logger.debug("flight: no telemetry for the mode asked: %s", err)
+        self._asked[mode] = self._asked.get(mode, 0) + 1
+
     def _loiter(self, motion: Motion, why: str) -> None:
-        """Lock held: the vehicle LOITERs (the acknowledgement awaited)."""
+        """Lock held: the vehicle LOITERs (the acknowledgement awaited).
+
+        Noted as asked even when the acknowledgement does not come: the vehicle may have
+        switched all the same, and its LOITER is then still this controller's.
+        """
+        self._ask(self.HOLD_MODE)
         try:
             self._vehicle.set_mode(self.HOLD_MODE)
         except Exception as err:
             logger.warning("%s: %s: %s refused: %s", motion.what, why, self.HOLD_MODE, err)
         else:
-            self._seen_mode = self.HOLD_MODE
             logger.info("%s: %s: vehicle %s", motion.what, why, self.HOLD_MODE)
+
+    def _switched(self, mode: str) -> StateError:
+        """The error for a change into ``mode`` that this controller did not ask for.
+
+        The vehicle's own (a failsafe, a pilot) unless its driver says it asked for that mode
+        itself (the safe state it sent after a fault, e.g. LOITER or BRAKE): that is not the
+        vehicle's own switch, and the error says so.
+        """
+        name = getattr(self._vehicle, "name", "vehicle")
+        change = getattr(self._vehicle, "last_mode_change", None)
+        if change is not None and change.new == mode and change.commanded:
+            return StateError(
+                f"{name}: the vehicle was switched to {mode} by its driver (its safe state),"
+                " not by this flight"
+            )
+        return StateError(f"{name}: the vehicle switched to {mode} (not commanded)")
 
     def _halt(self, motion: Motion) -> None:
         with self._lock:
@@ -318,6 +358,7 @@ class FlightController:
         with self._lock:
             if self._motion is not motion:
                 return
+            self._ask(self._resume_mode)
             try:
                 self._vehicle.set_mode(self._resume_mode)
                 if self._resend is not None:
@@ -335,6 +376,15 @@ class FlightController:
         Never waits for a stop, hold or resume that is talking to the vehicle (it holds the
         lock while the mode change is acknowledged): that step is skipped, so the robot's other
         features are still stepped.
+
+        A mode is judged when the telemetry shows a change into it: the vehicle's own (the
+        motion ends with an error naming it) unless this motion commands it, or a hold
+        holds in it, or a stop, hold or resume asked for it and that change was still owed.
+        The telemetry's mode comes from the HEARTBEAT, up to a period after the vehicle
+        acknowledged a mode (and read here before the lock is taken, so a pause or resume may
+        come between the reading and the check): a hold's LOITER may show only after the
+        resume was acknowledged, and is still commanded. Only changes are judged, so a reading
+        from before an ask cannot use it up.
         """
         if not self._lock.acquire(blocking=False):
             return
@@ -357,12 +407,13 @@ class FlightController:
                 return
             mode = str(telemetry.mode)
             if mode and mode != self._seen_mode:
-                if mode in self._modes or (motion.held and mode == self.HOLD_MODE):
-                    self._seen_mode = mode
-                else:
+                self._seen_mode = mode
+                owed = self._asked.get(mode, 0)
+                if owed:
+                    self._asked[mode] = owed - 1  # the change a stop, hold or resume asked for
+                elif mode not in self._modes and not (motion.held and mode == self.HOLD_MODE):
                     self._motion = None
-                    name = getattr(self._vehicle, "name", "vehicle")
-                    error = StateError(f"{name}: the vehicle switched to {mode} (not commanded)")
+                    error = self._switched(mode)
             reached = error is None and not motion.held and check(telemetry)
             if reached:
                 self._motion = None
