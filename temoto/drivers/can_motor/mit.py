@@ -828,7 +828,10 @@ class MitMotorDriver(CanMotorDriver):
                     node_id=c.motor.motor_id,
                     error=c.error,
                 )
-            stale = c.age.stale(seen)
+            # The replies answer our polls: after a gap in our loop (no polls, so no replies)
+            # their age says nothing about the motor until it answered the polls sent since;
+            # a motor silent to those is caught by ``unanswered`` above.
+            stale = None if self._resync is not None else c.age.stale(seen)
             if stale is not None:
                 return DriverTimeoutError(f"{self.name}: {stale}")
             if c.unasked.recent(now) >= DUPLICATE_LIMIT:
