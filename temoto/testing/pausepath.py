@@ -203,13 +203,19 @@ def run_pauses(family_name: str, pause_s: float, pauses: int = 1) -> dict[str, A
         ]
         for reader in readers:
             reader.start()
-        if not moving.wait(START_TIMEOUT):
+        deadline = time.monotonic() + START_TIMEOUT
+        while not moving.wait(0.05) and robot.poll() is None and time.monotonic() < deadline:
+            pass
+        if not moving.is_set():
             robot.kill()
             robot.wait()
             for reader in readers:
                 reader.join(5)
             said = out.get("stderr", "")[-2000:]
-            raise TimeoutError(f"the mission did not start; the robot command's stderr:\n{said}")
+            raise TimeoutError(
+                f"the mission did not start (exit {robot.returncode}); the robot command's"
+                f" stderr:\n{said}"
+            )
         host.wait("acting")
         taken: list[dict[str, float]] = []
         for _ in range(pauses):
