@@ -231,3 +231,35 @@ def test_mit_pause_longer_than_the_can_timeout_is_a_fault_and_sends_nothing_stal
     assert faults, "the expired CAN timeout was not reported"
     assert "can_timeout (0.2 s)" in faults[0]
     assert "motor 1 (left)" in faults[0]
+
+
+def test_mit_pause_seen_first_by_the_receiver_is_no_false_stale_fault(
+    clocks: tuple[ManualClock, ManualClock],
+) -> None:
+    # The other order of a SIGCONT: the receiver looks at the link (empty: the motors answer
+    # polls only, and none were sent during the pause) before the supervisor runs. The replies'
+    # age then says nothing about the motors (issue 25: a false "replies stale" in 3 of 4 runs).
+    rig, listener = mit_rig(*clocks, can_timeout=2.0)
+    driver = rig.driver
+    with rig.sim, listener:
+        try:
+            driver.configure()
+            driver.activate()
+            driver.command([JointCommand("left", ControlMode.VELOCITY, 2.99)])
+            rig.both(0.2)
+            rig.gated()
+            rig.pause(listener)
+            with driver._cond:  # the supervisor cannot go on while this is held
+                rig.dclock.advance(PAUSE)
+                rig.gate.set()
+                time.sleep(0.2)  # the receiver finds the link empty, after the pause
+            rig.both(0.5)
+            after = drain(listener)
+        finally:
+            driver.shutdown()
+    assert rig.faults() == []
+    assert driver.gaps >= 1
+    polls = set_points(after)
+    first_reply = next(i for i, m in enumerate(after) if m.arbitration_id == 0)
+    assert all(abs(v) < 0.05 for i, v in polls if i < first_reply)  # only damping polls
+    assert any(abs(v - 2.99) < 0.05 for _, v in polls), "the set-point never resumed"
