@@ -69,8 +69,10 @@ PAUSE_FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
         "device": {
             "driver": "odrive_can",
             "link": _CAN_LINK,
-            "heartbeat_period": 0.1,
-            "encoder_period": 0.01,
+            "heartbeat_period": 0.1,  # no heartbeat within 0.3 s is a fault: the case
+            # estimates stale after 0.15 s: a loaded machine can hold the simulator's process
+            # back for tens of ms (a pause of the robot's is 0.5 s or more)
+            "encoder_period": 0.05,
             "command_period": 0.05,
             "watchdog_timeout": 1.0,
             "nodes": [
@@ -87,6 +89,7 @@ PAUSE_FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
             "link": _CAN_LINK,
             "poll_rate": 100,
             "can_timeout": 1.0,
+            "timeout_periods": 10,  # 0.1 s without replies (a loaded machine; a pause is 0.5 s)
             "motors": [
                 {"motor_id": 1, "joint": "left_wheel", "model": "AK80-9"},
                 {"motor_id": 2, "joint": "right_wheel", "model": "AK80-9"},

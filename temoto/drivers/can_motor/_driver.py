@@ -148,7 +148,29 @@ class CanMotorDriver(Driver):
         if bus is not None:
             bus.shutdown()
 
-    def _send(self, arbitration_id: int, data: bytes, remote: bool = False) -> None:
+    def _send(
+        self, arbitration_id: int, data: bytes, remote: bool = False, *, setpoint: bool = False
+    ) -> bool:
+        """Send one frame; a ``setpoint`` only if no gap in the loop is being judged.
+
+        A set-point's check is made under the send lock, just before the frame goes to the bus:
+        a caller that decided to send before a pause of the process (a SIGSTOP between its
+        decision and the send, or while it waited for a lock) does not send it after the
+        SIGCONT before the devices' feedback was judged.
+
+        Args:
+            arbitration_id: The frame's id.
+            data: Its data.
+            remote: A remote (RTR) frame.
+            setpoint: A set-point, held back while a gap is judged.
+
+        Returns:
+            Whether the frame went out (False: a set-point held back).
+
+        Raises:
+            StateError: The bus is not open.
+            DriverOperationError: The bus refused the frame.
+        """
         bus = self._bus
         if bus is None:
             raise StateError(f"{self.name}: the CAN bus is not open")
@@ -161,9 +183,12 @@ class CanMotorDriver(Driver):
         )
         try:
             with self._send_lock:
+                if setpoint and self._check_gap(self.clock.monotonic()):
+                    return False
                 bus.send(msg)
         except can.CanError as err:
             raise DriverOperationError(f"{self.name}: CAN send failed: {err}") from err
+        return True
 
     def _rx_loop(self) -> None:
         bus = self._bus

@@ -630,14 +630,20 @@ class MitMotorDriver(CanMotorDriver):
         with self._held_lock:
             for c, frame in frames.items():
                 c.held = frame
-                if send:
-                    self._send_to(c, frame)
+                if send:  # held back if a gap was found meanwhile: sent once judged
+                    self._send_to(c, frame, setpoint=True)
 
-    def _send_to(self, c: _Motor, frame: bytes) -> None:
-        """Send a frame to one motor, counted until it answers (``_held_lock`` held)."""
-        self._send(c.motor.motor_id, frame)
+    def _send_to(self, c: _Motor, frame: bytes, *, setpoint: bool = False) -> bool:
+        """Send a frame to one motor, counted until it answers (``_held_lock`` held).
+
+        With ``setpoint``, a command frame (not enter, exit or zero) is held back while a gap
+        in the loop is being judged (:meth:`_send`); returns whether the frame went out.
+        """
+        if not self._send(c.motor.motor_id, frame, setpoint=setpoint and mm.special(frame) is None):
+            return False
         c.outstanding += 1
         c.sent += 1
+        return True
 
     def _ping(self, frame: bytes) -> None:
         """Send ``frame`` to every motor and wait for each to answer it.
@@ -783,7 +789,8 @@ class MitMotorDriver(CanMotorDriver):
                 frame = c.held
                 if waiting and mm.special(frame) is None:  # a set-point waits for feedback:
                     frame = self._brake(c)  # the poll that asks for it only damps
-                self._send_to(c, frame)
+                if not self._send_to(c, frame, setpoint=not waiting):  # a gap found just now
+                    self._send_to(c, self._brake(c))
 
     @staticmethod
     def _brake(c: _Motor) -> bytes:

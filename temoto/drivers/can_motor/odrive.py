@@ -653,13 +653,13 @@ class ODriveDriver(CanMotorDriver):
             for axis, c in plan:
                 mode = c.mode
                 if axis.mode is not mode:
-                    if wait:
-                        axis.mode_due = True
-                    else:
-                        self._send(
-                            axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
-                            cs.encode_set_controller_mode(_MODES[mode], cs.InputMode.PASSTHROUGH),
-                        )
+                    # held back (also if a gap is found just now): sent once it was judged
+                    if wait or not self._send(
+                        axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
+                        cs.encode_set_controller_mode(_MODES[mode], cs.InputMode.PASSTHROUGH),
+                        setpoint=True,
+                    ):
+                        axis.mode_due = wait = True
                     axis.mode = mode
                 if mode is ControlMode.POSITION:
                     data = cs.INPUT_POS.pack(c.value / axis.rad, 0, 0)
@@ -670,8 +670,8 @@ class ODriveDriver(CanMotorDriver):
                 else:
                     torque = c.value / axis.node.gear_ratio
                     axis.held = (axis.ids[cs.Cmd.SET_INPUT_TORQUE], cs.F32_PAD.pack(torque))
-                if not wait:
-                    self._send(*axis.held)
+                if not wait and not self._send(*axis.held, setpoint=True):
+                    wait = True  # a gap found just now: the rest waits too
 
     def read_state(self) -> JointStates:
         """The newest estimate of every joint (the receive thread's cache; no bus traffic).
@@ -783,7 +783,8 @@ class ODriveDriver(CanMotorDriver):
             for axis in self._axes:
                 if axis.held is not None:
                     try:
-                        self._send(*axis.held)
+                        if not self._send(*axis.held, setpoint=True):
+                            break  # a gap in the loop found just now: judged first
                     except DriverError as err:  # the link's state shows in the replies
                         logger.debug("driver %s: re-send failed: %s", self.name, err)
 
