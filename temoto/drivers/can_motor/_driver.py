@@ -188,6 +188,15 @@ class CanMotorDriver(Driver):
                 bus.send(msg)
         except can.CanError as err:
             raise DriverOperationError(f"{self.name}: CAN send failed: {err}") from err
+        # python-can packs the frame before its system call: a process stopped in between
+        # sends it after SIGCONT. Such a frame cannot be recalled; it is superseded at once.
+        if setpoint and self._check_gap(self.clock.monotonic()):
+            logger.warning(
+                "driver %s: a set-point to id 0x%x was being sent when the loop stalled",
+                self.name,
+                arbitration_id,
+            )
+            self._sent_late(arbitration_id)
         return True
 
     def _rx_loop(self) -> None:
@@ -341,6 +350,9 @@ class CanMotorDriver(Driver):
 
     def _resume(self) -> None:
         """Send the held set-points after a gap was judged fine (supervisor thread)."""
+
+    def _sent_late(self, arbitration_id: int) -> None:
+        """A set-point to ``arbitration_id`` went out as a gap in the loop was found."""
 
     def _notify(self) -> None:
         with self._cond:

@@ -812,6 +812,13 @@ class MitMotorDriver(CanMotorDriver):
     def _fresh(self, mark: int) -> bool:
         return all(c.seq > mark for c in self._cache)
 
+    def _sent_late(self, arbitration_id: int) -> None:
+        """Damp the motor at once (its sender holds ``_held_lock``): the gap is judged first."""
+        c = self._by_id.get(arbitration_id)
+        if c is not None:
+            with contextlib.suppress(DriverError, StateError):
+                self._send_to(c, self._brake(c))
+
     def _problem(self, now: float) -> DriverError | None:
         if self._expired is not None:
             return DriverTimeoutError(f"{self.name}: {self._expired}")
