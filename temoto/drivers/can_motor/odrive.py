@@ -845,17 +845,22 @@ class ODriveDriver(CanMotorDriver):
             if not self._feeding:
                 return
             for axis in self._axes:
-                try:
-                    if axis.mode_due and axis.mode is not None:
-                        self._send(
+                try:  # a new gap (the process stopped while resuming): judged first
+                    if (
+                        axis.mode_due
+                        and axis.mode is not None
+                        and not self._send(
                             axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
                             cs.encode_set_controller_mode(
                                 _MODES[axis.mode], cs.InputMode.PASSTHROUGH
                             ),
+                            setpoint=True,
                         )
+                    ):
+                        break
                     axis.mode_due = False
-                    if axis.held is not None:
-                        self._send(*axis.held)
+                    if axis.held is not None and not self._send(*axis.held, setpoint=True):
+                        break
                 except DriverError as err:
                     logger.debug("driver %s: re-send failed: %s", self.name, err)
             self._due_feed = self.clock.monotonic() + self.command_period
