@@ -258,6 +258,7 @@ def test_odrive_a_short_pause_sends_nothing_stale_and_is_no_fault() -> None:
 def test_odrive_b_a_pause_beyond_the_watchdog_ends_loudly_and_sends_nothing_stale() -> None:
     result = run("odrive", LONG, pauses=1)
     story = _story(result)
+    _unless_the_device_stalled(result, story)
     frames = result["frames"]
     (pause,) = result["pauses"]
     _odrive_before(frames, pause)
@@ -273,7 +274,8 @@ def test_odrive_b_a_pause_beyond_the_watchdog_ends_loudly_and_sends_nothing_stal
         assert beats[-1] is not None
         error, state = beats[-1]
         assert state == IDLE, (node, beats[-3:])
-        assert error & WATCHDOG_TIMER_EXPIRED, (node, beats[-3:])
+        if beats[0] == (0, CLOSED_LOOP):  # armed when the process stopped: its watchdog fired
+            assert error & WATCHDOG_TIMER_EXPIRED, (node, beats[-3:])
     # after SIGCONT no set-point reaches an axis before it was armed again (Set_Axis_State 8)
     armed = _first_after(
         frames,
@@ -388,6 +390,7 @@ def test_mit_a_short_pause_sends_nothing_stale_and_is_no_fault() -> None:
 def test_mit_b_a_pause_beyond_the_can_timeout_ends_loudly_and_sends_nothing_stale() -> None:
     result = run("mit", LONG, pauses=1)
     story = _story(result)
+    _unless_the_device_stalled(result, story)
     frames = result["frames"]
     (pause,) = result["pauses"]
     _mit_before(frames, pause)
