@@ -291,7 +291,9 @@ class CanMotorDriver(Driver):
         with self._gap_lock:
             last = self._loop_at
             late = last is not None and now - last > self.gap_limit
-            if late and real - self._loop_real > self._gap_real and self._resync is None:
+            # a new gap while one is judged starts the judging again: the feedback that
+            # came before it (fresh for the first gap) says nothing about the devices now
+            if late and real - self._loop_real > self._gap_real:
                 assert last is not None
                 gap = now - last
                 self.gaps += 1
