@@ -148,7 +148,29 @@ class CanMotorDriver(Driver):
         if bus is not None:
             bus.shutdown()
 
-    def _send(self, arbitration_id: int, data: bytes, remote: bool = False) -> None:
+    def _send(
+        self, arbitration_id: int, data: bytes, remote: bool = False, *, setpoint: bool = False
+    ) -> bool:
+        """Send one frame; a ``setpoint`` only if no gap in the loop is being judged.
+
+        A set-point's check is made under the send lock, just before the frame goes to the bus:
+        a caller that decided to send before a pause of the process (a SIGSTOP between its
+        decision and the send, or while it waited for a lock) does not send it after the
+        SIGCONT before the devices' feedback was judged.
+
+        Args:
+            arbitration_id: The frame's id.
+            data: Its data.
+            remote: A remote (RTR) frame.
+            setpoint: A set-point, held back while a gap is judged.
+
+        Returns:
+            Whether the frame went out (False: a set-point held back).
+
+        Raises:
+            StateError: The bus is not open.
+            DriverOperationError: The bus refused the frame.
+        """
         bus = self._bus
         if bus is None:
             raise StateError(f"{self.name}: the CAN bus is not open")
@@ -161,9 +183,21 @@ class CanMotorDriver(Driver):
         )
         try:
             with self._send_lock:
+                if setpoint and self._check_gap(self.clock.monotonic()):
+                    return False
                 bus.send(msg)
         except can.CanError as err:
             raise DriverOperationError(f"{self.name}: CAN send failed: {err}") from err
+        # python-can packs the frame before its system call: a process stopped in between
+        # sends it after SIGCONT. Such a frame cannot be recalled; it is superseded at once.
+        if setpoint and self._check_gap(self.clock.monotonic()):
+            logger.warning(
+                "driver %s: a set-point to id 0x%x was being sent when the loop stalled",
+                self.name,
+                arbitration_id,
+            )
+            self._sent_late(arbitration_id)
+        return True
 
     def _rx_loop(self) -> None:
         bus = self._bus
@@ -257,7 +291,9 @@ class CanMotorDriver(Driver):
         with self._gap_lock:
             last = self._loop_at
             late = last is not None and now - last > self.gap_limit
-            if late and real - self._loop_real > self._gap_real and self._resync is None:
+            # a new gap while one is judged starts the judging again: the feedback that
+            # came before it (fresh for the first gap) says nothing about the devices now
+            if late and real - self._loop_real > self._gap_real:
                 assert last is not None
                 gap = now - last
                 self.gaps += 1
@@ -316,6 +352,9 @@ class CanMotorDriver(Driver):
 
     def _resume(self) -> None:
         """Send the held set-points after a gap was judged fine (supervisor thread)."""
+
+    def _sent_late(self, arbitration_id: int) -> None:
+        """A set-point to ``arbitration_id`` went out as a gap in the loop was found."""
 
     def _notify(self) -> None:
         with self._cond:

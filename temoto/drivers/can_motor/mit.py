@@ -630,14 +630,20 @@ class MitMotorDriver(CanMotorDriver):
         with self._held_lock:
             for c, frame in frames.items():
                 c.held = frame
-                if send:
-                    self._send_to(c, frame)
+                if send:  # held back if a gap was found meanwhile: sent once judged
+                    self._send_to(c, frame, setpoint=True)
 
-    def _send_to(self, c: _Motor, frame: bytes) -> None:
-        """Send a frame to one motor, counted until it answers (``_held_lock`` held)."""
-        self._send(c.motor.motor_id, frame)
+    def _send_to(self, c: _Motor, frame: bytes, *, setpoint: bool = False) -> bool:
+        """Send a frame to one motor, counted until it answers (``_held_lock`` held).
+
+        With ``setpoint``, a command frame (not enter, exit or zero) is held back while a gap
+        in the loop is being judged (:meth:`_send`); returns whether the frame went out.
+        """
+        if not self._send(c.motor.motor_id, frame, setpoint=setpoint and mm.special(frame) is None):
+            return False
         c.outstanding += 1
         c.sent += 1
+        return True
 
     def _ping(self, frame: bytes) -> None:
         """Send ``frame`` to every motor and wait for each to answer it.
@@ -783,7 +789,8 @@ class MitMotorDriver(CanMotorDriver):
                 frame = c.held
                 if waiting and mm.special(frame) is None:  # a set-point waits for feedback:
                     frame = self._brake(c)  # the poll that asks for it only damps
-                self._send_to(c, frame)
+                if not self._send_to(c, frame, setpoint=not waiting):  # a gap found just now
+                    self._send_to(c, self._brake(c))
 
     @staticmethod
     def _brake(c: _Motor) -> bytes:
@@ -804,6 +811,13 @@ class MitMotorDriver(CanMotorDriver):
 
     def _fresh(self, mark: int) -> bool:
         return all(c.seq > mark for c in self._cache)
+
+    def _sent_late(self, arbitration_id: int) -> None:
+        """Damp the motor at once (its sender holds ``_held_lock``): the gap is judged first."""
+        c = self._by_id.get(arbitration_id)
+        if c is not None:
+            with contextlib.suppress(DriverError, StateError):
+                self._send_to(c, self._brake(c))
 
     def _problem(self, now: float) -> DriverError | None:
         if self._expired is not None:
@@ -828,7 +842,10 @@ class MitMotorDriver(CanMotorDriver):
                     node_id=c.motor.motor_id,
                     error=c.error,
                 )
-            stale = c.age.stale(seen)
+            # The replies answer our polls: after a gap in our loop (no polls, so no replies)
+            # their age says nothing about the motor until it answered the polls sent since;
+            # a motor silent to those is caught by ``unanswered`` above.
+            stale = None if self._resync is not None else c.age.stale(seen)
             if stale is not None:
                 return DriverTimeoutError(f"{self.name}: {stale}")
             if c.unasked.recent(now) >= DUPLICATE_LIMIT:

@@ -842,13 +842,13 @@ class ODriveDriver(CanMotorDriver):
             for axis, c in plan:
                 mode = c.mode
                 if axis.mode is not mode:
-                    if wait:
-                        axis.mode_due = True
-                    else:
-                        self._send(
-                            axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
-                            cs.encode_set_controller_mode(_MODES[mode], cs.InputMode.PASSTHROUGH),
-                        )
+                    # held back (also if a gap is found just now): sent once it was judged
+                    if wait or not self._send(
+                        axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
+                        cs.encode_set_controller_mode(_MODES[mode], cs.InputMode.PASSTHROUGH),
+                        setpoint=True,
+                    ):
+                        axis.mode_due = wait = True
                     axis.mode = mode
                 if mode is ControlMode.POSITION:
                     data = cs.INPUT_POS.pack(c.value / axis.rad, 0, 0)
@@ -859,8 +859,8 @@ class ODriveDriver(CanMotorDriver):
                 else:
                     torque = c.value / axis.node.gear_ratio
                     axis.held = (axis.ids[cs.Cmd.SET_INPUT_TORQUE], cs.F32_PAD.pack(torque))
-                if not wait:
-                    self._send(*axis.held)
+                if not wait and not self._send(*axis.held, setpoint=True):
+                    wait = True  # a gap found just now: the rest waits too
 
     def read_state(self) -> JointStates:
         """The newest estimate of every joint (the receive thread's cache; no bus traffic).
@@ -981,7 +981,8 @@ class ODriveDriver(CanMotorDriver):
             for axis in self._axes:
                 if axis.held is not None:
                     try:
-                        self._send(*axis.held)
+                        if not self._send(*axis.held, setpoint=True):
+                            break  # a gap in the loop found just now: judged first
                     except DriverError as err:  # the link's state shows in the replies
                         logger.debug("driver %s: re-send failed: %s", self.name, err)
 
@@ -1042,17 +1043,22 @@ class ODriveDriver(CanMotorDriver):
             if not self._feeding:
                 return
             for axis in self._axes:
-                try:
-                    if axis.mode_due and axis.mode is not None:
-                        self._send(
+                try:  # a new gap (the process stopped while resuming): judged first
+                    if (
+                        axis.mode_due
+                        and axis.mode is not None
+                        and not self._send(
                             axis.ids[cs.Cmd.SET_CONTROLLER_MODE],
                             cs.encode_set_controller_mode(
                                 _MODES[axis.mode], cs.InputMode.PASSTHROUGH
                             ),
+                            setpoint=True,
                         )
+                    ):
+                        break
                     axis.mode_due = False
-                    if axis.held is not None:
-                        self._send(*axis.held)
+                    if axis.held is not None and not self._send(*axis.held, setpoint=True):
+                        break
                 except DriverError as err:
                     logger.debug("driver %s: re-send failed: %s", self.name, err)
             self._due_feed = self.clock.monotonic() + self.command_period

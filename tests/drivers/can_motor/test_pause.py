@@ -231,3 +231,110 @@ def test_mit_pause_longer_than_the_can_timeout_is_a_fault_and_sends_nothing_stal
     assert faults, "the expired CAN timeout was not reported"
     assert "can_timeout (0.2 s)" in faults[0]
     assert "motor 1 (left)" in faults[0]
+
+
+def test_mit_pause_seen_first_by_the_receiver_is_no_false_stale_fault(
+    clocks: tuple[ManualClock, ManualClock],
+) -> None:
+    # The other order of a SIGCONT: the receiver looks at the link (empty: the motors answer
+    # polls only, and none were sent during the pause) before the supervisor runs. The replies'
+    # age then says nothing about the motors (issue 25: a false "replies stale" in 3 of 4 runs).
+    rig, listener = mit_rig(*clocks, can_timeout=2.0)
+    driver = rig.driver
+    with rig.sim, listener:
+        try:
+            driver.configure()
+            driver.activate()
+            driver.command([JointCommand("left", ControlMode.VELOCITY, 2.99)])
+            rig.both(0.2)
+            rig.gated()
+            rig.pause(listener)
+            with driver._cond:  # the supervisor cannot go on while this is held
+                rig.dclock.advance(PAUSE)
+                rig.gate.set()
+                time.sleep(0.2)  # the receiver finds the link empty, after the pause
+            rig.both(0.5)
+            after = drain(listener)
+        finally:
+            driver.shutdown()
+    assert rig.faults() == []
+    assert driver.gaps >= 1
+    polls = set_points(after)
+    first_reply = next(i for i, m in enumerate(after) if m.arbitration_id == 0)
+    assert all(abs(v) < 0.05 for i, v in polls if i < first_reply)  # only damping polls
+    assert any(abs(v - 2.99) < 0.05 for _, v in polls), "the set-point never resumed"
+
+
+def test_odrive_set_point_decided_before_the_pause_waits_for_the_feedback_after_it(
+    odrive: tuple[Rig, can.BusABC],
+) -> None:
+    # The process stops while the application's thread has decided to send (it found no gap)
+    # and waits for the send lock; after SIGCONT its set-point must not go out before the
+    # devices' feedback was judged (issue 25: a stale command 8 ms after SIGCONT).
+    rig, listener = odrive
+    driver = rig.driver
+    driver.configure()
+    driver.activate()
+    driver.command([JointCommand("left", ControlMode.VELOCITY, 1.0)])
+    rig.both(0.2)
+    rig.gated()
+    with driver._send_lock:  # held by another sender when the process stopped
+        app = threading.Thread(
+            target=driver.command,
+            args=([JointCommand("left", ControlMode.VELOCITY, 2.0)],),
+            name="temoto-test-app",
+        )
+        app.start()
+        time.sleep(0.1)  # the application waits for the lock, its check made
+        rig.pause(listener)
+        rig.dclock.advance(PAUSE)  # SIGCONT
+    app.join(5)
+    time.sleep(0.1)
+    rig.gate.set()
+    rig.both(0.2)
+    after = drain(listener)
+    kinds = [cs.split_id(m.arbitration_id)[1] for m in after]
+    sent = [i for i, k in enumerate(kinds) if k in _SET_POINTS]
+    assert sent, f"the set-points never resumed: {driver.state}, faults {rig.faults()}"
+    assert cs.Cmd.HEARTBEAT in kinds[: sent[0]], "a set-point went out before any feedback"
+    assert rig.faults() == []
+    assert driver.state is DriverState.ACTIVE
+
+
+def test_mit_set_point_decided_before_the_pause_waits_for_the_replies_after_it(
+    clocks: tuple[ManualClock, ManualClock],
+) -> None:
+    # as above, for MIT motors: the held command goes out only after a reply to a damping poll
+    rig, listener = mit_rig(*clocks, can_timeout=2.0)
+    driver = rig.driver
+    with rig.sim, listener:
+        try:
+            driver.configure()
+            driver.activate()
+            driver.command([JointCommand("left", ControlMode.VELOCITY, 1.0)])
+            rig.both(0.2)
+            rig.gated()
+            with driver._send_lock:  # held by another sender when the process stopped
+                app = threading.Thread(
+                    target=driver.command,
+                    args=([JointCommand("left", ControlMode.VELOCITY, 2.99)],),
+                    name="temoto-test-app",
+                )
+                app.start()
+                time.sleep(0.1)  # the application waits for the lock, its check made
+                rig.pause(listener)
+                rig.dclock.advance(PAUSE)  # SIGCONT
+            app.join(5)
+            time.sleep(0.1)
+            rig.gate.set()
+            rig.both(0.5)
+            after = drain(listener)
+        finally:
+            driver.shutdown()
+    polls = set_points(after)
+    replies = [i for i, m in enumerate(after) if m.arbitration_id == 0]
+    moving = [i for i, v in polls if abs(v) > 0.05]
+    assert moving, f"the set-point never resumed: {driver.state}, faults {rig.faults()}"
+    assert replies, "no reply after the pause"
+    assert replies[0] < moving[0], "a command went out before a reply after the pause"
+    assert rig.faults() == []
