@@ -55,11 +55,21 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any, Final
 
-__all__ = ["FAMILIES", "PATHS", "main", "run_path"]
+__all__ = [
+    "CAN_LINK",
+    "FAMILIES",
+    "PATHS",
+    "SimHost",
+    "main",
+    "marked_pids",
+    "run_path",
+    "slurp",
+]
 
 PATHS: Final = ("end", "fault", "exception", "sigint", "sigterm", "double_sigint", "sigkill")
 
-_CAN_LINK: Final = {"interface": "udp_multicast", "channel": "239.74.163.9", "fd": False}
+#: The CAN link of the process tests: python-can's ``udp_multicast`` (inside ``unshare -n``).
+CAN_LINK: Final = {"interface": "udp_multicast", "channel": "239.74.163.9", "fd": False}
 
 #: What the two arm families share: a two-joint arm and its motion.
 _ARM: Final[Mapping[str, Any]] = {
@@ -81,7 +91,7 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
     "odrive": {
         "device": {
             "driver": "odrive_can",
-            "link": _CAN_LINK,
+            "link": CAN_LINK,
             "heartbeat_period": 0.05,
             "encoder_period": 0.01,
             "command_period": 0.05,
@@ -112,7 +122,7 @@ FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
     "mit": {
         "device": {
             "driver": "mit_can",
-            "link": _CAN_LINK,
+            "link": CAN_LINK,
             "poll_rate": 100,
             "can_timeout": 0.1,
             "motors": [
@@ -260,7 +270,7 @@ def _mission(family: Mapping[str, Any], path: str) -> dict[str, Any]:
     return graph
 
 
-class _SimHost:
+class SimHost:
     """The simulator's process and its state lines."""
 
     def __init__(self, entry: Mapping[str, Any], env: Mapping[str, str]) -> None:
@@ -344,7 +354,7 @@ def _holds(line: Mapping[str, Any], what: str) -> bool:
     return bool(line[what])
 
 
-def _marked(mark: str) -> list[int]:
+def marked_pids(mark: str) -> list[int]:
     """Pids of live processes whose environment holds ``mark``."""
     found = []
     needle = f"TEMOTO_EXITPATH_MARK={mark}".encode()
@@ -394,12 +404,12 @@ def run_path(
     env.pop("TEMOTO_FLEET_KEY", None)
     work = Path(tempfile.mkdtemp(prefix="temoto-exitpath-"))
     host_env = {k: v for k, v in env.items() if k != "TEMOTO_EXITPATH_MARK"}
-    host = _SimHost(device, host_env)
-    others: dict[str, _SimHost] = {}
+    host = SimHost(device, host_env)
+    others: dict[str, SimHost] = {}
     robot: subprocess.Popen[str] | None = None
     try:
         for other, other_entry in (silent or {}).items():
-            others[other] = _SimHost(other_entry, host_env)
+            others[other] = SimHost(other_entry, host_env)
         actions = work / "actions"
         actions.mkdir()
         for name, text in _ACTIONS.items():
@@ -435,8 +445,8 @@ def run_path(
         moving = threading.Event()
         marks = {"Stuck_0 RUNNING": stuck, f"{family['long'][0]}_0 RUNNING": moving}
         readers = [
-            threading.Thread(target=_slurp, args=(robot.stdout, out, "stdout", marks), daemon=True),
-            threading.Thread(target=_slurp, args=(robot.stderr, out, "stderr", {}), daemon=True),
+            threading.Thread(target=slurp, args=(robot.stdout, out, "stdout", marks), daemon=True),
+            threading.Thread(target=slurp, args=(robot.stderr, out, "stderr", {}), daemon=True),
         ]
         for reader in readers:
             reader.start()
@@ -471,7 +481,7 @@ def run_path(
         except TimeoutError:
             safe_line = None
         last = host.states[-1]
-        leftovers = _marked(mark) if rc is not None else []
+        leftovers = marked_pids(mark) if rc is not None else []
         stderr = out.get("stderr", "")
         return {
             "family": family_name,
@@ -499,7 +509,7 @@ def run_path(
         shutil.rmtree(work, ignore_errors=True)
 
 
-def _slurp(
+def slurp(
     stream: IO[str] | None, out: dict[str, str], key: str, marks: Mapping[str, threading.Event]
 ) -> None:
     """Read a stream to its end into ``out[key]``; set each event when its text is seen."""
@@ -516,7 +526,7 @@ def _slurp(
 def _take(
     path: str,
     robot: subprocess.Popen[str],
-    host: _SimHost,
+    host: SimHost,
     family: Mapping[str, Any],
     second: dict[str, float],
 ) -> float:

@@ -42,7 +42,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Final
 
-from temoto.testing.exitpaths import _CAN_LINK, _marked, _SimHost, _slurp
+from temoto.testing.exitpaths import CAN_LINK, SimHost, marked_pids, slurp
 
 __all__ = ["EXIT_TIMEOUT", "PAUSE_FAMILIES", "main", "run_pauses"]
 
@@ -68,7 +68,7 @@ PAUSE_FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
     "odrive": {
         "device": {
             "driver": "odrive_can",
-            "link": _CAN_LINK,
+            "link": CAN_LINK,
             "heartbeat_period": 0.1,  # no heartbeat within 0.3 s is a fault: the case
             # estimates stale after 0.15 s: a loaded machine can hold the simulator's process
             # back for tens of ms (a pause of the robot's is 0.5 s or more)
@@ -86,7 +86,7 @@ PAUSE_FAMILIES: Final[Mapping[str, Mapping[str, Any]]] = {
     "mit": {
         "device": {
             "driver": "mit_can",
-            "link": _CAN_LINK,
+            "link": CAN_LINK,
             "poll_rate": 100,
             "can_timeout": 1.0,
             "timeout_periods": 10,  # 0.1 s without replies (a loaded machine; a pause is 0.5 s)
@@ -178,7 +178,7 @@ def run_pauses(family_name: str, pause_s: float, pauses: int = 1) -> dict[str, A
     host_env = {k: v for k, v in env.items() if k != "TEMOTO_EXITPATH_MARK"}
     work = Path(tempfile.mkdtemp(prefix="temoto-pausepath-"))
     listener = _Listener(family["device"]["link"])
-    host = _SimHost(family["device"], host_env)
+    host = SimHost(family["device"], host_env)
     robot: subprocess.Popen[str] | None = None
     try:
         profile = {
@@ -198,11 +198,11 @@ def run_pauses(family_name: str, pause_s: float, pauses: int = 1) -> dict[str, A
         moving = threading.Event()
         readers = [
             threading.Thread(
-                target=_slurp,
+                target=slurp,
                 args=(robot.stdout, out, "stdout", {"NavigateTo_0 RUNNING": moving}),
                 daemon=True,
             ),
-            threading.Thread(target=_slurp, args=(robot.stderr, out, "stderr", {}), daemon=True),
+            threading.Thread(target=slurp, args=(robot.stderr, out, "stderr", {}), daemon=True),
         ]
         for reader in readers:
             reader.start()
@@ -252,7 +252,7 @@ def run_pauses(family_name: str, pause_s: float, pauses: int = 1) -> dict[str, A
             "states": list(host.states),
             "stdout": out.get("stdout", ""),
             "stderr": out.get("stderr", ""),
-            "leftovers": _marked(mark) if rc is not None else [],
+            "leftovers": marked_pids(mark) if rc is not None else [],
         }
     finally:
         if robot is not None and robot.poll() is None:

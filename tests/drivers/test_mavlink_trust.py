@@ -280,10 +280,10 @@ d.shutdown()
 
 def test_a_paused_driver_process_reads_its_backlog_without_a_false_fault() -> None:
     """SIGSTOP of the driver's process for longer than heartbeat_timeout; the wire had no gap."""
-    from temoto.testing.exitpaths import _SimHost
+    from temoto.testing.exitpaths import SimHost
 
     entry = {"driver": "mavlink", "link": "udpin:0.0.0.0:14550", "heartbeat_timeout": 2.0}
-    host = _SimHost(entry, dict(os.environ))
+    host = SimHost(entry, dict(os.environ))
     try:
         config = {k: v for k, v in host.config.items() if k != "driver"}
         child = subprocess.Popen(

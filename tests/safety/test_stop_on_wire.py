@@ -24,10 +24,10 @@ from temoto.actions.builtin import ROBOT_ACTIONS
 from temoto.config import parse_profile
 from temoto.core.registrar import Registrar
 from temoto.managers.robot import RobotManager, RobotManagerClient
-from temoto.testing.exitpaths import _SimHost
+from temoto.testing.exitpaths import SimHost
 
 
-def _close(host: _SimHost) -> None:
+def _close(host: SimHost) -> None:
     host.close()  # the host ends at the end of its input
     host._reader.join(5)
     for pipe in (host.proc.stdout, host.proc.stderr):
@@ -67,7 +67,7 @@ def _moving(line: dict[str, Any]) -> bool:
 
 def test_a_stopped_move_is_held_on_the_wire_before_the_graph_is_stopped() -> None:
     doc = yaml.safe_load((ROOT / "hw_profiles" / "sim_arm.yaml").read_text())
-    host = _SimHost(doc["devices"]["arm"], {})
+    host = SimHost(doc["devices"]["arm"], {})
     registrar = Registrar("test-stop-wire")
     try:
         doc["sim"] = False
@@ -118,7 +118,7 @@ def test_a_failsafe_rtl_after_a_link_outage_ends_the_flight_with_the_reason() ->
     # outage below is of the uplink only (the vehicle's telemetry still reaches us), so the
     # driver sees no fault of the link: only the vehicle's own switch to RTL can end the flight
     entry.update(gcs_failsafe={"enable": 1, "timeout": 2}, heartbeat_timeout=2.0)
-    host = _SimHost(entry, {})
+    host = SimHost(entry, {})
     registrar = Registrar("test-failsafe-wire")
     try:
         doc["sim"] = False
