@@ -9,6 +9,7 @@ schedules the supervisor first. A listener on the bus records the wire.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import threading
 import time
@@ -45,6 +46,34 @@ class Rig:
         self.gate.set()
         self.health: list[Health] = []
         driver.add_health_listener(self.health.append)
+
+    def start(self, velocity: float) -> None:
+        """Activate, command `velocity` on the left joint, run 0.2 s, then gate the receiver."""
+        self.driver.configure()
+        self.driver.activate()
+        self.driver.command([JointCommand("left", ControlMode.VELOCITY, velocity)])
+        self.both(0.2)
+        self.gated()
+
+    def pause_with_a_command_held(self, listener: can.BusABC, velocity: float) -> None:
+        """The process stops while the application waits for the send lock, its check made.
+
+        The application's command (`velocity` on the left joint) was decided before the pause
+        and goes on after SIGCONT; the receiver is let go last.
+        """
+        with self.driver._send_lock:  # held by another sender when the process stopped
+            app = threading.Thread(
+                target=self.driver.command,
+                args=([JointCommand("left", ControlMode.VELOCITY, velocity)],),
+                name="temoto-test-app",
+            )
+            app.start()
+            time.sleep(0.1)  # the application waits for the lock, its check made
+            self.pause(listener)
+            self.dclock.advance(PAUSE)  # SIGCONT
+        app.join(5)
+        time.sleep(0.1)
+        self.gate.set()
 
     def gated(self) -> None:
         bus = self.driver._bus
@@ -114,9 +143,9 @@ def odrive_rig(dclock: ManualClock, sclock: ManualClock) -> tuple[Rig, can.BusAB
     return Rig(driver, sim, ch, dclock, sclock), can.Bus(interface="virtual", channel=ch)
 
 
-@pytest.fixture
-def odrive(clocks: tuple[ManualClock, ManualClock]) -> Iterator[tuple[Rig, can.BusABC]]:
-    rig, listener = odrive_rig(*clocks)
+@contextlib.contextmanager
+def running(rig: Rig, listener: can.BusABC) -> Iterator[tuple[Rig, can.BusABC]]:
+    """The simulator and the listener open, the driver shut down at the end."""
     with rig.sim, listener:
         try:
             yield rig, listener
@@ -124,16 +153,18 @@ def odrive(clocks: tuple[ManualClock, ManualClock]) -> Iterator[tuple[Rig, can.B
             rig.driver.shutdown()
 
 
+@pytest.fixture
+def odrive(clocks: tuple[ManualClock, ManualClock]) -> Iterator[tuple[Rig, can.BusABC]]:
+    with running(*odrive_rig(*clocks)) as rig_listener:
+        yield rig_listener
+
+
 def test_odrive_pause_with_heartbeats_flowing_sends_nothing_stale_and_no_fault(
     odrive: tuple[Rig, can.BusABC],
 ) -> None:
     rig, listener = odrive
     driver = rig.driver
-    driver.configure()
-    driver.activate()
-    driver.command([JointCommand("left", ControlMode.VELOCITY, 1.0)])
-    rig.both(0.2)
-    rig.gated()
+    rig.start(1.0)
     during = rig.pause(listener)
     beats = [m for m in during if cs.split_id(m.arbitration_id)[1] == cs.Cmd.HEARTBEAT]
     assert len(beats) >= 8  # the heartbeats never stopped on the wire
@@ -185,20 +216,12 @@ def test_mit_pause_shorter_than_the_can_timeout_resumes_after_fresh_replies(
     clocks: tuple[ManualClock, ManualClock], can_timeout: float
 ) -> None:
     rig, listener = mit_rig(*clocks, can_timeout=can_timeout)
-    driver = rig.driver
-    with rig.sim, listener:
-        try:
-            driver.configure()
-            driver.activate()
-            driver.command([JointCommand("left", ControlMode.VELOCITY, 2.99)])
-            rig.both(0.2)
-            rig.gated()
-            rig.pause(listener)
-            rig.resume()
-            rig.both(0.5)
-            after = drain(listener)
-        finally:
-            driver.shutdown()
+    with running(rig, listener):
+        rig.start(2.99)
+        rig.pause(listener)
+        rig.resume()
+        rig.both(0.5)
+        after = drain(listener)
     polls = set_points(after)
     first_reply = next(i for i, m in enumerate(after) if m.arbitration_id == 0)
     stale = [i for i, v in polls if abs(v - 2.99) < 0.05]
@@ -212,20 +235,12 @@ def test_mit_pause_longer_than_the_can_timeout_is_a_fault_and_sends_nothing_stal
     clocks: tuple[ManualClock, ManualClock],
 ) -> None:
     rig, listener = mit_rig(*clocks, can_timeout=0.2)
-    driver = rig.driver
-    with rig.sim, listener:
-        try:
-            driver.configure()
-            driver.activate()
-            driver.command([JointCommand("left", ControlMode.VELOCITY, 2.99)])
-            rig.both(0.2)
-            rig.gated()
-            rig.pause(listener)
-            rig.resume()
-            rig.both(0.3)
-            after = drain(listener)
-        finally:
-            driver.shutdown()
+    with running(rig, listener):
+        rig.start(2.99)
+        rig.pause(listener)
+        rig.resume()
+        rig.both(0.3)
+        after = drain(listener)
     assert [v for _, v in set_points(after) if abs(v - 2.99) < 0.05] == []
     faults = rig.faults()
     assert faults, "the expired CAN timeout was not reported"
@@ -241,22 +256,15 @@ def test_mit_pause_seen_first_by_the_receiver_is_no_false_stale_fault(
     # age then says nothing about the motors (issue 25: a false "replies stale" in 3 of 4 runs).
     rig, listener = mit_rig(*clocks, can_timeout=2.0)
     driver = rig.driver
-    with rig.sim, listener:
-        try:
-            driver.configure()
-            driver.activate()
-            driver.command([JointCommand("left", ControlMode.VELOCITY, 2.99)])
-            rig.both(0.2)
-            rig.gated()
-            rig.pause(listener)
-            with driver._cond:  # the supervisor cannot go on while this is held
-                rig.dclock.advance(PAUSE)
-                rig.gate.set()
-                time.sleep(0.2)  # the receiver finds the link empty, after the pause
-            rig.both(0.5)
-            after = drain(listener)
-        finally:
-            driver.shutdown()
+    with running(rig, listener):
+        rig.start(2.99)
+        rig.pause(listener)
+        with driver._cond:  # the supervisor cannot go on while this is held
+            rig.dclock.advance(PAUSE)
+            rig.gate.set()
+            time.sleep(0.2)  # the receiver finds the link empty, after the pause
+        rig.both(0.5)
+        after = drain(listener)
     assert rig.faults() == []
     assert driver.gaps >= 1
     polls = set_points(after)
@@ -273,24 +281,8 @@ def test_odrive_set_point_decided_before_the_pause_waits_for_the_feedback_after_
     # devices' feedback was judged (issue 25: a stale command 8 ms after SIGCONT).
     rig, listener = odrive
     driver = rig.driver
-    driver.configure()
-    driver.activate()
-    driver.command([JointCommand("left", ControlMode.VELOCITY, 1.0)])
-    rig.both(0.2)
-    rig.gated()
-    with driver._send_lock:  # held by another sender when the process stopped
-        app = threading.Thread(
-            target=driver.command,
-            args=([JointCommand("left", ControlMode.VELOCITY, 2.0)],),
-            name="temoto-test-app",
-        )
-        app.start()
-        time.sleep(0.1)  # the application waits for the lock, its check made
-        rig.pause(listener)
-        rig.dclock.advance(PAUSE)  # SIGCONT
-    app.join(5)
-    time.sleep(0.1)
-    rig.gate.set()
+    rig.start(1.0)
+    rig.pause_with_a_command_held(listener, 2.0)
     rig.both(0.2)
     after = drain(listener)
     kinds = [cs.split_id(m.arbitration_id)[1] for m in after]
@@ -307,30 +299,11 @@ def test_mit_set_point_decided_before_the_pause_waits_for_the_replies_after_it(
     # as above, for MIT motors: the held command goes out only after a reply to a damping poll
     rig, listener = mit_rig(*clocks, can_timeout=2.0)
     driver = rig.driver
-    with rig.sim, listener:
-        try:
-            driver.configure()
-            driver.activate()
-            driver.command([JointCommand("left", ControlMode.VELOCITY, 1.0)])
-            rig.both(0.2)
-            rig.gated()
-            with driver._send_lock:  # held by another sender when the process stopped
-                app = threading.Thread(
-                    target=driver.command,
-                    args=([JointCommand("left", ControlMode.VELOCITY, 2.99)],),
-                    name="temoto-test-app",
-                )
-                app.start()
-                time.sleep(0.1)  # the application waits for the lock, its check made
-                rig.pause(listener)
-                rig.dclock.advance(PAUSE)  # SIGCONT
-            app.join(5)
-            time.sleep(0.1)
-            rig.gate.set()
-            rig.both(0.5)
-            after = drain(listener)
-        finally:
-            driver.shutdown()
+    with running(rig, listener):
+        rig.start(1.0)
+        rig.pause_with_a_command_held(listener, 2.99)
+        rig.both(0.5)
+        after = drain(listener)
     polls = set_points(after)
     replies = [i for i, m in enumerate(after) if m.arbitration_id == 0]
     moving = [i for i, v in polls if abs(v) > 0.05]
