@@ -29,6 +29,11 @@ Devices and robots:
 * :class:`temoto.testing.robots.FakeRobot` is a robot handle's read side (pose, joints, vehicle,
   health) for tests of code that samples a robot.
 
+Fleets:
+
+* :func:`temoto.testing.fleet.settle` hands the hellos of in-process
+  :class:`~temoto.transport.auth.FleetAuth` members to one another until they are settled.
+
 Actions:
 
 * :class:`Script` (:mod:`temoto.testing.scripted`) makes scripted actions: per node, what each

@@ -23,6 +23,7 @@ from temoto.fleet.control import COMMAND_CHANNEL, GraphCommander
 from temoto.instance import Instance
 from temoto.lcm_types import envelope_t
 from temoto.managers.process import ProcessRequest
+from temoto.testing.fleet import settle
 from temoto.transport._secure import HOLD_S
 from temoto.transport.auth import HELLO_CHANNEL, FleetAuth
 from temoto.transport.identity import Credentials, Identity, Policy, Roster
@@ -158,13 +159,13 @@ def test_replays_to_a_restarted_receiver_are_refused_whatever_the_clocks(
 
     sender = FleetAuth("temoto", "operator", KEY, clock=sender_clock)
     receiver = FleetAuth("temoto", "A", KEY, clock=receiver_clock)
-    _exchange(sender, receiver)
+    settle(sender, receiver)
     captured = sender.seal(COMMAND_CHANNEL, "graph_command_t", b"start")
     assert receiver.open(COMMAND_CHANNEL, captured) is not None
     now[0] += later_s  # inside or past a clock window of 30 s: no matter
     restarted = FleetAuth("temoto", "A", KEY, clock=receiver_clock)
     assert restarted.open(COMMAND_CHANNEL, captured) is None  # no session granted yet
-    _exchange(sender, restarted)
+    settle(sender, restarted)
     assert restarted.open(COMMAND_CHANNEL, captured) is None  # at or below the floor
     assert restarted.stats["accepted"] == 0
     assert restarted.stats["replayed"] == 1
@@ -181,27 +182,13 @@ def test_replays_to_a_restarted_receiver_are_refused_whatever_the_clocks(
 def test_a_restarted_sender_s_old_messages_never_open_again(bus: Bus) -> None:
     receiver = FleetAuth("temoto", "A", KEY)
     old = FleetAuth("temoto", "operator", KEY)
-    _exchange(old, receiver)
+    settle(old, receiver)
     captured = old.seal(COMMAND_CHANNEL, "graph_command_t", b"start")
     assert receiver.open(COMMAND_CHANNEL, captured) is not None
     new = FleetAuth("temoto", "operator", KEY)  # the same member after a restart
-    _exchange(new, receiver)
+    settle(new, receiver)
     assert receiver.open(COMMAND_CHANNEL, captured) is None
     assert receiver.stats["replayed"] == 1
-
-
-def _exchange(*members: FleetAuth) -> None:
-    for _ in range(20):
-        moved = False
-        for member in members:
-            for channel, data in member.take_outgoing():
-                moved = True
-                for other in members:
-                    if other is not member:
-                        other.open(channel, data)
-        if not moved:
-            return
-    raise AssertionError("the hellos never settled")
 
 
 # --- a key per member ---------------------------------------------------------------------------

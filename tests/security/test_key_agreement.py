@@ -8,6 +8,7 @@ from __future__ import annotations
 
 from typing import Any
 
+from temoto.testing.fleet import settle
 from temoto.transport.auth import HELLO_CHANNEL, FleetAuth
 from temoto.transport.inprocess import InProcessTransport
 from temoto.transport.link import HELLO_QUEUE, FleetLink
@@ -41,24 +42,6 @@ def one_hello(auth: FleetAuth) -> bytes:
     return out[0]
 
 
-def settle(clock: Clock, *members: FleetAuth) -> None:
-    """Hand everything each member publishes to every other one until nothing is left."""
-    for _ in range(100):
-        moved = False
-        for m in members:
-            due = m.hello_due_in()
-            if due:
-                clock.t += due + 1e-6
-            for channel, data in m.take_outgoing():
-                moved = True
-                for other in members:
-                    if other is not m:
-                        other.open(channel, data)
-        if not moved:
-            return
-    raise AssertionError("the hellos never settled")
-
-
 def test_a_grant_asked_for_while_ours_is_on_its_way_is_not_sent_again() -> None:
     clock = Clock()
     a, b = member("a", clock), member("b", clock)
@@ -76,7 +59,7 @@ def test_a_grant_asked_for_while_ours_is_on_its_way_is_not_sent_again() -> None:
     b.open(HELLO_CHANNEL, ha1)  # a still asks (the first grant was lost): b answers now
     assert len(hellos(b)) == 1
     a.open(HELLO_CHANNEL, hb1)
-    settle(clock, a, b)
+    settle(a, b, clock=clock, rounds=100)
     assert a.open(CHANNEL, b.seal(CHANNEL, "t", b"y")) is not None
 
 
@@ -110,7 +93,7 @@ def test_a_large_fleet_answers_members_that_start_together_in_few_hellos() -> No
     for hello in sent:
         for other in others:
             other.open(HELLO_CHANNEL, hello)
-    settle(clock, x, *others)
+    settle(x, *others, clock=clock, rounds=100)
     data = x.seal(CHANNEL, "t", b"x")
     assert all(o.open(CHANNEL, data) is not None for o in others)
 

@@ -13,6 +13,7 @@ from collections.abc import Callable
 import pytest
 
 from temoto.lcm_types import envelope_t
+from temoto.testing.fleet import settle
 from temoto.transport import DROP_REASONS, FleetAuth
 from temoto.transport._drops import _MAX_FIRST_LINES, DROP_SUMMARY_S
 
@@ -288,20 +289,6 @@ def test_the_summary_of_the_last_drops_can_be_logged_at_the_end(
     )
 
 
-def _exchange(*members: FleetAuth) -> None:
-    for _ in range(20):
-        moved = False
-        for m in members:
-            for channel, data in m.take_outgoing():
-                moved = True
-                for other in members:
-                    if other is not m:
-                        other.open(channel, data)
-        if not moved:
-            return
-    raise AssertionError("the hellos never settled")
-
-
 def test_a_replay_to_a_restarted_member_is_a_warning_once_per_member(
     clock: FakeClock, caplog: pytest.LogCaptureFixture
 ) -> None:
@@ -311,7 +298,7 @@ def test_a_replay_to_a_restarted_member_is_a_warning_once_per_member(
     # says so at WARNING, once per member.
     operator = FleetAuth("fleet", "operator", KEY, clock=clock)
     a = FleetAuth("fleet", "A", KEY, clock=clock)
-    _exchange(operator, a)
+    settle(operator, a)
     captured = operator.seal(CHANNEL, "graph_command_t", b"start")
     assert a.open(CHANNEL, captured) is not None
     with caplog.at_level(logging.WARNING, logger="temoto.transport"):
@@ -319,7 +306,7 @@ def test_a_replay_to_a_restarted_member_is_a_warning_once_per_member(
             clock.t += 1.0
             a = FleetAuth("fleet", "A", KEY, clock=clock)
             assert a.open(CHANNEL, captured) is None  # no_session: quiet at A
-            _exchange(operator, a)  # A asks operator for it: never sent again
+            settle(operator, a)  # A asks operator for it: never sent again
             assert a.stats["accepted"] == 0
     lines = [line for line in warnings(caplog) if "restarted" in line]
     assert len(lines) == 1, warnings(caplog)

@@ -8,14 +8,16 @@ driven by hand here: which message reaches whom, and when, is the test's choice.
 
 from __future__ import annotations
 
+import contextlib
 import threading
 import time
 from collections import deque
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from pathlib import Path
 
 import pytest
 
+from temoto.testing.fleet import settle
 from temoto.transport import FleetAuth, FleetLink
 from temoto.transport._secure import BACKLOG_S, HOLD_S
 from temoto.transport.auth import HELLO_CHANNEL
@@ -224,15 +226,23 @@ class HandBus(Transport):
                     self._deliver(sub, channel, data)
 
 
-def test_a_fleet_links_handler_sees_a_new_members_burst_in_order() -> None:
-    """Over a FleetLink: bob joins and sends N numbered messages, the first third before alice
-    holds his grant; alice's handler gets them in order, whatever reaches her when."""
+@contextlib.contextmanager
+def alice_and_bob() -> Iterator[tuple[HandBus, HandBus, FleetLink, FleetLink, list[bytes]]]:
+    """alice's and bob's FleetLinks on hand-pumped buses; alice's handler on CHANNEL keeps the
+    payloads in the list yielded last."""
     members: list[HandBus] = []
     with HandBus(members) as a_bus, HandBus(members) as b_bus:
         alice = FleetLink(a_bus, FleetAuth("fleet", "alice", KEY))
         got: list[bytes] = []
         alice.listen(CHANNEL, lambda opened: got.append(opened.payload))
         bob = FleetLink(b_bus, FleetAuth("fleet", "bob", KEY))
+        yield a_bus, b_bus, alice, bob, got
+
+
+def test_a_fleet_links_handler_sees_a_new_members_burst_in_order() -> None:
+    """Over a FleetLink: bob joins and sends N numbered messages, the first third before alice
+    holds his grant; alice's handler gets them in order, whatever reaches her when."""
+    with alice_and_bob() as (a_bus, b_bus, alice, bob, got):
         k = N // 3
         for i in range(1, k + 1):  # before anyone heard anyone
             bob.send(CHANNEL, "t", numbered(i))
@@ -252,12 +262,7 @@ def test_a_fleet_links_handler_sees_a_new_members_burst_in_order() -> None:
 def test_a_link_lets_go_of_what_waits_for_lost_copies_when_nothing_else_comes() -> None:
     """The copies are lost and bob says nothing more: alice's link ends the hold itself, HOLD_S
     (1 s) later (its hello's echo comes back on the receive thread, where handlers run)."""
-    members: list[HandBus] = []
-    with HandBus(members) as a_bus, HandBus(members) as b_bus:
-        alice = FleetLink(a_bus, FleetAuth("fleet", "alice", KEY))
-        got: list[bytes] = []
-        alice.listen(CHANNEL, lambda opened: got.append(opened.payload))
-        bob = FleetLink(b_bus, FleetAuth("fleet", "bob", KEY))
+    with alice_and_bob() as (a_bus, b_bus, _alice, bob, got):
         bob.send(CHANNEL, "t", numbered(1))
         a_bus.pump()
         b_bus.pump()
@@ -295,18 +300,3 @@ def test_a_replay_long_after_the_key_exchange_holds_nothing_back(clock: FakeCloc
     assert opened is not None
     assert opened.payload == b"fresh"
     assert restarted.hold_due_in() is None
-
-
-def settle(*members: FleetAuth) -> None:
-    """Hand every hello to every other member until none is left."""
-    for _ in range(20):
-        moved = False
-        for member in members:
-            for channel, data in member.take_outgoing():
-                moved = True
-                for other in members:
-                    if other is not member:
-                        other.open(channel, data)
-        if not moved:
-            return
-    raise AssertionError("the hellos never settled")
