@@ -318,11 +318,49 @@ def read_sim_realism(reader: ProfileReader, sim: object) -> tuple[str, int | Non
     return str(level), seed
 
 
+# ---- late frames: what the CAN and the serial timing share ------------------------------------
+
+
+@dataclass(frozen=True)
+class _LateTiming:
+    """A half-normal jitter on every frame and, now and then, a late one (one level's figures).
+
+    What :class:`CanTiming` and :class:`SerialReplyTiming` share; their docstrings say what the
+    figures mean on their wire.
+    """
+
+    name: str
+    jitter: float = 0.0
+    late: float = 0.0
+    late_delay: tuple[float, float] = (0.0, 0.0)
+
+    @property
+    def enabled(self) -> bool:
+        """Whether anything ever comes later than scheduled."""
+        return bool(self.jitter or self.late)
+
+    def draw(self, rng: random.Random, *, may_be_late: bool = True) -> tuple[float, float | None]:
+        """One frame's extra delay, drawn from ``rng``.
+
+        Args:
+            rng: The generator (one gauss draw when there is a jitter; then, when it may be
+                late and there is a ``late`` share, one draw to decide, one for the delay).
+            may_be_late: Whether this one can be late at all (no draw for it when not).
+
+        Returns:
+            The jitter, s (0 without one), and the late delay, s, or None when it is not late.
+        """
+        jitter = abs(rng.gauss(0.0, self.jitter)) if self.jitter > 0.0 else 0.0
+        if may_be_late and self.late > 0.0 and rng.random() < self.late:
+            return jitter, rng.uniform(*self.late_delay)
+        return jitter, None
+
+
 # ---- CAN: a node's transmit timing (jitter and late frames) -----------------------------------
 
 
 @dataclass(frozen=True)
-class CanTiming:
+class CanTiming(_LateTiming):
     """When a CAN node's frames leave at one level (``docs/simulators.md``, "Realism").
 
     A frame is ready at its scheduled time (a cyclic message's period, a reply's request) and
@@ -337,16 +375,6 @@ class CanTiming:
         late: Share of the frames that stall the node's transmitter.
         late_delay: The stall's duration, s: uniform between these two.
     """
-
-    name: str
-    jitter: float = 0.0
-    late: float = 0.0
-    late_delay: tuple[float, float] = (0.0, 0.0)
-
-    @property
-    def enabled(self) -> bool:
-        """Whether frames ever leave later than scheduled."""
-        return bool(self.jitter or self.late)
 
 
 #: The CAN timing of each level by name; a level of another name has none. Figures and reasons:
@@ -404,10 +432,10 @@ class CanTransmitter:
         timing = self.timing
         if not timing.enabled:
             return ready
-        rng = self._reply if reply else self._stream
-        at = ready + abs(rng.gauss(0.0, timing.jitter)) if timing.jitter > 0.0 else ready
-        if timing.late > 0.0 and rng.random() < timing.late:
-            at += rng.uniform(*timing.late_delay)
+        jitter, stall = timing.draw(self._reply if reply else self._stream)
+        at = ready + jitter
+        if stall is not None:
+            at += stall
             self.stalls += 1
         at = max(at, self._free.get(node, -math.inf))
         self._free[node] = at
@@ -426,7 +454,7 @@ class CanTransmitter:
 
 
 @dataclass(frozen=True)
-class SerialReplyTiming:
+class SerialReplyTiming(_LateTiming):
     """How late a serial line's status packets come, at one level.
 
     Args:
@@ -437,16 +465,6 @@ class SerialReplyTiming:
             16 ms default, a busy USB host).
         late_delay: How late, s: uniform between these two.
     """
-
-    name: str
-    jitter: float = 0.0
-    late: float = 0.0
-    late_delay: tuple[float, float] = (0.0, 0.0)
-
-    @property
-    def enabled(self) -> bool:
-        """Whether any status packet comes late."""
-        return bool(self.jitter or self.late)
 
 
 #: The serial lines' reply timing by level name. ``typical`` stays within dynamixel-sdk's
@@ -505,10 +523,9 @@ class SerialReplyDelay:
         Returns:
             Seconds (0 at ``off``).
         """
-        t = self.timing
-        extra = abs(self._rng.gauss(0.0, t.jitter)) if t.jitter > 0.0 else 0.0
-        if poll and t.late > 0.0 and self._rng.random() < t.late:
-            extra += self._rng.uniform(*t.late_delay)
+        extra, late = self.timing.draw(self._rng, may_be_late=poll)
+        if late is not None:
+            extra += late
             self.late += 1
             self.longest = max(self.longest, extra)
         return extra
