@@ -40,6 +40,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib.util
 import json
 import os
 import queue
@@ -60,10 +61,12 @@ __all__ = [
     "FAMILIES",
     "PATHS",
     "SimHost",
+    "in_netns",
     "main",
     "marked_pids",
     "run_path",
     "slurp",
+    "why_not_netns",
 ]
 
 PATHS: Final = ("end", "fault", "exception", "sigint", "sigterm", "double_sigint", "sigkill")
@@ -557,12 +560,36 @@ def _take(
     return t
 
 
-def _in_netns(argv: Sequence[str]) -> int:
-    """Re-run this command in a private network namespace with multicast on loopback."""
+def why_not_netns() -> str:
+    """Why the CAN process tests cannot run here, or ``""`` when they can.
+
+    Returns:
+        The missing requirement in a few words (root for ``unshare -n``, the ``unshare`` and
+        ``ip`` commands, ``msgpack`` for python-can's ``udp_multicast``), or ``""``.
+    """
+    if os.geteuid() != 0:
+        return "needs root for unshare -n"
+    if not (shutil.which("unshare") and shutil.which("ip")):
+        return "needs unshare and ip (iproute2)"
+    if importlib.util.find_spec("msgpack") is None:
+        return "python-can's udp_multicast interface needs msgpack"
+    return ""
+
+
+def in_netns(argv: Sequence[str], **run: Any) -> subprocess.CompletedProcess[Any]:
+    """Run ``argv`` in a private network namespace with multicast routed on loopback.
+
+    Args:
+        argv: The command (its first word the program).
+        **run: More keywords for :func:`subprocess.run` (``capture_output``, ``timeout``, ...).
+
+    Returns:
+        The finished process (its return code is not checked).
+    """
     script = "ip link set lo up && ip route add 224.0.0.0/4 dev lo && exec " + " ".join(
-        f"'{a}'" for a in [sys.executable, "-m", "temoto.testing.exitpaths", *argv]
+        f"'{a}'" for a in argv
     )
-    return subprocess.run(["unshare", "-n", "sh", "-c", script], check=False).returncode
+    return subprocess.run(["unshare", "-n", "sh", "-c", script], check=False, **run)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -587,7 +614,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.netns:
         rest = [args.family, args.path] + (["--entry", args.entry] if args.entry else [])
         rest += ["--silent", args.silent] if args.silent else []
-        return _in_netns(rest)
+        return in_netns([sys.executable, "-m", "temoto.testing.exitpaths", *rest]).returncode
     entry = json.loads(args.entry) if args.entry else None
     silent = json.loads(args.silent) if args.silent else None
     result = run_path(args.family, args.path, entry=entry, silent=silent)

@@ -42,7 +42,7 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, Final
 
-from temoto.testing.exitpaths import CAN_LINK, SimHost, marked_pids, slurp
+from temoto.testing.exitpaths import CAN_LINK, SimHost, in_netns, marked_pids, slurp
 
 __all__ = ["EXIT_TIMEOUT", "PAUSE_FAMILIES", "main", "run_pauses"]
 
@@ -282,10 +282,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.netns:
         inner = [sys.executable, "-m", "temoto.testing.pausepath", args.family, str(args.seconds)]
         inner += ["--pauses", str(args.pauses)]
-        script = "ip link set lo up && ip route add 224.0.0.0/4 dev lo && exec " + " ".join(
-            f"'{a}'" for a in inner
-        )
-        return subprocess.run(["unshare", "-n", "sh", "-c", script], check=False).returncode
+        return in_netns(inner).returncode
     result = run_pauses(args.family, args.seconds, args.pauses)
     sys.stdout.write(json.dumps(result) + "\n")
     return 0

@@ -11,17 +11,14 @@ command is left behind, and no traceback is printed.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import os
-import shutil
 import subprocess
 import sys
 from typing import Any
 
 import pytest
 
-from temoto.testing.exitpaths import FAMILIES
+from temoto.testing.exitpaths import FAMILIES, why_not_netns
 
 pytestmark = pytest.mark.slow
 
@@ -31,14 +28,7 @@ SIGNAL_BOUND_MS = 200.0
 RC = {"end": 0, "fault": 1, "exception": 1, "sigint": 130, "sigterm": 143, "double_sigint": 130}
 
 
-def _why_not() -> str:
-    if os.geteuid() != 0:
-        return "needs root for unshare -n"
-    if not (shutil.which("unshare") and shutil.which("ip")):
-        return "needs unshare and ip (iproute2)"
-    if importlib.util.find_spec("msgpack") is None:
-        return "python-can's udp_multicast interface needs msgpack"
-    return ""
+needs_netns = pytest.mark.skipif(bool(why_not_netns()), reason=why_not_netns() or "ok")
 
 
 def run(
@@ -68,7 +58,7 @@ def _story(result: dict[str, Any]) -> str:
     )
 
 
-@pytest.mark.skipif(bool(_why_not()), reason=_why_not() or "ok")
+@needs_netns
 @pytest.mark.parametrize("path", list(RC))
 @pytest.mark.parametrize("family", list(FAMILIES))
 def test_every_exit_path_leaves_the_device_safe(family: str, path: str) -> None:
@@ -93,7 +83,7 @@ def test_every_exit_path_leaves_the_device_safe(family: str, path: str) -> None:
 WATCHDOG_SLACK_S = 0.03
 
 
-@pytest.mark.skipif(bool(_why_not()), reason=_why_not() or "ok")
+@needs_netns
 @pytest.mark.parametrize("family", list(FAMILIES))
 def test_after_a_sigkill_the_devices_watchdog_makes_it_safe(family: str) -> None:
     # nothing of the robot command runs: only the watchdog the driver kept fed can help
@@ -115,7 +105,7 @@ def _six_servo_arm() -> dict[str, Any]:
     return entry
 
 
-@pytest.mark.skipif(bool(_why_not()), reason=_why_not() or "ok")
+@needs_netns
 def test_sigterm_makes_every_device_safe_at_once_with_two_links_silent() -> None:
     # the rover's ODrive acts; the arm's and the quad's links are cut just before SIGTERM:
     # their safe states wait for replies that never come, which must not delay the base

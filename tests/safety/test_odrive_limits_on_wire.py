@@ -14,10 +14,7 @@ runs inside the namespace; the test starts it there.
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import os
-import shutil
 import subprocess
 import sys
 import threading
@@ -27,22 +24,14 @@ from typing import Any
 
 import pytest
 
+from temoto.testing.exitpaths import in_netns, why_not_netns
+
 pytestmark = pytest.mark.slow
 
 CHANNEL = "239.74.163.10"
 LINK = {"interface": "udp_multicast", "channel": CHANNEL, "fd": False}
 #: Commands a host sends that write to or move an axis.
 WRITES = {0x02, 0x07, 0x0B, 0x0C, 0x0D, 0x0E, 0x0F, 0x11, 0x12, 0x16, 0x18}
-
-
-def _why_not() -> str:
-    if os.geteuid() != 0:
-        return "needs root for unshare -n"
-    if not (shutil.which("unshare") and shutil.which("ip")):
-        return "needs unshare and ip (iproute2)"
-    if importlib.util.find_spec("msgpack") is None:
-        return "python-can's udp_multicast interface needs msgpack"
-    return ""
 
 
 def _inside(folder: Path) -> None:
@@ -124,17 +113,14 @@ def _inside(folder: Path) -> None:
 
 
 def test_the_robot_exits_2_with_one_line_before_writing_anything(tmp_path: Path) -> None:
-    why = _why_not()
+    why = why_not_netns()
     if why:
         pytest.skip(why)
     import cantools
     import odrive_can
 
-    script = "ip link set lo up && ip route add 224.0.0.0/4 dev lo && exec " + " ".join(
-        f"'{a}'" for a in [sys.executable, __file__, str(tmp_path)]
-    )
-    proc = subprocess.run(
-        ["unshare", "-n", "sh", "-c", script], capture_output=True, text=True, timeout=120
+    proc = in_netns(
+        [sys.executable, __file__, str(tmp_path)], capture_output=True, text=True, timeout=120
     )
     assert proc.returncode == 0, proc.stderr[-3000:]
     result = json.loads((tmp_path / "result.json").read_text())

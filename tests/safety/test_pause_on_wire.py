@@ -36,11 +36,8 @@ timing: each run takes 10-20 s.
 
 from __future__ import annotations
 
-import importlib.util
 import itertools
 import json
-import os
-import shutil
 import struct
 import subprocess
 import sys
@@ -48,6 +45,8 @@ from collections.abc import Iterable, Sequence
 from typing import Any, NamedTuple
 
 import pytest
+
+from temoto.testing.exitpaths import why_not_netns
 
 pytestmark = pytest.mark.slow
 
@@ -60,17 +59,7 @@ LONG = 1.5
 DRIVING = 0.5
 
 
-def _why_not() -> str:
-    if os.geteuid() != 0:
-        return "needs root for unshare -n"
-    if not (shutil.which("unshare") and shutil.which("ip")):
-        return "needs unshare and ip (iproute2)"
-    if importlib.util.find_spec("msgpack") is None:
-        return "python-can's udp_multicast interface needs msgpack"
-    return ""
-
-
-needs_netns = pytest.mark.skipif(bool(_why_not()), reason=_why_not() or "ok")
+needs_netns = pytest.mark.skipif(bool(why_not_netns()), reason=why_not_netns() or "ok")
 
 
 class Frame(NamedTuple):
@@ -120,6 +109,39 @@ def _silences(result: dict[str, Any]) -> dict[str, float]:
         k: round(max((b - a for a, b in itertools.pairwise(v)), default=0.0) * 1000, 1)
         for k, v in times.items()
     }
+
+
+def _judged_run(family: str, seconds: float, pauses: int) -> tuple[dict[str, Any], str]:
+    """One run (see :func:`run`) and its story; skips when the device's simulator stalled."""
+    result = run(family, seconds, pauses=pauses)
+    story = _story(result)
+    _unless_the_device_stalled(result, story)
+    return result, story
+
+
+def _went_on_through_every_pause(
+    result: dict[str, Any], story: str, pauses: int, unsaid: str
+) -> None:
+    """(a): the mission went on through every pause and ended ``on_true``, no fault said."""
+    assert len(result["pauses"]) == pauses, story
+    assert result["rc"] == 0, story
+    assert "ended with on_true" in result["stdout"], story
+    assert unsaid not in result["stderr"], story
+    assert "fault" not in result["stderr"].lower(), story
+    assert result["leftovers"] == [], story
+
+
+def _ended_loudly(result: dict[str, Any], story: str, fault: str) -> None:
+    """(b): the fault (``fault`` in it) is one line naming the device; the run ended."""
+    assert result["rc"] in (0, 1), story
+    faults = [line for line in result["stderr"].splitlines() if "device base" in line]
+    assert any(fault in line for line in faults), story
+    if result["rc"] == 1:
+        assert "ended with on_error" in result["stdout"], story
+    else:
+        assert "ended with on_true" in result["stdout"], story
+    assert "Traceback" not in result["stderr"], story
+    assert result["leftovers"] == [], story
 
 
 def _between(frames: Iterable[Frame], start: float, end: float) -> list[Frame]:
@@ -227,9 +249,7 @@ def _first_after(frames: Sequence[Frame], t: float, pick: Any) -> dict[int, Fram
 
 @needs_netns
 def test_odrive_a_short_pause_sends_nothing_stale_and_is_no_fault() -> None:
-    result = run("odrive", SHORT, pauses=3)
-    story = _story(result)
-    _unless_the_device_stalled(result, story)
+    result, story = _judged_run("odrive", SHORT, pauses=3)
     frames = result["frames"]
     for pause in result["pauses"]:
         _odrive_before(frames, pause)
@@ -246,19 +266,12 @@ def test_odrive_a_short_pause_sends_nothing_stale_and_is_no_fault() -> None:
             f for f in _between(frames, pause["cont"], read_again) if _input_vel(f) is not None
         ]
         _only_the_one_in_flight(early, pause["cont"], story)
-    assert len(result["pauses"]) == 3, story  # the mission went on through every pause
-    assert result["rc"] == 0, story
-    assert "ended with on_true" in result["stdout"], story
-    assert "no heartbeat" not in result["stderr"], story
-    assert "fault" not in result["stderr"].lower(), story
-    assert result["leftovers"] == [], story
+    _went_on_through_every_pause(result, story, 3, "no heartbeat")
 
 
 @needs_netns
 def test_odrive_b_a_pause_beyond_the_watchdog_ends_loudly_and_sends_nothing_stale() -> None:
-    result = run("odrive", LONG, pauses=1)
-    story = _story(result)
-    _unless_the_device_stalled(result, story)
+    result, story = _judged_run("odrive", LONG, pauses=1)
     frames = result["frames"]
     (pause,) = result["pauses"]
     _odrive_before(frames, pause)
@@ -296,15 +309,7 @@ def test_odrive_b_a_pause_beyond_the_watchdog_ends_loudly_and_sends_nothing_stal
         ]
     _only_the_one_in_flight(early, pause["cont"], story)
     # the fault is loud and names the device; the run ended (it did not hang RUNNING)
-    assert result["rc"] in (0, 1), story
-    faults = [line for line in result["stderr"].splitlines() if "device base" in line]
-    assert any("WATCHDOG_TIMER_EXPIRED" in line for line in faults), story
-    if result["rc"] == 1:
-        assert "ended with on_error" in result["stdout"], story
-    else:
-        assert "ended with on_true" in result["stdout"], story
-    assert "Traceback" not in result["stderr"], story
-    assert result["leftovers"] == [], story
+    _ended_loudly(result, story, "WATCHDOG_TIMER_EXPIRED")
 
 
 # ---- MIT mode ---------------------------------------------------------------------------------
@@ -361,9 +366,7 @@ def _mit_before(frames: Sequence[Frame], pause: dict[str, float]) -> None:
 
 @needs_netns
 def test_mit_a_short_pause_sends_nothing_stale_and_is_no_fault() -> None:
-    result = run("mit", SHORT, pauses=3)
-    story = _story(result)
-    _unless_the_device_stalled(result, story)
+    result, story = _judged_run("mit", SHORT, pauses=3)
     frames = result["frames"]
     for pause in result["pauses"]:
         _mit_before(frames, pause)
@@ -378,19 +381,12 @@ def test_mit_a_short_pause_sends_nothing_stale_and_is_no_fault() -> None:
         early = [f for f in _between(frames, pause["cont"], read_again) if _motion(f)]
         _only_the_one_in_flight(early, pause["cont"], story)
         _superseded(frames, early)
-    assert len(result["pauses"]) == 3, story  # the mission went on through every pause
-    assert result["rc"] == 0, story
-    assert "ended with on_true" in result["stdout"], story
-    assert "fault" not in result["stderr"].lower(), story
-    assert "no reply" not in result["stderr"], story
-    assert result["leftovers"] == [], story
+    _went_on_through_every_pause(result, story, 3, "no reply")
 
 
 @needs_netns
 def test_mit_b_a_pause_beyond_the_can_timeout_ends_loudly_and_sends_nothing_stale() -> None:
-    result = run("mit", LONG, pauses=1)
-    story = _story(result)
-    _unless_the_device_stalled(result, story)
+    result, story = _judged_run("mit", LONG, pauses=1)
     frames = result["frames"]
     (pause,) = result["pauses"]
     _mit_before(frames, pause)
@@ -413,12 +409,4 @@ def test_mit_b_a_pause_beyond_the_can_timeout_ends_loudly_and_sends_nothing_stal
         ]
     _only_the_one_in_flight(early, pause["cont"], story)
     _superseded(frames, early)
-    assert result["rc"] in (0, 1), story
-    faults = [line for line in result["stderr"].splitlines() if "device base" in line]
-    assert any("can_timeout" in line for line in faults), story
-    if result["rc"] == 1:
-        assert "ended with on_error" in result["stdout"], story
-    else:
-        assert "ended with on_true" in result["stdout"], story
-    assert "Traceback" not in result["stderr"], story
-    assert result["leftovers"] == [], story
+    _ended_loudly(result, story, "can_timeout")
