@@ -19,6 +19,7 @@ from temoto.drivers import GeoPoint, VehicleTelemetry
 from temoto.drivers.mavlink import ModeChange
 from temoto.errors import DriverTimeoutError, StateError
 from temoto.managers.robot.flight import FlightController
+from temoto.managers.robot.motion import Motion
 
 HOME = GeoPoint(47.397742, 8.545594, 5.0)
 FAR = GeoPoint(47.397742 + 2000 / 111_195.0, 8.545594, 5.0)
@@ -72,6 +73,21 @@ def _error(motion: object) -> str:
     return str(getattr(motion, "error", None))
 
 
+def _goes_on(controller: FlightController, motion: Motion) -> None:
+    """One step; the flight goes on."""
+    controller.step(DT)
+    assert not motion.done, _error(motion)
+
+
+def _its_own_switch_ends(
+    controller: FlightController, vehicle: _Vehicle, motion: Motion, mode: str
+) -> None:
+    """The vehicle switches to ``mode`` by itself: the next step ends the flight, saying so."""
+    vehicle.switch(mode)
+    controller.step(DT)
+    assert f"quad: the vehicle switched to {mode} (not commanded)" in _error(motion)
+
+
 @pytest.mark.parametrize("lose_acks", [False, True], ids=["acked", "ack-lost"])
 def test_a_pause_and_resume_within_a_heartbeat_is_not_the_vehicles_own_switch(
     flight: tuple[FlightController, _Vehicle], lose_acks: bool
@@ -93,15 +109,12 @@ def test_a_pause_and_resume_within_a_heartbeat_is_not_the_vehicles_own_switch(
     vehicle.beat()  # LOITER shows
     vehicle.lose_acks = False
     motion.resume()  # GUIDED asked (acknowledged), not shown yet
-    controller.step(DT)
-    assert not motion.done, _error(motion)
+    _goes_on(controller, motion)
     vehicle.beat()  # GUIDED shows
-    controller.step(DT)
-    assert not motion.done, _error(motion)
-    vehicle.switch("LOITER")  # now the vehicle's own: a pilot's switch
-    controller.step(DT)
+    _goes_on(controller, motion)
+    # now the vehicle's own: a pilot's switch
+    _its_own_switch_ends(controller, vehicle, motion, "LOITER")
     assert motion.done
-    assert "quad: the vehicle switched to LOITER (not commanded)" in _error(motion)
 
 
 def test_a_pause_between_the_reading_and_the_check_is_not_the_vehicles_own_switch(
@@ -116,11 +129,9 @@ def test_a_pause_between_the_reading_and_the_check_is_not_the_vehicles_own_switc
     assert motion.held
     vehicle.beat()  # LOITER shows
     motion.resume()
-    controller.step(DT)  # LOITER, shown late, before the GUIDED of the resume
-    assert not motion.done, _error(motion)
+    _goes_on(controller, motion)  # LOITER, shown late, before the GUIDED of the resume
     vehicle.beat()
-    controller.step(DT)
-    assert not motion.done, _error(motion)
+    _goes_on(controller, motion)
 
 
 def test_a_stop_between_the_reading_and_the_check_ends_the_flight_as_stopped(
@@ -157,9 +168,7 @@ def test_the_vehicles_own_mode_change_still_ends_the_flight(
     motion.resume()
     vehicle.beat()
     controller.step(DT)
-    vehicle.switch("RTL")
-    controller.step(DT)
-    assert "quad: the vehicle switched to RTL (not commanded)" in _error(motion)
+    _its_own_switch_ends(controller, vehicle, motion, "RTL")
 
 
 def test_a_stops_loiter_shown_after_the_next_flight_started_is_not_its_own_switch(
@@ -173,15 +182,11 @@ def test_a_stops_loiter_shown_after_the_next_flight_started_is_not_its_own_switc
     second = controller.fly_to(FAR)  # GUIDED again (goto), the telemetry still GUIDED
     vehicle.mode = "LOITER"  # as the autopilot saw them: LOITER, then GUIDED
     vehicle.beat()
-    controller.step(DT)
-    assert not second.done, _error(second)
+    _goes_on(controller, second)
     vehicle.mode = "GUIDED"
     vehicle.beat()
-    controller.step(DT)
-    assert not second.done, _error(second)
-    vehicle.switch("LOITER")  # the pilot's, now
-    controller.step(DT)
-    assert "quad: the vehicle switched to LOITER (not commanded)" in _error(second)
+    _goes_on(controller, second)
+    _its_own_switch_ends(controller, vehicle, second, "LOITER")  # the pilot's, now
 
 
 def test_a_mode_asked_while_the_vehicle_is_in_it_is_not_owed(
@@ -194,11 +199,8 @@ def test_a_mode_asked_while_the_vehicle_is_in_it_is_not_owed(
     motion.hold()  # LOITER asked while the telemetry shows LOITER: nothing owed
     motion.resume()
     vehicle.beat()  # GUIDED shows
-    controller.step(DT)
-    assert not motion.done, _error(motion)
-    vehicle.switch("LOITER")
-    controller.step(DT)
-    assert "quad: the vehicle switched to LOITER (not commanded)" in _error(motion)
+    _goes_on(controller, motion)
+    _its_own_switch_ends(controller, vehicle, motion, "LOITER")
 
 
 def test_a_stops_loiter_shown_before_the_next_flight_is_used_up(
@@ -212,11 +214,8 @@ def test_a_stops_loiter_shown_before_the_next_flight_is_used_up(
     vehicle.beat()  # LOITER shows; no motion, no step
     second = controller.fly_to(FAR)
     vehicle.beat()  # GUIDED
-    controller.step(DT)
-    assert not second.done, _error(second)
-    vehicle.switch("LOITER")
-    controller.step(DT)
-    assert "quad: the vehicle switched to LOITER (not commanded)" in _error(second)
+    _goes_on(controller, second)
+    _its_own_switch_ends(controller, vehicle, second, "LOITER")
 
 
 def test_a_mode_the_driver_commanded_is_not_called_the_vehicles_own(
