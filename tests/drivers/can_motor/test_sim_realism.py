@@ -6,11 +6,12 @@ keeps the exact figures, ``typical`` must not fault a driver that supervises the
 
 from __future__ import annotations
 
+import contextlib
 import statistics
 import threading
 import time
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from typing import Any
 
 import can
@@ -99,6 +100,23 @@ def in_thread(call: Callable[[], object], clock: ManualClock) -> None:
     thread.join()
 
 
+@contextlib.contextmanager
+def driven(
+    driver: Any, sim: Any, clock: ManualClock, command: JointCommand, seconds: float
+) -> Iterator[None]:
+    """The simulator up, the driver activated and given ``command``, then ``seconds`` of the
+    clock in which it must stay ACTIVE; the driver shut down at the end."""
+    with sim:
+        try:
+            in_thread(driver.configure, clock)
+            in_thread(driver.activate, clock)
+            driver.command([command])
+            assert not move(clock, lambda: driver.state is not DriverState.ACTIVE, seconds)
+            yield
+        finally:
+            driver.shutdown()
+
+
 def odrive_config(**extra: Any) -> dict[str, Any]:
     return {
         "link": link(),
@@ -120,15 +138,8 @@ def test_a_driven_odrive_at_typical_does_not_fault(seed: int) -> None:
     assert isinstance(sim, SimODrive)
     assert sim.realism.describe() == f"realism typical, seed {seed}"
     driver = ODriveDriver.from_profile("base", cfg, clock=clock, where="devices.base")
-    with sim:
-        try:
-            in_thread(driver.configure, clock)
-            in_thread(driver.activate, clock)
-            driver.command([JointCommand("wheel", ControlMode.VELOCITY, 1.0)])
-            assert not move(clock, lambda: driver.state is not DriverState.ACTIVE, 8.0)
-            assert abs(driver.read_state().joints["wheel"].velocity - 1.0) < 0.2
-        finally:
-            driver.shutdown()
+    with driven(driver, sim, clock, JointCommand("wheel", ControlMode.VELOCITY, 1.0), 8.0):
+        assert abs(driver.read_state().joints["wheel"].velocity - 1.0) < 0.2
 
 
 @pytest.mark.parametrize(
@@ -207,13 +218,6 @@ def test_a_driven_mit_motor_at_harsh_gets_every_late_reply_and_does_not_fault() 
     sim, cfg = MitMotorDriver.simulate("arm", cfg, clock=clock)
     assert isinstance(sim, SimMitMotor)
     driver = MitMotorDriver.from_profile("arm", cfg, clock=clock, where="devices.arm")
-    with sim:
-        try:
-            in_thread(driver.configure, clock)
-            in_thread(driver.activate, clock)
-            driver.command([JointCommand("j", ControlMode.POSITION, 0.5)])
-            assert not move(clock, lambda: driver.state is not DriverState.ACTIVE, 6.0)
-            assert abs(driver.read_state().joints["j"].position - 0.5) < 0.05
-            assert sim.transmitter.stalls > 0  # some replies were late, and arrived
-        finally:
-            driver.shutdown()
+    with driven(driver, sim, clock, JointCommand("j", ControlMode.POSITION, 0.5), 6.0):
+        assert abs(driver.read_state().joints["j"].position - 0.5) < 0.05
+        assert sim.transmitter.stalls > 0  # some replies were late, and arrived
