@@ -440,7 +440,7 @@ class Driver(ABC):
             if self.state is DriverState.FINALIZED:
                 return
             if self.state is not DriverState.UNCONFIGURED:
-                self._quietly(lambda: self.make_safe("shutdown"))
+                self._quietly(lambda: self.make_safe("shutdown"), "make safe at shutdown")
                 self._quietly(self.on_shutdown)
             self._set(DriverState.FINALIZED, "shut down")
             _LIVE.discard(self)
@@ -643,11 +643,20 @@ class Driver(ABC):
             except Exception:
                 logger.exception("driver %s: a health listener raised", self.name)
 
-    def _quietly(self, hook: Callable[[], Any]) -> None:
+    def _quietly(self, hook: Callable[[], Any], what: str = "") -> None:
+        """Run a shutdown step that must not stop the shutdown.
+
+        A device's error (a :class:`DriverError`, e.g. a silent link that cannot confirm the
+        safe state) is one warning line; anything else is a bug in the driver and is logged
+        with its traceback.
+        """
+        what = what or getattr(hook, "__name__", repr(hook))
         try:
             hook()
+        except DriverError as err:
+            logger.warning("driver %s: %s failed: %s", self.name, what, err)
         except Exception:
-            logger.exception("driver %s: %s failed", self.name, getattr(hook, "__name__", hook))
+            logger.exception("driver %s: %s failed", self.name, what)
 
 
 #: Every driver configured and not yet shut down in this process (weakly held), for

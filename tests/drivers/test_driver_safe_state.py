@@ -85,6 +85,20 @@ def test_a_failing_safe_state_is_a_fault_and_shutdown_still_closes() -> None:
     assert driver.sent[-1] == "close"
 
 
+def test_a_safe_state_failing_at_shutdown_is_one_line_not_a_traceback(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    driver = active(fail_safe=True)
+    with caplog.at_level("WARNING", logger="temoto.drivers.base"):
+        driver.shutdown()
+    (record,) = [r for r in caplog.records if "failed" in r.getMessage()]
+    assert record.getMessage() == (
+        "driver dev: make safe at shutdown failed: dev: make safe: OSError: the link is gone"
+    )
+    assert record.exc_info is None  # a device's error, not a bug: no traceback
+    assert driver.sent[-1] == "close"
+
+
 def test_make_all_safe_reaches_every_configured_driver_and_reports_failures() -> None:
     fine, broken, fresh = active("fine"), active("broken", fail_safe=True), Recorder("fresh")
     try:
