@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Iterator
 from typing import Any
 
@@ -28,12 +29,43 @@ def sim(clock: ManualClock) -> Iterator[SimDynamixelChain]:
         yield s
 
 
+class _SimPort:
+    """A ``dxl.PortHandler`` whose reply timeout waits for the simulator, not the wall clock.
+
+    The SDK gives up on a reply after 2 x LATENCY_TIMER + 2 ms of real time; the simulator is a
+    thread of this process, and on a loaded machine it may not run at all within that window,
+    so a reply that is on its way would read as a timeout. Here the timeout also needs the
+    simulator to have served every byte this port wrote (``bytes_served``) and no reply bytes
+    to be waiting: then nothing more is coming and the timeout is the real answer. A generous
+    deadline (30 s past the SDK's) keeps a stuck simulator from hanging the test.
+    """
+
+    @staticmethod
+    def make(sim: SimDynamixelChain) -> Any:
+        class Port(dxl.PortHandler):  # type: ignore[misc]
+            written = 0
+
+            def writePort(self, packet: Any) -> Any:  # noqa: N802 (the SDK's name)
+                sent = super().writePort(packet)
+                self.written += sent or 0
+                return sent
+
+            def isPacketTimeout(self) -> bool:  # noqa: N802 (the SDK's name)
+                since = self.getTimeSinceStart()
+                if since <= self.packet_timeout:
+                    return False
+                quiet = sim.bytes_served >= self.written and not self.ser.in_waiting
+                if not quiet and since <= self.packet_timeout + 30_000:
+                    return False
+                self.packet_timeout = 0
+                return True
+
+        return Port(sim.path)
+
+
 @pytest.fixture
-def sdk(sim: SimDynamixelChain, monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[Any, Any]]:
-    # The SDK waits 2 x 16 ms + 2 ms of real time for a reply; the simulator shares this
-    # process's GIL, so give loaded machines more (it is only the wait for a missing reply).
-    monkeypatch.setattr(dxl.port_handler, "LATENCY_TIMER", 50)
-    port = dxl.PortHandler(sim.path)
+def sdk(sim: SimDynamixelChain) -> Iterator[tuple[Any, Any]]:
+    port = _SimPort.make(sim)
     assert port.openPort()
     assert port.setBaudRate(1_000_000)
     yield port, dxl.PacketHandler(2.0)
@@ -181,3 +213,22 @@ def test_position_mode_goal_is_reached_in_radians(sdk: tuple[Any, Any], clock: M
     clock.advance(1.5)
     ticks = ph.read4ByteTxRx(port, 1, 132)[0]
     assert math.isclose((ticks - 2048) * ct.RAD_PER_TICK, math.pi / 2)
+
+
+def test_a_starved_simulator_is_not_a_timeout(
+    sdk: tuple[Any, Any], sim: SimDynamixelChain, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # As on a loaded machine: the serving thread gets no CPU for far longer than the SDK's
+    # 34 ms. The reply is late, not missing; a servo that is really silent still times out.
+    serve = sim._serve_data
+
+    def starved(data: bytes) -> None:
+        time.sleep(0.3)
+        serve(data)
+
+    monkeypatch.setattr(sim, "_serve_data", starved)
+    port, ph = sdk
+    assert ph.ping(port, 1) == (1020, dxl.COMM_SUCCESS, 0)
+    assert ph.read1ByteTxRx(port, 2, 11) == (3, dxl.COMM_SUCCESS, 0)
+    assert ph.ping(port, 9)[1] == dxl.COMM_RX_TIMEOUT
+    assert ph.ping(port, 1)[1] == dxl.COMM_SUCCESS  # the missing reply left nothing behind
