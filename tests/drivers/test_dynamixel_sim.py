@@ -10,6 +10,7 @@ from typing import Any
 import pytest
 
 from temoto.clock import ManualClock
+from temoto.drivers.dynamixel import _sdk
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel.sim import SimDynamixelChain
 
@@ -232,3 +233,27 @@ def test_a_starved_simulator_is_not_a_timeout(
     assert ph.read1ByteTxRx(port, 2, 11) == (3, dxl.COMM_SUCCESS, 0)
     assert ph.ping(port, 9)[1] == dxl.COMM_RX_TIMEOUT
     assert ph.ping(port, 1)[1] == dxl.COMM_SUCCESS  # the missing reply left nothing behind
+
+
+def test_our_sdk_port_waits_for_a_reply_without_spinning(sim: SimDynamixelChain) -> None:
+    # dynamixel-sdk reads the port without blocking in a loop until its timeout: a missing
+    # servo kept a core busy (thousands of reads in 0.3 s) and starved the simulator thread.
+    port = _sdk.SdkPort(sim.path, 1_000_000, reply_timeout=0.3)
+    port.open()
+    try:
+        reads = 0
+        read = port._port.ser.read
+
+        def counted(size: int) -> bytes:
+            nonlocal reads
+            reads += 1
+            return bytes(read(size))
+
+        port._port.ser.read = counted
+        assert port.ping(9)[1] == dxl.COMM_RX_TIMEOUT  # no such servo: the whole 0.3 s
+        assert reads <= 10, reads
+        reads = 0
+        assert port.ping(1) == (1020, dxl.COMM_SUCCESS, 0)
+        assert reads <= 10, reads
+    finally:
+        port.close()
