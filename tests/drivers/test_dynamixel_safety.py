@@ -20,6 +20,7 @@ from typing import Any
 
 import pytest
 from contract import eventually
+from dxl_sdk_client import Peer, sdk_client
 
 from temoto.clock import Clock, ManualClock, MonotonicClock
 from temoto.drivers import ControlMode, DriverState, JointCommand
@@ -50,14 +51,6 @@ def config(n: int = 3, **extra: Any) -> dict[str, Any]:
     return {"link": "/dev/null", "baud": 1_000_000, "poll_rate": 50, "servos": servos, **extra}
 
 
-def sdk_client(path: str) -> tuple[Any, Any]:
-    """A separate dynamixel-sdk client on the chain's serial device."""
-    port = dxl.PortHandler(path)
-    assert port.openPort()
-    assert port.setBaudRate(1_000_000)
-    return port, dxl.PacketHandler(2.0)
-
-
 def read1(client: tuple[Any, Any], dxl_id: int, address: int) -> int:
     port, ph = client
     for _ in range(3):
@@ -65,12 +58,6 @@ def read1(client: tuple[Any, Any], dxl_id: int, address: int) -> int:
         if result == dxl.COMM_SUCCESS:
             return int(value)
     raise AssertionError(f"servo {dxl_id} did not answer READ {address}")
-
-
-@pytest.fixture(autouse=True)
-def _patient_sdk(monkeypatch: pytest.MonkeyPatch) -> None:
-    # The emulators share this process's GIL: give the test client's replies time.
-    monkeypatch.setattr(dxl.port_handler, "LATENCY_TIMER", 50)
 
 
 # ---- an emulator written from the e-Manual ------------------------------------------------------
@@ -163,6 +150,8 @@ class EManualChain:
         self.path = os.ttyname(self._slave)
         self._stop = threading.Event()
         self._buffer = b""
+        self.bytes_served = 0  # bytes read and answered (for the test's sdk_client)
+        self.bytes_sent = 0  # bytes of replies written
         self.goal_writes = 0  # SYNC_WRITEs of Goal Position
         self.writes: list[tuple[int, int, bytes]] = []  # (id, address, data) of every WRITE
         self._thread = threading.Thread(target=self._serve, daemon=True)
@@ -186,14 +175,16 @@ class EManualChain:
             if not ready:
                 continue
             try:
-                self._buffer += os.read(self._master, 4096)
+                data = os.read(self._master, 4096)
             except OSError:
                 continue
+            self._buffer += data
             for dxl_id, inst, params in self._packets():
                 with self.lock:
                     replies = self._handle(dxl_id, inst, params)
                 for reply in replies:
-                    os.write(self._master, reply)
+                    self.bytes_sent += os.write(self._master, reply)
+            self.bytes_served += len(data)
 
     def _packets(self) -> Iterator[tuple[int, int, bytes]]:
         while True:
@@ -262,7 +253,11 @@ def emulator() -> Iterator[tuple[EManualChain, ManualClock]]:
 
 
 def hang_and_check_the_watchdog(
-    driver: DynamixelDriver, clock: ManualClock, watchdog: Any, path: str
+    driver: DynamixelDriver,
+    clock: ManualClock,
+    watchdog: Any,
+    path: str,
+    peer: Peer,
 ) -> None:
     """The driver stops writing; the servos stop and refuse goals within wd + one period."""
     wd, period = driver.bus_watchdog, driver.period
@@ -280,7 +275,7 @@ def hang_and_check_the_watchdog(
     assert watchdog(1, PRESENT, 4) == held  # stopped (torque still on)
     assert watchdog(1, TORQUE) == 1
     driver.shutdown()  # torque off (the watchdog error stays until 0 is written)
-    client = sdk_client(path)
+    client = sdk_client(path, peer)
     port, ph = client
     try:
         assert [read1(client, i, WATCHDOG) for i in (1, 2, 3)] == [0xFF] * 3
@@ -303,7 +298,11 @@ def test_bus_watchdog_on_the_simulator() -> None:
         driver.activate()
         eventually(lambda: True, 0.05, clock)
         hang_and_check_the_watchdog(
-            driver, clock, lambda i, a, size=1: sim.read_register(i, a), sim.path
+            driver,
+            clock,
+            lambda i, a, size=1: sim.read_register(i, a),
+            sim.path,
+            sim,
         )
 
 
@@ -314,7 +313,7 @@ def test_bus_watchdog_on_the_e_manual_emulator(emulator: tuple[EManualChain, Man
     driver.configure()
     driver.activate()
     eventually(lambda: True, 0.05, clock)
-    hang_and_check_the_watchdog(driver, clock, chain.register, chain.path)
+    hang_and_check_the_watchdog(driver, clock, chain.register, chain.path, chain)
 
 
 def test_no_servo_has_torque_before_its_watchdog_is_armed(
@@ -431,7 +430,7 @@ def test_torque_off_from_active_read_back_by_another_client(
     assert driver.make_safe("test") == "6 servos torque off"
     assert driver.state is DriverState.INACTIVE
     driver.shutdown()
-    client = sdk_client(sim.path)
+    client = sdk_client(sim.path, sim)
     try:
         assert [read1(client, i, TORQUE) for i in range(1, 7)] == [0] * 6
     finally:
@@ -451,7 +450,7 @@ def test_torque_off_from_fault_is_sent_anyway(
     assert done.startswith("6 servos torque off sent; not confirmed"), done
     sim.clear()
     driver.shutdown()
-    client = sdk_client(sim.path)
+    client = sdk_client(sim.path, sim)
     try:
         assert [read1(client, i, TORQUE) for i in range(1, 7)] == [0] * 6
     finally:
@@ -466,7 +465,7 @@ def test_torque_off_on_the_e_manual_emulator(emulator: tuple[EManualChain, Manua
     driver.activate()
     assert [chain.register(i, TORQUE) for i in (1, 2, 3)] == [1, 1, 1]
     driver.shutdown()  # make_safe, then close
-    client = sdk_client(chain.path)
+    client = sdk_client(chain.path, chain)
     try:
         assert [read1(client, i, TORQUE) for i in (1, 2, 3)] == [0, 0, 0]
     finally:
@@ -488,7 +487,7 @@ def test_hold_keeps_torque_and_stops_where_it_is() -> None:
         goal = sim.read_register(1, GOAL)
         driver.shutdown()
         clock.advance(1.0)
-        client = sdk_client(sim.path)
+        client = sdk_client(sim.path, sim)
         try:
             assert [read1(client, i, TORQUE) for i in (1, 2, 3)] == [1, 1, 1]
         finally:

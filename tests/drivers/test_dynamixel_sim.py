@@ -8,6 +8,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from dxl_sdk_client import sdk_client
 
 from temoto.clock import ManualClock
 from temoto.drivers.dynamixel import _sdk
@@ -30,46 +31,10 @@ def sim(clock: ManualClock) -> Iterator[SimDynamixelChain]:
         yield s
 
 
-class _SimPort:
-    """A ``dxl.PortHandler`` whose reply timeout waits for the simulator, not the wall clock.
-
-    The SDK gives up on a reply after 2 x LATENCY_TIMER + 2 ms of real time; the simulator is a
-    thread of this process, and on a loaded machine it may not run at all within that window,
-    so a reply that is on its way would read as a timeout. Here the timeout also needs the
-    simulator to have served every byte this port wrote (``bytes_served``) and no reply bytes
-    to be waiting: then nothing more is coming and the timeout is the real answer. A generous
-    deadline (30 s past the SDK's) keeps a stuck simulator from hanging the test.
-    """
-
-    @staticmethod
-    def make(sim: SimDynamixelChain) -> Any:
-        class Port(dxl.PortHandler):  # type: ignore[misc]
-            written = 0
-
-            def writePort(self, packet: Any) -> Any:  # noqa: N802 (the SDK's name)
-                sent = super().writePort(packet)
-                self.written += sent or 0
-                return sent
-
-            def isPacketTimeout(self) -> bool:  # noqa: N802 (the SDK's name)
-                since = self.getTimeSinceStart()
-                if since <= self.packet_timeout:
-                    return False
-                quiet = sim.bytes_served >= self.written and not self.ser.in_waiting
-                if not quiet and since <= self.packet_timeout + 30_000:
-                    return False
-                self.packet_timeout = 0
-                return True
-
-        return Port(sim.path)
-
-
 @pytest.fixture
 def sdk(sim: SimDynamixelChain) -> Iterator[tuple[Any, Any]]:
-    port = _SimPort.make(sim)
-    assert port.openPort()
-    assert port.setBaudRate(1_000_000)
-    yield port, dxl.PacketHandler(2.0)
+    port, ph = sdk_client(sim.path, sim)
+    yield port, ph
     port.closePort()
 
 

@@ -209,9 +209,12 @@ class SimDynamixelChain(ServoChain):
         #: Status packets lost on purpose (realism), for tests and tools.
         self.replies_lost = 0
         #: Bytes read from the host and fully served (every reply they asked for written, or
-        #: dropped by a fault): a host that wrote as many has nothing more coming, so a test's
-        #: client can wait for this instead of a real-time timeout (for tests and tools).
+        #: dropped by a fault): a host that wrote as many and read :attr:`bytes_sent` has
+        #: nothing more coming, so a test's client can wait for these instead of a real-time
+        #: timeout (for tests and tools).
         self.bytes_served = 0
+        #: Bytes of status packets written to the host (counted before :attr:`bytes_served`).
+        self.bytes_sent = 0
         #: The status packets' delays (realism other than ``off``; made for :attr:`realism` at
         #: the first reply, made again when it is replaced; tests may set other figures).
         self.reply_delays: SerialReplyDelay | None = None
@@ -484,6 +487,7 @@ class SimDynamixelChain(ServoChain):
             except OSError:
                 return
             view = view[sent:]
+        self.bytes_sent += len(data) - len(view)
         self.stats["replies"] += 1
 
 
