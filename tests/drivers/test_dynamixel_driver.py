@@ -10,6 +10,7 @@ from typing import Any
 import pytest
 from contract import DriverContract, Rig, eventually
 from dxl_polled import follow
+from dxl_sdk_client import patient_sim_links
 
 from temoto.clock import Clock, ManualClock, MonotonicClock
 from temoto.drivers import (
@@ -33,6 +34,10 @@ from temoto.errors import (
 )
 
 pytest.importorskip("dynamixel_sdk")
+
+# The simulators are threads of this process: their replies wait for them, not for the clock
+# (tests/drivers/dxl_sdk_client.py).
+pytestmark = pytest.mark.usefixtures(patient_sim_links.__name__)
 
 POLL_RATE = 100.0
 # Real seconds: 3 failed polls, each a period plus the reply timeout, and scheduling slack for

@@ -20,7 +20,7 @@ from typing import Any
 
 import pytest
 from contract import eventually
-from dxl_sdk_client import Peer, sdk_client
+from dxl_sdk_client import Peer, SimLinks, patient_sim_links, sdk_client
 
 from temoto.clock import Clock, ManualClock, MonotonicClock
 from temoto.drivers import ControlMode, DriverState, JointCommand
@@ -31,6 +31,10 @@ from temoto.drivers.dynamixel.sim import SimDynamixelChain
 from temoto.errors import DriverOperationError, DriverTimeoutError, ProfileError
 
 dxl: Any = pytest.importorskip("dynamixel_sdk")
+
+# The simulators are threads of this process: their replies wait for them, not for the clock
+# (tests/drivers/dxl_sdk_client.py).
+pytestmark = pytest.mark.usefixtures(patient_sim_links.__name__)
 
 TORQUE, WATCHDOG, GOAL, PRESENT = 64, 98, 116, 132
 RANGE_ERROR = 0x04  # Protocol 2.0 status error number "Data Range Error"
@@ -242,9 +246,10 @@ class EManualChain:
 
 
 @pytest.fixture
-def emulator() -> Iterator[tuple[EManualChain, ManualClock]]:
+def emulator(patient_sim_links: SimLinks) -> Iterator[tuple[EManualChain, ManualClock]]:
     clock = ManualClock()
     chain = EManualChain([1, 2, 3], clock)
+    patient_sim_links.add(chain)
     yield chain, clock
     chain.close()
 
