@@ -20,6 +20,7 @@ from typing import Any
 
 import pytest
 from contract import eventually
+from dxl_polled import follow
 from dxl_sdk_client import Peer, SimLinks, patient_sim_links, sdk_client
 
 from temoto.clock import Clock, ManualClock, MonotonicClock
@@ -485,10 +486,12 @@ def test_hold_keeps_torque_and_stops_where_it_is() -> None:
         driver.configure()
         driver.activate()
         driver.command([JointCommand("j1", ControlMode.POSITION, 1.8)])
-        eventually(lambda: driver.read_state().joints["j1"].position > 0.3, 3.0, clock)
+        # one poll period of virtual time per poll: the servo is where the driver last read it
+        # (eventually's virtual time runs on while a loaded machine delays the polls)
+        follow(driver, clock, lambda: driver.read_state().joints["j1"].position > 0.3, 3.0)
         assert driver.make_safe("test") == "3 servos hold"
         commanded = driver.servos[0].ticks(1.8)
-        eventually(lambda: sim.read_register(1, GOAL) != commanded, 2.0)  # SYNC_WRITE: no reply
+        eventually(lambda: sim.read_register(1, GOAL) != commanded, 30.0)  # SYNC_WRITE: no reply
         goal = sim.read_register(1, GOAL)
         driver.shutdown()
         clock.advance(1.0)
