@@ -6,12 +6,14 @@ import linecache
 import math
 import sys
 import threading
+import time
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
 from contract import DriverContract, Rig, eventually
 from dxl_polled import follow
+from dxl_sdk_client import patient_sim_links
 
 from temoto.clock import Clock, ManualClock, MonotonicClock
 from temoto.drivers import (
@@ -36,6 +38,10 @@ from temoto.errors import (
 )
 
 pytest.importorskip("dynamixel_sdk")
+
+# The simulators are threads of this process: their replies wait for them, not for the clock
+# (tests/drivers/dxl_sdk_client.py).
+pytestmark = pytest.mark.usefixtures(patient_sim_links.__name__)
 
 POLL_RATE = 100.0
 # Real seconds: 3 failed polls, each a period plus the reply timeout, and scheduling slack for
@@ -160,6 +166,27 @@ def test_velocity_and_effort_modes_on_a_manual_clock() -> None:
             follow(driver, clock, lambda c=check: c(driver.read_state().joints["wheel"]), 30.0)
             with pytest.raises(ValueError, match="too"):
                 driver.command([JointCommand("wheel", cmd, 1e3)])
+
+
+def test_a_starved_simulator_thread_does_not_fail_the_bring_up(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # As on a loaded machine: the simulator's thread runs only after the driver's reply
+    # timeout; its replies are late, not missing (patient_sim_links), so nothing fails.
+    clock = ManualClock()
+    sim, config = DynamixelDriver.simulate("arm", arm_config(1), clock=clock)
+    serve = sim._serve_data
+
+    def starved(data: bytes) -> None:
+        time.sleep(1.5 * SIM_REPLY_TIMEOUT)
+        serve(data)
+
+    monkeypatch.setattr(sim, "_serve_data", starved)
+    with sim, DynamixelDriver.from_profile("arm", config, clock=clock, where="a") as driver:
+        driver.configure()
+        driver.activate()
+        assert driver.state is DriverState.ACTIVE
+        assert driver.read_state().joints["j1"].position == pytest.approx(0.0, abs=0.01)
 
 
 def test_model_mismatch_names_the_servo() -> None:

@@ -19,6 +19,7 @@ from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from dxl_sdk_client import sdk_client
 
 from temoto.clock import ManualClock
 from temoto.drivers.dynamixel import control_table as ct
@@ -154,17 +155,14 @@ def test_without_bit_2_in_shutdown_overheating_is_not_detected() -> None:
 def chain() -> Iterator[tuple[SimDynamixelChain, ManualClock, Any, Any]]:
     clock = ManualClock()
     with SimDynamixelChain({1: "XM430-W350"}, clock=clock) as sim:
-        port = dxl.PortHandler(sim.path)
-        assert port.openPort()
-        assert port.setBaudRate(1_000_000)
-        yield sim, clock, port, dxl.PacketHandler(2.0)
+        port, ph = sdk_client(sim.path, sim)
+        yield sim, clock, port, ph
         port.closePort()
 
 
 def test_an_overheated_servo_answers_with_the_alert_bit_until_it_cooled_and_rebooted(
-    chain: tuple[SimDynamixelChain, ManualClock, Any, Any], monkeypatch: pytest.MonkeyPatch
+    chain: tuple[SimDynamixelChain, ManualClock, Any, Any],
 ) -> None:
-    monkeypatch.setattr(dxl.port_handler, "LATENCY_TIMER", 50)
     sim, clock, port, ph = chain
     assert ph.write1ByteTxRx(port, 1, 64, 1) == (dxl.COMM_SUCCESS, 0)
     sim.set_load(1, torque=4.0)

@@ -20,6 +20,8 @@ from typing import Any
 
 import pytest
 from contract import eventually
+from dxl_polled import follow
+from dxl_sdk_client import Peer, SimLinks, patient_sim_links, sdk_client
 
 from temoto.clock import Clock, ManualClock, MonotonicClock
 from temoto.drivers import ControlMode, DriverState, JointCommand
@@ -30,6 +32,10 @@ from temoto.drivers.dynamixel.sim import SimDynamixelChain
 from temoto.errors import DriverOperationError, DriverTimeoutError, ProfileError
 
 dxl: Any = pytest.importorskip("dynamixel_sdk")
+
+# The simulators are threads of this process: their replies wait for them, not for the clock
+# (tests/drivers/dxl_sdk_client.py).
+pytestmark = pytest.mark.usefixtures(patient_sim_links.__name__)
 
 TORQUE, WATCHDOG, GOAL, PRESENT = 64, 98, 116, 132
 RANGE_ERROR = 0x04  # Protocol 2.0 status error number "Data Range Error"
@@ -50,14 +56,6 @@ def config(n: int = 3, **extra: Any) -> dict[str, Any]:
     return {"link": "/dev/null", "baud": 1_000_000, "poll_rate": 50, "servos": servos, **extra}
 
 
-def sdk_client(path: str) -> tuple[Any, Any]:
-    """A separate dynamixel-sdk client on the chain's serial device."""
-    port = dxl.PortHandler(path)
-    assert port.openPort()
-    assert port.setBaudRate(1_000_000)
-    return port, dxl.PacketHandler(2.0)
-
-
 def read1(client: tuple[Any, Any], dxl_id: int, address: int) -> int:
     port, ph = client
     for _ in range(3):
@@ -65,12 +63,6 @@ def read1(client: tuple[Any, Any], dxl_id: int, address: int) -> int:
         if result == dxl.COMM_SUCCESS:
             return int(value)
     raise AssertionError(f"servo {dxl_id} did not answer READ {address}")
-
-
-@pytest.fixture(autouse=True)
-def _patient_sdk(monkeypatch: pytest.MonkeyPatch) -> None:
-    # The emulators share this process's GIL: give the test client's replies time.
-    monkeypatch.setattr(dxl.port_handler, "LATENCY_TIMER", 50)
 
 
 # ---- an emulator written from the e-Manual ------------------------------------------------------
@@ -163,6 +155,8 @@ class EManualChain:
         self.path = os.ttyname(self._slave)
         self._stop = threading.Event()
         self._buffer = b""
+        self.bytes_served = 0  # bytes read and answered (for the test's sdk_client)
+        self.bytes_sent = 0  # bytes of replies written
         self.goal_writes = 0  # SYNC_WRITEs of Goal Position
         self.writes: list[tuple[int, int, bytes]] = []  # (id, address, data) of every WRITE
         self._thread = threading.Thread(target=self._serve, daemon=True)
@@ -186,14 +180,16 @@ class EManualChain:
             if not ready:
                 continue
             try:
-                self._buffer += os.read(self._master, 4096)
+                data = os.read(self._master, 4096)
             except OSError:
                 continue
+            self._buffer += data
             for dxl_id, inst, params in self._packets():
                 with self.lock:
                     replies = self._handle(dxl_id, inst, params)
                 for reply in replies:
-                    os.write(self._master, reply)
+                    self.bytes_sent += os.write(self._master, reply)
+            self.bytes_served += len(data)
 
     def _packets(self) -> Iterator[tuple[int, int, bytes]]:
         while True:
@@ -251,9 +247,10 @@ class EManualChain:
 
 
 @pytest.fixture
-def emulator() -> Iterator[tuple[EManualChain, ManualClock]]:
+def emulator(patient_sim_links: SimLinks) -> Iterator[tuple[EManualChain, ManualClock]]:
     clock = ManualClock()
     chain = EManualChain([1, 2, 3], clock)
+    patient_sim_links.add(chain)
     yield chain, clock
     chain.close()
 
@@ -262,7 +259,11 @@ def emulator() -> Iterator[tuple[EManualChain, ManualClock]]:
 
 
 def hang_and_check_the_watchdog(
-    driver: DynamixelDriver, clock: ManualClock, watchdog: Any, path: str
+    driver: DynamixelDriver,
+    clock: ManualClock,
+    watchdog: Any,
+    path: str,
+    peer: Peer,
 ) -> None:
     """The driver stops writing; the servos stop and refuse goals within wd + one period."""
     wd, period = driver.bus_watchdog, driver.period
@@ -280,7 +281,7 @@ def hang_and_check_the_watchdog(
     assert watchdog(1, PRESENT, 4) == held  # stopped (torque still on)
     assert watchdog(1, TORQUE) == 1
     driver.shutdown()  # torque off (the watchdog error stays until 0 is written)
-    client = sdk_client(path)
+    client = sdk_client(path, peer)
     port, ph = client
     try:
         assert [read1(client, i, WATCHDOG) for i in (1, 2, 3)] == [0xFF] * 3
@@ -303,7 +304,11 @@ def test_bus_watchdog_on_the_simulator() -> None:
         driver.activate()
         eventually(lambda: True, 0.05, clock)
         hang_and_check_the_watchdog(
-            driver, clock, lambda i, a, size=1: sim.read_register(i, a), sim.path
+            driver,
+            clock,
+            lambda i, a, size=1: sim.read_register(i, a),
+            sim.path,
+            sim,
         )
 
 
@@ -314,7 +319,7 @@ def test_bus_watchdog_on_the_e_manual_emulator(emulator: tuple[EManualChain, Man
     driver.configure()
     driver.activate()
     eventually(lambda: True, 0.05, clock)
-    hang_and_check_the_watchdog(driver, clock, chain.register, chain.path)
+    hang_and_check_the_watchdog(driver, clock, chain.register, chain.path, chain)
 
 
 def test_no_servo_has_torque_before_its_watchdog_is_armed(
@@ -431,7 +436,7 @@ def test_torque_off_from_active_read_back_by_another_client(
     assert driver.make_safe("test") == "6 servos torque off"
     assert driver.state is DriverState.INACTIVE
     driver.shutdown()
-    client = sdk_client(sim.path)
+    client = sdk_client(sim.path, sim)
     try:
         assert [read1(client, i, TORQUE) for i in range(1, 7)] == [0] * 6
     finally:
@@ -451,7 +456,7 @@ def test_torque_off_from_fault_is_sent_anyway(
     assert done.startswith("6 servos torque off sent; not confirmed"), done
     sim.clear()
     driver.shutdown()
-    client = sdk_client(sim.path)
+    client = sdk_client(sim.path, sim)
     try:
         assert [read1(client, i, TORQUE) for i in range(1, 7)] == [0] * 6
     finally:
@@ -466,7 +471,7 @@ def test_torque_off_on_the_e_manual_emulator(emulator: tuple[EManualChain, Manua
     driver.activate()
     assert [chain.register(i, TORQUE) for i in (1, 2, 3)] == [1, 1, 1]
     driver.shutdown()  # make_safe, then close
-    client = sdk_client(chain.path)
+    client = sdk_client(chain.path, chain)
     try:
         assert [read1(client, i, TORQUE) for i in (1, 2, 3)] == [0, 0, 0]
     finally:
@@ -481,14 +486,16 @@ def test_hold_keeps_torque_and_stops_where_it_is() -> None:
         driver.configure()
         driver.activate()
         driver.command([JointCommand("j1", ControlMode.POSITION, 1.8)])
-        eventually(lambda: driver.read_state().joints["j1"].position > 0.3, 3.0, clock)
+        # one poll period of virtual time per poll: the servo is where the driver last read it
+        # (eventually's virtual time runs on while a loaded machine delays the polls)
+        follow(driver, clock, lambda: driver.read_state().joints["j1"].position > 0.3, 3.0)
         assert driver.make_safe("test") == "3 servos hold"
         commanded = driver.servos[0].ticks(1.8)
-        eventually(lambda: sim.read_register(1, GOAL) != commanded, 2.0)  # SYNC_WRITE: no reply
+        eventually(lambda: sim.read_register(1, GOAL) != commanded, 30.0)  # SYNC_WRITE: no reply
         goal = sim.read_register(1, GOAL)
         driver.shutdown()
         clock.advance(1.0)
-        client = sdk_client(sim.path)
+        client = sdk_client(sim.path, sim)
         try:
             assert [read1(client, i, TORQUE) for i in (1, 2, 3)] == [1, 1, 1]
         finally:

@@ -3,12 +3,15 @@
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Iterator
 from typing import Any
 
 import pytest
+from dxl_sdk_client import sdk_client
 
 from temoto.clock import ManualClock
+from temoto.drivers.dynamixel import _sdk
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel.sim import SimDynamixelChain
 
@@ -29,14 +32,9 @@ def sim(clock: ManualClock) -> Iterator[SimDynamixelChain]:
 
 
 @pytest.fixture
-def sdk(sim: SimDynamixelChain, monkeypatch: pytest.MonkeyPatch) -> Iterator[tuple[Any, Any]]:
-    # The SDK waits 2 x 16 ms + 2 ms of real time for a reply; the simulator shares this
-    # process's GIL, so give loaded machines more (it is only the wait for a missing reply).
-    monkeypatch.setattr(dxl.port_handler, "LATENCY_TIMER", 50)
-    port = dxl.PortHandler(sim.path)
-    assert port.openPort()
-    assert port.setBaudRate(1_000_000)
-    yield port, dxl.PacketHandler(2.0)
+def sdk(sim: SimDynamixelChain) -> Iterator[tuple[Any, Any]]:
+    port, ph = sdk_client(sim.path, sim)
+    yield port, ph
     port.closePort()
 
 
@@ -181,3 +179,46 @@ def test_position_mode_goal_is_reached_in_radians(sdk: tuple[Any, Any], clock: M
     clock.advance(1.5)
     ticks = ph.read4ByteTxRx(port, 1, 132)[0]
     assert math.isclose((ticks - 2048) * ct.RAD_PER_TICK, math.pi / 2)
+
+
+def test_a_starved_simulator_is_not_a_timeout(
+    sdk: tuple[Any, Any], sim: SimDynamixelChain, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # As on a loaded machine: the serving thread gets no CPU for far longer than the SDK's
+    # 34 ms. The reply is late, not missing; a servo that is really silent still times out.
+    serve = sim._serve_data
+
+    def starved(data: bytes) -> None:
+        time.sleep(0.3)
+        serve(data)
+
+    monkeypatch.setattr(sim, "_serve_data", starved)
+    port, ph = sdk
+    assert ph.ping(port, 1) == (1020, dxl.COMM_SUCCESS, 0)
+    assert ph.read1ByteTxRx(port, 2, 11) == (3, dxl.COMM_SUCCESS, 0)
+    assert ph.ping(port, 9)[1] == dxl.COMM_RX_TIMEOUT
+    assert ph.ping(port, 1)[1] == dxl.COMM_SUCCESS  # the missing reply left nothing behind
+
+
+def test_our_sdk_port_waits_for_a_reply_without_spinning(sim: SimDynamixelChain) -> None:
+    # dynamixel-sdk reads the port without blocking in a loop until its timeout: a missing
+    # servo kept a core busy (thousands of reads in 0.3 s) and starved the simulator thread.
+    port = _sdk.SdkPort(sim.path, 1_000_000, reply_timeout=0.3)
+    port.open()
+    try:
+        reads = 0
+        read = port._port.ser.read
+
+        def counted(size: int) -> bytes:
+            nonlocal reads
+            reads += 1
+            return bytes(read(size))
+
+        port._port.ser.read = counted
+        assert port.ping(9)[1] == dxl.COMM_RX_TIMEOUT  # no such servo: the whole 0.3 s
+        assert reads <= 10, reads
+        reads = 0
+        assert port.ping(1) == (1020, dxl.COMM_SUCCESS, 0)
+        assert reads <= 10, reads
+    finally:
+        port.close()

@@ -11,6 +11,12 @@ The SDK measures its timeouts with ``time.time``; here each port reads ``time.mo
 instead, so a wall-clock step cannot cut a wait short or stretch it. pyserial's port list (for
 discovery) is read here too.
 
+While it waits for a status packet the SDK reads the port without blocking (pyserial's
+timeout 0) in a loop: a servo that does not answer keeps a core busy for the whole reply
+timeout, every poll. On a loaded onboard computer that spin takes CPU from everything else --
+and from a simulator in the same process, whose reply then comes late. Here a read that finds
+no bytes waits for some (``select``) until the transaction's timeout instead.
+
 A status packet that comes after its timeout (a USB adapter's latency timer, a busy USB host,
 the simulator's ``harsh`` realism) reaches the host during the next transaction. The SDK takes
 the first status packet of the right id for the answer, whatever its length, and slices the
@@ -28,6 +34,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import select
 import time
 from collections.abc import Iterator, Mapping
 from typing import Any, Final, cast
@@ -87,6 +94,7 @@ class SdkPort:
         self._port: Any = _dxl.PortHandler(path)
         self._port.setPacketTimeout = self._set_packet_timeout  # the SDK's, with our margin
         self._port.getCurrentTime = _monotonic_ms  # the SDK's clock, never stepped
+        self._port.readPort = self._read_port  # the SDK's, waiting instead of spinning
         self._ph: Any = _dxl.PacketHandler(2.0)
         #: Status packets dropped because their length fits no transaction at hand (late
         #: answers to an earlier one; see the module docstring).
@@ -94,6 +102,24 @@ class SdkPort:
         self._expect: int | None = None  # parameter bytes of the status packet awaited
         self._sdk_rx = self._ph.rxPacket
         self._ph.rxPacket = self._rx_packet  # the SDK's, dropping late answers
+
+    def _read_port(self, length: int) -> bytes:
+        """The SDK's ``readPort``: up to ``length`` bytes, waiting for the first until timeout.
+
+        Returns at once with what is there; with nothing there, waits (without the CPU) for
+        bytes or for the end of the transaction's packet timeout, whichever comes first. The
+        SDK then checks its timeout as before.
+        """
+        ser = self._port.ser
+        data = bytes(ser.read(length))
+        if data or length <= 0:
+            return data
+        port = self._port
+        left = (port.packet_timeout - port.getTimeSinceStart()) / 1000.0
+        if left > 0:
+            select.select([ser.fileno()], [], [], left)
+            data = bytes(ser.read(length))
+        return data
 
     def _rx_packet(self, port: Any, fast_option: bool) -> tuple[list[int], int]:
         """The SDK's ``rxPacket``, reading on past status packets of the wrong length."""

@@ -208,6 +208,13 @@ class SimDynamixelChain(ServoChain):
         self.realism = realism
         #: Status packets lost on purpose (realism), for tests and tools.
         self.replies_lost = 0
+        #: Bytes read from the host and fully served (every reply they asked for written, or
+        #: dropped by a fault): a host that wrote as many and read :attr:`bytes_sent` has
+        #: nothing more coming, so a test's client can wait for these instead of a real-time
+        #: timeout (for tests and tools).
+        self.bytes_served = 0
+        #: Bytes of status packets written to the host (counted before :attr:`bytes_served`).
+        self.bytes_sent = 0
         #: The status packets' delays (realism other than ``off``; made for :attr:`realism` at
         #: the first reply, made again when it is replaced; tests may set other figures).
         self.reply_delays: SerialReplyDelay | None = None
@@ -392,27 +399,34 @@ class SimDynamixelChain(ServoChain):
                     self._step_locked()
                 self._stop.wait(0.01)
                 continue
-            if self.fault("link_loss") is not None:
+            try:
+                self._serve_data(data)
+            finally:
+                self.bytes_served += len(data)
+
+    def _serve_data(self, data: bytes) -> None:
+        """Carry out the packets in ``data`` (bytes from the host) and send their replies."""
+        if self.fault("link_loss") is not None:
+            return  # no bytes in either direction
+        line = self._line_baud()
+        for item in self._reader.feed(data):
+            if isinstance(item, p.PacketError):
+                self.stats["bad_packets"] += 1
                 continue
-            line = self._line_baud()
-            for item in self._reader.feed(data):
-                if isinstance(item, p.PacketError):
-                    self.stats["bad_packets"] += 1
-                    continue
-                self.stats["packets"] += 1
-                try:
-                    replies = self._handle(item, line)
-                except Exception:  # a bug here must not kill the chain
-                    logger.exception("sim %s: handling %s failed", self.name, item)
-                    continue
-                poll = item.instruction in _POLLS
-                if replies and poll and self.realism.lost():
-                    self.replies_lost += 1  # lost on the way: the host's read times out
-                    continue
-                if replies and self.realism.enabled:
-                    self._wait_before(replies, poll=poll)
-                for reply in replies:
-                    self._send(reply)
+            self.stats["packets"] += 1
+            try:
+                replies = self._handle(item, line)
+            except Exception:  # a bug here must not kill the chain
+                logger.exception("sim %s: handling %s failed", self.name, item)
+                continue
+            poll = item.instruction in _POLLS
+            if replies and poll and self.realism.lost():
+                self.replies_lost += 1  # lost on the way: the host's read times out
+                continue
+            if replies and self.realism.enabled:
+                self._wait_before(replies, poll=poll)
+            for reply in replies:
+                self._send(reply)
 
     @property
     def replies_late(self) -> int:
@@ -473,6 +487,7 @@ class SimDynamixelChain(ServoChain):
             except OSError:
                 return
             view = view[sent:]
+        self.bytes_sent += len(data) - len(view)
         self.stats["replies"] += 1
 
 
