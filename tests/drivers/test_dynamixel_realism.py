@@ -194,6 +194,27 @@ def test_the_sim_sends_a_poll_s_status_packets_late() -> None:
             port.close()
 
 
+def test_waiting_for_a_late_reply_costs_no_cpu() -> None:
+    # dynamixel-sdk polls its non-blocking port in a loop until the reply or its timeout: a
+    # busy host (or the simulator in this process) loses a core to every wait. The wait is
+    # for the line now: the reading thread's CPU time stays far below the time it waited.
+    with _late_sim(0.3) as sim:
+        port = SdkPort(sim.path, 1_000_000, reply_timeout=0.5)
+        port.open()
+        try:
+            reader = port.sync_reader(*ct.FAST_READ, [1, 2])
+            cpu0, t0 = time.thread_time(), time.monotonic()
+            for _ in range(2):
+                result, data, _ = reader.read()
+                assert result == COMM_SUCCESS
+                assert set(data) == {1, 2}
+            waited, cpu = time.monotonic() - t0, time.thread_time() - cpu0
+            assert waited >= 0.6
+            assert cpu < 0.03, f"{cpu * 1000:.0f} ms of CPU for {waited * 1000:.0f} ms waited"
+        finally:
+            port.close()
+
+
 def test_a_late_answer_to_another_syncread_is_dropped_not_taken() -> None:
     # the slow read's status packets (3 bytes of data) come 0.3 s late, after the host gave up
     # (0.2 s): they reach the host during the next SYNC_READ (1 byte: Hardware Error Status; 0.1

@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import contextlib
 import logging
+import select
 import time
 from collections.abc import Iterator, Mapping
 from typing import Any, Final, cast
@@ -87,6 +88,7 @@ class SdkPort:
         self._port: Any = _dxl.PortHandler(path)
         self._port.setPacketTimeout = self._set_packet_timeout  # the SDK's, with our margin
         self._port.getCurrentTime = _monotonic_ms  # the SDK's clock, never stepped
+        self._port.readPort = self._read_port  # the SDK's, waiting for bytes instead of spinning
         self._ph: Any = _dxl.PacketHandler(2.0)
         #: Status packets dropped because their length fits no transaction at hand (late
         #: answers to an earlier one; see the module docstring).
@@ -113,6 +115,27 @@ class SdkPort:
                 params,
                 expect,
             )
+
+    def _read_port(self, length: int) -> bytes:
+        """The SDK's ``readPort``; with nothing to read, it waits for the line, not the CPU.
+
+        dynamixel-sdk opens the port non-blocking and calls ``readPort`` in a loop until its
+        packet timeout: a busy loop that holds a core (and, in Python, the interpreter lock)
+        for every reply it waits for, e.g. the servos' Return Delay Times of each poll. Here
+        an empty read waits (``select``) until bytes arrive or the packet's timeout is due, so
+        a reply is taken as soon as it comes and the wait costs no CPU; on a busy onboard
+        computer (and for a simulator in this process) that CPU is the other threads'.
+        """
+        port = self._port
+        data = cast("bytes", port.ser.read(length))
+        if data or length <= 0:
+            return data
+        left = port.packet_timeout - (port.getCurrentTime() - port.packet_start_time)
+        if left > 0:
+            with contextlib.suppress(OSError, ValueError):  # closed meanwhile: the SDK says so
+                select.select([port.ser.fileno()], [], [], min(left, _IDLE_WAIT_MS) / 1000.0)
+            data = cast("bytes", port.ser.read(length))
+        return data
 
     @contextlib.contextmanager
     def _expecting(self, params: int) -> Iterator[None]:
@@ -288,6 +311,11 @@ def serial_ports() -> list[str]:
 _STATUS_OVERHEAD: Final = 11
 _PKT_ID: Final = 4  # the id's index in a packet
 _PKT_ERROR: Final = 8  # the error byte's index in a status packet
+
+
+#: The longest one wait of :meth:`SdkPort._read_port` for bytes (ms; the timeout is checked
+#: after each).
+_IDLE_WAIT_MS: Final = 50.0
 
 
 def _monotonic_ms() -> float:
