@@ -21,7 +21,7 @@ from typing import Any
 import pytest
 from contract import eventually
 
-from temoto.clock import Clock, ManualClock, MonotonicClock
+from temoto.clock import Clock, ManualClock, MonotonicClock, ScaledClock
 from temoto.drivers import ControlMode, DriverState, JointCommand
 from temoto.drivers.dynamixel import driver as dxl_driver
 from temoto.drivers.dynamixel import timing as dxl_timing
@@ -305,6 +305,30 @@ def test_bus_watchdog_on_the_simulator() -> None:
         hang_and_check_the_watchdog(
             driver, clock, lambda i, a, size=1: sim.read_register(i, a), sim.path
         )
+
+
+def test_the_simulated_bus_watchdog_counts_real_seconds_on_a_faster_clock() -> None:
+    # The servo's watchdog guards against a silent host on the servo's own oscillator. A
+    # ScaledClock speeds the motion up, not the host's scheduling: a process stall of 0.35 s
+    # must not expire a 1 s watchdog in a demo at speed 5 (it did: 1.75 s of the clock).
+    clock = ScaledClock(5)
+    sim, entry = DynamixelDriver.simulate("arm", config(bus_watchdog=1.0), clock=clock)
+    with sim:
+        driver = DynamixelDriver.from_profile("arm", entry, clock=clock, where="a")
+        driver.configure()
+        driver.activate()
+        assert [sim.read_register(i, WATCHDOG) for i in (1, 2, 3)] == [50, 50, 50]
+        driver._stop_polling()  # the process stalls: no more instruction packets
+        hung = time.monotonic()
+        time.sleep(0.35)  # 1.75 s of the clock
+        if time.monotonic() - hung < 0.9:  # a loaded machine may oversleep: then no verdict
+            assert [sim.read_register(i, WATCHDOG) for i in (1, 2, 3)] == [50, 50, 50]
+        deadline = hung + 10.0
+        while sim.read_register(1, WATCHDOG) != -1:  # expired
+            assert time.monotonic() < deadline, "the watchdog never expired"
+            time.sleep(0.01)
+        assert time.monotonic() - hung >= 1.0  # not before one real second of silence
+        driver.shutdown()
 
 
 def test_bus_watchdog_on_the_e_manual_emulator(emulator: tuple[EManualChain, ManualClock]) -> None:

@@ -78,7 +78,7 @@ def test_devices_whose_watchdogs_expired_in_a_pause_come_back(
     assert robot.healthy()
     sims = [manager.simulator("base"), manager.simulator("arm")]
     drive = robot.navigate_to(100.0, 0.0)  # far away: under way when the pause comes
-    pause(sims, clock, 2.0)  # twice the profile's 1 s watchdogs
+    pause(sims, clock, 4.0)  # past the 1 s watchdogs (the servos count real seconds: 1.3 s)
     # the base's axes disarmed by their watchdog: the driver sees it once the link is back (a
     # WARNING: the recovery will bring it back, and the robot's other features go on meanwhile)
     statuses.wait_for(lambda u: u.status is Status.WARNING, "WARNING", WAIT)
