@@ -125,15 +125,26 @@ class SdkPort:
         an empty read waits (``select``) until bytes arrive or the packet's timeout is due, so
         a reply is taken as soon as it comes and the wait costs no CPU; on a busy onboard
         computer (and for a simulator in this process) that CPU is the other threads'.
+
+        A wait that ends more than :data:`_STALL_MS` after it was due (the thread was not
+        scheduled: a loaded machine) moves the packet's timeout on by that much: the timeout
+        counts the time this host watched the line. A real line's bytes wait in the kernel's
+        buffer meanwhile and are read at once; a simulator in this process stalled with it and
+        gets its time to answer.
         """
         port = self._port
         data = cast("bytes", port.ser.read(length))
         if data or length <= 0:
             return data
-        left = port.packet_timeout - (port.getCurrentTime() - port.packet_start_time)
+        now = port.getCurrentTime()
+        left = port.packet_timeout - (now - port.packet_start_time)
         if left > 0:
+            wait = min(left, _IDLE_WAIT_MS)
             with contextlib.suppress(OSError, ValueError):  # closed meanwhile: the SDK says so
-                select.select([port.ser.fileno()], [], [], min(left, _IDLE_WAIT_MS) / 1000.0)
+                _wait_readable(port.ser.fileno(), wait / 1000.0)
+            overslept = port.getCurrentTime() - now - wait
+            if overslept > _STALL_MS:  # this thread did not run: that time is not the reply's
+                port.packet_start_time += overslept
             data = cast("bytes", port.ser.read(length))
         return data
 
@@ -316,6 +327,16 @@ _PKT_ERROR: Final = 8  # the error byte's index in a status packet
 #: The longest one wait of :meth:`SdkPort._read_port` for bytes (ms; the timeout is checked
 #: after each).
 _IDLE_WAIT_MS: Final = 50.0
+
+
+#: How late (ms) a wait of :meth:`SdkPort._read_port` may end before the time is taken for a
+#: stall of this thread, not counted towards the packet's timeout.
+_STALL_MS: Final = 20.0
+
+
+def _wait_readable(fd: int, seconds: float) -> None:
+    """Wait until ``fd`` has bytes to read, at most ``seconds``."""
+    select.select([fd], [], [], seconds)
 
 
 def _monotonic_ms() -> float:
