@@ -631,12 +631,12 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             )
 
     def _on_health(self, device: _Device, health: Health) -> None:
-        """A driver's report: a fault ends the goals that command the device, is told to every
-        consumer (WARNING when the recovery will run, else FATAL) and starts the recovery.
+        """A driver's report: a fault ends the device's goals, is told, starts the recovery.
 
-        Runs on the driver's thread: the safe state and the recovery's tries (which may wait
-        for the device) run on a thread of their own, ``temoto-recover-<device>``, one per
-        fault; a fault while it runs (a failed try) is logged, not sent again.
+        Every consumer is told (WARNING when the recovery will run, else FATAL). Runs on the
+        driver's thread: the safe state and the recovery's tries (which may wait for the
+        device) run on a thread of their own, ``temoto-recover-<device>``, one per fault; a
+        fault while it runs (a failed try) is logged, not sent again.
         """
         if health.state is DriverState.FAULT:
             with device.cond:
@@ -656,7 +656,7 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
                 with self._lock:
                     robots = list(self._robots.values())
                 why = device_text(device.name, health.message)
-                error = ResourceBrokenError(f"{self._where(device.name)} faulted: {why}")
+                error = ResourceBrokenError(f"{self._where(device.name)}: {why}")
                 ended = [robot.device_faulted(device.name, error) for robot in robots]
                 driver = device.driver
                 # A fault the recovery will take on is a WARNING: the motions that command the
