@@ -542,6 +542,28 @@ def test_a_hung_poll_makes_the_present_position_stale() -> None:
         assert "present position stale" in str(error)
 
 
+def test_a_stall_of_the_process_is_judged_by_the_next_poll_not_by_the_stall(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # The poll thread wakes after a stall longer than the stream's limit (a loaded machine):
+    # the chain answers its next poll, so the stream is fresh, not stale.
+    clock = ManualClock()
+    sim, entry = DynamixelDriver.simulate("arm", config(bus_watchdog=0), clock=clock)
+    with sim, DynamixelDriver.from_profile("arm", entry, clock=clock, where="a") as driver:
+        driver.configure()
+        driver.activate()
+        polls = sim.stats["packets"]
+        clock.advance(driver.feedback_max_age * 1.5)  # the stall: no poll meanwhile
+        deadline = time.monotonic() + 10.0
+        while sim.stats["packets"] < polls + 2:  # the poll after the stall (read and goals)
+            assert time.monotonic() < deadline, "no poll after the stall"
+            time.sleep(0.005)
+        time.sleep(0.05)
+        assert driver.state is DriverState.ACTIVE, driver.health().message
+        faults = [r.getMessage() for r in caplog.records if "fault" in r.getMessage()]
+        assert not faults, faults  # not even one that the next good poll cleared
+
+
 def test_a_silent_chain_goes_stale_even_with_many_timeout_polls() -> None:
     clock = MonotonicClock()
     entry = config(timeout_polls=10_000, reply_timeout=0.02)
