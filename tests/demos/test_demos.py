@@ -1,8 +1,11 @@
-"""The thesis' demonstrations end to end, on faster clocks (each prints its timeline)."""
+"""The thesis' demonstrations end to end, on faster clocks (each prints its timeline), at
+``typical`` realism as ``temoto demo`` runs them; the seed is printed for a replay
+(``temoto demo N --seed S``)."""
 
 from __future__ import annotations
 
 import io
+import random
 import subprocess
 import sys
 
@@ -11,9 +14,17 @@ import pytest
 from temoto.demos import run_demo
 
 
+@pytest.fixture
+def seed() -> int:
+    """A fresh realism seed per test, printed (pytest shows it with a failure's output)."""
+    value = random.randrange(2**32)
+    print(f"realism typical, seed {value}")
+    return value
+
+
 def test_demo_1_sensor_redundancy() -> None:
     out = io.StringIO()
-    report = run_demo(1, out)
+    report = run_demo(1, out)  # its sensors are processes, not simulated devices: no realism
     assert report.ok, out.getvalue()
     facts = report.facts
     assert facts["fed_the_display"] == ["lidar_3d", "depth_camera", "lidar_2d"]
@@ -24,9 +35,9 @@ def test_demo_1_sensor_redundancy() -> None:
     assert "display: switched to depth_camera" in out.getvalue()
 
 
-def test_demo_2_multi_robot_escort() -> None:
+def test_demo_2_multi_robot_escort(seed: int) -> None:
     out = io.StringIO()
-    report = run_demo(2, out, speed=3)
+    report = run_demo(2, out, speed=3, realism="typical", seed=seed)
     assert report.ok, out.getvalue()
     facts = report.facts
     assert facts["shown"] == ["worker_camera", "escort_camera"]
@@ -35,9 +46,9 @@ def test_demo_2_multi_robot_escort() -> None:
     assert facts["escort_gap_m"] < 1.2  # it followed the worker
 
 
-def test_demo_3_mission_adaptiveness() -> None:
+def test_demo_3_mission_adaptiveness(seed: int) -> None:
     out = io.StringIO()
-    report = run_demo(3, out, speed=3)
+    report = run_demo(3, out, speed=3, realism="typical", seed=seed)
     assert report.ok, out.getvalue()
     facts = report.facts
     assert facts["delivery"] == {"rover": "on_true", "arm_station": "on_true"}
@@ -58,18 +69,18 @@ def test_demo_3_mission_adaptiveness() -> None:
     assert positions == sorted(positions), text
 
 
-def test_demo_4_source_agnostic_tasking() -> None:
+def test_demo_4_source_agnostic_tasking(seed: int) -> None:
     out = io.StringIO()
-    report = run_demo(4, out, speed=3)
+    report = run_demo(4, out, speed=3, realism="typical", seed=seed)
     assert report.ok, out.getvalue()
     assert report.facts["steps"] == ["NavigateTo", "MoveJoints", "NavigateTo", "MoveJoints"]
     assert report.facts["result"] == "on_true"
     assert "unknown place 'kitchen'" in report.facts["refused"]
 
 
-def test_demo_5_multi_robot_knowledge_sharing() -> None:
+def test_demo_5_multi_robot_knowledge_sharing(seed: int) -> None:
     out = io.StringIO()
-    report = run_demo(5, out, speed=3)
+    report = run_demo(5, out, speed=3, realism="typical", seed=seed)
     assert report.ok, out.getvalue()
     facts = report.facts
     assert facts["trees_equal"]

@@ -19,6 +19,7 @@ from dxl_polled import follow
 from temoto.clock import ManualClock
 from temoto.drivers import DriverState
 from temoto.drivers.capabilities import ControlMode, JointCommand
+from temoto.drivers.dynamixel import _sdk
 from temoto.drivers.dynamixel import control_table as ct
 from temoto.drivers.dynamixel._sdk import COMM_RX_TIMEOUT, COMM_SUCCESS, SdkPort
 from temoto.drivers.dynamixel.driver import SIM_REPLY_TIMEOUT, DynamixelDriver
@@ -190,6 +191,63 @@ def test_the_sim_sends_a_poll_s_status_packets_late() -> None:
             # a single READ gets the jitter only (never late: the figures make every poll late)
             assert port.read(1, ct.MODEL_NUMBER.address, 2)[:2] == (1020, COMM_SUCCESS)
             assert sim.replies_late == 1
+        finally:
+            port.close()
+
+
+def test_waiting_for_a_late_reply_costs_no_cpu() -> None:
+    # dynamixel-sdk polls its non-blocking port in a loop until the reply or its timeout: a
+    # busy host (or the simulator in this process) loses a core to every wait. The wait is
+    # for the line now: the reading thread's CPU time stays far below the time it waited.
+    with _late_sim(0.3) as sim:
+        port = SdkPort(sim.path, 1_000_000, reply_timeout=0.5)
+        port.open()
+        try:
+            reader = port.sync_reader(*ct.FAST_READ, [1, 2])
+            cpu0, t0 = time.thread_time(), time.monotonic()
+            for _ in range(2):
+                result, data, _ = reader.read()
+                assert result == COMM_SUCCESS
+                assert set(data) == {1, 2}
+            waited, cpu = time.monotonic() - t0, time.thread_time() - cpu0
+            assert waited >= 0.6
+            assert cpu < 0.03, f"{cpu * 1000:.0f} ms of CPU for {waited * 1000:.0f} ms waited"
+        finally:
+            port.close()
+
+
+def test_a_stall_of_the_reading_thread_is_not_counted_as_the_reply_s_lateness(
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    # A loaded machine stalls the process for 0.3 s during a poll: the simulator in it (or a
+    # real line's kernel buffer) could not answer meanwhile. The 0.1 s reply timeout counts
+    # the time the host watched the line, so the reply 0.35 s after the instruction is taken.
+    waits: list[float] = []
+    wait_readable = _sdk._wait_readable
+
+    def stalled(fd: int, seconds: float) -> None:
+        if not waits:
+            time.sleep(0.3)  # the thread is not scheduled
+        waits.append(seconds)
+        wait_readable(fd, seconds)
+
+    monkeypatch.setattr(_sdk, "_wait_readable", stalled)
+    with _late_sim(0.35) as sim:
+        port = SdkPort(sim.path, 1_000_000, reply_timeout=0.1)
+        port.open()
+        try:
+            reader = port.sync_reader(*ct.FAST_READ, [1, 2])
+            result, data, _ = reader.read()
+            assert result == COMM_SUCCESS, port.result_text(result)
+            assert set(data) == {1, 2}
+            assert waits
+        finally:
+            port.close()
+    with _late_sim(0.35) as sim:  # without a stall, 0.35 s is late past the timeout
+        port = SdkPort(sim.path, 1_000_000, reply_timeout=0.1)
+        port.open()
+        try:
+            assert port.sync_reader(*ct.FAST_READ, [1, 2]).read()[0] == COMM_RX_TIMEOUT
         finally:
             port.close()
 

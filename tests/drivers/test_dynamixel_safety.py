@@ -23,7 +23,7 @@ from contract import eventually
 from dxl_polled import follow
 from dxl_sdk_client import Peer, SimLinks, patient_sim_links, sdk_client
 
-from temoto.clock import Clock, ManualClock, MonotonicClock
+from temoto.clock import Clock, ManualClock, MonotonicClock, ScaledClock
 from temoto.drivers import ControlMode, DriverState, JointCommand
 from temoto.drivers.dynamixel import driver as dxl_driver
 from temoto.drivers.dynamixel import timing as dxl_timing
@@ -312,6 +312,30 @@ def test_bus_watchdog_on_the_simulator() -> None:
         )
 
 
+def test_the_simulated_bus_watchdog_counts_real_seconds_on_a_faster_clock() -> None:
+    # The servo's watchdog guards against a silent host on the servo's own oscillator. A
+    # ScaledClock speeds the motion up, not the host's scheduling: a process stall of 0.35 s
+    # must not expire a 1 s watchdog in a demo at speed 5 (it did: 1.75 s of the clock).
+    clock = ScaledClock(5)
+    sim, entry = DynamixelDriver.simulate("arm", config(bus_watchdog=1.0), clock=clock)
+    with sim:
+        driver = DynamixelDriver.from_profile("arm", entry, clock=clock, where="a")
+        driver.configure()
+        driver.activate()
+        assert [sim.read_register(i, WATCHDOG) for i in (1, 2, 3)] == [50, 50, 50]
+        driver._stop_polling()  # the process stalls: no more instruction packets
+        hung = time.monotonic()
+        time.sleep(0.35)  # 1.75 s of the clock
+        if time.monotonic() - hung < 0.9:  # a loaded machine may oversleep: then no verdict
+            assert [sim.read_register(i, WATCHDOG) for i in (1, 2, 3)] == [50, 50, 50]
+        deadline = hung + 10.0
+        while sim.read_register(1, WATCHDOG) != -1:  # expired
+            assert time.monotonic() < deadline, "the watchdog never expired"
+            time.sleep(0.01)
+        assert time.monotonic() - hung >= 1.0  # not before one real second of silence
+        driver.shutdown()
+
+
 def test_bus_watchdog_on_the_e_manual_emulator(emulator: tuple[EManualChain, ManualClock]) -> None:
     chain, clock = emulator
     entry = config(bus_watchdog=0.1, link=f"serial:{chain.path}", reply_timeout=0.1)
@@ -523,6 +547,28 @@ def test_a_hung_poll_makes_the_present_position_stale() -> None:
         error = driver.health().error
         assert isinstance(error, DriverTimeoutError)
         assert "present position stale" in str(error)
+
+
+def test_a_stall_of_the_process_is_judged_by_the_next_poll_not_by_the_stall(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    # The poll thread wakes after a stall longer than the stream's limit (a loaded machine):
+    # the chain answers its next poll, so the stream is fresh, not stale.
+    clock = ManualClock()
+    sim, entry = DynamixelDriver.simulate("arm", config(bus_watchdog=0), clock=clock)
+    with sim, DynamixelDriver.from_profile("arm", entry, clock=clock, where="a") as driver:
+        driver.configure()
+        driver.activate()
+        polls = sim.stats["packets"]
+        clock.advance(driver.feedback_max_age * 1.5)  # the stall: no poll meanwhile
+        deadline = time.monotonic() + 10.0
+        while sim.stats["packets"] < polls + 2:  # the poll after the stall (read and goals)
+            assert time.monotonic() < deadline, "no poll after the stall"
+            time.sleep(0.005)
+        time.sleep(0.05)
+        assert driver.state is DriverState.ACTIVE, driver.health().message
+        faults = [r.getMessage() for r in caplog.records if "fault" in r.getMessage()]
+        assert not faults, faults  # not even one that the next good poll cleared
 
 
 def test_a_silent_chain_goes_stale_even_with_many_timeout_polls() -> None:

@@ -100,7 +100,7 @@ def test_tries_wait_doubling_and_the_device_comes_back(flaky: None) -> None:
         assert driver.state is DriverState.ACTIVE
         assert robot.healthy()
         assert [(u.status, u.message) for u in statuses.got] == [
-            (Status.FATAL, "robot r, device dev: node 3 (wheel): WATCHDOG_TIMER_EXPIRED"),
+            (Status.WARNING, "robot r, device dev: node 3 (wheel): WATCHDOG_TIMER_EXPIRED"),
             (Status.OK, "robot r, device dev: recovered on try 3/4"),
         ]
 
@@ -116,7 +116,7 @@ def test_a_device_that_keeps_failing_is_given_up_with_its_reason(flaky: None) ->
         run_clock(clock, lambda: len(statuses.got) >= 2)
         assert len(driver.tries) == 3
         assert [(u.status, u.message) for u in statuses.got] == [
-            (Status.FATAL, "robot r, device dev: node 3 (wheel): WATCHDOG_TIMER_EXPIRED"),
+            (Status.WARNING, "robot r, device dev: node 3 (wheel): WATCHDOG_TIMER_EXPIRED"),
             (
                 Status.FATAL,
                 "robot r, device dev: gave up after 3 tries: node 3 (wheel): no heartbeat"

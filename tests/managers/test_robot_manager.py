@@ -69,7 +69,7 @@ def test_the_robot_loads_with_its_driver_as_a_dependency_and_moves(
         manager.simulator("arm")
 
 
-def test_a_silent_device_is_fatal_for_the_robots_consumers_and_its_return_ok(
+def test_a_silent_device_is_a_warning_for_the_robots_consumers_and_its_return_ok(
     arm: tuple[Registrar, RobotManager],
 ) -> None:
     registrar, manager = arm
@@ -78,7 +78,7 @@ def test_a_silent_device_is_fatal_for_the_robots_consumers_and_its_return_ok(
     sim = manager.simulator("arm")
     t0 = time.monotonic()
     sim.inject("silence")
-    t_fatal, fatal = statuses.wait_for(Status.FATAL)
+    t_fatal, fatal = statuses.wait_for(Status.WARNING)  # FATAL only if the recovery gives up
     assert "arm" in fatal.message
     assert fatal.hops == ("driver", "robot")
     # three poll periods (20 ms) of unanswered SyncReads, each waiting its reply timeout

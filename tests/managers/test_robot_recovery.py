@@ -24,7 +24,7 @@ from temoto.config import parse_profile
 from temoto.core.registrar import Status
 from temoto.drivers import DriverState
 from temoto.drivers.recovery import RecoveryPolicy
-from temoto.errors import ProfileError
+from temoto.errors import ProfileError, ResourceBrokenError
 from temoto.managers.robot import RobotManagerClient
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -78,9 +78,10 @@ def test_devices_whose_watchdogs_expired_in_a_pause_come_back(
     assert robot.healthy()
     sims = [manager.simulator("base"), manager.simulator("arm")]
     drive = robot.navigate_to(100.0, 0.0)  # far away: under way when the pause comes
-    pause(sims, clock, 2.0)  # twice the profile's 1 s watchdogs
-    # the base's axes disarmed by their watchdog: the driver sees it once the link is back
-    statuses.wait_for(lambda u: u.status is Status.FATAL, "FATAL", WAIT)
+    pause(sims, clock, 4.0)  # past the 1 s watchdogs (the servos count real seconds: 1.3 s)
+    # the base's axes disarmed by their watchdog: the driver sees it once the link is back (a
+    # WARNING: the recovery will bring it back, and the robot's other features go on meanwhile)
+    statuses.wait_for(lambda u: u.status is Status.WARNING, "WARNING", WAIT)
     for device in ("base", "arm"):
         statuses.wait_for(
             lambda u, d=device: (
@@ -103,7 +104,7 @@ def test_devices_whose_watchdogs_expired_in_a_pause_come_back(
         assert f"robot sim_mobile_manipulator, device {device}: recovery try 1/5" in text
         assert f"robot sim_mobile_manipulator, device {device}: recovered on try" in text
     # the consumers' messages name the robot and the device once ("base: base:" no more)
-    fatal = next(u for u in statuses.got if u.status is Status.FATAL)
+    fatal = next(u for u in statuses.got if u.status is Status.WARNING)
     assert fatal.message.startswith("robot sim_mobile_manipulator, device ")
     assert "base: base:" not in fatal.message
     assert "arm: arm:" not in fatal.message
@@ -223,3 +224,42 @@ def test_a_hardware_error_is_not_cleared_automatically(caplog: pytest.LogCapture
         assert health.message.startswith(
             "not recovered automatically (the device reports a hardware error): "
         ), health.message
+
+
+def test_a_fault_of_the_arm_fails_only_what_needs_the_arm_while_it_recovers(mobile: Any) -> None:
+    """Issue 25 item 2: an action that needs a FAULT device fails at once with its reason; a
+    drive that does not use it goes on (the recovery runs meanwhile: a WARNING, not FATAL)."""
+    registrar, manager, clock = mobile
+    statuses = Statuses()
+    robot = RobotManagerClient(registrar).request(client="test", on_status=statuses)
+    wait_until(robot.healthy, "the robot is not healthy at its start")
+    drive = robot.navigate_to(100.0, 0.0)  # far away: under way all along
+    reach = robot.move_to_pose("reach")
+    manager.simulator("arm").inject("link_loss")  # the arm's polls go unanswered
+    warned = statuses.wait_for(
+        lambda u: u.status is not Status.OK and "device arm" in u.message, "arm fault", WAIT
+    )
+    assert warned.status is Status.WARNING, warned  # the recovery will run: not FATAL
+    assert reach.wait(WAIT)  # the arm's goal ended with the device's reason
+    assert isinstance(reach.error, ResourceBrokenError), reach.error
+    assert str(reach.error).startswith("robot sim_mobile_manipulator, device arm: "), reach.error
+    with pytest.raises(ResourceBrokenError, match="device 'arm' is FAULT"):
+        robot.move_to_pose("home")  # needs the faulted arm: fails at once
+    x0 = robot.pose()[0]
+    end = clock.monotonic() + 1.5
+    while clock.monotonic() < end:
+        time.sleep(0.02)
+    assert not drive.done, drive.error  # the base's goal goes on
+    assert robot.pose()[0] > x0 + 0.05, (x0, robot.pose())
+    manager.simulator("arm").clear("link_loss")
+    statuses.wait_for(
+        lambda u: u.status is Status.OK and "device arm: recovered on try" in u.message,
+        "OK for the arm",
+        WAIT,
+    )
+    assert not drive.done, drive.error
+    assert not any(u.status is Status.FATAL for u in statuses.got), statuses.got
+    motion = robot.move_to_pose("home")  # the recovered arm moves again
+    assert motion.wait(WAIT), motion
+    assert motion.error is None
+    drive.cancel()

@@ -308,8 +308,10 @@ class ServoChain(Driver):
         while not self._stop.is_set():
             count += 1
             try:
-                self._check_stale()
+                # the poll first: after a stall of this process (a loaded machine) the chain
+                # answers the next poll, and the stream is judged by the wire, not the stall
                 good = self._poll_fast()
+                self._check_stale()
                 self._feed_goals()
                 if good and count % self.status_every == 0:
                     self._poll_status()

@@ -94,7 +94,7 @@ class SdkPort:
         self._port: Any = _dxl.PortHandler(path)
         self._port.setPacketTimeout = self._set_packet_timeout  # the SDK's, with our margin
         self._port.getCurrentTime = _monotonic_ms  # the SDK's clock, never stepped
-        self._port.readPort = self._read_port  # the SDK's, waiting instead of spinning
+        self._port.readPort = self._read_port  # the SDK's, waiting for bytes instead of spinning
         self._ph: Any = _dxl.PacketHandler(2.0)
         #: Status packets dropped because their length fits no transaction at hand (late
         #: answers to an earlier one; see the module docstring).
@@ -102,24 +102,6 @@ class SdkPort:
         self._expect: int | None = None  # parameter bytes of the status packet awaited
         self._sdk_rx = self._ph.rxPacket
         self._ph.rxPacket = self._rx_packet  # the SDK's, dropping late answers
-
-    def _read_port(self, length: int) -> bytes:
-        """The SDK's ``readPort``: up to ``length`` bytes, waiting for the first until timeout.
-
-        Returns at once with what is there; with nothing there, waits (without the CPU) for
-        bytes or for the end of the transaction's packet timeout, whichever comes first. The
-        SDK then checks its timeout as before.
-        """
-        ser = self._port.ser
-        data = bytes(ser.read(length))
-        if data or length <= 0:
-            return data
-        port = self._port
-        left = (port.packet_timeout - port.getTimeSinceStart()) / 1000.0
-        if left > 0:
-            select.select([ser.fileno()], [], [], left)
-            data = bytes(ser.read(length))
-        return data
 
     def _rx_packet(self, port: Any, fast_option: bool) -> tuple[list[int], int]:
         """The SDK's ``rxPacket``, reading on past status packets of the wrong length."""
@@ -139,6 +121,38 @@ class SdkPort:
                 params,
                 expect,
             )
+
+    def _read_port(self, length: int) -> bytes:
+        """The SDK's ``readPort``; with nothing to read, it waits for the line, not the CPU.
+
+        dynamixel-sdk opens the port non-blocking and calls ``readPort`` in a loop until its
+        packet timeout: a busy loop that holds a core (and, in Python, the interpreter lock)
+        for every reply it waits for, e.g. the servos' Return Delay Times of each poll. Here
+        an empty read waits (``select``) until bytes arrive or the packet's timeout is due, so
+        a reply is taken as soon as it comes and the wait costs no CPU; on a busy onboard
+        computer (and for a simulator in this process) that CPU is the other threads'.
+
+        A wait that ends more than :data:`_STALL_MS` after it was due (the thread was not
+        scheduled: a loaded machine) moves the packet's timeout on by that much: the timeout
+        counts the time this host watched the line. A real line's bytes wait in the kernel's
+        buffer meanwhile and are read at once; a simulator in this process stalled with it and
+        gets its time to answer.
+        """
+        port = self._port
+        data = cast("bytes", port.ser.read(length))
+        if data or length <= 0:
+            return data
+        now = port.getCurrentTime()
+        left = port.packet_timeout - (now - port.packet_start_time)
+        if left > 0:
+            wait = min(left, _IDLE_WAIT_MS)
+            with contextlib.suppress(OSError, ValueError):  # closed meanwhile: the SDK says so
+                _wait_readable(port.ser.fileno(), wait / 1000.0)
+            overslept = port.getCurrentTime() - now - wait
+            if overslept > _STALL_MS:  # this thread did not run: that time is not the reply's
+                port.packet_start_time += overslept
+            data = cast("bytes", port.ser.read(length))
+        return data
 
     @contextlib.contextmanager
     def _expecting(self, params: int) -> Iterator[None]:
@@ -314,6 +328,21 @@ def serial_ports() -> list[str]:
 _STATUS_OVERHEAD: Final = 11
 _PKT_ID: Final = 4  # the id's index in a packet
 _PKT_ERROR: Final = 8  # the error byte's index in a status packet
+
+
+#: The longest one wait of :meth:`SdkPort._read_port` for bytes (ms; the timeout is checked
+#: after each).
+_IDLE_WAIT_MS: Final = 50.0
+
+
+#: How late (ms) a wait of :meth:`SdkPort._read_port` may end before the time is taken for a
+#: stall of this thread, not counted towards the packet's timeout.
+_STALL_MS: Final = 20.0
+
+
+def _wait_readable(fd: int, seconds: float) -> None:
+    """Wait until ``fd`` has bytes to read, at most ``seconds``."""
+    select.select([fd], [], [], seconds)
 
 
 def _monotonic_ms() -> float:

@@ -75,7 +75,9 @@ Bus Watchdog (98), as the e-Manual describes it for the X series (firmware v38 o
 packet meant for it (one to its id, a broadcast, or a SYNC/BULK packet that lists it) for longer
 than the set time stops where it is (torque stays on), the register reads -1, and the goal
 registers (Goal PWM, Current, Velocity, Position) refuse writes with a Data Range error until 0
-is written to it. Expiry is computed on the injected clock, at the exact instant it falls,
+is written to it. Expiry is computed on the injected clock (its window in real seconds when
+the clock runs faster than real time, as the servo's own oscillator does; see
+:func:`~temoto.drivers.dynamixel.sim_servo.watchdog_expiry`), at the exact instant it falls,
 whenever the model steps (on every packet, on a register read, and every 50 ms of real time
 while the line is quiet). After the error is cleared the servo stays stopped until a new goal is
 accepted or torque is switched off (the e-Manual does not say; this never moves a servo by

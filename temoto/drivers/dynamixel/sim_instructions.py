@@ -122,6 +122,8 @@ class ServoChain(Simulator):
         self._servos = chain
         self._state = threading.Lock()
         self._last_step = self.clock.monotonic()
+        #: Clock seconds per real second of the Bus Watchdog (see :func:`watchdog_expiry`).
+        self._watchdog_scale = max(1.0, 1.0 / self.clock.real_seconds(1.0))
         for servo in chain:
             servo.booted = self._last_step
         #: Packets heard, replies sent, bad packets dropped, REBOOTs, FACTORY_RESETs, and
@@ -568,7 +570,7 @@ class ServoChain(Simulator):
         if dt <= 0:
             return
         for servo in self._servos:
-            expiry = watchdog_expiry(servo)
+            expiry = watchdog_expiry(servo, self._watchdog_scale)
             if expiry is not None and expiry < now:
                 move(servo, max(expiry - start, 0.0))  # up to the moment it expired
                 expire_watchdog(servo)

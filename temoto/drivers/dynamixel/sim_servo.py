@@ -400,12 +400,26 @@ def _heat(servo: Servo, joules: float, dt: float, watts: float) -> None:
         servo.set("Torque Enable", 0)
 
 
-def watchdog_expiry(servo: Servo) -> float | None:
-    """When the servo's armed Bus Watchdog expires (None: off, expired, or torque off)."""
+def watchdog_expiry(servo: Servo, scale: float = 1.0) -> float | None:
+    """When the servo's armed Bus Watchdog expires (None: off, expired, or torque off).
+
+    The watchdog is the servo's guard against a silent host, timed by the servo's own
+    oscillator: real seconds. On a clock that runs faster than real time (a
+    :class:`~temoto.clock.ScaledClock` above 1) the motion is sped up but the host's scheduling
+    is not, so the window stays that many real seconds (``scale`` = clock seconds per real
+    second); on real and virtual clocks it is the clock's seconds.
+
+    Args:
+        servo: The servo.
+        scale: Clock seconds per real second of the window (1: the clock's seconds).
+
+    Returns:
+        The clock time of the expiry, or None.
+    """
     units = servo.value("Bus Watchdog")
     if units <= 0 or not servo.torque:
         return None
-    return servo.heard + units * ct.BUS_WATCHDOG_UNIT
+    return servo.heard + units * ct.BUS_WATCHDOG_UNIT * scale
 
 
 def expire_watchdog(servo: Servo) -> None:

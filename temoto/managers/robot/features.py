@@ -183,14 +183,20 @@ class DriveController:
             old.supersede()
         return motion
 
-    def stop(self) -> None:
-        """Cancel the goal and command the wheels zero velocity now (if they were not)."""
+    def stop(self, error: BaseException | None = None) -> None:
+        """Cancel the goal and command the wheels zero velocity now (if they were not).
+
+        Args:
+            error: What the goal's motion fails with (None: "cancelled").
+        """
         with self._lock:
             old, self._motion, self._goal = self._motion, None, None
             self._velocity = None
             if self._commanded != (0.0, 0.0):
                 self._still()
-        if old is not None:
+        if old is not None and error is not None:
+            old.fail(error)
+        elif old is not None:
             old.cancel()
 
     def _still(self) -> None:
@@ -375,13 +381,19 @@ class ArmController:
             raise KeyError(f"the arm has no pose {pose!r} (poses: {known})")
         return self.move_joints(self.feature.poses[pose])
 
-    def stop(self) -> None:
-        """Cancel the goal; the joints hold where they are."""
+    def stop(self, error: BaseException | None = None) -> None:
+        """Cancel the goal; the joints hold where they are.
+
+        Args:
+            error: What the goal's motion fails with (None: "cancelled").
+        """
         with self._lock:
             old, self._motion = self._motion, None
             if old is not None and not old.done:
                 self._still(self._targets)
-        if old is not None:
+        if old is not None and error is not None:
+            old.fail(error)
+        elif old is not None:
             old.cancel()
 
     def here(self, joints: Iterable[str]) -> dict[str, float]:

@@ -4,10 +4,11 @@ Two servers on the registrar:
 
 * ``"driver"`` (:class:`DriverRequest`): one device of the profile, opened, configured and
   activated (its simulator started first when the profile says ``sim: true``). The driver's
-  health reports become statuses of the resource: a fault is ``FATAL`` (with the driver's
-  typed error as the message), a recovery ``OK``.
+  health reports become statuses of the resource: a fault is ``WARNING`` while the recovery
+  will bring the device back and ``FATAL`` when nothing will (with the driver's typed error as
+  the message), a recovery ``OK``.
 * ``"robot"`` (:class:`RobotRequest`): the robot. Loading it requests a ``"driver"`` for every
-  device — dependencies, so a driver's ``FATAL`` reaches every consumer of the robot, and the
+  device — dependencies, so a driver's status reaches every consumer of the robot, and the
   drivers are closed when the last consumer releases the robot — and builds the features
   (:mod:`temoto.managers.robot.features`), stepped by one control thread on the robot's clock.
 
@@ -42,6 +43,7 @@ from temoto.drivers.sim import Simulator
 from temoto.errors import (
     ConfigError,
     DriverInitError,
+    ResourceBrokenError,
     ResourceLoadError,
     ResourceNotFoundError,
     StateError,
@@ -299,18 +301,26 @@ class Robot:
         annotate = self._annotate or (lambda h: h)
         return {name: annotate(d.health()) for name, d in self._devices.items()}
 
-    def device_faulted(self, device: str) -> None:
+    def device_faulted(self, device: str, error: BaseException | None = None) -> bool:
         """End the goals of the features that command ``device`` (it faulted).
 
         A recovered device then holds where it is: the control loop does not take up a goal
-        set before the fault (the action that set it was told FATAL).
+        set before the fault. The motions of those goals end with ``error`` (the action that
+        follows one fails with the device's reason); the goals of features that do not use
+        the device go on.
 
         Args:
             device: The device's name.
+            error: What the ended motions fail with (None: "cancelled").
+
+        Returns:
+            Whether the robot ended every goal that commands the device itself: False for the
+            vehicle of the flight feature (its actions learn of the fault from ``FATAL``).
         """
         for controller, devices in self._commanders:
             if device in devices:
-                controller.stop()
+                controller.stop(error)
+        return self.profile.flight is None or self.profile.flight.device != device
 
     def close(self) -> None:
         """Stop the control thread (the drivers are closed by their resources)."""
@@ -621,11 +631,12 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             )
 
     def _on_health(self, device: _Device, health: Health) -> None:
-        """A driver's report: a fault is FATAL for every consumer and starts the recovery.
+        """A driver's report: a fault ends the device's goals, is told, starts the recovery.
 
-        Runs on the driver's thread: the safe state and the recovery's tries (which may wait
-        for the device) run on a thread of their own, ``temoto-recover-<device>``, one per
-        fault; a fault while it runs (a failed try) is logged, not sent again.
+        Every consumer is told (WARNING when the recovery will run, else FATAL). Runs on the
+        driver's thread: the safe state and the recovery's tries (which may wait for the
+        device) run on a thread of their own, ``temoto-recover-<device>``, one per fault; a
+        fault while it runs (a failed try) is logged, not sent again.
         """
         if health.state is DriverState.FAULT:
             with device.cond:
@@ -644,9 +655,17 @@ class RobotManager(ResourceServer[RobotRequest, RobotResponse]):
             if start and device.thread is not None:  # once per fault: later reports are logged
                 with self._lock:
                     robots = list(self._robots.values())
-                for robot in robots:
-                    robot.device_faulted(device.name)
-                self._status(device, Status.FATAL, health.message)
+                why = device_text(device.name, health.message)
+                error = ResourceBrokenError(f"{self._where(device.name)}: {why}")
+                ended = [robot.device_faulted(device.name, error) for robot in robots]
+                driver = device.driver
+                # A fault the recovery will take on is a WARNING: the motions that command the
+                # device ended above with its reason, the robot's other features go on, and an
+                # action that needs the device while it is out fails at once (require()). FATAL
+                # (every consumer of the robot fails) only when nothing will bring it back.
+                comes_back = driver.recovery.enabled and not driver.needs_hands(health.error)
+                status = Status.WARNING if comes_back and all(ended) else Status.FATAL
+                self._status(device, status, health.message)
                 device.thread.start()
         elif health.ok:
             with device.cond:

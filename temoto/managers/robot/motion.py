@@ -135,6 +135,16 @@ class Motion:
             self._owner._halt(self)  # a no-op when the goal is no longer the controller's
         self.finish(StateError(f"{self.what}: {why}"))
 
+    def fail(self, error: BaseException) -> None:
+        """End it with ``error`` (a device it commands faulted); as :meth:`cancel` otherwise.
+
+        Args:
+            error: What the action following it raises.
+        """
+        if self._owner is not None and not self._done.is_set():
+            self._owner._halt(self)
+        self.finish(error)
+
     def finish(self, error: BaseException | None = None) -> None:
         """Controller: the goal was reached (or not, with ``error``). Idempotent."""
         with self._lock:
