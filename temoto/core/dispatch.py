@@ -343,8 +343,9 @@ class Dispatcher:
                     child = finished(node, gen, result, outputs, error, fx, instance)
                 if child is not None:
                     # the next link of the chain, started by this result (same run): it runs
-                    # here, unless there are effects to carry out first
-                    if not other and not runs and not evolution.releases:
+                    # here, unless there are releases to carry out first (``fx`` held no effect
+                    # on entry, and an end that returns a child adds none: finished_next)
+                    if not evolution.releases:
                         data = child.data
                         node, gen, instance = child, child.gen, child.instance
                         values = dict(data) if data else NO_VALUES

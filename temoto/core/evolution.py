@@ -483,8 +483,9 @@ class RunEvolution:
 
         Returns:
             The idle local child this end started when its wave was that one step: it is
-            RUNNING but not queued in ``fx``, and the caller runs it (or queues it). None when
-            the end started nothing so, everything it did being in ``fx``.
+            RUNNING but not queued in ``fx``, and the caller runs it (or queues it); the end
+            then added nothing to ``fx`` either. None when the end started nothing so,
+            everything it did being in ``fx``.
         """
         if gen != node.gen:
             return None  # a run the engine already gave up on (stop timeout)
