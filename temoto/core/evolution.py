@@ -500,12 +500,12 @@ class RunEvolution:
             and run.state is _G_RUNNING
             and error is None
             and not self.observed
-            and node.stop_timer is None
-            and not node.restart
         ):
             # The commonest end (a run that returned, nothing observing): set_state's path
-            # for RUNNING -> FINISHED, inlined (legal by the table: FAST_CHANGES). No data
-            # (no input) is the common case: two len() calls fewer.
+            # for RUNNING -> FINISHED, inlined (legal by the table: FAST_CHANGES). A RUNNING
+            # node has no stop timer and no restart pending: both are STOPPING's, which the
+            # table lets go to FINISHED or ERROR only, through _end_other or _stop_expired.
+            # No data (no input) is the common case: two len() calls fewer.
             data = node.data
             if data and len(data) != len(node.native):
                 node.clear_data()
