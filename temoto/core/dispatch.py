@@ -468,8 +468,10 @@ class Dispatcher:
             node, node.name, node.run.name, node.inputs, node.outputs, self.registrar
         )
         if not node.inline:
-            with self._lock:
-                node.instance = instance
+            lock = self._lock
+            lock.acquire()  # not `with`: its __enter__ and __exit__ cost as much again
+            node.instance = instance  # (a store into a slot: nothing to release the lock for)
+            lock.release()
         return instance
 
     def _call_hook(self, node: Node, gen: int, hook: str) -> None:
