@@ -492,7 +492,7 @@ class RunEvolution:
         if instance is not None:  # adopt(), inlined
             if node.instance is None:
                 node.instance = instance
-            if node.log or node.logged:
+            if node.logged:  # (a log is kept only once logged: adopt's `node.log or`, implied)
                 node.log = instance.log_snapshot()
         run = node.run
         if (
