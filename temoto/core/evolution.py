@@ -514,9 +514,10 @@ class RunEvolution:
             if self._quiet_waiters:
                 self._quiet.notify_all()
         else:
-            result = self._end_other(node, run, result, outputs, error, fx)
-            if result is None:
+            passed = self._end_other(node, run, result, outputs, error, fx)
+            if passed is None:
                 return None
+            result = passed
         # The result goes to the children (docs/design.md §4.3): the evolution kernel computes
         # the wave (responses, received parents, bypass chains), _apply_wave carries out
         # its steps. A wave of one `run` step (a chain's link, a fan-in's edge) is asked
