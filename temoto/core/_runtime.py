@@ -419,13 +419,12 @@ class GraphRun:
         Returns:
             True if the nodes may be renewed for the new run.
         """
-        return (
-            plan is self.plan
-            and not self.active
-            and not self.peers
-            and not self.stop_failed
-            and not any(node.acquired for node in self.nodes.values())
-        )
+        if plan is not self.plan or self.active or self.peers or self.stop_failed:
+            return False
+        for node in self.nodes.values():  # noqa: SIM110 - a loop: no generator step per node
+            if node.acquired:
+                return False
+        return True
 
     def _received_by_slot(self) -> dict[tuple[str, str], int]:
         """The kernel's received flag of every (child, parent) pair of the current wiring."""

@@ -343,8 +343,9 @@ class Dispatcher:
                     child = finished(node, gen, result, outputs, error, fx, instance)
                 if child is not None:
                     # the next link of the chain, started by this result (same run): it runs
-                    # here, unless there are effects to carry out first
-                    if not other and not runs and not evolution.releases:
+                    # here, unless there are releases to carry out first (``fx`` held no effect
+                    # on entry, and an end that returns a child adds none: finished_next)
+                    if not evolution.releases:
                         data = child.data
                         node, gen, instance = child, child.gen, child.instance
                         values = dict(data) if data else NO_VALUES
@@ -467,8 +468,10 @@ class Dispatcher:
             node, node.name, node.run.name, node.inputs, node.outputs, self.registrar
         )
         if not node.inline:
-            with self._lock:
-                node.instance = instance
+            lock = self._lock
+            lock.acquire()  # not `with`: its __enter__ and __exit__ cost as much again
+            node.instance = instance  # (a store into a slot: nothing to release the lock for)
+            lock.release()
         return instance
 
     def _call_hook(self, node: Node, gen: int, hook: str) -> None:

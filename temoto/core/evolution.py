@@ -483,71 +483,41 @@ class RunEvolution:
 
         Returns:
             The idle local child this end started when its wave was that one step: it is
-            RUNNING but not queued in ``fx``, and the caller runs it (or queues it). None when
-            the end started nothing so, everything it did being in ``fx``.
+            RUNNING but not queued in ``fx``, and the caller runs it (or queues it); the end
+            then added nothing to ``fx`` either. None when the end started nothing so,
+            everything it did being in ``fx``.
         """
         if gen != node.gen:
             return None  # a run the engine already gave up on (stop timeout)
         if instance is not None:  # adopt(), inlined
             if node.instance is None:
                 node.instance = instance
-            if node.log or node.logged:
+            if node.logged:  # (a log is kept only once logged: adopt's `node.log or`, implied)
                 node.log = instance.log_snapshot()
         run = node.run
-        state = node.state
         if (
-            state is _N_RUNNING
+            node.state is _N_RUNNING
             and run.state is _G_RUNNING
             and error is None
             and not self.observed
-            and node.stop_timer is None
-            and not node.restart
         ):
             # The commonest end (a run that returned, nothing observing): set_state's path
-            # for RUNNING -> FINISHED, inlined (legal by the table: FAST_CHANGES).
-            if len(node.data) != len(node.native):
+            # for RUNNING -> FINISHED, inlined (legal by the table: FAST_CHANGES). A RUNNING
+            # node has no stop timer and no restart pending: both are STOPPING's, which the
+            # table lets go to FINISHED or ERROR only, through _end_other or _stop_expired.
+            # No data (no input) is the common case: two len() calls fewer.
+            data = node.data
+            if data and len(data) != len(node.native):
                 node.clear_data()
             node.state = _N_FINISHED
             run.active -= 1
             if self._quiet_waiters:
                 self._quiet.notify_all()
         else:
-            if state is not _N_RUNNING:
-                if state is _N_PAUSE_REQUESTED or state is _N_PAUSED:
-                    node.held = (result, outputs, error)  # delivered on resume
-                    return None
-                if state is _N_STOPPING:
-                    result = _R_STOPPED
-            if node.stop_timer is not None:
-                node.stop_timer.cancel()
-                node.stop_timer = None
-            if len(node.data) != len(node.native):
-                node.clear_data()
-            if node.restart:
-                node.restart = False
-                self.set_state(node, _N_FINISHED)
-                if run.state is _G_RUNNING or run.state in _PAUSED_GRAPH:
-                    self.run_node(node, fx)
-                self.after_change(run, fx)
+            passed = self._end_other(node, run, result, outputs, error, fx)
+            if passed is None:
                 return None
-            if error is not None and result is _R_ERROR:
-                node.error = error
-                run.errors.append(error)
-                logger.warning("%s: %s", run.name, error)
-                if self._instruments:
-                    self._notify("action_failed", run.name, node.name, error)
-            if self._watchers:  # the result, then the state change it leads to
-                t = self.clock.monotonic()
-                for inst in list(self._watchers):
-                    try:
-                        inst.node_result(run.name, node.name, result, t)
-                    except Exception:
-                        self._drop_instrument(inst)
-            self.set_state(node, _N_ERROR if result is _R_ERROR else _N_FINISHED)
-            if run.state is not _G_RUNNING:  # (the common end is in a RUNNING run)
-                if not run.active:
-                    self.after_change(run, fx)
-                return None
+            result = passed
         # The result goes to the children (docs/design.md §4.3): the evolution kernel computes
         # the wave (responses, received parents, bypass chains), _apply_wave carries out
         # its steps. A wave of one `run` step (a chain's link, a fan-in's edge) is asked
@@ -592,6 +562,60 @@ class RunEvolution:
         if not run.active:
             self.after_change(run, fx)
         return None
+
+    def _end_other(
+        self,
+        node: Node,
+        run: GraphRun,
+        result: Result,
+        outputs: dict[str, Any],
+        error: BaseException | None,
+        fx: Effects,
+    ) -> Result | None:
+        """Lock held: :meth:`finished_next` for every end but the commonest, up to its wave.
+
+        Returns:
+            The result the children receive (a stopped node's is STOPPED), or None when the
+            end goes no further: held while paused, a restart, or a run no longer RUNNING.
+        """
+        state = node.state
+        if state is not _N_RUNNING:
+            if state is _N_PAUSE_REQUESTED or state is _N_PAUSED:
+                node.held = (result, outputs, error)  # delivered on resume
+                return None
+            if state is _N_STOPPING:
+                result = _R_STOPPED
+        if node.stop_timer is not None:
+            node.stop_timer.cancel()
+            node.stop_timer = None
+        if len(node.data) != len(node.native):
+            node.clear_data()
+        if node.restart:
+            node.restart = False
+            self.set_state(node, _N_FINISHED)
+            if run.state is _G_RUNNING or run.state in _PAUSED_GRAPH:
+                self.run_node(node, fx)
+            self.after_change(run, fx)
+            return None
+        if error is not None and result is _R_ERROR:
+            node.error = error
+            run.errors.append(error)
+            logger.warning("%s: %s", run.name, error)
+            if self._instruments:
+                self._notify("action_failed", run.name, node.name, error)
+        if self._watchers:  # the result, then the state change it leads to
+            t = self.clock.monotonic()
+            for inst in list(self._watchers):
+                try:
+                    inst.node_result(run.name, node.name, result, t)
+                except Exception:
+                    self._drop_instrument(inst)
+        self.set_state(node, _N_ERROR if result is _R_ERROR else _N_FINISHED)
+        if run.state is not _G_RUNNING:  # (the common end is in a RUNNING run)
+            if not run.active:
+                self.after_change(run, fx)
+            return None
+        return result
 
     def _apply_wave(
         self,
