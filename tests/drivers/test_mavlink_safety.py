@@ -19,7 +19,7 @@ import pytest
 from pymavlink.dialects.v20 import ardupilotmega as mav2  # type: ignore[import-untyped]
 from test_mavlink import HOME, configure, run_until, ticking
 
-from temoto.clock import ManualClock
+from temoto.clock import ManualClock, ScaledClock
 from temoto.drivers import DriverState
 from temoto.drivers.mavlink import MavlinkDriver, SimVehicle
 from temoto.drivers.mavlink import protocol as p
@@ -291,6 +291,62 @@ def test_a_stream_that_stops_while_heartbeats_go_on_is_stale(
     assert d.telemetry().heartbeat_age < 1.1  # the heartbeats went on
     sim.set_rate(stream, 10)
     run_until(clock, lambda: d.state is DriverState.ACTIVE, 1.0)
+
+
+def test_a_vehicle_on_this_machine_gets_the_in_process_floor_on_a_fast_clock() -> None:
+    """Our simulator (or SITL) shares the cores: its streams may be 0.2 real s late.
+
+    On a clock ten times faster than real time, 3 periods of a 10 Hz stream are 30 ms of real
+    time: a simulator thread in the robot's own process, starved that long on a loaded
+    machine, made the driver call GLOBAL_POSITION_INT stale mid-flight (a whole-suite run at
+    load 12-50). A vehicle whose frames come from a loopback address is given
+    ``STALE_REAL_FLOOR_IN_PROCESS`` (0.2 real s: 2 clock s here), as the CAN drivers' virtual
+    bus is; a stream that really stops is still a fault, named.
+    """
+    clock = ScaledClock(10)
+    config = {
+        "link": "udpin:127.0.0.1:14550",
+        "init_timeout": 60.0,  # clock seconds: 6 real s for a loaded machine
+        "command_timeout": 5.0,
+        "heartbeat_timeout": 20.0,  # the stream, not the heartbeat, is under test
+    }
+    sim, settings = MavlinkDriver.simulate("quad", config, clock=clock)
+    d = MavlinkDriver.from_profile("quad", settings, clock=clock, where="devices.quad")
+    sim.start()
+    try:
+        d.configure()
+        d.activate()
+        stopped = clock.monotonic()
+        sim.set_rate("GLOBAL_POSITION_INT", 0)
+        deadline = time.monotonic() + 30.0
+        while d.state is not DriverState.FAULT:
+            assert time.monotonic() < deadline, "the stopped stream was never called stale"
+            time.sleep(0.002)
+        took = clock.monotonic() - stopped
+        error = d.health().error
+        assert isinstance(error, DriverTimeoutError)
+        assert "GLOBAL_POSITION_INT stale: none for over 2 s (expected every 0.1 s)" in str(error)
+        assert took > 2.0 - 0.1  # not before the floor (its last frame may be a period old)
+    finally:
+        d.shutdown()
+        sim.close()
+
+
+@pytest.mark.parametrize(
+    ("addr", "here"),
+    [
+        (("127.0.0.1", 14550), True),
+        (("127.0.1.1", 5760), True),
+        (("::1", 14550, 0, 0), True),
+        (("192.168.1.20", 14550), False),
+        (("fe80::1%eth0", 14550, 0, 2), False),
+        (None, False),  # a serial line
+    ],
+)
+def test_which_vehicle_addresses_are_on_this_machine(addr: Any, here: bool) -> None:
+    from temoto.drivers.mavlink.driver import _on_this_machine
+
+    assert _on_this_machine(addr) is here
 
 
 def test_one_bad_frame_is_counted_several_make_a_fault(

@@ -16,7 +16,9 @@ configured it
   when only frames with a bad CRC arrived), and so is an enabled SYS_STATUS sensor reported
   unhealthy (a hardware error: overheating motors, low battery voltage, ...); each telemetry
   stream it asked for (GLOBAL_POSITION_INT, ATTITUDE) is stale after 3 of its periods without
-  a message (a :class:`~temoto.errors.DriverTimeoutError` naming the stream); frames with a
+  a message (a :class:`~temoto.errors.DriverTimeoutError` naming the stream; for a vehicle on
+  this machine, a loopback address, at least
+  :data:`~temoto.drivers.supervision.STALE_REAL_FLOOR_IN_PROCESS` of real time); frames with a
   bad CRC from the vehicle are counted, and a fault only when 5 fall within 1 s
   (:class:`~temoto.drivers.supervision.FaultWindow`); when the vehicle is healthy again the
   driver reports itself recovered;
@@ -74,6 +76,7 @@ and its safe state. The profile's keys are declared in :mod:`~temoto.drivers.mav
 
 from __future__ import annotations
 
+import ipaddress
 import logging
 import math
 import socket
@@ -92,7 +95,7 @@ from temoto.drivers.mavlink.settings import PROFILE_FIELDS, read_sim
 from temoto.drivers.mavlink.sim import SimVehicle
 from temoto.drivers.profile import REQUIRED, Field, ProfileReader
 from temoto.drivers.sim import Simulator
-from temoto.drivers.supervision import StreamAge
+from temoto.drivers.supervision import StreamAge, stale_periods
 from temoto.errors import (
     DriverInitError,
     DriverTimeoutError,
@@ -345,11 +348,18 @@ class MavlinkDriver(MissionClient):
         """Ask for the telemetry streams; supervise those the vehicle accepted."""
         if self.stream_rate <= 0:
             return
+        with self._cond:
+            here = _on_this_machine(self._vehicle_addr)
+        real_per_clock = self.clock.real_seconds(1.0)
         for msg, share in _STREAMS.items():
             hz = self.stream_rate * share if share >= 1 else min(self.stream_rate, 2.0)
             accepted = self._best_effort(p.MAV_CMD_SET_MESSAGE_INTERVAL, p.MSG_ID[msg], 1e6 / hz)
             if accepted and msg in _SUPERVISED:
-                age = StreamAge(msg, 1.0 / hz)
+                # a vehicle on this machine (our simulator, SITL) competes with this process
+                # for the cores: on a clock faster than real time, its few-ms stalls are
+                # several periods (docs/safety.md, "Supervision of feedback")
+                periods = stale_periods(1.0 / hz, real_per_clock, in_process=here)
+                age = StreamAge(msg, 1.0 / hz, periods)
                 age.feed(self.clock.monotonic())  # due from now on, even if none ever comes
                 with self._cond:
                     self._ages[msg] = age
@@ -637,3 +647,13 @@ def _free_udp_port() -> int:
         sock.bind(("127.0.0.1", 0))
         port: int = sock.getsockname()[1]
         return port
+
+
+def _on_this_machine(addr: Any) -> bool:
+    """Whether a UDP vehicle address is a loopback one (the vehicle runs on this machine)."""
+    if not (isinstance(addr, tuple) and addr and isinstance(addr[0], str)):
+        return False  # a serial line, or not heard yet
+    try:
+        return ipaddress.ip_address(addr[0].split("%", 1)[0]).is_loopback
+    except ValueError:
+        return False

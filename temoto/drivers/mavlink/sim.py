@@ -102,6 +102,7 @@ mission and parameter protocols are :mod:`~temoto.drivers.mavlink.sim_mission` a
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from collections import deque
 from collections.abc import Iterable, Mapping
@@ -245,6 +246,11 @@ class SimVehicle(Simulator):
         # the link's delay (realism): batches of frames held until their time, in order
         self._held: deque[tuple[float, list[bytes]]] = deque()
         self._held_until = 0.0
+        # for settled(): the model's next step, and whether a thread is between reading the
+        # clock (or a datagram) and handing the frames it made to the socket
+        self._next_tick = math.inf
+        self._sending = False
+        self._handling = False
 
     def _active_fault(self, name: str) -> dict[str, Any] | None:
         params = self.fault(name)
@@ -421,6 +427,7 @@ class SimVehicle(Simulator):
         self._stop.clear()
         now = self.state.clock.monotonic()
         self.state.t0 = self.state.last = now
+        self._next_tick = now
         self._threads = [
             threading.Thread(target=self._step_loop, name=f"temoto-sim-{self.name}-step"),
             threading.Thread(target=self._rx_loop, name=f"temoto-sim-{self.name}-rx"),
@@ -466,6 +473,31 @@ class SimVehicle(Simulator):
         for peer in peers:
             link.send_to(datagram, peer)
 
+    def settled(self) -> bool:
+        """Whether the vehicle has done everything due by its clock's time.
+
+        True when the model has stepped to the clock's reading, every frame due by then (its
+        telemetry, the link's delayed batches, the replies to what it received) has been
+        handed to the socket, and nothing waits in its socket. For tests that move a
+        :class:`~temoto.clock.ManualClock` from a thread of their own: advancing it only when
+        the vehicle is settled keeps the vehicle in step with the clock however the threads
+        are scheduled (else a starved step thread sees the clock jump past several of its
+        frames, and the driver rightly calls a stream stale). A stopped vehicle is settled.
+
+        Returns:
+            Whether nothing is due.
+        """
+        link = self._link
+        if link is None or self._stop.is_set():
+            return True
+        with self.state.lock:
+            now = self.state.clock.monotonic()
+            if self._sending or self._handling or now >= self._next_tick:
+                return False
+            if self._held and self._held[0][0] <= now:
+                return False
+        return not link.pending()
+
     # ---- threads -----------------------------------------------------------------------------
 
     def _step_loop(self) -> None:
@@ -479,14 +511,17 @@ class SimVehicle(Simulator):
                     self.failsafes.check(now)
                     frames = self._delayed(self.telemetry.streams(now), now)
                     next_tick = now + self.state.dt
+                    self._next_tick = next_tick
                 while self._held and self._held[0][0] <= now:  # the link's delay is over
                     frames += self._held.popleft()[1]
                 if frames:
+                    self._sending = True
                     self.state.lock.release()
                     try:
                         self._send(frames)
                     finally:
                         self.state.lock.acquire()
+                        self._sending = False
                     if self._stop.is_set():  # close() notified while the lock was released
                         break
                 wake = min(next_tick, self._held[0][0]) if self._held else next_tick
@@ -518,22 +553,32 @@ class SimVehicle(Simulator):
                 if self._stop.is_set():
                     return
                 raise
-            if not data or self.fault("silence") is not None:
+            if not data:
                 continue
-            if self.fault("link_loss") is not None or self.fault("uplink_loss") is not None:
-                continue  # nothing heard from the ground: the GCS failsafe counts
-            with self.state.lock:
-                if peer not in self._peers:
-                    self._peers.append(peer)
-            for msg in self.state.codec.decode_datagram(data):
-                replies = self.commands.handle(msg)
-                # counted once handled: a test that waits for the count sees its effect
-                self.received[msg.name] = self.received.get(msg.name, 0) + 1
-                if self.realism.enabled:
-                    with self.state.lock:
-                        now = self.state.clock.monotonic()
-                        replies = self._delayed(replies, now, reply=True)
-                self._send(replies)
+            self._handling = True
+            try:
+                self._handle(data, peer)
+            finally:
+                self._handling = False
+
+    def _handle(self, data: bytes, peer: Any) -> None:
+        """One datagram from a ground station: answer its messages."""
+        if self.fault("silence") is not None:
+            return
+        if self.fault("link_loss") is not None or self.fault("uplink_loss") is not None:
+            return  # nothing heard from the ground: the GCS failsafe counts
+        with self.state.lock:
+            if peer not in self._peers:
+                self._peers.append(peer)
+        for msg in self.state.codec.decode_datagram(data):
+            replies = self.commands.handle(msg)
+            # counted once handled: a test that waits for the count sees its effect
+            self.received[msg.name] = self.received.get(msg.name, 0) + 1
+            if self.realism.enabled:
+                with self.state.lock:
+                    now = self.state.clock.monotonic()
+                    replies = self._delayed(replies, now, reply=True)
+            self._send(replies)
 
     def _send(self, frames: list[bytes]) -> None:
         link = self._link

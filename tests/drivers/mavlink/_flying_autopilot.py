@@ -57,6 +57,13 @@ class Sender:
         self.sock.sendto(data, self.gcs)
 
 
+#: Metres from the target within which the vehicle is there (it takes the target's position and
+#: reports ``arrived``): the test's FlyTo tolerance (1 m) and a margin for the 1e-7 degree
+#: rounding of GLOBAL_POSITION_INT, so that no position a ground station takes as arrived is
+#: sent before the event.
+ARRIVED = 1.05
+
+
 def emit(event: str, **fields: Any) -> None:
     sys.stdout.write(json.dumps({"t": time.monotonic(), "event": event, **fields}) + "\n")
     sys.stdout.flush()
@@ -123,21 +130,33 @@ class Autopilot:
         ack.target_system, ack.target_component = msg.get_srcSystem(), msg.get_srcComponent()
         self.ap.send(ack)
 
+    def _left(self) -> float:
+        """Metres to the target over the ground (lock held)."""
+        assert self.target is not None
+        lat, lon, _alt = self.target
+        north = math.radians(lat - self.lat) * EARTH_RADIUS
+        east = math.radians(lon - self.lon) * EARTH_RADIUS * math.cos(math.radians(lat))
+        return math.hypot(north, east)
+
     def fly(self, dt: float) -> None:
+        """One tick of flight (lock held); ``arrived`` once within :data:`ARRIVED` of the target.
+
+        The event is written before the tick's position is sent: a ground station that ends
+        its fly-to on that position cannot have done so before the event, however the two
+        processes are scheduled.
+        """
         if self.target is None:
             return
         lat, lon, alt = self.target
-        north = math.radians(lat - self.lat) * EARTH_RADIUS
-        east = math.radians(lon - self.lon) * EARTH_RADIUS * math.cos(math.radians(lat))
-        left = math.hypot(north, east)
-        if left <= 1.0:
-            self.target = None
-            emit("arrived")
-            return
-        step = min(1.0, self.speed * dt / left)
+        left = self._left()
+        step = min(1.0, self.speed * dt / left) if left > 0 else 1.0
         self.lat += (lat - self.lat) * step
         self.lon += (lon - self.lon) * step
         self.alt += (alt - self.alt) * step
+        if self._left() <= ARRIVED:
+            self.lat, self.lon, self.alt = self.target  # there: it holds the target itself
+            self.target = None
+            emit("arrived")
 
     def stream(self, n: int) -> None:
         """Tick ``n`` (10 Hz): what each sender sends."""

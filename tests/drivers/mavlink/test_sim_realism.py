@@ -190,15 +190,47 @@ def test_harsh_loses_streamed_frames_at_its_rate() -> None:
 # ---- on the wire: delayed in order ---------------------------------------------------------
 
 
+#: Real seconds the vehicle and the driver may take to catch up with one step of the clock.
+SETTLE = 10.0
+
+
+def _settled(sim: SimVehicle, driver: MavlinkDriver | None) -> bool:
+    """The vehicle did all that was due, and the driver's socket holds nothing unread."""
+    link = None if driver is None else driver._link
+    return sim.settled() and (link is None or not link.pending())
+
+
+def settle(sim: SimVehicle, driver: MavlinkDriver | None = None) -> None:
+    """Wait (real time) until :func:`_settled`: the clock moves on only when both kept up.
+
+    A thread that moves a virtual clock on its own runs it tens of times faster than real
+    time; on a loaded machine the vehicle's step thread can then miss several of its frames'
+    times in one go, and the driver would rightly call a stream stale.
+    """
+    deadline = time.monotonic() + SETTLE
+    while not _settled(sim, driver):
+        assert time.monotonic() < deadline, f"the vehicle did not keep up in {SETTLE} real s"
+        time.sleep(0.0005)
+
+
 def run_until(
-    clock: ManualClock, pred: Callable[[], bool], seconds: float, step: float = 0.02
+    clock: ManualClock,
+    pred: Callable[[], bool],
+    seconds: float,
+    step: float = 0.02,
+    *,
+    sim: SimVehicle,
+    driver: MavlinkDriver | None = None,
 ) -> float:
-    """Advance virtual time in ``step``s until ``pred()``; the virtual seconds it took."""
+    """Advance virtual time in ``step``s, in step with ``sim`` (and ``driver``), until ``pred()``.
+
+    Returns:
+        The virtual seconds it took.
+    """
     start = clock.monotonic()
-    real_deadline = time.monotonic() + 30.0
     while not pred():
         assert clock.monotonic() - start <= seconds, f"not within {seconds} virtual s"
-        assert time.monotonic() < real_deadline, "no progress in real time"
+        settle(sim, driver)
         clock.advance(step)
         time.sleep(0.0007)
     return clock.monotonic() - start
@@ -234,7 +266,7 @@ def test_the_link_delays_frames_but_keeps_their_order() -> None:
             drain()
             return clock.monotonic() - start >= 30.0
 
-        run_until(clock, enough, 31.0, step=0.01)
+        run_until(clock, enough, 31.0, step=0.01, sim=sim)
     finally:
         sim.close()
         rx.close()
@@ -271,13 +303,16 @@ def _make(clock: ManualClock, realism: str, seed: int) -> tuple[SimVehicle, Mavl
     return sim, driver
 
 
-def _ticking(clock: ManualClock, fn: Callable[[], Any]) -> Any:
-    """Call ``fn`` while a thread advances virtual time (20 ms per real millisecond)."""
+def _ticking(
+    clock: ManualClock, sim: SimVehicle, driver: MavlinkDriver, fn: Callable[[], Any]
+) -> Any:
+    """Call ``fn`` while a thread advances virtual time (20 ms a step, in step with both ends)."""
     done = threading.Event()
 
     def tick() -> None:
         while not done.wait(0.001):
-            clock.advance(0.02)
+            if _settled(sim, driver):
+                clock.advance(0.02)
 
     ticker = threading.Thread(target=tick, name="temoto-test-ticker")
     ticker.start()
@@ -301,7 +336,7 @@ def flown() -> Iterator[
         sim, driver = _make(clock, realism, seed)
         made.append((sim, driver))
         sim.start()
-        _ticking(clock, driver.configure)
+        _ticking(clock, sim, driver, driver.configure)
         driver.activate()
         health: list[Health] = []
         driver.add_health_listener(health.append)
@@ -324,29 +359,32 @@ def test_typical_supervision_sees_no_false_fault_and_a_flight_ends_as_asked(
 ) -> None:
     sim, d, clock, health = flown("typical", 2026)
     tel = d.telemetry
-    run_until(clock, lambda: clock.monotonic() >= 60.0, 61.0)  # a minute idle
+    run_until(clock, lambda: clock.monotonic() >= 60.0, 61.0, sim=sim, driver=d)  # a minute idle
     assert d.state is DriverState.ACTIVE
     assert health == []
     assert sim.realism.seed == 2026
     assert sum(sim.telemetry.lost.values()) > 0  # frames were lost, none noticed as a fault
 
     # the replies are delayed too: the clock must run while a command waits for its ack
-    _ticking(clock, d.arm)
-    run_until(clock, lambda: tel().armed, 3.0)
-    _ticking(clock, lambda: d.takeoff(10.0))
-    run_until(clock, lambda: sim.pos[2] > 9.9, 20.0)
+    _ticking(clock, sim, d, d.arm)
+    run_until(clock, lambda: tel().armed, 3.0, sim=sim, driver=d)
+    _ticking(clock, sim, d, lambda: d.takeoff(10.0))
+    run_until(clock, lambda: sim.pos[2] > 9.9, 20.0, sim=sim, driver=d)
     # what the driver hears is noisy: it is not the model's exact altitude
     heard = set()
     for _ in range(20):
+        settle(sim, d)
         clock.advance(0.1)
-        time.sleep(0.002)
+        settle(sim, d)
         heard.add(round(tel().position.alt, 3))
     assert len(heard) > 3
     target = GeoPoint(HOME[0] + 0.0004, HOME[1] + 0.0003, 15.0)  # ~51 m away
-    _ticking(clock, lambda: d.goto(target))
-    run_until(clock, lambda: _distance(tel().position, target) < 1.0, 40.0)  # a FlyTo tolerance
-    _ticking(clock, d.land)
-    run_until(clock, lambda: not tel().armed, 60.0)
+    _ticking(clock, sim, d, lambda: d.goto(target))
+    run_until(
+        clock, lambda: _distance(tel().position, target) < 1.0, 40.0, sim=sim, driver=d
+    )  # a FlyTo tolerance
+    _ticking(clock, sim, d, d.land)
+    run_until(clock, lambda: not tel().armed, 60.0, sim=sim, driver=d)
     assert tel().position.alt == pytest.approx(0.0, abs=1.5)
     assert _distance(GeoPoint(*sim.position()), GeoPoint(target.lat, target.lon, 0)) < 1.0
     assert d.state is DriverState.ACTIVE
@@ -369,11 +407,11 @@ def test_harsh_ends_a_flight_landed_or_with_a_clear_fault_never_a_hang(
         if faulted():
             return False
         try:
-            _ticking(clock, action)
+            _ticking(clock, sim, d, action)
         except DriverError:
             assert faulted() or health, "a command failed without a fault"
             return False
-        run_until(clock, lambda: done() or faulted(), seconds)
+        run_until(clock, lambda: done() or faulted(), seconds, sim=sim, driver=d)
         return not faulted()
 
     flew = (
