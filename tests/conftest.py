@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib
 import os
+import signal
 import threading
 import time
 from collections.abc import Iterator
@@ -11,6 +12,13 @@ from pathlib import Path
 from types import ModuleType
 
 import pytest
+
+# A suite started as a background job of a shell without job control inherits SIGINT ignored
+# (POSIX), and so would every command a test starts: Ctrl-C tests then see nothing. The
+# suite's own process takes the default handler back, so its children start with SIGINT's
+# default action, as under a terminal or CI.
+if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 THREAD_PREFIX = "temoto-"
 #: The test files outside ``tests/core/`` that reach a kernel (``tools/kernel_tests.py``).
