@@ -65,13 +65,6 @@ _MISSED_MAX: Final = 256  # the last this many per sender session; as many sende
 #: kept: a burst sent while the hellos cross arrives whole).
 _RESEND_MAX: Final = _MISSED_MAX
 _BACKLOG_MAX: Final = 256
-#: A sender's messages that come while copies we asked of it are awaited are held back, so that
-#: its handler sees them in the order they were sent (the copies, sealed anew, carry later
-#: sequence numbers than the messages it sent meanwhile): at most this long after the last ask
-#: or copy (a lost copy, or one the sender refused, does not stall the sender longer) ...
-HOLD_S: Final = 1.0
-#: ... and at most this many per sender session (more are let go at once, in order).
-HOLD_MAX: Final = 1024
 _TAG: Final = 16  # Poly1305 tag
 _RECIPIENT: Final = 4  # recipient tag
 _MAC: Final = 16  # per-recipient MAC (roster fleets)
@@ -143,16 +136,6 @@ class _Peer:
 
 
 @dataclass(slots=True)
-class Sealed:
-    """What :meth:`SecureSession.open_data` found (the caller builds ``Opened``)."""
-
-    type: str
-    payload: bytes
-    seq: int
-    session: int
-
-
-@dataclass(slots=True)
 class RxSession:
     """A peer's sending session we can open: its key and our replay window."""
 
@@ -164,14 +147,16 @@ class RxSession:
     floor: int  # of its grant: what it sealed at or below was sealed before the grant
     # Sequence numbers at or below the floor that we asked for again (at most once each).
     asked: set[int] = field(default_factory=set)
-    # Copies asked for and not yet come; while any are (or an ask is still to go out), the
-    # copies and the other messages that come are held back (channel, message), until
-    # ``hold_until`` (our clock) at most.
-    awaited: int = 0
-    copies: list[tuple[str, Sealed]] = field(default_factory=list)
-    held: list[tuple[str, Sealed]] = field(default_factory=list)
-    hold_until: float | None = None
-    since: float = 0.0  # our clock when the grant came
+
+
+@dataclass(slots=True)
+class Sealed:
+    """What :meth:`SecureSession.open_data` found (the caller builds ``Opened``)."""
+
+    type: str
+    payload: bytes
+    seq: int
+    session: int
 
 
 class SecureSession:
@@ -210,10 +195,6 @@ class SecureSession:
         # Per (sender, session) we lack: the sequence numbers we got and could not open.
         self._missed: dict[tuple[str, int], deque[int]] = {}
         self._resend: list[tuple[str, _Pair, list[int]]] = []  # with the next take_outgoing
-        # Sessions whose messages are held back (RxSession.hold_until), and what holds let go
-        # of, in the order to deliver: (channel, sender, message), for take_released.
-        self.holding: set[tuple[str, int]] = set()
-        self._released: list[tuple[str, str, Sealed]] = []
         # Per peer: the messages it asked for that an earlier boot of it held a grant for
         # (never sent again: a replay shown to the restarted peer), since the last take_replays.
         self._replays: dict[str, int] = {}
@@ -254,7 +235,6 @@ class SecureSession:
             self._peers.pop(name, None)
         for key in [k for k in self.rx if k[0] in names]:
             del self.rx[key]
-            self.holding.discard(key)  # what it sent and we held is refused like the rest
         self._rotate()
 
     # --- hellos -------------------------------------------------------------------------------
@@ -406,14 +386,10 @@ class SecureSession:
         for (name, session), seqs in list(self._missed.items()):
             # Without its grant, ask for the grant only: copies would be refused like the
             # originals. With it, ask once for what we could not open.
-            rx = self.rx.get((name, session))
-            ask = list(seqs)[-_RESEND_MAX:] if rx is not None else []
+            ask = list(seqs)[-_RESEND_MAX:] if (name, session) in self.rx else []
             parts.append(_blob(_s(name)) + struct.pack(f">QH{len(ask)}Q", session, len(ask), *ask))
-            if rx is not None and ask:
+            if ask:
                 del self._missed[name, session]
-                # its messages are held back until these copies came (or for HOLD_S)
-                rx.awaited += len(ask)
-                self._hold(rx, session, now)
         body = b"".join(parts)
         unsigned = self._writer.write(0, self.session, HELLO_TYPE, body, b"")
         proof = self._prove(_s(HELLO_CHANNEL) + b"\0" + unsigned)
@@ -499,7 +475,7 @@ class SecureSession:
         if (sender, session) not in self.rx:
             # Everything at or below the floor was sealed before this grant: refused.
             rx = self.rx[sender, session] = RxSession(
-                sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK, floor, since=self._clock()
+                sender, ChaCha20Poly1305(g), pair, floor, _WINDOW_MASK, floor
             )
             pair.opens = True
             # What we got and could not open, our next hello asks for again; the originals
@@ -512,7 +488,6 @@ class SecureSession:
                     rx.asked.add(seq)
             if held:
                 self._answer()
-                self._hold(rx, session, self._clock())  # its next messages wait for the copies
             else:
                 self._missed.pop((sender, session), None)
         return None
@@ -534,19 +509,13 @@ class SecureSession:
     def seal(
         self, channel: str, type_name: str, payload: bytes, only: _Pair | None = None
     ) -> bytes:
-        """Encrypt and authenticate one message for every peer (or ``only`` one: a copy).
-
-        A copy carries a recipient entry: the one peer's (twice in a roster fleet, where every
-        message has entries and a peer's only entry may be a message to it alone). That is
-        how the peer tells the copies it asked for from the rest (:meth:`open_data`); a
-        receiver that does not look finds its entry in it like in any other message.
-        """
+        """Encrypt and authenticate one message for every peer (or ``only`` one)."""
         self.seq += 1
         seq = self.seq
         if only is None:
             self._backlog.append((seq, self._clock(), channel, type_name, payload))
         if self.roster_mode:
-            pairs = [only, only] if only is not None else self._recipients()
+            pairs = [only] if only is not None else self._recipients()
             tags = b"".join(p.tag_out for p in pairs)
         else:
             pairs, tags = [], (only.tag_out if only is not None else b"")
@@ -634,7 +603,6 @@ class SecureSession:
         tag = mac[:_TAG]
         mine = None
         tags = b""
-        copy = False  # a copy we asked for (seal: one entry; twice ours in a roster fleet)
         if len(mac) > _TAG:  # recipient entries (a roster fleet, or a copy re-sent to one peer)
             tail = mac[_TAG:]
             step = _RECIPIENT + _MAC if roster else _RECIPIENT
@@ -645,15 +613,11 @@ class SecureSession:
             for i in range(0, len(tail), step):
                 head = tail[i : i + _RECIPIENT]
                 heads.append(head)
-                if head == ours:
-                    if mine is None:
-                        mine = tail[i : i + step]
-                    else:
-                        copy = True
+                if mine is None and head == ours:
+                    mine = tail[i : i + step]
             tags = b"".join(heads)
             if mine is None:
                 return "not_for_us"
-            copy = copy or not roster
         elif roster:
             return "not_for_us"
         seq: int = env.seq
@@ -676,77 +640,7 @@ class SecureSession:
             return "no_session"
         if not _admit(rx, seq):
             return "replayed"
-        message = Sealed(type_name, plain, seq, session)
-        if copy and rx.awaited:
-            rx.awaited -= 1
-        if rx.hold_until is None:  # the common case: nothing of this sender is awaited
-            return message
-        if copy:  # they come: a receive queue that is slow to drain does not end the hold
-            rx.hold_until = max(rx.hold_until, self._clock() + HOLD_S)
-        (rx.copies if copy else rx.held).append((channel, message))
-        if (rx.awaited or (sender, session) in self._missed) and len(rx.held) < HOLD_MAX:
-            return "held"
-        self._release(rx, session)  # the last copy came (or too many wait): all, in order
-        if self._released[-1][2] is message:  # handed on last: the caller delivers it
-            del self._released[-1]
-            return message
-        return "held"
-
-    def _hold(self, rx: RxSession, session: int, now: float) -> None:
-        """Hold a sender's messages back until the copies asked of it came, or HOLD_S from now.
-
-        Copies are sealed anew, so they carry later sequence numbers than what their sender
-        sent meanwhile, and come a round trip later: without the hold, the sender's first
-        messages reached its handlers after later ones (docs/fleet.md, *Order*).
-
-        Only within :data:`BACKLOG_S` of the grant: what was sealed before it is older than
-        that by then, and its copy would not come (a replay of captured messages to a
-        restarted member, asked for like them, could otherwise hold the sender back again
-        and again).
-        """
-        if now - rx.since >= BACKLOG_S:
-            return
-        rx.hold_until = now + HOLD_S
-        self.holding.add((rx.sender, session))
-
-    def _release(self, rx: RxSession, session: int) -> None:
-        """End a hold: the copies (in the order they were sealed), then the others."""
-        ordered = sorted(rx.copies, key=lambda item: item[1].seq)
-        ordered += sorted(rx.held, key=lambda item: item[1].seq)
-        self._released.extend((channel, rx.sender, sealed) for channel, sealed in ordered)
-        rx.copies, rx.held = [], []
-        rx.hold_until = None
-        self.holding.discard((rx.sender, session))
-
-    def expire_holds(self) -> None:
-        """Let go of the holds that waited :data:`HOLD_S` (a copy was lost, or refused)."""
-        now = self._clock()
-        for key in list(self.holding):
-            rx = self.rx.get(key)
-            if rx is None:
-                self.holding.discard(key)
-            elif rx.hold_until is not None and not rx.hold_until > now:
-                rx.awaited = 0  # a copy that still comes is delivered when it comes
-                self._release(rx, key[1])
-
-    def hold_due_in(self) -> float | None:
-        """Seconds until the first hold expires (None: nothing is held back)."""
-        due = [
-            rx.hold_until
-            for key in self.holding
-            if (rx := self.rx.get(key)) is not None and rx.hold_until is not None
-        ]
-        return max(0.0, min(due) - self._clock()) if due else None
-
-    @property
-    def has_released(self) -> bool:
-        """Whether :meth:`take_released` has something (read without the lock)."""
-        return bool(self._released)
-
-    def take_released(self) -> list[tuple[str, str, Sealed]]:
-        """What holds let go of since the last call: (channel, sender, message), in order."""
-        released, self._released = self._released, []
-        return released
+        return Sealed(type_name, plain, seq, session)
 
     def _sealed_before_grant(self, rx: RxSession, session: int, seq: int) -> bool:
         """Ask for a copy of a message sealed before its sender's grant, which came first.
@@ -773,8 +667,6 @@ class SecureSession:
         rx.asked.add(seq)
         self._missed.setdefault(key, deque(maxlen=_MISSED_MAX)).append(seq)
         self._answer()
-        if rx.hold_until is None:
-            self._hold(rx, session, self._clock())
         return True
 
 

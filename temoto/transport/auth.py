@@ -506,15 +506,11 @@ class FleetAuth:
         Returns:
             Its content, or None if it was dropped (counted in :attr:`stats` by reason).
         """
-        secure = self._secure
-        if secure is not None and secure.holding:  # read without the lock: rechecked under it
-            with self._lock:
-                secure.expire_holds()
         result = self._check(channel, data)
         if isinstance(result, Opened):
             return result
         reason, sender, detail = result
-        if reason in ("hello", "held"):
+        if reason == "hello":
             return None
         first, summary = False, None
         with self._lock:
@@ -549,43 +545,6 @@ class FleetAuth:
                     more,
                 )
         return None
-
-    def take_released(self) -> list[Opened]:
-        """The messages held back that are due now, in their senders' order (keyed fleets).
-
-        A keyed member holds back what a new sender sends while copies of its first messages
-        (those that came before we held its grant) are on their way, so that they are handed
-        on in the order they were sent: :meth:`open` returns None for them (they are counted
-        ``accepted``), and this returns them once the copies came, or after
-        ``_secure.HOLD_S`` (1 s) at most (checked at every :meth:`open` and here;
-        :meth:`hold_due_in` says when). Deliver them after every :meth:`open`, before the
-        message it returned. A :class:`~temoto.transport.link.FleetLink` does.
-
-        Returns:
-            The messages, in order (possibly of several channels and senders); usually none.
-        """
-        secure = self._secure
-        if secure is None or not (secure.has_released or secure.holding):  # without the lock
-            return []
-        with self._lock:
-            secure.expire_holds()
-            released = secure.take_released()
-        return [
-            Opened(channel, sender, sealed.type, sealed.payload, sealed.seq, sealed.session)
-            for channel, sender, sealed in released
-        ]
-
-    def hold_due_in(self) -> float | None:
-        """Seconds until messages held back are let go without the copies they wait for.
-
-        Returns:
-            The delay (0 when due), or None when nothing is held back (or insecure fleets).
-        """
-        secure = self._secure
-        if secure is None or not secure.holding:
-            return None
-        with self._lock:
-            return secure.hold_due_in()
 
     def drop_summary_due_in(self) -> float | None:
         """Seconds until the summary of the drops held back is due (see :meth:`log_drop_summary`).
@@ -673,9 +632,6 @@ class FleetAuth:
                 self._counts["hello"] += 1
                 return "hello", sender, ""
             sealed = self._secure.open_data(channel, env)
-            if sealed == "held":  # accepted; delivered in order later (take_released)
-                self._counts["accepted"] += 1
-                return "held", sender, ""
             if isinstance(sealed, str):
                 return sealed, sender, ""
             self._counts["accepted"] += 1

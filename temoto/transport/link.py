@@ -59,10 +59,6 @@ class FleetLink:
         self._hellos: Subscription | None = None
         self._timer: threading.Timer | None = None
         self._drop_timer: threading.Timer | None = None
-        self._hold_timer: threading.Timer | None = None
-        # The handler of each channel listened to, for messages held back and let go later
-        # (they may be let go by a message of another channel, or a hello).
-        self._handlers: dict[str, tuple[Subscription, Callable[[Opened], None]]] = {}
         self._timer_lock = threading.Lock()
         self._hello_seen = threading.Condition()
         if not auth.insecure:
@@ -74,7 +70,6 @@ class FleetLink:
     def _on_hello(self, channel: str, data: bytes) -> None:
         self.auth.open(channel, data)
         self._flush()
-        self._deliver_released()
         self._summarise_drops()
         with self._hello_seen:
             self._hello_seen.notify_all()
@@ -137,78 +132,6 @@ class FleetLink:
             self._timer.name = "temoto-fleet-hello"
             self._timer.daemon = True
             self._timer.start()
-
-    def _deliver_released(self) -> None:
-        """Hand the messages a hold let go of to their channels' handlers (receive thread).
-
-        A new sender's messages that came while copies of its first ones were on their way
-        were held back (:meth:`FleetAuth.take_released`): its handlers see them in the order
-        they were sent. A message of a channel no longer listened to is dropped.
-        """
-        for opened in self.auth.take_released():
-            entry = self._handlers.get(opened.channel)
-            if entry is not None and entry[0].active:
-                self._handle(entry[1], opened)
-        self._watch_holds()
-
-    def _watch_holds(self) -> None:
-        """Have a hold that waits in vain end on time, even when nothing more comes.
-
-        Holds are checked whenever a message or hello comes (on the receive thread, where
-        handlers run); when none comes, a short-lived thread (``temoto-fleet-hold``) says hello
-        when the hold is due, and its echo, which comes back on the receive thread like every
-        message we publish, ends it. A timer no longer needed is cancelled.
-        """
-        due = self.auth.hold_due_in()
-        if due is None and self._hold_timer is None:  # the common case, without the lock
-            return
-        with self._timer_lock:
-            timer = self._hold_timer
-            if due is None:
-                if timer is not None:
-                    timer.cancel()
-                    self._hold_timer = None
-                return
-            if timer is not None and timer.is_alive():
-                return
-            self._hold_timer = threading.Timer(due + 0.001, self._hold_due)
-            self._hold_timer.name = "temoto-fleet-hold"
-            self._hold_timer.daemon = True
-            self._hold_timer.start()
-
-    def _hold_due(self) -> None:
-        """The hold timer: say hello if a hold is due, or wait again if it was extended."""
-        due = self.auth.hold_due_in()
-        with self._timer_lock:
-            if self._hold_timer is threading.current_thread():
-                self._hold_timer = None
-        if due is None:
-            return
-        if due > 0:  # a copy came meanwhile: the hold lasts longer
-            self._watch_holds()
-            return
-        self.auth.want_hello()
-        self._flush()
-
-    def _handle(self, handler: Callable[[Opened], None], opened: Opened) -> None:
-        """Run a handler, counting and logging what it raises."""
-        try:
-            handler(opened)
-        except Exception:
-            with self._errors_lock:
-                self._handler_errors += 1
-            held = self._log.allow(opened.channel)
-            if held is not None:
-                more = f" ({held} more since the last report)" if held else ""
-                logger.exception(
-                    "fleet %r: handler %r of channel %r raised on a %r from %r%s",
-                    self.auth.fleet,
-                    handler,
-                    opened.channel,
-                    opened.type,
-                    opened.sender,
-                    more,
-                )
 
     def _summarise_drops(self) -> None:
         """Have the summary of drops held back written when it is due, more drops or not.
@@ -283,12 +206,25 @@ class FleetLink:
             opened = self.auth.open(rx_channel, data)
             if not self.auth.insecure:
                 self._flush()
-                self._deliver_released()  # before this one: sent before it
             if opened is None:
                 self._summarise_drops()
                 return
-            self._handle(handler, opened)
+            try:
+                handler(opened)
+            except Exception:
+                with self._errors_lock:
+                    self._handler_errors += 1
+                held = self._log.allow(rx_channel)
+                if held is not None:
+                    more = f" ({held} more since the last report)" if held else ""
+                    logger.exception(
+                        "fleet %r: handler %r of channel %r raised on a %r from %r%s",
+                        self.auth.fleet,
+                        handler,
+                        rx_channel,
+                        opened.type,
+                        opened.sender,
+                        more,
+                    )
 
-        sub = self.transport.subscribe(channel, on_data, queue_capacity=queue_capacity)
-        self._handlers[channel] = (sub, handler)
-        return sub
+        return self.transport.subscribe(channel, on_data, queue_capacity=queue_capacity)

@@ -24,7 +24,6 @@ from temoto.instance import Instance
 from temoto.lcm_types import envelope_t
 from temoto.managers.process import ProcessRequest
 from temoto.testing.fleet import settle
-from temoto.transport._secure import HOLD_S
 from temoto.transport.auth import HELLO_CHANNEL, FleetAuth
 from temoto.transport.identity import Credentials, Identity, Policy, Roster
 from temoto.transport.inprocess import InProcessTransport
@@ -169,14 +168,8 @@ def test_replays_to_a_restarted_receiver_are_refused_whatever_the_clocks(
     assert restarted.open(COMMAND_CHANNEL, captured) is None  # at or below the floor
     assert restarted.stats["accepted"] == 0
     assert restarted.stats["replayed"] == 1
-    # the copy of `captured` it asked for never comes (the sender refuses it: a replay), so
-    # the sender's next message waits for it HOLD_S at most (docs/fleet.md, *Order*)
     fresh = sender.seal(COMMAND_CHANNEL, "graph_command_t", b"start")
-    assert restarted.open(COMMAND_CHANNEL, fresh) is None
-    assert restarted.take_released() == []
-    now[0] += HOLD_S
-    assert [o.payload for o in restarted.take_released()] == [b"start"]
-    assert restarted.stats["accepted"] == 1
+    assert restarted.open(COMMAND_CHANNEL, fresh) is not None
 
 
 def test_a_restarted_sender_s_old_messages_never_open_again(bus: Bus) -> None:
