@@ -485,8 +485,8 @@ def test_a_udpin_link_sends_only_where_it_is_told() -> None:
 # ---- an independent ArduCopter emulator (from the ArduPilot docs) ---------------------------
 
 #: ArduCopter flight mode numbers (ArduPilot Copter docs, "Flight Modes").
-STABILIZE, LOITER, RTL, LAND, BRAKE = 0, 5, 6, 9, 17
-MODES_NEEDING_GPS = {LOITER, RTL, BRAKE}
+STABILIZE, GUIDED, LOITER, RTL, LAND, BRAKE = 0, 4, 5, 6, 9, 17
+MODES_NEEDING_GPS = {GUIDED, LOITER, RTL, BRAKE}
 #: FS_GCS_ENABLE actions in the air (ArduCopter parameter docs): 1 RTL, 2 RTL (or continue an
 #: AUTO mission), 3 SmartRTL or RTL, 4 SmartRTL or Land, 5 Land, 6 Auto DO_LAND_START or RTL,
 #: 7 Brake or Land; 0 off. This emulator has no SmartRTL path and no mission.
@@ -499,8 +499,10 @@ class Autopilot:
     * HEARTBEAT and EXTENDED_SYS_STATE at 1 Hz to the GCS address (MAVLink common set).
     * COMMAND_LONG: COMPONENT_ARM_DISARM refused with MAV_RESULT_FAILED, its "PreArm: ..."
       STATUSTEXT ``text_delay`` seconds after the ack (ArduPilot queues texts; the ack goes
-      at once); DO_SET_MODE with custom modes, FAILED for a GPS mode without GPS; anything
-      else UNSUPPORTED.
+      at once); DO_SET_MODE with custom modes, FAILED for a GPS mode without GPS; NAV_TAKEOFF
+      accepted when armed in GUIDED, FAILED otherwise (the climb is the test's to start: until
+      then the vehicle reports ON_GROUND, as a copter spooling up does); anything else
+      UNSUPPORTED.
     * PARAM_REQUEST_READ / PARAM_SET answered with PARAM_VALUE (MAVLink parameter protocol).
     * GCS failsafe (ArduCopter docs): only after a heartbeat from SYSID_MYGCS was seen; no
       heartbeat for FS_GCS_TIMEOUT s: disarmed → nothing, landed → disarm, flying → the
@@ -605,6 +607,9 @@ class Autopilot:
                 result = mav2.MAV_RESULT_FAILED
                 due = self.clock.monotonic() + self.text_delay
                 self.texts.append((due, "PreArm: Need 3D Fix"))
+            elif msg.command == mav2.MAV_CMD_NAV_TAKEOFF:
+                ok = self.armed and self.mode == GUIDED
+                result = mav2.MAV_RESULT_ACCEPTED if ok else mav2.MAV_RESULT_FAILED
             elif msg.command == mav2.MAV_CMD_DO_SET_MODE:
                 self.mode_commands += 1
                 wanted = int(msg.param2)
@@ -666,6 +671,36 @@ def test_emulator_safe_state_on_the_ground_and_in_the_air(
     run_until(clock, lambda: d._landed_state == p.MAV_LANDED_STATE_IN_AIR, 2.0)
     assert d.make_safe("test") == "vehicle LOITER"
     assert ap.mode == LOITER
+
+
+def test_emulator_a_take_off_not_yet_seen_in_the_air_is_sent_the_safe_mode(
+    autopilot: tuple[Autopilot, MavlinkDriver], clock: ManualClock
+) -> None:
+    # ON_GROUND comes at 2 Hz: after a take-off it may describe a vehicle already leaving the
+    # ground (the exit-path CI run: SIGINT at lift-off, "nothing sent", the climb went on)
+    ap, d = autopilot
+    configure(d, clock)
+    d.activate()
+    with ap.lock:
+        ap.armed, ap.mode = True, GUIDED
+    run_until(clock, lambda: d.telemetry().armed and d.telemetry().mode == "GUIDED", 2.0)
+    ticking(clock, lambda: d.takeoff(10.0))
+    after = clock.monotonic()
+    run_until(clock, lambda: d._landed_at is not None and d._landed_at > after, 2.0)
+    assert d._landed_state == p.MAV_LANDED_STATE_ON_GROUND  # what the vehicle says
+    assert d.make_safe("test") == "vehicle LOITER"
+    assert ap.mode == LOITER
+    # once seen in the air and landed again, "on the ground" is believed
+    d.activate()
+    with ap.lock:
+        ap.flying = True
+    run_until(clock, lambda: d._landed_state == p.MAV_LANDED_STATE_IN_AIR, 2.0)
+    with ap.lock:
+        ap.flying = False
+    run_until(clock, lambda: d._landed_state == p.MAV_LANDED_STATE_ON_GROUND, 2.0)
+    commands = ap.mode_commands
+    assert d.make_safe("test") == "vehicle on the ground: armed and landed, nothing sent"
+    assert ap.mode_commands == commands
 
 
 def test_emulator_without_gps_refuses_loiter_and_is_landed(

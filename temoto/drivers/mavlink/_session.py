@@ -219,6 +219,11 @@ class Session(Driver):
         #: newer heartbeat arrives, "disarmed" and "landed" are not to be trusted.
         self._moved_at: float | None = None
         self._landed_at: float | None = None  # when EXTENDED_SYS_STATE last said
+        #: When this driver last asked for a take-off or a mission start, and when
+        #: EXTENDED_SYS_STATE last said the vehicle was off the ground: between the two, an
+        #: ON_GROUND report is a vehicle spooling up to leave it, not a landed one.
+        self._lift_at: float | None = None
+        self._off_ground_at: float | None = None
         self._unhealthy: tuple[str, ...] = ()
         self._bad_at_hb = 0  # the vehicle's bad frames when its newest heartbeat came
         self._vehicle_bad = 0  # bad frames from the vehicle's address (or a serial line)
@@ -762,6 +767,8 @@ class Session(Driver):
         elif name == "EXTENDED_SYS_STATE":
             self._landed_state = msg.get_int("landed_state")
             self._landed_at = now
+            if self._landed_state > p.MAV_LANDED_STATE_ON_GROUND:  # in the air, taking off, landing
+                self._off_ground_at = now
         elif name in missions.MISSION_MESSAGES:
             for listener in self._absorb_mission(msg):
                 self._notify.append((listener, self._progress))

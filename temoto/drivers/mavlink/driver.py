@@ -52,8 +52,10 @@ ArduCopter expects; MISSION_CURRENT and MISSION_ITEM_REACHED become
 PARAM_VALUE, typed by its ``MAV_PARAM_TYPE``, integers carried as floats as ArduPilot does).
 
 **Safe state** (``safe_state:``, :attr:`MavlinkDriver.safe_states`): ``loiter`` (default),
-``brake``, ``land`` or ``rtl``. On the ground (disarmed, or armed and landed) nothing is sent;
-in the air the driver sets that ArduCopter mode (``MAV_CMD_DO_SET_MODE``) and waits at most
+``brake``, ``land`` or ``rtl``. On the ground (disarmed, or armed and landed) nothing is sent,
+unless a take-off or mission start was asked for and the vehicle has not yet been reported off
+the ground (it may be leaving it: the mode is sent as in the air); in the air the driver sets
+that ArduCopter mode (``MAV_CMD_DO_SET_MODE``) and waits at most
 :attr:`MavlinkDriver.SAFE_CONFIRM_WAIT` for the ack or a heartbeat in that mode; a vehicle that
 refuses LOITER or BRAKE (no position estimate) is sent LAND.
 
@@ -382,13 +384,17 @@ class MavlinkDriver(MissionClient):
         with self._cond:
             last_hb, armed, landed = self._last_hb, self._armed, self._landed_state
             moved, landed_at = self._moved_at, self._landed_at
+            lift, off_ground = self._lift_at, self._off_ground_at
         heard = last_hb is not None and now - last_hb <= self.heartbeat_timeout
         # an arm or take-off asked for after the newest heartbeat: it may be flying already
         stale_view = moved is not None and (last_hb is None or last_hb <= moved)
         if heard and not stale_view and not armed:
             return "vehicle on the ground: disarmed, nothing to do"
         stale_landed = moved is not None and (landed_at is None or landed_at <= moved)
-        if heard and not stale_landed and landed == p.MAV_LANDED_STATE_ON_GROUND:
+        # a take-off asked for and never seen off the ground: "on the ground" is a vehicle
+        # spooling up to leave it (its landed state comes at 2 Hz), so it is sent the mode too
+        lifting = lift is not None and (off_ground is None or off_ground <= lift)
+        if heard and not stale_landed and not lifting and landed == p.MAV_LANDED_STATE_ON_GROUND:
             return "vehicle on the ground: armed and landed, nothing sent"
         if not heard:  # it may be flying: send anyway, but do not wait for a silent vehicle
             if not self._send_mode(mode):
@@ -525,7 +531,7 @@ class MavlinkDriver(MissionClient):
         if p.mode_name(self._custom_mode) != "GUIDED":
             self.set_mode("GUIDED")
         nan = math.nan
-        self._moved_at = self.clock.monotonic()
+        self._moved_at = self._lift_at = self.clock.monotonic()
         self._send_command(p.MAV_CMD_NAV_TAKEOFF, (0.0, 0.0, 0.0, nan, nan, nan, float(altitude)))
 
     def goto(self, target: GeoPoint) -> None:
@@ -635,7 +641,7 @@ class MavlinkDriver(MissionClient):
             if p.mode_name(self._custom_mode) != "GUIDED":
                 self.set_mode("GUIDED")
             self.arm()
-        self._moved_at = self.clock.monotonic()
+        self._moved_at = self._lift_at = self.clock.monotonic()
         with self._cond:
             self._progress = MissionProgress(total=self._mission_total)
         self._note_mode(p.mode_number("AUTO"))  # MISSION_START switches to AUTO
