@@ -13,12 +13,17 @@ from types import ModuleType
 
 import pytest
 
+from temoto.testing.reaper import Reaper
+
 # A suite started as a background job of a shell without job control inherits SIGINT ignored
 # (POSIX), and so would every command a test starts: Ctrl-C tests then see nothing. The
 # suite's own process takes the default handler back, so its children start with SIGINT's
 # default action, as under a terminal or CI.
 if signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
     signal.signal(signal.SIGINT, signal.default_int_handler)
+
+#: What marks every process this run starts (temoto.testing.reaper ends them if the run is killed).
+RUN_MARK = "TEMOTO_TEST_RUN"
 
 THREAD_PREFIX = "temoto-"
 #: The test files outside ``tests/core/`` that reach a kernel (``tools/kernel_tests.py``).
@@ -114,3 +119,19 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     if drop:
         config.hook.pytest_deselected(items=drop)
         items[:] = keep
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Mark what this run starts; if the run is killed, a watcher ends what it left behind."""
+    if os.environ.get(RUN_MARK) is None:  # a suite run by a test of this suite has its own owner
+        config.stash[_REAPER] = Reaper(RUN_MARK, f"{os.getpid()}-{time.time_ns()}")
+
+
+def pytest_unconfigure(config: pytest.Config) -> None:
+    """The run ends normally: the watcher goes, having killed nothing."""
+    reaper = config.stash.get(_REAPER, None)
+    if reaper is not None:
+        reaper.close()
+
+
+_REAPER = pytest.StashKey[Reaper]()

@@ -56,6 +56,8 @@ from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import IO, Any, Final
 
+from temoto.testing import reaper
+
 __all__ = [
     "CAN_LINK",
     "FAMILIES",
@@ -358,20 +360,8 @@ def _holds(line: Mapping[str, Any], what: str) -> bool:
 
 
 def marked_pids(mark: str) -> list[int]:
-    """Pids of live processes whose environment holds ``mark``."""
-    found = []
-    needle = f"TEMOTO_EXITPATH_MARK={mark}".encode()
-    for entry in Path("/proc").iterdir():
-        if not entry.name.isdigit():
-            continue
-        try:
-            if needle in (entry / "environ").read_bytes().split(b"\0"):
-                stat = (entry / "stat").read_text()
-                if stat[stat.rindex(")") + 2] != "Z":
-                    found.append(int(entry.name))
-        except OSError:
-            continue
-    return found
+    """Pids of live processes whose environment holds ``TEMOTO_EXITPATH_MARK=mark``."""
+    return reaper.marked_pids("TEMOTO_EXITPATH_MARK", mark)
 
 
 def run_path(
