@@ -459,40 +459,57 @@ class ODriveDriver(CanMotorDriver):
         more. One device answers each request once, plus the cyclic heartbeats of the time it
         took and a few late answers to earlier requests; two devices answer every request
         twice, so at least twice the probes, and more than one device's most, are a second
-        device on the id.
+        device on the id. A node over that count is probed once more, and refused only if it
+        is over again: a second device answers every probe twice, while a burst of late answers
+        (a busy machine's queue) does not come back.
 
         Raises:
             DriverInitError: Two devices answer as one node (named: "duplicate ODrive node").
         """
+        suspects = self._probe_heartbeats(self._axes)
+        if suspects:
+            suspects = self._probe_heartbeats([axis for axis, _ in suspects])
+        for axis, said in suspects:
+            node = axis.node.node_id
+            raise DriverInitError(
+                f"{self.name}: duplicate ODrive node {node} ({axis.node.joint}): {said},"
+                f" and over that again when probed a second time: two devices answer as node"
+                f" {node}; give one of them another node id. Nothing was armed."
+            )
+
+    def _probe_heartbeats(self, axes: Sequence[AxisCache]) -> list[tuple[AxisCache, str]]:
+        """One heartbeat probe of ``axes`` (see :meth:`_refuse_duplicates`).
+
+        Returns:
+            The axes answered more often than one device would, each with what was counted.
+        """
         self._listen_real(DUPLICATE_LISTEN)  # answers to earlier requests come in first
         start = self.clock.monotonic()
-        before = [a.beats for a in self._axes]
+        before = [a.beats for a in axes]
         for _ in range(DUPLICATE_PROBES):
-            for axis in self._axes:
+            for axis in axes:
                 axis.hb_rate.ask()
                 self._send(axis.ids[cs.Cmd.HEARTBEAT], b"", remote=True)
         self._wait_for(
-            lambda: all(
-                a.beats - n >= DUPLICATE_PROBES for a, n in zip(self._axes, before, strict=True)
-            ),
+            lambda: all(a.beats - n >= DUPLICATE_PROBES for a, n in zip(axes, before, strict=True)),
             self.init_timeout,
         )
         self._listen_real(DUPLICATE_LISTEN)
-        for axis in self._axes:  # the probe's answers are not the cyclic rate: count anew
+        for axis in axes:  # the probe's answers are not the cyclic rate: count anew
             axis.hb_rate.clear()
         elapsed = self.clock.monotonic() - start
         cyclic = math.floor(elapsed / self.heartbeat_period) + 1  # the most one device sent
-        for axis, n in zip(self._axes, before, strict=True):
+        most = max(2 * DUPLICATE_PROBES - 1, DUPLICATE_PROBES + cyclic + _LATE_ANSWERS)
+        suspects = []
+        for axis, n in zip(axes, before, strict=True):
             got = axis.beats - n
-            most = max(2 * DUPLICATE_PROBES - 1, DUPLICATE_PROBES + cyclic + _LATE_ANSWERS)
             if got > most:
-                node = axis.node.node_id
-                raise DriverInitError(
-                    f"{self.name}: duplicate ODrive node {node} ({axis.node.joint}):"
-                    f" {got} heartbeats answered {DUPLICATE_PROBES} requests in {elapsed:.3f} s"
-                    f" (one device sends at most {most}): two devices answer as node {node};"
-                    " give one of them another node id. Nothing was armed."
+                said = (
+                    f"{got} heartbeats answered {DUPLICATE_PROBES} requests in {elapsed:.3f} s"
+                    f" (one device sends at most {most})"
                 )
+                suspects.append((axis, said))
+        return suspects
 
     def _check_device_limits(self) -> None:
         """Refuse profile limits beyond what each node, as it is configured, allows.
