@@ -4,10 +4,12 @@ from __future__ import annotations
 
 import math
 import threading
+import time
 import uuid
 from collections.abc import Callable, Iterator
 from typing import Any
 
+import can
 import pytest
 from contract import DriverContract, Rig, eventually
 from hypothesis import given
@@ -368,3 +370,36 @@ def test_a_late_supervisor_poll_does_not_undo_activation(
     assert sim.motors[2].enabled
     driver.command([JointCommand("shoulder", ControlMode.POSITION, 1.0)])
     eventually(lambda: abs(position(driver, "shoulder") - 1.0) < 0.01, 3.0, clock)
+
+
+def test_a_receive_thread_not_scheduled_is_not_a_silent_motor(
+    pair: tuple[MitMotorDriver, SimMitMotor], clock: ManualClock
+) -> None:
+    # heavy load (seen at 10x the cores): the polls go out, the replies queue, and the receive
+    # thread does not run to read them; "no reply to 10 polls" was then a false fault
+    driver, _ = pair
+    driver.configure()
+    driver.activate()
+    release, stalled = threading.Event(), threading.Event()
+    handle = driver._on_frame
+
+    def starved(msg: can.Message) -> None:
+        stalled.set()
+        release.wait(30)
+        handle(msg)
+
+    driver._on_frame = starved  # type: ignore[method-assign]
+    try:
+        eventually(stalled.is_set, 1.0, clock)  # the next reply: the thread stops there
+        polls = driver.timeout_periods + 5
+        for _ in range(polls * 4):  # polls go on meanwhile, unanswered as far as it knows
+            clock.advance(0.25 / RATE)
+            time.sleep(0.002)
+        assert driver.state is DriverState.ACTIVE, driver.health().error
+    finally:
+        driver._on_frame = handle  # type: ignore[method-assign]
+        release.set()
+    for _ in range(20):  # the queued replies are read: the motors answer as before
+        clock.advance(0.25 / RATE)
+        time.sleep(0.002)
+    assert driver.state is DriverState.ACTIVE, driver.health().error

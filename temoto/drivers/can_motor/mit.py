@@ -35,6 +35,7 @@ further gearbox is ``gear_ratio`` (motor turns per joint turn).
 
 from __future__ import annotations
 
+import collections
 import contextlib
 import logging
 import math
@@ -222,6 +223,7 @@ class _Motor:
         "held",
         "motor",
         "outstanding",
+        "polled",
         "replies",
         "reply",
         "saturated",
@@ -236,6 +238,8 @@ class _Motor:
         self.motor = motor
         self.age = StreamAge(f"{self.label()} replies", poll_period, periods + 1)
         self.unasked = FaultWindow(DUPLICATE_LIMIT, 1.0)
+        #: When the polls since its newest reply were sent (the newest ``periods + 2``)
+        self.polled: collections.deque[float] = collections.deque(maxlen=periods + 2)
         self.reset()
 
     def reset(self) -> None:
@@ -247,6 +251,7 @@ class _Motor:
         #: when the supervisor finds the motor silent
         self.outstanding = 0
         self.unanswered = 0
+        self.polled.clear()
         self.error = 0
         self.temperature: int | None = None
         #: Why the reported position is no longer the motor's (past the field's end), or None.
@@ -759,6 +764,7 @@ class MitMotorDriver(CanMotorDriver):
         c.temperature = reply.temperature
         c.error = reply.error or 0
         c.unanswered = 0
+        c.polled.clear()
         if self._bad is not None:
             self._bad = None
             self._bad_window.clear()
@@ -781,11 +787,13 @@ class MitMotorDriver(CanMotorDriver):
         if self._bus is None:
             return
         waiting = self._resync is not None
+        answered_by = self._answered_by(now)
         for c in self._cache:
             c.unanswered += 1
+            c.polled.append(now)
             with contextlib.suppress(DriverError), self._held_lock:  # a broken bus shows as
-                if c.unanswered > self.timeout_periods:  # missing replies; the motor is
-                    c.outstanding = 0  # silent: what it was sent is lost, not pending
+                if self._silent(c, answered_by):  # missing replies; the motor is silent:
+                    c.outstanding = 0  # what it was sent is lost, not pending
                 frame = c.held
                 if waiting and mm.special(frame) is None:  # a set-point waits for feedback:
                     frame = self._brake(c)  # the poll that asks for it only damps
@@ -819,12 +827,31 @@ class MitMotorDriver(CanMotorDriver):
             with contextlib.suppress(DriverError, StateError):
                 self._send_to(c, self._brake(c))
 
+    def _answered_by(self, now: float) -> float:
+        """Polls sent up to this clock time had a period to be answered and read.
+
+        As of :meth:`_link_seen` (without moving it): a receive thread the machine did not
+        schedule (heavy load) has not read the replies that queued meanwhile.
+        """
+        seen = now if self._rx_idle and self._resync is None else min(now, self._rx_seen)
+        return max(seen, self._seen_hi) - 1.0 / self.poll_rate
+
+    def _silent(self, c: _Motor, answered_by: float) -> bool:
+        """Whether ``c`` left ``timeout_periods`` polls in a row unanswered.
+
+        Only polls whose answers the receive thread would have read by now count.
+        """
+        if c.unanswered <= self.timeout_periods:
+            return False
+        return sum(1 for t in tuple(c.polled) if t <= answered_by) >= self.timeout_periods
+
     def _problem(self, now: float) -> DriverError | None:
         if self._expired is not None:
             return DriverTimeoutError(f"{self.name}: {self._expired}")
         seen = self._link_seen(now)
+        answered_by = seen - 1.0 / self.poll_rate
         for c in self._cache:
-            if c.unanswered > self.timeout_periods:
+            if self._silent(c, answered_by):
                 return DriverTimeoutError(
                     f"{self.name}: {c.label()}: no reply to {c.unanswered - 1} polls in a row"
                     f" ({self.timeout_periods / self.poll_rate:g} s)"
