@@ -40,7 +40,9 @@ each MIT reply leaves after the node's jitter, now and then late
 (:class:`~temoto.drivers.realism.CanTransmitter`: a late frame stalls the node, whose frames stay
 in order); the frames are held and sent at their clock time by the tick thread
 (:meth:`~temoto.drivers.can_motor.sim_bus.CanDeviceSim.send_at`), not rounded to the tick. An
-ODrive's answers to RTR requests leave at once.
+ODrive's answers to requests (RTR, ``RxSdo``) leave after the replies' jitter and behind the
+node's frames still queued, as from the one transmit queue of a real node: an answer never
+overtakes a late cyclic frame (at ``off``, at once).
 
 The bus may be ``virtual`` (one process) or ``udp_multicast`` (across processes).
 
@@ -259,6 +261,7 @@ class SimODrive(CanDeviceSim):
         data = bytes(msg.data)
         now = self.clock.monotonic()
         reply: tuple[int, bytes] | None = None
+        at = now
         with self._model_lock:
             self.frames_received += 1
             axis.step(now)
@@ -300,8 +303,14 @@ class SimODrive(CanDeviceSim):
             elif cmd == cs.Cmd.CLEAR_ERRORS:
                 cs.decode_clear_errors(data)
                 axis.error = self._hw_bits(node)  # a present condition stays
+            if reply is not None and self.transmitter.enabled:
+                # behind the node's frames still queued: a late heartbeat is never overtaken
+                at = self.transmitter.release(node, now, reply=True)
         if reply is not None:
-            self.send(self._ids[node, reply[0]], reply[1], node)
+            if at > now:
+                self.send_at(at, self._ids[node, reply[0]], reply[1], node)
+            else:
+                self.send(self._ids[node, reply[0]], reply[1], node)
 
     def _sdo(self, axis: AxisModel, data: bytes) -> bytes | None:
         """Answer an ``RxSdo`` as firmware 0.6.10 does (:mod:`odrive_sdo`); ``_model_lock`` held.

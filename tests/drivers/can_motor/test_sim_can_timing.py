@@ -191,3 +191,31 @@ def test_mit_replies_jitter_and_now_and_then_one_is_late(level: str) -> None:
     # the driver faults after 3 polls in a row unanswered: a reply is never that late
     assert max(delays) < 3 * PERIOD
     assert run_mit(200, realism=level, seed=11)[1].sent == wire.sent[:200]
+
+
+@pytest.mark.parametrize("level", ["typical", "harsh"])
+def test_odrive_answers_to_requests_never_overtake_a_late_frame(level: str) -> None:
+    # one transmit queue per node: an RTR answer queues behind the node's held frames; one
+    # that left at once put an old heartbeat after a newer one (CLOSED_LOOP, IDLE,
+    # CLOSED_LOOP: "two devices answer as node 1" in a loaded CI run)
+    clock = ManualClock()
+    sim = SimODrive(link(), [AxisModel(1)], clock, realism=level, seed=7)
+    wire = Wire(sim, clock)
+    request = can.Message(arbitration_id=(1 << 5) | HB, is_remote_frame=True, is_extended_id=False)
+    due, asked, overtaken = 0.0, 0, 0
+    while clock.monotonic() < 30.0:
+        now = clock.monotonic()
+        if now >= due:
+            sim.on_tick(now)
+            due = max(due + sim.tick, now)
+        with sim._cond:
+            held = [entry for entry in sim._later if entry[4] == 1]
+        if held:  # a frame of node 1 waits: ask for a heartbeat now
+            before = len(wire.sent)
+            sim.on_frame(request)
+            asked += 1
+            overtaken += len(wire.sent) > before  # the answer left before the held frame
+        clock.set(min(due, held_next(sim, now)))
+    assert asked > 100
+    assert overtaken == 0
+    assert wire.times() == sorted(wire.times())
