@@ -3,18 +3,20 @@
 ``TaRelayString_i`` runs on actor ``i`` and hands the string to ``TaRelayString_(i+1)`` on the
 next actor, so every node's result is a notification passed from actor to actor (and to the
 48 others); ``TaCompareString_0`` on actor 0 checks the string that went round. All processes
-run in one network namespace (`unshare -n`: loopback up, multicast routed to it), with the
-default timeouts (5 s to acknowledge a notification). Needs root, `unshare` and `ip`; skipped
-otherwise.
+run in one network namespace (`unshare -n`: loopback up, multicast routed to it). Every
+actor has :data:`NOTIFY_S` to acknowledge a notification, not the default 5 s: that default is
+for one process per robot computer, and here 50 share 2 cores (with a CPU hog of 2x the cores
+beside them, one process went 5 s without acknowledging while the others joined). Needs root,
+`unshare` and `ip`; skipped otherwise.
 
 Slow: 50 Python processes start on a 2-core machine, and every one agrees a session key with the
 49 others while the handshake runs (docs/security.md, "How many hellos"): 29 s on 2026-11-27 at
 a load average of 42 - 47. Past the minute a test of the default run may take on a loaded
 machine, it has a limit of its own and runs in the compiled pass of ``make test`` only. The
 handshake's JOINs stay small enough that every process acknowledges the first node's
-notification within the 5 s (50-entry JOINs kept every process decoding past them, and the run
-aborted everywhere). `python -m bench --only fleet` measures the handshake and the ring apart
-(`handshake_50_actors_ms`, `ring_50_actors_ms`).
+notification within the default 5 s on an idle machine (50-entry JOINs kept every process
+decoding past them, and the run aborted everywhere). `python -m bench --only fleet` measures
+the handshake and the ring apart (`handshake_50_actors_ms`, `ring_50_actors_ms`).
 
 Over Zenoh every process is a client of a `temoto router` in the namespace. That run
 took 22, 32 and 79 s here on 2026-11-27 (load averages 7 - 78; the LCM one 24 s at the same
@@ -42,6 +44,8 @@ KEY = "6b" * 32  # a fixed 32-byte fleet key, hex
 N = 50
 # Every process has started and imported temoto well before this (2 cores, 50 processes).
 HANDSHAKE_S = 120.0
+#: Seconds every actor has to acknowledge a notification (see the module docstring).
+NOTIFY_S = 20.0
 
 pytestmark = [
     pytest.mark.slow,
@@ -178,7 +182,10 @@ def test_a_ring_through_50_actor_processes_ends_on_true_everywhere(
         "actions": str(ACTIONS),
         "url": url,
         "key": KEY,
-        "extra": ["--handshake-timeout", str(HANDSHAKE_S), "--timeout", str(HANDSHAKE_S + 60)],
+        "extra": [
+            *("--handshake-timeout", str(HANDSHAKE_S), "--notify-timeout", str(NOTIFY_S)),
+            *("--timeout", str(HANDSHAKE_S + 60)),
+        ],
         "timeout": HANDSHAKE_S + 90,
     }
     env = {k: v for k, v in os.environ.items() if k != "TEMOTO_FLEET_KEY"}
